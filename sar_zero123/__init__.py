@@ -1,0 +1,29 @@
+"""sar_zero123: noise-tolerant novel-view SAR synthesis via denoising diffusion.
+
+Heavy submodules (diffusers, transformers) are imported lazily so that `import sar_zero123`
+and the data/simulator layers stay cheap.
+"""
+
+from __future__ import annotations
+
+import importlib
+from typing import Any
+
+__version__ = "0.1.0"
+
+_LAZY = {
+    "SARZero123Pipeline": "sar_zero123.pipeline",
+    "SARZero123PipelineOutput": "sar_zero123.pipeline",
+    "build_sar_zero123": "sar_zero123.pipeline",
+    "PoseProjection": "sar_zero123.conditioning",
+    "embed_pose": "sar_zero123.conditioning",
+    "SAREncoder": "sar_zero123.encoder",
+}
+
+__all__ = ["__version__", *_LAZY]
+
+
+def __getattr__(name: str) -> Any:
+    if name in _LAZY:
+        return getattr(importlib.import_module(_LAZY[name]), name)
+    raise AttributeError(f"module 'sar_zero123' has no attribute {name!r}")
