@@ -1,0 +1,208 @@
+"""Command-line configuration for the training scripts.
+
+Each script declares one ``@dataclass`` whose fields carry a default and a trailing comment.
+:func:`parse_config` turns it into command-line flags (``--field_name value``; ``--field-name`` is
+accepted too), optionally reads ``--config x.yaml`` (or ``.json``) first, and lets flags override
+the file. The trailing comment becomes the flag's help text. The dataclass's ``__post_init__`` does
+the validation, so a bad value fails with a ``ValueError`` naming the field before any work starts.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import inspect
+import json
+import os
+import re
+import tempfile
+import types
+import typing
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any, TypeVar
+
+import yaml
+
+ConfigT = TypeVar("ConfigT")
+
+_COMMENT_RE = re.compile(r"^\s*(\w+)\s*:[^#]*#\s*(.+?)\s*$")
+
+
+def _field_comments(cls: type) -> dict[str, str]:
+    """Trailing ``# comment`` of each field line in the class source (empty if unavailable)."""
+    try:
+        source = inspect.getsource(cls)
+    except (OSError, TypeError):
+        return {}
+    comments = {}
+    for line in source.splitlines():
+        match = _COMMENT_RE.match(line)
+        if match:
+            comments[match.group(1)] = match.group(2)
+    return comments
+
+
+def _unwrap_optional(annotation: Any) -> tuple[Any, bool]:
+    """``X | None`` -> (X, True); anything else -> (annotation, False)."""
+    origin = typing.get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        args = [a for a in typing.get_args(annotation) if a is not type(None)]
+        if len(args) == 1 and len(typing.get_args(annotation)) == 2:
+            return args[0], True
+    return annotation, False
+
+
+def _scalar_parser(annotation: Any, name: str) -> Any:
+    if annotation in (int, float, str):
+        return annotation
+    if annotation is Path:
+        return str
+    if typing.get_origin(annotation) is typing.Literal:
+        choices = typing.get_args(annotation)
+        return type(choices[0])
+    raise TypeError(f"config field {name!r}: unsupported type {annotation!r}")
+
+
+def _add_field(parser: argparse.ArgumentParser, field: dataclasses.Field, annotation: Any, help_text: str):
+    name = field.name
+    flags = [f"--{name}"] + ([f"--{name.replace('_', '-')}"] if "_" in name else [])
+    inner, optional = _unwrap_optional(annotation)
+    kwargs: dict[str, Any] = {"dest": name, "default": argparse.SUPPRESS, "help": help_text}
+    origin = typing.get_origin(inner)
+    if inner is bool:
+        parser.add_argument(*flags, action=argparse.BooleanOptionalAction, **kwargs)
+        return
+    if origin in (list, tuple, Sequence, typing.Sequence):
+        args = [a for a in typing.get_args(inner) if a is not Ellipsis]
+        element = args[0] if args else str
+        element_type = _scalar_parser(element, name)
+        parser.add_argument(*flags, nargs="*" if optional else "+", type=element_type, **kwargs)
+        return
+    scalar = _scalar_parser(inner, name)
+    if typing.get_origin(inner) is typing.Literal:
+        kwargs["choices"] = typing.get_args(inner)
+    if optional:
+        # "none" on the command line gives None for optional fields.
+        def parse_optional(text: str, _scalar=scalar) -> Any:
+            return None if text.lower() in ("none", "null") else _scalar(text)
+
+        parser.add_argument(*flags, type=parse_optional, **kwargs)
+    else:
+        parser.add_argument(*flags, type=scalar, **kwargs)
+
+
+def _coerce(value: Any, annotation: Any) -> Any:
+    """Coerce a YAML/JSON/CLI value to the field's declared container type."""
+    inner, _ = _unwrap_optional(annotation)
+    if value is None:
+        return None
+    if typing.get_origin(inner) is tuple and isinstance(value, (list, tuple)):
+        return tuple(value)
+    if typing.get_origin(inner) is list and isinstance(value, (list, tuple)):
+        return list(value)
+    return value
+
+
+def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
+    """Read a YAML or JSON mapping of config values.
+
+    Raises:
+        FileNotFoundError: if ``path`` does not exist.
+        ValueError: if the file does not hold a mapping.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"--config: no such file {str(path)!r}")
+    with path.open() as handle:
+        values = json.load(handle) if path.suffix == ".json" else yaml.safe_load(handle)
+    if values is None:
+        return {}
+    if not isinstance(values, dict):
+        raise ValueError(f"--config {str(path)!r}: expected a mapping of field names to values")
+    return values
+
+
+def parse_config(cls: type[ConfigT], argv: Sequence[str] | None = None) -> ConfigT:
+    """Build a config dataclass from ``--config FILE`` and command-line flags.
+
+    Precedence: dataclass defaults < values in ``--config`` < flags.
+
+    Args:
+        cls: a dataclass whose fields all have defaults.
+        argv: the arguments (without the program name); ``None`` reads ``sys.argv``.
+
+    Returns:
+        An instance of ``cls`` (its ``__post_init__`` has validated it).
+
+    Raises:
+        ValueError: for keys in the config file that are not fields of ``cls``, or bad values.
+        FileNotFoundError: if ``--config`` names a missing file.
+    """
+    if not dataclasses.is_dataclass(cls):
+        raise TypeError(f"{cls!r} is not a dataclass")
+    hints = typing.get_type_hints(cls)
+    comments = _field_comments(cls)
+    summary = (cls.__doc__ or "").strip().splitlines()
+    parser = argparse.ArgumentParser(description=summary[0] if summary else None)
+    parser.add_argument(
+        "--config", default=None, help="YAML or JSON file with field values (flags override it)"
+    )
+    fields = [f for f in dataclasses.fields(cls) if f.init]
+    for field in fields:
+        default = field.default if field.default is not dataclasses.MISSING else field.default_factory()  # type: ignore[misc]
+        help_text = f"{comments.get(field.name, '')} (default: {default!r})".strip()
+        _add_field(parser, field, hints[field.name], help_text)
+    namespace = vars(parser.parse_args(argv))
+    config_path = namespace.pop("config")
+    values: dict[str, Any] = {}
+    if config_path is not None:
+        file_values = read_config_file(config_path)
+        known = {f.name for f in fields}
+        unknown = sorted(set(file_values) - known)
+        if unknown:
+            raise ValueError(
+                f"--config {config_path!r}: unknown field(s) {unknown}; expected a subset of {sorted(known)}"
+            )
+        values.update(file_values)
+    values.update(namespace)
+    values = {name: _coerce(value, hints[name]) for name, value in values.items()}
+    return cls(**values)
+
+
+def config_to_dict(config: Any) -> dict[str, Any]:
+    """A JSON-serialisable dict of a config dataclass (paths become strings, tuples lists)."""
+
+    def convert(value: Any) -> Any:
+        if isinstance(value, Path):
+            return str(value)
+        if isinstance(value, (list, tuple)):
+            return [convert(v) for v in value]
+        if isinstance(value, dict):
+            return {k: convert(v) for k, v in value.items()}
+        return value
+
+    return {f.name: convert(getattr(config, f.name)) for f in dataclasses.fields(config)}
+
+
+def write_json_atomic(data: Any, path: str | os.PathLike) -> Path:
+    """Write JSON to ``path`` through a temporary file and ``os.replace`` (never a partial file)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "w") as handle:
+            json.dump(data, handle, indent=2, sort_keys=True)
+            handle.write("\n")
+            handle.flush()
+            os.fsync(handle.fileno())
+        os.replace(tmp_name, path)
+    except BaseException:
+        Path(tmp_name).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def save_config(config: Any, directory: str | os.PathLike, name: str = "config.json") -> Path:
+    """Save the resolved config as JSON next to a run's outputs; returns the file path."""
+    return write_json_atomic(config_to_dict(config), Path(directory) / name)

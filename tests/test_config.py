@@ -1,0 +1,67 @@
+"""Tests for config dataclass -> CLI flags and the YAML/JSON config file."""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import pytest
+
+from sar_zero123.config import parse_config, read_config_file, save_config
+
+
+@dataclass
+class DemoConfig:
+    """Demo config."""
+
+    output_dir: str = "runs/demo"  # where outputs go
+    learning_rate: float = 1e-4  # AdamW learning rate
+    max_steps: int = 10  # optimisation steps
+    use_ema: bool = True  # keep an EMA copy
+    presets: tuple[str, ...] = ("speckle", "monotonic")  # augmentation presets
+    steps: list[int] | None = None  # optional list of ints
+    data: str | None = None  # dataset folder or None for the simulator
+
+    def __post_init__(self):
+        if self.learning_rate <= 0:
+            raise ValueError(f"learning_rate must be > 0, got {self.learning_rate}")
+
+
+def test_defaults_and_flags():
+    config = parse_config(DemoConfig, [])
+    assert config == DemoConfig()
+    config = parse_config(
+        DemoConfig,
+        ["--learning-rate", "0.5", "--max_steps", "3", "--no-use_ema", "--presets", "a", "b", "c",
+         "--steps", "10", "20", "--data", "none"],
+    )
+    assert config.learning_rate == 0.5 and config.max_steps == 3 and config.use_ema is False
+    assert config.presets == ("a", "b", "c") and config.steps == [10, 20] and config.data is None
+
+
+def test_yaml_then_flags_override(tmp_path: Path):
+    path = tmp_path / "c.yaml"
+    path.write_text("max_steps: 7\npresets: [x]\nlearning_rate: 0.25\n")
+    config = parse_config(DemoConfig, ["--config", str(path), "--max_steps", "8"])
+    assert config.max_steps == 8 and config.presets == ("x",) and config.learning_rate == 0.25
+
+
+def test_bad_inputs(tmp_path: Path):
+    with pytest.raises(ValueError, match="learning_rate"):
+        parse_config(DemoConfig, ["--learning_rate", "-1"])
+    bad = tmp_path / "bad.yaml"
+    bad.write_text("max_stpes: 3\n")
+    with pytest.raises(ValueError, match="max_stpes"):
+        parse_config(DemoConfig, ["--config", str(bad)])
+    with pytest.raises(FileNotFoundError, match="missing.yaml"):
+        read_config_file(tmp_path / "missing.yaml")
+
+
+def test_save_config_round_trip(tmp_path: Path):
+    config = parse_config(DemoConfig, ["--max_steps", "4"])
+    path = save_config(config, tmp_path / "run")
+    saved = json.loads(path.read_text())
+    assert saved["max_steps"] == 4 and saved["presets"] == ["speckle", "monotonic"]
+    assert parse_config(DemoConfig, ["--config", str(path)]) == config
+    assert not list((tmp_path / "run").glob("*.tmp"))
