@@ -1,0 +1,289 @@
+"""The SAR encoder f: a ResNet-18 on normalised-dB chips, its SimCLR projection head and NT-Xent.
+
+The encoder is pretrained with SimCLR on co-domain augmented views (Table I) and then frozen: its
+512-d pooled feature h = f(x) is the feature space of the Projected Feature Matching loss (Eq. 20)
+and the backbone of the evaluation classifier and azimuth regressor.
+
+The body is transformers' `ResNetModel` (basic blocks, depths (2, 2, 2, 2), widths 64-512). For
+128x128 SAR chips the reference setting swaps its ImageNet stem (7x7 stride-2 convolution plus
+max-pool, a 4x downsampling) for a CIFAR-style stem (3x3 stride-1 convolution, no pooling), which
+keeps the small target's scattering centres resolved; the backbone then has 11,168,832 parameters
+for 3 input channels and 11,167,680 for 1 input channel.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+import torch.nn.functional as F
+from safetensors.torch import load_file, save_file
+from torch import nn
+from transformers import ResNetConfig, ResNetModel
+from transformers.models.resnet.modeling_resnet import ResNetConvLayer
+
+CONFIG_NAME = "config.json"
+WEIGHTS_NAME = "model.safetensors"
+
+
+@dataclass
+class SAREncoderConfig:
+    """Architecture of the SAR encoder.
+
+    Args:
+        image_size: Side of the square input chips in pixels; `forward` rejects other sizes.
+        in_channels: Input channels of the first convolution (1 for SAR magnitude; 3 to mirror RGB
+            backbones, in which case 1-channel input is replicated to 3).
+        cifar_stem: Use the 3x3 stride-1 stem without max-pool instead of the 7x7 stride-2 + max-pool
+            ImageNet stem.
+        depths: Basic blocks per stage.
+        hidden_sizes: Channels per stage; the last one is the feature dimension.
+        embedding_size: Channels of the stem.
+    """
+
+    image_size: int = 128  # side of the square input chip in pixels
+    in_channels: int = 1  # 1 for SAR magnitude, 3 to mirror RGB backbones
+    cifar_stem: bool = True  # 3x3 stride-1 stem, no max-pool (reference setting for 128 px SAR)
+    depths: tuple[int, ...] = (2, 2, 2, 2)  # ResNet-18
+    hidden_sizes: tuple[int, ...] = (64, 128, 256, 512)  # stage widths; the last is the feature size
+    embedding_size: int = 64  # stem width
+
+    def __post_init__(self) -> None:
+        self.depths = tuple(int(d) for d in self.depths)
+        self.hidden_sizes = tuple(int(h) for h in self.hidden_sizes)
+        if self.image_size < 8:
+            raise ValueError(f"image_size must be >= 8, got {self.image_size}")
+        if self.in_channels not in (1, 3):
+            raise ValueError(f"in_channels must be 1 or 3, got {self.in_channels}")
+        if len(self.depths) == 0 or len(self.depths) != len(self.hidden_sizes):
+            raise ValueError(
+                f"depths and hidden_sizes must be non-empty and of equal length, got {self.depths} "
+                f"and {self.hidden_sizes}"
+            )
+        if min(self.depths) < 1:
+            raise ValueError(f"depths must be >= 1, got {self.depths}")
+        if min(self.hidden_sizes) < 1 or self.embedding_size < 1:
+            raise ValueError(
+                f"hidden_sizes and embedding_size must be positive, got {self.hidden_sizes}, "
+                f"{self.embedding_size}"
+            )
+
+    def to_dict(self) -> dict:
+        """Returns the configuration as a JSON-serialisable dict."""
+        out = dataclasses.asdict(self)
+        out["depths"] = list(self.depths)
+        out["hidden_sizes"] = list(self.hidden_sizes)
+        return out
+
+    @classmethod
+    def from_dict(cls, values: dict) -> SAREncoderConfig:
+        """Builds a configuration from `to_dict` output, ignoring unknown keys (e.g. `model_type`)."""
+        names = {f.name for f in dataclasses.fields(cls)}
+        return cls(**{k: v for k, v in values.items() if k in names})
+
+
+class SAREncoder(nn.Module):
+    """ResNet-18 SAR encoder returning the pooled feature h = f(x).
+
+    Args:
+        config: Architecture; defaults to the reference setting (`SAREncoderConfig()`).
+
+    Example:
+        >>> encoder = SAREncoder(SAREncoderConfig(image_size=64))
+        >>> encoder(torch.rand(2, 1, 64, 64)).shape
+        torch.Size([2, 512])
+    """
+
+    def __init__(self, config: SAREncoderConfig | None = None) -> None:
+        super().__init__()
+        self.config = config if config is not None else SAREncoderConfig()
+        resnet_config = ResNetConfig(
+            num_channels=self.config.in_channels,
+            embedding_size=self.config.embedding_size,
+            hidden_sizes=list(self.config.hidden_sizes),
+            depths=list(self.config.depths),
+            layer_type="basic",
+            downsample_in_first_stage=False,
+        )
+        self.resnet = ResNetModel(resnet_config)
+        if self.config.cifar_stem:
+            # transformers has no option for the CIFAR stem: replace its convolution and pooling.
+            stem = ResNetConvLayer(
+                self.config.in_channels, self.config.embedding_size, kernel_size=3, stride=1
+            )
+            nn.init.kaiming_normal_(stem.convolution.weight, mode="fan_out", nonlinearity="relu")
+            self.resnet.embedder.embedder = stem
+            self.resnet.embedder.pooler = nn.Identity()
+
+    @property
+    def feature_dim(self) -> int:
+        """Dimension of h = f(x) (512 for ResNet-18)."""
+        return self.config.hidden_sizes[-1]
+
+    @property
+    def device(self) -> torch.device:
+        """Device of the encoder's parameters."""
+        return next(self.parameters()).device
+
+    @property
+    def dtype(self) -> torch.dtype:
+        """Floating dtype of the encoder's parameters."""
+        return next(self.parameters()).dtype
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        """Encodes chips into pooled features.
+
+        Args:
+            x: Chips in normalised decibels, [0, 1] (the project's model-input domain). Values are
+                not range-checked here so that decoded images slightly outside [0, 1] still pass.
+
+        Returns:
+            The pooled feature h = f(x); differentiable with respect to `x`.
+
+        Shape:
+            x: (B, C, image_size, image_size) with C == in_channels, or C == 1 when in_channels == 3.
+            output: (B, feature_dim).
+
+        Raises:
+            ValueError: If `x` has the wrong rank, channel count or spatial size, or is not floating.
+        """
+        if x.ndim != 4:
+            raise ValueError(f"x must have shape (B, C, H, W), got rank {x.ndim} shape {tuple(x.shape)}")
+        if not torch.is_floating_point(x):
+            raise ValueError(f"x must be a floating tensor, got dtype {x.dtype}")
+        channels = x.shape[1]
+        if channels != self.config.in_channels and not (channels == 1 and self.config.in_channels == 3):
+            raise ValueError(f"x must have {self.config.in_channels} channels (in_channels), got {channels}")
+        size = self.config.image_size
+        if x.shape[-2:] != (size, size):
+            raise ValueError(f"x must be {size}x{size} (image_size), got {tuple(x.shape[-2:])}")
+        if channels != self.config.in_channels:
+            x = x.expand(-1, self.config.in_channels, -1, -1)  # (B, 3, H, W)
+        # Zero-centre the [0, 1] normalised dB so the stem sees a symmetric input range.
+        hidden = self.resnet(x * 2.0 - 1.0, return_dict=True).pooler_output  # (B, D, 1, 1)
+        return hidden.flatten(1)  # (B, D)
+
+    def save_pretrained(self, save_directory: str | Path) -> Path:
+        """Writes `config.json` and `model.safetensors` into `save_directory`.
+
+        Hand-written instead of diffusers' `ModelMixin` so that the folder holds exactly these two
+        files and a missing folder never falls through to a Hub download.
+
+        Args:
+            save_directory: Target folder, created if needed.
+
+        Returns:
+            The folder path.
+        """
+        directory = Path(save_directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        state = {k: v.detach().cpu().contiguous() for k, v in self.state_dict().items()}
+        save_file(state, str(directory / WEIGHTS_NAME), metadata={"format": "pt"})
+        payload = {"model_type": "sar_encoder", **self.config.to_dict()}
+        (directory / CONFIG_NAME).write_text(json.dumps(payload, indent=2) + "\n")
+        return directory
+
+    @classmethod
+    def from_pretrained(cls, pretrained_path: str | Path, device: str | torch.device = "cpu") -> SAREncoder:
+        """Loads an encoder written by `save_pretrained`, in eval mode.
+
+        Args:
+            pretrained_path: Folder holding `config.json` and `model.safetensors`.
+            device: Device to load the weights onto.
+
+        Returns:
+            The encoder, in eval mode (BatchNorm uses its running statistics).
+
+        Raises:
+            FileNotFoundError: If the folder or one of its two files is missing.
+        """
+        directory = Path(pretrained_path)
+        for path in (directory / CONFIG_NAME, directory / WEIGHTS_NAME):
+            if not path.is_file():
+                raise FileNotFoundError(f"SAR encoder checkpoint not found: {path}")
+        config = SAREncoderConfig.from_dict(json.loads((directory / CONFIG_NAME).read_text()))
+        encoder = cls(config)
+        encoder.load_state_dict(load_file(str(directory / WEIGHTS_NAME), device=str(device)))
+        return encoder.to(device).eval()
+
+
+class ProjectionHead(nn.Module):
+    """SimCLR projection head g: Linear - ReLU - Linear (512-512-128 in the reference setting).
+
+    Args:
+        in_dim: Feature dimension of the encoder.
+        hidden_dim: Hidden width.
+        out_dim: Dimension of the projection z = g(h) on which NT-Xent is computed.
+    """
+
+    def __init__(self, in_dim: int = 512, hidden_dim: int = 512, out_dim: int = 128) -> None:
+        super().__init__()
+        for name, value in (("in_dim", in_dim), ("hidden_dim", hidden_dim), ("out_dim", out_dim)):
+            if value < 1:
+                raise ValueError(f"{name} must be >= 1, got {value}")
+        self.net = nn.Sequential(
+            nn.Linear(in_dim, hidden_dim), nn.ReLU(inplace=True), nn.Linear(hidden_dim, out_dim)
+        )
+
+    def forward(self, h: torch.Tensor) -> torch.Tensor:
+        """Projects features.
+
+        Args:
+            h: Encoder features.
+
+        Returns:
+            Projections z.
+
+        Shape:
+            h: (B, in_dim). output: (B, out_dim).
+        """
+        return self.net(h)
+
+
+def nt_xent_loss(z1: torch.Tensor, z2: torch.Tensor, temperature: float = 0.5) -> torch.Tensor:
+    """Normalised temperature-scaled cross-entropy (SimCLR) for N positive pairs.
+
+    With u = normalise(cat(z1, z2)) and s_ij = u_i . u_j / temperature, the anchor loss is
+    l(i, j) = -log(exp(s_ij) / sum_{k != i} exp(s_ik)) where j is the other view of i. The loss of
+    pair n is (l(n, n+N) + l(n+N, n)) / 2, so the mean over pairs is the usual SimCLR objective
+    averaged over all 2N anchors. Collapsed embeddings give log(2N - 1) for every pair.
+
+    Args:
+        z1: Projections of the first views.
+        z2: Projections of the second views (row n pairs with row n of `z1`).
+        temperature: Softmax temperature tau (0.5 in the reference setting).
+
+    Returns:
+        Per-pair loss, computed in float32 (also under autocast).
+
+    Shape:
+        z1, z2: (N, D) with N >= 1. output: (N,).
+
+    Raises:
+        ValueError: If shapes differ or are not (N, D), or `temperature` is not positive.
+    """
+    if z1.ndim != 2 or z1.shape != z2.shape:
+        raise ValueError(f"z1 and z2 must both be (N, D), got {tuple(z1.shape)} and {tuple(z2.shape)}")
+    if not (temperature > 0 and math.isfinite(temperature)):
+        raise ValueError(f"temperature must be positive and finite, got {temperature}")
+    n = z1.shape[0]
+    u = F.normalize(torch.cat([z1, z2]).float(), dim=1)  # (2N, D)
+    logits = u @ u.T / temperature  # (2N, 2N)
+    logits = logits.masked_fill(torch.eye(2 * n, dtype=torch.bool, device=u.device), float("-inf"))
+    positives = torch.arange(2 * n, device=u.device).roll(n)  # anchor i pairs with i + N (mod 2N)
+    per_anchor = F.cross_entropy(logits, positives, reduction="none")  # (2N,)
+    return (per_anchor[:n] + per_anchor[n:]) / 2
+
+
+__all__ = [
+    "CONFIG_NAME",
+    "WEIGHTS_NAME",
+    "ProjectionHead",
+    "SAREncoder",
+    "SAREncoderConfig",
+    "nt_xent_loss",
+]
