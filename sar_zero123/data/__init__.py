@@ -1,0 +1,61 @@
+"""SAR data layer: MSTAR (raw and image folders), MSTAR-OOD splits, SAMPLE, dB scaling, view pairs.
+
+Public names (see ``docs/ARCHITECTURE.md``)::
+
+    read_mstar_raw(path) -> MSTARChip
+    ChipRecord, load_index(root) -> list[ChipRecord], write_index(records, root)
+    split_records(records, protocol, seed=0), prepare_splits(data, protocol, work_dir, seed=0)
+    load_magnitude(path), center_crop_resize(image, size=128)
+    to_decibels, from_decibels, DecibelScaling
+    ChipDataset, ViewPairDataset, wrap_azimuth_deg
+    load_sample(root) -> list[SamplePair]
+"""
+
+from .datasets import ChipDataset, load_chip, resolve_class_names
+from .images import center_crop, center_crop_resize, load_magnitude
+from .index import INDEX_COLUMNS, ChipRecord, class_names_of, load_index, write_index
+from .mstar_raw import MSTARChip, read_mstar_header, read_mstar_raw, target_class_from_type
+from .sample import SamplePair, load_sample, parse_sample_name
+from .scaling import (
+    MSTAR_RAW_MAX_DB,
+    UNIT_MAGNITUDE_MAX_DB,
+    ZERO_MAGNITUDE_DB,
+    DecibelScaling,
+    from_decibels,
+    to_decibels,
+)
+from .splits import PROTOCOLS, ood_validation_intervals, prepare_splits, split_records
+from .view_pairs import ViewPairDataset, wrap_azimuth_deg
+
+__all__ = [
+    "INDEX_COLUMNS",
+    "MSTAR_RAW_MAX_DB",
+    "PROTOCOLS",
+    "UNIT_MAGNITUDE_MAX_DB",
+    "ZERO_MAGNITUDE_DB",
+    "ChipDataset",
+    "ChipRecord",
+    "DecibelScaling",
+    "MSTARChip",
+    "SamplePair",
+    "ViewPairDataset",
+    "center_crop",
+    "center_crop_resize",
+    "class_names_of",
+    "from_decibels",
+    "load_chip",
+    "load_index",
+    "load_magnitude",
+    "load_sample",
+    "ood_validation_intervals",
+    "parse_sample_name",
+    "prepare_splits",
+    "read_mstar_header",
+    "read_mstar_raw",
+    "resolve_class_names",
+    "split_records",
+    "target_class_from_type",
+    "to_decibels",
+    "wrap_azimuth_deg",
+    "write_index",
+]

@@ -1,0 +1,164 @@
+"""Reading chip files as magnitude images, and bringing them to a common size.
+
+``load_magnitude`` returns float32 magnitude for every file kind the project meets:
+
+==========================  ======================================================
+file                        magnitude
+==========================  ======================================================
+8-bit JPEG/PNG              pixel / 255 (the shared MSTAR JPEGs, SAMPLE PNGs)
+16-bit PNG                  pixel / 65535
+``.npy``                    the stored float array (the simulator writes [0, 1])
+``.mat`` (SAMPLE)           ``abs(complex_img)``
+original MSTAR (Phoenix)    the stored float magnitude (calibrated, not in [0, 1])
+==========================  ======================================================
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from skimage.transform import resize
+
+from .mstar_raw import is_mstar_raw, read_mstar_raw
+
+__all__ = ["IMAGE_SUFFIXES", "center_crop", "center_crop_resize", "load_magnitude"]
+
+IMAGE_SUFFIXES = (".jpeg", ".jpg", ".png", ".tif", ".tiff", ".bmp")
+# Keys of the complex image in SAMPLE .mat files, in order of preference.
+_MAT_IMAGE_KEYS = ("complex_img", "complex_img_unshifted")
+
+
+def _load_image_file(path: Path) -> np.ndarray:
+    with Image.open(path) as image:
+        if image.mode in ("RGB", "RGBA", "P", "LA"):
+            # Grayscale stored as colour: the channels are equal for SAR chips; take luminance.
+            image = image.convert("L")
+        pixels = np.asarray(image)
+    if pixels.dtype == np.uint8:
+        return pixels.astype(np.float32) / 255.0
+    if pixels.dtype in (np.uint16, np.int32) and image.mode.startswith("I"):
+        # PIL opens 16-bit PNGs as mode "I" / "I;16" (int32 or uint16 values up to 65535).
+        return pixels.astype(np.float32) / 65535.0
+    if pixels.dtype == np.bool_:
+        return pixels.astype(np.float32)
+    if np.issubdtype(pixels.dtype, np.floating):
+        return pixels.astype(np.float32)
+    raise ValueError(f"{path}: unsupported image pixel type {pixels.dtype} (mode {image.mode})")
+
+
+def _load_mat(path: Path) -> np.ndarray:
+    from scipy.io import loadmat
+
+    contents = loadmat(path)
+    for key in _MAT_IMAGE_KEYS:
+        if key in contents:
+            return np.abs(np.asarray(contents[key])).astype(np.float32)
+    keys = sorted(k for k in contents if not k.startswith("__"))
+    raise ValueError(f"{path}: .mat file has none of the keys {list(_MAT_IMAGE_KEYS)}; it has {keys}")
+
+
+def load_magnitude(path: str | Path) -> np.ndarray:
+    """Reads a chip file as float32 magnitude.
+
+    Args:
+        path: A JPEG/PNG/TIFF image, a ``.npy`` array, a SAMPLE ``.mat`` file or an original MSTAR file.
+
+    Returns:
+        Magnitude image (see the module table for the convention of each file kind).
+
+    Shape:
+        (H, W).
+
+    Raises:
+        FileNotFoundError: If ``path`` does not exist.
+        ValueError: If the file is not a single-channel 2-D image, or holds negative or non-finite
+            magnitudes.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"chip file not found: {path}")
+    suffix = path.suffix.lower()
+    if suffix == ".npy":
+        magnitude = np.load(path, allow_pickle=False)
+        if not (np.issubdtype(magnitude.dtype, np.floating) or np.issubdtype(magnitude.dtype, np.integer)):
+            raise ValueError(f"{path}: .npy chip must hold real numbers, got dtype {magnitude.dtype}")
+        magnitude = magnitude.astype(np.float32)
+    elif suffix == ".mat":
+        magnitude = _load_mat(path)
+    elif suffix in IMAGE_SUFFIXES:
+        magnitude = _load_image_file(path)
+    elif is_mstar_raw(path):
+        magnitude = read_mstar_raw(path).magnitude
+    else:
+        raise ValueError(
+            f"{path}: unknown chip file kind; expected one of {list(IMAGE_SUFFIXES)}, .npy, .mat or an "
+            "original MSTAR file"
+        )
+    if magnitude.ndim == 3 and magnitude.shape[0] == 1:
+        magnitude = magnitude[0]
+    if magnitude.ndim != 2:
+        raise ValueError(f"{path}: expected a single-channel (H, W) image, got shape {magnitude.shape}")
+    if not np.isfinite(magnitude).all():
+        raise ValueError(f"{path}: magnitude contains non-finite values (NaN or inf); expected finite values")
+    if (magnitude < 0).any():
+        raise ValueError(f"{path}: magnitude contains negative values; expected magnitudes >= 0")
+    return magnitude
+
+
+def center_crop(image: np.ndarray, crop_size: int) -> np.ndarray:
+    """Cuts the central ``crop_size x crop_size`` square (the target sits at the chip centre).
+
+    For an odd margin the extra row/column is dropped at the end, so a 129x128 chip loses its last row.
+
+    Args:
+        image: Image of shape (..., H, W) with H, W >= crop_size.
+        crop_size: Side of the square.
+
+    Returns:
+        The crop (a view). Shape: (..., crop_size, crop_size).
+
+    Raises:
+        ValueError: If the image is smaller than ``crop_size`` or ``crop_size`` < 1.
+    """
+    height, width = image.shape[-2:]
+    if crop_size < 1:
+        raise ValueError(f"crop_size must be >= 1, got {crop_size}")
+    if height < crop_size or width < crop_size:
+        raise ValueError(f"image of size {height}x{width} is smaller than crop_size={crop_size}")
+    top = (height - crop_size) // 2
+    left = (width - crop_size) // 2
+    return image[..., top : top + crop_size, left : left + crop_size]
+
+
+def center_crop_resize(image: np.ndarray, size: int = 128, crop_size: int | None = None) -> np.ndarray:
+    """Centre-crops a chip to a square and resizes it to ``size x size``.
+
+    With ``crop_size=None`` the crop keeps the pixel spacing whenever possible: a chip at least ``size``
+    pixels on each side is cropped to ``size`` with no resampling (MSTAR chips of 128 to 193 pixels all
+    keep their 0.2 m pixels); a smaller chip is cropped to its shorter side and upsampled. An explicit
+    ``crop_size`` crops that square and resizes it to ``size`` (bilinear, anti-aliased when shrinking).
+
+    Args:
+        image: Magnitude image. Shape: (H, W).
+        size: Output side in pixels.
+        crop_size: Side of the central square to cut before resizing; ``None`` = ``min(size, H, W)``.
+
+    Returns:
+        Float32 image. Shape: (size, size).
+
+    Raises:
+        ValueError: If ``image`` is not 2-D, ``size`` < 1, or ``crop_size`` exceeds the image.
+    """
+    if image.ndim != 2:
+        raise ValueError(f"image must have shape (H, W), got {image.shape}")
+    if size < 1:
+        raise ValueError(f"size must be >= 1, got {size}")
+    if crop_size is None:
+        crop_size = min(size, *image.shape)
+    crop = center_crop(image, crop_size)
+    if crop_size == size:
+        return np.ascontiguousarray(crop, dtype=np.float32)
+    resized = resize(crop, (size, size), order=1, mode="reflect", anti_aliasing=crop_size > size)
+    return resized.astype(np.float32)

@@ -1,0 +1,264 @@
+"""Chip records and the ``index.csv`` that lists them.
+
+Two layouts are read by :func:`load_index`:
+
+* an image folder with ``index.csv`` (the layout of the shared MSTAR JPEG chips and of the built-in
+  simulator): columns ``path,target_class,target_type,serial,depression_deg,azimuth_deg,height,width``
+  (``path`` relative to the folder; ``mstar_source`` optional);
+* a folder tree of original MSTAR files without ``index.csv``: the headers are scanned once and the
+  index is written next to them (temporary file + ``os.replace``, so no partial index is ever left),
+  then reused.
+"""
+
+from __future__ import annotations
+
+import csv
+import math
+import os
+import tempfile
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+from .mstar_raw import is_mstar_raw, read_mstar_raw, target_class_from_type
+
+__all__ = [
+    "INDEX_COLUMNS",
+    "INDEX_FILENAME",
+    "OPTIONAL_COLUMNS",
+    "REQUIRED_COLUMNS",
+    "ChipRecord",
+    "class_names_of",
+    "load_index",
+    "write_index",
+]
+
+INDEX_FILENAME = "index.csv"
+REQUIRED_COLUMNS = ("path", "target_class", "serial", "depression_deg", "azimuth_deg")
+OPTIONAL_COLUMNS = ("target_type", "height", "width", "mstar_source")
+# Column order written by :func:`write_index`.
+INDEX_COLUMNS = (
+    "path",
+    "target_class",
+    "target_type",
+    "serial",
+    "depression_deg",
+    "azimuth_deg",
+    "height",
+    "width",
+    "mstar_source",
+)
+
+
+@dataclass(frozen=True)
+class ChipRecord:
+    """Metadata of one chip file.
+
+    Attributes:
+        path: Absolute path of the image file (JPEG/PNG, ``.npy`` or original MSTAR).
+        target_class: Class name (e.g. ``"T72"``); labels are indices into the sorted class names.
+        serial: Serial number of the physical object; (target_class, serial) identifies one object.
+        depression_deg: Nominal depression angle in degrees.
+        azimuth_deg: Target azimuth in degrees, in [0, 360).
+        target_type: Finer type name if known (e.g. ``"t72_tank"``).
+        height: Image height in pixels if known.
+        width: Image width in pixels if known.
+        source: Where the chip came from if known (the original MSTAR path for the shared data).
+    """
+
+    path: Path
+    target_class: str
+    serial: str
+    depression_deg: float
+    azimuth_deg: float
+    target_type: str | None = None
+    height: int | None = None
+    width: int | None = None
+    source: str | None = None
+
+    def __post_init__(self) -> None:
+        if not self.target_class:
+            raise ValueError(f"{self.path}: target_class must be a non-empty string")
+        if not math.isfinite(self.depression_deg):
+            raise ValueError(f"{self.path}: depression_deg must be finite, got {self.depression_deg}")
+        if not (math.isfinite(self.azimuth_deg) and 0.0 <= self.azimuth_deg < 360.0):
+            raise ValueError(f"{self.path}: azimuth_deg must lie in [0, 360) degrees, got {self.azimuth_deg}")
+
+    @property
+    def object_id(self) -> tuple[str, str]:
+        """(target_class, serial): the physical object the chip shows."""
+        return (self.target_class, self.serial)
+
+
+def _parse_float(value: str, column: str, where: str) -> float:
+    try:
+        number = float(value)
+    except ValueError:
+        raise ValueError(f"{where}: column '{column}' must be a number, got {value!r}") from None
+    if not math.isfinite(number):
+        raise ValueError(f"{where}: column '{column}' must be finite, got {value!r}")
+    return number
+
+
+def _parse_optional_int(value: str | None, column: str, where: str) -> int | None:
+    if value is None or value == "":
+        return None
+    try:
+        return int(value)
+    except ValueError:
+        raise ValueError(f"{where}: column '{column}' must be an integer, got {value!r}") from None
+
+
+def _read_index_csv(index_path: Path) -> list[ChipRecord]:
+    root = index_path.parent.resolve()
+    with open(index_path, newline="") as handle:
+        reader = csv.DictReader(handle)
+        columns = reader.fieldnames or []
+        missing = [name for name in REQUIRED_COLUMNS if name not in columns]
+        if missing:
+            raise ValueError(
+                f"{index_path}: missing column(s) {missing}; expected at least {list(REQUIRED_COLUMNS)}"
+            )
+        unknown = [name for name in columns if name not in REQUIRED_COLUMNS + OPTIONAL_COLUMNS]
+        if unknown:
+            raise ValueError(
+                f"{index_path}: unknown column(s) {unknown}; expected only "
+                f"{list(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)}"
+            )
+        records = []
+        for line_number, row in enumerate(reader, start=2):
+            where = f"{index_path}:{line_number}"
+            if None in row or any(row[name] is None for name in columns):
+                raise ValueError(f"{where}: expected {len(columns)} fields, got a row of a different length")
+            path = root / row["path"]
+            if not path.is_file():
+                raise FileNotFoundError(f"{where}: chip file '{row['path']}' does not exist ({path})")
+            azimuth_deg = _parse_float(row["azimuth_deg"], "azimuth_deg", where)
+            if not 0.0 <= azimuth_deg < 360.0:
+                raise ValueError(f"{where}: column 'azimuth_deg' must lie in [0, 360), got {azimuth_deg}")
+            records.append(
+                ChipRecord(
+                    path=path,
+                    target_class=row["target_class"],
+                    serial=row["serial"],
+                    depression_deg=_parse_float(row["depression_deg"], "depression_deg", where),
+                    azimuth_deg=azimuth_deg,
+                    target_type=row.get("target_type") or None,
+                    height=_parse_optional_int(row.get("height"), "height", where),
+                    width=_parse_optional_int(row.get("width"), "width", where),
+                    source=row.get("mstar_source") or None,
+                )
+            )
+    if not records:
+        raise ValueError(f"{index_path}: the index lists no chips")
+    return records
+
+
+def write_index(records: Sequence[ChipRecord], root: str | Path) -> Path:
+    """Writes ``root/index.csv`` atomically (temporary file, then ``os.replace``).
+
+    Args:
+        records: The chips; their paths must lie inside ``root`` (they are stored relative to it).
+        root: The folder the index describes.
+
+    Returns:
+        The path of the written ``index.csv``.
+
+    Raises:
+        ValueError: If ``records`` is empty or a path lies outside ``root``.
+    """
+    root = Path(root).resolve()
+    if not records:
+        raise ValueError(f"{root}: refusing to write an index without chips")
+    rows = []
+    for record in records:
+        try:
+            relative = Path(record.path).resolve().relative_to(root)
+        except ValueError:
+            raise ValueError(f"{record.path}: chip path must lie inside the indexed folder {root}") from None
+        rows.append(
+            {
+                "path": relative.as_posix(),
+                "target_class": record.target_class,
+                "target_type": record.target_type or "",
+                "serial": record.serial,
+                "depression_deg": repr(float(record.depression_deg)),
+                "azimuth_deg": repr(float(record.azimuth_deg)),
+                "height": "" if record.height is None else record.height,
+                "width": "" if record.width is None else record.width,
+                "mstar_source": record.source or "",
+            }
+        )
+    index_path = root / INDEX_FILENAME
+    handle = tempfile.NamedTemporaryFile(
+        "w", dir=root, prefix=".index.", suffix=".csv.tmp", delete=False, newline=""
+    )
+    try:
+        with handle:
+            writer = csv.DictWriter(handle, fieldnames=list(INDEX_COLUMNS))
+            writer.writeheader()
+            writer.writerows(rows)
+        os.replace(handle.name, index_path)
+    except BaseException:
+        Path(handle.name).unlink(missing_ok=True)
+        raise
+    return index_path
+
+
+def _scan_raw_folder(root: Path) -> list[ChipRecord]:
+    records = []
+    for path in sorted(p for p in root.rglob("*") if p.is_file() and not p.name.startswith(".")):
+        if path.name == INDEX_FILENAME or not is_mstar_raw(path):
+            continue
+        # Reading the whole chip validates the data length and values before the index is written.
+        chip = read_mstar_raw(path)
+        records.append(
+            ChipRecord(
+                path=path.resolve(),
+                target_class=target_class_from_type(chip.target_type),
+                serial=chip.serial,
+                depression_deg=chip.depression_deg,
+                azimuth_deg=chip.azimuth_deg,
+                target_type=chip.target_type,
+                height=chip.magnitude.shape[0],
+                width=chip.magnitude.shape[1],
+                source=path.relative_to(root).as_posix(),
+            )
+        )
+    return records
+
+
+def load_index(root: str | Path) -> list[ChipRecord]:
+    """Lists the chips of a data folder.
+
+    Args:
+        root: A folder with ``index.csv`` (paths in it relative to the folder), or a folder tree of
+            original MSTAR files (indexed on first use; the index is cached as ``root/index.csv``).
+
+    Returns:
+        One record per chip, in index order, with absolute paths.
+
+    Raises:
+        FileNotFoundError: If ``root`` does not exist or a path in the index does not exist.
+        ValueError: If the index misses a required column or has an unknown one, a value is malformed
+            or out of range (azimuth outside [0, 360), non-finite angles), or the folder holds no chips.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"data folder not found: {root}")
+    index_path = root / INDEX_FILENAME
+    if index_path.is_file():
+        return _read_index_csv(index_path)
+    records = _scan_raw_folder(root.resolve())
+    if not records:
+        raise ValueError(
+            f"{root}: no '{INDEX_FILENAME}' and no original MSTAR files "
+            "(files starting with '[PhoenixHeader') found"
+        )
+    write_index(records, root)
+    return records
+
+
+def class_names_of(records: Iterable[ChipRecord]) -> list[str]:
+    """Sorted distinct class names: ``label = class_names.index(record.target_class)``."""
+    return sorted({record.target_class for record in records})

@@ -1,0 +1,231 @@
+"""Reader for chips in the original MSTAR ("Phoenix") file format.
+
+An MSTAR chip file is an ASCII header followed by binary data::
+
+    [PhoenixHeaderVer01.04]
+    PhoenixHeaderLength= 01974
+    NumberOfColumns= 128
+    NumberOfRows= 128
+    TargetType= bmp2_tank
+    TargetSerNum= c21
+    TargetAz= 13.191422
+    DesiredDepression= 17
+    ...
+    [EndofPhoenixHeader]
+    <rows*cols big-endian float32 magnitude><rows*cols big-endian float32 phase>
+
+``PhoenixHeaderLength`` counts the bytes of the ASCII header from the start of the file (which begins with
+a newline in the public release); a non-zero ``native_header_length``
+announces a second (binary) header between the Phoenix header and the pixels. Some releases store
+only the magnitude plane; the phase is then ``None``.
+
+No maintained Python package reads this format (readers in the wild fold or truncate the azimuth),
+so it is parsed here with ``numpy.frombuffer``.
+"""
+
+from __future__ import annotations
+
+import math
+import re
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+__all__ = [
+    "MSTARChip",
+    "REQUIRED_HEADER_FIELDS",
+    "is_mstar_raw",
+    "read_mstar_header",
+    "read_mstar_raw",
+    "target_class_from_type",
+]
+
+PHOENIX_MAGIC = b"[PhoenixHeader"
+END_OF_HEADER = "[EndofPhoenixHeader]"
+# Fields needed to locate the pixels and to label the chip.
+REQUIRED_HEADER_FIELDS = (
+    "PhoenixHeaderLength",
+    "NumberOfRows",
+    "NumberOfColumns",
+    "TargetType",
+    "TargetSerNum",
+    "TargetAz",
+    "DesiredDepression",
+)
+# The header is a few kB; read at most this much when looking for its end.
+_MAX_HEADER_BYTES = 1 << 16
+_FIELD = re.compile(r"^\s*([A-Za-z0-9_]+)\s*=\s*(.*?)\s*$")
+
+
+@dataclass(frozen=True)
+class MSTARChip:
+    """One chip read from an original MSTAR file.
+
+    Attributes:
+        magnitude: Float32 magnitude, as stored (not normalised). Shape (H, W).
+        phase: Float32 phase in radians, or ``None`` when the file holds only magnitude. Shape (H, W).
+        header: Every ``key= value`` field of the Phoenix header, values as strings.
+        target_type: ``TargetType`` (e.g. ``"bmp2_tank"``).
+        serial: ``TargetSerNum`` (e.g. ``"c21"``).
+        azimuth_deg: ``TargetAz`` in degrees, in [0, 360), neither folded nor rounded.
+        depression_deg: ``DesiredDepression`` in degrees (the nominal 15 or 17 of the protocols);
+            the measured value is in ``header["MeasuredDepression"]``.
+    """
+
+    magnitude: np.ndarray
+    phase: np.ndarray | None
+    header: dict[str, str]
+    target_type: str
+    serial: str
+    azimuth_deg: float
+    depression_deg: float
+
+    @property
+    def target_class(self) -> str:
+        """The class name used by the MSTAR protocols (``"BMP2"``, ``"ZSU234"``, ...)."""
+        return target_class_from_type(self.target_type)
+
+
+def target_class_from_type(target_type: str) -> str:
+    """Maps an MSTAR ``TargetType`` to the class name used by the protocols.
+
+    The class is the part before the first underscore, upper-cased, without hyphens:
+    ``bmp2_tank -> BMP2``, ``zsu23-4_gun -> ZSU234``, ``2s1_gun -> 2S1``, ``slicey -> SLICEY``.
+
+    Args:
+        target_type: The header's ``TargetType`` value.
+
+    Returns:
+        The class name.
+
+    Raises:
+        ValueError: If ``target_type`` is empty.
+    """
+    name = target_type.strip().split("_")[0].replace("-", "").upper()
+    if not name:
+        raise ValueError(f"TargetType must be a non-empty name, got {target_type!r}")
+    return name
+
+
+def is_mstar_raw(path: str | Path) -> bool:
+    """Whether a file starts with a Phoenix header (cheap: reads 64 bytes)."""
+    with open(path, "rb") as handle:
+        return handle.read(64).lstrip().startswith(PHOENIX_MAGIC)
+
+
+def _parse_header(text: str, path: Path) -> dict[str, str]:
+    header: dict[str, str] = {}
+    for line in text.splitlines():
+        if line.strip() == END_OF_HEADER:
+            return header
+        match = _FIELD.match(line)
+        if match:
+            header[match.group(1)] = match.group(2)
+    raise ValueError(f"{path}: no '{END_OF_HEADER}' line found; not a complete MSTAR Phoenix header")
+
+
+def _header_number(header: dict[str, str], key: str, path: Path, kind: type = float) -> float | int:
+    if key not in header:
+        raise ValueError(f"{path}: Phoenix header has no required field '{key}'")
+    try:
+        value = kind(header[key])
+    except ValueError:
+        raise ValueError(
+            f"{path}: header field '{key}' must be {kind.__name__}, got {header[key]!r}"
+        ) from None
+    if kind is float and not math.isfinite(value):
+        raise ValueError(f"{path}: header field '{key}' must be finite, got {header[key]!r}")
+    return value
+
+
+def read_mstar_header(path: str | Path) -> dict[str, str]:
+    """Reads only the Phoenix header of an MSTAR file.
+
+    Args:
+        path: The MSTAR file.
+
+    Returns:
+        Every header field as a string, keyed by its name.
+
+    Raises:
+        FileNotFoundError: If ``path`` does not exist.
+        ValueError: If the file does not start with a Phoenix header or the header does not end.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"MSTAR file not found: {path}")
+    with open(path, "rb") as handle:
+        head = handle.read(_MAX_HEADER_BYTES)
+    # Files of the public release start with a newline before the first header line.
+    if not head.lstrip().startswith(PHOENIX_MAGIC):
+        raise ValueError(f"{path}: expected an MSTAR file starting with '[PhoenixHeader', got {head[:20]!r}")
+    end = head.find(END_OF_HEADER.encode())
+    if end < 0:
+        raise ValueError(f"{path}: no '{END_OF_HEADER}' line found; not a complete MSTAR Phoenix header")
+    return _parse_header(head[: end + len(END_OF_HEADER)].decode("latin-1"), path)
+
+
+def read_mstar_raw(path: str | Path) -> MSTARChip:
+    """Reads an MSTAR chip: Phoenix header, then big-endian float32 magnitude and phase.
+
+    Args:
+        path: The MSTAR file (e.g. ``HB03787.002``).
+
+    Returns:
+        The chip with its magnitude, phase (or ``None``), full header and typed labels.
+
+    Shape:
+        ``magnitude`` and ``phase``: (NumberOfRows, NumberOfColumns).
+
+    Raises:
+        FileNotFoundError: If ``path`` does not exist.
+        ValueError: If the header lacks a required field or a field is malformed, the data is shorter
+            than ``NumberOfRows x NumberOfColumns`` float32 values, the magnitude is negative or not
+            finite, or ``TargetAz`` lies outside [0, 360).
+    """
+    # 1. header
+    path = Path(path)
+    header = read_mstar_header(path)
+    for key in REQUIRED_HEADER_FIELDS:
+        if key not in header:
+            raise ValueError(f"{path}: Phoenix header has no required field '{key}'")
+    header_length = int(_header_number(header, "PhoenixHeaderLength", path, int))
+    rows = int(_header_number(header, "NumberOfRows", path, int))
+    cols = int(_header_number(header, "NumberOfColumns", path, int))
+    native_length = int(_header_number(header, "native_header_length", path, int)) if (
+        "native_header_length" in header
+    ) else 0
+    if rows <= 0 or cols <= 0:
+        raise ValueError(f"{path}: NumberOfRows and NumberOfColumns must be positive, got {rows} x {cols}")
+    azimuth_deg = float(_header_number(header, "TargetAz", path))
+    if not 0.0 <= azimuth_deg < 360.0:
+        raise ValueError(f"{path}: header field 'TargetAz' must lie in [0, 360) degrees, got {azimuth_deg}")
+    depression_deg = float(_header_number(header, "DesiredDepression", path))
+
+    # 2. pixels: magnitude plane, then (optionally) the phase plane
+    data = path.read_bytes()[header_length + native_length :]
+    plane_bytes = rows * cols * 4
+    if len(data) < plane_bytes:
+        raise ValueError(
+            f"{path}: truncated MSTAR file: header declares {rows} x {cols} float32 pixels "
+            f"({plane_bytes} bytes) but only {len(data)} bytes follow the header"
+        )
+    magnitude = np.frombuffer(data, dtype=">f4", count=rows * cols).reshape(rows, cols).astype(np.float32)
+    phase = None
+    if len(data) >= 2 * plane_bytes:
+        phase = np.frombuffer(data, dtype=">f4", count=rows * cols, offset=plane_bytes)
+        phase = phase.reshape(rows, cols).astype(np.float32)
+    if not np.isfinite(magnitude).all():
+        raise ValueError(f"{path}: magnitude contains non-finite values (NaN or inf); expected finite floats")
+    if (magnitude < 0).any():
+        raise ValueError(f"{path}: magnitude contains negative values; expected magnitudes >= 0")
+    return MSTARChip(
+        magnitude=magnitude,
+        phase=phase,
+        header=header,
+        target_type=header["TargetType"],
+        serial=header["TargetSerNum"],
+        azimuth_deg=azimuth_deg,
+        depression_deg=depression_deg,
+    )

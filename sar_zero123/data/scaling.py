@@ -1,0 +1,178 @@
+"""Decibel scaling: magnitude -> decibels -> [0, 1] with dataset-global bounds.
+
+Every model of the project sees "normalised dB" images::
+
+    db = 20 * log10(m + 1e-3)                 # to_decibels; zero magnitude is -60 dB
+    x  = (db - min_db) / (max_db - min_db)    # DecibelScaling.normalize, in [0, 1]
+
+with one ``(min_db, max_db)`` for the whole dataset (not per image), so relative brightness between
+chips survives. The bounds are stored (``to_dict``) with every run so a trained model and its
+pipeline normalise identically.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Iterable
+from dataclasses import dataclass
+from typing import Any, TypeVar
+
+import numpy as np
+import torch
+
+__all__ = [
+    "DB_EPS",
+    "MSTAR_RAW_MAX_DB",
+    "UNIT_MAGNITUDE_MAX_DB",
+    "ZERO_MAGNITUDE_DB",
+    "DecibelScaling",
+    "from_decibels",
+    "to_decibels",
+]
+
+DB_EPS = 1e-3
+ZERO_MAGNITUDE_DB = 20.0 * math.log10(DB_EPS)  # -60 dB
+# Largest decibel value of magnitudes normalised to [0, 1] (8-bit images as pixel/255, the simulator).
+UNIT_MAGNITUDE_MAX_DB = 20.0 * math.log10(1.0 + DB_EPS)  # 0.00868 dB
+# Upper bound the paper's reference implementation uses for calibrated (raw) MSTAR magnitudes.
+MSTAR_RAW_MAX_DB = 24.4912
+
+Array = TypeVar("Array", np.ndarray, torch.Tensor)
+
+
+def to_decibels(magnitude: Array) -> Array:
+    """Magnitude to decibels, ``20 * log10(m + 1e-3)`` (zero magnitude maps to -60 dB).
+
+    Args:
+        magnitude: Non-negative magnitudes (NumPy array or torch tensor).
+
+    Returns:
+        Decibels, same type, shape and floating dtype as the input.
+    """
+    if isinstance(magnitude, torch.Tensor):
+        return 20.0 * torch.log10(magnitude + DB_EPS)
+    return (20.0 * np.log10(np.asarray(magnitude) + DB_EPS)).astype(np.result_type(magnitude, np.float32))
+
+
+def from_decibels(decibels: Array) -> Array:
+    """Inverse of :func:`to_decibels`: ``10 ** (db / 20) - 1e-3``.
+
+    Args:
+        decibels: Decibel values (NumPy array or torch tensor).
+
+    Returns:
+        Magnitudes, same type and shape as the input.
+    """
+    if isinstance(decibels, torch.Tensor):
+        return torch.pow(10.0, decibels / 20.0) - DB_EPS
+    return (np.power(10.0, np.asarray(decibels) / 20.0) - DB_EPS).astype(np.result_type(decibels, np.float32))
+
+
+@dataclass(frozen=True)
+class DecibelScaling:
+    """Min-max normalisation of decibels with dataset-global bounds.
+
+    The default bounds fit magnitudes already normalised to [0, 1] (8-bit images read as pixel/255 and
+    the built-in simulator): ``min_db = -60`` (zero magnitude) and ``max_db = 20*log10(1 + 1e-3)``.
+    For calibrated raw MSTAR magnitudes use :meth:`for_mstar_raw` (max 24.4912 dB, the value of the
+    paper's reference implementation) or :meth:`fit` on the training chips.
+
+    Attributes:
+        min_db: Decibel value mapped to 0.
+        max_db: Decibel value mapped to 1.
+    """
+
+    min_db: float = ZERO_MAGNITUDE_DB
+    max_db: float = UNIT_MAGNITUDE_MAX_DB
+
+    def __post_init__(self) -> None:
+        if not (math.isfinite(self.min_db) and math.isfinite(self.max_db)):
+            raise ValueError(f"min_db and max_db must be finite, got {self.min_db} and {self.max_db}")
+        if not self.max_db > self.min_db:
+            raise ValueError(f"max_db must exceed min_db, got min_db={self.min_db}, max_db={self.max_db}")
+
+    @classmethod
+    def for_unit_magnitude(cls) -> DecibelScaling:
+        """Bounds for magnitudes in [0, 1]: [-60 dB, 20*log10(1.001) dB] (the default)."""
+        return cls(min_db=ZERO_MAGNITUDE_DB, max_db=UNIT_MAGNITUDE_MAX_DB)
+
+    @classmethod
+    def for_mstar_raw(cls) -> DecibelScaling:
+        """Bounds for calibrated raw MSTAR magnitudes: [-60 dB, 24.4912 dB] (paper's reference code)."""
+        return cls(min_db=ZERO_MAGNITUDE_DB, max_db=MSTAR_RAW_MAX_DB)
+
+    @classmethod
+    def fit(cls, data: Iterable[Any]) -> DecibelScaling:
+        """Finds the global decibel bounds of a dataset.
+
+        Args:
+            data: Magnitude arrays/tensors, or :class:`~sar_zero123.data.ChipRecord` objects (their
+                files are read with :func:`~sar_zero123.data.load_magnitude`).
+
+        Returns:
+            Scaling with ``min_db``/``max_db`` = the smallest/largest decibel value over all pixels.
+
+        Raises:
+            ValueError: If ``data`` is empty, a magnitude is negative or not finite, or all pixels
+                have the same value.
+        """
+        from .images import load_magnitude  # images imports this module
+
+        low, high, count = math.inf, -math.inf, 0
+        for item in data:
+            if isinstance(item, torch.Tensor):
+                magnitude = item.detach().cpu().numpy()
+            elif isinstance(item, np.ndarray):
+                magnitude = item
+            else:
+                magnitude = load_magnitude(item.path)
+            if not np.isfinite(magnitude).all() or (magnitude < 0).any():
+                raise ValueError(f"magnitude #{count} must be finite and >= 0 to fit decibel bounds")
+            low = min(low, float(magnitude.min()))
+            high = max(high, float(magnitude.max()))
+            count += 1
+        if count == 0:
+            raise ValueError("data must hold at least one magnitude image to fit decibel bounds")
+        return cls(min_db=float(to_decibels(np.float64(low))), max_db=float(to_decibels(np.float64(high))))
+
+    def normalize(self, magnitude: Array, clip: bool = True) -> Array:
+        """Magnitude to normalised decibels.
+
+        Args:
+            magnitude: Non-negative magnitudes (NumPy array or torch tensor).
+            clip: Clamp the result to [0, 1] (values outside the fitted bounds would otherwise leave it).
+
+        Returns:
+            ``(to_decibels(m) - min_db) / (max_db - min_db)``, same type and shape.
+        """
+        x = (to_decibels(magnitude) - self.min_db) / (self.max_db - self.min_db)
+        if clip:
+            return x.clamp(0.0, 1.0) if isinstance(x, torch.Tensor) else np.clip(x, 0.0, 1.0)
+        return x
+
+    def denormalize(self, x: Array) -> Array:
+        """Normalised decibels back to magnitude (inverse of :meth:`normalize` inside the bounds).
+
+        Args:
+            x: Normalised decibels (NumPy array or torch tensor), nominally in [0, 1].
+
+        Returns:
+            ``from_decibels(min_db + x * (max_db - min_db))``, same type and shape.
+        """
+        return from_decibels(self.min_db + x * (self.max_db - self.min_db))
+
+    def to_dict(self) -> dict[str, float]:
+        """JSON-serialisable bounds, e.g. ``{"min_db": -60.0, "max_db": 0.0087}``."""
+        return {"min_db": float(self.min_db), "max_db": float(self.max_db)}
+
+    @classmethod
+    def from_dict(cls, values: dict[str, Any]) -> DecibelScaling:
+        """Rebuilds the scaling saved by :meth:`to_dict`.
+
+        Raises:
+            ValueError: If ``min_db`` or ``max_db`` is missing or invalid.
+        """
+        missing = [key for key in ("min_db", "max_db") if key not in values]
+        if missing:
+            raise ValueError(f"decibel scaling dict lacks {missing}; expected keys 'min_db' and 'max_db'")
+        return cls(min_db=float(values["min_db"]), max_db=float(values["max_db"]))

@@ -1,0 +1,168 @@
+"""Train/validation/test protocols of the paper (MSTAR extended, MSTAR SOC, MSTAR-OOD).
+
+* ``"extended"``: train = 17 deg depression, test = 15 deg, every serial (MSTAR: 6,059 / 5,392).
+* ``"soc"``: the same with BMP2 restricted to serial 9563 and T72 to serial 132 (2,747 / 2,425).
+* ``"ood-<CLASS>"`` (paper: ``"ood-T72"``): test = every chip of the held-out class at every
+  depression; from the other classes, the chips whose azimuth falls into one of 12 randomly chosen
+  3-degree intervals form ``"val"``; the rest is ``"train"``. The intervals are taken on the absolute
+  azimuth: interval k covers [3k, 3k + 3) degrees, k in 0..119, 12 distinct k drawn without replacement
+  by ``numpy.random.default_rng(seed)``. The same intervals apply to every class and depression.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .index import INDEX_FILENAME, ChipRecord, load_index
+
+__all__ = [
+    "OOD_INTERVAL_WIDTH_DEG",
+    "OOD_NUM_INTERVALS",
+    "PROTOCOLS",
+    "SOC_SERIALS",
+    "TEST_DEPRESSION_DEG",
+    "TRAIN_DEPRESSION_DEG",
+    "ood_validation_intervals",
+    "prepare_splits",
+    "split_records",
+]
+
+PROTOCOLS = ("extended", "soc", "ood-<CLASS>")
+TRAIN_DEPRESSION_DEG = 17.0
+TEST_DEPRESSION_DEG = 15.0
+# Standard operating condition: one serial per class for the two classes with several in MSTAR.
+SOC_SERIALS = {"BMP2": "9563", "T72": "132"}
+OOD_NUM_INTERVALS = 12
+OOD_INTERVAL_WIDTH_DEG = 3.0
+# Depressions are nominal (15, 17, ...); tolerate float noise in indexes.
+_DEPRESSION_TOL_DEG = 0.5
+
+
+def ood_validation_intervals(
+    seed: int = 0, num_intervals: int = OOD_NUM_INTERVALS, width_deg: float = OOD_INTERVAL_WIDTH_DEG
+) -> list[tuple[float, float]]:
+    """The azimuth intervals removed from training as the MSTAR-OOD validation split.
+
+    Args:
+        seed: Seed of ``numpy.random.default_rng``.
+        num_intervals: How many intervals.
+        width_deg: Width of each interval; 360 must be a multiple of it.
+
+    Returns:
+        Sorted half-open intervals ``(start_deg, end_deg)`` = [k * width, (k + 1) * width).
+
+    Raises:
+        ValueError: If 360 is not a multiple of ``width_deg`` or more intervals are asked than exist.
+    """
+    count = 360.0 / width_deg
+    if width_deg <= 0 or not math.isclose(count, round(count)):
+        raise ValueError(f"width_deg must divide 360, got {width_deg}")
+    count = round(count)
+    if not 0 < num_intervals <= count:
+        raise ValueError(f"num_intervals must lie in [1, {count}], got {num_intervals}")
+    starts = np.sort(np.random.default_rng(seed).choice(count, size=num_intervals, replace=False))
+    return [(float(k * width_deg), float((k + 1) * width_deg)) for k in starts]
+
+
+def _at_depression(record: ChipRecord, depression_deg: float) -> bool:
+    return abs(record.depression_deg - depression_deg) < _DEPRESSION_TOL_DEG
+
+
+def _resolve_class(records: Sequence[ChipRecord], name: str) -> str:
+    classes = sorted({record.target_class for record in records})
+    if name in classes:
+        return name
+    matches = [c for c in classes if c.lower() == name.lower()]
+    if len(matches) == 1:
+        return matches[0]
+    raise ValueError(f"protocol 'ood-{name}': unknown held-out class {name!r}; the records hold {classes}")
+
+
+def split_records(records: Sequence[ChipRecord], protocol: str, seed: int = 0) -> dict[str, list[ChipRecord]]:
+    """Splits chips by one of the paper's protocols (see the module docstring).
+
+    Args:
+        records: All chips (e.g. from :func:`~sar_zero123.data.load_index`).
+        protocol: ``"extended"``, ``"soc"`` or ``"ood-<CLASS>"`` (class name as in the records; matched
+            case-insensitively when unambiguous).
+        seed: Seed of the random validation intervals (``ood-*`` only); splits are deterministic in it.
+
+    Returns:
+        ``{"train": [...], "test": [...]}``, plus ``"val"`` for ``ood-*``; records keep their input order.
+
+    Raises:
+        ValueError: If the protocol is unknown, the held-out class does not occur, or a split is empty.
+    """
+    records = list(records)
+    splits: dict[str, list[ChipRecord]]
+    if protocol in ("extended", "soc"):
+        if protocol == "soc":
+            records = [r for r in records if SOC_SERIALS.get(r.target_class, r.serial) == r.serial]
+        splits = {
+            "train": [r for r in records if _at_depression(r, TRAIN_DEPRESSION_DEG)],
+            "test": [r for r in records if _at_depression(r, TEST_DEPRESSION_DEG)],
+        }
+    elif protocol.startswith("ood-") and len(protocol) > len("ood-"):
+        held_out = _resolve_class(records, protocol[len("ood-") :])
+        intervals = ood_validation_intervals(seed)
+
+        def in_val(record: ChipRecord) -> bool:
+            return any(start <= record.azimuth_deg < end for start, end in intervals)
+
+        others = [r for r in records if r.target_class != held_out]
+        splits = {
+            "train": [r for r in others if not in_val(r)],
+            "val": [r for r in others if in_val(r)],
+            "test": [r for r in records if r.target_class == held_out],
+        }
+    else:
+        raise ValueError(f"unknown protocol {protocol!r}; expected one of {list(PROTOCOLS)}")
+    for name, split in splits.items():
+        if not split:
+            depressions = sorted({r.depression_deg for r in records})
+            raise ValueError(
+                f"protocol {protocol!r} gives an empty '{name}' split "
+                f"({len(records)} chips, depressions {depressions})"
+            )
+    return splits
+
+
+def prepare_splits(
+    data: str | Path | None, protocol: str, work_dir: str | Path, seed: int = 0, **sim_kwargs: Any
+) -> dict[str, list[ChipRecord]]:
+    """Loads a dataset (or simulates the built-in one) and splits it.
+
+    Args:
+        data: A data folder for :func:`~sar_zero123.data.load_index`, or ``None`` for the built-in
+            simulated dataset, written once to ``work_dir / "sim_data"`` and reused while its index exists.
+        protocol: See :func:`split_records`.
+        work_dir: Folder for the simulated dataset (only used when ``data`` is ``None``).
+        seed: Seed of the split and of the simulator.
+        **sim_kwargs: Passed to ``sar_zero123.sim.simulate_dataset`` (``classes``, ``instances``,
+            ``azimuth_step_deg``, ``depressions_deg``, ``size``).
+
+    Returns:
+        The splits, as :func:`split_records` returns them.
+
+    Raises:
+        ValueError: If ``sim_kwargs`` are given together with ``data``; see also :func:`load_index` and
+            :func:`split_records`.
+    """
+    if data is None:
+        sim_dir = Path(work_dir) / "sim_data"
+        if not (sim_dir / INDEX_FILENAME).is_file():
+            # Imported here: the simulator is only needed for the built-in dataset.
+            from sar_zero123.sim import simulate_dataset
+
+            simulate_dataset(sim_dir, seed=seed, **sim_kwargs)
+        root = sim_dir
+    else:
+        if sim_kwargs:
+            raise ValueError(f"simulator options {sorted(sim_kwargs)} only apply when data is None")
+        root = Path(data)
+    return split_records(load_index(root), protocol, seed=seed)

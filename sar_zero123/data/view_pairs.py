@@ -1,0 +1,174 @@
+"""``ViewPairDataset``: two views of the same object and their relative pose.
+
+A pair is (input chip, target chip) of the same physical object, i.e. the same ``target_class`` and
+``serial``; the model learns to turn the input into the target given::
+
+    d_az_deg = wrap(target azimuth - input azimuth)   in (-180, 180]
+    d_el_deg = target depression - input depression
+
+The pair list is drawn once from ``seed`` (and the epoch, see :meth:`ViewPairDataset.set_epoch`) when
+the dataset is built, so every DataLoader worker sees the same pairs and a run is reproducible.
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from .datasets import load_chip, resolve_class_names
+from .index import ChipRecord
+from .scaling import DecibelScaling
+
+__all__ = ["ViewPairDataset", "wrap_azimuth_deg"]
+
+
+def wrap_azimuth_deg(angle_deg: float | np.ndarray) -> float | np.ndarray:
+    """Wraps an angle difference to (-180, 180] degrees (so -180 becomes +180).
+
+    Args:
+        angle_deg: Angle(s) in degrees.
+
+    Returns:
+        The equivalent angle(s) in (-180, 180].
+    """
+    wrapped = 180.0 - np.mod(180.0 - np.asarray(angle_deg, dtype=np.float64), 360.0)
+    return float(wrapped) if np.ndim(wrapped) == 0 else wrapped
+
+
+class ViewPairDataset(Dataset):
+    """Pairs of chips of one object at two poses, for novel-view training and evaluation.
+
+    Each item is ``{"input": (1, S, S), "target": (1, S, S)`` float32 normalised dB, ``"d_az_deg"``
+    in (-180, 180], ``"d_el_deg"``, ``"label"``, ``"input_azimuth_deg"``, ``"target_azimuth_deg"``,
+    ``"input_depression_deg"``, ``"target_depression_deg"}`` (floats), plus ``"input_magnitude"`` and
+    ``"target_magnitude"`` (1, S, S) when ``return_magnitude``.
+
+    Sampling: every input chip with at least one admissible partner (same object, not itself, within
+    ``max_d_az_deg``, same depression if ``same_depression``) contributes ``pairs_per_chip`` pairs, the
+    targets drawn uniformly from its partners; or, with ``num_pairs``, that many pairs with the input chip
+    drawn uniformly from the admissible ones.
+
+    Args:
+        records: The chips.
+        size: Output side S in pixels.
+        scaling: Decibel bounds (default :meth:`DecibelScaling.for_unit_magnitude`).
+        max_d_az_deg: Largest |d_az| in degrees (``None``: any).
+        same_depression: Pair only chips at the same depression (else also across depressions).
+        seed: Seed of the pair list.
+        pairs_per_chip: Pairs per admissible input chip (ignored when ``num_pairs`` is set).
+        num_pairs: Fixed number of pairs per epoch.
+        class_names: Names defining the labels (default: sorted classes of ``records``).
+        return_magnitude: Also return the magnitudes.
+        crop_size: Side of the centre crop before resizing.
+
+    Raises:
+        ValueError: For a bad option or when no chip has an admissible partner.
+    """
+
+    def __init__(
+        self,
+        records: Sequence[ChipRecord],
+        size: int = 128,
+        scaling: DecibelScaling | None = None,
+        max_d_az_deg: float | None = None,
+        same_depression: bool = True,
+        seed: int = 0,
+        pairs_per_chip: int = 1,
+        num_pairs: int | None = None,
+        class_names: Sequence[str] | None = None,
+        return_magnitude: bool = False,
+        crop_size: int | None = None,
+    ) -> None:
+        if size < 1:
+            raise ValueError(f"size must be >= 1, got {size}")
+        if max_d_az_deg is not None and not 0.0 <= max_d_az_deg <= 180.0:
+            raise ValueError(f"max_d_az_deg must lie in [0, 180] degrees or be None, got {max_d_az_deg}")
+        if pairs_per_chip < 1:
+            raise ValueError(f"pairs_per_chip must be >= 1, got {pairs_per_chip}")
+        if num_pairs is not None and num_pairs < 1:
+            raise ValueError(f"num_pairs must be >= 1 or None, got {num_pairs}")
+        self.records = list(records)
+        self.class_names = resolve_class_names(self.records, class_names)
+        self.size = size
+        self.crop_size = crop_size
+        self.scaling = scaling if scaling is not None else DecibelScaling.for_unit_magnitude()
+        self.max_d_az_deg = max_d_az_deg
+        self.same_depression = same_depression
+        self.seed = seed
+        self.pairs_per_chip = pairs_per_chip
+        self.num_pairs = num_pairs
+        self.return_magnitude = return_magnitude
+        self._label = {name: i for i, name in enumerate(self.class_names)}
+        self._groups = self._group_objects()
+        if not any(allowed.any() for _, allowed in self._groups):
+            raise ValueError(
+                f"no chip has a partner view of the same object (max_d_az_deg={max_d_az_deg}, "
+                f"same_depression={same_depression}, {len(self.records)} chips)"
+            )
+        self.set_epoch(0)
+
+    def _group_objects(self) -> list[tuple[np.ndarray, np.ndarray]]:
+        """Per object (and depression): member indices and the (n, n) admissible-pair mask."""
+        groups: dict[tuple, list[int]] = defaultdict(list)
+        for i, record in enumerate(self.records):
+            key = record.object_id + ((round(record.depression_deg, 3),) if self.same_depression else ())
+            groups[key].append(i)
+        result = []
+        for members in groups.values():
+            azimuths = np.array([self.records[i].azimuth_deg for i in members])
+            d_az = np.abs(wrap_azimuth_deg(azimuths[None, :] - azimuths[:, None]))  # (n_input, n_target)
+            allowed = ~np.eye(len(members), dtype=bool)
+            if self.max_d_az_deg is not None:
+                allowed &= d_az <= self.max_d_az_deg
+            result.append((np.asarray(members, dtype=np.int64), allowed))
+        return result
+
+    def set_epoch(self, epoch: int) -> None:
+        """Redraws the pair list for an epoch (deterministic in ``(seed, epoch)``).
+
+        Call it before iterating; DataLoader workers started afterwards (``persistent_workers=False``)
+        see the new list.
+        """
+        rng = np.random.default_rng([self.seed, epoch])
+        # Admissible inputs in record order, with their partner sets.
+        candidates: dict[int, np.ndarray] = {}
+        for members, allowed in self._groups:
+            for row, i in enumerate(members):
+                if allowed[row].any():
+                    candidates[int(i)] = members[allowed[row]]
+        inputs = np.array(sorted(candidates), dtype=np.int64)
+        if self.num_pairs is not None:
+            inputs = rng.choice(inputs, size=self.num_pairs, replace=True)
+        else:
+            inputs = np.repeat(inputs, self.pairs_per_chip)
+        targets = np.array([candidates[int(i)][rng.integers(len(candidates[int(i)]))] for i in inputs])
+        self.epoch = epoch
+        self.pairs = np.stack([inputs, targets], axis=1).astype(np.int64)  # (N, 2) record indices
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        source, target = (self.records[i] for i in self.pairs[index])
+        input_magnitude = torch.from_numpy(load_chip(source.path, self.size, self.crop_size))[None]
+        target_magnitude = torch.from_numpy(load_chip(target.path, self.size, self.crop_size))[None]
+        item: dict[str, Any] = {
+            "input": self.scaling.normalize(input_magnitude),
+            "target": self.scaling.normalize(target_magnitude),
+            "d_az_deg": wrap_azimuth_deg(target.azimuth_deg - source.azimuth_deg),
+            "d_el_deg": float(target.depression_deg - source.depression_deg),
+            "label": self._label[source.target_class],
+            "input_azimuth_deg": float(source.azimuth_deg),
+            "target_azimuth_deg": float(target.azimuth_deg),
+            "input_depression_deg": float(source.depression_deg),
+            "target_depression_deg": float(target.depression_deg),
+        }
+        if self.return_magnitude:
+            item["input_magnitude"] = input_magnitude
+            item["target_magnitude"] = target_magnitude
+        return item
