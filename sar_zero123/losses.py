@@ -1,0 +1,441 @@
+"""Training losses: the x0 estimate (Eq. 19), L_simple, Projected Feature Matching (Eq. 20) and the total
+loss (Eq. 21) of "Noise-Tolerant Novel-View SAR Synthesis via Denoising Diffusion".
+
+All losses are per sample, shape ``(B,)``; the training script takes the mean.
+
+Numerical safety of the x0 estimate. For epsilon prediction, Eq. (19) divides by ``sqrt(abar_t)``; the
+amplification ``sqrt(1 / abar_t - 1) = 1 / sqrt(SNR(t))`` applied to the noise-prediction error is 14.6
+at t = T - 1 for the Stable Diffusion ``scaled_linear`` schedule, 157 for ``linear``, 2e4 for
+``squaredcos_cap_v2`` and infinite for zero-terminal-SNR schedules. Two mechanisms keep PFM
+meaningful there:
+
+1. :func:`estimate_x0` computes in float32 and floors ``abar_t`` at ``2**-24`` (the value diffusers'
+   ``EulerDiscreteScheduler`` substitutes for a zero terminal ``abar``), so the estimate is always finite.
+2. :func:`total_loss` computes PFM only for samples whose ``SNR(t) >= pfm_min_snr``
+   (:func:`pfm_timestep_mask`). Where the SNR is lower, the decoded x0 estimate is dominated by the
+   amplified prediction error, its features are no closer to the target's than an unrelated chip's,
+   and its gradient w.r.t. the network output is ``1 / sqrt(SNR)`` times larger than elsewhere; those
+   samples are trained by L_simple alone. The default threshold and the numbers behind it are in
+   ``docs/results/pfm.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+#: Floor on ``abar_t`` in the epsilon-prediction x0 estimate (diffusers' EulerDiscreteScheduler uses the same
+#: value for zero-terminal-SNR schedules); keeps ``1 / sqrt(abar_t)`` at most 4096.
+MIN_ALPHA_CUMPROD = 2.0**-24
+
+#: Default SNR threshold below which PFM is skipped (see module docstring and docs/results/pfm.md).
+DEFAULT_PFM_MIN_SNR = 0.05
+
+
+def append_dims(values: torch.Tensor, target_ndim: int) -> torch.Tensor:
+    """Append trailing singleton dimensions so per-sample values broadcast against a batch tensor.
+
+    Args:
+        values: Per-sample values.
+        target_ndim: Number of dimensions of the tensor to broadcast against.
+
+    Returns:
+        ``values`` viewed with ``target_ndim - values.ndim`` trailing singleton dimensions.
+
+    Shape:
+        ``(B,) -> (B, 1, ..., 1)``.
+
+    Raises:
+        ValueError: If ``values`` already has more than ``target_ndim`` dimensions.
+    """
+    missing = target_ndim - values.ndim
+    if missing < 0:
+        raise ValueError(f"values has {values.ndim} dims, more than target_ndim={target_ndim}")
+    return values[(...,) + (None,) * missing]
+
+
+def _alphas_cumprod_at(scheduler, timesteps: torch.Tensor) -> torch.Tensor:
+    """``abar_t`` of a diffusers scheduler at integer timesteps, float32 on the timesteps' device."""
+    if timesteps.dtype.is_floating_point:
+        raise ValueError(f"timesteps must be integer, got dtype {timesteps.dtype}")
+    alphas_cumprod = scheduler.alphas_cumprod.to(device=timesteps.device, dtype=torch.float32)
+    num_train_timesteps = alphas_cumprod.shape[0]
+    if timesteps.numel() and (int(timesteps.min()) < 0 or int(timesteps.max()) >= num_train_timesteps):
+        raise ValueError(f"timesteps must lie in [0, {num_train_timesteps - 1}], got "
+                         f"[{int(timesteps.min())}, {int(timesteps.max())}]")
+    return alphas_cumprod[timesteps]
+
+
+def signal_to_noise_ratio(scheduler, timesteps: torch.Tensor) -> torch.Tensor:
+    """SNR(t) = abar_t / (1 - abar_t) of a diffusers scheduler.
+
+    Args:
+        scheduler: A diffusers noise scheduler with ``alphas_cumprod``.
+        timesteps: Integer timesteps.
+
+    Returns:
+        Float32 SNR per timestep (``inf`` at abar_t = 1, ``0`` at a zero terminal SNR).
+
+    Shape:
+        ``(B,) -> (B,)``.
+
+    Raises:
+        ValueError: If the timesteps are not integers in ``[0, num_train_timesteps)``.
+    """
+    alphas_cumprod = _alphas_cumprod_at(scheduler, timesteps)
+    return alphas_cumprod / (1.0 - alphas_cumprod)
+
+
+def estimate_x0(
+    x_t: torch.Tensor,
+    model_output: torch.Tensor,
+    timesteps: torch.Tensor,
+    scheduler,
+) -> torch.Tensor:
+    """One-step estimate of the clean latent from the network output, Eq. (19).
+
+    ``epsilon``: ``x0 = x_t / sqrt(abar_t) - sqrt(1 / abar_t - 1) * eps`` with ``abar_t`` floored at
+    :data:`MIN_ALPHA_CUMPROD`; ``v_prediction``: ``x0 = sqrt(abar_t) * x_t - sqrt(1 - abar_t) * v``
+    (finite for every t); ``sample``: the output is the estimate. Computed in float32 and returned in
+    the dtype of ``model_output`` so gradients reach the network in its own precision.
+
+    Args:
+        x_t: Noisy latents the network saw.
+        model_output: Network prediction, interpreted by ``scheduler.config.prediction_type``.
+        timesteps: Integer training timesteps, one per sample.
+        scheduler: A diffusers noise scheduler (``alphas_cumprod``, ``config.prediction_type``).
+
+    Returns:
+        The x0 estimate.
+
+    Shape:
+        ``x_t``, ``model_output``: ``(B, C, h, w)``; ``timesteps``: ``(B,)``; returns ``(B, C, h, w)``.
+
+    Raises:
+        ValueError: On mismatched shapes, bad timesteps or an unknown prediction type.
+    """
+    if x_t.shape != model_output.shape:
+        raise ValueError(f"x_t {tuple(x_t.shape)} and model_output {tuple(model_output.shape)} differ")
+    if timesteps.shape != (x_t.shape[0],):
+        raise ValueError(f"timesteps must have shape ({x_t.shape[0]},), got {tuple(timesteps.shape)}")
+    prediction_type = scheduler.config.prediction_type
+    if prediction_type == "sample":
+        return model_output
+    alphas_cumprod = append_dims(_alphas_cumprod_at(scheduler, timesteps), x_t.ndim)
+    x_t32, output32 = x_t.float(), model_output.float()
+    if prediction_type == "epsilon":
+        alphas_cumprod = alphas_cumprod.clamp(min=MIN_ALPHA_CUMPROD)
+        x0 = (x_t32 - (1.0 - alphas_cumprod).sqrt() * output32) / alphas_cumprod.sqrt()
+    elif prediction_type == "v_prediction":
+        x0 = alphas_cumprod.sqrt() * x_t32 - (1.0 - alphas_cumprod).sqrt() * output32
+    else:
+        raise ValueError(f"scheduler.config.prediction_type must be epsilon, v_prediction or sample, "
+                         f"got {prediction_type!r}")
+    return x0.to(model_output.dtype)
+
+
+def denoising_target(latents: torch.Tensor, noise: torch.Tensor, timesteps: torch.Tensor,
+                     scheduler) -> torch.Tensor:
+    """Regression target of L_simple for the scheduler's prediction type.
+
+    Args:
+        latents: Clean (scaled) latents x0.
+        noise: The Gaussian noise added to make x_t.
+        timesteps: Integer timesteps.
+        scheduler: A diffusers noise scheduler.
+
+    Returns:
+        ``noise`` (epsilon), ``scheduler.get_velocity(latents, noise, timesteps)`` (v) or ``latents``.
+
+    Shape:
+        ``(B, C, h, w)``.
+
+    Raises:
+        ValueError: On an unknown prediction type.
+    """
+    prediction_type = scheduler.config.prediction_type
+    if prediction_type == "epsilon":
+        return noise
+    if prediction_type == "v_prediction":
+        return scheduler.get_velocity(latents, noise, timesteps)
+    if prediction_type == "sample":
+        return latents
+    raise ValueError(f"scheduler.config.prediction_type must be epsilon, v_prediction or sample, "
+                     f"got {prediction_type!r}")
+
+
+def denoising_loss(model_output: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """L_simple: per-sample mean squared error between network output and target, in float32.
+
+    Args:
+        model_output: Network prediction.
+        target: Regression target (see :func:`denoising_target`).
+
+    Returns:
+        Per-sample loss.
+
+    Shape:
+        ``(B, ...) -> (B,)``.
+
+    Raises:
+        ValueError: If the shapes differ.
+    """
+    if model_output.shape != target.shape:
+        raise ValueError(f"model_output {tuple(model_output.shape)} and target {tuple(target.shape)} differ")
+    return F.mse_loss(model_output.float(), target.float(), reduction="none").flatten(1).mean(dim=1)
+
+
+def _require_frozen(module: nn.Module, name: str) -> None:
+    if module.training:
+        raise ValueError(f"{name} must be in eval mode (call {name}.eval())")
+    if any(p.requires_grad for p in module.parameters()):
+        raise ValueError(f"{name} must be frozen ({name}.requires_grad_(False)): PFM gradients may only "
+                         "reach the diffusion parameters")
+
+
+def _vae_downsampling_factor(vae) -> int:
+    return 2 ** (len(vae.config.block_out_channels) - 1)
+
+
+def _center_crop(x: torch.Tensor, size: int) -> torch.Tensor:
+    height, width = x.shape[-2:]
+    top, left = (height - size) // 2, (width - size) // 2
+    return x[..., top:top + size, left:left + size]
+
+
+def _to_encoder_input(images: torch.Tensor, size: int) -> torch.Tensor:
+    """(B, C, H, W) VAE-domain images in [-1, 1] -> (B, 1, size, size) normalised dB in [0, 1]."""
+    images = images.mean(dim=1, keepdim=True) if images.shape[1] > 1 else images
+    images = (images + 1.0) / 2.0
+    if images.shape[-1] != size or images.shape[-2] != size:
+        # antialiased resize has no bf16/fp16 CPU kernel: resize in float32
+        images = F.interpolate(images.float(), size=(size, size), mode="bilinear", align_corners=False,
+                               antialias=True)
+    return images
+
+
+def encoder_input_size(image_size: int, encoder_image_size: int, crop_size: int | None = None) -> int:
+    """Side length at which a (cropped) chip is shown to the encoder.
+
+    The encoder was trained on whole chips resized to ``encoder_image_size``; a centre crop is shown at the
+    same pixel scale (``crop_size * encoder_image_size / image_size``), so the target keeps the size the
+    encoder learned, instead of being magnified.
+
+    Args:
+        image_size: Side of the full chip in pixels.
+        encoder_image_size: ``encoder.config.image_size``.
+        crop_size: Side of the centre crop in pixels, or ``None`` for the whole chip.
+
+    Returns:
+        The encoder input side in pixels.
+    """
+    if crop_size is None:
+        return encoder_image_size
+    return max(1, round(crop_size * encoder_image_size / image_size))
+
+
+@torch.no_grad()
+def encode_target_features(target_images: torch.Tensor, encoder: nn.Module, *,
+                           crop_size: int | None = None) -> torch.Tensor:
+    """Frozen-encoder features h = f(x0) of the real target views (no gradient).
+
+    Args:
+        target_images: Target views, normalised dB in [0, 1].
+        encoder: Frozen SAR encoder (``forward((B, 1, S, S)) -> (B, D)``, ``config.image_size``).
+        crop_size: Optional centre crop in pixels (applied before the resize to the encoder's scale).
+
+    Returns:
+        Float32 features.
+
+    Shape:
+        ``(B, 1, H, W) -> (B, D)``.
+    """
+    image_size = target_images.shape[-1]
+    size = encoder_input_size(image_size, encoder.config.image_size, crop_size)
+    images = _center_crop(target_images, crop_size) if crop_size is not None else target_images
+    images = images * 2.0 - 1.0  # to the VAE's [-1, 1] so both branches share one mapping
+    encoder_dtype = next(encoder.parameters()).dtype
+    return encoder(_to_encoder_input(images, size).to(encoder_dtype)).float()
+
+
+def pfm_loss(
+    x0_hat_latents: torch.Tensor,
+    target_images: torch.Tensor,
+    vae,
+    encoder: nn.Module,
+    *,
+    crop_size: int | None = None,
+    target_features: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Projected Feature Matching, Eq. (20): ``||f(x0) - f(D(x0_hat))||^2`` per sample.
+
+    ``x0_hat`` is divided by ``vae.config.scaling_factor`` and decoded by the frozen VAE; the decoded image
+    (VAE domain [-1, 1]) is averaged to one channel, mapped to normalised dB ``(x + 1) / 2`` and resized to
+    the encoder's input size; ``f`` is the encoder's pooled feature. With ``crop_size`` only the latent
+    window covering the centre ``crop_size`` pixels is decoded (the paper scores the 64x64 centre of a
+    128 px chip), which cuts the decoder cost by ``(image_size / crop_size)**2``; decoding a latent
+    window instead of cropping the full decode changes the border pixels (measured in
+    ``docs/results/pfm.md``).
+
+    Gradients flow through the frozen decoder and encoder into ``x0_hat_latents`` only.
+
+    Args:
+        x0_hat_latents: Scaled x0 estimate from :func:`estimate_x0`.
+        target_images: Real target views, normalised dB in [0, 1] (the same chips the latents encode).
+        vae: Frozen ``AutoencoderKL`` (eval mode, no gradients).
+        encoder: Frozen SAR encoder with ``config.image_size`` (eval mode, no gradients).
+        crop_size: Optional side in pixels of the centre crop; ``image_size - crop_size`` must be a
+            multiple of twice the VAE downsampling factor.
+        target_features: Optional precomputed :func:`encode_target_features` output.
+
+    Returns:
+        Float32 per-sample squared L2 feature distance.
+
+    Shape:
+        ``x0_hat_latents``: ``(B, 4, h, w)``; ``target_images``: ``(B, 1, H, W)`` with
+        ``H = h * factor``; returns ``(B,)``.
+
+    Raises:
+        ValueError: On frozen-module violations, mismatched batch or sizes, or a bad ``crop_size``.
+    """
+    # 1. check inputs
+    _require_frozen(vae, "vae")
+    _require_frozen(encoder, "encoder")
+    if x0_hat_latents.shape[0] != target_images.shape[0]:
+        raise ValueError(f"batch sizes differ: x0_hat_latents {x0_hat_latents.shape[0]}, "
+                         f"target_images {target_images.shape[0]}")
+    factor = _vae_downsampling_factor(vae)
+    image_size = target_images.shape[-1]
+    if x0_hat_latents.shape[-1] * factor != image_size:
+        raise ValueError(f"target_images side {image_size} != latent side {x0_hat_latents.shape[-1]} x "
+                         f"VAE factor {factor}")
+    latents = x0_hat_latents
+    if crop_size is not None:
+        if crop_size <= 0 or crop_size > image_size or (image_size - crop_size) % (2 * factor):
+            raise ValueError(f"crop_size must be in (0, {image_size}] with (image_size - crop_size) a "
+                             f"multiple of {2 * factor} so the latent window is centred, got {crop_size}")
+        latents = _center_crop(latents, crop_size // factor)
+    # 2. features of the real target (no gradient)
+    if target_features is None:
+        target_features = encode_target_features(target_images, encoder, crop_size=crop_size)
+    # 3. decode the estimate and encode it; gradients flow to x0_hat_latents
+    vae_dtype = next(vae.parameters()).dtype
+    decoded = vae.decode(latents.to(vae_dtype) / vae.config.scaling_factor).sample  # (B, C, crop, crop)
+    size = encoder_input_size(image_size, encoder.config.image_size, crop_size)
+    encoder_dtype = next(encoder.parameters()).dtype
+    features = encoder(_to_encoder_input(decoded, size).to(encoder_dtype)).float()  # (B, D)
+    return (features - target_features).pow(2).sum(dim=1)
+
+
+def pfm_timestep_mask(timesteps: torch.Tensor, scheduler,
+                      min_snr: float = DEFAULT_PFM_MIN_SNR) -> torch.Tensor:
+    """Samples whose timestep is informative enough for PFM: ``SNR(t) >= min_snr``.
+
+    Args:
+        timesteps: Integer timesteps.
+        scheduler: A diffusers noise scheduler.
+        min_snr: SNR threshold; ``0`` keeps every timestep (the paper's setting, finite thanks to the
+            ``abar_t`` floor of :func:`estimate_x0`).
+
+    Returns:
+        Boolean mask.
+
+    Shape:
+        ``(B,) -> (B,)``.
+
+    Raises:
+        ValueError: If ``min_snr`` is negative.
+    """
+    if min_snr < 0:
+        raise ValueError(f"min_snr must be >= 0, got {min_snr}")
+    return signal_to_noise_ratio(scheduler, timesteps) >= min_snr
+
+
+@dataclass
+class LossOutput:
+    """Per-sample losses of one training step (all ``(B,)`` float32).
+
+    Attributes:
+        loss: ``denoising + pfm_weight * pfm`` (Eq. 21).
+        denoising: L_simple.
+        pfm: L_PFM, zero where it was not computed (lambda = 0, SNR below the threshold, or outside the
+            sampled fraction); sampled entries are scaled by ``B_eligible / B_sampled`` so the batch mean
+            stays unbiased.
+        pfm_mask: Where PFM was computed.
+    """
+
+    loss: torch.Tensor
+    denoising: torch.Tensor
+    pfm: torch.Tensor
+    pfm_mask: torch.Tensor
+
+
+def total_loss(
+    model_output: torch.Tensor,
+    target: torch.Tensor,
+    x_t: torch.Tensor,
+    timesteps: torch.Tensor,
+    scheduler,
+    *,
+    pfm_weight: float,
+    target_images: torch.Tensor | None = None,
+    vae=None,
+    encoder: nn.Module | None = None,
+    pfm_min_snr: float = DEFAULT_PFM_MIN_SNR,
+    pfm_fraction: float = 1.0,
+    crop_size: int | None = None,
+    generator: torch.Generator | None = None,
+) -> LossOutput:
+    """L = L_simple + lambda * L_PFM, Eq. (21); ``pfm_weight = 0`` is plain zero-1-to-3 fine-tuning and
+    skips every PFM computation (no decode, no encoder pass).
+
+    Args:
+        model_output: Network prediction.
+        target: L_simple target (:func:`denoising_target`).
+        x_t: Noisy latents the network saw.
+        timesteps: Integer timesteps.
+        scheduler: The training noise scheduler.
+        pfm_weight: lambda >= 0 (the paper's best is 4).
+        target_images: Real target views, normalised dB; required when ``pfm_weight > 0``.
+        vae: Frozen VAE; required when ``pfm_weight > 0``.
+        encoder: Frozen SAR encoder; required when ``pfm_weight > 0``.
+        pfm_min_snr: PFM only where ``SNR(t) >= pfm_min_snr`` (:func:`pfm_timestep_mask`).
+        pfm_fraction: Fraction in (0, 1] of the eligible samples on which PFM is computed (at least one).
+        crop_size: Optional centre crop in pixels for PFM (see :func:`pfm_loss`).
+        generator: Draws the PFM subset when ``pfm_fraction < 1``.
+
+    Returns:
+        A :class:`LossOutput` of per-sample tensors.
+
+    Shape:
+        ``model_output``, ``target``, ``x_t``: ``(B, C, h, w)``; ``timesteps``: ``(B,)``; outputs ``(B,)``.
+
+    Raises:
+        ValueError: If ``pfm_weight < 0``, ``pfm_fraction`` is outside (0, 1], or PFM inputs are missing.
+    """
+    if not pfm_weight >= 0:
+        raise ValueError(f"pfm_weight must be >= 0, got {pfm_weight}")
+    if not 0 < pfm_fraction <= 1:
+        raise ValueError(f"pfm_fraction must be in (0, 1], got {pfm_fraction}")
+    denoising = denoising_loss(model_output, target)
+    pfm = torch.zeros_like(denoising)
+    mask = torch.zeros_like(denoising, dtype=torch.bool)
+    if pfm_weight > 0:
+        if target_images is None or vae is None or encoder is None:
+            raise ValueError("pfm_weight > 0 needs target_images, vae and encoder")
+        eligible = pfm_timestep_mask(timesteps, scheduler, pfm_min_snr).nonzero().flatten()
+        num_eligible = eligible.numel()
+        if num_eligible:
+            keep = max(1, math.ceil(pfm_fraction * num_eligible))
+            if keep < num_eligible:
+                order = torch.randperm(eligible.numel(), generator=generator, device="cpu")
+                eligible = eligible[order[:keep].to(eligible.device)]
+            x0_hat = estimate_x0(x_t[eligible], model_output[eligible], timesteps[eligible], scheduler)
+            values = pfm_loss(x0_hat, target_images[eligible], vae, encoder, crop_size=crop_size)
+            pfm = pfm.index_put((eligible,), values * (num_eligible / keep))
+            mask[eligible] = True
+    return LossOutput(loss=denoising + pfm_weight * pfm, denoising=denoising, pfm=pfm, pfm_mask=mask)
