@@ -1,0 +1,652 @@
+"""`SARZero123Pipeline`: novel views of a SAR chip at a requested relative pose (zero-1-to-3 sampling).
+
+The sampler follows zero-1-to-3: the UNet input is the noisy latent concatenated with the unscaled VAE
+posterior mode of the input chip (8 channels); cross-attention sees one token,
+``PoseProjection([clip_image_embedding, pose])``; classifier-free guidance uses zeros for both the
+projected token and the condition latent as the unconditional input and runs conditional and
+unconditional branches in one batched UNet call.
+"""
+
+from __future__ import annotations
+
+import inspect
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import PIL.Image
+import torch
+from diffusers import AutoencoderKL, DDIMScheduler, DiffusionPipeline, UNet2DConditionModel
+from diffusers.callbacks import MultiPipelineCallbacks, PipelineCallback
+from diffusers.schedulers.scheduling_utils import SchedulerMixin
+from diffusers.utils import BaseOutput
+from diffusers.utils.torch_utils import randn_tensor
+from transformers import CLIPImageProcessor, CLIPVisionConfig, CLIPVisionModelWithProjection
+
+from sar_zero123.conditioning import (
+    POSE_DIM,
+    PoseProjection,
+    embed_pose,
+    encode_condition_latents,
+    encode_image_embeddings,
+    match_channels,
+)
+
+__all__ = ["SAR_ZERO123_SIZES", "SARZero123Pipeline", "SARZero123PipelineOutput", "build_sar_zero123"]
+
+ImageInput = PIL.Image.Image | np.ndarray | torch.Tensor | Sequence[PIL.Image.Image] | Sequence[np.ndarray]
+OUTPUT_TYPES = ("pil", "np", "pt", "latent")
+
+
+@dataclass
+class SARZero123PipelineOutput(BaseOutput):
+    """Output of :class:`SARZero123Pipeline`.
+
+    Args:
+        images: Generated views in the normalised dB domain, ``B * num_images_per_prompt`` of them,
+            grouped by input image (all samples of input 0 first). A list of single-channel PIL images
+            (``"pil"``), a float32 array ``(N, H, W, 1)`` (``"np"``), a tensor ``(N, 1, H, W)``
+            (``"pt"``), or the final latents ``(N, 4, h, w)`` (``"latent"``).
+    """
+
+    images: list[PIL.Image.Image] | np.ndarray | torch.Tensor
+
+
+class SARZero123Pipeline(DiffusionPipeline):
+    """Novel-view synthesis of SAR chips with a zero-1-to-3 latent diffusion model.
+
+    Args:
+        vae: Autoencoder; 1-channel (trained on SAR) or 3-channel (Stable Diffusion) input.
+        image_encoder: CLIP vision tower whose ``image_embeds`` condition the UNet.
+        unet: Denoiser with ``in_channels = 2 * vae.config.latent_channels``.
+        scheduler: Any diffusers scheduler (DDIM, DPM-Solver++, Euler, ...).
+        pose_projection: Projection of ``[image_embeds, pose]`` to the cross-attention dimension.
+        feature_extractor: Optional CLIP image processor; only its ``image_mean`` / ``image_std`` are
+            used (preprocessing runs in torch, see :func:`encode_image_embeddings`).
+
+    Raises:
+        ValueError: If the component sizes do not fit together.
+    """
+
+    model_cpu_offload_seq = "image_encoder->pose_projection->unet->vae"
+    _optional_components = ["feature_extractor"]
+    _callback_tensor_inputs = ["latents"]
+
+    def __init__(
+        self,
+        vae: AutoencoderKL,
+        image_encoder: CLIPVisionModelWithProjection,
+        unet: UNet2DConditionModel,
+        scheduler: SchedulerMixin,
+        pose_projection: PoseProjection,
+        feature_extractor: CLIPImageProcessor | None = None,
+    ) -> None:
+        super().__init__()
+        latent_channels = vae.config.latent_channels
+        if unet.config.in_channels != 2 * latent_channels:
+            raise ValueError(
+                f"`unet.config.in_channels` must be 2 * vae latent channels = {2 * latent_channels} "
+                f"(noisy latent + condition latent), got {unet.config.in_channels}"
+            )
+        if pose_projection.config.in_features != image_encoder.config.projection_dim + POSE_DIM:
+            raise ValueError(
+                f"`pose_projection.config.in_features` must be image_encoder projection_dim + {POSE_DIM} = "
+                f"{image_encoder.config.projection_dim + POSE_DIM}, got {pose_projection.config.in_features}"
+            )
+        if pose_projection.config.out_features != unet.config.cross_attention_dim:
+            raise ValueError(
+                f"`pose_projection.config.out_features` must equal unet cross_attention_dim "
+                f"{unet.config.cross_attention_dim}, got {pose_projection.config.out_features}"
+            )
+        self.register_modules(
+            vae=vae,
+            image_encoder=image_encoder,
+            unet=unet,
+            scheduler=scheduler,
+            pose_projection=pose_projection,
+            feature_extractor=feature_extractor,
+        )
+
+    # ----------------------------------------------------------------------------------------- sizes
+    @property
+    def vae_scale_factor(self) -> int:
+        """Downsampling factor from pixels to latents."""
+        return 2 ** (len(self.vae.config.block_out_channels) - 1)
+
+    @property
+    def size_multiple(self) -> int:
+        """Image height and width must be multiples of this (VAE factor times UNet downsamplings)."""
+        return self.vae_scale_factor * 2 ** (len(self.unet.config.block_out_channels) - 1)
+
+    @property
+    def default_image_size(self) -> int:
+        """Image size the model was built for (``unet.config.sample_size * vae_scale_factor``)."""
+        sample_size = self.unet.config.sample_size
+        sample_size = sample_size[0] if isinstance(sample_size, list | tuple) else sample_size
+        return int(sample_size) * self.vae_scale_factor
+
+    # ------------------------------------------------------------------------------------ loading
+    @classmethod
+    def from_zero123(
+        cls,
+        path: str | Path,
+        use_ema: bool = True,
+        image_encoder_path: str | Path | None = None,
+        torch_dtype: torch.dtype | None = None,
+    ) -> SARZero123Pipeline:
+        """Load an Objaverse zero-1-to-3 checkpoint (diffusers folder, threestudio folder, or LDM file).
+
+        See :func:`sar_zero123.checkpoints.load_zero123` for the accepted layouts.
+
+        Args:
+            path: A diffusers folder (``cc_projection`` or ``clip_camera_projection``) or an LDM
+                ``.ckpt`` / ``.safetensors`` state dict.
+            use_ema: For LDM files holding ``model_ema.*``, load the EMA UNet weights.
+            image_encoder_path: Folder of a ``CLIPVisionModelWithProjection`` (and optionally its
+                ``CLIPImageProcessor``) for LDM files; ignored for folders that ship one.
+            torch_dtype: Optional dtype for all modules.
+
+        Returns:
+            The pipeline, with a DDIM scheduler for LDM files.
+        """
+        from sar_zero123.checkpoints import load_zero123
+
+        return load_zero123(
+            path, use_ema=use_ema, image_encoder_path=image_encoder_path, torch_dtype=torch_dtype
+        )
+
+    # ----------------------------------------------------------------------------- input checking
+    def preprocess_image(self, image: ImageInput) -> torch.Tensor:
+        """Validate and convert pipeline input images to a float32 batch in the normalised dB domain.
+
+        Accepted: a PIL image (modes ``L``, ``RGB``, ``I;16``, ``F``) or a list of them, a numpy array
+        ``(H, W)`` / ``(H, W, C)`` or a list of them (float in [0, 1]; ``uint8`` is divided by 255), a
+        tensor ``(B, 1 | 3, H, W)`` in [0, 1].
+
+        Args:
+            image: The input chip(s).
+
+        Returns:
+            The batch on the CPU.
+
+        Shape:
+            - Output: ``(B, 1 | 3, H, W)``
+
+        Raises:
+            ValueError: (naming ``image``) for an empty batch, a wrong rank or channel count, mixed sizes,
+                non-finite or out-of-range values, or a size the VAE and UNet cannot take.
+        """
+        if isinstance(image, torch.Tensor):
+            if image.ndim != 4:
+                raise ValueError(f"`image` tensors must be (B, 1 | 3, H, W), got shape {tuple(image.shape)}")
+            batch = image.detach().to("cpu", torch.float32)
+        else:
+            items = list(image) if isinstance(image, list | tuple) else [image]
+            if not items:
+                raise ValueError("`image` is an empty list")
+            arrays = [_to_hwc_array(item) for item in items]
+            if len({a.shape for a in arrays}) != 1:
+                shapes = sorted({a.shape for a in arrays})
+                raise ValueError(f"`image` items must share one shape, got {shapes}")
+            batch = torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous()  # (B, C, H, W)
+        if batch.shape[0] == 0:
+            raise ValueError("`image` is an empty batch")
+        if batch.shape[1] not in (1, 3):
+            raise ValueError(f"`image` must have 1 or 3 channels, got {batch.shape[1]}")
+        if not torch.isfinite(batch).all():
+            raise ValueError("`image` contains NaN or inf values")
+        low, high = float(batch.min()), float(batch.max())
+        if low < 0.0 or high > 1.0:
+            raise ValueError(
+                f"`image` must lie in [0, 1] (normalised dB), got values in [{low:.4g}, {high:.4g}]"
+            )
+        height, width = batch.shape[-2:]
+        multiple = self.size_multiple
+        if height % multiple or width % multiple:
+            raise ValueError(
+                f"`image` height and width must be positive multiples of {multiple} (VAE factor "
+                f"{self.vae_scale_factor} x UNet downsampling), got {height}x{width}"
+            )
+        return batch
+
+    def _check_inputs(
+        self,
+        num_inference_steps: int,
+        guidance_scale: float,
+        num_images_per_prompt: int,
+        output_type: str,
+        callback_on_step_end_tensor_inputs: Sequence[str],
+    ) -> None:
+        if not isinstance(num_inference_steps, int) or num_inference_steps < 1:
+            raise ValueError(f"`num_inference_steps` must be an integer >= 1, got {num_inference_steps!r}")
+        if not np.isfinite(guidance_scale):
+            raise ValueError(f"`guidance_scale` must be finite, got {guidance_scale}")
+        if not isinstance(num_images_per_prompt, int) or num_images_per_prompt < 1:
+            raise ValueError(
+                f"`num_images_per_prompt` must be an integer >= 1, got {num_images_per_prompt!r}"
+            )
+        if output_type not in OUTPUT_TYPES:
+            raise ValueError(f"`output_type` must be one of {OUTPUT_TYPES}, got {output_type!r}")
+        unknown = [k for k in callback_on_step_end_tensor_inputs if k not in self._callback_tensor_inputs]
+        if unknown:
+            raise ValueError(
+                f"`callback_on_step_end_tensor_inputs` must be among {self._callback_tensor_inputs}, "
+                f"got {unknown}"
+            )
+
+    # ---------------------------------------------------------------------------------- sampling
+    def encode_conditioning(
+        self, images: torch.Tensor, pose: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Cross-attention token and condition latent of a batch of input chips.
+
+        Args:
+            images: Normalised dB images in [0, 1].
+            pose: Pose vectors from :func:`embed_pose`.
+
+        Returns:
+            ``(tokens, condition_latents)``.
+
+        Shape:
+            - images: ``(B, 1 | 3, H, W)``; pose: ``(B, 1, 4)``
+            - tokens: ``(B, 1, cross_attention_dim)``; condition_latents: ``(B, 4, H / f, W / f)``
+        """
+        if self.feature_extractor is not None:
+            mean, std = tuple(self.feature_extractor.image_mean), tuple(self.feature_extractor.image_std)
+            image_embeds = encode_image_embeddings(self.image_encoder, images, image_mean=mean, image_std=std)
+        else:
+            image_embeds = encode_image_embeddings(self.image_encoder, images)
+        tokens = self.pose_projection(image_embeds, pose.to(image_embeds.device))
+        condition_latents = encode_condition_latents(self.vae, images)
+        return tokens, condition_latents
+
+    def decode_latents(self, latents: torch.Tensor) -> torch.Tensor:
+        """Decode scaled latents to single-channel images in the normalised dB domain.
+
+        Args:
+            latents: Scaled latents (``z * vae.config.scaling_factor``).
+
+        Returns:
+            Images in [0, 1], float32; 3-channel VAE outputs are averaged to one channel.
+
+        Shape:
+            - latents: ``(N, 4, h, w)``
+            - Output: ``(N, 1, h * f, w * f)``
+        """
+        decoded = self.vae.decode(latents.to(self.vae.dtype) / self.vae.config.scaling_factor).sample
+        images = (decoded.float() / 2.0 + 0.5).clamp(0.0, 1.0)  # [-1, 1] -> [0, 1]
+        return match_channels(images, 1)
+
+    def _scheduler_step_kwargs(
+        self, generator: torch.Generator | list[torch.Generator] | None
+    ) -> dict[str, Any]:
+        # Stochastic schedulers (DDPM, Euler ancestral, SDE DPM-Solver) take the generator in `step`.
+        accepts_generator = "generator" in inspect.signature(self.scheduler.step).parameters
+        return {"generator": generator} if accepts_generator and generator is not None else {}
+
+    @torch.no_grad()
+    def __call__(
+        self,
+        image: ImageInput,
+        d_az: float | Sequence[float] | torch.Tensor,
+        d_el: float | Sequence[float] | torch.Tensor = 0.0,
+        num_inference_steps: int = 50,
+        guidance_scale: float = 3.0,
+        num_images_per_prompt: int = 1,
+        generator: torch.Generator | list[torch.Generator] | None = None,
+        latents: torch.Tensor | None = None,
+        output_type: Literal["pil", "np", "pt", "latent"] = "pil",
+        return_dict: bool = True,
+        callback_on_step_end: Callable[[DiffusionPipeline, int, torch.Tensor, dict[str, torch.Tensor]], dict]
+        | PipelineCallback
+        | MultiPipelineCallbacks
+        | None = None,
+        callback_on_step_end_tensor_inputs: Sequence[str] = ("latents",),
+    ) -> SARZero123PipelineOutput | tuple:
+        """Generate views of each input chip at ``(d_az, d_el)`` relative to it.
+
+        Args:
+            image: Input chip(s) in the normalised dB domain (see :meth:`preprocess_image`).
+            d_az: Azimuth delta in degrees (target - input); a scalar or one value per input image.
+                Any real value (370 == 10).
+            d_el: Depression delta in degrees (target - input); a scalar or one value per input image.
+            num_inference_steps: Number of denoising steps.
+            guidance_scale: Classifier-free guidance weight; guidance is off when ``<= 1``.
+            num_images_per_prompt: Samples per input image.
+            generator: One generator, or one per output sample (``B * num_images_per_prompt``).
+            latents: Optional initial noise ``(B * num_images_per_prompt, 4, h, w)``, unscaled by
+                ``init_noise_sigma`` (the scheduler's scaling is applied here).
+            output_type: ``"pil"``, ``"np"``, ``"pt"`` or ``"latent"``.
+            return_dict: Return a :class:`SARZero123PipelineOutput` instead of a tuple.
+            callback_on_step_end: Called as ``f(pipe, step, timestep, callback_kwargs)`` after each step;
+                may return a dict replacing entries of ``callback_kwargs`` (``"latents"``).
+            callback_on_step_end_tensor_inputs: Tensors passed in ``callback_kwargs``.
+
+        Returns:
+            :class:`SARZero123PipelineOutput`, or ``(images,)`` when ``return_dict`` is False.
+
+        Raises:
+            ValueError: For invalid images, angles, sizes, counts or generators (the message names the
+                argument).
+        """
+        if isinstance(callback_on_step_end, PipelineCallback | MultiPipelineCallbacks):
+            callback_on_step_end_tensor_inputs = callback_on_step_end.tensor_inputs
+
+        # 1. check inputs
+        self._check_inputs(
+            num_inference_steps,
+            guidance_scale,
+            num_images_per_prompt,
+            output_type,
+            callback_on_step_end_tensor_inputs,
+        )
+        images = self.preprocess_image(image)
+        batch_size = images.shape[0]
+        pose = _broadcast_pose(d_az, d_el, batch_size)  # (B, 1, 4)
+        num_samples = batch_size * num_images_per_prompt
+        if isinstance(generator, list) and len(generator) != num_samples:
+            raise ValueError(
+                f"`generator` is a list of {len(generator)} generators; expected one per output sample, "
+                f"batch {batch_size} x num_images_per_prompt {num_images_per_prompt} = {num_samples}"
+            )
+        device = self._execution_device
+        do_classifier_free_guidance = guidance_scale > 1.0
+
+        # 2. encode conditioning (once per input image, then repeated per sample)
+        tokens, condition_latents = self.encode_conditioning(images.to(device), pose.to(device))
+        dtype = self.unet.dtype
+        tokens = tokens.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
+        condition_latents = condition_latents.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
+        if do_classifier_free_guidance:
+            # zero-1-to-3's sampling null: zeros after the projection and for the condition latent.
+            tokens = torch.cat([torch.zeros_like(tokens), tokens])
+            condition_latents = torch.cat([torch.zeros_like(condition_latents), condition_latents])
+
+        # 3. timesteps
+        self.scheduler.set_timesteps(num_inference_steps, device=device)
+        timesteps = self.scheduler.timesteps
+
+        # 4. initial noise
+        shape = (num_samples, self.vae.config.latent_channels, *condition_latents.shape[-2:])
+        if latents is None:
+            latents = randn_tensor(shape, generator=generator, device=device, dtype=self.unet.dtype)
+        else:
+            if tuple(latents.shape) != shape:
+                raise ValueError(f"`latents` must have shape {shape}, got {tuple(latents.shape)}")
+            if not torch.isfinite(latents).all():
+                raise ValueError("`latents` contains NaN or inf values")
+            latents = latents.to(device=device, dtype=self.unet.dtype)
+        latents = latents * self.scheduler.init_noise_sigma
+        step_kwargs = self._scheduler_step_kwargs(generator)
+
+        # 5. denoising loop: one UNet call per step with [unconditional; conditional] stacked
+        self._num_timesteps = len(timesteps)
+        with self.progress_bar(total=len(timesteps)) as progress_bar:
+            for step_index, timestep in enumerate(timesteps):
+                model_input = torch.cat([latents] * 2) if do_classifier_free_guidance else latents
+                model_input = self.scheduler.scale_model_input(model_input, timestep)
+                model_input = torch.cat([model_input, condition_latents], dim=1)  # (N | 2N, 8, h, w)
+                noise_pred = self.unet(model_input, timestep, encoder_hidden_states=tokens).sample
+                if do_classifier_free_guidance:
+                    noise_uncond, noise_cond = noise_pred.chunk(2)
+                    noise_pred = noise_uncond + guidance_scale * (noise_cond - noise_uncond)
+                latents = self.scheduler.step(noise_pred, timestep, latents, **step_kwargs).prev_sample
+                latents = latents.to(self.unet.dtype)
+
+                if callback_on_step_end is not None:
+                    callback_kwargs = {name: locals()[name] for name in callback_on_step_end_tensor_inputs}
+                    callback_outputs = callback_on_step_end(self, step_index, timestep, callback_kwargs)
+                    latents = callback_outputs.pop("latents", latents)
+                progress_bar.update()
+
+        # 6. decode to single-channel normalised dB
+        if output_type == "latent":
+            output: Any = latents
+        else:
+            decoded = self.decode_latents(latents)  # (N, 1, H, W)
+            if output_type == "pt":
+                output = decoded
+            else:
+                array = decoded.permute(0, 2, 3, 1).cpu().numpy()  # (N, H, W, 1)
+                output = array if output_type == "np" else _to_pil(array)
+        self.maybe_free_model_hooks()
+        if not return_dict:
+            return (output,)
+        return SARZero123PipelineOutput(images=output)
+
+
+# ------------------------------------------------------------------------------------- helpers
+def _to_hwc_array(item: PIL.Image.Image | np.ndarray) -> np.ndarray:
+    """One PIL image or numpy array as float32 ``(H, W, C)`` without range checks (done by the caller)."""
+    if isinstance(item, PIL.Image.Image):
+        scale = {"L": 255.0, "RGB": 255.0, "I;16": 65535.0, "F": 1.0}.get(item.mode)
+        if scale is None:
+            raise ValueError(f"`image` PIL mode must be one of L, RGB, I;16, F, got {item.mode!r}")
+        array = np.asarray(item, dtype=np.float32) / scale
+    elif isinstance(item, np.ndarray):
+        if item.dtype == np.uint8:
+            array = item.astype(np.float32) / 255.0
+        elif np.issubdtype(item.dtype, np.floating):
+            array = item.astype(np.float32)
+        else:
+            raise ValueError(f"`image` arrays must be float (in [0, 1]) or uint8, got dtype {item.dtype}")
+    else:
+        raise ValueError(
+            f"`image` must be a PIL image, numpy array or torch tensor, got {type(item).__name__}"
+        )
+    if array.ndim == 2:
+        array = array[:, :, None]
+    if array.ndim != 3:
+        raise ValueError(f"`image` arrays must be (H, W) or (H, W, C), got shape {array.shape}")
+    if array.size == 0:
+        raise ValueError(f"`image` is empty, got shape {array.shape}")
+    return array
+
+
+def _broadcast_pose(
+    d_az: float | Sequence[float] | torch.Tensor,
+    d_el: float | Sequence[float] | torch.Tensor,
+    batch_size: int,
+) -> torch.Tensor:
+    """Pose vectors for a batch, checking that each angle is a scalar or has one value per image."""
+    for name, value in (("d_az", d_az), ("d_el", d_el)):
+        count = torch.as_tensor(value).numel()
+        if count not in (1, batch_size):
+            raise ValueError(f"`{name}` has {count} values; expected 1 or one per input image ({batch_size})")
+    try:
+        pose = embed_pose(d_az, d_el)
+    except ValueError as error:
+        raise ValueError(str(error).replace("`d_az_deg`", "`d_az`").replace("`d_el_deg`", "`d_el`")) from None
+    return pose.expand(batch_size, -1, -1) if pose.shape[0] == 1 else pose
+
+
+def _to_pil(array: np.ndarray) -> list[PIL.Image.Image]:
+    """(N, H, W, 1) float in [0, 1] -> list of 8-bit single-channel PIL images."""
+    return [PIL.Image.fromarray((a[..., 0] * 255.0).round().astype(np.uint8), mode="L") for a in array]
+
+
+# ------------------------------------------------------------------------------------- factory
+SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
+    # Unit tests: 32 px chips, 16x16x4 latents; well under 1 M parameters in total.
+    "tiny": {
+        "image_size": 32,
+        "vae": {
+            "in_channels": 1,
+            "out_channels": 1,
+            "down_block_types": ("DownEncoderBlock2D",) * 2,
+            "up_block_types": ("UpDecoderBlock2D",) * 2,
+            "block_out_channels": (16, 32),
+            "layers_per_block": 1,
+            "latent_channels": 4,
+            "norm_num_groups": 8,
+        },
+        "unet": {
+            "block_out_channels": (16, 32),
+            "layers_per_block": 1,
+            "down_block_types": ("CrossAttnDownBlock2D", "DownBlock2D"),
+            "up_block_types": ("UpBlock2D", "CrossAttnUpBlock2D"),
+            "cross_attention_dim": 16,
+            "attention_head_dim": 4,
+            "norm_num_groups": 8,
+        },
+        "image_encoder": {
+            "hidden_size": 32,
+            "intermediate_size": 64,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 4,
+            "image_size": 32,
+            "patch_size": 8,
+            "projection_dim": 16,
+        },
+    },
+    # A useful CPU model for 64 px SAR chips (64-128 px work): 1-channel VAE with two downsamplings
+    # (64 px -> 16x16x4 latents), a three-level UNet, and a small ViT trained from scratch on SAR.
+    "small": {
+        "image_size": 64,
+        "vae": {
+            "in_channels": 1,
+            "out_channels": 1,
+            "down_block_types": ("DownEncoderBlock2D",) * 3,
+            "up_block_types": ("UpDecoderBlock2D",) * 3,
+            "block_out_channels": (32, 64, 128),
+            "layers_per_block": 2,
+            "latent_channels": 4,
+            "norm_num_groups": 32,
+        },
+        "unet": {
+            "block_out_channels": (64, 128, 256),
+            "layers_per_block": 2,
+            "down_block_types": ("CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"),
+            "up_block_types": ("UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
+            "cross_attention_dim": 256,
+            "attention_head_dim": 8,
+            "norm_num_groups": 32,
+        },
+        "image_encoder": {
+            "hidden_size": 256,
+            "intermediate_size": 1024,
+            "num_hidden_layers": 4,
+            "num_attention_heads": 4,
+            "image_size": 64,
+            "patch_size": 8,
+            "projection_dim": 256,
+        },
+    },
+    # Exactly the Objaverse zero-1-to-3 shapes: SD 1.x UNet with 8 input channels, SD VAE,
+    # CLIP ViT-L/14 image tower (768-d embeddings), Linear(772, 768); 256 px -> 32x32x4 latents.
+    "zero123": {
+        "image_size": 256,
+        "vae": {
+            "in_channels": 3,
+            "out_channels": 3,
+            "down_block_types": ("DownEncoderBlock2D",) * 4,
+            "up_block_types": ("UpDecoderBlock2D",) * 4,
+            "block_out_channels": (128, 256, 512, 512),
+            "layers_per_block": 2,
+            "latent_channels": 4,
+            "norm_num_groups": 32,
+        },
+        "unet": {
+            "block_out_channels": (320, 640, 1280, 1280),
+            "layers_per_block": 2,
+            "down_block_types": ("CrossAttnDownBlock2D",) * 3 + ("DownBlock2D",),
+            "up_block_types": ("UpBlock2D",) + ("CrossAttnUpBlock2D",) * 3,
+            "cross_attention_dim": 768,
+            "attention_head_dim": 8,
+            "norm_num_groups": 32,
+        },
+        "image_encoder": {
+            "hidden_size": 1024,
+            "intermediate_size": 4096,
+            "num_hidden_layers": 24,
+            "num_attention_heads": 16,
+            "image_size": 224,
+            "patch_size": 14,
+            "projection_dim": 768,
+            "hidden_act": "quick_gelu",
+        },
+    },
+}
+
+#: zero-1-to-3 / Stable Diffusion noise schedule (REFERENCE.md): 1000 steps, scaled_linear, epsilon.
+ZERO123_SCHEDULER_CONFIG: dict[str, Any] = {
+    "num_train_timesteps": 1000,
+    "beta_start": 0.00085,
+    "beta_end": 0.012,
+    "beta_schedule": "scaled_linear",
+    "prediction_type": "epsilon",
+    "clip_sample": False,
+    "set_alpha_to_one": False,
+    "steps_offset": 1,
+}
+SD_VAE_SCALING_FACTOR = 0.18215
+
+
+def build_sar_zero123(size: str, image_size: int | None = None, seed: int = 0) -> SARZero123Pipeline:
+    """Build a randomly initialised :class:`SARZero123Pipeline` of a named size.
+
+    Each component is initialised from ``torch.manual_seed(seed)`` inside ``torch.random.fork_rng``, so
+    the result depends only on ``seed`` and the global RNG state is left untouched.
+
+    Sizes (parameter counts in ``docs/RESULTS.md``):
+
+    - ``"tiny"``: 32 px, for unit tests, well under 1 M parameters.
+    - ``"small"``: 64 px SAR chips (64-128 px work) on a CPU; 1-channel VAE, 16x16x4 latents.
+    - ``"zero123"``: exactly the Objaverse zero-1-to-3 shapes at 256 px (load real weights with
+      :meth:`SARZero123Pipeline.from_zero123`).
+
+    Args:
+        size: One of ``"tiny"``, ``"small"``, ``"zero123"``.
+        image_size: Chip size in pixels; defaults to the size's own. Sets the VAE and UNet
+            ``sample_size`` (the networks themselves are size-agnostic).
+        seed: Initialisation seed.
+
+    Returns:
+        The pipeline (float32, CPU) with a zero-1-to-3 DDIM scheduler.
+
+    Raises:
+        ValueError: If ``size`` is unknown or ``image_size`` is not a positive multiple of the
+            model's total downsampling factor.
+    """
+    if size not in SAR_ZERO123_SIZES:
+        raise ValueError(f"`size` must be one of {sorted(SAR_ZERO123_SIZES)}, got {size!r}")
+    spec = SAR_ZERO123_SIZES[size]
+    vae_factor = 2 ** (len(spec["vae"]["block_out_channels"]) - 1)
+    multiple = vae_factor * 2 ** (len(spec["unet"]["block_out_channels"]) - 1)
+    image_size = spec["image_size"] if image_size is None else image_size
+    if not isinstance(image_size, int) or image_size < multiple or image_size % multiple:
+        raise ValueError(
+            f"`image_size` must be a positive multiple of {multiple} for size {size!r}, got {image_size}"
+        )
+    latent_channels = spec["vae"]["latent_channels"]
+    clip_config = CLIPVisionConfig(**spec["image_encoder"])
+
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        vae = AutoencoderKL(**spec["vae"], sample_size=image_size, scaling_factor=SD_VAE_SCALING_FACTOR)
+        torch.manual_seed(seed)
+        unet = UNet2DConditionModel(
+            **spec["unet"],
+            sample_size=image_size // vae_factor,
+            in_channels=2 * latent_channels,
+            out_channels=latent_channels,
+        )
+        torch.manual_seed(seed)
+        image_encoder = CLIPVisionModelWithProjection(clip_config)
+    cross_attention_dim = spec["unet"]["cross_attention_dim"]
+    pose_projection = PoseProjection(clip_config.projection_dim + POSE_DIM, cross_attention_dim)
+    feature_extractor = None
+    if size == "zero123":
+        feature_extractor = CLIPImageProcessor(
+            size={"shortest_edge": 224}, crop_size={"height": 224, "width": 224}, do_center_crop=True
+        )
+    return SARZero123Pipeline(
+        vae=vae.eval(),
+        image_encoder=image_encoder.eval(),
+        unet=unet.eval(),
+        scheduler=DDIMScheduler(**ZERO123_SCHEDULER_CONFIG),
+        pose_projection=pose_projection.eval(),
+        feature_extractor=feature_extractor,
+    )
