@@ -218,26 +218,6 @@ def _to_encoder_input(images: torch.Tensor, size: int) -> torch.Tensor:
     return images
 
 
-def encoder_input_size(image_size: int, encoder_image_size: int, crop_size: int | None = None) -> int:
-    """Side length at which a (cropped) chip is shown to the encoder.
-
-    The encoder was trained on whole chips resized to ``encoder_image_size``; a centre crop is shown at the
-    same pixel scale (``crop_size * encoder_image_size / image_size``), so the target keeps the size the
-    encoder learned, instead of being magnified.
-
-    Args:
-        image_size: Side of the full chip in pixels.
-        encoder_image_size: ``encoder.config.image_size``.
-        crop_size: Side of the centre crop in pixels, or ``None`` for the whole chip.
-
-    Returns:
-        The encoder input side in pixels.
-    """
-    if crop_size is None:
-        return encoder_image_size
-    return max(1, round(crop_size * encoder_image_size / image_size))
-
-
 @torch.no_grad()
 def encode_target_features(target_images: torch.Tensor, encoder: nn.Module, *,
                            crop_size: int | None = None) -> torch.Tensor:
@@ -246,7 +226,7 @@ def encode_target_features(target_images: torch.Tensor, encoder: nn.Module, *,
     Args:
         target_images: Target views, normalised dB in [0, 1].
         encoder: Frozen SAR encoder (``forward((B, 1, S, S)) -> (B, D)``, ``config.image_size``).
-        crop_size: Optional centre crop in pixels (applied before the resize to the encoder's scale).
+        crop_size: Optional centre crop in pixels (before the resize to ``encoder.config.image_size``).
 
     Returns:
         Float32 features.
@@ -254,12 +234,10 @@ def encode_target_features(target_images: torch.Tensor, encoder: nn.Module, *,
     Shape:
         ``(B, 1, H, W) -> (B, D)``.
     """
-    image_size = target_images.shape[-1]
-    size = encoder_input_size(image_size, encoder.config.image_size, crop_size)
     images = _center_crop(target_images, crop_size) if crop_size is not None else target_images
     images = images * 2.0 - 1.0  # to the VAE's [-1, 1] so both branches share one mapping
     encoder_dtype = next(encoder.parameters()).dtype
-    return encoder(_to_encoder_input(images, size).to(encoder_dtype)).float()
+    return encoder(_to_encoder_input(images, encoder.config.image_size).to(encoder_dtype)).float()
 
 
 def pfm_loss(
@@ -277,9 +255,9 @@ def pfm_loss(
     (VAE domain [-1, 1]) is averaged to one channel, mapped to normalised dB ``(x + 1) / 2`` and resized to
     the encoder's input size; ``f`` is the encoder's pooled feature. With ``crop_size`` only the latent
     window covering the centre ``crop_size`` pixels is decoded (the paper scores the 64x64 centre of a
-    128 px chip), which cuts the decoder cost by ``(image_size / crop_size)**2``; decoding a latent
-    window instead of cropping the full decode changes the border pixels (measured in
-    ``docs/results/pfm.md``).
+    128 px chip), which cuts the decoder cost by ``(image_size / crop_size)**2``; the crop of the
+    target and of the estimate are both resized to the encoder's input size. Decoding a latent window
+    instead of cropping the full decode changes the border pixels (measured in ``docs/results/pfm.md``).
 
     Gradients flow through the frozen decoder and encoder into ``x0_hat_latents`` only.
 
@@ -325,9 +303,8 @@ def pfm_loss(
     # 3. decode the estimate and encode it; gradients flow to x0_hat_latents
     vae_dtype = next(vae.parameters()).dtype
     decoded = vae.decode(latents.to(vae_dtype) / vae.config.scaling_factor).sample  # (B, C, crop, crop)
-    size = encoder_input_size(image_size, encoder.config.image_size, crop_size)
     encoder_dtype = next(encoder.parameters()).dtype
-    features = encoder(_to_encoder_input(decoded, size).to(encoder_dtype)).float()  # (B, D)
+    features = encoder(_to_encoder_input(decoded, encoder.config.image_size).to(encoder_dtype)).float()
     return (features - target_features).pow(2).sum(dim=1)
 
 

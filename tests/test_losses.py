@@ -16,7 +16,6 @@ from sar_zero123.losses import (
     append_dims,
     denoising_loss,
     denoising_target,
-    encoder_input_size,
     estimate_x0,
     pfm_loss,
     pfm_timestep_mask,
@@ -184,18 +183,16 @@ def test_pfm_loss_crop_decodes_latent_window(vae, encoder) -> None:
     generator = torch.Generator().manual_seed(1)
     target = torch.rand(2, 1, 32, 32, generator=generator)
     latents = torch.randn(2, 4, 16, 16, generator=generator)
-    assert encoder_input_size(32, 16, 16) == 8
     seen = []
     handle = encoder.register_forward_pre_hook(lambda module, args: seen.append(tuple(args[0].shape)))
     try:
         loss = pfm_loss(latents, target, vae, encoder, crop_size=16)
     finally:
         handle.remove()
-    assert seen == [(2, 1, 8, 8), (2, 1, 8, 8)]  # 16 px centre at the encoder's pixel scale
+    assert seen == [(2, 1, 16, 16), (2, 1, 16, 16)]  # 16 px centre at the encoder's input size
     window = latents[..., 4:12, 4:12]
     decoded = vae.decode(window / vae.config.scaling_factor).sample
-    a = F.interpolate((decoded + 1) / 2, size=(8, 8), mode="bilinear", antialias=True)
-    b = F.interpolate(target[..., 8:24, 8:24], size=(8, 8), mode="bilinear", antialias=True)
+    a, b = (decoded + 1) / 2, target[..., 8:24, 8:24]
     torch.testing.assert_close(loss, ((encoder(a) - encoder(b)) ** 2).sum(1), atol=1e-6, rtol=1e-5)
     with pytest.raises(ValueError, match="crop_size"):
         pfm_loss(latents, target, vae, encoder, crop_size=14)
@@ -284,3 +281,17 @@ def test_loss_and_grads_finite_at_hard_timesteps(vae, encoder, schedule, predict
     assert out.pfm_mask[3].item() == (min_snr == 0.0 or prediction_type == "sample")
     grads = torch.cat([p.grad.float().flatten() for p in model.parameters()])
     assert torch.isfinite(grads).all() and grads.abs().sum() > 0
+
+
+def test_pfm_loss_with_sar_encoder(vae) -> None:
+    from sar_zero123.encoder import SAREncoder, SAREncoderConfig
+
+    torch.manual_seed(0)
+    sar_encoder = frozen(SAREncoder(SAREncoderConfig(image_size=16, depths=(1,), hidden_sizes=(8,),
+                                                     embedding_size=8)))
+    x0_hat = torch.randn(2, 4, 16, 16, requires_grad=True)
+    target = torch.rand(2, 1, 32, 32)
+    loss = pfm_loss(x0_hat, target, vae, sar_encoder, crop_size=16)
+    assert loss.shape == (2,) and (loss > 0).all()
+    loss.sum().backward()
+    assert torch.isfinite(x0_hat.grad).all() and x0_hat.grad[..., :4, :].abs().sum() == 0  # outside the window
