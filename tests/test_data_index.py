@@ -1,0 +1,110 @@
+"""Tests for ChipRecord, index.csv reading/writing and its error messages."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from sar_zero123.data import ChipRecord, load_index, write_index
+
+HEADER = "path,target_class,target_type,serial,depression_deg,azimuth_deg,height,width"
+
+
+def make_folder(
+    tmp_path: Path, rows: list[str], header: str = HEADER, files: tuple[str, ...] = ("a.npy", "b.npy")
+):
+    for name in files:
+        np.save(tmp_path / name, np.full((4, 4), 0.5, dtype=np.float32))
+    (tmp_path / "index.csv").write_text("\n".join([header, *rows]) + "\n")
+    return tmp_path
+
+
+GOOD_ROWS = ["a.npy,T72,t72_tank,132,17,359.5,4,4", "b.npy,BMP2,,9563,15.0,0,,"]
+
+
+def test_load_index_reads_rows(tmp_path: Path) -> None:
+    records = load_index(make_folder(tmp_path, GOOD_ROWS))
+    assert records[0] == ChipRecord(
+        path=(tmp_path / "a.npy").resolve(),
+        target_class="T72",
+        serial="132",
+        depression_deg=17.0,
+        azimuth_deg=359.5,
+        target_type="t72_tank",
+        height=4,
+        width=4,
+    )
+    assert records[0].path.is_absolute()
+    assert (records[1].target_type, records[1].height, records[1].depression_deg) == (None, None, 15.0)
+    assert records[1].object_id == ("BMP2", "9563")
+
+
+def test_write_index_round_trip(tmp_path: Path) -> None:
+    records = load_index(make_folder(tmp_path, GOOD_ROWS))
+    (tmp_path / "index.csv").unlink()
+    write_index(records, tmp_path)
+    assert load_index(tmp_path) == records
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.npy", "b.npy", "index.csv"]
+
+
+def test_write_index_rejects_outside_paths(tmp_path: Path) -> None:
+    record = ChipRecord(
+        path=tmp_path / "x.npy", target_class="A", serial="1", depression_deg=15, azimuth_deg=1
+    )
+    (tmp_path / "sub").mkdir()
+    with pytest.raises(ValueError, match="must lie inside the indexed folder"):
+        write_index([record], tmp_path / "sub")
+    assert list((tmp_path / "sub").iterdir()) == []
+
+
+def test_missing_column(tmp_path: Path) -> None:
+    header = "path,target_class,serial,depression_deg,height"
+    with pytest.raises(ValueError, match=r"index.csv: missing column\(s\) \['azimuth_deg'\]"):
+        load_index(make_folder(tmp_path, ["a.npy,T72,132,17,4"], header=header))
+
+
+def test_unknown_column(tmp_path: Path) -> None:
+    header = HEADER + ",elevation"
+    with pytest.raises(ValueError, match=r"unknown column\(s\) \['elevation'\]"):
+        load_index(make_folder(tmp_path, ["a.npy,T72,t,132,17,3,4,4,9"], header=header))
+
+
+def test_missing_chip_file(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match=r"index.csv:3: chip file 'c.npy' does not exist"):
+        load_index(make_folder(tmp_path, [GOOD_ROWS[0], "c.npy,T72,,132,17,3,,"]))
+
+
+@pytest.mark.parametrize(
+    ("row", "message"),
+    [
+        ("a.npy,T72,,132,17,360,,", r"index.csv:2: column 'azimuth_deg' must lie in \[0, 360\)"),
+        ("a.npy,T72,,132,17,-0.5,,", r"column 'azimuth_deg' must lie in \[0, 360\)"),
+        ("a.npy,T72,,132,17,nan,,", "column 'azimuth_deg' must be finite"),
+        ("a.npy,T72,,132,high,3,,", "column 'depression_deg' must be a number, got 'high'"),
+        ("a.npy,T72,,132,17,3,4.5,", "column 'height' must be an integer"),
+        ("a.npy,T72,,132,17,3", "expected 8 fields"),
+    ],
+)
+def test_bad_values(tmp_path: Path, row: str, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        load_index(make_folder(tmp_path, [row]))
+
+
+def test_empty_index_and_missing_folder(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="lists no chips"):
+        load_index(make_folder(tmp_path, []))
+    with pytest.raises(FileNotFoundError, match="data folder not found"):
+        load_index(tmp_path / "nope")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="no 'index.csv' and no original MSTAR files"):
+        load_index(tmp_path / "empty")
+    assert list((tmp_path / "empty").iterdir()) == []
+
+
+def test_chip_record_validates() -> None:
+    with pytest.raises(ValueError, match=r"azimuth_deg must lie in \[0, 360\)"):
+        ChipRecord(path=Path("/x"), target_class="A", serial="1", depression_deg=15.0, azimuth_deg=360.0)
+    with pytest.raises(ValueError, match="target_class must be a non-empty"):
+        ChipRecord(path=Path("/x"), target_class="", serial="1", depression_deg=15.0, azimuth_deg=0.0)
