@@ -57,9 +57,8 @@ def test_fit_uses_global_bounds() -> None:
     scaling = DecibelScaling.fit(images)
     assert scaling.min_db == pytest.approx(20 * math.log10(0.251))
     assert scaling.max_db == pytest.approx(20 * math.log10(2.001))
-    np.testing.assert_allclose(
-        scaling.normalize(images[0]), [[0.33293, 1.0]], atol=1e-4
-    )  # (-6.0033 + 12.0074) / 18.0323
+    expected = [[(-6.0033 + 12.0074) / 18.0323, 1.0]]  # 20*log10(0.501) = -6.0033 dB
+    np.testing.assert_allclose(scaling.normalize(images[0]), expected, atol=1e-4)
 
 
 def test_dict_round_trip_through_json() -> None:
