@@ -1,6 +1,6 @@
 """Tiny random components shared by the pipeline, loss and training tests.
 
-``SARZero123Pipeline(**get_dummy_components())`` is a 32 px model (1-channel VAE, 16x16x4 latents) with about
+``SARZero123Pipeline(**get_dummy_components())`` is a 32 px model (1-channel VAE, 16x16x4 latents) with
 about 0.4 M parameters, built from the ``"tiny"`` entry of ``SAR_ZERO123_SIZES`` with
 ``torch.manual_seed(0)`` before each component, as diffusers' pipeline tests do.
 """

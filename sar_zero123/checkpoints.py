@@ -1,0 +1,381 @@
+"""Loading Objaverse zero-1-to-3 checkpoints into :class:`SARZero123Pipeline`.
+
+Three layouts are found in the wild (REFERENCE.md, "Checkpoint layouts in the wild"):
+
+(a) a diffusers folder in the ``kxic/zero123-*`` layout: ``model_index.json`` + ``vae/``, ``unet/``,
+    ``image_encoder/``, ``scheduler/``, ``feature_extractor/`` and ``cc_projection/``, whose
+    ``config.json`` stores no sizes (keys ``projection.weight`` / ``projection.bias``);
+(b) the threestudio layout, the same folder with ``clip_camera_projection/`` (keys ``proj.weight`` /
+    ``proj.bias``, config ``embedding_dim`` / ``additional_embeddings``);
+(c) the original Lightning/LDM state dict (``.ckpt`` or ``.safetensors``) with
+    ``model.diffusion_model.*``, ``first_stage_model.*``, ``cc_projection.weight|bias`` and optionally
+    ``model_ema.*`` (LitEma names: the module path with its dots removed).
+
+A folder saved by :meth:`SARZero123Pipeline.save_pretrained` (with ``pose_projection/``) loads too.
+Projection sizes are always read from the weight shapes. The UNet and VAE key renaming of layout (c)
+is diffusers' own single-file converters; only the EMA substitution and the architecture inference
+(which those converters take from the LDM yaml we do not have) are done here.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+import torch
+from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+from diffusers.loaders.single_file_utils import convert_ldm_unet_checkpoint, convert_ldm_vae_checkpoint
+from safetensors.torch import load_file
+from transformers import CLIPImageProcessor, CLIPVisionModelWithProjection
+
+from sar_zero123.conditioning import POSE_DIM, PoseProjection
+from sar_zero123.pipeline import SD_VAE_SCALING_FACTOR, ZERO123_SCHEDULER_CONFIG, SARZero123Pipeline
+
+__all__ = ["PROJECTION_FOLDERS", "load_zero123", "load_ldm_state_dict"]
+
+#: Folder name of the pose projection -> names of its weight and bias in that folder's state dict.
+PROJECTION_FOLDERS: dict[str, tuple[str, str]] = {
+    "pose_projection": ("projection.weight", "projection.bias"),  # this package's own layout
+    "cc_projection": ("projection.weight", "projection.bias"),  # kxic/zero123-* diffusers layout
+    "clip_camera_projection": ("proj.weight", "proj.bias"),  # threestudio layout
+}
+LDM_UNET_PREFIX = "model.diffusion_model."
+LDM_VAE_PREFIX = "first_stage_model."
+LDM_EMA_PREFIX = "model_ema."
+LDM_PROJECTION_KEYS = ("cc_projection.weight", "cc_projection.bias")
+_FOLDER_COMPONENTS = ("vae", "unet", "image_encoder")
+_WEIGHT_FILES = ("diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.bin", "model.safetensors")
+
+#: Architecture facts an LDM state dict cannot tell (head count, norm groups), zero-1-to-3's values.
+ZERO123_UNET_DEFAULTS: dict[str, Any] = {"attention_head_dim": 8, "norm_num_groups": 32, "sample_size": 32}
+ZERO123_VAE_DEFAULTS: dict[str, Any] = {
+    "norm_num_groups": 32,
+    "sample_size": 256,
+    "scaling_factor": SD_VAE_SCALING_FACTOR,
+}
+
+
+def load_zero123(
+    path: str | Path,
+    use_ema: bool = True,
+    image_encoder_path: str | Path | None = None,
+    torch_dtype: torch.dtype | None = None,
+    unet_config: dict[str, Any] | None = None,
+    vae_config: dict[str, Any] | None = None,
+    weights_only: bool = True,
+) -> SARZero123Pipeline:
+    """Build a :class:`SARZero123Pipeline` from a zero-1-to-3 checkpoint in any supported layout.
+
+    Args:
+        path: A diffusers folder (layouts a, b, or this package's) or an LDM ``.ckpt`` /
+            ``.safetensors`` file (layout c).
+        use_ema: For LDM files that hold ``model_ema.*``, load the EMA UNet weights (as zero-1-to-3
+            samples); ignored otherwise.
+        image_encoder_path: Folder of a ``CLIPVisionModelWithProjection`` (CLIP ViT-L/14 image tower
+            for the Objaverse checkpoints) and optionally its ``CLIPImageProcessor``. Required for LDM
+            files, which keep CLIP in the OpenAI layout; overrides a folder's own ``image_encoder``.
+        torch_dtype: Optional dtype for all modules.
+        unet_config: LDM files only: ``UNet2DConditionModel`` config entries that override the
+            inferred/default ones (the head count and norm groups are not in the weights; defaults are
+            zero-1-to-3's ``attention_head_dim=8``, ``norm_num_groups=32``).
+        vae_config: LDM files only: ``AutoencoderKL`` config overrides (``norm_num_groups``,
+            ``scaling_factor``, ``sample_size``).
+        weights_only: Passed to ``torch.load`` for ``.ckpt`` files. Keep True unless the file is trusted
+            and holds objects a weights-only unpickler refuses.
+
+    Returns:
+        The pipeline in eval mode.
+
+    Raises:
+        FileNotFoundError: If ``path`` does not exist.
+        ValueError: For an unknown layout, missing components or keys, or weights whose shapes do not
+            fit; the message lists what was expected.
+    """
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"zero-1-to-3 checkpoint not found: {path}")
+    if path.is_dir():
+        pipe = _load_folder(path, image_encoder_path)
+    elif path.suffix in (".ckpt", ".pt", ".pth", ".safetensors"):
+        state_dict = load_ldm_state_dict(path, weights_only=weights_only)
+        pipe = _pipeline_from_ldm(state_dict, use_ema, image_encoder_path, unet_config, vae_config)
+    else:
+        raise ValueError(
+            f"unknown zero-1-to-3 checkpoint layout: {path}. Expected a diffusers folder with "
+            f"model_index.json and one of {sorted(PROJECTION_FOLDERS)}, or an LDM .ckpt/.safetensors file"
+        )
+    if torch_dtype is not None:
+        pipe.to(dtype=torch_dtype)
+    return pipe
+
+
+def load_ldm_state_dict(path: str | Path, weights_only: bool = True) -> dict[str, torch.Tensor]:
+    """Read the flat state dict of an LDM checkpoint (``.safetensors``, or a Lightning ``.ckpt``).
+
+    Args:
+        path: The checkpoint file.
+        weights_only: Passed to ``torch.load``.
+
+    Returns:
+        Parameter name -> tensor (the ``state_dict`` entry of a Lightning checkpoint).
+
+    Raises:
+        ValueError: If the file holds no tensor state dict.
+    """
+    path = Path(path)
+    if path.suffix == ".safetensors":
+        return load_file(str(path))
+    checkpoint = torch.load(path, map_location="cpu", weights_only=weights_only)
+    if isinstance(checkpoint, dict) and isinstance(checkpoint.get("state_dict"), dict):
+        checkpoint = checkpoint["state_dict"]
+    if not isinstance(checkpoint, dict) or not all(isinstance(v, torch.Tensor) for v in checkpoint.values()):
+        raise ValueError(f"{path} holds no state dict of tensors (nor a Lightning checkpoint with one)")
+    return checkpoint
+
+
+# ------------------------------------------------------------------------------ layouts (a), (b)
+def _read_weights(folder: Path) -> dict[str, torch.Tensor]:
+    for name in _WEIGHT_FILES:
+        file = folder / name
+        if file.exists():
+            if file.suffix == ".safetensors":
+                return load_file(str(file))
+            return torch.load(file, map_location="cpu", weights_only=True)
+    raise ValueError(f"no weights in {folder}; expected one of {list(_WEIGHT_FILES)}")
+
+
+def _projection_from_tensors(
+    weight: torch.Tensor | None, bias: torch.Tensor | None, where: str
+) -> PoseProjection:
+    """A :class:`PoseProjection` sized from its weight, e.g. (768, 772) for zero-1-to-3."""
+    if weight is None or bias is None:
+        raise ValueError(f"{where}: missing projection weight or bias")
+    if weight.ndim != 2 or weight.shape[1] <= POSE_DIM or bias.shape != (weight.shape[0],):
+        raise ValueError(
+            f"{where}: expected weight (out, image_embed_dim + {POSE_DIM}) and bias (out,), got "
+            f"{tuple(weight.shape)} and {tuple(bias.shape)}"
+        )
+    out_features, in_features = weight.shape
+    projection = PoseProjection(in_features=in_features, out_features=out_features)
+    projection.load_state_dict({"projection.weight": weight.float(), "projection.bias": bias.float()})
+    return projection
+
+
+def _load_projection(folder: Path) -> PoseProjection:
+    weight_key, bias_key = PROJECTION_FOLDERS[folder.name]
+    state_dict = _read_weights(folder)
+    unexpected = sorted(set(state_dict) - {weight_key, bias_key})
+    if unexpected:
+        raise ValueError(f"{folder}: unexpected keys {unexpected}; expected {[weight_key, bias_key]}")
+    projection = _projection_from_tensors(state_dict.get(weight_key), state_dict.get(bias_key), str(folder))
+    config_file = folder / "config.json"
+    if folder.name == "clip_camera_projection" and config_file.exists():
+        config = json.loads(config_file.read_text())
+        stated = config.get("embedding_dim"), config.get("additional_embeddings", POSE_DIM)
+        if stated[0] is not None and (stated[0] + stated[1], stated[0]) != (
+            projection.config.in_features,
+            projection.config.out_features,
+        ):
+            raise ValueError(
+                f"{config_file}: embedding_dim={stated[0]}, additional_embeddings={stated[1]} do not match "
+                f"the weight shape {(projection.config.out_features, projection.config.in_features)}"
+            )
+    return projection
+
+
+def _load_scheduler(folder: Path) -> Any:
+    import diffusers
+
+    config_file = folder / "scheduler_config.json"
+    if not config_file.exists():
+        return DDIMScheduler(**ZERO123_SCHEDULER_CONFIG)
+    class_name = json.loads(config_file.read_text()).get("_class_name", "DDIMScheduler")
+    scheduler_class = getattr(diffusers, class_name, None)
+    if scheduler_class is None:
+        raise ValueError(f"{config_file}: unknown scheduler class {class_name!r} (not in diffusers)")
+    return scheduler_class.from_pretrained(folder)
+
+
+def _load_folder(path: Path, image_encoder_path: str | Path | None) -> SARZero123Pipeline:
+    projection_folders = [name for name in PROJECTION_FOLDERS if (path / name).is_dir()]
+    if not (path / "model_index.json").exists() or not projection_folders:
+        raise ValueError(
+            f"unknown zero-1-to-3 folder layout: {path}. Expected model_index.json and a projection folder "
+            f"named one of {sorted(PROJECTION_FOLDERS)} next to {list(_FOLDER_COMPONENTS)}"
+        )
+    required = [name for name in _FOLDER_COMPONENTS if name != "image_encoder" or image_encoder_path is None]
+    missing = [name for name in required if not (path / name).is_dir()]
+    if missing:
+        raise ValueError(f"{path}: missing component folders {missing}; expected {required}")
+
+    encoder_dir = Path(image_encoder_path) if image_encoder_path is not None else path / "image_encoder"
+    feature_dir = encoder_dir if image_encoder_path is not None else path / "feature_extractor"
+    return SARZero123Pipeline(
+        vae=AutoencoderKL.from_pretrained(path / "vae").eval(),
+        image_encoder=CLIPVisionModelWithProjection.from_pretrained(encoder_dir).eval(),
+        unet=UNet2DConditionModel.from_pretrained(path / "unet").eval(),
+        scheduler=_load_scheduler(path / "scheduler"),
+        pose_projection=_load_projection(path / projection_folders[0]).eval(),
+        feature_extractor=_load_feature_extractor(feature_dir),
+    )
+
+
+def _load_feature_extractor(folder: Path) -> CLIPImageProcessor | None:
+    if (folder / "preprocessor_config.json").exists():
+        return CLIPImageProcessor.from_pretrained(folder)
+    return None
+
+
+# ------------------------------------------------------------------------------------ layout (c)
+def _substitute_ema(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """Replace ``model.diffusion_model.*`` by their ``model_ema.*`` copies.
+
+    LitEma stores ``model.diffusion_model.a.b`` as ``model_ema.diffusion_modelab`` (dots removed),
+    the naming diffusers' ``convert_ldm_unet_checkpoint(extract_ema=True)`` reads too; that converter
+    only switches to EMA above 100 EMA keys, so the substitution is done here for any size.
+    """
+    substituted = dict(state_dict)
+    missing = []
+    for key in state_dict:
+        if key.startswith(LDM_UNET_PREFIX):
+            ema_key = LDM_EMA_PREFIX + "".join(key.split(".")[1:])
+            if ema_key in state_dict:
+                substituted[key] = state_dict[ema_key]
+            else:
+                missing.append(ema_key)
+    if missing:
+        raise ValueError(
+            f"use_ema=True but {len(missing)} EMA weights are missing, e.g. {missing[:3]}; "
+            "pass use_ema=False to load the non-EMA UNet"
+        )
+    return substituted
+
+
+def _infer_unet_config(unet_sd: dict[str, torch.Tensor], overrides: dict[str, Any] | None) -> dict[str, Any]:
+    """``UNet2DConditionModel`` config from the shapes of an LDM ``model.diffusion_model.*`` dict."""
+    input_ids = sorted({int(key.split(".")[1]) for key in unet_sd if key.startswith("input_blocks.")})
+    output_ids = sorted({int(key.split(".")[1]) for key in unet_sd if key.startswith("output_blocks.")})
+    downsample_ids = [i for i in input_ids if f"input_blocks.{i}.0.op.weight" in unet_sd]
+    num_levels = len(downsample_ids) + 1
+    layers_per_block = downsample_ids[0] - 1 if downsample_ids else len(input_ids) - 1
+    if layers_per_block < 1 or len(input_ids) != 1 + num_levels * layers_per_block + num_levels - 1:
+        raise ValueError(f"cannot read the UNet block structure from input_blocks {input_ids}")
+    block_out_channels, down_types, up_types = [], [], []
+    for level in range(num_levels):
+        first = 1 + level * (layers_per_block + 1)
+        block_out_channels.append(unet_sd[f"input_blocks.{first}.0.out_layers.3.weight"].shape[0])
+        has_attention = any(k.startswith(f"input_blocks.{first}.1.") for k in unet_sd)
+        down_types.append("CrossAttnDownBlock2D" if has_attention else "DownBlock2D")
+    for level in range(num_levels):
+        first = level * (layers_per_block + 1)
+        has_attention = any(k.startswith(f"output_blocks.{first}.1.transformer_blocks") for k in unet_sd)
+        up_types.append("CrossAttnUpBlock2D" if has_attention else "UpBlock2D")
+    if len(output_ids) != num_levels * (layers_per_block + 1):
+        raise ValueError(
+            f"UNet output_blocks {output_ids} do not mirror {num_levels} levels of {layers_per_block} layers"
+        )
+    attn2 = [key for key in unet_sd if key.endswith("attn2.to_k.weight")]
+    if not attn2:
+        raise ValueError("the UNet has no cross-attention (`attn2.to_k.weight`) keys")
+    conv_in = unet_sd["input_blocks.0.0.weight"]
+    config = {
+        **ZERO123_UNET_DEFAULTS,
+        "in_channels": conv_in.shape[1],
+        "out_channels": unet_sd["out.2.weight"].shape[0],
+        "block_out_channels": tuple(block_out_channels),
+        "layers_per_block": layers_per_block,
+        "down_block_types": tuple(down_types),
+        "up_block_types": tuple(up_types),
+        "cross_attention_dim": unet_sd[attn2[0]].shape[1],
+    }
+    return {**config, **(overrides or {})}
+
+
+def _infer_vae_config(vae_sd: dict[str, torch.Tensor], overrides: dict[str, Any] | None) -> dict[str, Any]:
+    """``AutoencoderKL`` config from the shapes of an LDM ``first_stage_model.*`` dict."""
+    levels = sorted({int(key.split(".")[2]) for key in vae_sd if key.startswith("encoder.down.")})
+    if not levels:
+        raise ValueError("the VAE has no `encoder.down.*` keys")
+    block_out_channels = tuple(vae_sd[f"encoder.down.{i}.block.0.conv2.weight"].shape[0] for i in levels)
+    layers_per_block = len({key.split(".")[4] for key in vae_sd if key.startswith("encoder.down.0.block.")})
+    config = {
+        **ZERO123_VAE_DEFAULTS,
+        "in_channels": vae_sd["encoder.conv_in.weight"].shape[1],
+        "out_channels": vae_sd["decoder.conv_out.weight"].shape[0],
+        "latent_channels": vae_sd["post_quant_conv.weight"].shape[0],
+        "block_out_channels": block_out_channels,
+        "layers_per_block": layers_per_block,
+        "down_block_types": ("DownEncoderBlock2D",) * len(levels),
+        "up_block_types": ("UpDecoderBlock2D",) * len(levels),
+    }
+    return {**config, **(overrides or {})}
+
+
+def _load_strict(module: torch.nn.Module, state_dict: dict[str, torch.Tensor], name: str) -> None:
+    """``load_state_dict(strict=True)`` with a ValueError listing missing/unexpected/mis-shaped keys."""
+    expected = module.state_dict()
+    missing = sorted(set(expected) - set(state_dict))
+    unexpected = sorted(set(state_dict) - set(expected))
+    wrong_shape = [
+        f"{key}: expected {tuple(expected[key].shape)}, got {tuple(state_dict[key].shape)}"
+        for key in sorted(set(expected) & set(state_dict))
+        if expected[key].shape != state_dict[key].shape
+    ]
+    if missing or unexpected or wrong_shape:
+        raise ValueError(
+            f"{name} weights do not fit the architecture: missing {missing[:10]} ({len(missing)}), "
+            f"unexpected {unexpected[:10]} ({len(unexpected)}), wrong shapes {wrong_shape[:10]}"
+        )
+    module.load_state_dict(state_dict, strict=True)
+
+
+def _pipeline_from_ldm(
+    state_dict: dict[str, torch.Tensor],
+    use_ema: bool,
+    image_encoder_path: str | Path | None,
+    unet_config: dict[str, Any] | None,
+    vae_config: dict[str, Any] | None,
+) -> SARZero123Pipeline:
+    # 1. check the layout
+    prefixes = (LDM_UNET_PREFIX, LDM_VAE_PREFIX)
+    absent = [f"{prefix}*" for prefix in prefixes if not any(k.startswith(prefix) for k in state_dict)]
+    absent += [key for key in LDM_PROJECTION_KEYS if key not in state_dict]
+    if absent:
+        raise ValueError(
+            f"not a zero-1-to-3 LDM state dict: missing {absent}; expected keys "
+            f"{LDM_UNET_PREFIX}*, {LDM_VAE_PREFIX}*, {LDM_PROJECTION_KEYS[0]}, {LDM_PROJECTION_KEYS[1]} "
+            f"(and optionally {LDM_EMA_PREFIX}*)"
+        )
+    if image_encoder_path is None:
+        raise ValueError(
+            "`image_encoder_path` is required for LDM checkpoints: pass a folder holding a "
+            "CLIPVisionModelWithProjection (CLIP ViT-L/14 image tower for the Objaverse checkpoints)"
+        )
+    if use_ema and any(key.startswith(LDM_EMA_PREFIX + "diffusion_model") for key in state_dict):
+        state_dict = _substitute_ema(state_dict)
+
+    # 2. UNet and VAE through diffusers' converters, on architectures inferred from the shapes
+    unet_sd = {k[len(LDM_UNET_PREFIX) :]: v for k, v in state_dict.items() if k.startswith(LDM_UNET_PREFIX)}
+    vae_sd = {k[len(LDM_VAE_PREFIX) :]: v for k, v in state_dict.items() if k.startswith(LDM_VAE_PREFIX)}
+    # Only the prefixed keys go in, so the converters see neither EMA copies nor other modules.
+    unet = UNet2DConditionModel(**_infer_unet_config(unet_sd, unet_config))
+    unet_ldm = {LDM_UNET_PREFIX + k: v for k, v in unet_sd.items()}
+    _load_strict(unet, convert_ldm_unet_checkpoint(unet_ldm, dict(unet.config)), "UNet")
+    vae = AutoencoderKL(**_infer_vae_config(vae_sd, vae_config))
+    vae_ldm = {LDM_VAE_PREFIX + k: v for k, v in vae_sd.items()}
+    _load_strict(vae, convert_ldm_vae_checkpoint(vae_ldm, dict(vae.config)), "VAE")
+
+    # 3. projection, CLIP image tower, scheduler
+    projection = _projection_from_tensors(
+        state_dict[LDM_PROJECTION_KEYS[0]], state_dict[LDM_PROJECTION_KEYS[1]], "cc_projection"
+    )
+    encoder_dir = Path(image_encoder_path)
+    return SARZero123Pipeline(
+        vae=vae.eval(),
+        image_encoder=CLIPVisionModelWithProjection.from_pretrained(encoder_dir).eval(),
+        unet=unet.eval(),
+        scheduler=DDIMScheduler(**ZERO123_SCHEDULER_CONFIG),
+        pose_projection=projection.eval(),
+        feature_extractor=_load_feature_extractor(encoder_dir),
+    )
