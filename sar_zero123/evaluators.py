@@ -1,0 +1,339 @@
+"""Evaluator models that score generated views (paper Table III and Table IV).
+
+Two networks exist only to measure generated images; they are trained on real chips of every class
+(train split), so that on MSTAR-OOD the classifier still knows the held-out class:
+
+* `SARClassifier`: a ResNet-18 (`SAREncoder`) trained from scratch plus a linear layer over the classes;
+  it gives the classification accuracy of generated views.
+* `AzimuthRegressor`: a ResNet-18 plus an MLP (256-256, sigmoid) predicting azimuth / 2pi; it gives the
+  azimuth error, and its pre-head features (the 512-d pooled ResNet feature) give SFD. With a frozen
+  SimCLR encoder and only the MLP trained it is a Table IV "probe".
+
+Each model is saved as a folder with `evaluator.json` (kind, encoder config, class list, decibel scaling,
+head sizes) and `model.safetensors`. Loading checks the class list so that an evaluator trained on other
+classes is rejected with a clear error instead of silently scoring with mismatched labels.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from safetensors.torch import load_file, save_file
+from torch import nn
+
+from sar_zero123.data import DecibelScaling
+from sar_zero123.encoder import SAREncoder, SAREncoderConfig
+
+EVALUATOR_CONFIG_NAME = "evaluator.json"
+EVALUATOR_WEIGHTS_NAME = "model.safetensors"
+CLASSIFIER_DIR = "classifier"
+REGRESSOR_DIR = "regressor"
+PROBES_DIR = "probes"
+
+__all__ = [
+    "AzimuthRegressor",
+    "Evaluators",
+    "SARClassifier",
+    "azimuth_regression_loss",
+    "check_class_names",
+    "load_evaluator",
+    "load_evaluators",
+]
+
+
+def check_class_names(saved: Sequence[str], expected: Sequence[str] | None, source: str) -> None:
+    """Rejects an evaluator whose class list differs from the data's.
+
+    Args:
+        saved: Class names the evaluator was trained with (label order).
+        expected: Class names of the data being scored (label order), or `None` to skip the check.
+        source: Where the evaluator came from, for the message.
+
+    Raises:
+        ValueError: If the lists differ (in content or order).
+    """
+    if expected is not None and list(saved) != list(expected):
+        raise ValueError(
+            f"evaluator {source} was trained on classes {list(saved)} but the data uses {list(expected)}; "
+            f"train evaluators on this class list (train/train_evaluators.py)"
+        )
+
+
+def azimuth_regression_loss(predicted_fraction: torch.Tensor, azimuth_deg: torch.Tensor) -> torch.Tensor:
+    """Circular regression loss `1 - cos(2pi (p - t))` on the sigmoid output `p` and target `t = az / 2pi`.
+
+    The paper regresses azimuth / 2pi with a sigmoid head; a plain squared error would treat 359 deg and
+    1 deg as 358 deg apart, so the periodic form is used (it equals `2 pi^2 (p - t)^2` for small errors).
+
+    Args:
+        predicted_fraction: Sigmoid outputs in (0, 1), read as azimuth / 360 deg.
+        azimuth_deg: True azimuths in degrees (any real value; taken modulo 360).
+
+    Returns:
+        Per-sample loss in [0, 2].
+
+    Shape:
+        `(B,)`, `(B,)` -> `(B,)`.
+    """
+    target = torch.remainder(azimuth_deg, 360.0) / 360.0
+    return 1.0 - torch.cos(2.0 * math.pi * (predicted_fraction - target))
+
+
+class _Evaluator(nn.Module):
+    """Shared parts: the SAR encoder, the metadata and the folder format."""
+
+    kind: str = ""
+
+    def __init__(
+        self,
+        encoder_config: SAREncoderConfig,
+        class_names: Sequence[str],
+        scaling: DecibelScaling | None = None,
+    ) -> None:
+        super().__init__()
+        if len(class_names) == 0 or len(set(class_names)) != len(class_names):
+            raise ValueError(f"class_names must be non-empty and distinct, got {list(class_names)}")
+        self.encoder = SAREncoder(encoder_config)
+        self.class_names = list(class_names)
+        self.scaling = scaling if scaling is not None else DecibelScaling.for_unit_magnitude()
+        self.metrics: dict[str, float] = {}
+
+    @property
+    def image_size(self) -> int:
+        """Side of the square chips the evaluator takes."""
+        return self.encoder.config.image_size
+
+    def features(self, images: torch.Tensor) -> torch.Tensor:
+        """Pre-head features: the encoder's pooled 512-d ResNet feature.
+
+        Args:
+            images: Normalised dB chips in [0, 1].
+
+        Returns:
+            Features `(B, D)`.
+
+        Shape:
+            `(B, 1, S, S)` -> `(B, D)` with `S = image_size`.
+        """
+        return self.encoder(images)
+
+    def _head_config(self) -> dict[str, Any]:
+        return {}
+
+    def save_pretrained(self, directory: str | Path) -> Path:
+        """Writes `evaluator.json` (kind, encoder config, classes, scaling, head, metrics) and the weights.
+
+        Args:
+            directory: Target folder, created if needed.
+
+        Returns:
+            The folder.
+        """
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        state = {k: v.detach().cpu().contiguous() for k, v in self.state_dict().items()}
+        save_file(state, str(directory / EVALUATOR_WEIGHTS_NAME), metadata={"format": "pt"})
+        payload = {
+            "kind": self.kind,
+            "encoder": self.encoder.config.to_dict(),
+            "class_names": self.class_names,
+            "scaling": self.scaling.to_dict(),
+            "head": self._head_config(),
+            "metrics": self.metrics,
+        }
+        (directory / EVALUATOR_CONFIG_NAME).write_text(json.dumps(payload, indent=2) + "\n")
+        return directory
+
+
+class SARClassifier(_Evaluator):
+    """ResNet-18 classifier trained from scratch on real chips (Table III "Acc.").
+
+    Args:
+        encoder_config: Architecture of the ResNet-18 body.
+        class_names: Class names in label order.
+        scaling: Decibel scaling of the chips it was trained on (stored with the weights).
+    """
+
+    kind = "classifier"
+
+    def __init__(
+        self,
+        encoder_config: SAREncoderConfig,
+        class_names: Sequence[str],
+        scaling: DecibelScaling | None = None,
+    ) -> None:
+        super().__init__(encoder_config, class_names, scaling)
+        self.head = nn.Linear(self.encoder.feature_dim, len(self.class_names))
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        """Class logits.
+
+        Shape:
+            `(B, 1, S, S)` -> `(B, K)`.
+        """
+        return self.head(self.features(images))
+
+
+class AzimuthRegressor(_Evaluator):
+    """ResNet-18 + MLP azimuth regressor with sigmoid output = azimuth / 2pi (Table III "Az. err.", SFD).
+
+    Args:
+        encoder_config: Architecture of the ResNet-18 body.
+        class_names: Class names of the training data (stored to reject mismatched evaluation data).
+        scaling: Decibel scaling of the training chips.
+        hidden_sizes: MLP widths (256-256 in the paper).
+    """
+
+    kind = "azimuth_regressor"
+
+    def __init__(
+        self,
+        encoder_config: SAREncoderConfig,
+        class_names: Sequence[str],
+        scaling: DecibelScaling | None = None,
+        hidden_sizes: Sequence[int] = (256, 256),
+    ) -> None:
+        super().__init__(encoder_config, class_names, scaling)
+        if len(hidden_sizes) == 0 or min(hidden_sizes) < 1:
+            raise ValueError(f"hidden_sizes must be non-empty positive widths, got {list(hidden_sizes)}")
+        self.hidden_sizes = [int(width) for width in hidden_sizes]
+        layers: list[nn.Module] = []
+        width = self.encoder.feature_dim
+        for hidden in self.hidden_sizes:
+            layers += [nn.Linear(width, hidden), nn.ReLU()]
+            width = hidden
+        layers += [nn.Linear(width, 1), nn.Sigmoid()]
+        self.head = nn.Sequential(*layers)
+
+    def _head_config(self) -> dict[str, Any]:
+        return {"hidden_sizes": self.hidden_sizes}
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        """Predicted azimuth / 360 deg in (0, 1).
+
+        Shape:
+            `(B, 1, S, S)` -> `(B,)`.
+        """
+        return self.head(self.features(images)).squeeze(1)
+
+    def predict_azimuth_deg(self, images: torch.Tensor) -> torch.Tensor:
+        """Predicted azimuth in degrees, [0, 360).
+
+        Shape:
+            `(B, 1, S, S)` -> `(B,)`.
+        """
+        return torch.remainder(self(images) * 360.0, 360.0)
+
+
+def load_evaluator(
+    directory: str | Path,
+    class_names: Sequence[str] | None = None,
+    device: str | torch.device = "cpu",
+) -> SARClassifier | AzimuthRegressor:
+    """Loads an evaluator folder written by `save_pretrained`, in eval mode.
+
+    Args:
+        directory: Folder with `evaluator.json` and `model.safetensors`.
+        class_names: Class list of the data to score; a different saved list raises.
+        device: Device for the weights.
+
+    Returns:
+        The classifier or regressor, in eval mode, with `metrics` restored.
+
+    Raises:
+        FileNotFoundError: If a file is missing.
+        ValueError: For an unknown kind or a class-list mismatch.
+    """
+    directory = Path(directory)
+    for path in (directory / EVALUATOR_CONFIG_NAME, directory / EVALUATOR_WEIGHTS_NAME):
+        if not path.is_file():
+            raise FileNotFoundError(f"evaluator checkpoint not found: {path}")
+    payload = json.loads((directory / EVALUATOR_CONFIG_NAME).read_text())
+    check_class_names(payload["class_names"], class_names, str(directory))
+    encoder_config = SAREncoderConfig.from_dict(payload["encoder"])
+    scaling = DecibelScaling.from_dict(payload["scaling"])
+    model: SARClassifier | AzimuthRegressor
+    if payload["kind"] == SARClassifier.kind:
+        model = SARClassifier(encoder_config, payload["class_names"], scaling)
+    elif payload["kind"] == AzimuthRegressor.kind:
+        model = AzimuthRegressor(encoder_config, payload["class_names"], scaling, **payload["head"])
+    else:
+        raise ValueError(f"{directory}: unknown evaluator kind {payload['kind']!r}")
+    model.load_state_dict(load_file(str(directory / EVALUATOR_WEIGHTS_NAME), device=str(device)))
+    model.metrics = dict(payload.get("metrics", {}))
+    return model.to(device).eval()
+
+
+@dataclass
+class Evaluators:
+    """The evaluator set written by `train/train_evaluators.py`.
+
+    Attributes:
+        classifier: Scratch ResNet-18 classifier.
+        regressor: Scratch ResNet-18 + MLP azimuth regressor (its features give SFD).
+        probes: Extra azimuth regressors for Table IV (frozen SimCLR encoders + trained MLP), by name.
+    """
+
+    classifier: SARClassifier
+    regressor: AzimuthRegressor
+    probes: dict[str, AzimuthRegressor] = field(default_factory=dict)
+
+    @property
+    def class_names(self) -> list[str]:
+        """Class names in label order."""
+        return self.classifier.class_names
+
+    @property
+    def image_size(self) -> int:
+        """Chip side the evaluators take."""
+        return self.classifier.image_size
+
+    def azimuth_regressors(self) -> dict[str, AzimuthRegressor]:
+        """All azimuth regressors for Table IV: `"scratch"` first, then the probes."""
+        return {"scratch": self.regressor, **self.probes}
+
+
+def load_evaluators(
+    directory: str | Path,
+    class_names: Sequence[str] | None = None,
+    device: str | torch.device = "cpu",
+) -> Evaluators:
+    """Loads `DIR/classifier`, `DIR/regressor` and every `DIR/probes/<name>`.
+
+    Args:
+        directory: Output folder of `train/train_evaluators.py`.
+        class_names: Class list of the data to score (checked against every model).
+        device: Device for the weights.
+
+    Returns:
+        The evaluator set.
+
+    Raises:
+        FileNotFoundError: If the classifier or regressor is missing.
+        ValueError: For a class-list mismatch, or evaluators with different class lists or image sizes.
+    """
+    directory = Path(directory)
+    classifier = load_evaluator(directory / CLASSIFIER_DIR, class_names, device)
+    regressor = load_evaluator(directory / REGRESSOR_DIR, classifier.class_names, device)
+    if not isinstance(classifier, SARClassifier) or not isinstance(regressor, AzimuthRegressor):
+        raise ValueError(
+            f"{directory}: expected a classifier in {CLASSIFIER_DIR}/ and a regressor in {REGRESSOR_DIR}/"
+        )
+    probes: dict[str, AzimuthRegressor] = {}
+    probes_dir = directory / PROBES_DIR
+    if probes_dir.is_dir():
+        for probe_dir in sorted(p for p in probes_dir.iterdir() if (p / EVALUATOR_CONFIG_NAME).is_file()):
+            probe = load_evaluator(probe_dir, classifier.class_names, device)
+            if not isinstance(probe, AzimuthRegressor):
+                raise ValueError(f"{probe_dir}: a probe must be an azimuth regressor")
+            probes[probe_dir.name] = probe
+    sizes = {model.image_size for model in (classifier, regressor, *probes.values())}
+    if len(sizes) != 1:
+        raise ValueError(f"{directory}: evaluators take different image sizes {sorted(sizes)}")
+    return Evaluators(classifier=classifier, regressor=regressor, probes=probes)
