@@ -1,0 +1,507 @@
+"""Fine-tune a zero-1-to-3 style SAR novel-view model with Projected Feature Matching (Eq. 21).
+
+    accelerate launch train/finetune_pfm.py --encoder runs/simclr/encoder --pfm_weight 4 \\
+        [--config finetune.yaml] [--data /path/to/mstar --protocol extended] [--flag value ...]
+
+Training follows zero-1-to-3: the UNet sees ``[x_t, condition latent]`` (the condition latent is the
+unscaled VAE posterior mode of the input view, only the target latent is scaled) and cross-attends to
+``PoseProjection([CLIP image embedding, pose])``; AdamW with the pose projection at 10x the learning rate;
+classifier-free-guidance dropout of 5% image embedding, 5% both, 5% condition latent. The loss is
+``L_simple + pfm_weight * L_PFM`` (:func:`sar_zero123.losses.total_loss`); ``--pfm_weight 0`` is plain
+zero-1-to-3 fine-tuning.
+
+Determinism and resuming: the data order comes from accelerate's seedable sampler (a function of the seed
+and the epoch), the view pairs from ``ViewPairDataset.set_epoch`` and every random draw of a micro-batch
+(noise, timesteps, VAE posterior sample, CFG dropout, PFM subset) from a generator seeded by
+``(seed, micro-batch index, process index)``. A resumed run therefore needs no RNG state beyond the
+checkpoint's step and reaches bitwise the weights of an uninterrupted run.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+import PIL.Image
+import torch
+from accelerate import Accelerator
+from accelerate.utils import DataLoaderConfiguration, GradientAccumulationPlugin, ProjectConfiguration, set_seed
+from diffusers import AutoencoderKL, DDIMScheduler, DDPMScheduler, UNet2DConditionModel
+from diffusers.optimization import get_scheduler
+from diffusers.training_utils import EMAModel
+from torch.utils.data import DataLoader
+from tqdm.auto import tqdm
+
+from sar_zero123.conditioning import (
+    embed_pose,
+    encode_condition_latents,
+    encode_image_embeddings,
+    encode_target_latents,
+)
+from sar_zero123.config import config_to_dict, parse_config, save_config, write_json_atomic
+from sar_zero123.data import DecibelScaling, ViewPairDataset, prepare_splits
+from sar_zero123.encoder import SAREncoder
+from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput, denoising_target, total_loss
+from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
+from sar_zero123.run_state import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
+
+logger = logging.getLogger(__name__)
+
+SCALING_FILE = "decibel_scaling.json"
+
+
+@dataclass
+class FinetuneConfig:
+    """Fine-tune a SAR zero-1-to-3 model with Projected Feature Matching."""
+
+    output_dir: str = "runs/finetune_pfm"  # run folder: checkpoints, logs, validation grids, final pipeline
+    pretrained: str | None = None  # pipeline folder or zero-1-to-3 checkpoint; None builds `size` from scratch
+    size: Literal["tiny", "small", "zero123"] = "small"  # model size when `pretrained` is None
+    image_size: int | None = None  # chip side in pixels; None uses the model's own
+    vae: str | None = None  # AutoencoderKL folder (train/train_vae.py) replacing the pipeline's VAE
+    encoder: str | None = None  # frozen SAREncoder folder; required when pfm_weight > 0
+    data: str | None = None  # dataset folder with index.csv; None simulates the built-in dataset
+    protocol: str = "extended"  # split protocol: extended, soc or ood-<CLASS> (e.g. ood-T72)
+    scaling: Literal["unit", "mstar_raw", "fit"] = "unit"  # dB bounds: unit magnitude, raw MSTAR, or fitted
+    max_d_az_deg: float | None = None  # largest |d_az| of a training pair in degrees; None: any
+    pfm_weight: float = 4.0  # lambda of Eq. (21); 0 = plain zero-1-to-3 fine-tuning
+    pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
+    pfm_fraction: float = 1.0  # fraction of the eligible batch on which PFM is computed
+    pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
+    learning_rate: float = 1e-4  # AdamW learning rate of the UNet
+    pose_lr_multiplier: float = 10.0  # pose projection learning rate = this x learning_rate
+    adam_weight_decay: float = 1e-2  # AdamW weight decay
+    lr_scheduler: str = "constant"  # diffusers scheduler name (constant, constant_with_warmup, cosine, ...)
+    lr_warmup_steps: int = 0  # warm-up optimisation steps
+    train_batch_size: int = 4  # pairs per process per micro-batch
+    gradient_accumulation_steps: int = 1  # micro-batches per optimisation step
+    max_train_steps: int = 1000  # optimisation steps
+    max_grad_norm: float = 1.0  # gradient clipping norm (UNet and pose projection)
+    mixed_precision: Literal["no", "fp16", "bf16"] = "no"  # frozen VAE/encoders are cast to this dtype
+    gradient_checkpointing: bool = False  # checkpoint UNet activations
+    use_ema: bool = True  # keep an EMA of the UNet (saved in checkpoints, used for validation and export)
+    ema_decay: float = 0.9999  # EMA decay
+    drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
+    drop_both_prob: float = 0.05  # CFG dropout: projected token and condition latent (the sampling null)
+    drop_latent_prob: float = 0.05  # CFG dropout: condition latent only
+    checkpointing_steps: int = 500  # save a resumable checkpoint every this many steps
+    checkpoints_total_limit: int | None = None  # keep at most this many checkpoints
+    resume_from_checkpoint: str | None = None  # 'latest' or a checkpoint folder
+    validation_steps: int = 500  # validation grid and losses every this many steps (0: never)
+    num_validation_images: int = 4  # validation pairs (rows of the grid)
+    validation_inference_steps: int = 20  # DDIM steps for validation samples
+    guidance_scale: float = 3.0  # CFG scale for validation samples
+    dataloader_num_workers: int = 0  # DataLoader workers
+    report_to: str | None = "tensorboard"  # accelerate tracker; None disables logging
+    seed: int = 0  # seed of initialisation, data order and every random draw
+    save_pipeline: bool = True  # save_pretrained the final SARZero123Pipeline into output_dir/pipeline
+
+    def __post_init__(self) -> None:
+        if not self.pfm_weight >= 0:
+            raise ValueError(f"pfm_weight must be >= 0, got {self.pfm_weight}")
+        if self.pfm_weight > 0 and self.encoder is None:
+            raise ValueError("encoder: a frozen SAREncoder folder is required when pfm_weight > 0")
+        if self.pfm_min_snr < 0:
+            raise ValueError(f"pfm_min_snr must be >= 0, got {self.pfm_min_snr}")
+        if not 0 < self.pfm_fraction <= 1:
+            raise ValueError(f"pfm_fraction must be in (0, 1], got {self.pfm_fraction}")
+        if self.pfm_crop_size is not None and self.pfm_crop_size < 1:
+            raise ValueError(f"pfm_crop_size must be >= 1 or None, got {self.pfm_crop_size}")
+        if self.protocol not in ("extended", "soc") and not self.protocol.startswith("ood-"):
+            raise ValueError(f"protocol must be extended, soc or ood-<CLASS>, got {self.protocol!r}")
+        for name in ("learning_rate", "pose_lr_multiplier", "max_grad_norm"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        for name in ("train_batch_size", "gradient_accumulation_steps", "max_train_steps",
+                     "checkpointing_steps", "num_validation_images", "validation_inference_steps"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("lr_warmup_steps", "validation_steps", "dataloader_num_workers"):
+            if getattr(self, name) < 0:
+                raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
+        if self.checkpoints_total_limit is not None and self.checkpoints_total_limit < 1:
+            raise ValueError(f"checkpoints_total_limit must be >= 1 or None, got {self.checkpoints_total_limit}")
+        if not 0 <= self.ema_decay < 1:
+            raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
+        probs = (self.drop_image_prob, self.drop_both_prob, self.drop_latent_prob)
+        if min(probs) < 0 or sum(probs) > 1:
+            raise ValueError(f"drop_image_prob, drop_both_prob, drop_latent_prob must be >= 0 with sum <= 1, "
+                             f"got {probs}")
+        if self.image_size is not None and self.image_size < 8:
+            raise ValueError(f"image_size must be >= 8, got {self.image_size}")
+
+
+# ----------------------------------------------------------------------------------------- building
+def load_components(config: FinetuneConfig) -> SARZero123Pipeline:
+    """The pipeline to fine-tune: ``--pretrained`` (any layout the pipeline loads) or a named size, with
+    ``--vae`` swapped in.
+
+    Raises:
+        FileNotFoundError: If ``pretrained`` or ``vae`` does not exist.
+        ValueError: If the VAE does not fit the UNet (latent channels or downsampling factor).
+    """
+    if config.pretrained is None:
+        pipe = build_sar_zero123(config.size, image_size=config.image_size, seed=config.seed)
+    else:
+        path = Path(config.pretrained)
+        if not path.exists():
+            raise FileNotFoundError(f"pretrained: no such file or folder {str(path)!r}")
+        if (path / "model_index.json").is_file():
+            pipe = SARZero123Pipeline.from_pretrained(path)
+        else:
+            pipe = SARZero123Pipeline.from_zero123(path)
+    if config.vae is not None:
+        vae_path = Path(config.vae)
+        if not (vae_path / "config.json").is_file():
+            raise FileNotFoundError(f"vae: {str(vae_path)!r} is not an AutoencoderKL folder (no config.json)")
+        vae = AutoencoderKL.from_pretrained(vae_path)
+        old_factor = pipe.vae_scale_factor
+        new_factor = 2 ** (len(vae.config.block_out_channels) - 1)
+        if vae.config.latent_channels != pipe.vae.config.latent_channels or new_factor != old_factor:
+            raise ValueError(
+                f"vae: {str(vae_path)!r} has {vae.config.latent_channels} latent channels and downsampling "
+                f"factor {new_factor}; the UNet needs {pipe.vae.config.latent_channels} and {old_factor}"
+            )
+        pipe = SARZero123Pipeline(vae=vae.eval(), image_encoder=pipe.image_encoder, unet=pipe.unet,
+                                  scheduler=pipe.scheduler, pose_projection=pipe.pose_projection,
+                                  feature_extractor=pipe.feature_extractor)
+    return pipe
+
+
+def resolve_image_size(config: FinetuneConfig, pipe: SARZero123Pipeline) -> int:
+    """Chip side for training; must be a multiple of the pipeline's total downsampling.
+
+    Raises:
+        ValueError: If it is not.
+    """
+    image_size = config.image_size if config.image_size is not None else pipe.default_image_size
+    if image_size % pipe.size_multiple:
+        raise ValueError(f"image_size must be a multiple of {pipe.size_multiple}, got {image_size}")
+    return image_size
+
+
+def load_encoder(config: FinetuneConfig, image_size: int) -> SAREncoder | None:
+    """The frozen SAR encoder for PFM, checked against the training resolution.
+
+    Raises:
+        FileNotFoundError: If the folder or its files are missing.
+        ValueError: If the encoder was trained at another resolution.
+    """
+    if config.pfm_weight == 0:
+        return None
+    encoder = SAREncoder.from_pretrained(config.encoder)
+    if encoder.config.image_size != image_size:
+        raise ValueError(
+            f"encoder: {config.encoder!r} was trained on {encoder.config.image_size} px chips but training "
+            f"runs at image_size={image_size}; train the encoder at {image_size} px or set --image_size "
+            f"{encoder.config.image_size}"
+        )
+    return encoder.eval().requires_grad_(False)
+
+
+def build_datasets(config: FinetuneConfig, image_size: int) -> tuple[ViewPairDataset, ViewPairDataset,
+                                                                      DecibelScaling]:
+    """Train and validation view pairs (validation from the protocol's test split) and the dB scaling.
+
+    Raises:
+        ValueError: For an unknown protocol or a dataset without pairs.
+    """
+    splits = prepare_splits(config.data, config.protocol, Path(config.output_dir) / "data", seed=config.seed)
+    if not splits.get("train"):
+        raise ValueError(f"data: protocol {config.protocol!r} gives an empty training split")
+    if config.scaling == "fit":
+        scaling = DecibelScaling.fit(splits["train"])
+    elif config.scaling == "mstar_raw":
+        scaling = DecibelScaling.for_mstar_raw()
+    else:
+        scaling = DecibelScaling.for_unit_magnitude()
+    train = ViewPairDataset(splits["train"], size=image_size, scaling=scaling,
+                            max_d_az_deg=config.max_d_az_deg, seed=config.seed)
+    validation_records = splits.get("test") or splits["train"]
+    validation = ViewPairDataset(validation_records, size=image_size, scaling=scaling,
+                                 max_d_az_deg=config.max_d_az_deg, seed=config.seed + 1,
+                                 num_pairs=config.num_validation_images)
+    return train, validation, scaling
+
+
+# ----------------------------------------------------------------------------------------- one step
+def micro_batch_generator(seed: int, batch_index: int, process_index: int) -> torch.Generator:
+    """CPU generator for every random draw of one micro-batch; a pure function of its arguments."""
+    state = np.random.SeedSequence([seed, batch_index, process_index]).generate_state(2, dtype=np.uint32)
+    return torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))
+
+
+def compute_losses(
+    batch: dict,
+    *,
+    unet: torch.nn.Module,
+    pose_projection: torch.nn.Module,
+    vae: AutoencoderKL,
+    image_encoder: torch.nn.Module,
+    encoder: SAREncoder | None,
+    noise_scheduler: DDPMScheduler,
+    config: FinetuneConfig,
+    generator: torch.Generator,
+    apply_dropout: bool = True,
+) -> LossOutput:
+    """Per-sample losses of one micro-batch (zero-1-to-3 conditioning, CFG dropout, Eq. 21).
+
+    Shape:
+        ``batch["input"]``, ``batch["target"]``: ``(B, 1, S, S)``; outputs ``(B,)``.
+    """
+    device, dtype = vae.device, vae.dtype
+    inputs = batch["input"].to(device=device, dtype=dtype)
+    targets = batch["target"].to(device=device, dtype=dtype)
+    batch_size = inputs.shape[0]
+    # 1. frozen encodings: scaled target latent, unscaled condition latent, CLIP embedding
+    with torch.no_grad():
+        latents = encode_target_latents(vae, targets, generator=generator).float()
+        condition_latents = encode_condition_latents(vae, inputs).float()
+        image_embeds = encode_image_embeddings(image_encoder, inputs).float()  # (B, 1, D)
+    pose = embed_pose(batch["d_az_deg"], batch["d_el_deg"]).to(device)  # (B, 1, 4)
+    # 2. classifier-free-guidance dropout; the "both" case equals the pipeline's sampling null
+    u = torch.rand(batch_size, generator=generator).to(device)
+    if not apply_dropout:
+        u = torch.ones_like(u)
+    p_image, p_both, p_latent = config.drop_image_prob, config.drop_both_prob, config.drop_latent_prob
+    drop_image = u < p_image
+    drop_both = (u >= p_image) & (u < p_image + p_both)
+    drop_latent = (u >= p_image + p_both) & (u < p_image + p_both + p_latent)
+    image_embeds = image_embeds * (~drop_image).float()[:, None, None]
+    tokens = pose_projection(image_embeds, pose) * (~drop_both).float()[:, None, None]  # (B, 1, C)
+    condition_latents = condition_latents * (~(drop_both | drop_latent)).float()[:, None, None, None]
+    # 3. forward diffusion and prediction
+    noise = torch.randn(latents.shape, generator=generator).to(device)
+    num_train_timesteps = noise_scheduler.config.num_train_timesteps
+    timesteps = torch.randint(0, num_train_timesteps, (batch_size,), generator=generator).to(device)
+    x_t = noise_scheduler.add_noise(latents, noise, timesteps)
+    model_output = unet(torch.cat([x_t, condition_latents], dim=1), timesteps,
+                        encoder_hidden_states=tokens).sample
+    target = denoising_target(latents, noise, timesteps, noise_scheduler)
+    # 4. Eq. (21)
+    return total_loss(model_output, target, x_t, timesteps, noise_scheduler, pfm_weight=config.pfm_weight,
+                      target_images=targets, vae=vae, encoder=encoder, pfm_min_snr=config.pfm_min_snr,
+                      pfm_fraction=config.pfm_fraction, crop_size=config.pfm_crop_size, generator=generator)
+
+
+# ---------------------------------------------------------------------------------------- validation
+def make_grid(inputs: torch.Tensor, generated: torch.Tensor, targets: torch.Tensor) -> np.ndarray:
+    """Rows of ``input | generated | target`` as an 8-bit image.
+
+    Shape:
+        each ``(N, 1, S, S)`` in [0, 1] -> ``(N * S, 3 * S)`` uint8.
+    """
+    rows = torch.cat([inputs, generated, targets], dim=-1)[:, 0]  # (N, S, 3S)
+    grid = rows.reshape(-1, rows.shape[-1]).clamp(0, 1)
+    return (grid.float().cpu().numpy() * 255).round().astype(np.uint8)
+
+
+@torch.no_grad()
+def run_validation(accelerator: Accelerator, pipe: SARZero123Pipeline, batch: dict, losses: LossOutput,
+                   config: FinetuneConfig, step: int) -> Path:
+    """Sample the validation pairs, write ``validation/step-<step>.png`` and log images and losses."""
+    generator = torch.Generator().manual_seed(config.seed)
+    generated = pipe(batch["input"].to(pipe.device, torch.float32), d_az=batch["d_az_deg"],
+                     d_el=batch["d_el_deg"], num_inference_steps=config.validation_inference_steps,
+                     guidance_scale=config.guidance_scale, generator=generator, output_type="pt").images
+    grid = make_grid(batch["input"], generated.cpu(), batch["target"])
+    path = Path(config.output_dir) / "validation" / f"step-{step:06d}.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PIL.Image.fromarray(grid).save(path)
+    if config.report_to == "tensorboard":
+        accelerator.get_tracker("tensorboard").log_images({"validation/input_generated_target": grid[None, ..., None]},
+                                                          step=step, dataformats="NHWC")
+    accelerator.log({"validation/loss_simple": losses.denoising.mean().item(),
+                     "validation/loss_pfm": losses.pfm.mean().item()}, step=step)
+    return path
+
+
+def export_pipeline(pipe: SARZero123Pipeline, scaling: DecibelScaling, directory: Path) -> Path:
+    """``save_pretrained`` of the complete pipeline (float32) plus the ``DecibelScaling`` it expects."""
+    pipe.to(torch.float32)
+    pipe.save_pretrained(directory)
+    write_json_atomic(scaling.to_dict(), directory / SCALING_FILE)
+    return directory
+
+
+# ------------------------------------------------------------------------------------------------ main
+def main(argv: list[str] | None = None) -> Path:
+    """Run a fine-tune; returns the run folder."""
+    config = parse_config(FinetuneConfig, argv)
+    output_dir = Path(config.output_dir)
+    accelerator = Accelerator(
+        mixed_precision=config.mixed_precision,
+        gradient_accumulation_plugin=GradientAccumulationPlugin(
+            num_steps=config.gradient_accumulation_steps, sync_with_dataloader=False),
+        dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
+        log_with=config.report_to,
+        project_config=ProjectConfiguration(project_dir=str(output_dir), logging_dir=str(output_dir / "logs")),
+    )
+    logging.basicConfig(level=logging.INFO if accelerator.is_main_process else logging.WARNING)
+    set_seed(config.seed)
+
+    # 1. check every input before any training step
+    resume_path = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
+    pipe = load_components(config)
+    image_size = resolve_image_size(config, pipe)
+    encoder = load_encoder(config, image_size)
+    train_dataset, validation_dataset, scaling = build_datasets(config, image_size)
+    if len(train_dataset) < config.train_batch_size * accelerator.num_processes:
+        raise ValueError(f"data: {len(train_dataset)} training pairs, fewer than one global batch of "
+                         f"{config.train_batch_size * accelerator.num_processes}")
+    if config.pfm_crop_size is not None:
+        factor = pipe.vae_scale_factor
+        if config.pfm_crop_size > image_size or (image_size - config.pfm_crop_size) % (2 * factor):
+            raise ValueError(f"pfm_crop_size must be <= {image_size} with image_size - pfm_crop_size a "
+                             f"multiple of {2 * factor}, got {config.pfm_crop_size}")
+    if accelerator.is_main_process:
+        output_dir.mkdir(parents=True, exist_ok=True)
+        save_config(config, output_dir)
+
+    # 2. frozen parts in the weight dtype, trainable parts in float32
+    weight_dtype = {"fp16": torch.float16, "bf16": torch.bfloat16}.get(accelerator.mixed_precision, torch.float32)
+    vae = pipe.vae.to(accelerator.device, dtype=weight_dtype).eval().requires_grad_(False)
+    image_encoder = pipe.image_encoder.to(accelerator.device, dtype=weight_dtype).eval().requires_grad_(False)
+    if encoder is not None:
+        encoder = encoder.to(accelerator.device, dtype=weight_dtype)
+    unet, pose_projection = pipe.unet.train(), pipe.pose_projection.train()
+    unet.requires_grad_(True)
+    pose_projection.requires_grad_(True)
+    if config.gradient_checkpointing:
+        unet.enable_gradient_checkpointing()
+    noise_scheduler = DDPMScheduler.from_config(pipe.scheduler.config)
+    ema_unet = None
+    if config.use_ema:
+        ema_unet = EMAModel(unet.parameters(), decay=config.ema_decay, model_cls=UNet2DConditionModel,
+                            model_config=unet.config)
+        ema_unet.to(accelerator.device)
+        accelerator.register_for_checkpointing(ema_unet)
+
+    # 3. optimiser: the pose projection at pose_lr_multiplier x the learning rate
+    optimizer = torch.optim.AdamW(
+        [{"params": list(unet.parameters()), "lr": config.learning_rate},
+         {"params": list(pose_projection.parameters()), "lr": config.learning_rate * config.pose_lr_multiplier}],
+        weight_decay=config.adam_weight_decay,
+    )
+    lr_scheduler = get_scheduler(config.lr_scheduler, optimizer,
+                                 num_warmup_steps=config.lr_warmup_steps * accelerator.num_processes,
+                                 num_training_steps=config.max_train_steps * accelerator.num_processes)
+    train_dataloader = DataLoader(train_dataset, batch_size=config.train_batch_size, shuffle=True, drop_last=True,
+                                  num_workers=config.dataloader_num_workers)
+    unet, pose_projection, optimizer, train_dataloader, lr_scheduler = accelerator.prepare(
+        unet, pose_projection, optimizer, train_dataloader, lr_scheduler)
+    if len(train_dataloader) == 0:
+        raise ValueError("data: the training split yields no full batch on each process")
+    validation_batch = next(iter(DataLoader(validation_dataset, batch_size=config.num_validation_images)))
+
+    # 4. resume
+    global_step = 0
+    if resume_path is not None:
+        state = load_checkpoint(accelerator, resume_path)
+        global_step = int(state["step"])
+        logger.info("resumed from %s at step %d", resume_path, global_step)
+    if config.report_to is not None:
+        hparams = {k: (v if isinstance(v, (int, float, str, bool)) else str(v))
+                   for k, v in config_to_dict(config).items()}
+        accelerator.init_trackers("finetune_pfm", config=hparams)
+
+    # 5. training loop
+    batches_per_epoch = len(train_dataloader)
+    batch_index = global_step * config.gradient_accumulation_steps
+    trainable = list(unet.parameters()) + list(pose_projection.parameters())
+    progress = tqdm(total=config.max_train_steps, initial=global_step, desc="steps",
+                    disable=not accelerator.is_local_main_process)
+    frozen_modules = dict(vae=vae, image_encoder=image_encoder, encoder=encoder, noise_scheduler=noise_scheduler,
+                          config=config)
+    while global_step < config.max_train_steps:
+        epoch, offset = divmod(batch_index, batches_per_epoch)
+        train_dataset.set_epoch(epoch)
+        train_dataloader.set_epoch(epoch)
+        loader = accelerator.skip_first_batches(train_dataloader, offset) if offset else train_dataloader
+        for batch in loader:
+            with accelerator.accumulate(unet, pose_projection):
+                generator = micro_batch_generator(config.seed, batch_index, accelerator.process_index)
+                losses = compute_losses(batch, unet=unet, pose_projection=pose_projection, generator=generator,
+                                        **frozen_modules)
+                loss = losses.loss.mean()
+                accelerator.backward(loss)
+                if accelerator.sync_gradients:
+                    accelerator.clip_grad_norm_(trainable, config.max_grad_norm)
+                optimizer.step()
+                lr_scheduler.step()
+                optimizer.zero_grad(set_to_none=True)
+            batch_index += 1
+            if not accelerator.sync_gradients:
+                continue
+            global_step += 1
+            if ema_unet is not None:
+                ema_unet.step(unet.parameters())
+            progress.update(1)
+            logs = {"train/loss": accelerator.gather(losses.loss.detach()).mean().item(),
+                    "train/loss_simple": accelerator.gather(losses.denoising.detach()).mean().item(),
+                    "train/loss_pfm": accelerator.gather(losses.pfm.detach()).mean().item(),
+                    "lr": lr_scheduler.get_last_lr()[0]}
+            progress.set_postfix(loss=f"{logs['train/loss']:.4f}")
+            accelerator.log(logs, step=global_step)
+            if global_step % config.checkpointing_steps == 0 or global_step == config.max_train_steps:
+                save_checkpoint(accelerator, output_dir, global_step, config.checkpoints_total_limit,
+                                extra_state={"epoch": epoch, "batch_index": batch_index})
+            if config.validation_steps and global_step % config.validation_steps == 0:
+                if accelerator.is_main_process:
+                    validate(accelerator, unet, pose_projection, ema_unet, pipe, validation_batch, frozen_modules,
+                             config, global_step)
+                accelerator.wait_for_everyone()
+            if global_step >= config.max_train_steps:
+                break
+    progress.close()
+
+    # 6. export the complete pipeline (EMA weights in the UNet)
+    accelerator.wait_for_everyone()
+    if accelerator.is_main_process and config.save_pipeline:
+        final_unet = accelerator.unwrap_model(unet)
+        if ema_unet is not None:
+            ema_unet.copy_to(final_unet.parameters())
+        export = SARZero123Pipeline(vae=vae, image_encoder=image_encoder, unet=final_unet.eval(),
+                                    scheduler=DDIMScheduler.from_config(pipe.scheduler.config),
+                                    pose_projection=accelerator.unwrap_model(pose_projection).eval(),
+                                    feature_extractor=pipe.feature_extractor)
+        export_pipeline(export, scaling, output_dir / "pipeline")
+        write_json_atomic({"global_step": global_step, "image_size": image_size}, output_dir / "train_state.json")
+    accelerator.end_training()
+    return output_dir
+
+
+def validate(accelerator: Accelerator, unet, pose_projection, ema_unet: EMAModel | None,
+             pipe: SARZero123Pipeline, batch: dict, frozen_modules: dict, config: FinetuneConfig,
+             step: int) -> Path:
+    """Validation with the EMA weights swapped in (and out again afterwards)."""
+    raw_unet = accelerator.unwrap_model(unet)
+    raw_projection = accelerator.unwrap_model(pose_projection)
+    if ema_unet is not None:
+        ema_unet.store(raw_unet.parameters())
+        ema_unet.copy_to(raw_unet.parameters())
+    raw_unet.eval()
+    raw_projection.eval()
+    try:
+        with torch.no_grad():
+            losses = compute_losses(batch, unet=raw_unet, pose_projection=raw_projection,
+                                    generator=torch.Generator().manual_seed(config.seed), apply_dropout=False,
+                                    **frozen_modules)
+        sampler = SARZero123Pipeline(vae=frozen_modules["vae"], image_encoder=frozen_modules["image_encoder"],
+                                     unet=raw_unet, scheduler=DDIMScheduler.from_config(pipe.scheduler.config),
+                                     pose_projection=raw_projection, feature_extractor=pipe.feature_extractor)
+        sampler.set_progress_bar_config(disable=True)
+        return run_validation(accelerator, sampler, batch, losses, config, step)
+    finally:
+        if ema_unet is not None:
+            ema_unet.restore(raw_unet.parameters())
+        raw_unet.train()
+        raw_projection.train()
+
+
+if __name__ == "__main__":
+    main()
