@@ -50,7 +50,7 @@ class GenerateConfig:
     guidance_scale: float = 3.0  # classifier-free guidance weight (<= 1 disables it)
     seed: int = 0  # view i uses torch.Generator().manual_seed(seed + i)
     input_domain: Literal["magnitude", "normalized_db"] = "magnitude"  # what the chip file holds
-    scaling: str | None = None  # DecibelScaling JSON; default <pipeline>/decibel_scaling.json, else unit magnitude
+    scaling: str | None = None  # DecibelScaling JSON (default: <pipeline>/decibel_scaling.json or unit)
     image_size: int | None = None  # chip size fed to the model; default: the pipeline's own
     device: str = "cpu"  # torch device
 
