@@ -1,0 +1,121 @@
+"""Contact sheets: simulated chips of each class at several azimuths, optionally beside real chips."""
+
+from __future__ import annotations
+
+import csv
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from sar_zero123.sim.render import render_chip
+from sar_zero123.sim.targets import TARGET_CLASSES, make_target
+
+__all__ = ["DISPLAY_RANGE_DB", "to_display_db", "contact_sheet"]
+
+DISPLAY_RANGE_DB = (-40.0, 0.0)
+# Real classes shown by default, chosen to mirror the simulated shapes (tank, carrier, truck,
+# bulldozer, self-propelled gun, anti-aircraft gun).
+_REAL_CLASSES = ("T62", "BMP2", "ZIL131", "D7", "2S1", "ZSU234")
+
+
+def to_display_db(magnitude: np.ndarray) -> np.ndarray:
+    """Decibels for display, ``20 log10(m + 1e-3)``, as the data layer's ``to_decibels``."""
+    return 20.0 * np.log10(np.asarray(magnitude, dtype=np.float64) + 1e-3)
+
+
+def _center_crop(image: np.ndarray, size: int) -> np.ndarray:
+    h, w = image.shape
+    top, left = max(0, (h - size) // 2), max(0, (w - size) // 2)
+    return image[top : top + size, left : left + size]
+
+
+def _real_chips(
+    root: Path, classes: Sequence[str], azimuths_deg: Sequence[float], depression_deg: float, size: int
+) -> list[tuple[str, list[tuple[float, np.ndarray]]]]:
+    """The chip nearest each azimuth for each class of an MSTAR-style image folder (8-bit files)."""
+    from PIL import Image  # only needed for real chips
+
+    with open(root / "index.csv", newline="") as f:
+        records = [r for r in csv.DictReader(f) if abs(float(r["depression_deg"]) - depression_deg) < 0.5]
+    out = []
+    for class_name in classes:
+        recs = [r for r in records if r["target_class"] == class_name]
+        if not recs:
+            continue
+        row = []
+        for az in azimuths_deg:
+            r = min(recs, key=lambda r: abs((float(r["azimuth_deg"]) - az + 180.0) % 360.0 - 180.0))
+            pixels = np.asarray(Image.open(root / r["path"]).convert("L"), dtype=np.float32) / 255.0
+            row.append((float(r["azimuth_deg"]), _center_crop(pixels, size)))
+        out.append((class_name, row))
+    return out
+
+
+def contact_sheet(
+    path: str | os.PathLike[str],
+    classes: Sequence[str] | None = None,
+    azimuths_deg: Sequence[float] = (0.0, 30.0, 60.0, 90.0, 135.0, 180.0, 270.0),
+    depression_deg: float = 17.0,
+    size: int = 128,
+    seed: int = 0,
+    instance: int = 0,
+    real_root: str | os.PathLike[str] | None = None,
+    real_classes: Sequence[str] = _REAL_CLASSES,
+) -> Path:
+    """Write a PNG grid of simulated chips (one row per class), shown in dB like SAR viewers.
+
+    Args:
+        path: Output PNG path.
+        classes: Simulated classes; None for all.
+        azimuths_deg: One column per azimuth.
+        depression_deg: Depression of all chips.
+        size: Chip size (real chips are centre-cropped to it).
+        seed: Seed of the clutter.
+        instance: Target instance shown.
+        real_root: Optional MSTAR-style image folder (``index.csv`` + 8-bit chips); its chips
+            nearest each azimuth are added below the simulated rows.
+        real_classes: Real classes shown (those present in ``real_root``).
+
+    Returns:
+        The PNG path.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    classes = list(TARGET_CLASSES) if classes is None else [str(c).upper() for c in classes]
+    rows: list[tuple[str, list[tuple[float, np.ndarray]]]] = []
+    for i, class_name in enumerate(classes):
+        target = make_target(class_name, instance)
+        chips = []
+        for j, az in enumerate(azimuths_deg):
+            rng = np.random.default_rng([int(seed), i, j])
+            chips.append((float(az), render_chip(target, az, depression_deg, size, rng)))
+        rows.append((f"sim {class_name}", chips))
+    if real_root is not None:
+        real = _real_chips(Path(real_root), real_classes, azimuths_deg, depression_deg, size)
+        rows += [(f"MSTAR {name}", chips) for name, chips in real]
+
+    n_rows, n_cols = len(rows), len(azimuths_deg)
+    fig, axes = plt.subplots(n_rows, n_cols, figsize=(1.6 * n_cols, 1.7 * n_rows), squeeze=False)
+    for r, (label, chips) in enumerate(rows):
+        for c, (az, chip) in enumerate(chips):
+            ax = axes[r, c]
+            ax.imshow(to_display_db(chip), cmap="gray", vmin=DISPLAY_RANGE_DB[0], vmax=DISPLAY_RANGE_DB[1])
+            ax.set_xticks([])
+            ax.set_yticks([])
+            ax.set_title(f"{az:.0f} deg", fontsize=7, pad=2)
+            if c == 0:
+                ax.set_ylabel(label, fontsize=7)
+    fig.suptitle(
+        f"depression {depression_deg:g} deg, radar at the bottom, {DISPLAY_RANGE_DB[0]:.0f}..0 dB", fontsize=8
+    )
+    fig.tight_layout()
+    out = Path(path)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=100)
+    plt.close(fig)
+    return out

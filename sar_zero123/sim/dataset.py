@@ -1,0 +1,202 @@
+"""Write a simulated dataset as an image folder with an MSTAR-style ``index.csv``."""
+
+from __future__ import annotations
+
+import csv
+import os
+import tempfile
+import zlib
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Literal
+
+import numpy as np
+
+from sar_zero123.sim.render import CALIBRATION_AMPLITUDE, render_chip
+from sar_zero123.sim.targets import TARGET_CLASSES, make_target
+
+__all__ = ["INDEX_COLUMNS", "chip_generator", "simulate_dataset"]
+
+INDEX_COLUMNS = (
+    "path",
+    "target_class",
+    "target_type",
+    "serial",
+    "depression_deg",
+    "azimuth_deg",
+    "height",
+    "width",
+)
+_BASE_CLUTTER_DB = -32.0
+
+
+def chip_generator(
+    seed: int, class_name: str, instance: int, depression_deg: float, index: int
+) -> np.random.Generator:
+    """Independent random stream of one chip, so a chip does not depend on which others are made.
+
+    Args:
+        seed: Dataset seed (>= 0).
+        class_name: Target class.
+        instance: Target instance.
+        depression_deg: Depression angle (deg); hundredths of a degree enter the key.
+        index: Azimuth index of the chip on the grid.
+
+    Returns:
+        A numpy generator seeded from all five.
+    """
+    key = [
+        int(seed),
+        zlib.crc32(class_name.encode()),
+        int(instance),
+        int(round(depression_deg * 100)),
+        int(index),
+    ]
+    return np.random.default_rng(key)
+
+
+def _check(
+    classes: Sequence[str],
+    instances: int,
+    azimuth_step_deg: float,
+    depressions_deg: Sequence[float],
+    size: int,
+    seed: int,
+    azimuth_jitter_deg: float,
+) -> None:
+    unknown = [c for c in classes if c not in TARGET_CLASSES]
+    if not classes or unknown:
+        raise ValueError(f"classes: unknown or empty {list(classes)!r}; expected names from {TARGET_CLASSES}")
+    if int(instances) != instances or instances < 1:
+        raise ValueError(f"instances: expected an integer >= 1, got {instances!r}")
+    if not 0.0 < azimuth_step_deg <= 360.0:
+        raise ValueError(f"azimuth_step_deg: expected a value in (0, 360], got {azimuth_step_deg!r}")
+    if not depressions_deg or any(not 0.0 < d < 90.0 for d in depressions_deg):
+        raise ValueError(f"depressions_deg: expected values in (0, 90), got {list(depressions_deg)!r}")
+    if len(set(depressions_deg)) != len(depressions_deg):
+        raise ValueError(f"depressions_deg: duplicate values in {list(depressions_deg)!r}")
+    if int(size) != size or size < 16:
+        raise ValueError(f"size: expected an integer >= 16, got {size!r}")
+    if int(seed) != seed or seed < 0:
+        raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
+    if not 0.0 <= azimuth_jitter_deg < azimuth_step_deg:
+        raise ValueError(
+            f"azimuth_jitter_deg: expected a value in [0, azimuth_step_deg), got {azimuth_jitter_deg!r}"
+        )
+
+
+def _format_deg(value: float) -> str:
+    """``15.0 -> '15'``, ``15.5 -> '15.5'`` (folder names and index values)."""
+    return f"{value:g}"
+
+
+def simulate_dataset(
+    out_dir: str | os.PathLike[str],
+    classes: Sequence[str] | None = None,
+    instances: int = 2,
+    azimuth_step_deg: float = 5.0,
+    depressions_deg: Sequence[float] = (15.0, 17.0),
+    size: int = 128,
+    seed: int = 0,
+    *,
+    azimuth_jitter_deg: float = 0.0,
+    normalization: Literal["peak", "calibrated"] = "peak",
+    calibration: float = CALIBRATION_AMPLITUDE,
+    clutter_db_spread: float = 3.0,
+) -> Path:
+    """Simulate every (class, instance, depression, azimuth) chip and write an image folder.
+
+    Layout: ``<out_dir>/chips/<dep>deg/<CLASS>/<CLASS>_<serial>_<k>.npy`` (float32 magnitude in
+    [0, 1]) and ``<out_dir>/index.csv`` with the columns of the MSTAR index
+    (``path,target_class,target_type,serial,depression_deg,azimuth_deg,height,width``; ``path``
+    relative to ``out_dir``). Any existing index is removed first and the new one is written last,
+    through a temporary file and ``os.replace``, so an interrupted run never leaves an index that
+    lists missing or stale chips. Each chip has its own random stream (:func:`chip_generator`):
+    the same seed gives the same bytes, whatever subset of classes is simulated.
+
+    Args:
+        out_dir: Output folder (created).
+        classes: Classes to simulate; None for all of :data:`TARGET_CLASSES`.
+        instances: Instances (serials ``sim00``, ``sim01``, ...) per class.
+        azimuth_step_deg: Azimuth grid step; azimuths ``k * step`` in [0, 360).
+        depressions_deg: Depression angles (deg), one folder each.
+        size: Chip size in pixels.
+        seed: Dataset seed (>= 0).
+        azimuth_jitter_deg: If > 0, each azimuth is moved by a seeded uniform offset in
+            ``[-jitter/2, jitter/2)`` so that not all chips sit on the grid (wrapped to [0, 360)).
+        normalization: ``"peak"`` (like the MSTAR JPEGs) or ``"calibrated"``; see
+            :func:`~sar_zero123.sim.render.normalize_magnitude`.
+        calibration: Amplitude mapped to 1 when ``normalization="calibrated"``.
+        clutter_db_spread: Clutter level varies per chip uniformly within +- this (dB), as the
+            ground under real chips differs.
+
+    Returns:
+        ``out_dir`` as a :class:`~pathlib.Path` (pass it to ``sar_zero123.data.load_index``).
+
+    Raises:
+        ValueError: For an unknown class or an out-of-range argument (the message names it).
+    """
+    # 1. check inputs
+    classes = list(TARGET_CLASSES) if classes is None else [str(c).upper() for c in classes]
+    depressions = [float(d) for d in depressions_deg]
+    _check(classes, instances, azimuth_step_deg, depressions, size, seed, azimuth_jitter_deg)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    index_path = out / "index.csv"
+    index_path.unlink(missing_ok=True)
+    n_az = int(np.ceil(360.0 / azimuth_step_deg - 1e-9))
+
+    # 2. render and save the chips
+    rows: list[tuple[str, ...]] = []
+    for class_name in classes:
+        for instance in range(int(instances)):
+            target = make_target(class_name, instance)
+            for depression in depressions:
+                folder = out / "chips" / f"{_format_deg(depression)}deg" / class_name
+                folder.mkdir(parents=True, exist_ok=True)
+                for k in range(n_az):
+                    rng = chip_generator(seed, class_name, instance, depression, k)
+                    azimuth = k * azimuth_step_deg
+                    if azimuth_jitter_deg > 0:
+                        azimuth += rng.uniform(-azimuth_jitter_deg / 2, azimuth_jitter_deg / 2)
+                    # the index stores 4 decimals; render exactly the azimuth it lists
+                    azimuth = round(azimuth % 360.0, 4) % 360.0
+                    clutter_db = _BASE_CLUTTER_DB + rng.uniform(-clutter_db_spread, clutter_db_spread)
+                    chip = render_chip(
+                        target,
+                        azimuth,
+                        depression,
+                        size,
+                        rng,
+                        normalization=normalization,
+                        calibration=calibration,
+                        clutter_db=clutter_db,
+                    )
+                    rel = Path("chips") / f"{_format_deg(depression)}deg" / class_name
+                    rel = rel / f"{class_name}_{target.serial}_{k:04d}.npy"
+                    np.save(out / rel, chip)
+                    rows.append(
+                        (
+                            rel.as_posix(),
+                            class_name,
+                            target.target_type,
+                            target.serial,
+                            _format_deg(depression),
+                            f"{azimuth:.4f}",
+                            str(size),
+                            str(size),
+                        )
+                    )
+
+    # 3. write the index last and atomically
+    fd, tmp = tempfile.mkstemp(prefix=".index-", suffix=".csv.tmp", dir=out)
+    try:
+        with os.fdopen(fd, "w", newline="") as f:
+            writer = csv.writer(f, lineterminator="\n")
+            writer.writerow(INDEX_COLUMNS)
+            writer.writerows(rows)
+        os.replace(tmp, index_path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return out
