@@ -15,7 +15,9 @@ from __future__ import annotations
 import csv
 import math
 import os
+import stat
 import tempfile
+import warnings
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -198,6 +200,7 @@ def write_index(records: Sequence[ChipRecord], root: str | Path) -> Path:
             writer = csv.DictWriter(handle, fieldnames=list(INDEX_COLUMNS))
             writer.writeheader()
             writer.writerows(rows)
+        os.chmod(handle.name, 0o644)  # NamedTemporaryFile creates 0600; an index is meant to be shared
         os.replace(handle.name, index_path)
     except BaseException:
         Path(handle.name).unlink(missing_ok=True)
@@ -233,7 +236,8 @@ def load_index(root: str | Path) -> list[ChipRecord]:
 
     Args:
         root: A folder with ``index.csv`` (paths in it relative to the folder), or a folder tree of
-            original MSTAR files (indexed on first use; the index is cached as ``root/index.csv``).
+            original MSTAR files (indexed on first use; the index is cached as ``root/index.csv``, or
+            not cached, with a warning, when the folder is read-only).
 
     Returns:
         One record per chip, in index order, with absolute paths.
@@ -255,7 +259,12 @@ def load_index(root: str | Path) -> list[ChipRecord]:
             f"{root}: no '{INDEX_FILENAME}' and no original MSTAR files "
             "(files starting with '[PhoenixHeader') found"
         )
-    write_index(records, root)
+    # A read-only data folder (e.g. a shared mount) still works; it is rescanned on every call. The mode
+    # bits are checked too because root may write into folders marked read-only.
+    if os.access(root, os.W_OK) and root.stat().st_mode & stat.S_IWUSR:
+        write_index(records, root)
+    else:
+        warnings.warn(f"{root}: read-only folder, index not cached (rescanned next time)", stacklevel=2)
     return records
 
 
