@@ -24,11 +24,20 @@ from pathlib import Path
 from typing import Any
 
 import torch
+import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
 from torch import nn
 
 from sar_zero123.data import DecibelScaling
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
+from sar_zero123.metrics import (
+    CROP_SIZE,
+    azimuth_error_deg,
+    classification_accuracy,
+    frechet_distance,
+    kuan_ssim,
+    ms_ssim,
+)
 
 EVALUATOR_CONFIG_NAME = "evaluator.json"
 EVALUATOR_WEIGHTS_NAME = "model.safetensors"
@@ -44,6 +53,8 @@ __all__ = [
     "check_class_names",
     "load_evaluator",
     "load_evaluators",
+    "resize_for_evaluator",
+    "score_views",
 ]
 
 
@@ -337,3 +348,92 @@ def load_evaluators(
     if len(sizes) != 1:
         raise ValueError(f"{directory}: evaluators take different image sizes {sorted(sizes)}")
     return Evaluators(classifier=classifier, regressor=regressor, probes=probes)
+
+
+def resize_for_evaluator(images: torch.Tensor, size: int) -> torch.Tensor:
+    """Resizes `(B, 1, H, W)` images to the evaluators' `size` (bilinear, anti-aliased); no-op when equal."""
+    if images.shape[-2:] == (size, size):
+        return images
+    resized = F.interpolate(images, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
+    return resized.clamp(0.0, 1.0)
+
+
+@torch.no_grad()
+def score_views(
+    generated: torch.Tensor,
+    targets: torch.Tensor,
+    labels: torch.Tensor,
+    target_azimuth_deg: torch.Tensor,
+    evaluators: Evaluators,
+    *,
+    crop_size: int | None = CROP_SIZE,
+    batch_size: int = 64,
+    device: str | torch.device = "cpu",
+) -> dict[str, float]:
+    """All five Table III metrics of generated views against their targets, plus Table IV errors.
+
+    Accuracy: the classifier's prediction on the generated view against the object's class. Azimuth error:
+    the regressor's prediction on the generated view against the target view's true azimuth (circular).
+    SFD: Frechet distance between the regressor's pre-head features of generated and of target views.
+    MS-SSIM and Kuan+SSIM: generated against target on the centre crop, at the generated resolution.
+
+    Args:
+        generated: Generated views in [0, 1].
+        targets: The real target views in [0, 1], same shape.
+        labels: Class indices of the objects (in `evaluators.class_names` order).
+        target_azimuth_deg: True azimuth of each target view in degrees.
+        evaluators: The evaluator set (classifier, regressor, probes).
+        crop_size: Centre crop for MS-SSIM and Kuan+SSIM (64 in the paper).
+        batch_size: Images per evaluator forward pass.
+        device: Device of the evaluator models.
+
+    Returns:
+        `{"accuracy": %, "azimuth_error_deg", "sfd", "ms_ssim", "kuan_ssim", "n",
+        "azimuth_error_deg/<regressor>"...}` with the means over the samples.
+
+    Shape:
+        generated, targets `(N, 1, H, W)`; labels, target_azimuth_deg `(N,)`.
+
+    Raises:
+        ValueError: For mismatched sizes or counts, or images outside [0, 1].
+    """
+    n = generated.shape[0]
+    if labels.shape != (n,) or target_azimuth_deg.shape != (n,):
+        raise ValueError(
+            f"labels {tuple(labels.shape)} and target_azimuth_deg {tuple(target_azimuth_deg.shape)} must be "
+            f"({n},) to match generated {tuple(generated.shape)}"
+        )
+    # Image metrics first: they validate sizes and ranges of both sets.
+    structural = {"ms_ssim": [], "kuan_ssim": []}
+    predictions: dict[str, list[torch.Tensor]] = {"class": []}
+    regressors = evaluators.azimuth_regressors()
+    for name in regressors:
+        predictions[name] = []
+    generated_features, target_features = [], []
+    for start in range(0, n, batch_size):
+        fake = generated[start : start + batch_size].float().cpu()
+        real = targets[start : start + batch_size].float().cpu()
+        structural["ms_ssim"].append(ms_ssim(fake, real, crop_size=crop_size))
+        structural["kuan_ssim"].append(kuan_ssim(fake, real, crop_size=crop_size))
+        fake_eval = resize_for_evaluator(fake, evaluators.image_size).to(device)
+        real_eval = resize_for_evaluator(real, evaluators.image_size).to(device)
+        predictions["class"].append(evaluators.classifier(fake_eval).argmax(dim=1).cpu())
+        for name, regressor in regressors.items():
+            predictions[name].append(regressor.predict_azimuth_deg(fake_eval).cpu())
+        generated_features.append(evaluators.regressor.features(fake_eval).cpu())
+        target_features.append(evaluators.regressor.features(real_eval).cpu())
+    target_azimuth_deg = target_azimuth_deg.double().cpu()
+    scores = {
+        "accuracy": 100.0 * classification_accuracy(torch.cat(predictions["class"]), labels.cpu()),
+        "azimuth_error_deg": azimuth_error_deg(torch.cat(predictions["scratch"]).double(), target_azimuth_deg)
+        .mean()
+        .item(),
+        "sfd": frechet_distance(torch.cat(generated_features), torch.cat(target_features)),
+        "ms_ssim": torch.cat(structural["ms_ssim"]).mean().item(),
+        "kuan_ssim": torch.cat(structural["kuan_ssim"]).mean().item(),
+        "n": float(n),
+    }
+    for name in regressors:
+        error = azimuth_error_deg(torch.cat(predictions[name]).double(), target_azimuth_deg)
+        scores[f"azimuth_error_deg/{name}"] = error.mean().item()
+    return scores

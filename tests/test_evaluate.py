@@ -1,0 +1,103 @@
+"""Tests for train/evaluate.py and evaluators.score_views on a tiny pipeline and fabricated chips."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import pytest
+import torch
+from dummies import get_dummy_components
+from test_evaluators import TINY_ENCODER, load_script, write_chip_folder
+
+from sar_zero123.encoder import SAREncoderConfig
+from sar_zero123.evaluators import AzimuthRegressor, Evaluators, SARClassifier, score_views
+from sar_zero123.pipeline import SARZero123Pipeline
+
+
+def _evaluators(directory: Path, image_size: int = 32) -> Evaluators:
+    """Untrained tiny evaluators saved the way train_evaluators.py saves them."""
+    config = SAREncoderConfig(**{**TINY_ENCODER, "image_size": image_size})
+    torch.manual_seed(0)
+    classifier = SARClassifier(config, ["A", "B"])
+    regressor = AzimuthRegressor(config, ["A", "B"], hidden_sizes=(16, 16))
+    classifier.save_pretrained(directory / "classifier")
+    regressor.save_pretrained(directory / "regressor")
+    return Evaluators(classifier.eval(), regressor.eval())
+
+
+def test_score_views_identical_images(tmp_path: Path) -> None:
+    evaluators = _evaluators(tmp_path, image_size=32)
+    generator = torch.Generator().manual_seed(0)
+    targets = torch.rand(6, 1, 32, 32, generator=generator)
+    labels = torch.tensor([0, 1, 0, 1, 0, 1])
+    with torch.no_grad():
+        predicted_deg = evaluators.regressor.predict_azimuth_deg(targets).double()
+        predicted_class = evaluators.classifier(targets).argmax(dim=1)
+    with pytest.warns(UserWarning, match="n=6 samples for D=16"):
+        scores = score_views(targets, targets, labels, predicted_deg, evaluators, crop_size=32, batch_size=4)
+    assert scores["ms_ssim"] == pytest.approx(1.0) and scores["kuan_ssim"] == pytest.approx(1.0)
+    assert scores["sfd"] == pytest.approx(0.0, abs=1e-6)
+    assert scores["azimuth_error_deg"] == pytest.approx(0.0, abs=1e-3)
+    assert scores["accuracy"] == pytest.approx(100.0 * (predicted_class == labels).double().mean().item())
+    assert scores["n"] == 6 and scores["azimuth_error_deg/scratch"] == scores["azimuth_error_deg"]
+    with pytest.raises(ValueError, match="differ in size"):
+        score_views(targets[..., :16, :16], targets, labels, predicted_deg, evaluators, crop_size=16)
+    with pytest.raises(ValueError, match=r"outside \[0, 1\]"):
+        score_views(targets + 1.0, targets, labels, predicted_deg, evaluators, crop_size=32)
+
+
+def test_merge_repeated_flags() -> None:
+    script = load_script("evaluate")
+    merged = script.merge_repeated_flags(["--pipeline", "a", "--n", "4", "--pipeline=b", "c"], ["--pipeline"])
+    assert merged == ["--n", "4", "--pipeline", "a", "b", "c"]
+
+
+def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path) -> None:
+    data = write_chip_folder(tmp_path / "data", azimuths_deg=tuple(range(0, 360, 60)), size=32)
+    _evaluators(tmp_path / "evaluators")
+    pipe = SARZero123Pipeline(**get_dummy_components())
+    pipe.save_pretrained(tmp_path / "lambda0")
+    pipe.save_pretrained(tmp_path / "lambda4")
+    script = load_script("evaluate")
+    out = tmp_path / "eval"
+    argv = [
+        "--pipeline", str(tmp_path / "lambda0"), "--pipeline", str(tmp_path / "lambda4"),
+        "--lambdas", "0", "4",
+        "--evaluators", str(tmp_path / "evaluators"), "--data", str(data), "--protocol", "ood-B",
+        "--n", "4", "--num-inference-steps", "2", "--guidance-scale", "3.0", "--crop_size", "32",
+        "--steps", "1", "2", "--schedulers", "ddim", "euler", "--speed_n", "2", "--batch_size", "2",
+        "--num_figure_pairs", "1", "--output_dir", str(out), "--device", "cpu",
+    ]  # fmt: skip
+    with pytest.warns(UserWarning, match="rank-deficient"):
+        result = script.main(argv)
+    table3 = json.loads((out / "table3.json").read_text())["results"]
+    assert set(table3) == {"input copy (baseline)", "lambda0", "lambda4"}
+    for method in ("lambda0", "lambda4"):
+        assert set(table3[method]) == {"seen", "unseen"}
+        for group in ("seen", "unseen"):
+            values = table3[method][group]
+            assert values["n"] == 2
+            assert 0.0 <= values["ms_ssim"] <= 1.0 and 0.0 <= values["azimuth_error_deg"] <= 180.0
+            assert all(math.isfinite(values[key]) for key in ("sfd", "kuan_ssim", "accuracy"))
+    # Same weights, same pairs, same seeds -> identical scores.
+    for key in ("ms_ssim", "sfd", "azimuth_error_deg", "accuracy"):
+        assert table3["lambda0"]["unseen"][key] == table3["lambda4"]["unseen"][key]
+    markdown = (out / "table3.md").read_text()
+    assert "paper: PFM (lambda=4)" in markdown and "| 89.0 | 23.5 | 1.84 | 0.6720 | 0.7374 |" in markdown
+    assert "Az. err. (deg), scratch" in (out / "table4.md").read_text()
+    for name in ("views.png", "lambda_sweep.png", "speed_error.png", "speed_error.md"):
+        assert (out / name).stat().st_size > 0
+    rows = result["speed_error"]
+    assert len(rows) == 2 * 2 * 2 and {row["scheduler"] for row in rows} == {"ddim", "euler"}
+    assert all(row["images_per_s"] > 0 and row["n"] == 2 for row in rows)
+    assert isinstance(pipe.scheduler, type(get_dummy_components()["scheduler"]))
+
+
+def test_evaluate_rejects_bad_config() -> None:
+    script = load_script("evaluate")
+    with pytest.raises(ValueError, match="lambdas has 1 values for 2 pipelines"):
+        script.EvaluateConfig(pipeline=["a", "b"], lambdas=[0.0])
+    with pytest.raises(ValueError, match="schedulers: unknown"):
+        script.EvaluateConfig(pipeline=["a"], steps=[10], schedulers=["heun"])

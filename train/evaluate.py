@@ -1,0 +1,603 @@
+"""Evaluate novel-view pipelines with the paper's protocol (Table III, Table IV, Fig. 7/8, Fig. 12, speed).
+
+    python train/evaluate.py --pipeline runs/pfm0/pipeline --pipeline runs/pfm4/pipeline \\
+        --evaluators runs/evaluators --data /path/to/mstar --protocol ood-T72 --n 1000 \\
+        --num-inference-steps 50 --guidance-scale 3.0 --seed 0 --output_dir runs/eval
+
+Protocol: pairs of two test views of one object (input, target), conditioned on their relative pose
+(d_az, d_el). With `--protocol ood-<CLASS>` half the pairs come from the seen classes (extended test split,
+15 deg, without the held-out class) and half from the unseen class (every chip of it); with `extended` all
+pairs are seen. Each pipeline generates the target view from the input view; the five metrics of
+`sar_zero123.evaluators.score_views` score it. Pairs and generator seeds are the same for every pipeline.
+
+Outputs in `--output_dir`: `table3.{json,md}` (the paper's rows beside ours, plus an "input copy" baseline
+that returns the input view unchanged), `table4.{json,md}` (azimuth error under every evaluator backbone),
+`views.png` (input | each pipeline | target, Fig. 7/8), `lambda_sweep.png` (with `--lambdas`, Fig. 12),
+and with `--steps`/`--schedulers`: `speed_error.{json,md,png}` (azimuth error and accuracy against images/s).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+from diffusers import DDIMScheduler, DPMSolverMultistepScheduler, EulerDiscreteScheduler
+from torch.utils.data import DataLoader
+from tqdm.auto import tqdm
+
+from sar_zero123.config import parse_config, save_config, write_json_atomic
+from sar_zero123.data import ViewPairDataset, prepare_splits, split_records
+from sar_zero123.evaluators import Evaluators, load_evaluators, score_views
+from sar_zero123.pipeline import SARZero123Pipeline
+
+logger = logging.getLogger(__name__)
+
+METRICS = ("accuracy", "azimuth_error_deg", "sfd", "ms_ssim", "kuan_ssim")
+METRIC_LABELS = {
+    "accuracy": "Acc. (%) ↑",
+    "azimuth_error_deg": "Az. err. (deg) ↓",
+    "sfd": "SFD ↓",
+    "ms_ssim": "MS-SSIM ↑",
+    "kuan_ssim": "Kuan+SSIM ↑",
+}
+# Table III of the paper (zero123 fine-tuned on MSTAR, 1,000 samples: 500 seen, 500 unseen T72).
+PAPER_TABLE3 = {
+    "paper: w/o PFM": {
+        "seen": {
+            "accuracy": 86.6,
+            "azimuth_error_deg": 28.5,
+            "sfd": 3.89,
+            "ms_ssim": 0.6680,
+            "kuan_ssim": 0.7330,
+        },
+        "unseen": {
+            "accuracy": 25.8,
+            "azimuth_error_deg": 53.4,
+            "sfd": 8.43,
+            "ms_ssim": 0.6165,
+            "kuan_ssim": 0.6731,
+        },
+    },
+    "paper: PFM (lambda=4)": {
+        "seen": {
+            "accuracy": 89.0,
+            "azimuth_error_deg": 23.5,
+            "sfd": 1.84,
+            "ms_ssim": 0.6720,
+            "kuan_ssim": 0.7374,
+        },
+        "unseen": {
+            "accuracy": 46.6,
+            "azimuth_error_deg": 44.0,
+            "sfd": 6.28,
+            "ms_ssim": 0.6195,
+            "kuan_ssim": 0.6786,
+        },
+    },
+}
+SCHEDULERS = {
+    "ddim": (DDIMScheduler, {}),
+    "dpmsolver++": (DPMSolverMultistepScheduler, {"algorithm_type": "dpmsolver++"}),
+    "euler": (EulerDiscreteScheduler, {}),
+}
+
+
+@dataclass
+class EvaluateConfig:
+    """Score novel-view pipelines with the paper's protocol and write Tables III/IV and figures."""
+
+    pipeline: list[str] = field(default_factory=list)  # SARZero123Pipeline folders (repeat the flag)
+    pipeline_names: list[str] = field(default_factory=list)  # row labels (default: folder names)
+    lambdas: list[float] = field(default_factory=list)  # PFM weight of each pipeline, for the Fig. 12 sweep
+    evaluators: str = "runs/evaluators"  # output folder of train/train_evaluators.py
+    data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
+    work_dir: str | None = None  # cache of the simulated dataset (default: output_dir)
+    protocol: str = "extended"  # "extended" (seen only) or "ood-<CLASS>" (half seen, half unseen)
+    same_depression: bool = True  # pair views at one depression; False also pairs across (d_el != 0)
+    max_d_az_deg: float | None = None  # largest |d_az| of a pair (None: any)
+    n: int = 1000  # generated samples in total (split evenly between seen and unseen)
+    num_inference_steps: int = 50  # denoising steps for Tables III/IV
+    guidance_scale: float = 3.0  # classifier-free guidance weight
+    steps: list[int] = field(default_factory=list)  # speed/error sweep: step counts (e.g. 10 20 50)
+    schedulers: list[str] = field(default_factory=list)  # speed/error sweep: ddim, dpmsolver++, euler
+    speed_n: int | None = None  # samples per speed/error point (None: n)
+    image_size: int | None = None  # chip size fed to the pipelines (None: the pipeline's own)
+    chip_crop_size: int | None = None  # centre crop of the chip files before resizing
+    crop_size: int = 64  # centre crop for MS-SSIM and Kuan+SSIM (paper: 64)
+    batch_size: int = 16  # pairs per pipeline call
+    num_figure_pairs: int = 4  # pairs per group shown in views.png
+    output_dir: str = "runs/eval"  # where tables and figures go
+    device: str | None = None  # torch device (None: cuda when available)
+    seed: int = 0  # pair sampling and generator seeds
+
+    def __post_init__(self) -> None:
+        if not self.pipeline:
+            raise ValueError("pipeline: give at least one pipeline folder")
+        if self.pipeline_names and len(self.pipeline_names) != len(self.pipeline):
+            raise ValueError(
+                f"pipeline_names has {len(self.pipeline_names)} names for {len(self.pipeline)} pipelines"
+            )
+        if self.lambdas and len(self.lambdas) != len(self.pipeline):
+            raise ValueError(f"lambdas has {len(self.lambdas)} values for {len(self.pipeline)} pipelines")
+        if self.protocol != "extended" and not self.protocol.startswith("ood-"):
+            raise ValueError(f"protocol must be 'extended' or 'ood-<CLASS>', got {self.protocol!r}")
+        for name in ("n", "num_inference_steps", "batch_size", "crop_size"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.protocol.startswith("ood-") and self.n < 2:
+            raise ValueError(f"n must be >= 2 for an ood protocol (half seen, half unseen), got {self.n}")
+        unknown = sorted(set(self.schedulers) - set(SCHEDULERS))
+        if unknown:
+            raise ValueError(f"schedulers: unknown {unknown}; choose from {sorted(SCHEDULERS)}")
+        if bool(self.steps) != bool(self.schedulers):
+            raise ValueError("steps and schedulers must be given together for the speed/error sweep")
+        if any(step < 1 for step in self.steps):
+            raise ValueError(f"steps must be >= 1, got {self.steps}")
+        if self.speed_n is not None and self.speed_n < 1:
+            raise ValueError(f"speed_n must be >= 1 or None, got {self.speed_n}")
+        if self.num_figure_pairs < 0:
+            raise ValueError(f"num_figure_pairs must be >= 0, got {self.num_figure_pairs}")
+
+    @property
+    def names(self) -> list[str]:
+        """Row label of each pipeline."""
+        if self.pipeline_names:
+            return list(self.pipeline_names)
+        names = [Path(p).name for p in self.pipeline]
+        if len(set(names)) != len(names):
+            names = [f"{Path(p).parent.name}/{Path(p).name}" for p in self.pipeline]
+        return names
+
+
+def merge_repeated_flags(argv: Sequence[str], flags: Sequence[str]) -> list[str]:
+    """`--pipeline A --pipeline B` -> `--pipeline A B` (argparse keeps only the last occurrence)."""
+    merged: dict[str, list[str]] = {}
+    rest: list[str] = []
+    current: str | None = None
+    for token in argv:
+        name = token.split("=", 1)[0].replace("-", "_").lstrip("_")
+        if token.startswith("--") and name in {f.lstrip("-").replace("-", "_") for f in flags}:
+            current = name
+            merged.setdefault(current, [])
+            if "=" in token:
+                merged[current].append(token.split("=", 1)[1])
+            continue
+        if current is not None and not token.startswith("--"):
+            merged[current].append(token)
+            continue
+        current = None
+        rest.append(token)
+    for name, values in merged.items():
+        rest += [f"--{name}", *values]
+    return rest
+
+
+# --------------------------------------------------------------------------------------------- data
+@dataclass
+class PairSet:
+    """The evaluation pairs of one group (seen or unseen), stacked."""
+
+    inputs: torch.Tensor  # (N, 1, S, S)
+    targets: torch.Tensor  # (N, 1, S, S)
+    d_az_deg: torch.Tensor  # (N,)
+    d_el_deg: torch.Tensor  # (N,)
+    labels: torch.Tensor  # (N,)
+    target_azimuth_deg: torch.Tensor  # (N,)
+    seeds: torch.Tensor  # (N,) generator seed of each sample
+
+    def __len__(self) -> int:
+        return self.inputs.shape[0]
+
+    def subset(self, count: int) -> PairSet:
+        """The first `count` pairs."""
+        return PairSet(*(getattr(self, f)[:count] for f in self.__dataclass_fields__))
+
+
+def build_pair_sets(config: EvaluateConfig, evaluators: Evaluators, image_size: int) -> dict[str, PairSet]:
+    """Samples the seen (and unseen) pairs of the protocol with the evaluators' scaling and classes."""
+    work_dir = Path(config.work_dir) if config.work_dir is not None else Path(config.output_dir)
+    extended = prepare_splits(config.data, "extended", work_dir, seed=config.seed)
+    groups: dict[str, list] = {}
+    if config.protocol == "extended":
+        groups["seen"] = extended["test"]
+        counts = {"seen": config.n}
+    else:
+        ood = split_records(extended["train"] + extended["test"], config.protocol, seed=config.seed)
+        held_out = ood["test"][0].target_class
+        groups["seen"] = [r for r in extended["test"] if r.target_class != held_out]
+        groups["unseen"] = ood["test"]
+        counts = {"seen": config.n - config.n // 2, "unseen": config.n // 2}
+    scaling = evaluators.classifier.scaling
+    pair_sets = {}
+    for offset, (group, records) in enumerate(groups.items()):
+        dataset = ViewPairDataset(
+            records,
+            size=image_size,
+            scaling=scaling,
+            max_d_az_deg=config.max_d_az_deg,
+            same_depression=config.same_depression,
+            seed=config.seed + offset,
+            num_pairs=counts[group],
+            class_names=evaluators.class_names,
+            crop_size=config.chip_crop_size,
+        )
+        columns: dict[str, list[torch.Tensor]] = {}
+        for batch in DataLoader(dataset, batch_size=64, shuffle=False):
+            for key in ("input", "target", "d_az_deg", "d_el_deg", "label", "target_azimuth_deg"):
+                columns.setdefault(key, []).append(torch.as_tensor(batch[key]))
+        count = len(dataset)
+        pair_sets[group] = PairSet(
+            inputs=torch.cat(columns["input"]),
+            targets=torch.cat(columns["target"]),
+            d_az_deg=torch.cat(columns["d_az_deg"]).float(),
+            d_el_deg=torch.cat(columns["d_el_deg"]).float(),
+            labels=torch.cat(columns["label"]).long(),
+            target_azimuth_deg=torch.cat(columns["target_azimuth_deg"]).double(),
+            # Distinct seeds per group and sample: a sample's noise does not depend on the batch size.
+            seeds=torch.arange(count) + config.seed * 1_000_003 + offset * 100_003,
+        )
+        logger.info("%s: %d pairs from %d chips", group, count, len(records))
+    return pair_sets
+
+
+# --------------------------------------------------------------------------------------- generation
+def set_scheduler(pipe: SARZero123Pipeline, name: str) -> None:
+    """Swaps the pipeline's sampler for `ddim`, `dpmsolver++` or `euler`, keeping the noise schedule."""
+    scheduler_class, overrides = SCHEDULERS[name]
+    pipe.scheduler = scheduler_class.from_config(pipe.scheduler.config, **overrides)
+
+
+@torch.no_grad()
+def generate_views(
+    pipe: SARZero123Pipeline,
+    pairs: PairSet,
+    *,
+    num_inference_steps: int,
+    guidance_scale: float,
+    batch_size: int,
+    device: torch.device,
+    desc: str = "generating",
+) -> tuple[torch.Tensor, float]:
+    """Generates the target view of every pair; returns `(images (N, 1, S, S) on CPU, seconds)`."""
+    outputs, seconds = [], 0.0
+    for start in tqdm(range(0, len(pairs), batch_size), desc=desc, leave=False):
+        stop = min(start + batch_size, len(pairs))
+        generators = [torch.Generator(device).manual_seed(int(s)) for s in pairs.seeds[start:stop]]
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        begin = time.perf_counter()
+        images = pipe(
+            image=pairs.inputs[start:stop].to(device),
+            d_az=pairs.d_az_deg[start:stop].to(device),
+            d_el=pairs.d_el_deg[start:stop].to(device),
+            num_inference_steps=num_inference_steps,
+            guidance_scale=guidance_scale,
+            generator=generators,
+            output_type="pt",
+        ).images
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+        seconds += time.perf_counter() - begin
+        outputs.append(images.float().cpu())
+    return torch.cat(outputs), seconds
+
+
+def score(
+    generated: torch.Tensor, pairs: PairSet, evaluators: Evaluators, config: EvaluateConfig, device
+) -> dict:
+    """Table III/IV metrics of a generated set (see `score_views`)."""
+    return score_views(
+        generated,
+        pairs.targets,
+        pairs.labels,
+        pairs.target_azimuth_deg,
+        evaluators,
+        crop_size=config.crop_size,
+        batch_size=max(config.batch_size, 32),
+        device=device,
+    )
+
+
+# ------------------------------------------------------------------------------------------ reports
+def _format(metric: str, value: float | None) -> str:
+    if value is None or (isinstance(value, float) and math.isnan(value)):
+        return "-"
+    if metric == "accuracy":
+        return f"{value:.1f}"
+    if metric == "azimuth_error_deg":
+        return f"{value:.1f}"
+    if metric == "sfd":
+        return f"{value:.2f}"
+    return f"{value:.4f}"
+
+
+def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_paper: bool) -> str:
+    """Markdown Table III: one row per (method, group), the paper's rows first when `include_paper`."""
+    header = "| Method | Views | " + " | ".join(METRIC_LABELS[m] for m in METRICS) + " | n |"
+    lines = [header, "|" + " --- |" * (len(METRICS) + 3)]
+    rows = dict(PAPER_TABLE3) if include_paper else {}
+    rows.update(results)
+    for method, groups in rows.items():
+        for group, values in groups.items():
+            n = values.get("n")
+            cells = " | ".join(_format(m, values.get(m)) for m in METRICS)
+            lines.append(f"| {method} | {group} | {cells} | {'' if n is None else int(n)} |")
+    return "\n".join(lines) + "\n"
+
+
+def table4_markdown(results: dict[str, dict[str, dict[str, float]]]) -> str:
+    """Markdown Table IV: azimuth error of generated views under every evaluator backbone."""
+    backbones = sorted(
+        {
+            key.split("/", 1)[1]
+            for groups in results.values()
+            for v in groups.values()
+            for key in v
+            if "/" in key
+        },
+        key=lambda name: (name != "scratch", name),
+    )
+    lines = ["| Method | Views | " + " | ".join(f"Az. err. (deg), {b}" for b in backbones) + " |"]
+    lines.append("|" + " --- |" * (len(backbones) + 2))
+    for method, groups in results.items():
+        for group, values in groups.items():
+            cells = " | ".join(
+                _format("azimuth_error_deg", values.get(f"azimuth_error_deg/{b}")) for b in backbones
+            )
+            lines.append(f"| {method} | {group} | {cells} |")
+    return "\n".join(lines) + "\n"
+
+
+def plot_views(
+    pair_sets: dict[str, PairSet], generated: dict[str, dict[str, torch.Tensor]], count: int, path: Path
+) -> Path:
+    """Fig. 7/8-like grid: rows are pairs, columns input | each pipeline | target."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    names = list(generated)
+    rows = [(group, i) for group, pairs in pair_sets.items() for i in range(min(count, len(pairs)))]
+    columns = ["input", *names, "target"]
+    figure, axes = plt.subplots(
+        len(rows), len(columns), figsize=(1.6 * len(columns), 1.6 * len(rows)), squeeze=False
+    )
+    for row, (group, i) in enumerate(rows):
+        pairs = pair_sets[group]
+        images = [pairs.inputs[i], *(generated[name][group][i] for name in names), pairs.targets[i]]
+        for column, image in enumerate(images):
+            axis = axes[row, column]
+            axis.imshow(image[0].numpy(), cmap="gray", vmin=0.0, vmax=1.0)
+            axis.set_xticks([])
+            axis.set_yticks([])
+            if row == 0:
+                axis.set_title(columns[column], fontsize=8)
+        label = f"{group}\nΔaz {pairs.d_az_deg[i]:.0f}°, Δel {pairs.d_el_deg[i]:.0f}°"
+        axes[row, 0].set_ylabel(label, fontsize=7)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def plot_lambda_sweep(
+    results: dict[str, dict[str, dict[str, float]]], lambdas: dict[str, float], path: Path
+) -> Path:
+    """Fig. 12-like plot: each metric against the PFM weight lambda, one line per view group."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, len(METRICS), figsize=(3.2 * len(METRICS), 3.0))
+    order = sorted(lambdas, key=lambdas.get)
+    groups = list(next(iter(results.values())))
+    for axis, metric in zip(axes, METRICS):
+        for group in groups:
+            axis.plot(
+                [lambdas[m] for m in order], [results[m][group][metric] for m in order], "o-", label=group
+            )
+        axis.set_xlabel("λ (PFM weight)")
+        axis.set_title(METRIC_LABELS[metric], fontsize=9)
+        axis.grid(alpha=0.3)
+    axes[0].legend(fontsize=8)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def plot_speed_error(rows: list[dict[str, Any]], path: Path) -> Path:
+    """Azimuth error and accuracy against images/s, one line per (pipeline, scheduler), points = steps."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 2, figsize=(9.0, 3.6))
+    lines: dict[tuple[str, str], list[dict[str, Any]]] = {}
+    for row in rows:
+        lines.setdefault((row["pipeline"], row["scheduler"]), []).append(row)
+    for (pipeline, scheduler), points in lines.items():
+        points = sorted(points, key=lambda r: r["images_per_s"])
+        speed = [p["images_per_s"] for p in points]
+        for axis, metric in zip(axes, ("azimuth_error_deg", "accuracy")):
+            axis.plot(speed, [p[metric] for p in points], "o-", label=f"{pipeline} / {scheduler}")
+            for p in points:
+                axis.annotate(
+                    str(p["steps"]),
+                    (p["images_per_s"], p[metric]),
+                    fontsize=7,
+                    xytext=(3, 3),
+                    textcoords="offset points",
+                )
+    axes[0].set_ylabel("azimuth error (deg) ↓")
+    axes[1].set_ylabel("accuracy (%) ↑")
+    for axis in axes:
+        axis.set_xlabel("images / s")
+        axis.set_xscale("log")
+        axis.grid(alpha=0.3)
+    axes[1].legend(fontsize=7)
+    figure.tight_layout()
+    figure.savefig(path, dpi=110)
+    plt.close(figure)
+    return path
+
+
+def speed_markdown(rows: list[dict[str, Any]], device: str) -> str:
+    """Markdown speed/error table."""
+    lines = [
+        f"Device: {device}. Points use the seen pairs; images/s counts pipeline calls only.\n",
+        "| Pipeline | Scheduler | Steps | images/s | Az. err. (deg) ↓ | Acc. (%) ↑ | n |",
+        "| --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for row in rows:
+        lines.append(
+            f"| {row['pipeline']} | {row['scheduler']} | {row['steps']} | {row['images_per_s']:.2f} | "
+            f"{row['azimuth_error_deg']:.1f} | {row['accuracy']:.1f} | {row['n']} |"
+        )
+    return "\n".join(lines) + "\n"
+
+
+# --------------------------------------------------------------------------------------------- main
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """Runs the evaluation; returns `{"table3": ..., "speed_error": [...]}` (also written to disk)."""
+    import sys
+
+    argv = merge_repeated_flags(list(sys.argv[1:] if argv is None else argv), ("--pipeline",))
+    config = parse_config(EvaluateConfig, argv)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    output_dir = Path(config.output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    save_config(config, output_dir)
+    device = torch.device(config.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+
+    # 1. models
+    evaluators = load_evaluators(config.evaluators, device=device)
+    pipes = {}
+    for name, path in zip(config.names, config.pipeline):
+        pipe = SARZero123Pipeline.from_pretrained(path).to(device)
+        pipe.set_progress_bar_config(disable=True)
+        pipes[name] = pipe
+    sizes = {pipe.default_image_size for pipe in pipes.values()}
+    if config.image_size is None and len(sizes) != 1:
+        raise ValueError(f"pipelines were built for different image sizes {sorted(sizes)}; pass --image_size")
+    image_size = config.image_size or sizes.pop()
+
+    # 2. pairs (same pairs and seeds for every pipeline)
+    pair_sets = build_pair_sets(config, evaluators, image_size)
+
+    # 3. Table III / IV
+    results: dict[str, dict[str, dict[str, float]]] = {}
+    results["input copy (baseline)"] = {
+        group: score(pairs.inputs, pairs, evaluators, config, device) for group, pairs in pair_sets.items()
+    }
+    generated: dict[str, dict[str, torch.Tensor]] = {}
+    for name, pipe in pipes.items():
+        results[name], generated[name] = {}, {}
+        for group, pairs in pair_sets.items():
+            images, seconds = generate_views(
+                pipe,
+                pairs,
+                num_inference_steps=config.num_inference_steps,
+                guidance_scale=config.guidance_scale,
+                batch_size=config.batch_size,
+                device=device,
+                desc=f"{name} {group}",
+            )
+            generated[name][group] = images
+            results[name][group] = {**score(images, pairs, evaluators, config, device), "seconds": seconds}
+            logger.info("%s %s: %s", name, group, json.dumps(results[name][group]))
+    include_paper = config.protocol.startswith("ood-")
+    write_json_atomic(
+        {
+            "protocol": config.protocol,
+            "device": str(device),
+            "num_inference_steps": config.num_inference_steps,
+            "guidance_scale": config.guidance_scale,
+            "results": results,
+            "paper": PAPER_TABLE3,
+            "evaluator_test_metrics": {
+                "classifier": evaluators.classifier.metrics,
+                "regressor": evaluators.regressor.metrics,
+            },
+        },
+        output_dir / "table3.json",
+    )
+    (output_dir / "table3.md").write_text(table3_markdown(results, include_paper))
+    table4 = {name: results[name] for name in results}
+    write_json_atomic(table4, output_dir / "table4.json")
+    (output_dir / "table4.md").write_text(table4_markdown(table4))
+    if config.num_figure_pairs > 0:
+        plot_views(pair_sets, generated, config.num_figure_pairs, output_dir / "views.png")
+    if config.lambdas:
+        plot_lambda_sweep(
+            {n: results[n] for n in pipes}, dict(zip(pipes, config.lambdas)), output_dir / "lambda_sweep.png"
+        )
+
+    # 4. speed against error (seen pairs)
+    speed_rows: list[dict[str, Any]] = []
+    if config.steps:
+        pairs = pair_sets["seen"].subset(config.speed_n or config.n)
+        for name, pipe in pipes.items():
+            original = pipe.scheduler
+            for scheduler in config.schedulers:
+                set_scheduler(pipe, scheduler)
+                # Warm-up call so one-time costs (allocation, kernel selection) do not count.
+                generate_views(
+                    pipe,
+                    pairs.subset(1),
+                    num_inference_steps=1,
+                    guidance_scale=config.guidance_scale,
+                    batch_size=1,
+                    device=device,
+                )
+                for steps in config.steps:
+                    images, seconds = generate_views(
+                        pipe,
+                        pairs,
+                        num_inference_steps=steps,
+                        guidance_scale=config.guidance_scale,
+                        batch_size=config.batch_size,
+                        device=device,
+                        desc=f"{name} {scheduler} {steps}",
+                    )
+                    scores = score(images, pairs, evaluators, config, device)
+                    speed_rows.append(
+                        {
+                            "pipeline": name,
+                            "scheduler": scheduler,
+                            "steps": steps,
+                            "n": len(pairs),
+                            "images_per_s": len(pairs) / seconds,
+                            "azimuth_error_deg": scores["azimuth_error_deg"],
+                            "accuracy": scores["accuracy"],
+                            "ms_ssim": scores["ms_ssim"],
+                        }
+                    )
+                    logger.info("speed %s", json.dumps(speed_rows[-1]))
+            pipe.scheduler = original
+        write_json_atomic({"device": str(device), "rows": speed_rows}, output_dir / "speed_error.json")
+        (output_dir / "speed_error.md").write_text(speed_markdown(speed_rows, _device_name(device)))
+        plot_speed_error(speed_rows, output_dir / "speed_error.png")
+
+    print(table3_markdown(results, include_paper))
+    return {"table3": results, "speed_error": speed_rows}
+
+
+def _device_name(device: torch.device) -> str:
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    return f"CPU ({torch.get_num_threads()} threads)"
+
+
+if __name__ == "__main__":
+    main()
