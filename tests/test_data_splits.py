@@ -9,7 +9,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from sar_zero123.data import ChipRecord, ood_validation_intervals, prepare_splits, split_records, write_index
+from sar_zero123.data import (
+    ChipDataset,
+    ChipRecord,
+    ood_validation_intervals,
+    prepare_splits,
+    split_records,
+    write_index,
+)
 
 
 def make_records(root: Path = Path("/data")) -> list[ChipRecord]:
@@ -119,3 +126,15 @@ def test_prepare_splits_from_folder(tmp_path: Path) -> None:
     assert len(splits["train"]) == 36 and not (tmp_path / "work").exists()
     with pytest.raises(ValueError, match=r"simulator options \['size'\] only apply when data is None"):
         prepare_splits(tmp_path / "data", "soc", tmp_path / "work", size=8)
+
+
+def test_prepare_splits_with_builtin_simulator(tmp_path: Path) -> None:
+    sim = pytest.importorskip("sar_zero123.sim")
+    classes = list(sim.TARGET_CLASSES)[:2]
+    options = {"classes": classes, "instances": 1, "azimuth_step_deg": 90.0, "size": 16}
+    splits = prepare_splits(None, f"ood-{classes[0]}", tmp_path, seed=0, **options)
+    assert len(splits["test"]) == 2 * 4  # held-out class, 2 depressions x 4 azimuths
+    assert {r.target_class for r in splits["train"] + splits["val"]} == {classes[1]}
+    assert len(splits["train"]) + len(splits["val"]) == 8
+    image = ChipDataset(splits["test"], size=16)[0]["image"]
+    assert image.shape == (1, 16, 16) and 0.0 <= float(image.min()) < float(image.max()) <= 1.0

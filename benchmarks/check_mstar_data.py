@@ -1,0 +1,162 @@
+"""Checks the data layer on the real MSTAR chips: split counts and raw-vs-JPEG agreement.
+
+Usage::
+
+    python benchmarks/check_mstar_data.py --data ../shared/data/mstar --output docs/results/data.json
+
+Prints a JSON report and writes it to ``--output``:
+
+* chip counts of every protocol (``extended``, ``soc``, ``ood-T72`` for seeds 0-4) next to the paper's;
+* ``read_mstar_raw`` on ``raw/HB03787.002`` against its JPEG copy ``chips/17deg/BMP2/HB03787.002.jpeg``:
+  the JPEGs map each chip's magnitude linearly to 0-255 (brightest pixel near 255), so
+  ``raw / raw.max()`` and ``pixel / 255`` should agree up to JPEG compression error;
+* the raw-folder index of ``raw/`` (read-only: scanned, not cached) and the global decibel bounds of the
+  extended training JPEGs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+import tempfile
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+from scipy.ndimage import uniform_filter
+
+from sar_zero123.data import (
+    DecibelScaling,
+    load_index,
+    load_magnitude,
+    ood_validation_intervals,
+    read_mstar_raw,
+    split_records,
+    to_decibels,
+)
+
+PAPER_COUNTS = {
+    "extended": {"train": 6059, "test": 5392},
+    "soc": {"train": 2747, "test": 2425},
+    "ood-T72": {"train": 5003, "test": 5850},
+}
+RAW_CHIP = "raw/HB03787.002"
+JPEG_CHIP = "chips/17deg/BMP2/HB03787.002.jpeg"
+
+
+def correlation(a: np.ndarray, b: np.ndarray) -> float:
+    """Pearson correlation of two images."""
+    return float(np.corrcoef(a.ravel().astype(np.float64), b.ravel().astype(np.float64))[0, 1])
+
+
+def check_splits(data: Path) -> dict:
+    start = time.perf_counter()
+    records = load_index(data)
+    seconds = time.perf_counter() - start
+    report: dict = {"num_chips": len(records), "load_index_seconds": round(seconds, 3), "protocols": {}}
+    for protocol in ("extended", "soc"):
+        splits = split_records(records, protocol)
+        report["protocols"][protocol] = {name: len(split) for name, split in splits.items()}
+    for seed in range(5):
+        splits = split_records(records, "ood-T72", seed=seed)
+        report["protocols"][f"ood-T72 (seed {seed})"] = {name: len(split) for name, split in splits.items()}
+    report["ood_intervals_seed0_deg"] = ood_validation_intervals(seed=0)
+    report["paper"] = PAPER_COUNTS
+    return report
+
+
+def check_raw_vs_jpeg(data: Path) -> dict:
+    chip = read_mstar_raw(data / RAW_CHIP)
+    jpeg = load_magnitude(data / JPEG_CHIP)
+    raw = chip.magnitude / chip.magnitude.max()  # per-chip linear normalisation, as the JPEG export did
+    slope, intercept = np.polyfit(raw.ravel(), jpeg.ravel(), 1)
+    scaling = DecibelScaling.for_unit_magnitude()
+    return {
+        "raw": {
+            "shape": list(chip.magnitude.shape),
+            "target_class": chip.target_class,
+            "serial": chip.serial,
+            "azimuth_deg": chip.azimuth_deg,
+            "depression_deg": chip.depression_deg,
+            "measured_depression_deg": float(chip.header["MeasuredDepression"]),
+            "magnitude_max": float(chip.magnitude.max()),
+            "magnitude_max_db": float(to_decibels(np.float64(chip.magnitude.max()))),
+            "phase_range_rad": [float(chip.phase.min()), float(chip.phase.max())],
+        },
+        "jpeg_shape": list(jpeg.shape),
+        "correlation_normalised_magnitude": correlation(raw, jpeg),
+        "correlation_after_3x3_mean": correlation(uniform_filter(raw, 3), uniform_filter(jpeg, 3)),
+        "correlation_normalised_db": correlation(scaling.normalize(raw), scaling.normalize(jpeg)),
+        "linear_fit_jpeg_vs_raw": {"slope": float(slope), "intercept": float(intercept)},
+        "rms_difference": float(np.sqrt(np.mean((jpeg - raw) ** 2))),
+        "argmax_raw": [int(i) for i in np.unravel_index(raw.argmax(), raw.shape)],
+        "argmax_jpeg": [int(i) for i in np.unravel_index(jpeg.argmax(), jpeg.shape)],
+    }
+
+
+def check_raw_folder(data: Path) -> dict:
+    # The shared folder is read-only: index it in place (not cached), then in a writable copy (cached).
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        in_place = load_index(data / "raw")
+    with tempfile.TemporaryDirectory() as scratch:
+        for path in (data / "raw").iterdir():
+            shutil.copy(path, scratch)
+        cached = load_index(scratch)
+        index_written = (Path(scratch) / "index.csv").is_file()
+    return {
+        "records": [
+            {
+                "file": r.path.name,
+                "class": r.target_class,
+                "serial": r.serial,
+                "azimuth_deg": r.azimuth_deg,
+                "depression_deg": r.depression_deg,
+                "height": r.height,
+                "width": r.width,
+            }
+            for r in in_place
+        ],
+        "read_only_warning": [str(w.message) for w in caught],
+        "copy_index_written": index_written,
+        "copy_records_equal": [(r.target_class, r.serial, r.azimuth_deg) for r in cached]
+        == [(r.target_class, r.serial, r.azimuth_deg) for r in in_place],
+    }
+
+
+def check_scaling(data: Path) -> dict:
+    train = split_records(load_index(data), "extended")["train"]
+    start = time.perf_counter()
+    fitted = DecibelScaling.fit(train)
+    return {
+        "extended_train_fit": fitted.to_dict(),
+        "unit_magnitude_default": DecibelScaling.for_unit_magnitude().to_dict(),
+        "fit_seconds": round(time.perf_counter() - start, 2),
+    }
+
+
+def main(argv: list[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", type=Path, default=Path("../shared/data/mstar"), help="MSTAR folder")
+    parser.add_argument("--output", type=Path, default=Path("docs/results/data.json"), help="JSON report")
+    args = parser.parse_args(argv)
+    if not (args.data / "index.csv").is_file():
+        raise FileNotFoundError(f"no MSTAR index at {args.data / 'index.csv'}; pass --data")
+    report = {
+        "data": str(args.data.resolve()),
+        "splits": check_splits(args.data),
+        "raw_vs_jpeg": check_raw_vs_jpeg(args.data),
+        "raw_folder_index": check_raw_folder(args.data),
+        "scaling": check_scaling(args.data),
+    }
+    text = json.dumps(report, indent=2)
+    print(text)
+    args.output.parent.mkdir(parents=True, exist_ok=True)
+    args.output.write_text(text + "\n")
+    return report
+
+
+if __name__ == "__main__":
+    main()
