@@ -35,7 +35,7 @@ class PlotConfig:
     depression_deg: float = 17.0  # take Fig. 4 chips at this depression
     size: int = 128  # Fig. 4 chips are centre-cropped/resized to size x size
     seed: int = 0  # seed of the single generator behind every random draw
-    dpi: int = 150  # resolution of the PNGs
+    dpi: int = 100  # resolution of the PNGs
 
     def __post_init__(self) -> None:
         if self.num_maps < 1:
