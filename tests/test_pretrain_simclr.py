@@ -1,0 +1,105 @@
+"""Smoke and resume tests of `train/pretrain_simclr.py` on a fabricated chip folder."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import math
+import shutil
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from PIL import Image
+
+from sar_zero123.data import ChipRecord, write_index
+from sar_zero123.encoder import SAREncoder
+
+SCRIPT = Path(__file__).resolve().parents[1] / "train" / "pretrain_simclr.py"
+TINY_ARGS = [
+    "--image_size", "16",
+    "--hidden_sizes", "8", "8", "8", "8",
+    "--embedding_size", "8",
+    "--projection_hidden_dim", "8",
+    "--projection_dim", "4",
+    "--batch_size", "4",
+    "--monotonic_q", "16",
+]  # fmt: skip
+
+
+def load_script():
+    spec = importlib.util.spec_from_file_location("pretrain_simclr", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules[spec.name] = module  # dataclasses resolve string annotations through sys.modules
+    spec.loader.exec_module(module)
+    return module
+
+
+def write_chip_folder(root: Path, per_group: int = 4) -> Path:
+    """Two classes x two depressions of 8-bit PNG chips with an index.csv."""
+    rng = np.random.default_rng(0)
+    records = []
+    for target_class in ("A", "B"):
+        for depression in (15.0, 17.0):
+            for i in range(per_group):
+                path = root / f"{target_class}_{int(depression)}_{i}.png"
+                image = rng.integers(0, 256, size=(20, 20), dtype=np.uint8)
+                Image.fromarray(image).save(path)
+                records.append(ChipRecord(path, target_class, "s1", depression, 360.0 * i / per_group))
+    write_index(records, root)
+    return root
+
+
+@pytest.fixture(scope="module")
+def chip_folder(tmp_path_factory) -> Path:
+    return write_chip_folder(tmp_path_factory.mktemp("chips"))
+
+
+def test_two_steps_write_encoder_metrics_and_logs(chip_folder, tmp_path):
+    out = tmp_path / "run"
+    metrics = load_script().main(
+        ["--data", str(chip_folder), "--output_dir", str(out), "--max_train_steps", "2", *TINY_ARGS]
+    )
+    assert metrics["steps"] == 2 and metrics["train_chips"] == 8  # the 17 deg split only
+    assert math.isfinite(metrics["final_loss"]) and metrics["images_per_second"] > 0
+    assert 0 < metrics["augment_fraction"] < 1
+    assert metrics["collapse_loss"] == pytest.approx(math.log(7))
+    assert json.loads((out / "metrics.json").read_text())["steps"] == 2
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["preset"] == "speckle+monotonic" and saved["learning_rate"] == 0.06
+    assert json.loads((out / "scaling.json").read_text())["min_db"] == -60.0
+    assert list((out / "logs").rglob("events.out.tfevents.*")) or list(out.rglob("events.out.tfevents.*"))
+    encoder = SAREncoder.from_pretrained(out / "encoder")
+    assert encoder(torch.rand(2, 1, 16, 16)).shape == (2, 8)
+
+
+def test_resume_from_latest_reproduces_an_uninterrupted_run(chip_folder, tmp_path):
+    script = load_script()
+    common = ["--data", str(chip_folder), "--report_to", "none", "--preset", "simclr-full", *TINY_ARGS]
+    common += ["--max_train_steps", "3", "--checkpointing_steps", "1"]
+    straight = script.main([*common, "--output_dir", str(tmp_path / "a")])
+    # emulate a crash right after step 1: keep only the first checkpoint
+    crashed = tmp_path / "b"
+    shutil.copytree(tmp_path / "a" / "checkpoint-1", crashed / "checkpoint-1")
+    resumed = script.main([*common, "--output_dir", str(crashed), "--resume_from_checkpoint", "latest"])
+    assert resumed["start_step"] == 1 and resumed["steps"] == 3
+    assert resumed["final_loss"] == pytest.approx(straight["final_loss"], rel=1e-5)
+    a = SAREncoder.from_pretrained(tmp_path / "a" / "encoder").state_dict()
+    b = SAREncoder.from_pretrained(crashed / "encoder").state_dict()
+    for name in a:
+        torch.testing.assert_close(a[name], b[name], rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("flag", "value", "field"),
+    [
+        ("--preset", "rotate", "preset"),
+        ("--batch_size", "0", "batch_size"),
+        ("--speckle_sigma", "-1", "sigma"),
+    ],
+)
+def test_bad_config_names_the_field(flag, value, field):
+    with pytest.raises(ValueError, match=field):
+        load_script().main([flag, value])

@@ -1,0 +1,307 @@
+"""SimCLR pretraining of the SAR encoder with co-domain augmentations (paper Sec. III, Table I).
+
+    accelerate launch train/pretrain_simclr.py --output_dir runs/simclr            # simulator data
+    accelerate launch train/pretrain_simclr.py --data /path/to/mstar --protocol extended \\
+        --output_dir runs/simclr --resume_from_checkpoint latest
+
+Defaults are the paper's: ResNet-18 (CIFAR stem), 128x128 chips, batch 256, SGD momentum 0.9,
+lr 0.06, weight decay 5e-4, cosine annealing, 500 epochs, preset `speckle+monotonic` with sigma 10,
+lambda1 = lambda2 = 1 and Q = 512, projection head 512-512-128, NT-Xent temperature 0.5.
+
+The train split's magnitudes are held in memory on the training device and augmented there, batched
+(`sar_zero123.augment.simclr_views`), so file reading never stalls the accelerator. Writes
+`<output_dir>/encoder` (`SAREncoder.save_pretrained`), `scaling.json` (dB bounds), `config.json`,
+`metrics.json` (final loss, throughput, share of step time spent augmenting), TensorBoard logs under
+`<output_dir>/logs` and resumable `checkpoint-<step>` folders.
+
+Under multi-process launch each process holds batch_size / num_processes chips of every global batch
+and computes NT-Xent on its own sub-batch (negatives are not gathered across processes).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import torch
+from accelerate import Accelerator
+from accelerate.utils import set_seed
+from torch import nn
+from torch.utils.data import DataLoader
+from tqdm.auto import tqdm
+
+from sar_zero123.augment import PRESETS, AugmentationPreset, simclr_views
+from sar_zero123.config import config_to_dict, parse_config, save_config, write_json_atomic
+from sar_zero123.data import ChipDataset, DecibelScaling, prepare_splits
+from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig, nt_xent_loss
+from sar_zero123.run_state import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass
+class PretrainSimCLRConfig:
+    """SimCLR pretraining of the SAR encoder (ResNet-18) with co-domain augmentations."""
+
+    output_dir: str = "runs/simclr"  # run folder: encoder/, checkpoints, logs, config.json, metrics.json
+    data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
+    protocol: str = "extended"  # split protocol of the data; only the "train" split is used
+    work_dir: str | None = None  # where the simulated dataset is cached (default: output_dir)
+    max_train_chips: int | None = None  # use only the first N train chips (quick runs); None = all
+    image_size: int = 128  # chip side in pixels (paper: 128)
+    chip_crop_size: int | None = None  # centre crop before resizing (None keeps the pixel spacing)
+    preset: str = "speckle+monotonic"  # augmentation preset (Table I row)
+    speckle_sigma: float = 10.0  # Rayleigh sigma of Eq. (17), for presets with speckle
+    speckle_lambda1: float = 1.0  # lambda1 of Eq. (18), for presets with speckle
+    speckle_lambda2: float = 1.0  # lambda2 of Eq. (18), for presets with speckle
+    speckle_mode: str = "pixel"  # "pixel" (Eq. 17) or "level" (reference code), for presets with speckle
+    monotonic_q: int = 512  # lookup levels Q of Algorithm 1, for presets with the monotonic map
+    monotonic_gamma: float = 0.0  # std of the random gamma's log-exponent, for presets with the map
+    in_channels: int = 1  # encoder input channels (1 = SAR magnitude)
+    cifar_stem: bool = True  # 3x3 stride-1 stem without max-pool (reference setting)
+    depths: tuple[int, ...] = (2, 2, 2, 2)  # ResNet-18 blocks per stage
+    hidden_sizes: tuple[int, ...] = (64, 128, 256, 512)  # ResNet-18 stage widths
+    embedding_size: int = 64  # stem width
+    projection_hidden_dim: int = 512  # projection head hidden width
+    projection_dim: int = 128  # projection head output width
+    temperature: float = 0.5  # NT-Xent temperature
+    batch_size: int = 256  # chips per global step (two views each)
+    epochs: int = 500  # passes over the train split
+    max_train_steps: int | None = None  # stop after this many steps (overrides epochs when smaller)
+    learning_rate: float = 0.06  # SGD peak learning rate (cosine annealing to 0)
+    momentum: float = 0.9  # SGD momentum
+    weight_decay: float = 5e-4  # SGD weight decay
+    mixed_precision: str = "no"  # accelerate mixed precision: "no", "fp16" or "bf16"
+    channels_last: bool = False  # channels-last memory format (faster convolutions on GPUs)
+    checkpointing_steps: int = 500  # save a resumable checkpoint every this many steps
+    checkpoints_total_limit: int | None = 2  # keep at most this many checkpoints
+    resume_from_checkpoint: str | None = None  # "latest", a checkpoint folder, or None
+    logging_steps: int = 10  # log loss, learning rate and throughput every this many steps
+    report_to: str = "tensorboard"  # accelerate tracker ("tensorboard") or "none"
+    num_workers: int = 0  # DataLoader workers for reading the chips once
+    seed: int = 0  # seeds the split, the initialisation, the batch order and the augmentations
+
+    def __post_init__(self) -> None:
+        if self.preset not in PRESETS:
+            raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {self.preset!r}")
+        for name in ("image_size", "batch_size", "epochs", "checkpointing_steps", "logging_steps"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        for name in ("max_train_steps", "max_train_chips", "checkpoints_total_limit"):
+            value = getattr(self, name)
+            if value is not None and value < 1:
+                raise ValueError(f"{name} must be >= 1 or None, got {value}")
+        for name in ("learning_rate", "temperature"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not 0 <= self.momentum < 1:
+            raise ValueError(f"momentum must lie in [0, 1), got {self.momentum}")
+        if self.weight_decay < 0:
+            raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay}")
+        if self.mixed_precision not in ("no", "fp16", "bf16"):
+            raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
+        if self.report_to not in ("tensorboard", "none"):
+            raise ValueError(f"report_to must be 'tensorboard' or 'none', got {self.report_to!r}")
+        # the augmentation and encoder options validate themselves; fail here, before any work
+        self.augmentation()
+        self.encoder_config()
+
+    def augmentation(self) -> AugmentationPreset:
+        """The preset with this config's co-domain parameters on the stages the preset enables."""
+        preset = PRESETS[self.preset]
+        overrides: dict[str, Any] = {}
+        if preset.speckle_sigma > 0:
+            overrides.update(
+                speckle_sigma=self.speckle_sigma,
+                speckle_lambda1=self.speckle_lambda1,
+                speckle_lambda2=self.speckle_lambda2,
+                speckle_mode=self.speckle_mode,
+            )
+        if preset.monotonic_q > 0:
+            overrides.update(monotonic_q=self.monotonic_q, monotonic_gamma=self.monotonic_gamma)
+        return dataclasses.replace(preset, **overrides)
+
+    def encoder_config(self) -> SAREncoderConfig:
+        """Architecture of the encoder being trained."""
+        return SAREncoderConfig(
+            image_size=self.image_size,
+            in_channels=self.in_channels,
+            cifar_stem=self.cifar_stem,
+            depths=self.depths,
+            hidden_sizes=self.hidden_sizes,
+            embedding_size=self.embedding_size,
+        )
+
+
+def load_train_magnitudes(config: PretrainSimCLRConfig, work_dir: Path) -> torch.Tensor:
+    """Reads the train split's chips once as magnitudes. Shape: (N, 1, S, S), values in [0, 1].
+
+    Raises:
+        ValueError: If the magnitudes leave [0, 1] (e.g. raw MSTAR files: convert them to an image folder).
+    """
+    splits = prepare_splits(config.data, config.protocol, work_dir, seed=config.seed)
+    records = splits["train"][: config.max_train_chips]
+    dataset = ChipDataset(
+        records, size=config.image_size, return_magnitude=True, crop_size=config.chip_crop_size
+    )
+    loader = DataLoader(dataset, batch_size=256, shuffle=False, num_workers=config.num_workers)
+    magnitude = torch.cat([batch["magnitude"] for batch in loader])
+    if magnitude.min() < 0 or magnitude.max() > 1:
+        raise ValueError(
+            f"data: train magnitudes must lie in [0, 1] for the co-domain augmentations, got "
+            f"[{magnitude.min().item():.3g}, {magnitude.max().item():.3g}]"
+        )
+    return magnitude
+
+
+def main(argv: list[str] | None = None) -> dict[str, Any]:
+    """Runs SimCLR pretraining; returns the metrics written to `metrics.json`."""
+    config = parse_config(PretrainSimCLRConfig, argv)
+    output_dir = Path(config.output_dir)
+    log_with = None if config.report_to == "none" else config.report_to
+    accelerator = Accelerator(
+        mixed_precision=config.mixed_precision, log_with=log_with, project_dir=str(output_dir)
+    )
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
+    set_seed(config.seed)
+    if accelerator.is_main_process:
+        output_dir.mkdir(parents=True, exist_ok=True)
+        save_config(config, output_dir)
+
+    # 1. data: train magnitudes, held on the device for batched on-device augmentation
+    work_dir = Path(config.work_dir) if config.work_dir is not None else output_dir
+    with accelerator.main_process_first():  # the main process simulates the dataset once
+        magnitude = load_train_magnitudes(config, work_dir).to(accelerator.device)
+    num_chips = magnitude.shape[0]
+    if num_chips < config.batch_size:
+        raise ValueError(f"batch_size {config.batch_size} exceeds the {num_chips} train chips")
+    if config.batch_size % accelerator.num_processes != 0:
+        raise ValueError(f"batch_size must be divisible by the {accelerator.num_processes} processes")
+    scaling = DecibelScaling.for_unit_magnitude()
+    if accelerator.is_main_process:
+        write_json_atomic(scaling.to_dict(), output_dir / "scaling.json")
+    augmentation = config.augmentation()
+    steps_per_epoch = num_chips // config.batch_size  # drop the incomplete last batch, as SimCLR does
+    max_steps = config.epochs * steps_per_epoch
+    if config.max_train_steps is not None:
+        max_steps = min(max_steps, config.max_train_steps)
+
+    # 2. model, optimiser, schedule
+    encoder = SAREncoder(config.encoder_config())
+    head = ProjectionHead(encoder.feature_dim, config.projection_hidden_dim, config.projection_dim)
+    model = nn.Sequential(encoder, head)
+    if config.channels_last:
+        model = model.to(memory_format=torch.channels_last)
+    optimizer = torch.optim.SGD(
+        model.parameters(),
+        lr=config.learning_rate,
+        momentum=config.momentum,
+        weight_decay=config.weight_decay,
+    )
+    # Stepped once per optimiser step by this script (not prepared: there is no prepared dataloader).
+    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max_steps)
+    model, optimizer = accelerator.prepare(model, optimizer)
+    accelerator.register_for_checkpointing(scheduler)
+    if log_with is not None:
+        scalars = {k: v for k, v in config_to_dict(config).items() if isinstance(v, (int, float, str, bool))}
+        accelerator.init_trackers("simclr", config=scalars)
+
+    # 3. resume
+    step = start_step = 0
+    resume = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
+    if resume is not None:
+        step = int(load_checkpoint(accelerator, resume)["step"])
+        logger.info("resumed from %s at step %d", resume, step)
+    start_step = step
+
+    # 4. train: each step's batch and augmentation draw depend only on (seed, step), so a resumed run
+    # continues the same sequence without storing generator states
+    local_batch = config.batch_size // accelerator.num_processes
+    rank = accelerator.process_index
+    aug_generator = torch.Generator(device=accelerator.device)
+    order_generator = torch.Generator()
+    order, order_epoch = None, -1
+    loss_value, augment_time, step_time, timed_images = float("nan"), 0.0, 0.0, 0
+    model.train()
+    progress = tqdm(
+        total=max_steps, initial=step, desc="simclr", disable=not accelerator.is_local_main_process
+    )
+    while step < max_steps:
+        epoch, position = divmod(step, steps_per_epoch)
+        if epoch != order_epoch:
+            order_generator.manual_seed(config.seed * 1_000_003 + epoch)
+            order, order_epoch = torch.randperm(num_chips, generator=order_generator), epoch
+        start = position * config.batch_size + rank * local_batch
+        index = order[start : start + local_batch].to(accelerator.device)
+        step_start = time.perf_counter()
+        aug_generator.manual_seed((config.seed * 1_000_003 + step) * 64 + rank)
+        view1, view2 = simclr_views(magnitude[index], augmentation, scaling, generator=aug_generator)
+        views = torch.cat([view1, view2])  # (2B, 1, S, S): one pass, BatchNorm sees both views
+        if config.channels_last:
+            views = views.contiguous(memory_format=torch.channels_last)
+        _synchronize(accelerator.device)
+        augmented = time.perf_counter()
+        z1, z2 = model(views).chunk(2)
+        loss = nt_xent_loss(z1, z2, temperature=config.temperature).mean()
+        optimizer.zero_grad(set_to_none=True)
+        accelerator.backward(loss)
+        optimizer.step()
+        scheduler.step()
+        loss_value = loss.item()  # synchronises, so the step time below is complete
+        finished = time.perf_counter()
+        if step > 0 or max_steps == 1:  # the first step pays one-off warm-up costs
+            augment_time += augmented - step_start
+            step_time += finished - step_start
+            timed_images += config.batch_size
+        step += 1
+        progress.update(1)
+        progress.set_postfix(loss=f"{loss_value:.4f}")
+        if step % config.logging_steps == 0 or step == max_steps:
+            accelerator.log(
+                {
+                    "train/loss": loss_value,
+                    "train/lr": scheduler.get_last_lr()[0],
+                    "train/images_per_second": timed_images / step_time if step_time > 0 else 0.0,
+                    "train/augment_fraction": augment_time / step_time if step_time > 0 else 0.0,
+                },
+                step=step,
+            )
+        if step % config.checkpointing_steps == 0 and step < max_steps:
+            save_checkpoint(accelerator, output_dir, step, config.checkpoints_total_limit, {"epoch": epoch})
+    progress.close()
+
+    # 5. save the encoder and the run's figures
+    accelerator.wait_for_everyone()
+    metrics = {
+        "final_loss": loss_value,
+        "steps": step,
+        "start_step": start_step,
+        "epochs": step / steps_per_epoch,
+        "train_chips": num_chips,
+        "images_per_second": timed_images / step_time if step_time > 0 else None,
+        "augment_fraction": augment_time / step_time if step_time > 0 else None,
+        "device": str(accelerator.device),
+        "num_processes": accelerator.num_processes,
+        "collapse_loss": math.log(2 * local_batch - 1),
+    }
+    if accelerator.is_main_process:
+        unwrapped = accelerator.unwrap_model(model)
+        unwrapped[0].save_pretrained(output_dir / "encoder")
+        write_json_atomic(metrics, output_dir / "metrics.json")
+    accelerator.end_training()
+    return metrics
+
+
+def _synchronize(device: torch.device) -> None:
+    """Waits for queued device work so the augmentation time is measured, not just its launch."""
+    if device.type == "cuda":
+        torch.cuda.synchronize(device)
+
+
+if __name__ == "__main__":
+    main()
