@@ -97,7 +97,7 @@ def test_empty_split_raises() -> None:
 
 def _write_fake_dataset(out_dir: Path, seed: int = 0, **kwargs) -> Path:
     out_dir = Path(out_dir)
-    out_dir.mkdir(parents=True)
+    out_dir.mkdir(parents=True, exist_ok=True)
     records = make_records(out_dir)[::6]
     for record in records:
         np.save(record.path, np.zeros((2, 2), dtype=np.float32))
@@ -118,6 +118,9 @@ def test_prepare_splits_simulates_once(tmp_path: Path, monkeypatch: pytest.Monke
     assert calls == [{"seed": 4, "size": 8}]
     assert first == second and len(first["train"]) == len(first["test"]) == 60
     assert first["train"][0].path.parent == (tmp_path / "sim_data").resolve()
+    # other simulator options: simulated again, not silently reused
+    prepare_splits(None, "extended", tmp_path, seed=4, size=16)
+    assert calls[-1] == {"seed": 4, "size": 16}
 
 
 def test_prepare_splits_from_folder(tmp_path: Path) -> None:

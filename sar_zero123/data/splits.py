@@ -11,6 +11,7 @@
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Sequence
 from pathlib import Path
@@ -33,6 +34,7 @@ __all__ = [
 ]
 
 PROTOCOLS = ("extended", "soc", "ood-<CLASS>")
+SIM_OPTIONS_FILENAME = "sim_options.json"
 TRAIN_DEPRESSION_DEG = 17.0
 TEST_DEPRESSION_DEG = 15.0
 # Standard operating condition: one serial per class for the two classes with several in MSTAR.
@@ -139,7 +141,8 @@ def prepare_splits(
 
     Args:
         data: A data folder for :func:`~sar_zero123.data.load_index`, or ``None`` for the built-in
-            simulated dataset, written once to ``work_dir / "sim_data"`` and reused while its index exists.
+            simulated dataset, written to ``work_dir / "sim_data"`` and reused while its index exists
+            and was made with the same ``seed`` and ``sim_kwargs`` (recorded in ``sim_options.json``).
         protocol: See :func:`split_records`.
         work_dir: Folder for the simulated dataset (only used when ``data`` is ``None``).
         seed: Seed of the split and of the simulator.
@@ -154,13 +157,17 @@ def prepare_splits(
             :func:`split_records`.
     """
     if data is None:
-        sim_dir = Path(work_dir) / "sim_data"
-        if not (sim_dir / INDEX_FILENAME).is_file():
+        root = Path(work_dir) / "sim_data"
+        options = json.loads(json.dumps({"seed": seed, **sim_kwargs}))  # tuples -> lists, as stored
+        options_path = root / SIM_OPTIONS_FILENAME
+        cached = (root / INDEX_FILENAME).is_file() and options_path.is_file()
+        if not cached or json.loads(options_path.read_text()) != options:
             # Imported here: the simulator is only needed for the built-in dataset.
             from sar_zero123.sim import simulate_dataset
 
-            simulate_dataset(sim_dir, seed=seed, **sim_kwargs)
-        root = sim_dir
+            options_path.unlink(missing_ok=True)
+            simulate_dataset(root, seed=seed, **sim_kwargs)
+            options_path.write_text(json.dumps(options, indent=2, sort_keys=True) + "\n")
     else:
         if sim_kwargs:
             raise ValueError(f"simulator options {sorted(sim_kwargs)} only apply when data is None")
