@@ -20,7 +20,6 @@ checkpoint's step and reaches bitwise the weights of an uninterrupted run.
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -29,7 +28,12 @@ import numpy as np
 import PIL.Image
 import torch
 from accelerate import Accelerator
-from accelerate.utils import DataLoaderConfiguration, GradientAccumulationPlugin, ProjectConfiguration, set_seed
+from accelerate.utils import (
+    DataLoaderConfiguration,
+    GradientAccumulationPlugin,
+    ProjectConfiguration,
+    set_seed,
+)
 from diffusers import AutoencoderKL, DDIMScheduler, DDPMScheduler, UNet2DConditionModel
 from diffusers.optimization import get_scheduler
 from diffusers.training_utils import EMAModel
@@ -59,7 +63,7 @@ class FinetuneConfig:
     """Fine-tune a SAR zero-1-to-3 model with Projected Feature Matching."""
 
     output_dir: str = "runs/finetune_pfm"  # run folder: checkpoints, logs, validation grids, final pipeline
-    pretrained: str | None = None  # pipeline folder or zero-1-to-3 checkpoint; None builds `size` from scratch
+    pretrained: str | None = None  # pipeline folder or zero-1-to-3 checkpoint; None: build `size`
     size: Literal["tiny", "small", "zero123"] = "small"  # model size when `pretrained` is None
     image_size: int | None = None  # chip side in pixels; None uses the model's own
     vae: str | None = None  # AutoencoderKL folder (train/train_vae.py) replacing the pipeline's VAE
@@ -116,21 +120,30 @@ class FinetuneConfig:
         for name in ("learning_rate", "pose_lr_multiplier", "max_grad_norm"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in ("train_batch_size", "gradient_accumulation_steps", "max_train_steps",
-                     "checkpointing_steps", "num_validation_images", "validation_inference_steps"):
+        for name in (
+            "train_batch_size",
+            "gradient_accumulation_steps",
+            "max_train_steps",
+            "checkpointing_steps",
+            "num_validation_images",
+            "validation_inference_steps",
+        ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("lr_warmup_steps", "validation_steps", "dataloader_num_workers"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.checkpoints_total_limit is not None and self.checkpoints_total_limit < 1:
-            raise ValueError(f"checkpoints_total_limit must be >= 1 or None, got {self.checkpoints_total_limit}")
+            raise ValueError(
+                f"checkpoints_total_limit must be >= 1 or None, got {self.checkpoints_total_limit}"
+            )
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
         probs = (self.drop_image_prob, self.drop_both_prob, self.drop_latent_prob)
         if min(probs) < 0 or sum(probs) > 1:
-            raise ValueError(f"drop_image_prob, drop_both_prob, drop_latent_prob must be >= 0 with sum <= 1, "
-                             f"got {probs}")
+            raise ValueError(
+                f"drop_image_prob, drop_both_prob, drop_latent_prob must be >= 0 with sum <= 1, got {probs}"
+            )
         if self.image_size is not None and self.image_size < 8:
             raise ValueError(f"image_size must be >= 8, got {self.image_size}")
 
@@ -166,9 +179,14 @@ def load_components(config: FinetuneConfig) -> SARZero123Pipeline:
                 f"vae: {str(vae_path)!r} has {vae.config.latent_channels} latent channels and downsampling "
                 f"factor {new_factor}; the UNet needs {pipe.vae.config.latent_channels} and {old_factor}"
             )
-        pipe = SARZero123Pipeline(vae=vae.eval(), image_encoder=pipe.image_encoder, unet=pipe.unet,
-                                  scheduler=pipe.scheduler, pose_projection=pipe.pose_projection,
-                                  feature_extractor=pipe.feature_extractor)
+        pipe = SARZero123Pipeline(
+            vae=vae.eval(),
+            image_encoder=pipe.image_encoder,
+            unet=pipe.unet,
+            scheduler=pipe.scheduler,
+            pose_projection=pipe.pose_projection,
+            feature_extractor=pipe.feature_extractor,
+        )
     return pipe
 
 
@@ -203,8 +221,9 @@ def load_encoder(config: FinetuneConfig, image_size: int) -> SAREncoder | None:
     return encoder.eval().requires_grad_(False)
 
 
-def build_datasets(config: FinetuneConfig, image_size: int) -> tuple[ViewPairDataset, ViewPairDataset,
-                                                                      DecibelScaling]:
+def build_datasets(
+    config: FinetuneConfig, image_size: int
+) -> tuple[ViewPairDataset, ViewPairDataset, DecibelScaling]:
     """Train and validation view pairs (validation from the protocol's test split) and the dB scaling.
 
     Raises:
@@ -219,12 +238,18 @@ def build_datasets(config: FinetuneConfig, image_size: int) -> tuple[ViewPairDat
         scaling = DecibelScaling.for_mstar_raw()
     else:
         scaling = DecibelScaling.for_unit_magnitude()
-    train = ViewPairDataset(splits["train"], size=image_size, scaling=scaling,
-                            max_d_az_deg=config.max_d_az_deg, seed=config.seed)
+    train = ViewPairDataset(
+        splits["train"], size=image_size, scaling=scaling, max_d_az_deg=config.max_d_az_deg, seed=config.seed
+    )
     validation_records = splits.get("test") or splits["train"]
-    validation = ViewPairDataset(validation_records, size=image_size, scaling=scaling,
-                                 max_d_az_deg=config.max_d_az_deg, seed=config.seed + 1,
-                                 num_pairs=config.num_validation_images)
+    validation = ViewPairDataset(
+        validation_records,
+        size=image_size,
+        scaling=scaling,
+        max_d_az_deg=config.max_d_az_deg,
+        seed=config.seed + 1,
+        num_pairs=config.num_validation_images,
+    )
     return train, validation, scaling
 
 
@@ -279,13 +304,26 @@ def compute_losses(
     num_train_timesteps = noise_scheduler.config.num_train_timesteps
     timesteps = torch.randint(0, num_train_timesteps, (batch_size,), generator=generator).to(device)
     x_t = noise_scheduler.add_noise(latents, noise, timesteps)
-    model_output = unet(torch.cat([x_t, condition_latents], dim=1), timesteps,
-                        encoder_hidden_states=tokens).sample
+    model_output = unet(
+        torch.cat([x_t, condition_latents], dim=1), timesteps, encoder_hidden_states=tokens
+    ).sample
     target = denoising_target(latents, noise, timesteps, noise_scheduler)
     # 4. Eq. (21)
-    return total_loss(model_output, target, x_t, timesteps, noise_scheduler, pfm_weight=config.pfm_weight,
-                      target_images=targets, vae=vae, encoder=encoder, pfm_min_snr=config.pfm_min_snr,
-                      pfm_fraction=config.pfm_fraction, crop_size=config.pfm_crop_size, generator=generator)
+    return total_loss(
+        model_output,
+        target,
+        x_t,
+        timesteps,
+        noise_scheduler,
+        pfm_weight=config.pfm_weight,
+        target_images=targets,
+        vae=vae,
+        encoder=encoder,
+        pfm_min_snr=config.pfm_min_snr,
+        pfm_fraction=config.pfm_fraction,
+        crop_size=config.pfm_crop_size,
+        generator=generator,
+    )
 
 
 # ---------------------------------------------------------------------------------------- validation
@@ -301,22 +339,40 @@ def make_grid(inputs: torch.Tensor, generated: torch.Tensor, targets: torch.Tens
 
 
 @torch.no_grad()
-def run_validation(accelerator: Accelerator, pipe: SARZero123Pipeline, batch: dict, losses: LossOutput,
-                   config: FinetuneConfig, step: int) -> Path:
+def run_validation(
+    accelerator: Accelerator,
+    pipe: SARZero123Pipeline,
+    batch: dict,
+    losses: LossOutput,
+    config: FinetuneConfig,
+    step: int,
+) -> Path:
     """Sample the validation pairs, write ``validation/step-<step>.png`` and log images and losses."""
     generator = torch.Generator().manual_seed(config.seed)
-    generated = pipe(batch["input"].to(pipe.device, torch.float32), d_az=batch["d_az_deg"],
-                     d_el=batch["d_el_deg"], num_inference_steps=config.validation_inference_steps,
-                     guidance_scale=config.guidance_scale, generator=generator, output_type="pt").images
+    generated = pipe(
+        batch["input"].to(pipe.device, torch.float32),
+        d_az=batch["d_az_deg"],
+        d_el=batch["d_el_deg"],
+        num_inference_steps=config.validation_inference_steps,
+        guidance_scale=config.guidance_scale,
+        generator=generator,
+        output_type="pt",
+    ).images
     grid = make_grid(batch["input"], generated.cpu(), batch["target"])
     path = Path(config.output_dir) / "validation" / f"step-{step:06d}.png"
     path.parent.mkdir(parents=True, exist_ok=True)
     PIL.Image.fromarray(grid).save(path)
     if config.report_to == "tensorboard":
-        accelerator.get_tracker("tensorboard").log_images({"validation/input_generated_target": grid[None, ..., None]},
-                                                          step=step, dataformats="NHWC")
-    accelerator.log({"validation/loss_simple": losses.denoising.mean().item(),
-                     "validation/loss_pfm": losses.pfm.mean().item()}, step=step)
+        accelerator.get_tracker("tensorboard").log_images(
+            {"validation/input_generated_target": grid[None, ..., None]}, step=step, dataformats="NHWC"
+        )
+    accelerator.log(
+        {
+            "validation/loss_simple": losses.denoising.mean().item(),
+            "validation/loss_pfm": losses.pfm.mean().item(),
+        },
+        step=step,
+    )
     return path
 
 
@@ -336,10 +392,13 @@ def main(argv: list[str] | None = None) -> Path:
     accelerator = Accelerator(
         mixed_precision=config.mixed_precision,
         gradient_accumulation_plugin=GradientAccumulationPlugin(
-            num_steps=config.gradient_accumulation_steps, sync_with_dataloader=False),
+            num_steps=config.gradient_accumulation_steps, sync_with_dataloader=False
+        ),
         dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
         log_with=config.report_to,
-        project_config=ProjectConfiguration(project_dir=str(output_dir), logging_dir=str(output_dir / "logs")),
+        project_config=ProjectConfiguration(
+            project_dir=str(output_dir), logging_dir=str(output_dir / "logs")
+        ),
     )
     logging.basicConfig(level=logging.INFO if accelerator.is_main_process else logging.WARNING)
     set_seed(config.seed)
@@ -351,19 +410,25 @@ def main(argv: list[str] | None = None) -> Path:
     encoder = load_encoder(config, image_size)
     train_dataset, validation_dataset, scaling = build_datasets(config, image_size)
     if len(train_dataset) < config.train_batch_size * accelerator.num_processes:
-        raise ValueError(f"data: {len(train_dataset)} training pairs, fewer than one global batch of "
-                         f"{config.train_batch_size * accelerator.num_processes}")
+        raise ValueError(
+            f"data: {len(train_dataset)} training pairs, fewer than one global batch of "
+            f"{config.train_batch_size * accelerator.num_processes}"
+        )
     if config.pfm_crop_size is not None:
         factor = pipe.vae_scale_factor
         if config.pfm_crop_size > image_size or (image_size - config.pfm_crop_size) % (2 * factor):
-            raise ValueError(f"pfm_crop_size must be <= {image_size} with image_size - pfm_crop_size a "
-                             f"multiple of {2 * factor}, got {config.pfm_crop_size}")
+            raise ValueError(
+                f"pfm_crop_size must be <= {image_size} with image_size - pfm_crop_size a "
+                f"multiple of {2 * factor}, got {config.pfm_crop_size}"
+            )
     if accelerator.is_main_process:
         output_dir.mkdir(parents=True, exist_ok=True)
         save_config(config, output_dir)
 
     # 2. frozen parts in the weight dtype, trainable parts in float32
-    weight_dtype = {"fp16": torch.float16, "bf16": torch.bfloat16}.get(accelerator.mixed_precision, torch.float32)
+    weight_dtype = {"fp16": torch.float16, "bf16": torch.bfloat16}.get(
+        accelerator.mixed_precision, torch.float32
+    )
     vae = pipe.vae.to(accelerator.device, dtype=weight_dtype).eval().requires_grad_(False)
     image_encoder = pipe.image_encoder.to(accelerator.device, dtype=weight_dtype).eval().requires_grad_(False)
     if encoder is not None:
@@ -376,24 +441,42 @@ def main(argv: list[str] | None = None) -> Path:
     noise_scheduler = DDPMScheduler.from_config(pipe.scheduler.config)
     ema_unet = None
     if config.use_ema:
-        ema_unet = EMAModel(unet.parameters(), decay=config.ema_decay, model_cls=UNet2DConditionModel,
-                            model_config=unet.config)
+        ema_unet = EMAModel(
+            unet.parameters(),
+            decay=config.ema_decay,
+            model_cls=UNet2DConditionModel,
+            model_config=unet.config,
+        )
         ema_unet.to(accelerator.device)
         accelerator.register_for_checkpointing(ema_unet)
 
     # 3. optimiser: the pose projection at pose_lr_multiplier x the learning rate
     optimizer = torch.optim.AdamW(
-        [{"params": list(unet.parameters()), "lr": config.learning_rate},
-         {"params": list(pose_projection.parameters()), "lr": config.learning_rate * config.pose_lr_multiplier}],
+        [
+            {"params": list(unet.parameters()), "lr": config.learning_rate},
+            {
+                "params": list(pose_projection.parameters()),
+                "lr": config.learning_rate * config.pose_lr_multiplier,
+            },
+        ],
         weight_decay=config.adam_weight_decay,
     )
-    lr_scheduler = get_scheduler(config.lr_scheduler, optimizer,
-                                 num_warmup_steps=config.lr_warmup_steps * accelerator.num_processes,
-                                 num_training_steps=config.max_train_steps * accelerator.num_processes)
-    train_dataloader = DataLoader(train_dataset, batch_size=config.train_batch_size, shuffle=True, drop_last=True,
-                                  num_workers=config.dataloader_num_workers)
+    lr_scheduler = get_scheduler(
+        config.lr_scheduler,
+        optimizer,
+        num_warmup_steps=config.lr_warmup_steps * accelerator.num_processes,
+        num_training_steps=config.max_train_steps * accelerator.num_processes,
+    )
+    train_dataloader = DataLoader(
+        train_dataset,
+        batch_size=config.train_batch_size,
+        shuffle=True,
+        drop_last=True,
+        num_workers=config.dataloader_num_workers,
+    )
     unet, pose_projection, optimizer, train_dataloader, lr_scheduler = accelerator.prepare(
-        unet, pose_projection, optimizer, train_dataloader, lr_scheduler)
+        unet, pose_projection, optimizer, train_dataloader, lr_scheduler
+    )
     if len(train_dataloader) == 0:
         raise ValueError("data: the training split yields no full batch on each process")
     validation_batch = next(iter(DataLoader(validation_dataset, batch_size=config.num_validation_images)))
@@ -405,18 +488,25 @@ def main(argv: list[str] | None = None) -> Path:
         global_step = int(state["step"])
         logger.info("resumed from %s at step %d", resume_path, global_step)
     if config.report_to is not None:
-        hparams = {k: (v if isinstance(v, (int, float, str, bool)) else str(v))
-                   for k, v in config_to_dict(config).items()}
+        hparams = {
+            k: (v if isinstance(v, (int, float, str, bool)) else str(v))
+            for k, v in config_to_dict(config).items()
+        }
         accelerator.init_trackers("finetune_pfm", config=hparams)
 
     # 5. training loop
     batches_per_epoch = len(train_dataloader)
     batch_index = global_step * config.gradient_accumulation_steps
     trainable = list(unet.parameters()) + list(pose_projection.parameters())
-    progress = tqdm(total=config.max_train_steps, initial=global_step, desc="steps",
-                    disable=not accelerator.is_local_main_process)
-    frozen_modules = dict(vae=vae, image_encoder=image_encoder, encoder=encoder, noise_scheduler=noise_scheduler,
-                          config=config)
+    progress = tqdm(
+        total=config.max_train_steps,
+        initial=global_step,
+        desc="steps",
+        disable=not accelerator.is_local_main_process,
+    )
+    frozen_modules = dict(
+        vae=vae, image_encoder=image_encoder, encoder=encoder, noise_scheduler=noise_scheduler, config=config
+    )
     while global_step < config.max_train_steps:
         epoch, offset = divmod(batch_index, batches_per_epoch)
         train_dataset.set_epoch(epoch)
@@ -425,8 +515,9 @@ def main(argv: list[str] | None = None) -> Path:
         for batch in loader:
             with accelerator.accumulate(unet, pose_projection):
                 generator = micro_batch_generator(config.seed, batch_index, accelerator.process_index)
-                losses = compute_losses(batch, unet=unet, pose_projection=pose_projection, generator=generator,
-                                        **frozen_modules)
+                losses = compute_losses(
+                    batch, unet=unet, pose_projection=pose_projection, generator=generator, **frozen_modules
+                )
                 loss = losses.loss.mean()
                 accelerator.backward(loss)
                 if accelerator.sync_gradients:
@@ -441,19 +532,35 @@ def main(argv: list[str] | None = None) -> Path:
             if ema_unet is not None:
                 ema_unet.step(unet.parameters())
             progress.update(1)
-            logs = {"train/loss": accelerator.gather(losses.loss.detach()).mean().item(),
-                    "train/loss_simple": accelerator.gather(losses.denoising.detach()).mean().item(),
-                    "train/loss_pfm": accelerator.gather(losses.pfm.detach()).mean().item(),
-                    "lr": lr_scheduler.get_last_lr()[0]}
+            logs = {
+                "train/loss": accelerator.gather(losses.loss.detach()).mean().item(),
+                "train/loss_simple": accelerator.gather(losses.denoising.detach()).mean().item(),
+                "train/loss_pfm": accelerator.gather(losses.pfm.detach()).mean().item(),
+                "lr": lr_scheduler.get_last_lr()[0],
+            }
             progress.set_postfix(loss=f"{logs['train/loss']:.4f}")
             accelerator.log(logs, step=global_step)
             if global_step % config.checkpointing_steps == 0 or global_step == config.max_train_steps:
-                save_checkpoint(accelerator, output_dir, global_step, config.checkpoints_total_limit,
-                                extra_state={"epoch": epoch, "batch_index": batch_index})
+                save_checkpoint(
+                    accelerator,
+                    output_dir,
+                    global_step,
+                    config.checkpoints_total_limit,
+                    extra_state={"epoch": epoch, "batch_index": batch_index},
+                )
             if config.validation_steps and global_step % config.validation_steps == 0:
                 if accelerator.is_main_process:
-                    validate(accelerator, unet, pose_projection, ema_unet, pipe, validation_batch, frozen_modules,
-                             config, global_step)
+                    validate(
+                        accelerator,
+                        unet,
+                        pose_projection,
+                        ema_unet,
+                        pipe,
+                        validation_batch,
+                        frozen_modules,
+                        config,
+                        global_step,
+                    )
                 accelerator.wait_for_everyone()
             if global_step >= config.max_train_steps:
                 break
@@ -465,19 +572,33 @@ def main(argv: list[str] | None = None) -> Path:
         final_unet = accelerator.unwrap_model(unet)
         if ema_unet is not None:
             ema_unet.copy_to(final_unet.parameters())
-        export = SARZero123Pipeline(vae=vae, image_encoder=image_encoder, unet=final_unet.eval(),
-                                    scheduler=DDIMScheduler.from_config(pipe.scheduler.config),
-                                    pose_projection=accelerator.unwrap_model(pose_projection).eval(),
-                                    feature_extractor=pipe.feature_extractor)
+        export = SARZero123Pipeline(
+            vae=vae,
+            image_encoder=image_encoder,
+            unet=final_unet.eval(),
+            scheduler=DDIMScheduler.from_config(pipe.scheduler.config),
+            pose_projection=accelerator.unwrap_model(pose_projection).eval(),
+            feature_extractor=pipe.feature_extractor,
+        )
         export_pipeline(export, scaling, output_dir / "pipeline")
-        write_json_atomic({"global_step": global_step, "image_size": image_size}, output_dir / "train_state.json")
+        write_json_atomic(
+            {"global_step": global_step, "image_size": image_size}, output_dir / "train_state.json"
+        )
     accelerator.end_training()
     return output_dir
 
 
-def validate(accelerator: Accelerator, unet, pose_projection, ema_unet: EMAModel | None,
-             pipe: SARZero123Pipeline, batch: dict, frozen_modules: dict, config: FinetuneConfig,
-             step: int) -> Path:
+def validate(
+    accelerator: Accelerator,
+    unet,
+    pose_projection,
+    ema_unet: EMAModel | None,
+    pipe: SARZero123Pipeline,
+    batch: dict,
+    frozen_modules: dict,
+    config: FinetuneConfig,
+    step: int,
+) -> Path:
     """Validation with the EMA weights swapped in (and out again afterwards)."""
     raw_unet = accelerator.unwrap_model(unet)
     raw_projection = accelerator.unwrap_model(pose_projection)
@@ -488,12 +609,22 @@ def validate(accelerator: Accelerator, unet, pose_projection, ema_unet: EMAModel
     raw_projection.eval()
     try:
         with torch.no_grad():
-            losses = compute_losses(batch, unet=raw_unet, pose_projection=raw_projection,
-                                    generator=torch.Generator().manual_seed(config.seed), apply_dropout=False,
-                                    **frozen_modules)
-        sampler = SARZero123Pipeline(vae=frozen_modules["vae"], image_encoder=frozen_modules["image_encoder"],
-                                     unet=raw_unet, scheduler=DDIMScheduler.from_config(pipe.scheduler.config),
-                                     pose_projection=raw_projection, feature_extractor=pipe.feature_extractor)
+            losses = compute_losses(
+                batch,
+                unet=raw_unet,
+                pose_projection=raw_projection,
+                generator=torch.Generator().manual_seed(config.seed),
+                apply_dropout=False,
+                **frozen_modules,
+            )
+        sampler = SARZero123Pipeline(
+            vae=frozen_modules["vae"],
+            image_encoder=frozen_modules["image_encoder"],
+            unet=raw_unet,
+            scheduler=DDIMScheduler.from_config(pipe.scheduler.config),
+            pose_projection=raw_projection,
+            feature_extractor=pipe.feature_extractor,
+        )
         sampler.set_progress_bar_config(disable=True)
         return run_validation(accelerator, sampler, batch, losses, config, step)
     finally:
