@@ -188,14 +188,16 @@ def sample_monotonic_map(
     if batch_size < 1:
         raise ValueError(f"`batch_size` must be >= 1, got {batch_size}")
     device = torch.device(device)
+    # Half-precision cumulative sums of hundreds of terms would create ties: build in >= float32.
+    work_dtype = torch.promote_types(dtype, torch.float32)
     # 1 - U[0, 1) lies in (0, 1]: strictly positive increments give a strictly increasing map.
-    increments = 1.0 - _draw("rand", (batch_size, q - 1), generator, device, dtype)  # (B, Q-1)
+    increments = 1.0 - _draw("rand", (batch_size, q - 1), generator, device, work_dtype)  # (B, Q-1)
     table = F.pad(torch.cumsum(increments, dim=1), (1, 0))  # (B, Q), starts at 0
     table = table / table[:, -1:]
     if gamma > 0:
-        alpha = gamma * _draw("randn", (batch_size, 1), generator, device, dtype)  # (B, 1)
+        alpha = gamma * _draw("randn", (batch_size, 1), generator, device, work_dtype)  # (B, 1)
         table = table ** torch.exp(alpha)
-    return table
+    return table.to(dtype)
 
 
 def apply_lookup_table(x: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
