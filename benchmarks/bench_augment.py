@@ -49,6 +49,17 @@ class BenchConfig:
         return [p.strip() for p in self.presets.split(",") if p.strip()] or list(PRESETS)
 
 
+def _cpu_name() -> str:
+    """CPU model from /proc/cpuinfo (Linux), else what ``platform`` knows."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or platform.machine()
+
+
 def _synchronize(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.synchronize(device)
@@ -77,6 +88,7 @@ def main(argv: list[str] | None = None) -> dict:
     generator = torch.Generator(device=device).manual_seed(config.seed)
     shape = (config.batch_size, 1, config.size, config.size)
     magnitude = torch.rand(shape, generator=generator, device=device) ** 4
+    load_before = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     results = {}
     for preset in config.preset_names:
         seconds = sorted(time_preset(magnitude, preset, generator, config.repeats, config.warmup))
@@ -89,11 +101,11 @@ def main(argv: list[str] | None = None) -> dict:
         print(f"{preset:>20s}: {config.batch_size / median:10.1f} images/s ({median * 1e3:.1f} ms per batch)")
     report = {
         "config": config_to_dict(config),
-        "device": torch.cuda.get_device_name(device)
-        if device.type == "cuda"
-        else platform.processor() or "cpu",
+        "device": torch.cuda.get_device_name(device) if device.type == "cuda" else _cpu_name(),
         "cpu_count": os.cpu_count(),
         "torch_threads": torch.get_num_threads(),
+        # Other processes share the machine: the 1-minute load average says how contended it was.
+        "load_average_1min": [load_before, os.getloadavg()[0] if hasattr(os, "getloadavg") else None],
         "torch": torch.__version__,
         "python": sys.version.split()[0],
         "results": results,
