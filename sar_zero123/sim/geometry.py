@@ -141,7 +141,8 @@ def shadow_mask(grid: GroundGrid, upper: np.ndarray, lower: np.ndarray) -> np.nd
         ``(S, S)`` boolean mask indexed like the **image** (row 0 = far range).
     """
     q = (grid.y * grid.tan_psi)[None, :, None]  # ground point: z = 0
-    hidden = np.any((upper >= q) & (lower <= q), axis=0)
+    # 1 mm slack: the bounds are float32 and the first cell of a footprint sits exactly on them
+    hidden = np.any((upper >= q - 1e-3) & (lower <= q + 1e-3), axis=0)
     return hidden[::-1]
 
 

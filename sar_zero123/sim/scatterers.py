@@ -80,6 +80,10 @@ class ScattererSet:
     def __len__(self) -> int:
         return int(self.amplitude.shape[0])
 
+    def subset(self, index: np.ndarray) -> ScattererSet:
+        """The scatterers selected by an integer or boolean index array."""
+        return ScattererSet(*(getattr(self, f)[index] for f in ScattererSet.__dataclass_fields__))
+
     @staticmethod
     def build(
         position: np.ndarray,
