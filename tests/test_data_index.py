@@ -103,6 +103,11 @@ def test_empty_index_and_missing_folder(tmp_path: Path) -> None:
     assert list((tmp_path / "empty").iterdir()) == []
 
 
+def test_chip_record_coerces_types() -> None:
+    record = ChipRecord(path="/x/a.npy", target_class="A", serial="1", depression_deg=15, azimuth_deg=3)
+    assert record.path == Path("/x/a.npy") and isinstance(record.azimuth_deg, float)
+
+
 def test_chip_record_validates() -> None:
     with pytest.raises(ValueError, match=r"azimuth_deg must lie in \[0, 360\)"):
         ChipRecord(path=Path("/x"), target_class="A", serial="1", depression_deg=15.0, azimuth_deg=360.0)

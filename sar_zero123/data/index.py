@@ -79,6 +79,10 @@ class ChipRecord:
     source: str | None = None
 
     def __post_init__(self) -> None:
+        # Accept str paths and integer angles at the boundary; store the declared types.
+        object.__setattr__(self, "path", Path(self.path))
+        object.__setattr__(self, "depression_deg", float(self.depression_deg))
+        object.__setattr__(self, "azimuth_deg", float(self.azimuth_deg))
         if not self.target_class:
             raise ValueError(f"{self.path}: target_class must be a non-empty string")
         if not math.isfinite(self.depression_deg):

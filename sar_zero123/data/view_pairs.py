@@ -46,7 +46,8 @@ class ViewPairDataset(Dataset):
     Each item is ``{"input": (1, S, S), "target": (1, S, S)`` float32 normalised dB, ``"d_az_deg"``
     in (-180, 180], ``"d_el_deg"``, ``"label"``, ``"input_azimuth_deg"``, ``"target_azimuth_deg"``,
     ``"input_depression_deg"``, ``"target_depression_deg"}`` (floats), plus ``"input_magnitude"`` and
-    ``"target_magnitude"`` (1, S, S) when ``return_magnitude``.
+    ``"target_magnitude"`` (1, S, S) when ``return_magnitude``. (torch's default collate turns the
+    float entries into float64 tensors and the label into int64.)
 
     Sampling: every input chip with at least one admissible partner (same object, not itself, within
     ``max_d_az_deg``, same depression if ``same_depression``) contributes ``pairs_per_chip`` pairs, the
