@@ -168,3 +168,12 @@ def test_shared_raw_chip_matches_jpeg() -> None:
     jpeg = load_magnitude(SHARED_MSTAR / "chips" / "17deg" / "BMP2" / "HB03787.002.jpeg")
     correlation = np.corrcoef(chip.magnitude.ravel() / chip.magnitude.max(), jpeg.ravel())[0, 1]
     assert correlation > 0.9
+
+
+def test_header_length_shorter_than_header(tmp_path: Path, chip_arrays) -> None:
+    path = write_mstar(tmp_path / "c", chip_arrays[0])
+    text = path.read_bytes()
+    start = text.index(b"PhoenixHeaderLength= ") + len(b"PhoenixHeaderLength= ")
+    path.write_bytes(text[:start] + b"00100" + text[start + 5 :])
+    with pytest.raises(ValueError, match=r"'PhoenixHeaderLength' \(100\) must cover the ASCII header"):
+        read_mstar_raw(path)

@@ -114,15 +114,14 @@ def is_mstar_raw(path: str | Path) -> bool:
         return handle.read(64).lstrip().startswith(PHOENIX_MAGIC)
 
 
-def _parse_header(text: str, path: Path) -> dict[str, str]:
+def _parse_header(text: str) -> dict[str, str]:
+    """``key= value`` lines of a header text that ends at ``[EndofPhoenixHeader]``."""
     header: dict[str, str] = {}
     for line in text.splitlines():
-        if line.strip() == END_OF_HEADER:
-            return header
         match = _FIELD.match(line)
         if match:
             header[match.group(1)] = match.group(2)
-    raise ValueError(f"{path}: no '{END_OF_HEADER}' line found; not a complete MSTAR Phoenix header")
+    return header
 
 
 def _header_number(header: dict[str, str], key: str, path: Path, kind: type = float) -> float | int:
@@ -163,7 +162,7 @@ def read_mstar_header(path: str | Path) -> dict[str, str]:
     end = head.find(END_OF_HEADER.encode())
     if end < 0:
         raise ValueError(f"{path}: no '{END_OF_HEADER}' line found; not a complete MSTAR Phoenix header")
-    return _parse_header(head[: end + len(END_OF_HEADER)].decode("latin-1"), path)
+    return _parse_header(head[:end].decode("latin-1"))
 
 
 def read_mstar_raw(path: str | Path) -> MSTARChip:
@@ -193,9 +192,9 @@ def read_mstar_raw(path: str | Path) -> MSTARChip:
     header_length = int(_header_number(header, "PhoenixHeaderLength", path, int))
     rows = int(_header_number(header, "NumberOfRows", path, int))
     cols = int(_header_number(header, "NumberOfColumns", path, int))
-    native_length = int(_header_number(header, "native_header_length", path, int)) if (
-        "native_header_length" in header
-    ) else 0
+    native_length = 0
+    if "native_header_length" in header:
+        native_length = int(_header_number(header, "native_header_length", path, int))
     if rows <= 0 or cols <= 0:
         raise ValueError(f"{path}: NumberOfRows and NumberOfColumns must be positive, got {rows} x {cols}")
     azimuth_deg = float(_header_number(header, "TargetAz", path))
@@ -204,7 +203,14 @@ def read_mstar_raw(path: str | Path) -> MSTARChip:
     depression_deg = float(_header_number(header, "DesiredDepression", path))
 
     # 2. pixels: magnitude plane, then (optionally) the phase plane
-    data = path.read_bytes()[header_length + native_length :]
+    raw = path.read_bytes()
+    header_end = raw.find(END_OF_HEADER.encode()) + len(END_OF_HEADER)
+    if header_length < header_end or native_length < 0:
+        raise ValueError(
+            f"{path}: header field 'PhoenixHeaderLength' ({header_length}) must cover the ASCII header "
+            f"({header_end} bytes) and 'native_header_length' must be >= 0, got {native_length}"
+        )
+    data = raw[header_length + native_length :]
     plane_bytes = rows * cols * 4
     if len(data) < plane_bytes:
         raise ValueError(
