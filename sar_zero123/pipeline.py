@@ -190,7 +190,9 @@ class SARZero123Pipeline(DiffusionPipeline):
             if len({a.shape for a in arrays}) != 1:
                 shapes = sorted({a.shape for a in arrays})
                 raise ValueError(f"`image` items must share one shape, got {shapes}")
-            batch = torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2).contiguous()  # (B, C, H, W)
+            batch = torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2)  # (B, C, H, W)
+        # Standard strides whatever the source layout, so equal inputs give bit-equal outputs.
+        batch = batch.clone(memory_format=torch.contiguous_format)
         if batch.shape[0] == 0:
             raise ValueError("`image` is an empty batch")
         if batch.shape[1] not in (1, 3):
@@ -396,7 +398,8 @@ class SARZero123Pipeline(DiffusionPipeline):
                 latents = latents.to(self.unet.dtype)
 
                 if callback_on_step_end is not None:
-                    callback_kwargs = {name: locals()[name] for name in callback_on_step_end_tensor_inputs}
+                    step_tensors = {"latents": latents}
+                    callback_kwargs = {k: step_tensors[k] for k in callback_on_step_end_tensor_inputs}
                     callback_outputs = callback_on_step_end(self, step_index, timestep, callback_kwargs)
                     latents = callback_outputs.pop("latents", latents)
                 progress_bar.update()
@@ -622,7 +625,7 @@ def build_sar_zero123(size: str, image_size: int | None = None, seed: int = 0) -
         )
     latent_channels = spec["vae"]["latent_channels"]
     clip_config = CLIPVisionConfig(**spec["image_encoder"])
-
+    cross_attention_dim = spec["unet"]["cross_attention_dim"]
     with torch.random.fork_rng(devices=[]):
         torch.manual_seed(seed)
         vae = AutoencoderKL(**spec["vae"], sample_size=image_size, scaling_factor=SD_VAE_SCALING_FACTOR)
@@ -635,8 +638,8 @@ def build_sar_zero123(size: str, image_size: int | None = None, seed: int = 0) -
         )
         torch.manual_seed(seed)
         image_encoder = CLIPVisionModelWithProjection(clip_config)
-    cross_attention_dim = spec["unet"]["cross_attention_dim"]
-    pose_projection = PoseProjection(clip_config.projection_dim + POSE_DIM, cross_attention_dim)
+        # nn.Linear draws its default init before PoseProjection overwrites it: keep that inside too.
+        pose_projection = PoseProjection(clip_config.projection_dim + POSE_DIM, cross_attention_dim)
     feature_extractor = None
     if size == "zero123":
         feature_extractor = CLIPImageProcessor(
