@@ -177,3 +177,16 @@ def test_header_length_shorter_than_header(tmp_path: Path, chip_arrays) -> None:
     path.write_bytes(text[:start] + b"00100" + text[start + 5 :])
     with pytest.raises(ValueError, match=r"'PhoenixHeaderLength' \(100\) must cover the ASCII header"):
         read_mstar_raw(path)
+
+
+def test_read_only_raw_folder_is_not_cached(tmp_path: Path, chip_arrays) -> None:
+    folder = tmp_path / "ro"
+    folder.mkdir()
+    write_mstar(folder / "HB1.000", chip_arrays[0])
+    folder.chmod(0o555)
+    try:
+        with pytest.warns(UserWarning, match="read-only folder, index not cached"):
+            records = load_index(folder)
+    finally:
+        folder.chmod(0o755)
+    assert len(records) == 1 and sorted(p.name for p in folder.iterdir()) == ["HB1.000"]
