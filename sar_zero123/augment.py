@@ -619,7 +619,8 @@ class AugmentationPreset:
     speckle_lambda1: float = 1.0  # lambda1 of Eq. (18)
     speckle_lambda2: float = 1.0  # lambda2 of Eq. (18)
     speckle_mode: SpeckleMode = "pixel"  # "pixel" (Eq. 17) or "level" (reference code)
-    monotonic_q: int = 0  # lookup levels Q of Algorithm 1 (also the speckle table in level mode); 0 = off
+    speckle_q: int = 512  # lookup levels of the level-mode speckle table (unused in pixel mode)
+    monotonic_q: int = 0  # lookup levels Q of Algorithm 1; 0 = off
     monotonic_gamma: float = 0.0  # std of the random gamma's log-exponent
     crop_scale: tuple[float, float] | None = None  # random resized crop area range; None = no crop
     crop_ratio: tuple[float, float] = (3.0 / 4.0, 4.0 / 3.0)  # random resized crop aspect range
@@ -637,10 +638,9 @@ class AugmentationPreset:
         _check_nonnegative(self.speckle_lambda2, "speckle_lambda2")
         if self.speckle_mode not in ("pixel", "level"):
             raise ValueError(f"`speckle_mode` must be 'pixel' or 'level', got {self.speckle_mode!r}")
+        _check_q(self.speckle_q, "speckle_q")
         if self.monotonic_q != 0:
             _check_q(self.monotonic_q, "monotonic_q")
-        if self.speckle_mode == "level" and self.speckle_sigma > 0 and self.monotonic_q < 2:
-            raise ValueError("`monotonic_q` must be >= 2: level-mode speckle uses a Q-level lookup table")
         for name in ("flip_p", "jitter_p", "blur_p"):
             _check_probability(getattr(self, name), name)
         if self.crop_scale is not None:
@@ -729,7 +729,7 @@ def augment_batch(
             params.speckle_lambda1,
             params.speckle_lambda2,
             params.speckle_mode,
-            max(params.monotonic_q, 2),
+            params.speckle_q,
             generator,
         )
     if params.monotonic_q > 0:

@@ -261,12 +261,23 @@ def test_augment_batch_reproducible_in_range_and_per_sample(preset: str) -> None
     assert not torch.equal(out[0], out[1]) and not torch.equal(out[1], out[2])  # independent draws
 
 
-def test_augment_batch_composes_stages_in_order() -> None:
+@pytest.mark.parametrize("mode", ["pixel", "level"])
+def test_augment_batch_composes_stages_in_order(mode: str) -> None:
     scaling = UnitDecibelScaling()
     magnitude = sar_like(2, 16)
-    out = augment_batch(magnitude, "speckle+monotonic", scaling, generator=gen(3))
+    preset = AugmentationPreset(
+        gaussian_std=0.01,
+        speckle_sigma=10.0,
+        speckle_mode=mode,
+        speckle_q=64,
+        monotonic_q=32,
+        monotonic_gamma=1.0,
+    )
+    out = augment_batch(magnitude, preset, scaling, generator=gen(3))
     stream = gen(3)
-    expected = random_monotonic(rayleigh_speckle(magnitude, generator=stream), q=512, generator=stream)
+    expected = additive_gaussian(magnitude, 0.01, generator=stream)
+    expected = rayleigh_speckle(expected, 10.0, mode=mode, q=64, generator=stream)
+    expected = random_monotonic(expected, q=32, gamma=1.0, generator=stream)
     torch.testing.assert_close(out, scaling.normalize(expected))
 
 
@@ -324,7 +335,8 @@ GOOD = torch.full((1, 1, 4, 4), 0.5)
         (lambda: AugmentationPreset(monotonic_q=1), "monotonic_q"),
         (lambda: AugmentationPreset(monotonic_gamma=-1.0), "monotonic_gamma"),
         (lambda: AugmentationPreset(speckle_lambda2=-1.0), "speckle_lambda2"),
-        (lambda: AugmentationPreset(speckle_sigma=10.0, speckle_mode="level"), "monotonic_q"),
+        (lambda: AugmentationPreset(speckle_sigma=10.0, speckle_mode="level", speckle_q=1), "speckle_q"),
+        (lambda: AugmentationPreset(speckle_mode="frame"), "speckle_mode"),
         (lambda: AugmentationPreset(flip_p=1.5), "flip_p"),
         (lambda: random_resized_crop(GOOD, scale=(0.0, 1.0)), "scale"),
         (lambda: random_gaussian_blur(GOOD, kernel_size=4), "kernel_size"),
