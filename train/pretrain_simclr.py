@@ -28,6 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from accelerate import Accelerator
 from accelerate.utils import set_seed
@@ -37,7 +38,7 @@ from tqdm.auto import tqdm
 
 from sar_zero123.augment import PRESETS, AugmentationPreset, simclr_views
 from sar_zero123.config import config_to_dict, parse_config, save_config, write_json_atomic
-from sar_zero123.data import ChipDataset, DecibelScaling, prepare_splits
+from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, prepare_splits
 from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig, nt_xent_loss
 from sar_zero123.run_state import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
 
@@ -52,7 +53,7 @@ class PretrainSimCLRConfig:
     data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
     protocol: str = "extended"  # split protocol of the data; only the "train" split is used
     work_dir: str | None = None  # where the simulated dataset is cached (default: output_dir)
-    max_train_chips: int | None = None  # use only the first N train chips (quick runs); None = all
+    max_train_chips: int | None = None  # use a seeded random subset of N train chips (quick runs); None = all
     image_size: int = 128  # chip side in pixels (paper: 128)
     chip_crop_size: int | None = None  # centre crop before resizing (None keeps the pixel spacing)
     preset: str = "speckle+monotonic"  # augmentation preset (Table I row)
@@ -138,6 +139,17 @@ class PretrainSimCLRConfig:
         )
 
 
+def select_chips(records: list[ChipRecord], max_chips: int | None, seed: int) -> list[ChipRecord]:
+    """A seeded random subset of `max_chips` records in index order (all of them when None).
+
+    A random subset rather than the first N keeps every class present in quick runs.
+    """
+    if max_chips is None or max_chips >= len(records):
+        return list(records)
+    keep = np.random.default_rng(seed).choice(len(records), size=max_chips, replace=False)
+    return [records[i] for i in sorted(keep)]
+
+
 def load_train_magnitudes(config: PretrainSimCLRConfig, work_dir: Path) -> torch.Tensor:
     """Reads the train split's chips once as magnitudes. Shape: (N, 1, S, S), values in [0, 1].
 
@@ -145,7 +157,7 @@ def load_train_magnitudes(config: PretrainSimCLRConfig, work_dir: Path) -> torch
         ValueError: If the magnitudes leave [0, 1] (e.g. raw MSTAR files: convert them to an image folder).
     """
     splits = prepare_splits(config.data, config.protocol, work_dir, seed=config.seed)
-    records = splits["train"][: config.max_train_chips]
+    records = select_chips(splits["train"], config.max_train_chips, config.seed)
     dataset = ChipDataset(
         records, size=config.image_size, return_magnitude=True, crop_size=config.chip_crop_size
     )
