@@ -123,10 +123,12 @@ def render_scene(
     # scaled so their powers after the PSF are the requested levels
     gain_2d = psf.noise_gain()
     clutter_power, noise_power = 10 ** (clutter_db / 10), 10 ** (noise_db / 10)
-    white = rng.standard_normal((2, size, size))
-    field = (white[0] + 1j * white[1]) * np.sqrt(clutter_power / (2 * gain_2d)) * ~shadow
-    white = rng.standard_normal((2, size, size))
-    field += (white[0] + 1j * white[1]) * np.sqrt(noise_power / (2 * gain_2d))
+    white = rng.standard_normal((4, size, size), dtype=np.float32)
+    clutter_scale = np.where(shadow, 0.0, np.sqrt(clutter_power / (2 * gain_2d))).astype(np.float32)
+    noise_scale = np.float32(np.sqrt(noise_power / (2 * gain_2d)))
+    field = (white[0] * clutter_scale + white[2] * noise_scale) + 1j * (
+        white[1] * clutter_scale + white[3] * noise_scale
+    )
 
     # 5. coherent summation through the PSF
     image = form_image(psf, rows, cols, amplitudes, background=field)

@@ -1,0 +1,104 @@
+"""Simulator throughput on one CPU core: chips per second of ``render_chip`` and ``simulate_dataset``.
+
+Usage::
+
+    python benchmarks/bench_sim.py --size 128 --chips-per-class 72 --output bench_sim.json
+
+BLAS/OpenMP threads are pinned to 1 before numpy is imported, so the figure is per core.
+"""
+
+from __future__ import annotations
+
+import os
+
+for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
+    os.environ.setdefault(_var, "1")
+
+import argparse  # noqa: E402
+import json  # noqa: E402
+import platform  # noqa: E402
+import tempfile  # noqa: E402
+import time  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip, simulate_dataset  # noqa: E402
+
+
+def main(argv: list[str] | None = None) -> dict:
+    """Run the benchmark, print and write a JSON summary; returns it."""
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--size", type=int, default=128)
+    parser.add_argument("--chips-per-class", type=int, default=72, help="azimuths per class (evenly spaced)")
+    parser.add_argument("--depression", type=float, default=17.0)
+    parser.add_argument("--repeats", type=int, default=3, help="timed passes; the fastest pass is reported")
+    parser.add_argument("--output", default="bench_sim.json")
+    args = parser.parse_args(argv)
+
+    # 1. target construction (once per class and instance in a dataset)
+    start = time.perf_counter()
+    targets = [make_target(c, 0) for c in TARGET_CLASSES]
+    make_target_ms = (time.perf_counter() - start) * 1000 / len(targets)
+
+    # 2. rendering: best of `repeats` passes over all classes and azimuths
+    azimuths = np.arange(args.chips_per_class) * 360.0 / args.chips_per_class
+    render_chip(targets[0], 0.0, args.depression, args.size, np.random.default_rng(0))  # warm-up
+    # wall time per chip, and process CPU time per pass (the machine may be shared: CPU time is
+    # what one core spends, wall time includes waiting for it)
+    per_chip: list[float] = []
+    pass_times, pass_cpu = [], []
+    for rep in range(args.repeats):
+        rng = np.random.default_rng(rep)
+        times = []
+        cpu0 = time.process_time()
+        for target in targets:
+            for az in azimuths:
+                t0 = time.perf_counter()
+                render_chip(target, float(az), args.depression, args.size, rng)
+                times.append(time.perf_counter() - t0)
+        pass_cpu.append(time.process_time() - cpu0)
+        pass_times.append(sum(times))
+        if sum(times) <= min(pass_times):
+            per_chip = times
+    per_chip_ms = np.array(per_chip) * 1000
+    cpu_ms = min(pass_cpu) * 1000 / len(per_chip)
+
+    # 3. the dataset writer end to end (rendering + .npy files + index), one class
+    with tempfile.TemporaryDirectory() as tmp:
+        t0 = time.perf_counter()
+        simulate_dataset(
+            tmp,
+            classes=[TARGET_CLASSES[0]],
+            instances=1,
+            azimuth_step_deg=5.0,
+            depressions_deg=(17.0,),
+            size=args.size,
+        )
+        dataset_s = time.perf_counter() - t0
+    n_dataset = int(np.ceil(360 / 5.0))
+
+    result = {
+        "size": args.size,
+        "chips_timed": int(per_chip_ms.size),
+        "render_ms_mean": round(float(per_chip_ms.mean()), 3),
+        "render_ms_median": round(float(np.median(per_chip_ms)), 3),
+        "render_ms_p95": round(float(np.percentile(per_chip_ms, 95)), 3),
+        "render_chips_per_s": round(float(1000 / per_chip_ms.mean()), 1),
+        "render_cpu_ms_mean": round(cpu_ms, 3),
+        "render_chips_per_cpu_s": round(1000 / cpu_ms, 1),
+        "make_target_ms": round(make_target_ms, 2),
+        "simulate_dataset_chips_per_s": round(n_dataset / dataset_s, 1),
+        "threads": os.environ["OMP_NUM_THREADS"],
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+        "machine": platform.machine(),
+        "cpu_count": os.cpu_count(),
+    }
+    print(json.dumps(result, indent=2))
+    with open(args.output, "w") as f:
+        json.dump(result, f, indent=2)
+    return result
+
+
+if __name__ == "__main__":
+    main()
