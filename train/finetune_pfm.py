@@ -19,7 +19,9 @@ checkpoint's step and reaches bitwise the weights of an uninterrupted run.
 
 from __future__ import annotations
 
+import hashlib
 import logging
+import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -149,6 +151,24 @@ class FinetuneConfig:
 
 
 # ----------------------------------------------------------------------------------------- building
+def check_distributed_launch(accelerator: Accelerator) -> None:
+    """Refuse a multi-process launch that accelerate did not turn into a distributed run.
+
+    ``accelerate launch --multi_gpu --num_processes N`` on a machine without GPUs starts N processes that
+    each believe they are alone (and overwrite each other's checkpoints) unless ``ACCELERATE_USE_CPU=true``
+    is set, which selects gloo data parallelism on CPU.
+
+    Raises:
+        RuntimeError: If ``WORLD_SIZE > 1`` but accelerate runs a single process.
+    """
+    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    if world_size > 1 and accelerator.num_processes == 1:
+        raise RuntimeError(
+            f"WORLD_SIZE={world_size} but accelerate started a non-distributed run; on CPU launch with "
+            "ACCELERATE_USE_CPU=true accelerate launch --multi_gpu --num_processes N ..."
+        )
+
+
 def load_components(config: FinetuneConfig) -> SARZero123Pipeline:
     """The pipeline to fine-tune: ``--pretrained`` (any layout the pipeline loads) or a named size, with
     ``--vae`` swapped in.
@@ -376,6 +396,20 @@ def run_validation(
     return path
 
 
+def weights_digest(modules: list[torch.nn.Module]) -> torch.Tensor:
+    """A 63-bit digest of the exact bytes of every parameter, to compare data-parallel replicas.
+
+    Shape:
+        ``(1,)`` int64.
+    """
+    digest = hashlib.sha256()
+    for module in modules:
+        for name, parameter in module.named_parameters():
+            digest.update(name.encode())
+            digest.update(parameter.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
+    return torch.tensor([int.from_bytes(digest.digest()[:8], "little") >> 1], dtype=torch.int64)
+
+
 def export_pipeline(pipe: SARZero123Pipeline, scaling: DecibelScaling, directory: Path) -> Path:
     """``save_pretrained`` of the complete pipeline (float32) plus the ``DecibelScaling`` it expects."""
     pipe.to(torch.float32)
@@ -402,6 +436,7 @@ def main(argv: list[str] | None = None) -> Path:
     )
     logging.basicConfig(level=logging.INFO if accelerator.is_main_process else logging.WARNING)
     set_seed(config.seed)
+    check_distributed_launch(accelerator)
 
     # 1. check every input before any training step
     resume_path = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
@@ -566,10 +601,19 @@ def main(argv: list[str] | None = None) -> Path:
                 break
     progress.close()
 
-    # 6. export the complete pipeline (EMA weights in the UNet)
+    # 6. replica check, then export the complete pipeline (EMA weights in the UNet)
     accelerator.wait_for_everyone()
+    trained = [accelerator.unwrap_model(unet), accelerator.unwrap_model(pose_projection)]
+    digests = accelerator.gather(weights_digest(trained).to(accelerator.device)).tolist()
+    if accelerator.is_main_process:
+        write_json_atomic(
+            {"global_step": global_step, "image_size": image_size, "replica_weight_digests": digests},
+            output_dir / "train_state.json",
+        )
+    if len(set(digests)) != 1:
+        raise RuntimeError(f"data-parallel replicas diverged: weight digests {digests}")
     if accelerator.is_main_process and config.save_pipeline:
-        final_unet = accelerator.unwrap_model(unet)
+        final_unet = trained[0]
         if ema_unet is not None:
             ema_unet.copy_to(final_unet.parameters())
         export = SARZero123Pipeline(
@@ -577,13 +621,10 @@ def main(argv: list[str] | None = None) -> Path:
             image_encoder=image_encoder,
             unet=final_unet.eval(),
             scheduler=DDIMScheduler.from_config(pipe.scheduler.config),
-            pose_projection=accelerator.unwrap_model(pose_projection).eval(),
+            pose_projection=trained[1].eval(),
             feature_extractor=pipe.feature_extractor,
         )
         export_pipeline(export, scaling, output_dir / "pipeline")
-        write_json_atomic(
-            {"global_step": global_step, "image_size": image_size}, output_dir / "train_state.json"
-        )
     accelerator.end_training()
     return output_dir
 
