@@ -342,8 +342,9 @@ def rayleigh_speckle(
     paper's reference implementation: ``eps`` is drawn per level of a Q-level lookup table, Eq. (18) is
     applied to the table ``k / (Q - 1)``, the table is min-max normalised and applied by linear
     interpolation. Level mode is a deterministic function of the pixel value within an image (equal
-    inputs give equal outputs, there is no spatial noise), and for large ``sigma`` that function is far
-    from monotonic; pixel mode is true multiplicative speckle and the output does not depend on Q.
+    inputs give equal outputs, there is no spatial noise), and for large ``sigma`` that function is not
+    monotonic (Spearman 0.84 with the identity at sigma 10, Q 512); pixel mode is spatial multiplicative
+    speckle and does not depend on Q.
 
     Args:
         x: Magnitudes in [0, 1].
