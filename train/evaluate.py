@@ -33,8 +33,9 @@ from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from sar_zero123.config import parse_config, save_config, write_json_atomic
-from sar_zero123.data import ViewPairDataset, prepare_splits, split_records
+from sar_zero123.data import DecibelScaling, ViewPairDataset, prepare_splits, split_records
 from sar_zero123.evaluators import Evaluators, load_evaluators, score_views
+from sar_zero123.generate import SCALING_FILE
 from sar_zero123.pipeline import SARZero123Pipeline
 
 logger = logging.getLogger(__name__)
@@ -245,6 +246,27 @@ def build_pair_sets(config: EvaluateConfig, evaluators: Evaluators, image_size: 
         )
         logger.info("%s: %d pairs from %d chips", group, count, len(records))
     return pair_sets
+
+
+def check_pipeline_scaling(pipeline_dir: str | Path, evaluators: Evaluators) -> None:
+    """Rejects a pipeline trained on other decibel bounds than the evaluators (inputs would not match).
+
+    Raises:
+        ValueError: If the pipeline folder's `decibel_scaling.json` differs from the evaluators' scaling.
+    """
+    path = Path(pipeline_dir) / SCALING_FILE
+    if not path.is_file():
+        return
+    pipeline_scaling = DecibelScaling.from_dict(json.loads(path.read_text()))
+    evaluator_scaling = evaluators.classifier.scaling
+    if not all(
+        math.isclose(getattr(pipeline_scaling, key), getattr(evaluator_scaling, key), abs_tol=1e-6)
+        for key in ("min_db", "max_db")
+    ):
+        raise ValueError(
+            f"pipeline {pipeline_dir} expects decibel scaling {pipeline_scaling.to_dict()} but the "
+            f"evaluators were trained with {evaluator_scaling.to_dict()}; train both with the same --scaling"
+        )
 
 
 # --------------------------------------------------------------------------------------- generation
@@ -484,6 +506,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     evaluators = load_evaluators(config.evaluators, device=device)
     pipes = {}
     for name, path in zip(config.names, config.pipeline):
+        check_pipeline_scaling(path, evaluators)
         pipe = SARZero123Pipeline.from_pretrained(path).to(device)
         pipe.set_progress_bar_config(disable=True)
         pipes[name] = pipe

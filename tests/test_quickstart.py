@@ -1,0 +1,45 @@
+"""Smoke test of the README main command: train/quickstart.py with the "smoke" preset."""
+
+from __future__ import annotations
+
+import json
+import warnings
+from pathlib import Path
+
+import pytest
+from test_evaluators import load_script
+
+
+def test_script_argv_keeps_only_declared_fields() -> None:
+    quickstart = load_script("quickstart")
+    evaluators = load_script("train_evaluators")
+    argv = quickstart.script_argv(
+        evaluators, {"epochs": 2, "cifar_stem": False, "depths": (1, 1), "report_to": "none"}
+    )
+    assert argv == ["--epochs", "2", "--no-cifar_stem", "--depths", "1", "1"]
+
+
+@pytest.mark.slow
+def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
+    quickstart = load_script("quickstart")
+    out = tmp_path / "quickstart"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # tiny sample counts: the Frechet distance warns about n <= D
+        report = quickstart.main(["--out", str(out), "--preset", "smoke"])
+    text = report.read_text()
+    assert "| paper: PFM (lambda=4) | seen | 89.0 | 23.5 | 1.84 | 0.6720 | 0.7374 |  |" in text
+    for row in ("| lambda=0 | seen |", "| lambda=4 | unseen |", "| input copy (baseline) | seen |"):
+        assert row in text
+    assert "CPU quick-run numbers" in text and "## Speed against error" in text
+    for name in ("views.png", "speed_error.png", "lambda_sweep.png"):
+        assert (out / "eval" / name).stat().st_size > 0
+    timings = json.loads((out / "timings.json").read_text())
+    assert {"simulate", "simclr", "finetune lambda=0", "finetune lambda=4", "evaluators", "evaluate"} <= set(
+        timings
+    )
+    metrics = json.loads((out / "evaluators" / "metrics.json").read_text())
+    assert set(metrics["models"]) == {"classifier", "regressor", "probe:simclr"}
+    assert metrics["class_names"] == ["APC", "TANK", "TRUCK"]  # the held-out TRUCK included
+    # A second call finds every stage done and only rewrites the report.
+    quickstart.main(["--out", str(out), "--preset", "smoke"])
+    assert all(seconds == 0.0 for seconds in json.loads((out / "timings.json").read_text()).values())
