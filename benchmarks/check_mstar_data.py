@@ -10,8 +10,8 @@ Prints a JSON report and writes it to ``--output``:
 * ``read_mstar_raw`` on ``raw/HB03787.002`` against its JPEG copy ``chips/17deg/BMP2/HB03787.002.jpeg``:
   the JPEGs map each chip's magnitude linearly to 0-255 (brightest pixel near 255), so
   ``raw / raw.max()`` and ``pixel / 255`` should agree up to JPEG compression error;
-* the raw-folder index of ``raw/`` (read-only: scanned, not cached) and the global decibel bounds of the
-  extended training JPEGs.
+* the raw-folder index of ``raw/`` (read-only: scanned, not cached), the global decibel bounds of the
+  extended training JPEGs, and the cost of building view pairs and reading chips.
 """
 
 from __future__ import annotations
@@ -28,13 +28,16 @@ import numpy as np
 from scipy.ndimage import uniform_filter
 
 from sar_zero123.data import (
+    ChipDataset,
     DecibelScaling,
+    ViewPairDataset,
     load_index,
     load_magnitude,
     ood_validation_intervals,
     read_mstar_raw,
     split_records,
     to_decibels,
+    wrap_azimuth_deg,
 )
 
 PAPER_COUNTS = {
@@ -137,6 +140,28 @@ def check_scaling(data: Path) -> dict:
     }
 
 
+def check_datasets(data: Path) -> dict:
+    train = split_records(load_index(data), "extended")["train"]
+    start = time.perf_counter()
+    pairs = ViewPairDataset(train, size=128, max_d_az_deg=None, same_depression=True, seed=0)
+    build_seconds = time.perf_counter() - start
+    d_az = np.array([wrap_azimuth_deg(train[j].azimuth_deg - train[i].azimuth_deg) for i, j in pairs.pairs])
+    chips = ChipDataset(train, size=128)
+    start = time.perf_counter()
+    for index in range(0, len(chips), len(chips) // 256):
+        chips[index]
+    per_item_ms = 1000 * (time.perf_counter() - start) / len(range(0, len(chips), len(chips) // 256))
+    return {
+        "view_pairs_extended_train": {
+            "pairs": len(pairs),
+            "build_seconds": round(build_seconds, 3),
+            "abs_d_az_deg_mean": float(np.abs(d_az).mean()),
+            "d_az_range_deg": [float(d_az.min()), float(d_az.max())],
+        },
+        "chip_dataset_item_ms": round(per_item_ms, 2),
+    }
+
+
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=Path("../shared/data/mstar"), help="MSTAR folder")
@@ -150,6 +175,7 @@ def main(argv: list[str] | None = None) -> dict:
         "raw_vs_jpeg": check_raw_vs_jpeg(args.data),
         "raw_folder_index": check_raw_folder(args.data),
         "scaling": check_scaling(args.data),
+        "datasets": check_datasets(args.data),
     }
     text = json.dumps(report, indent=2)
     print(text)

@@ -29,7 +29,15 @@ def records(tmp_path_factory: pytest.TempPathFactory) -> list[ChipRecord]:
 
 @pytest.mark.parametrize(
     ("angle", "expected"),
-    [(20.0, 20.0), (-340.0, 20.0), (180.0, 180.0), (-180.0, 180.0), (190.0, -170.0), (0.0, 0.0)],
+    [
+        (20.0, 20.0),
+        (-340.0, 20.0),
+        (180.0, 180.0),
+        (-180.0, 180.0),
+        (190.0, -170.0),
+        (0.0, 0.0),
+        (180 + 1e-14, 180.0),
+    ],
 )
 def test_wrap_azimuth(angle: float, expected: float) -> None:
     assert wrap_azimuth_deg(angle) == pytest.approx(expected)

@@ -1,7 +1,8 @@
 """Train/validation/test protocols of the paper (MSTAR extended, MSTAR SOC, MSTAR-OOD).
 
 * ``"extended"``: train = 17 deg depression, test = 15 deg, every serial (MSTAR: 6,059 / 5,392).
-* ``"soc"``: the same with BMP2 restricted to serial 9563 and T72 to serial 132 (2,747 / 2,425).
+* ``"soc"``: the same with BMP2 restricted to serial 9563 and T72 to serial 132 (2,747 / 2,425);
+  other classes keep all serials (on the simulator, whose classes differ, ``soc`` equals ``extended``).
 * ``"ood-<CLASS>"`` (paper: ``"ood-T72"``): test = every chip of the held-out class at every
   depression; from the other classes, the chips whose azimuth falls into one of 12 randomly chosen
   3-degree intervals form ``"val"``; the rest is ``"train"``. The intervals are taken on the absolute

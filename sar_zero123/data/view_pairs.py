@@ -37,6 +37,8 @@ def wrap_azimuth_deg(angle_deg: float | np.ndarray) -> float | np.ndarray:
         The equivalent angle(s) in (-180, 180].
     """
     wrapped = 180.0 - np.mod(180.0 - np.asarray(angle_deg, dtype=np.float64), 360.0)
+    # np.mod(-1e-14, 360) rounds to 360.0, which would give exactly -180
+    wrapped = np.where(wrapped <= -180.0, wrapped + 360.0, wrapped)
     return float(wrapped) if np.ndim(wrapped) == 0 else wrapped
 
 
