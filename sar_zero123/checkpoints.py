@@ -359,10 +359,15 @@ def _pipeline_from_ldm(
     unet_sd = {k[len(LDM_UNET_PREFIX) :]: v for k, v in state_dict.items() if k.startswith(LDM_UNET_PREFIX)}
     vae_sd = {k[len(LDM_VAE_PREFIX) :]: v for k, v in state_dict.items() if k.startswith(LDM_VAE_PREFIX)}
     # Only the prefixed keys go in, so the converters see neither EMA copies nor other modules.
-    unet = UNet2DConditionModel(**_infer_unet_config(unet_sd, unet_config))
+    try:
+        inferred_unet = _infer_unet_config(unet_sd, unet_config)
+        inferred_vae = _infer_vae_config(vae_sd, vae_config)
+    except KeyError as error:
+        raise ValueError(f"LDM state dict lacks {error}, needed to read the UNet/VAE architecture") from None
+    unet = UNet2DConditionModel(**inferred_unet)
     unet_ldm = {LDM_UNET_PREFIX + k: v for k, v in unet_sd.items()}
     _load_strict(unet, convert_ldm_unet_checkpoint(unet_ldm, dict(unet.config)), "UNet")
-    vae = AutoencoderKL(**_infer_vae_config(vae_sd, vae_config))
+    vae = AutoencoderKL(**inferred_vae)
     vae_ldm = {LDM_VAE_PREFIX + k: v for k, v in vae_sd.items()}
     _load_strict(vae, convert_ldm_vae_checkpoint(vae_ldm, dict(vae.config)), "VAE")
 
