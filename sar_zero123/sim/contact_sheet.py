@@ -113,7 +113,7 @@ def contact_sheet(
     fig.suptitle(
         f"depression {depression_deg:g} deg, radar at the bottom, {DISPLAY_RANGE_DB[0]:.0f}..0 dB", fontsize=8
     )
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.0, 1.0, 1.0 - 0.3 / fig.get_figheight()))
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=100)

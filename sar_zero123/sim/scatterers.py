@@ -47,7 +47,7 @@ DIHEDRAL, CURVED, EDGE, CORNER, SURFACE = 0, 1, 2, 3, 4
 FLASH_HALF_WIDTH_DEG = 3.0
 _POINT_SPACING_M = 0.25  # face and barrel sampling, below the 0.3 m resolution
 _EDGE_SPACING_M = 0.5
-_SURFACE_DENSITY_PER_M2 = 8.0
+_SURFACE_DENSITY_PER_M2 = 20.0
 _FOLD_TO_GROUND_BELOW_M = 0.8  # faces starting lower than this form a dihedral with the ground
 
 
@@ -159,7 +159,7 @@ def _rotate(s: np.ndarray, t: np.ndarray, yaw_deg: float) -> tuple[np.ndarray, n
 
 
 def _top_surface(
-    area: float, sample: np.ndarray, rng: np.random.Generator, amplitude: float = 0.3
+    area: float, sample: np.ndarray, rng: np.random.Generator, amplitude: float = 0.22
 ) -> ScattererSet:
     """Diffuse points: ``sample`` holds candidate (n, 3) positions drawn uniformly on the surface."""
     n = int(rng.poisson(_SURFACE_DENSITY_PER_M2 * area))
@@ -316,7 +316,7 @@ def primitive_scatterers(primitive: Primitive, rng: np.random.Generator) -> Scat
 
 
 def detail_scatterers(
-    primitives: list[Primitive], count: int, rng: np.random.Generator, strength: float = 0.8
+    primitives: list[Primitive], count: int, rng: np.random.Generator, strength: float = 2.0
 ) -> ScattererSet:
     """Small bright concave details (hatches, tools, lights, stowage) on top surfaces.
 
