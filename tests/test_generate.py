@@ -1,0 +1,87 @@
+"""Smoke and consistency tests for ``python -m sar_zero123.generate`` on the tiny pipeline."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import PIL.Image
+import pytest
+import torch
+from dummies import get_dummy_components
+
+from sar_zero123.data import DecibelScaling
+from sar_zero123.generate import SCALING_FILE, GenerateConfig, load_input_chip, main
+from sar_zero123.pipeline import SARZero123Pipeline
+
+
+@pytest.fixture(scope="module")
+def pipeline_dir(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("pipeline")
+    SARZero123Pipeline(**get_dummy_components()).save_pretrained(folder)
+    return folder
+
+
+@pytest.fixture(scope="module")
+def chip_png(tmp_path_factory):
+    pixels = np.random.default_rng(0).integers(0, 256, size=(40, 40), dtype=np.uint8)
+    path = tmp_path_factory.mktemp("chip") / "chip.png"
+    PIL.Image.fromarray(pixels, mode="L").save(path)
+    return path
+
+
+def test_main_writes_one_png_and_npy_per_view_and_a_contact_sheet(pipeline_dir, chip_png, tmp_path):
+    out = tmp_path / "views"
+    argv = ["--pipeline", str(pipeline_dir), "--image", str(chip_png), "--d-az", "30", "60", "90",
+            "--d-el", "0", "--out", str(out), "--num-inference-steps", "2", "--seed", "4"]
+    assert main(argv) == out
+    arrays = sorted(out.glob("view_*.npy"))
+    pngs = sorted(out.glob("view_*.png"))
+    assert [p.name for p in arrays] == [
+        "view_00_daz+030.00_del+00.00.npy",
+        "view_01_daz+060.00_del+00.00.npy",
+        "view_02_daz+090.00_del+00.00.npy",
+    ]
+    assert [p.stem for p in pngs] == [p.stem for p in arrays]
+    for array_path, png_path in zip(arrays, pngs):
+        view = np.load(array_path)
+        assert view.shape == (32, 32) and view.dtype == np.float32
+        assert view.min() >= 0.0 and view.max() <= 1.0
+        png = np.asarray(PIL.Image.open(png_path))
+        np.testing.assert_array_equal(png, np.round(view * 255).astype(np.uint8))
+    assert (out / "input.png").exists() and PIL.Image.open(out / "contact_sheet.png").size[0] > 4 * 32
+    assert json.loads((out / "config.json").read_text())["d_az"] == [30.0, 60.0, 90.0]
+
+    # view i is the pipeline's sample with generator seed + i
+    config = GenerateConfig(pipeline=str(pipeline_dir), image=str(chip_png))
+    chip = load_input_chip(config, 32)
+    pipe = SARZero123Pipeline.from_pretrained(pipeline_dir)
+    pipe.set_progress_bar_config(disable=True)
+    expected = pipe(torch.from_numpy(chip)[None, None], d_az=60.0, d_el=0.0, num_inference_steps=2,
+                    generator=torch.Generator().manual_seed(5), output_type="np").images[0, ..., 0]
+    np.testing.assert_allclose(np.load(arrays[1]), expected, atol=1e-5)
+
+
+def test_input_chip_uses_the_pipeline_scaling_file(pipeline_dir, chip_png, tmp_path):
+    magnitude = np.asarray(PIL.Image.open(chip_png), np.float32)[4:36, 4:36] / 255.0  # centre 32 px
+    config = GenerateConfig(pipeline=str(pipeline_dir), image=str(chip_png))
+    np.testing.assert_allclose(load_input_chip(config, 32), DecibelScaling().normalize(magnitude), atol=1e-6)
+    scaling = DecibelScaling(min_db=-40.0, max_db=0.0)
+    (tmp_path / SCALING_FILE).write_text(json.dumps(scaling.to_dict()))
+    config = GenerateConfig(pipeline=str(tmp_path), image=str(chip_png))
+    np.testing.assert_allclose(load_input_chip(config, 32), scaling.normalize(magnitude), atol=1e-6)
+
+
+@pytest.mark.parametrize(
+    ("fields", "match"),
+    [
+        ({"pipeline": ""}, "pipeline"),
+        ({"d_az": []}, "d_az"),
+        ({"d_az": [10.0, 20.0], "d_el": [0.0, 1.0, 2.0]}, "d_el"),
+        ({"d_az": [float("nan")]}, "finite"),
+        ({"num_inference_steps": 0}, "num_inference_steps"),
+    ],
+)
+def test_config_rejects_bad_values(fields, match):
+    with pytest.raises(ValueError, match=match):
+        GenerateConfig(**{"pipeline": "p", "image": "chip.png", **fields})
