@@ -9,7 +9,8 @@ Three layouts are found in the wild (REFERENCE.md, "Checkpoint layouts in the wi
     ``proj.bias``, config ``embedding_dim`` / ``additional_embeddings``);
 (c) the original Lightning/LDM state dict (``.ckpt`` or ``.safetensors``) with
     ``model.diffusion_model.*``, ``first_stage_model.*``, ``cc_projection.weight|bias`` and optionally
-    ``model_ema.*`` (LitEma names: the module path with its dots removed).
+    ``model_ema.*`` (LitEma names: the module path with its dots removed) and the OpenAI CLIP model
+    ``cond_stage_model.model.*`` (its image tower is converted; a local encoder folder can replace it).
 
 A folder saved by :meth:`SARZero123Pipeline.save_pretrained` (with ``pose_projection/``) loads too.
 Projection sizes are always read from the weight shapes. The UNet and VAE key renaming of layout (c)
@@ -27,12 +28,12 @@ import torch
 from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
 from diffusers.loaders.single_file_utils import convert_ldm_unet_checkpoint, convert_ldm_vae_checkpoint
 from safetensors.torch import load_file
-from transformers import CLIPImageProcessor, CLIPVisionModelWithProjection
+from transformers import CLIPImageProcessor, CLIPVisionConfig, CLIPVisionModelWithProjection
 
 from sar_zero123.conditioning import POSE_DIM, PoseProjection
 from sar_zero123.pipeline import SD_VAE_SCALING_FACTOR, ZERO123_SCHEDULER_CONFIG, SARZero123Pipeline
 
-__all__ = ["PROJECTION_FOLDERS", "load_zero123", "load_ldm_state_dict"]
+__all__ = ["PROJECTION_FOLDERS", "convert_openai_clip_vision", "load_ldm_state_dict", "load_zero123"]
 
 #: Folder name of the pose projection -> names of its weight and bias in that folder's state dict.
 PROJECTION_FOLDERS: dict[str, tuple[str, str]] = {
@@ -44,6 +45,7 @@ LDM_UNET_PREFIX = "model.diffusion_model."
 LDM_VAE_PREFIX = "first_stage_model."
 LDM_EMA_PREFIX = "model_ema."
 LDM_PROJECTION_KEYS = ("cc_projection.weight", "cc_projection.bias")
+LDM_CLIP_VISUAL_PREFIX = "cond_stage_model.model.visual."  # zero-1-to-3's FrozenCLIPImageEmbedder
 _FOLDER_COMPONENTS = ("vae", "unet", "image_encoder")
 _WEIGHT_FILES = ("diffusion_pytorch_model.safetensors", "diffusion_pytorch_model.bin", "model.safetensors")
 
@@ -63,6 +65,7 @@ def load_zero123(
     torch_dtype: torch.dtype | None = None,
     unet_config: dict[str, Any] | None = None,
     vae_config: dict[str, Any] | None = None,
+    image_encoder_config: dict[str, Any] | None = None,
     weights_only: bool = True,
 ) -> SARZero123Pipeline:
     """Build a :class:`SARZero123Pipeline` from a zero-1-to-3 checkpoint in any supported layout.
@@ -73,14 +76,17 @@ def load_zero123(
         use_ema: For LDM files that hold ``model_ema.*``, load the EMA UNet weights (as zero-1-to-3
             samples); ignored otherwise.
         image_encoder_path: Folder of a ``CLIPVisionModelWithProjection`` (CLIP ViT-L/14 image tower
-            for the Objaverse checkpoints) and optionally its ``CLIPImageProcessor``. Required for LDM
-            files, which keep CLIP in the OpenAI layout; overrides a folder's own ``image_encoder``.
+            for the Objaverse checkpoints) and optionally its ``CLIPImageProcessor``. Overrides a
+            folder's own ``image_encoder``; for LDM files it is needed only when the file holds no
+            OpenAI CLIP tower (``cond_stage_model.model.visual.*``), which is converted otherwise.
         torch_dtype: Optional dtype for all modules.
         unet_config: LDM files only: ``UNet2DConditionModel`` config entries that override the
             inferred/default ones (the head count and norm groups are not in the weights; defaults are
             zero-1-to-3's ``attention_head_dim=8``, ``norm_num_groups=32``).
         vae_config: LDM files only: ``AutoencoderKL`` config overrides (``norm_num_groups``,
             ``scaling_factor``, ``sample_size``).
+        image_encoder_config: LDM files with an OpenAI CLIP tower only: ``CLIPVisionConfig``
+            overrides (the head count is not in the weights; OpenAI CLIP uses ``width // 64``).
         weights_only: Passed to ``torch.load`` for ``.ckpt`` files. Keep True unless the file is trusted
             and holds objects a weights-only unpickler refuses.
 
@@ -99,7 +105,9 @@ def load_zero123(
         pipe = _load_folder(path, image_encoder_path)
     elif path.suffix in (".ckpt", ".pt", ".pth", ".safetensors"):
         state_dict = load_ldm_state_dict(path, weights_only=weights_only)
-        pipe = _pipeline_from_ldm(state_dict, use_ema, image_encoder_path, unet_config, vae_config)
+        pipe = _pipeline_from_ldm(
+            state_dict, use_ema, image_encoder_path, unet_config, vae_config, image_encoder_config
+        )
     else:
         raise ValueError(
             f"unknown zero-1-to-3 checkpoint layout: {path}. Expected a diffusers folder with "
@@ -330,12 +338,90 @@ def _load_strict(module: torch.nn.Module, state_dict: dict[str, torch.Tensor], n
     module.load_state_dict(state_dict, strict=True)
 
 
+def convert_openai_clip_vision(
+    state_dict: dict[str, torch.Tensor],
+    prefix: str = LDM_CLIP_VISUAL_PREFIX,
+    config_overrides: dict[str, Any] | None = None,
+) -> CLIPVisionModelWithProjection:
+    """The OpenAI CLIP image tower of an LDM checkpoint as a transformers ``CLIPVisionModelWithProjection``.
+
+    Written here because neither library ships it: diffusers' single-file code converts only CLIP
+    *text* towers and transformers' OpenAI-CLIP conversion is a repository script, not package code.
+    The mapping: ``conv1`` -> patch embedding, ``class_embedding``, ``positional_embedding``,
+    ``ln_pre``/``ln_post`` -> pre/post layer norms, each ``resblocks.i`` (fused ``attn.in_proj`` split into
+    q/k/v, ``out_proj``, ``ln_1``/``ln_2``, ``mlp.c_fc``/``c_proj``), and ``proj`` (width, dim) -> the
+    transposed ``visual_projection``. OpenAI CLIP uses QuickGELU, LayerNorm eps 1e-5 and 64-d heads.
+
+    Args:
+        state_dict: The checkpoint's state dict.
+        prefix: Key prefix of the visual tower.
+        config_overrides: ``CLIPVisionConfig`` entries to override (e.g. ``num_attention_heads``).
+
+    Returns:
+        The image tower in eval mode.
+
+    Raises:
+        ValueError: If keys are missing or shapes do not fit.
+    """
+    visual = {k[len(prefix) :]: v for k, v in state_dict.items() if k.startswith(prefix)}
+    try:
+        width, channels, patch_size, _ = visual["conv1.weight"].shape
+        num_positions = visual["positional_embedding"].shape[0]
+        num_layers = len({k.split(".")[2] for k in visual if k.startswith("transformer.resblocks.")})
+        config = CLIPVisionConfig(
+            **{
+                "hidden_size": width,
+                "num_channels": channels,
+                "patch_size": patch_size,
+                "image_size": patch_size * round((num_positions - 1) ** 0.5),
+                "num_hidden_layers": num_layers,
+                "num_attention_heads": max(width // 64, 1),
+                "intermediate_size": visual["transformer.resblocks.0.mlp.c_fc.weight"].shape[0],
+                "projection_dim": visual["proj"].shape[1],
+                "hidden_act": "quick_gelu",
+                "layer_norm_eps": 1e-5,
+                **(config_overrides or {}),
+            }
+        )
+        converted = {
+            "vision_model.embeddings.patch_embedding.weight": visual["conv1.weight"],
+            "vision_model.embeddings.class_embedding": visual["class_embedding"],
+            "vision_model.embeddings.position_embedding.weight": visual["positional_embedding"],
+            "vision_model.pre_layrnorm.weight": visual["ln_pre.weight"],
+            "vision_model.pre_layrnorm.bias": visual["ln_pre.bias"],
+            "vision_model.post_layernorm.weight": visual["ln_post.weight"],
+            "vision_model.post_layernorm.bias": visual["ln_post.bias"],
+            "visual_projection.weight": visual["proj"].t().contiguous(),
+        }
+        renames = {
+            "attn.out_proj": "self_attn.out_proj",
+            "ln_1": "layer_norm1",
+            "ln_2": "layer_norm2",
+            "mlp.c_fc": "mlp.fc1",
+            "mlp.c_proj": "mlp.fc2",
+        }
+        for layer in range(num_layers):
+            source, target = f"transformer.resblocks.{layer}.", f"vision_model.encoder.layers.{layer}."
+            for kind in ("weight", "bias"):
+                for name, new_name in renames.items():
+                    converted[f"{target}{new_name}.{kind}"] = visual[f"{source}{name}.{kind}"]
+                q, k, v = visual[f"{source}attn.in_proj_{kind}"].chunk(3, dim=0)
+                for name, tensor in (("q_proj", q), ("k_proj", k), ("v_proj", v)):
+                    converted[f"{target}self_attn.{name}.{kind}"] = tensor.contiguous()
+    except KeyError as error:
+        raise ValueError(f"OpenAI CLIP tower under {prefix!r} lacks {error}") from None
+    model = CLIPVisionModelWithProjection(config)
+    _load_strict(model, converted, "CLIP image encoder")
+    return model.eval()
+
+
 def _pipeline_from_ldm(
     state_dict: dict[str, torch.Tensor],
     use_ema: bool,
     image_encoder_path: str | Path | None,
     unet_config: dict[str, Any] | None,
     vae_config: dict[str, Any] | None,
+    image_encoder_config: dict[str, Any] | None,
 ) -> SARZero123Pipeline:
     # 1. check the layout
     prefixes = (LDM_UNET_PREFIX, LDM_VAE_PREFIX)
@@ -347,10 +433,12 @@ def _pipeline_from_ldm(
             f"{LDM_UNET_PREFIX}*, {LDM_VAE_PREFIX}*, {LDM_PROJECTION_KEYS[0]}, {LDM_PROJECTION_KEYS[1]} "
             f"(and optionally {LDM_EMA_PREFIX}*)"
         )
-    if image_encoder_path is None:
+    has_clip = f"{LDM_CLIP_VISUAL_PREFIX}proj" in state_dict
+    if image_encoder_path is None and not has_clip:
         raise ValueError(
-            "`image_encoder_path` is required for LDM checkpoints: pass a folder holding a "
-            "CLIPVisionModelWithProjection (CLIP ViT-L/14 image tower for the Objaverse checkpoints)"
+            f"this LDM checkpoint holds no CLIP image tower ({LDM_CLIP_VISUAL_PREFIX}*): pass "
+            "`image_encoder_path`, a folder holding a CLIPVisionModelWithProjection (CLIP ViT-L/14 "
+            "image tower for the Objaverse checkpoints)"
         )
     if use_ema and any(key.startswith(LDM_EMA_PREFIX + "diffusion_model") for key in state_dict):
         state_dict = _substitute_ema(state_dict)
@@ -375,12 +463,17 @@ def _pipeline_from_ldm(
     projection = _projection_from_tensors(
         state_dict[LDM_PROJECTION_KEYS[0]], state_dict[LDM_PROJECTION_KEYS[1]], "cc_projection"
     )
-    encoder_dir = Path(image_encoder_path)
+    if image_encoder_path is not None:
+        image_encoder = CLIPVisionModelWithProjection.from_pretrained(Path(image_encoder_path)).eval()
+        feature_extractor = _load_feature_extractor(Path(image_encoder_path))
+    else:
+        image_encoder = convert_openai_clip_vision(state_dict, config_overrides=image_encoder_config)
+        feature_extractor = None  # the pipeline then uses OpenAI CLIP's mean/std, as zero-1-to-3 does
     return SARZero123Pipeline(
         vae=vae.eval(),
-        image_encoder=CLIPVisionModelWithProjection.from_pretrained(encoder_dir).eval(),
+        image_encoder=image_encoder,
         unet=unet.eval(),
         scheduler=DDIMScheduler(**ZERO123_SCHEDULER_CONFIG),
         pose_projection=projection.eval(),
-        feature_extractor=_load_feature_extractor(encoder_dir),
+        feature_extractor=feature_extractor,
     )

@@ -115,6 +115,31 @@ def vae_to_ldm(state_dict: dict[str, torch.Tensor], config) -> dict[str, torch.T
     return out
 
 
+def clip_to_openai(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """transformers CLIPVisionModelWithProjection keys -> OpenAI CLIP ``visual.*`` keys (fused q/k/v)."""
+    out = {
+        "conv1.weight": state_dict["vision_model.embeddings.patch_embedding.weight"],
+        "class_embedding": state_dict["vision_model.embeddings.class_embedding"],
+        "positional_embedding": state_dict["vision_model.embeddings.position_embedding.weight"],
+        "ln_pre.weight": state_dict["vision_model.pre_layrnorm.weight"],
+        "ln_pre.bias": state_dict["vision_model.pre_layrnorm.bias"],
+        "ln_post.weight": state_dict["vision_model.post_layernorm.weight"],
+        "ln_post.bias": state_dict["vision_model.post_layernorm.bias"],
+        "proj": state_dict["visual_projection.weight"].t(),
+    }
+    names = {"self_attn.out_proj": "attn.out_proj", "layer_norm1": "ln_1", "layer_norm2": "ln_2",
+             "mlp.fc1": "mlp.c_fc", "mlp.fc2": "mlp.c_proj"}
+    layers = {int(k.split(".")[3]) for k in state_dict if k.startswith("vision_model.encoder.layers.")}
+    for layer in layers:
+        hf, openai = f"vision_model.encoder.layers.{layer}.", f"transformer.resblocks.{layer}."
+        for kind in ("weight", "bias"):
+            for name, new in names.items():
+                out[f"{openai}{new}.{kind}"] = state_dict[f"{hf}{name}.{kind}"]
+            qkv = [state_dict[f"{hf}self_attn.{n}_proj.{kind}"] for n in ("q", "k", "v")]
+            out[f"{openai}attn.in_proj_{kind}"] = torch.cat(qkv)
+    return out
+
+
 # ------------------------------------------------------------------------------------ fixtures
 def _components() -> dict:
     components = get_dummy_components()
@@ -188,7 +213,9 @@ def _ldm_state_dict(pipe: SARZero123Pipeline, ema_pipe: SARZero123Pipeline | Non
     state.update({f"first_stage_model.{k}": v for k, v in vae.items()})
     state["cc_projection.weight"] = pipe.pose_projection.projection.weight.detach().clone()
     state["cc_projection.bias"] = pipe.pose_projection.projection.bias.detach().clone()
-    state["cond_stage_model.model.visual.proj"] = torch.zeros(4, 4)  # OpenAI CLIP weights: ignored
+    visual = clip_to_openai(pipe.image_encoder.state_dict())
+    state.update({f"cond_stage_model.model.visual.{k}": v for k, v in visual.items()})
+    state["cond_stage_model.model.token_embedding.weight"] = torch.zeros(8, 4)  # text tower: ignored
     if ema_pipe is not None:
         ema = unet_to_ldm(ema_pipe.unet.state_dict(), ema_pipe.unet.config)
         state.update({"model_ema.diffusion_model" + k.replace(".", ""): v for k, v in ema.items()})
@@ -278,6 +305,15 @@ def test_ldm_checkpoint_non_ema_weights(source, perturbed, reference, encoder_di
     assert torch.equal(sample(loaded), reference)
 
 
+def test_ldm_checkpoint_with_its_own_openai_clip_tower(source, reference, tmp_path):
+    path = tmp_path / "105000.ckpt"
+    torch.save({"state_dict": _ldm_state_dict(source)}, path)
+    loaded = load_zero123(path, unet_config=TINY_UNET, vae_config=TINY_VAE,
+                          image_encoder_config={"num_attention_heads": 4})
+    assert loaded.image_encoder.config.image_size == 32 and loaded.image_encoder.config.projection_dim == 16
+    assert torch.equal(sample(loaded), reference)
+
+
 # ---------------------------------------------------------------------------------- errors
 def test_unknown_layouts(tmp_path):
     with pytest.raises(ValueError, match="unknown zero-1-to-3 folder layout.*cc_projection"):
@@ -309,9 +345,9 @@ def test_projection_with_wrong_shape_is_rejected(source, tmp_path):
 
 def test_ldm_errors_list_what_was_expected(source, encoder_dir, tmp_path):
     path = tmp_path / "model.ckpt"
-    state = _ldm_state_dict(source)
+    state = {k: v for k, v in _ldm_state_dict(source).items() if not k.startswith("cond_stage_model.")}
     torch.save(state, path)
-    with pytest.raises(ValueError, match="image_encoder_path"):
+    with pytest.raises(ValueError, match="holds no CLIP image tower.*image_encoder_path"):
         load_zero123(path)
 
     del state["model.diffusion_model.middle_block.0.in_layers.0.weight"]
