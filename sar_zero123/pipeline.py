@@ -10,6 +10,7 @@ unconditional branches in one batched UNet call.
 from __future__ import annotations
 
 import inspect
+import numbers
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -221,11 +222,11 @@ class SARZero123Pipeline(DiffusionPipeline):
         output_type: str,
         callback_on_step_end_tensor_inputs: Sequence[str],
     ) -> None:
-        if not isinstance(num_inference_steps, int) or num_inference_steps < 1:
+        if not isinstance(num_inference_steps, numbers.Integral) or num_inference_steps < 1:
             raise ValueError(f"`num_inference_steps` must be an integer >= 1, got {num_inference_steps!r}")
         if not np.isfinite(guidance_scale):
             raise ValueError(f"`guidance_scale` must be finite, got {guidance_scale}")
-        if not isinstance(num_images_per_prompt, int) or num_images_per_prompt < 1:
+        if not isinstance(num_images_per_prompt, numbers.Integral) or num_images_per_prompt < 1:
             raise ValueError(
                 f"`num_images_per_prompt` must be an integer >= 1, got {num_images_per_prompt!r}"
             )
@@ -367,7 +368,7 @@ class SARZero123Pipeline(DiffusionPipeline):
             condition_latents = torch.cat([torch.zeros_like(condition_latents), condition_latents])
 
         # 3. timesteps
-        self.scheduler.set_timesteps(num_inference_steps, device=device)
+        self.scheduler.set_timesteps(int(num_inference_steps), device=device)
         timesteps = self.scheduler.timesteps
 
         # 4. initial noise
