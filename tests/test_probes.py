@@ -83,8 +83,8 @@ def test_mlp_azimuth_probe_learns_circle_and_circular_loss_helps_at_north():
     errors = {}
     for loss in ("circular", "mse"):
         for name, test in (("north", north), ("rest", rest)):
-            generator = torch.Generator().manual_seed(1)
-            kwargs = {"loss": loss, "epochs": 60, "batch_size": 64, "lr": 1e-2, "generator": generator}
+            probe_generator = torch.Generator().manual_seed(1)
+            kwargs = {"loss": loss, "epochs": 60, "batch_size": 64, "lr": 1e-2, "generator": probe_generator}
             result = mlp_azimuth_probe(train, test, **kwargs)
             errors[loss, name] = result["azimuth_error_deg"]
     assert errors["circular", "rest"] < 10.0 and errors["mse", "rest"] < 10.0

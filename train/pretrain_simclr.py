@@ -61,7 +61,7 @@ class PretrainSimCLRConfig:
     speckle_lambda1: float = 1.0  # lambda1 of Eq. (18), for presets with speckle
     speckle_lambda2: float = 1.0  # lambda2 of Eq. (18), for presets with speckle
     speckle_mode: str = "pixel"  # "pixel" (Eq. 17) or "level" (reference code), for presets with speckle
-    monotonic_q: int = 512  # lookup levels Q of Algorithm 1, for presets with the monotonic map
+    monotonic_q: int = 512  # lookup levels Q of Algorithm 1 and of the level-mode speckle table
     monotonic_gamma: float = 0.0  # std of the random gamma's log-exponent, for presets with the map
     in_channels: int = 1  # encoder input channels (1 = SAR magnitude)
     cifar_stem: bool = True  # 3x3 stride-1 stem without max-pool (reference setting)
@@ -122,6 +122,7 @@ class PretrainSimCLRConfig:
                 speckle_lambda1=self.speckle_lambda1,
                 speckle_lambda2=self.speckle_lambda2,
                 speckle_mode=self.speckle_mode,
+                speckle_q=self.monotonic_q,
             )
         if preset.monotonic_q > 0:
             overrides.update(monotonic_q=self.monotonic_q, monotonic_gamma=self.monotonic_gamma)
