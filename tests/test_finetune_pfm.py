@@ -1,0 +1,315 @@
+"""Tests of train/finetune_pfm.py: smoke run, CFG dropout, bad input, two-process run, SIGKILL + resume."""
+
+from __future__ import annotations
+
+import importlib.util
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import PIL.Image
+import pytest
+import torch
+from accelerate.state import AcceleratorState, GradientState
+from diffusers import AutoencoderKL
+from safetensors.torch import load_file
+
+from sar_zero123.data import ChipRecord, write_index
+from sar_zero123.encoder import SAREncoder, SAREncoderConfig
+from sar_zero123.pipeline import SARZero123Pipeline
+
+ROOT = Path(__file__).resolve().parents[1]
+SCRIPT = ROOT / "train" / "finetune_pfm.py"
+
+
+def load_script():
+    spec = importlib.util.spec_from_file_location("finetune_pfm", SCRIPT)
+    module = importlib.util.module_from_spec(spec)
+    sys.modules["finetune_pfm"] = module
+    spec.loader.exec_module(module)
+    return module
+
+
+@pytest.fixture(scope="module")
+def script():
+    return load_script()
+
+
+@pytest.fixture(autouse=True)
+def fresh_accelerate_state():
+    yield
+    AcceleratorState._reset_state(True)
+    GradientState._reset_state()
+
+
+def write_chips(root: Path, azimuths_deg: list[float], size: int = 32) -> Path:
+    """Two classes, one object each, at 15 and 17 deg: random magnitudes as .npy chips."""
+    root.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    records = []
+    for target_class in ("A", "B"):
+        for depression in (15.0, 17.0):
+            for k, azimuth in enumerate(azimuths_deg):
+                path = root / f"{target_class}_{int(depression)}_{k}.npy"
+                np.save(path, rng.random((size, size), dtype=np.float32))
+                records.append(
+                    ChipRecord(
+                        path=path,
+                        target_class=target_class,
+                        serial="s1",
+                        depression_deg=depression,
+                        azimuth_deg=azimuth,
+                    )
+                )
+    write_index(records, root)
+    return root
+
+
+@pytest.fixture(scope="module")
+def assets(tmp_path_factory) -> dict[str, Path]:
+    base = tmp_path_factory.mktemp("finetune_assets")
+    data = write_chips(base / "data", [0.0, 45.0, 90.0, 135.0, 180.0, 225.0])
+    torch.manual_seed(0)
+    tiny = SAREncoderConfig(image_size=32, depths=(1,), hidden_sizes=(8,), embedding_size=8)
+    encoder = SAREncoder(tiny).save_pretrained(base / "encoder")
+    encoder16 = SAREncoder(SAREncoderConfig(**{**tiny.to_dict(), "image_size": 16})).save_pretrained(
+        base / "enc16"
+    )
+    return {"base": base, "data": data, "encoder": encoder, "encoder16": encoder16}
+
+
+def tiny_args(assets: dict[str, Path], output_dir: Path, *extra: str) -> list[str]:
+    return [
+        "--output_dir",
+        str(output_dir),
+        "--size",
+        "tiny",
+        "--data",
+        str(assets["data"]),
+        "--encoder",
+        str(assets["encoder"]),
+        "--train_batch_size",
+        "2",
+        "--report_to",
+        "none",
+        "--seed",
+        "3",
+        *extra,
+    ]
+
+
+def test_smoke_two_steps_writes_checkpoint_grid_and_pipeline(script, assets, tmp_path) -> None:
+    out = script.main(
+        tiny_args(
+            assets,
+            tmp_path / "run",
+            "--max_train_steps",
+            "2",
+            "--checkpointing_steps",
+            "2",
+            "--validation_steps",
+            "2",
+            "--num_validation_images",
+            "2",
+            "--validation_inference_steps",
+            "2",
+            "--pfm_crop_size",
+            "16",
+        )
+    )
+    assert (out / "checkpoint-2" / "run_state.json").is_file()
+    grid = np.asarray(PIL.Image.open(out / "validation" / "step-000002.png"))
+    assert grid.shape == (2 * 32, 3 * 32)  # rows of input | generated | target
+    saved = json.loads((out / "config.json").read_text())
+    assert saved["pfm_weight"] == 4.0 and saved["pfm_crop_size"] == 16
+    assert json.loads((out / "pipeline" / "decibel_scaling.json").read_text())["min_db"] == -60.0
+    pipe = SARZero123Pipeline.from_pretrained(out / "pipeline")
+    image = torch.rand(1, 1, 32, 32)
+    result = pipe(
+        image, d_az=30.0, num_inference_steps=2, output_type="pt", generator=torch.Generator().manual_seed(0)
+    ).images
+    assert result.shape == (1, 1, 32, 32) and torch.isfinite(result).all()
+
+
+def test_cfg_dropout_both_matches_sampling_null(script, assets) -> None:
+    from tests.dummies import get_dummy_components
+
+    components = get_dummy_components()
+    config = script.FinetuneConfig(
+        pfm_weight=0.0, drop_image_prob=0.0, drop_both_prob=1.0, drop_latent_prob=0.0
+    )
+    seen = {}
+
+    def hook(module, args, kwargs):
+        seen["sample"], seen["tokens"] = args[0], kwargs["encoder_hidden_states"]
+
+    handle = components["unet"].register_forward_pre_hook(hook, with_kwargs=True)
+    batch = {
+        "input": torch.rand(2, 1, 32, 32),
+        "target": torch.rand(2, 1, 32, 32),
+        "d_az_deg": torch.tensor([30.0, -90.0]),
+        "d_el_deg": torch.tensor([0.0, 2.0]),
+    }
+    from diffusers import DDPMScheduler
+
+    losses = script.compute_losses(
+        batch,
+        unet=components["unet"],
+        pose_projection=components["pose_projection"],
+        vae=components["vae"],
+        image_encoder=components["image_encoder"],
+        encoder=None,
+        noise_scheduler=DDPMScheduler.from_config(components["scheduler"].config),
+        config=config,
+        generator=torch.Generator().manual_seed(0),
+    )
+    handle.remove()
+    assert losses.loss.shape == (2,)
+    assert seen["tokens"].abs().sum() == 0 and seen["sample"][:, 4:].abs().sum() == 0
+    assert seen["sample"][:, :4].abs().sum() > 0
+
+
+def test_micro_batch_generator_is_a_pure_function(script) -> None:
+    a = torch.rand(3, generator=script.micro_batch_generator(1, 7, 0))
+    b = torch.rand(3, generator=script.micro_batch_generator(1, 7, 0))
+    c = torch.rand(3, generator=script.micro_batch_generator(1, 7, 1))
+    assert torch.equal(a, b) and not torch.equal(a, c)
+
+
+def test_bad_input_fails_before_training(script, assets, tmp_path) -> None:
+    run = tmp_path / "bad"
+    with pytest.raises(ValueError, match="pfm_weight"):
+        script.main(tiny_args(assets, run, "--pfm_weight", "-1"))
+    with pytest.raises(ValueError, match="encoder"):
+        script.main(["--output_dir", str(run), "--size", "tiny", "--data", str(assets["data"])])
+    with pytest.raises(FileNotFoundError, match="encoder"):
+        script.main(tiny_args(assets, run, "--encoder", str(tmp_path / "missing")))
+    with pytest.raises(ValueError, match="trained on 16 px"):
+        script.main(tiny_args(assets, run, "--encoder", str(assets["encoder16"])))
+    with pytest.raises(ValueError, match="protocol"):
+        script.main(tiny_args(assets, run, "--protocol", "random"))
+    with pytest.raises(ValueError, match="T99"):
+        script.main(tiny_args(assets, run, "--protocol", "ood-T99"))
+    with pytest.raises(FileNotFoundError, match="not a complete checkpoint"):
+        script.main(tiny_args(assets, run, "--resume_from_checkpoint", str(tmp_path)))
+    with pytest.raises(FileNotFoundError, match="vae"):
+        script.main(tiny_args(assets, run, "--vae", str(tmp_path / "no_vae")))
+    wrong_vae = AutoencoderKL(
+        in_channels=1,
+        out_channels=1,
+        down_block_types=("DownEncoderBlock2D",) * 3,
+        up_block_types=("UpDecoderBlock2D",) * 3,
+        block_out_channels=(8, 8, 8),
+        latent_channels=4,
+        norm_num_groups=4,
+    )
+    wrong_vae.save_pretrained(tmp_path / "vae8")
+    with pytest.raises(ValueError, match="downsampling factor 4"):
+        script.main(tiny_args(assets, run, "--vae", str(tmp_path / "vae8")))
+    lonely = write_chips(tmp_path / "lonely", [10.0])  # one view per object: no pairs
+    with pytest.raises(ValueError, match="partner"):
+        script.main(tiny_args(assets, run, "--data", str(lonely)))
+    assert not list(run.glob("checkpoint-*"))
+
+
+def read_weights(checkpoint: Path) -> dict[str, torch.Tensor]:
+    weights = {f"unet.{k}": v for k, v in load_file(checkpoint / "model.safetensors").items()}
+    weights.update({f"pose.{k}": v for k, v in load_file(checkpoint / "model_1.safetensors").items()})
+    ema = torch.load(checkpoint / "custom_checkpoint_0.pkl", weights_only=False)
+    weights.update({f"ema.{i}": v for i, v in enumerate(ema["shadow_params"])})
+    return weights
+
+
+def subprocess_env() -> dict[str, str]:
+    return {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
+
+
+@pytest.mark.slow
+def test_sigkill_then_resume_latest_is_bitwise_identical(script, assets, tmp_path) -> None:
+    steps = [
+        "--max_train_steps",
+        "6",
+        "--checkpointing_steps",
+        "2",
+        "--validation_steps",
+        "0",
+        "--no-save_pipeline",
+        "--gradient_accumulation_steps",
+        "2",
+        "--ema_decay",
+        "0.5",
+    ]
+    # 1. uninterrupted reference
+    reference = script.main(tiny_args(assets, tmp_path / "reference", *steps))
+    # 2. the same run, killed with SIGKILL once its first checkpoint exists
+    run = tmp_path / "killed"
+    process = subprocess.Popen(
+        [sys.executable, str(SCRIPT), *tiny_args(assets, run, *steps)],
+        env=subprocess_env(),
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
+    deadline = time.monotonic() + 120
+    while not (run / "checkpoint-2" / "run_state.json").is_file():
+        assert process.poll() is None and time.monotonic() < deadline, "run ended before its first checkpoint"
+        time.sleep(0.05)
+    process.send_signal(signal.SIGKILL)
+    process.wait()
+    assert not (run / "checkpoint-6").exists(), "the kill came too late to test a resume"
+    # 3. resume from the newest complete checkpoint and finish
+    script.main(tiny_args(assets, run, *steps, "--resume_from_checkpoint", "latest"))
+    expected, actual = read_weights(reference / "checkpoint-6"), read_weights(run / "checkpoint-6")
+    assert expected.keys() == actual.keys()
+    assert all(torch.equal(expected[k], actual[k]) for k in expected)
+
+
+@pytest.mark.slow
+def test_two_process_cpu_run_keeps_replicas_identical(assets, tmp_path) -> None:
+    out = tmp_path / "ddp"
+    with socket.socket() as probe:  # a free rendezvous port: 29500 may be taken by another run
+        probe.bind(("127.0.0.1", 0))
+        port = probe.getsockname()[1]
+    command = [
+        "accelerate",
+        "launch",
+        "--multi_gpu",
+        "--num_processes",
+        "2",
+        "--num_machines",
+        "1",
+        "--mixed_precision",
+        "no",
+        "--dynamo_backend",
+        "no",
+        "--main_process_port",
+        str(port),
+        str(SCRIPT),
+        *tiny_args(
+            assets,
+            out,
+            "--max_train_steps",
+            "2",
+            "--checkpointing_steps",
+            "2",
+            "--validation_steps",
+            "0",
+            "--no-save_pipeline",
+        ),
+    ]
+    env = {**subprocess_env(), "ACCELERATE_USE_CPU": "true"}
+    result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=180)
+    assert result.returncode == 0, result.stderr[-3000:]
+    state = json.loads((out / "train_state.json").read_text())
+    digests = state["replica_weight_digests"]
+    assert len(digests) == 2 and digests[0] == digests[1]
+    assert [p.name for p in out.glob("checkpoint-*")] == ["checkpoint-2"]
+    assert sorted(p.name for p in (out / "checkpoint-2").glob("random_states_*.pkl")) == [
+        "random_states_0.pkl",
+        "random_states_1.pkl",
+    ]
