@@ -74,10 +74,13 @@ def test_make_target_rejects_bad_input():
 
 
 def test_aspect_gain_broadside_flash():
-    # a face with normal at 90 deg (left side): full gain at 90, first null 3 deg away, none behind
+    # a face with normal at 90 deg (left side), lobe 3 deg: full gain at broadside, sinc on the
+    # main lobe, the 1 / (pi x) sidelobe envelope beyond (no nulls), nothing from behind
     scat = ScattererSet.build(np.zeros((1, 3)), 90.0, 0.0, 3.0, 90.0, 1.0, 0.0, 0)
-    gains = [aspect_gain(scat, az, 0.0)[0] for az in (90.0, 93.0, 91.5, 270.0)]
-    np.testing.assert_allclose(gains, [1.0, 0.0, np.sinc(0.5), 0.0], atol=1e-12)
+    gains = [aspect_gain(scat, az, 0.0)[0] for az in (90.0, 90.9, 91.5, 93.0, 120.0, 270.0)]
+    expected = [1.0, np.sinc(0.3), 2 / np.pi, 1 / np.pi, 1 / (10 * np.pi), 0.0]
+    np.testing.assert_allclose(gains, expected, atol=1e-12)
+    assert np.all(np.diff(gains[:5]) < 0)  # decreasing away from broadside
 
 
 # ---------------------------------------------------------------- imaging geometry
@@ -90,7 +93,7 @@ def test_psf_resolution_and_sidelobes():
     h = np.abs(np.exp(2j * np.pi * np.outer(d, psf.bins) / 256) @ psf.response) / 256
     assert h[0] == pytest.approx(1.0, abs=1e-9)  # unit scatterer -> unit peak
     width_m = 2 * d[np.argmax(h < 10 ** (-3 / 20))] * PIXEL_SPACING_M
-    assert width_m == pytest.approx(RESOLUTION_M, rel=0.03)
+    assert width_m == pytest.approx(1.18 * RESOLUTION_M, rel=0.02)  # Taylor-widened nominal resolution
     first_null = np.argmax(np.diff(h) > 0)
     assert 20 * np.log10(h[first_null:].max()) == pytest.approx(-35.0, abs=1.0)  # Taylor -35 dB
 
@@ -135,7 +138,8 @@ def test_shadow_length_of_a_box():
     y_hidden = grid.y[column]
     # hidden from the box's near face (y = -1 m) to h / tan(psi) behind its far face (y = +1 m)
     assert y_hidden.min() == pytest.approx(-1.0, abs=grid.dy)
-    assert y_hidden.max() == pytest.approx(1.0 + height / np.tan(np.deg2rad(dep)), abs=grid.dy)
+    # within two cells: the footprint's last cell and the shadow's last cell are both on the grid
+    assert y_hidden.max() == pytest.approx(1.0 + height / np.tan(np.deg2rad(dep)), abs=2 * grid.dy)
     assert column.sum() == pytest.approx((2.0 + height / np.tan(np.deg2rad(dep))) / grid.dy, abs=1.5)
     # nothing beside the box
     assert not shadow[:, : (size - 1) // 2 - 6].any()
@@ -163,7 +167,9 @@ def test_shadow_keeps_only_receiver_noise():
     # the solids of a tank without its scatterers: what remains in the shadow is receiver noise
     tank = make_target("TANK")
     solids_only = dataclasses.replace(tank, scatterers=tank.scatterers.subset(np.zeros(0, dtype=np.int64)))
-    scene = render_scene(solids_only, 0.0, 17.0, 128, np.random.default_rng(0), noise_db=-45.0)
+    scene = render_scene(
+        solids_only, 0.0, 17.0, 128, np.random.default_rng(0), clutter_db=-32.0, noise_db=-45.0
+    )
     power = np.abs(scene.image) ** 2
     inner = scene.shadow.copy()
     for axis in (0, 1):  # stay 3 pixels inside the shadow edge (PSF leakage)

@@ -27,7 +27,7 @@ INDEX_COLUMNS = (
     "height",
     "width",
 )
-_BASE_CLUTTER_DB = -32.0
+_BASE_CLUTTER_DB = -29.5
 
 
 def chip_generator(

@@ -63,7 +63,7 @@ def render_scene(
     *,
     pixel_spacing_m: float = PIXEL_SPACING_M,
     resolution_m: float = RESOLUTION_M,
-    clutter_db: float = -32.0,
+    clutter_db: float = -29.5,
     noise_db: float = -42.0,
 ) -> Scene:
     """Render the complex slant-plane image of a target on a clutter background.
@@ -80,7 +80,7 @@ def render_scene(
         size: Image size in pixels (square).
         generator: Source of the clutter and noise; None draws fresh entropy.
         pixel_spacing_m: Pixel spacing (m).
-        resolution_m: -3 dB resolution (m).
+        resolution_m: Nominal resolution, 1 / bandwidth (m); the -3 dB width is 1.18 x this.
         clutter_db: Mean clutter power per pixel relative to a unit scatterer's peak power (dB).
         noise_db: Mean receiver-noise power per pixel, same reference (dB).
 
@@ -179,7 +179,7 @@ def render_chip(
     calibration: float = CALIBRATION_AMPLITUDE,
     pixel_spacing_m: float = PIXEL_SPACING_M,
     resolution_m: float = RESOLUTION_M,
-    clutter_db: float = -32.0,
+    clutter_db: float = -29.5,
     noise_db: float = -42.0,
 ) -> np.ndarray:
     """Render a normalised magnitude chip of a target, centred, radar at the bottom.
@@ -196,7 +196,7 @@ def render_chip(
         normalization: ``"peak"`` (default, like MSTAR JPEGs) or ``"calibrated"``.
         calibration: Amplitude mapped to 1 for ``"calibrated"``.
         pixel_spacing_m: Pixel spacing (m).
-        resolution_m: -3 dB resolution (m).
+        resolution_m: Nominal resolution, 1 / bandwidth (m); the -3 dB width is 1.18 x this.
         clutter_db: Mean clutter power relative to a unit scatterer (dB).
         noise_db: Mean receiver-noise power relative to a unit scatterer (dB).
 

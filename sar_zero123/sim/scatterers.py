@@ -35,13 +35,14 @@ __all__ = [
     "FLASH_HALF_WIDTH_DEG",
     "ScattererSet",
     "aspect_gain",
+    "sinc_envelope",
     "primitive_scatterers",
     "detail_scatterers",
 ]
 
 DIHEDRAL, CURVED, EDGE, CORNER, SURFACE = 0, 1, 2, 3, 4
 
-# Half-width to the first null of the azimuth flash of a long face or barrel. A 0.3 m resolution
+# Lobe width (first null of the sinc) of the azimuth flash of a long face or barrel. A 0.3 m resolution
 # at X band (wavelength 3.1 cm) needs about lambda / (2 * 0.3 m) = 3 deg of synthetic aperture, and
 # the image of a face integrates its flash over that aperture.
 FLASH_HALF_WIDTH_DEG = 3.0
@@ -60,9 +61,9 @@ class ScattererSet:
         normal_az_deg: ``(N,)`` azimuth of the direction of strongest return, counter-clockwise
             from the vehicle's nose (deg).
         normal_el_deg: ``(N,)`` elevation of that direction above the horizon (deg).
-        lobe_az_deg: ``(N,)`` half-width to the first null of the azimuth lobe; ``inf`` for
-            isotropic scatterers.
-        lobe_el_deg: ``(N,)`` half-width to the first null of the elevation lobe.
+        lobe_az_deg: ``(N,)`` width of the azimuth lobe (the first null of its ``sinc``, see
+            :func:`aspect_gain`); ``inf`` for isotropic scatterers.
+        lobe_el_deg: ``(N,)`` width of the elevation lobe, likewise.
         amplitude: ``(N,)`` peak amplitude (linear, arbitrary but common units).
         phase: ``(N,)`` intrinsic phase (rad), added to the two-way propagation phase.
         kind: ``(N,)`` one of ``DIHEDRAL``, ``CURVED``, ``EDGE``, ``CORNER``, ``SURFACE``.
@@ -121,14 +122,26 @@ class ScattererSet:
         )
 
 
+def sinc_envelope(x: np.ndarray) -> np.ndarray:
+    """``|sinc(x)|`` on the main lobe (``|x| <= 1/2``), its sidelobe envelope ``1 / (pi |x|)`` beyond.
+
+    A flat face's return over aspect is ``sinc``-shaped, but the image integrates it over the
+    synthetic aperture (about one lobe width), which fills the nulls: what remains is the
+    envelope. Both pieces equal ``2 / pi`` at ``|x| = 1/2``, so the curve is continuous and
+    decreasing.
+    """
+    ax = np.abs(x)
+    return np.where(ax <= 0.5, np.abs(np.sinc(x)), 1.0 / (np.pi * np.maximum(ax, 0.5)))
+
+
 def aspect_gain(scatterers: ScattererSet, radar_az_deg: float, depression_deg: float) -> np.ndarray:
     """Amplitude factor of each scatterer seen from a radar at the given aspect.
 
-    ``gain = |sinc(d_az / lobe_az)| * |sinc(d_el / lobe_el)|``, with ``d_az`` the wrapped angle
-    between the radar's azimuth (in the vehicle frame) and the scatterer's normal, ``d_el`` the
-    angle between the radar's elevation (= depression) and the normal's elevation, and
-    ``sinc(x) = sin(pi x) / (pi x)``. Scatterers that face away (``|d_az| >= 90 deg``) return
-    nothing unless they are isotropic in azimuth.
+    ``gain = g(d_az / lobe_az) * g(d_el / lobe_el)`` with ``g`` = :func:`sinc_envelope`, ``d_az`` the
+    wrapped angle between the radar's azimuth (in the vehicle frame) and the scatterer's normal and
+    ``d_el`` the angle between the radar's elevation (= depression) and the normal's elevation.
+    Scatterers that face away (``|d_az| >= 90 deg``) return nothing unless they are isotropic in
+    azimuth (``lobe_az = inf``).
 
     Args:
         scatterers: Scattering centres in the vehicle frame.
@@ -143,8 +156,8 @@ def aspect_gain(scatterers: ScattererSet, radar_az_deg: float, depression_deg: f
     d_el = depression_deg - scatterers.normal_el_deg
     isotropic = ~np.isfinite(scatterers.lobe_az_deg)
     lobe_az = np.where(isotropic, 1.0, scatterers.lobe_az_deg)
-    g_az = np.where(isotropic, 1.0, np.abs(np.sinc(d_az / lobe_az)) * (np.abs(d_az) < 90.0))
-    return g_az * np.abs(np.sinc(d_el / scatterers.lobe_el_deg))
+    g_az = np.where(isotropic, 1.0, sinc_envelope(d_az / lobe_az) * (np.abs(d_az) < 90.0))
+    return g_az * sinc_envelope(d_el / scatterers.lobe_el_deg)
 
 
 def _line(start: np.ndarray, end: np.ndarray, spacing: float) -> np.ndarray:
@@ -159,7 +172,7 @@ def _rotate(s: np.ndarray, t: np.ndarray, yaw_deg: float) -> tuple[np.ndarray, n
 
 
 def _top_surface(
-    area: float, sample: np.ndarray, rng: np.random.Generator, amplitude: float = 0.22
+    area: float, sample: np.ndarray, rng: np.random.Generator, amplitude: float = 0.3
 ) -> ScattererSet:
     """Diffuse points: ``sample`` holds candidate (n, 3) positions drawn uniformly on the surface."""
     n = int(rng.poisson(_SURFACE_DENSITY_PER_M2 * area))
