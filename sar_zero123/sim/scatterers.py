@@ -172,7 +172,7 @@ def _rotate(s: np.ndarray, t: np.ndarray, yaw_deg: float) -> tuple[np.ndarray, n
 
 
 def _top_surface(
-    area: float, sample: np.ndarray, rng: np.random.Generator, amplitude: float = 0.3
+    area: float, sample: np.ndarray, rng: np.random.Generator, amplitude: float = 0.17
 ) -> ScattererSet:
     """Diffuse points: ``sample`` holds candidate (n, 3) positions drawn uniformly on the surface."""
     n = int(rng.poisson(_SURFACE_DENSITY_PER_M2 * area))
