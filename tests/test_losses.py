@@ -12,6 +12,7 @@ from diffusers import AutoencoderKL, DDPMScheduler
 from torch import nn
 
 from sar_zero123.losses import (
+    DEFAULT_PFM_MIN_SNR,
     MIN_ALPHA_CUMPROD,
     append_dims,
     denoising_loss,
@@ -136,6 +137,15 @@ def test_denoising_loss_per_sample() -> None:
         denoising_loss(output, target[:1])
 
 
+def test_default_threshold_keeps_the_paper_schedule_and_caps_the_others() -> None:
+    every_t = torch.arange(1000)
+    kept = {name: int(pfm_timestep_mask(every_t, scheduler_for(name)).sum()) for name in SCHEDULES}
+    assert kept == {"scaled_linear": 1000, "linear": 738, "squaredcos_cap_v2": 959, "zero_snr": 888}
+    for name in SCHEDULES:
+        snr = signal_to_noise_ratio(scheduler_for(name), every_t)
+        assert (1 / snr[snr >= DEFAULT_PFM_MIN_SNR].sqrt()).max() <= 1 / math.sqrt(DEFAULT_PFM_MIN_SNR)
+
+
 def test_snr_and_mask() -> None:
     scheduler = scheduler_for("scaled_linear")
     snr = signal_to_noise_ratio(scheduler, HARD_TIMESTEPS)
@@ -231,8 +241,8 @@ def test_total_loss_fraction_and_mask(vae, encoder) -> None:
     x_t = torch.randn(4, 4, 16, 16, generator=generator)
     output = torch.randn(4, 4, 16, 16, generator=generator)
     images = torch.rand(4, 1, 32, 32, generator=generator)
-    timesteps = torch.tensor([10, 200, 400, 999])  # the last is below the default SNR threshold
-    kwargs = dict(pfm_weight=4.0, target_images=images, vae=vae, encoder=encoder)
+    timesteps = torch.tensor([10, 200, 400, 999])  # the last is below SNR 0.05
+    kwargs = dict(pfm_weight=4.0, target_images=images, vae=vae, encoder=encoder, pfm_min_snr=0.05)
     full = total_loss(output, output, x_t, timesteps, scheduler, **kwargs)
     assert full.pfm_mask.tolist() == [True, True, True, False]
     x0 = estimate_x0(x_t[:3], output[:3], timesteps[:3], scheduler)
