@@ -351,6 +351,12 @@ def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_pap
             n = values.get("n")
             cells = " | ".join(_format(m, values.get(m)) for m in METRICS)
             lines.append(f"| {method} | {group} | {cells} | {'' if n is None else int(n)} |")
+    lines.append("")
+    lines.append(
+        "MS-SSIM: `sar_zero123.metrics.ms_ssim` (3 scales, weights (0.0448, 0.3001, 0.1333), 7x7 Gaussian, "
+        "sigma 1.0, data range 1, centre crop); Kuan+SSIM: 7x7 Kuan filter (Cu 0.25) then SSIM with the same "
+        "window; SFD: Frechet distance of the azimuth regressor's pooled features at the n shown."
+    )
     return "\n".join(lines) + "\n"
 
 

@@ -51,6 +51,7 @@ class Preset:
     azimuth_step_deg: float  # azimuth grid of the simulator
     model_size: str  # build_sar_zero123 size fine-tuned from scratch
     image_size: int  # chip side in pixels
+    encoder_cifar_stem: bool  # 3x3 stride-1 stem (reference) or the 4x-downsampling ImageNet stem (faster)
     encoder_depths: tuple[int, ...]  # ResNet blocks per stage (SimCLR encoder and evaluators)
     encoder_widths: tuple[int, ...]  # ResNet stage widths
     simclr_steps: int  # SimCLR optimisation steps
@@ -75,20 +76,21 @@ PRESETS: dict[str, Preset] = {
         azimuth_step_deg=5.0,
         model_size="small",
         image_size=64,
+        encoder_cifar_stem=False,
         encoder_depths=(1, 1, 1, 1),
         encoder_widths=(16, 32, 64, 128),
         simclr_steps=150,
         simclr_batch_size=64,
-        vae_steps=200,
+        vae_steps=150,
         vae_batch_size=16,
-        finetune_steps=400,
+        finetune_steps=150,
         finetune_batch_size=8,
         finetune_learning_rate=3e-4,
         evaluator_epochs=8,
-        eval_n=48,
+        eval_n=32,
         eval_steps=20,
         speed_steps=(5, 10, 20),
-        speed_n=8,
+        speed_n=6,
         schedulers=("ddim", "dpmsolver++", "euler"),
     ),
     "smoke": Preset(
@@ -97,6 +99,7 @@ PRESETS: dict[str, Preset] = {
         azimuth_step_deg=60.0,
         model_size="tiny",
         image_size=32,
+        encoder_cifar_stem=True,
         encoder_depths=(1, 1),
         encoder_widths=(8, 16),
         simclr_steps=2,
@@ -195,7 +198,11 @@ def main(argv: Sequence[str] | None = None) -> Path:
     protocol = f"ood-{held_out}"
     data = out / "data"
     common = {"data": str(data), "seed": config.seed, "image_size": preset.image_size}
-    encoder_shape = {"depths": preset.encoder_depths, "hidden_sizes": preset.encoder_widths}
+    encoder_shape = {
+        "cifar_stem": preset.encoder_cifar_stem,
+        "depths": preset.encoder_depths,
+        "hidden_sizes": preset.encoder_widths,
+    }
 
     # 1. simulated dataset (15 and 17 deg, as MSTAR)
     run_stage(
