@@ -378,3 +378,18 @@ def test_cli_writes_folder_and_contact_sheet(tmp_path, capsys):
     assert len(_read_index(out)) == 2 * 3
     assert (out / "contact_sheet.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     assert "wrote 6 chips" in capsys.readouterr().out
+
+
+@pytest.mark.shared_data
+def test_contact_sheet_with_real_chips(tmp_path, mstar_root):
+    from sar_zero123.sim.contact_sheet import _real_chips, contact_sheet
+
+    rows = _real_chips(mstar_root, ["T62", "NOSUCHCLASS"], (0.0, 90.0), 17.0, 128)
+    assert [name for name, _ in rows] == ["T62"]  # absent classes are left out
+    (az0, chip0), (az90, chip90) = rows[0][1]
+    assert min(az0, 360.0 - az0) < 2.0 and abs(az90 - 90.0) < 2.0  # nearest azimuths
+    assert chip0.shape == (128, 128) and chip0.max() <= 1.0
+    png = contact_sheet(
+        tmp_path / "sheet.png", ["TANK"], (0.0, 90.0), real_root=mstar_root, real_classes=["T62"]
+    )
+    assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

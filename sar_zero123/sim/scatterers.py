@@ -32,7 +32,7 @@ __all__ = [
     "EDGE",
     "CORNER",
     "SURFACE",
-    "FLASH_HALF_WIDTH_DEG",
+    "FLASH_LOBE_DEG",
     "ScattererSet",
     "aspect_gain",
     "sinc_envelope",
@@ -45,7 +45,7 @@ DIHEDRAL, CURVED, EDGE, CORNER, SURFACE = 0, 1, 2, 3, 4
 # Lobe width (first null of the sinc) of the azimuth flash of a long face or barrel. A 0.3 m resolution
 # at X band (wavelength 3.1 cm) needs about lambda / (2 * 0.3 m) = 3 deg of synthetic aperture, and
 # the image of a face integrates its flash over that aperture.
-FLASH_HALF_WIDTH_DEG = 3.0
+FLASH_LOBE_DEG = 3.0
 _POINT_SPACING_M = 0.25  # face and barrel sampling, below the 0.3 m resolution
 _EDGE_SPACING_M = 0.5
 _SURFACE_DENSITY_PER_M2 = 20.0
@@ -210,7 +210,7 @@ def _box_scatterers(box: Box, rng: np.random.Generator) -> ScattererSet:
         base = np.stack([u, v, np.full_like(u, fold_z)], axis=1)
         sets.append(
             ScattererSet.build(
-                base, normal + box.yaw_deg, 0.0, FLASH_HALF_WIDTH_DEG, 90.0, min(face_h, 1.5), 0.0, DIHEDRAL
+                base, normal + box.yaw_deg, 0.0, FLASH_LOBE_DEG, 90.0, min(face_h, 1.5), 0.0, DIHEDRAL
             )
         )
         # 1b. diffraction from the top edge of the face
@@ -284,12 +284,8 @@ def _horizontal_cylinder_scatterers(cyl: HorizontalCylinder, rng: np.random.Gene
     ends = np.stack([center + axis * cyl.length / 2, center - axis * cyl.length / 2])
     return ScattererSet.concat(
         [
-            ScattererSet.build(
-                line, cyl.yaw_deg + 90.0, 0.0, FLASH_HALF_WIDTH_DEG, 90.0, strength, 0.0, CURVED
-            ),
-            ScattererSet.build(
-                line, cyl.yaw_deg - 90.0, 0.0, FLASH_HALF_WIDTH_DEG, 90.0, strength, 0.0, CURVED
-            ),
+            ScattererSet.build(line, cyl.yaw_deg + 90.0, 0.0, FLASH_LOBE_DEG, 90.0, strength, 0.0, CURVED),
+            ScattererSet.build(line, cyl.yaw_deg - 90.0, 0.0, FLASH_LOBE_DEG, 90.0, strength, 0.0, CURVED),
             ScattererSet.build(
                 ends,
                 np.array([cyl.yaw_deg, cyl.yaw_deg + 180.0]),
