@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import multiprocessing
 import os
 import signal
 import socket
@@ -247,21 +248,25 @@ def test_sigkill_then_resume_latest_is_bitwise_identical(script, assets, tmp_pat
     ]
     # 1. uninterrupted reference
     reference = script.main(tiny_args(assets, tmp_path / "reference", *steps))
-    # 2. the same run, killed with SIGKILL once its first checkpoint exists
+    # 2. the same run in a forked child (no second interpreter start-up), SIGKILLed once its first
+    #    checkpoint exists
     run = tmp_path / "killed"
-    process = subprocess.Popen(
-        [sys.executable, str(SCRIPT), *tiny_args(assets, run, *steps)],
-        env=subprocess_env(),
-        stdout=subprocess.DEVNULL,
-        stderr=subprocess.DEVNULL,
+    AcceleratorState._reset_state(True)
+    GradientState._reset_state()
+    process = multiprocessing.get_context("fork").Process(
+        target=script.main, args=(tiny_args(assets, run, *steps),)
     )
+    process.start()
     deadline = time.monotonic() + 120
     while not (run / "checkpoint-2" / "run_state.json").is_file():
-        assert process.poll() is None and time.monotonic() < deadline, "run ended before its first checkpoint"
-        time.sleep(0.05)
-    process.send_signal(signal.SIGKILL)
-    process.wait()
+        assert process.is_alive() and time.monotonic() < deadline, "run ended before its first checkpoint"
+        time.sleep(0.02)
+    os.kill(process.pid, signal.SIGKILL)
+    process.join()
+    assert process.exitcode == -signal.SIGKILL
     assert not (run / "checkpoint-6").exists(), "the kill came too late to test a resume"
+    AcceleratorState._reset_state(True)
+    GradientState._reset_state()
     # 3. resume from the newest complete checkpoint and finish
     script.main(tiny_args(assets, run, *steps, "--resume_from_checkpoint", "latest"))
     expected, actual = read_weights(reference / "checkpoint-6"), read_weights(run / "checkpoint-6")
