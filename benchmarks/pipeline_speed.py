@@ -20,6 +20,8 @@ import math
 import os
 import platform
 import resource
+import statistics
+import sys
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -48,7 +50,7 @@ class BenchmarkConfig:
     schedulers: list[str] = field(default_factory=lambda: ["ddim", "dpmsolver++", "euler"])  # samplers
     steps: list[int] = field(default_factory=lambda: [10, 25, 50])  # num_inference_steps values
     batch_size: int = 1  # input chips per call
-    repeats: int = 1  # timed calls per setting (after one warm-up call)
+    repeats: int = 3  # timed calls per setting (after one warm-up call); the median is reported
     guidance_scale: float = 3.0  # classifier-free guidance weight
     device: str = "cpu"  # torch device
     dtype: Literal["float32", "float16", "bfloat16"] = "float32"  # pipeline dtype (reference stays fp32)
@@ -92,16 +94,30 @@ def _synchronize(device: torch.device) -> None:
         torch.cuda.synchronize(device)
 
 
-def _time_calls(function, device: torch.device, repeats: int) -> tuple[float, float]:
-    """Mean seconds per call and peak memory (MiB) over ``repeats`` calls after one warm-up call."""
+def _time_call(function, device: torch.device) -> float:
+    _synchronize(device)
+    start = time.perf_counter()
     function()
     _synchronize(device)
-    _reset_peak_memory(device)
-    start = time.perf_counter()
-    for _ in range(repeats):
+    return time.perf_counter() - start
+
+
+def _time_calls(functions: Sequence, device: torch.device, repeats: int) -> list[tuple[float, float]]:
+    """Median seconds per call and peak memory (MiB) of each function, after one warm-up call each.
+
+    The functions are timed in turn within each repeat, so load from other processes on a shared
+    machine affects them alike, and the median discards the worst disturbances.
+    """
+    for function in functions:
         function()
-    _synchronize(device)
-    return (time.perf_counter() - start) / repeats, _peak_memory_mib(device)
+    seconds: list[list[float]] = [[] for _ in functions]
+    peaks = [0.0 for _ in functions]
+    for _ in range(repeats):
+        for index, function in enumerate(functions):
+            _reset_peak_memory(device)
+            seconds[index].append(_time_call(function, device))
+            peaks[index] = max(peaks[index], _peak_memory_mib(device))
+    return [(statistics.median(times), peak) for times, peak in zip(seconds, peaks)]
 
 
 # ---------------------------------------------------------------------------- reference sampler
@@ -173,8 +189,8 @@ def benchmark_size(config: BenchmarkConfig, size: str) -> dict:
             return pipe(images, 30.0, 0.0, num_inference_steps=50, guidance_scale=config.guidance_scale,
                         latents=noise, output_type="pt").images
 
-        reference_seconds, reference_memory = _time_calls(reference_call, device, config.repeats)
-        pipeline_seconds, _ = _time_calls(pipeline_call, device, config.repeats)
+        timings = _time_calls([reference_call, pipeline_call], device, config.repeats)
+        (reference_seconds, reference_memory), (pipeline_seconds, _) = timings
         result["reference_fp32_ddim50"] = {
             "seconds_per_call": reference_seconds,
             "images_per_second": config.batch_size / reference_seconds,
@@ -194,7 +210,7 @@ def benchmark_size(config: BenchmarkConfig, size: str) -> dict:
                 pipe(images, 30.0, 0.0, num_inference_steps=steps, guidance_scale=config.guidance_scale,
                      generator=torch.Generator().manual_seed(config.seed), output_type="pt")
 
-            seconds, memory = _time_calls(call, device, config.repeats)
+            [(seconds, memory)] = _time_calls([call], device, config.repeats)
             run = {"scheduler": scheduler_name, "num_inference_steps": steps, "seconds_per_call": seconds,
                    "images_per_second": config.batch_size / seconds, "peak_memory_mib": memory}
             if config.reference and scheduler_name == "ddim" and steps == 50:
@@ -209,11 +225,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
     """Run the benchmark and write its JSON."""
     config = parse_config(BenchmarkConfig, argv)
     device = torch.device(config.device)
+    arguments = sys.argv[1:] if argv is None else list(argv)
     report = {
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "command": "python benchmarks/pipeline_speed.py " + " ".join(argv or []),
+        "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "command": " ".join(["python benchmarks/pipeline_speed.py", *arguments]),
         "device": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.machine(),
         "cpu_threads": torch.get_num_threads(),
+        "cpu_count": os.cpu_count(),
+        "load_average_at_start": os.getloadavg(),
         "torch": torch.__version__,
         "dtype": config.dtype,
         "batch_size": config.batch_size,
