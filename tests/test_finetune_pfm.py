@@ -308,8 +308,17 @@ def test_two_process_cpu_run_keeps_replicas_identical(assets, tmp_path) -> None:
         ),
     ]
     env = {**subprocess_env(), "ACCELERATE_USE_CPU": "true"}
-    result = subprocess.run(command, env=env, capture_output=True, text=True, timeout=180)
-    assert result.returncode == 0, result.stderr[-3000:]
+    # own session, so that a timeout ends the launcher and both ranks, not the launcher alone
+    process = subprocess.Popen(
+        command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
+    )
+    try:
+        _, stderr = process.communicate(timeout=180)
+    except subprocess.TimeoutExpired:
+        os.killpg(process.pid, signal.SIGKILL)
+        process.communicate()
+        raise
+    assert process.returncode == 0, stderr[-3000:]
     state = json.loads((out / "train_state.json").read_text())
     digests = state["replica_weight_digests"]
     assert len(digests) == 2 and digests[0] == digests[1]
