@@ -344,6 +344,8 @@ def test_simulate_dataset_interrupted_leaves_no_index(tmp_path, monkeypatch):
         ({"size": 8}, "size"),
         ({"seed": -1}, "seed"),
         ({"azimuth_jitter_deg": 6.0, "azimuth_step_deg": 5.0}, "azimuth_jitter_deg"),
+        ({"normalization": "max"}, "normalization"),
+        ({"clutter_db_spread": -1.0}, "clutter_db_spread"),
     ],
 )
 def test_simulate_dataset_rejects_bad_arguments(tmp_path, kwargs, field):

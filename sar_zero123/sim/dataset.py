@@ -12,7 +12,7 @@ from typing import Literal
 
 import numpy as np
 
-from sar_zero123.sim.render import CALIBRATION_AMPLITUDE, render_chip
+from sar_zero123.sim.render import CALIBRATION_AMPLITUDE, CLUTTER_DB, render_chip
 from sar_zero123.sim.targets import TARGET_CLASSES, make_target
 
 __all__ = ["INDEX_COLUMNS", "chip_generator", "simulate_dataset"]
@@ -27,7 +27,6 @@ INDEX_COLUMNS = (
     "height",
     "width",
 )
-_BASE_CLUTTER_DB = -29.5
 
 
 def chip_generator(
@@ -63,6 +62,8 @@ def _check(
     size: int,
     seed: int,
     azimuth_jitter_deg: float,
+    normalization: str,
+    clutter_db_spread: float,
 ) -> None:
     unknown = [c for c in classes if c not in TARGET_CLASSES]
     if not classes or unknown:
@@ -139,7 +140,17 @@ def simulate_dataset(
     # 1. check inputs
     classes = list(TARGET_CLASSES) if classes is None else [str(c).upper() for c in classes]
     depressions = [float(d) for d in depressions_deg]
-    _check(classes, instances, azimuth_step_deg, depressions, size, seed, azimuth_jitter_deg)
+    _check(
+        classes,
+        instances,
+        azimuth_step_deg,
+        depressions,
+        size,
+        seed,
+        azimuth_jitter_deg,
+        normalization,
+        clutter_db_spread,
+    )
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     index_path = out / "index.csv"
@@ -161,7 +172,7 @@ def simulate_dataset(
                         azimuth += rng.uniform(-azimuth_jitter_deg / 2, azimuth_jitter_deg / 2)
                     # the index stores 4 decimals; render exactly the azimuth it lists
                     azimuth = round(azimuth % 360.0, 4) % 360.0
-                    clutter_db = _BASE_CLUTTER_DB + rng.uniform(-clutter_db_spread, clutter_db_spread)
+                    clutter_db = CLUTTER_DB + rng.uniform(-clutter_db_spread, clutter_db_spread)
                     chip = render_chip(
                         target,
                         azimuth,

@@ -18,13 +18,26 @@ from sar_zero123.sim.imaging import (
 from sar_zero123.sim.scatterers import aspect_gain
 from sar_zero123.sim.targets import Target
 
-__all__ = ["CALIBRATION_AMPLITUDE", "Scene", "render_scene", "render_chip", "normalize_magnitude"]
+__all__ = [
+    "CALIBRATION_AMPLITUDE",
+    "CLUTTER_DB",
+    "NOISE_DB",
+    "Scene",
+    "render_scene",
+    "render_chip",
+    "normalize_magnitude",
+]
 
 # Fixed calibration for normalization="calibrated": the amplitude mapped to 1 (a unit scatterer
 # images to 1/4). Over the default dataset (8 classes x 2 instances x 2 depressions x 72 azimuths,
 # default clutter) chip peaks range 0.49-4.56 (median 1.21, 99th percentile 3.28); with 4.0, 0.17%
 # of the chips (broadside flashes) have a clipped pixel and 6e-7 of all pixels clip.
 CALIBRATION_AMPLITUDE = 4.0
+# Clutter and receiver-noise power per pixel relative to a unit scatterer's peak power (dB). With
+# these, peak-normalised chips have the median level of the MSTAR chips (docs/results/sim.md) and
+# shadows sit about 12 dB below the clutter.
+CLUTTER_DB = -29.5
+NOISE_DB = -42.0
 _MIN_GAIN = 1e-4  # scatterers weaker than this (relative to their peak) are skipped
 
 
@@ -63,8 +76,8 @@ def render_scene(
     *,
     pixel_spacing_m: float = PIXEL_SPACING_M,
     resolution_m: float = RESOLUTION_M,
-    clutter_db: float = -29.5,
-    noise_db: float = -42.0,
+    clutter_db: float = CLUTTER_DB,
+    noise_db: float = NOISE_DB,
 ) -> Scene:
     """Render the complex slant-plane image of a target on a clutter background.
 
@@ -179,8 +192,8 @@ def render_chip(
     calibration: float = CALIBRATION_AMPLITUDE,
     pixel_spacing_m: float = PIXEL_SPACING_M,
     resolution_m: float = RESOLUTION_M,
-    clutter_db: float = -29.5,
-    noise_db: float = -42.0,
+    clutter_db: float = CLUTTER_DB,
+    noise_db: float = NOISE_DB,
 ) -> np.ndarray:
     """Render a normalised magnitude chip of a target, centred, radar at the bottom.
 
