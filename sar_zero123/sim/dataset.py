@@ -84,6 +84,10 @@ def _check(
         raise ValueError(
             f"azimuth_jitter_deg: expected a value in [0, azimuth_step_deg), got {azimuth_jitter_deg!r}"
         )
+    if normalization not in ("peak", "calibrated"):
+        raise ValueError(f"normalization: expected 'peak' or 'calibrated', got {normalization!r}")
+    if not 0.0 <= clutter_db_spread < 20.0:
+        raise ValueError(f"clutter_db_spread: expected a value in [0, 20) dB, got {clutter_db_spread!r}")
 
 
 def _format_deg(value: float) -> str:
