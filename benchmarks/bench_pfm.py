@@ -5,9 +5,12 @@ Two measurements, JSON on stdout (and in ``--out``):
 ``--mode step``: one fine-tuning step (``finetune_pfm.compute_losses`` + backward + AdamW) of a named
 model size on one fixed batch, for lambda = 0 and for lambda = 4 with each way of making PFM cheaper
 (centre crop, fraction of the batch, bf16 frozen decoder/encoder, channels_last, decoder gradient
-checkpointing). Each variant runs in its own process so that its peak resident memory
-(``ru_maxrss`` after the steps minus before the first step) is its own; the time is the median over
-``--steps`` steps after ``--warmup``. Also reports what the crop costs: cosine similarity between the
+checkpointing). Times: median over ``--steps`` rounds (after ``--warmup``) in which every variant runs
+one step, round-robin in one process, so that a shared machine's load affects all variants alike.
+Memory: each variant again alone in its own process: the kernel's peak-RSS mark is reset after the
+models are built, and the peak over two steps minus the resident memory before them is the training
+footprint (activations, gradients, AdamW state, allocator caches). Also reports what the crop costs:
+cosine similarity between the
 PFM gradient w.r.t. the network output with and without the crop, and how far a decoded latent window
 is from the centre of the full decode.
 
@@ -23,6 +26,7 @@ two different real chips), and the norm of the PFM gradient w.r.t. the network o
 from __future__ import annotations
 
 import argparse
+import copy
 import importlib.util
 import json
 import platform
@@ -77,8 +81,28 @@ def load_finetune_script():
     return module
 
 
-def max_rss_mib() -> float:
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
+def _status_mib(field: str) -> float:
+    for line in Path("/proc/self/status").read_text().splitlines():
+        if line.startswith(field + ":"):
+            return int(line.split()[1]) / 1024.0  # kB
+    raise KeyError(field)
+
+
+def reset_peak_rss() -> bool:
+    """Reset the kernel's peak-RSS mark (VmHWM) of this process; False where that is not possible."""
+    try:
+        Path("/proc/self/clear_refs").write_text("5")
+        return True
+    except OSError:
+        return False
+
+
+def peak_rss_mib() -> float:
+    """Peak resident memory since the last :func:`reset_peak_rss` (or since start), MiB."""
+    try:
+        return _status_mib("VmHWM")
+    except (OSError, KeyError):
+        return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0  # Linux: KiB
 
 
 def build_step_setup(size: str, batch_size: int, seed: int = 0):
@@ -99,16 +123,12 @@ def build_step_setup(size: str, batch_size: int, seed: int = 0):
     return pipe, encoder, batch, image_size
 
 
-def run_variant(name: str, size: str, batch_size: int, steps: int, warmup: int) -> dict:
-    """Time ``steps`` training steps of one variant in this process."""
-    from diffusers import DDPMScheduler
-
-    script = load_finetune_script()
+def prepare_variant(name: str, script, pipe, encoder, image_size: int) -> dict:
+    """The config and own copies of the frozen modules (dtype, memory format, checkpointing) of a variant."""
     options = dict(VARIANTS[name])
     frozen_dtype = torch.bfloat16 if options.pop("frozen_dtype", None) == "bf16" else torch.float32
     channels_last = options.pop("channels_last", False)
     checkpoint_decoder = options.pop("checkpoint_decoder", False)
-    pipe, encoder, batch, image_size = build_step_setup(size, batch_size)
     if options.get("pfm_crop_size") == "half":
         options["pfm_crop_size"] = image_size // 2
     config = script.FinetuneConfig(
@@ -119,45 +139,85 @@ def run_variant(name: str, size: str, batch_size: int, steps: int, warmup: int) 
         drop_latent_prob=0.0,
         **{"pfm_weight": 4.0, **options},
     )
-    vae = pipe.vae.to(frozen_dtype).eval().requires_grad_(False)
-    encoder = encoder.to(frozen_dtype)
-    image_encoder = pipe.image_encoder.to(frozen_dtype).eval().requires_grad_(False)
+    vae = copy.deepcopy(pipe.vae).to(frozen_dtype).eval().requires_grad_(False)
+    variant_encoder = copy.deepcopy(encoder).to(frozen_dtype)
     if channels_last:
         vae.to(memory_format=torch.channels_last)
-        encoder.to(memory_format=torch.channels_last)
+        variant_encoder.to(memory_format=torch.channels_last)
     if checkpoint_decoder:
         vae.enable_gradient_checkpointing()
+    image_encoder = copy.deepcopy(pipe.image_encoder).to(frozen_dtype).eval().requires_grad_(False)
+    return {
+        "config": config,
+        "vae": vae,
+        "image_encoder": image_encoder,
+        "encoder": variant_encoder if config.pfm_weight > 0 else None,
+    }
+
+
+def train_step(script, batch: dict, trainer: dict, prepared: dict, seed: int):
+    """One compute_losses + backward + AdamW step; returns (seconds, losses)."""
+    start = time.perf_counter()
+    losses = script.compute_losses(
+        batch,
+        unet=trainer["unet"],
+        pose_projection=trainer["projection"],
+        noise_scheduler=trainer["noise_scheduler"],
+        generator=torch.Generator().manual_seed(seed),
+        **prepared,
+    )
+    losses.loss.mean().backward()
+    trainer["optimizer"].step()
+    trainer["optimizer"].zero_grad(set_to_none=True)
+    return time.perf_counter() - start, losses
+
+
+def build_trainer(pipe) -> dict:
+    from diffusers import DDPMScheduler
+
     unet, projection = pipe.unet.train(), pipe.pose_projection.train()
-    optimizer = torch.optim.AdamW(list(unet.parameters()) + list(projection.parameters()), lr=1e-4)
-    noise_scheduler = DDPMScheduler.from_config(pipe.scheduler.config)
-    rss_before = max_rss_mib()
-    times = []
-    for step in range(warmup + steps):
-        start = time.perf_counter()
-        losses = script.compute_losses(
-            batch,
-            unet=unet,
-            pose_projection=projection,
-            vae=vae,
-            image_encoder=image_encoder,
-            encoder=encoder if config.pfm_weight > 0 else None,
-            noise_scheduler=noise_scheduler,
-            config=config,
-            generator=torch.Generator().manual_seed(step),
-        )
-        losses.loss.mean().backward()
-        optimizer.step()
-        optimizer.zero_grad(set_to_none=True)
-        if step >= warmup:
-            times.append(time.perf_counter() - start)
+    return {
+        "unet": unet,
+        "projection": projection,
+        "optimizer": torch.optim.AdamW(list(unet.parameters()) + list(projection.parameters()), lr=1e-4),
+        "noise_scheduler": DDPMScheduler.from_config(pipe.scheduler.config),
+    }
+
+
+def run_variant(name: str, size: str, batch_size: int, steps: int, warmup: int) -> dict:
+    """Peak memory (and times) of one variant alone in this process."""
+    script = load_finetune_script()
+    pipe, encoder, batch, image_size = build_step_setup(size, batch_size)
+    prepared = prepare_variant(name, script, pipe, encoder, image_size)
+    trainer = build_trainer(pipe)
+    rss_before = _status_mib("VmRSS")
+    reset_ok = reset_peak_rss()
+    times = [train_step(script, batch, trainer, prepared, seed)[0] for seed in range(warmup + steps)]
     return {
         "variant": name,
-        "median_step_s": statistics.median(times),
-        "min_step_s": min(times),
-        "step_times_s": times,
-        "peak_rss_increase_mib": max_rss_mib() - rss_before,
-        "pfm_samples_per_step": int(losses.pfm_mask.sum()),
+        "step_times_s": times[warmup:],
+        "peak_rss_increase_mib": peak_rss_mib() - rss_before,
+        "peak_reset": reset_ok,
     }
+
+
+def interleaved_timing(names: list[str], size: str, batch_size: int, rounds: int, warmup: int) -> dict:
+    """Median step time of every variant, measured round-robin in one process (rotating the order each
+    round) so that the load of a shared machine drifts over all variants alike."""
+    script = load_finetune_script()
+    pipe, encoder, batch, image_size = build_step_setup(size, batch_size)
+    prepared = {name: prepare_variant(name, script, pipe, encoder, image_size) for name in names}
+    trainer = build_trainer(pipe)
+    times: dict[str, list[float]] = {name: [] for name in names}
+    samples: dict[str, int] = {}
+    for round_index in range(warmup + rounds):
+        shift = round_index % len(names)
+        for name in names[shift:] + names[:shift]:
+            seconds, losses = train_step(script, batch, trainer, prepared[name], seed=round_index)
+            samples[name] = int(losses.pfm_mask.sum())
+            if round_index >= warmup:
+                times[name].append(seconds)
+    return {name: {"step_times_s": times[name], "pfm_samples_per_step": samples[name]} for name in names}
 
 
 def real_chips(data: str, image_size: int, num_images: int) -> torch.Tensor:
@@ -214,34 +274,34 @@ def crop_quality(size: str, batch_size: int, vae_path: str | None = None, data: 
 
 
 def step_mode(args: argparse.Namespace) -> dict:
+    names = args.variants or list(VARIANTS)
+    timing = interleaved_timing(names, args.size, args.batch_size, args.steps, args.warmup)
     results = []
-    for name in args.variants or list(VARIANTS):
-        command = [
-            sys.executable,
-            __file__,
-            "--mode",
-            "variant",
-            "--variant",
-            name,
-            "--size",
-            args.size,
-            "--batch_size",
-            str(args.batch_size),
-            "--steps",
-            str(args.steps),
-            "--warmup",
-            str(args.warmup),
-        ]
-        output = subprocess.run(command, check=True, capture_output=True, text=True).stdout
-        results.append(json.loads(output.strip().splitlines()[-1]))
+    for name in names:
+        command = [sys.executable, __file__, "--mode", "variant", "--variant", name, "--size", args.size,
+                   "--batch_size", str(args.batch_size), "--steps", "1", "--warmup", "1"]  # fmt: skip
+        memory = json.loads(
+            subprocess.run(command, check=True, capture_output=True, text=True).stdout.splitlines()[-1]
+        )
+        times = timing[name]["step_times_s"]
+        results.append({
+            "variant": name,
+            "options": VARIANTS[name],
+            "median_step_s": statistics.median(times),
+            "step_times_s": times,
+            "pfm_samples_per_step": timing[name]["pfm_samples_per_step"],
+            "peak_rss_increase_mib": memory["peak_rss_increase_mib"],
+        })  # fmt: skip
         print(f"{name}: {results[-1]['median_step_s']:.3f} s", file=sys.stderr)
     base = next(r for r in results if r["variant"] == "lambda0")
     for result in results:
         result["time_ratio_vs_lambda0"] = result["median_step_s"] / base["median_step_s"]
+        result["memory_ratio_vs_lambda0"] = result["peak_rss_increase_mib"] / base["peak_rss_increase_mib"]
     return {
         "mode": "step",
         "size": args.size,
         "batch_size": args.batch_size,
+        "rounds": args.steps,
         "variants": results,
         "crop_quality": crop_quality(args.size, args.batch_size, args.vae, args.data),
     }
