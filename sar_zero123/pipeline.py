@@ -16,6 +16,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
 
+import diffusers
 import numpy as np
 import PIL.Image
 import torch
@@ -469,6 +470,15 @@ def _broadcast_pose(
 def _to_pil(array: np.ndarray) -> list[PIL.Image.Image]:
     """(N, H, W, 1) float in [0, 1] -> list of 8-bit single-channel PIL images."""
     return [PIL.Image.fromarray((a[..., 0] * 255.0).round().astype(np.uint8), mode="L") for a in array]
+
+
+# diffusers resolves the `_class_name` of model_index.json inside its own namespace
+# (`_get_pipeline_class` in diffusers 0.42), so a saved SAR pipeline would only load through
+# `SARZero123Pipeline.from_pretrained`. Registering the class there lets the generic
+# `DiffusionPipeline.from_pretrained(folder)` load it too, once `sar_zero123` is imported, without
+# `trust_remote_code` or code copied into the folder.
+if getattr(diffusers, SARZero123Pipeline.__name__, None) is None:
+    setattr(diffusers, SARZero123Pipeline.__name__, SARZero123Pipeline)
 
 
 # ------------------------------------------------------------------------------------- factory

@@ -9,7 +9,12 @@ import PIL.Image
 import pytest
 import torch
 from accelerate import init_empty_weights
-from diffusers import DPMSolverMultistepScheduler, EulerAncestralDiscreteScheduler, EulerDiscreteScheduler
+from diffusers import (
+    DiffusionPipeline,
+    DPMSolverMultistepScheduler,
+    EulerAncestralDiscreteScheduler,
+    EulerDiscreteScheduler,
+)
 from dummies import DUMMY_IMAGE_SIZE, dummy_images, get_dummy_components
 
 from sar_zero123.pipeline import SARZero123Pipeline, SARZero123PipelineOutput, build_sar_zero123
@@ -269,6 +274,10 @@ def test_save_pretrained_from_pretrained_round_trip(pipe, tmp_path):
     loaded.set_progress_bar_config(disable=True)
     assert loaded.feature_extractor is None
     assert torch.equal(run(loaded), reference)
+    generic = DiffusionPipeline.from_pretrained(tmp_path)  # no class named, no trust_remote_code
+    assert type(generic) is SARZero123Pipeline
+    generic.set_progress_bar_config(disable=True)
+    assert torch.equal(run(generic), reference)
 
 
 # ---------------------------------------------------------------------------------- factory
