@@ -28,7 +28,13 @@ import torch
 from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
 from diffusers.loaders.single_file_utils import convert_ldm_unet_checkpoint, convert_ldm_vae_checkpoint
 from safetensors.torch import load_file
-from transformers import CLIPImageProcessor, CLIPVisionConfig, CLIPVisionModelWithProjection
+from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
+
+try:  # transformers >= 5: the PIL backend, which is what `CLIPImageProcessor` resolves to without
+    # torchvision (with a warning on every import); only its mean/std and config are used here.
+    from transformers import CLIPImageProcessorPil as CLIPImageProcessor
+except ImportError:  # transformers 4.x
+    from transformers import CLIPImageProcessor
 
 from sar_zero123.conditioning import POSE_DIM, PoseProjection
 from sar_zero123.pipeline import SD_VAE_SCALING_FACTOR, ZERO123_SCHEDULER_CONFIG, SARZero123Pipeline

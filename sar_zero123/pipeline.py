@@ -25,7 +25,13 @@ from diffusers.callbacks import MultiPipelineCallbacks, PipelineCallback
 from diffusers.schedulers.scheduling_utils import SchedulerMixin
 from diffusers.utils import BaseOutput
 from diffusers.utils.torch_utils import randn_tensor
-from transformers import CLIPImageProcessor, CLIPVisionConfig, CLIPVisionModelWithProjection
+from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
+
+try:  # transformers >= 5: the PIL backend, which is what `CLIPImageProcessor` resolves to without
+    # torchvision (with a warning on every import); only its mean/std and config are used here.
+    from transformers import CLIPImageProcessorPil as CLIPImageProcessor
+except ImportError:  # transformers 4.x
+    from transformers import CLIPImageProcessor
 
 from sar_zero123.conditioning import (
     POSE_DIM,
