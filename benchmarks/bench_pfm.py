@@ -62,6 +62,9 @@ VARIANTS: dict[str, dict] = {
     "pfm_channels_last": {"channels_last": True},
     "pfm_checkpoint_decoder": {"checkpoint_decoder": True},
     "pfm_crop_half_fraction_0.5": {"pfm_crop_size": "half", "pfm_fraction": 0.5},
+    "pfm_bf16_fraction_0.25": {"frozen_dtype": "bf16", "pfm_fraction": 0.25},
+    "pfm_encoder_imagenet_stem": {"encoder_stem": "imagenet"},
+    "pfm_encoder_imagenet_stem_bf16": {"encoder_stem": "imagenet", "frozen_dtype": "bf16"},
 }
 SCHEDULES = {
     "scaled_linear": dict(beta_schedule="scaled_linear", beta_start=0.00085, beta_end=0.012),
@@ -129,6 +132,13 @@ def prepare_variant(name: str, script, pipe, encoder, image_size: int) -> dict:
     frozen_dtype = torch.bfloat16 if options.pop("frozen_dtype", None) == "bf16" else torch.float32
     channels_last = options.pop("channels_last", False)
     checkpoint_decoder = options.pop("checkpoint_decoder", False)
+    if (
+        options.pop("encoder_stem", "cifar") == "imagenet"
+    ):  # 7x7/2 + max-pool stem: 16x fewer stem-level FLOPs
+        torch.manual_seed(0)
+        encoder = (
+            SAREncoder(SAREncoderConfig(image_size=image_size, cifar_stem=False)).eval().requires_grad_(False)
+        )
     if options.get("pfm_crop_size") == "half":
         options["pfm_crop_size"] = image_size // 2
     config = script.FinetuneConfig(
