@@ -258,8 +258,10 @@ def pfm_loss(
     the encoder's input size; ``f`` is the encoder's pooled feature. With ``crop_size`` only the latent
     window covering the centre ``crop_size`` pixels is decoded (the paper scores the 64x64 centre of a
     128 px chip), which cuts the decoder cost by ``(image_size / crop_size)**2``; the crop of the
-    target and of the estimate are both resized to the encoder's input size. Decoding a latent window
-    instead of cropping the full decode changes the border pixels (measured in ``docs/results/pfm.md``).
+    target and of the estimate are both resized to the encoder's input size, so the encoder cost stays.
+    Decoding a latent window is not the centre of the full decode: the VAE's mid-block self-attention
+    sees only the window, which changes interior pixels as much as border ones (numbers in
+    ``docs/results/pfm.md``).
 
     Gradients flow through the frozen decoder and encoder into ``x0_hat_latents`` only.
 
