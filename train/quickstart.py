@@ -62,6 +62,7 @@ class Preset:
     finetune_batch_size: int  # pairs per fine-tuning step
     finetune_learning_rate: float  # AdamW learning rate of the UNet (from scratch: higher than the paper's)
     evaluator_epochs: int  # epochs of the scratch classifier and regressor
+    evaluator_learning_rate: float  # AdamW peak learning rate of the evaluators
     eval_n: int  # evaluation samples (half seen, half unseen)
     eval_steps: int  # DDIM steps for Tables III/IV
     speed_steps: tuple[int, ...]  # step counts of the speed/error sweep
@@ -81,16 +82,17 @@ PRESETS: dict[str, Preset] = {
         encoder_widths=(16, 32, 64, 128),
         simclr_steps=150,
         simclr_batch_size=64,
-        vae_steps=150,
-        vae_batch_size=16,
+        vae_steps=120,
+        vae_batch_size=4,
         finetune_steps=150,
         finetune_batch_size=8,
         finetune_learning_rate=3e-4,
-        evaluator_epochs=8,
+        evaluator_epochs=40,
+        evaluator_learning_rate=2e-3,
         eval_n=32,
         eval_steps=20,
         speed_steps=(5, 10, 20),
-        speed_n=6,
+        speed_n=4,
         schedulers=("ddim", "dpmsolver++", "euler"),
     ),
     "smoke": Preset(
@@ -110,6 +112,7 @@ PRESETS: dict[str, Preset] = {
         finetune_batch_size=2,
         finetune_learning_rate=1e-4,
         evaluator_epochs=1,
+        evaluator_learning_rate=1e-3,
         eval_n=4,
         eval_steps=2,
         speed_steps=(1,),
@@ -303,6 +306,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
         "output_dir": str(evaluator_dir),
         "epochs": preset.evaluator_epochs,
         "probe_epochs": preset.evaluator_epochs,
+        "learning_rate": preset.evaluator_learning_rate,
         "batch_size": 32,
         "simclr_encoders": [str(simclr_dir)],
     }
