@@ -101,3 +101,14 @@ def test_evaluate_rejects_bad_config() -> None:
         script.EvaluateConfig(pipeline=["a", "b"], lambdas=[0.0])
     with pytest.raises(ValueError, match="schedulers: unknown"):
         script.EvaluateConfig(pipeline=["a"], steps=[10], schedulers=["heun"])
+
+
+def test_evaluate_rejects_evaluators_for_other_classes(tmp_path: Path) -> None:
+    data = write_chip_folder(tmp_path / "data", classes=("A", "C"), azimuths_deg=(0.0, 90.0), size=32)
+    evaluators = _evaluators(tmp_path / "evaluators")
+    script = load_script("evaluate")
+    config = script.EvaluateConfig(pipeline=["unused"], data=str(data), evaluators="evaluators/", n=2)
+    with pytest.raises(
+        ValueError, match=r"evaluators/ was trained on classes \['A', 'B'\] but the data uses"
+    ):
+        script.build_pair_sets(config, evaluators, image_size=32)

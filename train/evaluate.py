@@ -34,7 +34,7 @@ from tqdm.auto import tqdm
 
 from sar_zero123.config import parse_config, save_config, write_json_atomic
 from sar_zero123.data import DecibelScaling, ViewPairDataset, prepare_splits, split_records
-from sar_zero123.evaluators import Evaluators, load_evaluators, score_views
+from sar_zero123.evaluators import Evaluators, check_class_names, load_evaluators, score_views
 from sar_zero123.generate import SCALING_FILE
 from sar_zero123.pipeline import SARZero123Pipeline
 
@@ -205,6 +205,8 @@ def build_pair_sets(config: EvaluateConfig, evaluators: Evaluators, image_size: 
     """Samples the seen (and unseen) pairs of the protocol with the evaluators' scaling and classes."""
     work_dir = Path(config.work_dir) if config.work_dir is not None else Path(config.output_dir)
     extended = prepare_splits(config.data, "extended", work_dir, seed=config.seed)
+    data_classes = sorted({r.target_class for r in extended["train"] + extended["test"]})
+    check_class_names(evaluators.class_names, data_classes, config.evaluators)
     groups: dict[str, list] = {}
     if config.protocol == "extended":
         groups["seen"] = extended["test"]
