@@ -227,6 +227,17 @@ def read_weights(checkpoint: Path) -> dict[str, torch.Tensor]:
     return weights
 
 
+def kill_stragglers(marker: str) -> None:
+    """SIGKILL this test's launcher and ranks still alive (torch elastic starts ranks in their own
+    sessions, so killing the launcher's process group does not reach them)."""
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if marker in cmdline.read_bytes().decode(errors="replace"):
+                os.kill(int(cmdline.parent.name), signal.SIGKILL)
+        except (OSError, ValueError):
+            continue
+
+
 def subprocess_env() -> dict[str, str]:
     return {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
 
@@ -308,17 +319,16 @@ def test_two_process_cpu_run_keeps_replicas_identical(assets, tmp_path) -> None:
         ),
     ]
     env = {**subprocess_env(), "ACCELERATE_USE_CPU": "true"}
-    # own session, so that a timeout ends the launcher and both ranks, not the launcher alone
-    process = subprocess.Popen(
-        command, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True
-    )
-    try:
-        _, stderr = process.communicate(timeout=180)
-    except subprocess.TimeoutExpired:
-        os.killpg(process.pid, signal.SIGKILL)
-        process.communicate()
-        raise
-    assert process.returncode == 0, stderr[-3000:]
+    log = tmp_path / "launch.log"
+    with log.open("w") as handle:
+        process = subprocess.Popen(
+            command, env=env, stdout=handle, stderr=subprocess.STDOUT, start_new_session=True
+        )
+        try:
+            returncode = process.wait(timeout=180)
+        finally:
+            kill_stragglers(str(out))
+    assert returncode == 0, log.read_text()[-3000:]
     state = json.loads((out / "train_state.json").read_text())
     digests = state["replica_weight_digests"]
     assert len(digests) == 2 and digests[0] == digests[1]

@@ -625,6 +625,8 @@ def main(argv: list[str] | None = None) -> Path:
             feature_extractor=pipe.feature_extractor,
         )
         export_pipeline(export, scaling, output_dir / "pipeline")
+    # every rank enters the process-group teardown together: a gloo rank left alone in it can hang
+    accelerator.wait_for_everyone()
     accelerator.end_training()
     return output_dir
 
