@@ -10,13 +10,13 @@ import pytest
 from test_evaluators import load_script
 
 
-def test_script_argv_keeps_only_declared_fields() -> None:
+def test_script_argv_builds_flags_and_rejects_undeclared_options() -> None:
     quickstart = load_script("quickstart")
     evaluators = load_script("train_evaluators")
-    argv = quickstart.script_argv(
-        evaluators, {"epochs": 2, "cifar_stem": False, "depths": (1, 1), "report_to": "none"}
-    )
+    argv = quickstart.script_argv(evaluators, {"epochs": 2, "cifar_stem": False, "depths": (1, 1)})
     assert argv == ["--epochs", "2", "--no-cifar_stem", "--depths", "1", "1"]
+    with pytest.raises(ValueError, match="no option 'report_to'"):
+        quickstart.script_argv(evaluators, {"epochs": 2, "report_to": "none"})
 
 
 @pytest.mark.slow

@@ -6,7 +6,7 @@ On a 2-core CPU in about ten minutes (default preset) it
 
 1. simulates a small MSTAR-like dataset (`sar_zero123.sim`), one class held out (MSTAR-OOD style),
 2. pretrains a small SimCLR encoder with the Speckle Rayleigh + Monotonic augmentation (`pretrain_simclr.py`),
-3. trains a small VAE when `train/train_vae.py` is present (`train_vae.py`),
+3. trains a small VAE sized for SAR chips (`train_vae.py`),
 4. fine-tunes the `small` zero-1-to-3 model with lambda = 0 and lambda = 4 (`finetune_pfm.py`),
 5. trains the evaluator classifier and azimuth regressor (plus a probe on the SimCLR encoder) on all classes,
 6. evaluates both pipelines (Table III, Table IV, views, lambda plot, speed against error: `evaluate.py`),
@@ -56,7 +56,7 @@ class Preset:
     encoder_widths: tuple[int, ...]  # ResNet stage widths
     simclr_steps: int  # SimCLR optimisation steps
     simclr_batch_size: int  # SimCLR chips per step
-    vae_steps: int  # VAE optimisation steps (when train_vae.py exists)
+    vae_steps: int  # VAE optimisation steps
     vae_batch_size: int  # chips per VAE step
     finetune_steps: int  # fine-tuning steps per lambda
     finetune_batch_size: int  # pairs per fine-tuning step
@@ -148,10 +148,11 @@ def load_script(name: str) -> ModuleType:
 
 
 def script_argv(module: ModuleType, values: dict[str, Any]) -> list[str]:
-    """Flags for a stage script from `values`, keeping only fields its config dataclass declares.
+    """Flags for a stage script from `values`; every key must be a field of its config dataclass.
 
-    Scripts written in parallel may lack an option (e.g. `report_to`); such values are dropped with a log
-    line instead of failing the run.
+    Raises:
+        ValueError: naming the script and the option it does not declare (a renamed flag must fail
+            here, not silently fall back to the script's default).
     """
     config_classes = [
         obj
@@ -162,8 +163,7 @@ def script_argv(module: ModuleType, values: dict[str, Any]) -> list[str]:
     argv: list[str] = []
     for name, value in values.items():
         if name not in fields:
-            logger.info("%s has no option %r; leaving it at its default", module.__name__, name)
-            continue
+            raise ValueError(f"{module.__name__} has no option {name!r}; expected one of {sorted(fields)}")
         if isinstance(value, bool):
             argv.append(f"--{name}" if value else f"--no-{name}")
         elif isinstance(value, (list, tuple)):
@@ -242,32 +242,28 @@ def main(argv: Sequence[str] | None = None) -> Path:
     run_stage("simclr", simclr_dir / "encoder" / "model.safetensors", timings, simclr.main,
               script_argv(simclr, simclr_args))  # fmt: skip
 
-    # 3. VAE (only when the VAE script exists)
-    vae_dir: Path | None = None
-    if (TRAIN_DIR / "train_vae.py").is_file():
-        vae = load_script("train_vae")
-        vae_run = out / "vae"
-        vae_shape = SAR_ZERO123_SIZES[preset.model_size]["vae"]  # the fine-tuned model's VAE architecture
-        vae_args = {
-            **common,
-            "output_dir": str(vae_run),
-            "protocol": protocol,
-            "block_out_channels": vae_shape["block_out_channels"],
-            "layers_per_block": vae_shape["layers_per_block"],
-            "latent_channels": vae_shape["latent_channels"],
-            "norm_num_groups": vae_shape["norm_num_groups"],
-            "train_batch_size": preset.vae_batch_size,
-            "max_train_steps": preset.vae_steps,
-            "learning_rate": 1e-3,
-            "num_eval_images": 16,
-            "checkpointing_steps": 10_000,
-            "report_to": "none",
-        }
-        run_stage("vae", vae_run / "DONE", timings, _run_and_mark, vae.main, script_argv(vae, vae_args),
-                  vae_run / "DONE")  # fmt: skip
-        vae_dir = _find_model_folder(vae_run)
-    else:
-        logger.info("train/train_vae.py not found: fine-tuning keeps the model's own VAE")
+    # 3. VAE sized for SAR chips, with the fine-tuned model's VAE architecture
+    vae = load_script("train_vae")
+    vae_run = out / "vae"
+    vae_dir = vae_run / "vae"
+    vae_shape = SAR_ZERO123_SIZES[preset.model_size]["vae"]
+    vae_args = {
+        **common,
+        "output_dir": str(vae_run),
+        "protocol": protocol,
+        "block_out_channels": vae_shape["block_out_channels"],
+        "layers_per_block": vae_shape["layers_per_block"],
+        "latent_channels": vae_shape["latent_channels"],
+        "norm_num_groups": vae_shape["norm_num_groups"],
+        "train_batch_size": preset.vae_batch_size,
+        "max_train_steps": preset.vae_steps,
+        "learning_rate": 1e-3,
+        "num_eval_images": 16,
+        "checkpointing_steps": 10_000,
+        "report_to": "none",
+    }
+    # decibel_scaling.json is the last file train_vae writes into its VAE folder
+    run_stage("vae", vae_dir / "decibel_scaling.json", timings, vae.main, script_argv(vae, vae_args))
 
     # 4. fine-tune with lambda = 0 and lambda = 4
     finetune = load_script("finetune_pfm")
@@ -281,6 +277,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
             "size": preset.model_size,
             "pfm_weight": weight,
             "encoder": str(simclr_dir / "encoder"),
+            "vae": str(vae_dir),
             "train_batch_size": preset.finetune_batch_size,
             "max_train_steps": preset.finetune_steps,
             "learning_rate": preset.finetune_learning_rate,
@@ -289,8 +286,6 @@ def main(argv: Sequence[str] | None = None) -> Path:
             "checkpointing_steps": 10_000,
             "report_to": "none",
         }
-        if vae_dir is not None:
-            finetune_args["vae"] = str(vae_dir)
         done = run_dir / "pipeline" / "model_index.json"
         run_stage(
             f"finetune lambda={weight:g}", done, timings, finetune.main, script_argv(finetune, finetune_args)
@@ -346,21 +341,6 @@ def main(argv: Sequence[str] | None = None) -> Path:
     report = write_report(out, preset, config, held_out, timings)
     print(f"wrote {report}")
     return report
-
-
-def _run_and_mark(function, argv: list[str], marker: Path) -> Any:
-    result = function(argv)
-    marker.parent.mkdir(parents=True, exist_ok=True)
-    marker.write_text("done\n")
-    return result
-
-
-def _find_model_folder(run_dir: Path) -> Path:
-    """The VAE folder inside a train_vae run (`vae/`, `final/` or the run itself holding config.json)."""
-    for candidate in (run_dir / "vae", run_dir / "final", run_dir):
-        if (candidate / "config.json").is_file() and any(candidate.glob("*.safetensors")):
-            return candidate
-    raise FileNotFoundError(f"no AutoencoderKL folder (config.json + *.safetensors) under {run_dir}")
 
 
 def write_report(out: Path, preset: Preset, config: QuickstartConfig, held_out: str, timings: dict) -> Path:
