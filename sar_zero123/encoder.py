@@ -211,6 +211,28 @@ class SAREncoder(nn.Module):
         return encoder.to(device).eval()
 
 
+def resolve_encoder_dir(path: str | Path, field: str = "encoder") -> Path:
+    """The folder holding a saved encoder: ``path`` itself or ``path/encoder`` (a SimCLR run folder).
+
+    Args:
+        path: An encoder folder or the output folder of ``train/pretrain_simclr.py``.
+        field: The option name reported in the error.
+
+    Returns:
+        The folder with ``config.json`` and ``model.safetensors``.
+
+    Raises:
+        FileNotFoundError: If neither ``path`` nor ``path/encoder`` holds both files.
+    """
+    path = Path(path)
+    for candidate in (path, path / "encoder"):
+        if (candidate / CONFIG_NAME).is_file() and (candidate / WEIGHTS_NAME).is_file():
+            return candidate
+    raise FileNotFoundError(
+        f"{field}: no SAR encoder ({CONFIG_NAME} + {WEIGHTS_NAME}) in {path} or {path / 'encoder'}"
+    )
+
+
 class ProjectionHead(nn.Module):
     """SimCLR projection head g: Linear - ReLU - Linear (512-512-128 in the reference setting).
 
@@ -286,4 +308,5 @@ __all__ = [
     "SAREncoder",
     "SAREncoderConfig",
     "nt_xent_loss",
+    "resolve_encoder_dir",
 ]

@@ -8,7 +8,13 @@ import numpy as np
 import pytest
 import torch
 
-from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig, nt_xent_loss
+from sar_zero123.encoder import (
+    ProjectionHead,
+    SAREncoder,
+    SAREncoderConfig,
+    nt_xent_loss,
+    resolve_encoder_dir,
+)
 
 TINY = {"image_size": 32, "hidden_sizes": (8, 16, 16, 16), "embedding_size": 8}
 
@@ -106,6 +112,14 @@ def test_save_load_round_trip(tmp_path):
 def test_from_pretrained_missing_path_names_it(tmp_path):
     with pytest.raises(FileNotFoundError, match="nowhere"):
         SAREncoder.from_pretrained(tmp_path / "nowhere")
+
+
+def test_resolve_encoder_dir_accepts_run_or_encoder_folder(tmp_path):
+    tiny_encoder().save_pretrained(tmp_path / "run" / "encoder")
+    assert resolve_encoder_dir(tmp_path / "run") == tmp_path / "run" / "encoder"
+    assert resolve_encoder_dir(tmp_path / "run" / "encoder") == tmp_path / "run" / "encoder"
+    with pytest.raises(FileNotFoundError, match="simclr_encoders: no SAR encoder"):
+        resolve_encoder_dir(tmp_path, field="simclr_encoders")
 
 
 def test_projection_head_shape():

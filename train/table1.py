@@ -30,7 +30,7 @@ import torch
 from sar_zero123.augment import PRESETS
 from sar_zero123.config import parse_config, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, prepare_splits
-from sar_zero123.encoder import CONFIG_NAME, WEIGHTS_NAME, SAREncoder
+from sar_zero123.encoder import WEIGHTS_NAME, SAREncoder, resolve_encoder_dir
 from sar_zero123.probes import FeatureSet, extract_features, run_probes
 
 logger = logging.getLogger(__name__)
@@ -102,19 +102,6 @@ def load_pretrain_script() -> ModuleType:
     sys.modules[spec.name] = module  # dataclasses resolve string annotations through sys.modules
     spec.loader.exec_module(module)
     return module
-
-
-def resolve_encoder_dir(path: str | Path) -> Path:
-    """A SimCLR run folder or an encoder folder -> the folder holding the encoder files.
-
-    Raises:
-        FileNotFoundError: If neither `path` nor `path/encoder` holds an encoder.
-    """
-    path = Path(path)
-    for candidate in (path, path / "encoder"):
-        if (candidate / CONFIG_NAME).is_file() and (candidate / WEIGHTS_NAME).is_file():
-            return candidate
-    raise FileNotFoundError(f"encoders: no SAR encoder ({CONFIG_NAME} + {WEIGHTS_NAME}) in {path}")
 
 
 def pretrain_argv(config: Table1Config, preset: str, run_dir: Path, work_dir: Path) -> list[str]:
@@ -229,7 +216,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         run_dir = output_dir / preset
         pretrain_metrics = None
         if config.encoders:
-            encoder_dir = resolve_encoder_dir(config.encoders[i])
+            encoder_dir = resolve_encoder_dir(config.encoders[i], field="encoders")
         elif (run_dir / "encoder" / WEIGHTS_NAME).is_file():
             encoder_dir = run_dir / "encoder"
         else:

@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 
 from sar_zero123.config import parse_config, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, DecibelScaling, prepare_splits
-from sar_zero123.encoder import SAREncoder, SAREncoderConfig
+from sar_zero123.encoder import SAREncoder, SAREncoderConfig, resolve_encoder_dir
 from sar_zero123.evaluators import (
     CLASSIFIER_DIR,
     EVALUATOR_CONFIG_NAME,
@@ -92,19 +92,6 @@ class TrainEvaluatorsConfig:
         names = [Path(p).name for p in self.simclr_encoders]
         if len(set(names)) != len(names):
             raise ValueError(f"simclr_encoders must have distinct folder names (probe names), got {names}")
-
-
-def resolve_encoder_dir(path: str | Path) -> Path:
-    """A SimCLR run folder or encoder folder -> the folder holding the encoder's `config.json`.
-
-    Raises:
-        FileNotFoundError: If neither `path` nor `path/encoder` holds an encoder.
-    """
-    path = Path(path)
-    for candidate in (path, path / "encoder"):
-        if (candidate / "config.json").is_file() and (candidate / "model.safetensors").is_file():
-            return candidate
-    raise FileNotFoundError(f"simclr_encoders: no SAR encoder (config.json + model.safetensors) in {path}")
 
 
 def _loader(dataset: ChipDataset, config: TrainEvaluatorsConfig, shuffle: bool, seed: int) -> DataLoader:
@@ -265,7 +252,7 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
 
     # 3. Table IV probes: frozen SimCLR encoder, trained MLP head.
     for index, path in enumerate(config.simclr_encoders):
-        encoder = SAREncoder.from_pretrained(resolve_encoder_dir(path))
+        encoder = SAREncoder.from_pretrained(resolve_encoder_dir(path, field="simclr_encoders"))
         if encoder.config.image_size != config.image_size:
             raise ValueError(
                 f"simclr_encoders[{index}] {path} takes {encoder.config.image_size} px chips but "
