@@ -12,6 +12,7 @@ import pytest
 from sar_zero123.data import (
     ChipDataset,
     ChipRecord,
+    check_protocol,
     ood_validation_intervals,
     prepare_splits,
     split_records,
@@ -141,3 +142,10 @@ def test_prepare_splits_with_builtin_simulator(tmp_path: Path) -> None:
     assert len(splits["train"]) + len(splits["val"]) == 8
     image = ChipDataset(splits["test"], size=16)[0]["image"]
     assert image.shape == (1, 16, 16) and 0.0 <= float(image.min()) < float(image.max()) <= 1.0
+
+
+def test_check_protocol_accepts_the_paper_protocols_and_names_the_field():
+    assert [check_protocol(p) for p in ("extended", "soc", "ood-T72")] == ["extended", "soc", "ood-T72"]
+    for bad in ("standard", "ood-", "OOD-T72", ""):
+        with pytest.raises(ValueError, match=f"data_protocol: unknown protocol {bad!r}"):
+            check_protocol(bad, field="data_protocol")

@@ -49,7 +49,7 @@ from sar_zero123.conditioning import (
     encode_target_latents,
 )
 from sar_zero123.config import config_to_dict, parse_config, save_config, write_json_atomic
-from sar_zero123.data import DecibelScaling, ViewPairDataset, prepare_splits
+from sar_zero123.data import DecibelScaling, ViewPairDataset, check_protocol, prepare_splits
 from sar_zero123.encoder import SAREncoder
 from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput, denoising_target, total_loss
 from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
@@ -117,8 +117,7 @@ class FinetuneConfig:
             raise ValueError(f"pfm_fraction must be in (0, 1], got {self.pfm_fraction}")
         if self.pfm_crop_size is not None and self.pfm_crop_size < 1:
             raise ValueError(f"pfm_crop_size must be >= 1 or None, got {self.pfm_crop_size}")
-        if self.protocol not in ("extended", "soc") and not self.protocol.startswith("ood-"):
-            raise ValueError(f"protocol must be extended, soc or ood-<CLASS>, got {self.protocol!r}")
+        check_protocol(self.protocol)
         for name in ("learning_rate", "pose_lr_multiplier", "max_grad_norm"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")

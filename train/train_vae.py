@@ -28,7 +28,7 @@ from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from sar_zero123.config import parse_config, save_config, write_json_atomic
-from sar_zero123.data import ChipDataset, DecibelScaling, prepare_splits
+from sar_zero123.data import ChipDataset, DecibelScaling, check_protocol, prepare_splits
 from sar_zero123.run_state import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
 
 logger = logging.getLogger(__name__)
@@ -79,8 +79,7 @@ class TrainVAEConfig:
                 f"image_size must be a positive multiple of the downsampling factor {factor}, "
                 f"got {self.image_size}"
             )
-        if self.protocol not in ("extended", "soc") and not self.protocol.startswith("ood-"):
-            raise ValueError(f"protocol must be extended, soc or ood-<CLASS>, got {self.protocol!r}")
+        check_protocol(self.protocol)
         if self.kl_weight < 0:
             raise ValueError(f"kl_weight must be >= 0, got {self.kl_weight}")
         for name in ("learning_rate", "max_grad_norm"):

@@ -24,7 +24,7 @@ from .scaling import (
     from_decibels,
     to_decibels,
 )
-from .splits import PROTOCOLS, ood_validation_intervals, prepare_splits, split_records
+from .splits import PROTOCOLS, check_protocol, ood_validation_intervals, prepare_splits, split_records
 from .view_pairs import ViewPairDataset, wrap_azimuth_deg
 
 __all__ = [
@@ -33,6 +33,7 @@ __all__ = [
     "PROTOCOLS",
     "UNIT_MAGNITUDE_MAX_DB",
     "ZERO_MAGNITUDE_DB",
+    "check_protocol",
     "ChipDataset",
     "ChipRecord",
     "DecibelScaling",

@@ -26,6 +26,7 @@ __all__ = [
     "OOD_INTERVAL_WIDTH_DEG",
     "OOD_NUM_INTERVALS",
     "PROTOCOLS",
+    "check_protocol",
     "SOC_SERIALS",
     "TEST_DEPRESSION_DEG",
     "TRAIN_DEPRESSION_DEG",
@@ -86,6 +87,25 @@ def _resolve_class(records: Sequence[ChipRecord], name: str) -> str:
     raise ValueError(f"protocol 'ood-{name}': unknown held-out class {name!r}; the records hold {classes}")
 
 
+def check_protocol(protocol: str, field: str = "protocol") -> str:
+    """Validates a protocol name before any data is read (scripts call it in their config).
+
+    Args:
+        protocol: ``"extended"``, ``"soc"`` or ``"ood-<CLASS>"``.
+        field: The option name reported in the error.
+
+    Returns:
+        ``protocol`` unchanged.
+
+    Raises:
+        ValueError: If the name is none of the above (whether the held-out class exists is checked
+            by :func:`split_records`, which sees the data).
+    """
+    if protocol in ("extended", "soc") or (protocol.startswith("ood-") and len(protocol) > len("ood-")):
+        return protocol
+    raise ValueError(f"{field}: unknown protocol {protocol!r}; expected one of {list(PROTOCOLS)}")
+
+
 def split_records(records: Sequence[ChipRecord], protocol: str, seed: int = 0) -> dict[str, list[ChipRecord]]:
     """Splits chips by one of the paper's protocols (see the module docstring).
 
@@ -101,6 +121,7 @@ def split_records(records: Sequence[ChipRecord], protocol: str, seed: int = 0) -
     Raises:
         ValueError: If the protocol is unknown, the held-out class does not occur, or a split is empty.
     """
+    check_protocol(protocol)
     records = list(records)
     splits: dict[str, list[ChipRecord]]
     if protocol in ("extended", "soc"):
@@ -110,7 +131,7 @@ def split_records(records: Sequence[ChipRecord], protocol: str, seed: int = 0) -
             "train": [r for r in records if _at_depression(r, TRAIN_DEPRESSION_DEG)],
             "test": [r for r in records if _at_depression(r, TEST_DEPRESSION_DEG)],
         }
-    elif protocol.startswith("ood-") and len(protocol) > len("ood-"):
+    else:
         held_out = _resolve_class(records, protocol[len("ood-") :])
         intervals = ood_validation_intervals(seed)
 
@@ -123,8 +144,6 @@ def split_records(records: Sequence[ChipRecord], protocol: str, seed: int = 0) -
             "val": [r for r in others if in_val(r)],
             "test": [r for r in records if r.target_class == held_out],
         }
-    else:
-        raise ValueError(f"unknown protocol {protocol!r}; expected one of {list(PROTOCOLS)}")
     for name, split in splits.items():
         if not split:
             depressions = sorted({r.depression_deg for r in records})
