@@ -266,7 +266,9 @@ class ProjectionHead(nn.Module):
         return self.net(h)
 
 
-def nt_xent_loss(z1: torch.Tensor, z2: torch.Tensor, temperature: float = 0.5) -> torch.Tensor:
+def nt_xent_loss(
+    z1: torch.Tensor, z2: torch.Tensor, temperature: float = 0.5, *, gather_distributed: bool = False
+) -> torch.Tensor:
     """Normalised temperature-scaled cross-entropy (SimCLR) for N positive pairs.
 
     With u = normalise(cat(z1, z2)) and s_ij = u_i . u_j / temperature, the anchor loss is
@@ -274,30 +276,59 @@ def nt_xent_loss(z1: torch.Tensor, z2: torch.Tensor, temperature: float = 0.5) -
     pair n is (l(n, n+N) + l(n+N, n)) / 2, so the mean over pairs is the usual SimCLR objective
     averaged over all 2N anchors. Collapsed embeddings give log(2N - 1) for every pair.
 
+    With ``gather_distributed`` inside an initialised process group of W processes, each holding N
+    pairs, every local anchor is contrasted with the 2NW projections of all processes (gathered with
+    the autograd-aware ``torch.distributed.nn.functional.all_gather``), as in SimCLR's global-batch
+    objective. The per-pair losses then equal those of a single process holding the whole global
+    batch, and the gradients that data-parallel averaging produces equal that process's gradients.
+    Outside a process group (or with W = 1) it is the local loss.
+
     Args:
         z1: Projections of the first views.
         z2: Projections of the second views (row n pairs with row n of `z1`).
         temperature: Softmax temperature tau (0.5 in the reference setting).
+        gather_distributed: Draw negatives from every process of the default process group.
 
     Returns:
-        Per-pair loss, computed in float32 (also under autocast).
+        Per-pair loss of the local pairs, computed in float32 (also under autocast).
 
     Shape:
         z1, z2: (N, D) with N >= 1. output: (N,).
 
     Raises:
-        ValueError: If shapes differ or are not (N, D), or `temperature` is not positive.
+        ValueError: If shapes differ or are not (N, D), `temperature` is not positive, or (when
+            gathering) the processes hold different numbers of pairs.
     """
     if z1.ndim != 2 or z1.shape != z2.shape:
         raise ValueError(f"z1 and z2 must both be (N, D), got {tuple(z1.shape)} and {tuple(z2.shape)}")
     if not (temperature > 0 and math.isfinite(temperature)):
         raise ValueError(f"temperature must be positive and finite, got {temperature}")
     n = z1.shape[0]
-    u = F.normalize(torch.cat([z1, z2]).float(), dim=1)  # (2N, D)
-    logits = u @ u.T / temperature  # (2N, 2N)
-    logits = logits.masked_fill(torch.eye(2 * n, dtype=torch.bool, device=u.device), float("-inf"))
-    positives = torch.arange(2 * n, device=u.device).roll(n)  # anchor i pairs with i + N (mod 2N)
-    per_anchor = F.cross_entropy(logits, positives, reduction="none")  # (2N,)
+    u1, u2 = F.normalize(z1.float(), dim=1), F.normalize(z2.float(), dim=1)  # (N, D) each
+    anchors = torch.cat([u1, u2])  # (2N, D)
+    world, rank = 1, 0
+    if gather_distributed and torch.distributed.is_available() and torch.distributed.is_initialized():
+        world, rank = torch.distributed.get_world_size(), torch.distributed.get_rank()
+    if world > 1:
+        sizes = [torch.zeros(1, dtype=torch.long, device=u1.device) for _ in range(world)]
+        torch.distributed.all_gather(sizes, torch.tensor([n], device=u1.device))
+        if any(int(size) != n for size in sizes):
+            counts = [int(size) for size in sizes]
+            raise ValueError(f"gather_distributed needs equal pairs on every process, got {counts}")
+        # imported here: torch builds without distributed support lack this module
+        from torch.distributed.nn.functional import all_gather  # autograd-aware all_gather
+
+        candidates = torch.cat([*all_gather(u1), *all_gather(u2)])  # (2NW, D): first views, then second
+    else:
+        candidates = anchors
+    total = n * world
+    local = torch.arange(n, device=u1.device) + rank * n  # this process's rows among the first views
+    self_index = torch.cat([local, local + total])  # (2N,) where each anchor sits among the candidates
+    positives = torch.cat([local + total, local])  # (2N,) its other view
+    logits = anchors @ candidates.T / temperature  # (2N, 2NW)
+    is_self = torch.zeros_like(logits, dtype=torch.bool)
+    is_self[torch.arange(2 * n, device=u1.device), self_index] = True
+    per_anchor = F.cross_entropy(logits.masked_fill(is_self, float("-inf")), positives, reduction="none")
     return (per_anchor[:n] + per_anchor[n:]) / 2
 
 

@@ -7,6 +7,11 @@ only one module needs live in that module.
 from __future__ import annotations
 
 import os
+import signal
+import socket
+import subprocess
+import sys
+from collections.abc import Callable
 from pathlib import Path
 
 import pytest
@@ -16,8 +21,9 @@ import torch
 # oversubscription, which costs more than it gains on these tiny models.
 torch.set_num_threads(1)
 
-SHARED_MSTAR = Path(os.environ.get("SAR_ZERO123_MSTAR", Path(__file__).resolve().parents[1] / ".." / "shared"
-                                   / "data" / "mstar")).resolve()
+ROOT = Path(__file__).resolve().parents[1]
+
+SHARED_MSTAR = Path(os.environ.get("SAR_ZERO123_MSTAR", ROOT / ".." / "shared" / "data" / "mstar")).resolve()
 
 
 @pytest.fixture(scope="session")
@@ -26,3 +32,98 @@ def mstar_root() -> Path:
     if not (SHARED_MSTAR / "index.csv").is_file():
         pytest.skip(f"real MSTAR data not found at {SHARED_MSTAR}")
     return SHARED_MSTAR
+
+
+GLOO_PROBE = """
+import datetime, torch, torch.distributed as dist
+dist.init_process_group("gloo", timeout=datetime.timedelta(seconds=30))
+value = torch.ones(1)
+dist.all_reduce(value)
+assert value.item() == dist.get_world_size()
+dist.destroy_process_group()
+"""
+
+
+def free_port() -> int:
+    """A free TCP port on loopback for a rendezvous (29500 may be taken by another run)."""
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def loopback_env() -> dict[str, str]:
+    """Environment of a multi-process CPU run: one thread per rank, the repo importable, accelerate on
+    CPU, and gloo pinned to loopback. Without GLOO_SOCKET_IFNAME gloo binds to whatever the host name
+    resolves to, which in some containers is an address the other rank cannot reach (a hang)."""
+    return {
+        **os.environ,
+        "OMP_NUM_THREADS": "1",
+        "PYTHONPATH": str(ROOT),
+        "ACCELERATE_USE_CPU": "true",
+        "GLOO_SOCKET_IFNAME": "lo",
+    }
+
+
+def kill_marked(marker: str) -> None:
+    """SIGKILL every process whose command line contains ``marker`` (torch elastic starts ranks in their
+    own sessions, so killing the launcher's process group does not reach them)."""
+    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
+        try:
+            if marker in cmdline.read_bytes().decode(errors="replace"):
+                os.kill(int(cmdline.parent.name), signal.SIGKILL)
+        except (OSError, ValueError):
+            continue
+
+
+def run_marked(command: list[str], log: Path, marker: str, timeout: float) -> int | None:
+    """Run ``command`` with its output in ``log``; kill it and its ranks afterwards. None on timeout."""
+    with log.open("w") as handle:
+        process = subprocess.Popen(
+            command, env=loopback_env(), stdout=handle, stderr=subprocess.STDOUT, start_new_session=True
+        )
+        try:
+            return process.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            return None
+        finally:
+            kill_marked(marker)
+
+
+@pytest.fixture
+def rendezvous_port() -> int:
+    """A free loopback port for a multi-process test's rendezvous."""
+    return free_port()
+
+
+@pytest.fixture
+def run_two_process(tmp_path: Path) -> Callable[..., str]:
+    """Runs a two-process CPU command (gloo on loopback) and returns its output.
+
+    The command must contain ``marker`` (a path unique to the test) so that its ranks can be killed.
+    If the command fails or times out, a bare two-process gloo all-reduce is tried: when that fails
+    too the machine cannot form a gloo group and the test is skipped (a property of the machine, like a
+    GPU for the fp16 tests); otherwise the test fails with the command's output.
+    """
+
+    def run(command: list[str], marker: str, timeout: float = 180.0) -> str:
+        log = tmp_path / "two_process.log"
+        returncode = run_marked(command, log, marker, timeout)
+        output = log.read_text(errors="replace")
+        if returncode == 0:
+            return output
+        probe = tmp_path / "gloo_probe.py"
+        probe.write_text(GLOO_PROBE)
+        probe_log = tmp_path / "gloo_probe.log"
+        probe_command = [
+            sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
+            "--master_addr", "127.0.0.1", "--master_port", str(free_port()), str(probe),
+        ]  # fmt: skip
+        probe_code = run_marked(probe_command, probe_log, str(probe), timeout=90)
+        if probe_code != 0:
+            why = "timed out after 90 s" if probe_code is None else f"exit code {probe_code}"
+            tail = " | ".join(probe_log.read_text(errors="replace").strip().splitlines()[-4:])
+            pytest.skip(f"this machine cannot form a 2-process gloo group on loopback ({why}): {tail}")
+        outcome = f"timed out after {timeout:.0f} s" if returncode is None else f"exit code {returncode}"
+        pytest.fail(f"two-process run failed ({outcome}) although gloo works here:\n{output[-3000:]}")
+
+    return run

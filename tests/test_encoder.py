@@ -3,6 +3,8 @@
 from __future__ import annotations
 
 import math
+import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -142,6 +144,63 @@ def test_nt_xent_matches_double_loop_reference(n, temperature):
 def test_nt_xent_collapsed_embeddings_closed_form(n):
     z = torch.ones(n, 4)
     torch.testing.assert_close(nt_xent_loss(z, 3 * z), torch.full((n,), math.log(2 * n - 1)))
+
+
+GATHER_WORKER = """
+import datetime, sys, torch, torch.distributed as dist
+from sar_zero123.encoder import nt_xent_loss
+dist.init_process_group("gloo", timeout=datetime.timedelta(seconds=60))
+rank = dist.get_rank()
+generator = torch.Generator().manual_seed(0)
+z1, z2 = torch.randn(6, 5, generator=generator), torch.randn(6, 5, generator=generator)
+local1 = z1[3 * rank : 3 * rank + 3].clone().requires_grad_(True)
+local2 = z2[3 * rank : 3 * rank + 3].clone().requires_grad_(True)
+loss = nt_xent_loss(local1, local2, temperature=0.5, gather_distributed=True)
+loss.mean().backward()
+try:
+    nt_xent_loss(torch.ones(rank + 1, 5), torch.ones(rank + 1, 5), gather_distributed=True)
+    unequal = "accepted"
+except ValueError as error:
+    unequal = str(error)
+torch.save({"loss": loss.detach(), "grad1": local1.grad, "grad2": local2.grad, "unequal": unequal},
+           f"{sys.argv[1]}/rank{rank}.pt")
+dist.destroy_process_group()
+"""
+
+
+@pytest.mark.slow
+def test_nt_xent_gathered_over_two_processes_equals_one_process_on_the_global_batch(
+    run_two_process, rendezvous_port: int, tmp_path: Path
+) -> None:
+    worker = tmp_path / "gather_worker.py"
+    worker.write_text(GATHER_WORKER)
+    command = [
+        sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_addr", "127.0.0.1",
+        "--master_port", str(rendezvous_port), str(worker), str(tmp_path),
+    ]  # fmt: skip
+    run_two_process(command, marker=str(worker), timeout=120)
+    generator = torch.Generator().manual_seed(0)
+    z1 = torch.randn(6, 5, generator=generator).requires_grad_(True)
+    z2 = torch.randn(6, 5, generator=generator).requires_grad_(True)
+    reference = nt_xent_loss(z1, z2, temperature=0.5)
+    reference.mean().backward()
+    ranks = [torch.load(tmp_path / f"rank{rank}.pt") for rank in (0, 1)]
+    torch.testing.assert_close(torch.cat([r["loss"] for r in ranks]), reference.detach())
+    # each rank's gradient is world_size x its slice of the global one, so DDP's average over ranks
+    # gives the parameters the single-process gradient
+    torch.testing.assert_close(torch.cat([r["grad1"] for r in ranks]), 2 * z1.grad)
+    torch.testing.assert_close(torch.cat([r["grad2"] for r in ranks]), 2 * z2.grad)
+    assert all("equal pairs on every process, got [1, 2]" in r["unequal"] for r in ranks)
+    # the local loss (no gather) differs: it sees 2 x 3 - 1 = 5 candidates per anchor, not 11
+    local = nt_xent_loss(z1[:3].detach(), z2[:3].detach(), temperature=0.5)
+    assert not torch.allclose(local, reference[:3].detach())
+
+
+def test_nt_xent_gather_without_process_group_is_the_local_loss() -> None:
+    z1, z2 = torch.randn(4, 8), torch.randn(4, 8)
+    torch.testing.assert_close(
+        nt_xent_loss(z1, z2, gather_distributed=True), nt_xent_loss(z1, z2), rtol=0, atol=0
+    )
 
 
 def test_nt_xent_bad_input():

@@ -103,3 +103,24 @@ def test_resume_from_latest_reproduces_an_uninterrupted_run(chip_folder, tmp_pat
 def test_bad_config_names_the_field(flag, value, field):
     with pytest.raises(ValueError, match=field):
         load_script().main([flag, value])
+
+
+@pytest.mark.slow
+def test_two_process_run_gathers_negatives_from_the_global_batch(
+    chip_folder, tmp_path, run_two_process, rendezvous_port
+):
+    out = tmp_path / "ddp"
+    command = [
+        "accelerate", "launch", "--multi_gpu", "--num_processes", "2", "--num_machines", "1",
+        "--mixed_precision", "no", "--dynamo_backend", "no", "--main_process_ip", "127.0.0.1",
+        "--main_process_port", str(rendezvous_port), str(SCRIPT),
+        "--data", str(chip_folder), "--output_dir", str(out), "--report_to", "none",
+        "--max_train_steps", "2", *TINY_ARGS,
+    ]  # fmt: skip
+    run_two_process(command, marker=str(out), timeout=180)
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert metrics["num_processes"] == 2 and metrics["steps"] == 2
+    # 2 chips per process, but each anchor is contrasted with all 2 x 4 - 1 = 7 other global views
+    assert metrics["collapse_loss"] == pytest.approx(math.log(7))
+    assert math.isfinite(metrics["final_loss"])
+    assert SAREncoder.from_pretrained(out / "encoder")(torch.rand(2, 1, 16, 16)).shape == (2, 8)

@@ -14,8 +14,11 @@ The train split's magnitudes are held in memory on the training device and augme
 `metrics.json` (final loss, throughput, share of step time spent augmenting), TensorBoard logs under
 `<output_dir>/logs` and resumable `checkpoint-<step>` folders.
 
-Under multi-process launch each process holds batch_size / num_processes chips of every global batch
-and computes NT-Xent on its own sub-batch (negatives are not gathered across processes).
+Under multi-process launch each process holds batch_size / num_processes chips of every global batch.
+By default (`--gather_negatives`) NT-Xent contrasts every anchor with the projections of all processes,
+so the objective and its gradients are those of one process holding the whole batch of 256, as in
+SimCLR; `--no-gather_negatives` contrasts within each process's sub-batch only (fewer negatives, no
+communication). BatchNorm statistics stay per process.
 """
 
 from __future__ import annotations
@@ -71,6 +74,7 @@ class PretrainSimCLRConfig:
     projection_hidden_dim: int = 512  # projection head hidden width
     projection_dim: int = 128  # projection head output width
     temperature: float = 0.5  # NT-Xent temperature
+    gather_negatives: bool = True  # multi-process: negatives from the whole global batch, not the sub-batch
     batch_size: int = 256  # chips per global step (two views each)
     epochs: int = 500  # passes over the train split
     max_train_steps: int | None = None  # stop after this many steps (overrides epochs when smaller)
@@ -260,12 +264,15 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         _synchronize(accelerator.device)
         augmented = time.perf_counter()
         z1, z2 = model(views).chunk(2)
-        loss = nt_xent_loss(z1, z2, temperature=config.temperature).mean()
+        loss = nt_xent_loss(
+            z1, z2, temperature=config.temperature, gather_distributed=config.gather_negatives
+        ).mean()
         optimizer.zero_grad(set_to_none=True)
         accelerator.backward(loss)
         optimizer.step()
         scheduler.step()
-        loss_value = loss.item()  # synchronises, so the step time below is complete
+        # the mean over processes (also synchronises, so the step time below is complete)
+        loss_value = accelerator.reduce(loss.detach(), reduction="mean").item()
         finished = time.perf_counter()
         if step > 0 or max_steps == 1:  # the first step pays one-off warm-up costs
             augment_time += augmented - step_start
@@ -290,6 +297,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     # 5. save the encoder and the run's figures
     accelerator.wait_for_everyone()
+    gathered = config.gather_negatives and accelerator.num_processes > 1
     metrics = {
         "final_loss": loss_value,
         "steps": step,
@@ -300,7 +308,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "augment_fraction": augment_time / step_time if step_time > 0 else None,
         "device": str(accelerator.device),
         "num_processes": accelerator.num_processes,
-        "collapse_loss": math.log(2 * local_batch - 1),
+        "collapse_loss": math.log(2 * (config.batch_size if gathered else local_batch) - 1),
     }
     if accelerator.is_main_process:
         unwrapped = accelerator.unwrap_model(model)
