@@ -95,35 +95,48 @@ def rendezvous_port() -> int:
     return free_port()
 
 
-@pytest.fixture
-def run_two_process(tmp_path: Path) -> Callable[..., str]:
-    """Runs a two-process CPU command (gloo on loopback) and returns its output.
+@pytest.fixture(scope="session")
+def gloo_loopback(tmp_path_factory: pytest.TempPathFactory) -> str | None:
+    """Why this machine cannot form a two-process gloo group on loopback, or None when it can.
 
-    The command must contain ``marker`` (a path unique to the test) so that its ranks can be killed.
-    If the command fails or times out, a bare two-process gloo all-reduce is tried: when that fails
-    too the machine cannot form a gloo group and the test is skipped (a property of the machine, like a
-    GPU for the fp16 tests); otherwise the test fails with the command's output.
+    Probed once per test session (per xdist worker) with a bare all-reduce, so that a machine whose
+    networking cannot host gloo skips the multi-process tests at once instead of timing each one out.
     """
+    folder = tmp_path_factory.mktemp("gloo_probe")
+    probe = folder / "gloo_probe.py"
+    probe.write_text(GLOO_PROBE)
+    log = folder / "gloo_probe.log"
+    command = [
+        sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
+        "--master_addr", "127.0.0.1", "--master_port", str(free_port()), str(probe),
+    ]  # fmt: skip
+    returncode = run_marked(command, log, str(probe), timeout=90)
+    if returncode == 0:
+        return None
+    why = "timed out after 90 s" if returncode is None else f"exit code {returncode}"
+    tail = " | ".join(log.read_text(errors="replace").strip().splitlines()[-4:])
+    return f"this machine cannot form a 2-process gloo group on loopback ({why}): {tail}"
+
+
+@pytest.fixture
+def run_two_process(tmp_path: Path, gloo_loopback: str | None) -> Callable[..., str]:
+    """Runs a two-process CPU command (gloo on loopback) and returns its output; fails the test with
+    that output when the command fails or times out.
+
+    Skips when the machine cannot form a gloo group at all (a property of the machine, like a GPU
+    for the fp16 tests). The command must contain ``marker`` (a path unique to the test) so that its
+    ranks can be killed afterwards.
+    """
+    if gloo_loopback is not None:
+        pytest.skip(gloo_loopback)
 
     def run(command: list[str], marker: str, timeout: float = 180.0) -> str:
         log = tmp_path / "two_process.log"
         returncode = run_marked(command, log, marker, timeout)
         output = log.read_text(errors="replace")
-        if returncode == 0:
-            return output
-        probe = tmp_path / "gloo_probe.py"
-        probe.write_text(GLOO_PROBE)
-        probe_log = tmp_path / "gloo_probe.log"
-        probe_command = [
-            sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2",
-            "--master_addr", "127.0.0.1", "--master_port", str(free_port()), str(probe),
-        ]  # fmt: skip
-        probe_code = run_marked(probe_command, probe_log, str(probe), timeout=90)
-        if probe_code != 0:
-            why = "timed out after 90 s" if probe_code is None else f"exit code {probe_code}"
-            tail = " | ".join(probe_log.read_text(errors="replace").strip().splitlines()[-4:])
-            pytest.skip(f"this machine cannot form a 2-process gloo group on loopback ({why}): {tail}")
-        outcome = f"timed out after {timeout:.0f} s" if returncode is None else f"exit code {returncode}"
-        pytest.fail(f"two-process run failed ({outcome}) although gloo works here:\n{output[-3000:]}")
+        if returncode != 0:
+            outcome = f"timed out after {timeout:.0f} s" if returncode is None else f"exit code {returncode}"
+            pytest.fail(f"two-process run failed ({outcome}):\n{output[-3000:]}")
+        return output
 
     return run
