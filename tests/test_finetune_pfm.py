@@ -1,4 +1,5 @@
-"""Tests of train/finetune_pfm.py: smoke run, CFG dropout, bad input, two-process run, SIGKILL + resume."""
+"""Tests of train/finetune_pfm.py: smoke run, CFG dropout, bad input, two-process run, SIGKILL + resume,
+trained image tower."""
 
 from __future__ import annotations
 
@@ -23,7 +24,7 @@ from safetensors.torch import load_file
 
 from sar_zero123.data import ChipRecord, write_index
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
-from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "train" / "finetune_pfm.py"
@@ -164,7 +165,7 @@ def test_cfg_dropout_both_matches_sampling_null(script, assets) -> None:
         unet=components["unet"],
         pose_projection=components["pose_projection"],
         vae=components["vae"],
-        image_encoder=components["image_encoder"],
+        image_encoder=script.ImageEmbedder(components["image_encoder"]),
         encoder=None,
         noise_scheduler=DDPMScheduler.from_config(components["scheduler"].config),
         config=config,
@@ -383,3 +384,128 @@ def test_two_process_cpu_run_keeps_replicas_identical(assets, tmp_path) -> None:
         "random_states_0.pkl",
         "random_states_1.pkl",
     ]
+
+
+# ------------------------------------------------------------------------------ --train_image_encoder
+def initial_tower(seed: int = 3) -> dict[str, torch.Tensor]:
+    """The random CLIP tower a ``--size tiny --seed 3`` run starts from."""
+    return build_sar_zero123("tiny", seed=seed).image_encoder.state_dict()
+
+
+def read_tower_state(checkpoint: Path) -> tuple[dict[str, torch.Tensor], list[torch.Tensor]]:
+    """The trained tower (third prepared model) and its EMA (second registered object) of a checkpoint."""
+    tower = load_file(checkpoint / "model_2.safetensors")
+    ema = torch.load(checkpoint / "custom_checkpoint_1.pkl", weights_only=False)["shadow_params"]
+    return tower, ema
+
+
+def tower_args(assets: dict[str, Path], output_dir: Path, *extra: str) -> list[str]:
+    return tiny_args(
+        assets,
+        output_dir,
+        "--train_image_encoder",
+        "--max_train_steps",
+        "2",
+        "--checkpointing_steps",
+        "1",
+        "--num_validation_images",
+        "2",
+        "--validation_inference_steps",
+        "2",
+        *extra,
+    )
+
+
+@pytest.fixture(scope="module")
+def tower_run(script, assets, tmp_path_factory) -> Path:
+    """Two steps with ``--train_image_encoder``: checkpoints 1 and 2, validation at step 2, pipeline."""
+    out = script.main(tower_args(assets, tmp_path_factory.mktemp("tower") / "run", "--validation_steps", "2"))
+    AcceleratorState._reset_state(True)
+    GradientState._reset_state()
+    return out
+
+
+def test_train_image_encoder_trains_checkpoints_and_exports_the_tower(script, tower_run) -> None:
+    initial = initial_tower()
+    # 1. the exported pipeline loads and carries the EMA tower, which moved away from the random init
+    pipe = SARZero123Pipeline.from_pretrained(tower_run / "pipeline")
+    exported = pipe.image_encoder.state_dict()
+    assert exported.keys() == initial.keys()
+    assert all(exported[k].dtype == torch.float32 and torch.isfinite(exported[k]).all() for k in exported)
+    changed = [k for k in initial if not torch.equal(initial[k], exported[k])]
+    assert changed == list(initial)  # every tensor of the tower is a trained parameter
+    tower, ema = read_tower_state(tower_run / "checkpoint-2")
+    parameters = [p for _, p in pipe.image_encoder.named_parameters()]
+    assert len(ema) == len(parameters) and all(torch.equal(e, p) for e, p in zip(ema, parameters))
+    assert not torch.equal(
+        tower["image_encoder.visual_projection.weight"], initial["visual_projection.weight"]
+    )
+    result = pipe(
+        torch.rand(1, 1, 32, 32), d_az=30.0, num_inference_steps=2, output_type="pt",
+        generator=torch.Generator().manual_seed(0),
+    ).images  # fmt: skip
+    assert result.shape == (1, 1, 32, 32) and torch.isfinite(result).all()
+    # 2. the replica digest covers the tower: recomputed from checkpoint-2 (saved before the step-2
+    #    validation, so this also shows validation swapped its EMA weights back out)
+    modules = build_sar_zero123("tiny", seed=3)
+    modules.unet.load_state_dict(load_file(tower_run / "checkpoint-2" / "model.safetensors"))
+    modules.pose_projection.load_state_dict(load_file(tower_run / "checkpoint-2" / "model_1.safetensors"))
+    embedder = script.ImageEmbedder(modules.image_encoder)
+    embedder.load_state_dict(tower)
+    digest = script.weights_digest([modules.unet, modules.pose_projection, embedder]).item()
+    assert json.loads((tower_run / "train_state.json").read_text())["replica_weight_digests"] == [digest]
+    assert (tower_run / "validation" / "step-000002.png").is_file()
+
+
+def test_frozen_image_encoder_is_bitwise_unchanged(script, assets, tmp_path) -> None:
+    out = script.main(
+        tiny_args(assets, tmp_path / "frozen", "--max_train_steps", "2", "--checkpointing_steps", "2",
+                  "--validation_steps", "0")
+    )  # fmt: skip
+    initial = initial_tower()
+    exported = SARZero123Pipeline.from_pretrained(out / "pipeline").image_encoder.state_dict()
+    assert exported.keys() == initial.keys() and all(torch.equal(initial[k], exported[k]) for k in initial)
+    assert not (out / "checkpoint-2" / "model_2.safetensors").exists()
+    assert not (out / "checkpoint-2" / "custom_checkpoint_1.pkl").exists()
+
+
+def test_train_image_encoder_resume_restores_the_tower_bitwise(script, assets, tower_run, tmp_path) -> None:
+    # the tower of checkpoint-1 is already trained, so a resume that dropped it would diverge at step 2
+    step1, _ = read_tower_state(tower_run / "checkpoint-1")
+    assert not torch.equal(
+        step1["image_encoder.visual_projection.weight"], initial_tower()["visual_projection.weight"]
+    )
+    run = tmp_path / "resumed"
+    script.main(
+        tower_args(
+            assets,
+            run,
+            "--validation_steps",
+            "2",
+            "--resume_from_checkpoint",
+            str(tower_run / "checkpoint-1"),
+        )
+    )
+    expected, actual = read_weights(tower_run / "checkpoint-2"), read_weights(run / "checkpoint-2")
+    assert expected.keys() == actual.keys() and all(torch.equal(expected[k], actual[k]) for k in expected)
+    (tower, ema), (tower_resumed, ema_resumed) = map(
+        read_tower_state, (tower_run / "checkpoint-2", run / "checkpoint-2")
+    )
+    assert tower.keys() == tower_resumed.keys() and all(
+        torch.equal(tower[k], tower_resumed[k]) for k in tower
+    )
+    assert len(ema) == len(ema_resumed) and all(torch.equal(a, b) for a, b in zip(ema, ema_resumed))
+
+
+def test_train_image_encoder_keeps_float32_master_weights_under_bf16(script, assets, tmp_path) -> None:
+    out = script.main(
+        tower_args(assets, tmp_path / "bf16", "--mixed_precision", "bf16", "--validation_steps", "0",
+                   "--max_train_steps", "1", "--no-save_pipeline")
+    )  # fmt: skip
+    tower, ema = read_tower_state(out / "checkpoint-1")
+    initial = initial_tower()
+    assert all(v.dtype == torch.float32 for v in tower.values()) and all(
+        e.dtype == torch.float32 for e in ema
+    )
+    weight = tower["image_encoder.visual_projection.weight"]
+    assert torch.isfinite(weight).all() and not torch.equal(weight, initial["visual_projection.weight"])

@@ -10,6 +10,11 @@ classifier-free-guidance dropout of 5% image embedding, 5% both, 5% condition la
 ``L_simple + pfm_weight * L_PFM`` (:func:`sar_zero123.losses.total_loss`); ``--pfm_weight 0`` is plain
 zero-1-to-3 fine-tuning.
 
+The CLIP image tower is frozen, as in zero-1-to-3, which is right on top of a pretrained tower. The
+named ``--size`` models start from a *random* tower, whose embedding would stay a random projection of
+the input chip; ``--train_image_encoder`` trains it with the UNet (float32 master weights, same learning
+rate, in the EMA, the checkpoints and the exported pipeline).
+
 Determinism and resuming: the data order comes from accelerate's seedable sampler (a function of the seed
 and the epoch), the view pairs from ``ViewPairDataset.set_epoch`` and every random draw of a micro-batch
 (noise, timesteps, VAE posterior sample, CFG dropout, PFM subset) from a generator seeded by
@@ -41,6 +46,7 @@ from diffusers.optimization import get_scheduler
 from diffusers.training_utils import EMAModel
 from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
+from transformers import CLIPVisionModelWithProjection
 
 from sar_zero123.conditioning import (
     embed_pose,
@@ -86,10 +92,11 @@ class FinetuneConfig:
     train_batch_size: int = 4  # pairs per process per micro-batch
     gradient_accumulation_steps: int = 1  # micro-batches per optimisation step
     max_train_steps: int = 1000  # optimisation steps
-    max_grad_norm: float = 1.0  # gradient clipping norm (UNet and pose projection)
+    max_grad_norm: float = 1.0  # gradient clipping norm (all trained parameters together)
     mixed_precision: Literal["no", "fp16", "bf16"] = "no"  # frozen VAE/encoders are cast to this dtype
     gradient_checkpointing: bool = False  # checkpoint UNet activations
-    use_ema: bool = True  # keep an EMA of the UNet (saved in checkpoints, used for validation and export)
+    train_image_encoder: bool = False  # train the CLIP image tower too: use it when training from scratch
+    use_ema: bool = True  # EMA of the UNet (+ trained image tower): in checkpoints, validation, export
     ema_decay: float = 0.9999  # EMA decay
     drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
     drop_both_prob: float = 0.05  # CFG dropout: projected token and condition latent (the sampling null)
@@ -240,6 +247,29 @@ def load_encoder(config: FinetuneConfig, image_size: int) -> SAREncoder | None:
     return encoder.eval().requires_grad_(False)
 
 
+class ImageEmbedder(torch.nn.Module):
+    """The CLIP image tower as one module whose forward is :func:`encode_image_embeddings`.
+
+    ``accelerate.prepare`` (DDP, FSDP, autocast) only acts on what runs through a prepared module's
+    ``forward``; the library's preprocessing reads the tower's ``config``, ``device`` and ``dtype``, which
+    a DDP wrapper hides. Wrapping the tower here lets the preprocessing run inside the prepared forward.
+
+    Args:
+        image_encoder: The CLIP vision tower with projection.
+
+    Shape:
+        - images: ``(B, 1 | 3, H, W)`` normalised dB in [0, 1]
+        - Output: ``(B, 1, projection_dim)``
+    """
+
+    def __init__(self, image_encoder: CLIPVisionModelWithProjection) -> None:
+        super().__init__()
+        self.image_encoder = image_encoder
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return encode_image_embeddings(self.image_encoder, images)
+
+
 def build_datasets(
     config: FinetuneConfig, image_size: int
 ) -> tuple[ViewPairDataset, ViewPairDataset, DecibelScaling]:
@@ -294,6 +324,9 @@ def compute_losses(
 ) -> LossOutput:
     """Per-sample losses of one micro-batch (zero-1-to-3 conditioning, CFG dropout, Eq. 21).
 
+    ``image_encoder`` is an :class:`ImageEmbedder` (prepared by accelerate when it is trained); the CLIP
+    embedding is differentiable exactly when its parameters require gradients.
+
     Shape:
         ``batch["input"]``, ``batch["target"]``: ``(B, 1, S, S)``; outputs ``(B,)``.
     """
@@ -301,11 +334,12 @@ def compute_losses(
     inputs = batch["input"].to(device=device, dtype=dtype)
     targets = batch["target"].to(device=device, dtype=dtype)
     batch_size = inputs.shape[0]
-    # 1. frozen encodings: scaled target latent, unscaled condition latent, CLIP embedding
+    # 1. frozen encodings (scaled target latent, unscaled condition latent) and the CLIP embedding, which
+    #    builds a graph only when the tower is trained (a frozen tower has no parameter requiring grad)
     with torch.no_grad():
         latents = encode_target_latents(vae, targets, generator=generator).float()
         condition_latents = encode_condition_latents(vae, inputs).float()
-        image_embeds = encode_image_embeddings(image_encoder, inputs).float()  # (B, 1, D)
+    image_embeds = image_encoder(inputs).float()  # (B, 1, D)
     pose = embed_pose(batch["d_az_deg"], batch["d_el_deg"]).to(device)  # (B, 1, 4)
     # 2. classifier-free-guidance dropout; the "both" case equals the pipeline's sampling null
     u = torch.rand(batch_size, generator=generator).to(device)
@@ -464,7 +498,13 @@ def main(argv: list[str] | None = None) -> Path:
         accelerator.mixed_precision, torch.float32
     )
     vae = pipe.vae.to(accelerator.device, dtype=weight_dtype).eval().requires_grad_(False)
-    image_encoder = pipe.image_encoder.to(accelerator.device, dtype=weight_dtype).eval().requires_grad_(False)
+    if config.train_image_encoder:
+        image_encoder = ImageEmbedder(pipe.image_encoder.to(accelerator.device, dtype=torch.float32))
+        image_encoder.train().requires_grad_(True)
+    else:
+        image_encoder = ImageEmbedder(
+            pipe.image_encoder.to(accelerator.device, dtype=weight_dtype).eval().requires_grad_(False)
+        )
     if encoder is not None:
         encoder = encoder.to(accelerator.device, dtype=weight_dtype)
     unet, pose_projection = pipe.unet.train(), pipe.pose_projection.train()
@@ -483,18 +523,25 @@ def main(argv: list[str] | None = None) -> Path:
         )
         ema_unet.to(accelerator.device)
         accelerator.register_for_checkpointing(ema_unet)
+    ema_image_encoder = None
+    if config.use_ema and config.train_image_encoder:
+        # the exported UNet is the EMA one; its conditioning tower must be averaged over the same steps
+        ema_image_encoder = EMAModel(image_encoder.parameters(), decay=config.ema_decay)
+        ema_image_encoder.to(accelerator.device)
+        accelerator.register_for_checkpointing(ema_image_encoder)
 
-    # 3. optimiser: the pose projection at pose_lr_multiplier x the learning rate
-    optimizer = torch.optim.AdamW(
-        [
-            {"params": list(unet.parameters()), "lr": config.learning_rate},
-            {
-                "params": list(pose_projection.parameters()),
-                "lr": config.learning_rate * config.pose_lr_multiplier,
-            },
-        ],
-        weight_decay=config.adam_weight_decay,
-    )
+    # 3. optimiser: the pose projection at pose_lr_multiplier x the learning rate, the image tower (if
+    #    trained) at the learning rate
+    param_groups = [
+        {"params": list(unet.parameters()), "lr": config.learning_rate},
+        {
+            "params": list(pose_projection.parameters()),
+            "lr": config.learning_rate * config.pose_lr_multiplier,
+        },
+    ]
+    if config.train_image_encoder:
+        param_groups.append({"params": list(image_encoder.parameters()), "lr": config.learning_rate})
+    optimizer = torch.optim.AdamW(param_groups, weight_decay=config.adam_weight_decay)
     lr_scheduler = get_scheduler(
         config.lr_scheduler,
         optimizer,
@@ -511,6 +558,11 @@ def main(argv: list[str] | None = None) -> Path:
     unet, pose_projection, optimizer, train_dataloader, lr_scheduler = accelerator.prepare(
         unet, pose_projection, optimizer, train_dataloader, lr_scheduler
     )
+    # prepared after the others so that the checkpoints of a frozen-tower run keep their file names
+    trained_modules = [unet, pose_projection]
+    if config.train_image_encoder:
+        image_encoder = accelerator.prepare(image_encoder)
+        trained_modules.append(image_encoder)
     if len(train_dataloader) == 0:
         raise ValueError("data: the training split yields no full batch on each process")
     validation_batch = next(iter(DataLoader(validation_dataset, batch_size=config.num_validation_images)))
@@ -531,26 +583,29 @@ def main(argv: list[str] | None = None) -> Path:
     # 5. training loop
     batches_per_epoch = len(train_dataloader)
     batch_index = global_step * config.gradient_accumulation_steps
-    trainable = list(unet.parameters()) + list(pose_projection.parameters())
+    trainable = [parameter for module in trained_modules for parameter in module.parameters()]
     progress = tqdm(
         total=config.max_train_steps,
         initial=global_step,
         desc="steps",
         disable=not accelerator.is_local_main_process,
     )
-    frozen_modules = dict(
-        vae=vae, image_encoder=image_encoder, encoder=encoder, noise_scheduler=noise_scheduler, config=config
-    )
+    frozen_modules = dict(vae=vae, encoder=encoder, noise_scheduler=noise_scheduler, config=config)
     while global_step < config.max_train_steps:
         epoch, offset = divmod(batch_index, batches_per_epoch)
         train_dataset.set_epoch(epoch)
         train_dataloader.set_epoch(epoch)
         loader = accelerator.skip_first_batches(train_dataloader, offset) if offset else train_dataloader
         for batch in loader:
-            with accelerator.accumulate(unet, pose_projection):
+            with accelerator.accumulate(*trained_modules):
                 generator = micro_batch_generator(config.seed, batch_index, accelerator.process_index)
                 losses = compute_losses(
-                    batch, unet=unet, pose_projection=pose_projection, generator=generator, **frozen_modules
+                    batch,
+                    unet=unet,
+                    pose_projection=pose_projection,
+                    image_encoder=image_encoder,
+                    generator=generator,
+                    **frozen_modules,
                 )
                 loss = losses.loss.mean()
                 accelerator.backward(loss)
@@ -565,6 +620,8 @@ def main(argv: list[str] | None = None) -> Path:
             global_step += 1
             if ema_unet is not None:
                 ema_unet.step(unet.parameters())
+            if ema_image_encoder is not None:
+                ema_image_encoder.step(image_encoder.parameters())
             progress.update(1)
             logs = {
                 "train/loss": accelerator.gather(losses.loss.detach()).mean().item(),
@@ -588,7 +645,9 @@ def main(argv: list[str] | None = None) -> Path:
                         accelerator,
                         unet,
                         pose_projection,
+                        image_encoder,
                         ema_unet,
+                        ema_image_encoder,
                         pipe,
                         validation_batch,
                         frozen_modules,
@@ -600,9 +659,9 @@ def main(argv: list[str] | None = None) -> Path:
                 break
     progress.close()
 
-    # 6. replica check, then export the complete pipeline (EMA weights in the UNet)
+    # 6. replica check, then export the complete pipeline (EMA weights in the UNet and a trained tower)
     accelerator.wait_for_everyone()
-    trained = [accelerator.unwrap_model(unet), accelerator.unwrap_model(pose_projection)]
+    trained = [accelerator.unwrap_model(module) for module in trained_modules]
     digests = accelerator.gather(weights_digest(trained).to(accelerator.device)).tolist()
     if accelerator.is_main_process:
         write_json_atomic(
@@ -615,9 +674,12 @@ def main(argv: list[str] | None = None) -> Path:
         final_unet = trained[0]
         if ema_unet is not None:
             ema_unet.copy_to(final_unet.parameters())
+        final_image_encoder = accelerator.unwrap_model(image_encoder).image_encoder
+        if ema_image_encoder is not None:
+            ema_image_encoder.copy_to(final_image_encoder.parameters())
         export = SARZero123Pipeline(
             vae=vae,
-            image_encoder=image_encoder,
+            image_encoder=final_image_encoder.eval(),
             unet=final_unet.eval(),
             scheduler=DDIMScheduler.from_config(pipe.scheduler.config),
             pose_projection=trained[1].eval(),
@@ -634,34 +696,41 @@ def validate(
     accelerator: Accelerator,
     unet,
     pose_projection,
+    image_encoder,
     ema_unet: EMAModel | None,
+    ema_image_encoder: EMAModel | None,
     pipe: SARZero123Pipeline,
     batch: dict,
     frozen_modules: dict,
     config: FinetuneConfig,
     step: int,
 ) -> Path:
-    """Validation with the EMA weights swapped in (and out again afterwards)."""
+    """Validation with the unwrapped modules, EMA weights swapped in (and out again afterwards)."""
     raw_unet = accelerator.unwrap_model(unet)
     raw_projection = accelerator.unwrap_model(pose_projection)
-    if ema_unet is not None:
-        ema_unet.store(raw_unet.parameters())
-        ema_unet.copy_to(raw_unet.parameters())
-    raw_unet.eval()
-    raw_projection.eval()
+    raw_embedder = accelerator.unwrap_model(image_encoder)
+    swaps = [(ema_unet, raw_unet), (ema_image_encoder, raw_embedder)]
+    for ema, module in swaps:
+        if ema is not None:
+            ema.store(module.parameters())
+            ema.copy_to(module.parameters())
+    was_training = raw_embedder.training
+    for module in (raw_unet, raw_projection, raw_embedder):
+        module.eval()
     try:
         with torch.no_grad():
             losses = compute_losses(
                 batch,
                 unet=raw_unet,
                 pose_projection=raw_projection,
+                image_encoder=raw_embedder,
                 generator=torch.Generator().manual_seed(config.seed),
                 apply_dropout=False,
                 **frozen_modules,
             )
         sampler = SARZero123Pipeline(
             vae=frozen_modules["vae"],
-            image_encoder=frozen_modules["image_encoder"],
+            image_encoder=raw_embedder.image_encoder,
             unet=raw_unet,
             scheduler=DDIMScheduler.from_config(pipe.scheduler.config),
             pose_projection=raw_projection,
@@ -670,10 +739,12 @@ def validate(
         sampler.set_progress_bar_config(disable=True)
         return run_validation(accelerator, sampler, batch, losses, config, step)
     finally:
-        if ema_unet is not None:
-            ema_unet.restore(raw_unet.parameters())
+        for ema, module in swaps:
+            if ema is not None:
+                ema.restore(module.parameters())
         raw_unet.train()
         raw_projection.train()
+        raw_embedder.train(was_training)
 
 
 if __name__ == "__main__":
