@@ -123,12 +123,21 @@ def resolve_resume_checkpoint(output_dir: str | os.PathLike, value: str | None) 
     return path
 
 
-def load_checkpoint(accelerator: Accelerator, path: str | os.PathLike) -> dict[str, Any]:
-    """Restore a checkpoint written by :func:`save_checkpoint`; returns its ``run_state.json``."""
-    path = Path(path)
-    state_file = path / STATE_FILE
+def read_run_state(path: str | os.PathLike) -> dict[str, Any]:
+    """The ``run_state.json`` of a checkpoint written by :func:`save_checkpoint`, without loading it.
+
+    Raises:
+        FileNotFoundError: If the checkpoint has no ``run_state.json`` (it is incomplete).
+    """
+    state_file = Path(path) / STATE_FILE
     if not state_file.is_file():
         raise FileNotFoundError(f"checkpoint {str(path)!r} has no {STATE_FILE}; it is incomplete")
-    accelerator.load_state(str(path))
     with state_file.open() as handle:
         return json.load(handle)
+
+
+def load_checkpoint(accelerator: Accelerator, path: str | os.PathLike) -> dict[str, Any]:
+    """Restore a checkpoint written by :func:`save_checkpoint`; returns its ``run_state.json``."""
+    state = read_run_state(path)
+    accelerator.load_state(str(path))
+    return state

@@ -8,8 +8,6 @@ import json
 import multiprocessing
 import os
 import signal
-import socket
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -286,62 +284,8 @@ def test_sigkill_then_resume_latest_is_bitwise_identical(script, assets, tmp_pat
     assert all(torch.equal(expected[k], actual[k]) for k in expected)
 
 
-GLOO_PROBE = """
-import datetime, torch, torch.distributed as dist
-dist.init_process_group("gloo", timeout=datetime.timedelta(seconds=30))
-value = torch.ones(1)
-dist.all_reduce(value)
-assert value.item() == dist.get_world_size()
-dist.destroy_process_group()
-"""
-
-
-def free_port() -> int:
-    with socket.socket() as probe:  # a free rendezvous port: 29500 may be taken by another run
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
-
-def loopback_env() -> dict[str, str]:
-    """Pin gloo to the loopback interface: without GLOO_SOCKET_IFNAME gloo binds to whatever the host
-    name resolves to, which in some containers is an address the other rank cannot reach (a hang)."""
-    return {**subprocess_env(), "ACCELERATE_USE_CPU": "true", "GLOO_SOCKET_IFNAME": "lo"}
-
-
-def run_with_deadline(command: list[str], env: dict[str, str], log: Path, marker: str, timeout: float):
-    """Run ``command`` with output to ``log``; on timeout kill it and its ranks and return None."""
-    with log.open("w") as handle:
-        process = subprocess.Popen(
-            command, env=env, stdout=handle, stderr=subprocess.STDOUT, start_new_session=True
-        )
-        try:
-            return process.wait(timeout=timeout)
-        except subprocess.TimeoutExpired:
-            return None
-        finally:
-            kill_stragglers(marker)
-
-
-def require_gloo_group(tmp_path: Path) -> None:
-    """Skip unless this machine can form a two-process gloo group on loopback (a property of the
-    machine, like a GPU for the fp16 tests; the script's own distributed behaviour is what is tested)."""
-    probe = tmp_path / "gloo_probe.py"
-    probe.write_text(GLOO_PROBE)
-    command = [
-        sys.executable, "-m", "torch.distributed.run", "--nproc_per_node", "2", "--master_addr",
-        "127.0.0.1", "--master_port", str(free_port()), str(probe),
-    ]  # fmt: skip
-    log = tmp_path / "gloo_probe.log"
-    returncode = run_with_deadline(command, loopback_env(), log, str(probe), timeout=90)
-    if returncode != 0:
-        outcome = "timed out after 90 s" if returncode is None else f"exit code {returncode}"
-        tail = " | ".join(log.read_text(errors="replace").strip().splitlines()[-4:])
-        pytest.skip(f"this machine cannot form a 2-process gloo group on loopback ({outcome}): {tail}")
-
-
 @pytest.mark.slow
-def test_two_process_cpu_run_keeps_replicas_identical(assets, tmp_path) -> None:
-    require_gloo_group(tmp_path)
+def test_two_process_cpu_run_keeps_replicas_identical(assets, tmp_path, run_two_process, rendezvous_port):
     out = tmp_path / "ddp"
     command = [
         "accelerate",
@@ -358,7 +302,7 @@ def test_two_process_cpu_run_keeps_replicas_identical(assets, tmp_path) -> None:
         "--main_process_ip",
         "127.0.0.1",
         "--main_process_port",
-        str(free_port()),
+        str(rendezvous_port),
         str(SCRIPT),
         *tiny_args(
             assets,
@@ -372,10 +316,7 @@ def test_two_process_cpu_run_keeps_replicas_identical(assets, tmp_path) -> None:
             "--no-save_pipeline",
         ),
     ]
-    log = tmp_path / "launch.log"
-    returncode = run_with_deadline(command, loopback_env(), log, str(out), timeout=180)
-    assert returncode is not None, "two-process run timed out after 180 s:\n" + log.read_text()[-3000:]
-    assert returncode == 0, log.read_text()[-3000:]
+    run_two_process(command, marker=str(out), timeout=180)
     state = json.loads((out / "train_state.json").read_text())
     digests = state["replica_weight_digests"]
     assert len(digests) == 2 and digests[0] == digests[1]
@@ -495,6 +436,15 @@ def test_train_image_encoder_resume_restores_the_tower_bitwise(script, assets, t
         torch.equal(tower[k], tower_resumed[k]) for k in tower
     )
     assert len(ema) == len(ema_resumed) and all(torch.equal(a, b) for a, b in zip(ema, ema_resumed))
+
+
+def test_resume_with_the_other_train_image_encoder_setting_is_refused(script, assets, tower_run, tmp_path):
+    checkpoint = tower_run / "checkpoint-1"
+    assert json.loads((checkpoint / "run_state.json").read_text())["train_image_encoder"] is True
+    argv = tiny_args(assets, tmp_path / "frozen", "--resume_from_checkpoint", str(checkpoint))
+    with pytest.raises(ValueError, match=r"resume_from_checkpoint: .* train_image_encoder=True"):
+        script.main(argv)
+    assert not (tmp_path / "frozen").exists()  # refused before anything was written
 
 
 def test_train_image_encoder_keeps_float32_master_weights_under_bf16(script, assets, tmp_path) -> None:

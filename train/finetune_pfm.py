@@ -59,7 +59,7 @@ from sar_zero123.data import DecibelScaling, ViewPairDataset, check_protocol, pr
 from sar_zero123.encoder import SAREncoder
 from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput, denoising_target, total_loss
 from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
-from sar_zero123.run_state import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
+from sar_zero123.run_state import load_checkpoint, read_run_state, resolve_resume_checkpoint, save_checkpoint
 
 logger = logging.getLogger(__name__)
 
@@ -473,6 +473,13 @@ def main(argv: list[str] | None = None) -> Path:
 
     # 1. check every input before any training step
     resume_path = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
+    if resume_path is not None:  # the checkpoint's module list must match this run's
+        written_with = bool(read_run_state(resume_path).get("train_image_encoder", False))
+        if written_with != config.train_image_encoder:
+            raise ValueError(
+                f"resume_from_checkpoint: {str(resume_path)!r} was written with "
+                f"train_image_encoder={written_with}; resume it with the same setting"
+            )
     pipe = load_components(config)
     image_size = resolve_image_size(config, pipe)
     encoder = load_encoder(config, image_size)
@@ -637,7 +644,11 @@ def main(argv: list[str] | None = None) -> Path:
                     output_dir,
                     global_step,
                     config.checkpoints_total_limit,
-                    extra_state={"epoch": epoch, "batch_index": batch_index},
+                    extra_state={
+                        "epoch": epoch,
+                        "batch_index": batch_index,
+                        "train_image_encoder": config.train_image_encoder,
+                    },
                 )
             if config.validation_steps and global_step % config.validation_steps == 0:
                 if accelerator.is_main_process:
