@@ -266,6 +266,30 @@ class ProjectionHead(nn.Module):
         return self.net(h)
 
 
+class _GatherRows(torch.autograd.Function):
+    """Differentiable all-gather of equal-sized (N, D) blocks into (W * N, D), rank order.
+
+    Written here because torch's public differentiable gather (``torch.distributed.nn.functional``) is
+    deprecated in favour of a private module. The backward pass sums the incoming gradient over the
+    processes and keeps this process's rows (a reduce-scatter), so a row receives the gradient of every
+    process's loss.
+    """
+
+    @staticmethod
+    def forward(ctx, block: torch.Tensor) -> torch.Tensor:  # noqa: D102
+        ctx.rows = block.shape[0]
+        parts = [torch.empty_like(block) for _ in range(torch.distributed.get_world_size())]
+        torch.distributed.all_gather(parts, block.contiguous())
+        return torch.cat(parts)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor) -> torch.Tensor:  # noqa: D102
+        grad = grad.contiguous()
+        torch.distributed.all_reduce(grad)
+        start = torch.distributed.get_rank() * ctx.rows
+        return grad[start : start + ctx.rows]
+
+
 def nt_xent_loss(
     z1: torch.Tensor, z2: torch.Tensor, temperature: float = 0.5, *, gather_distributed: bool = False
 ) -> torch.Tensor:
@@ -278,9 +302,9 @@ def nt_xent_loss(
 
     With ``gather_distributed`` inside an initialised process group of W processes, each holding N
     pairs, every local anchor is contrasted with the 2NW projections of all processes (gathered with
-    the autograd-aware ``torch.distributed.nn.functional.all_gather``), as in SimCLR's global-batch
-    objective. The per-pair losses then equal those of a single process holding the whole global
-    batch, and the gradients that data-parallel averaging produces equal that process's gradients.
+    gradients), as in SimCLR's global-batch objective. The per-pair losses then equal those of a
+    single process holding the whole global batch, and the gradients that data-parallel averaging
+    produces equal that process's gradients.
     Outside a process group (or with W = 1) it is the local loss.
 
     Args:
@@ -315,10 +339,7 @@ def nt_xent_loss(
         if any(int(size) != n for size in sizes):
             counts = [int(size) for size in sizes]
             raise ValueError(f"gather_distributed needs equal pairs on every process, got {counts}")
-        # imported here: torch builds without distributed support lack this module
-        from torch.distributed.nn.functional import all_gather  # autograd-aware all_gather
-
-        candidates = torch.cat([*all_gather(u1), *all_gather(u2)])  # (2NW, D): first views, then second
+        candidates = torch.cat([_GatherRows.apply(u1), _GatherRows.apply(u2)])  # (2NW, D): views 1, views 2
     else:
         candidates = anchors
     total = n * world

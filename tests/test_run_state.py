@@ -9,8 +9,10 @@ import torch
 from accelerate import Accelerator
 
 from sar_zero123.run_state import (
+    end_run,
     list_checkpoints,
     load_checkpoint,
+    read_run_state,
     resolve_resume_checkpoint,
     save_checkpoint,
 )
@@ -61,3 +63,15 @@ def test_total_limit_and_latest_ignore_partial(tmp_path: Path):
         resolve_resume_checkpoint(tmp_path, str(tmp_path / "checkpoint-9"))
     with pytest.raises(ValueError, match="total_limit"):
         save_checkpoint(accelerator, tmp_path, step=10, total_limit=0)
+
+
+def test_read_run_state_and_end_run(tmp_path: Path):
+    accelerator, model, optimizer = _setup()
+    _step(model, optimizer)
+    path = save_checkpoint(accelerator, tmp_path, 3, extra_state={"epoch": 1})
+    assert read_run_state(path) == {"step": 3, "epoch": 1}
+    with pytest.raises(FileNotFoundError, match="run_state.json"):
+        read_run_state(tmp_path)
+    # a single process has no data-parallel wrapper; accelerate's references are dropped
+    assert end_run(accelerator) == 0
+    assert accelerator._models == [] and accelerator._optimizers == []

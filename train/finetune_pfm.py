@@ -59,7 +59,13 @@ from sar_zero123.data import DecibelScaling, ViewPairDataset, check_protocol, pr
 from sar_zero123.encoder import SAREncoder
 from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput, denoising_target, total_loss
 from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
-from sar_zero123.run_state import load_checkpoint, read_run_state, resolve_resume_checkpoint, save_checkpoint
+from sar_zero123.run_state import (
+    end_run,
+    load_checkpoint,
+    read_run_state,
+    resolve_resume_checkpoint,
+    save_checkpoint,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -697,9 +703,10 @@ def main(argv: list[str] | None = None) -> Path:
             feature_extractor=pipe.feature_extractor,
         )
         export_pipeline(export, scaling, output_dir / "pipeline")
-    # every rank enters the process-group teardown together: a gloo rank left alone in it can hang
     accelerator.wait_for_everyone()
-    accelerator.end_training()
+    # no reference to a data-parallel wrapper (or a graph through one) may outlive the process group
+    unet = pose_projection = image_encoder = trained_modules = losses = loss = None
+    end_run(accelerator)
     return output_dir
 
 

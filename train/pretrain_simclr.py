@@ -43,7 +43,7 @@ from sar_zero123.augment import PRESETS, AugmentationPreset, simclr_views
 from sar_zero123.config import config_to_dict, parse_config, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, prepare_splits
 from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig, nt_xent_loss
-from sar_zero123.run_state import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
+from sar_zero123.run_state import end_run, load_checkpoint, resolve_resume_checkpoint, save_checkpoint
 
 logger = logging.getLogger(__name__)
 
@@ -314,7 +314,10 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         unwrapped = accelerator.unwrap_model(model)
         unwrapped[0].save_pretrained(output_dir / "encoder")
         write_json_atomic(metrics, output_dir / "metrics.json")
-    accelerator.end_training()
+        unwrapped = None
+    # no reference to the data-parallel wrapper (or a graph through it) may outlive the process group
+    model = z1 = z2 = loss = None
+    end_run(accelerator)
     return metrics
 
 

@@ -29,7 +29,7 @@ from tqdm.auto import tqdm
 
 from sar_zero123.config import parse_config, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, DecibelScaling, check_protocol, prepare_splits
-from sar_zero123.run_state import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
+from sar_zero123.run_state import end_run, load_checkpoint, resolve_resume_checkpoint, save_checkpoint
 
 logger = logging.getLogger(__name__)
 
@@ -283,7 +283,9 @@ def main(argv: list[str] | None = None) -> Path:
         write_json_atomic(scaling.to_dict(), output_dir / "vae" / "decibel_scaling.json")
         accelerator.log({"test/psnr_db": metrics["psnr_db"], "test/ssim": metrics["ssim"]}, step=global_step)
         logger.info("test reconstruction: PSNR %.2f dB, SSIM %.4f", metrics["psnr_db"], metrics["ssim"])
-    accelerator.end_training()
+    # no reference to the data-parallel wrapper (or a graph through it) may outlive the process group
+    objective = total = reconstruction = None
+    end_run(accelerator)
     return output_dir
 
 
