@@ -226,21 +226,6 @@ def read_weights(checkpoint: Path) -> dict[str, torch.Tensor]:
     return weights
 
 
-def kill_stragglers(marker: str) -> None:
-    """SIGKILL this test's launcher and ranks still alive (torch elastic starts ranks in their own
-    sessions, so killing the launcher's process group does not reach them)."""
-    for cmdline in Path("/proc").glob("[0-9]*/cmdline"):
-        try:
-            if marker in cmdline.read_bytes().decode(errors="replace"):
-                os.kill(int(cmdline.parent.name), signal.SIGKILL)
-        except (OSError, ValueError):
-            continue
-
-
-def subprocess_env() -> dict[str, str]:
-    return {**os.environ, "OMP_NUM_THREADS": "1", "PYTHONPATH": str(ROOT)}
-
-
 @pytest.mark.slow
 def test_sigkill_then_resume_latest_is_bitwise_identical(script, assets, tmp_path) -> None:
     steps = [
