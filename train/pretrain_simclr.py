@@ -314,7 +314,6 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         unwrapped = accelerator.unwrap_model(model)
         unwrapped[0].save_pretrained(output_dir / "encoder")
         write_json_atomic(metrics, output_dir / "metrics.json")
-        unwrapped = None
     # no reference to the data-parallel wrapper (or a graph through it) may outlive the process group
     model = z1 = z2 = loss = None
     end_run(accelerator)
