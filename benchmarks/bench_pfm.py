@@ -27,7 +27,6 @@ from __future__ import annotations
 
 import argparse
 import copy
-import importlib.util
 import json
 import platform
 import resource
@@ -50,6 +49,7 @@ from sar_zero123.losses import (  # noqa: E402
     pfm_loss,
     signal_to_noise_ratio,
 )
+from sar_zero123.training import ImageEmbedder, compute_losses  # noqa: E402
 
 #: lambda = 4 variants: (overrides of the fine-tuning config, frozen-module options).
 VARIANTS: dict[str, dict] = {
@@ -74,14 +74,6 @@ SCHEDULES = {
         beta_schedule="scaled_linear", beta_start=0.00085, beta_end=0.012, rescale_betas_zero_snr=True
     ),
 }
-
-
-def load_finetune_script():
-    spec = importlib.util.spec_from_file_location("finetune_pfm", ROOT / "train" / "finetune_pfm.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["finetune_pfm"] = module
-    spec.loader.exec_module(module)
-    return module
 
 
 def _status_mib(field: str) -> float:
@@ -126,7 +118,7 @@ def build_step_setup(size: str, batch_size: int, seed: int = 0):
     return pipe, encoder, batch, image_size
 
 
-def prepare_variant(name: str, script, pipe, encoder, image_size: int) -> dict:
+def prepare_variant(name: str, pipe, encoder, image_size: int) -> dict:
     """The config and own copies of the frozen modules (dtype, memory format, checkpointing) of a variant."""
     options = dict(VARIANTS[name])
     frozen_dtype = torch.bfloat16 if options.pop("frozen_dtype", None) == "bf16" else torch.float32
@@ -141,14 +133,14 @@ def prepare_variant(name: str, script, pipe, encoder, image_size: int) -> dict:
         )
     if options.get("pfm_crop_size") == "half":
         options["pfm_crop_size"] = image_size // 2
-    config = script.FinetuneConfig(
-        encoder="unused",
-        pfm_min_snr=0.0,
-        drop_image_prob=0.0,
-        drop_both_prob=0.0,
-        drop_latent_prob=0.0,
-        **{"pfm_weight": 4.0, **options},
-    )
+    loss_options = {
+        "pfm_weight": 4.0,
+        "pfm_min_snr": 0.0,
+        "drop_image_prob": 0.0,
+        "drop_both_prob": 0.0,
+        "drop_latent_prob": 0.0,
+        **options,
+    }
     vae = copy.deepcopy(pipe.vae).to(frozen_dtype).eval().requires_grad_(False)
     variant_encoder = copy.deepcopy(encoder).to(frozen_dtype)
     if channels_last:
@@ -158,17 +150,17 @@ def prepare_variant(name: str, script, pipe, encoder, image_size: int) -> dict:
         vae.enable_gradient_checkpointing()
     image_encoder = copy.deepcopy(pipe.image_encoder).to(frozen_dtype).eval().requires_grad_(False)
     return {
-        "config": config,
+        **loss_options,
         "vae": vae,
-        "image_encoder": image_encoder,
-        "encoder": variant_encoder if config.pfm_weight > 0 else None,
+        "image_encoder": ImageEmbedder(image_encoder),
+        "encoder": variant_encoder if loss_options["pfm_weight"] > 0 else None,
     }
 
 
-def train_step(script, batch: dict, trainer: dict, prepared: dict, seed: int):
+def train_step(batch: dict, trainer: dict, prepared: dict, seed: int):
     """One compute_losses + backward + AdamW step; returns (seconds, losses)."""
     start = time.perf_counter()
-    losses = script.compute_losses(
+    losses = compute_losses(
         batch,
         unet=trainer["unet"],
         pose_projection=trainer["projection"],
@@ -196,13 +188,12 @@ def build_trainer(pipe) -> dict:
 
 def run_variant(name: str, size: str, batch_size: int, steps: int, warmup: int) -> dict:
     """Peak memory (and times) of one variant alone in this process."""
-    script = load_finetune_script()
     pipe, encoder, batch, image_size = build_step_setup(size, batch_size)
-    prepared = prepare_variant(name, script, pipe, encoder, image_size)
+    prepared = prepare_variant(name, pipe, encoder, image_size)
     trainer = build_trainer(pipe)
     rss_before = _status_mib("VmRSS")
     reset_ok = reset_peak_rss()
-    times = [train_step(script, batch, trainer, prepared, seed)[0] for seed in range(warmup + steps)]
+    times = [train_step(batch, trainer, prepared, seed)[0] for seed in range(warmup + steps)]
     return {
         "variant": name,
         "step_times_s": times[warmup:],
@@ -214,16 +205,15 @@ def run_variant(name: str, size: str, batch_size: int, steps: int, warmup: int) 
 def interleaved_timing(names: list[str], size: str, batch_size: int, rounds: int, warmup: int) -> dict:
     """Median step time of every variant, measured round-robin in one process (rotating the order each
     round) so that the load of a shared machine drifts over all variants alike."""
-    script = load_finetune_script()
     pipe, encoder, batch, image_size = build_step_setup(size, batch_size)
-    prepared = {name: prepare_variant(name, script, pipe, encoder, image_size) for name in names}
+    prepared = {name: prepare_variant(name, pipe, encoder, image_size) for name in names}
     trainer = build_trainer(pipe)
     times: dict[str, list[float]] = {name: [] for name in names}
     samples: dict[str, int] = {}
     for round_index in range(warmup + rounds):
         shift = round_index % len(names)
         for name in names[shift:] + names[:shift]:
-            seconds, losses = train_step(script, batch, trainer, prepared[name], seed=round_index)
+            seconds, losses = train_step(batch, trainer, prepared[name], seed=round_index)
             samples[name] = int(losses.pfm_mask.sum())
             if round_index >= warmup:
                 times[name].append(seconds)

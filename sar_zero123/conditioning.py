@@ -232,7 +232,8 @@ def encode_image_embeddings(
     return image_encoder(pixel_values=pixels).image_embeds.unsqueeze(1)  # (B, 1, D)
 
 
-def _vae_input(vae: AutoencoderKL, images: torch.Tensor) -> torch.Tensor:
+def vae_input(vae: AutoencoderKL, images: torch.Tensor) -> torch.Tensor:
+    """Normalised dB chips in [0, 1] as the VAE's input: its channel count, [-1, 1], its device and dtype."""
     pixels = match_channels(images, vae.config.in_channels)
     return (pixels * 2.0 - 1.0).to(device=vae.device, dtype=vae.dtype)  # [0, 1] -> [-1, 1]
 
@@ -255,7 +256,7 @@ def encode_condition_latents(vae: AutoencoderKL, images: torch.Tensor) -> torch.
         - Output: ``(B, latent_channels, H / f, W / f)`` with
           ``f = 2 ** (len(vae.config.block_out_channels) - 1)``.
     """
-    return vae.encode(_vae_input(vae, images)).latent_dist.mode()
+    return vae.encode(vae_input(vae, images)).latent_dist.mode()
 
 
 def encode_target_latents(
@@ -277,6 +278,6 @@ def encode_target_latents(
         - images: ``(B, 1 | 3, H, W)``
         - Output: ``(B, latent_channels, H / f, W / f)``
     """
-    latents = vae.encode(_vae_input(vae, images)).latent_dist.sample(generator=generator)
+    latents = vae.encode(vae_input(vae, images)).latent_dist.sample(generator=generator)
     return latents * vae.config.scaling_factor
 

@@ -423,16 +423,24 @@ def score_views(
         generated_features.append(evaluators.regressor.features(fake_eval).cpu())
         target_features.append(evaluators.regressor.features(real_eval).cpu())
     target_azimuth_deg = target_azimuth_deg.double().cpu()
+    predicted_azimuth_deg = torch.cat(predictions["scratch"]).double()
+    per_sample = {
+        "accuracy": 100.0 * (torch.cat(predictions["class"]) == labels.cpu()).double(),
+        "azimuth_error_deg": azimuth_error_deg(predicted_azimuth_deg, target_azimuth_deg),
+        "ms_ssim": torch.cat(structural["ms_ssim"]).double(),
+        "kuan_ssim": torch.cat(structural["kuan_ssim"]).double(),
+    }
     scores = {
         "accuracy": 100.0 * classification_accuracy(torch.cat(predictions["class"]), labels.cpu()),
-        "azimuth_error_deg": azimuth_error_deg(torch.cat(predictions["scratch"]).double(), target_azimuth_deg)
-        .mean()
-        .item(),
+        "azimuth_error_deg": per_sample["azimuth_error_deg"].mean().item(),
         "sfd": frechet_distance(torch.cat(generated_features), torch.cat(target_features)),
-        "ms_ssim": torch.cat(structural["ms_ssim"]).mean().item(),
-        "kuan_ssim": torch.cat(structural["kuan_ssim"]).mean().item(),
+        "ms_ssim": per_sample["ms_ssim"].mean().item(),
+        "kuan_ssim": per_sample["kuan_ssim"].mean().item(),
         "n": float(n),
     }
+    # standard error of each mean (sample standard deviation / sqrt(n)); SFD has no per-sample terms
+    for name, values in per_sample.items():
+        scores[f"{name}_se"] = values.std(correction=1).item() / math.sqrt(n) if n > 1 else float("nan")
     for name in regressors:
         error = azimuth_error_deg(torch.cat(predictions[name]).double(), target_azimuth_deg)
         scores[f"azimuth_error_deg/{name}"] = error.mean().item()

@@ -347,12 +347,14 @@ class LossOutput:
             sampled fraction); sampled entries are scaled by ``B_eligible / B_sampled`` so the batch mean
             stays unbiased.
         pfm_mask: Where PFM was computed.
+        timesteps: The sampled timesteps, when the caller records them (for per-timestep logging).
     """
 
     loss: torch.Tensor
     denoising: torch.Tensor
     pfm: torch.Tensor
     pfm_mask: torch.Tensor
+    timesteps: torch.Tensor | None = None
 
 
 def total_loss(

@@ -23,6 +23,7 @@ from safetensors.torch import load_file
 from sar_zero123.data import ChipRecord, write_index
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
 from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
+from sar_zero123.training import ImageEmbedder, compute_losses, micro_batch_generator
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "train" / "finetune_pfm.py"
@@ -137,13 +138,12 @@ def test_smoke_two_steps_writes_checkpoint_grid_and_pipeline(script, assets, tmp
     assert result.shape == (1, 1, 32, 32) and torch.isfinite(result).all()
 
 
-def test_cfg_dropout_both_matches_sampling_null(script, assets) -> None:
+def test_cfg_dropout_both_matches_sampling_null() -> None:
+    from diffusers import DDPMScheduler
+
     from tests.dummies import get_dummy_components
 
     components = get_dummy_components()
-    config = script.FinetuneConfig(
-        pfm_weight=0.0, drop_image_prob=0.0, drop_both_prob=1.0, drop_latent_prob=0.0
-    )
     seen = {}
 
     def hook(module, args, kwargs):
@@ -156,18 +156,18 @@ def test_cfg_dropout_both_matches_sampling_null(script, assets) -> None:
         "d_az_deg": torch.tensor([30.0, -90.0]),
         "d_el_deg": torch.tensor([0.0, 2.0]),
     }
-    from diffusers import DDPMScheduler
-
-    losses = script.compute_losses(
+    losses = compute_losses(
         batch,
         unet=components["unet"],
         pose_projection=components["pose_projection"],
         vae=components["vae"],
-        image_encoder=script.ImageEmbedder(components["image_encoder"]),
+        image_encoder=ImageEmbedder(components["image_encoder"]),
         encoder=None,
         noise_scheduler=DDPMScheduler.from_config(components["scheduler"].config),
-        config=config,
         generator=torch.Generator().manual_seed(0),
+        drop_image_prob=0.0,
+        drop_both_prob=1.0,
+        drop_latent_prob=0.0,
     )
     handle.remove()
     assert losses.loss.shape == (2,)
@@ -175,10 +175,10 @@ def test_cfg_dropout_both_matches_sampling_null(script, assets) -> None:
     assert seen["sample"][:, :4].abs().sum() > 0
 
 
-def test_micro_batch_generator_is_a_pure_function(script) -> None:
-    a = torch.rand(3, generator=script.micro_batch_generator(1, 7, 0))
-    b = torch.rand(3, generator=script.micro_batch_generator(1, 7, 0))
-    c = torch.rand(3, generator=script.micro_batch_generator(1, 7, 1))
+def test_micro_batch_generator_is_a_pure_function() -> None:
+    a = torch.rand(3, generator=micro_batch_generator(1, 7, 0))
+    b = torch.rand(3, generator=micro_batch_generator(1, 7, 0))
+    c = torch.rand(3, generator=micro_batch_generator(1, 7, 1))
     assert torch.equal(a, b) and not torch.equal(a, c)
 
 
@@ -376,7 +376,7 @@ def test_train_image_encoder_trains_checkpoints_and_exports_the_tower(script, to
     modules = build_sar_zero123("tiny", seed=3)
     modules.unet.load_state_dict(load_file(tower_run / "checkpoint-2" / "model.safetensors"))
     modules.pose_projection.load_state_dict(load_file(tower_run / "checkpoint-2" / "model_1.safetensors"))
-    embedder = script.ImageEmbedder(modules.image_encoder)
+    embedder = ImageEmbedder(modules.image_encoder)
     embedder.load_state_dict(tower)
     digest = script.weights_digest([modules.unet, modules.pose_projection, embedder]).item()
     assert json.loads((tower_run / "train_state.json").read_text())["replica_weight_digests"] == [digest]

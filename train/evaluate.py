@@ -32,6 +32,7 @@ from diffusers import DDIMScheduler, DPMSolverMultistepScheduler, EulerDiscreteS
 from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
+from sar_zero123.conditioning import encode_condition_latents
 from sar_zero123.config import parse_config, save_config, write_json_atomic
 from sar_zero123.data import DecibelScaling, ViewPairDataset, prepare_splits, split_records
 from sar_zero123.evaluators import Evaluators, check_class_names, load_evaluators, score_views
@@ -83,6 +84,10 @@ PAPER_TABLE3 = {
         },
     },
 }
+INPUT_COPY = "input copy (floor)"  # the input view returned as the generated one: ignores the pose
+REAL_TARGET = "real target (ceiling)"  # the true target view: the best any generator can score
+VAE_ROUND_TRIP = "VAE round trip (ceiling)"  # the target encoded and decoded: the best for this VAE
+REFERENCE_ROWS = (INPUT_COPY, REAL_TARGET, VAE_ROUND_TRIP)
 SCHEDULERS = {
     "ddim": (DDIMScheduler, {}),
     "dpmsolver++": (DPMSolverMultistepScheduler, {"algorithm_type": "dpmsolver++"}),
@@ -313,6 +318,42 @@ def generate_views(
     return torch.cat(outputs), seconds
 
 
+@torch.no_grad()
+def vae_round_trip(pipe: SARZero123Pipeline, images: torch.Tensor, batch_size: int, device) -> torch.Tensor:
+    """Each view encoded (posterior mode) and decoded by the pipeline's VAE: the best a latent model with this
+    VAE can return. Shape: ``(N, 1, S, S)`` in [0, 1] -> same, on the CPU."""
+    outputs = []
+    for start in range(0, images.shape[0], batch_size):
+        chunk = images[start : start + batch_size].to(device)
+        latents = encode_condition_latents(pipe.vae, chunk) * pipe.vae.config.scaling_factor
+        outputs.append(pipe.decode_latents(latents).cpu())
+    return torch.cat(outputs)
+
+
+def gap_closed(model: float, floor: float, ceiling: float) -> float:
+    """Fraction of the floor-to-ceiling gap a model closes, ``(floor - model) / (floor - ceiling)``.
+
+    1 means the model scores like the ceiling (VAE round trip of the real target), 0 like the floor (the
+    input copied as the output), below 0 worse than the floor. NaN when floor and ceiling coincide (within
+    1e-9), where no gap can be resolved.
+    """
+    if abs(floor - ceiling) < 1e-9:
+        return float("nan")
+    return (floor - model) / (floor - ceiling)
+
+
+def add_gap_closed(results: dict[str, dict[str, dict[str, float]]], floor: str, ceiling: str) -> None:
+    """Adds ``azimuth_gap_closed`` and ``accuracy_gap_closed`` to every row except the reference rows."""
+    for method, groups in results.items():
+        if method in REFERENCE_ROWS or method.startswith(REFERENCE_ROWS):
+            continue
+        for group, values in groups.items():
+            for metric in ("azimuth_error_deg", "accuracy"):
+                key = f"{metric.split('_')[0]}_gap_closed"
+                low, high = results[floor][group][metric], results[ceiling][group][metric]
+                values[key] = gap_closed(values[metric], low, high)
+
+
 def score(
     generated: torch.Tensor, pairs: PairSet, evaluators: Evaluators, config: EvaluateConfig, device
 ) -> dict:
@@ -342,18 +383,43 @@ def _format(metric: str, value: float | None) -> str:
     return f"{value:.4f}"
 
 
+def _cell(metric: str, values: dict[str, float]) -> str:
+    """A metric with its standard error when known (``43.8 ± 8.8``)."""
+    text = _format(metric, values.get(metric))
+    se = values.get(f"{metric}_se")
+    if text == "-" or se is None or math.isnan(se):
+        return text
+    return f"{text} ± {_format(metric, se)}"
+
+
+def _fraction(value: float | None) -> str:
+    return "" if value is None or math.isnan(value) else f"{100 * value:.0f} %"
+
+
 def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_paper: bool) -> str:
-    """Markdown Table III: one row per (method, group), the paper's rows first when `include_paper`."""
-    header = "| Method | Views | " + " | ".join(METRIC_LABELS[m] for m in METRICS) + " | n |"
-    lines = [header, "|" + " --- |" * (len(METRICS) + 3)]
+    """Markdown Table III: one row per (method, group), the paper's rows first when `include_paper`.
+
+    Metrics carry ± their standard error; the two gap columns give the fraction of the gap between the
+    input copy (floor) and the VAE round trip (ceiling) that each model closes.
+    """
+    labels = [METRIC_LABELS[m] for m in METRICS] + ["Az. gap closed ↑", "Acc. gap closed ↑"]
+    header = "| Method | Views | " + " | ".join(labels) + " | n |"
+    lines = [header, "|" + " --- |" * (len(labels) + 3)]
     rows = dict(PAPER_TABLE3) if include_paper else {}
     rows.update(results)
     for method, groups in rows.items():
         for group, values in groups.items():
             n = values.get("n")
-            cells = " | ".join(_format(m, values.get(m)) for m in METRICS)
-            lines.append(f"| {method} | {group} | {cells} | {'' if n is None else int(n)} |")
+            cells = " | ".join(_cell(m, values) for m in METRICS)
+            gaps = " | ".join(_fraction(values.get(k)) for k in ("azimuth_gap_closed", "accuracy_gap_closed"))
+            lines.append(f"| {method} | {group} | {cells} | {gaps} | {'' if n is None else int(n)} |")
     lines.append("")
+    lines.append(
+        f"Floor: `{INPUT_COPY}` returns the input view (a generator that ignores the pose). Ceilings: "
+        f"`{REAL_TARGET}` scores the true target view, `{VAE_ROUND_TRIP}` the target encoded and decoded by "
+        "the pipeline's VAE. Gap closed = (floor - model) / (floor - VAE round trip); ± is one standard "
+        "error of the mean over the n pairs."
+    )
     lines.append(
         "MS-SSIM: `sar_zero123.metrics.ms_ssim` (3 scales, weights (0.0448, 0.3001, 0.1333), 7x7 Gaussian, "
         "sigma 1.0, data range 1, centre crop); Kuan+SSIM: 7x7 Kuan filter (Cu 0.25) then SSIM with the same "
@@ -526,11 +592,25 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     # 2. pairs (same pairs and seeds for every pipeline)
     pair_sets = build_pair_sets(config, evaluators, image_size)
 
-    # 3. Table III / IV
+    # 3. Table III / IV, with the floor (input copy) and the ceilings (real target, VAE round trip)
     results: dict[str, dict[str, dict[str, float]]] = {}
-    results["input copy (baseline)"] = {
+    results[INPUT_COPY] = {
         group: score(pairs.inputs, pairs, evaluators, config, device) for group, pairs in pair_sets.items()
     }
+    results[REAL_TARGET] = {
+        group: score(pairs.targets, pairs, evaluators, config, device) for group, pairs in pair_sets.items()
+    }
+    round_trip_rows = []
+    for name, pipe in pipes.items():
+        row = VAE_ROUND_TRIP if not round_trip_rows else f"{VAE_ROUND_TRIP} ({name})"
+        if round_trip_rows and same_weights(pipe.vae, pipes[config.names[0]].vae):
+            continue  # one row per distinct VAE
+        results[row] = {
+            group: score(vae_round_trip(pipe, pairs.targets, config.batch_size, device), pairs, evaluators,
+                         config, device)
+            for group, pairs in pair_sets.items()
+        }  # fmt: skip
+        round_trip_rows.append(row)
     generated: dict[str, dict[str, torch.Tensor]] = {}
     for name, pipe in pipes.items():
         results[name], generated[name] = {}, {}
@@ -547,6 +627,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             generated[name][group] = images
             results[name][group] = {**score(images, pairs, evaluators, config, device), "seconds": seconds}
             logger.info("%s %s: %s", name, group, json.dumps(results[name][group]))
+    add_gap_closed(results, floor=INPUT_COPY, ceiling=VAE_ROUND_TRIP)
     include_paper = config.protocol.startswith("ood-")
     write_json_atomic(
         {
@@ -622,6 +703,14 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
     print(table3_markdown(results, include_paper))
     return {"table3": results, "speed_error": speed_rows}
+
+
+def same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:
+    """Whether two modules hold identical parameters (same names, shapes and values)."""
+    first, second = a.state_dict(), b.state_dict()
+    return first.keys() == second.keys() and all(
+        first[k].shape == second[k].shape and torch.equal(first[k].cpu(), second[k].cpu()) for k in first
+    )
 
 
 def _device_name(device: torch.device) -> str:

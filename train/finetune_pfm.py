@@ -46,18 +46,11 @@ from diffusers.optimization import get_scheduler
 from diffusers.training_utils import EMAModel
 from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
-from transformers import CLIPVisionModelWithProjection
 
-from sar_zero123.conditioning import (
-    embed_pose,
-    encode_condition_latents,
-    encode_image_embeddings,
-    encode_target_latents,
-)
 from sar_zero123.config import config_to_dict, parse_config, save_config, write_json_atomic
 from sar_zero123.data import DecibelScaling, ViewPairDataset, check_protocol, prepare_splits
 from sar_zero123.encoder import SAREncoder
-from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput, denoising_target, total_loss
+from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput
 from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
 from sar_zero123.run_state import (
     end_run,
@@ -65,6 +58,15 @@ from sar_zero123.run_state import (
     read_run_state,
     resolve_resume_checkpoint,
     save_checkpoint,
+)
+from sar_zero123.training import (
+    CachedViewPairs,
+    ChipLatentCache,
+    ImageEmbedder,
+    compute_losses,
+    load_chip_images,
+    micro_batch_generator,
+    timestep_bucket_losses,
 )
 
 logger = logging.getLogger(__name__)
@@ -118,6 +120,7 @@ class FinetuneConfig:
     report_to: str | None = "tensorboard"  # accelerate tracker; None disables logging
     seed: int = 0  # seed of initialisation, data order and every random draw
     save_pipeline: bool = True  # save_pretrained the final SARZero123Pipeline into output_dir/pipeline
+    cache_latents: bool = True  # encode every training chip once with the frozen VAE (and frozen CLIP tower)
 
     def __post_init__(self) -> None:
         if not self.pfm_weight >= 0:
@@ -253,29 +256,6 @@ def load_encoder(config: FinetuneConfig, image_size: int) -> SAREncoder | None:
     return encoder.eval().requires_grad_(False)
 
 
-class ImageEmbedder(torch.nn.Module):
-    """The CLIP image tower as one module whose forward is :func:`encode_image_embeddings`.
-
-    ``accelerate.prepare`` (DDP, FSDP, autocast) only acts on what runs through a prepared module's
-    ``forward``; the library's preprocessing reads the tower's ``config``, ``device`` and ``dtype``, which
-    a DDP wrapper hides. Wrapping the tower here lets the preprocessing run inside the prepared forward.
-
-    Args:
-        image_encoder: The CLIP vision tower with projection.
-
-    Shape:
-        - images: ``(B, 1 | 3, H, W)`` normalised dB in [0, 1]
-        - Output: ``(B, 1, projection_dim)``
-    """
-
-    def __init__(self, image_encoder: CLIPVisionModelWithProjection) -> None:
-        super().__init__()
-        self.image_encoder = image_encoder
-
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        return encode_image_embeddings(self.image_encoder, images)
-
-
 def build_datasets(
     config: FinetuneConfig, image_size: int
 ) -> tuple[ViewPairDataset, ViewPairDataset, DecibelScaling]:
@@ -306,83 +286,6 @@ def build_datasets(
         num_pairs=config.num_validation_images,
     )
     return train, validation, scaling
-
-
-# ----------------------------------------------------------------------------------------- one step
-def micro_batch_generator(seed: int, batch_index: int, process_index: int) -> torch.Generator:
-    """CPU generator for every random draw of one micro-batch; a pure function of its arguments."""
-    state = np.random.SeedSequence([seed, batch_index, process_index]).generate_state(2, dtype=np.uint32)
-    return torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))
-
-
-def compute_losses(
-    batch: dict,
-    *,
-    unet: torch.nn.Module,
-    pose_projection: torch.nn.Module,
-    vae: AutoencoderKL,
-    image_encoder: torch.nn.Module,
-    encoder: SAREncoder | None,
-    noise_scheduler: DDPMScheduler,
-    config: FinetuneConfig,
-    generator: torch.Generator,
-    apply_dropout: bool = True,
-) -> LossOutput:
-    """Per-sample losses of one micro-batch (zero-1-to-3 conditioning, CFG dropout, Eq. 21).
-
-    ``image_encoder`` is an :class:`ImageEmbedder` (prepared by accelerate when it is trained); the CLIP
-    embedding is differentiable exactly when its parameters require gradients.
-
-    Shape:
-        ``batch["input"]``, ``batch["target"]``: ``(B, 1, S, S)``; outputs ``(B,)``.
-    """
-    device, dtype = vae.device, vae.dtype
-    inputs = batch["input"].to(device=device, dtype=dtype)
-    targets = batch["target"].to(device=device, dtype=dtype)
-    batch_size = inputs.shape[0]
-    # 1. frozen encodings (scaled target latent, unscaled condition latent) and the CLIP embedding, which
-    #    builds a graph only when the tower is trained (a frozen tower has no parameter requiring grad)
-    with torch.no_grad():
-        latents = encode_target_latents(vae, targets, generator=generator).float()
-        condition_latents = encode_condition_latents(vae, inputs).float()
-    image_embeds = image_encoder(inputs).float()  # (B, 1, D)
-    pose = embed_pose(batch["d_az_deg"], batch["d_el_deg"]).to(device)  # (B, 1, 4)
-    # 2. classifier-free-guidance dropout; the "both" case equals the pipeline's sampling null
-    u = torch.rand(batch_size, generator=generator).to(device)
-    if not apply_dropout:
-        u = torch.ones_like(u)
-    p_image, p_both, p_latent = config.drop_image_prob, config.drop_both_prob, config.drop_latent_prob
-    drop_image = u < p_image
-    drop_both = (u >= p_image) & (u < p_image + p_both)
-    drop_latent = (u >= p_image + p_both) & (u < p_image + p_both + p_latent)
-    image_embeds = image_embeds * (~drop_image).float()[:, None, None]
-    tokens = pose_projection(image_embeds, pose) * (~drop_both).float()[:, None, None]  # (B, 1, C)
-    condition_latents = condition_latents * (~(drop_both | drop_latent)).float()[:, None, None, None]
-    # 3. forward diffusion and prediction
-    noise = torch.randn(latents.shape, generator=generator).to(device)
-    num_train_timesteps = noise_scheduler.config.num_train_timesteps
-    timesteps = torch.randint(0, num_train_timesteps, (batch_size,), generator=generator).to(device)
-    x_t = noise_scheduler.add_noise(latents, noise, timesteps)
-    model_output = unet(
-        torch.cat([x_t, condition_latents], dim=1), timesteps, encoder_hidden_states=tokens
-    ).sample
-    target = denoising_target(latents, noise, timesteps, noise_scheduler)
-    # 4. Eq. (21)
-    return total_loss(
-        model_output,
-        target,
-        x_t,
-        timesteps,
-        noise_scheduler,
-        pfm_weight=config.pfm_weight,
-        target_images=targets,
-        vae=vae,
-        encoder=encoder,
-        pfm_min_snr=config.pfm_min_snr,
-        pfm_fraction=config.pfm_fraction,
-        crop_size=config.pfm_crop_size,
-        generator=generator,
-    )
 
 
 # ---------------------------------------------------------------------------------------- validation
@@ -520,6 +423,10 @@ def main(argv: list[str] | None = None) -> Path:
         )
     if encoder is not None:
         encoder = encoder.to(accelerator.device, dtype=weight_dtype)
+    if config.cache_latents:  # the VAE (and a frozen tower) never change: encode each chip once
+        frozen_tower = None if config.train_image_encoder else image_encoder.image_encoder
+        cache = ChipLatentCache.encode(load_chip_images(train_dataset), vae, frozen_tower)
+        train_dataset = CachedViewPairs(train_dataset, cache)
     unet, pose_projection = pipe.unet.train(), pipe.pose_projection.train()
     unet.requires_grad_(True)
     pose_projection.requires_grad_(True)
@@ -603,7 +510,18 @@ def main(argv: list[str] | None = None) -> Path:
         desc="steps",
         disable=not accelerator.is_local_main_process,
     )
-    frozen_modules = dict(vae=vae, encoder=encoder, noise_scheduler=noise_scheduler, config=config)
+    frozen_modules = dict(
+        vae=vae,
+        encoder=encoder,
+        noise_scheduler=noise_scheduler,
+        pfm_weight=config.pfm_weight,
+        pfm_min_snr=config.pfm_min_snr,
+        pfm_fraction=config.pfm_fraction,
+        pfm_crop_size=config.pfm_crop_size,
+        drop_image_prob=config.drop_image_prob,
+        drop_both_prob=config.drop_both_prob,
+        drop_latent_prob=config.drop_latent_prob,
+    )
     while global_step < config.max_train_steps:
         epoch, offset = divmod(batch_index, batches_per_epoch)
         train_dataset.set_epoch(epoch)
@@ -642,6 +560,12 @@ def main(argv: list[str] | None = None) -> Path:
                 "train/loss_pfm": accelerator.gather(losses.pfm.detach()).mean().item(),
                 "lr": lr_scheduler.get_last_lr()[0],
             }
+            buckets = timestep_bucket_losses(
+                accelerator.gather(losses.denoising.detach()),
+                accelerator.gather(losses.timesteps),
+                noise_scheduler.config.num_train_timesteps,
+            )
+            logs.update({f"train/loss_simple_{name}": value for name, value in buckets.items()})
             progress.set_postfix(loss=f"{logs['train/loss']:.4f}")
             accelerator.log(logs, step=global_step)
             if global_step % config.checkpointing_steps == 0 or global_step == config.max_train_steps:

@@ -1,0 +1,331 @@
+"""The zero-1-to-3 training step: CFG dropout, cached frozen encodings, losses (Eq. 21).
+
+``train/finetune_pfm.py`` only assembles a run around these pieces; benchmarks and tests import them
+from here.
+
+- :func:`micro_batch_generator`: every random draw of one micro-batch from a pure function of
+  ``(seed, micro-batch index, process index)``, which makes resuming bitwise exact.
+- :class:`ImageEmbedder`: the CLIP tower as a module whose ``forward`` includes the preprocessing, so
+  that ``accelerate.prepare`` (DDP, autocast) covers it when the tower is trained.
+- :func:`cfg_dropout_masks`: zero-1-to-3's classifier-free-guidance dropout.
+- :class:`ChipLatentCache` / :class:`CachedViewPairs`: the frozen VAE's posterior (mean and log-variance)
+  and the frozen CLIP embedding of every chip, computed once. The VAE never changes during fine-tuning,
+  so encoding two chips per pair per step repeats the same work; the cache keeps the posterior *sample*
+  of the target latent random per step (drawn from the cached mean and log-variance).
+- :func:`compute_losses`: the per-sample losses of one micro-batch.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from diffusers import AutoencoderKL, DDPMScheduler
+from torch.utils.data import Dataset
+from transformers import CLIPVisionModelWithProjection
+
+from .conditioning import embed_pose, encode_image_embeddings, vae_input
+from .data import ViewPairDataset, load_chip
+from .data.view_pairs import wrap_azimuth_deg
+from .losses import DEFAULT_PFM_MIN_SNR, LossOutput, denoising_target, total_loss
+
+__all__ = [
+    "CachedViewPairs",
+    "ChipLatentCache",
+    "ImageEmbedder",
+    "cfg_dropout_masks",
+    "compute_losses",
+    "micro_batch_generator",
+    "timestep_bucket_losses",
+]
+
+
+def micro_batch_generator(seed: int, batch_index: int, process_index: int) -> torch.Generator:
+    """CPU generator for every random draw of one micro-batch; a pure function of its arguments."""
+    state = np.random.SeedSequence([seed, batch_index, process_index]).generate_state(2, dtype=np.uint32)
+    return torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))
+
+
+class ImageEmbedder(torch.nn.Module):
+    """The CLIP image tower as one module whose forward is :func:`encode_image_embeddings`.
+
+    ``accelerate.prepare`` (DDP, FSDP, autocast) only acts on what runs through a prepared module's
+    ``forward``; the library's preprocessing reads the tower's ``config``, ``device`` and ``dtype``, which
+    a DDP wrapper hides. Wrapping the tower here lets the preprocessing run inside the prepared forward.
+
+    Args:
+        image_encoder: The CLIP vision tower with projection.
+
+    Shape:
+        - images: ``(B, 1 | 3, H, W)`` normalised dB in [0, 1]
+        - Output: ``(B, 1, projection_dim)``
+    """
+
+    def __init__(self, image_encoder: CLIPVisionModelWithProjection) -> None:
+        super().__init__()
+        self.image_encoder = image_encoder
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return encode_image_embeddings(self.image_encoder, images)
+
+
+def cfg_dropout_masks(
+    batch_size: int,
+    *,
+    drop_image_prob: float,
+    drop_both_prob: float,
+    drop_latent_prob: float,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """zero-1-to-3's classifier-free-guidance dropout, one uniform draw per sample.
+
+    The three cases are disjoint: the image embedding only (pose kept), both the projected token and the
+    condition latent (the pipeline's sampling null), the condition latent only.
+
+    Returns:
+        Boolean masks ``(drop_image, drop_both, drop_latent)``, each ``(B,)`` on the CPU.
+
+    Raises:
+        ValueError: If a probability is negative or they sum to more than 1.
+    """
+    probs = (drop_image_prob, drop_both_prob, drop_latent_prob)
+    if min(probs) < 0 or sum(probs) > 1:
+        raise ValueError(f"CFG dropout probabilities must be >= 0 with sum <= 1, got {probs}")
+    u = torch.rand(batch_size, generator=generator)
+    drop_image = u < drop_image_prob
+    drop_both = (u >= drop_image_prob) & (u < drop_image_prob + drop_both_prob)
+    drop_latent = (u >= drop_image_prob + drop_both_prob) & (u < sum(probs))
+    return drop_image, drop_both, drop_latent
+
+
+# ------------------------------------------------------------------------------------- latent cache
+@dataclass
+class ChipLatentCache:
+    """Frozen encodings of every chip of a split, computed once before fine-tuning.
+
+    Attributes:
+        images: Normalised dB chips ``(N, 1, S, S)`` (the CLIP tower's input when it is trained, and the
+            PFM target).
+        latent_mean: VAE posterior mean ``(N, C, h, w)``, unscaled (the condition latent is this mode).
+        latent_logvar: VAE posterior log-variance ``(N, C, h, w)``.
+        image_embeds: Frozen CLIP embeddings ``(N, 1, D)``, or ``None`` when the tower is trained.
+        scaling_factor: ``vae.config.scaling_factor`` (multiplies the target latent only).
+    """
+
+    images: torch.Tensor
+    latent_mean: torch.Tensor
+    latent_logvar: torch.Tensor
+    image_embeds: torch.Tensor | None
+    scaling_factor: float
+
+    @classmethod
+    @torch.no_grad()
+    def encode(
+        cls,
+        images: torch.Tensor,
+        vae: AutoencoderKL,
+        image_encoder: CLIPVisionModelWithProjection | None = None,
+        batch_size: int = 64,
+    ) -> ChipLatentCache:
+        """Encodes ``images`` (normalised dB, ``(N, 1, S, S)``) with the frozen VAE (and CLIP tower).
+
+        Raises:
+            ValueError: If ``images`` is not a non-empty ``(N, 1, S, S)`` tensor of finite values.
+        """
+        if images.ndim != 4 or images.shape[0] == 0:
+            raise ValueError(
+                f"images must be a non-empty (N, C, S, S) tensor, got shape {tuple(images.shape)}"
+            )
+        if not torch.isfinite(images).all():
+            raise ValueError("images contain non-finite values")
+        means, logvars, embeds = [], [], []
+        for start in range(0, images.shape[0], batch_size):
+            chunk = images[start : start + batch_size]
+            posterior = vae.encode(vae_input(vae, chunk)).latent_dist
+            means.append(posterior.mean.float().cpu())
+            logvars.append(posterior.logvar.float().cpu())
+            if image_encoder is not None:
+                embeds.append(encode_image_embeddings(image_encoder, chunk).float().cpu())
+        return cls(
+            images=images.float().cpu(),
+            latent_mean=torch.cat(means),
+            latent_logvar=torch.cat(logvars),
+            image_embeds=torch.cat(embeds) if embeds else None,
+            scaling_factor=float(vae.config.scaling_factor),
+        )
+
+
+def load_chip_images(pairs: ViewPairDataset) -> torch.Tensor:
+    """Every record of a pair dataset, read once and normalised as its items are.
+
+    Shape:
+        ``(len(pairs.records), 1, S, S)`` float32.
+    """
+    chips = [
+        pairs.scaling.normalize(torch.from_numpy(load_chip(record.path, pairs.size, pairs.crop_size))[None])
+        for record in pairs.records
+    ]
+    return torch.stack(chips).float()
+
+
+class CachedViewPairs(Dataset):
+    """The pairs of a :class:`ViewPairDataset` served from a :class:`ChipLatentCache` (no file reads).
+
+    Items hold the same keys as the wrapped dataset's (``input``, ``target``, ``d_az_deg``, ...) plus
+    ``input_latent_mean``, ``target_latent_mean``, ``target_latent_logvar`` and, with a frozen tower,
+    ``input_image_embeds``. :meth:`set_epoch` redraws the wrapped pair list, so data order and pairs are
+    those of the uncached dataset.
+    """
+
+    def __init__(self, pairs: ViewPairDataset, cache: ChipLatentCache) -> None:
+        if cache.images.shape[0] != len(pairs.records):
+            raise ValueError(
+                f"cache holds {cache.images.shape[0]} chips but the pair dataset has "
+                f"{len(pairs.records)} records"
+            )
+        self.pairs = pairs
+        self.cache = cache
+
+    def set_epoch(self, epoch: int) -> None:
+        self.pairs.set_epoch(epoch)
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitem__(self, index: int) -> dict:
+        source, target = (int(i) for i in self.pairs.pairs[index])
+        source_record, target_record = self.pairs.records[source], self.pairs.records[target]
+        cache = self.cache
+        item = {
+            "input": cache.images[source],
+            "target": cache.images[target],
+            "d_az_deg": wrap_azimuth_deg(target_record.azimuth_deg - source_record.azimuth_deg),
+            "d_el_deg": float(target_record.depression_deg - source_record.depression_deg),
+            "label": self.pairs.class_names.index(source_record.target_class),
+            "input_latent_mean": cache.latent_mean[source],
+            "target_latent_mean": cache.latent_mean[target],
+            "target_latent_logvar": cache.latent_logvar[target],
+        }
+        if cache.image_embeds is not None:
+            item["input_image_embeds"] = cache.image_embeds[source]
+        return item
+
+
+# ------------------------------------------------------------------------------------------ the step
+def compute_losses(
+    batch: dict,
+    *,
+    unet: torch.nn.Module,
+    pose_projection: torch.nn.Module,
+    vae: AutoencoderKL,
+    image_encoder: torch.nn.Module,
+    encoder: torch.nn.Module | None,
+    noise_scheduler: DDPMScheduler,
+    generator: torch.Generator,
+    pfm_weight: float = 0.0,
+    pfm_min_snr: float = DEFAULT_PFM_MIN_SNR,
+    pfm_fraction: float = 1.0,
+    pfm_crop_size: int | None = None,
+    drop_image_prob: float = 0.05,
+    drop_both_prob: float = 0.05,
+    drop_latent_prob: float = 0.05,
+    apply_dropout: bool = True,
+) -> LossOutput:
+    """Per-sample losses of one micro-batch (zero-1-to-3 conditioning, CFG dropout, Eq. 21).
+
+    The UNet sees ``[x_t, condition latent]`` (the condition latent is the unscaled VAE posterior mode of
+    the input view; only the target latent is scaled) and cross-attends to
+    ``pose_projection([CLIP image embedding, pose])``. With cached encodings in ``batch``
+    (:class:`CachedViewPairs`) the VAE is not run; the target latent is still a fresh posterior sample.
+
+    ``image_encoder`` is an :class:`ImageEmbedder` (prepared by accelerate when it is trained); the CLIP
+    embedding is differentiable exactly when its parameters require gradients, and is read from
+    ``batch["input_image_embeds"]`` when the batch carries it (frozen tower).
+
+    Shape:
+        ``batch["input"]``, ``batch["target"]``: ``(B, 1, S, S)``; outputs ``(B,)``.
+    """
+    device, dtype = vae.device, vae.dtype
+    inputs = batch["input"].to(device=device, dtype=dtype)
+    targets = batch["target"].to(device=device, dtype=dtype)
+    batch_size = inputs.shape[0]
+    # 1. frozen encodings: scaled posterior sample of the target, unscaled mode of the input
+    if "target_latent_mean" in batch:
+        mean = batch["target_latent_mean"].to(device=device, dtype=torch.float32)
+        logvar = batch["target_latent_logvar"].to(device=device, dtype=torch.float32)
+        std = torch.exp(0.5 * logvar.clamp(-30.0, 20.0))  # diffusers' DiagonalGaussianDistribution clamp
+        sample = mean + std * torch.randn(mean.shape, generator=generator).to(device)
+        latents = sample * vae.config.scaling_factor
+        condition_latents = batch["input_latent_mean"].to(device=device, dtype=torch.float32)
+    else:
+        with torch.no_grad():
+            posterior = vae.encode(vae_input(vae, targets)).latent_dist
+            latents = (posterior.sample(generator=generator) * vae.config.scaling_factor).float()
+            condition_latents = vae.encode(vae_input(vae, inputs)).latent_dist.mode().float()
+    if "input_image_embeds" in batch:
+        image_embeds = batch["input_image_embeds"].to(device=device, dtype=torch.float32)
+    else:
+        image_embeds = image_encoder(inputs).float()  # (B, 1, D)
+    pose = embed_pose(batch["d_az_deg"], batch["d_el_deg"]).to(device)  # (B, 1, 4)
+    # 2. classifier-free-guidance dropout; the "both" case equals the pipeline's sampling null
+    if apply_dropout:
+        drop_image, drop_both, drop_latent = cfg_dropout_masks(
+            batch_size,
+            drop_image_prob=drop_image_prob,
+            drop_both_prob=drop_both_prob,
+            drop_latent_prob=drop_latent_prob,
+            generator=generator,
+        )
+    else:
+        drop_image = drop_both = drop_latent = torch.zeros(batch_size, dtype=torch.bool)
+    drop_image, drop_both, drop_latent = (m.to(device) for m in (drop_image, drop_both, drop_latent))
+    image_embeds = image_embeds * (~drop_image).float()[:, None, None]
+    tokens = pose_projection(image_embeds, pose) * (~drop_both).float()[:, None, None]  # (B, 1, C)
+    condition_latents = condition_latents * (~(drop_both | drop_latent)).float()[:, None, None, None]
+    # 3. forward diffusion and prediction
+    noise = torch.randn(latents.shape, generator=generator).to(device)
+    num_train_timesteps = noise_scheduler.config.num_train_timesteps
+    timesteps = torch.randint(0, num_train_timesteps, (batch_size,), generator=generator).to(device)
+    x_t = noise_scheduler.add_noise(latents, noise, timesteps)
+    model_output = unet(
+        torch.cat([x_t, condition_latents], dim=1), timesteps, encoder_hidden_states=tokens
+    ).sample
+    target = denoising_target(latents, noise, timesteps, noise_scheduler)
+    # 4. Eq. (21)
+    losses = total_loss(
+        model_output,
+        target,
+        x_t,
+        timesteps,
+        noise_scheduler,
+        pfm_weight=pfm_weight,
+        target_images=targets,
+        vae=vae,
+        encoder=encoder,
+        pfm_min_snr=pfm_min_snr,
+        pfm_fraction=pfm_fraction,
+        crop_size=pfm_crop_size,
+        generator=generator,
+    )
+    return dataclasses.replace(losses, timesteps=timesteps)
+
+
+def timestep_bucket_losses(
+    losses: torch.Tensor, timesteps: torch.Tensor, num_train_timesteps: int, num_buckets: int = 4
+) -> dict[str, float]:
+    """Mean per-sample loss in equal timestep buckets, for logging where the model learns.
+
+    Returns:
+        ``{"t000-249": value, ...}`` for the buckets that hold at least one sample.
+    """
+    width = math.ceil(num_train_timesteps / num_buckets)
+    result = {}
+    for k in range(num_buckets):
+        low, high = k * width, min((k + 1) * width, num_train_timesteps) - 1
+        mask = (timesteps >= low) & (timesteps <= high)
+        if mask.any():
+            result[f"t{low:03d}-{high:03d}"] = losses[mask].float().mean().item()
+    return result
