@@ -46,6 +46,7 @@ REGRESSOR_DIR = "regressor"
 PROBES_DIR = "probes"
 
 __all__ = [
+    "pose_following",
     "AzimuthRegressor",
     "Evaluators",
     "SARClassifier",
@@ -445,3 +446,66 @@ def score_views(
         error = azimuth_error_deg(torch.cat(predictions[name]).double(), target_azimuth_deg)
         scores[f"azimuth_error_deg/{name}"] = error.mean().item()
     return scores
+
+
+@torch.no_grad()
+def pose_following(
+    pipe,
+    image: torch.Tensor,
+    input_azimuth_deg: float,
+    regressor: AzimuthRegressor,
+    *,
+    d_az_deg: Sequence[float] = (-135.0, -90.0, -45.0, 0.0, 45.0, 90.0, 135.0, 180.0),
+    num_inference_steps: int = 20,
+    guidance_scale: float = 3.0,
+    seed: int = 0,
+) -> dict[str, Any]:
+    """Does a pipeline's output turn with the requested pose? One input view, several ``d_az``.
+
+    The regressor reads the azimuth of each generated view; a model that follows the pose returns views at
+    ``input_azimuth_deg + d_az`` (error near the regressor's own), one that ignores it returns the input's
+    azimuth for every request (error near the mean ``|d_az|`` of the request list, here the floor).
+
+    Args:
+        pipe: A :class:`~sar_zero123.pipeline.SARZero123Pipeline`.
+        image: The input view ``(1, 1, S, S)`` in [0, 1].
+        input_azimuth_deg: Its true azimuth.
+        regressor: The evaluator azimuth regressor.
+        d_az_deg: Requested azimuth changes.
+        num_inference_steps: Sampler steps.
+        guidance_scale: Classifier-free guidance weight.
+        seed: Seed of the generator of every request (the same noise for each, so only the pose differs).
+
+    Returns:
+        ``{"requested_deg", "predicted_deg", "error_deg" (per request), "mean_error_deg", "floor_deg"}``.
+
+    Raises:
+        ValueError: If ``image`` is not one ``(1, 1, S, S)`` view.
+    """
+    if image.ndim != 4 or image.shape[:2] != (1, 1):
+        raise ValueError(f"image must be one view of shape (1, 1, S, S), got {tuple(image.shape)}")
+    requests = torch.tensor([float(d) for d in d_az_deg], dtype=torch.float64)
+    count = requests.numel()
+    generated = pipe(
+        image.expand(count, -1, -1, -1).to(pipe.device),
+        d_az=requests.float(),
+        d_el=torch.zeros(count),
+        num_inference_steps=num_inference_steps,
+        guidance_scale=guidance_scale,
+        generator=[torch.Generator().manual_seed(seed) for _ in range(count)],
+        output_type="pt",
+    ).images.float()
+    device = next(regressor.parameters()).device
+    views = resize_for_evaluator(generated.cpu(), regressor.image_size).to(device)
+    predicted = regressor.predict_azimuth_deg(views)
+    wanted = (input_azimuth_deg + requests) % 360.0
+    error = azimuth_error_deg(predicted.double().cpu(), wanted)
+    floor = azimuth_error_deg(torch.full_like(wanted, input_azimuth_deg), wanted)
+    return {
+        "requested_deg": requests.tolist(),
+        "predicted_deg": predicted.double().cpu().tolist(),
+        "error_deg": error.tolist(),
+        "mean_error_deg": error.mean().item(),
+        "floor_deg": floor.mean().item(),
+    }
+

@@ -554,6 +554,53 @@ SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
             "projection_dim": 256,
         },
     },
+    # Models a tenth and a fiftieth of `small`'s UNet for 64 px chips on a CPU, with `small`'s VAE (its
+    # trained VAE folder fits all three). Sized by docs/results/learning.md: per CPU minute these learn
+    # to follow the pose faster than `small`.
+    "compact": {
+        "image_size": 64,
+        "vae": "small",
+        "unet": {
+            "block_out_channels": (64, 128, 128),
+            "layers_per_block": 1,
+            "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D"),
+            "up_block_types": ("CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "UpBlock2D"),
+            "cross_attention_dim": 128,
+            "attention_head_dim": 8,
+            "norm_num_groups": 32,
+        },
+        "image_encoder": {
+            "hidden_size": 128,
+            "intermediate_size": 512,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 4,
+            "image_size": 64,
+            "patch_size": 8,
+            "projection_dim": 128,
+        },
+    },
+    "micro": {
+        "image_size": 64,
+        "vae": "small",
+        "unet": {
+            "block_out_channels": (32, 64, 64),
+            "layers_per_block": 1,
+            "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D"),
+            "up_block_types": ("CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "UpBlock2D"),
+            "cross_attention_dim": 64,
+            "attention_head_dim": 8,
+            "norm_num_groups": 16,
+        },
+        "image_encoder": {
+            "hidden_size": 64,
+            "intermediate_size": 256,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 4,
+            "image_size": 64,
+            "patch_size": 8,
+            "projection_dim": 64,
+        },
+    },
     # Exactly the Objaverse zero-1-to-3 shapes: SD 1.x UNet with 8 input channels, SD VAE,
     # CLIP ViT-L/14 image tower (768-d embeddings), Linear(772, 768); 256 px -> 32x32x4 latents.
     "zero123": {
@@ -589,6 +636,10 @@ SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
         },
     },
 }
+
+for _spec in SAR_ZERO123_SIZES.values():  # a size may share another size's VAE (then one VAE fits both)
+    if isinstance(_spec["vae"], str):
+        _spec["vae"] = SAR_ZERO123_SIZES[_spec["vae"]]["vae"]
 
 #: zero-1-to-3 / Stable Diffusion noise schedule (REFERENCE.md): 1000 steps, scaled_linear, epsilon.
 ZERO123_SCHEDULER_CONFIG: dict[str, Any] = {

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +39,8 @@ __all__ = [
     "ImageEmbedder",
     "cfg_dropout_masks",
     "compute_losses",
+    "conditioning_sensitivity",
+    "encode_batch",
     "micro_batch_generator",
     "timestep_bucket_losses",
 ]
@@ -215,6 +218,96 @@ class CachedViewPairs(Dataset):
 
 
 # ------------------------------------------------------------------------------------------ the step
+def encode_batch(
+    batch: dict,
+    *,
+    vae: AutoencoderKL,
+    image_encoder: torch.nn.Module,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The conditioning and the diffusion target of a pair batch, from its cached encodings or the models.
+
+    Returns:
+        ``(latents, condition_latents, image_embeds, pose)``: the scaled posterior sample of the target
+        (a fresh draw from ``generator``), the unscaled posterior mode of the input, the CLIP embedding of
+        the input (differentiable when the tower is trained) and the pose vector (Eq. 9), all float32.
+
+    Shape:
+        ``(B, C, h, w)``, ``(B, C, h, w)``, ``(B, 1, D)``, ``(B, 1, 4)``.
+    """
+    device, dtype = vae.device, vae.dtype
+    inputs = batch["input"].to(device=device, dtype=dtype)
+    if "target_latent_mean" in batch:
+        mean = batch["target_latent_mean"].to(device=device, dtype=torch.float32)
+        logvar = batch["target_latent_logvar"].to(device=device, dtype=torch.float32)
+        std = torch.exp(0.5 * logvar.clamp(-30.0, 20.0))  # diffusers' DiagonalGaussianDistribution clamp
+        sample = mean + std * torch.randn(mean.shape, generator=generator).to(device)
+        latents = sample * vae.config.scaling_factor
+        condition_latents = batch["input_latent_mean"].to(device=device, dtype=torch.float32)
+    else:
+        targets = batch["target"].to(device=device, dtype=dtype)
+        with torch.no_grad():
+            posterior = vae.encode(vae_input(vae, targets)).latent_dist
+            latents = (posterior.sample(generator=generator) * vae.config.scaling_factor).float()
+            condition_latents = vae.encode(vae_input(vae, inputs)).latent_dist.mode().float()
+    if "input_image_embeds" in batch:
+        image_embeds = batch["input_image_embeds"].to(device=device, dtype=torch.float32)
+    else:
+        image_embeds = image_encoder(inputs).float()  # (B, 1, D)
+    pose = embed_pose(batch["d_az_deg"], batch["d_el_deg"]).to(device)  # (B, 1, 4)
+    return latents, condition_latents, image_embeds, pose
+
+
+@torch.no_grad()
+def conditioning_sensitivity(
+    batch: dict,
+    *,
+    unet: torch.nn.Module,
+    pose_projection: torch.nn.Module,
+    vae: AutoencoderKL,
+    image_encoder: torch.nn.Module,
+    noise_scheduler: DDPMScheduler,
+    timesteps: Sequence[int] = (100, 500, 900),
+    seed: int = 0,
+) -> dict[str, float]:
+    """How much the UNet's prediction depends on the pose and on the input view.
+
+    At each timestep, the relative L2 change ``||f(c') - f(c)|| / ||f(c)||`` of the prediction on the same
+    noisy target latents when (a) every ``d_az`` turns by 180 degrees (``pose_t<t>``) and (b) the input views
+    (condition latent and image embedding) are swapped between pairs, the pose kept (``input_t<t>``). A
+    model that ignores its conditioning scores ~0 on both; one that follows the pose, clearly above 0.
+
+    Shape:
+        a pair batch of ``B >= 2``.
+
+    Raises:
+        ValueError: If the batch holds fewer than two pairs (the input swap needs two).
+    """
+    if batch["input"].shape[0] < 2:
+        raise ValueError("conditioning_sensitivity needs a batch of at least 2 pairs")
+    generator = torch.Generator().manual_seed(seed)
+    latents, condition, embeds, pose = encode_batch(
+        batch, vae=vae, image_encoder=image_encoder, generator=generator
+    )
+    turned = embed_pose(torch.as_tensor(batch["d_az_deg"]) + 180.0, batch["d_el_deg"]).to(pose.device)
+    noise = torch.randn(latents.shape, generator=generator).to(latents.device)
+
+    def predict(t: torch.Tensor, condition: torch.Tensor, embeds: torch.Tensor, pose: torch.Tensor):
+        x_t = noise_scheduler.add_noise(latents, noise, t)
+        tokens = pose_projection(embeds, pose)
+        return unet(torch.cat([x_t, condition], dim=1), t, encoder_hidden_states=tokens).sample
+
+    result = {}
+    for step in timesteps:
+        t = torch.full((latents.shape[0],), int(step), dtype=torch.long, device=latents.device)
+        reference = predict(t, condition, embeds, pose)
+        norm = reference.norm().clamp_min(1e-12)
+        result[f"pose_t{step}"] = ((predict(t, condition, embeds, turned) - reference).norm() / norm).item()
+        swapped = predict(t, condition.roll(1, 0), embeds.roll(1, 0), pose)
+        result[f"input_t{step}"] = ((swapped - reference).norm() / norm).item()
+    return result
+
+
 def compute_losses(
     batch: dict,
     *,
@@ -248,28 +341,12 @@ def compute_losses(
     Shape:
         ``batch["input"]``, ``batch["target"]``: ``(B, 1, S, S)``; outputs ``(B,)``.
     """
-    device, dtype = vae.device, vae.dtype
-    inputs = batch["input"].to(device=device, dtype=dtype)
-    targets = batch["target"].to(device=device, dtype=dtype)
-    batch_size = inputs.shape[0]
-    # 1. frozen encodings: scaled posterior sample of the target, unscaled mode of the input
-    if "target_latent_mean" in batch:
-        mean = batch["target_latent_mean"].to(device=device, dtype=torch.float32)
-        logvar = batch["target_latent_logvar"].to(device=device, dtype=torch.float32)
-        std = torch.exp(0.5 * logvar.clamp(-30.0, 20.0))  # diffusers' DiagonalGaussianDistribution clamp
-        sample = mean + std * torch.randn(mean.shape, generator=generator).to(device)
-        latents = sample * vae.config.scaling_factor
-        condition_latents = batch["input_latent_mean"].to(device=device, dtype=torch.float32)
-    else:
-        with torch.no_grad():
-            posterior = vae.encode(vae_input(vae, targets)).latent_dist
-            latents = (posterior.sample(generator=generator) * vae.config.scaling_factor).float()
-            condition_latents = vae.encode(vae_input(vae, inputs)).latent_dist.mode().float()
-    if "input_image_embeds" in batch:
-        image_embeds = batch["input_image_embeds"].to(device=device, dtype=torch.float32)
-    else:
-        image_embeds = image_encoder(inputs).float()  # (B, 1, D)
-    pose = embed_pose(batch["d_az_deg"], batch["d_el_deg"]).to(device)  # (B, 1, 4)
+    # 1. frozen encodings
+    latents, condition_latents, image_embeds, pose = encode_batch(
+        batch, vae=vae, image_encoder=image_encoder, generator=generator
+    )
+    batch_size, device = latents.shape[0], latents.device
+    targets = batch["target"].to(device=device, dtype=vae.dtype)
     # 2. classifier-free-guidance dropout; the "both" case equals the pipeline's sampling null
     if apply_dropout:
         drop_image, drop_both, drop_latent = cfg_dropout_masks(

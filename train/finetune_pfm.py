@@ -25,6 +25,7 @@ checkpoint's step and reaches bitwise the weights of an uninterrupted run.
 from __future__ import annotations
 
 import hashlib
+import json
 import logging
 import os
 from dataclasses import dataclass
@@ -50,6 +51,7 @@ from tqdm.auto import tqdm
 from sar_zero123.config import config_to_dict, parse_config, save_config, write_json_atomic
 from sar_zero123.data import DecibelScaling, ViewPairDataset, check_protocol, prepare_splits
 from sar_zero123.encoder import SAREncoder
+from sar_zero123.evaluators import Evaluators, load_evaluators, pose_following
 from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput
 from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
 from sar_zero123.run_state import (
@@ -64,6 +66,7 @@ from sar_zero123.training import (
     ChipLatentCache,
     ImageEmbedder,
     compute_losses,
+    conditioning_sensitivity,
     load_chip_images,
     micro_batch_generator,
     timestep_bucket_losses,
@@ -80,7 +83,7 @@ class FinetuneConfig:
 
     output_dir: str = "runs/finetune_pfm"  # run folder: checkpoints, logs, validation grids, final pipeline
     pretrained: str | None = None  # pipeline folder or zero-1-to-3 checkpoint; None: build `size`
-    size: Literal["tiny", "small", "zero123"] = "small"  # model size when `pretrained` is None
+    size: Literal["tiny", "micro", "compact", "small", "zero123"] = "small"  # built when pretrained is None
     image_size: int | None = None  # chip side in pixels; None uses the model's own
     vae: str | None = None  # AutoencoderKL folder (train/train_vae.py) replacing the pipeline's VAE
     encoder: str | None = None  # frozen SAREncoder folder; required when pfm_weight > 0
@@ -120,6 +123,7 @@ class FinetuneConfig:
     report_to: str | None = "tensorboard"  # accelerate tracker; None disables logging
     seed: int = 0  # seed of initialisation, data order and every random draw
     save_pipeline: bool = True  # save_pretrained the final SARZero123Pipeline into output_dir/pipeline
+    evaluators: str | None = None  # train_evaluators.py folder: validation also checks pose following
     cache_latents: bool = True  # encode every training chip once with the frozen VAE (and frozen CLIP tower)
 
     def __post_init__(self) -> None:
@@ -393,6 +397,9 @@ def main(argv: list[str] | None = None) -> Path:
     image_size = resolve_image_size(config, pipe)
     encoder = load_encoder(config, image_size)
     train_dataset, validation_dataset, scaling = build_datasets(config, image_size)
+    evaluators = None
+    if config.evaluators is not None and config.validation_steps:
+        evaluators = load_evaluators(config.evaluators, class_names=validation_dataset.class_names)
     if len(train_dataset) < config.train_batch_size * accelerator.num_processes:
         raise ValueError(
             f"data: {len(train_dataset)} training pairs, fewer than one global batch of "
@@ -594,6 +601,7 @@ def main(argv: list[str] | None = None) -> Path:
                         frozen_modules,
                         config,
                         global_step,
+                        evaluators,
                     )
                 accelerator.wait_for_everyone()
             if global_step >= config.max_train_steps:
@@ -646,6 +654,7 @@ def validate(
     frozen_modules: dict,
     config: FinetuneConfig,
     step: int,
+    evaluators: Evaluators | None = None,
 ) -> Path:
     """Validation with the unwrapped modules, EMA weights swapped in (and out again afterwards)."""
     raw_unet = accelerator.unwrap_model(unet)
@@ -679,7 +688,36 @@ def validate(
             feature_extractor=pipe.feature_extractor,
         )
         sampler.set_progress_bar_config(disable=True)
-        return run_validation(accelerator, sampler, batch, losses, config, step)
+        path = run_validation(accelerator, sampler, batch, losses, config, step)
+        # 3. is the conditioning used? (prediction change under a 180 deg turn and an input swap; with
+        #    evaluators, the azimuth of views generated for several d_az against the requested one)
+        sensitivity = conditioning_sensitivity(
+            batch,
+            unet=raw_unet,
+            pose_projection=raw_projection,
+            vae=frozen_modules["vae"],
+            image_encoder=raw_embedder,
+            noise_scheduler=frozen_modules["noise_scheduler"],
+            seed=config.seed,
+        )
+        logs = {f"validation/sensitivity_{name}": value for name, value in sensitivity.items()}
+        if evaluators is not None:
+            following = pose_following(
+                sampler,
+                batch["input"][:1].float(),
+                float(batch["input_azimuth_deg"][0]),
+                evaluators.regressor,
+                num_inference_steps=config.validation_inference_steps,
+                guidance_scale=config.guidance_scale,
+                seed=config.seed,
+            )
+            logs["validation/pose_following_error_deg"] = following["mean_error_deg"]
+            logs["validation/pose_following_floor_deg"] = following["floor_deg"]
+        accelerator.log(logs, step=step)
+        logger.info("validation step %d: %s", step, json.dumps(logs))
+        with open(Path(config.output_dir) / "validation" / "metrics.jsonl", "a") as stream:
+            stream.write(json.dumps({"step": step, **logs}) + "\n")
+        return path
     finally:
         for ema, module in swaps:
             if ema is not None:
