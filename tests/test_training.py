@@ -1,0 +1,138 @@
+"""Tests of sar_zero123.training: cached encodings, the training step, sensitivity, loss buckets."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+from diffusers import DDPMScheduler
+
+from sar_zero123.data import ChipRecord, ViewPairDataset
+from sar_zero123.training import (
+    CachedViewPairs,
+    ChipLatentCache,
+    ImageEmbedder,
+    compute_losses,
+    conditioning_sensitivity,
+    load_chip_images,
+    timestep_bucket_losses,
+)
+from tests.dummies import dummy_images, get_dummy_components
+
+
+@pytest.fixture(scope="module")
+def components():
+    return get_dummy_components()
+
+
+def step_losses(batch, components, seed: int = 3):
+    return compute_losses(
+        batch,
+        unet=components["unet"],
+        pose_projection=components["pose_projection"],
+        vae=components["vae"],
+        image_encoder=ImageEmbedder(components["image_encoder"]),
+        encoder=None,
+        noise_scheduler=DDPMScheduler.from_config(components["scheduler"].config),
+        generator=torch.Generator().manual_seed(seed),
+    )
+
+
+def test_cached_encodings_give_the_losses_of_encoding_every_step(components) -> None:
+    images = dummy_images(4, seed=5)
+    cache = ChipLatentCache.encode(images, components["vae"], components["image_encoder"], batch_size=3)
+    assert cache.latent_mean.shape == (4, 4, 16, 16) and cache.image_embeds.shape == (4, 1, 16)
+    batch = {
+        "input": images[:2],
+        "target": images[2:],
+        "d_az_deg": torch.tensor([30.0, -150.0]),
+        "d_el_deg": torch.tensor([0.0, 2.0]),
+    }
+    cached = {
+        **batch,
+        "input_latent_mean": cache.latent_mean[:2],
+        "target_latent_mean": cache.latent_mean[2:],
+        "target_latent_logvar": cache.latent_logvar[2:],
+        "input_image_embeds": cache.image_embeds[:2],
+    }
+    with torch.no_grad():
+        reference, fast = step_losses(batch, components), step_losses(cached, components)
+    torch.testing.assert_close(fast.loss, reference.loss, rtol=1e-5, atol=1e-6)
+    assert torch.equal(fast.timesteps, reference.timesteps)
+
+
+def test_cached_view_pairs_serve_the_wrapped_pairs(tmp_path) -> None:
+    rng = np.random.default_rng(0)
+    records = []
+    for k, azimuth in enumerate((10.0, 100.0, 190.0)):
+        path = tmp_path / f"chip{k}.npy"
+        np.save(path, rng.random((16, 16), dtype=np.float32))
+        records.append(ChipRecord(str(path), "A", "s1", 17.0, azimuth))
+    pairs = ViewPairDataset(records, size=16, seed=1)
+    images = load_chip_images(pairs)
+    cache = ChipLatentCache(
+        images=images,
+        latent_mean=torch.arange(3.0).view(3, 1, 1, 1).expand(3, 4, 2, 2),
+        latent_logvar=torch.zeros(3, 4, 2, 2),
+        image_embeds=None,
+        scaling_factor=1.0,
+    )
+    cached = CachedViewPairs(pairs, cache)
+    for index in range(len(pairs)):
+        plain, fast = pairs[index], cached[index]
+        assert torch.equal(fast["input"], plain["input"]) and torch.equal(fast["target"], plain["target"])
+        assert fast["d_az_deg"] == pytest.approx(plain["d_az_deg"]) and fast["label"] == plain["label"]
+        source, target = pairs.pairs[index]
+        assert fast["input_latent_mean"][0, 0, 0] == source and fast["target_latent_mean"][0, 0, 0] == target
+    cached.set_epoch(4)
+    assert pairs.epoch == 4
+    with pytest.raises(ValueError, match="cache holds 2 chips"):
+        CachedViewPairs(pairs, ChipLatentCache(images[:2], images[:2], images[:2], None, 1.0))
+
+
+def test_chip_latent_cache_rejects_bad_images(components) -> None:
+    with pytest.raises(ValueError, match="non-empty"):
+        ChipLatentCache.encode(torch.zeros(0, 1, 32, 32), components["vae"])
+    with pytest.raises(ValueError, match="non-finite"):
+        ChipLatentCache.encode(torch.full((1, 1, 32, 32), float("nan")), components["vae"])
+
+
+def test_conditioning_sensitivity_is_zero_for_a_model_that_ignores_its_conditioning(components) -> None:
+    batch = {
+        "input": dummy_images(3, seed=1),
+        "target": dummy_images(3, seed=2),
+        "d_az_deg": torch.tensor([30.0, 90.0, -60.0]),
+        "d_el_deg": torch.zeros(3),
+    }
+    kwargs = dict(
+        pose_projection=components["pose_projection"],
+        vae=components["vae"],
+        image_encoder=ImageEmbedder(components["image_encoder"]),
+        noise_scheduler=DDPMScheduler.from_config(components["scheduler"].config),
+    )
+    unet = components["unet"]
+
+    class Blind(torch.nn.Module):  # the noisy latent only: condition latent and tokens zeroed
+        def forward(self, sample, t, encoder_hidden_states):
+            sample = torch.cat([sample[:, :4], torch.zeros_like(sample[:, 4:])], dim=1)
+            return unet(sample, t, encoder_hidden_states=torch.zeros_like(encoder_hidden_states))
+
+    blind = conditioning_sensitivity(batch, unet=Blind(), **kwargs)
+    assert set(blind) == {f"{kind}_t{t}" for kind in ("pose", "input") for t in (100, 500, 900)}
+    assert all(value == 0.0 for value in blind.values())
+    seeing = conditioning_sensitivity(batch, unet=unet, **kwargs)
+    assert all(value > 1e-4 for key, value in seeing.items() if key.startswith("input"))
+    with pytest.raises(ValueError, match="at least 2 pairs"):
+        conditioning_sensitivity({k: v[:1] for k, v in batch.items()}, unet=unet, **kwargs)
+
+
+def test_timestep_bucket_losses_are_bucket_means() -> None:
+    losses = torch.tensor([1.0, 3.0, 5.0, 7.0, 9.0])
+    timesteps = torch.tensor([0, 249, 250, 999, 600])
+    assert timestep_bucket_losses(losses, timesteps, 1000) == {
+        "t000-249": 2.0,
+        "t250-499": 5.0,
+        "t500-749": 9.0,
+        "t750-999": 7.0,
+    }
+    assert timestep_bucket_losses(losses[:1], timesteps[:1], 1000) == {"t000-249": 1.0}
