@@ -73,7 +73,17 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path) -> None:
     with pytest.warns(UserWarning, match="rank-deficient"):
         result = script.main(argv)
     table3 = json.loads((out / "table3.json").read_text())["results"]
-    assert set(table3) == {"input copy (baseline)", "lambda0", "lambda4"}
+    floor, target, round_trip = "input copy (floor)", "real target (ceiling)", "VAE round trip (ceiling)"
+    assert set(table3) == {floor, target, round_trip, "lambda0", "lambda4"}  # both share one VAE: one row
+    for group in ("seen", "unseen"):
+        # the real target scored against itself: perfect structure; its regressor error is the regressor's own
+        assert table3[target][group]["ms_ssim"] == pytest.approx(1.0, abs=1e-6)
+        assert table3[target][group]["sfd"] == pytest.approx(0.0, abs=1e-6)
+        values, low, high = (table3[m][group] for m in ("lambda0", floor, round_trip))
+        key = "azimuth_error_deg"
+        expected = script.gap_closed(values[key], low[key], high[key])
+        assert values["azimuth_gap_closed"] == pytest.approx(expected, nan_ok=True)
+        assert "azimuth_gap_closed" not in low and values["azimuth_error_deg_se"] >= 0.0
     for method in ("lambda0", "lambda4"):
         assert set(table3[method]) == {"seen", "unseen"}
         for group in ("seen", "unseen"):
@@ -112,3 +122,13 @@ def test_evaluate_rejects_evaluators_for_other_classes(tmp_path: Path) -> None:
         ValueError, match=r"evaluators/ was trained on classes \['A', 'B'\] but the data uses"
     ):
         script.build_pair_sets(config, evaluators, image_size=32)
+
+
+def test_gap_closed_is_the_fraction_between_floor_and_ceiling() -> None:
+    script = load_script("evaluate")
+    assert script.gap_closed(55.0, floor=90.0, ceiling=20.0) == pytest.approx(0.5)
+    assert script.gap_closed(20.0, floor=90.0, ceiling=20.0) == pytest.approx(1.0)
+    assert script.gap_closed(100.0, floor=90.0, ceiling=20.0) == pytest.approx(-1 / 7)
+    assert script.gap_closed(85.0, floor=100.0, ceiling=70.0) == pytest.approx(0.5)  # accuracy: floor above
+    assert math.isnan(script.gap_closed(50.0, floor=90.0, ceiling=90.0))
+
