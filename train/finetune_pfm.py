@@ -399,7 +399,7 @@ def main(argv: list[str] | None = None) -> Path:
     train_dataset, validation_dataset, scaling = build_datasets(config, image_size)
     evaluators = None
     if config.evaluators is not None and config.validation_steps:
-        evaluators = load_evaluators(config.evaluators, class_names=validation_dataset.class_names)
+        evaluators = load_evaluators(config.evaluators)  # pose following reads only the regressor
     if len(train_dataset) < config.train_batch_size * accelerator.num_processes:
         raise ValueError(
             f"data: {len(train_dataset)} training pairs, fewer than one global batch of "

@@ -381,7 +381,10 @@ def write_report(out: Path, preset: Preset, config: QuickstartConfig, held_out: 
         "",
         f"## Table III ({table3['num_inference_steps']} DDIM steps, guidance {table3['guidance_scale']})",
         "",
-        "`input copy` returns the input view unchanged: a generator must beat it on azimuth error.",
+        "`input copy (floor)` returns the input view unchanged (a generator that ignores the pose); "
+        "`real target (ceiling)` scores the true target view and `VAE round trip (ceiling)` the target "
+        "encoded and decoded by the VAE, the best a latent model with this VAE can do. A model must beat the "
+        "floor on azimuth error; `Az. gap closed` is the fraction of the floor-to-VAE-ceiling gap it closes.",
         "",
         (eval_dir / "table3.md").read_text(),
         "## Table IV (azimuth error of generated views under each evaluator backbone)",
