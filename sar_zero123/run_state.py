@@ -358,7 +358,7 @@ def check_finite_step(step: int, **values: float | torch.Tensor) -> None:
         listed = ", ".join(f"{name}={value}" for name, value in bad.items())
         raise FloatingPointError(
             f"training diverged at step {step}: {listed} is not finite; stopped before saving anything from "
-            "this step. Lower the learning rate (or clip gradients harder) and resume from the last checkpoint"
+            "this step. Lower the learning rate (or clip gradients harder), resume from the last checkpoint"
         )
 
 
