@@ -208,3 +208,5 @@ def test_nt_xent_bad_input():
         nt_xent_loss(torch.ones(2, 3), torch.ones(2, 3), temperature=0.0)
     with pytest.raises(ValueError, match="z1 and z2"):
         nt_xent_loss(torch.ones(2, 3), torch.ones(3, 3))
+    with pytest.raises(ValueError, match="at least 2 pairs .* got 1"):  # batch 1 would give loss 0
+        nt_xent_loss(torch.randn(1, 3), torch.randn(1, 3))
