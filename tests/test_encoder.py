@@ -131,7 +131,7 @@ def test_projection_head_shape():
     assert sum(p.numel() for p in ProjectionHead().parameters()) == 512 * 512 + 512 + 512 * 128 + 128
 
 
-@pytest.mark.parametrize(("n", "temperature"), [(1, 0.5), (3, 0.1), (8, 0.5), (5, 1.0)])
+@pytest.mark.parametrize(("n", "temperature"), [(2, 0.5), (3, 0.1), (8, 0.5), (5, 1.0)])  # n = 1: refused
 def test_nt_xent_matches_double_loop_reference(n, temperature):
     generator = torch.Generator().manual_seed(n)
     z1 = torch.randn(n, 6, generator=generator)
