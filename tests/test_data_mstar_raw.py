@@ -233,3 +233,20 @@ def test_file_length_must_match_the_header(tmp_path: Path, chip_arrays, damage, 
     damage(path)
     with pytest.raises(ValueError, match=rf"HB9.000: {message}"):
         read_mstar_raw(path)
+
+
+def test_cached_raw_folder_index_is_rescanned_when_a_file_is_added(tmp_path: Path, chip_arrays) -> None:
+    write_mstar(tmp_path / "HB1.000", chip_arrays[0])
+    assert len(load_index(tmp_path)) == 1
+    write_mstar(tmp_path / "HB2.000", chip_arrays[0], fields={"TargetAz": "20.5"})
+    stale = r"index.csv: cached index of a raw MSTAR folder is stale \(.*HB2.000 is not in the index\)"
+    with pytest.warns(UserWarning, match=stale):
+        records = load_index(tmp_path)
+    assert [r.path.name for r in records] == ["HB1.000", "HB2.000"]
+    assert len(load_index(tmp_path)) == 2  # the rewritten cache is current again: no warning, no rescan
+
+
+def test_empty_target_type_names_the_file(tmp_path: Path, chip_arrays) -> None:
+    write_mstar(tmp_path / "HB1.000", chip_arrays[0], fields={"TargetType": ""})
+    with pytest.raises(ValueError, match=r"HB1.000: header field 'TargetType' is empty"):
+        load_index(tmp_path)

@@ -202,6 +202,8 @@ def read_mstar_raw(path: str | Path) -> MSTARChip:
     if not 0.0 <= azimuth_deg < 360.0:
         raise ValueError(f"{path}: header field 'TargetAz' must lie in [0, 360) degrees, got {azimuth_deg}")
     depression_deg = float(_header_number(header, "DesiredDepression", path))
+    if not header["TargetType"].strip():
+        raise ValueError(f"{path}: header field 'TargetType' is empty; expected a name such as 't72_tank'")
 
     # 2. pixels: magnitude plane, then (optionally) the phase plane
     raw = path.read_bytes()
