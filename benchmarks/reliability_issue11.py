@@ -51,14 +51,8 @@ def attempt(name, fn):
             outcome = f"returned {value}" if value is not None else "returned"
         except BaseException as error:  # noqa: BLE001
             outcome = f"{type(error).__name__}: {str(error)[:160]}"
-    ours = [
-        str(w.message)[:120]
-        for w in caught
-        if "sar_zero123" in w.filename
-        or "repro" in w.filename
-        or "finetune" in w.filename
-        or "generate" in w.filename
-    ]
+    # the project's warnings (UserWarning; RuntimeWarning of numpy), not third-party deprecations
+    ours = [str(w.message)[:120] for w in caught if issubclass(w.category, (UserWarning, RuntimeWarning))]
     if ours:
         outcome += f" | warning: {ours[0]}"
     RESULTS[name] = outcome.replace("\n", " ")
