@@ -138,6 +138,8 @@ def parse_config(cls: type[ConfigT], argv: Sequence[str] | None = None) -> Confi
     Raises:
         ValueError: for keys in the config file that are not fields of ``cls``, or bad values.
         FileNotFoundError: if ``--config`` names a missing file.
+        NotADirectoryError: if an ``output_dir``, ``out`` or ``work_dir`` field names a file (checked
+            here, before the script loads anything).
     """
     if not dataclasses.is_dataclass(cls):
         raise TypeError(f"{cls!r} is not a dataclass")
@@ -167,7 +169,31 @@ def parse_config(cls: type[ConfigT], argv: Sequence[str] | None = None) -> Confi
         values.update(file_values)
     values.update(namespace)
     values = {name: _coerce(value, hints[name]) for name, value in values.items()}
-    return cls(**values)
+    config = cls(**values)
+    for name in OUTPUT_DIR_FIELDS:
+        if hasattr(config, name) and getattr(config, name) is not None:
+            check_output_dir(getattr(config, name), name)
+    return config
+
+
+#: Config fields that name a folder a script writes into; :func:`parse_config` checks them first.
+OUTPUT_DIR_FIELDS = ("output_dir", "out", "work_dir")
+
+
+def check_output_dir(path: str | os.PathLike, field: str = "output_dir") -> Path:
+    """Check, before any work, that ``path`` is or can become a folder (it and its parents are no files).
+
+    Raises:
+        NotADirectoryError: naming ``field``, the path and the file in the way.
+    """
+    path = Path(path)
+    for candidate in (path, *path.parents):
+        if candidate.exists():
+            if not candidate.is_dir():
+                where = "is a file" if candidate == path else f"is inside {str(candidate)!r}, which is a file"
+                raise NotADirectoryError(f"{field}: {str(path)!r} {where}; expected a folder to write into")
+            break
+    return path
 
 
 def config_to_dict(config: Any) -> dict[str, Any]:

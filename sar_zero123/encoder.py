@@ -317,11 +317,11 @@ def nt_xent_loss(
         Per-pair loss of the local pairs, computed in float32 (also under autocast).
 
     Shape:
-        z1, z2: (N, D) with N >= 1. output: (N,).
+        z1, z2: (N, D) with N >= 1 and N x processes >= 2. output: (N,).
 
     Raises:
-        ValueError: If shapes differ or are not (N, D), `temperature` is not positive, or (when
-            gathering) the processes hold different numbers of pairs.
+        ValueError: If shapes differ or are not (N, D), `temperature` is not positive, fewer than 2
+            pairs are contrasted, or (when gathering) the processes hold different numbers of pairs.
     """
     if z1.ndim != 2 or z1.shape != z2.shape:
         raise ValueError(f"z1 and z2 must both be (N, D), got {tuple(z1.shape)} and {tuple(z2.shape)}")
@@ -343,6 +343,11 @@ def nt_xent_loss(
     else:
         candidates = anchors
     total = n * world
+    if total < 2:  # a lone pair's only candidate is its positive: loss 0 and no gradient, silently
+        raise ValueError(
+            f"NT-Xent needs at least 2 pairs (the other pairs are the negatives), got {total}; use a larger "
+            "batch (or gather negatives across processes)"
+        )
     local = torch.arange(n, device=u1.device) + rank * n  # this process's rows among the first views
     self_index = torch.cat([local, local + total])  # (2N,) where each anchor sits among the candidates
     positives = torch.cat([local + total, local])  # (2N,) its other view

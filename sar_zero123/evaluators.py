@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -181,6 +182,12 @@ class SARClassifier(_Evaluator):
         scaling: DecibelScaling | None = None,
     ) -> None:
         super().__init__(encoder_config, class_names, scaling)
+        if len(self.class_names) == 1:
+            warnings.warn(
+                f"classifier of a single class {self.class_names}: its accuracy is 100% whatever the input; "
+                "train it on every class of the data (is the held-out class the only one in the split?)",
+                stacklevel=2,
+            )
         self.head = nn.Linear(self.encoder.feature_dim, len(self.class_names))
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:

@@ -16,6 +16,7 @@ with the pipeline folder's ``decibel_scaling.json`` (``DecibelScaling.to_dict``)
 from __future__ import annotations
 
 import json
+import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -28,13 +29,16 @@ from matplotlib.figure import Figure
 from tqdm.auto import tqdm
 
 from sar_zero123.config import parse_config, save_config
-from sar_zero123.data import DecibelScaling, center_crop_resize, load_magnitude
-from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.data import DecibelScaling, center_crop_resize, check_magnitude, load_magnitude
+from sar_zero123.pipeline import MAX_ABS_D_EL_DEG, MAX_GUIDANCE_SCALE, SARZero123Pipeline
 
 __all__ = ["SCALING_FILE", "GenerateConfig", "generate_views", "main"]
 
 #: Name of the decibel-scaling file a training run may save next to its pipeline.
 SCALING_FILE = "decibel_scaling.json"
+#: Refuse a chip when more than this fraction of its pixels leaves the scaling's dB range (it is on
+#: another scale: raw magnitudes with unit bounds, or dB values read as magnitude); warn below it.
+MAX_CLIPPED_FRACTION = 0.5
 
 
 @dataclass
@@ -63,6 +67,15 @@ class GenerateConfig:
             raise ValueError("d_az: give at least one azimuth delta")
         if not all(np.isfinite(self.d_az)) or not all(np.isfinite(self.d_el)):
             raise ValueError(f"d_az/d_el must be finite, got {self.d_az} and {self.d_el}")
+        if any(abs(v) > MAX_ABS_D_EL_DEG for v in self.d_el):
+            raise ValueError(
+                f"d_el must lie in [-{MAX_ABS_D_EL_DEG:g}, {MAX_ABS_D_EL_DEG:g}] degrees (a difference of "
+                f"two depression angles), got {self.d_el}"
+            )
+        if not (np.isfinite(self.guidance_scale) and self.guidance_scale <= MAX_GUIDANCE_SCALE):
+            raise ValueError(
+                f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE:g}, got {self.guidance_scale}"
+            )
         if len(self.d_el) not in (1, len(self.d_az)):
             raise ValueError(f"d_el: give 1 value or one per d_az ({len(self.d_az)}), got {len(self.d_el)}")
         if self.num_inference_steps < 1:
@@ -89,11 +102,27 @@ def load_input_chip(config: GenerateConfig, size: int) -> np.ndarray:
         The chip.
 
     Raises:
-        ValueError: If a ``normalized_db`` chip lies outside [0, 1].
+        ValueError: If a ``normalized_db`` chip lies outside [0, 1], a magnitude is negative or not finite,
+            or more than :data:`MAX_CLIPPED_FRACTION` of the pixels leave the dB range (a warning with
+            the fraction when fewer do).
     """
     chip = center_crop_resize(load_magnitude(config.image), size=size)
     if config.input_domain == "magnitude":
-        chip = np.asarray(_resolve_scaling(config.scaling, Path(config.pipeline)).normalize(chip), np.float32)
+        scaling = _resolve_scaling(config.scaling, Path(config.pipeline))
+        check_magnitude(chip, name=f"image {config.image!r}")
+        unclipped = scaling.normalize(chip, clip=False)
+        tolerance = 1e-4  # a magnitude of exactly 1 normalises to 1 + float32 rounding
+        clipped = float(np.mean((unclipped < -tolerance) | (unclipped > 1.0 + tolerance)))
+        message = (
+            f"image {config.image!r}: {clipped:.1%} of the pixels lie outside the scaling's dB range "
+            f"[{scaling.min_db:g}, {scaling.max_db:g}] dB (magnitudes {chip.min():.4g}..{chip.max():.4g}) "
+            "and are clipped"
+        )
+        if clipped > MAX_CLIPPED_FRACTION:
+            raise ValueError(f"{message}; give the pipeline's --scaling or the right --input_domain")
+        if clipped > 0:
+            warnings.warn(message, stacklevel=2)
+        chip = np.clip(unclipped, 0.0, 1.0).astype(np.float32)
     elif chip.min() < 0.0 or chip.max() > 1.0:
         raise ValueError(f"image: a normalized_db chip must lie in [0, 1], got [{chip.min()}, {chip.max()}]")
     return chip

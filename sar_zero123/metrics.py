@@ -64,8 +64,15 @@ def classification_accuracy(predictions: torch.Tensor, labels: torch.Tensor) -> 
         predictions `(B, K)` or `(B,)`, labels `(B,)`.
 
     Raises:
-        ValueError: if the batch sizes differ or the batch is empty.
+        ValueError: if the batch sizes differ or the batch is empty, or class indices are not integers.
     """
+    if labels.is_floating_point() or labels.is_complex() or labels.dtype == torch.bool:
+        raise ValueError(f"labels must hold integer class indices, got dtype {labels.dtype} (truncated)")
+    if predictions.ndim == 1 and (predictions.is_floating_point() or predictions.is_complex()):
+        raise ValueError(
+            f"(B,) predictions must hold integer class indices, got dtype {predictions.dtype}; pass (B, K) "
+            "logits to take the arg-max"
+        )
     if predictions.ndim == 2:
         predictions = predictions.argmax(dim=1)
     if predictions.ndim != 1 or labels.ndim != 1:
@@ -93,8 +100,20 @@ def azimuth_error_deg(predicted_deg: torch.Tensor, target_deg: torch.Tensor) -> 
         Per-sample error in [0, 180] degrees, same shape as the broadcast inputs.
 
     Shape:
-        `(B,)` -> `(B,)`.
+        `(B,)` -> `(B,)`; a scalar target broadcasts, other shapes must be equal.
+
+    Raises:
+        ValueError: if the shapes differ (broadcasting `(B, 1)` against `(B,)` would compare every pair) or
+            a value is not finite.
     """
+    if predicted_deg.shape != target_deg.shape and target_deg.numel() != 1:
+        raise ValueError(
+            f"predicted_deg {tuple(predicted_deg.shape)} and target_deg {tuple(target_deg.shape)} must have "
+            "the same shape (one target per prediction)"
+        )
+    for name, value in (("predicted_deg", predicted_deg), ("target_deg", target_deg)):
+        if not torch.isfinite(value).all():
+            raise ValueError(f"{name} contains non-finite azimuths")
     difference = torch.remainder(predicted_deg - target_deg, 360.0)
     return torch.minimum(difference, 360.0 - difference)
 
@@ -180,9 +199,20 @@ def frechet_distance(features_a: torch.Tensor | np.ndarray, features_b: torch.Te
                 UserWarning,
                 stacklevel=2,
             )
-    return frechet_distance_from_moments(
-        a.mean(axis=0), np.cov(a, rowvar=False), b.mean(axis=0), np.cov(b, rowvar=False)
-    )
+    with np.errstate(over="ignore", invalid="ignore"):  # an overflow is reported below, by name
+        covariance_a, covariance_b = np.cov(a, rowvar=False), np.cov(b, rowvar=False)
+    largest = max(np.abs(a).max(), np.abs(b).max())
+    if not (np.isfinite(covariance_a).all() and np.isfinite(covariance_b).all()):
+        raise ValueError(
+            f"features up to {largest:.3g} overflow their covariance in float64; rescale the features"
+        )
+    try:
+        return frechet_distance_from_moments(a.mean(axis=0), covariance_a, b.mean(axis=0), covariance_b)
+    except np.linalg.LinAlgError as error:
+        raise ValueError(
+            f"the Frechet distance's eigendecomposition failed ({error}) for features up to {largest:.3g}; "
+            "rescale the features"
+        ) from error
 
 
 def _as_float64_matrix(features: torch.Tensor | np.ndarray, name: str) -> np.ndarray:
@@ -204,10 +234,15 @@ def _as_float64_matrix(features: torch.Tensor | np.ndarray, name: str) -> np.nda
 
 
 def _check_image_pair(x: torch.Tensor, y: torch.Tensor) -> None:
+    for name, image in (("first image", x), ("second image", y)):
+        if not isinstance(image, torch.Tensor):
+            raise TypeError(f"{name} must be a torch.Tensor (B, C, H, W), got {type(image).__name__}")
     if x.ndim != 4 or y.ndim != 4:
         raise ValueError(f"images must be (B, C, H, W); got {tuple(x.shape)} and {tuple(y.shape)}")
     if x.shape != y.shape:
         raise ValueError(f"generated and target images differ in size: {tuple(x.shape)} != {tuple(y.shape)}")
+    if x.shape[0] == 0:
+        raise ValueError(f"images are an empty batch: {tuple(x.shape)}")
     for name, image in (("first image", x), ("second image", y)):
         if not torch.isfinite(image).all():
             raise ValueError(f"{name} contains non-finite values")
@@ -349,6 +384,8 @@ def ms_ssim(
     _check_image_pair(x, y)
     if len(betas) < 1:
         raise ValueError("betas must contain at least one scale weight")
+    if not all(math.isfinite(beta) and beta >= 0 for beta in betas):
+        raise ValueError(f"betas must be finite and >= 0 (exponents of the scale terms), got {tuple(betas)}")
     x, y = _prepare(x, y, crop_size, kernel_size, scales=len(betas))
     kernel = gaussian_kernel_1d(kernel_size, sigma)
     factors = []
@@ -404,8 +441,10 @@ def kuan_filter(image: torch.Tensor, window: int = 7, cu: float = 0.25) -> torch
     """
     if window <= 0 or window % 2 == 0:
         raise ValueError(f"window must be a positive odd integer; got {window}")
-    if cu < 0:
-        raise ValueError(f"cu must be non-negative; got {cu}")
+    if not (math.isfinite(cu) and cu >= 0):
+        raise ValueError(f"cu must be finite and non-negative; got {cu}")
+    if not torch.isfinite(image).all() or (image < 0).any():
+        raise ValueError("image must be finite and non-negative (a SAR magnitude or normalised dB image)")
     squeeze = image.ndim == 2
     batch = image[None, None] if squeeze else image
     if batch.ndim != 4:

@@ -46,6 +46,13 @@ __all__ = ["SAR_ZERO123_SIZES", "SARZero123Pipeline", "SARZero123PipelineOutput"
 
 ImageInput = PIL.Image.Image | np.ndarray | torch.Tensor | Sequence[PIL.Image.Image] | Sequence[np.ndarray]
 OUTPUT_TYPES = ("pil", "np", "pt", "latent")
+#: Larger guidance scales overflow the guided noise estimate (NaN images); zero-1-to-3 samples with 3.
+MAX_GUIDANCE_SCALE = 100.0
+#: A depression delta is the difference of two depression angles in [0, 90] degrees.
+MAX_ABS_D_EL_DEG = 90.0
+#: Azimuth deltas beyond this many degrees (~2,800 turns) are almost surely a unit error, and float64
+#: loses the angle's fraction of a degree long before 1e15.
+MAX_ABS_D_AZ_DEG = 1e6
 
 
 @dataclass
@@ -231,8 +238,15 @@ class SARZero123Pipeline(DiffusionPipeline):
     ) -> None:
         if not isinstance(num_inference_steps, numbers.Integral) or num_inference_steps < 1:
             raise ValueError(f"`num_inference_steps` must be an integer >= 1, got {num_inference_steps!r}")
+        if isinstance(guidance_scale, bool) or not isinstance(guidance_scale, numbers.Real):
+            kind = type(guidance_scale).__name__
+            raise TypeError(f"`guidance_scale` must be a real number, got {kind} {guidance_scale!r}")
         if not np.isfinite(guidance_scale):
             raise ValueError(f"`guidance_scale` must be finite, got {guidance_scale}")
+        if guidance_scale > MAX_GUIDANCE_SCALE:  # the guided noise estimate overflows to NaN images
+            raise ValueError(
+                f"`guidance_scale` must be <= {MAX_GUIDANCE_SCALE} (zero-1-to-3 uses 3), got {guidance_scale}"
+            )
         if not isinstance(num_images_per_prompt, numbers.Integral) or num_images_per_prompt < 1:
             raise ValueError(
                 f"`num_images_per_prompt` must be an integer >= 1, got {num_images_per_prompt!r}"
@@ -245,6 +259,25 @@ class SARZero123Pipeline(DiffusionPipeline):
                 f"`callback_on_step_end_tensor_inputs` must be among {self._callback_tensor_inputs}, "
                 f"got {unknown}"
             )
+
+    def _check_finite_output(self, samples: torch.Tensor, what: str, guidance_scale: float) -> None:
+        """Raise instead of returning samples with NaN or inf, saying which component is at fault."""
+        bad = ~torch.isfinite(samples.flatten(1)).all(dim=1)
+        if not bad.any():
+            return
+        broken = [
+            name
+            for name in ("unet", "vae", "image_encoder", "pose_projection")
+            if any(not torch.isfinite(p).all() for p in getattr(self, name).parameters())
+        ]
+        cause = (
+            f"these components hold NaN/inf weights (a diverged training run?): {broken}"
+            if broken
+            else f"the weights are finite; guidance_scale={guidance_scale} or the inputs may be too extreme"
+        )
+        raise FloatingPointError(
+            f"the pipeline produced non-finite {what} for {int(bad.sum())} of {len(bad)} samples; {cause}"
+        )
 
     # ---------------------------------------------------------------------------------- sampling
     def encode_conditioning(
@@ -412,11 +445,13 @@ class SARZero123Pipeline(DiffusionPipeline):
                     latents = callback_outputs.pop("latents", latents)
                 progress_bar.update()
 
-        # 6. decode to single-channel normalised dB
+        # 6. decode to single-channel normalised dB; never return NaN or inf as an image
+        self._check_finite_output(latents, "latents", guidance_scale)
         if output_type == "latent":
             output: Any = latents
         else:
             decoded = self.decode_latents(latents)  # (N, 1, H, W)
+            self._check_finite_output(decoded, "decoded images", guidance_scale)
             if output_type == "pt":
                 output = decoded
             else:
@@ -461,8 +496,10 @@ def _broadcast_pose(
     d_el: float | Sequence[float] | torch.Tensor,
     batch_size: int,
 ) -> torch.Tensor:
-    """Pose vectors for a batch, checking that each angle is a scalar or has one value per image."""
+    """Pose vectors for a batch, checking that each angle is a scalar or has one value per image, real,
+    and physically possible."""
     for name, value in (("d_az", d_az), ("d_el", d_el)):
+        _check_real_angles(value, name)
         count = torch.as_tensor(value).numel()
         if count not in (1, batch_size):
             raise ValueError(f"`{name}` has {count} values; expected 1 or one per input image ({batch_size})")
@@ -470,7 +507,37 @@ def _broadcast_pose(
         pose = embed_pose(d_az, d_el)
     except ValueError as error:
         raise ValueError(str(error).replace("`d_az_deg`", "`d_az`").replace("`d_el_deg`", "`d_el`")) from None
+    for name, value, limit, why in (
+        ("d_el", d_el, MAX_ABS_D_EL_DEG, "a difference of two depression angles in [0, 90]"),
+        ("d_az", d_az, MAX_ABS_D_AZ_DEG, "larger values lose the angle's precision: a unit error?"),
+    ):
+        largest = float(torch.as_tensor(value, dtype=torch.float64).abs().max())
+        if largest > limit:
+            raise ValueError(f"`{name}` must lie in [-{limit:g}, {limit:g}] degrees ({why}), got {largest:g}")
     return pose.expand(batch_size, -1, -1) if pose.shape[0] == 1 else pose
+
+
+def _check_real_angles(value: Any, name: str) -> None:
+    """Angles are real numbers (a scalar, a sequence of them, or a real tensor/array).
+
+    Raises:
+        TypeError: naming the argument, for strings, ``None``, booleans, complex numbers and the like.
+    """
+    if isinstance(value, torch.Tensor):
+        if value.dtype == torch.bool or value.dtype.is_complex:
+            raise TypeError(f"`{name}` must hold real angles in degrees, got dtype {value.dtype}")
+        return
+    if isinstance(value, np.ndarray):
+        if not (np.issubdtype(value.dtype, np.integer) or np.issubdtype(value.dtype, np.floating)):
+            raise TypeError(f"`{name}` must hold real angles in degrees, got dtype {value.dtype}")
+        return
+    items = list(value) if isinstance(value, list | tuple) else [value]
+    for item in items:
+        if isinstance(item, bool) or not isinstance(item, numbers.Real):
+            raise TypeError(
+                f"`{name}` must be a real number of degrees or a list of them, got {type(item).__name__} "
+                f"{item!r}"
+            )
 
 
 def _to_pil(array: np.ndarray) -> list[PIL.Image.Image]:

@@ -113,3 +113,25 @@ def test_chip_record_validates() -> None:
         ChipRecord(path=Path("/x"), target_class="A", serial="1", depression_deg=15.0, azimuth_deg=360.0)
     with pytest.raises(ValueError, match="target_class must be a non-empty"):
         ChipRecord(path=Path("/x"), target_class="", serial="1", depression_deg=15.0, azimuth_deg=0.0)
+
+
+@pytest.mark.parametrize(
+    ("rows", "error", "match"),
+    [
+        (["a.npy,T72,,132,17,1,,", "b.npy,T72,,132,17,2,,", "a.npy,T72,,132,17,1,,"], ValueError,
+         r"index.csv:4: chip file 'a.npy' is listed twice \(also on line 2\)"),
+        (["a.npy,T72,,132,17,1,,", "a.npy,BMP2,,9563,17,1,,"], ValueError,
+         r"index.csv:3: chip file 'a.npy' is listed under two classes \('T72' on line 2, 'BMP2' here\)"),
+    ],
+    ids=["duplicate-row", "one-file-two-classes"],
+)  # fmt: skip
+def test_duplicate_rows_are_errors_naming_the_lines(tmp_path: Path, rows, error, match) -> None:
+    with pytest.raises(error, match=match):
+        load_index(make_folder(tmp_path, rows))
+
+
+def test_utf8_bom_in_index_is_read(tmp_path: Path) -> None:
+    make_folder(tmp_path, GOOD_ROWS)
+    text = (tmp_path / "index.csv").read_text()
+    (tmp_path / "index.csv").write_bytes("\ufeff".encode() + text.encode())
+    assert [r.path.name for r in load_index(tmp_path)] == ["a.npy", "b.npy"]

@@ -190,3 +190,63 @@ def test_read_only_raw_folder_is_not_cached(tmp_path: Path, chip_arrays) -> None
     finally:
         folder.chmod(0o755)
     assert len(records) == 1 and sorted(p.name for p in folder.iterdir()) == ["HB1.000"]
+
+
+def _edit_field(path: Path, field: str, value: str) -> Path:
+    """Rewrites one header value in place (same width, so the header length stays right)."""
+    text = path.read_bytes()
+    start = text.index(f"{field}= ".encode()) + len(field) + 2
+    end = text.index(b"\n", start)
+    path.write_bytes(text[:start] + value.encode().ljust(end - start) + text[end:])
+    return path
+
+
+def _cut(count: int):
+    return lambda path: path.write_bytes(path.read_bytes()[:-count])
+
+
+def _append(count: int):
+    return lambda path: path.write_bytes(path.read_bytes() + b"\0" * count)
+
+
+def _edit(field: str, value: str):
+    return lambda path: _edit_field(path, field, value)
+
+
+# a 6 x 5 float32 chip: 120 bytes per plane after a 239-byte header, 479 bytes in all
+@pytest.mark.parametrize(
+    ("damage", "message"),
+    [
+        (_cut(1), r"truncated MSTAR file: .*should have 359 or 479 bytes, but it has 478 \(the phase"),
+        (_cut(121), r"truncated MSTAR file: .*but it has 358 \(the magnitude plane is incomplete\)"),
+        (_append(8), r"MSTAR file longer than its header declares: .*\(8 bytes after the phase plane\)"),
+        (_edit("NumberOfRows", "3"), r"MSTAR file longer .*declares 3 x 5 float32 .*\(120 bytes after"),
+        (_edit("NumberOfRows", "7"), r"truncated MSTAR file: header declares 7 x 5 .*phase plane is"),
+        (_edit("native_header_length", "4"), r"truncated .*native_header_length=4 bytes, .*phase plane is"),
+    ],
+    ids=["cut-by-1-byte", "magnitude-cut", "trailing-bytes", "rows-edited-down", "rows-edited-up",
+         "native-header-length-edited"],
+)  # fmt: skip
+def test_file_length_must_match_the_header(tmp_path: Path, chip_arrays, damage, message) -> None:
+    path = write_mstar(tmp_path / "HB9.000", *chip_arrays)
+    assert path.stat().st_size == 479
+    damage(path)
+    with pytest.raises(ValueError, match=rf"HB9.000: {message}"):
+        read_mstar_raw(path)
+
+
+def test_cached_raw_folder_index_is_rescanned_when_a_file_is_added(tmp_path: Path, chip_arrays) -> None:
+    write_mstar(tmp_path / "HB1.000", chip_arrays[0])
+    assert len(load_index(tmp_path)) == 1
+    write_mstar(tmp_path / "HB2.000", chip_arrays[0], fields={"TargetAz": "20.5"})
+    stale = r"index.csv: cached index of a raw MSTAR folder is stale \(.*HB2.000 is not in the index\)"
+    with pytest.warns(UserWarning, match=stale):
+        records = load_index(tmp_path)
+    assert [r.path.name for r in records] == ["HB1.000", "HB2.000"]
+    assert len(load_index(tmp_path)) == 2  # the rewritten cache is current again: no warning, no rescan
+
+
+def test_empty_target_type_names_the_file(tmp_path: Path, chip_arrays) -> None:
+    write_mstar(tmp_path / "HB1.000", chip_arrays[0], fields={"TargetType": ""})
+    with pytest.raises(ValueError, match=r"HB1.000: header field 'TargetType' is empty"):
+        load_index(tmp_path)

@@ -81,3 +81,16 @@ def test_dict_round_trip_through_json() -> None:
 def test_errors(call, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         call()
+
+
+@pytest.mark.parametrize(
+    ("magnitude", "match"),
+    [
+        (np.array([0.5, -0.2, 0.1]), r"1 negative \(smallest finite value -0.2\)"),
+        (torch.tensor([0.5, float("nan")]), r"1 non-finite of 2 values"),
+        (torch.tensor([float("inf"), -1.0]), r"1 negative .* 1 non-finite"),
+    ],
+)
+def test_normalize_refuses_negative_and_non_finite_magnitudes(magnitude, match):
+    with pytest.raises(ValueError, match=rf"magnitude must be finite and >= 0.*{match}"):
+        DecibelScaling().normalize(magnitude)

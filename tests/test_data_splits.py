@@ -149,3 +149,12 @@ def test_check_protocol_accepts_the_paper_protocols_and_names_the_field():
     for bad in ("standard", "ood-", "OOD-T72", ""):
         with pytest.raises(ValueError, match=f"data_protocol: unknown protocol {bad!r}"):
             check_protocol(bad, field="data_protocol")
+
+
+def test_chips_at_a_depression_no_split_takes_are_reported() -> None:
+    records = make_records()
+    stray = [ChipRecord(Path(f"/data/x{k}.npy"), "2S1", "b01", 15.6, 10.0 * k) for k in range(4)]
+    with pytest.warns(UserWarning, match=r"'extended': 4 of 724 chips are at depressions \[15.6\] deg, in no "
+                      r"split .* /data/x0.npy, /data/x1.npy, /data/x2.npy, \.\.\."):  # fmt: skip
+        splits = split_records(records + stray, "extended")
+    assert len(splits["train"]) + len(splits["test"]) == len(records)

@@ -131,7 +131,7 @@ def test_projection_head_shape():
     assert sum(p.numel() for p in ProjectionHead().parameters()) == 512 * 512 + 512 + 512 * 128 + 128
 
 
-@pytest.mark.parametrize(("n", "temperature"), [(1, 0.5), (3, 0.1), (8, 0.5), (5, 1.0)])
+@pytest.mark.parametrize(("n", "temperature"), [(2, 0.5), (3, 0.1), (8, 0.5), (5, 1.0)])  # n = 1: refused
 def test_nt_xent_matches_double_loop_reference(n, temperature):
     generator = torch.Generator().manual_seed(n)
     z1 = torch.randn(n, 6, generator=generator)
@@ -208,3 +208,5 @@ def test_nt_xent_bad_input():
         nt_xent_loss(torch.ones(2, 3), torch.ones(2, 3), temperature=0.0)
     with pytest.raises(ValueError, match="z1 and z2"):
         nt_xent_loss(torch.ones(2, 3), torch.ones(3, 3))
+    with pytest.raises(ValueError, match="at least 2 pairs .* got 1"):  # batch 1 would give loss 0
+        nt_xent_loss(torch.randn(1, 3), torch.randn(1, 3))

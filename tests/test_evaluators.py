@@ -153,3 +153,9 @@ def test_train_evaluators_smoke_and_reproducible(tmp_path: Path) -> None:
     probe = load_evaluators(tmp_path / "run1").probes["simclr"]
     for key, value in evaluators.classifier.encoder.state_dict().items():
         torch.testing.assert_close(probe.encoder.state_dict()[key], value)
+
+
+def test_single_class_classifier_warns_that_its_accuracy_means_nothing() -> None:
+    config = SAREncoderConfig(image_size=16, depths=(1,), hidden_sizes=(8,), embedding_size=8)
+    with pytest.warns(UserWarning, match=r"classifier of a single class \['T72'\]: its accuracy is 100%"):
+        SARClassifier(config, ["T72"])

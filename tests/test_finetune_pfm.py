@@ -5,8 +5,11 @@ from __future__ import annotations
 
 import importlib.util
 import json
+import logging
 import multiprocessing
 import os
+import re
+import shutil
 import signal
 import sys
 import time
@@ -227,7 +230,7 @@ def read_weights(checkpoint: Path) -> dict[str, torch.Tensor]:
 
 
 @pytest.mark.slow
-def test_sigkill_then_resume_latest_is_bitwise_identical(script, assets, tmp_path) -> None:
+def test_sigkill_then_resume_latest_is_bitwise_identical(script, assets, tmp_path, caplog) -> None:
     steps = [
         "--max_train_steps",
         "6",
@@ -262,8 +265,16 @@ def test_sigkill_then_resume_latest_is_bitwise_identical(script, assets, tmp_pat
     assert not (run / "checkpoint-6").exists(), "the kill came too late to test a resume"
     AcceleratorState._reset_state(True)
     GradientState._reset_state()
-    # 3. resume from the newest complete checkpoint and finish
-    script.main(tiny_args(assets, run, *steps, "--resume_from_checkpoint", "latest"))
+    # 3. the newest checkpoint is truncated after it was sealed (a partial copy, unsynced data lost)
+    if not (run / "checkpoint-4").exists():
+        shutil.copytree(run / "checkpoint-2", run / "checkpoint-4")
+    damaged = run / "checkpoint-4" / "model.safetensors"
+    damaged.write_bytes(damaged.read_bytes()[:-100])
+    # 4. resume from the newest complete and intact checkpoint, saying which one was skipped, and finish
+    with caplog.at_level(logging.WARNING, logger="sar_zero123.run_state"):
+        script.main(tiny_args(assets, run, *steps, "--resume_from_checkpoint", "latest"))
+    skipped = r"skipping .*checkpoint-4: .*model.safetensors' has \d+ bytes, manifest.json records"
+    assert re.search(skipped, caplog.text)
     expected, actual = read_weights(reference / "checkpoint-6"), read_weights(run / "checkpoint-6")
     assert expected.keys() == actual.keys()
     assert all(torch.equal(expected[k], actual[k]) for k in expected)
@@ -444,3 +455,36 @@ def test_train_image_encoder_keeps_float32_master_weights_under_bf16(script, ass
     )
     weight = tower["image_encoder.visual_projection.weight"]
     assert torch.isfinite(weight).all() and not torch.equal(weight, initial["visual_projection.weight"])
+
+
+def test_diverging_run_stops_before_saving_or_exporting_nan_weights(script, assets, tmp_path) -> None:
+    run = tmp_path / "diverge"
+    argv = tiny_args(assets, run, "--learning_rate", "1e30", "--max_train_steps", "4",
+                     "--checkpointing_steps", "1", "--validation_steps", "0")  # fmt: skip
+    with pytest.raises(FloatingPointError, match=r"training diverged at step \d+: loss=(nan|inf)"):
+        script.main(argv)
+    assert not (run / "pipeline").exists()
+    for checkpoint in run.glob("checkpoint-*"):
+        assert all(torch.isfinite(w).all() for w in read_weights(checkpoint).values()), checkpoint
+
+
+@pytest.mark.parametrize(
+    ("changed", "listed"),
+    [
+        (("--learning_rate", "1.0"), r"learning_rate: checkpoint 0.0001, this run 1.0"),
+        (("--image_size", "16"), r"image_size: checkpoint None, this run 16"),
+        (("--pfm_weight", "2"), r"pfm_weight: checkpoint 4.0, this run 2.0"),
+    ],
+)
+def test_resume_with_changed_settings_is_refused(script, assets, tower_run, tmp_path, changed, listed):
+    argv = tower_args(assets, tmp_path / "changed", "--validation_steps", "2", *changed,
+                      "--resume_from_checkpoint", str(tower_run / "checkpoint-1"))  # fmt: skip
+    with pytest.raises(ValueError, match=rf"other settings that change the run.*{listed}"):
+        script.main(argv)
+    assert not (tmp_path / "changed").exists()  # refused before config.json was written
+
+
+def test_output_dir_that_is_a_file_is_refused_before_loading(script, assets, tmp_path) -> None:
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(NotADirectoryError, match=r"output_dir: .*file' is a file; expected a folder"):
+        script.main(tiny_args(assets, tmp_path / "file"))

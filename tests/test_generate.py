@@ -85,3 +85,58 @@ def test_input_chip_uses_the_pipeline_scaling_file(pipeline_dir, chip_png, tmp_p
 def test_config_rejects_bad_values(fields, match):
     with pytest.raises(ValueError, match=match):
         GenerateConfig(**{"pipeline": "p", "image": "chip.png", **fields})
+
+
+@pytest.mark.parametrize(
+    ("fields", "match"),
+    [
+        ({"d_el": [400.0]}, r"d_el must lie in \[-90, 90\] degrees"),
+        ({"guidance_scale": 1e30}, r"guidance_scale must be finite and <= 100"),
+        ({"guidance_scale": float("inf")}, r"guidance_scale must be finite"),
+    ],
+)
+def test_config_rejects_impossible_poses_and_guidance(fields, match):
+    with pytest.raises(ValueError, match=match):
+        GenerateConfig(**{"pipeline": "p", "image": "chip.png", **fields})
+
+
+@pytest.mark.parametrize(
+    ("scale", "offset", "outcome"),
+    [
+        (100.0, 0.0, r"100.0% of the pixels lie outside .*clipped; give the pipeline's --scaling"),
+        (-1.0, 0.0, r"chip.npy: magnitude contains negative values"),  # load_magnitude's check
+        (1.0, float("nan"), r"chip.npy: magnitude contains non-finite values"),
+    ],
+    ids=["saturated", "negative", "nan"],
+)
+def test_out_of_range_magnitudes_are_refused(pipeline_dir, tmp_path, scale, offset, outcome):
+    path = tmp_path / "chip.npy"
+    np.save(path, np.random.default_rng(0).uniform(0.5, 1.0, (40, 40)).astype(np.float32) * scale + offset)
+    with pytest.raises(ValueError, match=outcome):
+        load_input_chip(GenerateConfig(pipeline=str(pipeline_dir), image=str(path)), 32)
+
+
+def test_partly_clipped_chip_warns_with_the_fraction(pipeline_dir, tmp_path):
+    magnitude = np.full((32, 32), 0.5, np.float32)
+    magnitude[:4] = 2.0  # 1/8 of the pixels above the unit-magnitude range
+    np.save(tmp_path / "chip.npy", magnitude)
+    config = GenerateConfig(pipeline=str(pipeline_dir), image=str(tmp_path / "chip.npy"))
+    with pytest.warns(UserWarning, match=r"12.5% of the pixels lie outside"):
+        chip = load_input_chip(config, 32)
+    assert chip.max() == 1.0
+
+
+def test_nan_pipeline_writes_no_views_and_out_that_is_a_file_is_refused(chip_png, tmp_path):
+    components = get_dummy_components()
+    with torch.no_grad():
+        next(components["vae"].decoder.parameters()).fill_(float("nan"))
+    SARZero123Pipeline(**components).save_pretrained(tmp_path / "nan_pipeline")
+    out = tmp_path / "views"
+    argv = ["--pipeline", str(tmp_path / "nan_pipeline"), "--image", str(chip_png), "--d-az", "30",
+            "--num-inference-steps", "1"]  # fmt: skip
+    with pytest.raises(FloatingPointError, match=r"non-finite decoded images .*\['vae'\]"):
+        main([*argv, "--out", str(out)])
+    assert not list(out.glob("view_*"))
+    (tmp_path / "file").write_text("x")
+    with pytest.raises(NotADirectoryError, match=r"out: .*file' is a file"):
+        main([*argv, "--out", str(tmp_path / "file")])

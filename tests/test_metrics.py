@@ -256,3 +256,40 @@ def test_kuan_ssim_smooths_speckle_differences() -> None:
     x, y = (torch.from_numpy(np.clip(look, 0.0, 1.0))[None, None].float() for look in looks)
     torch.testing.assert_close(kuan_ssim(x, y), kuan_ssim(y, x))
     assert kuan_ssim(x, y).item() > ssim(x, y).item() + 0.1
+
+
+# --- input validation (issue 11): one case per kind of bad input -----------------------------------------
+def _pair64():
+    return _pair(size=64)
+
+
+@pytest.mark.parametrize(
+    ("call", "error", "match"),
+    [
+        (lambda: ms_ssim(*_pair64(), betas=(0.0448, -0.3, 0.1333)), ValueError, r"betas must be finite"),
+        (lambda: ms_ssim(*(t.numpy() for t in _pair64())), TypeError, r"first image must be a torch.Tensor"),
+        (lambda: ms_ssim(*(t[:0] for t in _pair64())), ValueError, r"empty batch"),
+        (lambda: kuan_filter(torch.rand(16, 16), cu=float("nan")), ValueError, r"cu must be finite"),
+        (lambda: kuan_filter(-torch.rand(16, 16)), ValueError, r"image must be finite and non-negative"),
+        (lambda: classification_accuracy(torch.zeros(2, 3), torch.tensor([0.7, 1.2])), ValueError,
+         r"labels must hold integer class indices, got dtype torch.float32"),
+        (lambda: classification_accuracy(torch.tensor([0.4, 1.0]), torch.tensor([0, 1])), ValueError,
+         r"\(B,\) predictions must hold integer class indices"),
+        (lambda: azimuth_error_deg(torch.zeros(4, 1), torch.zeros(4)), ValueError,
+         r"predicted_deg \(4, 1\) and target_deg \(4,\) must have the same shape"),
+        (lambda: azimuth_error_deg(torch.tensor([float("nan")]), torch.zeros(1)), ValueError,
+         r"predicted_deg contains non-finite"),
+        (lambda: frechet_distance(np.full((4, 2), 1e200) * np.arange(4)[:, None], np.ones((4, 2))),
+         ValueError, r"overflow their covariance"),
+    ],
+    ids=["negative-beta", "numpy-input", "batch-0", "nan-cu", "negative-image", "float-labels",
+         "float-index-predictions", "azimuth-shapes", "nan-azimuth", "frechet-huge"],
+)  # fmt: skip
+def test_metrics_refuse_bad_input_naming_it(call, error, match) -> None:
+    with pytest.raises(error, match=match):
+        call()
+
+
+def test_azimuth_error_takes_a_scalar_target() -> None:
+    torch.testing.assert_close(azimuth_error_deg(torch.tensor([350.0, 20.0]), torch.tensor(10.0)),
+                               torch.tensor([20.0, 10.0]))  # fmt: skip

@@ -256,6 +256,40 @@ def test_invalid_inputs_raise_value_errors_naming_the_argument(pipe, kwargs, mat
         pipe(image, **arguments)
 
 
+@pytest.mark.parametrize(
+    ("kwargs", "error", "match"),
+    [
+        ({"d_az": "30"}, TypeError, r"`d_az` must be a real number of degrees .*got str '30'"),
+        ({"d_az": None}, TypeError, r"`d_az` must be a real number of degrees .*got NoneType None"),
+        ({"d_az": 30 + 1j}, TypeError, r"`d_az` must be a real number of degrees .*got complex"),
+        ({"d_az": [10.0, "20"]}, TypeError, r"`d_az` must be a real number .*got str '20'"),
+        ({"d_el": True}, TypeError, r"`d_el` must be a real number .*got bool"),
+        ({"d_az": torch.tensor([1j, 2j])}, TypeError, r"`d_az` must hold real angles .*complex"),
+        ({"guidance_scale": "3"}, TypeError, r"`guidance_scale` must be a real number, got str '3'"),
+        ({"guidance_scale": 1e30}, ValueError, r"`guidance_scale` must be <= 100"),
+        ({"d_el": 400.0}, ValueError, r"`d_el` must lie in \[-90, 90\] degrees .*got 400"),
+        ({"d_el": [0.0, -91.0]}, ValueError, r"`d_el` must lie in \[-90, 90\] degrees .*got 91"),
+        ({"d_az": 1e300}, ValueError, r"`d_az` must lie in \[-1e\+06, 1e\+06\] degrees .*got 1e\+300"),
+    ],
+    ids=["str", "None", "complex", "str-in-list", "bool", "complex-tensor", "guidance-str", "guidance-huge",
+         "d_el-400", "d_el-91", "d_az-1e300"],
+)  # fmt: skip
+def test_wrong_types_and_impossible_poses_are_refused(pipe, kwargs, error, match):
+    arguments = {"d_az": 30.0, "d_el": 0.0, "num_inference_steps": 1, **kwargs}
+    with pytest.raises(error, match=match):
+        pipe(dummy_images(batch_size=2), **arguments)
+
+
+def test_non_finite_output_is_refused_naming_the_component():
+    components = get_dummy_components()
+    with torch.no_grad():
+        next(components["unet"].parameters()).fill_(float("nan"))
+    broken = SARZero123Pipeline(**components)
+    broken.set_progress_bar_config(disable=True)
+    with pytest.raises(FloatingPointError, match=r"non-finite latents for 2 of 2 samples; .*\['unet'\]"):
+        broken(dummy_images(batch_size=2), d_az=30.0, num_inference_steps=1, output_type="np")
+
+
 def test_mismatched_components_are_rejected():
     components = get_dummy_components()
     components["pose_projection"] = type(components["pose_projection"])(in_features=10, out_features=16)

@@ -124,3 +124,36 @@ def test_two_process_run_gathers_negatives_from_the_global_batch(
     assert metrics["collapse_loss"] == pytest.approx(math.log(7))
     assert math.isfinite(metrics["final_loss"])
     assert SAREncoder.from_pretrained(out / "encoder")(torch.rand(2, 1, 16, 16)).shape == (2, 8)
+
+
+def test_diverging_run_stops_with_a_clear_error_and_writes_no_encoder(chip_folder, tmp_path):
+    out = tmp_path / "diverge"
+    argv = ["--data", str(chip_folder), "--output_dir", str(out), "--report_to", "none", *TINY_ARGS]
+    with pytest.raises(FloatingPointError, match=r"training diverged at step \d+: loss=(nan|inf)"):
+        load_script().main([*argv, "--max_train_steps", "6", "--learning_rate", "1e30"])
+    assert not (out / "encoder").exists()
+
+
+@pytest.mark.parametrize(
+    ("argv", "error", "match"),
+    [
+        (["--batch_size", "1"], ValueError, r"batch_size must be >= 2 \(NT-Xent needs negatives\), got 1"),
+        (["--output_dir", "{file}"], NotADirectoryError, r"output_dir: .*is a file; expected a folder"),
+    ],
+    ids=["batch-1-gives-loss-0", "output-dir-is-a-file"],
+)
+def test_degenerate_settings_are_refused_before_any_work(tmp_path, argv, error, match):
+    (tmp_path / "file").write_text("x")
+    argv = [a.replace("{file}", str(tmp_path / "file")) for a in argv]
+    with pytest.raises(error, match=match):
+        load_script().main(argv)
+
+
+def test_resume_with_another_learning_rate_is_refused_and_config_json_kept(chip_folder, tmp_path):
+    out = tmp_path / "run"
+    common = ["--data", str(chip_folder), "--output_dir", str(out), "--report_to", "none", *TINY_ARGS]
+    load_script().main([*common, "--max_train_steps", "2", "--checkpointing_steps", "1"])
+    with pytest.raises(ValueError, match=r"learning_rate: checkpoint 0.06, this run 0.5"):
+        load_script().main([*common, "--max_train_steps", "2", "--learning_rate", "0.5",
+                            "--resume_from_checkpoint", "latest"])  # fmt: skip
+    assert json.loads((out / "config.json").read_text())["learning_rate"] == 0.06

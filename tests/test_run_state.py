@@ -2,19 +2,25 @@
 
 from __future__ import annotations
 
+import dataclasses
+import re
 from pathlib import Path
 
 import pytest
 import torch
 from accelerate import Accelerator
+from accelerate.state import AcceleratorState
 
 from sar_zero123.run_state import (
+    check_finite_step,
+    check_resume_config,
     end_run,
     list_checkpoints,
     load_checkpoint,
     read_run_state,
     resolve_resume_checkpoint,
     save_checkpoint,
+    verify_checkpoint,
 )
 
 
@@ -75,3 +81,130 @@ def test_read_run_state_and_end_run(tmp_path: Path):
     # a single process has no data-parallel wrapper; accelerate's references are dropped
     assert end_run(accelerator) == 0
     assert accelerator._models == [] and accelerator._optimizers == []
+
+
+# ------------------------------------------------------------------------- manifest and latest fallback
+def _three_checkpoints(tmp_path: Path):
+    accelerator, model, optimizer = _setup()
+    for step in (1, 2, 3):
+        _step(model, optimizer)
+        save_checkpoint(accelerator, tmp_path, step)
+    return accelerator
+
+
+def _truncate(path: Path) -> None:
+    path.write_bytes(path.read_bytes()[:-1])
+
+
+def _flip_last_byte(path: Path) -> None:
+    data = bytearray(path.read_bytes())
+    data[-1] ^= 0xFF
+    path.write_bytes(bytes(data))
+
+
+@pytest.mark.parametrize(
+    ("damage", "reason"),
+    [
+        (_truncate, r"model.safetensors' has \d+ bytes, manifest.json records \d+"),
+        (Path.unlink, r"model.safetensors', listed in manifest.json, is missing"),
+        (_flip_last_byte, r"model.safetensors' does not match its SHA-256"),
+    ],
+    ids=["truncated", "deleted", "corrupt"],
+)
+def test_latest_skips_a_damaged_newest_checkpoint_and_says_why(tmp_path: Path, caplog, damage, reason):
+    _three_checkpoints(tmp_path)
+    assert verify_checkpoint(tmp_path / "checkpoint-3") is None
+    damage(tmp_path / "checkpoint-3" / "model.safetensors")
+    with caplog.at_level("WARNING", logger="sar_zero123.run_state"):
+        assert resolve_resume_checkpoint(tmp_path, "latest").name == "checkpoint-2"
+    assert re.search(rf"skipping .*checkpoint-3: .*{reason}", caplog.text)
+    with pytest.raises(ValueError, match=reason):  # an explicit path is refused, not skipped
+        resolve_resume_checkpoint(tmp_path, str(tmp_path / "checkpoint-3"))
+
+
+def test_latest_with_no_intact_checkpoint_is_an_error(tmp_path: Path):
+    _three_checkpoints(tmp_path)
+    for step in (1, 2, 3):
+        _truncate(tmp_path / f"checkpoint-{step}" / "optimizer.bin")
+    with pytest.raises(FileNotFoundError, match=r"no intact checkpoint .*checkpoint-3: .*optimizer.bin"):
+        resolve_resume_checkpoint(tmp_path, "latest")
+
+
+def test_load_checkpoint_of_another_model_names_the_folder(tmp_path: Path):
+    _three_checkpoints(tmp_path)
+    AcceleratorState._reset_state(True)
+    accelerator = Accelerator(cpu=True)
+    model = accelerator.prepare(torch.nn.Linear(5, 2))
+    with pytest.raises(RuntimeError, match=r"cannot load .*checkpoint-3.*model.safetensors"):
+        load_checkpoint(accelerator, tmp_path / "checkpoint-3")
+    del model
+
+
+# ------------------------------------------------------------------------------------ divergence guards
+@pytest.mark.parametrize(
+    ("values", "named"),
+    [
+        ({"loss": float("nan")}, "loss=nan"),
+        ({"loss": torch.tensor(float("inf"))}, "loss=inf"),
+        ({"loss": 1.0, "grad_norm": float("nan")}, "grad_norm=nan"),
+    ],
+)
+def test_check_finite_step_names_the_value_and_step(values, named):
+    with pytest.raises(FloatingPointError, match=rf"diverged at step 7: {named}"):
+        check_finite_step(7, **values)
+
+
+def test_check_finite_step_passes_finite_values():
+    check_finite_step(1, loss=torch.tensor(0.5), grad_norm=3.0)
+
+
+def test_save_checkpoint_refuses_nan_weights(tmp_path: Path):
+    accelerator, model, optimizer = _setup()
+    with torch.no_grad():
+        model.weight[0, 0] = float("nan")
+    with pytest.raises(FloatingPointError, match=r"refusing to write checkpoint-4: .*model 0.weight"):
+        save_checkpoint(accelerator, tmp_path, 4)
+    assert not list(tmp_path.iterdir())
+
+
+# ----------------------------------------------------------------------------------- resume settings
+@dataclasses.dataclass
+class _Config:
+    learning_rate: float = 1e-4
+    image_size: int | None = None
+    output_dir: str = "a"
+    max_train_steps: int = 10
+
+
+@dataclasses.dataclass
+class _OtherConfig:
+    learning_rate: float = 1e-4
+
+
+@pytest.mark.parametrize(
+    ("changed", "match"),
+    [
+        ({"learning_rate": 1.0}, r"learning_rate: checkpoint 0.0001, this run 1.0"),
+        ({"image_size": 64}, r"image_size: checkpoint None, this run 64"),
+        ({"learning_rate": 1.0, "max_train_steps": 5}, r"learning_rate: .*; max_train_steps: .* 5"),
+    ],
+)
+def test_resume_with_changed_settings_is_refused_listing_them(tmp_path: Path, changed, match):
+    accelerator, model, optimizer = _setup()
+    path = save_checkpoint(accelerator, tmp_path, 1, config=_Config())
+    with pytest.raises(ValueError, match=rf"other settings that change the run.*{match}"):
+        check_resume_config(path, _Config(**changed))
+
+
+def test_resume_config_allows_output_settings_and_names_another_script(tmp_path: Path, caplog):
+    accelerator, model, optimizer = _setup()
+    path = save_checkpoint(accelerator, tmp_path, 1, config=_Config())
+    check_resume_config(path, _Config(output_dir="b"))
+    check_resume_config(path, _Config(max_train_steps=20), may_differ=("max_train_steps",))
+    check_resume_config(None, _Config(learning_rate=5.0))
+    with pytest.raises(ValueError, match="written by a _Config run, not a _OtherConfig run"):
+        check_resume_config(path, _OtherConfig())
+    old = save_checkpoint(accelerator, tmp_path, 2)  # no stored config: accepted with a warning
+    with caplog.at_level("WARNING", logger="sar_zero123.run_state"):
+        check_resume_config(old, _Config(learning_rate=5.0))
+    assert "stores no config" in caplog.text

@@ -359,6 +359,8 @@ def test_simulate_dataset_interrupted_leaves_no_index(tmp_path, monkeypatch):
         ({"azimuth_jitter_deg": 6.0, "azimuth_step_deg": 5.0}, "azimuth_jitter_deg"),
         ({"normalization": "max"}, "normalization"),
         ({"clutter_db_spread": -1.0}, "clutter_db_spread"),
+        ({"classes": ["TANK", "tank"]}, r"classes: duplicate names in \['TANK', 'TANK'\]"),
+        ({"azimuth_step_deg": 1e-9}, r"azimuth_step_deg=1e-09 .* would write .* chips, more than 200000"),
     ],
 )
 def test_simulate_dataset_rejects_bad_arguments(tmp_path, kwargs, field):

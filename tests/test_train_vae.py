@@ -12,6 +12,7 @@ import pytest
 import torch
 from accelerate.state import AcceleratorState, GradientState
 from diffusers import AutoencoderKL
+from safetensors.torch import load_file
 from skimage.metrics import peak_signal_noise_ratio
 
 from sar_zero123.data import ChipDataset, ChipRecord, load_index, write_index
@@ -138,3 +139,24 @@ def test_bad_config_names_the_field(script) -> None:
         script.TrainVAEConfig(kl_weight=-1.0)
     with pytest.raises(ValueError, match="protocol"):
         script.TrainVAEConfig(protocol="nope")
+
+
+def test_diverging_run_stops_before_saving_nan_weights(script, chips, tmp_path) -> None:
+    out = tmp_path / "diverge"
+    argv = ["--data", str(chips), "--output_dir", str(out), "--max_train_steps", "4", *TINY]
+    with pytest.raises(FloatingPointError, match=r"training diverged at step \d+: loss=(nan|inf)"):
+        script.main([*argv, "--learning_rate", "1e30", "--checkpointing_steps", "1"])
+    assert not (out / "vae").exists()
+    for checkpoint in out.glob("checkpoint-*"):
+        weights = load_file(checkpoint / "model.safetensors")
+        assert all(torch.isfinite(w).all() for w in weights.values()), checkpoint
+
+
+def test_resume_with_another_setting_is_refused(script, chips, tmp_path) -> None:
+    out = tmp_path / "vae"
+    argv = ["--data", str(chips), "--output_dir", str(out), "--checkpointing_steps", "1", *TINY]
+    script.main([*argv, "--max_train_steps", "1"])  # resumed below to 2000 steps: allowed for a VAE
+    AcceleratorState._reset_state(True)
+    GradientState._reset_state()
+    with pytest.raises(ValueError, match=r"kl_weight: checkpoint 1e-06, this run 0.5"):
+        script.main([*argv, "--kl_weight", "0.5", "--resume_from_checkpoint", "latest"])

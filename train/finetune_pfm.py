@@ -55,6 +55,9 @@ from sar_zero123.evaluators import Evaluators, load_evaluators, pose_following
 from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput
 from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
 from sar_zero123.run_state import (
+    check_finite_state,
+    check_finite_step,
+    check_resume_config,
     end_run,
     load_checkpoint,
     read_run_state,
@@ -358,6 +361,7 @@ def weights_digest(modules: list[torch.nn.Module]) -> torch.Tensor:
 
 def export_pipeline(pipe: SARZero123Pipeline, scaling: DecibelScaling, directory: Path) -> Path:
     """``save_pretrained`` of the complete pipeline (float32) plus the ``DecibelScaling`` it expects."""
+    check_finite_state(pipe.components, what=str(directory))
     pipe.to(torch.float32)
     pipe.save_pretrained(directory)
     write_json_atomic(scaling.to_dict(), directory / SCALING_FILE)
@@ -393,6 +397,9 @@ def main(argv: list[str] | None = None) -> Path:
                 f"resume_from_checkpoint: {str(resume_path)!r} was written with "
                 f"train_image_encoder={written_with}; resume it with the same setting"
             )
+    # the LR schedule of a constant scheduler does not depend on the step count: such runs may be extended
+    extendable = ("max_train_steps",) if config.lr_scheduler in ("constant", "constant_with_warmup") else ()
+    check_resume_config(resume_path, config, may_differ=("guidance_scale", *extendable))
     pipe = load_components(config)
     image_size = resolve_image_size(config, pipe)
     encoder = load_encoder(config, image_size)
@@ -575,6 +582,7 @@ def main(argv: list[str] | None = None) -> Path:
             logs.update({f"train/loss_simple_{name}": value for name, value in buckets.items()})
             progress.set_postfix(loss=f"{logs['train/loss']:.4f}")
             accelerator.log(logs, step=global_step)
+            check_finite_step(global_step, loss=logs["train/loss"])  # gathered: every process stops
             if global_step % config.checkpointing_steps == 0 or global_step == config.max_train_steps:
                 save_checkpoint(
                     accelerator,
@@ -586,6 +594,7 @@ def main(argv: list[str] | None = None) -> Path:
                         "batch_index": batch_index,
                         "train_image_encoder": config.train_image_encoder,
                     },
+                    config=config,
                 )
             if config.validation_steps and global_step % config.validation_steps == 0:
                 if accelerator.is_main_process:

@@ -43,7 +43,15 @@ from sar_zero123.augment import PRESETS, AugmentationPreset, simclr_views
 from sar_zero123.config import config_to_dict, parse_config, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, prepare_splits
 from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig, nt_xent_loss
-from sar_zero123.run_state import end_run, load_checkpoint, resolve_resume_checkpoint, save_checkpoint
+from sar_zero123.run_state import (
+    check_finite_state,
+    check_finite_step,
+    check_resume_config,
+    end_run,
+    load_checkpoint,
+    resolve_resume_checkpoint,
+    save_checkpoint,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -94,6 +102,8 @@ class PretrainSimCLRConfig:
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
             raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {self.preset!r}")
+        if self.batch_size < 2:  # NT-Xent of a lone pair has no negative: loss 0, no gradient
+            raise ValueError(f"batch_size must be >= 2 (NT-Xent needs negatives), got {self.batch_size}")
         for name in ("image_size", "batch_size", "epochs", "checkpointing_steps", "logging_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
@@ -186,6 +196,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     )
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
     set_seed(config.seed)
+    resume = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
+    check_resume_config(resume, config)  # before config.json is written: it must state what is in effect
     if accelerator.is_main_process:
         output_dir.mkdir(parents=True, exist_ok=True)
         save_config(config, output_dir)
@@ -199,6 +211,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         raise ValueError(f"batch_size {config.batch_size} exceeds the {num_chips} train chips")
     if config.batch_size % accelerator.num_processes != 0:
         raise ValueError(f"batch_size must be divisible by the {accelerator.num_processes} processes")
+    if not config.gather_negatives and config.batch_size // accelerator.num_processes < 2:
+        raise ValueError(
+            f"batch_size {config.batch_size} over {accelerator.num_processes} processes leaves fewer than 2 "
+            "chips per process; NT-Xent without --gather_negatives needs 2"
+        )
     scaling = DecibelScaling.for_unit_magnitude()
     if accelerator.is_main_process:
         write_json_atomic(scaling.to_dict(), output_dir / "scaling.json")
@@ -230,7 +247,6 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
 
     # 3. resume
     step = start_step = 0
-    resume = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
     if resume is not None:
         step = int(load_checkpoint(accelerator, resume)["step"])
         logger.info("resumed from %s at step %d", resume, step)
@@ -273,6 +289,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         scheduler.step()
         # the mean over processes (also synchronises, so the step time below is complete)
         loss_value = accelerator.reduce(loss.detach(), reduction="mean").item()
+        check_finite_step(step + 1, loss=loss_value)  # reduced: every process stops together
         finished = time.perf_counter()
         if step > 0 or max_steps == 1:  # the first step pays one-off warm-up costs
             augment_time += augmented - step_start
@@ -292,7 +309,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
                 step=step,
             )
         if step % config.checkpointing_steps == 0 and step < max_steps:
-            save_checkpoint(accelerator, output_dir, step, config.checkpoints_total_limit, {"epoch": epoch})
+            save_checkpoint(
+                accelerator, output_dir, step, config.checkpoints_total_limit, {"epoch": epoch}, config=config
+            )
     progress.close()
 
     # 5. save the encoder and the run's figures
@@ -312,6 +331,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     }
     if accelerator.is_main_process:
         unwrapped = accelerator.unwrap_model(model)
+        check_finite_state({"encoder": unwrapped[0]}, what=str(output_dir / "encoder"))
         unwrapped[0].save_pretrained(output_dir / "encoder")
         write_json_atomic(metrics, output_dir / "metrics.json")
     # no reference to the data-parallel wrapper (or a graph through it) may outlive the process group

@@ -29,7 +29,15 @@ from tqdm.auto import tqdm
 
 from sar_zero123.config import parse_config, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, DecibelScaling, check_protocol, prepare_splits
-from sar_zero123.run_state import end_run, load_checkpoint, resolve_resume_checkpoint, save_checkpoint
+from sar_zero123.run_state import (
+    check_finite_state,
+    check_finite_step,
+    check_resume_config,
+    end_run,
+    load_checkpoint,
+    resolve_resume_checkpoint,
+    save_checkpoint,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -211,6 +219,7 @@ def main(argv: list[str] | None = None) -> Path:
 
     # 1. data and inputs, checked before any step
     resume_path = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
+    check_resume_config(resume_path, config, may_differ=("max_train_steps",))  # constant LR: extendable
     splits = prepare_splits(config.data, config.protocol, output_dir / "data", seed=config.seed)
     if config.scaling == "fit":
         scaling = DecibelScaling.fit(splits["train"])
@@ -261,8 +270,11 @@ def main(argv: list[str] | None = None) -> Path:
             loss = accelerator.gather(reconstruction.detach()).mean().item()
             progress.set_postfix(reconstruction=f"{loss:.4f}")
             accelerator.log({"train/reconstruction": loss}, step=global_step)
+            check_finite_step(global_step, loss=accelerator.gather(total.detach()).mean())
             if global_step % config.checkpointing_steps == 0 or global_step == config.max_train_steps:
-                save_checkpoint(accelerator, output_dir, global_step, config.checkpoints_total_limit)
+                save_checkpoint(
+                    accelerator, output_dir, global_step, config.checkpoints_total_limit, config=config
+                )
             if global_step >= config.max_train_steps:
                 break
     progress.close()
@@ -278,6 +290,8 @@ def main(argv: list[str] | None = None) -> Path:
             model, test_dataset, config.num_eval_images, config.train_batch_size
         )
         metrics.update(scaling_factor=model.config.scaling_factor, steps=global_step)
+        check_finite_step(global_step, scaling_factor=model.config.scaling_factor)
+        check_finite_state({"vae": model}, what=str(output_dir / "vae"))
         write_json_atomic(metrics, output_dir / "metrics.json")
         model.save_pretrained(output_dir / "vae")
         write_json_atomic(scaling.to_dict(), output_dir / "vae" / "decibel_scaling.json")

@@ -21,6 +21,7 @@ from .scaling import (
     UNIT_MAGNITUDE_MAX_DB,
     ZERO_MAGNITUDE_DB,
     DecibelScaling,
+    check_magnitude,
     from_decibels,
     to_decibels,
 )
@@ -33,6 +34,7 @@ __all__ = [
     "PROTOCOLS",
     "UNIT_MAGNITUDE_MAX_DB",
     "ZERO_MAGNITUDE_DB",
+    "check_magnitude",
     "check_protocol",
     "ChipDataset",
     "ChipRecord",

@@ -117,7 +117,8 @@ def _parse_optional_int(value: str | None, column: str, where: str) -> int | Non
 
 def _read_index_csv(index_path: Path) -> list[ChipRecord]:
     root = index_path.parent.resolve()
-    with open(index_path, newline="") as handle:
+    # utf-8-sig: spreadsheet programs save CSV with a byte-order mark, which would rename the first column
+    with open(index_path, newline="", encoding="utf-8-sig") as handle:
         reader = csv.DictReader(handle)
         columns = reader.fieldnames or []
         missing = [name for name in REQUIRED_COLUMNS if name not in columns]
@@ -132,11 +133,21 @@ def _read_index_csv(index_path: Path) -> list[ChipRecord]:
                 f"{list(REQUIRED_COLUMNS + OPTIONAL_COLUMNS)}"
             )
         records = []
+        first_line: dict[Path, tuple[int, str]] = {}  # chip file -> (line, class) where it was listed first
         for line_number, row in enumerate(reader, start=2):
             where = f"{index_path}:{line_number}"
             if None in row or any(row[name] is None for name in columns):
                 raise ValueError(f"{where}: expected {len(columns)} fields, got a row of a different length")
             path = root / row["path"]
+            if path in first_line:
+                line, target_class = first_line[path]
+                what = (
+                    f"under two classes ({target_class!r} on line {line}, {row['target_class']!r} here)"
+                    if target_class != row["target_class"]
+                    else f"twice (also on line {line})"
+                )
+                raise ValueError(f"{where}: chip file '{row['path']}' is listed {what}; list each chip once")
+            first_line[path] = (line_number, row["target_class"])
             if not path.is_file():
                 raise FileNotFoundError(f"{where}: chip file '{row['path']}' does not exist ({path})")
             azimuth_deg = _parse_float(row["azimuth_deg"], "azimuth_deg", where)
@@ -235,13 +246,33 @@ def _scan_raw_folder(root: Path) -> list[ChipRecord]:
     return records
 
 
+def _stale_raw_scan(root: Path, records: list[ChipRecord], index_path: Path) -> str | None:
+    """Why an ``index.csv`` that :func:`load_index` cached for a raw MSTAR folder no longer describes it
+    (a file added, removed or changed after the index was written), or ``None``. Indexes written by
+    other tools (whose paths are not their ``mstar_source``) are never stale."""
+    if not all(r.source is not None and r.path == (root / r.source).resolve() for r in records):
+        return None
+    written_ns = index_path.stat().st_mtime_ns
+    listed = {r.path for r in records}
+    for path in sorted(p for p in root.rglob("*") if p.is_file() and not p.name.startswith(".")):
+        if path.name == INDEX_FILENAME:
+            continue
+        if path.resolve() in listed:
+            if path.stat().st_mtime_ns > written_ns:
+                return f"{path} changed after the index was written"
+        elif is_mstar_raw(path):
+            return f"{path} is not in the index"
+    return None
+
+
 def load_index(root: str | Path) -> list[ChipRecord]:
     """Lists the chips of a data folder.
 
     Args:
         root: A folder with ``index.csv`` (paths in it relative to the folder), or a folder tree of
             original MSTAR files (indexed on first use; the index is cached as ``root/index.csv``, or
-            not cached, with a warning, when the folder is read-only).
+            not cached, with a warning, when the folder is read-only; a cached index is rescanned, with
+            a warning, when a raw file was added or changed after it was written).
 
     Returns:
         One record per chip, in index order, with absolute paths.
@@ -249,14 +280,20 @@ def load_index(root: str | Path) -> list[ChipRecord]:
     Raises:
         FileNotFoundError: If ``root`` does not exist or a path in the index does not exist.
         ValueError: If the index misses a required column or has an unknown one, a value is malformed
-            or out of range (azimuth outside [0, 360), non-finite angles), or the folder holds no chips.
+            or out of range (azimuth outside [0, 360), non-finite angles), a chip file is listed twice
+            (or under two classes), or the folder holds no chips.
     """
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"data folder not found: {root}")
     index_path = root / INDEX_FILENAME
     if index_path.is_file():
-        return _read_index_csv(index_path)
+        records = _read_index_csv(index_path)
+        stale = _stale_raw_scan(root.resolve(), records, index_path)
+        if stale is None:
+            return records
+        message = f"{index_path}: cached index of a raw MSTAR folder is stale ({stale}); rescanning"
+        warnings.warn(message, stacklevel=2)
     records = _scan_raw_folder(root.resolve())
     if not records:
         raise ValueError(

@@ -179,9 +179,10 @@ def read_mstar_raw(path: str | Path) -> MSTARChip:
 
     Raises:
         FileNotFoundError: If ``path`` does not exist.
-        ValueError: If the header lacks a required field or a field is malformed, the data is shorter
-            than ``NumberOfRows x NumberOfColumns`` float32 values, the magnitude is negative or not
-            finite, or ``TargetAz`` lies outside [0, 360).
+        ValueError: If the header lacks a required field or a field is malformed, the file length is
+            not the header lengths plus exactly one or two planes of ``NumberOfRows x NumberOfColumns``
+            float32 values (a cut file, a missing part of the phase plane, an edited size or header
+            length), the magnitude is negative or not finite, or ``TargetAz`` lies outside [0, 360).
     """
     # 1. header
     path = Path(path)
@@ -201,6 +202,8 @@ def read_mstar_raw(path: str | Path) -> MSTARChip:
     if not 0.0 <= azimuth_deg < 360.0:
         raise ValueError(f"{path}: header field 'TargetAz' must lie in [0, 360) degrees, got {azimuth_deg}")
     depression_deg = float(_header_number(header, "DesiredDepression", path))
+    if not header["TargetType"].strip():
+        raise ValueError(f"{path}: header field 'TargetType' is empty; expected a name such as 't72_tank'")
 
     # 2. pixels: magnitude plane, then (optionally) the phase plane
     raw = path.read_bytes()
@@ -210,16 +213,28 @@ def read_mstar_raw(path: str | Path) -> MSTARChip:
             f"{path}: header field 'PhoenixHeaderLength' ({header_length}) must cover the ASCII header "
             f"({header_end} bytes) and 'native_header_length' must be >= 0, got {native_length}"
         )
-    data = raw[header_length + native_length :]
+    data_start = header_length + native_length
+    data = raw[data_start:]
     plane_bytes = rows * cols * 4
-    if len(data) < plane_bytes:
+    # the data is exactly one plane (magnitude only) or two (magnitude, phase): any other length means
+    # the header's sizes or lengths do not describe this file (edited, or the file was cut)
+    if len(data) not in (plane_bytes, 2 * plane_bytes):
+        if len(data) < plane_bytes:
+            problem, detail = "truncated MSTAR file", "the magnitude plane is incomplete"
+        elif len(data) < 2 * plane_bytes:
+            problem, detail = "truncated MSTAR file", "the phase plane is incomplete"
+        else:
+            problem = "MSTAR file longer than its header declares"
+            detail = f"{len(data) - 2 * plane_bytes} bytes after the phase plane"
         raise ValueError(
-            f"{path}: truncated MSTAR file: header declares {rows} x {cols} float32 pixels "
-            f"({plane_bytes} bytes) but only {len(data)} bytes follow the header"
+            f"{path}: {problem}: header declares {rows} x {cols} float32 pixels ({plane_bytes} bytes per "
+            f"plane: magnitude, then optionally phase) after PhoenixHeaderLength={header_length} + "
+            f"native_header_length={native_length} bytes, so the file should have {data_start + plane_bytes} "
+            f"or {data_start + 2 * plane_bytes} bytes, but it has {len(raw)} ({detail})"
         )
     magnitude = np.frombuffer(data, dtype=">f4", count=rows * cols).reshape(rows, cols).astype(np.float32)
     phase = None
-    if len(data) >= 2 * plane_bytes:
+    if len(data) == 2 * plane_bytes:
         phase = np.frombuffer(data, dtype=">f4", count=rows * cols, offset=plane_bytes)
         phase = phase.reshape(rows, cols).astype(np.float32)
     if not np.isfinite(magnitude).all():

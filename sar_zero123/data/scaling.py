@@ -22,6 +22,7 @@ import torch
 
 __all__ = [
     "DB_EPS",
+    "check_magnitude",
     "MSTAR_RAW_MAX_DB",
     "UNIT_MAGNITUDE_MAX_DB",
     "ZERO_MAGNITUDE_DB",
@@ -66,6 +67,28 @@ def from_decibels(decibels: Array) -> Array:
     if isinstance(decibels, torch.Tensor):
         return torch.pow(10.0, decibels / 20.0) - DB_EPS
     return (np.power(10.0, np.asarray(decibels) / 20.0) - DB_EPS).astype(np.result_type(decibels, np.float32))
+
+
+def check_magnitude(magnitude: Array, name: str = "magnitude") -> None:
+    """Magnitudes are finite and >= 0 (a negative one has no decibel value: NaN).
+
+    Raises:
+        ValueError: naming ``name``, how many values are bad and the smallest one.
+    """
+    if isinstance(magnitude, torch.Tensor):
+        values = magnitude.detach()
+        finite, negative = torch.isfinite(values), values < 0
+    else:
+        values = np.asarray(magnitude)
+        finite, negative = np.isfinite(values), values < 0
+    if bool(finite.all()) and not bool(negative.any()):
+        return
+    smallest = float(values[finite].min()) if bool(finite.any()) else float("nan")
+    raise ValueError(
+        f"{name} must be finite and >= 0 (decibels of a negative magnitude are NaN), got "
+        f"{int(negative.sum())} negative (smallest finite value {smallest:.4g}) and {int((~finite).sum())} "
+        f"non-finite of {int(np.prod(values.shape))} values"
+    )
 
 
 @dataclass(frozen=True)
@@ -144,7 +167,11 @@ class DecibelScaling:
 
         Returns:
             ``(to_decibels(m) - min_db) / (max_db - min_db)``, same type and shape.
+
+        Raises:
+            ValueError: If a magnitude is negative or not finite (decibels of it are NaN).
         """
+        check_magnitude(magnitude)
         x = (to_decibels(magnitude) - self.min_db) / (self.max_db - self.min_db)
         if clip:
             return x.clamp(0.0, 1.0) if isinstance(x, torch.Tensor) else np.clip(x, 0.0, 1.0)

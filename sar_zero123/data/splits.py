@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import warnings
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -77,6 +78,24 @@ def _at_depression(record: ChipRecord, depression_deg: float) -> bool:
     return abs(record.depression_deg - depression_deg) < _DEPRESSION_TOL_DEG
 
 
+def _warn_unassigned(
+    records: Sequence[ChipRecord], splits: dict[str, list[ChipRecord]], protocol: str
+) -> None:
+    """Warn (with counts and example files) about chips at a depression no split of the protocol takes."""
+    assigned = {id(r) for split in splits.values() for r in split}
+    left = [r for r in records if id(r) not in assigned]
+    if not left:
+        return
+    depressions = sorted({r.depression_deg for r in left})
+    examples = ", ".join(str(r.path) for r in left[:3]) + (", ..." if len(left) > 3 else "")
+    warnings.warn(
+        f"protocol {protocol!r}: {len(left)} of {len(records)} chips are at depressions {depressions} deg, "
+        f"in no split (train {TRAIN_DEPRESSION_DEG:g} +- {_DEPRESSION_TOL_DEG:g}, test "
+        f"{TEST_DEPRESSION_DEG:g} +- {_DEPRESSION_TOL_DEG:g} deg); they are not used: {examples}",
+        stacklevel=3,
+    )
+
+
 def _resolve_class(records: Sequence[ChipRecord], name: str) -> str:
     classes = sorted({record.target_class for record in records})
     if name in classes:
@@ -131,6 +150,7 @@ def split_records(records: Sequence[ChipRecord], protocol: str, seed: int = 0) -
             "train": [r for r in records if _at_depression(r, TRAIN_DEPRESSION_DEG)],
             "test": [r for r in records if _at_depression(r, TEST_DEPRESSION_DEG)],
         }
+        _warn_unassigned(records, splits, protocol)
     else:
         held_out = _resolve_class(records, protocol[len("ood-") :])
         intervals = ood_validation_intervals(seed)

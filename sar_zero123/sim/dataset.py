@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import math
 import os
 import tempfile
 import zlib
@@ -54,6 +55,10 @@ def chip_generator(
     return np.random.default_rng(key)
 
 
+#: Upper bound on the chips one call writes (MSTAR has about 15,000; 200,000 chips of 128 px are 13 GB).
+MAX_SIM_CHIPS = 200_000
+
+
 def _check(
     classes: Sequence[str],
     instances: int,
@@ -76,6 +81,15 @@ def _check(
         raise ValueError(f"depressions_deg: expected values in (0, 90), got {list(depressions_deg)!r}")
     if len(set(depressions_deg)) != len(depressions_deg):
         raise ValueError(f"depressions_deg: duplicate values in {list(depressions_deg)!r}")
+    if len(set(classes)) != len(classes):
+        raise ValueError(f"classes: duplicate names in {list(classes)!r} (each would be written twice)")
+    chips = len(classes) * int(instances) * len(depressions_deg) * math.ceil(360.0 / azimuth_step_deg - 1e-9)
+    if chips > MAX_SIM_CHIPS:
+        raise ValueError(
+            f"azimuth_step_deg={azimuth_step_deg!r} with {len(classes)} classes x {instances} instances x "
+            f"{len(depressions_deg)} depressions would write {chips:.3g} chips, more than {MAX_SIM_CHIPS}; "
+            "use a larger azimuth step"
+        )
     if int(size) != size or size < 16:
         raise ValueError(f"size: expected an integer >= 16, got {size!r}")
     if int(seed) != seed or seed < 0:
