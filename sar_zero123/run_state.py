@@ -60,6 +60,7 @@ RESUME_MAY_DIFFER = (
     "num_workers",
     "work_dir",
     "save_pipeline",
+    "evaluators",  # finetune_pfm: validation-only pose-following check
     "num_eval_images",
 )
 _HASH_CHUNK = 1 << 22
