@@ -129,6 +129,8 @@ def test_gap_closed_is_the_fraction_between_floor_and_ceiling() -> None:
     assert script.gap_closed(55.0, floor=90.0, ceiling=20.0) == pytest.approx(0.5)
     assert script.gap_closed(20.0, floor=90.0, ceiling=20.0) == pytest.approx(1.0)
     assert script.gap_closed(100.0, floor=90.0, ceiling=20.0) == pytest.approx(-1 / 7)
-    assert script.gap_closed(85.0, floor=100.0, ceiling=70.0) == pytest.approx(0.5)  # accuracy: floor above
+    assert script.gap_closed(60.0, floor=40.0, ceiling=80.0, higher_is_better=True) == pytest.approx(0.5)
     assert math.isnan(script.gap_closed(50.0, floor=90.0, ceiling=90.0))
+    assert math.isnan(script.gap_closed(50.0, floor=20.0, ceiling=30.0))  # the floor beats the ceiling
+    assert math.isnan(script.gap_closed(85.0, floor=100.0, ceiling=70.0, higher_is_better=True))
 

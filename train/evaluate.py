@@ -330,14 +330,16 @@ def vae_round_trip(pipe: SARZero123Pipeline, images: torch.Tensor, batch_size: i
     return torch.cat(outputs)
 
 
-def gap_closed(model: float, floor: float, ceiling: float) -> float:
+def gap_closed(model: float, floor: float, ceiling: float, higher_is_better: bool = False) -> float:
     """Fraction of the floor-to-ceiling gap a model closes, ``(floor - model) / (floor - ceiling)``.
 
     1 means the model scores like the ceiling (VAE round trip of the real target), 0 like the floor (the
-    input copied as the output), below 0 worse than the floor. NaN when floor and ceiling coincide (within
-    1e-9), where no gap can be resolved.
+    input copied as the output), below 0 worse than the floor. NaN where the floor is not worse than the
+    ceiling (no gap to close): accuracy, for instance, when the input copy keeps the class and the VAE round
+    trip loses some of it.
     """
-    if abs(floor - ceiling) < 1e-9:
+    gap = ceiling - floor if higher_is_better else floor - ceiling
+    if not gap > 1e-9:
         return float("nan")
     return (floor - model) / (floor - ceiling)
 
@@ -351,7 +353,7 @@ def add_gap_closed(results: dict[str, dict[str, dict[str, float]]], floor: str, 
             for metric in ("azimuth_error_deg", "accuracy"):
                 key = f"{metric.split('_')[0]}_gap_closed"
                 low, high = results[floor][group][metric], results[ceiling][group][metric]
-                values[key] = gap_closed(values[metric], low, high)
+                values[key] = gap_closed(values[metric], low, high, higher_is_better=metric == "accuracy")
 
 
 def score(
@@ -393,7 +395,9 @@ def _cell(metric: str, values: dict[str, float]) -> str:
 
 
 def _fraction(value: float | None) -> str:
-    return "" if value is None or math.isnan(value) else f"{100 * value:.0f} %"
+    if value is None:
+        return ""
+    return "no gap" if math.isnan(value) else f"{100 * value:.0f} %"
 
 
 def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_paper: bool) -> str:
@@ -417,8 +421,9 @@ def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_pap
     lines.append(
         f"Floor: `{INPUT_COPY}` returns the input view (a generator that ignores the pose). Ceilings: "
         f"`{REAL_TARGET}` scores the true target view, `{VAE_ROUND_TRIP}` the target encoded and decoded by "
-        "the pipeline's VAE. Gap closed = (floor - model) / (floor - VAE round trip); ± is one standard "
-        "error of the mean over the n pairs."
+        "the pipeline's VAE. Gap closed = (floor - model) / (floor - VAE round trip); \"no gap\" where "
+        "the floor already scores at least as well as the ceiling (accuracy: the input copy keeps the "
+        "class). ± is one standard error of the mean over the n pairs."
     )
     lines.append(
         "MS-SSIM: `sar_zero123.metrics.ms_ssim` (3 scales, weights (0.0448, 0.3001, 0.1333), 7x7 Gaussian, "
