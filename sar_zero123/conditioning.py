@@ -64,9 +64,14 @@ def embed_pose(
 
     - ``d_az_deg = target azimuth - input azimuth`` in degrees. Only its sine and cosine enter the
       vector, so any real value is valid and ``370 == 10 == -350``.
-    - ``d_el_deg = target depression - input depression`` in degrees, used as zero-1-to-3's
-      polar-angle (elevation) delta: a larger depression angle means the radar is higher above the
-      ground plane, which is a larger camera elevation in zero-1-to-3. It enters in radians.
+    - ``d_el_deg = target depression - input depression`` in degrees, entered in radians with its sign
+      unchanged into the first slot, as the paper's authors do (their ``get_T`` subtracts the chips'
+      depression angles). That slot is zero-1-to-3's *polar* delta ``theta_target - theta_cond``, with
+      ``theta`` measured down from the +Z axis (``arctan2(sqrt(x^2 + y^2), z)``): a camera that moves up by
+      ``e`` has delta ``-e``. A larger depression puts the radar higher above the ground, i.e. it is a
+      higher camera, yet it enters with a positive sign: to a pretrained Objaverse checkpoint a depression
+      increase reads as a camera moving toward the horizon. Fine-tuning on SAR pairs learns the
+      convention; we keep it so that the numbers equal the authors' (tests compare with both formulas).
     - The fourth entry, zero-1-to-3's camera-distance delta, is 0: SAR chips are range-normalised.
 
     Args:
@@ -203,10 +208,16 @@ def encode_image_embeddings(
 ) -> torch.Tensor:
     """CLIP image embedding of a batch of SAR chips in the normalised dB domain.
 
-    Preprocessing is done in torch (bicubic resize with antialiasing to the encoder's
-    ``config.image_size``, then CLIP mean/std normalisation) instead of with ``CLIPImageProcessor``, so
-    that it is batched, differentiable and runs on the encoder's device and dtype, in training as well
-    as in sampling.
+    Preprocessing is zero-1-to-3's exactly (``FrozenCLIPImageEmbedder.preprocess``, also used by the paper's
+    authors and the diffusers community pipeline): bicubic resize to the encoder's ``config.image_size``
+    with ``align_corners=True`` and no antialiasing, then CLIP mean/std normalisation; an Objaverse
+    checkpoint therefore sees the conditioning it was trained with. zero-1-to-3 calls kornia's
+    ``resize(..., interpolation="bicubic", align_corners=True, antialias=False)``, which is
+    ``F.interpolate(mode="bicubic", align_corners=True)`` (cubic convolution, ``a = -0.75``, borders
+    replicated) without kornia's optional blur; it resizes the [-1, 1] image and then maps to [0, 1],
+    which equals resizing the [0, 1] image because the bicubic weights sum to one. No clamping of the
+    bicubic overshoot, as in zero-1-to-3. Done in torch rather than with ``CLIPImageProcessor`` so that it
+    is batched, differentiable and runs on the encoder's device and dtype.
 
     Args:
         image_encoder: The CLIP vision tower with projection.
@@ -225,7 +236,7 @@ def encode_image_embeddings(
     size = image_encoder.config.image_size
     pixels = match_channels(images, channels).to(device=image_encoder.device, dtype=torch.float32)
     if pixels.shape[-2:] != (size, size):
-        pixels = F.interpolate(pixels, size=(size, size), mode="bicubic", align_corners=False, antialias=True)
+        pixels = F.interpolate(pixels, size=(size, size), mode="bicubic", align_corners=True)
     mean = torch.tensor(image_mean[:channels], device=pixels.device).view(1, -1, 1, 1)
     std = torch.tensor(image_std[:channels], device=pixels.device).view(1, -1, 1, 1)
     pixels = ((pixels - mean) / std).to(image_encoder.dtype)

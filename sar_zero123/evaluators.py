@@ -39,6 +39,7 @@ from sar_zero123.metrics import (
     kuan_ssim,
     ms_ssim,
 )
+from sar_zero123.paper_metrics import PAPER_SCORING_SIZE, paper_kuan_ssim, paper_ms_ssim
 
 EVALUATOR_CONFIG_NAME = "evaluator.json"
 EVALUATOR_WEIGHTS_NAME = "model.safetensors"
@@ -375,6 +376,7 @@ def score_views(
     evaluators: Evaluators,
     *,
     crop_size: int | None = CROP_SIZE,
+    paper_scoring_size: int | None = PAPER_SCORING_SIZE,
     batch_size: int = 64,
     device: str | torch.device = "cpu",
 ) -> dict[str, float]:
@@ -383,7 +385,10 @@ def score_views(
     Accuracy: the classifier's prediction on the generated view against the object's class. Azimuth error:
     the regressor's prediction on the generated view against the target view's true azimuth (circular).
     SFD: Frechet distance between the regressor's pre-head features of generated and of target views.
-    MS-SSIM and Kuan+SSIM: generated against target on the centre crop, at the generated resolution.
+    MS-SSIM and Kuan+SSIM: generated against target on the centre crop. `ms_ssim` and `kuan_ssim` are the
+    paper-comparable values (`sar_zero123.paper_metrics`: the authors' calls on 8-bit views resized to
+    `paper_scoring_size`); `ms_ssim_corrected` and `kuan_ssim_corrected` are the corrected variants
+    (`sar_zero123.metrics`) at the generated resolution.
 
     Args:
         generated: Generated views in [0, 1].
@@ -391,12 +396,16 @@ def score_views(
         labels: Class indices of the objects (in `evaluators.class_names` order).
         target_azimuth_deg: True azimuth of each target view in degrees.
         evaluators: The evaluator set (classifier, regressor, probes).
-        crop_size: Centre crop for MS-SSIM and Kuan+SSIM (64 in the paper).
+        crop_size: Centre crop for MS-SSIM and Kuan+SSIM (64 in the paper; `None` only for the corrected
+            variants, the paper-comparable ones then use 64).
+        paper_scoring_size: Side the views are resized to before the paper-comparable crop (256, the
+            authors' resolution; `None` scores them at the generated resolution).
         batch_size: Images per evaluator forward pass.
         device: Device of the evaluator models.
 
     Returns:
-        `{"accuracy": %, "azimuth_error_deg", "sfd", "ms_ssim", "kuan_ssim", "n",
+        `{"accuracy": %, "azimuth_error_deg", "sfd", "ms_ssim", "kuan_ssim", "ms_ssim_corrected",
+        "kuan_ssim_corrected", "n",
         "azimuth_error_deg/<regressor>"...}` with the means over the samples.
 
     Shape:
@@ -412,7 +421,8 @@ def score_views(
             f"({n},) to match generated {tuple(generated.shape)}"
         )
     # Image metrics first: they validate sizes and ranges of both sets.
-    structural = {"ms_ssim": [], "kuan_ssim": []}
+    structural = {name: [] for name in ("ms_ssim", "kuan_ssim", "ms_ssim_corrected", "kuan_ssim_corrected")}
+    paper_crop = {"scoring_size": paper_scoring_size, "crop_size": crop_size or CROP_SIZE}
     predictions: dict[str, list[torch.Tensor]] = {"class": []}
     regressors = evaluators.azimuth_regressors()
     for name in regressors:
@@ -421,8 +431,10 @@ def score_views(
     for start in range(0, n, batch_size):
         fake = generated[start : start + batch_size].float().cpu()
         real = targets[start : start + batch_size].float().cpu()
-        structural["ms_ssim"].append(ms_ssim(fake, real, crop_size=crop_size))
-        structural["kuan_ssim"].append(kuan_ssim(fake, real, crop_size=crop_size))
+        structural["ms_ssim"].append(paper_ms_ssim(fake, real, **paper_crop))
+        structural["kuan_ssim"].append(paper_kuan_ssim(fake, real, **paper_crop))
+        structural["ms_ssim_corrected"].append(ms_ssim(fake, real, crop_size=crop_size))
+        structural["kuan_ssim_corrected"].append(kuan_ssim(fake, real, crop_size=crop_size))
         fake_eval = resize_for_evaluator(fake, evaluators.image_size).to(device)
         real_eval = resize_for_evaluator(real, evaluators.image_size).to(device)
         predictions["class"].append(evaluators.classifier(fake_eval).argmax(dim=1).cpu())
@@ -435,15 +447,13 @@ def score_views(
     per_sample = {
         "accuracy": 100.0 * (torch.cat(predictions["class"]) == labels.cpu()).double(),
         "azimuth_error_deg": azimuth_error_deg(predicted_azimuth_deg, target_azimuth_deg),
-        "ms_ssim": torch.cat(structural["ms_ssim"]).double(),
-        "kuan_ssim": torch.cat(structural["kuan_ssim"]).double(),
+        **{name: torch.cat(values).double() for name, values in structural.items()},
     }
     scores = {
         "accuracy": 100.0 * classification_accuracy(torch.cat(predictions["class"]), labels.cpu()),
         "azimuth_error_deg": per_sample["azimuth_error_deg"].mean().item(),
         "sfd": frechet_distance(torch.cat(generated_features), torch.cat(target_features)),
-        "ms_ssim": per_sample["ms_ssim"].mean().item(),
-        "kuan_ssim": per_sample["kuan_ssim"].mean().item(),
+        **{name: per_sample[name].mean().item() for name in structural},
         "n": float(n),
     }
     # standard error of each mean (sample standard deviation / sqrt(n)); SFD has no per-sample terms

@@ -24,9 +24,11 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from pathlib import Path
 
 import torch
 import torch.nn.functional as F
+from safetensors.torch import save_file
 from torch import nn
 
 #: Floor on ``abar_t`` in the epsilon-prediction x0 estimate (diffusers' EulerDiscreteScheduler uses the same
@@ -189,6 +191,91 @@ def denoising_loss(model_output: torch.Tensor, target: torch.Tensor) -> torch.Te
     if model_output.shape != target.shape:
         raise ValueError(f"model_output {tuple(model_output.shape)} and target {tuple(target.shape)} differ")
     return F.mse_loss(model_output.float(), target.float(), reduction="none").flatten(1).mean(dim=1)
+
+
+#: Width of the authors' random projection of the SimCLR features in PFM (a 10-way fc layer).
+PAPER_PFM_PROJECTION_DIM = 10
+
+#: File name of the projection weights saved in a run folder.
+PFM_PROJECTION_FILE = "pfm_projection.safetensors"
+
+
+def random_feature_projection(in_features: int, out_features: int = PAPER_PFM_PROJECTION_DIM, *,
+                              seed: int = 0) -> torch.Tensor:
+    """Weights of the authors' PFM projection: a freshly initialised ``nn.Linear(in, out)`` weight.
+
+    The reference implementation applies the encoder's ``fc`` layer, absent from its checkpoint and so left
+    at PyTorch's default initialisation, ``U(-1/sqrt(in), 1/sqrt(in))``, before the distance. The bias
+    cancels in a difference of features and is omitted. Drawn from a CPU generator seeded with ``seed``:
+    same seed, same bytes.
+
+    Args:
+        in_features: Encoder feature size (512 for ResNet-18).
+        out_features: Projected size (10 in the paper's runs).
+        seed: Seed of the draw.
+
+    Returns:
+        Float32 weight.
+
+    Shape:
+        ``(out_features, in_features)``.
+
+    Raises:
+        ValueError: If a size is not positive.
+    """
+    if in_features < 1 or out_features < 1:
+        raise ValueError(f"sizes must be positive, got in_features={in_features}, "
+                         f"out_features={out_features}")
+    generator = torch.Generator().manual_seed(seed)
+    bound = 1.0 / math.sqrt(in_features)
+    uniform = torch.rand(out_features, in_features, generator=generator, dtype=torch.float64)
+    return ((2.0 * uniform - 1.0) * bound).float()
+
+
+class ProjectedFeatureEncoder(nn.Module):
+    """A frozen SAR encoder followed by a frozen random projection: the paper-comparable PFM features.
+
+    ``forward`` returns ``W f(x) / sqrt(k)`` for the ``(k, D)`` weight ``W``, so that the squared L2
+    distance of :func:`pfm_loss` equals the authors' ``mse_loss`` of the projected features, i.e. the
+    *mean* over the ``k`` outputs of the squared difference. With ``W`` from
+    :func:`random_feature_projection` this is their PFM, whose lambda values the paper reports. Its
+    expectation over the draw of ``W`` is ``||f(x0) - f(x0_hat)||^2 / (3 D)`` (each entry has variance
+    ``1 / (3 D)``), i.e. 1536x smaller than the 512-d form for ``D = 512``; one draw scatters around that
+    (measured ratios on real MSTAR latents: ``docs/results/pfm.md``).
+
+    The weight is a buffer: it moves with ``.to()``, is saved in ``state_dict`` and never trains.
+    ``config`` is the wrapped encoder's (``image_size`` is read by :func:`pfm_loss`).
+
+    Args:
+        encoder: The frozen SAR encoder (``forward((B, 1, S, S)) -> (B, D)``).
+        weight: ``(k, D)`` projection.
+    """
+
+    def __init__(self, encoder: nn.Module, weight: torch.Tensor) -> None:
+        super().__init__()
+        if weight.ndim != 2:
+            raise ValueError(f"weight must be (k, D), got {tuple(weight.shape)}")
+        self.encoder = encoder
+        self.config = encoder.config
+        self.register_buffer("weight", weight.detach().clone())
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        features = self.encoder(images)  # (B, D)
+        return F.linear(features, self.weight.to(features.dtype)) / math.sqrt(self.weight.shape[0])
+
+    def save_projection(self, directory) -> None:
+        """Write the weight to ``directory / PFM_PROJECTION_FILE`` (safetensors)."""
+        save_file({"weight": self.weight.detach().float().cpu().contiguous()},
+                  str(Path(directory) / PFM_PROJECTION_FILE))
+
+
+def project_encoder_features(encoder: nn.Module, projection_dim: int | None, *, seed: int = 0) -> nn.Module:
+    """``encoder`` unchanged when ``projection_dim`` is None, else wrapped in a seeded
+    :class:`ProjectedFeatureEncoder` (the paper-comparable PFM with ``projection_dim = 10``)."""
+    if projection_dim is None:
+        return encoder
+    weight = random_feature_projection(encoder.feature_dim, projection_dim, seed=seed)
+    return ProjectedFeatureEncoder(encoder, weight).eval().requires_grad_(False)
 
 
 def _require_frozen(module: nn.Module, name: str) -> None:

@@ -5,24 +5,29 @@ Five numbers describe a generated view:
 * classification accuracy of a ResNet-18 classifier trained on real chips,
 * circular azimuth error of a ResNet-18 + MLP azimuth regressor,
 * SFD, the Frechet distance between the regressor's pre-head features of generated and real views,
-* MS-SSIM with the paper's setting (3 scales, weights (0.0448, 0.3001, 0.1333), data range 1.0,
-  Gaussian kernel 7 with sigma 1.0) on the 64x64 centre crop,
-* Kuan+SSIM: a 7x7 Kuan speckle filter on both images, then SSIM on the 64x64 centre crop.
+* MS-SSIM (3 scales, weights (0.0448, 0.3001, 0.1333), data range 1.0, Gaussian sigma 1.0) on the 64x64
+  centre crop,
+* Kuan+SSIM: a Kuan speckle filter on both images, then SSIM on the 64x64 centre crop.
+
+Two variants of the last two exist. The **paper-comparable** ones (`sar_zero123.paper_metrics`) reproduce
+the authors' scoring scripts: 8-bit 256 px views, torchmetrics' MS-SSIM (a 9x9 window whatever
+`kernel_size` says), findpeaks' 6x6 truncated, rounded Kuan filter and scikit-image's default uniform-window
+SSIM. The **corrected** ones below implement the stated definitions: one true 7x7 Gaussian window for every
+MS-SSIM term averaged over the valid region only (Wang et al. 2003), a centred 7x7 reflect-padded Kuan
+filter without rounding, and the same Gaussian window for the SSIM after it, at the generated resolution.
+Table III reports the paper-comparable values with the corrected ones beside them;
+docs/results/evaluation.md lists the measured differences on real MSTAR pairs.
 
 All image metrics take `(B, C, H, W)` tensors in [0, 1] (normalised dB, see `docs/ARCHITECTURE.md`) and
 return per-sample `(B,)` scores; callers take the mean.
 
-Why MS-SSIM and SSIM are written here rather than taken from a library: torchmetrics'
-`multiscale_structural_similarity_index_measure` ignores `kernel_size` when `gaussian_kernel=True` and
-builds a 9x9 kernel from sigma=1.0 (radius `int(3.5 * sigma + 0.5)`), and it averages the luminance
-term of the last scale over reflect-padded borders while the contrast terms use the valid region only;
-pytorch-msssim refuses 64x64 inputs with a 7x7 window. The functions below use one Gaussian kernel of the
-requested size for every term and average over the valid region only, as in Wang et al. (2003).
 Cross-checks (pinned in tests/test_metrics.py): with a 9x9 window, single-scale `ssim` equals
-`skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.0, use_sample_covariance=False)`
-(which also fixes a 9x9 window for sigma 1.0) to 1e-12, and `ms_ssim` agrees with torchmetrics to about
-1e-3 (torchmetrics' padded-border luminance average). The paper's 7x7 window itself differs from the
-9x9 one by about 1e-3 on noisy 64x64 pairs; docs/results/evaluation.md lists measured differences.
+`skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.0, use_sample_covariance=False)` to
+1e-12, and the MS-SSIM contrast-structure terms equal torchmetrics' to 1e-5. The full `ms_ssim` is *not*
+torchmetrics' number even with a 9x9 window: torchmetrics averages the last scale's SSIM term over the whole
+reflect-padded map, which moves near-identical pairs by a few 1e-3 but dissimilar real pairs by up to
+several tenths (measured in docs/results/evaluation.md). pytorch-msssim refuses 64x64 inputs with a 7x7
+window.
 """
 
 from __future__ import annotations
@@ -357,7 +362,10 @@ def ms_ssim(
     data_range: float = 1.0,
     crop_size: int | None = CROP_SIZE,
 ) -> torch.Tensor:
-    """Multi-scale SSIM with the paper's setting (Table III "MS-SSIM").
+    """Multi-scale SSIM with the paper's stated setting, corrected variant (Table III "MS-SSIM").
+
+    The paper-comparable number (the authors' torchmetrics call) is
+    `sar_zero123.paper_metrics.paper_ms_ssim`.
 
     `MS-SSIM = l_M^{beta_M} * prod_{j=1..M} cs_j^{beta_j}` (Wang, Simoncelli and Bovik 2003), with 2x2 average
     pooling between scales. Negative per-scale terms are clipped to 0 before the fractional powers (as
@@ -478,8 +486,10 @@ def kuan_ssim(
 ) -> torch.Tensor:
     """Kuan+SSIM of Table III: Kuan-filter both images, then SSIM on the centre crop.
 
-    The filter runs on the full images (so the crop sees no padded borders); SSIM uses the same Gaussian
-    window as `ms_ssim` (7, sigma 1.0), which the paper does not state separately.
+    Corrected variant: the filter runs on the full images (so the crop sees no padded borders); SSIM uses
+    the same Gaussian window as `ms_ssim` (7, sigma 1.0). The authors' scripts instead filter the 8-bit crop
+    with findpeaks and score it with scikit-image's uniform-window defaults:
+    `sar_zero123.paper_metrics.paper_kuan_ssim` reproduces that.
 
     Args:
         x: generated images in [0, 1].

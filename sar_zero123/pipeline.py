@@ -399,6 +399,7 @@ class SARZero123Pipeline(DiffusionPipeline):
 
         # 2. encode conditioning (once per input image, then repeated per sample)
         tokens, condition_latents = self.encode_conditioning(images.to(device), pose.to(device))
+        # Read once: `ModelMixin.dtype` walks every parameter of the UNet on each access.
         dtype = self.unet.dtype
         tokens = tokens.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
         condition_latents = condition_latents.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
@@ -414,13 +415,13 @@ class SARZero123Pipeline(DiffusionPipeline):
         # 4. initial noise
         shape = (num_samples, self.vae.config.latent_channels, *condition_latents.shape[-2:])
         if latents is None:
-            latents = randn_tensor(shape, generator=generator, device=device, dtype=self.unet.dtype)
+            latents = randn_tensor(shape, generator=generator, device=device, dtype=dtype)
         else:
             if tuple(latents.shape) != shape:
                 raise ValueError(f"`latents` must have shape {shape}, got {tuple(latents.shape)}")
             if not torch.isfinite(latents).all():
                 raise ValueError("`latents` contains NaN or inf values")
-            latents = latents.to(device=device, dtype=self.unet.dtype)
+            latents = latents.to(device=device, dtype=dtype)
         latents = latents * self.scheduler.init_noise_sigma
         step_kwargs = self._scheduler_step_kwargs(generator)
 
@@ -436,7 +437,7 @@ class SARZero123Pipeline(DiffusionPipeline):
                     noise_uncond, noise_cond = noise_pred.chunk(2)
                     noise_pred = noise_uncond + guidance_scale * (noise_cond - noise_uncond)
                 latents = self.scheduler.step(noise_pred, timestep, latents, **step_kwargs).prev_sample
-                latents = latents.to(self.unet.dtype)
+                latents = latents.to(dtype)
 
                 if callback_on_step_end is not None:
                     step_tensors = {"latents": latents}

@@ -240,8 +240,15 @@ def test_presets_are_the_table1_rows() -> None:
         "monotonic",
         "gaussian+monotonic",
         "speckle+monotonic",
+        "speckle+monotonic-as-run",
     }
+    as_run = PRESETS["speckle+monotonic-as-run"]
+    assert (as_run.speckle_sigma, as_run.speckle_mode, as_run.speckle_q, as_run.monotonic_q) == (
+        10.0, "level", 4096, 4096
+    )
+    assert (as_run.codomain_p, as_run.monotonic_gamma, as_run.crop_scale) == (0.95, 0.0, None)
     chosen = PRESETS["speckle+monotonic"]
+    assert chosen.codomain_p == 1.0 and chosen.speckle_mode == "pixel"
     assert (chosen.speckle_sigma, chosen.speckle_lambda1, chosen.speckle_lambda2, chosen.monotonic_q) == (
         10.0,
         1.0,
@@ -279,6 +286,24 @@ def test_augment_batch_composes_stages_in_order(mode: str) -> None:
     expected = rayleigh_speckle(expected, 10.0, mode=mode, q=64, generator=stream)
     expected = random_monotonic(expected, q=32, gamma=1.0, generator=stream)
     torch.testing.assert_close(out, scaling.normalize(expected))
+
+
+def test_codomain_p_leaves_a_fraction_of_chips_unaugmented() -> None:
+    scaling = UnitDecibelScaling()
+    magnitude = sar_like(1, 16).repeat(400, 1, 1, 1)
+    preset = AugmentationPreset(speckle_sigma=10.0, speckle_mode="level", speckle_q=64, monotonic_q=64,
+                                codomain_p=0.75)
+    out = augment_batch(magnitude, preset, scaling, generator=gen(5))
+    # Same stream by hand: speckle, monotonic, then one uniform per chip decides.
+    stream = gen(5)
+    mapped = rayleigh_speckle(magnitude, 10.0, mode="level", q=64, generator=stream)
+    mapped = random_monotonic(mapped, q=64, generator=stream)
+    applied = torch.rand(400, generator=stream) < 0.75
+    expected = torch.where(applied[:, None, None, None], mapped, magnitude)
+    torch.testing.assert_close(out, scaling.normalize(expected))
+    unchanged = (out == scaling.normalize(magnitude)).flatten(1).all(1)
+    assert torch.equal(unchanged, ~applied)
+    assert 0.2 < unchanged.float().mean().item() < 0.3  # binomial(400, 0.25): 0.25 +- 0.022
 
 
 def test_augment_batch_with_project_decibel_scaling() -> None:

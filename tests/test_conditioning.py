@@ -41,6 +41,33 @@ def test_embed_pose_hand_computed_values():
     torch.testing.assert_close(pose[:, 0], expected, atol=1e-7, rtol=0)
 
 
+def _zero123_relative_pose(elevation_cond_deg, azimuth_cond_deg, elevation_target_deg, azimuth_target_deg):
+    """zero-1-to-3's get_T for two cameras on a sphere: polar angle from +Z, azimuth atan2(y, x)."""
+
+    def spherical(elevation_deg, azimuth_deg):
+        e, a = math.radians(elevation_deg), math.radians(azimuth_deg)
+        x, y, z = 1.5 * math.cos(e) * math.cos(a), 1.5 * math.cos(e) * math.sin(a), 1.5 * math.sin(e)
+        return math.atan2(math.hypot(x, y), z), math.atan2(y, x)
+
+    theta_c, az_c = spherical(elevation_cond_deg, azimuth_cond_deg)
+    theta_t, az_t = spherical(elevation_target_deg, azimuth_target_deg)
+    d_az = (az_t - az_c) % (2 * math.pi)
+    return [theta_t - theta_c, math.sin(d_az), math.cos(d_az), 0.0]
+
+
+def test_embed_pose_sign_convention_against_zero123_and_authors():
+    # Input chip at depression 15, azimuth 40; target at depression 17, azimuth 100.
+    pose = embed_pose(100.0 - 40.0, 17.0 - 15.0)[0, 0].double()
+    # The authors' get_T: d_theta = target depression - input depression (radians), sin/cos of d_az.
+    d_az = math.radians(60.0)
+    authors = torch.tensor([math.radians(2.0), math.sin(d_az), math.cos(d_az), 0.0], dtype=torch.float64)
+    torch.testing.assert_close(pose, authors, atol=1e-7, rtol=0)
+    # zero-1-to-3 with cameras at elevation = depression: the polar slot has the opposite sign.
+    zero123 = torch.tensor(_zero123_relative_pose(15.0, 40.0, 17.0, 100.0), dtype=torch.float64)
+    torch.testing.assert_close(pose[0], -zero123[0], atol=1e-7, rtol=0)
+    torch.testing.assert_close(pose[1:], zero123[1:], atol=1e-7, rtol=0)
+
+
 def test_embed_pose_is_periodic_in_azimuth():
     pose = embed_pose([10.0, 370.0, -350.0, 730.0], 3.0)
     for row in range(1, 4):
@@ -120,6 +147,57 @@ def test_image_embeddings_follow_clip_normalisation(components):
     torch.testing.assert_close(embeds[:, 0], expected, atol=1e-6, rtol=0)
     torch.testing.assert_close(embeds_rgb, embeds, atol=0, rtol=0)
     torch.testing.assert_close(embeds_single, embeds[1:], atol=1e-5, rtol=0)
+
+
+def _cubic_convolution_resize(image, size, a=-0.75):
+    """Separable cubic convolution with align_corners=True and replicated borders (float64 NumPy loops):
+    the definition behind kornia's resize(interpolation="bicubic", align_corners=True, antialias=False)."""
+    import numpy as np
+
+    def kernel(x):
+        x = abs(x)
+        if x <= 1:
+            return (a + 2) * x**3 - (a + 3) * x**2 + 1
+        if x < 2:
+            return a * x**3 - 5 * a * x**2 + 8 * a * x - 4 * a
+        return 0.0
+
+    def along_rows(array):
+        n_in = array.shape[0]
+        out = np.zeros((size,) + array.shape[1:])
+        for j in range(size):
+            source = j * (n_in - 1) / (size - 1)
+            first = math.floor(source)
+            for m in range(first - 1, first + 3):
+                out[j] += kernel(source - m) * array[min(max(m, 0), n_in - 1)]
+        return out
+
+    return along_rows(along_rows(np.asarray(image, dtype=np.float64)).T).T
+
+
+@pytest.mark.parametrize("input_size", [20, 64])
+def test_image_embeddings_resize_like_zero123(components, input_size):
+    encoder = components["image_encoder"]
+    size = encoder.config.image_size
+    images = torch.rand(1, 1, input_size, input_size, generator=torch.Generator().manual_seed(input_size))
+    # zero-1-to-3: resize the [-1, 1] image (cubic convolution, align_corners=True), then (x + 1) / 2.
+    resized = (_cubic_convolution_resize((images[0, 0] * 2 - 1).double().numpy(), size) + 1) / 2
+    reference = torch.from_numpy(resized).float()[None, None]
+    torch.testing.assert_close(
+        torch.nn.functional.interpolate(images, size=(size, size), mode="bicubic", align_corners=True),
+        reference, atol=1e-5, rtol=0,  # float32 resize against the float64 definition
+    )
+    mean = torch.tensor(CLIP_IMAGE_MEAN).view(1, 3, 1, 1)
+    std = torch.tensor(CLIP_IMAGE_STD).view(1, 3, 1, 1)
+    with torch.no_grad():
+        expected = encoder(pixel_values=(reference.expand(-1, 3, -1, -1) - mean) / std).image_embeds
+        embeds = encode_image_embeddings(encoder, images)
+        antialiased = torch.nn.functional.interpolate(
+            images, size=(size, size), mode="bicubic", align_corners=False, antialias=True
+        )
+        other = encoder(pixel_values=(antialiased.expand(-1, 3, -1, -1) - mean) / std).image_embeds
+    torch.testing.assert_close(embeds[:, 0], expected, atol=1e-5, rtol=0)
+    assert (other - expected).abs().max() > 1e-3  # the former preprocessing is measurably different
 
 
 def test_image_embeddings_resize_other_sizes(components):

@@ -37,11 +37,18 @@ def test_score_views_identical_images(tmp_path: Path) -> None:
         predicted_class = evaluators.classifier(targets).argmax(dim=1)
     with pytest.warns(UserWarning, match="n=6 samples for D=16"):
         scores = score_views(targets, targets, labels, predicted_deg, evaluators, crop_size=32, batch_size=4)
-    assert scores["ms_ssim"] == pytest.approx(1.0) and scores["kuan_ssim"] == pytest.approx(1.0)
+    for key in ("ms_ssim", "kuan_ssim", "ms_ssim_corrected", "kuan_ssim_corrected"):
+        assert scores[key] == pytest.approx(1.0)
     assert scores["sfd"] == pytest.approx(0.0, abs=1e-6)
     assert scores["azimuth_error_deg"] == pytest.approx(0.0, abs=1e-3)
     assert scores["accuracy"] == pytest.approx(100.0 * (predicted_class == labels).double().mean().item())
     assert scores["n"] == 6 and scores["azimuth_error_deg/scratch"] == scores["azimuth_error_deg"]
+    # Paper-comparable (8-bit, 256 px, authors' windows) and corrected values differ on unlike views.
+    others = torch.rand(6, 1, 32, 32, generator=generator)
+    with pytest.warns(UserWarning, match="rank-deficient"):
+        scores = score_views(others, targets, labels, predicted_deg, evaluators, crop_size=32, batch_size=4)
+    assert abs(scores["kuan_ssim"] - scores["kuan_ssim_corrected"]) > 1e-3
+    assert abs(scores["ms_ssim"] - scores["ms_ssim_corrected"]) > 1e-3
     with pytest.raises(ValueError, match="differ in size"):
         score_views(targets[..., :16, :16], targets, labels, predicted_deg, evaluators, crop_size=16)
     with pytest.raises(ValueError, match=r"outside \[0, 1\]"):
@@ -91,11 +98,14 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path) -> None:
             assert values["n"] == 2
             assert 0.0 <= values["ms_ssim"] <= 1.0 and 0.0 <= values["azimuth_error_deg"] <= 180.0
             assert all(math.isfinite(values[key]) for key in ("sfd", "kuan_ssim", "accuracy"))
+            assert 0.0 <= values["ms_ssim_corrected"] <= 1.0 and math.isfinite(values["kuan_ssim_corrected"])
     # Same weights, same pairs, same seeds -> identical scores.
     for key in ("ms_ssim", "sfd", "azimuth_error_deg", "accuracy"):
         assert table3["lambda0"]["unseen"][key] == table3["lambda4"]["unseen"][key]
     markdown = (out / "table3.md").read_text()
-    assert "paper: PFM (lambda=4)" in markdown and "| 89.0 | 23.5 | 1.84 | 0.6720 | 0.7374 |" in markdown
+    assert "paper: PFM (lambda=4)" in markdown
+    assert "| 89.0 | 23.5 | 1.84 | 0.6720 | 0.7374 | - | - |" in markdown
+    assert "MS-SSIM corr." in markdown
     assert "Az. err. (deg), scratch" in (out / "table4.md").read_text()
     for name in ("views.png", "lambda_sweep.png", "speed_error.png", "speed_error.md"):
         assert (out / name).stat().st_size > 0

@@ -125,9 +125,12 @@ def test_smoke_two_steps_writes_checkpoint_grid_and_pipeline(script, assets, tmp
             "2",
             "--pfm_crop_size",
             "16",
+            "--pfm_projection_dim",
+            "10",
         )
     )
     assert (out / "checkpoint-2" / "run_state.json").is_file()
+    assert (out / "pfm_projection.safetensors").is_file()  # the paper-comparable projection, saved
     grid = np.asarray(PIL.Image.open(out / "validation" / "step-000002.png"))
     assert grid.shape == (2 * 32, 3 * 32)  # rows of input | generated | target
     saved = json.loads((out / "config.json").read_text())

@@ -14,12 +14,16 @@ from torch import nn
 from sar_zero123.losses import (
     DEFAULT_PFM_MIN_SNR,
     MIN_ALPHA_CUMPROD,
+    PFM_PROJECTION_FILE,
+    ProjectedFeatureEncoder,
     append_dims,
     denoising_loss,
     denoising_target,
     estimate_x0,
     pfm_loss,
     pfm_timestep_mask,
+    project_encoder_features,
+    random_feature_projection,
     signal_to_noise_ratio,
     total_loss,
 )
@@ -36,6 +40,8 @@ HARD_TIMESTEPS = torch.tensor([0, 1, 500, 999])
 
 class TinyEncoder(nn.Module):
     """Stand-in for SAREncoder: (B, 1, S, S) -> (B, 8) pooled features, ``config.image_size``."""
+
+    feature_dim = 8
 
     def __init__(self, image_size: int = 16) -> None:
         super().__init__()
@@ -313,3 +319,56 @@ def test_pfm_loss_with_sar_encoder(vae) -> None:
     loss.sum().backward()
     assert torch.isfinite(x0_hat.grad).all()
     assert x0_hat.grad[..., :4, :].abs().sum() == 0  # rows outside the decoded window
+
+
+# ------------------------------------------------------------------- paper-comparable PFM projection
+def test_random_feature_projection_is_seeded_default_linear_init() -> None:
+    weight = random_feature_projection(512, 10, seed=3)
+    assert weight.shape == (10, 512) and weight.dtype == torch.float32
+    assert torch.equal(weight, random_feature_projection(512, 10, seed=3))
+    assert not torch.equal(weight, random_feature_projection(512, 10, seed=4))
+    # nn.Linear's default init: U(-1/sqrt(in), 1/sqrt(in)), variance 1 / (3 in).
+    bound = 1 / math.sqrt(512)
+    assert weight.abs().max().item() <= bound
+    assert weight.var().item() == pytest.approx(1 / (3 * 512), rel=0.05)
+    with pytest.raises(ValueError, match="positive"):
+        random_feature_projection(0, 10)
+
+
+def test_projected_pfm_equals_authors_mse_of_fc_outputs(vae, encoder, tmp_path) -> None:
+    projected = project_encoder_features(encoder, 10, seed=0)
+    assert isinstance(projected, ProjectedFeatureEncoder) and projected.config is encoder.config
+    assert project_encoder_features(encoder, None) is encoder
+    generator = torch.Generator().manual_seed(2)
+    target = torch.rand(3, 1, 32, 32, generator=generator)
+    x0_hat = torch.randn(3, 4, 16, 16, generator=generator, requires_grad=True)
+    loss = pfm_loss(x0_hat, target, vae, projected)
+    # Reference: the authors' fc layer (weight W, any bias) then mse_loss over the 10 outputs, per sample.
+    fc = nn.Linear(8, 10)
+    with torch.no_grad():
+        fc.weight.copy_(random_feature_projection(8, 10, seed=0))
+    size = encoder.config.image_size
+    reference = []
+    for i in range(3):
+        with torch.no_grad():
+            decoded = vae.decode(x0_hat[i:i + 1] / vae.config.scaling_factor).sample
+        a = F.interpolate((decoded + 1) / 2, size=(size, size), mode="bilinear", antialias=True)
+        b = F.interpolate(target[i:i + 1], size=(size, size), mode="bilinear", antialias=True)
+        reference.append(F.mse_loss(fc(encoder(a)), fc(encoder(b))))
+    torch.testing.assert_close(loss, torch.stack(reference).detach(), atol=1e-7, rtol=1e-5)
+    loss.sum().backward()
+    assert x0_hat.grad.abs().sum() > 0 and all(p.grad is None for p in encoder.parameters())
+    projected.save_projection(tmp_path)
+    from safetensors.torch import load_file
+
+    torch.testing.assert_close(load_file(tmp_path / PFM_PROJECTION_FILE)["weight"], projected.weight)
+
+
+def test_projection_shrinks_pfm_by_three_times_feature_dim_on_average() -> None:
+    # E_W[mean_k ((W d)_k)^2] = ||d||^2 / (3 D) for any difference d: check over 400 seeded draws.
+    difference = torch.randn(1, 64, generator=torch.Generator().manual_seed(0))
+    ratios = []
+    for seed in range(400):
+        weight = random_feature_projection(64, 10, seed=seed)
+        ratios.append((F.linear(difference, weight) ** 2).mean() / (difference**2).sum())
+    assert torch.stack(ratios).mean().item() == pytest.approx(1 / (3 * 64), rel=0.05)

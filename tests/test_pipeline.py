@@ -351,3 +351,19 @@ def test_build_zero123_has_the_objaverse_shapes():
     # SD 1.x UNet (859,520,964 parameters) with 4 extra input channels in conv_in (4 * 320 * 3 * 3).
     assert sum(p.numel() for p in pipe.unet.parameters()) == 859_520_964 + 4 * 320 * 9
     assert pipe.scheduler.config.beta_schedule == "scaled_linear" and pipe.scheduler.config.beta_end == 0.012
+
+
+def test_unet_dtype_is_read_once_per_call(pipe, monkeypatch) -> None:
+    # ModelMixin.dtype walks every UNet parameter: 0.4 ms (tiny) to 1.1 ms (small) per read on this CPU.
+    unet_class = type(pipe.unet)
+    original = unet_class.dtype
+    reads = []
+
+    def counting(module):
+        if module is pipe.unet:
+            reads.append(1)
+        return original.fget(module)
+
+    monkeypatch.setattr(unet_class, "dtype", property(counting))
+    run(pipe, num_inference_steps=6)
+    assert len(reads) == 1

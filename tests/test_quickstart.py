@@ -27,7 +27,7 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
         warnings.simplefilter("ignore")  # tiny sample counts: the Frechet distance warns about n <= D
         report = quickstart.main(["--out", str(out), "--preset", "smoke"])
     text = report.read_text()
-    assert "| paper: PFM (lambda=4) | seen | 89.0 | 23.5 | 1.84 | 0.6720 | 0.7374 |  |  |  |" in text
+    assert "| paper: PFM (lambda=4) | seen | 89.0 | 23.5 | 1.84 | 0.6720 | 0.7374 | - | - |  |  |  |" in text
     rows = ("| lambda=0 | seen |", "| lambda=4 | unseen |", "| input copy (floor) | seen |")
     for row in (*rows, "| real target (ceiling) | seen |", "| VAE round trip (ceiling) | unseen |"):
         assert row in text

@@ -52,7 +52,7 @@ from sar_zero123.config import config_to_dict, parse_config, save_config, write_
 from sar_zero123.data import DecibelScaling, ViewPairDataset, check_protocol, prepare_splits
 from sar_zero123.encoder import SAREncoder
 from sar_zero123.evaluators import Evaluators, load_evaluators, pose_following
-from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput
+from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput, project_encoder_features
 from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
 from sar_zero123.run_state import (
     check_finite_state,
@@ -98,6 +98,7 @@ class FinetuneConfig:
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
     pfm_fraction: float = 1.0  # fraction of the eligible batch on which PFM is computed
     pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
+    pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
     learning_rate: float = 1e-4  # AdamW learning rate of the UNet
     pose_lr_multiplier: float = 10.0  # pose projection learning rate = this x learning_rate
     adam_weight_decay: float = 1e-2  # AdamW weight decay
@@ -138,6 +139,8 @@ class FinetuneConfig:
             raise ValueError(f"pfm_min_snr must be >= 0, got {self.pfm_min_snr}")
         if not 0 < self.pfm_fraction <= 1:
             raise ValueError(f"pfm_fraction must be in (0, 1], got {self.pfm_fraction}")
+        if self.pfm_projection_dim is not None and self.pfm_projection_dim < 1:
+            raise ValueError(f"pfm_projection_dim must be >= 1 or None, got {self.pfm_projection_dim}")
         if self.pfm_crop_size is not None and self.pfm_crop_size < 1:
             raise ValueError(f"pfm_crop_size must be >= 1 or None, got {self.pfm_crop_size}")
         check_protocol(self.protocol)
@@ -244,8 +247,9 @@ def resolve_image_size(config: FinetuneConfig, pipe: SARZero123Pipeline) -> int:
     return image_size
 
 
-def load_encoder(config: FinetuneConfig, image_size: int) -> SAREncoder | None:
-    """The frozen SAR encoder for PFM, checked against the training resolution.
+def load_encoder(config: FinetuneConfig, image_size: int) -> torch.nn.Module | None:
+    """The frozen SAR encoder for PFM, checked against the training resolution; with
+    ``pfm_projection_dim`` followed by the seeded random projection (``config.seed``).
 
     Raises:
         FileNotFoundError: If the folder or its files are missing.
@@ -260,7 +264,8 @@ def load_encoder(config: FinetuneConfig, image_size: int) -> SAREncoder | None:
             f"runs at image_size={image_size}; train the encoder at {image_size} px or set --image_size "
             f"{encoder.config.image_size}"
         )
-    return encoder.eval().requires_grad_(False)
+    encoder = encoder.eval().requires_grad_(False)
+    return project_encoder_features(encoder, config.pfm_projection_dim, seed=config.seed)
 
 
 def build_datasets(
@@ -422,6 +427,8 @@ def main(argv: list[str] | None = None) -> Path:
     if accelerator.is_main_process:
         output_dir.mkdir(parents=True, exist_ok=True)
         save_config(config, output_dir)
+        if encoder is not None and config.pfm_projection_dim is not None:
+            encoder.save_projection(output_dir)
 
     # 2. frozen parts in the weight dtype, trainable parts in float32
     weight_dtype = {"fp16": torch.float16, "bf16": torch.bfloat16}.get(
