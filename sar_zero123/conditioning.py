@@ -28,6 +28,7 @@ __all__ = [
     "PoseProjection",
     "embed_pose",
     "encode_condition_latents",
+    "pose_class_labels",
     "encode_image_embeddings",
     "encode_target_latents",
     "match_channels",
@@ -292,3 +293,24 @@ def encode_target_latents(
     latents = vae.encode(vae_input(vae, images)).latent_dist.sample(generator=generator)
     return latents * vae.config.scaling_factor
 
+
+def pose_class_labels(unet: torch.nn.Module, pose: torch.Tensor) -> torch.Tensor | None:
+    """The pose as the UNet's ``class_labels`` when it embeds the pose with its timestep, else ``None``.
+
+    A UNet built with ``class_embed_type="projection"`` and ``projection_class_embeddings_input_dim=4``
+    (``build_sar_zero123(..., pose_in_time_embedding=True)``) adds a learned projection of the pose vector
+    to its timestep embedding, so the pose scales and shifts the features of every ResNet block, on top
+    of zero-1-to-3's cross-attention token. The pose is never dropped for classifier-free guidance (as in
+    zero-1-to-3), so both guidance branches receive it.
+
+    Args:
+        unet: A ``UNet2DConditionModel``, possibly wrapped by DDP (``.module``).
+        pose: Pose vectors from :func:`embed_pose`.
+
+    Shape:
+        pose ``(B, 1, 4)`` -> ``(B, 4)`` or ``None``.
+    """
+    config = getattr(unet, "module", unet).config
+    if getattr(config, "class_embed_type", None) != "projection":
+        return None
+    return pose.reshape(pose.shape[0], POSE_DIM)

@@ -40,6 +40,7 @@ from sar_zero123.conditioning import (
     encode_condition_latents,
     encode_image_embeddings,
     match_channels,
+    pose_class_labels,
 )
 
 __all__ = ["SAR_ZERO123_SIZES", "SARZero123Pipeline", "SARZero123PipelineOutput", "build_sar_zero123"]
@@ -403,10 +404,16 @@ class SARZero123Pipeline(DiffusionPipeline):
         dtype = self.unet.dtype
         tokens = tokens.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
         condition_latents = condition_latents.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
+        class_labels = pose_class_labels(self.unet, pose.to(device))  # None unless the UNet embeds the pose
+        if class_labels is not None:
+            class_labels = class_labels.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
         if do_classifier_free_guidance:
-            # zero-1-to-3's sampling null: zeros after the projection and for the condition latent.
+            # zero-1-to-3's sampling null: zeros after the projection and for the condition latent; the
+            # pose itself is never dropped
             tokens = torch.cat([torch.zeros_like(tokens), tokens])
             condition_latents = torch.cat([torch.zeros_like(condition_latents), condition_latents])
+            if class_labels is not None:
+                class_labels = torch.cat([class_labels, class_labels])
 
         # 3. timesteps
         self.scheduler.set_timesteps(int(num_inference_steps), device=device)
@@ -432,7 +439,9 @@ class SARZero123Pipeline(DiffusionPipeline):
                 model_input = torch.cat([latents] * 2) if do_classifier_free_guidance else latents
                 model_input = self.scheduler.scale_model_input(model_input, timestep)
                 model_input = torch.cat([model_input, condition_latents], dim=1)  # (N | 2N, 8, h, w)
-                noise_pred = self.unet(model_input, timestep, encoder_hidden_states=tokens).sample
+                noise_pred = self.unet(
+                    model_input, timestep, encoder_hidden_states=tokens, class_labels=class_labels
+                ).sample
                 if do_classifier_free_guidance:
                     noise_uncond, noise_cond = noise_pred.chunk(2)
                     noise_pred = noise_uncond + guidance_scale * (noise_cond - noise_uncond)
@@ -723,7 +732,9 @@ ZERO123_SCHEDULER_CONFIG: dict[str, Any] = {
 SD_VAE_SCALING_FACTOR = 0.18215
 
 
-def build_sar_zero123(size: str, image_size: int | None = None, seed: int = 0) -> SARZero123Pipeline:
+def build_sar_zero123(
+    size: str, image_size: int | None = None, seed: int = 0, pose_in_time_embedding: bool = False
+) -> SARZero123Pipeline:
     """Build a randomly initialised :class:`SARZero123Pipeline` of a named size.
 
     Each component is initialised from ``torch.manual_seed(seed)`` inside ``torch.random.fork_rng``, so
@@ -741,6 +752,9 @@ def build_sar_zero123(size: str, image_size: int | None = None, seed: int = 0) -
         image_size: Chip size in pixels; defaults to the size's own. Sets the VAE and UNet
             ``sample_size`` (the networks themselves are size-agnostic).
         seed: Initialisation seed.
+        pose_in_time_embedding: Also add a learned projection of the pose vector to the UNet's timestep
+            embedding (``class_embed_type="projection"``, see
+            :func:`~sar_zero123.conditioning.pose_class_labels`); recorded in the UNet config.
 
     Returns:
         The pipeline (float32, CPU) with a zero-1-to-3 DDIM scheduler.
@@ -766,8 +780,14 @@ def build_sar_zero123(size: str, image_size: int | None = None, seed: int = 0) -
         torch.manual_seed(seed)
         vae = AutoencoderKL(**spec["vae"], sample_size=image_size, scaling_factor=SD_VAE_SCALING_FACTOR)
         torch.manual_seed(seed)
+        pose_embedding = (
+            {"class_embed_type": "projection", "projection_class_embeddings_input_dim": POSE_DIM}
+            if pose_in_time_embedding
+            else {}
+        )
         unet = UNet2DConditionModel(
             **spec["unet"],
+            **pose_embedding,
             sample_size=image_size // vae_factor,
             in_channels=2 * latent_channels,
             out_channels=latent_channels,

@@ -28,7 +28,7 @@ from diffusers import AutoencoderKL, DDPMScheduler
 from torch.utils.data import Dataset
 from transformers import CLIPVisionModelWithProjection
 
-from .conditioning import embed_pose, encode_image_embeddings, vae_input
+from .conditioning import embed_pose, encode_image_embeddings, pose_class_labels, vae_input
 from .data import ViewPairDataset, load_chip
 from .data.view_pairs import wrap_azimuth_deg
 from .losses import DEFAULT_PFM_MIN_SNR, LossOutput, denoising_target, total_loss
@@ -295,7 +295,12 @@ def conditioning_sensitivity(
     def predict(t: torch.Tensor, condition: torch.Tensor, embeds: torch.Tensor, pose: torch.Tensor):
         x_t = noise_scheduler.add_noise(latents, noise, t)
         tokens = pose_projection(embeds, pose)
-        return unet(torch.cat([x_t, condition], dim=1), t, encoder_hidden_states=tokens).sample
+        return unet(
+            torch.cat([x_t, condition], dim=1),
+            t,
+            encoder_hidden_states=tokens,
+            class_labels=pose_class_labels(unet, pose),
+        ).sample
 
     result = {}
     for step in timesteps:
@@ -368,7 +373,10 @@ def compute_losses(
     timesteps = torch.randint(0, num_train_timesteps, (batch_size,), generator=generator).to(device)
     x_t = noise_scheduler.add_noise(latents, noise, timesteps)
     model_output = unet(
-        torch.cat([x_t, condition_latents], dim=1), timesteps, encoder_hidden_states=tokens
+        torch.cat([x_t, condition_latents], dim=1),
+        timesteps,
+        encoder_hidden_states=tokens,
+        class_labels=pose_class_labels(unet, pose),
     ).sample
     target = denoising_target(latents, noise, timesteps, noise_scheduler)
     # 4. Eq. (21)

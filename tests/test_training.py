@@ -113,7 +113,9 @@ def test_conditioning_sensitivity_is_zero_for_a_model_that_ignores_its_condition
     unet = components["unet"]
 
     class Blind(torch.nn.Module):  # the noisy latent only: condition latent and tokens zeroed
-        def forward(self, sample, t, encoder_hidden_states):
+        config = unet.config
+
+        def forward(self, sample, t, encoder_hidden_states, class_labels=None):
             sample = torch.cat([sample[:, :4], torch.zeros_like(sample[:, 4:])], dim=1)
             return unet(sample, t, encoder_hidden_states=torch.zeros_like(encoder_hidden_states))
 
@@ -136,3 +138,33 @@ def test_timestep_bucket_losses_are_bucket_means() -> None:
         "t750-999": 7.0,
     }
     assert timestep_bucket_losses(losses[:1], timesteps[:1], 1000) == {"t000-249": 1.0}
+
+
+@pytest.mark.parametrize("pose_in_time_embedding", [False, True])
+def test_pose_in_time_embedding_is_the_only_pose_path_when_the_token_ignores_the_pose(
+    pose_in_time_embedding, tmp_path
+) -> None:
+    from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
+
+    pipe = build_sar_zero123("tiny", pose_in_time_embedding=pose_in_time_embedding)
+    with torch.no_grad():  # zero-1-to-3's initial projection: the token does not see the pose yet
+        assert pipe.pose_projection.projection.weight[:, -4:].abs().sum() == 0
+        for parameter in pipe.unet.class_embedding.parameters() if pose_in_time_embedding else ():
+            parameter.normal_(0.0, 1.0)
+    pipe.save_pretrained(tmp_path / "pipe")
+    pipe = SARZero123Pipeline.from_pretrained(tmp_path / "pipe")
+    pipe.set_progress_bar_config(disable=True)
+    views = [
+        pipe(
+            dummy_images(1, seed=3),
+            d_az=d_az,
+            d_el=0.0,
+            num_inference_steps=2,
+            generator=torch.Generator().manual_seed(0),
+            output_type="pt",
+        ).images
+        for d_az in (0.0, 90.0)
+    ]
+    difference = (views[0] - views[1]).abs().max().item()
+    assert (pipe.unet.config.class_embed_type == "projection") == pose_in_time_embedding
+    assert difference > 1e-4 if pose_in_time_embedding else difference == 0.0

@@ -88,6 +88,7 @@ class FinetuneConfig:
     pretrained: str | None = None  # pipeline folder or zero-1-to-3 checkpoint; None: build `size`
     size: Literal["tiny", "micro", "compact", "small", "zero123"] = "small"  # built when pretrained is None
     image_size: int | None = None  # chip side in pixels; None uses the model's own
+    pose_in_time_embedding: bool = False  # built sizes: the pose also enters the UNet's timestep embedding
     vae: str | None = None  # AutoencoderKL folder (train/train_vae.py) replacing the pipeline's VAE
     encoder: str | None = None  # frozen SAREncoder folder; required when pfm_weight > 0
     data: str | None = None  # dataset folder with index.csv; None simulates the built-in dataset
@@ -203,7 +204,12 @@ def load_components(config: FinetuneConfig) -> SARZero123Pipeline:
         ValueError: If the VAE does not fit the UNet (latent channels or downsampling factor).
     """
     if config.pretrained is None:
-        pipe = build_sar_zero123(config.size, image_size=config.image_size, seed=config.seed)
+        pipe = build_sar_zero123(
+            config.size,
+            image_size=config.image_size,
+            seed=config.seed,
+            pose_in_time_embedding=config.pose_in_time_embedding,
+        )
     else:
         path = Path(config.pretrained)
         if not path.exists():
