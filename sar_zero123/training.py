@@ -25,6 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from diffusers import AutoencoderKL, DDPMScheduler
+from diffusers.training_utils import compute_density_for_timestep_sampling
 from torch.utils.data import Dataset
 from transformers import CLIPVisionModelWithProjection
 
@@ -42,6 +43,7 @@ __all__ = [
     "conditioning_sensitivity",
     "encode_batch",
     "micro_batch_generator",
+    "sample_timesteps",
     "timestep_bucket_losses",
 ]
 
@@ -331,6 +333,9 @@ def compute_losses(
     drop_both_prob: float = 0.05,
     drop_latent_prob: float = 0.05,
     apply_dropout: bool = True,
+    timestep_sampling: str = "uniform",
+    timestep_logit_mean: float = 0.0,
+    timestep_logit_std: float = 1.0,
 ) -> LossOutput:
     """Per-sample losses of one micro-batch (zero-1-to-3 conditioning, CFG dropout, Eq. 21).
 
@@ -341,7 +346,8 @@ def compute_losses(
 
     ``image_encoder`` is an :class:`ImageEmbedder` (prepared by accelerate when it is trained); the CLIP
     embedding is differentiable exactly when its parameters require gradients, and is read from
-    ``batch["input_image_embeds"]`` when the batch carries it (frozen tower).
+    ``batch["input_image_embeds"]`` when the batch carries it (frozen tower). Timesteps are uniform (the
+paper's L_simple) unless ``timestep_sampling="logit_normal"`` (:func:`sample_timesteps`).
 
     Shape:
         ``batch["input"]``, ``batch["target"]``: ``(B, 1, S, S)``; outputs ``(B,)``.
@@ -370,7 +376,14 @@ def compute_losses(
     # 3. forward diffusion and prediction
     noise = torch.randn(latents.shape, generator=generator).to(device)
     num_train_timesteps = noise_scheduler.config.num_train_timesteps
-    timesteps = torch.randint(0, num_train_timesteps, (batch_size,), generator=generator).to(device)
+    timesteps = sample_timesteps(
+        batch_size,
+        num_train_timesteps,
+        sampling=timestep_sampling,
+        logit_mean=timestep_logit_mean,
+        logit_std=timestep_logit_std,
+        generator=generator,
+    ).to(device)
     x_t = noise_scheduler.add_noise(latents, noise, timesteps)
     model_output = unet(
         torch.cat([x_t, condition_latents], dim=1),
@@ -396,6 +409,40 @@ def compute_losses(
         generator=generator,
     )
     return dataclasses.replace(losses, timesteps=timesteps)
+
+
+def sample_timesteps(
+    batch_size: int,
+    num_train_timesteps: int,
+    *,
+    sampling: str = "uniform",
+    logit_mean: float = 0.0,
+    logit_std: float = 1.0,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Training timesteps: uniform (DDPM's L_simple), or logit-normal (diffusers' SD3 density).
+
+    ``"logit_normal"`` draws ``u = sigmoid(N(logit_mean, logit_std))`` with
+    :func:`diffusers.training_utils.compute_density_for_timestep_sampling` and takes ``t = floor(u T)``:
+    ``logit_mean > 0`` spends more of the batch at high noise, where the coarse layout (and so the pose)
+    of the target is decided and a model that ignores its conditioning pays most.
+
+    Raises:
+        ValueError: For an unknown ``sampling`` or ``logit_std <= 0``.
+
+    Shape:
+        ``(batch_size,)`` int64 in ``[0, num_train_timesteps)``, on the CPU.
+    """
+    if sampling == "uniform":
+        return torch.randint(0, num_train_timesteps, (batch_size,), generator=generator)
+    if sampling != "logit_normal":
+        raise ValueError(f"timestep_sampling must be 'uniform' or 'logit_normal', got {sampling!r}")
+    if not logit_std > 0:
+        raise ValueError(f"timestep_logit_std must be > 0, got {logit_std}")
+    u = compute_density_for_timestep_sampling(
+        "logit_normal", batch_size, logit_mean=logit_mean, logit_std=logit_std, generator=generator
+    )
+    return (u * num_train_timesteps).long().clamp(0, num_train_timesteps - 1)
 
 
 def timestep_bucket_losses(

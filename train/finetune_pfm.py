@@ -117,6 +117,9 @@ class FinetuneConfig:
     drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
     drop_both_prob: float = 0.05  # CFG dropout: projected token and condition latent (the sampling null)
     drop_latent_prob: float = 0.05  # CFG dropout: condition latent only
+    timestep_sampling: Literal["uniform", "logit_normal"] = "uniform"  # training t density (uniform: paper)
+    timestep_logit_mean: float = 0.0  # logit_normal: mean of logit(t / T); > 0 favours high noise
+    timestep_logit_std: float = 1.0  # logit_normal: standard deviation of logit(t / T)
     checkpointing_steps: int = 500  # save a resumable checkpoint every this many steps
     checkpoints_total_limit: int | None = None  # keep at most this many checkpoints
     resume_from_checkpoint: str | None = None  # 'latest' or a checkpoint folder
@@ -294,7 +297,8 @@ def build_datasets(
     train = ViewPairDataset(
         splits["train"], size=image_size, scaling=scaling, max_d_az_deg=config.max_d_az_deg, seed=config.seed
     )
-    validation_records = splits.get("test") or splits["train"]
+    # seen classes at held-out azimuths (ood protocols), else the test split
+    validation_records = splits.get("val") or splits.get("test") or splits["train"]
     validation = ViewPairDataset(
         validation_records,
         size=image_size,
@@ -548,6 +552,9 @@ def main(argv: list[str] | None = None) -> Path:
         drop_image_prob=config.drop_image_prob,
         drop_both_prob=config.drop_both_prob,
         drop_latent_prob=config.drop_latent_prob,
+        timestep_sampling=config.timestep_sampling,
+        timestep_logit_mean=config.timestep_logit_mean,
+        timestep_logit_std=config.timestep_logit_std,
     )
     while global_step < config.max_train_steps:
         epoch, offset = divmod(batch_index, batches_per_epoch)
