@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 from diffusers import AutoencoderKL, DDPMScheduler
-from diffusers.training_utils import compute_density_for_timestep_sampling
+from diffusers.training_utils import compute_density_for_timestep_sampling, compute_snr
 from torch.utils.data import Dataset
 from transformers import CLIPVisionModelWithProjection
 
@@ -43,6 +43,7 @@ __all__ = [
     "conditioning_sensitivity",
     "encode_batch",
     "micro_batch_generator",
+    "min_snr_weights",
     "sample_timesteps",
     "timestep_bucket_losses",
 ]
@@ -336,6 +337,7 @@ def compute_losses(
     timestep_sampling: str = "uniform",
     timestep_logit_mean: float = 0.0,
     timestep_logit_std: float = 1.0,
+    snr_gamma: float | None = None,
 ) -> LossOutput:
     """Per-sample losses of one micro-batch (zero-1-to-3 conditioning, CFG dropout, Eq. 21).
 
@@ -347,7 +349,8 @@ def compute_losses(
     ``image_encoder`` is an :class:`ImageEmbedder` (prepared by accelerate when it is trained); the CLIP
     embedding is differentiable exactly when its parameters require gradients, and is read from
     ``batch["input_image_embeds"]`` when the batch carries it (frozen tower). Timesteps are uniform (the
-paper's L_simple) unless ``timestep_sampling="logit_normal"`` (:func:`sample_timesteps`).
+paper's L_simple) unless ``timestep_sampling="logit_normal"`` (:func:`sample_timesteps`). With
+``snr_gamma``, L_simple of each sample is weighted by Min-SNR-gamma (:func:`min_snr_weights`).
 
     Shape:
         ``batch["input"]``, ``batch["target"]``: ``(B, 1, S, S)``; outputs ``(B,)``.
@@ -408,7 +411,37 @@ paper's L_simple) unless ``timestep_sampling="logit_normal"`` (:func:`sample_tim
         crop_size=pfm_crop_size,
         generator=generator,
     )
+    if snr_gamma is not None:
+        weights = min_snr_weights(noise_scheduler, timesteps, snr_gamma)
+        denoising = losses.denoising * weights
+        losses = dataclasses.replace(losses, denoising=denoising, loss=denoising + pfm_weight * losses.pfm)
     return dataclasses.replace(losses, timesteps=timesteps)
+
+
+def min_snr_weights(noise_scheduler: DDPMScheduler, timesteps: torch.Tensor, gamma: float) -> torch.Tensor:
+    """Min-SNR-gamma loss weights (Hang et al., 2023), as diffusers' training examples apply them.
+
+    The L_simple of epsilon prediction weighs each sample's x0 error by SNR(t), so nearly all of the loss
+    sits at low noise (fine detail: here, speckle) and almost none at high noise, where the layout of the
+    target view (its pose) is decided. Min-SNR caps that weight at ``gamma``:
+    ``min(SNR, gamma) / SNR`` for epsilon, ``min(SNR, gamma) / (SNR + 1)`` for v prediction.
+
+    Raises:
+        ValueError: If ``gamma <= 0`` or the prediction type is not epsilon or v_prediction.
+
+    Shape:
+        ``(B,)`` float32, on the timesteps' device.
+    """
+    if not gamma > 0:
+        raise ValueError(f"snr_gamma must be > 0, got {gamma}")
+    snr = compute_snr(noise_scheduler, timesteps).float()
+    capped = torch.clamp(snr, max=gamma)
+    prediction_type = noise_scheduler.config.prediction_type
+    if prediction_type == "epsilon":
+        return capped / snr
+    if prediction_type == "v_prediction":
+        return capped / (snr + 1)
+    raise ValueError(f"min-SNR weights need epsilon or v_prediction, got {prediction_type!r}")
 
 
 def sample_timesteps(

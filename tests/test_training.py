@@ -185,3 +185,22 @@ def test_sample_timesteps_uniform_is_randint_and_logit_normal_shifts_to_high_noi
         sample_timesteps(2, 1000, sampling="cosine")
     with pytest.raises(ValueError, match="timestep_logit_std"):
         sample_timesteps(2, 1000, sampling="logit_normal", logit_std=0.0)
+
+
+def test_min_snr_weights_closed_form() -> None:
+    from sar_zero123.training import min_snr_weights
+
+    scheduler = DDPMScheduler(num_train_timesteps=1000, beta_schedule="scaled_linear", beta_start=0.00085,
+                              beta_end=0.012)  # fmt: skip
+    timesteps = torch.tensor([0, 100, 500, 999])
+    abar = scheduler.alphas_cumprod[timesteps].double()
+    snr = abar / (1 - abar)
+    expected = torch.clamp(snr, max=5.0) / snr
+    weights = min_snr_weights(scheduler, timesteps, 5.0).double()
+    torch.testing.assert_close(weights, expected, rtol=1e-5, atol=0)
+    assert min_snr_weights(scheduler, timesteps, 5.0)[-1] == pytest.approx(1.0)  # high noise: SNR < gamma
+    v_scheduler = DDPMScheduler.from_config(scheduler.config, prediction_type="v_prediction")
+    v_weights = min_snr_weights(v_scheduler, timesteps, 5.0).double()
+    torch.testing.assert_close(v_weights, torch.clamp(snr, max=5.0) / (snr + 1), rtol=1e-5, atol=0)
+    with pytest.raises(ValueError, match="snr_gamma must be > 0"):
+        min_snr_weights(scheduler, timesteps, 0.0)

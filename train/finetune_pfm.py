@@ -120,6 +120,8 @@ class FinetuneConfig:
     timestep_sampling: Literal["uniform", "logit_normal"] = "uniform"  # training t density (uniform: paper)
     timestep_logit_mean: float = 0.0  # logit_normal: mean of logit(t / T); > 0 favours high noise
     timestep_logit_std: float = 1.0  # logit_normal: standard deviation of logit(t / T)
+    snr_gamma: float | None = None  # Min-SNR-gamma weighting of L_simple (e.g. 5); None: the paper's L_simple
+    prediction_type: Literal["epsilon", "v_prediction"] | None = None  # built sizes only (None: epsilon)
     checkpointing_steps: int = 500  # save a resumable checkpoint every this many steps
     checkpoints_total_limit: int | None = None  # keep at most this many checkpoints
     resume_from_checkpoint: str | None = None  # 'latest' or a checkpoint folder
@@ -175,6 +177,13 @@ class FinetuneConfig:
             raise ValueError(
                 f"drop_image_prob, drop_both_prob, drop_latent_prob must be >= 0 with sum <= 1, got {probs}"
             )
+        if self.prediction_type is not None and self.pretrained is not None:
+            raise ValueError(
+                "prediction_type: only for a model built from scratch (--size); a pretrained checkpoint "
+                "keeps the prediction type it was trained with"
+            )
+        if self.snr_gamma is not None and not self.snr_gamma > 0:
+            raise ValueError(f"snr_gamma must be > 0 or None, got {self.snr_gamma}")
         if self.image_size is not None and self.image_size < 8:
             raise ValueError(f"image_size must be >= 8, got {self.image_size}")
 
@@ -221,6 +230,10 @@ def load_components(config: FinetuneConfig) -> SARZero123Pipeline:
             pipe = SARZero123Pipeline.from_pretrained(path)
         else:
             pipe = SARZero123Pipeline.from_zero123(path)
+    if config.prediction_type is not None:  # only for a model built here: a checkpoint keeps its own
+        pipe.scheduler = type(pipe.scheduler).from_config(
+            pipe.scheduler.config, prediction_type=config.prediction_type
+        )
     if config.vae is not None:
         vae_path = Path(config.vae)
         if not (vae_path / "config.json").is_file():
@@ -555,6 +568,7 @@ def main(argv: list[str] | None = None) -> Path:
         timestep_sampling=config.timestep_sampling,
         timestep_logit_mean=config.timestep_logit_mean,
         timestep_logit_std=config.timestep_logit_std,
+        snr_gamma=config.snr_gamma,
     )
     while global_step < config.max_train_steps:
         epoch, offset = divmod(batch_index, batches_per_epoch)
