@@ -117,6 +117,10 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path) -> None:
 
 def test_evaluate_rejects_bad_config() -> None:
     script = load_script("evaluate")
+    with pytest.raises(ValueError, match="n must be >= 4 for an ood protocol"):
+        script.EvaluateConfig(pipeline=["a"], protocol="ood-T72", n=3)
+    with pytest.raises(ValueError, match="n must be >= 2"):
+        script.EvaluateConfig(pipeline=["a"], n=1)
     with pytest.raises(ValueError, match="lambdas has 1 values for 2 pipelines"):
         script.EvaluateConfig(pipeline=["a", "b"], lambdas=[0.0])
     with pytest.raises(ValueError, match="schedulers: unknown"):

@@ -147,8 +147,13 @@ class EvaluateConfig:
             raise ValueError(
                 f"paper_scoring_size must be >= crop_size or None, got {self.paper_scoring_size}"
             )
-        if self.protocol.startswith("ood-") and self.n < 2:
-            raise ValueError(f"n must be >= 2 for an ood protocol (half seen, half unseen), got {self.n}")
+        # the Frechet distance (SFD) needs two views per group: checked here, before any model runs
+        if self.protocol.startswith("ood-") and self.n < 4:
+            raise ValueError(
+                f"n must be >= 4 for an ood protocol (at least 2 seen and 2 unseen pairs), got {self.n}"
+            )
+        if self.n < 2:
+            raise ValueError(f"n must be >= 2 (the Frechet distance needs two views), got {self.n}")
         unknown = sorted(set(self.schedulers) - set(SCHEDULERS))
         if unknown:
             raise ValueError(f"schedulers: unknown {unknown}; choose from {sorted(SCHEDULERS)}")
