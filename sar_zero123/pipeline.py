@@ -631,9 +631,9 @@ SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
             "projection_dim": 256,
         },
     },
-    # Models a tenth and a fiftieth of `small`'s UNet for 64 px chips on a CPU, with `small`'s VAE (its
-    # trained VAE folder fits all three). Sized by docs/results/learning.md: per CPU minute these learn
-    # to follow the pose faster than `small`.
+    # Faster CPU models for 64 px chips, with `small`'s VAE (one trained VAE folder fits all three):
+    # UNets of about a third (`compact`, 6.7 M) and a tenth (`micro`, 1.7 M) of `small`'s 18.2 M, 2-6x
+    # the pairs per second (docs/results/learning.md; none has yet learned to follow the pose on a CPU).
     "compact": {
         "image_size": 64,
         "vae": "small",
