@@ -310,16 +310,23 @@ def build_datasets(
     train = ViewPairDataset(
         splits["train"], size=image_size, scaling=scaling, max_d_az_deg=config.max_d_az_deg, seed=config.seed
     )
-    # seen classes at held-out azimuths (ood protocols), else the test split
-    validation_records = splits.get("val") or splits.get("test") or splits["train"]
-    validation = ViewPairDataset(
-        validation_records,
-        size=image_size,
-        scaling=scaling,
-        max_d_az_deg=config.max_d_az_deg,
-        seed=config.seed + 1,
-        num_pairs=config.num_validation_images,
-    )
+    # seen classes at held-out azimuths (ood protocols' val split), else the test split, else the training
+    # chips: the first of them in which some chip has a partner view
+    for name in ("val", "test", "train"):
+        if not splits.get(name):
+            continue
+        try:
+            validation = ViewPairDataset(
+                splits[name],
+                size=image_size,
+                scaling=scaling,
+                max_d_az_deg=config.max_d_az_deg,
+                seed=config.seed + 1,
+                num_pairs=config.num_validation_images,
+            )
+        except ValueError:  # no chip of this split has a partner view
+            continue
+        break
     return train, validation, scaling
 
 
