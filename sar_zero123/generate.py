@@ -29,13 +29,18 @@ from matplotlib.figure import Figure
 from tqdm.auto import tqdm
 
 from sar_zero123.config import parse_config, save_config
-from sar_zero123.data import DecibelScaling, center_crop_resize, check_magnitude, load_magnitude
+from sar_zero123.data import (
+    SCALING_FILE,
+    DecibelScaling,
+    center_crop_resize,
+    check_magnitude,
+    load_magnitude,
+)
 from sar_zero123.pipeline import MAX_ABS_D_EL_DEG, MAX_GUIDANCE_SCALE, SARZero123Pipeline
 
-__all__ = ["SCALING_FILE", "GenerateConfig", "generate_views", "main"]
+__all__ = ["GenerateConfig", "generate_views", "main"]
 
 #: Name of the decibel-scaling file a training run may save next to its pipeline.
-SCALING_FILE = "decibel_scaling.json"
 #: Refuse a chip when more than this fraction of its pixels leaves the scaling's dB range (it is on
 #: another scale: raw magnitudes with unit bounds, or dB values read as magnitude); warn below it.
 MAX_CLIPPED_FRACTION = 0.5

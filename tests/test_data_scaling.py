@@ -94,3 +94,15 @@ def test_errors(call, message: str) -> None:
 def test_normalize_refuses_negative_and_non_finite_magnitudes(magnitude, match):
     with pytest.raises(ValueError, match=rf"magnitude must be finite and >= 0.*{match}"):
         DecibelScaling().normalize(magnitude)
+
+
+def test_from_choice_names_the_three_bounds() -> None:
+    from sar_zero123.data import SCALING_CHOICES
+
+    assert DecibelScaling.from_choice("unit") == DecibelScaling.for_unit_magnitude()
+    assert DecibelScaling.from_choice("mstar_raw") == DecibelScaling.for_mstar_raw()
+    magnitudes = [np.array([[0.5, 2.0]], dtype=np.float32)]
+    assert DecibelScaling.from_choice("fit", magnitudes) == DecibelScaling.fit(magnitudes)
+    assert SCALING_CHOICES == ("unit", "mstar_raw", "fit")
+    with pytest.raises(ValueError, match="scaling must be one of"):
+        DecibelScaling.from_choice("minmax")

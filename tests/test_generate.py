@@ -10,8 +10,8 @@ import pytest
 import torch
 from dummies import get_dummy_components
 
-from sar_zero123.data import DecibelScaling
-from sar_zero123.generate import SCALING_FILE, GenerateConfig, load_input_chip, main
+from sar_zero123.data import SCALING_FILE, DecibelScaling
+from sar_zero123.generate import GenerateConfig, load_input_chip, main
 from sar_zero123.pipeline import SARZero123Pipeline
 
 

@@ -69,7 +69,7 @@ def test_two_steps_write_encoder_metrics_and_logs(chip_folder, tmp_path):
     assert json.loads((out / "metrics.json").read_text())["steps"] == 2
     saved = json.loads((out / "config.json").read_text())
     assert saved["preset"] == "speckle+monotonic" and saved["learning_rate"] == 0.06
-    assert json.loads((out / "scaling.json").read_text())["min_db"] == -60.0
+    assert json.loads((out / "decibel_scaling.json").read_text())["min_db"] == -60.0
     assert list((out / "logs").rglob("events.out.tfevents.*")) or list(out.rglob("events.out.tfevents.*"))
     encoder = SAREncoder.from_pretrained(out / "encoder")
     assert encoder(torch.rand(2, 1, 16, 16)).shape == (2, 8)

@@ -34,9 +34,8 @@ from tqdm.auto import tqdm
 
 from sar_zero123.conditioning import encode_condition_latents
 from sar_zero123.config import parse_config, save_config, write_json_atomic
-from sar_zero123.data import DecibelScaling, ViewPairDataset, prepare_splits, split_records
+from sar_zero123.data import SCALING_FILE, DecibelScaling, ViewPairDataset, prepare_splits, split_records
 from sar_zero123.evaluators import Evaluators, check_class_names, load_evaluators, score_views
-from sar_zero123.generate import SCALING_FILE
 from sar_zero123.pipeline import SARZero123Pipeline
 
 logger = logging.getLogger(__name__)

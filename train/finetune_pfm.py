@@ -49,7 +49,7 @@ from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from sar_zero123.config import config_to_dict, parse_config, save_config, write_json_atomic
-from sar_zero123.data import DecibelScaling, ViewPairDataset, check_protocol, prepare_splits
+from sar_zero123.data import SCALING_FILE, DecibelScaling, ViewPairDataset, check_protocol, prepare_splits
 from sar_zero123.encoder import SAREncoder
 from sar_zero123.evaluators import Evaluators, load_evaluators, pose_following
 from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput, project_encoder_features
@@ -77,7 +77,6 @@ from sar_zero123.training import (
 
 logger = logging.getLogger(__name__)
 
-SCALING_FILE = "decibel_scaling.json"
 
 
 @dataclass
@@ -301,12 +300,7 @@ def build_datasets(
     splits = prepare_splits(config.data, config.protocol, Path(config.output_dir) / "data", seed=config.seed)
     if not splits.get("train"):
         raise ValueError(f"data: protocol {config.protocol!r} gives an empty training split")
-    if config.scaling == "fit":
-        scaling = DecibelScaling.fit(splits["train"])
-    elif config.scaling == "mstar_raw":
-        scaling = DecibelScaling.for_mstar_raw()
-    else:
-        scaling = DecibelScaling.for_unit_magnitude()
+    scaling = DecibelScaling.from_choice(config.scaling, splits["train"])
     train = ViewPairDataset(
         splits["train"], size=image_size, scaling=scaling, max_d_az_deg=config.max_d_az_deg, seed=config.seed
     )

@@ -10,7 +10,7 @@ lambda1 = lambda2 = 1 and Q = 512, projection head 512-512-128, NT-Xent temperat
 
 The train split's magnitudes are held in memory on the training device and augmented there, batched
 (`sar_zero123.augment.simclr_views`), so file reading never stalls the accelerator. Writes
-`<output_dir>/encoder` (`SAREncoder.save_pretrained`), `scaling.json` (dB bounds), `config.json`,
+`<output_dir>/encoder` (`SAREncoder.save_pretrained`), `decibel_scaling.json` (dB bounds), `config.json`,
 `metrics.json` (final loss, throughput, share of step time spent augmenting), TensorBoard logs under
 `<output_dir>/logs` and resumable `checkpoint-<step>` folders.
 
@@ -41,7 +41,7 @@ from tqdm.auto import tqdm
 
 from sar_zero123.augment import PRESETS, AugmentationPreset, simclr_views
 from sar_zero123.config import config_to_dict, parse_config, save_config, write_json_atomic
-from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, prepare_splits
+from sar_zero123.data import SCALING_FILE, ChipDataset, ChipRecord, DecibelScaling, prepare_splits
 from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig, nt_xent_loss
 from sar_zero123.run_state import (
     check_finite_state,
@@ -218,7 +218,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         )
     scaling = DecibelScaling.for_unit_magnitude()
     if accelerator.is_main_process:
-        write_json_atomic(scaling.to_dict(), output_dir / "scaling.json")
+        write_json_atomic(scaling.to_dict(), output_dir / SCALING_FILE)
     augmentation = config.augmentation()
     steps_per_epoch = num_chips // config.batch_size  # drop the incomplete last batch, as SimCLR does
     max_steps = config.epochs * steps_per_epoch

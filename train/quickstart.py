@@ -35,6 +35,7 @@ from typing import Any, Literal
 import torch
 
 from sar_zero123.config import parse_config, save_config, write_json_atomic
+from sar_zero123.data import SCALING_FILE
 from sar_zero123.pipeline import SAR_ZERO123_SIZES
 from sar_zero123.sim import simulate_dataset
 
@@ -263,7 +264,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
         "report_to": "none",
     }
     # decibel_scaling.json is the last file train_vae writes into its VAE folder
-    run_stage("vae", vae_dir / "decibel_scaling.json", timings, vae.main, script_argv(vae, vae_args))
+    run_stage("vae", vae_dir / SCALING_FILE, timings, vae.main, script_argv(vae, vae_args))
 
     # 4. fine-tune with lambda = 0 and lambda = 4
     finetune = load_script("finetune_pfm")

@@ -197,14 +197,6 @@ def train_model(
     return metrics
 
 
-def _scaling(config: TrainEvaluatorsConfig, train_records: list) -> DecibelScaling:
-    if config.scaling == "unit":
-        return DecibelScaling.for_unit_magnitude()
-    if config.scaling == "mstar_raw":
-        return DecibelScaling.for_mstar_raw()
-    return DecibelScaling.fit(train_records)
-
-
 def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     """Trains classifier, regressor and probes; returns `{model name: test metrics}`."""
     config = parse_config(TrainEvaluatorsConfig, argv)
@@ -220,7 +212,7 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     if config.max_train_chips is not None and len(train_records) > config.max_train_chips:
         keep = torch.randperm(len(train_records), generator=torch.Generator().manual_seed(config.seed))
         train_records = [train_records[i] for i in sorted(keep[: config.max_train_chips].tolist())]
-    scaling = _scaling(config, train_records)
+    scaling = DecibelScaling.from_choice(config.scaling, train_records)
     class_names = sorted({r.target_class for r in splits["train"] + splits["test"]})
     dataset_kwargs = {"size": config.image_size, "scaling": scaling, "class_names": class_names}
     dataset_kwargs["crop_size"] = config.chip_crop_size

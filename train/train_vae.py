@@ -28,7 +28,7 @@ from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from sar_zero123.config import parse_config, save_config, write_json_atomic
-from sar_zero123.data import ChipDataset, DecibelScaling, check_protocol, prepare_splits
+from sar_zero123.data import SCALING_FILE, ChipDataset, DecibelScaling, check_protocol, prepare_splits
 from sar_zero123.run_state import (
     check_finite_state,
     check_finite_step,
@@ -221,12 +221,7 @@ def main(argv: list[str] | None = None) -> Path:
     resume_path = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
     check_resume_config(resume_path, config, may_differ=("max_train_steps",))  # constant LR: extendable
     splits = prepare_splits(config.data, config.protocol, output_dir / "data", seed=config.seed)
-    if config.scaling == "fit":
-        scaling = DecibelScaling.fit(splits["train"])
-    elif config.scaling == "mstar_raw":
-        scaling = DecibelScaling.for_mstar_raw()
-    else:
-        scaling = DecibelScaling.for_unit_magnitude()
+    scaling = DecibelScaling.from_choice(config.scaling, splits["train"])
     train_dataset = ChipDataset(splits["train"], size=config.image_size, scaling=scaling)
     test_dataset = ChipDataset(splits.get("test") or splits["train"], size=config.image_size, scaling=scaling)
     if len(train_dataset) < config.train_batch_size * accelerator.num_processes:
@@ -294,7 +289,7 @@ def main(argv: list[str] | None = None) -> Path:
         check_finite_state({"vae": model}, what=str(output_dir / "vae"))
         write_json_atomic(metrics, output_dir / "metrics.json")
         model.save_pretrained(output_dir / "vae")
-        write_json_atomic(scaling.to_dict(), output_dir / "vae" / "decibel_scaling.json")
+        write_json_atomic(scaling.to_dict(), output_dir / "vae" / SCALING_FILE)
         accelerator.log({"test/psnr_db": metrics["psnr_db"], "test/ssim": metrics["ssim"]}, step=global_step)
         logger.info("test reconstruction: PSNR %.2f dB, SSIM %.4f", metrics["psnr_db"], metrics["ssim"])
     # no reference to the data-parallel wrapper (or a graph through it) may outlive the process group

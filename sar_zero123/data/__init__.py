@@ -18,6 +18,8 @@ from .mstar_raw import MSTARChip, read_mstar_header, read_mstar_raw, target_clas
 from .sample import SamplePair, load_sample, parse_sample_name
 from .scaling import (
     MSTAR_RAW_MAX_DB,
+    SCALING_CHOICES,
+    SCALING_FILE,
     UNIT_MAGNITUDE_MAX_DB,
     ZERO_MAGNITUDE_DB,
     DecibelScaling,
@@ -39,6 +41,8 @@ __all__ = [
     "ChipDataset",
     "ChipRecord",
     "DecibelScaling",
+    "SCALING_CHOICES",
+    "SCALING_FILE",
     "MSTARChip",
     "SamplePair",
     "ViewPairDataset",

@@ -22,6 +22,8 @@ import torch
 
 __all__ = [
     "DB_EPS",
+    "SCALING_CHOICES",
+    "SCALING_FILE",
     "check_magnitude",
     "MSTAR_RAW_MAX_DB",
     "UNIT_MAGNITUDE_MAX_DB",
@@ -32,6 +34,8 @@ __all__ = [
 ]
 
 DB_EPS = 1e-3
+SCALING_FILE = "decibel_scaling.json"  # the DecibelScaling a VAE or pipeline folder expects (to_dict)
+SCALING_CHOICES = ("unit", "mstar_raw", "fit")  # the training scripts' --scaling values
 ZERO_MAGNITUDE_DB = 20.0 * math.log10(DB_EPS)  # -60 dB
 # Largest decibel value of magnitudes normalised to [0, 1] (8-bit images as pixel/255, the simulator).
 UNIT_MAGNITUDE_MAX_DB = 20.0 * math.log10(1.0 + DB_EPS)  # 0.00868 dB
@@ -123,6 +127,22 @@ class DecibelScaling:
     def for_mstar_raw(cls) -> DecibelScaling:
         """Bounds for calibrated raw MSTAR magnitudes: [-60 dB, 24.4912 dB] (paper's reference code)."""
         return cls(min_db=ZERO_MAGNITUDE_DB, max_db=MSTAR_RAW_MAX_DB)
+
+    @classmethod
+    def from_choice(cls, choice: str, records: Iterable[Any] = ()) -> DecibelScaling:
+        """The bounds a training script's ``--scaling`` names: ``"unit"`` (:meth:`for_unit_magnitude`),
+        ``"mstar_raw"`` (:meth:`for_mstar_raw`) or ``"fit"`` (:meth:`fit` on ``records``).
+
+        Raises:
+            ValueError: For another choice, or ``"fit"`` without records.
+        """
+        if choice == "unit":
+            return cls.for_unit_magnitude()
+        if choice == "mstar_raw":
+            return cls.for_mstar_raw()
+        if choice == "fit":
+            return cls.fit(records)
+        raise ValueError(f"scaling must be one of {SCALING_CHOICES}, got {choice!r}")
 
     @classmethod
     def fit(cls, data: Iterable[Any]) -> DecibelScaling:
