@@ -396,9 +396,26 @@ def ms_ssim(
         raise ValueError(f"betas must be finite and >= 0 (exponents of the scale terms), got {tuple(betas)}")
     x, y = _prepare(x, y, crop_size, kernel_size, scales=len(betas))
     kernel = gaussian_kernel_1d(kernel_size, sigma)
+    return combine_scales(x, y, betas, lambda a, b: _ssim_terms(a, b, kernel, data_range))
+
+
+def combine_scales(x: torch.Tensor, y: torch.Tensor, betas: Sequence[float], ssim_terms) -> torch.Tensor:
+    """MS-SSIM's product over scales: contrast-structure terms at the finer scales, full SSIM at the coarsest,
+    each clamped at 0 and raised to its beta, with 2x average pooling between scales.
+
+    Args:
+        x: First images (already cropped), float.
+        y: Second images, same shape.
+        betas: Per-scale exponents, finest first.
+        ssim_terms: ``(x, y) -> (ssim, contrast_structure)``, each ``(B,)``: the single-scale SSIM
+            (this module's Gaussian window, or the torchmetrics-equivalent one of ``paper_metrics``).
+
+    Shape:
+        ``(B, C, H, W) -> (B,)``.
+    """
     factors = []
     for scale, beta in enumerate(betas):
-        value, contrast_structure = _ssim_terms(x, y, kernel, data_range)
+        value, contrast_structure = ssim_terms(x, y)
         last = scale == len(betas) - 1
         factors.append((value if last else contrast_structure).clamp_min(0.0) ** beta)
         if not last:

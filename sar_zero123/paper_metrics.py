@@ -34,7 +34,7 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
-from sar_zero123.metrics import CROP_SIZE, PAPER_MS_SSIM_BETAS, gaussian_kernel_1d
+from sar_zero123.metrics import CROP_SIZE, PAPER_MS_SSIM_BETAS, combine_scales, gaussian_kernel_1d
 
 PAPER_SCORING_SIZE = 256
 """Side in pixels of the images the authors scored (zero-1-to-3 resolution; 128 px chips resized to it)."""
@@ -274,15 +274,8 @@ def ms_ssim_torchmetrics(
     coarsest = min(x.shape[-2:]) // 2 ** (len(betas) - 1)
     if coarsest <= kernel.shape[0] // 2:
         raise ValueError(f"images of size {tuple(x.shape[-2:])} are too small for {len(betas)} scales")
-    x, y = x.double(), y.double()
-    factors = []
-    for scale, beta in enumerate(betas):
-        value, contrast_structure = _torchmetrics_ssim_terms(x, y, kernel, data_range)
-        last = scale == len(betas) - 1
-        factors.append((value if last else contrast_structure).clamp_min(0.0) ** beta)
-        if not last:
-            x, y = F.avg_pool2d(x, 2), F.avg_pool2d(y, 2)
-    return torch.stack(factors).prod(dim=0)
+    terms = lambda a, b: _torchmetrics_ssim_terms(a, b, kernel, data_range)  # noqa: E731
+    return combine_scales(x.double(), y.double(), betas, terms)
 
 
 def paper_ms_ssim(
@@ -310,10 +303,7 @@ def paper_ms_ssim(
     Raises:
         ValueError: For mismatched shapes or values outside [0, 1].
     """
-    if x.shape != y.shape:
-        raise ValueError(f"generated and target images differ in size: {tuple(x.shape)} != {tuple(y.shape)}")
-    x8 = to_paper_scoring_images(x, scoring_size=scoring_size, crop_size=crop_size)
-    y8 = to_paper_scoring_images(y, scoring_size=scoring_size, crop_size=crop_size)
+    x8, y8 = _paper_crops(x, y, scoring_size, crop_size)
     return ms_ssim_torchmetrics(x8 / 255.0, y8 / 255.0)
 
 
@@ -344,11 +334,18 @@ def paper_kuan_ssim(
     Raises:
         ValueError: For mismatched shapes or values outside [0, 1].
     """
+    x8, y8 = _paper_crops(x, y, scoring_size, crop_size)
+    return ssim_uniform_window(kuan_filter_findpeaks(x8), kuan_filter_findpeaks(y8), data_range=255.0)
+
+
+def _paper_crops(
+    x: torch.Tensor, y: torch.Tensor, scoring_size: int | None, crop_size: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Generated and target views as the authors scored them (:func:`to_paper_scoring_images`)."""
     if x.shape != y.shape:
         raise ValueError(f"generated and target images differ in size: {tuple(x.shape)} != {tuple(y.shape)}")
     x8 = to_paper_scoring_images(x, scoring_size=scoring_size, crop_size=crop_size)
-    y8 = to_paper_scoring_images(y, scoring_size=scoring_size, crop_size=crop_size)
-    return ssim_uniform_window(kuan_filter_findpeaks(x8), kuan_filter_findpeaks(y8), data_range=255.0)
+    return x8, to_paper_scoring_images(y, scoring_size=scoring_size, crop_size=crop_size)
 
 
 __all__ = [

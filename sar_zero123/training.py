@@ -31,7 +31,6 @@ from transformers import CLIPVisionModelWithProjection
 
 from .conditioning import embed_pose, encode_image_embeddings, pose_class_labels, vae_input
 from .data import ViewPairDataset, load_chip
-from .data.view_pairs import wrap_azimuth_deg
 from .losses import DEFAULT_PFM_MIN_SNR, LossOutput, denoising_target, total_loss
 
 __all__ = [
@@ -180,7 +179,7 @@ def load_chip_images(pairs: ViewPairDataset) -> torch.Tensor:
 class CachedViewPairs(Dataset):
     """The pairs of a :class:`ViewPairDataset` served from a :class:`ChipLatentCache` (no file reads).
 
-    Items hold the same keys as the wrapped dataset's (``input``, ``target``, ``d_az_deg``, ...) plus
+    Items hold the wrapped dataset's keys (``input``, ``target``, :meth:`ViewPairDataset.pair_fields`) plus
     ``input_latent_mean``, ``target_latent_mean``, ``target_latent_logvar`` and, with a frozen tower,
     ``input_image_embeds``. :meth:`set_epoch` redraws the wrapped pair list, so data order and pairs are
     those of the uncached dataset.
@@ -203,14 +202,11 @@ class CachedViewPairs(Dataset):
 
     def __getitem__(self, index: int) -> dict:
         source, target = (int(i) for i in self.pairs.pairs[index])
-        source_record, target_record = self.pairs.records[source], self.pairs.records[target]
         cache = self.cache
         item = {
             "input": cache.images[source],
             "target": cache.images[target],
-            "d_az_deg": wrap_azimuth_deg(target_record.azimuth_deg - source_record.azimuth_deg),
-            "d_el_deg": float(target_record.depression_deg - source_record.depression_deg),
-            "label": self.pairs.class_names.index(source_record.target_class),
+            **self.pairs.pair_fields(index),
             "input_latent_mean": cache.latent_mean[source],
             "target_latent_mean": cache.latent_mean[target],
             "target_latent_logvar": cache.latent_logvar[target],

@@ -156,13 +156,10 @@ class ViewPairDataset(Dataset):
     def __len__(self) -> int:
         return len(self.pairs)
 
-    def __getitem__(self, index: int) -> dict[str, Any]:
+    def pair_fields(self, index: int) -> dict[str, Any]:
+        """Everything of item ``index`` except the images: the relative pose, the label and both poses."""
         source, target = (self.records[i] for i in self.pairs[index])
-        input_magnitude = torch.from_numpy(load_chip(source.path, self.size, self.crop_size))[None]
-        target_magnitude = torch.from_numpy(load_chip(target.path, self.size, self.crop_size))[None]
-        item: dict[str, Any] = {
-            "input": self.scaling.normalize(input_magnitude),
-            "target": self.scaling.normalize(target_magnitude),
+        return {
             "d_az_deg": wrap_azimuth_deg(target.azimuth_deg - source.azimuth_deg),
             "d_el_deg": float(target.depression_deg - source.depression_deg),
             "label": self._label[source.target_class],
@@ -170,6 +167,16 @@ class ViewPairDataset(Dataset):
             "target_azimuth_deg": float(target.azimuth_deg),
             "input_depression_deg": float(source.depression_deg),
             "target_depression_deg": float(target.depression_deg),
+        }
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        source, target = (self.records[i] for i in self.pairs[index])
+        input_magnitude = torch.from_numpy(load_chip(source.path, self.size, self.crop_size))[None]
+        target_magnitude = torch.from_numpy(load_chip(target.path, self.size, self.crop_size))[None]
+        item: dict[str, Any] = {
+            "input": self.scaling.normalize(input_magnitude),
+            "target": self.scaling.normalize(target_magnitude),
+            **self.pair_fields(index),
         }
         if self.return_magnitude:
             item["input_magnitude"] = input_magnitude
