@@ -27,7 +27,7 @@ from pathlib import Path
 import torch
 from diffusers import DDPMScheduler
 
-from sar_zero123.pipeline import build_sar_zero123
+from sar_zero123.models import build_sar_zero123
 from sar_zero123.training import ChipLatentCache, ImageEmbedder, compute_losses
 
 VARIANTS = ("encode", "cached", "cached+bf16", "cached+channels_last")

@@ -102,7 +102,7 @@ def peak_rss_mib() -> float:
 
 def build_step_setup(size: str, batch_size: int, seed: int = 0):
     """Pipeline parts, a random ResNet-18 SAR encoder at the chip size and one fixed batch."""
-    from sar_zero123.pipeline import build_sar_zero123
+    from sar_zero123.models import build_sar_zero123
 
     pipe = build_sar_zero123(size, seed=seed)
     image_size = pipe.default_image_size

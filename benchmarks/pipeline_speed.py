@@ -32,7 +32,8 @@ from diffusers import DDIMScheduler, DPMSolverMultistepScheduler, EulerDiscreteS
 
 from sar_zero123.conditioning import embed_pose
 from sar_zero123.config import parse_config, write_json_atomic
-from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
+from sar_zero123.models import build_sar_zero123
+from sar_zero123.pipeline import SARZero123Pipeline
 
 SCHEDULERS = {
     "ddim": (DDIMScheduler, {}),

@@ -14,7 +14,7 @@ __version__ = "0.1.0"
 _LAZY = {
     "SARZero123Pipeline": "sar_zero123.pipeline",
     "SARZero123PipelineOutput": "sar_zero123.pipeline",
-    "build_sar_zero123": "sar_zero123.pipeline",
+    "build_sar_zero123": "sar_zero123.models",
     "PoseProjection": "sar_zero123.conditioning",
     "embed_pose": "sar_zero123.conditioning",
     "SAREncoder": "sar_zero123.encoder",

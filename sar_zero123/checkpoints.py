@@ -1,4 +1,4 @@
-"""Loading Objaverse zero-1-to-3 checkpoints into :class:`SARZero123Pipeline`.
+"""Loading Objaverse zero-1-to-3 checkpoints, and the zero-1-to-3 constants every model here shares.
 
 Three layouts are found in the wild (REFERENCE.md, "Checkpoint layouts in the wild"):
 
@@ -16,6 +16,11 @@ A folder saved by :meth:`SARZero123Pipeline.save_pretrained` (with ``pose_projec
 Projection sizes are always read from the weight shapes. The UNet and VAE key renaming of layout (c)
 is diffusers' own single-file converters; only the EMA substitution and the architecture inference
 (which those converters take from the LDM yaml we do not have) are done here.
+
+The module returns components (:func:`load_zero123_components`); ``SARZero123Pipeline.from_zero123``
+assembles them, so this module does not import the pipeline. It also holds the constants that loaded
+and built models share: the noise schedule (:data:`ZERO123_SCHEDULER_CONFIG`), Stable Diffusion's VAE
+scaling factor and the CLIP image processor class.
 """
 
 from __future__ import annotations
@@ -37,9 +42,29 @@ except ImportError:  # transformers 4.x
     from transformers import CLIPImageProcessor
 
 from sar_zero123.conditioning import POSE_DIM, PoseProjection
-from sar_zero123.pipeline import SD_VAE_SCALING_FACTOR, ZERO123_SCHEDULER_CONFIG, SARZero123Pipeline
 
-__all__ = ["PROJECTION_FOLDERS", "convert_openai_clip_vision", "load_ldm_state_dict", "load_zero123"]
+__all__ = [
+    "PROJECTION_FOLDERS",
+    "SD_VAE_SCALING_FACTOR",
+    "ZERO123_SCHEDULER_CONFIG",
+    "CLIPImageProcessor",
+    "convert_openai_clip_vision",
+    "load_ldm_state_dict",
+    "load_zero123_components",
+]
+
+#: zero-1-to-3 / Stable Diffusion noise schedule (REFERENCE.md): 1000 steps, scaled_linear, epsilon.
+ZERO123_SCHEDULER_CONFIG: dict[str, Any] = {
+    "num_train_timesteps": 1000,
+    "beta_start": 0.00085,
+    "beta_end": 0.012,
+    "beta_schedule": "scaled_linear",
+    "prediction_type": "epsilon",
+    "clip_sample": False,
+    "set_alpha_to_one": False,
+    "steps_offset": 1,
+}
+SD_VAE_SCALING_FACTOR = 0.18215
 
 #: Folder name of the pose projection -> names of its weight and bias in that folder's state dict.
 PROJECTION_FOLDERS: dict[str, tuple[str, str]] = {
@@ -64,17 +89,17 @@ ZERO123_VAE_DEFAULTS: dict[str, Any] = {
 }
 
 
-def load_zero123(
+def load_zero123_components(
     path: str | Path,
     use_ema: bool = True,
     image_encoder_path: str | Path | None = None,
-    torch_dtype: torch.dtype | None = None,
     unet_config: dict[str, Any] | None = None,
     vae_config: dict[str, Any] | None = None,
     image_encoder_config: dict[str, Any] | None = None,
     weights_only: bool = True,
-) -> SARZero123Pipeline:
-    """Build a :class:`SARZero123Pipeline` from a zero-1-to-3 checkpoint in any supported layout.
+) -> dict[str, Any]:
+    """The components of a :class:`~sar_zero123.pipeline.SARZero123Pipeline` from a zero-1-to-3 checkpoint
+    in any supported layout (``SARZero123Pipeline.from_zero123`` assembles them).
 
     Args:
         path: A diffusers folder (layouts a, b, or this package's) or an LDM ``.ckpt`` /
@@ -85,7 +110,6 @@ def load_zero123(
             for the Objaverse checkpoints) and optionally its ``CLIPImageProcessor``. Overrides a
             folder's own ``image_encoder``; for LDM files it is needed only when the file holds no
             OpenAI CLIP tower (``cond_stage_model.model.visual.*``), which is converted otherwise.
-        torch_dtype: Optional dtype for all modules.
         unet_config: LDM files only: ``UNet2DConditionModel`` config entries that override the
             inferred/default ones (the head count and norm groups are not in the weights; defaults are
             zero-1-to-3's ``attention_head_dim=8``, ``norm_num_groups=32``).
@@ -97,7 +121,8 @@ def load_zero123(
             and holds objects a weights-only unpickler refuses.
 
     Returns:
-        The pipeline in eval mode.
+        The keyword arguments of ``SARZero123Pipeline``: ``vae``, ``image_encoder``, ``unet``,
+        ``scheduler``, ``pose_projection`` (in eval mode) and ``feature_extractor``.
 
     Raises:
         FileNotFoundError: If ``path`` does not exist.
@@ -108,20 +133,16 @@ def load_zero123(
     if not path.exists():
         raise FileNotFoundError(f"zero-1-to-3 checkpoint not found: {path}")
     if path.is_dir():
-        pipe = _load_folder(path, image_encoder_path)
-    elif path.suffix in (".ckpt", ".pt", ".pth", ".safetensors"):
+        return _load_folder(path, image_encoder_path)
+    if path.suffix in (".ckpt", ".pt", ".pth", ".safetensors"):
         state_dict = load_ldm_state_dict(path, weights_only=weights_only)
-        pipe = _pipeline_from_ldm(
+        return _components_from_ldm(
             state_dict, use_ema, image_encoder_path, unet_config, vae_config, image_encoder_config
         )
-    else:
-        raise ValueError(
-            f"unknown zero-1-to-3 checkpoint layout: {path}. Expected a diffusers folder with "
-            f"model_index.json and one of {sorted(PROJECTION_FOLDERS)}, or an LDM .ckpt/.safetensors file"
-        )
-    if torch_dtype is not None:
-        pipe.to(dtype=torch_dtype)
-    return pipe
+    raise ValueError(
+        f"unknown zero-1-to-3 checkpoint layout: {path}. Expected a diffusers folder with "
+        f"model_index.json and one of {sorted(PROJECTION_FOLDERS)}, or an LDM .ckpt/.safetensors file"
+    )
 
 
 def load_ldm_state_dict(path: str | Path, weights_only: bool = True) -> dict[str, torch.Tensor]:
@@ -211,7 +232,7 @@ def _load_scheduler(folder: Path) -> Any:
     return scheduler_class.from_pretrained(folder)
 
 
-def _load_folder(path: Path, image_encoder_path: str | Path | None) -> SARZero123Pipeline:
+def _load_folder(path: Path, image_encoder_path: str | Path | None) -> dict[str, Any]:
     projection_folders = [name for name in PROJECTION_FOLDERS if (path / name).is_dir()]
     if not (path / "model_index.json").exists() or not projection_folders:
         raise ValueError(
@@ -225,7 +246,7 @@ def _load_folder(path: Path, image_encoder_path: str | Path | None) -> SARZero12
 
     encoder_dir = Path(image_encoder_path) if image_encoder_path is not None else path / "image_encoder"
     feature_dir = encoder_dir if image_encoder_path is not None else path / "feature_extractor"
-    return SARZero123Pipeline(
+    return dict(
         vae=AutoencoderKL.from_pretrained(path / "vae").eval(),
         image_encoder=CLIPVisionModelWithProjection.from_pretrained(encoder_dir).eval(),
         unet=UNet2DConditionModel.from_pretrained(path / "unet").eval(),
@@ -421,14 +442,14 @@ def convert_openai_clip_vision(
     return model.eval()
 
 
-def _pipeline_from_ldm(
+def _components_from_ldm(
     state_dict: dict[str, torch.Tensor],
     use_ema: bool,
     image_encoder_path: str | Path | None,
     unet_config: dict[str, Any] | None,
     vae_config: dict[str, Any] | None,
     image_encoder_config: dict[str, Any] | None,
-) -> SARZero123Pipeline:
+) -> dict[str, Any]:
     # 1. check the layout
     prefixes = (LDM_UNET_PREFIX, LDM_VAE_PREFIX)
     absent = [f"{prefix}*" for prefix in prefixes if not any(k.startswith(prefix) for k in state_dict)]
@@ -475,7 +496,7 @@ def _pipeline_from_ldm(
     else:
         image_encoder = convert_openai_clip_vision(state_dict, config_overrides=image_encoder_config)
         feature_extractor = None  # the pipeline then uses OpenAI CLIP's mean/std, as zero-1-to-3 does
-    return SARZero123Pipeline(
+    return dict(
         vae=vae.eval(),
         image_encoder=image_encoder,
         unet=unet.eval(),

@@ -22,8 +22,10 @@ from dummies import dummy_images, get_dummy_components
 from safetensors.torch import save_file
 from transformers import CLIPImageProcessor
 
-from sar_zero123.checkpoints import load_zero123
-from sar_zero123.pipeline import SAR_ZERO123_SIZES, SARZero123Pipeline
+from sar_zero123.models import SAR_ZERO123_SIZES
+from sar_zero123.pipeline import SARZero123Pipeline
+
+load_zero123 = SARZero123Pipeline.from_zero123
 
 TINY_UNET = {"attention_head_dim": 4, "norm_num_groups": 8, "sample_size": 16}
 TINY_VAE = {"norm_num_groups": 8, "sample_size": 32}
@@ -263,7 +265,7 @@ def test_inverse_key_mapping_round_trips_through_diffusers_converters(source):
 @pytest.mark.parametrize("projection_folder", ["cc_projection", "clip_camera_projection"])
 def test_diffusers_folder_layouts_load_identically(source, reference, tmp_path, projection_folder):
     _write_diffusers_folder(source, tmp_path, projection_folder)
-    loaded = SARZero123Pipeline.from_zero123(tmp_path)
+    loaded = load_zero123(tmp_path)
     assert (loaded.pose_projection.config.in_features, loaded.pose_projection.config.out_features) == (20, 16)
     assert loaded.feature_extractor is not None
     assert torch.equal(sample(loaded), reference)
@@ -271,7 +273,7 @@ def test_diffusers_folder_layouts_load_identically(source, reference, tmp_path, 
 
 def test_own_saved_folder_loads_through_from_zero123(source, reference, tmp_path):
     source.save_pretrained(tmp_path)
-    assert torch.equal(sample(SARZero123Pipeline.from_zero123(tmp_path)), reference)
+    assert torch.equal(sample(load_zero123(tmp_path)), reference)
 
 
 @pytest.mark.parametrize("suffix", [".ckpt", ".safetensors"])
@@ -285,7 +287,7 @@ def test_ldm_checkpoint_loads_ema_weights(source, perturbed, reference, encoder_
     # Without overrides the facts the weights cannot tell are zero-1-to-3's: 32 norm groups do not
     # divide the tiny 16 channels.
     with pytest.raises(ValueError, match="num_groups"):
-        SARZero123Pipeline.from_zero123(path, use_ema=True, image_encoder_path=encoder_dir)
+        load_zero123(path, use_ema=True, image_encoder_path=encoder_dir)
     loaded = load_zero123(path, image_encoder_path=encoder_dir, unet_config=TINY_UNET, vae_config=TINY_VAE)
     assert loaded.unet.config.in_channels == 8 and loaded.vae.config.in_channels == 3
     assert loaded.unet.config.down_block_types == ("CrossAttnDownBlock2D", "DownBlock2D")

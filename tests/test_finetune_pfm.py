@@ -25,7 +25,8 @@ from safetensors.torch import load_file
 
 from sar_zero123.data import ChipRecord, write_index
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
-from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
+from sar_zero123.models import build_sar_zero123
+from sar_zero123.pipeline import SARZero123Pipeline
 from sar_zero123.training import ImageEmbedder, compute_losses, micro_batch_generator
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -17,7 +17,8 @@ from diffusers import (
 )
 from dummies import DUMMY_IMAGE_SIZE, dummy_images, get_dummy_components
 
-from sar_zero123.pipeline import SARZero123Pipeline, SARZero123PipelineOutput, build_sar_zero123
+from sar_zero123.models import build_sar_zero123
+from sar_zero123.pipeline import SARZero123Pipeline, SARZero123PipelineOutput
 
 STEPS = 2
 

@@ -144,7 +144,8 @@ def test_timestep_bucket_losses_are_bucket_means() -> None:
 def test_pose_in_time_embedding_is_the_only_pose_path_when_the_token_ignores_the_pose(
     pose_in_time_embedding, tmp_path
 ) -> None:
-    from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
+    from sar_zero123.models import build_sar_zero123
+    from sar_zero123.pipeline import SARZero123Pipeline
 
     pipe = build_sar_zero123("tiny", pose_in_time_embedding=pose_in_time_embedding)
     with torch.no_grad():  # zero-1-to-3's initial projection: the token does not see the pose yet

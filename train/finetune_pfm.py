@@ -53,7 +53,8 @@ from sar_zero123.data import SCALING_FILE, DecibelScaling, ViewPairDataset, chec
 from sar_zero123.encoder import SAREncoder
 from sar_zero123.evaluators import Evaluators, load_evaluators, pose_following
 from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput, project_encoder_features
-from sar_zero123.pipeline import SARZero123Pipeline, build_sar_zero123
+from sar_zero123.models import build_sar_zero123
+from sar_zero123.pipeline import SARZero123Pipeline
 from sar_zero123.run_state import (
     check_finite_state,
     check_finite_step,

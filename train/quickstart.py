@@ -36,7 +36,7 @@ import torch
 
 from sar_zero123.config import parse_config, save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE
-from sar_zero123.pipeline import SAR_ZERO123_SIZES
+from sar_zero123.models import SAR_ZERO123_SIZES
 from sar_zero123.sim import simulate_dataset
 
 logger = logging.getLogger(__name__)

@@ -1,0 +1,250 @@
+"""Named model sizes: :data:`SAR_ZERO123_SIZES` and :func:`build_sar_zero123`, randomly initialised
+:class:`~sar_zero123.pipeline.SARZero123Pipeline` s from ``tiny`` (unit tests) to ``zero123`` (the
+Objaverse zero-1-to-3 shapes). The zero-1-to-3 constants they share with loaded checkpoints (noise
+schedule, VAE scaling factor, CLIP preprocessing) live in :mod:`sar_zero123.checkpoints`.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import torch
+from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
+
+from sar_zero123.checkpoints import SD_VAE_SCALING_FACTOR, ZERO123_SCHEDULER_CONFIG, CLIPImageProcessor
+from sar_zero123.conditioning import POSE_DIM, PoseProjection
+from sar_zero123.pipeline import SARZero123Pipeline
+
+__all__ = ["SAR_ZERO123_SIZES", "build_sar_zero123"]
+
+SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
+    # Unit tests: 32 px chips, 16x16x4 latents; well under 1 M parameters in total.
+    "tiny": {
+        "image_size": 32,
+        "vae": {
+            "in_channels": 1,
+            "out_channels": 1,
+            "down_block_types": ("DownEncoderBlock2D",) * 2,
+            "up_block_types": ("UpDecoderBlock2D",) * 2,
+            "block_out_channels": (16, 32),
+            "layers_per_block": 1,
+            "latent_channels": 4,
+            "norm_num_groups": 8,
+        },
+        "unet": {
+            "block_out_channels": (16, 32),
+            "layers_per_block": 1,
+            "down_block_types": ("CrossAttnDownBlock2D", "DownBlock2D"),
+            "up_block_types": ("UpBlock2D", "CrossAttnUpBlock2D"),
+            "cross_attention_dim": 16,
+            "attention_head_dim": 4,
+            "norm_num_groups": 8,
+        },
+        "image_encoder": {
+            "hidden_size": 32,
+            "intermediate_size": 64,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 4,
+            "image_size": 32,
+            "patch_size": 8,
+            "projection_dim": 16,
+        },
+    },
+    # A useful CPU model for 64 px SAR chips (64-128 px work): 1-channel VAE with two downsamplings
+    # (64 px -> 16x16x4 latents), a three-level UNet, and a small ViT trained from scratch on SAR.
+    "small": {
+        "image_size": 64,
+        "vae": {
+            "in_channels": 1,
+            "out_channels": 1,
+            "down_block_types": ("DownEncoderBlock2D",) * 3,
+            "up_block_types": ("UpDecoderBlock2D",) * 3,
+            "block_out_channels": (32, 64, 128),
+            "layers_per_block": 2,
+            "latent_channels": 4,
+            "norm_num_groups": 32,
+        },
+        "unet": {
+            "block_out_channels": (64, 128, 256),
+            "layers_per_block": 2,
+            "down_block_types": ("CrossAttnDownBlock2D", "CrossAttnDownBlock2D", "DownBlock2D"),
+            "up_block_types": ("UpBlock2D", "CrossAttnUpBlock2D", "CrossAttnUpBlock2D"),
+            "cross_attention_dim": 256,
+            "attention_head_dim": 8,
+            "norm_num_groups": 32,
+        },
+        "image_encoder": {
+            "hidden_size": 256,
+            "intermediate_size": 1024,
+            "num_hidden_layers": 4,
+            "num_attention_heads": 4,
+            "image_size": 64,
+            "patch_size": 8,
+            "projection_dim": 256,
+        },
+    },
+    # Faster CPU models for 64 px chips, with `small`'s VAE (one trained VAE folder fits all three):
+    # UNets of about a third (`compact`, 6.7 M) and a tenth (`micro`, 1.7 M) of `small`'s 18.2 M, 2-6x
+    # the pairs per second (docs/results/learning.md; none has yet learned to follow the pose on a CPU).
+    "compact": {
+        "image_size": 64,
+        "vae": "small",
+        "unet": {
+            "block_out_channels": (64, 128, 128),
+            "layers_per_block": 1,
+            "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D"),
+            "up_block_types": ("CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "UpBlock2D"),
+            "cross_attention_dim": 128,
+            "attention_head_dim": 8,
+            "norm_num_groups": 32,
+        },
+        "image_encoder": {
+            "hidden_size": 128,
+            "intermediate_size": 512,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 4,
+            "image_size": 64,
+            "patch_size": 8,
+            "projection_dim": 128,
+        },
+    },
+    "micro": {
+        "image_size": 64,
+        "vae": "small",
+        "unet": {
+            "block_out_channels": (32, 64, 64),
+            "layers_per_block": 1,
+            "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D"),
+            "up_block_types": ("CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "UpBlock2D"),
+            "cross_attention_dim": 64,
+            "attention_head_dim": 8,
+            "norm_num_groups": 16,
+        },
+        "image_encoder": {
+            "hidden_size": 64,
+            "intermediate_size": 256,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 4,
+            "image_size": 64,
+            "patch_size": 8,
+            "projection_dim": 64,
+        },
+    },
+    # Exactly the Objaverse zero-1-to-3 shapes: SD 1.x UNet with 8 input channels, SD VAE,
+    # CLIP ViT-L/14 image tower (768-d embeddings), Linear(772, 768); 256 px -> 32x32x4 latents.
+    "zero123": {
+        "image_size": 256,
+        "vae": {
+            "in_channels": 3,
+            "out_channels": 3,
+            "down_block_types": ("DownEncoderBlock2D",) * 4,
+            "up_block_types": ("UpDecoderBlock2D",) * 4,
+            "block_out_channels": (128, 256, 512, 512),
+            "layers_per_block": 2,
+            "latent_channels": 4,
+            "norm_num_groups": 32,
+        },
+        "unet": {
+            "block_out_channels": (320, 640, 1280, 1280),
+            "layers_per_block": 2,
+            "down_block_types": ("CrossAttnDownBlock2D",) * 3 + ("DownBlock2D",),
+            "up_block_types": ("UpBlock2D",) + ("CrossAttnUpBlock2D",) * 3,
+            "cross_attention_dim": 768,
+            "attention_head_dim": 8,
+            "norm_num_groups": 32,
+        },
+        "image_encoder": {
+            "hidden_size": 1024,
+            "intermediate_size": 4096,
+            "num_hidden_layers": 24,
+            "num_attention_heads": 16,
+            "image_size": 224,
+            "patch_size": 14,
+            "projection_dim": 768,
+            "hidden_act": "quick_gelu",
+        },
+    },
+}
+
+for _spec in SAR_ZERO123_SIZES.values():  # a size may share another size's VAE (then one VAE fits both)
+    if isinstance(_spec["vae"], str):
+        _spec["vae"] = SAR_ZERO123_SIZES[_spec["vae"]]["vae"]
+
+def build_sar_zero123(
+    size: str, image_size: int | None = None, seed: int = 0, pose_in_time_embedding: bool = False
+) -> SARZero123Pipeline:
+    """Build a randomly initialised :class:`SARZero123Pipeline` of a named size.
+
+    Each component is initialised from ``torch.manual_seed(seed)`` inside ``torch.random.fork_rng``, so
+    the result depends only on ``seed`` and the global RNG state is left untouched.
+
+    Sizes (parameter counts in ``docs/RESULTS.md``):
+
+    - ``"tiny"``: 32 px, for unit tests, well under 1 M parameters.
+    - ``"small"``: 64 px SAR chips (64-128 px work) on a CPU; 1-channel VAE, 16x16x4 latents.
+    - ``"zero123"``: exactly the Objaverse zero-1-to-3 shapes at 256 px (load real weights with
+      :meth:`SARZero123Pipeline.from_zero123`).
+
+    Args:
+        size: One of ``"tiny"``, ``"small"``, ``"zero123"``.
+        image_size: Chip size in pixels; defaults to the size's own. Sets the VAE and UNet
+            ``sample_size`` (the networks themselves are size-agnostic).
+        seed: Initialisation seed.
+        pose_in_time_embedding: Also add a learned projection of the pose vector to the UNet's timestep
+            embedding (``class_embed_type="projection"``, see
+            :func:`~sar_zero123.conditioning.pose_class_labels`); recorded in the UNet config.
+
+    Returns:
+        The pipeline (float32, CPU) with a zero-1-to-3 DDIM scheduler.
+
+    Raises:
+        ValueError: If ``size`` is unknown or ``image_size`` is not a positive multiple of the
+            model's total downsampling factor.
+    """
+    if size not in SAR_ZERO123_SIZES:
+        raise ValueError(f"`size` must be one of {sorted(SAR_ZERO123_SIZES)}, got {size!r}")
+    spec = SAR_ZERO123_SIZES[size]
+    vae_factor = 2 ** (len(spec["vae"]["block_out_channels"]) - 1)
+    multiple = vae_factor * 2 ** (len(spec["unet"]["block_out_channels"]) - 1)
+    image_size = spec["image_size"] if image_size is None else image_size
+    if not isinstance(image_size, int) or image_size < multiple or image_size % multiple:
+        raise ValueError(
+            f"`image_size` must be a positive multiple of {multiple} for size {size!r}, got {image_size}"
+        )
+    latent_channels = spec["vae"]["latent_channels"]
+    clip_config = CLIPVisionConfig(**spec["image_encoder"])
+    cross_attention_dim = spec["unet"]["cross_attention_dim"]
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(seed)
+        vae = AutoencoderKL(**spec["vae"], sample_size=image_size, scaling_factor=SD_VAE_SCALING_FACTOR)
+        torch.manual_seed(seed)
+        pose_embedding = (
+            {"class_embed_type": "projection", "projection_class_embeddings_input_dim": POSE_DIM}
+            if pose_in_time_embedding
+            else {}
+        )
+        unet = UNet2DConditionModel(
+            **spec["unet"],
+            **pose_embedding,
+            sample_size=image_size // vae_factor,
+            in_channels=2 * latent_channels,
+            out_channels=latent_channels,
+        )
+        torch.manual_seed(seed)
+        image_encoder = CLIPVisionModelWithProjection(clip_config)
+        # nn.Linear draws its default init before PoseProjection overwrites it: keep that inside too.
+        pose_projection = PoseProjection(clip_config.projection_dim + POSE_DIM, cross_attention_dim)
+    feature_extractor = None
+    if size == "zero123":
+        feature_extractor = CLIPImageProcessor(
+            size={"shortest_edge": 224}, crop_size={"height": 224, "width": 224}, do_center_crop=True
+        )
+    return SARZero123Pipeline(
+        vae=vae.eval(),
+        image_encoder=image_encoder.eval(),
+        unet=unet.eval(),
+        scheduler=DDIMScheduler(**ZERO123_SCHEDULER_CONFIG),
+        pose_projection=pose_projection.eval(),
+        feature_extractor=feature_extractor,
+    )
