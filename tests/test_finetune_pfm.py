@@ -27,6 +27,7 @@ from sar_zero123.data import ChipRecord, write_index
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
 from sar_zero123.models import build_sar_zero123
 from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.runs import weights_digest
 from sar_zero123.training import ImageEmbedder, compute_losses, micro_batch_generator
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -393,7 +394,7 @@ def test_train_image_encoder_trains_checkpoints_and_exports_the_tower(script, to
     modules.pose_projection.load_state_dict(load_file(tower_run / "checkpoint-2" / "model_1.safetensors"))
     embedder = ImageEmbedder(modules.image_encoder)
     embedder.load_state_dict(tower)
-    digest = script.weights_digest([modules.unet, modules.pose_projection, embedder]).item()
+    digest = weights_digest([modules.unet, modules.pose_projection, embedder]).item()
     assert json.loads((tower_run / "train_state.json").read_text())["replica_weight_digests"] == [digest]
     assert (tower_run / "validation" / "step-000002.png").is_file()
 

@@ -24,10 +24,8 @@ checkpoint's step and reaches bitwise the weights of an uninterrupted run.
 
 from __future__ import annotations
 
-import hashlib
 import json
 import logging
-import os
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -36,19 +34,13 @@ import numpy as np
 import PIL.Image
 import torch
 from accelerate import Accelerator
-from accelerate.utils import (
-    DataLoaderConfiguration,
-    GradientAccumulationPlugin,
-    ProjectConfiguration,
-    set_seed,
-)
 from diffusers import AutoencoderKL, DDIMScheduler, DDPMScheduler, UNet2DConditionModel
 from diffusers.optimization import get_scheduler
 from diffusers.training_utils import EMAModel
 from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
-from sar_zero123.config import config_to_dict, parse_config, save_config, write_json_atomic
+from sar_zero123.config import parse_config, save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling, ViewPairDataset, check_protocol, prepare_splits
 from sar_zero123.encoder import SAREncoder
 from sar_zero123.evaluators import Evaluators, load_evaluators, pose_following
@@ -65,6 +57,7 @@ from sar_zero123.run_state import (
     resolve_resume_checkpoint,
     save_checkpoint,
 )
+from sar_zero123.runs import check_replicas_agree, start_run, tracker_hparams
 from sar_zero123.training import (
     CachedViewPairs,
     ChipLatentCache,
@@ -189,24 +182,6 @@ class FinetuneConfig:
 
 
 # ----------------------------------------------------------------------------------------- building
-def check_distributed_launch(accelerator: Accelerator) -> None:
-    """Refuse a multi-process launch that accelerate did not turn into a distributed run.
-
-    ``accelerate launch --multi_gpu --num_processes N`` on a machine without GPUs starts N processes that
-    each believe they are alone (and overwrite each other's checkpoints) unless ``ACCELERATE_USE_CPU=true``
-    is set, which selects gloo data parallelism on CPU.
-
-    Raises:
-        RuntimeError: If ``WORLD_SIZE > 1`` but accelerate runs a single process.
-    """
-    world_size = int(os.environ.get("WORLD_SIZE", "1"))
-    if world_size > 1 and accelerator.num_processes == 1:
-        raise RuntimeError(
-            f"WORLD_SIZE={world_size} but accelerate started a non-distributed run; on CPU launch with "
-            "ACCELERATE_USE_CPU=true accelerate launch --multi_gpu --num_processes N ..."
-        )
-
-
 def load_components(config: FinetuneConfig) -> SARZero123Pipeline:
     """The pipeline to fine-tune: ``--pretrained`` (any layout the pipeline loads) or a named size, with
     ``--vae`` swapped in.
@@ -375,20 +350,6 @@ def run_validation(
     return path
 
 
-def weights_digest(modules: list[torch.nn.Module]) -> torch.Tensor:
-    """A 63-bit digest of the exact bytes of every parameter, to compare data-parallel replicas.
-
-    Shape:
-        ``(1,)`` int64.
-    """
-    digest = hashlib.sha256()
-    for module in modules:
-        for name, parameter in module.named_parameters():
-            digest.update(name.encode())
-            digest.update(parameter.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
-    return torch.tensor([int.from_bytes(digest.digest()[:8], "little") >> 1], dtype=torch.int64)
-
-
 def export_pipeline(pipe: SARZero123Pipeline, scaling: DecibelScaling, directory: Path) -> Path:
     """``save_pretrained`` of the complete pipeline (float32) plus the ``DecibelScaling`` it expects."""
     check_finite_state(pipe.components, what=str(directory))
@@ -403,20 +364,13 @@ def main(argv: list[str] | None = None) -> Path:
     """Run a fine-tune; returns the run folder."""
     config = parse_config(FinetuneConfig, argv)
     output_dir = Path(config.output_dir)
-    accelerator = Accelerator(
+    accelerator = start_run(
+        output_dir,
+        seed=config.seed,
         mixed_precision=config.mixed_precision,
-        gradient_accumulation_plugin=GradientAccumulationPlugin(
-            num_steps=config.gradient_accumulation_steps, sync_with_dataloader=False
-        ),
-        dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
-        log_with=config.report_to,
-        project_config=ProjectConfiguration(
-            project_dir=str(output_dir), logging_dir=str(output_dir / "logs")
-        ),
+        report_to=config.report_to,
+        gradient_accumulation_steps=config.gradient_accumulation_steps,
     )
-    logging.basicConfig(level=logging.INFO if accelerator.is_main_process else logging.WARNING)
-    set_seed(config.seed)
-    check_distributed_launch(accelerator)
 
     # 1. check every input before any training step
     resume_path = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
@@ -539,12 +493,7 @@ def main(argv: list[str] | None = None) -> Path:
         state = load_checkpoint(accelerator, resume_path)
         global_step = int(state["step"])
         logger.info("resumed from %s at step %d", resume_path, global_step)
-    if config.report_to is not None:
-        hparams = {
-            k: (v if isinstance(v, (int, float, str, bool)) else str(v))
-            for k, v in config_to_dict(config).items()
-        }
-        accelerator.init_trackers("finetune_pfm", config=hparams)
+    accelerator.init_trackers("finetune_pfm", config=tracker_hparams(config))
 
     # 5. training loop
     batches_per_epoch = len(train_dataloader)
@@ -656,14 +605,12 @@ def main(argv: list[str] | None = None) -> Path:
     # 6. replica check, then export the complete pipeline (EMA weights in the UNet and a trained tower)
     accelerator.wait_for_everyone()
     trained = [accelerator.unwrap_model(module) for module in trained_modules]
-    digests = accelerator.gather(weights_digest(trained).to(accelerator.device)).tolist()
+    digests = check_replicas_agree(accelerator, trained)
     if accelerator.is_main_process:
         write_json_atomic(
             {"global_step": global_step, "image_size": image_size, "replica_weight_digests": digests},
             output_dir / "train_state.json",
         )
-    if len(set(digests)) != 1:
-        raise RuntimeError(f"data-parallel replicas diverged: weight digests {digests}")
     if accelerator.is_main_process and config.save_pipeline:
         final_unet = trained[0]
         if ema_unet is not None:

@@ -33,14 +33,12 @@ from typing import Any
 
 import numpy as np
 import torch
-from accelerate import Accelerator
-from accelerate.utils import set_seed
 from torch import nn
 from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from sar_zero123.augment import PRESETS, AugmentationPreset, simclr_views
-from sar_zero123.config import config_to_dict, parse_config, save_config, write_json_atomic
+from sar_zero123.config import parse_config, save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE, ChipDataset, ChipRecord, DecibelScaling, prepare_splits
 from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig, nt_xent_loss
 from sar_zero123.run_state import (
@@ -52,6 +50,7 @@ from sar_zero123.run_state import (
     resolve_resume_checkpoint,
     save_checkpoint,
 )
+from sar_zero123.runs import start_run, tracker_hparams
 
 logger = logging.getLogger(__name__)
 
@@ -95,7 +94,7 @@ class PretrainSimCLRConfig:
     checkpoints_total_limit: int | None = 2  # keep at most this many checkpoints
     resume_from_checkpoint: str | None = None  # "latest", a checkpoint folder, or None
     logging_steps: int = 10  # log loss, learning rate and throughput every this many steps
-    report_to: str = "tensorboard"  # accelerate tracker ("tensorboard") or "none"
+    report_to: str | None = "tensorboard"  # accelerate tracker ("tensorboard"); None disables logging
     num_workers: int = 0  # DataLoader workers for reading the chips once
     seed: int = 0  # seeds the split, the initialisation, the batch order and the augmentations
 
@@ -120,8 +119,8 @@ class PretrainSimCLRConfig:
             raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay}")
         if self.mixed_precision not in ("no", "fp16", "bf16"):
             raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
-        if self.report_to not in ("tensorboard", "none"):
-            raise ValueError(f"report_to must be 'tensorboard' or 'none', got {self.report_to!r}")
+        if self.report_to not in ("tensorboard", "none", None):
+            raise ValueError(f"report_to must be 'tensorboard' or None, got {self.report_to!r}")
         # the augmentation and encoder options validate themselves; fail here, before any work
         self.augmentation()
         self.encoder_config()
@@ -190,12 +189,9 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     """Runs SimCLR pretraining; returns the metrics written to `metrics.json`."""
     config = parse_config(PretrainSimCLRConfig, argv)
     output_dir = Path(config.output_dir)
-    log_with = None if config.report_to == "none" else config.report_to
-    accelerator = Accelerator(
-        mixed_precision=config.mixed_precision, log_with=log_with, project_dir=str(output_dir)
+    accelerator = start_run(
+        output_dir, seed=config.seed, mixed_precision=config.mixed_precision, report_to=config.report_to
     )
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    set_seed(config.seed)
     resume = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
     check_resume_config(resume, config)  # before config.json is written: it must state what is in effect
     if accelerator.is_main_process:
@@ -241,9 +237,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=max_steps)
     model, optimizer = accelerator.prepare(model, optimizer)
     accelerator.register_for_checkpointing(scheduler)
-    if log_with is not None:
-        scalars = {k: v for k, v in config_to_dict(config).items() if isinstance(v, (int, float, str, bool))}
-        accelerator.init_trackers("simclr", config=scalars)
+    accelerator.init_trackers("simclr", config=tracker_hparams(config))
 
     # 3. resume
     step = start_step = 0

@@ -17,8 +17,6 @@ from typing import Any
 
 import torch
 import torch.nn.functional as F
-from accelerate import Accelerator
-from accelerate.utils import set_seed
 from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
@@ -27,6 +25,7 @@ from sar_zero123.config import parse_config, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_sample
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluators import SARClassifier
+from sar_zero123.runs import start_run
 
 logger = logging.getLogger(__name__)
 
@@ -89,8 +88,7 @@ def train_row(
     config: SynthToRealConfig,
 ) -> tuple[SARClassifier, dict[str, float]]:
     """Trains one classifier on augmented synthetic chips; returns it and its real-chip accuracy."""
-    set_seed(config.seed)
-    accelerator = Accelerator(mixed_precision=config.mixed_precision)
+    accelerator = start_run(None, seed=config.seed, mixed_precision=config.mixed_precision)
     device = accelerator.device
     encoder_config = SAREncoderConfig(
         image_size=config.image_size,

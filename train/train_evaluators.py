@@ -20,7 +20,6 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from accelerate import Accelerator
 from accelerate.utils import set_seed
 from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
@@ -40,6 +39,7 @@ from sar_zero123.evaluators import (
 )
 from sar_zero123.metrics import azimuth_error_deg, classification_accuracy
 from sar_zero123.run_state import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
+from sar_zero123.runs import start_run
 
 logger = logging.getLogger(__name__)
 
@@ -152,8 +152,8 @@ def train_model(
     if (stage_dir / EVALUATOR_CONFIG_NAME).is_file():
         logger.info("%s already trained; skipping", stage_dir)
         return load_evaluator(stage_dir).metrics
-    set_seed(seed)
-    accelerator = Accelerator(mixed_precision=config.mixed_precision)
+    # the loaders keep their own seeded generators: a stage resumes at epoch boundaries only
+    accelerator = start_run(None, seed=seed, mixed_precision=config.mixed_precision, seedable_sampler=False)
     parameters = [p for p in model.parameters() if p.requires_grad]
     optimizer = torch.optim.AdamW(parameters, lr=config.learning_rate, weight_decay=config.weight_decay)
     train_loader = _loader(train_set, config, shuffle=True, seed=seed)
