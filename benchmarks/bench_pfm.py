@@ -43,6 +43,7 @@ import torch.nn.functional as F
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from sar_zero123.conditioning import downsampling_factor, encode_condition_latents  # noqa: E402
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig  # noqa: E402
 from sar_zero123.losses import (  # noqa: E402
     estimate_x0,
@@ -238,13 +239,13 @@ def crop_quality(size: str, batch_size: int, vae_path: str | None = None, data: 
     pipe, encoder, batch, image_size = build_step_setup(size, batch_size)
     vae = pipe.vae if vae_path is None else AutoencoderKL.from_pretrained(vae_path)
     vae = vae.eval().requires_grad_(False)
-    factor = 2 ** (len(vae.config.block_out_channels) - 1)
+    factor = downsampling_factor(vae.config.block_out_channels)
     crop = image_size // 2
     generator = torch.Generator().manual_seed(1)
     if vae_path is not None and data is not None:
         batch["target"] = real_chips(data, image_size, batch_size)
         with torch.no_grad():
-            clean = vae.encode(batch["target"] * 2 - 1).latent_dist.mode() * vae.config.scaling_factor
+            clean = encode_condition_latents(vae, batch["target"]) * vae.config.scaling_factor
         latents = clean + 0.3 * torch.randn(clean.shape, generator=generator)  # an imperfect x0 estimate
     else:
         latents = torch.randn(batch_size, 4, image_size // factor, image_size // factor, generator=generator)
@@ -312,7 +313,7 @@ def timesteps_mode(args: argparse.Namespace) -> dict:
     from diffusers import AutoencoderKL, DDPMScheduler
 
     vae = AutoencoderKL.from_pretrained(args.vae).eval().requires_grad_(False)
-    factor = 2 ** (len(vae.config.block_out_channels) - 1)
+    factor = downsampling_factor(vae.config.block_out_channels)
     image_size = vae.config.sample_size
     images = real_chips(args.data, image_size, args.num_images)
     if args.encoder:
@@ -322,7 +323,7 @@ def timesteps_mode(args: argparse.Namespace) -> dict:
         encoder = SAREncoder(SAREncoderConfig(image_size=image_size))
     encoder = encoder.eval().requires_grad_(False)
     with torch.no_grad():
-        latents = vae.encode(images * 2 - 1).latent_dist.mode() * vae.config.scaling_factor
+        latents = encode_condition_latents(vae, images) * vae.config.scaling_factor
         chance = pfm_loss(latents.roll(1, dims=0), images, vae, encoder)  # a different chip's latent
         floor = pfm_loss(latents, images, vae, encoder)  # the VAE's own reconstruction error
     generator = torch.Generator().manual_seed(0)

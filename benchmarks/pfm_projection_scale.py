@@ -23,6 +23,8 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from sar_zero123.conditioning import encode_condition_latents  # noqa: E402
+from sar_zero123.data import signed_to_unit  # noqa: E402
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig  # noqa: E402
 from sar_zero123.losses import (  # noqa: E402
     encode_target_features,
@@ -65,7 +67,7 @@ def measure(args: argparse.Namespace) -> dict:
         encoder = SAREncoder(SAREncoderConfig(image_size=image_size))
     encoder = encoder.eval().requires_grad_(False)
     projected = [project_encoder_features(encoder, 10, seed=seed) for seed in range(args.num_seeds)]
-    latents = vae.encode(images * 2 - 1).latent_dist.mode() * vae.config.scaling_factor
+    latents = encode_condition_latents(vae, images) * vae.config.scaling_factor
     scheduler = DDPMScheduler(
         num_train_timesteps=1000, beta_schedule="scaled_linear", beta_start=0.00085, beta_end=0.012
     )
@@ -83,7 +85,8 @@ def measure(args: argparse.Namespace) -> dict:
     for name, estimate in cases.items():
         # Decode and encode once; the projections act on the same feature difference.
         decoded = vae.decode(estimate / vae.config.scaling_factor).sample
-        difference = encode_target_features((decoded + 1) / 2, encoder).double() - target_features  # (N, D)
+        features = encode_target_features(signed_to_unit(decoded), encoder).double()
+        difference = features - target_features  # (N, D)
         full = difference.pow(2).sum(1)
         if name == "different chip (chance)":  # the shortcut is pfm_loss itself
             reference = pfm_loss(estimate, images, vae, encoder)

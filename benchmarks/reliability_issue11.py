@@ -441,7 +441,7 @@ def gen_big():
             "30",
             "--num-inference-steps",
             "1",
-            "--out",
+            "--output_dir",
             str(TMP / "gen_big"),
         ]
     )
@@ -455,7 +455,7 @@ attempt("generate: magnitudes 100x the dB range", gen_big)
 attempt(
     "generate --out <a file>",
     lambda: generate.main(
-        ["--pipeline", str(TMP / "pipe"), "--image", str(TMP / "big.npy"), "--out", str(TMP / "afile")]
+        ["--pipeline", str(TMP / "pipe"), "--image", str(TMP / "big.npy"), "--output_dir", str(TMP / "afile")]
     ),
 )
 attempt(
@@ -468,7 +468,7 @@ attempt(
             str(TMP / "big.npy"),
             "--d-el",
             "400",
-            "--out",
+            "--output_dir",
             str(TMP / "g400"),
         ]
     ),

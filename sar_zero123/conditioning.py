@@ -14,12 +14,16 @@ the model config.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import torch
 import torch.nn.functional as F
 from diffusers import AutoencoderKL
 from diffusers.configuration_utils import ConfigMixin, register_to_config
 from diffusers.models.modeling_utils import ModelMixin
 from transformers import CLIPVisionModelWithProjection
+
+from .data import unit_to_signed
 
 __all__ = [
     "CLIP_IMAGE_MEAN",
@@ -41,7 +45,19 @@ CLIP_IMAGE_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_IMAGE_STD = (0.26862954, 0.26130258, 0.27577711)
 
 
-def _as_angle_tensor(value: float | torch.Tensor | list[float], name: str) -> torch.Tensor:
+def as_angle_tensor(value: float | torch.Tensor | list[float], name: str) -> torch.Tensor:
+    """Angles in degrees as a flat float64 tensor, checked at the boundary.
+
+    Args:
+        value: A scalar or a 1-D sequence (list, array, tensor) of angles.
+        name: The argument's name in the caller's signature, for the message (``"d_az_deg"``, ``"d_az"``).
+
+    Shape:
+        ``() | (B,) -> (1,) | (B,)``.
+
+    Raises:
+        ValueError: Naming ``name``, if the angles are more than 1-D, empty or not finite.
+    """
     tensor = torch.as_tensor(value, dtype=torch.float64)
     if tensor.ndim > 1:
         raise ValueError(
@@ -90,8 +106,8 @@ def embed_pose(
         ValueError: If an angle is not finite, empty, more than 1-D, or the two lengths differ and
             neither is 1.
     """
-    d_az = _as_angle_tensor(d_az_deg, "d_az_deg")
-    d_el = _as_angle_tensor(d_el_deg, "d_el_deg")
+    d_az = as_angle_tensor(d_az_deg, "d_az_deg")
+    d_el = as_angle_tensor(d_el_deg, "d_el_deg")
     if d_az.numel() != d_el.numel() and 1 not in (d_az.numel(), d_el.numel()):
         raise ValueError(
             f"`d_az_deg` ({d_az.numel()} values) and `d_el_deg` ({d_el.numel()} values) must have the same "
@@ -247,7 +263,19 @@ def encode_image_embeddings(
 def vae_input(vae: AutoencoderKL, images: torch.Tensor) -> torch.Tensor:
     """Normalised dB chips in [0, 1] as the VAE's input: its channel count, [-1, 1], its device and dtype."""
     pixels = match_channels(images, vae.config.in_channels)
-    return (pixels * 2.0 - 1.0).to(device=vae.device, dtype=vae.dtype)  # [0, 1] -> [-1, 1]
+    return unit_to_signed(pixels).to(device=vae.device, dtype=vae.dtype)
+
+
+def downsampling_factor(block_out_channels: Sequence[int]) -> int:
+    """Resolution ratio of a diffusers VAE or UNet: ``n`` levels halve it ``n - 1`` times.
+
+    Args:
+        block_out_channels: The model's ``config.block_out_channels``.
+
+    Returns:
+        ``2 ** (n - 1)``; for the VAE, pixels per latent along each side (diffusers' ``vae_scale_factor``).
+    """
+    return 2 ** (len(block_out_channels) - 1)
 
 
 def encode_condition_latents(vae: AutoencoderKL, images: torch.Tensor) -> torch.Tensor:
@@ -266,7 +294,7 @@ def encode_condition_latents(vae: AutoencoderKL, images: torch.Tensor) -> torch.
     Shape:
         - images: ``(B, 1 | 3, H, W)``
         - Output: ``(B, latent_channels, H / f, W / f)`` with
-          ``f = 2 ** (len(vae.config.block_out_channels) - 1)``.
+          ``f = downsampling_factor(vae.config.block_out_channels)``.
     """
     return vae.encode(vae_input(vae, images)).latent_dist.mode()
 

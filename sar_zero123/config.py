@@ -138,7 +138,7 @@ def parse_config(cls: type[ConfigT], argv: Sequence[str] | None = None) -> Confi
     Raises:
         ValueError: for keys in the config file that are not fields of ``cls``, or bad values.
         FileNotFoundError: if ``--config`` names a missing file.
-        NotADirectoryError: if an ``output_dir``, ``out`` or ``work_dir`` field names a file (checked
+        NotADirectoryError: if an ``output_dir`` or ``work_dir`` field names a file (checked
             here, before the script loads anything).
     """
     if not dataclasses.is_dataclass(cls):
@@ -177,7 +177,7 @@ def parse_config(cls: type[ConfigT], argv: Sequence[str] | None = None) -> Confi
 
 
 #: Config fields that name a folder a script writes into; :func:`parse_config` checks them first.
-OUTPUT_DIR_FIELDS = ("output_dir", "out", "work_dir")
+OUTPUT_DIR_FIELDS = ("output_dir", "work_dir")
 
 
 def check_output_dir(path: str | os.PathLike, field: str = "output_dir") -> Path:

@@ -26,6 +26,8 @@ from torch import nn
 from transformers import ResNetConfig, ResNetModel
 from transformers.models.resnet.modeling_resnet import ResNetConvLayer
 
+from .data import unit_to_signed
+
 CONFIG_NAME = "config.json"
 WEIGHTS_NAME = "model.safetensors"
 
@@ -164,7 +166,7 @@ class SAREncoder(nn.Module):
         if channels != self.config.in_channels:
             x = x.expand(-1, self.config.in_channels, -1, -1)  # (B, 3, H, W)
         # Zero-centre the [0, 1] normalised dB so the stem sees a symmetric input range.
-        hidden = self.resnet(x * 2.0 - 1.0, return_dict=True).pooler_output  # (B, D, 1, 1)
+        hidden = self.resnet(unit_to_signed(x), return_dict=True).pooler_output  # (B, D, 1, 1)
         return hidden.flatten(1)  # (B, D)
 
     def save_pretrained(self, save_directory: str | Path) -> Path:

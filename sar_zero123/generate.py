@@ -3,14 +3,14 @@
 Example::
 
     python -m sar_zero123.generate --pipeline runs/pfm/pipeline --image chip.png \\
-        --d-az 30 60 90 --d-el 0 --out views/
+        --d-az 30 60 90 --d-el 0 --output_dir views/
 
 writes, for each requested view ``i``, ``view_{i}_daz{d_az}_del{d_el}.png`` (8-bit, normalised dB) and
 the float32 array ``.npy`` (H, W) in the normalised dB domain, plus ``input.png``, ``contact_sheet.png``
 and the resolved ``config.json``. The chip is read with :func:`sar_zero123.data.load_magnitude`
 (8-bit images as pixel/255), centre-cropped/resized to the pipeline's size and mapped to normalised dB
 with the pipeline folder's ``decibel_scaling.json`` (``DecibelScaling.to_dict``) when present, else
-``--scaling`` or the unit-magnitude default.
+``--scaling_file`` or the unit-magnitude default.
 """
 
 from __future__ import annotations
@@ -54,12 +54,12 @@ class GenerateConfig:
     image: str = ""  # input chip (PNG/JPEG/TIFF, .npy, .mat or raw MSTAR file)
     d_az: list[float] = field(default_factory=lambda: [30.0, 60.0, 90.0])  # azimuth deltas in degrees
     d_el: list[float] = field(default_factory=lambda: [0.0])  # depression deltas in degrees (1 or 1 per d_az)
-    out: str = "generated_views"  # output folder
+    output_dir: str = "generated_views"  # output folder
     num_inference_steps: int = 50  # denoising steps
     guidance_scale: float = 3.0  # classifier-free guidance weight (<= 1 disables it)
     seed: int = 0  # view i uses torch.Generator().manual_seed(seed + i)
     input_domain: Literal["magnitude", "normalized_db"] = "magnitude"  # what the chip file holds
-    scaling: str | None = None  # DecibelScaling JSON (default: <pipeline>/decibel_scaling.json or unit)
+    scaling_file: str | None = None  # DecibelScaling JSON (default: <pipeline>/decibel_scaling.json or unit)
     image_size: int | None = None  # chip size fed to the model; default: the pipeline's own
     device: str = "cpu"  # torch device
 
@@ -89,9 +89,9 @@ class GenerateConfig:
             raise ValueError(f"image_size must be positive, got {self.image_size}")
 
 
-def _resolve_scaling(scaling: str | None, pipeline_dir: Path) -> DecibelScaling:
-    path = Path(scaling) if scaling is not None else pipeline_dir / SCALING_FILE
-    if scaling is None and not path.exists():
+def _resolve_scaling(scaling_file: str | None, pipeline_dir: Path) -> DecibelScaling:
+    path = Path(scaling_file) if scaling_file is not None else pipeline_dir / SCALING_FILE
+    if scaling_file is None and not path.exists():
         return DecibelScaling()
     return DecibelScaling.from_dict(json.loads(path.read_text()))
 
@@ -100,7 +100,7 @@ def load_input_chip(config: GenerateConfig, size: int) -> np.ndarray:
     """The input chip as float32 ``(size, size)`` normalised dB in [0, 1].
 
     Args:
-        config: The run configuration (``image``, ``input_domain``, ``scaling``, ``pipeline``).
+        config: The run configuration (``image``, ``input_domain``, ``scaling_file``, ``pipeline``).
         size: Side the pipeline takes.
 
     Returns:
@@ -113,7 +113,7 @@ def load_input_chip(config: GenerateConfig, size: int) -> np.ndarray:
     """
     chip = center_crop_resize(load_magnitude(config.image), size=size)
     if config.input_domain == "magnitude":
-        scaling = _resolve_scaling(config.scaling, Path(config.pipeline))
+        scaling = _resolve_scaling(config.scaling_file, Path(config.pipeline))
         check_magnitude(chip, name=f"image {config.image!r}")
         unclipped = scaling.normalize(chip, clip=False)
         tolerance = 1e-4  # a magnitude of exactly 1 normalises to 1 + float32 rounding
@@ -124,7 +124,7 @@ def load_input_chip(config: GenerateConfig, size: int) -> np.ndarray:
             "and are clipped"
         )
         if clipped > MAX_CLIPPED_FRACTION:
-            raise ValueError(f"{message}; give the pipeline's --scaling or the right --input_domain")
+            raise ValueError(f"{message}; give the pipeline's --scaling_file or the right --input_domain")
         if clipped > 0:
             warnings.warn(message, stacklevel=2)
         chip = np.clip(unclipped, 0.0, 1.0).astype(np.float32)
@@ -142,7 +142,8 @@ def generate_views(
     guidance_scale: float,
     seed: int,
 ) -> np.ndarray:
-    """All requested views of one chip in a single batched pipeline call.
+    """All requested views of one chip in a single batched pipeline call (``train/evaluate.py``'s
+    ``generate_pair_targets`` generates one view per view pair instead).
 
     Args:
         pipe: The pipeline.
@@ -199,7 +200,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
         The output folder.
     """
     config = parse_config(GenerateConfig, argv)
-    out = Path(config.out)
+    out = Path(config.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     save_config(config, out)
 

@@ -31,6 +31,9 @@ import torch.nn.functional as F
 from safetensors.torch import save_file
 from torch import nn
 
+from .conditioning import downsampling_factor
+from .data import center_crop, signed_to_unit, unit_to_signed
+
 #: Floor on ``abar_t`` in the epsilon-prediction x0 estimate (diffusers' EulerDiscreteScheduler uses the same
 #: value for zero-terminal-SNR schedules); keeps ``1 / sqrt(abar_t)`` at most 4096.
 MIN_ALPHA_CUMPROD = 2.0**-24
@@ -286,20 +289,10 @@ def _require_frozen(module: nn.Module, name: str) -> None:
                          "reach the diffusion parameters")
 
 
-def _vae_downsampling_factor(vae) -> int:
-    return 2 ** (len(vae.config.block_out_channels) - 1)
-
-
-def _center_crop(x: torch.Tensor, size: int) -> torch.Tensor:
-    height, width = x.shape[-2:]
-    top, left = (height - size) // 2, (width - size) // 2
-    return x[..., top:top + size, left:left + size]
-
-
 def _to_encoder_input(images: torch.Tensor, size: int) -> torch.Tensor:
     """(B, C, H, W) VAE-domain images in [-1, 1] -> (B, 1, size, size) normalised dB in [0, 1]."""
     images = images.mean(dim=1, keepdim=True) if images.shape[1] > 1 else images
-    images = (images + 1.0) / 2.0
+    images = signed_to_unit(images)
     if images.shape[-1] != size or images.shape[-2] != size:
         # antialiased resize has no bf16/fp16 CPU kernel: resize in float32
         images = F.interpolate(images.float(), size=(size, size), mode="bilinear", align_corners=False,
@@ -323,8 +316,8 @@ def encode_target_features(target_images: torch.Tensor, encoder: nn.Module, *,
     Shape:
         ``(B, 1, H, W) -> (B, D)``.
     """
-    images = _center_crop(target_images, crop_size) if crop_size is not None else target_images
-    images = images * 2.0 - 1.0  # to the VAE's [-1, 1] so both branches share one mapping
+    images = center_crop(target_images, crop_size) if crop_size is not None else target_images
+    images = unit_to_signed(images)  # to the VAE's [-1, 1] so both branches share one mapping
     encoder_dtype = next(encoder.parameters()).dtype
     return encoder(_to_encoder_input(images, encoder.config.image_size).to(encoder_dtype)).float()
 
@@ -377,7 +370,7 @@ def pfm_loss(
     if x0_hat_latents.shape[0] != target_images.shape[0]:
         raise ValueError(f"batch sizes differ: x0_hat_latents {x0_hat_latents.shape[0]}, "
                          f"target_images {target_images.shape[0]}")
-    factor = _vae_downsampling_factor(vae)
+    factor = downsampling_factor(vae.config.block_out_channels)
     image_size = target_images.shape[-1]
     if x0_hat_latents.shape[-1] * factor != image_size:
         raise ValueError(f"target_images side {image_size} != latent side {x0_hat_latents.shape[-1]} x "
@@ -387,7 +380,7 @@ def pfm_loss(
         if crop_size <= 0 or crop_size > image_size or (image_size - crop_size) % (2 * factor):
             raise ValueError(f"crop_size must be in (0, {image_size}] with (image_size - crop_size) a "
                              f"multiple of {2 * factor} so the latent window is centred, got {crop_size}")
-        latents = _center_crop(latents, crop_size // factor)
+        latents = center_crop(latents, crop_size // factor)
     # 2. features of the real target (no gradient)
     if target_features is None:
         target_features = encode_target_features(target_images, encoder, crop_size=crop_size)

@@ -40,6 +40,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from sar_zero123.data import center_crop
+
 PAPER_MS_SSIM_BETAS: tuple[float, float, float] = (0.0448, 0.3001, 0.1333)
 """MS-SSIM scale weights of the paper (the first, middle and last of Wang et al.'s five weights)."""
 
@@ -256,26 +258,6 @@ def _check_image_pair(x: torch.Tensor, y: torch.Tensor) -> None:
             raise ValueError(
                 f"{name} has values in [{low:.4g}, {high:.4g}], outside [0, 1]: metrics expect normalised dB"
             )
-
-
-def center_crop(images: torch.Tensor, size: int = CROP_SIZE) -> torch.Tensor:
-    """Centre `size x size` crop of a batch (the paper scores the 64x64 centre where the target sits).
-
-    Args:
-        images: `(B, C, H, W)` batch with `H, W >= size`.
-        size: crop side in pixels.
-
-    Returns:
-        `(B, C, size, size)` view of the input.
-
-    Raises:
-        ValueError: if the images are smaller than `size`.
-    """
-    height, width = images.shape[-2:]
-    if height < size or width < size:
-        raise ValueError(f"images of size {height}x{width} are smaller than the {size}x{size} centre crop")
-    top, left = (height - size) // 2, (width - size) // 2
-    return images[..., top : top + size, left : left + size]
 
 
 def gaussian_kernel_1d(kernel_size: int, sigma: float, dtype: torch.dtype = torch.float64) -> torch.Tensor:

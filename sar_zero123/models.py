@@ -13,7 +13,7 @@ from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
 from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
 
 from sar_zero123.checkpoints import SD_VAE_SCALING_FACTOR, ZERO123_SCHEDULER_CONFIG, CLIPImageProcessor
-from sar_zero123.conditioning import POSE_DIM, PoseProjection
+from sar_zero123.conditioning import POSE_DIM, PoseProjection, downsampling_factor
 from sar_zero123.pipeline import SARZero123Pipeline
 
 __all__ = ["SAR_ZERO123_SIZES", "build_sar_zero123"]
@@ -205,8 +205,8 @@ def build_sar_zero123(
     if size not in SAR_ZERO123_SIZES:
         raise ValueError(f"`size` must be one of {sorted(SAR_ZERO123_SIZES)}, got {size!r}")
     spec = SAR_ZERO123_SIZES[size]
-    vae_factor = 2 ** (len(spec["vae"]["block_out_channels"]) - 1)
-    multiple = vae_factor * 2 ** (len(spec["unet"]["block_out_channels"]) - 1)
+    vae_factor = downsampling_factor(spec["vae"]["block_out_channels"])
+    multiple = vae_factor * downsampling_factor(spec["unet"]["block_out_channels"])
     image_size = spec["image_size"] if image_size is None else image_size
     if not isinstance(image_size, int) or image_size < multiple or image_size % multiple:
         raise ValueError(

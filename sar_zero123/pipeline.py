@@ -31,12 +31,15 @@ from sar_zero123.checkpoints import CLIPImageProcessor, load_zero123_components
 from sar_zero123.conditioning import (
     POSE_DIM,
     PoseProjection,
+    as_angle_tensor,
+    downsampling_factor,
     embed_pose,
     encode_condition_latents,
     encode_image_embeddings,
     match_channels,
     pose_class_labels,
 )
+from sar_zero123.data import signed_to_unit
 
 __all__ = ["SARZero123Pipeline", "SARZero123PipelineOutput"]
 
@@ -124,12 +127,12 @@ class SARZero123Pipeline(DiffusionPipeline):
     @property
     def vae_scale_factor(self) -> int:
         """Downsampling factor from pixels to latents."""
-        return 2 ** (len(self.vae.config.block_out_channels) - 1)
+        return downsampling_factor(self.vae.config.block_out_channels)
 
     @property
     def size_multiple(self) -> int:
         """Image height and width must be multiples of this (VAE factor times UNet downsamplings)."""
-        return self.vae_scale_factor * 2 ** (len(self.unet.config.block_out_channels) - 1)
+        return self.vae_scale_factor * downsampling_factor(self.unet.config.block_out_channels)
 
     @property
     def default_image_size(self) -> int:
@@ -320,7 +323,7 @@ class SARZero123Pipeline(DiffusionPipeline):
             - Output: ``(N, 1, h * f, w * f)``
         """
         decoded = self.vae.decode(latents.to(self.vae.dtype) / self.vae.config.scaling_factor).sample
-        images = (decoded.float() / 2.0 + 0.5).clamp(0.0, 1.0)  # [-1, 1] -> [0, 1]
+        images = signed_to_unit(decoded.float()).clamp(0.0, 1.0)
         return match_channels(images, 1)
 
     def _scheduler_step_kwargs(
@@ -510,13 +513,10 @@ def _broadcast_pose(
     and physically possible."""
     for name, value in (("d_az", d_az), ("d_el", d_el)):
         _check_real_angles(value, name)
-        count = torch.as_tensor(value).numel()
+        count = as_angle_tensor(value, name).numel()  # checked under the pipeline's own argument names
         if count not in (1, batch_size):
             raise ValueError(f"`{name}` has {count} values; expected 1 or one per input image ({batch_size})")
-    try:
-        pose = embed_pose(d_az, d_el)
-    except ValueError as error:
-        raise ValueError(str(error).replace("`d_az_deg`", "`d_az`").replace("`d_el_deg`", "`d_el`")) from None
+    pose = embed_pose(d_az, d_el)  # (1 | B, 1, 4); cannot fail on angles that passed the checks above
     for name, value, limit, why in (
         ("d_el", d_el, MAX_ABS_D_EL_DEG, "a difference of two depression angles in [0, 90]"),
         ("d_az", d_az, MAX_ABS_D_AZ_DEG, "larger values lose the angle's precision: a unit error?"),

@@ -56,8 +56,8 @@ RESUME_MAY_DIFFER = (
     "validation_steps",
     "num_validation_images",
     "validation_inference_steps",
-    "dataloader_num_workers",
     "num_workers",
+    "dataloader_num_workers",  # finetune_pfm's name for num_workers in checkpoints written before issue 12
     "work_dir",
     "save_pipeline",
     "evaluators",  # finetune_pfm: validation-only pose-following check

@@ -33,7 +33,7 @@ def chip_png(tmp_path_factory):
 def test_main_writes_one_png_and_npy_per_view_and_a_contact_sheet(pipeline_dir, chip_png, tmp_path):
     out = tmp_path / "views"
     argv = ["--pipeline", str(pipeline_dir), "--image", str(chip_png), "--d-az", "30", "60", "90",
-            "--d-el", "0", "--out", str(out), "--num-inference-steps", "2", "--seed", "4"]
+            "--d-el", "0", "--output_dir", str(out), "--num-inference-steps", "2", "--seed", "4"]
     assert main(argv) == out
     arrays = sorted(out.glob("view_*.npy"))
     pngs = sorted(out.glob("view_*.png"))
@@ -105,7 +105,7 @@ def test_config_rejects_impossible_poses_and_guidance(fields, match):
 @pytest.mark.parametrize(
     ("scale", "offset", "outcome"),
     [
-        (100.0, 0.0, r"100.0% of the pixels lie outside .*clipped; give the pipeline's --scaling"),
+        (100.0, 0.0, r"100.0% of the pixels lie outside .*clipped; give the pipeline's --scaling_file"),
         (-1.0, 0.0, r"chip.npy: magnitude contains negative values"),  # load_magnitude's check
         (1.0, float("nan"), r"chip.npy: magnitude contains non-finite values"),
     ],
@@ -137,8 +137,8 @@ def test_nan_pipeline_writes_no_views_and_out_that_is_a_file_is_refused(chip_png
     argv = ["--pipeline", str(tmp_path / "nan_pipeline"), "--image", str(chip_png), "--d-az", "30",
             "--num-inference-steps", "1"]  # fmt: skip
     with pytest.raises(FloatingPointError, match=r"non-finite decoded images .*\['vae'\]"):
-        main([*argv, "--out", str(out)])
+        main([*argv, "--output_dir", str(out)])
     assert not list(out.glob("view_*"))
     (tmp_path / "file").write_text("x")
-    with pytest.raises(NotADirectoryError, match=r"out: .*file' is a file"):
-        main([*argv, "--out", str(tmp_path / "file")])
+    with pytest.raises(NotADirectoryError, match=r"output_dir: .*file' is a file"):
+        main([*argv, "--output_dir", str(tmp_path / "file")])

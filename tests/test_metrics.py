@@ -10,10 +10,10 @@ import torch
 from scipy import linalg
 from skimage.metrics import structural_similarity
 
+from sar_zero123.data import center_crop
 from sar_zero123.metrics import (
     PAPER_MS_SSIM_BETAS,
     azimuth_error_deg,
-    center_crop,
     classification_accuracy,
     frechet_distance,
     frechet_distance_from_moments,
@@ -189,7 +189,7 @@ def test_ms_ssim_uses_centre_crop() -> None:
     y_outside[..., :20, :] = y[..., :20, :]  # change only pixels outside the 64x64 centre
     assert ms_ssim(x, y_outside).item() == pytest.approx(1.0)
     assert ms_ssim(x, y_outside, crop_size=None).item() < 0.999
-    assert center_crop(x).shape == (1, 1, 64, 64)
+    assert center_crop(x, 64).shape == (1, 1, 64, 64)
 
 
 def test_image_metrics_reject_bad_input() -> None:
@@ -198,7 +198,7 @@ def test_image_metrics_reject_bad_input() -> None:
         ms_ssim(x, y[..., :60, :60])
     with pytest.raises(ValueError, match=r"outside \[0, 1\]"):
         ms_ssim(x * 2.0, y)
-    with pytest.raises(ValueError, match="smaller than the 64x64"):
+    with pytest.raises(ValueError, match="smaller than crop_size=64"):
         kuan_ssim(x[..., :32, :32], y[..., :32, :32])
 
 

@@ -25,7 +25,7 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     out = tmp_path / "quickstart"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # tiny sample counts: the Frechet distance warns about n <= D
-        report = quickstart.main(["--out", str(out), "--preset", "smoke"])
+        report = quickstart.main(["--output_dir", str(out), "--preset", "smoke"])
     text = report.read_text()
     assert "| paper: PFM (lambda=4) | seen | 89.0 | 23.5 | 1.84 | 0.6720 | 0.7374 | - | - |  |  |  |" in text
     rows = ("| lambda=0 | seen |", "| lambda=4 | unseen |", "| input copy (floor) | seen |")
@@ -42,5 +42,5 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     assert set(metrics["models"]) == {"classifier", "regressor", "probe:simclr"}
     assert metrics["class_names"] == ["APC", "TANK", "TRUCK"]  # the held-out TRUCK included
     # A second call finds every stage done and only rewrites the report.
-    quickstart.main(["--out", str(out), "--preset", "smoke"])
+    quickstart.main(["--output_dir", str(out), "--preset", "smoke"])
     assert all(seconds == 0.0 for seconds in json.loads((out / "timings.json").read_text()).values())

@@ -298,7 +298,7 @@ def set_scheduler(pipe: SARZero123Pipeline, name: str) -> None:
 
 
 @torch.no_grad()
-def generate_views(
+def generate_pair_targets(
     pipe: SARZero123Pipeline,
     pairs: PairSet,
     *,
@@ -308,7 +308,13 @@ def generate_views(
     device: torch.device,
     desc: str = "generating",
 ) -> tuple[torch.Tensor, float]:
-    """Generates the target view of every pair; returns `(images (N, 1, S, S) on CPU, seconds)`."""
+    """Generates the target view of every pair (seeded per pair), in batches, timing the pipeline calls.
+
+    Not :func:`sar_zero123.generate.generate_views`, which generates several views of one chip.
+
+    Returns:
+        ``(images (N, 1, S, S) on CPU, seconds spent in the pipeline)``.
+    """
     outputs, seconds = [], 0.0
     for start in tqdm(range(0, len(pairs), batch_size), desc=desc, leave=False):
         stop = min(start + batch_size, len(pairs))
@@ -637,7 +643,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     for name, pipe in pipes.items():
         results[name], generated[name] = {}, {}
         for group, pairs in pair_sets.items():
-            images, seconds = generate_views(
+            images, seconds = generate_pair_targets(
                 pipe,
                 pairs,
                 num_inference_steps=config.num_inference_steps,
@@ -686,7 +692,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             for scheduler in config.schedulers:
                 set_scheduler(pipe, scheduler)
                 # Warm-up call so one-time costs (allocation, kernel selection) do not count.
-                generate_views(
+                generate_pair_targets(
                     pipe,
                     pairs.subset(1),
                     num_inference_steps=1,
@@ -695,7 +701,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                     device=device,
                 )
                 for steps in config.steps:
-                    images, seconds = generate_views(
+                    images, seconds = generate_pair_targets(
                         pipe,
                         pairs,
                         num_inference_steps=steps,

@@ -122,7 +122,7 @@ class FinetuneConfig:
     num_validation_images: int = 4  # validation pairs (rows of the grid)
     validation_inference_steps: int = 20  # DDIM steps for validation samples
     guidance_scale: float = 3.0  # CFG scale for validation samples
-    dataloader_num_workers: int = 0  # DataLoader workers
+    num_workers: int = 0  # DataLoader workers
     report_to: str | None = "tensorboard"  # accelerate tracker; None disables logging
     seed: int = 0  # seed of initialisation, data order and every random draw
     save_pipeline: bool = True  # save_pretrained the final SARZero123Pipeline into output_dir/pipeline
@@ -156,7 +156,7 @@ class FinetuneConfig:
         ):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("lr_warmup_steps", "validation_steps", "dataloader_num_workers"):
+        for name in ("lr_warmup_steps", "validation_steps", "num_workers"):
             if getattr(self, name) < 0:
                 raise ValueError(f"{name} must be >= 0, got {getattr(self, name)}")
         if self.checkpoints_total_limit is not None and self.checkpoints_total_limit < 1:
@@ -473,7 +473,7 @@ def main(argv: list[str] | None = None) -> Path:
         batch_size=config.train_batch_size,
         shuffle=True,
         drop_last=True,
-        num_workers=config.dataloader_num_workers,
+        num_workers=config.num_workers,
     )
     unet, pose_projection, optimizer, train_dataloader, lr_scheduler = accelerator.prepare(
         unet, pose_projection, optimizer, train_dataloader, lr_scheduler

@@ -1,6 +1,6 @@
 """End-to-end run on the built-in simulator: the README's main command.
 
-    python train/quickstart.py --out runs/quickstart
+    python train/quickstart.py --output_dir runs/quickstart
 
 On a 2-core CPU in about ten minutes (default preset) it
 
@@ -127,7 +127,7 @@ PRESETS: dict[str, Preset] = {
 class QuickstartConfig:
     """Simulate, pretrain SimCLR, fine-tune lambda 0 and 4, train evaluators, evaluate, write report.md."""
 
-    out: str = "runs/quickstart"  # run folder (every stage writes a subfolder; report.md at the top)
+    output_dir: str = "runs/quickstart"  # run folder (every stage writes a subfolder; report.md at the top)
     preset: Literal["default", "smoke"] = "default"  # "default" (~10 min on 2 CPU cores) or "smoke" (seconds)
     seed: int = 0  # seed of every stage
 
@@ -193,7 +193,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     config = parse_config(QuickstartConfig, argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     preset = PRESETS[config.preset]
-    out = Path(config.out)
+    out = Path(config.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     save_config(config, out)
     write_json_atomic(dataclasses.asdict(preset), out / "preset.json")

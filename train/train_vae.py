@@ -20,15 +20,22 @@ from typing import Literal
 import numpy as np
 import torch
 import torch.nn.functional as F
-from accelerate import Accelerator
-from accelerate.utils import DataLoaderConfiguration, ProjectConfiguration, set_seed
 from diffusers import AutoencoderKL
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
+from sar_zero123.conditioning import downsampling_factor, encode_condition_latents, vae_input
 from sar_zero123.config import parse_config, save_config, write_json_atomic
-from sar_zero123.data import SCALING_FILE, ChipDataset, DecibelScaling, check_protocol, prepare_splits
+from sar_zero123.data import (
+    SCALING_FILE,
+    ChipDataset,
+    DecibelScaling,
+    check_protocol,
+    prepare_splits,
+    signed_to_unit,
+    unit_to_signed,
+)
 from sar_zero123.run_state import (
     check_finite_state,
     check_finite_step,
@@ -38,6 +45,8 @@ from sar_zero123.run_state import (
     resolve_resume_checkpoint,
     save_checkpoint,
 )
+from sar_zero123.runs import start_run, tracker_hparams
+from sar_zero123.training import micro_batch_generator
 
 logger = logging.getLogger(__name__)
 
@@ -81,7 +90,7 @@ class TrainVAEConfig:
                 f"norm_num_groups={self.norm_num_groups} must divide every block_out_channels "
                 f"{self.block_out_channels}"
             )
-        factor = 2 ** (len(self.block_out_channels) - 1)
+        factor = downsampling_factor(self.block_out_channels)
         if self.image_size < factor or self.image_size % factor:
             raise ValueError(
                 f"image_size must be a positive multiple of the downsampling factor {factor}, "
@@ -153,7 +162,7 @@ class VAEObjective(torch.nn.Module):
         Shape:
             ``(B, 1, S, S) -> ((B,), (B,))``.
         """
-        pixels = images * 2.0 - 1.0
+        pixels = unit_to_signed(images)
         posterior = self.vae.encode(pixels).latent_dist
         recon = self.vae.decode(posterior.sample(generator=generator)).sample
         reconstruction = self.loss_fn(recon.float(), pixels.float(), reduction="none").flatten(1).mean(dim=1)
@@ -163,8 +172,8 @@ class VAEObjective(torch.nn.Module):
 @torch.no_grad()
 def reconstruct(vae: AutoencoderKL, images: torch.Tensor) -> torch.Tensor:
     """Posterior-mode reconstruction in normalised dB, clipped to [0, 1]. Shape: ``(B, 1, S, S)``."""
-    latents = vae.encode(images.to(vae.dtype) * 2.0 - 1.0).latent_dist.mode()
-    return (vae.decode(latents).sample.float() / 2.0 + 0.5).clamp(0.0, 1.0)
+    latents = encode_condition_latents(vae, images)
+    return signed_to_unit(vae.decode(latents).sample.float()).clamp(0.0, 1.0)
 
 
 @torch.no_grad()
@@ -197,7 +206,7 @@ def latent_scaling_factor(vae: AutoencoderKL, loader: DataLoader, num_batches: i
     for i, batch in enumerate(loader):
         if i == num_batches:
             break
-        posterior = vae.encode(batch["image"].to(vae.device, vae.dtype) * 2.0 - 1.0).latent_dist
+        posterior = vae.encode(vae_input(vae, batch["image"])).latent_dist
         latents.append(posterior.sample(generator=generator).float().flatten())
     return float(1.0 / torch.cat(latents).std())
 
@@ -206,16 +215,9 @@ def main(argv: list[str] | None = None) -> Path:
     """Train the VAE; returns the run folder (the model is in ``output_dir/vae``)."""
     config = parse_config(TrainVAEConfig, argv)
     output_dir = Path(config.output_dir)
-    accelerator = Accelerator(
-        mixed_precision=config.mixed_precision,
-        log_with=config.report_to,
-        dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True),
-        project_config=ProjectConfiguration(
-            project_dir=str(output_dir), logging_dir=str(output_dir / "logs")
-        ),
+    accelerator = start_run(
+        output_dir, seed=config.seed, mixed_precision=config.mixed_precision, report_to=config.report_to
     )
-    logging.basicConfig(level=logging.INFO if accelerator.is_main_process else logging.WARNING)
-    set_seed(config.seed)
 
     # 1. data and inputs, checked before any step
     resume_path = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
@@ -238,8 +240,7 @@ def main(argv: list[str] | None = None) -> Path:
     global_step = 0
     if resume_path is not None:
         global_step = int(load_checkpoint(accelerator, resume_path)["step"])
-    if config.report_to is not None:
-        accelerator.init_trackers("train_vae")
+    accelerator.init_trackers("train_vae", config=tracker_hparams(config))
 
     # 3. training loop (posterior samples from a generator seeded per step and process: resumable)
     progress = tqdm(
@@ -253,8 +254,7 @@ def main(argv: list[str] | None = None) -> Path:
         train_loader.set_epoch(epoch)
         loader = accelerator.skip_first_batches(train_loader, offset) if offset else train_loader
         for batch in loader:
-            seed = np.random.SeedSequence([config.seed, global_step, accelerator.process_index])
-            generator = torch.Generator().manual_seed(int(seed.generate_state(1)[0]))
+            generator = micro_batch_generator(config.seed, global_step, accelerator.process_index)
             total, reconstruction = objective(batch["image"], generator=generator)
             accelerator.backward(total.mean())
             accelerator.clip_grad_norm_(objective.parameters(), config.max_grad_norm)

@@ -25,7 +25,9 @@ from .scaling import (
     DecibelScaling,
     check_magnitude,
     from_decibels,
+    signed_to_unit,
     to_decibels,
+    unit_to_signed,
 )
 from .splits import PROTOCOLS, check_protocol, ood_validation_intervals, prepare_splits, split_records
 from .view_pairs import ViewPairDataset, wrap_azimuth_deg
@@ -60,9 +62,11 @@ __all__ = [
     "read_mstar_header",
     "read_mstar_raw",
     "resolve_class_names",
+    "signed_to_unit",
     "split_records",
     "target_class_from_type",
     "to_decibels",
+    "unit_to_signed",
     "wrap_azimuth_deg",
     "write_index",
 ]

@@ -22,6 +22,7 @@ from PIL import Image
 from skimage.transform import resize
 
 from .mstar_raw import is_mstar_raw, read_mstar_raw
+from .scaling import Array
 
 __all__ = ["IMAGE_SUFFIXES", "center_crop", "center_crop_resize", "load_magnitude"]
 
@@ -107,13 +108,16 @@ def load_magnitude(path: str | Path) -> np.ndarray:
     return magnitude
 
 
-def center_crop(image: np.ndarray, crop_size: int) -> np.ndarray:
+def center_crop(image: Array, crop_size: int) -> Array:
     """Cuts the central ``crop_size x crop_size`` square (the target sits at the chip centre).
+
+    The one centre crop of the package: chips on load, the metrics' 64x64 scoring window, PFM's crop and
+    its latent window. NumPy arrays and torch tensors alike.
 
     For an odd margin the extra row/column is dropped at the end, so a 129x128 chip loses its last row.
 
     Args:
-        image: Image of shape (..., H, W) with H, W >= crop_size.
+        image: Image (array or tensor) of shape (..., H, W) with H, W >= crop_size.
         crop_size: Side of the square.
 
     Returns:

@@ -30,7 +30,9 @@ __all__ = [
     "ZERO_MAGNITUDE_DB",
     "DecibelScaling",
     "from_decibels",
+    "signed_to_unit",
     "to_decibels",
+    "unit_to_signed",
 ]
 
 DB_EPS = 1e-3
@@ -71,6 +73,22 @@ def from_decibels(decibels: Array) -> Array:
     if isinstance(decibels, torch.Tensor):
         return torch.pow(10.0, decibels / 20.0) - DB_EPS
     return (np.power(10.0, np.asarray(decibels) / 20.0) - DB_EPS).astype(np.result_type(decibels, np.float32))
+
+
+def unit_to_signed(x: Array) -> Array:
+    """Normalised dB in [0, 1] -> [-1, 1], the input range of the VAE and of the SAR encoder's ResNet.
+
+    Inverse of :func:`signed_to_unit`; elementwise, any shape.
+    """
+    return x * 2.0 - 1.0
+
+
+def signed_to_unit(x: Array) -> Array:
+    """[-1, 1] (a VAE's decoded image) -> normalised dB in [0, 1]; no clipping.
+
+    Inverse of :func:`unit_to_signed`; elementwise, any shape.
+    """
+    return (x + 1.0) / 2.0
 
 
 def check_magnitude(magnitude: Array, name: str = "magnitude") -> None:

@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
+from sar_zero123.data import center_crop
 from sar_zero123.sim.render import render_chip
 from sar_zero123.sim.targets import TARGET_CLASSES, make_target
 
@@ -25,12 +26,6 @@ _REAL_CLASSES = ("T62", "BMP2", "ZIL131", "D7", "2S1", "ZSU234")
 def to_display_db(magnitude: np.ndarray) -> np.ndarray:
     """Decibels for display, ``20 log10(m + 1e-3)``, as the data layer's ``to_decibels``."""
     return 20.0 * np.log10(np.asarray(magnitude, dtype=np.float64) + 1e-3)
-
-
-def _center_crop(image: np.ndarray, size: int) -> np.ndarray:
-    h, w = image.shape
-    top, left = max(0, (h - size) // 2), max(0, (w - size) // 2)
-    return image[top : top + size, left : left + size]
 
 
 def _real_chips(
@@ -48,7 +43,7 @@ def _real_chips(
         for az in azimuths_deg:
             r = min(recs, key=lambda r: abs((float(r["azimuth_deg"]) - az + 180.0) % 360.0 - 180.0))
             pixels = np.asarray(Image.open(root / r["path"]).convert("L"), dtype=np.float32) / 255.0
-            row.append((float(r["azimuth_deg"]), _center_crop(pixels, size)))
+            row.append((float(r["azimuth_deg"]), center_crop(pixels, min(size, *pixels.shape))))
         out.append((class_name, row))
     return out
 
