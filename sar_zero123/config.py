@@ -3,8 +3,9 @@
 Each script declares one ``@dataclass`` whose fields carry a default and a trailing comment.
 :func:`parse_config` turns it into command-line flags (``--field_name value``; ``--field-name`` is
 accepted too), optionally reads ``--config x.yaml`` (or ``.json``) first, and lets flags override
-the file. The trailing comment becomes the flag's help text. The dataclass's ``__post_init__`` does
-the validation, so a bad value fails with a ``ValueError`` naming the field before any work starts.
+the file. A list field's flag may be repeated; its values add up. The trailing comment becomes the
+flag's help text. The dataclass's ``__post_init__`` does the validation, so a bad value fails with a
+``ValueError`` naming the field before any work starts.
 """
 
 from __future__ import annotations
@@ -77,7 +78,10 @@ def _add_field(parser: argparse.ArgumentParser, field: dataclasses.Field, annota
         args = [a for a in typing.get_args(inner) if a is not Ellipsis]
         element = args[0] if args else str
         element_type = _scalar_parser(element, name)
-        parser.add_argument(*flags, nargs="*" if optional else "+", type=element_type, **kwargs)
+        # "extend": a repeated flag adds its values (`--pipeline a --pipeline b` -> [a, b])
+        parser.add_argument(
+            *flags, nargs="*" if optional else "+", action="extend", type=element_type, **kwargs
+        )
         return
     scalar = _scalar_parser(inner, name)
     if typing.get_origin(inner) is typing.Literal:

@@ -33,6 +33,7 @@ from torch import nn
 
 from .conditioning import downsampling_factor
 from .data import center_crop, signed_to_unit, unit_to_signed
+from .encoder import SAREncoder
 
 #: Floor on ``abar_t`` in the epsilon-prediction x0 estimate (diffusers' EulerDiscreteScheduler uses the same
 #: value for zero-terminal-SNR schedules); keeps ``1 / sqrt(abar_t)`` at most 4096.
@@ -279,6 +280,33 @@ def project_encoder_features(encoder: nn.Module, projection_dim: int | None, *, 
         return encoder
     weight = random_feature_projection(encoder.feature_dim, projection_dim, seed=seed)
     return ProjectedFeatureEncoder(encoder, weight).eval().requires_grad_(False)
+
+
+def load_pfm_encoder(
+    path: str | Path, *, image_size: int, projection_dim: int | None = None, seed: int = 0
+) -> nn.Module:
+    """The frozen SAR encoder ``f`` of Eq. (20), checked against the training resolution; with
+    ``projection_dim`` followed by the seeded random projection (:func:`project_encoder_features`).
+
+    Args:
+        path: A ``SAREncoder.save_pretrained`` folder (``train/pretrain_simclr.py``'s ``encoder/``).
+        image_size: The chip side the diffusion model trains on.
+        projection_dim: ``None`` (full features) or ``k`` (the paper-comparable projection).
+        seed: Seed of the projection.
+
+    Raises:
+        FileNotFoundError: If the folder or its files are missing.
+        ValueError: If the encoder was trained at another resolution.
+    """
+    encoder = SAREncoder.from_pretrained(path)
+    if encoder.config.image_size != image_size:
+        raise ValueError(
+            f"encoder: {str(path)!r} was trained on {encoder.config.image_size} px chips but training "
+            f"runs at image_size={image_size}; train the encoder at {image_size} px or set --image_size "
+            f"{encoder.config.image_size}"
+        )
+    encoder = encoder.eval().requires_grad_(False)
+    return project_encoder_features(encoder, projection_dim, seed=seed)
 
 
 def _require_frozen(module: nn.Module, name: str) -> None:

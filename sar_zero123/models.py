@@ -6,7 +6,9 @@ schedule, VAE scaling factor, CLIP preprocessing) live in :mod:`sar_zero123.chec
 
 from __future__ import annotations
 
-from typing import Any
+import os
+from pathlib import Path
+from typing import Any, Literal
 
 import torch
 from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
@@ -16,7 +18,7 @@ from sar_zero123.checkpoints import SD_VAE_SCALING_FACTOR, ZERO123_SCHEDULER_CON
 from sar_zero123.conditioning import POSE_DIM, PoseProjection, downsampling_factor
 from sar_zero123.pipeline import SARZero123Pipeline
 
-__all__ = ["SAR_ZERO123_SIZES", "build_sar_zero123"]
+__all__ = ["SAR_ZERO123_SIZES", "build_sar_zero123", "check_vae_fits", "load_sar_zero123", "replace_vae"]
 
 SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
     # Unit tests: 32 px chips, 16x16x4 latents; well under 1 M parameters in total.
@@ -248,3 +250,85 @@ def build_sar_zero123(
         pose_projection=pose_projection.eval(),
         feature_extractor=feature_extractor,
     )
+
+
+def load_sar_zero123(
+    pretrained: str | os.PathLike | None,
+    *,
+    size: str = "small",
+    image_size: int | None = None,
+    seed: int = 0,
+    pose_in_time_embedding: bool = False,
+    prediction_type: Literal["epsilon", "v_prediction"] | None = None,
+    vae: str | os.PathLike | None = None,
+) -> SARZero123Pipeline:
+    """The pipeline a run starts from: a saved or zero-1-to-3 checkpoint, or a new model of a named size.
+
+    Args:
+        pretrained: A ``save_pretrained`` folder (``model_index.json``), any zero-1-to-3 layout
+            (:meth:`SARZero123Pipeline.from_zero123`), or ``None`` to :func:`build_sar_zero123`.
+        size, image_size, seed, pose_in_time_embedding: For ``pretrained=None``, see
+            :func:`build_sar_zero123`.
+        prediction_type: Replace the scheduler's prediction type (only meaningful for a new model: a
+            checkpoint keeps the one it was trained with).
+        vae: An ``AutoencoderKL`` folder replacing the pipeline's VAE (:func:`replace_vae`).
+
+    Returns:
+        The pipeline (float32, CPU).
+
+    Raises:
+        FileNotFoundError: If ``pretrained`` or ``vae`` does not exist.
+        ValueError: If the VAE does not fit the UNet (:func:`check_vae_fits`).
+    """
+    if pretrained is None:
+        pipe = build_sar_zero123(
+            size, image_size=image_size, seed=seed, pose_in_time_embedding=pose_in_time_embedding
+        )
+    else:
+        path = Path(pretrained)
+        if not path.exists():
+            raise FileNotFoundError(f"pretrained: no such file or folder {str(path)!r}")
+        if (path / "model_index.json").is_file():
+            pipe = SARZero123Pipeline.from_pretrained(path)
+        else:
+            pipe = SARZero123Pipeline.from_zero123(path)
+    if prediction_type is not None:
+        scheduler_class = type(pipe.scheduler)
+        pipe.scheduler = scheduler_class.from_config(pipe.scheduler.config, prediction_type=prediction_type)
+    return pipe if vae is None else replace_vae(pipe, vae)
+
+
+def check_vae_fits(vae: AutoencoderKL, pipe: SARZero123Pipeline, name: str = "vae") -> None:
+    """Refuse a VAE that cannot replace ``pipe.vae``: the UNet needs its latent channels and its size.
+
+    Args:
+        vae: The candidate autoencoder.
+        pipe: The pipeline whose UNet it must serve.
+        name: What the VAE is called in the message (a flag, a path).
+
+    Raises:
+        ValueError: If the latent channels or the downsampling factor differ from ``pipe.vae``'s.
+    """
+    new_factor = downsampling_factor(vae.config.block_out_channels)
+    old_factor = pipe.vae_scale_factor
+    if vae.config.latent_channels != pipe.vae.config.latent_channels or new_factor != old_factor:
+        raise ValueError(
+            f"{name} has {vae.config.latent_channels} latent channels and downsampling factor {new_factor}; "
+            f"the UNet needs {pipe.vae.config.latent_channels} and {old_factor}"
+        )
+
+
+def replace_vae(pipe: SARZero123Pipeline, path: str | os.PathLike) -> SARZero123Pipeline:
+    """``pipe`` with the ``AutoencoderKL`` saved in ``path`` (``train/train_vae.py``) as its VAE.
+
+    Raises:
+        FileNotFoundError: If ``path`` holds no ``config.json``.
+        ValueError: If the VAE does not fit (:func:`check_vae_fits`).
+    """
+    path = Path(path)
+    if not (path / "config.json").is_file():
+        raise FileNotFoundError(f"vae: {str(path)!r} is not an AutoencoderKL folder (no config.json)")
+    vae = AutoencoderKL.from_pretrained(path)
+    check_vae_fits(vae, pipe, name=f"vae: {str(path)!r}")
+    # `pipe.components`, not `from_pipe`: that casts every module to one dtype (float32 by default)
+    return SARZero123Pipeline(**{**pipe.components, "vae": vae.eval()})

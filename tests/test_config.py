@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
@@ -65,3 +65,13 @@ def test_save_config_round_trip(tmp_path: Path):
     assert saved["max_steps"] == 4 and saved["presets"] == ["speckle", "monotonic"]
     assert parse_config(DemoConfig, ["--config", str(path)]) == config
     assert not list((tmp_path / "run").glob("*.tmp"))
+
+
+def test_repeated_list_flag_adds_its_values() -> None:
+    @dataclass
+    class Repeated:
+        pipeline: list[str] = field(default_factory=lambda: ["a"])  # pipeline folders
+
+    config = parse_config(Repeated, ["--pipeline", "x", "--pipeline", "y", "z"])
+    assert config.pipeline == ["x", "y", "z"]
+    assert parse_config(Repeated, []).pipeline == ["a"]

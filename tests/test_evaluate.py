@@ -55,12 +55,6 @@ def test_score_views_identical_images(tmp_path: Path) -> None:
         score_views(targets + 1.0, targets, labels, predicted_deg, evaluators, crop_size=32)
 
 
-def test_merge_repeated_flags() -> None:
-    script = load_script("evaluate")
-    merged = script.merge_repeated_flags(["--pipeline", "a", "--n", "4", "--pipeline=b", "c"], ["--pipeline"])
-    assert merged == ["--n", "4", "--pipeline", "a", "b", "c"]
-
-
 def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path) -> None:
     data = write_chip_folder(tmp_path / "data", azimuths_deg=tuple(range(0, 360, 60)), size=32)
     _evaluators(tmp_path / "evaluators")

@@ -176,29 +176,6 @@ class EvaluateConfig:
         return names
 
 
-def merge_repeated_flags(argv: Sequence[str], flags: Sequence[str]) -> list[str]:
-    """`--pipeline A --pipeline B` -> `--pipeline A B` (argparse keeps only the last occurrence)."""
-    merged: dict[str, list[str]] = {}
-    rest: list[str] = []
-    current: str | None = None
-    for token in argv:
-        name = token.split("=", 1)[0].replace("-", "_").lstrip("_")
-        if token.startswith("--") and name in {f.lstrip("-").replace("-", "_") for f in flags}:
-            current = name
-            merged.setdefault(current, [])
-            if "=" in token:
-                merged[current].append(token.split("=", 1)[1])
-            continue
-        if current is not None and not token.startswith("--"):
-            merged[current].append(token)
-            continue
-        current = None
-        rest.append(token)
-    for name, values in merged.items():
-        rest += [f"--{name}", *values]
-    return rest
-
-
 # --------------------------------------------------------------------------------------------- data
 @dataclass
 class PairSet:
@@ -594,9 +571,7 @@ def speed_markdown(rows: list[dict[str, Any]], device: str) -> str:
 # --------------------------------------------------------------------------------------------- main
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Runs the evaluation; returns `{"table3": ..., "speed_error": [...]}` (also written to disk)."""
-    import sys
 
-    argv = merge_repeated_flags(list(sys.argv[1:] if argv is None else argv), ("--pipeline",))
     config = parse_config(EvaluateConfig, argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     output_dir = Path(config.output_dir)

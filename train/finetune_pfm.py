@@ -34,18 +34,17 @@ import numpy as np
 import PIL.Image
 import torch
 from accelerate import Accelerator
-from diffusers import AutoencoderKL, DDIMScheduler, DDPMScheduler, UNet2DConditionModel
+from diffusers import DDIMScheduler, DDPMScheduler, UNet2DConditionModel
 from diffusers.optimization import get_scheduler
 from diffusers.training_utils import EMAModel
 from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from sar_zero123.config import parse_config, save_config, write_json_atomic
-from sar_zero123.data import SCALING_FILE, DecibelScaling, ViewPairDataset, check_protocol, prepare_splits
-from sar_zero123.encoder import SAREncoder
+from sar_zero123.data import SCALING_FILE, DecibelScaling, check_protocol, train_validation_pairs
 from sar_zero123.evaluators import Evaluators, load_evaluators, pose_following
-from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput, project_encoder_features
-from sar_zero123.models import build_sar_zero123
+from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput, load_pfm_encoder
+from sar_zero123.models import load_sar_zero123
 from sar_zero123.pipeline import SARZero123Pipeline
 from sar_zero123.run_state import (
     check_finite_state,
@@ -182,56 +181,6 @@ class FinetuneConfig:
 
 
 # ----------------------------------------------------------------------------------------- building
-def load_components(config: FinetuneConfig) -> SARZero123Pipeline:
-    """The pipeline to fine-tune: ``--pretrained`` (any layout the pipeline loads) or a named size, with
-    ``--vae`` swapped in.
-
-    Raises:
-        FileNotFoundError: If ``pretrained`` or ``vae`` does not exist.
-        ValueError: If the VAE does not fit the UNet (latent channels or downsampling factor).
-    """
-    if config.pretrained is None:
-        pipe = build_sar_zero123(
-            config.size,
-            image_size=config.image_size,
-            seed=config.seed,
-            pose_in_time_embedding=config.pose_in_time_embedding,
-        )
-    else:
-        path = Path(config.pretrained)
-        if not path.exists():
-            raise FileNotFoundError(f"pretrained: no such file or folder {str(path)!r}")
-        if (path / "model_index.json").is_file():
-            pipe = SARZero123Pipeline.from_pretrained(path)
-        else:
-            pipe = SARZero123Pipeline.from_zero123(path)
-    if config.prediction_type is not None:  # only for a model built here: a checkpoint keeps its own
-        pipe.scheduler = type(pipe.scheduler).from_config(
-            pipe.scheduler.config, prediction_type=config.prediction_type
-        )
-    if config.vae is not None:
-        vae_path = Path(config.vae)
-        if not (vae_path / "config.json").is_file():
-            raise FileNotFoundError(f"vae: {str(vae_path)!r} is not an AutoencoderKL folder (no config.json)")
-        vae = AutoencoderKL.from_pretrained(vae_path)
-        old_factor = pipe.vae_scale_factor
-        new_factor = 2 ** (len(vae.config.block_out_channels) - 1)
-        if vae.config.latent_channels != pipe.vae.config.latent_channels or new_factor != old_factor:
-            raise ValueError(
-                f"vae: {str(vae_path)!r} has {vae.config.latent_channels} latent channels and downsampling "
-                f"factor {new_factor}; the UNet needs {pipe.vae.config.latent_channels} and {old_factor}"
-            )
-        pipe = SARZero123Pipeline(
-            vae=vae.eval(),
-            image_encoder=pipe.image_encoder,
-            unet=pipe.unet,
-            scheduler=pipe.scheduler,
-            pose_projection=pipe.pose_projection,
-            feature_extractor=pipe.feature_extractor,
-        )
-    return pipe
-
-
 def resolve_image_size(config: FinetuneConfig, pipe: SARZero123Pipeline) -> int:
     """Chip side for training; must be a multiple of the pipeline's total downsampling.
 
@@ -242,62 +191,6 @@ def resolve_image_size(config: FinetuneConfig, pipe: SARZero123Pipeline) -> int:
     if image_size % pipe.size_multiple:
         raise ValueError(f"image_size must be a multiple of {pipe.size_multiple}, got {image_size}")
     return image_size
-
-
-def load_encoder(config: FinetuneConfig, image_size: int) -> torch.nn.Module | None:
-    """The frozen SAR encoder for PFM, checked against the training resolution; with
-    ``pfm_projection_dim`` followed by the seeded random projection (``config.seed``).
-
-    Raises:
-        FileNotFoundError: If the folder or its files are missing.
-        ValueError: If the encoder was trained at another resolution.
-    """
-    if config.pfm_weight == 0:
-        return None
-    encoder = SAREncoder.from_pretrained(config.encoder)
-    if encoder.config.image_size != image_size:
-        raise ValueError(
-            f"encoder: {config.encoder!r} was trained on {encoder.config.image_size} px chips but training "
-            f"runs at image_size={image_size}; train the encoder at {image_size} px or set --image_size "
-            f"{encoder.config.image_size}"
-        )
-    encoder = encoder.eval().requires_grad_(False)
-    return project_encoder_features(encoder, config.pfm_projection_dim, seed=config.seed)
-
-
-def build_datasets(
-    config: FinetuneConfig, image_size: int
-) -> tuple[ViewPairDataset, ViewPairDataset, DecibelScaling]:
-    """Train and validation view pairs (validation from the protocol's test split) and the dB scaling.
-
-    Raises:
-        ValueError: For an unknown protocol or a dataset without pairs.
-    """
-    splits = prepare_splits(config.data, config.protocol, Path(config.output_dir) / "data", seed=config.seed)
-    if not splits.get("train"):
-        raise ValueError(f"data: protocol {config.protocol!r} gives an empty training split")
-    scaling = DecibelScaling.from_choice(config.scaling, splits["train"])
-    train = ViewPairDataset(
-        splits["train"], size=image_size, scaling=scaling, max_d_az_deg=config.max_d_az_deg, seed=config.seed
-    )
-    # seen classes at held-out azimuths (ood protocols' val split), else the test split, else the training
-    # chips: the first of them in which some chip has a partner view
-    for name in ("val", "test", "train"):
-        if not splits.get(name):
-            continue
-        try:
-            validation = ViewPairDataset(
-                splits[name],
-                size=image_size,
-                scaling=scaling,
-                max_d_az_deg=config.max_d_az_deg,
-                seed=config.seed + 1,
-                num_pairs=config.num_validation_images,
-            )
-        except ValueError:  # no chip of this split has a partner view
-            continue
-        break
-    return train, validation, scaling
 
 
 # ---------------------------------------------------------------------------------------- validation
@@ -384,10 +277,31 @@ def main(argv: list[str] | None = None) -> Path:
     # the LR schedule of a constant scheduler does not depend on the step count: such runs may be extended
     extendable = ("max_train_steps",) if config.lr_scheduler in ("constant", "constant_with_warmup") else ()
     check_resume_config(resume_path, config, may_differ=("guidance_scale", *extendable))
-    pipe = load_components(config)
+    pipe = load_sar_zero123(
+        config.pretrained,
+        size=config.size,
+        image_size=config.image_size,
+        seed=config.seed,
+        pose_in_time_embedding=config.pose_in_time_embedding,
+        prediction_type=config.prediction_type,
+        vae=config.vae,
+    )
     image_size = resolve_image_size(config, pipe)
-    encoder = load_encoder(config, image_size)
-    train_dataset, validation_dataset, scaling = build_datasets(config, image_size)
+    encoder = None
+    if config.pfm_weight > 0:
+        encoder = load_pfm_encoder(
+            config.encoder, image_size=image_size, projection_dim=config.pfm_projection_dim, seed=config.seed
+        )
+    train_dataset, validation_dataset, scaling = train_validation_pairs(
+        config.data,
+        config.protocol,
+        output_dir / "data",
+        image_size=image_size,
+        scaling=config.scaling,
+        max_d_az_deg=config.max_d_az_deg,
+        num_validation_pairs=config.num_validation_images,
+        seed=config.seed,
+    )
     evaluators = None
     if config.evaluators is not None and config.validation_steps:
         evaluators = load_evaluators(config.evaluators)  # pose following reads only the regressor
@@ -671,13 +585,10 @@ def validate(
                 apply_dropout=False,
                 **frozen_modules,
             )
+        # the pipeline's modules are the ones being trained (unwrapped): only the sampler changes. Not
+        # `from_pipe`, which casts every module to one dtype (float32 by default) in place.
         sampler = SARZero123Pipeline(
-            vae=frozen_modules["vae"],
-            image_encoder=raw_embedder.image_encoder,
-            unet=raw_unet,
-            scheduler=DDIMScheduler.from_config(pipe.scheduler.config),
-            pose_projection=raw_projection,
-            feature_extractor=pipe.feature_extractor,
+            **{**pipe.components, "scheduler": DDIMScheduler.from_config(pipe.scheduler.config)}
         )
         sampler.set_progress_bar_config(disable=True)
         path = run_validation(accelerator, sampler, batch, losses, config, step)

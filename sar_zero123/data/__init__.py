@@ -30,7 +30,7 @@ from .scaling import (
     unit_to_signed,
 )
 from .splits import PROTOCOLS, check_protocol, ood_validation_intervals, prepare_splits, split_records
-from .view_pairs import ViewPairDataset, wrap_azimuth_deg
+from .view_pairs import ViewPairDataset, train_validation_pairs, wrap_azimuth_deg
 
 __all__ = [
     "INDEX_COLUMNS",
@@ -66,6 +66,7 @@ __all__ = [
     "split_records",
     "target_class_from_type",
     "to_decibels",
+    "train_validation_pairs",
     "unit_to_signed",
     "wrap_azimuth_deg",
     "write_index",

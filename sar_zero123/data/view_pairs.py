@@ -12,8 +12,10 @@ the dataset is built, so every DataLoader worker sees the same pairs and a run i
 
 from __future__ import annotations
 
+import os
 from collections import defaultdict
 from collections.abc import Sequence
+from pathlib import Path
 from typing import Any
 
 import numpy as np
@@ -23,6 +25,7 @@ from torch.utils.data import Dataset
 from .datasets import load_chip, resolve_class_names
 from .index import ChipRecord
 from .scaling import DecibelScaling
+from .splits import prepare_splits
 
 __all__ = ["ViewPairDataset", "wrap_azimuth_deg"]
 
@@ -182,3 +185,61 @@ class ViewPairDataset(Dataset):
             item["input_magnitude"] = input_magnitude
             item["target_magnitude"] = target_magnitude
         return item
+
+
+def train_validation_pairs(
+    data: str | os.PathLike | None,
+    protocol: str,
+    work_dir: str | os.PathLike,
+    *,
+    image_size: int,
+    scaling: str = "unit",
+    max_d_az_deg: float | None = None,
+    num_validation_pairs: int = 4,
+    seed: int = 0,
+) -> tuple[ViewPairDataset, ViewPairDataset, DecibelScaling]:
+    """Training and validation view pairs of a protocol's splits, and the dB scaling both use.
+
+    Validation pairs come from the first split in which some chip has a partner view: seen classes at
+    held-out azimuths (the ood protocols' ``val``), else ``test``, else ``train``.
+
+    Args:
+        data: Dataset folder with ``index.csv``; ``None`` simulates the built-in dataset into ``work_dir``.
+        protocol: ``extended``, ``soc`` or ``ood-<CLASS>`` (:func:`prepare_splits`).
+        work_dir: Where a simulated dataset is cached.
+        image_size: Chip side in pixels.
+        scaling: ``"unit"``, ``"mstar_raw"`` or ``"fit"`` (:meth:`DecibelScaling.from_choice`, fitted on
+            the training split).
+        max_d_az_deg: Largest ``|d_az|`` of a pair; ``None``: any.
+        num_validation_pairs: Fixed validation pairs drawn (with seed ``seed + 1``).
+        seed: Seed of the splits and of the training pairs.
+
+    Returns:
+        ``(train_pairs, validation_pairs, scaling)``.
+
+    Raises:
+        ValueError: For an unknown protocol, an empty training split or a split without pairs.
+    """
+    splits = prepare_splits(data, protocol, Path(work_dir), seed=seed)
+    if not splits.get("train"):
+        raise ValueError(f"data: protocol {protocol!r} gives an empty training split")
+    decibel_scaling = DecibelScaling.from_choice(scaling, splits["train"])
+    train = ViewPairDataset(
+        splits["train"], size=image_size, scaling=decibel_scaling, max_d_az_deg=max_d_az_deg, seed=seed
+    )
+    for name in ("val", "test", "train"):
+        if not splits.get(name):
+            continue
+        try:
+            validation = ViewPairDataset(
+                splits[name],
+                size=image_size,
+                scaling=decibel_scaling,
+                max_d_az_deg=max_d_az_deg,
+                seed=seed + 1,
+                num_pairs=num_validation_pairs,
+            )
+        except ValueError:  # no chip of this split has a partner view
+            continue
+        break
+    return train, validation, decibel_scaling
