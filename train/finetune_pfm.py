@@ -30,7 +30,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
 import PIL.Image
 import torch
 from accelerate import Accelerator
@@ -42,8 +41,8 @@ from tqdm.auto import tqdm
 
 from sar_zero123.config import parse_config, save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling, check_protocol, train_validation_pairs
-from sar_zero123.evaluators import Evaluators, load_evaluators, pose_following
-from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossOutput, load_pfm_encoder
+from sar_zero123.evaluators import Evaluators, load_evaluators
+from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, load_pfm_encoder
 from sar_zero123.models import load_sar_zero123
 from sar_zero123.pipeline import SARZero123Pipeline
 from sar_zero123.run_state import (
@@ -62,11 +61,11 @@ from sar_zero123.training import (
     ChipLatentCache,
     ImageEmbedder,
     compute_losses,
-    conditioning_sensitivity,
     load_chip_images,
     micro_batch_generator,
     timestep_bucket_losses,
 )
+from sar_zero123.validation import ema_weights, validate_pairs
 
 logger = logging.getLogger(__name__)
 
@@ -191,56 +190,6 @@ def resolve_image_size(config: FinetuneConfig, pipe: SARZero123Pipeline) -> int:
     if image_size % pipe.size_multiple:
         raise ValueError(f"image_size must be a multiple of {pipe.size_multiple}, got {image_size}")
     return image_size
-
-
-# ---------------------------------------------------------------------------------------- validation
-def make_grid(inputs: torch.Tensor, generated: torch.Tensor, targets: torch.Tensor) -> np.ndarray:
-    """Rows of ``input | generated | target`` as an 8-bit image.
-
-    Shape:
-        each ``(N, 1, S, S)`` in [0, 1] -> ``(N * S, 3 * S)`` uint8.
-    """
-    rows = torch.cat([inputs, generated, targets], dim=-1)[:, 0]  # (N, S, 3S)
-    grid = rows.reshape(-1, rows.shape[-1]).clamp(0, 1)
-    return (grid.float().cpu().numpy() * 255).round().astype(np.uint8)
-
-
-@torch.no_grad()
-def run_validation(
-    accelerator: Accelerator,
-    pipe: SARZero123Pipeline,
-    batch: dict,
-    losses: LossOutput,
-    config: FinetuneConfig,
-    step: int,
-) -> Path:
-    """Sample the validation pairs, write ``validation/step-<step>.png`` and log images and losses."""
-    generator = torch.Generator().manual_seed(config.seed)
-    generated = pipe(
-        batch["input"].to(pipe.device, torch.float32),
-        d_az=batch["d_az_deg"],
-        d_el=batch["d_el_deg"],
-        num_inference_steps=config.validation_inference_steps,
-        guidance_scale=config.guidance_scale,
-        generator=generator,
-        output_type="pt",
-    ).images
-    grid = make_grid(batch["input"], generated.cpu(), batch["target"])
-    path = Path(config.output_dir) / "validation" / f"step-{step:06d}.png"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    PIL.Image.fromarray(grid).save(path)
-    if config.report_to == "tensorboard":
-        accelerator.get_tracker("tensorboard").log_images(
-            {"validation/input_generated_target": grid[None, ..., None]}, step=step, dataformats="NHWC"
-        )
-    accelerator.log(
-        {
-            "validation/loss_simple": losses.denoising.mean().item(),
-            "validation/loss_pfm": losses.pfm.mean().item(),
-        },
-        step=step,
-    )
-    return path
 
 
 def export_pipeline(pipe: SARZero123Pipeline, scaling: DecibelScaling, directory: Path) -> Path:
@@ -497,14 +446,15 @@ def main(argv: list[str] | None = None) -> Path:
                 )
             if config.validation_steps and global_step % config.validation_steps == 0:
                 if accelerator.is_main_process:
+                    ema_pairs = [
+                        (ema_unet, accelerator.unwrap_model(unet)),
+                        (ema_image_encoder, accelerator.unwrap_model(image_encoder)),
+                    ]
                     validate(
                         accelerator,
-                        unet,
-                        pose_projection,
-                        image_encoder,
-                        ema_unet,
-                        ema_image_encoder,
                         pipe,
+                        image_encoder,
+                        ema_pairs,
                         validation_batch,
                         frozen_modules,
                         config,
@@ -550,84 +500,39 @@ def main(argv: list[str] | None = None) -> Path:
 
 def validate(
     accelerator: Accelerator,
-    unet,
-    pose_projection,
-    image_encoder,
-    ema_unet: EMAModel | None,
-    ema_image_encoder: EMAModel | None,
     pipe: SARZero123Pipeline,
+    image_encoder,
+    ema_pairs: list,
     batch: dict,
-    frozen_modules: dict,
+    loss_kwargs: dict,
     config: FinetuneConfig,
     step: int,
     evaluators: Evaluators | None = None,
 ) -> Path:
-    """Validation with the unwrapped modules, EMA weights swapped in (and out again afterwards)."""
-    raw_unet = accelerator.unwrap_model(unet)
-    raw_projection = accelerator.unwrap_model(pose_projection)
-    raw_embedder = accelerator.unwrap_model(image_encoder)
-    swaps = [(ema_unet, raw_unet), (ema_image_encoder, raw_embedder)]
-    for ema, module in swaps:
-        if ema is not None:
-            ema.store(module.parameters())
-            ema.copy_to(module.parameters())
-    was_training = raw_embedder.training
-    for module in (raw_unet, raw_projection, raw_embedder):
-        module.eval()
-    try:
-        with torch.no_grad():
-            losses = compute_losses(
-                batch,
-                unet=raw_unet,
-                pose_projection=raw_projection,
-                image_encoder=raw_embedder,
-                generator=torch.Generator().manual_seed(config.seed),
-                apply_dropout=False,
-                **frozen_modules,
-            )
-        # the pipeline's modules are the ones being trained (unwrapped): only the sampler changes. Not
-        # `from_pipe`, which casts every module to one dtype (float32 by default) in place.
-        sampler = SARZero123Pipeline(
-            **{**pipe.components, "scheduler": DDIMScheduler.from_config(pipe.scheduler.config)}
-        )
-        sampler.set_progress_bar_config(disable=True)
-        path = run_validation(accelerator, sampler, batch, losses, config, step)
-        # 3. is the conditioning used? (prediction change under a 180 deg turn and an input swap; with
-        #    evaluators, the azimuth of views generated for several d_az against the requested one)
-        sensitivity = conditioning_sensitivity(
+    """Validation with EMA weights swapped in: ``validation/step-<step>.png``, logs, ``metrics.jsonl``."""
+    with ema_weights(ema_pairs):
+        logs, grid = validate_pairs(
             batch,
-            unet=raw_unet,
-            pose_projection=raw_projection,
-            vae=frozen_modules["vae"],
-            image_encoder=raw_embedder,
-            noise_scheduler=frozen_modules["noise_scheduler"],
+            pipe=pipe,
+            image_embedder=accelerator.unwrap_model(image_encoder),
+            loss_kwargs=loss_kwargs,
             seed=config.seed,
+            num_inference_steps=config.validation_inference_steps,
+            guidance_scale=config.guidance_scale,
+            regressor=None if evaluators is None else evaluators.regressor,
         )
-        logs = {f"validation/sensitivity_{name}": value for name, value in sensitivity.items()}
-        if evaluators is not None:
-            following = pose_following(
-                sampler,
-                batch["input"][:1].float(),
-                float(batch["input_azimuth_deg"][0]),
-                evaluators.regressor,
-                num_inference_steps=config.validation_inference_steps,
-                guidance_scale=config.guidance_scale,
-                seed=config.seed,
-            )
-            logs["validation/pose_following_error_deg"] = following["mean_error_deg"]
-            logs["validation/pose_following_floor_deg"] = following["floor_deg"]
-        accelerator.log(logs, step=step)
-        logger.info("validation step %d: %s", step, json.dumps(logs))
-        with open(Path(config.output_dir) / "validation" / "metrics.jsonl", "a") as stream:
-            stream.write(json.dumps({"step": step, **logs}) + "\n")
-        return path
-    finally:
-        for ema, module in swaps:
-            if ema is not None:
-                ema.restore(module.parameters())
-        raw_unet.train()
-        raw_projection.train()
-        raw_embedder.train(was_training)
+    path = Path(config.output_dir) / "validation" / f"step-{step:06d}.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PIL.Image.fromarray(grid).save(path)
+    if config.report_to == "tensorboard":
+        accelerator.get_tracker("tensorboard").log_images(
+            {"validation/input_generated_target": grid[None, ..., None]}, step=step, dataformats="NHWC"
+        )
+    accelerator.log(logs, step=step)
+    logger.info("validation step %d: %s", step, json.dumps(logs))
+    with open(path.parent / "metrics.jsonl", "a") as stream:
+        stream.write(json.dumps({"step": step, **logs}) + "\n")
+    return path
 
 
 if __name__ == "__main__":
