@@ -456,6 +456,8 @@ class LossOutput:
             stays unbiased.
         pfm_mask: Where PFM was computed.
         timesteps: The sampled timesteps, when the caller records them (for per-timestep logging).
+        azimuth: The input-azimuth estimation loss (:func:`~sar_zero123.orientation.azimuth_estimation_loss`)
+            when the model has an azimuth estimator, already included in ``loss`` with its weight.
     """
 
     loss: torch.Tensor
@@ -463,6 +465,7 @@ class LossOutput:
     pfm: torch.Tensor
     pfm_mask: torch.Tensor
     timesteps: torch.Tensor | None = None
+    azimuth: torch.Tensor | None = None
 
 
 def total_loss(

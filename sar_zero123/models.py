@@ -16,6 +16,7 @@ from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
 
 from sar_zero123.checkpoints import SD_VAE_SCALING_FACTOR, ZERO123_SCHEDULER_CONFIG, CLIPImageProcessor
 from sar_zero123.conditioning import POSE_DIM, PoseProjection, downsampling_factor
+from sar_zero123.orientation import AZIMUTH_DIM, AzimuthEstimator
 from sar_zero123.pipeline import SARZero123Pipeline
 
 __all__ = ["SAR_ZERO123_SIZES", "build_sar_zero123", "check_vae_fits", "load_sar_zero123", "replace_vae"]
@@ -174,7 +175,11 @@ for _spec in SAR_ZERO123_SIZES.values():  # a size may share another size's VAE 
         _spec["vae"] = SAR_ZERO123_SIZES[_spec["vae"]]["vae"]
 
 def build_sar_zero123(
-    size: str, image_size: int | None = None, seed: int = 0, pose_in_time_embedding: bool = False
+    size: str,
+    image_size: int | None = None,
+    seed: int = 0,
+    pose_in_time_embedding: bool = False,
+    estimate_input_azimuth: bool = False,
 ) -> SARZero123Pipeline:
     """Build a randomly initialised :class:`SARZero123Pipeline` of a named size.
 
@@ -196,6 +201,9 @@ def build_sar_zero123(
         pose_in_time_embedding: Also add a learned projection of the pose vector to the UNet's timestep
             embedding (``class_embed_type="projection"``, see
             :func:`~sar_zero123.conditioning.pose_class_labels`); recorded in the UNet config.
+        estimate_input_azimuth: Also build an :class:`~sar_zero123.orientation.AzimuthEstimator` and give
+            the UNet's timestep embedding the target's estimated azimuth after the pose (implies
+            ``pose_in_time_embedding``): the SAR-sized absolute-pose path (``sar_zero123.orientation``).
 
     Returns:
         The pipeline (float32, CPU) with a zero-1-to-3 DDIM scheduler.
@@ -221,9 +229,10 @@ def build_sar_zero123(
         torch.manual_seed(seed)
         vae = AutoencoderKL(**spec["vae"], sample_size=image_size, scaling_factor=SD_VAE_SCALING_FACTOR)
         torch.manual_seed(seed)
+        pose_inputs = POSE_DIM + (AZIMUTH_DIM if estimate_input_azimuth else 0)
         pose_embedding = (
-            {"class_embed_type": "projection", "projection_class_embeddings_input_dim": POSE_DIM}
-            if pose_in_time_embedding
+            {"class_embed_type": "projection", "projection_class_embeddings_input_dim": pose_inputs}
+            if pose_in_time_embedding or estimate_input_azimuth
             else {}
         )
         unet = UNet2DConditionModel(
@@ -237,6 +246,10 @@ def build_sar_zero123(
         image_encoder = CLIPVisionModelWithProjection(clip_config)
         # nn.Linear draws its default init before PoseProjection overwrites it: keep that inside too.
         pose_projection = PoseProjection(clip_config.projection_dim + POSE_DIM, cross_attention_dim)
+        azimuth_estimator = None
+        if estimate_input_azimuth:
+            torch.manual_seed(seed)
+            azimuth_estimator = AzimuthEstimator(latent_channels).eval()
     feature_extractor = None
     if size == "zero123":
         feature_extractor = CLIPImageProcessor(
@@ -249,6 +262,7 @@ def build_sar_zero123(
         scheduler=DDIMScheduler(**ZERO123_SCHEDULER_CONFIG),
         pose_projection=pose_projection.eval(),
         feature_extractor=feature_extractor,
+        azimuth_estimator=azimuth_estimator,
     )
 
 
@@ -259,6 +273,7 @@ def load_sar_zero123(
     image_size: int | None = None,
     seed: int = 0,
     pose_in_time_embedding: bool = False,
+    estimate_input_azimuth: bool = False,
     prediction_type: Literal["epsilon", "v_prediction"] | None = None,
     vae: str | os.PathLike | None = None,
 ) -> SARZero123Pipeline:
@@ -267,7 +282,7 @@ def load_sar_zero123(
     Args:
         pretrained: A ``save_pretrained`` folder (``model_index.json``), any zero-1-to-3 layout
             (:meth:`SARZero123Pipeline.from_zero123`), or ``None`` to :func:`build_sar_zero123`.
-        size, image_size, seed, pose_in_time_embedding: For ``pretrained=None``, see
+        size, image_size, seed, pose_in_time_embedding, estimate_input_azimuth: For ``pretrained=None``, see
             :func:`build_sar_zero123`.
         prediction_type: Replace the scheduler's prediction type (only meaningful for a new model: a
             checkpoint keeps the one it was trained with).
@@ -282,7 +297,11 @@ def load_sar_zero123(
     """
     if pretrained is None:
         pipe = build_sar_zero123(
-            size, image_size=image_size, seed=seed, pose_in_time_embedding=pose_in_time_embedding
+            size,
+            image_size=image_size,
+            seed=seed,
+            pose_in_time_embedding=pose_in_time_embedding,
+            estimate_input_azimuth=estimate_input_azimuth,
         )
     else:
         path = Path(pretrained)

@@ -40,6 +40,7 @@ from sar_zero123.conditioning import (
     pose_class_labels,
 )
 from sar_zero123.data import signed_to_unit
+from sar_zero123.orientation import AZIMUTH_DIM, AzimuthEstimator, turn_azimuth
 
 __all__ = ["SARZero123Pipeline", "SARZero123PipelineOutput"]
 
@@ -79,13 +80,15 @@ class SARZero123Pipeline(DiffusionPipeline):
         pose_projection: Projection of ``[image_embeds, pose]`` to the cross-attention dimension.
         feature_extractor: Optional CLIP image processor; only its ``image_mean`` / ``image_std`` are
             used (preprocessing runs in torch, see :func:`encode_image_embeddings`).
+        azimuth_estimator: Optional :class:`~sar_zero123.orientation.AzimuthEstimator`, given exactly
+            when the UNet's timestep embedding takes the target's estimated azimuth after the pose.
 
     Raises:
         ValueError: If the component sizes do not fit together.
     """
 
     model_cpu_offload_seq = "image_encoder->pose_projection->unet->vae"
-    _optional_components = ["feature_extractor"]
+    _optional_components = ["feature_extractor", "azimuth_estimator"]
     _callback_tensor_inputs = ["latents"]
 
     def __init__(
@@ -96,6 +99,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         scheduler: SchedulerMixin,
         pose_projection: PoseProjection,
         feature_extractor: CLIPImageProcessor | None = None,
+        azimuth_estimator: AzimuthEstimator | None = None,
     ) -> None:
         super().__init__()
         latent_channels = vae.config.latent_channels
@@ -114,6 +118,14 @@ class SARZero123Pipeline(DiffusionPipeline):
                 f"`pose_projection.config.out_features` must equal unet cross_attention_dim "
                 f"{unet.config.cross_attention_dim}, got {pose_projection.config.out_features}"
             )
+        pose_inputs = getattr(unet.config, "projection_class_embeddings_input_dim", None)
+        takes_azimuth = unet.config.class_embed_type == "projection" and pose_inputs == POSE_DIM + AZIMUTH_DIM
+        if takes_azimuth != (azimuth_estimator is not None):
+            raise ValueError(
+                "`azimuth_estimator` must be given exactly when the UNet's pose embedding takes the target "
+                f"azimuth (projection_class_embeddings_input_dim={POSE_DIM + AZIMUTH_DIM}); got "
+                f"{'an estimator' if azimuth_estimator is not None else 'None'} for a UNet with {pose_inputs}"
+            )
         self.register_modules(
             vae=vae,
             image_encoder=image_encoder,
@@ -121,6 +133,7 @@ class SARZero123Pipeline(DiffusionPipeline):
             scheduler=scheduler,
             pose_projection=pose_projection,
             feature_extractor=feature_extractor,
+            azimuth_estimator=azimuth_estimator,
         )
 
     # ----------------------------------------------------------------------------------------- sizes
@@ -271,8 +284,9 @@ class SARZero123Pipeline(DiffusionPipeline):
             return
         broken = [
             name
-            for name in ("unet", "vae", "image_encoder", "pose_projection")
-            if any(not torch.isfinite(p).all() for p in getattr(self, name).parameters())
+            for name in ("unet", "vae", "image_encoder", "pose_projection", "azimuth_estimator")
+            if getattr(self, name) is not None
+            and any(not torch.isfinite(p).all() for p in getattr(self, name).parameters())
         ]
         cause = (
             f"these components hold NaN/inf weights (a diverged training run?): {broken}"
@@ -407,9 +421,14 @@ class SARZero123Pipeline(DiffusionPipeline):
         dtype = self.unet.dtype
         tokens = tokens.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
         condition_latents = condition_latents.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
-        class_labels = pose_class_labels(self.unet, pose.to(device))  # None unless the UNet embeds the pose
+        # None unless the UNet embeds the pose; with an estimator, the target's estimated azimuth follows it
+        sample_pose = pose.to(device).repeat_interleave(num_images_per_prompt, dim=0)
+        target_azimuth = None
+        if self.azimuth_estimator is not None:
+            target_azimuth = turn_azimuth(self.azimuth_estimator(condition_latents), sample_pose)
+        class_labels = pose_class_labels(self.unet, sample_pose, target_azimuth)
         if class_labels is not None:
-            class_labels = class_labels.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
+            class_labels = class_labels.to(dtype)
         if do_classifier_free_guidance:
             # zero-1-to-3's sampling null: zeros after the projection and for the condition latent; the
             # pose itself is never dropped

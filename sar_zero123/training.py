@@ -32,6 +32,7 @@ from transformers import CLIPVisionModelWithProjection
 from .conditioning import embed_pose, encode_image_embeddings, pose_class_labels, vae_input
 from .data import ViewPairDataset, load_chip
 from .losses import DEFAULT_PFM_MIN_SNR, LossOutput, denoising_target, total_loss
+from .orientation import azimuth_estimation_loss, turn_azimuth
 
 __all__ = [
     "CachedViewPairs",
@@ -268,6 +269,7 @@ def conditioning_sensitivity(
     noise_scheduler: DDPMScheduler,
     timesteps: Sequence[int] = (100, 500, 900),
     seed: int = 0,
+    azimuth_estimator: torch.nn.Module | None = None,
 ) -> dict[str, float]:
     """How much the UNet's prediction depends on the pose and on the input view.
 
@@ -294,11 +296,14 @@ def conditioning_sensitivity(
     def predict(t: torch.Tensor, condition: torch.Tensor, embeds: torch.Tensor, pose: torch.Tensor):
         x_t = noise_scheduler.add_noise(latents, noise, t)
         tokens = pose_projection(embeds, pose)
+        target_azimuth = None
+        if azimuth_estimator is not None:
+            target_azimuth = turn_azimuth(azimuth_estimator(condition), pose)
         return unet(
             torch.cat([x_t, condition], dim=1),
             t,
             encoder_hidden_states=tokens,
-            class_labels=pose_class_labels(unet, pose),
+            class_labels=pose_class_labels(unet, pose, target_azimuth),
         ).sample
 
     result = {}
@@ -334,6 +339,8 @@ def compute_losses(
     timestep_logit_mean: float = 0.0,
     timestep_logit_std: float = 1.0,
     snr_gamma: float | None = None,
+    azimuth_estimator: torch.nn.Module | None = None,
+    azimuth_loss_weight: float = 1.0,
 ) -> LossOutput:
     """Per-sample losses of one micro-batch (zero-1-to-3 conditioning, CFG dropout, Eq. 21).
 
@@ -345,8 +352,14 @@ def compute_losses(
     ``image_encoder`` is an :class:`ImageEmbedder` (prepared by accelerate when it is trained); the CLIP
     embedding is differentiable exactly when its parameters require gradients, and is read from
     ``batch["input_image_embeds"]`` when the batch carries it (frozen tower). Timesteps are uniform (the
-paper's L_simple) unless ``timestep_sampling="logit_normal"`` (:func:`sample_timesteps`). With
-``snr_gamma``, L_simple of each sample is weighted by Min-SNR-gamma (:func:`min_snr_weights`).
+    paper's L_simple) unless ``timestep_sampling="logit_normal"`` (:func:`sample_timesteps`). With
+    ``snr_gamma``, L_simple of each sample is weighted by Min-SNR-gamma (:func:`min_snr_weights`). With an
+    ``azimuth_estimator`` (``sar_zero123.orientation``), the UNet's timestep embedding also receives the
+    target's estimated azimuth (the input's, read from its condition latent, turned by ``d_az``), and
+    ``azimuth_loss_weight`` times the estimator's loss against ``batch["input_azimuth_deg"]`` joins the loss.
+
+    Raises:
+        ValueError: If the model has an azimuth estimator and the batch has no ``input_azimuth_deg``.
 
     Shape:
         ``batch["input"]``, ``batch["target"]``: ``(B, 1, S, S)``; outputs ``(B,)``.
@@ -356,6 +369,13 @@ paper's L_simple) unless ``timestep_sampling="logit_normal"`` (:func:`sample_tim
         batch, vae=vae, image_encoder=image_encoder, generator=generator
     )
     batch_size, device = latents.shape[0], latents.device
+    target_azimuth = azimuth_loss = None
+    if azimuth_estimator is not None:
+        if "input_azimuth_deg" not in batch:
+            raise ValueError("batch: an azimuth estimator is trained on `input_azimuth_deg`, which it lacks")
+        estimate = azimuth_estimator(condition_latents)  # before CFG dropout: like the pose, never dropped
+        azimuth_loss = azimuth_estimation_loss(estimate, batch["input_azimuth_deg"])
+        target_azimuth = turn_azimuth(estimate, pose)
     targets = batch["target"].to(device=device, dtype=vae.dtype)
     # 2. classifier-free-guidance dropout; the "both" case equals the pipeline's sampling null
     if apply_dropout:
@@ -388,7 +408,7 @@ paper's L_simple) unless ``timestep_sampling="logit_normal"`` (:func:`sample_tim
         torch.cat([x_t, condition_latents], dim=1),
         timesteps,
         encoder_hidden_states=tokens,
-        class_labels=pose_class_labels(unet, pose),
+        class_labels=pose_class_labels(unet, pose, target_azimuth),
     ).sample
     target = denoising_target(latents, noise, timesteps, noise_scheduler)
     # 4. Eq. (21)
@@ -411,6 +431,10 @@ paper's L_simple) unless ``timestep_sampling="logit_normal"`` (:func:`sample_tim
         weights = min_snr_weights(noise_scheduler, timesteps, snr_gamma)
         denoising = losses.denoising * weights
         losses = dataclasses.replace(losses, denoising=denoising, loss=denoising + pfm_weight * losses.pfm)
+    if azimuth_loss is not None:
+        losses = dataclasses.replace(
+            losses, loss=losses.loss + azimuth_loss_weight * azimuth_loss, azimuth=azimuth_loss
+        )
     return dataclasses.replace(losses, timesteps=timesteps)
 
 

@@ -85,7 +85,9 @@ def validate_pairs(
     Returns:
         ``(logs, grid)``: ``validation/...`` scalars and the ``input | generated | target`` rows.
     """
-    modules = (pipe.unet, pipe.pose_projection, image_embedder)
+    modules = [pipe.unet, pipe.pose_projection, image_embedder]
+    if pipe.azimuth_estimator is not None:
+        modules.append(pipe.azimuth_estimator)
     modes = [module.training for module in modules]
     for module in modules:
         module.eval()
@@ -98,11 +100,13 @@ def validate_pairs(
             image_encoder=image_embedder,
             generator=torch.Generator().manual_seed(seed),
             apply_dropout=False,
+            azimuth_estimator=pipe.azimuth_estimator,
             **loss_kwargs,
         )
         logs = {
             "validation/loss_simple": losses.denoising.mean().item(),
             "validation/loss_pfm": losses.pfm.mean().item(),
+            **({} if losses.azimuth is None else {"validation/loss_azimuth": losses.azimuth.mean().item()}),
         }
         # 2. samples (not `from_pipe`, which casts every module to one dtype)
         sampler = SARZero123Pipeline(
@@ -128,6 +132,7 @@ def validate_pairs(
             image_encoder=image_embedder,
             noise_scheduler=loss_kwargs["noise_scheduler"],
             seed=seed,
+            azimuth_estimator=pipe.azimuth_estimator,
         )
         logs.update({f"validation/sensitivity_{name}": value for name, value in sensitivity.items()})
         if regressor is not None:

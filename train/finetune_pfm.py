@@ -80,6 +80,9 @@ class FinetuneConfig:
     size: Literal["tiny", "micro", "compact", "small", "zero123"] = "small"  # built when pretrained is None
     image_size: int | None = None  # chip side in pixels; None uses the model's own
     pose_in_time_embedding: bool = False  # built sizes: the pose also enters the UNet's timestep embedding
+    # built sizes: an AzimuthEstimator reads the input's azimuth, turned by d_az it enters the time embedding
+    estimate_input_azimuth: bool = False
+    azimuth_loss_weight: float = 1.0  # weight of the estimator's loss on the input chip's known azimuth
     vae: str | None = None  # AutoencoderKL folder (train/train_vae.py) replacing the pipeline's VAE
     encoder: str | None = None  # frozen SAREncoder folder; required when pfm_weight > 0
     data: str | None = None  # dataset folder with index.csv; None simulates the built-in dataset
@@ -232,6 +235,7 @@ def main(argv: list[str] | None = None) -> Path:
         image_size=config.image_size,
         seed=config.seed,
         pose_in_time_embedding=config.pose_in_time_embedding,
+        estimate_input_azimuth=config.estimate_input_azimuth,
         prediction_type=config.prediction_type,
         vae=config.vae,
     )
@@ -293,6 +297,9 @@ def main(argv: list[str] | None = None) -> Path:
     unet, pose_projection = pipe.unet.train(), pipe.pose_projection.train()
     unet.requires_grad_(True)
     pose_projection.requires_grad_(True)
+    azimuth_estimator = pipe.azimuth_estimator
+    if azimuth_estimator is not None:
+        azimuth_estimator.train().requires_grad_(True)
     if config.gradient_checkpointing:
         unet.enable_gradient_checkpointing()
     noise_scheduler = DDPMScheduler.from_config(pipe.scheduler.config)
@@ -324,6 +331,8 @@ def main(argv: list[str] | None = None) -> Path:
     ]
     if config.train_image_encoder:
         param_groups.append({"params": list(image_encoder.parameters()), "lr": config.learning_rate})
+    if azimuth_estimator is not None:
+        param_groups.append({"params": list(azimuth_estimator.parameters()), "lr": config.learning_rate})
     optimizer = torch.optim.AdamW(param_groups, weight_decay=config.adam_weight_decay)
     lr_scheduler = get_scheduler(
         config.lr_scheduler,
@@ -346,6 +355,9 @@ def main(argv: list[str] | None = None) -> Path:
     if config.train_image_encoder:
         image_encoder = accelerator.prepare(image_encoder)
         trained_modules.append(image_encoder)
+    if azimuth_estimator is not None:
+        azimuth_estimator = accelerator.prepare(azimuth_estimator)
+        trained_modules.append(azimuth_estimator)
     if len(train_dataloader) == 0:
         raise ValueError("data: the training split yields no full batch on each process")
     validation_batch = next(iter(DataLoader(validation_dataset, batch_size=config.num_validation_images)))
@@ -383,6 +395,7 @@ def main(argv: list[str] | None = None) -> Path:
         timestep_logit_mean=config.timestep_logit_mean,
         timestep_logit_std=config.timestep_logit_std,
         snr_gamma=config.snr_gamma,
+        azimuth_loss_weight=config.azimuth_loss_weight,
     )
     while global_step < config.max_train_steps:
         epoch, offset = divmod(batch_index, batches_per_epoch)
@@ -397,6 +410,7 @@ def main(argv: list[str] | None = None) -> Path:
                     unet=unet,
                     pose_projection=pose_projection,
                     image_encoder=image_encoder,
+                    azimuth_estimator=azimuth_estimator,
                     generator=generator,
                     **frozen_modules,
                 )
@@ -420,6 +434,11 @@ def main(argv: list[str] | None = None) -> Path:
                 "train/loss": accelerator.gather(losses.loss.detach()).mean().item(),
                 "train/loss_simple": accelerator.gather(losses.denoising.detach()).mean().item(),
                 "train/loss_pfm": accelerator.gather(losses.pfm.detach()).mean().item(),
+                **(
+                    {"train/loss_azimuth": accelerator.gather(losses.azimuth.detach()).mean().item()}
+                    if losses.azimuth is not None
+                    else {}
+                ),
                 "lr": lr_scheduler.get_last_lr()[0],
             }
             buckets = timestep_bucket_losses(
@@ -489,11 +508,12 @@ def main(argv: list[str] | None = None) -> Path:
             scheduler=DDIMScheduler.from_config(pipe.scheduler.config),
             pose_projection=trained[1].eval(),
             feature_extractor=pipe.feature_extractor,
+            azimuth_estimator=None if azimuth_estimator is None else trained[-1].eval(),
         )
         export_pipeline(export, scaling, output_dir / "pipeline")
     accelerator.wait_for_everyone()
     # no reference to a data-parallel wrapper (or a graph through one) may outlive the process group
-    unet = pose_projection = image_encoder = trained_modules = losses = loss = None
+    unet = pose_projection = image_encoder = azimuth_estimator = trained_modules = losses = loss = None
     end_run(accelerator)
     return output_dir
 
