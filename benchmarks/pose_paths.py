@@ -1,0 +1,194 @@
+"""Which pose path lets a small UNet place the target view? Oracle ablation (docs/results/learning.md, sec. 3)
+
+    python benchmarks/pose_paths.py --data runs/quickstart/data --vae runs/quickstart/vae/vae \\
+        --evaluators runs/quickstart/evaluators --mode composed --steps 3000 --out pose_paths_composed.json
+
+Trains the `micro` UNet (zero-1-to-3 layout, eps prediction, uniform timesteps, AdamW, batch 16) on
+same-object pairs of the seen classes at one depression, with the pose given to its timestep embedding
+(and as its one cross-attention token) in one of four ways, and every `--eval_every` steps samples 96
+fixed pairs (DDIM, no guidance) and scores them with the evaluators (accuracy, azimuth error):
+
+- ``absolute``: the target's class (one-hot) and azimuth; no input view. The ceiling of the UNet itself.
+- ``source``: the input's condition latent, the input's true azimuth and ``d_az``: the UNet must add them.
+- ``relative``: the input's condition latent and ``d_az`` only (zero-1-to-3's conditioning).
+- ``composed``: the input's condition latent, ``d_az`` and the target's azimuth estimated by an
+  :class:`~sar_zero123.orientation.AzimuthEstimator` and turned in closed form
+  (:func:`~sar_zero123.orientation.turn_azimuth`), as ``--estimate_input_azimuth`` trains it.
+
+Evaluation pairs are drawn from the training chips: this measures whether a pose path is learnable at
+all, not generalisation (``train/evaluate.py`` does that). Writes the learning curve as JSON and an
+``input | generated | target`` strip per evaluation next to it.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+import PIL.Image
+import torch
+import torch.nn.functional as F
+from diffusers import AutoencoderKL, DDIMScheduler, DDPMScheduler, UNet2DConditionModel
+
+from sar_zero123.checkpoints import ZERO123_SCHEDULER_CONFIG
+from sar_zero123.conditioning import embed_pose, vae_input
+from sar_zero123.data import SCALING_FILE, DecibelScaling, load_chip, load_index, signed_to_unit
+from sar_zero123.evaluators import azimuth_error_deg, load_evaluators, resize_for_evaluator
+from sar_zero123.models import SAR_ZERO123_SIZES
+from sar_zero123.orientation import AzimuthEstimator, azimuth_estimation_loss, azimuth_vector, turn_azimuth
+
+MODES = ("absolute", "source", "relative", "composed")
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--vae", required=True)
+    parser.add_argument("--evaluators", required=True)
+    parser.add_argument("--mode", choices=MODES, required=True)
+    parser.add_argument("--steps", type=int, default=3000)
+    parser.add_argument("--eval_every", type=int, default=500)
+    parser.add_argument("--learning_rate", type=float, default=1e-3)
+    parser.add_argument("--depression", type=float, default=17.0)
+    parser.add_argument("--exclude_class", default="SPG", help="the unseen class of the ood protocol")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--out", required=True, help="JSON file; the strips go next to it")
+    args = parser.parse_args()
+    out = Path(args.out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+
+    # 1. chips, their frozen VAE posteriors, the evaluators
+    vae = AutoencoderKL.from_pretrained(args.vae).eval()
+    scaling = DecibelScaling.from_dict(json.loads((Path(args.vae) / SCALING_FILE).read_text()))
+    records = [
+        r
+        for r in load_index(args.data)
+        if r.target_class != args.exclude_class and abs(r.depression_deg - args.depression) < 0.1
+    ]
+    classes = sorted({r.target_class for r in records})
+    size = SAR_ZERO123_SIZES["micro"]["image_size"]
+    images = torch.stack(
+        [torch.from_numpy(scaling.normalize(load_chip(r.path, size)))[None] for r in records]
+    )
+    azimuth = torch.tensor([r.azimuth_deg for r in records], dtype=torch.float64)
+    label = torch.tensor([classes.index(r.target_class) for r in records])
+    with torch.no_grad():
+        posterior = vae.encode(vae_input(vae, images.float())).latent_dist
+    mean, std, scale = posterior.mean, posterior.std, vae.config.scaling_factor
+    evaluators = load_evaluators(args.evaluators)
+    evaluator_label = torch.tensor([evaluators.class_names.index(c) for c in classes])
+
+    # 2. the model of the mode
+    torch.manual_seed(args.seed)
+    condition_dim = {"absolute": len(classes) + 2, "source": 4, "relative": 4, "composed": 6}[args.mode]
+    spec = SAR_ZERO123_SIZES["micro"]["unet"]
+    latent_channels = mean.shape[1]
+    unet = UNet2DConditionModel(
+        **spec,
+        sample_size=mean.shape[-1],
+        in_channels=latent_channels * (1 if args.mode == "absolute" else 2),
+        out_channels=latent_channels,
+        class_embed_type="projection",
+        projection_class_embeddings_input_dim=condition_dim,
+    )
+    token = torch.nn.Linear(condition_dim, spec["cross_attention_dim"])
+    estimator = AzimuthEstimator(latent_channels) if args.mode == "composed" else None
+    modules = [unet, token] + ([estimator] if estimator is not None else [])
+    parameters = [p for m in modules for p in m.parameters()]
+    optimizer = torch.optim.AdamW(parameters, lr=args.learning_rate, weight_decay=1e-2)
+    scheduler_config = {k: v for k, v in ZERO123_SCHEDULER_CONFIG.items() if k != "set_alpha_to_one"}
+    noise_scheduler = DDPMScheduler(**{k: v for k, v in scheduler_config.items() if k != "steps_offset"})
+    by_class = [torch.nonzero(label == k).flatten() for k in range(len(classes))]
+
+    def draw_pairs(count: int, generator: torch.Generator) -> tuple[torch.Tensor, torch.Tensor]:
+        source = torch.randint(0, len(records), (count,), generator=generator)
+        partners = [by_class[int(label[i])] for i in source]
+        target = torch.stack([p[torch.randint(0, len(p), (1,), generator=generator)[0]] for p in partners])
+        return source, target
+
+    def predict(x_t, t, source, target):
+        """Returns (noise prediction, estimator loss or 0)."""
+        pose = embed_pose(azimuth[target] - azimuth[source], torch.zeros(len(source)))
+        d_vector, extra = pose[:, 0, 1:3], torch.zeros(())
+        if args.mode == "absolute":
+            condition = torch.cat(
+                [F.one_hot(label[target], len(classes)).float(), azimuth_vector(azimuth[target])], -1
+            )
+        elif args.mode == "source":
+            condition = torch.cat([azimuth_vector(azimuth[source]), d_vector], -1)
+        elif args.mode == "relative":
+            condition = torch.cat([d_vector, d_vector], -1)  # same width as `source`, no extra information
+        else:
+            estimate = estimator(mean[source])
+            extra = azimuth_estimation_loss(estimate, azimuth[source]).mean()
+            condition = torch.cat([turn_azimuth(estimate, pose), d_vector, d_vector], -1)
+        model_input = x_t if args.mode == "absolute" else torch.cat([x_t, mean[source]], 1)
+        output = unet(model_input, t, encoder_hidden_states=token(condition)[:, None], class_labels=condition)
+        return output.sample, extra
+
+    eval_source, eval_target = draw_pairs(96, torch.Generator().manual_seed(123))
+
+    @torch.no_grad()
+    def evaluate(step: int) -> dict:
+        for module in modules:
+            module.eval()
+        ddim = DDIMScheduler(**ZERO123_SCHEDULER_CONFIG)
+        ddim.set_timesteps(20)
+        x = torch.randn((96, *mean.shape[1:]), generator=torch.Generator().manual_seed(7))
+        for t in ddim.timesteps:
+            x = ddim.step(predict(x, t.expand(96), eval_source, eval_target)[0], t, x).prev_sample
+        views = signed_to_unit(vae.decode(x / scale).sample).clamp(0, 1)
+        for module in modules:
+            module.train()
+
+        def score(batch: torch.Tensor) -> tuple[float, float]:
+            batch = resize_for_evaluator(batch, evaluators.image_size)
+            correct = evaluators.classifier(batch).argmax(1) == evaluator_label[label[eval_target]]
+            predicted = evaluators.regressor.predict_azimuth_deg(batch).double()
+            return correct.float().mean().item() * 100, azimuth_error_deg(
+                predicted, azimuth[eval_target]
+            ).mean().item()
+
+        strip = torch.cat(
+            [torch.cat(list(b[:8, 0]), 1) for b in (images[eval_source], views, images[eval_target])], 0
+        )
+        PIL.Image.fromarray((strip.numpy() * 255).round().astype(np.uint8)).save(
+            out.with_name(f"{out.stem}_{step}.png")
+        )
+        (accuracy, error), (copy_accuracy, copy_error) = score(views), score(images[eval_source].float())
+        real_accuracy, real_error = score(images[eval_target].float())
+        return {
+            "step": step,
+            "accuracy": accuracy,
+            "azimuth_error_deg": error,
+            "input_copy": {"accuracy": copy_accuracy, "azimuth_error_deg": copy_error},
+            "real_target": {"accuracy": real_accuracy, "azimuth_error_deg": real_error},
+        }
+
+    # 3. train
+    generator = torch.Generator().manual_seed(args.seed)
+    curve, start = [], time.perf_counter()
+    for step in range(1, args.steps + 1):
+        source, target = draw_pairs(16, generator)
+        x0 = (mean[target] + std[target] * torch.randn(mean[target].shape, generator=generator)) * scale
+        noise = torch.randn(x0.shape, generator=generator)
+        t = torch.randint(0, noise_scheduler.config.num_train_timesteps, (16,), generator=generator)
+        prediction, extra = predict(noise_scheduler.add_noise(x0, noise, t), t, source, target)
+        loss = F.mse_loss(prediction, noise) + extra
+        optimizer.zero_grad()
+        loss.backward()
+        torch.nn.utils.clip_grad_norm_(parameters, 1.0)
+        optimizer.step()
+        if step % args.eval_every == 0 or step == args.steps:
+            row = {**evaluate(step), "train_minutes": (time.perf_counter() - start) / 60}
+            print(json.dumps(row), flush=True)
+            curve.append(row)
+    result = {"mode": args.mode, "threads": torch.get_num_threads(), "args": vars(args), "curve": curve}
+    out.write_text(json.dumps(result, indent=1))
+
+
+if __name__ == "__main__":
+    main()
