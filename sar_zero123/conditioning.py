@@ -24,7 +24,6 @@ from diffusers.models.modeling_utils import ModelMixin
 from transformers import CLIPVisionModelWithProjection
 
 from .data import unit_to_signed
-from .orientation import AZIMUTH_DIM
 
 __all__ = [
     "CLIP_IMAGE_MEAN",
@@ -324,41 +323,43 @@ def encode_target_latents(
 
 
 def pose_class_labels(
-    unet: torch.nn.Module, pose: torch.Tensor, target_azimuth: torch.Tensor | None = None
+    unet: torch.nn.Module, pose: torch.Tensor, target_features: torch.Tensor | None = None
 ) -> torch.Tensor | None:
     """The pose as the UNet's ``class_labels`` when it embeds the pose with its timestep, else ``None``.
 
     A UNet built with ``class_embed_type="projection"`` and ``projection_class_embeddings_input_dim=4``
     (``build_sar_zero123(..., pose_in_time_embedding=True)``) adds a learned projection of the pose vector
     to its timestep embedding, so the pose scales and shifts the features of every ResNet block, on top
-    of zero-1-to-3's cross-attention token. With ``projection_class_embeddings_input_dim=6``
-    (``build_sar_zero123(..., estimate_input_azimuth=True)``) the target's estimated azimuth
-    ``[sin, cos]`` (:func:`~sar_zero123.orientation.turn_azimuth`) follows the pose. The pose is never
-    dropped for classifier-free guidance (as in zero-1-to-3), so both guidance branches receive it.
+    of zero-1-to-3's cross-attention token. With more inputs (``build_sar_zero123(...,
+    estimate_input_azimuth=True)``), the target's estimated azimuth and the input's code
+    (:func:`~sar_zero123.orientation.target_view_features`) follow the pose. The pose is never dropped for
+    classifier-free guidance (as in zero-1-to-3), so both guidance branches receive it.
 
     Args:
         unet: A ``UNet2DConditionModel``, possibly wrapped by DDP (``.module``).
         pose: Pose vectors from :func:`embed_pose`.
-        target_azimuth: The target's estimated azimuth vectors; required exactly when the UNet takes them.
+        target_features: Outputs of ``target_view_features``; required exactly when the UNet takes them.
 
     Raises:
-        ValueError: If ``target_azimuth`` is missing for a UNet that takes it, or given to one that does not.
+        ValueError: If ``target_features`` is missing for a UNet that takes them, given to one that does
+            not, or of the wrong size.
 
     Shape:
-        pose ``(B, 1, 4)``, target_azimuth ``(B, 2)`` -> ``(B, 4 | 6)`` or ``None``.
+        pose ``(B, 1, 4)``, target_features ``(B, F)`` -> ``(B, 4 + F)`` or ``None``.
     """
     config = getattr(unet, "module", unet).config
     if getattr(config, "class_embed_type", None) != "projection":
-        if target_azimuth is not None:
-            raise ValueError("target_azimuth given, but the UNet does not embed the pose with its timestep")
+        if target_features is not None:
+            raise ValueError("target_features given, but the UNet does not embed the pose with its timestep")
         return None
     labels = pose.reshape(pose.shape[0], POSE_DIM)
-    takes_azimuth = config.projection_class_embeddings_input_dim == POSE_DIM + AZIMUTH_DIM
-    if takes_azimuth != (target_azimuth is not None):
+    extra = config.projection_class_embeddings_input_dim - POSE_DIM
+    given = 0 if target_features is None else target_features.shape[-1]
+    if given != extra:
         raise ValueError(
-            f"the UNet's pose embedding takes {config.projection_class_embeddings_input_dim} inputs: "
-            + ("it needs the target azimuth of an AzimuthEstimator" if takes_azimuth else "no target azimuth")
+            f"the UNet's pose embedding takes {POSE_DIM} pose inputs and {extra} target-view features "
+            f"(an AzimuthEstimator's, turned), got {given} target-view features"
         )
-    if target_azimuth is None:
+    if target_features is None:
         return labels
-    return torch.cat([labels, target_azimuth.to(labels.dtype)], dim=-1)
+    return torch.cat([labels, target_features.to(labels.dtype)], dim=-1)

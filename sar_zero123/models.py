@@ -180,6 +180,7 @@ def build_sar_zero123(
     seed: int = 0,
     pose_in_time_embedding: bool = False,
     estimate_input_azimuth: bool = False,
+    input_code_dim: int = 16,
 ) -> SARZero123Pipeline:
     """Build a randomly initialised :class:`SARZero123Pipeline` of a named size.
 
@@ -204,6 +205,7 @@ def build_sar_zero123(
         estimate_input_azimuth: Also build an :class:`~sar_zero123.orientation.AzimuthEstimator` and give
             the UNet's timestep embedding the target's estimated azimuth after the pose (implies
             ``pose_in_time_embedding``): the SAR-sized absolute-pose path (``sar_zero123.orientation``).
+        input_code_dim: With ``estimate_input_azimuth``, the size of the estimator's input-view code.
 
     Returns:
         The pipeline (float32, CPU) with a zero-1-to-3 DDIM scheduler.
@@ -229,7 +231,7 @@ def build_sar_zero123(
         torch.manual_seed(seed)
         vae = AutoencoderKL(**spec["vae"], sample_size=image_size, scaling_factor=SD_VAE_SCALING_FACTOR)
         torch.manual_seed(seed)
-        pose_inputs = POSE_DIM + (AZIMUTH_DIM if estimate_input_azimuth else 0)
+        pose_inputs = POSE_DIM + (AZIMUTH_DIM + input_code_dim if estimate_input_azimuth else 0)
         pose_embedding = (
             {"class_embed_type": "projection", "projection_class_embeddings_input_dim": pose_inputs}
             if pose_in_time_embedding or estimate_input_azimuth
@@ -249,7 +251,7 @@ def build_sar_zero123(
         azimuth_estimator = None
         if estimate_input_azimuth:
             torch.manual_seed(seed)
-            azimuth_estimator = AzimuthEstimator(latent_channels).eval()
+            azimuth_estimator = AzimuthEstimator(latent_channels, code_dim=input_code_dim).eval()
     feature_extractor = None
     if size == "zero123":
         feature_extractor = CLIPImageProcessor(
@@ -274,6 +276,7 @@ def load_sar_zero123(
     seed: int = 0,
     pose_in_time_embedding: bool = False,
     estimate_input_azimuth: bool = False,
+    input_code_dim: int = 16,
     prediction_type: Literal["epsilon", "v_prediction"] | None = None,
     vae: str | os.PathLike | None = None,
 ) -> SARZero123Pipeline:
@@ -282,7 +285,8 @@ def load_sar_zero123(
     Args:
         pretrained: A ``save_pretrained`` folder (``model_index.json``), any zero-1-to-3 layout
             (:meth:`SARZero123Pipeline.from_zero123`), or ``None`` to :func:`build_sar_zero123`.
-        size, image_size, seed, pose_in_time_embedding, estimate_input_azimuth: For ``pretrained=None``, see
+        size, image_size, seed, pose_in_time_embedding, estimate_input_azimuth, input_code_dim: For
+            ``pretrained=None``, see
             :func:`build_sar_zero123`.
         prediction_type: Replace the scheduler's prediction type (only meaningful for a new model: a
             checkpoint keeps the one it was trained with).
@@ -302,6 +306,7 @@ def load_sar_zero123(
             seed=seed,
             pose_in_time_embedding=pose_in_time_embedding,
             estimate_input_azimuth=estimate_input_azimuth,
+            input_code_dim=input_code_dim,
         )
     else:
         path = Path(pretrained)

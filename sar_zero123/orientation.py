@@ -28,6 +28,7 @@ __all__ = [
     "AzimuthEstimator",
     "azimuth_estimation_loss",
     "azimuth_vector",
+    "target_view_features",
     "turn_azimuth",
 ]
 
@@ -64,40 +65,61 @@ def turn_azimuth(vector: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
     return torch.stack([sin_a * cos_d + cos_a * sin_d, cos_a * cos_d - sin_a * sin_d], dim=-1)
 
 
+def target_view_features(estimate: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
+    """What the UNet's timestep embedding receives after the pose: the turned azimuth, then the input's code.
+
+    Args:
+        estimate: :class:`AzimuthEstimator` outputs ``[sin a, cos a, code...]``.
+        pose: Pose vectors ``[d_el_rad, sin d_az, cos d_az, 0]``.
+
+    Shape:
+        estimate ``(B, 2 + code_dim)``, pose ``(B, 1, 4)`` -> ``(B, 2 + code_dim)``.
+    """
+    return torch.cat([turn_azimuth(estimate[:, :AZIMUTH_DIM], pose), estimate[:, AZIMUTH_DIM:]], dim=-1)
+
+
 def azimuth_estimation_loss(
     vector: torch.Tensor, azimuth_deg: torch.Tensor | Sequence[float]
 ) -> torch.Tensor:
     """Per-sample ``1 - cos(a_hat - a)`` between estimated unit vectors and true azimuths.
 
     0 for a perfect estimate, 2 for one off by 180 degrees; smooth everywhere (unlike an angle difference).
+    Only the first two entries of ``vector`` are read (an :class:`AzimuthEstimator`'s code is not supervised).
 
     Shape:
-        vector ``(B, 2)`` unit vectors, azimuth_deg ``(B,)`` -> ``(B,)`` float32.
+        vector ``(B, 2 + code_dim)``, azimuth_deg ``(B,)`` -> ``(B,)`` float32.
     """
     truth = azimuth_vector(azimuth_deg).to(vector.device)
-    return 1.0 - (vector.float() * truth).sum(dim=-1)
+    return 1.0 - (vector[:, :AZIMUTH_DIM].float() * truth).sum(dim=-1)
 
 
 class AzimuthEstimator(ModelMixin, ConfigMixin):
-    """Small CNN reading the input view's azimuth ``[sin a, cos a]`` from its condition latent.
+    """Small CNN reading the input view's azimuth ``[sin a, cos a]`` (and a code) from its condition latent.
 
     Sized for SAR chip latents (16x16x4 for a 64 px chip): strided 3x3 convolutions, an adaptive pool to a
-    4x4 map (the layout of the target, not only its texture, tells its azimuth) and a linear head; the
-    output is normalised to unit length.
+    4x4 map (the layout of the target, not only its texture, tells its azimuth) and a linear head. The
+    azimuth part is normalised to unit length and supervised (:func:`azimuth_estimation_loss`); the
+    ``code_dim`` further outputs are a code of the input view (its class and appearance) that only the
+    denoising loss trains. Without it, the UNet must read the object's identity from the condition latent
+    of a view at another azimuth, and its outputs follow the pose but lose the class (``learning.md``).
 
     Args:
         latent_channels: Channels of the VAE latent.
         hidden_channels: Channels of the convolutions; each after the first halves the resolution.
+        code_dim: Size of the input-view code (0: the azimuth only).
 
     Raises:
-        ValueError: If ``latent_channels < 1`` or ``hidden_channels`` is empty or not positive.
+        ValueError: If ``latent_channels < 1``, ``hidden_channels`` is empty or not positive, or
+            ``code_dim < 0``.
 
     Shape:
-        ``(B, latent_channels, h, w)`` unscaled condition latents -> ``(B, 2)`` unit vectors.
+        ``(B, latent_channels, h, w)`` unscaled condition latents -> ``(B, 2 + code_dim)``.
     """
 
     @register_to_config
-    def __init__(self, latent_channels: int = 4, hidden_channels: Sequence[int] = (32, 64, 64)) -> None:
+    def __init__(
+        self, latent_channels: int = 4, hidden_channels: Sequence[int] = (32, 64, 64), code_dim: int = 0
+    ) -> None:
         super().__init__()
         if latent_channels < 1:
             raise ValueError(f"`latent_channels` must be >= 1, got {latent_channels}")
@@ -105,6 +127,8 @@ class AzimuthEstimator(ModelMixin, ConfigMixin):
             raise ValueError(
                 f"`hidden_channels` must be a non-empty list of positive ints, got {hidden_channels}"
             )
+        if code_dim < 0:
+            raise ValueError(f"`code_dim` must be >= 0, got {code_dim}")
         layers: list[torch.nn.Module] = []
         channels = latent_channels
         for index, width in enumerate(hidden_channels):
@@ -114,8 +138,14 @@ class AzimuthEstimator(ModelMixin, ConfigMixin):
             ]
             channels = width
         self.features = torch.nn.Sequential(*layers, torch.nn.AdaptiveAvgPool2d(4), torch.nn.Flatten())
-        self.head = torch.nn.Linear(channels * 16, AZIMUTH_DIM)
+        self.head = torch.nn.Linear(channels * 16, AZIMUTH_DIM + code_dim)
+
+    @property
+    def output_dim(self) -> int:
+        """``2 + code_dim``: the inputs it adds to the UNet's pose embedding."""
+        return AZIMUTH_DIM + self.config.code_dim
 
     def forward(self, condition_latents: torch.Tensor) -> torch.Tensor:
-        raw = self.head(self.features(condition_latents.to(self.head.weight.dtype)))
-        return torch.nn.functional.normalize(raw.float(), dim=-1, eps=1e-6)
+        raw = self.head(self.features(condition_latents.to(self.head.weight.dtype))).float()
+        azimuth = torch.nn.functional.normalize(raw[:, :AZIMUTH_DIM], dim=-1, eps=1e-6)
+        return torch.cat([azimuth, raw[:, AZIMUTH_DIM:]], dim=-1)

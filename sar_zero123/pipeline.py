@@ -40,7 +40,7 @@ from sar_zero123.conditioning import (
     pose_class_labels,
 )
 from sar_zero123.data import signed_to_unit
-from sar_zero123.orientation import AZIMUTH_DIM, AzimuthEstimator, turn_azimuth
+from sar_zero123.orientation import AzimuthEstimator, target_view_features
 
 __all__ = ["SARZero123Pipeline", "SARZero123PipelineOutput"]
 
@@ -118,13 +118,15 @@ class SARZero123Pipeline(DiffusionPipeline):
                 f"`pose_projection.config.out_features` must equal unet cross_attention_dim "
                 f"{unet.config.cross_attention_dim}, got {pose_projection.config.out_features}"
             )
-        pose_inputs = getattr(unet.config, "projection_class_embeddings_input_dim", None)
-        takes_azimuth = unet.config.class_embed_type == "projection" and pose_inputs == POSE_DIM + AZIMUTH_DIM
-        if takes_azimuth != (azimuth_estimator is not None):
+        pose_inputs = getattr(unet.config, "projection_class_embeddings_input_dim", None) or POSE_DIM
+        if unet.config.class_embed_type != "projection":
+            pose_inputs = POSE_DIM
+        estimated = 0 if azimuth_estimator is None else azimuth_estimator.output_dim
+        if pose_inputs != POSE_DIM + estimated:
             raise ValueError(
-                "`azimuth_estimator` must be given exactly when the UNet's pose embedding takes the target "
-                f"azimuth (projection_class_embeddings_input_dim={POSE_DIM + AZIMUTH_DIM}); got "
-                f"{'an estimator' if azimuth_estimator is not None else 'None'} for a UNet with {pose_inputs}"
+                f"`azimuth_estimator` must be given exactly when the UNet's pose embedding takes more than "
+                f"the {POSE_DIM} pose inputs, with as many outputs as the extra inputs: the UNet takes "
+                f"{pose_inputs}, the azimuth_estimator gives {estimated}"
             )
         self.register_modules(
             vae=vae,
@@ -423,10 +425,10 @@ class SARZero123Pipeline(DiffusionPipeline):
         condition_latents = condition_latents.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
         # None unless the UNet embeds the pose; with an estimator, the target's estimated azimuth follows it
         sample_pose = pose.to(device).repeat_interleave(num_images_per_prompt, dim=0)
-        target_azimuth = None
+        target_features = None
         if self.azimuth_estimator is not None:
-            target_azimuth = turn_azimuth(self.azimuth_estimator(condition_latents), sample_pose)
-        class_labels = pose_class_labels(self.unet, sample_pose, target_azimuth)
+            target_features = target_view_features(self.azimuth_estimator(condition_latents), sample_pose)
+        class_labels = pose_class_labels(self.unet, sample_pose, target_features)
         if class_labels is not None:
             class_labels = class_labels.to(dtype)
         if do_classifier_free_guidance:

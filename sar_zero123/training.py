@@ -32,7 +32,7 @@ from transformers import CLIPVisionModelWithProjection
 from .conditioning import embed_pose, encode_image_embeddings, pose_class_labels, vae_input
 from .data import ViewPairDataset, load_chip
 from .losses import DEFAULT_PFM_MIN_SNR, LossOutput, denoising_target, total_loss
-from .orientation import azimuth_estimation_loss, turn_azimuth
+from .orientation import azimuth_estimation_loss, target_view_features
 
 __all__ = [
     "CachedViewPairs",
@@ -296,14 +296,14 @@ def conditioning_sensitivity(
     def predict(t: torch.Tensor, condition: torch.Tensor, embeds: torch.Tensor, pose: torch.Tensor):
         x_t = noise_scheduler.add_noise(latents, noise, t)
         tokens = pose_projection(embeds, pose)
-        target_azimuth = None
+        target_features = None
         if azimuth_estimator is not None:
-            target_azimuth = turn_azimuth(azimuth_estimator(condition), pose)
+            target_features = target_view_features(azimuth_estimator(condition), pose)
         return unet(
             torch.cat([x_t, condition], dim=1),
             t,
             encoder_hidden_states=tokens,
-            class_labels=pose_class_labels(unet, pose, target_azimuth),
+            class_labels=pose_class_labels(unet, pose, target_features),
         ).sample
 
     result = {}
@@ -355,7 +355,8 @@ def compute_losses(
     paper's L_simple) unless ``timestep_sampling="logit_normal"`` (:func:`sample_timesteps`). With
     ``snr_gamma``, L_simple of each sample is weighted by Min-SNR-gamma (:func:`min_snr_weights`). With an
     ``azimuth_estimator`` (``sar_zero123.orientation``), the UNet's timestep embedding also receives the
-    target's estimated azimuth (the input's, read from its condition latent, turned by ``d_az``), and
+    target's estimated azimuth (the input's, read from its condition latent, turned by ``d_az``) and the
+    input's code, and
     ``azimuth_loss_weight`` times the estimator's loss against ``batch["input_azimuth_deg"]`` joins the loss.
 
     Raises:
@@ -369,13 +370,13 @@ def compute_losses(
         batch, vae=vae, image_encoder=image_encoder, generator=generator
     )
     batch_size, device = latents.shape[0], latents.device
-    target_azimuth = azimuth_loss = None
+    target_features = azimuth_loss = None
     if azimuth_estimator is not None:
         if "input_azimuth_deg" not in batch:
             raise ValueError("batch: an azimuth estimator is trained on `input_azimuth_deg`, which it lacks")
         estimate = azimuth_estimator(condition_latents)  # before CFG dropout: like the pose, never dropped
         azimuth_loss = azimuth_estimation_loss(estimate, batch["input_azimuth_deg"])
-        target_azimuth = turn_azimuth(estimate, pose)
+        target_features = target_view_features(estimate, pose)
     targets = batch["target"].to(device=device, dtype=vae.dtype)
     # 2. classifier-free-guidance dropout; the "both" case equals the pipeline's sampling null
     if apply_dropout:
@@ -408,7 +409,7 @@ def compute_losses(
         torch.cat([x_t, condition_latents], dim=1),
         timesteps,
         encoder_hidden_states=tokens,
-        class_labels=pose_class_labels(unet, pose, target_azimuth),
+        class_labels=pose_class_labels(unet, pose, target_features),
     ).sample
     target = denoising_target(latents, noise, timesteps, noise_scheduler)
     # 4. Eq. (21)

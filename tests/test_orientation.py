@@ -10,14 +10,20 @@ from diffusers import DDPMScheduler
 
 from sar_zero123 import SARZero123Pipeline, build_sar_zero123, embed_pose
 from sar_zero123.conditioning import pose_class_labels
-from sar_zero123.orientation import AzimuthEstimator, azimuth_estimation_loss, azimuth_vector, turn_azimuth
+from sar_zero123.orientation import (
+    AzimuthEstimator,
+    azimuth_estimation_loss,
+    azimuth_vector,
+    target_view_features,
+    turn_azimuth,
+)
 from sar_zero123.training import ImageEmbedder, compute_losses, conditioning_sensitivity
 from tests.dummies import dummy_images
 
 
 @pytest.fixture(scope="module")
 def pipe() -> SARZero123Pipeline:
-    return build_sar_zero123("tiny", estimate_input_azimuth=True)
+    return build_sar_zero123("tiny", estimate_input_azimuth=True, input_code_dim=3)
 
 
 def test_turn_azimuth_adds_the_pose_angle() -> None:
@@ -37,8 +43,15 @@ def test_azimuth_vector_is_sine_then_cosine() -> None:
     )
 
 
+def test_target_view_features_turn_the_azimuth_and_keep_the_code() -> None:
+    estimate = torch.cat([azimuth_vector([40.0, 300.0]), torch.tensor([[1.0, -2.0], [0.5, 3.0]])], dim=-1)
+    features = target_view_features(estimate, embed_pose([50.0, 90.0], [0.0, 0.0]))
+    torch.testing.assert_close(features[:, :2], azimuth_vector([90.0, 30.0]), atol=1e-6, rtol=0)
+    assert torch.equal(features[:, 2:], estimate[:, 2:])
+
+
 def test_azimuth_estimation_loss_is_one_minus_cosine() -> None:
-    estimate = azimuth_vector([30.0, 30.0, 30.0, 30.0])
+    estimate = torch.cat([azimuth_vector([30.0, 30.0, 30.0, 30.0]), torch.randn(4, 5)], dim=-1)
     loss = azimuth_estimation_loss(estimate, torch.tensor([30.0, 120.0, 210.0, 90.0]))
     torch.testing.assert_close(
         loss, torch.tensor([0.0, 1.0, 2.0, 1 - math.cos(math.radians(60))]), atol=1e-6, rtol=0
@@ -46,38 +59,47 @@ def test_azimuth_estimation_loss_is_one_minus_cosine() -> None:
 
 
 @pytest.mark.parametrize("side", [8, 16, 20])
-def test_estimator_returns_unit_vectors_for_any_latent_size(side: int) -> None:
+def test_estimator_returns_a_unit_azimuth_and_a_code_for_any_latent_size(side: int) -> None:
     torch.manual_seed(0)
-    estimator = AzimuthEstimator(latent_channels=4, hidden_channels=(8, 16, 16))
-    vectors = estimator(torch.randn(3, 4, side, side))
-    assert vectors.shape == (3, 2)
-    torch.testing.assert_close(vectors.norm(dim=-1), torch.ones(3), atol=1e-6, rtol=0)
+    estimator = AzimuthEstimator(latent_channels=4, hidden_channels=(8, 16, 16), code_dim=5)
+    outputs = estimator(torch.randn(3, 4, side, side))
+    assert outputs.shape == (3, 7) and estimator.output_dim == 7
+    torch.testing.assert_close(outputs[:, :2].norm(dim=-1), torch.ones(3), atol=1e-6, rtol=0)
 
 
 @pytest.mark.parametrize(
     ("kwargs", "words"),
-    [({"latent_channels": 0}, "latent_channels"), ({"hidden_channels": ()}, "hidden_channels")],
+    [
+        ({"latent_channels": 0}, "latent_channels"),
+        ({"hidden_channels": ()}, "hidden_channels"),
+        ({"code_dim": -1}, "code_dim"),
+    ],
 )
 def test_estimator_refuses_bad_sizes(kwargs: dict, words: str) -> None:
     with pytest.raises(ValueError, match=words):
         AzimuthEstimator(**kwargs)
 
 
-def test_pose_class_labels_append_the_target_azimuth(pipe: SARZero123Pipeline) -> None:
+def test_pose_class_labels_append_the_target_view_features(pipe: SARZero123Pipeline) -> None:
     pose = embed_pose([30.0, 90.0], [0.0, 2.0])
-    target = azimuth_vector([10.0, 200.0])
-    labels = pose_class_labels(pipe.unet, pose, target)
-    assert labels.shape == (2, 6)
+    features = torch.randn(2, 5)
+    labels = pose_class_labels(pipe.unet, pose, features)
+    assert labels.shape == (2, 9)
     torch.testing.assert_close(labels[:, :4], pose[:, 0])
-    torch.testing.assert_close(labels[:, 4:], target)
-    with pytest.raises(ValueError, match="target azimuth"):
+    torch.testing.assert_close(labels[:, 4:], features)
+    with pytest.raises(ValueError, match="5 target-view features.*got 0"):
         pose_class_labels(pipe.unet, pose)
+    with pytest.raises(ValueError, match="got 2 target-view features"):
+        pose_class_labels(pipe.unet, pose, features[:, :2])
 
 
-def test_pose_class_labels_refuse_an_azimuth_the_unet_does_not_take() -> None:
+def test_pose_class_labels_refuse_features_the_unet_does_not_take() -> None:
     plain = build_sar_zero123("tiny", pose_in_time_embedding=True)
-    with pytest.raises(ValueError, match="no target azimuth"):
+    with pytest.raises(ValueError, match="0 target-view features"):
         pose_class_labels(plain.unet, embed_pose([0.0], [0.0]), azimuth_vector([0.0]))
+    zero123_layout = build_sar_zero123("tiny")
+    with pytest.raises(ValueError, match="does not embed the pose"):
+        pose_class_labels(zero123_layout.unet, embed_pose([0.0], [0.0]), azimuth_vector([0.0]))
 
 
 def test_estimator_is_built_seeded_and_leaves_the_other_components_unchanged() -> None:
@@ -90,7 +112,7 @@ def test_estimator_is_built_seeded_and_leaves_the_other_components_unchanged() -
         assert torch.equal(a, b)
     assert plain.azimuth_estimator is None
     assert with_estimator.unet.config.class_embed_type == "projection"
-    assert with_estimator.unet.config.projection_class_embeddings_input_dim == 6
+    assert with_estimator.unet.config.projection_class_embeddings_input_dim == 4 + 2 + 16
 
 
 def test_pipeline_needs_the_estimator_exactly_when_the_unet_takes_its_azimuth(

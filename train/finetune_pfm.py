@@ -83,6 +83,7 @@ class FinetuneConfig:
     # built sizes: an AzimuthEstimator reads the input's azimuth, turned by d_az it enters the time embedding
     estimate_input_azimuth: bool = False
     azimuth_loss_weight: float = 1.0  # weight of the estimator's loss on the input chip's known azimuth
+    input_code_dim: int = 16  # with estimate_input_azimuth: size of the estimator's code of the input view
     vae: str | None = None  # AutoencoderKL folder (train/train_vae.py) replacing the pipeline's VAE
     encoder: str | None = None  # frozen SAREncoder folder; required when pfm_weight > 0
     data: str | None = None  # dataset folder with index.csv; None simulates the built-in dataset
@@ -236,6 +237,7 @@ def main(argv: list[str] | None = None) -> Path:
         seed=config.seed,
         pose_in_time_embedding=config.pose_in_time_embedding,
         estimate_input_azimuth=config.estimate_input_azimuth,
+        input_code_dim=config.input_code_dim,
         prediction_type=config.prediction_type,
         vae=config.vae,
     )
