@@ -9,7 +9,7 @@ Uses the tiny test components (``tests/dummies.py``) and fabricated data in a te
 a minute on 2 CPU cores. Results: ``docs/results/reliability.md``.
 """
 
-import importlib.util
+import importlib
 import json
 import shutil
 import sys
@@ -34,11 +34,8 @@ RESULTS = {}
 
 
 def load(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "train" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
+    """`train.<name>` of the source tree (a namespace package in trees older than `train/__init__.py`)."""
+    return importlib.import_module(f"train.{name}")
 
 
 def attempt(name, fn):

@@ -3,7 +3,6 @@ trained image tower."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import logging
 import multiprocessing
@@ -11,7 +10,6 @@ import os
 import re
 import shutil
 import signal
-import sys
 import time
 from pathlib import Path
 
@@ -29,22 +27,15 @@ from sar_zero123.models import build_sar_zero123
 from sar_zero123.pipeline import SARZero123Pipeline
 from sar_zero123.runs import weights_digest
 from sar_zero123.training import ImageEmbedder, compute_losses, micro_batch_generator
+from train import finetune_pfm
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "train" / "finetune_pfm.py"
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location("finetune_pfm", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["finetune_pfm"] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def script():
-    return load_script()
+    return finetune_pfm
 
 
 @pytest.fixture(autouse=True)

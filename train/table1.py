@@ -15,13 +15,11 @@ exists is not retrained, and an interrupted pretraining resumes from its latest 
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import logging
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
@@ -32,6 +30,10 @@ from sar_zero123.config import parse_config, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, prepare_splits
 from sar_zero123.encoder import WEIGHTS_NAME, SAREncoder, resolve_encoder_dir
 from sar_zero123.probes import FeatureSet, extract_features, run_probes
+
+if not __package__:  # run as a file: Python put only train/ on sys.path (see train/__init__.py)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from train import pretrain_simclr  # noqa: E402
 
 logger = logging.getLogger(__name__)
 
@@ -93,16 +95,6 @@ class Table1Config:
             value = getattr(self, name)
             if value is not None and value < 1:
                 raise ValueError(f"{name} must be >= 1 or None, got {value}")
-
-
-def load_pretrain_script() -> ModuleType:
-    """Imports the sibling `pretrain_simclr.py` (train/ is a folder of scripts, not a package)."""
-    path = Path(__file__).resolve().with_name("pretrain_simclr.py")
-    spec = importlib.util.spec_from_file_location("pretrain_simclr", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve string annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
 
 
 def pretrain_argv(config: Table1Config, preset: str, run_dir: Path, work_dir: Path) -> list[str]:
@@ -207,13 +199,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     output_dir.mkdir(parents=True, exist_ok=True)
     save_config(config, output_dir)
     work_dir = Path(config.work_dir) if config.work_dir is not None else output_dir
-    pretrain = load_pretrain_script()
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
     # 1. probe data: train and test splits, no augmentation
     splits = prepare_splits(config.data, config.protocol, work_dir, seed=config.seed)
-    train_records = pretrain.select_chips(splits["train"], config.max_train_chips, config.seed)
-    test_records = pretrain.select_chips(splits["test"], config.max_test_chips, config.seed)
+    train_records = pretrain_simclr.select_chips(splits["train"], config.max_train_chips, config.seed)
+    test_records = pretrain_simclr.select_chips(splits["test"], config.max_test_chips, config.seed)
     train_set = ChipDataset(train_records, size=config.image_size)
     test_set = ChipDataset(test_records, size=config.image_size, class_names=train_set.class_names)
 
@@ -229,7 +220,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             encoder_dir = run_dir / "encoder"
         else:
             logger.info("pretraining %s", preset)
-            pretrain_metrics = pretrain.main(pretrain_argv(config, preset, run_dir, work_dir))
+            pretrain_metrics = pretrain_simclr.main(pretrain_argv(config, preset, run_dir, work_dir))
             encoder_dir = run_dir / "encoder"
         if pretrain_metrics is None and (encoder_dir.parent / "metrics.json").is_file():
             pretrain_metrics = json.loads((encoder_dir.parent / "metrics.json").read_text())
