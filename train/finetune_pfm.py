@@ -3,12 +3,10 @@
     accelerate launch train/finetune_pfm.py --encoder runs/simclr/encoder --pfm_weight 4 \\
         [--config finetune.yaml] [--data /path/to/mstar --protocol extended] [--flag value ...]
 
-Training follows zero-1-to-3: the UNet sees ``[x_t, condition latent]`` (the condition latent is the
-unscaled VAE posterior mode of the input view, only the target latent is scaled) and cross-attends to
-``PoseProjection([CLIP image embedding, pose])``; AdamW with the pose projection at 10x the learning rate;
-classifier-free-guidance dropout of 5% image embedding, 5% both, 5% condition latent. The loss is
-``L_simple + pfm_weight * L_PFM`` (:func:`sar_zero123.losses.total_loss`); ``--pfm_weight 0`` is plain
-zero-1-to-3 fine-tuning.
+Training follows zero-1-to-3 (the step: ``sar_zero123.training.compute_losses``; the run's parts:
+``sar_zero123.finetuning``): AdamW with the pose projection at 10x the learning rate, CFG dropout of 5%
+image embedding, 5% both, 5% condition latent, and the loss ``L_simple + pfm_weight * L_PFM`` (Eq. 21);
+``--pfm_weight 0`` is plain zero-1-to-3 fine-tuning.
 
 The CLIP image tower is frozen, as in zero-1-to-3, which is right on top of a pretrained tower. The
 named ``--size`` models start from a *random* tower, whose embedding would stay a random projection of
@@ -204,9 +202,9 @@ def main(argv: list[str] | None = None) -> Path:
         num_validation_pairs=config.num_validation_images,
         seed=config.seed,
     )
-    evaluators = None
+    regressor = None  # validation's pose-following check
     if config.evaluators is not None and config.validation_steps:
-        evaluators = load_evaluators(config.evaluators)  # pose following reads only the regressor
+        regressor = load_evaluators(config.evaluators).regressor
     check_global_batch(len(train_dataset), config.train_batch_size, accelerator.num_processes, what="pairs")
     if config.pfm_crop_size is not None:
         check_pfm_crop_size(config.pfm_crop_size, image_size=image_size,
@@ -273,20 +271,11 @@ def main(argv: list[str] | None = None) -> Path:
     trainable = [parameter for module in trained_modules for parameter in module.parameters()]
     progress = tqdm(total=config.max_train_steps, initial=global_step, desc="steps",
                     disable=not accelerator.is_local_main_process)  # fmt: skip
-    loss_kwargs = dict(
-        vae=vae,
-        encoder=encoder,
-        noise_scheduler=noise_scheduler,
-        **{name: getattr(config, name) for name in LOSS_SETTINGS},
-    )
+    loss_kwargs = {"vae": vae, "encoder": encoder, "noise_scheduler": noise_scheduler}
+    loss_kwargs.update((name, getattr(config, name)) for name in LOSS_SETTINGS)
     accumulation = config.gradient_accumulation_steps  # micro-batch i belongs to step i // accumulation
-    batches = resumable_batches(
-        accelerator,
-        train_dataloader,
-        start=global_step * accumulation,
-        stop=config.max_train_steps * accumulation,
-        datasets=[train_dataset],
-    )
+    first, stop = global_step * accumulation, config.max_train_steps * accumulation
+    batches = resumable_batches(accelerator, train_dataloader, first, stop, datasets=[train_dataset])
     for batch_index, epoch, batch in batches:
         with accelerator.accumulate(*trained_modules):
             generator = micro_batch_generator(config.seed, batch_index, accelerator.process_index)
@@ -336,7 +325,7 @@ def main(argv: list[str] | None = None) -> Path:
                     seed=config.seed,
                     num_inference_steps=config.validation_inference_steps,
                     guidance_scale=config.guidance_scale,
-                    regressor=None if evaluators is None else evaluators.regressor,
+                    regressor=regressor,
                 )
             accelerator.wait_for_everyone()
     progress.close()
@@ -345,12 +334,10 @@ def main(argv: list[str] | None = None) -> Path:
     accelerator.wait_for_everyone()
     digests = check_replicas_agree(accelerator, [accelerator.unwrap_model(m) for m in trained_modules])
     if accelerator.is_main_process:
-        write_json_atomic(
-            {"global_step": global_step, "image_size": image_size, "replica_weight_digests": digests},
-            output_dir / "train_state.json",
-        )
-    if accelerator.is_main_process and config.save_pipeline:
-        export_finetuned(output_dir / "pipeline", pipe, scaling, ema_pairs)
+        state = {"global_step": global_step, "image_size": image_size, "replica_weight_digests": digests}
+        write_json_atomic(state, output_dir / "train_state.json")
+        if config.save_pipeline:
+            export_finetuned(output_dir / "pipeline", pipe, scaling, ema_pairs)
     accelerator.wait_for_everyone()
     # no reference to a data-parallel wrapper (or a graph through one) may outlive the process group
     unet = pose_projection = image_encoder = trained_modules = losses = loss = None
