@@ -178,6 +178,8 @@ def ft_out_file():
 attempt("finetune --output_dir <a file>", ft_out_file)
 
 sc = load("pretrain_simclr")
+# pretrain_simclr's global batch flag: --batch_size before issue 12, --global_batch_size since
+SC_BATCH = "--global_batch_size" if hasattr(sc.PretrainSimCLRConfig, "global_batch_size") else "--batch_size"
 SC = [
     "--data",
     str(DATA),
@@ -209,7 +211,7 @@ attempt(
                     *SC,
                     "--output_dir",
                     str(TMP / "sc1"),
-                    "--batch_size",
+                    SC_BATCH,
                     "4",
                     "--max_train_steps",
                     "4",
@@ -225,7 +227,7 @@ attempt(
     lambda: (
         "final_loss "
         + str(
-            sc.main([*SC, "--output_dir", str(TMP / "sc2"), "--batch_size", "1", "--max_train_steps", "2"])[
+            sc.main([*SC, "--output_dir", str(TMP / "sc2"), SC_BATCH, "1", "--max_train_steps", "2"])[
                 "final_loss"
             ]
         )
@@ -239,7 +241,7 @@ def sc_resume():
             *SC,
             "--output_dir",
             str(TMP / "sc3"),
-            "--batch_size",
+            SC_BATCH,
             "4",
             "--max_train_steps",
             "2",
@@ -252,7 +254,7 @@ def sc_resume():
             *SC,
             "--output_dir",
             str(TMP / "sc3"),
-            "--batch_size",
+            SC_BATCH,
             "4",
             "--max_train_steps",
             "2",

@@ -69,7 +69,7 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path) -> None:
         "--lambdas", "0", "4",
         "--evaluators", str(tmp_path / "evaluators"), "--data", str(data), "--protocol", "ood-B",
         "--n", "4", "--num-inference-steps", "2", "--guidance-scale", "3.0", "--crop_size", "32",
-        "--steps", "1", "2", "--schedulers", "ddim", "euler", "--speed_n", "2", "--batch_size", "2",
+        "--steps", "1", "2", "--schedulers", "ddim", "euler", "--speed_n", "2", "--eval_batch_size", "2",
         "--num_figure_pairs", "1", "--output_dir", str(out), "--device", "cpu",
     ]  # fmt: skip
     with pytest.warns(UserWarning, match="rank-deficient"):

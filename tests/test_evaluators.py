@@ -111,7 +111,7 @@ def test_train_evaluators_smoke_and_reproducible(tmp_path: Path) -> None:
     data = write_chip_folder(tmp_path / "data")
     args = [
         "--data", str(data), "--image_size", "16", "--depths", "1", "1", "--hidden_sizes", "8", "16",
-        "--mlp_hidden_sizes", "16", "16", "--epochs", "2", "--batch_size", "8", "--seed", "3",
+        "--mlp_hidden_sizes", "16", "16", "--epochs", "2", "--train_batch_size", "8", "--seed", "3",
     ]  # fmt: skip
     results = train_evaluators.main(["--output_dir", str(tmp_path / "run1"), *args])
     assert set(results) == {"classifier", "regressor"}

@@ -14,6 +14,7 @@ from PIL import Image
 
 from sar_zero123.data import ChipRecord, write_index
 from sar_zero123.encoder import SAREncoder
+from sar_zero123.run_state import write_manifest
 from train import pretrain_simclr
 
 SCRIPT = Path(__file__).resolve().parents[1] / "train" / "pretrain_simclr.py"
@@ -23,7 +24,7 @@ TINY_ARGS = [
     "--embedding_size", "8",
     "--projection_hidden_dim", "8",
     "--projection_dim", "4",
-    "--batch_size", "4",
+    "--global_batch_size", "4",
     "--monotonic_q", "16",
 ]  # fmt: skip
 
@@ -87,7 +88,7 @@ def test_resume_from_latest_reproduces_an_uninterrupted_run(chip_folder, tmp_pat
     ("flag", "value", "field"),
     [
         ("--preset", "rotate", "preset"),
-        ("--batch_size", "0", "batch_size"),
+        ("--global_batch_size", "0", "global_batch_size"),
         ("--speckle_sigma", "-1", "sigma"),
     ],
 )
@@ -128,7 +129,11 @@ def test_diverging_run_stops_with_a_clear_error_and_writes_no_encoder(chip_folde
 @pytest.mark.parametrize(
     ("argv", "error", "match"),
     [
-        (["--batch_size", "1"], ValueError, r"batch_size must be >= 2 \(NT-Xent needs negatives\), got 1"),
+        (
+            ["--global_batch_size", "1"],
+            ValueError,
+            r"global_batch_size must be >= 2 \(NT-Xent needs negatives\), got 1",
+        ),
         (["--output_dir", "{file}"], NotADirectoryError, r"output_dir: .*is a file; expected a folder"),
     ],
     ids=["batch-1-gives-loss-0", "output-dir-is-a-file"],
@@ -148,3 +153,20 @@ def test_resume_with_another_learning_rate_is_refused_and_config_json_kept(chip_
         pretrain_simclr.main([*common, "--max_train_steps", "2", "--learning_rate", "0.5",
                             "--resume_from_checkpoint", "latest"])  # fmt: skip
     assert json.loads((out / "config.json").read_text())["learning_rate"] == 0.06
+
+
+def test_checkpoint_written_with_the_old_batch_size_name_resumes(chip_folder, tmp_path):
+    """Checkpoints written before issue 12 store `batch_size`; it is compared as `global_batch_size`."""
+    out = tmp_path / "run"
+    common = ["--data", str(chip_folder), "--output_dir", str(out), "--report_to", "none", *TINY_ARGS]
+    common += ["--max_train_steps", "2", "--checkpointing_steps", "1"]
+    pretrain_simclr.main(common)
+    checkpoint = out / "checkpoint-1"
+    state = json.loads((checkpoint / "run_state.json").read_text())
+    state["config"]["batch_size"] = state["config"].pop("global_batch_size")
+    (checkpoint / "run_state.json").write_text(json.dumps(state))
+    write_manifest(checkpoint)
+    metrics = pretrain_simclr.main([*common, "--resume_from_checkpoint", str(checkpoint)])
+    assert metrics["start_step"] == 1 and metrics["steps"] == 2
+    with pytest.raises(ValueError, match=r"global_batch_size: checkpoint 4, this run 2"):
+        pretrain_simclr.main([*common, "--global_batch_size", "2", "--resume_from_checkpoint", "latest"])

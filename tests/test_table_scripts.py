@@ -36,7 +36,7 @@ def write_chip_folder(root: Path, per_group: int = 6) -> Path:
 def test_table1_trains_probes_and_writes_tables_and_tsne(tmp_path):
     data = write_chip_folder(tmp_path / "chips")
     out = tmp_path / "table1"
-    args = ["--data", str(data), "--output_dir", str(out), "--image-size", "16", "--batch_size", "4"]
+    args = ["--data", str(data), "--output_dir", str(out), "--image-size", "16", "--global_batch_size", "4"]
     args += ["--presets", "simclr-full", "speckle+monotonic", "--max_train_steps", "1", "--probe_epochs", "2"]
     result = table1.main([*args, *TINY_MODEL, "--tsne_points", "12"])
     assert set(result["rows"]) == {"simclr-full", "speckle+monotonic"}
@@ -97,7 +97,7 @@ def test_synth_to_real_writes_table2_and_classifiers(tmp_path):
     sample = write_sample_folder(tmp_path / "SAMPLE")
     out = tmp_path / "table2"
     args = ["--sample", str(sample), "--output_dir", str(out), "--image_size", "16", "--epochs", "2"]
-    args += ["--batch_size", "4", "--rows", "none", "speckle+monotonic", *TINY_MODEL]
+    args += ["--train_batch_size", "4", "--rows", "none", "speckle+monotonic", *TINY_MODEL]
     result = synth_to_real.main(args)
     assert result["pairs"] == 8 and result["class_names"] == ["2S1", "M1"]
     assert set(result["rows"]) == {"none", "speckle+monotonic"}

@@ -122,7 +122,7 @@ class EvaluateConfig:
     chip_crop_size: int | None = None  # centre crop of the chip files before resizing
     crop_size: int = 64  # centre crop for MS-SSIM and Kuan+SSIM (paper: 64)
     paper_scoring_size: int | None = 256  # side before the paper-comparable 64 crop (authors: 256)
-    batch_size: int = 16  # pairs per pipeline call
+    eval_batch_size: int = 16  # pairs per pipeline call (and per VAE / evaluator call)
     num_figure_pairs: int = 4  # pairs per group shown in views.png
     output_dir: str = "runs/eval"  # where tables and figures go
     device: str | None = None  # torch device (None: cuda when available)
@@ -139,7 +139,7 @@ class EvaluateConfig:
             raise ValueError(f"lambdas has {len(self.lambdas)} values for {len(self.pipeline)} pipelines")
         if self.protocol != "extended" and not self.protocol.startswith("ood-"):
             raise ValueError(f"protocol must be 'extended' or 'ood-<CLASS>', got {self.protocol!r}")
-        for name in ("n", "num_inference_steps", "batch_size", "crop_size"):
+        for name in ("n", "num_inference_steps", "eval_batch_size", "crop_size"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.paper_scoring_size is not None and self.paper_scoring_size < self.crop_size:
@@ -365,7 +365,7 @@ def score(
         evaluators,
         crop_size=config.crop_size,
         paper_scoring_size=config.paper_scoring_size,
-        batch_size=max(config.batch_size, 32),
+        batch_size=max(config.eval_batch_size, 32),
         device=device,
     )
 
@@ -609,8 +609,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         if round_trip_rows and same_weights(pipe.vae, pipes[config.names[0]].vae):
             continue  # one row per distinct VAE
         results[row] = {
-            group: score(vae_round_trip(pipe, pairs.targets, config.batch_size, device), pairs, evaluators,
-                         config, device)
+            group: score(vae_round_trip(pipe, pairs.targets, config.eval_batch_size, device), pairs,
+                         evaluators, config, device)
             for group, pairs in pair_sets.items()
         }  # fmt: skip
         round_trip_rows.append(row)
@@ -623,7 +623,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                 pairs,
                 num_inference_steps=config.num_inference_steps,
                 guidance_scale=config.guidance_scale,
-                batch_size=config.batch_size,
+                batch_size=config.eval_batch_size,
                 device=device,
                 desc=f"{name} {group}",
             )
@@ -681,7 +681,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                         pairs,
                         num_inference_steps=steps,
                         guidance_scale=config.guidance_scale,
-                        batch_size=config.batch_size,
+                        batch_size=config.eval_batch_size,
                         device=device,
                         desc=f"{name} {scheduler} {steps}",
                     )

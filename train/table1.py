@@ -61,7 +61,7 @@ class Table1Config:
     epochs: int = 500  # SimCLR epochs per preset (paper: 500)
     max_train_steps: int | None = None  # cap on SimCLR steps per preset (quick runs)
     image_size: int = 128  # chip side in pixels (paper: 128)
-    batch_size: int = 256  # SimCLR batch size
+    global_batch_size: int = 256  # SimCLR chips per step over all processes (pretrain_simclr.py)
     learning_rate: float = 0.06  # SimCLR SGD learning rate
     cifar_stem: bool = True  # 3x3 stride-1 stem without max-pool (reference setting)
     hidden_sizes: tuple[int, ...] = (64, 128, 256, 512)  # ResNet-18 stage widths
@@ -88,7 +88,7 @@ class Table1Config:
             raise ValueError(
                 f"encoders must name one folder per preset ({len(self.presets)}), got {len(self.encoders)}"
             )
-        for name in ("epochs", "image_size", "batch_size", "probe_epochs", "tsne_points"):
+        for name in ("epochs", "image_size", "global_batch_size", "probe_epochs", "tsne_points"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         for name in ("max_train_steps", "max_train_chips", "max_test_chips"):
@@ -106,7 +106,7 @@ def pretrain_argv(config: Table1Config, preset: str, run_dir: Path, work_dir: Pa
         "--preset", preset,
         "--epochs", str(config.epochs),
         "--image_size", str(config.image_size),
-        "--batch_size", str(config.batch_size),
+        "--global_batch_size", str(config.global_batch_size),
         "--learning_rate", str(config.learning_rate),
         "--hidden_sizes", *map(str, config.hidden_sizes),
         "--embedding_size", str(config.embedding_size),

@@ -60,7 +60,7 @@ class TrainEvaluatorsConfig:
     mlp_hidden_sizes: tuple[int, ...] = (256, 256)  # azimuth MLP widths (paper: 256-256)
     epochs: int = 30  # passes over the train split per scratch model
     probe_epochs: int = 30  # passes for the MLP heads of the SimCLR probes
-    batch_size: int = 64  # chips per step
+    train_batch_size: int = 64  # chips per process per step (also the scoring batch)
     learning_rate: float = 1e-3  # AdamW peak learning rate (cosine decay to 0)
     weight_decay: float = 5e-4  # AdamW weight decay
     simclr_encoders: list[str] = field(default_factory=list)  # SimCLR encoder folders to probe (Table IV)
@@ -74,7 +74,7 @@ class TrainEvaluatorsConfig:
     def __post_init__(self) -> None:
         if self.scaling not in ("unit", "mstar_raw", "fit"):
             raise ValueError(f"scaling must be 'unit', 'mstar_raw' or 'fit', got {self.scaling!r}")
-        for name in ("image_size", "epochs", "batch_size", "checkpointing_epochs"):
+        for name in ("image_size", "epochs", "train_batch_size", "checkpointing_epochs"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.probe_epochs < 1:
@@ -98,7 +98,7 @@ def _loader(dataset: ChipDataset, config: TrainEvaluatorsConfig, shuffle: bool, 
     generator = torch.Generator().manual_seed(seed)
     return DataLoader(
         dataset,
-        batch_size=config.batch_size,
+        batch_size=config.train_batch_size,
         shuffle=shuffle,
         num_workers=config.num_workers,
         generator=generator,
