@@ -33,7 +33,7 @@ from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from sar_zero123.conditioning import encode_condition_latents
-from sar_zero123.config import parse_config, save_config, write_json_atomic
+from sar_zero123.config import check_minimum, parse_config, save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling, ViewPairDataset, prepare_splits, split_records
 from sar_zero123.evaluators import Evaluators, check_class_names, load_evaluators, score_views
 from sar_zero123.pipeline import SARZero123Pipeline
@@ -139,9 +139,7 @@ class EvaluateConfig:
             raise ValueError(f"lambdas has {len(self.lambdas)} values for {len(self.pipeline)} pipelines")
         if self.protocol != "extended" and not self.protocol.startswith("ood-"):
             raise ValueError(f"protocol must be 'extended' or 'ood-<CLASS>', got {self.protocol!r}")
-        for name in ("n", "num_inference_steps", "eval_batch_size", "crop_size"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        check_minimum(self, "n", "num_inference_steps", "eval_batch_size", "crop_size", minimum=1)
         if self.paper_scoring_size is not None and self.paper_scoring_size < self.crop_size:
             raise ValueError(
                 f"paper_scoring_size must be >= crop_size or None, got {self.paper_scoring_size}"
@@ -160,10 +158,8 @@ class EvaluateConfig:
             raise ValueError("steps and schedulers must be given together for the speed/error sweep")
         if any(step < 1 for step in self.steps):
             raise ValueError(f"steps must be >= 1, got {self.steps}")
-        if self.speed_n is not None and self.speed_n < 1:
-            raise ValueError(f"speed_n must be >= 1 or None, got {self.speed_n}")
-        if self.num_figure_pairs < 0:
-            raise ValueError(f"num_figure_pairs must be >= 0, got {self.num_figure_pairs}")
+        check_minimum(self, "speed_n", minimum=1, optional=True)
+        check_minimum(self, "num_figure_pairs", minimum=0)
 
     @property
     def names(self) -> list[str]:

@@ -139,10 +139,11 @@ class FinetuneConfig:
         check_minimum(self, "learning_rate", "pose_lr_multiplier", "max_grad_norm", minimum=0, strict=True)
         check_minimum(self, "snr_gamma", minimum=0, strict=True, optional=True)
         check_minimum(self, "pfm_min_snr", "lr_warmup_steps", "validation_steps", "num_workers", minimum=0)
-        check_minimum(self, "train_batch_size", "gradient_accumulation_steps", "max_train_steps",
-                      "checkpointing_steps", "num_validation_images", "validation_inference_steps", minimum=1)
-        check_minimum(self, "pfm_projection_dim", "pfm_crop_size", "checkpoints_total_limit", minimum=1,
-                      optional=True)  # fmt: skip
+        counts = ("train_batch_size", "gradient_accumulation_steps", "max_train_steps", "checkpointing_steps",
+                  "num_validation_images", "validation_inference_steps")  # fmt: skip
+        check_minimum(self, *counts, minimum=1)
+        optional_counts = ("pfm_projection_dim", "pfm_crop_size", "checkpoints_total_limit")
+        check_minimum(self, *optional_counts, minimum=1, optional=True)
         check_minimum(self, "image_size", minimum=8, optional=True)
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")

@@ -38,7 +38,7 @@ from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from sar_zero123.augment import PRESETS, AugmentationPreset, simclr_views
-from sar_zero123.config import parse_config, save_config, write_json_atomic
+from sar_zero123.config import check_minimum, parse_config, save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE, ChipDataset, ChipRecord, DecibelScaling, prepare_splits
 from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig, nt_xent_loss
 from sar_zero123.run_state import (
@@ -105,20 +105,13 @@ class PretrainSimCLRConfig:
             raise ValueError(
                 f"global_batch_size must be >= 2 (NT-Xent needs negatives), got {self.global_batch_size}"
             )
-        for name in ("image_size", "global_batch_size", "epochs", "checkpointing_steps", "logging_steps"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("max_train_steps", "max_train_chips", "checkpoints_total_limit"):
-            value = getattr(self, name)
-            if value is not None and value < 1:
-                raise ValueError(f"{name} must be >= 1 or None, got {value}")
-        for name in ("learning_rate", "temperature"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        check_minimum(self, "image_size", "epochs", "checkpointing_steps", "logging_steps", minimum=1)
+        optional_counts = ("max_train_steps", "max_train_chips", "checkpoints_total_limit")
+        check_minimum(self, *optional_counts, minimum=1, optional=True)
+        check_minimum(self, "learning_rate", "temperature", minimum=0, strict=True)
+        check_minimum(self, "weight_decay", minimum=0)
         if not 0 <= self.momentum < 1:
             raise ValueError(f"momentum must lie in [0, 1), got {self.momentum}")
-        if self.weight_decay < 0:
-            raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay}")
         if self.mixed_precision not in ("no", "fp16", "bf16"):
             raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
         if self.report_to not in ("tensorboard", "none", None):

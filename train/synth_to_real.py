@@ -21,7 +21,7 @@ from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from sar_zero123.augment import PRESETS, augment_batch
-from sar_zero123.config import parse_config, save_config, write_json_atomic
+from sar_zero123.config import check_minimum, parse_config, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_sample
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluators import SARClassifier
@@ -60,13 +60,9 @@ class SynthToRealConfig:
             raise ValueError(
                 f"rows must be non-empty names from {[NO_AUGMENTATION, *PRESETS]}, got {list(self.rows)}"
             )
-        for name in ("image_size", "epochs", "train_batch_size"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if not self.learning_rate > 0:
-            raise ValueError(f"learning_rate must be > 0, got {self.learning_rate}")
-        if self.weight_decay < 0:
-            raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay}")
+        check_minimum(self, "image_size", "epochs", "train_batch_size", minimum=1)
+        check_minimum(self, "learning_rate", minimum=0, strict=True)
+        check_minimum(self, "weight_decay", minimum=0)
         if self.mixed_precision not in ("no", "fp16", "bf16"):
             raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
 

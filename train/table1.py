@@ -26,7 +26,7 @@ import numpy as np
 import torch
 
 from sar_zero123.augment import PRESETS
-from sar_zero123.config import parse_config, save_config, write_json_atomic
+from sar_zero123.config import check_minimum, parse_config, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, prepare_splits
 from sar_zero123.encoder import WEIGHTS_NAME, SAREncoder, resolve_encoder_dir
 from sar_zero123.probes import FeatureSet, extract_features, run_probes
@@ -88,13 +88,9 @@ class Table1Config:
             raise ValueError(
                 f"encoders must name one folder per preset ({len(self.presets)}), got {len(self.encoders)}"
             )
-        for name in ("epochs", "image_size", "global_batch_size", "probe_epochs", "tsne_points"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("max_train_steps", "max_train_chips", "max_test_chips"):
-            value = getattr(self, name)
-            if value is not None and value < 1:
-                raise ValueError(f"{name} must be >= 1 or None, got {value}")
+        counts = ("epochs", "image_size", "global_batch_size", "probe_epochs", "tsne_points")
+        check_minimum(self, *counts, minimum=1)
+        check_minimum(self, "max_train_steps", "max_train_chips", "max_test_chips", minimum=1, optional=True)
 
 
 def pretrain_argv(config: Table1Config, preset: str, run_dir: Path, work_dir: Path) -> list[str]:
