@@ -12,12 +12,17 @@ from typing import Literal
 import torch
 
 
+def _check_rank4(x: torch.Tensor, name: str = "x") -> None:
+    """Raise ``ValueError`` unless ``x`` is a (B, C, H, W) batch."""
+    if x.ndim != 4:
+        raise ValueError(f"`{name}` must have rank 4 (B, C, H, W), got shape {tuple(x.shape)}")
+
+
 def _check_images(x: torch.Tensor, name: str = "x") -> None:
     """Raise ``ValueError`` unless ``x`` is a finite floating (B, C, H, W) tensor with values in [0, 1]."""
     if not isinstance(x, torch.Tensor):
         raise ValueError(f"`{name}` must be a torch.Tensor, got {type(x).__name__}")
-    if x.ndim != 4:
-        raise ValueError(f"`{name}` must have rank 4 (B, C, H, W), got shape {tuple(x.shape)}")
+    _check_rank4(x, name)
     if not x.is_floating_point():
         raise ValueError(f"`{name}` must be a floating tensor, got dtype {x.dtype}")
     if x.numel() == 0:

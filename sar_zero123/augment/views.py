@@ -23,6 +23,7 @@ from ._batch import (
     _check_probability,
     _check_q,
     _check_range,
+    _check_rank4,
     _draw,
     _per_sample,
     _uniform,
@@ -83,8 +84,7 @@ def random_resized_crop(
     Raises:
         ValueError: If ``x`` is not rank 4 or a parameter is out of range.
     """
-    if x.ndim != 4:
-        raise ValueError(f"`x` must have rank 4 (B, C, H, W), got shape {tuple(x.shape)}")
+    _check_rank4(x)
     _check_range(scale, "scale")
     if scale[0] <= 0 or scale[1] > 1:
         raise ValueError(f"`scale` must lie within (0, 1], got {scale!r}")
@@ -144,8 +144,7 @@ def color_jitter(
     Raises:
         ValueError: If ``x`` is not rank 4 or a parameter is out of range.
     """
-    if x.ndim != 4:
-        raise ValueError(f"`x` must have rank 4 (B, C, H, W), got shape {tuple(x.shape)}")
+    _check_rank4(x)
     _check_nonnegative(brightness, "brightness")
     _check_nonnegative(contrast, "contrast")
     _check_probability(p, "p")
@@ -188,8 +187,7 @@ def random_gaussian_blur(
     Raises:
         ValueError: If ``x`` is not rank 4, a parameter is out of range or the kernel does not fit.
     """
-    if x.ndim != 4:
-        raise ValueError(f"`x` must have rank 4 (B, C, H, W), got shape {tuple(x.shape)}")
+    _check_rank4(x)
     _check_range(sigma, "sigma")
     if sigma[0] <= 0:
         raise ValueError(f"`sigma` must be positive, got {sigma!r}")
