@@ -295,6 +295,20 @@ def load_checkpoint(accelerator: Accelerator, path: str | os.PathLike) -> dict[s
     return state
 
 
+def resume_step(accelerator: Accelerator, path: str | os.PathLike | None) -> int:
+    """The optimisation step a run starts at: 0 for a fresh run (``path`` is ``None``), else the step of
+    the checkpoint it restores (:func:`load_checkpoint`, logged).
+
+    Raises:
+        FileNotFoundError, RuntimeError: From :func:`load_checkpoint`.
+    """
+    if path is None:
+        return 0
+    step = int(load_checkpoint(accelerator, path)["step"])
+    logger.info("resumed from %s at step %d", path, step)
+    return step
+
+
 def check_resume_config(
     path: str | os.PathLike | None,
     config: Any,

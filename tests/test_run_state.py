@@ -22,6 +22,7 @@ from sar_zero123.run_state import (
     read_run_state,
     resolve_resume_checkpoint,
     resumable_batches,
+    resume_step,
     save_checkpoint,
     verify_checkpoint,
 )
@@ -281,3 +282,12 @@ def test_resumable_batches_continue_an_uninterrupted_run():
     assert _batches(4, 8) == full[4:]  # resumed in the middle of epoch 1
     AcceleratorState._reset_state(True)
     assert _batches(8, 8) == []
+
+
+def test_resume_step_is_zero_for_a_fresh_run_and_the_checkpoint_step_otherwise(tmp_path: Path, caplog):
+    accelerator, model, optimizer = _setup()
+    assert resume_step(accelerator, None) == 0
+    path = save_checkpoint(accelerator, tmp_path, 3)
+    with caplog.at_level("INFO", logger="sar_zero123.run_state"):
+        assert resume_step(accelerator, path) == 3
+    assert "resumed from" in caplog.text and "at step 3" in caplog.text

@@ -20,7 +20,6 @@ random draw of a micro-batch one of (seed, micro-batch index, process index) (``
 
 from __future__ import annotations
 
-import logging
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -49,9 +48,9 @@ from sar_zero123.run_state import (
     check_resume_config,
     check_resume_state,
     end_run,
-    load_checkpoint,
     resolve_resume_checkpoint,
     resumable_batches,
+    resume_step,
     save_checkpoint,
 )
 from sar_zero123.runs import check_global_batch, check_replicas_agree, start_run, tracker_hparams
@@ -64,7 +63,6 @@ from sar_zero123.training import (
 )
 from sar_zero123.validation import run_validation
 
-logger = logging.getLogger(__name__)
 #: The config fields passed to ``compute_losses`` under their own names (training and validation).
 LOSS_SETTINGS = (
     "pfm_weight", "pfm_min_snr", "pfm_fraction", "pfm_crop_size",
@@ -262,10 +260,7 @@ def main(argv: list[str] | None = None) -> Path:
     validation_batch = next(iter(DataLoader(validation_dataset, batch_size=config.num_validation_images)))
 
     # 4. resume
-    global_step = 0
-    if resume_path is not None:
-        global_step = int(load_checkpoint(accelerator, resume_path)["step"])
-        logger.info("resumed from %s at step %d", resume_path, global_step)
+    global_step = resume_step(accelerator, resume_path)
     accelerator.init_trackers("finetune_pfm", config=tracker_hparams(config))
 
     # 5. training loop

@@ -46,8 +46,8 @@ from sar_zero123.run_state import (
     check_finite_step,
     check_resume_config,
     end_run,
-    load_checkpoint,
     resolve_resume_checkpoint,
+    resume_step,
     save_checkpoint,
 )
 from sar_zero123.runs import start_run, tracker_hparams
@@ -236,11 +236,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     accelerator.init_trackers("simclr", config=tracker_hparams(config))
 
     # 3. resume
-    step = start_step = 0
-    if resume is not None:
-        step = int(load_checkpoint(accelerator, resume)["step"])
-        logger.info("resumed from %s at step %d", resume, step)
-    start_step = step
+    step = start_step = resume_step(accelerator, resume)
 
     # 4. train: each step's batch and augmentation draw depend only on (seed, step), so a resumed run
     # continues the same sequence without storing generator states

@@ -41,9 +41,9 @@ from sar_zero123.run_state import (
     check_finite_step,
     check_resume_config,
     end_run,
-    load_checkpoint,
     resolve_resume_checkpoint,
     resumable_batches,
+    resume_step,
     save_checkpoint,
 )
 from sar_zero123.runs import check_global_batch, start_run, tracker_hparams
@@ -231,9 +231,7 @@ def main(argv: list[str] | None = None) -> Path:
     optimizer = torch.optim.AdamW(objective.parameters(), lr=config.learning_rate)
     train_loader = DataLoader(train_dataset, batch_size=config.train_batch_size, shuffle=True, drop_last=True)
     objective, optimizer, train_loader = accelerator.prepare(objective, optimizer, train_loader)
-    global_step = 0
-    if resume_path is not None:
-        global_step = int(load_checkpoint(accelerator, resume_path)["step"])
+    global_step = resume_step(accelerator, resume_path)
     accelerator.init_trackers("train_vae", config=tracker_hparams(config))
 
     # 3. training loop (posterior samples from a generator seeded per step and process: resumable)
