@@ -9,7 +9,7 @@ Uses the tiny test components (``tests/dummies.py``) and fabricated data in a te
 a minute on 2 CPU cores. Results: ``docs/results/reliability.md``.
 """
 
-import importlib.util
+import importlib
 import json
 import shutil
 import sys
@@ -34,11 +34,8 @@ RESULTS = {}
 
 
 def load(name):
-    spec = importlib.util.spec_from_file_location(name, ROOT / "train" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[name] = module
-    spec.loader.exec_module(module)
-    return module
+    """`train.<name>` of the source tree (a namespace package in trees older than `train/__init__.py`)."""
+    return importlib.import_module(f"train.{name}")
 
 
 def attempt(name, fn):
@@ -181,6 +178,8 @@ def ft_out_file():
 attempt("finetune --output_dir <a file>", ft_out_file)
 
 sc = load("pretrain_simclr")
+# pretrain_simclr's global batch flag: --batch_size before issue 12, --global_batch_size since
+SC_BATCH = "--global_batch_size" if hasattr(sc.PretrainSimCLRConfig, "global_batch_size") else "--batch_size"
 SC = [
     "--data",
     str(DATA),
@@ -212,7 +211,7 @@ attempt(
                     *SC,
                     "--output_dir",
                     str(TMP / "sc1"),
-                    "--batch_size",
+                    SC_BATCH,
                     "4",
                     "--max_train_steps",
                     "4",
@@ -228,7 +227,7 @@ attempt(
     lambda: (
         "final_loss "
         + str(
-            sc.main([*SC, "--output_dir", str(TMP / "sc2"), "--batch_size", "1", "--max_train_steps", "2"])[
+            sc.main([*SC, "--output_dir", str(TMP / "sc2"), SC_BATCH, "1", "--max_train_steps", "2"])[
                 "final_loss"
             ]
         )
@@ -242,7 +241,7 @@ def sc_resume():
             *SC,
             "--output_dir",
             str(TMP / "sc3"),
-            "--batch_size",
+            SC_BATCH,
             "4",
             "--max_train_steps",
             "2",
@@ -255,7 +254,7 @@ def sc_resume():
             *SC,
             "--output_dir",
             str(TMP / "sc3"),
-            "--batch_size",
+            SC_BATCH,
             "4",
             "--max_train_steps",
             "2",

@@ -17,10 +17,10 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "train"))
-import evaluate  # noqa: E402  (train/ is not a package)
+from sar_zero123.evaluators import load_evaluators
 
-from sar_zero123.evaluators import load_evaluators  # noqa: E402
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `train`
+from train import evaluate  # noqa: E402
 
 
 def rotate(images: torch.Tensor, angle_deg: torch.Tensor) -> torch.Tensor:

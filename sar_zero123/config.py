@@ -180,6 +180,31 @@ def parse_config(cls: type[ConfigT], argv: Sequence[str] | None = None) -> Confi
     return config
 
 
+def check_minimum(
+    config: Any, *names: str, minimum: float, strict: bool = False, optional: bool = False
+) -> None:
+    """Refuse the first field of ``names`` below ``minimum``: the range checks of ``__post_init__``.
+
+    Args:
+        config: The config dataclass (``self`` in ``__post_init__``).
+        names: Fields to check, in order.
+        minimum: The smallest allowed value.
+        strict: Require ``value > minimum`` instead of ``>=``.
+        optional: Accept ``None``.
+
+    Raises:
+        ValueError: ``"<name> must be >= <minimum>[ or None], got <value>"`` (``>`` with ``strict``); NaN
+            fails every check, ``None`` every check without ``optional``.
+    """
+    for name in names:
+        value = getattr(config, name)
+        if value is None and optional:
+            continue
+        if value is None or not (value > minimum if strict else value >= minimum):
+            bound = f"{'>' if strict else '>='} {minimum}{' or None' if optional else ''}"
+            raise ValueError(f"{name} must be {bound}, got {value}")
+
+
 #: Config fields that name a folder a script writes into; :func:`parse_config` checks them first.
 OUTPUT_DIR_FIELDS = ("output_dir", "work_dir")
 

@@ -350,6 +350,26 @@ def encode_target_features(target_images: torch.Tensor, encoder: nn.Module, *,
     return encoder(_to_encoder_input(images, encoder.config.image_size).to(encoder_dtype)).float()
 
 
+def check_pfm_crop_size(
+    crop_size: int, *, image_size: int, vae_scale_factor: int, name: str = "crop_size"
+) -> None:
+    """Refuse a PFM centre crop whose latent window is not centred on whole latent pixels.
+
+    Args:
+        crop_size: Side of the centre crop in pixels.
+        image_size: Side of the images in pixels.
+        vae_scale_factor: The VAE's downsampling factor (pixels per latent pixel).
+        name: What the crop size is called in the message (a flag, an argument).
+
+    Raises:
+        ValueError: Unless ``0 < crop_size <= image_size`` and ``image_size - crop_size`` is a multiple of
+            ``2 * vae_scale_factor``.
+    """
+    if crop_size <= 0 or crop_size > image_size or (image_size - crop_size) % (2 * vae_scale_factor):
+        raise ValueError(f"{name} must be in (0, {image_size}] with (image_size - {name}) a multiple of "
+                         f"{2 * vae_scale_factor} so the latent window is centred, got {crop_size}")
+
+
 def pfm_loss(
     x0_hat_latents: torch.Tensor,
     target_images: torch.Tensor,
@@ -405,9 +425,7 @@ def pfm_loss(
                          f"VAE factor {factor}")
     latents = x0_hat_latents
     if crop_size is not None:
-        if crop_size <= 0 or crop_size > image_size or (image_size - crop_size) % (2 * factor):
-            raise ValueError(f"crop_size must be in (0, {image_size}] with (image_size - crop_size) a "
-                             f"multiple of {2 * factor} so the latent window is centred, got {crop_size}")
+        check_pfm_crop_size(crop_size, image_size=image_size, vae_scale_factor=factor)
         latents = center_crop(latents, crop_size // factor)
     # 2. features of the real target (no gradient)
     if target_features is None:

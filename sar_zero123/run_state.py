@@ -13,7 +13,9 @@ and ``latest`` falls back to the newest checkpoint that verifies, logging the on
 
 Divergence guards: :func:`check_finite_step` stops a run on a non-finite loss or gradient norm, and
 :func:`save_checkpoint` refuses to write non-finite weights (:func:`check_finite_state`).
-Resume guard: :func:`check_resume_config` refuses to resume with settings that change the run.
+Resume guards: :func:`check_resume_config` refuses to resume with settings that change the run,
+:func:`check_resume_state` with a setting that changes which modules a checkpoint holds.
+Resumed data order: :func:`resumable_batches` draws the micro-batches an uninterrupted run would draw.
 
 Multi-node runs need ``output_dir`` on a file system shared by all nodes, as accelerate does.
 :func:`end_run` ends a run without the process-group teardown deadlock described there.
@@ -29,13 +31,14 @@ import math
 import os
 import re
 import shutil
-from collections.abc import Iterable
+from collections.abc import Iterable, Iterator, Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import torch
 from accelerate import Accelerator
 from torch.nn.parallel import DistributedDataParallel
+from torch.utils.data import DataLoader
 
 from sar_zero123.config import config_to_dict, write_json_atomic
 
@@ -292,8 +295,25 @@ def load_checkpoint(accelerator: Accelerator, path: str | os.PathLike) -> dict[s
     return state
 
 
+def resume_step(accelerator: Accelerator, path: str | os.PathLike | None) -> int:
+    """The optimisation step a run starts at: 0 for a fresh run (``path`` is ``None``), else the step of
+    the checkpoint it restores (:func:`load_checkpoint`, logged).
+
+    Raises:
+        FileNotFoundError, RuntimeError: From :func:`load_checkpoint`.
+    """
+    if path is None:
+        return 0
+    step = int(load_checkpoint(accelerator, path)["step"])
+    logger.info("resumed from %s at step %d", path, step)
+    return step
+
+
 def check_resume_config(
-    path: str | os.PathLike | None, config: Any, may_differ: Iterable[str] = ()
+    path: str | os.PathLike | None,
+    config: Any,
+    may_differ: Iterable[str] = (),
+    renamed: Mapping[str, str] | None = None,
 ) -> None:
     """Refuse to resume a checkpoint with settings that change the run.
 
@@ -307,6 +327,8 @@ def check_resume_config(
         path: the checkpoint folder (``None``: a fresh run, nothing to check).
         config: this run's config dataclass.
         may_differ: further field names that may change for this script.
+        renamed: old field name -> this config's name, for fields renamed since checkpoints were written
+            (a checkpoint's value under the old name is compared under the new one).
 
     Raises:
         ValueError: listing every differing field with the checkpoint's and this run's value, or
@@ -325,7 +347,8 @@ def check_resume_config(
             f"{type(config).__name__} run (another script's checkpoint)"
         )
     allowed = set(RESUME_MAY_DIFFER) | set(may_differ)
-    current, written = config_to_dict(config), state["config"]
+    current = config_to_dict(config)
+    written = {(renamed or {}).get(name, name): value for name, value in state["config"].items()}
     differences = [
         f"{name}: checkpoint {written.get(name, '<absent>')!r}, this run {current.get(name, '<absent>')!r}"
         for name in sorted(set(current) | set(written))
@@ -337,6 +360,69 @@ def check_resume_config(
             f"resume with the checkpoint's values or start a new output_dir. Differences: "
             + "; ".join(differences)
         )
+
+
+def check_resume_state(path: str | os.PathLike | None, name: str, value: Any, default: Any = None) -> None:
+    """Refuse a checkpoint whose ``run_state.json`` records another ``name`` than this run's ``value``.
+
+    For a setting that decides which modules a checkpoint holds (and so which files ``load_state``
+    expects); checked from the run state, so also for checkpoints that store no config.
+
+    Args:
+        path: The checkpoint folder (``None``: a fresh run, nothing to check).
+        name: The key in ``extra_state`` that :func:`save_checkpoint` stored.
+        value: This run's value.
+        default: The value of a checkpoint that stores no ``name`` (written before it was stored).
+
+    Raises:
+        ValueError: Naming the checkpoint and the value it was written with.
+    """
+    if path is None:
+        return
+    written = read_run_state(path).get(name, default)
+    if written != value:
+        raise ValueError(
+            f"resume_from_checkpoint: {str(path)!r} was written with {name}={written}; "
+            "resume it with the same setting"
+        )
+
+
+def resumable_batches(
+    accelerator: Accelerator,
+    loader: DataLoader,
+    start: int,
+    stop: int,
+    datasets: Sequence[Any] = (),
+) -> Iterator[tuple[int, int, Any]]:
+    """Micro-batches ``start`` to ``stop - 1`` of a run that repeats ``loader`` epoch after epoch.
+
+    Micro-batch ``i`` is batch ``i % len(loader)`` of epoch ``i // len(loader)``. Each epoch first calls
+    ``set_epoch(epoch)`` on ``datasets`` (e.g. ``ViewPairDataset``'s pairs) and on ``loader`` (accelerate's
+    seedable sampler: the order is a function of the seed and the epoch), and a run resumed in the middle of
+    an epoch skips that epoch's first batches with ``accelerator.skip_first_batches``. A run resumed at
+    ``start`` therefore sees the same batches as an uninterrupted one.
+
+    Args:
+        accelerator: The run's accelerator.
+        loader: The prepared training data loader.
+        start: Index of the first micro-batch (``0``, or the resumed step times the accumulation steps).
+        stop: One past the last micro-batch index.
+        datasets: Datasets whose content depends on the epoch.
+
+    Yields:
+        ``(index, epoch, batch)``.
+    """
+    index = start
+    while index < stop:
+        epoch, offset = divmod(index, len(loader))
+        for dataset in datasets:
+            dataset.set_epoch(epoch)
+        loader.set_epoch(epoch)
+        for batch in accelerator.skip_first_batches(loader, offset) if offset else loader:
+            yield index, epoch, batch
+            index += 1
+            if index == stop:
+                return
 
 
 # --------------------------------------------------------------------------------------- divergence

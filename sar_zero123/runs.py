@@ -4,8 +4,9 @@ Each script in ``train/`` that trains under accelerate calls :func:`start_run` f
 ``Accelerator`` (mixed precision, tracker, gradient accumulation, seedable data order, logging folder),
 refuses a multi-process launch that accelerate did not turn into a distributed run (N processes that
 would overwrite each other's checkpoints), sets up logging and seeds every RNG. :func:`tracker_hparams`
-turns a config into the hyperparameters a tracker accepts, and :func:`check_replicas_agree` compares the
-trained weights of data-parallel replicas at the end of a run. Saving, resuming and ending a run are in
+turns a config into the hyperparameters a tracker accepts, :func:`check_global_batch` refuses a split
+smaller than one global batch, and :func:`check_replicas_agree` compares the trained weights of
+data-parallel replicas at the end of a run. Saving, resuming and ending a run are in
 :mod:`sar_zero123.run_state`; per-step generators in :func:`sar_zero123.training.micro_batch_generator`.
 """
 
@@ -30,6 +31,7 @@ from sar_zero123.config import config_to_dict
 
 __all__ = [
     "check_distributed_launch",
+    "check_global_batch",
     "check_replicas_agree",
     "start_run",
     "tracker_hparams",
@@ -108,6 +110,25 @@ def check_distributed_launch(accelerator: Accelerator) -> None:
             f"WORLD_SIZE={world_size} but accelerate started a non-distributed run; on CPU launch with "
             "ACCELERATE_USE_CPU=true accelerate launch --multi_gpu --num_processes N ..."
         )
+
+
+def check_global_batch(
+    num_examples: int, batch_size: int, num_processes: int, what: str = "examples"
+) -> None:
+    """Refuse a training split smaller than one global batch: a ``drop_last`` loader would yield no batch.
+
+    Args:
+        num_examples: Size of the training split.
+        batch_size: Examples per process per micro-batch.
+        num_processes: ``accelerator.num_processes``.
+        what: What an example is called in the message (``"pairs"``, ``"chips"``).
+
+    Raises:
+        ValueError: ``"data: <N> training <what>, fewer than one global batch of <batch_size x processes>"``.
+    """
+    global_batch = batch_size * num_processes
+    if num_examples < global_batch:
+        raise ValueError(f"data: {num_examples} training {what}, fewer than a global batch of {global_batch}")
 
 
 def tracker_hparams(config: Any) -> dict[str, int | float | str | bool]:

@@ -2,18 +2,24 @@
 conditioning.
 
 :func:`validate_pairs` returns the numbers and the ``input | generated | target`` grid of one validation
-batch; the training script decides where they are written and logged. :func:`ema_weights` swaps EMA
-weights into the trained modules for the duration of a validation (and back out afterwards).
+batch; :func:`run_validation` runs it with EMA weights swapped in (:func:`ema_weights`) and writes and
+logs the results.
 """
 
 from __future__ import annotations
 
+import json
+import logging
+import os
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager
+from pathlib import Path
 from typing import Any
 
 import numpy as np
+import PIL.Image
 import torch
+from accelerate import Accelerator
 from diffusers import DDIMScheduler
 from diffusers.training_utils import EMAModel
 
@@ -21,7 +27,9 @@ from sar_zero123.evaluators import pose_following
 from sar_zero123.pipeline import SARZero123Pipeline
 from sar_zero123.training import ImageEmbedder, compute_losses, conditioning_sensitivity
 
-__all__ = ["ema_weights", "make_grid", "validate_pairs"]
+__all__ = ["ema_weights", "make_grid", "run_validation", "validate_pairs"]
+
+logger = logging.getLogger(__name__)
 
 
 def make_grid(inputs: torch.Tensor, generated: torch.Tensor, targets: torch.Tensor) -> np.ndarray:
@@ -151,3 +159,46 @@ def validate_pairs(
     finally:
         for module, mode in zip(modules, modes):
             module.train(mode)
+
+
+def run_validation(
+    accelerator: Accelerator,
+    directory: str | os.PathLike,
+    step: int,
+    batch: dict[str, Any],
+    *,
+    ema_pairs: Sequence[tuple[EMAModel | None, torch.nn.Module]] = (),
+    **kwargs: Any,
+) -> dict[str, float]:
+    """One validation of a training run, written and logged; call it on the main process.
+
+    :func:`validate_pairs` with the EMA weights swapped in (:func:`ema_weights`); writes
+    ``directory/step-<step>.png`` (the grid), appends ``{"step": step, **logs}`` to
+    ``directory/metrics.jsonl``, logs the scalars to the run's trackers and the grid to TensorBoard when
+    that tracker is active.
+
+    Args:
+        accelerator: The run's accelerator (its trackers).
+        directory: Folder of the grids and ``metrics.jsonl``.
+        step: The optimisation step (file name and log step).
+        batch: The validation pairs.
+        ema_pairs: ``(ema, module)`` pairs for :func:`ema_weights`.
+        **kwargs: The keyword arguments of :func:`validate_pairs` (``pipe``, ``image_embedder``, ...).
+
+    Returns:
+        The logged scalars.
+    """
+    with ema_weights(ema_pairs):
+        logs, grid = validate_pairs(batch, **kwargs)
+    path = Path(directory) / f"step-{step:06d}.png"
+    path.parent.mkdir(parents=True, exist_ok=True)
+    PIL.Image.fromarray(grid).save(path)
+    if any(tracker.name == "tensorboard" for tracker in accelerator.trackers):
+        accelerator.get_tracker("tensorboard").log_images(
+            {"validation/input_generated_target": grid[None, ..., None]}, step=step, dataformats="NHWC"
+        )
+    accelerator.log(logs, step=step)
+    logger.info("validation step %d: %s", step, json.dumps(logs))
+    with open(path.parent / "metrics.jsonl", "a") as stream:
+        stream.write(json.dumps({"step": step, **logs}) + "\n")
+    return logs

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -14,6 +12,7 @@ import scipy.ndimage
 import scipy.stats
 import torch
 
+from benchmarks import bench_augment
 from sar_zero123.augment import (
     PRESETS,
     AugmentationPreset,
@@ -30,6 +29,7 @@ from sar_zero123.augment import (
     simclr_views,
     speckle_magnitude,
 )
+from train import plot_augmentations
 
 
 class UnitDecibelScaling:
@@ -377,15 +377,6 @@ def test_bad_input_names_the_parameter(call, field: str) -> None:
 # ----------------------------------------------------------------------------------------------------
 
 
-def load_script(relative: str):
-    path = Path(__file__).resolve().parents[1] / relative
-    spec = importlib.util.spec_from_file_location(path.stem, path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses look their module up there
-    spec.loader.exec_module(module)
-    return module
-
-
 def test_plot_augmentations_writes_both_figures(tmp_path: Path) -> None:
     from PIL import Image
 
@@ -401,10 +392,9 @@ def test_plot_augmentations_writes_both_figures(tmp_path: Path) -> None:
             ChipRecord(path=path, target_class=name, serial="s", depression_deg=17.0, azimuth_deg=10.0)
         )
     write_index(records, tmp_path / "data")
-    script = load_script("train/plot_augmentations.py")
     out = tmp_path / "figures"
     argv = ["--data", str(tmp_path / "data"), "--out_dir", str(out), "--num_maps", "3", "--num_chips", "2"]
-    written = script.main([*argv, "--size", "16", "--dpi", "20"])
+    written = plot_augmentations.main([*argv, "--size", "16", "--dpi", "20"])
     assert set(written) == {"fig3", "fig4"}
     for path in written.values():
         with Image.open(path) as image:
@@ -413,12 +403,11 @@ def test_plot_augmentations_writes_both_figures(tmp_path: Path) -> None:
 
 
 def test_bench_augment_writes_json(tmp_path: Path) -> None:
-    script = load_script("benchmarks/bench_augment.py")
     out = tmp_path / "bench.json"
     argv = ["--out", str(out), "--batch_size", "2", "--size", "16", "--repeats", "2", "--warmup", "0"]
-    script.main([*argv, "--presets", "monotonic,simclr-full"])
+    bench_augment.main([*argv, "--presets", "monotonic,simclr-full"])
     report = json.loads(out.read_text())
     assert set(report["results"]) == {"monotonic", "simclr-full"}
     assert all(row["images_per_s"] > 0 for row in report["results"].values())
     with pytest.raises(ValueError, match="presets"):
-        script.main(["--out", str(out), "--presets", "rotate"])
+        bench_augment.main(["--out", str(out), "--presets", "rotate"])

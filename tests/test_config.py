@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from sar_zero123.config import parse_config, read_config_file, save_config
+from sar_zero123.config import check_minimum, parse_config, read_config_file, save_config
 
 
 @dataclass
@@ -75,3 +75,33 @@ def test_repeated_list_flag_adds_its_values() -> None:
     config = parse_config(Repeated, ["--pipeline", "x", "--pipeline", "y", "z"])
     assert config.pipeline == ["x", "y", "z"]
     assert parse_config(Repeated, []).pipeline == ["a"]
+
+
+@dataclass
+class Ranges:
+    steps: int = 1
+    rate: float = 0.1
+    limit: int | None = None
+
+
+@pytest.mark.parametrize(
+    ("values", "names", "kwargs", "message"),
+    [
+        ({"steps": 0}, ("steps",), {"minimum": 1}, "steps must be >= 1, got 0"),
+        ({"rate": 0.0}, ("rate",), {"minimum": 0, "strict": True}, "rate must be > 0, got 0.0"),
+        ({"rate": float("nan")}, ("rate",), {"minimum": 0}, "rate must be >= 0, got nan"),
+        ({"limit": 0}, ("limit",), {"minimum": 1, "optional": True}, "limit must be >= 1 or None, got 0"),
+        # both bad: the first named is reported
+        ({"steps": 0, "rate": -1.0}, ("rate", "steps"), {"minimum": 0}, "rate must be >= 0, got -1.0"),
+    ],
+)
+def test_check_minimum_names_the_first_bad_field(values, names, kwargs, message) -> None:
+    with pytest.raises(ValueError, match=f"^{message}$"):
+        check_minimum(Ranges(**values), *names, **kwargs)
+
+
+def test_check_minimum_accepts_the_bound_and_optional_none() -> None:
+    check_minimum(Ranges(steps=1, rate=0.0), "steps", "rate", minimum=0)
+    check_minimum(Ranges(limit=None), "limit", minimum=1, optional=True)
+    with pytest.raises(ValueError, match="limit must be >= 1, got None"):
+        check_minimum(Ranges(limit=None), "limit", minimum=1)

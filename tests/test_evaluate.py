@@ -9,11 +9,12 @@ from pathlib import Path
 import pytest
 import torch
 from dummies import get_dummy_components
-from test_evaluators import TINY_ENCODER, load_script, write_chip_folder
+from test_evaluators import TINY_ENCODER, write_chip_folder
 
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluators import AzimuthRegressor, Evaluators, SARClassifier, score_views
 from sar_zero123.pipeline import SARZero123Pipeline
+from train import evaluate
 
 
 def _evaluators(directory: Path, image_size: int = 32) -> Evaluators:
@@ -61,14 +62,14 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path) -> None:
     pipe = SARZero123Pipeline(**get_dummy_components())
     pipe.save_pretrained(tmp_path / "lambda0")
     pipe.save_pretrained(tmp_path / "lambda4")
-    script = load_script("evaluate")
+    script = evaluate
     out = tmp_path / "eval"
     argv = [
         "--pipeline", str(tmp_path / "lambda0"), "--pipeline", str(tmp_path / "lambda4"),
         "--lambdas", "0", "4",
         "--evaluators", str(tmp_path / "evaluators"), "--data", str(data), "--protocol", "ood-B",
         "--n", "4", "--num-inference-steps", "2", "--guidance-scale", "3.0", "--crop_size", "32",
-        "--steps", "1", "2", "--schedulers", "ddim", "euler", "--speed_n", "2", "--batch_size", "2",
+        "--steps", "1", "2", "--schedulers", "ddim", "euler", "--speed_n", "2", "--eval_batch_size", "2",
         "--num_figure_pairs", "1", "--output_dir", str(out), "--device", "cpu",
     ]  # fmt: skip
     with pytest.warns(UserWarning, match="rank-deficient"):
@@ -110,7 +111,7 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path) -> None:
 
 
 def test_evaluate_rejects_bad_config() -> None:
-    script = load_script("evaluate")
+    script = evaluate
     with pytest.raises(ValueError, match="n must be >= 4 for an ood protocol"):
         script.EvaluateConfig(pipeline=["a"], protocol="ood-T72", n=3)
     with pytest.raises(ValueError, match="n must be >= 2"):
@@ -124,7 +125,7 @@ def test_evaluate_rejects_bad_config() -> None:
 def test_evaluate_rejects_evaluators_for_other_classes(tmp_path: Path) -> None:
     data = write_chip_folder(tmp_path / "data", classes=("A", "C"), azimuths_deg=(0.0, 90.0), size=32)
     evaluators = _evaluators(tmp_path / "evaluators")
-    script = load_script("evaluate")
+    script = evaluate
     config = script.EvaluateConfig(pipeline=["unused"], data=str(data), evaluators="evaluators/", n=2)
     with pytest.raises(
         ValueError, match=r"evaluators/ was trained on classes \['A', 'B'\] but the data uses"
@@ -133,7 +134,7 @@ def test_evaluate_rejects_evaluators_for_other_classes(tmp_path: Path) -> None:
 
 
 def test_gap_closed_is_the_fraction_between_floor_and_ceiling() -> None:
-    script = load_script("evaluate")
+    script = evaluate
     assert script.gap_closed(55.0, floor=90.0, ceiling=20.0) == pytest.approx(0.5)
     assert script.gap_closed(20.0, floor=90.0, ceiling=20.0) == pytest.approx(1.0)
     assert script.gap_closed(100.0, floor=90.0, ceiling=20.0) == pytest.approx(-1 / 7)

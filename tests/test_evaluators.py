@@ -2,12 +2,9 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
-from types import ModuleType
 
 import numpy as np
 import pytest
@@ -23,8 +20,8 @@ from sar_zero123.evaluators import (
     load_evaluator,
     load_evaluators,
 )
+from train import train_evaluators
 
-REPO = Path(__file__).resolve().parents[1]
 TINY_ENCODER = {
     "image_size": 16,
     "in_channels": 1,
@@ -32,15 +29,6 @@ TINY_ENCODER = {
     "depths": (1, 1),
     "hidden_sizes": (8, 16),
 }
-
-
-def load_script(name: str) -> ModuleType:
-    """Imports `train/<name>.py` as a module (the train folder is not a package)."""
-    spec = importlib.util.spec_from_file_location(f"script_{name}", REPO / "train" / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve string annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
 
 
 def write_chip_folder(
@@ -121,12 +109,11 @@ def test_load_evaluator_rejects_other_class_list(tmp_path: Path) -> None:
 
 def test_train_evaluators_smoke_and_reproducible(tmp_path: Path) -> None:
     data = write_chip_folder(tmp_path / "data")
-    script = load_script("train_evaluators")
     args = [
         "--data", str(data), "--image_size", "16", "--depths", "1", "1", "--hidden_sizes", "8", "16",
-        "--mlp_hidden_sizes", "16", "16", "--epochs", "2", "--batch_size", "8", "--seed", "3",
+        "--mlp_hidden_sizes", "16", "16", "--epochs", "2", "--train_batch_size", "8", "--seed", "3",
     ]  # fmt: skip
-    results = script.main(["--output_dir", str(tmp_path / "run1"), *args])
+    results = train_evaluators.main(["--output_dir", str(tmp_path / "run1"), *args])
     assert set(results) == {"classifier", "regressor"}
     assert 0.0 <= results["classifier"]["test_accuracy"] <= 1.0
     assert results["classifier"]["n_test"] == 24 and results["regressor"]["n_train"] == 24
@@ -137,7 +124,7 @@ def test_train_evaluators_smoke_and_reproducible(tmp_path: Path) -> None:
     assert evaluators.image_size == 16 and list(evaluators.azimuth_regressors()) == ["scratch"]
 
     # Same seed, same bytes.
-    script.main(["--output_dir", str(tmp_path / "run2"), *args])
+    train_evaluators.main(["--output_dir", str(tmp_path / "run2"), *args])
     for name in ("classifier", "regressor"):
         first = load_file(str(tmp_path / "run1" / name / "model.safetensors"))
         second = load_file(str(tmp_path / "run2" / name / "model.safetensors"))
@@ -146,7 +133,7 @@ def test_train_evaluators_smoke_and_reproducible(tmp_path: Path) -> None:
     # Table IV probe on a frozen encoder: the encoder weights stay untouched.
     encoder_dir = tmp_path / "simclr" / "encoder"
     evaluators.classifier.encoder.save_pretrained(encoder_dir)
-    probe_results = script.main(
+    probe_results = train_evaluators.main(
         ["--output_dir", str(tmp_path / "run1"), *args, "--simclr_encoders", str(tmp_path / "simclr")]
     )
     assert "probe:simclr" in probe_results

@@ -3,7 +3,6 @@ trained image tower."""
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import logging
 import multiprocessing
@@ -11,7 +10,6 @@ import os
 import re
 import shutil
 import signal
-import sys
 import time
 from pathlib import Path
 
@@ -26,25 +24,19 @@ from safetensors.torch import load_file
 from sar_zero123.data import ChipRecord, write_index
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
 from sar_zero123.models import build_sar_zero123
+from sar_zero123.orientation import AzimuthEstimator
 from sar_zero123.pipeline import SARZero123Pipeline
 from sar_zero123.runs import weights_digest
 from sar_zero123.training import ImageEmbedder, compute_losses, micro_batch_generator
+from train import finetune_pfm
 
 ROOT = Path(__file__).resolve().parents[1]
 SCRIPT = ROOT / "train" / "finetune_pfm.py"
 
 
-def load_script():
-    spec = importlib.util.spec_from_file_location("finetune_pfm", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["finetune_pfm"] = module
-    spec.loader.exec_module(module)
-    return module
-
-
 @pytest.fixture(scope="module")
 def script():
-    return load_script()
+    return finetune_pfm
 
 
 @pytest.fixture(autouse=True)
@@ -493,3 +485,28 @@ def test_output_dir_that_is_a_file_is_refused_before_loading(script, assets, tmp
     (tmp_path / "file").write_text("x")
     with pytest.raises(NotADirectoryError, match=r"output_dir: .*file' is a file; expected a folder"):
         script.main(tiny_args(assets, tmp_path / "file"))
+
+
+def test_estimate_input_azimuth_trains_checkpoints_and_exports_it(script, assets, tmp_path) -> None:
+    out = script.main(
+        tiny_args(
+            assets,
+            tmp_path / "estimator",
+            "--max_train_steps", "2", "--checkpointing_steps", "2", "--validation_steps", "2",
+            "--num_validation_images", "2", "--validation_inference_steps", "2", "--pfm_weight", "0",
+            "--estimate_input_azimuth", "--input_code_dim", "3",
+        )
+    )  # fmt: skip
+    AcceleratorState._reset_state(True)
+    GradientState._reset_state()
+    initial = build_sar_zero123("tiny", seed=3, estimate_input_azimuth=True, input_code_dim=3)
+    initial = initial.azimuth_estimator
+    pipe = SARZero123Pipeline.from_pretrained(out / "pipeline")
+    assert isinstance(pipe.azimuth_estimator, AzimuthEstimator) and pipe.azimuth_estimator.output_dim == 5
+    trained = pipe.azimuth_estimator.state_dict()
+    assert all(not torch.equal(trained[k], v) for k, v in initial.state_dict().items())
+    # the estimator is the third trained module of the checkpoint (after the UNet and the pose projection)
+    saved = load_file(out / "checkpoint-2" / "model_2.safetensors")
+    assert all(torch.equal(saved[k], trained[k]) for k in trained)
+    logged = json.loads((out / "validation" / "metrics.jsonl").read_text().splitlines()[-1])
+    assert 0.0 <= logged["validation/loss_azimuth"] <= 2.0

@@ -17,6 +17,7 @@ from sar_zero123.losses import (
     PFM_PROJECTION_FILE,
     ProjectedFeatureEncoder,
     append_dims,
+    check_pfm_crop_size,
     denoising_loss,
     denoising_target,
     estimate_x0,
@@ -212,6 +213,15 @@ def test_pfm_loss_crop_decodes_latent_window(vae, encoder) -> None:
     torch.testing.assert_close(loss, ((encoder(a) - encoder(b)) ** 2).sum(1), atol=1e-6, rtol=1e-5)
     with pytest.raises(ValueError, match="crop_size"):
         pfm_loss(latents, target, vae, encoder, crop_size=14)
+
+
+@pytest.mark.parametrize("crop_size", [0, 36, 30, 14])
+def test_check_pfm_crop_size_wants_a_centred_whole_latent_window(crop_size) -> None:
+    check_pfm_crop_size(16, image_size=32, vae_scale_factor=2)  # (32 - 16) / 2 = 8 px = 4 latents per side
+    check_pfm_crop_size(32, image_size=32, vae_scale_factor=2)
+    message = rf"pfm_crop_size must be in \(0, 32\] .* multiple of 4 .* got {crop_size}$"
+    with pytest.raises(ValueError, match=message):
+        check_pfm_crop_size(crop_size, image_size=32, vae_scale_factor=2, name="pfm_crop_size")
 
 
 def test_pfm_loss_rejects_trainable_modules_and_bad_shapes(vae, encoder) -> None:

@@ -2,11 +2,9 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
 import shutil
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,6 +14,8 @@ from PIL import Image
 
 from sar_zero123.data import ChipRecord, write_index
 from sar_zero123.encoder import SAREncoder
+from sar_zero123.run_state import write_manifest
+from train import pretrain_simclr
 
 SCRIPT = Path(__file__).resolve().parents[1] / "train" / "pretrain_simclr.py"
 TINY_ARGS = [
@@ -24,17 +24,9 @@ TINY_ARGS = [
     "--embedding_size", "8",
     "--projection_hidden_dim", "8",
     "--projection_dim", "4",
-    "--batch_size", "4",
+    "--global_batch_size", "4",
     "--monotonic_q", "16",
 ]  # fmt: skip
-
-
-def load_script():
-    spec = importlib.util.spec_from_file_location("pretrain_simclr", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve string annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
 
 
 def write_chip_folder(root: Path, per_group: int = 4) -> Path:
@@ -59,7 +51,7 @@ def chip_folder(tmp_path_factory) -> Path:
 
 def test_two_steps_write_encoder_metrics_and_logs(chip_folder, tmp_path):
     out = tmp_path / "run"
-    metrics = load_script().main(
+    metrics = pretrain_simclr.main(
         ["--data", str(chip_folder), "--output_dir", str(out), "--max_train_steps", "2", *TINY_ARGS]
     )
     assert metrics["steps"] == 2 and metrics["train_chips"] == 8  # the 17 deg split only
@@ -76,7 +68,7 @@ def test_two_steps_write_encoder_metrics_and_logs(chip_folder, tmp_path):
 
 
 def test_resume_from_latest_reproduces_an_uninterrupted_run(chip_folder, tmp_path):
-    script = load_script()
+    script = pretrain_simclr
     common = ["--data", str(chip_folder), "--report_to", "none", "--preset", "simclr-full", *TINY_ARGS]
     common += ["--max_train_steps", "3", "--checkpointing_steps", "1"]
     straight = script.main([*common, "--output_dir", str(tmp_path / "a")])
@@ -96,13 +88,13 @@ def test_resume_from_latest_reproduces_an_uninterrupted_run(chip_folder, tmp_pat
     ("flag", "value", "field"),
     [
         ("--preset", "rotate", "preset"),
-        ("--batch_size", "0", "batch_size"),
+        ("--global_batch_size", "0", "global_batch_size"),
         ("--speckle_sigma", "-1", "sigma"),
     ],
 )
 def test_bad_config_names_the_field(flag, value, field):
     with pytest.raises(ValueError, match=field):
-        load_script().main([flag, value])
+        pretrain_simclr.main([flag, value])
 
 
 @pytest.mark.slow
@@ -130,14 +122,18 @@ def test_diverging_run_stops_with_a_clear_error_and_writes_no_encoder(chip_folde
     out = tmp_path / "diverge"
     argv = ["--data", str(chip_folder), "--output_dir", str(out), "--report_to", "none", *TINY_ARGS]
     with pytest.raises(FloatingPointError, match=r"training diverged at step \d+: loss=(nan|inf)"):
-        load_script().main([*argv, "--max_train_steps", "6", "--learning_rate", "1e30"])
+        pretrain_simclr.main([*argv, "--max_train_steps", "6", "--learning_rate", "1e30"])
     assert not (out / "encoder").exists()
 
 
 @pytest.mark.parametrize(
     ("argv", "error", "match"),
     [
-        (["--batch_size", "1"], ValueError, r"batch_size must be >= 2 \(NT-Xent needs negatives\), got 1"),
+        (
+            ["--global_batch_size", "1"],
+            ValueError,
+            r"global_batch_size must be >= 2 \(NT-Xent needs negatives\), got 1",
+        ),
         (["--output_dir", "{file}"], NotADirectoryError, r"output_dir: .*is a file; expected a folder"),
     ],
     ids=["batch-1-gives-loss-0", "output-dir-is-a-file"],
@@ -146,14 +142,31 @@ def test_degenerate_settings_are_refused_before_any_work(tmp_path, argv, error, 
     (tmp_path / "file").write_text("x")
     argv = [a.replace("{file}", str(tmp_path / "file")) for a in argv]
     with pytest.raises(error, match=match):
-        load_script().main(argv)
+        pretrain_simclr.main(argv)
 
 
 def test_resume_with_another_learning_rate_is_refused_and_config_json_kept(chip_folder, tmp_path):
     out = tmp_path / "run"
     common = ["--data", str(chip_folder), "--output_dir", str(out), "--report_to", "none", *TINY_ARGS]
-    load_script().main([*common, "--max_train_steps", "2", "--checkpointing_steps", "1"])
+    pretrain_simclr.main([*common, "--max_train_steps", "2", "--checkpointing_steps", "1"])
     with pytest.raises(ValueError, match=r"learning_rate: checkpoint 0.06, this run 0.5"):
-        load_script().main([*common, "--max_train_steps", "2", "--learning_rate", "0.5",
+        pretrain_simclr.main([*common, "--max_train_steps", "2", "--learning_rate", "0.5",
                             "--resume_from_checkpoint", "latest"])  # fmt: skip
     assert json.loads((out / "config.json").read_text())["learning_rate"] == 0.06
+
+
+def test_checkpoint_written_with_the_old_batch_size_name_resumes(chip_folder, tmp_path):
+    """Checkpoints written before issue 12 store `batch_size`; it is compared as `global_batch_size`."""
+    out = tmp_path / "run"
+    common = ["--data", str(chip_folder), "--output_dir", str(out), "--report_to", "none", *TINY_ARGS]
+    common += ["--max_train_steps", "2", "--checkpointing_steps", "1"]
+    pretrain_simclr.main(common)
+    checkpoint = out / "checkpoint-1"
+    state = json.loads((checkpoint / "run_state.json").read_text())
+    state["config"]["batch_size"] = state["config"].pop("global_batch_size")
+    (checkpoint / "run_state.json").write_text(json.dumps(state))
+    write_manifest(checkpoint)
+    metrics = pretrain_simclr.main([*common, "--resume_from_checkpoint", str(checkpoint)])
+    assert metrics["start_step"] == 1 and metrics["steps"] == 2
+    with pytest.raises(ValueError, match=r"global_batch_size: checkpoint 4, this run 2"):
+        pretrain_simclr.main([*common, "--global_batch_size", "2", "--resume_from_checkpoint", "latest"])

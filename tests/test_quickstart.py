@@ -7,21 +7,19 @@ import warnings
 from pathlib import Path
 
 import pytest
-from test_evaluators import load_script
+
+from train import quickstart, train_evaluators
 
 
 def test_script_argv_builds_flags_and_rejects_undeclared_options() -> None:
-    quickstart = load_script("quickstart")
-    evaluators = load_script("train_evaluators")
-    argv = quickstart.script_argv(evaluators, {"epochs": 2, "cifar_stem": False, "depths": (1, 1)})
+    argv = quickstart.script_argv(train_evaluators, {"epochs": 2, "cifar_stem": False, "depths": (1, 1)})
     assert argv == ["--epochs", "2", "--no-cifar_stem", "--depths", "1", "1"]
     with pytest.raises(ValueError, match="no option 'report_to'"):
-        quickstart.script_argv(evaluators, {"epochs": 2, "report_to": "none"})
+        quickstart.script_argv(train_evaluators, {"epochs": 2, "report_to": "none"})
 
 
 @pytest.mark.slow
 def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
-    quickstart = load_script("quickstart")
     out = tmp_path / "quickstart"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # tiny sample counts: the Frechet distance warns about n <= D

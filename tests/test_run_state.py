@@ -10,15 +10,19 @@ import pytest
 import torch
 from accelerate import Accelerator
 from accelerate.state import AcceleratorState
+from accelerate.utils import DataLoaderConfiguration, set_seed
 
 from sar_zero123.run_state import (
     check_finite_step,
     check_resume_config,
+    check_resume_state,
     end_run,
     list_checkpoints,
     load_checkpoint,
     read_run_state,
     resolve_resume_checkpoint,
+    resumable_batches,
+    resume_step,
     save_checkpoint,
     verify_checkpoint,
 )
@@ -208,3 +212,82 @@ def test_resume_config_allows_output_settings_and_names_another_script(tmp_path:
     with caplog.at_level("WARNING", logger="sar_zero123.run_state"):
         check_resume_config(old, _Config(learning_rate=5.0))
     assert "stores no config" in caplog.text
+
+
+def test_resume_config_compares_a_renamed_field_under_its_new_name(tmp_path: Path):
+    @dataclasses.dataclass
+    class _Renamed:  # _Config with learning_rate renamed to peak_learning_rate
+        peak_learning_rate: float = 1e-4
+        image_size: int | None = None
+        output_dir: str = "a"
+        max_train_steps: int = 10
+
+    _Renamed.__name__ = "_Config"  # the same script, a later version
+    accelerator, model, optimizer = _setup()
+    path = save_checkpoint(accelerator, tmp_path, 1, config=_Config())
+    check_resume_config(path, _Renamed(), renamed={"learning_rate": "peak_learning_rate"})
+    with pytest.raises(ValueError, match=r"peak_learning_rate: checkpoint 0.0001, this run 1.0"):
+        check_resume_config(path, _Renamed(1.0), renamed={"learning_rate": "peak_learning_rate"})
+    with pytest.raises(ValueError, match=r"learning_rate: checkpoint 0.0001, this run '<absent>'"):
+        check_resume_config(path, _Renamed())
+
+
+def test_check_resume_state_refuses_another_module_setting(tmp_path: Path):
+    accelerator, model, optimizer = _setup()
+    path = save_checkpoint(accelerator, tmp_path, 1, extra_state={"tower": True})
+    check_resume_state(path, "tower", True)
+    check_resume_state(None, "tower", False)
+    with pytest.raises(ValueError, match=r"resume_from_checkpoint: .*-1' was written with tower=True"):
+        check_resume_state(path, "tower", False)
+    old = save_checkpoint(accelerator, tmp_path, 2)  # written before `tower` was stored
+    check_resume_state(old, "tower", False, default=False)
+    with pytest.raises(ValueError, match="written with tower=False"):
+        check_resume_state(old, "tower", True, default=False)
+
+
+class _EpochDataset(torch.utils.data.Dataset):
+    """Item i of epoch e is 100 * e + i, so a batch shows which epoch's content it came from."""
+
+    def __init__(self, size: int) -> None:
+        self.size, self.epoch = size, 0
+
+    def set_epoch(self, epoch: int) -> None:
+        self.epoch = epoch
+
+    def __len__(self) -> int:
+        return self.size
+
+    def __getitem__(self, index: int) -> int:
+        return 100 * self.epoch + index
+
+
+def _batches(start: int, stop: int) -> list[tuple[int, int, list[int]]]:
+    """Micro-batches start..stop-1 of a fresh run (as start_run builds it: seedable sampler, seeded)."""
+    accelerator = Accelerator(cpu=True, dataloader_config=DataLoaderConfiguration(use_seedable_sampler=True))
+    set_seed(0)
+    dataset = _EpochDataset(7)
+    loader = torch.utils.data.DataLoader(dataset, batch_size=2, shuffle=True, drop_last=True)
+    loader = accelerator.prepare(loader)  # 3 batches per epoch, order a function of (seed, epoch)
+    batches = resumable_batches(accelerator, loader, start, stop, datasets=[dataset])
+    return [(index, epoch, batch.tolist()) for index, epoch, batch in batches]
+
+
+def test_resumable_batches_continue_an_uninterrupted_run():
+    full = _batches(0, 8)
+    assert [(index, epoch) for index, epoch, _ in full] == [(i, i // 3) for i in range(8)]
+    assert all(value // 100 == epoch for _, epoch, batch in full for value in batch)  # datasets' set_epoch
+    orders = [[value % 100 for _, _, batch in full[3 * e : 3 * e + 3] for value in batch] for e in (0, 1)]
+    assert orders[0] != orders[1]  # the loader's set_epoch: a new order per epoch
+    AcceleratorState._reset_state(True)
+    assert _batches(4, 8) == full[4:]  # resumed in the middle of epoch 1
+    AcceleratorState._reset_state(True)
+    assert _batches(8, 8) == []
+
+
+def test_resume_step_is_zero_for_a_fresh_run_and_the_checkpoint_step_otherwise(tmp_path: Path, caplog):
+    accelerator, model, optimizer = _setup()
+    assert resume_step(accelerator, None) == 0
+    path = save_checkpoint(accelerator, tmp_path, 3)
+    with caplog.at_level("INFO", logger="sar_zero123.run_state"):
+        assert resume_step(accelerator, path) == 3
+    assert "resumed from" in caplog.text and "at step 3" in caplog.text

@@ -2,10 +2,8 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import math
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -13,17 +11,9 @@ import pytest
 from PIL import Image
 
 from sar_zero123.data import ChipRecord, write_index
+from train import synth_to_real, table1
 
-TRAIN = Path(__file__).resolve().parents[1] / "train"
 TINY_MODEL = ["--hidden_sizes", "8", "8", "8", "8", "--embedding_size", "8"]
-
-
-def load_script(name: str):
-    spec = importlib.util.spec_from_file_location(name, TRAIN / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve string annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
 
 
 def write_chip_folder(root: Path, per_group: int = 6) -> Path:
@@ -46,9 +36,9 @@ def write_chip_folder(root: Path, per_group: int = 6) -> Path:
 def test_table1_trains_probes_and_writes_tables_and_tsne(tmp_path):
     data = write_chip_folder(tmp_path / "chips")
     out = tmp_path / "table1"
-    args = ["--data", str(data), "--output_dir", str(out), "--image-size", "16", "--batch_size", "4"]
+    args = ["--data", str(data), "--output_dir", str(out), "--image-size", "16", "--global_batch_size", "4"]
     args += ["--presets", "simclr-full", "speckle+monotonic", "--max_train_steps", "1", "--probe_epochs", "2"]
-    result = load_script("table1").main([*args, *TINY_MODEL, "--tsne_points", "12"])
+    result = table1.main([*args, *TINY_MODEL, "--tsne_points", "12"])
     assert set(result["rows"]) == {"simclr-full", "speckle+monotonic"}
     assert (result["train_chips"], result["test_chips"]) == (12, 12)
     for row in result["rows"].values():
@@ -60,7 +50,7 @@ def test_table1_trains_probes_and_writes_tables_and_tsne(tmp_path):
     assert "| speckle+monotonic |" in markdown and "98.7 / 9.8 | 99.7 / 3.1" in markdown
     assert (out / "tsne.png").stat().st_size > 10_000
     # existing encoders are probed, not retrained: same numbers
-    again = load_script("table1").main(
+    again = table1.main(
         [*args, *TINY_MODEL, "--no-tsne", "--output_dir", str(tmp_path / "again"),
          "--encoders", str(out / "simclr-full"), str(out / "speckle+monotonic" / "encoder")]
     )  # fmt: skip
@@ -70,7 +60,7 @@ def test_table1_trains_probes_and_writes_tables_and_tsne(tmp_path):
 
 
 def test_table1_reports_both_speckle_presets_beside_the_paper_row():
-    script = load_script("table1")
+    script = table1
     assert {"speckle+monotonic", "speckle+monotonic-as-run"} <= set(script.Table1Config().presets)
     row = {"linear_accuracy": 90.0, "mlp_azimuth_error_deg": 12.5, "knn_accuracy": 95.0,
            "knn_azimuth_error_deg": 4.0}
@@ -83,9 +73,9 @@ def test_table1_reports_both_speckle_presets_beside_the_paper_row():
 
 def test_table1_rejects_mismatched_encoders(tmp_path):
     with pytest.raises(ValueError, match="encoders"):
-        load_script("table1").main(["--presets", "speckle", "monotonic", "--encoders", str(tmp_path)])
+        table1.main(["--presets", "speckle", "monotonic", "--encoders", str(tmp_path)])
     with pytest.raises(ValueError, match="presets"):
-        load_script("table1").main(["--presets", "rotate"])
+        table1.main(["--presets", "rotate"])
 
 
 def write_sample_folder(root: Path) -> Path:
@@ -107,8 +97,8 @@ def test_synth_to_real_writes_table2_and_classifiers(tmp_path):
     sample = write_sample_folder(tmp_path / "SAMPLE")
     out = tmp_path / "table2"
     args = ["--sample", str(sample), "--output_dir", str(out), "--image_size", "16", "--epochs", "2"]
-    args += ["--batch_size", "4", "--rows", "none", "speckle+monotonic", *TINY_MODEL]
-    result = load_script("synth_to_real").main(args)
+    args += ["--train_batch_size", "4", "--rows", "none", "speckle+monotonic", *TINY_MODEL]
+    result = synth_to_real.main(args)
     assert result["pairs"] == 8 and result["class_names"] == ["2S1", "M1"]
     assert set(result["rows"]) == {"none", "speckle+monotonic"}
     for row in result["rows"].values():
@@ -119,4 +109,4 @@ def test_synth_to_real_writes_table2_and_classifiers(tmp_path):
 
 def test_synth_to_real_requires_sample():
     with pytest.raises(ValueError, match="sample"):
-        load_script("synth_to_real").main([])
+        synth_to_real.main([])

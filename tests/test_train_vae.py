@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import importlib.util
 import json
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -16,8 +14,8 @@ from safetensors.torch import load_file
 from skimage.metrics import peak_signal_noise_ratio
 
 from sar_zero123.data import ChipDataset, ChipRecord, load_index, write_index
+from train import train_vae
 
-SCRIPT = Path(__file__).resolve().parents[1] / "train" / "train_vae.py"
 TINY = [
     "--image_size",
     "32",
@@ -39,11 +37,7 @@ TINY = [
 
 @pytest.fixture(scope="module")
 def script():
-    spec = importlib.util.spec_from_file_location("train_vae", SCRIPT)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules["train_vae"] = module
-    spec.loader.exec_module(module)
-    return module
+    return train_vae
 
 
 @pytest.fixture(autouse=True)

@@ -33,7 +33,7 @@ from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from sar_zero123.conditioning import encode_condition_latents
-from sar_zero123.config import parse_config, save_config, write_json_atomic
+from sar_zero123.config import check_minimum, parse_config, save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling, ViewPairDataset, prepare_splits, split_records
 from sar_zero123.evaluators import Evaluators, check_class_names, load_evaluators, score_views
 from sar_zero123.pipeline import SARZero123Pipeline
@@ -122,7 +122,7 @@ class EvaluateConfig:
     chip_crop_size: int | None = None  # centre crop of the chip files before resizing
     crop_size: int = 64  # centre crop for MS-SSIM and Kuan+SSIM (paper: 64)
     paper_scoring_size: int | None = 256  # side before the paper-comparable 64 crop (authors: 256)
-    batch_size: int = 16  # pairs per pipeline call
+    eval_batch_size: int = 16  # pairs per pipeline call (and per VAE / evaluator call)
     num_figure_pairs: int = 4  # pairs per group shown in views.png
     output_dir: str = "runs/eval"  # where tables and figures go
     device: str | None = None  # torch device (None: cuda when available)
@@ -139,9 +139,7 @@ class EvaluateConfig:
             raise ValueError(f"lambdas has {len(self.lambdas)} values for {len(self.pipeline)} pipelines")
         if self.protocol != "extended" and not self.protocol.startswith("ood-"):
             raise ValueError(f"protocol must be 'extended' or 'ood-<CLASS>', got {self.protocol!r}")
-        for name in ("n", "num_inference_steps", "batch_size", "crop_size"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        check_minimum(self, "n", "num_inference_steps", "eval_batch_size", "crop_size", minimum=1)
         if self.paper_scoring_size is not None and self.paper_scoring_size < self.crop_size:
             raise ValueError(
                 f"paper_scoring_size must be >= crop_size or None, got {self.paper_scoring_size}"
@@ -160,10 +158,8 @@ class EvaluateConfig:
             raise ValueError("steps and schedulers must be given together for the speed/error sweep")
         if any(step < 1 for step in self.steps):
             raise ValueError(f"steps must be >= 1, got {self.steps}")
-        if self.speed_n is not None and self.speed_n < 1:
-            raise ValueError(f"speed_n must be >= 1 or None, got {self.speed_n}")
-        if self.num_figure_pairs < 0:
-            raise ValueError(f"num_figure_pairs must be >= 0, got {self.num_figure_pairs}")
+        check_minimum(self, "speed_n", minimum=1, optional=True)
+        check_minimum(self, "num_figure_pairs", minimum=0)
 
     @property
     def names(self) -> list[str]:
@@ -365,7 +361,7 @@ def score(
         evaluators,
         crop_size=config.crop_size,
         paper_scoring_size=config.paper_scoring_size,
-        batch_size=max(config.batch_size, 32),
+        batch_size=max(config.eval_batch_size, 32),
         device=device,
     )
 
@@ -609,8 +605,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         if round_trip_rows and same_weights(pipe.vae, pipes[config.names[0]].vae):
             continue  # one row per distinct VAE
         results[row] = {
-            group: score(vae_round_trip(pipe, pairs.targets, config.batch_size, device), pairs, evaluators,
-                         config, device)
+            group: score(vae_round_trip(pipe, pairs.targets, config.eval_batch_size, device), pairs,
+                         evaluators, config, device)
             for group, pairs in pair_sets.items()
         }  # fmt: skip
         round_trip_rows.append(row)
@@ -623,7 +619,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                 pairs,
                 num_inference_steps=config.num_inference_steps,
                 guidance_scale=config.guidance_scale,
-                batch_size=config.batch_size,
+                batch_size=config.eval_batch_size,
                 device=device,
                 desc=f"{name} {group}",
             )
@@ -681,7 +677,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                         pairs,
                         num_inference_steps=steps,
                         guidance_scale=config.guidance_scale,
-                        batch_size=config.batch_size,
+                        batch_size=config.eval_batch_size,
                         device=device,
                         desc=f"{name} {scheduler} {steps}",
                     )

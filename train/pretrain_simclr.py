@@ -14,7 +14,7 @@ The train split's magnitudes are held in memory on the training device and augme
 `metrics.json` (final loss, throughput, share of step time spent augmenting), TensorBoard logs under
 `<output_dir>/logs` and resumable `checkpoint-<step>` folders.
 
-Under multi-process launch each process holds batch_size / num_processes chips of every global batch.
+Under multi-process launch each process holds global_batch_size / num_processes chips of every global batch.
 By default (`--gather_negatives`) NT-Xent contrasts every anchor with the projections of all processes,
 so the objective and its gradients are those of one process holding the whole batch of 256, as in
 SimCLR; `--no-gather_negatives` contrasts within each process's sub-batch only (fewer negatives, no
@@ -38,7 +38,7 @@ from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from sar_zero123.augment import PRESETS, AugmentationPreset, simclr_views
-from sar_zero123.config import parse_config, save_config, write_json_atomic
+from sar_zero123.config import check_minimum, parse_config, save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE, ChipDataset, ChipRecord, DecibelScaling, prepare_splits
 from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig, nt_xent_loss
 from sar_zero123.run_state import (
@@ -46,8 +46,8 @@ from sar_zero123.run_state import (
     check_finite_step,
     check_resume_config,
     end_run,
-    load_checkpoint,
     resolve_resume_checkpoint,
+    resume_step,
     save_checkpoint,
 )
 from sar_zero123.runs import start_run, tracker_hparams
@@ -82,7 +82,7 @@ class PretrainSimCLRConfig:
     projection_dim: int = 128  # projection head output width
     temperature: float = 0.5  # NT-Xent temperature
     gather_negatives: bool = True  # multi-process: negatives from the whole global batch, not the sub-batch
-    batch_size: int = 256  # chips per global step (two views each)
+    global_batch_size: int = 256  # chips per step over all processes, split evenly (two views each)
     epochs: int = 500  # passes over the train split
     max_train_steps: int | None = None  # stop after this many steps (overrides epochs when smaller)
     learning_rate: float = 0.06  # SGD peak learning rate (cosine annealing to 0)
@@ -101,22 +101,17 @@ class PretrainSimCLRConfig:
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
             raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {self.preset!r}")
-        if self.batch_size < 2:  # NT-Xent of a lone pair has no negative: loss 0, no gradient
-            raise ValueError(f"batch_size must be >= 2 (NT-Xent needs negatives), got {self.batch_size}")
-        for name in ("image_size", "batch_size", "epochs", "checkpointing_steps", "logging_steps"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("max_train_steps", "max_train_chips", "checkpoints_total_limit"):
-            value = getattr(self, name)
-            if value is not None and value < 1:
-                raise ValueError(f"{name} must be >= 1 or None, got {value}")
-        for name in ("learning_rate", "temperature"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if self.global_batch_size < 2:  # NT-Xent of a lone pair has no negative: loss 0, no gradient
+            raise ValueError(
+                f"global_batch_size must be >= 2 (NT-Xent needs negatives), got {self.global_batch_size}"
+            )
+        check_minimum(self, "image_size", "epochs", "checkpointing_steps", "logging_steps", minimum=1)
+        optional_counts = ("max_train_steps", "max_train_chips", "checkpoints_total_limit")
+        check_minimum(self, *optional_counts, minimum=1, optional=True)
+        check_minimum(self, "learning_rate", "temperature", minimum=0, strict=True)
+        check_minimum(self, "weight_decay", minimum=0)
         if not 0 <= self.momentum < 1:
             raise ValueError(f"momentum must lie in [0, 1), got {self.momentum}")
-        if self.weight_decay < 0:
-            raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay}")
         if self.mixed_precision not in ("no", "fp16", "bf16"):
             raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
         if self.report_to not in ("tensorboard", "none", None):
@@ -193,7 +188,8 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         output_dir, seed=config.seed, mixed_precision=config.mixed_precision, report_to=config.report_to
     )
     resume = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
-    check_resume_config(resume, config)  # before config.json is written: it must state what is in effect
+    # before config.json is written: it must state what is in effect (batch_size: the name before issue 12)
+    check_resume_config(resume, config, renamed={"batch_size": "global_batch_size"})
     if accelerator.is_main_process:
         output_dir.mkdir(parents=True, exist_ok=True)
         save_config(config, output_dir)
@@ -203,20 +199,20 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     with accelerator.main_process_first():  # the main process simulates the dataset once
         magnitude = load_train_magnitudes(config, work_dir).to(accelerator.device)
     num_chips = magnitude.shape[0]
-    if num_chips < config.batch_size:
-        raise ValueError(f"batch_size {config.batch_size} exceeds the {num_chips} train chips")
-    if config.batch_size % accelerator.num_processes != 0:
-        raise ValueError(f"batch_size must be divisible by the {accelerator.num_processes} processes")
-    if not config.gather_negatives and config.batch_size // accelerator.num_processes < 2:
+    if num_chips < config.global_batch_size:
+        raise ValueError(f"global_batch_size {config.global_batch_size} exceeds the {num_chips} train chips")
+    if config.global_batch_size % accelerator.num_processes != 0:
+        raise ValueError(f"global_batch_size must be divisible by the {accelerator.num_processes} processes")
+    if not config.gather_negatives and config.global_batch_size // accelerator.num_processes < 2:
         raise ValueError(
-            f"batch_size {config.batch_size} over {accelerator.num_processes} processes leaves fewer than 2 "
-            "chips per process; NT-Xent without --gather_negatives needs 2"
+            f"global_batch_size {config.global_batch_size} over {accelerator.num_processes} processes leaves "
+            "fewer than 2 chips per process; NT-Xent without --gather_negatives needs 2"
         )
     scaling = DecibelScaling.for_unit_magnitude()
     if accelerator.is_main_process:
         write_json_atomic(scaling.to_dict(), output_dir / SCALING_FILE)
     augmentation = config.augmentation()
-    steps_per_epoch = num_chips // config.batch_size  # drop the incomplete last batch, as SimCLR does
+    steps_per_epoch = num_chips // config.global_batch_size  # drop the incomplete last batch, as SimCLR does
     max_steps = config.epochs * steps_per_epoch
     if config.max_train_steps is not None:
         max_steps = min(max_steps, config.max_train_steps)
@@ -240,15 +236,11 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     accelerator.init_trackers("simclr", config=tracker_hparams(config))
 
     # 3. resume
-    step = start_step = 0
-    if resume is not None:
-        step = int(load_checkpoint(accelerator, resume)["step"])
-        logger.info("resumed from %s at step %d", resume, step)
-    start_step = step
+    step = start_step = resume_step(accelerator, resume)
 
     # 4. train: each step's batch and augmentation draw depend only on (seed, step), so a resumed run
     # continues the same sequence without storing generator states
-    local_batch = config.batch_size // accelerator.num_processes
+    local_batch = config.global_batch_size // accelerator.num_processes
     rank = accelerator.process_index
     aug_generator = torch.Generator(device=accelerator.device)
     order_generator = torch.Generator()
@@ -263,7 +255,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         if epoch != order_epoch:
             order_generator.manual_seed(config.seed * 1_000_003 + epoch)
             order, order_epoch = torch.randperm(num_chips, generator=order_generator), epoch
-        start = position * config.batch_size + rank * local_batch
+        start = position * config.global_batch_size + rank * local_batch
         index = order[start : start + local_batch].to(accelerator.device)
         step_start = time.perf_counter()
         aug_generator.manual_seed((config.seed * 1_000_003 + step) * 64 + rank)
@@ -288,7 +280,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         if step > 0 or max_steps == 1:  # the first step pays one-off warm-up costs
             augment_time += augmented - step_start
             step_time += finished - step_start
-            timed_images += config.batch_size
+            timed_images += config.global_batch_size
         step += 1
         progress.update(1)
         progress.set_postfix(loss=f"{loss_value:.4f}")
@@ -321,7 +313,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
         "augment_fraction": augment_time / step_time if step_time > 0 else None,
         "device": str(accelerator.device),
         "num_processes": accelerator.num_processes,
-        "collapse_loss": math.log(2 * (config.batch_size if gathered else local_batch) - 1),
+        "collapse_loss": math.log(2 * (config.global_batch_size if gathered else local_batch) - 1),
     }
     if accelerator.is_main_process:
         unwrapped = accelerator.unwrap_model(model)

@@ -12,16 +12,16 @@ On a 2-core CPU in about ten minutes (default preset) it
 6. evaluates both pipelines (Table III, Table IV, views, lambda plot, speed against error: `evaluate.py`),
 7. writes `report.md` with the tables and figures.
 
-Every stage calls the stage script's `main(argv)` in this process and is skipped when its output already
-exists, so an interrupted run continues where it stopped. `--preset smoke` runs the same chain with tiny
-settings in seconds (for tests). The numbers are CPU quick-run numbers on simulated data, far from the
-paper's setting (20,000 iterations from an Objaverse checkpoint on real MSTAR).
+Every stage calls the stage script's `main(argv)` (imported as `train.<name>`) in this process and is
+skipped when its output already exists, so an interrupted run continues where it stopped. `--preset
+smoke` runs the same chain with tiny settings in seconds (for tests). The numbers are CPU quick-run
+numbers on simulated data, far from the paper's setting (20,000 iterations from an Objaverse checkpoint
+on real MSTAR).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import importlib.util
 import json
 import logging
 import sys
@@ -39,8 +39,11 @@ from sar_zero123.data import SCALING_FILE
 from sar_zero123.models import SAR_ZERO123_SIZES
 from sar_zero123.sim import simulate_dataset
 
+if not __package__:  # run as a file: Python put only train/ on sys.path (see train/__init__.py)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from train import evaluate, finetune_pfm, pretrain_simclr, train_evaluators, train_vae  # noqa: E402
+
 logger = logging.getLogger(__name__)
-TRAIN_DIR = Path(__file__).resolve().parent
 
 
 @dataclass(frozen=True)
@@ -136,18 +139,6 @@ class QuickstartConfig:
             raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {self.preset!r}")
 
 
-def load_script(name: str) -> ModuleType:
-    """Imports `train/<name>.py` (the train folder is not a package)."""
-    module_name = f"sar_zero123_train_{name}"
-    if module_name in sys.modules:
-        return sys.modules[module_name]
-    spec = importlib.util.spec_from_file_location(module_name, TRAIN_DIR / f"{name}.py")
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[module_name] = module  # dataclasses resolve string annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
-
-
 def script_argv(module: ModuleType, values: dict[str, Any]) -> list[str]:
     """Flags for a stage script from `values`; every key must be a field of its config dataclass.
 
@@ -225,7 +216,6 @@ def main(argv: Sequence[str] | None = None) -> Path:
     )
 
     # 2. SimCLR encoder with Speckle Rayleigh + Monotonic (on the seen classes' train split)
-    simclr = load_script("pretrain_simclr")
     simclr_dir = out / "simclr"
     simclr_args = {
         **common,
@@ -234,17 +224,16 @@ def main(argv: Sequence[str] | None = None) -> Path:
         "protocol": protocol,
         "preset": "speckle+monotonic",
         "embedding_size": preset.encoder_widths[0],
-        "batch_size": preset.simclr_batch_size,
+        "global_batch_size": preset.simclr_batch_size,
         "max_train_steps": preset.simclr_steps,
         "epochs": 10_000,
         "checkpointing_steps": 10_000,
         "report_to": "none",
     }
-    run_stage("simclr", simclr_dir / "encoder" / "model.safetensors", timings, simclr.main,
-              script_argv(simclr, simclr_args))  # fmt: skip
+    run_stage("simclr", simclr_dir / "encoder" / "model.safetensors", timings, pretrain_simclr.main,
+              script_argv(pretrain_simclr, simclr_args))  # fmt: skip
 
     # 3. VAE sized for SAR chips, with the fine-tuned model's VAE architecture
-    vae = load_script("train_vae")
     vae_run = out / "vae"
     vae_dir = vae_run / "vae"
     vae_shape = SAR_ZERO123_SIZES[preset.model_size]["vae"]
@@ -264,10 +253,9 @@ def main(argv: Sequence[str] | None = None) -> Path:
         "report_to": "none",
     }
     # decibel_scaling.json is the last file train_vae writes into its VAE folder
-    run_stage("vae", vae_dir / SCALING_FILE, timings, vae.main, script_argv(vae, vae_args))
+    run_stage("vae", vae_dir / SCALING_FILE, timings, train_vae.main, script_argv(train_vae, vae_args))
 
     # 4. fine-tune with lambda = 0 and lambda = 4
-    finetune = load_script("finetune_pfm")
     pipelines = {}
     for weight in (0.0, 4.0):
         run_dir = out / f"finetune_lambda{weight:g}"
@@ -288,13 +276,11 @@ def main(argv: Sequence[str] | None = None) -> Path:
             "report_to": "none",
         }
         done = run_dir / "pipeline" / "model_index.json"
-        run_stage(
-            f"finetune lambda={weight:g}", done, timings, finetune.main, script_argv(finetune, finetune_args)
-        )
+        argv = script_argv(finetune_pfm, finetune_args)
+        run_stage(f"finetune lambda={weight:g}", done, timings, finetune_pfm.main, argv)
         pipelines[f"lambda={weight:g}"] = run_dir / "pipeline"
 
     # 5. evaluators on all classes (train split at 17 deg), plus a Table IV probe on the SimCLR encoder
-    evaluators = load_script("train_evaluators")
     evaluator_dir = out / "evaluators"
     evaluator_args = {
         **common,
@@ -303,14 +289,13 @@ def main(argv: Sequence[str] | None = None) -> Path:
         "epochs": preset.evaluator_epochs,
         "probe_epochs": preset.evaluator_epochs,
         "learning_rate": preset.evaluator_learning_rate,
-        "batch_size": 32,
+        "train_batch_size": 32,
         "simclr_encoders": [str(simclr_dir)],
     }
-    run_stage("evaluators", evaluator_dir / "metrics.json", timings, evaluators.main,
-              script_argv(evaluators, evaluator_args))  # fmt: skip
+    run_stage("evaluators", evaluator_dir / "metrics.json", timings, train_evaluators.main,
+              script_argv(train_evaluators, evaluator_args))  # fmt: skip
 
     # 6. evaluation
-    evaluate = load_script("evaluate")
     eval_dir = out / "eval"
     eval_argv = [
         *[token for path in pipelines.values() for token in ("--pipeline", str(path))],
@@ -330,7 +315,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
                 "schedulers": list(preset.schedulers),
                 "speed_n": preset.speed_n,
                 "crop_size": min(64, preset.image_size),
-                "batch_size": 8,
+                "eval_batch_size": 8,
                 "output_dir": str(eval_dir),
             },
         ),

@@ -21,7 +21,7 @@ from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from sar_zero123.augment import PRESETS, augment_batch
-from sar_zero123.config import parse_config, save_config, write_json_atomic
+from sar_zero123.config import check_minimum, parse_config, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_sample
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluators import SARClassifier
@@ -45,7 +45,7 @@ class SynthToRealConfig:
     hidden_sizes: tuple[int, ...] = (64, 128, 256, 512)  # ResNet-18 stage widths
     embedding_size: int = 64  # stem width
     epochs: int = 30  # passes over the synthetic chips per row
-    batch_size: int = 64  # chips per step
+    train_batch_size: int = 64  # chips per process per step
     learning_rate: float = 1e-3  # AdamW peak learning rate (cosine decay to 0)
     weight_decay: float = 5e-4  # AdamW weight decay
     mixed_precision: str = "no"  # accelerate mixed precision: "no", "fp16" or "bf16"
@@ -60,13 +60,9 @@ class SynthToRealConfig:
             raise ValueError(
                 f"rows must be non-empty names from {[NO_AUGMENTATION, *PRESETS]}, got {list(self.rows)}"
             )
-        for name in ("image_size", "epochs", "batch_size"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if not self.learning_rate > 0:
-            raise ValueError(f"learning_rate must be > 0, got {self.learning_rate}")
-        if self.weight_decay < 0:
-            raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay}")
+        check_minimum(self, "image_size", "epochs", "train_batch_size", minimum=1)
+        check_minimum(self, "learning_rate", minimum=0, strict=True)
+        check_minimum(self, "weight_decay", minimum=0)
         if self.mixed_precision not in ("no", "fp16", "bf16"):
             raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
 
@@ -101,7 +97,7 @@ def train_row(
         model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
     )
     magnitude, labels = synth[0].to(device), synth[1].to(device)
-    steps_per_epoch = -(-len(labels) // config.batch_size)
+    steps_per_epoch = -(-len(labels) // config.train_batch_size)
     scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=config.epochs * steps_per_epoch)
     model, optimizer = accelerator.prepare(model, optimizer)
     order_generator = torch.Generator().manual_seed(config.seed)
@@ -109,8 +105,8 @@ def train_row(
     model.train()
     for epoch in tqdm(range(config.epochs), desc=row, disable=not accelerator.is_local_main_process):
         order = torch.randperm(len(labels), generator=order_generator).to(device)
-        for start in range(0, len(labels), config.batch_size):
-            index = order[start : start + config.batch_size]
+        for start in range(0, len(labels), config.train_batch_size):
+            index = order[start : start + config.train_batch_size]
             if row == NO_AUGMENTATION:
                 images = scaling.normalize(magnitude[index])
             else:

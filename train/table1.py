@@ -15,23 +15,25 @@ exists is not retrained, and an interrupted pretraining resumes from its latest 
 
 from __future__ import annotations
 
-import importlib.util
 import json
 import logging
 import sys
 from dataclasses import dataclass, field
 from pathlib import Path
-from types import ModuleType
 from typing import Any
 
 import numpy as np
 import torch
 
 from sar_zero123.augment import PRESETS
-from sar_zero123.config import parse_config, save_config, write_json_atomic
+from sar_zero123.config import check_minimum, parse_config, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, prepare_splits
 from sar_zero123.encoder import WEIGHTS_NAME, SAREncoder, resolve_encoder_dir
 from sar_zero123.probes import FeatureSet, extract_features, run_probes
+
+if not __package__:  # run as a file: Python put only train/ on sys.path (see train/__init__.py)
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from train import pretrain_simclr  # noqa: E402
 
 logger = logging.getLogger(__name__)
 
@@ -59,7 +61,7 @@ class Table1Config:
     epochs: int = 500  # SimCLR epochs per preset (paper: 500)
     max_train_steps: int | None = None  # cap on SimCLR steps per preset (quick runs)
     image_size: int = 128  # chip side in pixels (paper: 128)
-    batch_size: int = 256  # SimCLR batch size
+    global_batch_size: int = 256  # SimCLR chips per step over all processes (pretrain_simclr.py)
     learning_rate: float = 0.06  # SimCLR SGD learning rate
     cifar_stem: bool = True  # 3x3 stride-1 stem without max-pool (reference setting)
     hidden_sizes: tuple[int, ...] = (64, 128, 256, 512)  # ResNet-18 stage widths
@@ -86,23 +88,9 @@ class Table1Config:
             raise ValueError(
                 f"encoders must name one folder per preset ({len(self.presets)}), got {len(self.encoders)}"
             )
-        for name in ("epochs", "image_size", "batch_size", "probe_epochs", "tsne_points"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        for name in ("max_train_steps", "max_train_chips", "max_test_chips"):
-            value = getattr(self, name)
-            if value is not None and value < 1:
-                raise ValueError(f"{name} must be >= 1 or None, got {value}")
-
-
-def load_pretrain_script() -> ModuleType:
-    """Imports the sibling `pretrain_simclr.py` (train/ is a folder of scripts, not a package)."""
-    path = Path(__file__).resolve().with_name("pretrain_simclr.py")
-    spec = importlib.util.spec_from_file_location("pretrain_simclr", path)
-    module = importlib.util.module_from_spec(spec)
-    sys.modules[spec.name] = module  # dataclasses resolve string annotations through sys.modules
-    spec.loader.exec_module(module)
-    return module
+        counts = ("epochs", "image_size", "global_batch_size", "probe_epochs", "tsne_points")
+        check_minimum(self, *counts, minimum=1)
+        check_minimum(self, "max_train_steps", "max_train_chips", "max_test_chips", minimum=1, optional=True)
 
 
 def pretrain_argv(config: Table1Config, preset: str, run_dir: Path, work_dir: Path) -> list[str]:
@@ -114,7 +102,7 @@ def pretrain_argv(config: Table1Config, preset: str, run_dir: Path, work_dir: Pa
         "--preset", preset,
         "--epochs", str(config.epochs),
         "--image_size", str(config.image_size),
-        "--batch_size", str(config.batch_size),
+        "--global_batch_size", str(config.global_batch_size),
         "--learning_rate", str(config.learning_rate),
         "--hidden_sizes", *map(str, config.hidden_sizes),
         "--embedding_size", str(config.embedding_size),
@@ -207,13 +195,12 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
     output_dir.mkdir(parents=True, exist_ok=True)
     save_config(config, output_dir)
     work_dir = Path(config.work_dir) if config.work_dir is not None else output_dir
-    pretrain = load_pretrain_script()
     device = torch.device("cuda" if torch.cuda.is_available() else "cpu")
 
     # 1. probe data: train and test splits, no augmentation
     splits = prepare_splits(config.data, config.protocol, work_dir, seed=config.seed)
-    train_records = pretrain.select_chips(splits["train"], config.max_train_chips, config.seed)
-    test_records = pretrain.select_chips(splits["test"], config.max_test_chips, config.seed)
+    train_records = pretrain_simclr.select_chips(splits["train"], config.max_train_chips, config.seed)
+    test_records = pretrain_simclr.select_chips(splits["test"], config.max_test_chips, config.seed)
     train_set = ChipDataset(train_records, size=config.image_size)
     test_set = ChipDataset(test_records, size=config.image_size, class_names=train_set.class_names)
 
@@ -229,7 +216,7 @@ def main(argv: list[str] | None = None) -> dict[str, Any]:
             encoder_dir = run_dir / "encoder"
         else:
             logger.info("pretraining %s", preset)
-            pretrain_metrics = pretrain.main(pretrain_argv(config, preset, run_dir, work_dir))
+            pretrain_metrics = pretrain_simclr.main(pretrain_argv(config, preset, run_dir, work_dir))
             encoder_dir = run_dir / "encoder"
         if pretrain_metrics is None and (encoder_dir.parent / "metrics.json").is_file():
             pretrain_metrics = json.loads((encoder_dir.parent / "metrics.json").read_text())

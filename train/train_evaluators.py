@@ -24,7 +24,7 @@ from accelerate.utils import set_seed
 from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
-from sar_zero123.config import parse_config, save_config, write_json_atomic
+from sar_zero123.config import check_minimum, parse_config, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, DecibelScaling, prepare_splits
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig, resolve_encoder_dir
 from sar_zero123.evaluators import (
@@ -60,7 +60,7 @@ class TrainEvaluatorsConfig:
     mlp_hidden_sizes: tuple[int, ...] = (256, 256)  # azimuth MLP widths (paper: 256-256)
     epochs: int = 30  # passes over the train split per scratch model
     probe_epochs: int = 30  # passes for the MLP heads of the SimCLR probes
-    batch_size: int = 64  # chips per step
+    train_batch_size: int = 64  # chips per process per step (also the scoring batch)
     learning_rate: float = 1e-3  # AdamW peak learning rate (cosine decay to 0)
     weight_decay: float = 5e-4  # AdamW weight decay
     simclr_encoders: list[str] = field(default_factory=list)  # SimCLR encoder folders to probe (Table IV)
@@ -74,17 +74,11 @@ class TrainEvaluatorsConfig:
     def __post_init__(self) -> None:
         if self.scaling not in ("unit", "mstar_raw", "fit"):
             raise ValueError(f"scaling must be 'unit', 'mstar_raw' or 'fit', got {self.scaling!r}")
-        for name in ("image_size", "epochs", "batch_size", "checkpointing_epochs"):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.probe_epochs < 1:
-            raise ValueError(f"probe_epochs must be >= 1, got {self.probe_epochs}")
-        if not self.learning_rate > 0:
-            raise ValueError(f"learning_rate must be positive, got {self.learning_rate}")
-        if self.weight_decay < 0:
-            raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay}")
-        if self.max_train_chips is not None and self.max_train_chips < 1:
-            raise ValueError(f"max_train_chips must be >= 1 or None, got {self.max_train_chips}")
+        counts = ("image_size", "epochs", "train_batch_size", "checkpointing_epochs", "probe_epochs")
+        check_minimum(self, *counts, minimum=1)
+        check_minimum(self, "learning_rate", minimum=0, strict=True)
+        check_minimum(self, "weight_decay", minimum=0)
+        check_minimum(self, "max_train_chips", minimum=1, optional=True)
         if len(self.mlp_hidden_sizes) == 0 or min(self.mlp_hidden_sizes) < 1:
             raise ValueError(f"mlp_hidden_sizes must be positive widths, got {self.mlp_hidden_sizes}")
         if self.mixed_precision not in ("no", "fp16", "bf16"):
@@ -98,7 +92,7 @@ def _loader(dataset: ChipDataset, config: TrainEvaluatorsConfig, shuffle: bool, 
     generator = torch.Generator().manual_seed(seed)
     return DataLoader(
         dataset,
-        batch_size=config.batch_size,
+        batch_size=config.train_batch_size,
         shuffle=shuffle,
         num_workers=config.num_workers,
         generator=generator,

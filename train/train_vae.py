@@ -26,7 +26,7 @@ from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
 from sar_zero123.conditioning import downsampling_factor, encode_condition_latents, vae_input
-from sar_zero123.config import parse_config, save_config, write_json_atomic
+from sar_zero123.config import check_minimum, parse_config, save_config, write_json_atomic
 from sar_zero123.data import (
     SCALING_FILE,
     ChipDataset,
@@ -41,11 +41,12 @@ from sar_zero123.run_state import (
     check_finite_step,
     check_resume_config,
     end_run,
-    load_checkpoint,
     resolve_resume_checkpoint,
+    resumable_batches,
+    resume_step,
     save_checkpoint,
 )
-from sar_zero123.runs import start_run, tracker_hparams
+from sar_zero123.runs import check_global_batch, start_run, tracker_hparams
 from sar_zero123.training import micro_batch_generator
 
 logger = logging.getLogger(__name__)
@@ -97,12 +98,10 @@ class TrainVAEConfig:
                 f"got {self.image_size}"
             )
         check_protocol(self.protocol)
-        if self.kl_weight < 0:
-            raise ValueError(f"kl_weight must be >= 0, got {self.kl_weight}")
-        for name in ("learning_rate", "max_grad_norm"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        for name in (
+        check_minimum(self, "kl_weight", minimum=0)
+        check_minimum(self, "learning_rate", "max_grad_norm", minimum=0, strict=True)
+        check_minimum(
+            self,
             "layers_per_block",
             "latent_channels",
             "train_batch_size",
@@ -110,13 +109,9 @@ class TrainVAEConfig:
             "checkpointing_steps",
             "num_eval_images",
             "num_scaling_batches",
-        ):
-            if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.checkpoints_total_limit is not None and self.checkpoints_total_limit < 1:
-            raise ValueError(
-                f"checkpoints_total_limit must be >= 1 or None, got {self.checkpoints_total_limit}"
-            )
+            minimum=1,
+        )
+        check_minimum(self, "checkpoints_total_limit", minimum=1, optional=True)
 
 
 def build_vae(config: TrainVAEConfig) -> AutoencoderKL:
@@ -226,8 +221,7 @@ def main(argv: list[str] | None = None) -> Path:
     scaling = DecibelScaling.from_choice(config.scaling, splits["train"])
     train_dataset = ChipDataset(splits["train"], size=config.image_size, scaling=scaling)
     test_dataset = ChipDataset(splits.get("test") or splits["train"], size=config.image_size, scaling=scaling)
-    if len(train_dataset) < config.train_batch_size * accelerator.num_processes:
-        raise ValueError(f"data: {len(train_dataset)} training chips, fewer than one global batch")
+    check_global_batch(len(train_dataset), config.train_batch_size, accelerator.num_processes, what="chips")
     if accelerator.is_main_process:
         output_dir.mkdir(parents=True, exist_ok=True)
         save_config(config, output_dir)
@@ -237,9 +231,7 @@ def main(argv: list[str] | None = None) -> Path:
     optimizer = torch.optim.AdamW(objective.parameters(), lr=config.learning_rate)
     train_loader = DataLoader(train_dataset, batch_size=config.train_batch_size, shuffle=True, drop_last=True)
     objective, optimizer, train_loader = accelerator.prepare(objective, optimizer, train_loader)
-    global_step = 0
-    if resume_path is not None:
-        global_step = int(load_checkpoint(accelerator, resume_path)["step"])
+    global_step = resume_step(accelerator, resume_path)
     accelerator.init_trackers("train_vae", config=tracker_hparams(config))
 
     # 3. training loop (posterior samples from a generator seeded per step and process: resumable)
@@ -249,29 +241,23 @@ def main(argv: list[str] | None = None) -> Path:
         desc="steps",
         disable=not accelerator.is_local_main_process,
     )
-    while global_step < config.max_train_steps:
-        epoch, offset = divmod(global_step, len(train_loader))
-        train_loader.set_epoch(epoch)
-        loader = accelerator.skip_first_batches(train_loader, offset) if offset else train_loader
-        for batch in loader:
-            generator = micro_batch_generator(config.seed, global_step, accelerator.process_index)
-            total, reconstruction = objective(batch["image"], generator=generator)
-            accelerator.backward(total.mean())
-            accelerator.clip_grad_norm_(objective.parameters(), config.max_grad_norm)
-            optimizer.step()
-            optimizer.zero_grad(set_to_none=True)
-            global_step += 1
-            progress.update(1)
-            loss = accelerator.gather(reconstruction.detach()).mean().item()
-            progress.set_postfix(reconstruction=f"{loss:.4f}")
-            accelerator.log({"train/reconstruction": loss}, step=global_step)
-            check_finite_step(global_step, loss=accelerator.gather(total.detach()).mean())
-            if global_step % config.checkpointing_steps == 0 or global_step == config.max_train_steps:
-                save_checkpoint(
-                    accelerator, output_dir, global_step, config.checkpoints_total_limit, config=config
-                )
-            if global_step >= config.max_train_steps:
-                break
+    for step, _, batch in resumable_batches(accelerator, train_loader, global_step, config.max_train_steps):
+        generator = micro_batch_generator(config.seed, step, accelerator.process_index)
+        total, reconstruction = objective(batch["image"], generator=generator)
+        accelerator.backward(total.mean())
+        accelerator.clip_grad_norm_(objective.parameters(), config.max_grad_norm)
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        global_step = step + 1
+        progress.update(1)
+        loss = accelerator.gather(reconstruction.detach()).mean().item()
+        progress.set_postfix(reconstruction=f"{loss:.4f}")
+        accelerator.log({"train/reconstruction": loss}, step=global_step)
+        check_finite_step(global_step, loss=accelerator.gather(total.detach()).mean())
+        if global_step % config.checkpointing_steps == 0 or global_step == config.max_train_steps:
+            save_checkpoint(
+                accelerator, output_dir, global_step, config.checkpoints_total_limit, config=config
+            )
     progress.close()
 
     # 4. scaling factor, test-split PSNR/SSIM, export

@@ -1,0 +1,312 @@
+"""Co-domain augmentations of SAR magnitudes (paper Sec. III): they change pixel values, never geometry.
+
+All act on the *magnitude* in [0, 1], batched on ``(B, C, H, W)`` tensors with an independent draw per
+sample and an explicit ``generator``: the random monotonic map (Algorithm 1: :func:`sample_monotonic_map`,
+:func:`apply_lookup_table`, :func:`random_monotonic`), Rayleigh speckle (Eq. 17-18: :func:`sample_rayleigh`,
+:func:`speckle_magnitude`, :func:`rayleigh_speckle`) and additive Gaussian noise. The augmented magnitude
+is then mapped to normalised decibels by the dataset's ``DecibelScaling``
+(:func:`sar_zero123.augment.augment_batch`).
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+
+from ._batch import (
+    _check_images,
+    _check_nonnegative,
+    _check_positive,
+    _check_q,
+    _draw,
+    _minmax_per_sample,
+)
+
+__all__ = [
+    "SpeckleMode",
+    "additive_gaussian",
+    "apply_lookup_table",
+    "random_monotonic",
+    "rayleigh_speckle",
+    "sample_monotonic_map",
+    "sample_rayleigh",
+    "speckle_magnitude",
+]
+
+SpeckleMode = Literal["pixel", "level"]
+
+
+# ---------------------------------------------------------------------------------------------------
+# Random monotonic map (Algorithm 1)
+# ---------------------------------------------------------------------------------------------------
+
+
+def sample_monotonic_map(
+    batch_size: int,
+    q: int = 512,
+    gamma: float = 0.0,
+    generator: torch.Generator | None = None,
+    device: torch.device | str = "cpu",
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
+    """Sample random monotonic lookup tables, Algorithm 1 steps 1-3.
+
+    Each table holds the map's values on the Q uniform levels ``k / (Q - 1)``: Q-1 i.i.d. positive draws
+    ``r_i ~ U(0, 1]`` are prefixed with 0, cumulatively summed and divided by the total, so
+    ``T(0) = 0``, ``T(1) = 1`` and T is strictly increasing. With ``gamma > 0`` a random gamma curve is
+    composed on top, ``T -> T ** exp(alpha)`` with ``alpha ~ N(0, gamma)`` (``gamma`` is the standard
+    deviation of alpha), which keeps both end points and the monotonicity.
+
+    Args:
+        batch_size: Number of independent tables B.
+        q: Number of lookup levels Q (>= 2). Larger Q gives a map closer to the identity and smoother at
+            any fixed scale coarser than ``1 / (Q - 1)``.
+        gamma: Standard deviation of the log-exponent alpha (>= 0); 0 disables the gamma curve.
+        generator: Source of randomness.
+        device: Device of the returned tables.
+        dtype: Floating dtype of the returned tables.
+
+    Returns:
+        Lookup tables, increasing along the last dimension.
+
+    Shape:
+        ``(B, Q)``.
+
+    Raises:
+        ValueError: If ``q < 2``, ``gamma < 0`` or ``batch_size < 1``.
+    """
+    _check_q(q)
+    _check_nonnegative(gamma, "gamma")
+    if batch_size < 1:
+        raise ValueError(f"`batch_size` must be >= 1, got {batch_size}")
+    device = torch.device(device)
+    # Half-precision cumulative sums of hundreds of terms would create ties: build in >= float32.
+    work_dtype = torch.promote_types(dtype, torch.float32)
+    # 1 - U[0, 1) lies in (0, 1]: strictly positive increments give a strictly increasing map.
+    increments = 1.0 - _draw("rand", (batch_size, q - 1), generator, device, work_dtype)  # (B, Q-1)
+    table = F.pad(torch.cumsum(increments, dim=1), (1, 0))  # (B, Q), starts at 0
+    table = table / table[:, -1:]
+    if gamma > 0:
+        alpha = gamma * _draw("randn", (batch_size, 1), generator, device, work_dtype)  # (B, 1)
+        table = table ** torch.exp(alpha)
+    return table.to(dtype)
+
+
+def apply_lookup_table(x: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
+    """Apply one lookup table per sample by linear interpolation between its uniform levels (Alg. 1 step 4).
+
+    Args:
+        x: Images with values in [0, 1]; level ``k`` of the table sits at ``k / (Q - 1)``.
+        table: Per-sample tables of values on the Q uniform levels.
+
+    Returns:
+        ``T_b(x_b)`` for every sample b, same dtype and device as ``x``.
+
+    Shape:
+        x: ``(B, C, H, W)``; table: ``(B, Q)``; output: ``(B, C, H, W)``.
+
+    Raises:
+        ValueError: If the table is not ``(B, Q)`` with ``Q >= 2`` and the batch size of ``x``.
+    """
+    if table.ndim != 2 or table.shape[0] != x.shape[0] or table.shape[1] < 2:
+        raise ValueError(f"`table` must have shape (B={x.shape[0]}, Q>=2), got {tuple(table.shape)}")
+    b, q = table.shape
+    table = table.to(device=x.device, dtype=x.dtype).view(b, 1, 1, q)  # a (1 x Q) image per sample
+    # With align_corners=True, grid coordinate 2m - 1 lands on level m * (Q - 1), so bilinear
+    # grid_sampling of the table row is exactly linear interpolation between levels (and ~1.6x faster
+    # on CPU than two gathers); the y coordinate is 0 on a one-pixel-high image.
+    grid = F.pad(x.reshape(b, 1, -1, 1) * 2.0 - 1.0, (0, 1))  # (B, 1, N, 2)
+    return F.grid_sample(table, grid, mode="bilinear", padding_mode="border", align_corners=True).view_as(x)
+
+
+def random_monotonic(
+    x: torch.Tensor,
+    q: int = 512,
+    gamma: float = 0.0,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Random monotonic map of the co-domain, Algorithm 1.
+
+    One map per sample (shared by its channels) is sampled with ``sample_monotonic_map`` independently
+    of the pixel values and applied through linear interpolation, so pixel order within an image is
+    preserved, 0 stays 0 and 1 stays 1.
+
+    Args:
+        x: Magnitudes in [0, 1].
+        q: Number of lookup levels Q (>= 2).
+        gamma: Standard deviation of the random gamma exponent's logarithm (>= 0); 0 disables it.
+        generator: Source of randomness.
+
+    Returns:
+        Mapped magnitudes in [0, 1].
+
+    Shape:
+        ``(B, C, H, W)`` -> ``(B, C, H, W)``.
+
+    Raises:
+        ValueError: If ``x`` is not a finite rank-4 tensor in [0, 1], ``q < 2`` or ``gamma < 0``.
+    """
+    _check_images(x)
+    table = sample_monotonic_map(x.shape[0], q, gamma, generator, x.device, x.dtype)
+    return apply_lookup_table(x, table)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Rayleigh speckle (Eq. 17-18)
+# ---------------------------------------------------------------------------------------------------
+
+
+def sample_rayleigh(
+    shape: tuple[int, ...],
+    sigma: float = 10.0,
+    generator: torch.Generator | None = None,
+    device: torch.device | str = "cpu",
+    dtype: torch.dtype = torch.float32,
+) -> torch.Tensor:
+    """Draw the multiplicative speckle ``eps ~ Rayleigh(sigma)``, Eq. (17).
+
+    Inverse-CDF sampling ``sigma * sqrt(-2 ln U)`` with ``U`` in (0, 1] (torch has no Rayleigh
+    distribution); mean ``sigma * sqrt(pi / 2)``, variance ``(4 - pi) / 2 * sigma ** 2``.
+
+    Args:
+        shape: Shape of the draw.
+        sigma: Rayleigh scale (> 0).
+        generator: Source of randomness.
+        device: Device of the result.
+        dtype: Floating dtype of the result.
+
+    Returns:
+        Non-negative Rayleigh samples.
+
+    Shape:
+        ``shape``.
+
+    Raises:
+        ValueError: If ``sigma <= 0``.
+    """
+    _check_positive(sigma, "sigma")
+    uniform = 1.0 - _draw("rand", tuple(shape), generator, torch.device(device), dtype)  # (0, 1]
+    return uniform.log_().mul_(-2.0).sqrt_().mul_(sigma)
+
+
+def speckle_magnitude(
+    m: torch.Tensor, eps: torch.Tensor, lambda1: float = 1.0, lambda2: float = 1.0
+) -> torch.Tensor:
+    """Speckled magnitude before normalisation, Eq. (18): ``lambda1 * m + lambda2 * m * eps``.
+
+    For a constant magnitude m and ``eps ~ Rayleigh(sigma)`` the result has mean
+    ``m * (lambda1 + lambda2 * sigma * sqrt(pi / 2))`` and variance
+    ``(lambda2 * m * sigma) ** 2 * (4 - pi) / 2``.
+
+    Args:
+        m: Magnitudes (any shape).
+        eps: Speckle, broadcastable to ``m``.
+        lambda1: Weight of the clean magnitude (>= 0).
+        lambda2: Weight of the speckle term (>= 0).
+
+    Returns:
+        The unnormalised speckled magnitude.
+
+    Shape:
+        Broadcast of ``m`` and ``eps``.
+
+    Raises:
+        ValueError: If a lambda is negative or not finite.
+    """
+    _check_nonnegative(lambda1, "lambda1")
+    _check_nonnegative(lambda2, "lambda2")
+    return m * (lambda1 + lambda2 * eps)  # Eq. (18) factored: one product per pixel fewer
+
+
+def rayleigh_speckle(
+    x: torch.Tensor,
+    sigma: float = 10.0,
+    lambda1: float = 1.0,
+    lambda2: float = 1.0,
+    mode: SpeckleMode = "pixel",
+    q: int = 512,
+    generator: torch.Generator | None = None,
+    normalize: bool = True,
+) -> torch.Tensor:
+    """Rayleigh speckle augmentation, Eq. (17)-(18), then per-sample min-max back to [0, 1].
+
+    ``mode="pixel"`` draws one ``eps`` per pixel as Eq. (17) states. ``mode="level"`` follows the
+    paper's reference implementation: ``eps`` is drawn per level of a Q-level lookup table, Eq. (18) is
+    applied to the table ``k / (Q - 1)``, the table is min-max normalised and applied by linear
+    interpolation. Level mode is a deterministic function of the pixel value within an image (equal
+    inputs give equal outputs, there is no spatial noise), and for large ``sigma`` that function is not
+    monotonic (Spearman 0.84 with the identity at sigma 10, Q 512); pixel mode is spatial multiplicative
+    speckle and does not depend on Q.
+
+    Args:
+        x: Magnitudes in [0, 1].
+        sigma: Rayleigh scale of the speckle (> 0).
+        lambda1: Weight of the clean magnitude (>= 0).
+        lambda2: Weight of the speckle term (>= 0).
+        mode: ``"pixel"`` (Eq. 17) or ``"level"`` (reference implementation).
+        q: Number of lookup levels (>= 2), used by ``mode="level"`` only.
+        generator: Source of randomness.
+        normalize: If False, return Eq. (18) before min-max normalisation (pixel mode only; level mode
+            always normalises its table), for checking the speckle statistics.
+
+    Returns:
+        Speckled magnitudes, in [0, 1] when ``normalize`` is True.
+
+    Shape:
+        ``(B, C, H, W)`` -> ``(B, C, H, W)``.
+
+    Raises:
+        ValueError: If ``x`` is not a finite rank-4 tensor in [0, 1], ``sigma <= 0``, a lambda is
+            negative, ``mode`` is unknown, ``q < 2`` in level mode, or ``normalize=False`` in level mode.
+    """
+    _check_images(x)
+    _check_positive(sigma, "sigma")
+    _check_nonnegative(lambda1, "lambda1")
+    _check_nonnegative(lambda2, "lambda2")
+    if mode == "pixel":
+        eps = sample_rayleigh(tuple(x.shape), sigma, generator, x.device, x.dtype)
+        speckled = speckle_magnitude(x, eps, lambda1, lambda2)
+        return _minmax_per_sample(speckled) if normalize else speckled
+    if mode == "level":
+        _check_q(q)
+        if not normalize:
+            raise ValueError("`normalize` must be True when `mode` is 'level' (the table is normalised)")
+        levels = torch.linspace(0.0, 1.0, q, device=x.device, dtype=x.dtype).expand(x.shape[0], q)
+        eps = sample_rayleigh((x.shape[0], q), sigma, generator, x.device, x.dtype)  # (B, Q)
+        table = _minmax_per_sample(speckle_magnitude(levels, eps, lambda1, lambda2))
+        return apply_lookup_table(x, table)
+    raise ValueError(f"`mode` must be 'pixel' or 'level', got {mode!r}")
+
+
+# ---------------------------------------------------------------------------------------------------
+# Additive Gaussian noise
+# ---------------------------------------------------------------------------------------------------
+
+
+def additive_gaussian(
+    x: torch.Tensor, std: float = 0.03, generator: torch.Generator | None = None
+) -> torch.Tensor:
+    """Additive white Gaussian noise on the magnitude, clipped to [0, 1] (Table I row "Gaussian").
+
+    Args:
+        x: Magnitudes in [0, 1].
+        std: Noise standard deviation in magnitude units (>= 0). The default 0.03 is about the median
+            clutter magnitude of the MSTAR chips (pixel / 255), so the noise visibly changes the
+            background in dB while barely touching the target's bright scatterers.
+        generator: Source of randomness.
+
+    Returns:
+        ``clip(x + std * n, 0, 1)`` with ``n ~ N(0, 1)`` per pixel.
+
+    Shape:
+        ``(B, C, H, W)`` -> ``(B, C, H, W)``.
+
+    Raises:
+        ValueError: If ``x`` is not a finite rank-4 tensor in [0, 1] or ``std < 0``.
+    """
+    _check_images(x)
+    _check_nonnegative(std, "std")
+    noise = _draw("randn", tuple(x.shape), generator, x.device, x.dtype)
+    return (x + std * noise).clamp(0.0, 1.0)
