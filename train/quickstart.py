@@ -2,7 +2,7 @@
 
     python train/quickstart.py --output_dir runs/quickstart
 
-On a 2-core CPU in about ten minutes (default preset) it
+On a 2-core CPU in about twelve minutes (default preset) it
 
 1. simulates a small MSTAR-like dataset (`sar_zero123.sim`), one class held out (MSTAR-OOD style),
 2. pretrains a small SimCLR encoder with the Speckle Rayleigh + Monotonic augmentation (`pretrain_simclr.py`),
