@@ -424,10 +424,13 @@ class SARZero123Pipeline(DiffusionPipeline):
         tokens = tokens.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
         condition_latents = condition_latents.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
         # None unless the UNet embeds the pose; with an estimator, the target's estimated azimuth follows it
-        sample_pose = pose.to(device).repeat_interleave(num_images_per_prompt, dim=0)
+        pose = pose.to(device)
         target_features = None
-        if self.azimuth_estimator is not None:
-            target_features = target_view_features(self.azimuth_estimator(condition_latents), sample_pose)
+        if self.azimuth_estimator is not None:  # once per input image, like the encodings above
+            estimate = self.azimuth_estimator(condition_latents[::num_images_per_prompt])
+            target_features = target_view_features(estimate, pose)
+            target_features = target_features.repeat_interleave(num_images_per_prompt, dim=0)
+        sample_pose = pose.repeat_interleave(num_images_per_prompt, dim=0)
         class_labels = pose_class_labels(self.unet, sample_pose, target_features)
         if class_labels is not None:
             class_labels = class_labels.to(dtype)

@@ -216,3 +216,17 @@ def test_sensitivity_runs_with_the_estimator(pipe: SARZero123Pipeline) -> None:
         azimuth_estimator=pipe.azimuth_estimator,
     )
     assert set(result) == {"pose_t500", "input_t500"} and result["pose_t500"] > 0
+
+
+def test_several_images_per_input_get_the_single_image_conditioning(pipe: SARZero123Pipeline) -> None:
+    pipe.set_progress_bar_config(disable=True)
+    image, kwargs = dummy_images(1, seed=4), {"d_az": 75.0, "d_el": 0.0, "num_inference_steps": 2}
+
+    def run(count: int) -> torch.Tensor:
+        generators = [torch.Generator().manual_seed(k) for k in range(count)]
+        output = pipe(image, num_images_per_prompt=count, generator=generators, output_type="pt", **kwargs)
+        return output.images
+
+    single, double = run(1), run(2)
+    torch.testing.assert_close(double[:1], single, atol=1e-5, rtol=0)
+    assert not torch.allclose(double[0], double[1])  # other noise, other view
