@@ -8,6 +8,7 @@ from pathlib import Path
 
 import pytest
 
+from sar_zero123.sim import simulate_dataset
 from train import quickstart, train_evaluators
 
 
@@ -42,3 +43,30 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     # A second call finds every stage done and only rewrites the report.
     quickstart.main(["--output_dir", str(out), "--preset", "smoke"])
     assert all(seconds == 0.0 for seconds in json.loads((out / "timings.json").read_text()).values())
+
+
+def test_quickstart_config_checks_data_and_protocol(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match="data: expected a chip folder"):
+        quickstart.QuickstartConfig(data=str(tmp_path / "missing"), protocol="ood-T72")
+    with pytest.raises(ValueError, match="protocol: give 'extended' or 'ood-<CLASS>' with --data"):
+        quickstart.QuickstartConfig(data=str(tmp_path))
+    with pytest.raises(ValueError, match="protocol"):
+        quickstart.QuickstartConfig(protocol="soc-T72")
+    assert set(quickstart.PRESETS) == {"default", "long", "mstar", "smoke"}
+
+
+@pytest.mark.slow
+def test_quickstart_smoke_on_a_given_folder_with_the_extended_protocol(tmp_path: Path) -> None:
+    data = tmp_path / "chips"
+    simulate_dataset(data, classes=("TANK", "APC"), instances=1, azimuth_step_deg=60.0, size=32, seed=0)
+    out = tmp_path / "run"
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        report = quickstart.main(
+            ["--output_dir", str(out), "--preset", "smoke", "--data", str(data), "--protocol", "extended"]
+        )
+    text = report.read_text()
+    assert f"real chips from `{data}`" in text and "Protocol `extended`" in text
+    assert "| lambda=0 | seen |" in text and "| lambda=0 | unseen |" not in text
+    assert "simulate" not in json.loads((out / "timings.json").read_text())
+    assert not (out / "data").exists()
