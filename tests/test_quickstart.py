@@ -43,6 +43,14 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     # A second call finds every stage done and only rewrites the report.
     quickstart.main(["--output_dir", str(out), "--preset", "smoke"])
     assert all(seconds == 0.0 for seconds in json.loads((out / "timings.json").read_text()).values())
+    # A lambda sweep in the same folder trains only the new fine-tune, then evaluates all three.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        report = quickstart.main(["--output_dir", str(out), "--preset", "smoke", "--lambdas", "0", "4", "1"])
+    text = report.read_text()
+    timings = json.loads((out / "timings.json").read_text())
+    assert {name for name, seconds in timings.items() if seconds > 0} == {"finetune lambda=1", "evaluate"}
+    assert "| lambda=1 | unseen |" in text and "(input | lambda=0 | lambda=4 | lambda=1 | target)" in text
 
 
 def test_quickstart_config_checks_data_and_protocol(tmp_path: Path) -> None:
@@ -52,6 +60,8 @@ def test_quickstart_config_checks_data_and_protocol(tmp_path: Path) -> None:
         quickstart.QuickstartConfig(data=str(tmp_path))
     with pytest.raises(ValueError, match="protocol"):
         quickstart.QuickstartConfig(protocol="soc-T72")
+    with pytest.raises(ValueError, match="lambdas must be distinct values >= 0"):
+        quickstart.QuickstartConfig(lambdas=[0.0, 0.0])
     assert set(quickstart.PRESETS) == {"default", "long", "mstar", "smoke"}
 
 
