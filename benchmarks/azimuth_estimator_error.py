@@ -28,6 +28,7 @@ def main() -> None:
     parser.add_argument("--data", required=True)
     parser.add_argument("--protocol", default="ood-SPG")
     parser.add_argument("--seed", type=int, default=0, help="seed of the protocol's validation intervals")
+    parser.add_argument("--batch_size", type=int, default=256, help="chips encoded at once")
     parser.add_argument("--out", required=True)
     args = parser.parse_args()
     pipe = SARZero123Pipeline.from_pretrained(args.pipeline)
@@ -40,8 +41,13 @@ def main() -> None:
         images = torch.stack(
             [torch.from_numpy(scaling.normalize(load_chip(r.path, size)))[None] for r in records]
         )
-        with torch.no_grad():
-            estimate = pipe.azimuth_estimator(encode_condition_latents(pipe.vae, images.float()))
+        with torch.no_grad():  # in chunks: all of MSTAR's T72 chips at once would need ~10 GB of activations
+            estimate = torch.cat(
+                [
+                    pipe.azimuth_estimator(encode_condition_latents(pipe.vae, chunk.float()))
+                    for chunk in images.split(args.batch_size)
+                ]
+            )
         predicted = torch.rad2deg(torch.atan2(estimate[:, 0], estimate[:, 1])).double() % 360.0
         error = azimuth_error_deg(
             predicted, torch.tensor([r.azimuth_deg for r in records], dtype=torch.float64)
