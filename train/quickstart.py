@@ -20,7 +20,7 @@ On a 2-core CPU in about twelve minutes (default preset) it
 Every stage calls the stage script's `main(argv)` (imported as `train.<name>`) in this process and is
 skipped when its output already exists, so an interrupted run continues where it stopped, and a re-run
 with more `--lambdas` trains only the new fine-tunes (then evaluates them all on the same pairs). Presets:
-`default` (~12 min), `long` (~50 min, the simulator), `mstar` (real chips, ~1 h) and `smoke` (tiny
+`default` (~12 min), `long` (~1 h, the simulator), `mstar` (real chips, ~80 min) and `smoke` (tiny
 settings in seconds, for tests). The numbers are CPU quick-run numbers, far from the paper's setting
 (20,000 iterations from an Objaverse checkpoint on real MSTAR at 128 px).
 """
@@ -117,14 +117,15 @@ DEFAULT_PRESET = Preset(
 PRESETS: dict[str, Preset] = {
     "default": DEFAULT_PRESET,
     # Target 2 of issue 9: the same simulated data, a VAE trained 600 x 16 chips (the 180 x 8 one caps seen
-    # accuracy near 77 %) and 6,000 base steps (docs/results/learning.md 4b); about 50 min on 2 CPU cores.
+    # accuracy near 77 %) and 6,000 base steps (docs/results/learning.md 5a); 66 min measured on one thread
+    # while another training shared the 2-core CPU.
     "long": dataclasses.replace(
         DEFAULT_PRESET, vae_steps=600, vae_batch_size=16, base_steps=6000, finetune_steps=600, eval_n=256,
         speed_steps=(5, 10, 20), speed_n=16,
     ),
     # Real chips (`--data /path/to/mstar --protocol ood-T72` or `extended`): 64 px centre crops at the
     # native 0.2 m spacing, about 6,000 training chips, so fewer evaluator epochs and more base steps;
-    # about an hour on 2 CPU cores. The simulator fields are unused.
+    # 81 min measured on one shared thread (docs/results/mstar_novel_views.md). Simulator fields unused.
     "mstar": dataclasses.replace(
         DEFAULT_PRESET, vae_steps=600, vae_batch_size=16, base_steps=8000, finetune_steps=1000,
         evaluator_epochs=20, eval_n=400, speed_steps=(5, 10, 20), speed_n=16,
@@ -165,7 +166,7 @@ class QuickstartConfig:
     """Simulate, pretrain SimCLR, fine-tune lambda 0 and 4, train evaluators, evaluate, write report.md."""
 
     output_dir: str = "runs/quickstart"  # run folder (every stage writes a subfolder; report.md at the top)
-    # "default" (~12 min on 2 CPU cores), "long" (~50 min), "mstar" (real data, ~1 h) or "smoke" (seconds)
+    # "default" (~12 min on 2 CPU cores), "long" (~1 h), "mstar" (real data, ~80 min) or "smoke" (seconds)
     preset: Literal["default", "long", "mstar", "smoke"] = "default"
     data: str | None = None  # chip folder (index.csv or raw MSTAR files); None simulates the preset's classes
     protocol: str | None = None  # "extended" or "ood-<CLASS>"; None = ood-<last simulated class>
