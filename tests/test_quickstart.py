@@ -60,6 +60,8 @@ def test_quickstart_config_checks_data_and_protocol(tmp_path: Path) -> None:
         quickstart.QuickstartConfig(data=str(tmp_path))
     with pytest.raises(ValueError, match="protocol"):
         quickstart.QuickstartConfig(protocol="soc-T72")
+    with pytest.raises(ValueError, match="evaluates 'extended' or 'ood-<CLASS>', got 'soc'"):
+        quickstart.QuickstartConfig(data=str(tmp_path), protocol="soc")
     with pytest.raises(ValueError, match="lambdas must be distinct values >= 0"):
         quickstart.QuickstartConfig(lambdas=[0.0, 0.0])
     assert set(quickstart.PRESETS) == {"default", "long", "mstar", "smoke"}

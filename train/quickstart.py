@@ -163,7 +163,7 @@ PRESETS: dict[str, Preset] = {
 
 @dataclass
 class QuickstartConfig:
-    """Simulate, pretrain SimCLR, fine-tune lambda 0 and 4, train evaluators, evaluate, write report.md."""
+    """Simulate (or read `data`), pretrain SimCLR, fine-tune each lambda, train evaluators, evaluate."""
 
     output_dir: str = "runs/quickstart"  # run folder (every stage writes a subfolder; report.md at the top)
     # "default" (~12 min on 2 CPU cores), "long" (~1 h), "mstar" (real data, ~80 min) or "smoke" (seconds)
@@ -184,8 +184,9 @@ class QuickstartConfig:
             raise FileNotFoundError(f"data: expected a chip folder, got {self.data}")
         if self.data is not None and self.protocol is None:
             raise ValueError("protocol: give 'extended' or 'ood-<CLASS>' with --data (e.g. ood-T72)")
-        if self.protocol is not None:
-            check_protocol(self.protocol)
+        if self.protocol is not None and check_protocol(self.protocol) == "soc":
+            # evaluate.py pairs seen/unseen views by `extended` or `ood-*`: fail here, not after training
+            raise ValueError("protocol: the quickstart evaluates 'extended' or 'ood-<CLASS>', got 'soc'")
 
 
 def script_argv(module: ModuleType, values: dict[str, Any]) -> list[str]:
@@ -218,7 +219,7 @@ def run_stage(name: str, done: Path | bool, timings: dict[str, float], function,
     """Runs one stage unless it is done (`done`: a path that exists once it is, or a flag); records its wall
     time."""
     if done is True or (isinstance(done, Path) and done.exists()):
-        logger.info("stage %s: %s exists, skipping", name, done)
+        logger.info("stage %s: done (%s), skipping", name, done)
         timings[name] = 0.0
         return None
     logger.info("stage %s", name)
@@ -431,9 +432,8 @@ def write_report(
         f"model trained from scratch for {preset.base_steps} steps (lambda = 0), then fine-tuned for "
         f"{preset.finetune_steps} more steps with each lambda (PFM on {preset.pfm_fraction:g} of the "
         f"eligible samples, features projected to {preset.pfm_projection_dim} dimensions as the authors "
-        "did), not the paper's zero-1-to-3 "
-        "fine-tune (Objaverse initialisation, 20,000 iterations, real MSTAR); compare the two rows with each "
-        "other, not with the paper.",
+        "did), not the paper's zero-1-to-3 fine-tune (Objaverse initialisation, 20,000 iterations, real "
+        "MSTAR); compare the rows with each other, not with the paper.",
         "",
         data_line
         + protocol_line
