@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import warnings
 from pathlib import Path
@@ -65,6 +66,13 @@ def test_quickstart_config_checks_data_and_protocol(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="lambdas must be distinct values >= 0"):
         quickstart.QuickstartConfig(lambdas=[0.0, 0.0])
     assert set(quickstart.PRESETS) == {"default", "long", "mstar", "smoke"}
+
+
+def test_presets_vae_groups_divide_the_widths() -> None:
+    with pytest.raises(ValueError, match=r"vae_norm_groups 12 must divide each of vae_widths \(16, 32, 64\)"):
+        dataclasses.replace(quickstart.DEFAULT_PRESET, vae_norm_groups=12)
+    for preset in quickstart.PRESETS.values():  # GroupNorm needs it, and the VAE stage would fail late
+        assert all(width % preset.vae_norm_groups == 0 for width in preset.vae_widths)
 
 
 @pytest.mark.slow
