@@ -3,7 +3,7 @@
     python train/quickstart.py --output_dir runs/quickstart
     python train/quickstart.py --preset mstar --data /path/to/mstar --protocol ood-T72 --output_dir runs/mstar
 
-On a 2-core CPU in about twelve minutes (default preset) it
+On a 2-core CPU in about ten minutes (default preset) it
 
 1. simulates a small MSTAR-like dataset (`sar_zero123.sim`), one class held out (MSTAR-OOD style), unless
    `--data` names real chips (with `--protocol extended` or `ood-<CLASS>`),
@@ -20,7 +20,7 @@ On a 2-core CPU in about twelve minutes (default preset) it
 Every stage calls the stage script's `main(argv)` (imported as `train.<name>`) in this process and is
 skipped when its output already exists, so an interrupted run continues where it stopped, and a re-run
 with more `--lambdas` trains only the new fine-tunes (then evaluates them all on the same pairs). Presets:
-`default` (~12 min), `long` (~1 h, the simulator), `mstar` (real chips, ~80 min) and `smoke` (tiny
+`default` (~10 min), `long` (~45 min, the simulator), `mstar` (real chips, ~80 min) and `smoke` (tiny
 settings in seconds, for tests). The numbers are CPU quick-run numbers, far from the paper's setting
 (20,000 iterations from an Objaverse checkpoint on real MSTAR at 128 px).
 """
@@ -184,7 +184,7 @@ class QuickstartConfig:
     """Simulate (or read `data`), pretrain SimCLR, fine-tune each lambda, train evaluators, evaluate."""
 
     output_dir: str = "runs/quickstart"  # run folder (every stage writes a subfolder; report.md at the top)
-    # "default" (~12 min on 2 CPU cores), "long" (~1 h), "mstar" (real data, ~80 min) or "smoke" (seconds)
+    # "default" (~10 min on 2 CPU cores), "long" (~45 min), "mstar" (real data, ~80 min) or "smoke" (seconds)
     preset: Literal["default", "long", "mstar", "smoke"] = "default"
     data: str | None = None  # chip folder (index.csv or raw MSTAR files); None simulates the preset's classes
     protocol: str | None = None  # "extended" or "ood-<CLASS>"; None = ood-<last simulated class>
