@@ -132,7 +132,7 @@ DEFAULT_PRESET = Preset(
 PRESETS: dict[str, Preset] = {
     "default": DEFAULT_PRESET,
     # Target 2 of issue 9: the same simulated data, the default's VAE trained 1,500 steps instead of 540 and
-    # 6,000 base steps (docs/results/learning.md, section 6c)
+    # 6,000 base steps; about 43 min on one thread of a shared 2-core CPU (docs/results/learning.md, 6d)
     "long": dataclasses.replace(
         DEFAULT_PRESET, vae_steps=1500, base_steps=6000, finetune_steps=600, eval_n=256,
         speed_steps=(5, 10, 20, 50), speed_n=32,
