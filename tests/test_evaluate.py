@@ -83,7 +83,8 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path) -> None:
         assert table3[target][group]["sfd"] == pytest.approx(0.0, abs=1e-6)
         values, low, high = (table3[m][group] for m in ("lambda0", floor, round_trip))
         key = "azimuth_error_deg"
-        expected = script.gap_closed(values[key], low[key], high[key])
+        gap_se = math.hypot(low[f"{key}_se"], high[f"{key}_se"])
+        expected = script.gap_closed(values[key], low[key], high[key], gap_se=gap_se)
         assert values["azimuth_gap_closed"] == pytest.approx(expected, nan_ok=True)
         assert "azimuth_gap_closed" not in low and values["azimuth_error_deg_se"] >= 0.0
     for method in ("lambda0", "lambda4"):
@@ -141,5 +142,8 @@ def test_gap_closed_is_the_fraction_between_floor_and_ceiling() -> None:
     assert script.gap_closed(60.0, floor=40.0, ceiling=80.0, higher_is_better=True) == pytest.approx(0.5)
     assert math.isnan(script.gap_closed(50.0, floor=90.0, ceiling=90.0))
     assert math.isnan(script.gap_closed(50.0, floor=20.0, ceiling=30.0))  # the floor beats the ceiling
+    # a gap the pairs do not resolve (95.3 vs 96.1 % at a standard error of 2.6) is no gap, not -11,500 %
+    assert math.isnan(script.gap_closed(3.1, floor=95.3, ceiling=96.1, higher_is_better=True, gap_se=2.6))
+    assert script.gap_closed(55.0, floor=90.0, ceiling=20.0, gap_se=6.0) == pytest.approx(0.5)
     assert math.isnan(script.gap_closed(85.0, floor=100.0, ceiling=70.0, higher_is_better=True))
 

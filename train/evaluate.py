@@ -323,16 +323,19 @@ def vae_round_trip(pipe: SARZero123Pipeline, images: torch.Tensor, batch_size: i
     return torch.cat(outputs)
 
 
-def gap_closed(model: float, floor: float, ceiling: float, higher_is_better: bool = False) -> float:
+def gap_closed(
+    model: float, floor: float, ceiling: float, higher_is_better: bool = False, gap_se: float = 0.0
+) -> float:
     """Fraction of the floor-to-ceiling gap a model closes, ``(floor - model) / (floor - ceiling)``.
 
     1 means the model scores like the ceiling (VAE round trip of the real target), 0 like the floor (the
     input copied as the output), below 0 worse than the floor. NaN where the floor is not worse than the
-    ceiling (no gap to close): accuracy, for instance, when the input copy keeps the class and the VAE round
-    trip loses some of it.
+    ceiling by more than ``gap_se`` (the standard error of their difference): no gap to close, or one the
+    pairs do not resolve, whose fraction would be noise divided by noise (accuracy, for instance, when the
+    input copy keeps the class and the VAE round trip keeps it about as often).
     """
     gap = ceiling - floor if higher_is_better else floor - ceiling
-    if not gap > 1e-9:
+    if not gap > max(gap_se, 1e-9):
         return float("nan")
     return (floor - model) / (floor - ceiling)
 
@@ -345,8 +348,10 @@ def add_gap_closed(results: dict[str, dict[str, dict[str, float]]], floor: str, 
         for group, values in groups.items():
             for metric in ("azimuth_error_deg", "accuracy"):
                 key = f"{metric.split('_')[0]}_gap_closed"
-                low, high = results[floor][group][metric], results[ceiling][group][metric]
-                values[key] = gap_closed(values[metric], low, high, higher_is_better=metric == "accuracy")
+                low, high = results[floor][group], results[ceiling][group]
+                gap_se = math.hypot(low.get(f"{metric}_se", 0.0), high.get(f"{metric}_se", 0.0))
+                higher_is_better = metric == "accuracy"
+                values[key] = gap_closed(values[metric], low[metric], high[metric], higher_is_better, gap_se)
 
 
 def score(
@@ -416,8 +421,8 @@ def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_pap
         f"Floor: `{INPUT_COPY}` returns the input view (a generator that ignores the pose). Ceilings: "
         f"`{REAL_TARGET}` scores the true target view, `{VAE_ROUND_TRIP}` the target encoded and decoded by "
         "the pipeline's VAE. Gap closed = (floor - model) / (floor - VAE round trip); \"no gap\" where "
-        "the floor already scores at least as well as the ceiling (accuracy: the input copy keeps the "
-        "class). ± is one standard error of the mean over the n pairs."
+        "the floor scores at least as well as the ceiling, or within one standard error of their difference "
+        "(accuracy: the input copy keeps the class). ± is one standard error of the mean over the n pairs."
     )
     lines.append(
         "MS-SSIM and Kuan+SSIM are paper-comparable (`sar_zero123.paper_metrics`, the authors' calls: 8-bit "
