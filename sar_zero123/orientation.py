@@ -26,6 +26,7 @@ from diffusers.models.modeling_utils import ModelMixin
 __all__ = [
     "AZIMUTH_DIM",
     "AzimuthEstimator",
+    "azimuth_deg",
     "azimuth_estimation_loss",
     "azimuth_vector",
     "target_view_features",
@@ -44,6 +45,17 @@ def azimuth_vector(azimuth_deg: torch.Tensor | Sequence[float]) -> torch.Tensor:
     """
     radians = torch.as_tensor(azimuth_deg, dtype=torch.float64).reshape(-1) * (math.pi / 180.0)
     return torch.stack([torch.sin(radians), torch.cos(radians)], dim=-1).float()
+
+
+def azimuth_deg(vector: torch.Tensor) -> torch.Tensor:
+    """The azimuth in [0, 360) degrees of ``[sin a, cos a, ...]`` (the inverse of :func:`azimuth_vector`).
+
+    Only the first two entries are read, so an :class:`AzimuthEstimator`'s output (with its code) works.
+
+    Shape:
+        ``(B, >= 2)`` -> ``(B,)`` float64.
+    """
+    return torch.rad2deg(torch.atan2(vector[:, 0].double(), vector[:, 1].double())) % 360.0
 
 
 def turn_azimuth(vector: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:

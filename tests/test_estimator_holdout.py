@@ -6,11 +6,14 @@ import json
 from pathlib import Path
 
 import pytest
+import torch
 from diffusers import AutoencoderKL
 
 from benchmarks import estimator_holdout
+from benchmarks.azimuth_estimator_error import error_summary
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.models import SAR_ZERO123_SIZES
+from sar_zero123.orientation import azimuth_vector
 from sar_zero123.sim import simulate_dataset
 
 
@@ -49,6 +52,17 @@ def test_one_row_per_held_out_class_and_seed_with_the_others_as_training_set(set
 
 def test_unknown_held_out_class_is_refused(setup, tmp_path: Path) -> None:
     data, vae = setup
-    with pytest.raises(ValueError, match=r"held_out: no chips of \['SPG'\]"):
+    with pytest.raises(ValueError, match=r"held_out / training_classes: no chips of \['SPG'\]"):
         estimator_holdout.main(["--vae", str(vae), "--data", str(data), "--held_out", "SPG",
                                 "--training_classes", "TANK", "--out", str(tmp_path / "x.json")])  # fmt: skip
+
+
+def test_error_summary_of_exact_and_back_to_front_estimates() -> None:
+    truth = torch.tensor([0.0, 90.0, 200.0, 359.0], dtype=torch.float64)
+    exact = error_summary(azimuth_vector(truth), truth)
+    assert exact["chips"] == 4 and exact["mean_deg"] == pytest.approx(0.0, abs=1e-4)
+    assert exact["above_135_deg_percent"] == 0.0
+    # three chips read back to front (180 deg off), one 30 deg off
+    flipped = error_summary(azimuth_vector(truth + torch.tensor([180.0, 180.0, 180.0, 30.0])), truth)
+    assert flipped["mean_deg"] == pytest.approx((3 * 180.0 + 30.0) / 4, abs=1e-4)
+    assert flipped["above_135_deg_percent"] == pytest.approx(75.0)

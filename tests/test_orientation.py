@@ -12,6 +12,7 @@ from sar_zero123 import SARZero123Pipeline, build_sar_zero123, embed_pose
 from sar_zero123.conditioning import pose_class_labels
 from sar_zero123.orientation import (
     AzimuthEstimator,
+    azimuth_deg,
     azimuth_estimation_loss,
     azimuth_vector,
     target_view_features,
@@ -41,6 +42,14 @@ def test_azimuth_vector_is_sine_then_cosine() -> None:
         atol=1e-7,
         rtol=0,
     )
+
+
+def test_azimuth_deg_inverts_azimuth_vector_and_ignores_the_code() -> None:
+    azimuth = torch.tensor([0.0, 45.0, 179.5, 180.0, 270.0, 359.9], dtype=torch.float64)
+    vector = torch.cat([azimuth_vector(azimuth), torch.randn(6, 3)], dim=-1)  # a code after the azimuth
+    torch.testing.assert_close(azimuth_deg(vector), azimuth, atol=1e-4, rtol=0)
+    longer = 2.5 * azimuth_vector([-90.0])  # an unnormalised vector; negative angles map into [0, 360)
+    torch.testing.assert_close(azimuth_deg(longer), torch.tensor([270.0], dtype=torch.float64))
 
 
 def test_target_view_features_turn_the_azimuth_and_keep_the_code() -> None:
