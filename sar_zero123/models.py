@@ -6,6 +6,7 @@ schedule, VAE scaling factor, CLIP preprocessing) live in :mod:`sar_zero123.chec
 
 from __future__ import annotations
 
+import json
 import os
 from pathlib import Path
 from typing import Any, Literal
@@ -89,7 +90,8 @@ SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
     },
     # Faster CPU models for 64 px chips, with `small`'s VAE (one trained VAE folder fits all three):
     # UNets of about a third (`compact`, 6.7 M) and a tenth (`micro`, 1.7 M) of `small`'s 18.2 M, 2-6x
-    # the pairs per second (docs/results/learning.md; none has yet learned to follow the pose on a CPU).
+    # the pairs per second (docs/results/learning.md). With `estimate_input_azimuth`, `micro` is the
+    # quickstart's model and turns its views with the requested pose on a CPU (learning.md, sections 4-7).
     "compact": {
         "image_size": 64,
         "vae": "small",
@@ -346,12 +348,24 @@ def replace_vae(pipe: SARZero123Pipeline, path: str | os.PathLike) -> SARZero123
     """``pipe`` with the ``AutoencoderKL`` saved in ``path`` (``train/train_vae.py``) as its VAE.
 
     Raises:
-        FileNotFoundError: If ``path`` holds no ``config.json``.
+        FileNotFoundError: If ``path`` holds no ``AutoencoderKL`` ``config.json`` (a ``train_vae.py`` run
+            folder holds its VAE in the ``vae`` subfolder: the message says so).
         ValueError: If the VAE does not fit (:func:`check_vae_fits`).
     """
     path = Path(path)
-    if not (path / "config.json").is_file():
+    config_file = path / "config.json"
+    if not config_file.is_file():
         raise FileNotFoundError(f"vae: {str(path)!r} is not an AutoencoderKL folder (no config.json)")
+    try:
+        class_name = json.loads(config_file.read_text()).get("_class_name")
+    except (ValueError, AttributeError):  # not JSON, or JSON that is not an object
+        class_name = None
+    if class_name != "AutoencoderKL":
+        hint = f"; the VAE of a train_vae.py run is {str(path / 'vae')!r}" if (path / "vae").is_dir() else ""
+        raise FileNotFoundError(
+            f"vae: {str(path)!r} is not an AutoencoderKL folder (its config.json is not an AutoencoderKL "
+            f"config){hint}"
+        )
     vae = AutoencoderKL.from_pretrained(path)
     check_vae_fits(vae, pipe, name=f"vae: {str(path)!r}")
     # `pipe.components`, not `from_pipe`: that casts every module to one dtype (float32 by default)

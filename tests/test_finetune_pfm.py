@@ -200,6 +200,11 @@ def test_bad_input_fails_before_training(script, assets, tmp_path) -> None:
         script.main(tiny_args(assets, run, "--resume_from_checkpoint", str(tmp_path)))
     with pytest.raises(FileNotFoundError, match="vae"):
         script.main(tiny_args(assets, run, "--vae", str(tmp_path / "no_vae")))
+    vae_run = tmp_path / "vae_run"  # a train_vae.py run folder: its own config.json, the VAE in vae/
+    (vae_run / "vae").mkdir(parents=True)
+    (vae_run / "config.json").write_text(json.dumps({"max_train_steps": 2}))
+    with pytest.raises(FileNotFoundError, match="vae_run/vae"):
+        script.main(tiny_args(assets, run, "--vae", str(vae_run)))
     wrong_vae = AutoencoderKL(
         in_channels=1,
         out_channels=1,

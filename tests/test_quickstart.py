@@ -38,6 +38,12 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     assert {"simulate", "simclr", "finetune lambda=0", "finetune lambda=4", "evaluators", "evaluate"} <= set(
         timings
     )
+    # the preset's optional training settings reach every fine-tune
+    for stage in ("base", "finetune_lambda0", "finetune_lambda4"):
+        settings = json.loads((out / stage / "config.json").read_text())
+        assert (settings["lr_scheduler"], settings["lr_warmup_steps"]) == ("cosine", 1)
+        assert (settings["use_ema"], settings["ema_decay"]) == (True, 0.9)
+        assert settings["train_image_encoder"]
     metrics = json.loads((out / "evaluators" / "metrics.json").read_text())
     assert set(metrics["models"]) == {"classifier", "regressor", "probe:simclr"}
     assert metrics["class_names"] == ["APC", "TANK", "TRUCK"]  # the held-out TRUCK included

@@ -85,6 +85,10 @@ class Preset:
     speed_steps: tuple[int, ...]  # step counts of the speed/error sweep
     speed_n: int  # samples per speed/error point
     schedulers: tuple[str, ...]  # samplers of the speed/error sweep
+    lr_scheduler: str = "constant"  # diffusers LR schedule of the base model and of each fine-tune
+    lr_warmup_steps: int = 0  # its warm-up steps (each stage)
+    ema_decay: float | None = None  # EMA of the exported UNet (None: the last weights)
+    train_image_encoder: bool = False  # train the (random) CLIP tower with the UNet
 
     def __post_init__(self) -> None:
         if any(width % self.vae_norm_groups for width in self.vae_widths):
@@ -175,6 +179,11 @@ PRESETS: dict[str, Preset] = {
         speed_steps=(1,),
         speed_n=2,
         schedulers=("ddim", "euler"),
+        # the optional training settings, so that the smoke test runs them
+        lr_scheduler="cosine",
+        lr_warmup_steps=1,
+        ema_decay=0.9,
+        train_image_encoder=True,
     ),
 }
 
@@ -340,11 +349,16 @@ def main(argv: Sequence[str] | None = None) -> Path:
             "train_batch_size": preset.finetune_batch_size,
             "max_train_steps": steps,
             "learning_rate": preset.finetune_learning_rate,
-            "use_ema": False,  # EMA decay 0.9999 would keep the initial weights over a few thousand steps
+            "lr_scheduler": preset.lr_scheduler,
+            "lr_warmup_steps": preset.lr_warmup_steps,
+            "use_ema": preset.ema_decay is not None,
+            "train_image_encoder": preset.train_image_encoder,
             "validation_steps": 0,
             "checkpointing_steps": 10_000,
             "report_to": "none",
         }
+        if preset.ema_decay is not None:
+            finetune_args["ema_decay"] = preset.ema_decay
         if preset.pfm_projection_dim is not None:
             finetune_args["pfm_projection_dim"] = preset.pfm_projection_dim
         if pretrained is None:
