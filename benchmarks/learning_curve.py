@@ -2,17 +2,17 @@
 
     python benchmarks/learning_curve.py --data RUN/data --vae RUN/vae/vae --evaluators RUN/evaluators \\
         --protocol ood-TANK --sizes micro compact small --chunk_steps 600 --max_steps 3000 \\
-        --work_dir CURVES --out learning_curve.jsonl
+        --work_dir CURVES --out learning_curve.jsonl [--plot learning_curve.png]
 
 For each size, `train/finetune_pfm.py` trains one lambda = 0 model from scratch on the SAR-sized pose path
 (`--estimate_input_azimuth`) in chunks of `--chunk_steps`: each chunk resumes the previous chunk's
-checkpoint (a constant learning rate, so the chunks make the same run as one call), validates (pose
+checkpoint (at a constant learning rate, so the chunks train as one long call would), validates (pose
 sensitivity and pose following, `sar_zero123.validation`) and exports its pipeline; `train/evaluate.py`
 then scores that pipeline on the same `--n` pairs (Table III with the input-copy floor and the VAE-round-trip
 ceiling). One JSON line per (size, steps): cumulative training seconds (the finetune calls: training,
 checkpoint, validation and export; evaluation excluded), UNet parameters, and the seen/unseen azimuth
 error, accuracy and gap closed with standard errors. Lines already in `--out` are kept and skipped, so a
-killed benchmark continues where it stopped.
+killed benchmark continues where it stopped (and a run whose points are all in `--out` only plots them).
 
 The training seconds depend on the machine and on what shares it: compare sizes only from one invocation
 (or from invocations run side by side under the same thread count).
@@ -95,6 +95,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--work_dir", required=True, help="one finetune run folder per size is made here")
     parser.add_argument("--out", required=True, help="JSON lines file (appended)")
+    parser.add_argument("--plot", default=None, help="PNG of every row of --out after the run")
     args = parser.parse_args(argv)
     unknown = sorted(set(args.sizes) - set(SAR_ZERO123_SIZES))
     if unknown:
@@ -149,7 +150,34 @@ def main(argv: list[str] | None = None) -> list[dict]:
             with out.open("a") as handle:  # one complete line per point: a kill loses at most the point
                 handle.write(json.dumps(row) + "\n")
             print(json.dumps(row), flush=True)
+    if args.plot is not None:
+        plot_curves(rows, args.plot)
     return rows
+
+
+def plot_curves(rows: list[dict], path: str | Path) -> Path:
+    """Seen and unseen azimuth gap closed against training minutes, one line per size; writes `path`."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    figure, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
+    for axis, views in zip(axes, ("seen", "unseen")):
+        for size in dict.fromkeys(row["size"] for row in rows):
+            points = sorted((row for row in rows if row["size"] == size), key=lambda row: row["steps"])
+            minutes = [row["train_seconds"] / 60 for row in points]
+            gap = [100 * row[f"{views}/azimuth_gap_closed"] for row in points]
+            axis.plot(minutes, gap, marker="o", label=f"{size} ({points[0]['unet_parameters'] / 1e6:.1f} M)")
+        axis.axhline(0, color="grey", linewidth=0.8)
+        axis.set_title(f"{views} views")
+        axis.set_xlabel("training minutes")
+    axes[0].set_ylabel("azimuth gap closed (%)")
+    axes[0].legend()
+    figure.tight_layout()
+    figure.savefig(path, dpi=120)
+    plt.close(figure)
+    return Path(path)
 
 
 def unet_parameters(folder: Path) -> int:

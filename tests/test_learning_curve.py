@@ -67,10 +67,11 @@ def test_one_row_per_chunk_and_a_rerun_continues_after_the_last_row(tmp_path, mo
     assert rows[1]["train_seconds"] >= rows[0]["train_seconds"] >= 0
     # a longer curve keeps the two points written and trains only the new chunk
     calls.clear()
-    rows = learning_curve.main(argv_for(tmp_path, *chunks, "600"))
+    rows = learning_curve.main(argv_for(tmp_path, *chunks, "600", "--plot", str(tmp_path / "curve.png")))
     assert calls == [("finetune", "micro", 600, "latest"), ("evaluate", 600)]
     assert [row["steps"] for row in rows] == [200, 400, 600]
     assert len((tmp_path / "curve.jsonl").read_text().splitlines()) == 3
+    assert (tmp_path / "curve.png").stat().st_size > 0
 
 
 def test_bad_arguments_are_refused_before_any_training(tmp_path, monkeypatch) -> None:
