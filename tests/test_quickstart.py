@@ -74,6 +74,31 @@ def test_quickstart_config_checks_data_and_protocol(tmp_path: Path) -> None:
     assert set(quickstart.PRESETS) == {"default", "long", "mstar", "smoke"}
 
 
+def test_overrides_replace_preset_fields_with_typed_literals() -> None:
+    default = dataclasses.replace(quickstart.PRESETS["default"])
+    preset = quickstart.apply_overrides(
+        quickstart.PRESETS["default"],
+        ["base_steps=4321", "lr_scheduler=cosine", "vae_widths=[8, 16, 32]", "ema_decay=0.999",
+         "finetune_learning_rate=1", "classes=('APC', 'TANK')"],
+    )  # fmt: skip
+    assert (preset.base_steps, preset.lr_scheduler, preset.vae_widths) == (4321, "cosine", (8, 16, 32))
+    assert (preset.ema_decay, preset.classes) == (0.999, ("APC", "TANK"))
+    assert preset.finetune_learning_rate == 1.0 and isinstance(preset.finetune_learning_rate, float)
+    assert quickstart.PRESETS["default"] == default  # the preset itself is unchanged
+    for item, message in [
+        ("nope=1", "FIELD one of"),
+        ("base_steps", "FIELD one of"),
+        ("base_steps=1.5", f"base_steps takes a int like {default.base_steps}"),
+        ("estimate_input_azimuth=1", "takes a bool"),
+        ("classes=APC", "classes takes a tuple"),
+        ("vae_widths=12,24,36", "vae_norm_groups 8 must divide"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            quickstart.apply_overrides(quickstart.PRESETS["default"], [item])
+    with pytest.raises(ValueError, match="override"):  # refused when the command is parsed, before a stage
+        quickstart.QuickstartConfig(override=["base_steps=many"])
+
+
 def test_presets_vae_groups_divide_the_widths() -> None:
     with pytest.raises(ValueError, match=r"vae_norm_groups 12 must divide each of vae_widths \(16, 32, 64\)"):
         dataclasses.replace(quickstart.DEFAULT_PRESET, vae_norm_groups=12)
@@ -89,10 +114,13 @@ def test_quickstart_smoke_on_a_given_folder_with_the_extended_protocol(tmp_path:
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         report = quickstart.main(
-            ["--output_dir", str(out), "--preset", "smoke", "--data", str(data), "--protocol", "extended"]
-        )
+            ["--output_dir", str(out), "--preset", "smoke", "--data", str(data), "--protocol", "extended",
+             "--override", "base_steps=3"]
+        )  # fmt: skip
     text = report.read_text()
     assert f"real chips from `{data}`" in text and "Protocol `extended`" in text
     assert "| lambda=0 | seen |" in text and "| lambda=0 | unseen |" not in text
     assert "simulate" not in json.loads((out / "timings.json").read_text())
     assert not (out / "data").exists()
+    assert json.loads((out / "preset.json").read_text())["base_steps"] == 3
+    assert json.loads((out / "base" / "train_state.json").read_text())["global_step"] == 3

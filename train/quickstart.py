@@ -20,13 +20,14 @@ On a 2-core CPU in about ten minutes (default preset) it
 Every stage calls the stage script's `main(argv)` (imported as `train.<name>`) in this process and is
 skipped when its output already exists, so an interrupted run continues where it stopped, and a re-run
 with more `--lambdas` trains only the new fine-tunes (then evaluates them all on the same pairs). Presets:
-`default` (~10 min), `long` (~45 min, the simulator), `mstar` (real chips, ~80 min) and `smoke` (tiny
+`default` (~12 min), `long` (~45 min, the simulator), `mstar` (real chips, ~80 min) and `smoke` (tiny
 settings in seconds, for tests). The numbers are CPU quick-run numbers, far from the paper's setting
 (20,000 iterations from an Objaverse checkpoint on real MSTAR at 128 px).
 """
 
 from __future__ import annotations
 
+import ast
 import dataclasses
 import json
 import logging
@@ -118,7 +119,8 @@ DEFAULT_PRESET = Preset(
     vae_steps=540,
     vae_batch_size=8,
     estimate_input_azimuth=True,
-    base_steps=1800,
+    # pose use emerges between 1,800 and 3,000 steps (learning.md, 7c): 3,000 is what 12 minutes buy
+    base_steps=3000,
     finetune_steps=200,
     finetune_batch_size=16,
     finetune_learning_rate=1e-3,
@@ -193,7 +195,7 @@ class QuickstartConfig:
     """Simulate (or read `data`), pretrain SimCLR, fine-tune each lambda, train evaluators, evaluate."""
 
     output_dir: str = "runs/quickstart"  # run folder (every stage writes a subfolder; report.md at the top)
-    # "default" (~10 min on 2 CPU cores), "long" (~45 min), "mstar" (real data, ~80 min) or "smoke" (seconds)
+    # "default" (~12 min on 2 CPU cores), "long" (~45 min), "mstar" (real data, ~80 min) or "smoke" (seconds)
     preset: Literal["default", "long", "mstar", "smoke"] = "default"
     data: str | None = None  # chip folder (index.csv or raw MSTAR files); None simulates the preset's classes
     protocol: str | None = None  # "extended" or "ood-<CLASS>"; None = ood-<last simulated class>
@@ -201,6 +203,9 @@ class QuickstartConfig:
     # a re-run in the same folder with more values trains only the new ones
     lambdas: list[float] = field(default_factory=lambda: [0.0, 4.0])
     seed: int = 0  # seed of every stage
+    # preset fields replaced for this run, FIELD=VALUE with a Python literal (base_steps=3000,
+    # lr_scheduler=cosine, vae_widths=16,32,64); the run's preset.json records the result
+    override: list[str] = field(default_factory=list)
 
     def __post_init__(self) -> None:
         if self.preset not in PRESETS:
@@ -211,9 +216,41 @@ class QuickstartConfig:
             raise FileNotFoundError(f"data: expected a chip folder, got {self.data}")
         if self.data is not None and self.protocol is None:
             raise ValueError("protocol: give 'extended' or 'ood-<CLASS>' with --data (e.g. ood-T72)")
+        apply_overrides(PRESETS[self.preset], self.override)  # a bad override fails before any stage
         if self.protocol is not None and check_protocol(self.protocol) == "soc":
             # evaluate.py pairs seen/unseen views by `extended` or `ood-*`: fail here, not after training
             raise ValueError("protocol: the quickstart evaluates 'extended' or 'ood-<CLASS>', got 'soc'")
+
+
+def apply_overrides(preset: Preset, overrides: Sequence[str]) -> Preset:
+    """`preset` with the `FIELD=VALUE` items of `overrides` replaced (`VALUE` a Python literal; a bare word
+    is a string; a list becomes a tuple); the preset's own checks run on the result.
+
+    Raises:
+        ValueError: naming the item, for an unknown field, a missing ``=``, or a value whose type differs
+            from the preset's (an int is accepted for a float field; a field that is ``None`` takes any).
+    """
+    fields = {f.name for f in dataclasses.fields(Preset)}
+    changes: dict[str, Any] = {}
+    for item in overrides:
+        name, separator, text = item.partition("=")
+        if not separator or name not in fields:
+            raise ValueError(f"override: expected FIELD=VALUE, FIELD one of {sorted(fields)}; got {item!r}")
+        try:
+            value = ast.literal_eval(text)
+        except (ValueError, SyntaxError):
+            value = text  # a bare word: lr_scheduler=cosine
+        if isinstance(value, list):
+            value = tuple(value)
+        current = getattr(preset, name)
+        same_type = isinstance(value, type(current)) and isinstance(value, bool) == isinstance(current, bool)
+        int_for_float = isinstance(current, float) and isinstance(value, int) and not isinstance(value, bool)
+        if current is not None and value is not None and not (same_type or int_for_float):
+            raise ValueError(
+                f"override: {name} takes a {type(current).__name__} like {current!r}, got {item!r}"
+            )
+        changes[name] = float(value) if int_for_float else value
+    return dataclasses.replace(preset, **changes)
 
 
 def script_argv(module: ModuleType, values: dict[str, Any]) -> list[str]:
@@ -261,7 +298,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     """Runs the whole chain; returns the path of `report.md`."""
     config = parse_config(QuickstartConfig, argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-    preset = PRESETS[config.preset]
+    preset = apply_overrides(PRESETS[config.preset], config.override)
     out = Path(config.output_dir)
     out.mkdir(parents=True, exist_ok=True)
     save_config(config, out)
