@@ -58,6 +58,10 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     timings = json.loads((out / "timings.json").read_text())
     assert {name for name, seconds in timings.items() if seconds > 0} == {"finetune lambda=1", "evaluate"}
     assert "| lambda=1 | unseen |" in text and "(input | lambda=0 | lambda=4 | lambda=1 | target)" in text
+    # the same folder with another preset value is refused before any stage (its stages would be reused)
+    with pytest.raises(ValueError, match=r"base_steps 2 -> 5"):
+        quickstart.main(["--output_dir", str(out), "--preset", "smoke", "--override", "base_steps=5"])
+    assert json.loads((out / "preset.json").read_text())["base_steps"] == 2
 
 
 def test_quickstart_config_checks_data_and_protocol(tmp_path: Path) -> None:

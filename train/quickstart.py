@@ -3,7 +3,7 @@
     python train/quickstart.py --output_dir runs/quickstart
     python train/quickstart.py --preset mstar --data /path/to/mstar --protocol ood-T72 --output_dir runs/mstar
 
-On a 2-core CPU in about ten minutes (default preset) it
+On a 2-core CPU in about twelve minutes (default preset) it
 
 1. simulates a small MSTAR-like dataset (`sar_zero123.sim`), one class held out (MSTAR-OOD style), unless
    `--data` names real chips (with `--protocol extended` or `ood-<CLASS>`),
@@ -19,7 +19,8 @@ On a 2-core CPU in about ten minutes (default preset) it
 
 Every stage calls the stage script's `main(argv)` (imported as `train.<name>`) in this process and is
 skipped when its output already exists, so an interrupted run continues where it stopped, and a re-run
-with more `--lambdas` trains only the new fine-tunes (then evaluates them all on the same pairs). Presets:
+with more `--lambdas` trains only the new fine-tunes (then evaluates them all on the same pairs); a
+re-run with other preset values (`--preset`, `--override`) in the same folder is refused. Presets:
 `default` (~12 min), `long` (~45 min, the simulator), `mstar` (real chips, ~80 min) and `smoke` (tiny
 settings in seconds, for tests). The numbers are CPU quick-run numbers, far from the paper's setting
 (20,000 iterations from an Objaverse checkpoint on real MSTAR at 128 px).
@@ -253,6 +254,28 @@ def apply_overrides(preset: Preset, overrides: Sequence[str]) -> Preset:
     return dataclasses.replace(preset, **changes)
 
 
+def check_same_preset(out: Path, preset: Preset) -> None:
+    """Refuse to continue a run folder made with other preset values: a finished stage is skipped by the
+    files it left, so a changed value would be silently ignored for it (e.g. `--override base_steps=...`).
+
+    Raises:
+        ValueError: naming each field whose value differs from the folder's ``preset.json``.
+    """
+    path = out / "preset.json"
+    if not path.is_file():
+        return
+    # through JSON, so that tuples and lists compare alike
+    new = json.loads(json.dumps(dataclasses.asdict(preset)))
+    old = json.loads(path.read_text())
+    changed = {name: (old.get(name), value) for name, value in new.items() if old.get(name, value) != value}
+    if changed:
+        listed = ", ".join(f"{name} {was!r} -> {now!r}" for name, (was, now) in sorted(changed.items()))
+        raise ValueError(
+            f"output_dir: {str(out)!r} holds a run made with other preset values ({listed}); its finished "
+            "stages would be reused as they are: give a new --output_dir"
+        )
+
+
 def script_argv(module: ModuleType, values: dict[str, Any]) -> list[str]:
     """Flags for a stage script from `values`; every key must be a field of its config dataclass.
 
@@ -301,6 +324,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     preset = apply_overrides(PRESETS[config.preset], config.override)
     out = Path(config.output_dir)
     out.mkdir(parents=True, exist_ok=True)
+    check_same_preset(out, preset)
     save_config(config, out)
     write_json_atomic(dataclasses.asdict(preset), out / "preset.json")
     timings: dict[str, float] = {}
