@@ -117,18 +117,16 @@ def main(argv: list[str] | None = None) -> list[dict]:
     done = {(row["size"], row["steps"]) for row in rows}
     for size in args.sizes:
         run_dir = Path(args.work_dir) / size
-        seconds = max([row["train_seconds"] for row in rows if row["size"] == size], default=0.0)
+        timing_file = run_dir / "chunk_seconds.json"  # per chunk; survives a kill between training and eval
         for steps in range(args.chunk_steps, args.max_steps + 1, args.chunk_steps):
             if (size, steps) in done:
                 continue
-            timing_file = run_dir / "chunk_seconds.json"  # survives a kill between training and evaluation
             chunk_seconds = json.loads(timing_file.read_text()) if timing_file.is_file() else {}
             if str(steps) not in chunk_seconds:
                 start = time.perf_counter()
                 finetune_pfm.main(finetune_argv(args, size, steps, run_dir))
                 chunk_seconds[str(steps)] = round(time.perf_counter() - start, 1)
                 write_json_atomic(chunk_seconds, timing_file)
-            seconds += chunk_seconds[str(steps)]
             eval_dir = run_dir / f"eval_{steps}"
             result = evaluate.main([
                 "--pipeline", str(run_dir / "pipeline"), "--pipeline_names", "model", "--lambdas", "0",
@@ -138,10 +136,11 @@ def main(argv: list[str] | None = None) -> list[dict]:
                 "--schedulers", "ddim", "--speed_n", "2", "--crop_size", "64", "--seed", str(args.seed),
                 "--output_dir", str(eval_dir),
             ])  # fmt: skip
+            trained = sum(seconds for chunk, seconds in chunk_seconds.items() if int(chunk) <= steps)
             row = {
                 "size": size,
                 "steps": steps,
-                "train_seconds": round(seconds, 1),
+                "train_seconds": round(trained, 1),  # cumulative: every chunk up to this one
                 "unet_parameters": unet_parameters(run_dir / "pipeline" / "unet"),
                 **model_row(result["table3"]["model"]),
                 **last_validation(run_dir),

@@ -64,7 +64,10 @@ def test_one_row_per_chunk_and_a_rerun_continues_after_the_last_row(tmp_path, mo
     assert rows[1]["seen/azimuth_error_deg"] == pytest.approx(96.0)
     assert rows[1]["pose_following_error_deg"] == pytest.approx(86.0)
     assert rows[1]["unet_parameters"] == 17  # 3 x 4 + 5, from the safetensors header
-    assert rows[1]["train_seconds"] >= rows[0]["train_seconds"] >= 0
+    chunk_seconds = json.loads((tmp_path / "runs" / "micro" / "chunk_seconds.json").read_text())
+    assert set(chunk_seconds) == {"200", "400"}
+    assert rows[0]["train_seconds"] == chunk_seconds["200"]
+    assert rows[1]["train_seconds"] == pytest.approx(chunk_seconds["200"] + chunk_seconds["400"], abs=0.05)
     # a longer curve keeps the two points written and trains only the new chunk
     calls.clear()
     rows = learning_curve.main(argv_for(tmp_path, *chunks, "600", "--plot", str(tmp_path / "curve.png")))
