@@ -10,6 +10,9 @@ random 64 px chips (lambda = 0, no CFG dropout) and reports the median step time
 - ``cached``: frozen encodings from :class:`~sar_zero123.training.ChipLatentCache` (the default now).
 - ``cached+bf16``: cached, the UNet forward under ``torch.autocast("cpu", torch.bfloat16)``.
 - ``cached+channels_last``: cached, the UNet in channels-last memory format.
+- ``cached+compile``: cached, the UNet wrapped in ``torch.compile`` (inductor; needs a C++ compiler on a
+  CPU). Not in the default ``--variants``: its first step compiles for minutes. ``first_step_seconds``
+  records that cost beside the median step.
 
 Speed only: the variants compute the same loss (bf16 to rounding), so no error column applies here; the
 error side of speed against error is in ``train/evaluate.py``'s sampler sweep.
@@ -30,7 +33,8 @@ from diffusers import DDPMScheduler
 from sar_zero123.models import build_sar_zero123
 from sar_zero123.training import ChipLatentCache, ImageEmbedder, compute_losses
 
-VARIANTS = ("encode", "cached", "cached+bf16", "cached+channels_last")
+VARIANTS = ("encode", "cached", "cached+bf16", "cached+channels_last", "cached+compile")
+DEFAULT_VARIANTS = VARIANTS[:4]  # torch.compile only on request: minutes of compiling per size
 
 
 def make_batch(images: torch.Tensor, cache: ChipLatentCache | None, batch_size: int) -> dict:
@@ -60,6 +64,7 @@ def time_variant(size: str, variant: str, batch_size: int, steps: int, warmup: i
     tower = pipe.image_encoder.eval().requires_grad_(False)
     if variant.endswith("channels_last"):
         unet.to(memory_format=torch.channels_last)
+    model = torch.compile(unet) if variant.endswith("compile") else unet
     images = torch.rand(2 * batch_size, 1, 64, 64, generator=torch.Generator().manual_seed(1))
     cache = ChipLatentCache.encode(images, vae, tower) if variant.startswith("cached") else None
     batch = make_batch(images, cache, batch_size)
@@ -72,7 +77,7 @@ def time_variant(size: str, variant: str, batch_size: int, steps: int, warmup: i
         with autocast:
             losses = compute_losses(
                 batch,
-                unet=unet,
+                unet=model,
                 pose_projection=projection,
                 vae=vae,
                 image_encoder=ImageEmbedder(tower),
@@ -94,6 +99,7 @@ def time_variant(size: str, variant: str, batch_size: int, steps: int, warmup: i
         "unet_parameters": sum(p.numel() for p in unet.parameters()),
         "batch_size": batch_size,
         "seconds_per_step": seconds,
+        "first_step_seconds": times[0],  # includes torch.compile's compilation for that variant
         "pairs_per_s": batch_size / seconds,
     }
 
@@ -101,7 +107,7 @@ def time_variant(size: str, variant: str, batch_size: int, steps: int, warmup: i
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--sizes", nargs="+", default=["micro", "compact", "small"])
-    parser.add_argument("--variants", nargs="+", default=list(VARIANTS), choices=VARIANTS)
+    parser.add_argument("--variants", nargs="+", default=list(DEFAULT_VARIANTS), choices=VARIANTS)
     parser.add_argument("--batch_size", type=int, default=16)
     parser.add_argument("--steps", type=int, default=6)
     parser.add_argument("--warmup", type=int, default=2)

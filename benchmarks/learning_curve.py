@@ -14,6 +14,10 @@ checkpoint, validation and export; evaluation excluded), UNet parameters, and th
 error, accuracy and gap closed with standard errors. Lines already in `--out` are kept and skipped, so a
 killed benchmark continues where it stopped (and a run whose points are all in `--out` only plots them).
 
+A curve is one (size, learning rate, batch size): its run folder is ``WORK_DIR/<size>_lr<lr>_b<batch>``,
+so invocations with another `--learning_rate` or `--train_batch_size` can share `--work_dir` and `--out`
+without resuming each other's checkpoints; the plot names them apart.
+
 The training seconds depend on the machine and on what shares it: compare sizes only from one invocation
 (or from invocations run side by side under the same thread count).
 """
@@ -114,12 +118,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     rows = read_rows(out)
-    done = {(row["size"], row["steps"]) for row in rows}
+    done = {(curve_key(row), row["steps"]) for row in rows}
     for size in args.sizes:
-        run_dir = Path(args.work_dir) / size
+        key = (size, args.learning_rate, args.train_batch_size)
+        run_dir = Path(args.work_dir) / f"{size}_lr{args.learning_rate:g}_b{args.train_batch_size}"
         timing_file = run_dir / "chunk_seconds.json"  # per chunk; survives a kill between training and eval
         for steps in range(args.chunk_steps, args.max_steps + 1, args.chunk_steps):
-            if (size, steps) in done:
+            if (key, steps) in done:
                 continue
             chunk_seconds = json.loads(timing_file.read_text()) if timing_file.is_file() else {}
             if str(steps) not in chunk_seconds:
@@ -140,6 +145,8 @@ def main(argv: list[str] | None = None) -> list[dict]:
             row = {
                 "size": size,
                 "steps": steps,
+                "learning_rate": args.learning_rate,
+                "train_batch_size": args.train_batch_size,
                 "train_seconds": round(trained, 1),  # cumulative: every chunk up to this one
                 "unet_parameters": unet_parameters(run_dir / "pipeline" / "unet"),
                 **model_row(result["table3"]["model"]),
@@ -154,8 +161,13 @@ def main(argv: list[str] | None = None) -> list[dict]:
     return rows
 
 
+def curve_key(row: dict) -> tuple[str, float, int]:
+    """The curve a row belongs to: (size, learning rate, batch size)."""
+    return row["size"], row["learning_rate"], row["train_batch_size"]
+
+
 def plot_curves(rows: list[dict], path: str | Path) -> Path:
-    """Seen and unseen azimuth gap closed against training minutes, one line per size; writes `path`."""
+    """Seen and unseen azimuth gap closed against training minutes, one line per curve; writes `path`."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -163,11 +175,16 @@ def plot_curves(rows: list[dict], path: str | Path) -> Path:
 
     figure, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
     for axis, views in zip(axes, ("seen", "unseen")):
-        for size in dict.fromkeys(row["size"] for row in rows):
-            points = sorted((row for row in rows if row["size"] == size), key=lambda row: row["steps"])
+        curves = list(dict.fromkeys(curve_key(row) for row in rows))
+        settings_vary = len({key[1:] for key in curves}) > 1  # name lr and batch only when they differ
+        for key in curves:
+            points = sorted((row for row in rows if curve_key(row) == key), key=lambda row: row["steps"])
             minutes = [row["train_seconds"] / 60 for row in points]
             gap = [100 * row[f"{views}/azimuth_gap_closed"] for row in points]
-            axis.plot(minutes, gap, marker="o", label=f"{size} ({points[0]['unet_parameters'] / 1e6:.1f} M)")
+            label = f"{key[0]} ({points[0]['unet_parameters'] / 1e6:.1f} M)"
+            if settings_vary:
+                label += f", lr {key[1]:g}, batch {key[2]}"
+            axis.plot(minutes, gap, marker="o", label=label)
         axis.axhline(0, color="grey", linewidth=0.8)
         axis.set_title(f"{views} views")
         axis.set_xlabel("training minutes")

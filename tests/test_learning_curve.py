@@ -24,6 +24,7 @@ def fake_stages(monkeypatch: pytest.MonkeyPatch, calls: list) -> None:
         steps = int(flag(argv, "--max_train_steps"))
         run_dir = Path(flag(argv, "--output_dir"))
         calls.append(("finetune", flag(argv, "--size"), steps, flag(argv, "--resume_from_checkpoint")))
+        calls.append(("run_dir", run_dir.name, flag(argv, "--learning_rate"), flag(argv, "--train_batch_size")))
         unet = run_dir / "pipeline" / "unet"
         unet.mkdir(parents=True, exist_ok=True)
         weights = {"a": torch.zeros(3, 4), "b": torch.zeros(5)}
@@ -59,22 +60,32 @@ def test_one_row_per_chunk_and_a_rerun_continues_after_the_last_row(tmp_path, mo
     chunks = ("--sizes", "micro", "--chunk_steps", "200", "--max_steps")
     rows = learning_curve.main(argv_for(tmp_path, *chunks, "400"))
     assert [(row["size"], row["steps"]) for row in rows] == [("micro", 200), ("micro", 400)]
-    assert calls == [("finetune", "micro", 200, "latest"), ("evaluate", 200),
-                     ("finetune", "micro", 400, "latest"), ("evaluate", 400)]  # fmt: skip
+    run_dir = ("run_dir", "micro_lr0.001_b16", "0.001", "16")
+    assert calls == [("finetune", "micro", 200, "latest"), run_dir, ("evaluate", 200),
+                     ("finetune", "micro", 400, "latest"), run_dir, ("evaluate", 400)]  # fmt: skip
+    assert (rows[1]["learning_rate"], rows[1]["train_batch_size"]) == (1e-3, 16)
     assert rows[1]["seen/azimuth_error_deg"] == pytest.approx(96.0)
     assert rows[1]["pose_following_error_deg"] == pytest.approx(86.0)
     assert rows[1]["unet_parameters"] == 17  # 3 x 4 + 5, from the safetensors header
-    chunk_seconds = json.loads((tmp_path / "runs" / "micro" / "chunk_seconds.json").read_text())
+    chunk_seconds = json.loads((tmp_path / "runs" / "micro_lr0.001_b16" / "chunk_seconds.json").read_text())
     assert set(chunk_seconds) == {"200", "400"}
     assert rows[0]["train_seconds"] == chunk_seconds["200"]
     assert rows[1]["train_seconds"] == pytest.approx(chunk_seconds["200"] + chunk_seconds["400"], abs=0.05)
     # a longer curve keeps the two points written and trains only the new chunk
     calls.clear()
     rows = learning_curve.main(argv_for(tmp_path, *chunks, "600", "--plot", str(tmp_path / "curve.png")))
-    assert calls == [("finetune", "micro", 600, "latest"), ("evaluate", 600)]
+    assert calls == [("finetune", "micro", 600, "latest"), run_dir, ("evaluate", 600)]
     assert [row["steps"] for row in rows] == [200, 400, 600]
     assert len((tmp_path / "curve.jsonl").read_text().splitlines()) == 3
     assert (tmp_path / "curve.png").stat().st_size > 0
+    # another batch size in the same --work_dir and --out is its own curve: own folder, all its chunks
+    calls.clear()
+    rows = learning_curve.main(argv_for(tmp_path, *chunks, "400", "--train_batch_size", "32"))
+    other = ("run_dir", "micro_lr0.001_b32", "0.001", "32")
+    assert calls == [("finetune", "micro", 200, "latest"), other, ("evaluate", 200),
+                     ("finetune", "micro", 400, "latest"), other, ("evaluate", 400)]  # fmt: skip
+    assert [(row["train_batch_size"], row["steps"]) for row in rows] == [(16, 200), (16, 400), (16, 600),
+                                                                        (32, 200), (32, 400)]  # fmt: skip
 
 
 def test_bad_arguments_are_refused_before_any_training(tmp_path, monkeypatch) -> None:
@@ -103,7 +114,7 @@ def test_a_chunk_trained_before_a_crash_is_evaluated_without_training_it_again(t
     argv = argv_for(tmp_path, "--sizes", "micro", "--chunk_steps", "200", "--max_steps", "200")
     with pytest.raises(KeyboardInterrupt):
         learning_curve.main(argv)
-    seconds = json.loads((tmp_path / "runs" / "micro" / "chunk_seconds.json").read_text())["200"]
+    seconds = json.loads((tmp_path / "runs" / "micro_lr0.001_b16" / "chunk_seconds.json").read_text())["200"]
     monkeypatch.setattr(learning_curve.evaluate, "main", evaluate)
     calls.clear()
     rows = learning_curve.main(argv)
