@@ -24,7 +24,8 @@ def fake_stages(monkeypatch: pytest.MonkeyPatch, calls: list) -> None:
         steps = int(flag(argv, "--max_train_steps"))
         run_dir = Path(flag(argv, "--output_dir"))
         calls.append(("finetune", flag(argv, "--size"), steps, flag(argv, "--resume_from_checkpoint")))
-        calls.append(("run_dir", run_dir.name, flag(argv, "--learning_rate"), flag(argv, "--train_batch_size")))
+        settings = flag(argv, "--learning_rate"), flag(argv, "--train_batch_size")
+        calls.append(("run_dir", run_dir.name, *settings))
         unet = run_dir / "pipeline" / "unet"
         unet.mkdir(parents=True, exist_ok=True)
         weights = {"a": torch.zeros(3, 4), "b": torch.zeros(5)}
