@@ -139,7 +139,7 @@ DEFAULT_PRESET = Preset(
 PRESETS: dict[str, Preset] = {
     "default": DEFAULT_PRESET,
     # Target 2 of issue 9: the same simulated data, the default's VAE trained 1,500 steps instead of 540 and
-    # 15,000 base steps (the seen class is kept in 89 % of views after 15,000, 77 % after 6,000); about 50 min
+    # 15,000 base steps (the seen class is kept in 87-89 % of views after 15,000, 77 % after 6,000); 50 min
     # on an otherwise idle 2-core CPU (docs/results/learning.md, 6d and 8c)
     "long": dataclasses.replace(
         DEFAULT_PRESET, vae_steps=1500, base_steps=15000, finetune_steps=600, eval_n=256,
