@@ -173,10 +173,10 @@ def plot_curves(rows: list[dict], path: str | Path) -> Path:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    curves = list(dict.fromkeys(curve_key(row) for row in rows))
+    settings_vary = len({key[1:] for key in curves}) > 1  # name lr and batch only when they differ
     figure, axes = plt.subplots(1, 2, figsize=(10, 4), sharey=True)
     for axis, views in zip(axes, ("seen", "unseen")):
-        curves = list(dict.fromkeys(curve_key(row) for row in rows))
-        settings_vary = len({key[1:] for key in curves}) > 1  # name lr and batch only when they differ
         for key in curves:
             points = sorted((row for row in rows if curve_key(row) == key), key=lambda row: row["steps"])
             minutes = [row["train_seconds"] / 60 for row in points]
