@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
+import shutil
 import warnings
 from pathlib import Path
 
@@ -111,7 +113,9 @@ def test_presets_vae_groups_divide_the_widths() -> None:
 
 
 @pytest.mark.slow
-def test_quickstart_smoke_on_a_given_folder_with_the_extended_protocol(tmp_path: Path) -> None:
+def test_quickstart_smoke_on_a_given_folder_with_the_extended_protocol(
+    tmp_path: Path, caplog: pytest.LogCaptureFixture
+) -> None:
     data = tmp_path / "chips"
     simulate_dataset(data, classes=("TANK", "APC"), instances=1, azimuth_step_deg=60.0, size=32, seed=0)
     out = tmp_path / "run"
@@ -128,3 +132,20 @@ def test_quickstart_smoke_on_a_given_folder_with_the_extended_protocol(tmp_path:
     assert not (out / "data").exists()
     assert json.loads((out / "preset.json").read_text())["base_steps"] == 3
     assert json.loads((out / "base" / "train_state.json").read_text())["global_step"] == 3
+    # Interrupted after step 2 of the base stage: the re-run resumes from checkpoint-2 (the preset keeps the
+    # last two) and exports the same weights as the uninterrupted run; every later stage is reused.
+    base = out / "base"
+    assert sorted(path.name for path in base.glob("checkpoint-*")) == ["checkpoint-2", "checkpoint-3"]
+    weights = (base / "pipeline" / "unet" / "diffusion_pytorch_model.safetensors").read_bytes()
+    shutil.rmtree(base / "pipeline")
+    shutil.rmtree(base / "checkpoint-3")
+    with warnings.catch_warnings(), caplog.at_level(logging.INFO):
+        warnings.simplefilter("ignore")
+        quickstart.main(
+            ["--output_dir", str(out), "--preset", "smoke", "--data", str(data), "--protocol", "extended",
+             "--override", "base_steps=3"]
+        )  # fmt: skip
+    assert "resumed from" in caplog.text and "checkpoint-2 at step 2" in caplog.text
+    assert (base / "pipeline" / "unet" / "diffusion_pytorch_model.safetensors").read_bytes() == weights
+    timings = json.loads((out / "timings.json").read_text())
+    assert {name for name, seconds in timings.items() if seconds > 0} == {"base model"}

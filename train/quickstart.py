@@ -18,7 +18,8 @@ On a 2-core CPU in about twelve minutes (default preset) it
 7. writes `report.md` with the tables and figures.
 
 Every stage calls the stage script's `main(argv)` (imported as `train.<name>`) in this process and is
-skipped when its output already exists, so an interrupted run continues where it stopped, and a re-run
+skipped when its output already exists, and each training stage resumes from its newest checkpoint
+(`Preset.checkpointing_steps`), so an interrupted run continues where it stopped, and a re-run
 with more `--lambdas` trains only the new fine-tunes (then evaluates them all on the same pairs); a
 re-run with other preset values (`--preset`, `--override`) in the same folder is refused. Presets:
 `default` (~12 min), `long` (~50 min, the simulator), `mstar` (real chips, ~80 min) and `smoke` (tiny
@@ -91,8 +92,13 @@ class Preset:
     lr_warmup_steps: int = 0  # its warm-up steps (each stage)
     ema_decay: float | None = None  # EMA of the exported UNet (None: the last weights)
     train_image_encoder: bool = False  # train the (random) CLIP tower with the UNet
+    # every training stage (SimCLR, VAE, base model, fine-tunes) saves a resumable checkpoint every this
+    # many steps and keeps the last two; a re-run resumes an interrupted stage from its newest intact one
+    checkpointing_steps: int = 1000
 
     def __post_init__(self) -> None:
+        if self.checkpointing_steps < 1:
+            raise ValueError(f"checkpointing_steps must be >= 1, got {self.checkpointing_steps}")
         if any(width % self.vae_norm_groups for width in self.vae_widths):
             raise ValueError(
                 f"vae_norm_groups {self.vae_norm_groups} must divide each of vae_widths {self.vae_widths}"
@@ -188,6 +194,7 @@ PRESETS: dict[str, Preset] = {
         lr_warmup_steps=1,
         ema_decay=0.9,
         train_image_encoder=True,
+        checkpointing_steps=1,
     ),
 }
 
@@ -368,7 +375,9 @@ def main(argv: Sequence[str] | None = None) -> Path:
         "global_batch_size": preset.simclr_batch_size,
         "max_train_steps": preset.simclr_steps,
         "epochs": 10_000,
-        "checkpointing_steps": 10_000,
+        "checkpointing_steps": preset.checkpointing_steps,
+        "checkpoints_total_limit": 2,
+        "resume_from_checkpoint": "latest",
         "report_to": "none",
     }
     run_stage("simclr", simclr_dir / "encoder" / "model.safetensors", timings, pretrain_simclr.main,
@@ -391,7 +400,9 @@ def main(argv: Sequence[str] | None = None) -> Path:
         "max_train_steps": preset.vae_steps,
         "learning_rate": 1e-3,
         "num_eval_images": 16,
-        "checkpointing_steps": 10_000,
+        "checkpointing_steps": preset.checkpointing_steps,
+        "checkpoints_total_limit": 2,
+        "resume_from_checkpoint": "latest",
         "report_to": "none",
     }
     # decibel_scaling.json is the last file train_vae writes into its VAE folder
@@ -416,7 +427,9 @@ def main(argv: Sequence[str] | None = None) -> Path:
             "use_ema": preset.ema_decay is not None,
             "train_image_encoder": preset.train_image_encoder,
             "validation_steps": 0,
-            "checkpointing_steps": 10_000,
+            "checkpointing_steps": preset.checkpointing_steps,
+            "checkpoints_total_limit": 2,
+            "resume_from_checkpoint": "latest",
             "report_to": "none",
         }
         if preset.ema_decay is not None:
