@@ -144,11 +144,12 @@ DEFAULT_PRESET = Preset(
 
 PRESETS: dict[str, Preset] = {
     "default": DEFAULT_PRESET,
-    # Target 2 of issue 9: the same simulated data, the default's VAE trained 1,500 steps instead of 540 and
-    # 15,000 base steps (the seen class is kept in 87-89 % of views after 15,000, 77 % after 6,000); 50 min
-    # on an otherwise idle 2-core CPU (docs/results/learning.md, 6d and 8c)
+    # Target 2 of issue 9: the same simulated data, the default's VAE trained 3,000 steps instead of 540 and
+    # 15,000 base steps (the seen class is kept in 83-85 % of views after 15,000 steps on the 1,500-step
+    # VAE, 77 % after 6,000, 91 % on the 3,000-step VAE); under 60 min on an otherwise idle 2-core CPU
+    # (docs/results/learning.md, sections 6d, 8c and 9)
     "long": dataclasses.replace(
-        DEFAULT_PRESET, vae_steps=1500, base_steps=15000, finetune_steps=600, eval_n=256,
+        DEFAULT_PRESET, vae_steps=3000, base_steps=15000, finetune_steps=600, eval_n=256,
         speed_steps=(5, 10, 20, 50), speed_n=32,
     ),
     # Real chips (`--data /path/to/mstar --protocol ood-T72` or `extended`): 64 px centre crops at the
