@@ -12,7 +12,7 @@ from pathlib import Path
 import pytest
 
 from sar_zero123.sim import simulate_dataset
-from train import quickstart, train_evaluators
+from train import finetune_pfm, pretrain_simclr, quickstart, train_evaluators, train_vae
 
 
 def test_script_argv_builds_flags_and_rejects_undeclared_options() -> None:
@@ -20,6 +20,9 @@ def test_script_argv_builds_flags_and_rejects_undeclared_options() -> None:
     assert argv == ["--epochs", "2", "--no-cifar_stem", "--depths", "1", "1"]
     with pytest.raises(ValueError, match="no option 'report_to'"):
         quickstart.script_argv(train_evaluators, {"epochs": 2, "report_to": "none"})
+    # the preset's mixed precision reaches every training stage under the option's own name
+    for module in (pretrain_simclr, train_vae, finetune_pfm, train_evaluators):
+        assert quickstart.script_argv(module, {"mixed_precision": "bf16"}) == ["--mixed_precision", "bf16"]
 
 
 @pytest.mark.slow
@@ -98,6 +101,7 @@ def test_overrides_replace_preset_fields_with_typed_literals() -> None:
         ("estimate_input_azimuth=1", "takes a bool"),
         ("classes=APC", "classes takes a tuple"),
         ("vae_widths=12,24,36", "vae_norm_groups 8 must divide"),
+        ("mixed_precision=fp8", "mixed_precision must be 'no', 'fp16' or 'bf16', got 'fp8'"),
     ]:
         with pytest.raises(ValueError, match=message):
             quickstart.apply_overrides(quickstart.PRESETS["default"], [item])

@@ -95,10 +95,15 @@ class Preset:
     # every training stage (SimCLR, VAE, base model, fine-tunes) saves a resumable checkpoint every this
     # many steps and keeps the last two; a re-run resumes an interrupted stage from its newest intact one
     checkpointing_steps: int = 1000
+    # accelerate mixed precision of every training stage ("bf16" on a recent GPU); the evaluation samples
+    # in float32 either way
+    mixed_precision: str = "no"
 
     def __post_init__(self) -> None:
         if self.checkpointing_steps < 1:
             raise ValueError(f"checkpointing_steps must be >= 1, got {self.checkpointing_steps}")
+        if self.mixed_precision not in ("no", "fp16", "bf16"):
+            raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
         if any(width % self.vae_norm_groups for width in self.vae_widths):
             raise ValueError(
                 f"vae_norm_groups {self.vae_norm_groups} must divide each of vae_widths {self.vae_widths}"
@@ -341,6 +346,8 @@ def main(argv: Sequence[str] | None = None) -> Path:
     held_out = protocol[len("ood-") :] if protocol.startswith("ood-") else None
     data = out / "data" if config.data is None else Path(config.data)
     common = {"data": str(data), "seed": config.seed, "image_size": preset.image_size}
+    # the training stages (the evaluation script has no such option)
+    training = {"mixed_precision": preset.mixed_precision}
     encoder_shape = {
         "cifar_stem": preset.encoder_cifar_stem,
         "depths": preset.encoder_depths,
@@ -368,6 +375,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     simclr_dir = out / "simclr"
     simclr_args = {
         **common,
+        **training,
         **encoder_shape,
         "output_dir": str(simclr_dir),
         "protocol": protocol,
@@ -391,6 +399,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     vae_shape = SAR_ZERO123_SIZES[preset.model_size]["vae"]
     vae_args = {
         **common,
+        **training,
         "output_dir": str(vae_run),
         "protocol": protocol,
         "block_out_channels": preset.vae_widths,
@@ -414,6 +423,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     def finetune_stage(name: str, run_dir: Path, steps: int, weight: float, pretrained: Path | None) -> Path:
         finetune_args = {
             **common,
+            **training,
             "output_dir": str(run_dir),
             "protocol": protocol,
             "pfm_weight": weight,
@@ -458,6 +468,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     evaluator_dir = out / "evaluators"
     evaluator_args = {
         **common,
+        **training,
         **encoder_shape,
         "output_dir": str(evaluator_dir),
         "epochs": preset.evaluator_epochs,
