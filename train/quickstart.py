@@ -150,9 +150,9 @@ DEFAULT_PRESET = Preset(
 PRESETS: dict[str, Preset] = {
     "default": DEFAULT_PRESET,
     # Target 2 of issue 9: the same simulated data, the default's VAE trained 3,000 steps instead of 540 and
-    # 15,000 base steps (the seen class is kept in 83-85 % of views after 15,000 steps on the 1,500-step
-    # VAE, 77 % after 6,000, 91 % on the 3,000-step VAE); under 60 min on an otherwise idle 2-core CPU
-    # (docs/results/learning.md, sections 6d, 8c and 9)
+    # 15,000 base steps (on 512 + 512 pairs the seen class is kept in 83-85 % of views after 15,000 steps
+    # on a 1,500-step VAE, 85-91 % on the 3,000-step one; 77 % after 6,000); 50 min from a clean clone on
+    # an otherwise idle 2-core CPU (docs/results/learning.md, sections 6d, 8c and 9)
     "long": dataclasses.replace(
         DEFAULT_PRESET, vae_steps=3000, base_steps=15000, finetune_steps=600, eval_n=256,
         speed_steps=(5, 10, 20, 50), speed_n=32,
