@@ -23,6 +23,13 @@ def test_script_argv_builds_flags_and_rejects_undeclared_options() -> None:
     # the preset's mixed precision reaches every training stage under the option's own name
     for module in (pretrain_simclr, train_vae, finetune_pfm, train_evaluators):
         assert quickstart.script_argv(module, {"mixed_precision": "bf16"}) == ["--mixed_precision", "bf16"]
+    # the preset's training target and loss weighting are the fine-tuning script's options
+    recipe = {"prediction_type": "v_prediction", "snr_gamma": 5.0, "timestep_sampling": "logit_normal",
+              "timestep_logit_mean": 1.0}  # fmt: skip
+    assert quickstart.script_argv(finetune_pfm, recipe) == [
+        "--prediction_type", "v_prediction", "--snr_gamma", "5.0", "--timestep_sampling", "logit_normal",
+        "--timestep_logit_mean", "1.0",
+    ]  # fmt: skip
 
 
 @pytest.mark.slow
@@ -102,6 +109,9 @@ def test_overrides_replace_preset_fields_with_typed_literals() -> None:
         ("classes=APC", "classes takes a tuple"),
         ("vae_widths=12,24,36", "vae_norm_groups 8 must divide"),
         ("mixed_precision=fp8", "mixed_precision must be 'no', 'fp16' or 'bf16', got 'fp8'"),
+        ("prediction_type=sample", "prediction_type must be 'epsilon' or 'v_prediction', got 'sample'"),
+        ("timestep_sampling=beta", "timestep_sampling must be 'uniform' or 'logit_normal', got 'beta'"),
+        ("snr_gamma=0", "snr_gamma must be > 0 or None, got 0"),
     ]:
         with pytest.raises(ValueError, match=message):
             quickstart.apply_overrides(quickstart.PRESETS["default"], [item])

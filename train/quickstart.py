@@ -92,6 +92,12 @@ class Preset:
     lr_warmup_steps: int = 0  # its warm-up steps (each stage)
     ema_decay: float | None = None  # EMA of the exported UNet (None: the last weights)
     train_image_encoder: bool = False  # train the (random) CLIP tower with the UNet
+    # the base model's training target and loss weighting (finetune_pfm.py's fields of the same names; the
+    # fine-tunes inherit the prediction type from the base model's scheduler)
+    prediction_type: str = "epsilon"  # "epsilon" (zero-1-to-3, the paper) or "v_prediction"
+    snr_gamma: float | None = None  # Min-SNR-gamma weighting of L_simple in every stage (None: unweighted)
+    timestep_sampling: str = "uniform"  # training t density of every stage: "uniform" or "logit_normal"
+    timestep_logit_mean: float = 0.0  # logit_normal: mean of logit(t / T) (> 0 favours high noise)
     # every training stage (SimCLR, VAE, base model, fine-tunes) saves a resumable checkpoint every this
     # many steps and keeps the last two; a re-run resumes an interrupted stage from its newest intact one
     checkpointing_steps: int = 1000
@@ -104,6 +110,16 @@ class Preset:
             raise ValueError(f"checkpointing_steps must be >= 1, got {self.checkpointing_steps}")
         if self.mixed_precision not in ("no", "fp16", "bf16"):
             raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
+        if self.prediction_type not in ("epsilon", "v_prediction"):
+            raise ValueError(
+                f"prediction_type must be 'epsilon' or 'v_prediction', got {self.prediction_type!r}"
+            )
+        if self.timestep_sampling not in ("uniform", "logit_normal"):
+            raise ValueError(
+                f"timestep_sampling must be 'uniform' or 'logit_normal', got {self.timestep_sampling!r}"
+            )
+        if self.snr_gamma is not None and self.snr_gamma <= 0:
+            raise ValueError(f"snr_gamma must be > 0 or None, got {self.snr_gamma}")
         if any(width % self.vae_norm_groups for width in self.vae_widths):
             raise ValueError(
                 f"vae_norm_groups {self.vae_norm_groups} must divide each of vae_widths {self.vae_widths}"
@@ -200,6 +216,9 @@ PRESETS: dict[str, Preset] = {
         lr_warmup_steps=1,
         ema_decay=0.9,
         train_image_encoder=True,
+        prediction_type="v_prediction",
+        snr_gamma=5.0,
+        timestep_sampling="logit_normal",
         checkpointing_steps=1,
     ),
 }
@@ -437,6 +456,8 @@ def main(argv: Sequence[str] | None = None) -> Path:
             "lr_warmup_steps": preset.lr_warmup_steps,
             "use_ema": preset.ema_decay is not None,
             "train_image_encoder": preset.train_image_encoder,
+            "timestep_sampling": preset.timestep_sampling,
+            "timestep_logit_mean": preset.timestep_logit_mean,
             "validation_steps": 0,
             "checkpointing_steps": preset.checkpointing_steps,
             "checkpoints_total_limit": 2,
@@ -445,11 +466,14 @@ def main(argv: Sequence[str] | None = None) -> Path:
         }
         if preset.ema_decay is not None:
             finetune_args["ema_decay"] = preset.ema_decay
+        if preset.snr_gamma is not None:
+            finetune_args["snr_gamma"] = preset.snr_gamma
         if preset.pfm_projection_dim is not None:
             finetune_args["pfm_projection_dim"] = preset.pfm_projection_dim
         if pretrained is None:
             finetune_args["size"] = preset.model_size
             finetune_args["estimate_input_azimuth"] = preset.estimate_input_azimuth
+            finetune_args["prediction_type"] = preset.prediction_type
         else:
             finetune_args["pretrained"] = str(pretrained)
         done = run_dir / "pipeline" / "model_index.json"
