@@ -171,13 +171,13 @@ DEFAULT_PRESET = Preset(
 PRESETS: dict[str, Preset] = {
     "default": DEFAULT_PRESET,
     # Target 2 of issue 9: the same simulated data, the default's VAE trained 3,000 steps instead of 540 and
-    # 15,000 base steps (on 512 + 512 pairs the seen class is kept in 83-85 % of views after 15,000 steps
-    # on a 1,500-step VAE, 85-91 % on the 3,000-step one; 77 % after 6,000); 50 min from a clean clone on
-    # an otherwise idle 2-core CPU (docs/results/learning.md, sections 6d, 8c and 9)
+    # 15,000 base steps, with the default's v prediction and Min-SNR-5 (on 512 + 512 pairs the seen class
+    # is kept in 91.6 % of views against 88.1 % for epsilon L_simple on the same data, VAE and evaluators,
+    # and 85-91 % across five epsilon models); 39-50 min on an otherwise idle 2-core CPU
+    # (docs/results/learning.md, sections 6d, 8c, 9 and 9i)
     "long": dataclasses.replace(
         DEFAULT_PRESET, vae_steps=3000, base_steps=15000, finetune_steps=600, eval_n=256,
         speed_steps=(5, 10, 20, 50), speed_n=32,
-        prediction_type="epsilon", snr_gamma=None,  # as measured (epsilon L_simple; sections 8c-9g)
     ),
     # Real chips (`--data /path/to/mstar --protocol ood-T72` or `extended`): 64 px centre crops at the
     # native 0.2 m spacing, about 6,000 training chips, so fewer evaluator epochs and more base steps, and
