@@ -236,7 +236,7 @@ class QuickstartConfig:
     """Simulate (or read `data`), pretrain SimCLR, fine-tune each lambda, train evaluators, evaluate."""
 
     output_dir: str = "runs/quickstart"  # run folder (every stage writes a subfolder; report.md at the top)
-    # "default" (~12 min on 2 CPU cores), "long" (~50 min), "mstar" (real data, ~80 min) or "smoke" (seconds)
+    # "default" (~12 min on 2 CPU cores), "long" (40-50 min), "mstar" (real data, ~80 min), "smoke" (seconds)
     preset: Literal["default", "long", "mstar", "smoke"] = "default"
     data: str | None = None  # chip folder (index.csv or raw MSTAR files); None simulates the preset's classes
     protocol: str | None = None  # "extended" or "ood-<CLASS>"; None = ood-<last simulated class>
