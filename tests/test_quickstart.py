@@ -56,6 +56,11 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
         assert (settings["lr_scheduler"], settings["lr_warmup_steps"]) == ("cosine", 1)
         assert (settings["use_ema"], settings["ema_decay"]) == (True, 0.9)
         assert settings["train_image_encoder"]
+        assert (settings["snr_gamma"], settings["timestep_sampling"]) == (5.0, "logit_normal")
+        # the prediction type is the base model's; the fine-tunes inherit it from its scheduler
+        assert settings["prediction_type"] == ("v_prediction" if stage == "base" else None)
+        scheduler = json.loads((out / stage / "pipeline" / "scheduler" / "scheduler_config.json").read_text())
+        assert scheduler["prediction_type"] == "v_prediction"
     metrics = json.loads((out / "evaluators" / "metrics.json").read_text())
     assert set(metrics["models"]) == {"classifier", "regressor", "probe:simclr"}
     assert metrics["class_names"] == ["APC", "TANK", "TRUCK"]  # the held-out TRUCK included

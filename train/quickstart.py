@@ -173,7 +173,7 @@ PRESETS: dict[str, Preset] = {
     # Target 2 of issue 9: the same simulated data, the default's VAE trained 3,000 steps instead of 540 and
     # 15,000 base steps, with the default's v prediction and Min-SNR-5 (on 512 + 512 pairs the seen class
     # is kept in 91.6 % of views against 88.1 % for epsilon L_simple on the same data, VAE and evaluators,
-    # and 85-91 % across five epsilon models); 39-50 min on an otherwise idle 2-core CPU
+    # and 85-91 % across five epsilon models); 40-50 min on an otherwise idle 2-core CPU
     # (docs/results/learning.md, sections 6d, 8c, 9 and 9i)
     "long": dataclasses.replace(
         DEFAULT_PRESET, vae_steps=3000, base_steps=15000, finetune_steps=600, eval_n=256,
