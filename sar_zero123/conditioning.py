@@ -74,8 +74,10 @@ def as_angle_tensor(value: float | torch.Tensor | list[float], name: str) -> tor
 def embed_pose(
     d_az_deg: float | list[float] | torch.Tensor,
     d_el_deg: float | list[float] | torch.Tensor,
+    input_depression_deg: float | list[float] | torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """Relative-pose vector of zero-1-to-3, ``[d_el_rad, sin(d_az), cos(d_az), 0]``.
+    """Relative-pose vector of zero-1-to-3, ``[d_el_rad, sin(d_az), cos(d_az), 0]``, or Stable Zero123's
+    ``[d_el_rad, sin(d_az), cos(d_az), input_depression_rad]`` when ``input_depression_deg`` is given.
 
     Convention (SAR geometry mapped onto zero-1-to-3's spherical camera):
 
@@ -90,11 +92,16 @@ def embed_pose(
       increase reads as a camera moving toward the horizon. Fine-tuning on SAR pairs learns the
       convention; we keep it so that the numbers equal the authors' (tests compare with both formulas).
     - The fourth entry, zero-1-to-3's camera-distance delta, is 0: SAR chips are range-normalised.
+      Stable Zero123 puts the input view's absolute elevation there instead; with ``input_depression_deg``
+      the input chip's absolute depression (radians) fills it, since a depression change reshapes a chip
+      by an amount that depends on where it starts (shadow length ~ 1 / tan(depression)).
 
     Args:
         d_az_deg: Azimuth delta(s) in degrees: a scalar or one value per sample.
         d_el_deg: Depression delta(s) in degrees: a scalar or one value per sample. Scalars broadcast
             against the other argument.
+        input_depression_deg: The input chip's absolute depression(s) in degrees (fourth slot), or
+            ``None`` for zero-1-to-3's 0.
 
     Returns:
         The pose vectors, float32 on the CPU (move them with ``.to``).
@@ -113,12 +120,21 @@ def embed_pose(
             f"`d_az_deg` ({d_az.numel()} values) and `d_el_deg` ({d_el.numel()} values) must have the same "
             "length or one of them must be a scalar"
         )
-    d_az, d_el = torch.broadcast_tensors(d_az, d_el)
+    depression = torch.zeros(1, dtype=d_el.dtype)
+    if input_depression_deg is not None:
+        depression = as_angle_tensor(input_depression_deg, "input_depression_deg")
+        lengths = {d_az.numel(), d_el.numel(), depression.numel()} - {1}
+        if len(lengths) > 1:
+            raise ValueError(
+                f"`input_depression_deg` ({depression.numel()} values) must be a scalar or match the "
+                f"{max(d_az.numel(), d_el.numel())} pose values"
+            )
+    d_az, d_el, depression = torch.broadcast_tensors(d_az, d_el, depression)
     # float64 for the trigonometry so that 370 and 10 give bit-identical float32 vectors.
     d_az_rad = torch.deg2rad(torch.remainder(d_az, 360.0))
     d_el_rad = torch.deg2rad(d_el)
-    d_radius = torch.zeros_like(d_el_rad)
-    pose = torch.stack([d_el_rad, torch.sin(d_az_rad), torch.cos(d_az_rad), d_radius], dim=-1)
+    fourth = torch.deg2rad(depression)  # 0 (zero-1-to-3's radius delta) unless a depression was given
+    pose = torch.stack([d_el_rad, torch.sin(d_az_rad), torch.cos(d_az_rad), fourth], dim=-1)
     return pose.to(torch.float32).unsqueeze(1)  # (B, 1, 4)
 
 
@@ -134,14 +150,32 @@ class PoseProjection(ModelMixin, ConfigMixin):
     Args:
         in_features: Image-embedding dimension + 4 (772 for zero-1-to-3's CLIP ViT-L/14).
         out_features: Cross-attention dimension of the UNet (768 for zero-1-to-3).
+        input_depression: The pose's fourth entry is the input chip's absolute depression (Stable
+            Zero123's convention, :func:`embed_pose`) instead of 0; the pipeline then needs
+            ``input_depression_deg``.
+        trained_d_el_deg: ``[min, max]`` of the depression changes the model was trained on, or
+            ``None`` (unknown); the pipeline refuses requests outside it.
+        trained_depression_deg: ``[min, max]`` of the absolute depressions (inputs and targets) it was
+            trained on, or ``None``.
 
     Raises:
-        ValueError: If ``in_features <= 4`` or ``out_features < 1``.
+        ValueError: If ``in_features <= 4``, ``out_features < 1`` or a range is not ``[min, max]``.
     """
 
     @register_to_config
-    def __init__(self, in_features: int = 772, out_features: int = 768) -> None:
+    def __init__(
+        self,
+        in_features: int = 772,
+        out_features: int = 768,
+        input_depression: bool = False,
+        trained_d_el_deg: list[float] | None = None,
+        trained_depression_deg: list[float] | None = None,
+    ) -> None:
         super().__init__()
+        for name, value in (("trained_d_el_deg", trained_d_el_deg), ("trained_depression_deg",
+                                                                     trained_depression_deg)):
+            if value is not None and (len(value) != 2 or not float(value[0]) <= float(value[1])):
+                raise ValueError(f"`{name}` must be [min, max] in degrees or None, got {value!r}")
         if in_features <= POSE_DIM:
             raise ValueError(f"`in_features` must exceed the pose size {POSE_DIM}, got {in_features}")
         if out_features < 1:

@@ -17,10 +17,18 @@ from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
 
 from sar_zero123.checkpoints import SD_VAE_SCALING_FACTOR, ZERO123_SCHEDULER_CONFIG, CLIPImageProcessor
 from sar_zero123.conditioning import POSE_DIM, PoseProjection, downsampling_factor
+from sar_zero123.data import ViewPairDataset
 from sar_zero123.orientation import AZIMUTH_DIM, AzimuthEstimator
 from sar_zero123.pipeline import SARZero123Pipeline
 
-__all__ = ["SAR_ZERO123_SIZES", "build_sar_zero123", "check_vae_fits", "load_sar_zero123", "replace_vae"]
+__all__ = [
+    "SAR_ZERO123_SIZES",
+    "build_sar_zero123",
+    "check_vae_fits",
+    "load_sar_zero123",
+    "record_trained_pose_ranges",
+    "replace_vae",
+]
 
 SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
     # Unit tests: 32 px chips, 16x16x4 latents; well under 1 M parameters in total.
@@ -183,6 +191,7 @@ def build_sar_zero123(
     pose_in_time_embedding: bool = False,
     estimate_input_azimuth: bool = False,
     input_code_dim: int = 16,
+    input_depression: bool = False,
 ) -> SARZero123Pipeline:
     """Build a randomly initialised :class:`SARZero123Pipeline` of a named size.
 
@@ -208,6 +217,8 @@ def build_sar_zero123(
             the UNet's timestep embedding the target's estimated azimuth after the pose (implies
             ``pose_in_time_embedding``): the SAR-sized absolute-pose path (``sar_zero123.orientation``).
         input_code_dim: With ``estimate_input_azimuth``, the size of the estimator's input-view code.
+        input_depression: The pose's fourth entry is the input chip's absolute depression (Stable Zero123's
+            convention; :class:`~sar_zero123.conditioning.PoseProjection`).
 
     Returns:
         The pipeline (float32, CPU) with a zero-1-to-3 DDIM scheduler.
@@ -249,7 +260,9 @@ def build_sar_zero123(
         torch.manual_seed(seed)
         image_encoder = CLIPVisionModelWithProjection(clip_config)
         # nn.Linear draws its default init before PoseProjection overwrites it: keep that inside too.
-        pose_projection = PoseProjection(clip_config.projection_dim + POSE_DIM, cross_attention_dim)
+        pose_projection = PoseProjection(
+            clip_config.projection_dim + POSE_DIM, cross_attention_dim, input_depression=input_depression
+        )
         azimuth_estimator = None
         if estimate_input_azimuth:
             torch.manual_seed(seed)
@@ -281,14 +294,15 @@ def load_sar_zero123(
     input_code_dim: int = 16,
     prediction_type: Literal["epsilon", "v_prediction"] | None = None,
     vae: str | os.PathLike | None = None,
+    input_depression: bool = False,
 ) -> SARZero123Pipeline:
     """The pipeline a run starts from: a saved or zero-1-to-3 checkpoint, or a new model of a named size.
 
     Args:
         pretrained: A ``save_pretrained`` folder (``model_index.json``), any zero-1-to-3 layout
             (:meth:`SARZero123Pipeline.from_zero123`), or ``None`` to :func:`build_sar_zero123`.
-        size, image_size, seed, pose_in_time_embedding, estimate_input_azimuth, input_code_dim: For
-            ``pretrained=None``, see
+        size, image_size, seed, pose_in_time_embedding, estimate_input_azimuth, input_code_dim,
+            input_depression: For ``pretrained=None``, see
             :func:`build_sar_zero123`.
         prediction_type: Replace the scheduler's prediction type (only meaningful for a new model: a
             checkpoint keeps the one it was trained with).
@@ -309,6 +323,7 @@ def load_sar_zero123(
             pose_in_time_embedding=pose_in_time_embedding,
             estimate_input_azimuth=estimate_input_azimuth,
             input_code_dim=input_code_dim,
+            input_depression=input_depression,
         )
     else:
         path = Path(pretrained)
@@ -370,3 +385,30 @@ def replace_vae(pipe: SARZero123Pipeline, path: str | os.PathLike) -> SARZero123
     check_vae_fits(vae, pipe, name=f"vae: {str(path)!r}")
     # `pipe.components`, not `from_pipe`: that casts every module to one dtype (float32 by default)
     return SARZero123Pipeline(**{**pipe.components, "vae": vae.eval()})
+
+
+def record_trained_pose_ranges(pose_projection: PoseProjection, pairs: ViewPairDataset) -> tuple[list, list]:
+    """Widen the pose projection's recorded training ranges to cover ``pairs`` (saved with its config).
+
+    ``trained_d_el_deg`` becomes the union of its current range and the pairs' ``d_el``;
+    ``trained_depression_deg`` the union with the depressions of the pairs' chips. A pipeline refuses
+    requests outside them (:meth:`SARZero123Pipeline.__call__`), and a fine-tune of a pretrained prior keeps
+    the prior's ranges.
+
+    Returns:
+        The new ``(trained_d_el_deg, trained_depression_deg)``.
+    """
+    d_el, depressions = [], []
+    for index in range(len(pairs)):
+        fields = pairs.pair_fields(index)
+        d_el.append(fields["d_el_deg"])
+        depressions += [fields["input_depression_deg"], fields["target_depression_deg"]]
+    ranges = []
+    for name, values in (("trained_d_el_deg", d_el), ("trained_depression_deg", depressions)):
+        old = getattr(pose_projection.config, name, None)
+        low, high = min(values), max(values)
+        if old is not None:
+            low, high = min(low, float(old[0])), max(high, float(old[1]))
+        ranges.append([round(low, 4), round(high, 4)])
+    pose_projection.register_to_config(trained_d_el_deg=ranges[0], trained_depression_deg=ranges[1])
+    return ranges[0], ranges[1]

@@ -355,6 +355,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         image: ImageInput,
         d_az: float | Sequence[float] | torch.Tensor,
         d_el: float | Sequence[float] | torch.Tensor = 0.0,
+        input_depression_deg: float | Sequence[float] | torch.Tensor | None = None,
         num_inference_steps: int = 50,
         guidance_scale: float = 3.0,
         num_images_per_prompt: int = 1,
@@ -375,6 +376,11 @@ class SARZero123Pipeline(DiffusionPipeline):
             d_az: Azimuth delta in degrees (target - input); a scalar or one value per input image.
                 Any real value (370 == 10).
             d_el: Depression delta in degrees (target - input); a scalar or one value per input image.
+            input_depression_deg: The input chip's absolute depression in degrees (a scalar or one value
+                per input image), from its metadata; required by a pipeline whose pose carries it
+                (``pose_projection.config.input_depression``), ignored otherwise. Requests outside the
+                ranges the pipeline was trained on (``trained_d_el_deg``, ``trained_depression_deg`` of
+                its pose projection) are refused.
             num_inference_steps: Number of denoising steps.
             guidance_scale: Classifier-free guidance weight; guidance is off when ``<= 1``.
             num_images_per_prompt: Samples per input image.
@@ -408,6 +414,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         images = self.preprocess_image(image)
         batch_size = images.shape[0]
         pose = _broadcast_pose(d_az, d_el, batch_size)  # (B, 1, 4)
+        pose = self._pose_with_depression(pose, d_el, input_depression_deg)
         num_samples = batch_size * num_images_per_prompt
         if isinstance(generator, list) and len(generator) != num_samples:
             raise ValueError(
@@ -498,6 +505,66 @@ class SARZero123Pipeline(DiffusionPipeline):
         if not return_dict:
             return (output,)
         return SARZero123PipelineOutput(images=output)
+
+
+    def _pose_with_depression(
+        self,
+        pose: torch.Tensor,
+        d_el: float | Sequence[float] | torch.Tensor,
+        input_depression_deg: float | Sequence[float] | torch.Tensor | None,
+    ) -> torch.Tensor:
+        """``pose`` with the input's depression in its fourth entry when the pipeline takes it, after
+        checking the request against the ranges the pipeline was trained on.
+
+        Raises:
+            ValueError: naming the argument, for a missing, non-finite or mis-sized input depression, or a
+                ``d_el``, input depression or target depression outside the trained range.
+        """
+        config = self.pose_projection.config
+        batch_size = pose.shape[0]
+        d_el_values = torch.as_tensor(d_el, dtype=torch.float64).reshape(-1).expand(batch_size)
+        depression = None
+        if input_depression_deg is not None:
+            _check_real_angles(input_depression_deg, "input_depression_deg")
+            depression = as_angle_tensor(input_depression_deg, "input_depression_deg").double().reshape(-1)
+            if depression.numel() not in (1, batch_size):
+                raise ValueError(
+                    f"`input_depression_deg` has {depression.numel()} values; expected 1 or one per input "
+                    f"image ({batch_size})"
+                )
+            if float(depression.min()) <= 0.0 or float(depression.max()) >= 90.0:
+                raise ValueError(
+                    f"`input_depression_deg` must lie in (0, 90) degrees, got {depression.tolist()}"
+                )
+            depression = depression.expand(batch_size)
+        elif getattr(config, "input_depression", False):
+            raise ValueError(
+                "`input_depression_deg`: this pipeline's pose carries the input chip's absolute depression "
+                "(pose_projection.config.input_depression); give it in degrees, from the chip's metadata"
+            )
+        trained_d_el = getattr(config, "trained_d_el_deg", None)
+        if trained_d_el is not None:
+            low, high = float(trained_d_el[0]), float(trained_d_el[1])
+            if float(d_el_values.min()) < low - 1e-6 or float(d_el_values.max()) > high + 1e-6:
+                raise ValueError(
+                    f"`d_el` must lie in the trained range [{low:g}, {high:g}] degrees "
+                    f"(pose_projection.config.trained_d_el_deg), got {sorted(set(d_el_values.tolist()))}"
+                )
+        trained_depression = getattr(config, "trained_depression_deg", None)
+        if trained_depression is not None and depression is not None:
+            low, high = float(trained_depression[0]), float(trained_depression[1])
+            for name, values in (("input_depression_deg", depression), ("input_depression_deg + d_el",
+                                                                        depression + d_el_values)):
+                if float(values.min()) < low - 1e-6 or float(values.max()) > high + 1e-6:
+                    raise ValueError(
+                        f"`{name}` must lie in the trained depression range [{low:g}, {high:g}] degrees "
+                        f"(pose_projection.config.trained_depression_deg), got {sorted(set(values.tolist()))}"
+                    )
+        if not getattr(config, "input_depression", False):
+            return pose
+        pose = pose.clone()
+        pose[:, 0, 3] = torch.deg2rad(depression).to(pose.dtype)
+        return pose
 
 
 # ------------------------------------------------------------------------------------- helpers

@@ -224,8 +224,12 @@ def encode_batch(
     vae: AutoencoderKL,
     image_encoder: torch.nn.Module,
     generator: torch.Generator | None = None,
+    input_depression: bool = False,
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The conditioning and the diffusion target of a pair batch, from its cached encodings or the models.
+
+    With ``input_depression`` the pose's fourth entry is the input chip's absolute depression
+    (``batch["input_depression_deg"]``, :func:`~sar_zero123.conditioning.embed_pose`).
 
     Returns:
         ``(latents, condition_latents, image_embeds, pose)``: the scaled posterior sample of the target
@@ -254,8 +258,15 @@ def encode_batch(
         image_embeds = batch["input_image_embeds"].to(device=device, dtype=torch.float32)
     else:
         image_embeds = image_encoder(inputs).float()  # (B, 1, D)
-    pose = embed_pose(batch["d_az_deg"], batch["d_el_deg"]).to(device)  # (B, 1, 4)
+    depression = batch["input_depression_deg"] if input_depression else None
+    pose = embed_pose(batch["d_az_deg"], batch["d_el_deg"], depression).to(device)  # (B, 1, 4)
     return latents, condition_latents, image_embeds, pose
+
+
+def uses_input_depression(pose_projection: torch.nn.Module) -> bool:
+    """Whether a (possibly DDP-wrapped) :class:`PoseProjection` takes the input's absolute depression."""
+    config = getattr(pose_projection, "module", pose_projection).config
+    return bool(getattr(config, "input_depression", False))
 
 
 @torch.no_grad()
@@ -287,10 +298,13 @@ def conditioning_sensitivity(
     if batch["input"].shape[0] < 2:
         raise ValueError("conditioning_sensitivity needs a batch of at least 2 pairs")
     generator = torch.Generator().manual_seed(seed)
+    input_depression = uses_input_depression(pose_projection)
     latents, condition, embeds, pose = encode_batch(
-        batch, vae=vae, image_encoder=image_encoder, generator=generator
+        batch, vae=vae, image_encoder=image_encoder, generator=generator, input_depression=input_depression
     )
-    turned = embed_pose(torch.as_tensor(batch["d_az_deg"]) + 180.0, batch["d_el_deg"]).to(pose.device)
+    depression = batch["input_depression_deg"] if input_depression else None
+    turned = embed_pose(torch.as_tensor(batch["d_az_deg"]) + 180.0, batch["d_el_deg"], depression)
+    turned = turned.to(pose.device)
     noise = torch.randn(latents.shape, generator=generator).to(latents.device)
 
     def predict(t: torch.Tensor, condition: torch.Tensor, embeds: torch.Tensor, pose: torch.Tensor):
@@ -367,7 +381,11 @@ def compute_losses(
     """
     # 1. frozen encodings
     latents, condition_latents, image_embeds, pose = encode_batch(
-        batch, vae=vae, image_encoder=image_encoder, generator=generator
+        batch,
+        vae=vae,
+        image_encoder=image_encoder,
+        generator=generator,
+        input_depression=uses_input_depression(pose_projection),
     )
     batch_size, device = latents.shape[0], latents.device
     target_features = azimuth_loss = None

@@ -42,7 +42,7 @@ from sar_zero123.finetuning import (
     training_image_size,
 )
 from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, check_pfm_crop_size, load_pfm_encoder
-from sar_zero123.models import load_sar_zero123
+from sar_zero123.models import load_sar_zero123, record_trained_pose_ranges
 from sar_zero123.run_state import (
     check_finite_step,
     check_resume_config,
@@ -91,6 +91,9 @@ class FinetuneConfig:
     protocol: str = "extended"  # split protocol: extended, soc or ood-<CLASS> (e.g. ood-T72)
     scaling: Literal["unit", "mstar_raw", "fit"] = "unit"  # dB bounds: unit magnitude, raw MSTAR, or fitted
     max_d_az_deg: float | None = None  # largest |d_az| of a training pair in degrees; None: any
+    same_depression: bool = True  # pair only chips at one depression; False also across (d_el != 0)
+    # built sizes: the pose's 4th entry is the input chip's absolute depression (Stable Zero123's convention)
+    input_depression: bool = False
     pfm_weight: float = 4.0  # lambda of Eq. (21); 0 = plain zero-1-to-3 fine-tuning
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
     pfm_fraction: float = 1.0  # fraction of the eligible batch on which PFM is computed
@@ -155,6 +158,11 @@ class FinetuneConfig:
             raise ValueError(
                 f"drop_image_prob, drop_both_prob, drop_latent_prob must be >= 0 with sum <= 1, got {probs}"
             )
+        if self.input_depression and self.pretrained is not None:
+            raise ValueError(
+                "input_depression: only for a model built from scratch (--size); a pretrained pipeline keeps "
+                "its pose convention (pose_projection.config.input_depression)"
+            )
         if self.prediction_type is not None and self.pretrained is not None:
             raise ValueError(
                 "prediction_type: only for a model built from scratch (--size); a pretrained checkpoint "
@@ -191,6 +199,7 @@ def main(argv: list[str] | None = None) -> Path:
         input_code_dim=config.input_code_dim,
         prediction_type=config.prediction_type,
         vae=config.vae,
+        input_depression=config.input_depression,
     )
     image_size = training_image_size(pipe, config.image_size)
     encoder = None
@@ -207,7 +216,9 @@ def main(argv: list[str] | None = None) -> Path:
         max_d_az_deg=config.max_d_az_deg,
         num_validation_pairs=config.num_validation_images,
         seed=config.seed,
+        same_depression=config.same_depression,
     )
+    record_trained_pose_ranges(pipe.pose_projection, train_dataset)
     regressor = None  # validation's pose-following check
     if config.evaluators is not None and config.validation_steps:
         regressor = load_evaluators(config.evaluators).regressor

@@ -197,6 +197,7 @@ def train_validation_pairs(
     max_d_az_deg: float | None = None,
     num_validation_pairs: int = 4,
     seed: int = 0,
+    same_depression: bool = True,
 ) -> tuple[ViewPairDataset, ViewPairDataset, DecibelScaling]:
     """Training and validation view pairs of a protocol's splits, and the dB scaling both use.
 
@@ -213,6 +214,7 @@ def train_validation_pairs(
         max_d_az_deg: Largest ``|d_az|`` of a pair; ``None``: any.
         num_validation_pairs: Fixed validation pairs drawn (with seed ``seed + 1``).
         seed: Seed of the splits and of the training pairs.
+        same_depression: Pair only chips at one depression (``False``: also across depressions).
 
     Returns:
         ``(train_pairs, validation_pairs, scaling)``.
@@ -225,7 +227,12 @@ def train_validation_pairs(
         raise ValueError(f"data: protocol {protocol!r} gives an empty training split")
     decibel_scaling = DecibelScaling.from_choice(scaling, splits["train"])
     train = ViewPairDataset(
-        splits["train"], size=image_size, scaling=decibel_scaling, max_d_az_deg=max_d_az_deg, seed=seed
+        splits["train"],
+        size=image_size,
+        scaling=decibel_scaling,
+        max_d_az_deg=max_d_az_deg,
+        seed=seed,
+        same_depression=same_depression,
     )
     for name in ("val", "test", "train"):
         if not splits.get(name):
@@ -238,6 +245,7 @@ def train_validation_pairs(
                 max_d_az_deg=max_d_az_deg,
                 seed=seed + 1,
                 num_pairs=num_validation_pairs,
+                same_depression=same_depression,
             )
         except ValueError:  # no chip of this split has a partner view
             continue
