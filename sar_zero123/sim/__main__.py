@@ -38,6 +38,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     p.add_argument("--contact-sheet", action="store_true", help="also write DIR/contact_sheet.png")
     p.add_argument("--real-root", default=None, help="MSTAR image folder to show beside the simulated chips")
+    p.add_argument(
+        "--procedural-sheet",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also write DIR/procedural_sheet.png of procedural vehicles 0..N-1 at 17 and 45 deg",
+    )
     return p
 
 
@@ -70,6 +77,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             seed=args.seed,
             real_root=args.real_root,
         )
+        print(f"wrote {sheet}")
+    if args.procedural_sheet > 0:
+        from sar_zero123.sim.contact_sheet import procedural_contact_sheet
+
+        sheet = procedural_contact_sheet(out / "procedural_sheet.png", seeds=range(args.procedural_sheet))
         print(f"wrote {sheet}")
     return 0
 

@@ -110,12 +110,73 @@ def contact_sheet(
     fig.suptitle(
         f"depression {depression_deg:g} deg, radar at the bottom, {DISPLAY_RANGE_DB[0]:.0f}..0 dB", fontsize=8
     )
+    return _save_grey_png(fig, path, dpi)
+
+
+def _save_grey_png(fig, path: str | os.PathLike[str], dpi: int) -> Path:
+    """Save a grey figure as a one-channel 8-bit PNG (about 4x smaller than RGBA) and close it."""
+    import matplotlib.pyplot as plt
+
     fig.tight_layout(rect=(0.0, 0.0, 1.0, 1.0 - 0.3 / fig.get_figheight()))
     out = Path(path)
     out.parent.mkdir(parents=True, exist_ok=True)
-    # the sheet is grey: store one 8-bit channel instead of RGBA (about 4x smaller)
     buffer = io.BytesIO()
     fig.savefig(buffer, dpi=dpi, format="png")
     plt.close(fig)
     Image.open(buffer).convert("L").save(out, optimize=True)
     return out
+
+
+def procedural_contact_sheet(
+    path: str | os.PathLike[str],
+    seeds: Sequence[int] = tuple(range(24)),
+    depressions_deg: Sequence[float] = (17.0, 45.0),
+    azimuth_deg: float = 30.0,
+    size: int = 64,
+    seed: int = 0,
+    columns: int = 8,
+    dpi: int = 100,
+) -> Path:
+    """Write a PNG grid of procedural vehicles (:func:`~sar_zero123.sim.procedural.make_procedural_target`):
+    each vehicle at one azimuth and each depression side by side, so that silhouettes and shadows compare.
+
+    Args:
+        path: Output PNG path.
+        seeds: Procedural vehicle seeds shown.
+        depressions_deg: Depressions shown per vehicle (adjacent cells).
+        azimuth_deg: Azimuth of every chip.
+        size: Chip size in pixels.
+        seed: Seed of the clutter.
+        columns: Vehicles per row.
+        dpi: Resolution of the PNG.
+
+    Returns:
+        The PNG path.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    from sar_zero123.sim.procedural import make_procedural_target
+
+    seeds = [int(s) for s in seeds]
+    per_row = int(columns) * len(depressions_deg)
+    n_rows = -(-len(seeds) // int(columns))
+    fig, axes = plt.subplots(n_rows, per_row, figsize=(1.1 * per_row, 1.25 * n_rows), squeeze=False)
+    for ax in axes.flat:
+        ax.set_axis_off()
+    for i, vehicle in enumerate(seeds):
+        target = make_procedural_target(vehicle)
+        for j, depression in enumerate(depressions_deg):
+            rng = np.random.default_rng([int(seed), i, j])
+            chip = render_chip(target, azimuth_deg, depression, size, rng)
+            ax = axes[i // int(columns), (i % int(columns)) * len(depressions_deg) + j]
+            ax.imshow(to_display_db(chip), cmap="gray", vmin=DISPLAY_RANGE_DB[0], vmax=DISPLAY_RANGE_DB[1])
+            ax.set_title(f"#{vehicle} {depression:g} deg", fontsize=6, pad=1)
+    fig.suptitle(
+        f"procedural vehicles at azimuth {azimuth_deg:g} deg, depressions {list(depressions_deg)} deg, "
+        f"radar at the bottom, {DISPLAY_RANGE_DB[0]:.0f}..0 dB",
+        fontsize=8,
+    )
+    return _save_grey_png(fig, path, dpi)
