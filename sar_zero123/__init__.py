@@ -1,7 +1,8 @@
 """sar_zero123: noise-tolerant novel-view SAR synthesis via denoising diffusion.
 
 Heavy submodules (diffusers, transformers) are imported lazily so that `import sar_zero123`
-and the data/simulator layers stay cheap.
+and the data/simulator layers stay cheap. ``SIM_PRIOR`` names the multi-view SAR prior bundled with the
+package: ``SARZero123Pipeline.from_pretrained(SIM_PRIOR)`` (see ``sar_zero123/pretrained/README.md``).
 """
 
 from __future__ import annotations
@@ -18,6 +19,8 @@ _LAZY = {
     "PoseProjection": "sar_zero123.conditioning",
     "embed_pose": "sar_zero123.conditioning",
     "SAREncoder": "sar_zero123.encoder",
+    "SIM_PRIOR": "sar_zero123.pretrained",
+    "resolve_pretrained": "sar_zero123.pretrained",
 }
 
 __all__ = ["__version__", *_LAZY]

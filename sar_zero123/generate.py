@@ -2,6 +2,7 @@
 
 Example::
 
+    python -m sar_zero123.generate --image chip.png --d-az 30 --d-el 10   # the bundled prior
     python -m sar_zero123.generate --pipeline runs/pfm/pipeline --image chip.png \\
         --d-az 30 60 90 --d-el 0 --output_dir views/
 
@@ -10,7 +11,10 @@ the float32 array ``.npy`` (H, W) in the normalised dB domain, plus ``input.png`
 and the resolved ``config.json``. The chip is read with :func:`sar_zero123.data.load_magnitude`
 (8-bit images as pixel/255), centre-cropped/resized to the pipeline's size and mapped to normalised dB
 with the pipeline folder's ``decibel_scaling.json`` (``DecibelScaling.to_dict``) when present, else
-``--scaling_file`` or the unit-magnitude default.
+``--scaling_file`` or the unit-magnitude default. ``--pipeline`` defaults to the multi-view SAR prior
+bundled with the package (:data:`sar_zero123.pretrained.SIM_PRIOR`). A pipeline whose pose carries the
+input chip's absolute depression gets ``--input_depression``, else the depression the chip file records
+(:func:`chip_depression_deg`), else :data:`DEFAULT_INPUT_DEPRESSION_DEG` with a printed note.
 """
 
 from __future__ import annotations
@@ -35,22 +39,36 @@ from sar_zero123.data import (
     center_crop_resize,
     check_magnitude,
     load_magnitude,
+    parse_sample_name,
+    read_mstar_raw,
 )
+from sar_zero123.data.mstar_raw import is_mstar_raw
+from sar_zero123.data.splits import TRAIN_DEPRESSION_DEG
 from sar_zero123.pipeline import MAX_ABS_D_EL_DEG, MAX_GUIDANCE_SCALE, SARZero123Pipeline
+from sar_zero123.pretrained import SIM_PRIOR, resolve_pretrained
 
-__all__ = ["GenerateConfig", "generate_views", "main"]
+__all__ = [
+    "DEFAULT_INPUT_DEPRESSION_DEG",
+    "GenerateConfig",
+    "chip_depression_deg",
+    "generate_views",
+    "main",
+    "resolve_input_depression",
+]
 
 #: Name of the decibel-scaling file a training run may save next to its pipeline.
 #: Refuse a chip when more than this fraction of its pixels leaves the scaling's dB range (it is on
 #: another scale: raw magnitudes with unit bounds, or dB values read as magnitude); warn below it.
 MAX_CLIPPED_FRACTION = 0.5
+#: Input depression assumed for a chip that records none: MSTAR's training depression.
+DEFAULT_INPUT_DEPRESSION_DEG = TRAIN_DEPRESSION_DEG
 
 
 @dataclass
 class GenerateConfig:
     """Generate novel views of one SAR chip with a saved SARZero123Pipeline."""
 
-    pipeline: str = ""  # folder written by SARZero123Pipeline.save_pretrained
+    pipeline: str = SIM_PRIOR  # SARZero123Pipeline.save_pretrained folder, or a bundled one's name
     image: str = ""  # input chip (PNG/JPEG/TIFF, .npy, .mat or raw MSTAR file)
     d_az: list[float] = field(default_factory=lambda: [30.0, 60.0, 90.0])  # azimuth deltas in degrees
     d_el: list[float] = field(default_factory=lambda: [0.0])  # depression deltas in degrees (1 or 1 per d_az)
@@ -61,6 +79,7 @@ class GenerateConfig:
     input_domain: Literal["magnitude", "normalized_db"] = "magnitude"  # what the chip file holds
     scaling_file: str | None = None  # DecibelScaling JSON (default: <pipeline>/decibel_scaling.json or unit)
     image_size: int | None = None  # chip size fed to the model; default: the pipeline's own
+    input_depression: float | None = None  # chip's depression (deg); None: the file's, else 17 (MSTAR's)
     device: str = "cpu"  # torch device
 
     def __post_init__(self) -> None:
@@ -87,10 +106,12 @@ class GenerateConfig:
             raise ValueError(f"num_inference_steps must be >= 1, got {self.num_inference_steps}")
         if self.image_size is not None and self.image_size < 1:
             raise ValueError(f"image_size must be positive, got {self.image_size}")
+        if self.input_depression is not None and not 0.0 < self.input_depression < 90.0:
+            raise ValueError(f"input_depression must lie in (0, 90) degrees, got {self.input_depression}")
 
 
-def _resolve_scaling(scaling_file: str | None, pipeline_dir: Path) -> DecibelScaling:
-    path = Path(scaling_file) if scaling_file is not None else pipeline_dir / SCALING_FILE
+def _resolve_scaling(scaling_file: str | None, pipeline: str) -> DecibelScaling:
+    path = Path(scaling_file) if scaling_file is not None else resolve_pretrained(pipeline) / SCALING_FILE
     if scaling_file is None and not path.exists():
         return DecibelScaling()
     return DecibelScaling.from_dict(json.loads(path.read_text()))
@@ -113,7 +134,7 @@ def load_input_chip(config: GenerateConfig, size: int) -> np.ndarray:
     """
     chip = center_crop_resize(load_magnitude(config.image), size=size)
     if config.input_domain == "magnitude":
-        scaling = _resolve_scaling(config.scaling_file, Path(config.pipeline))
+        scaling = _resolve_scaling(config.scaling_file, config.pipeline)
         check_magnitude(chip, name=f"image {config.image!r}")
         unclipped = scaling.normalize(chip, clip=False)
         tolerance = 1e-4  # a magnitude of exactly 1 normalises to 1 + float32 rounding
@@ -133,6 +154,46 @@ def load_input_chip(config: GenerateConfig, size: int) -> np.ndarray:
     return chip
 
 
+def chip_depression_deg(path: str | Path) -> float | None:
+    """The depression angle a chip file records, if it records one.
+
+    Args:
+        path: A chip file :func:`~sar_zero123.data.load_magnitude` reads.
+
+    Returns:
+        An original MSTAR file's ``DesiredDepression`` (:func:`~sar_zero123.data.read_mstar_raw`), the
+        elevation in a SAMPLE file name (:func:`~sar_zero123.data.parse_sample_name`), or ``None`` for
+        files that carry no depression (images, ``.npy``).
+    """
+    path = Path(path)
+    if path.is_file() and is_mstar_raw(path):
+        return read_mstar_raw(path).depression_deg
+    try:
+        return parse_sample_name(path)[1].depression_deg
+    except ValueError:
+        return None
+
+
+def resolve_input_depression(image: str | Path, input_depression: float | None) -> tuple[float, str]:
+    """The input chip's absolute depression for a pipeline whose pose carries it, and where it came from.
+
+    Args:
+        image: The chip file.
+        input_depression: The depression given on the command line (degrees), or ``None``.
+
+    Returns:
+        ``(depression_deg, source)``: ``input_depression`` when given (``"given"``), else the file's own
+        (:func:`chip_depression_deg`, ``"file"``), else :data:`DEFAULT_INPUT_DEPRESSION_DEG`
+        (``"default"``).
+    """
+    if input_depression is not None:
+        return float(input_depression), "given"
+    recorded = chip_depression_deg(image)
+    if recorded is not None:
+        return recorded, "file"
+    return DEFAULT_INPUT_DEPRESSION_DEG, "default"
+
+
 def generate_views(
     pipe: SARZero123Pipeline,
     chip: np.ndarray,
@@ -141,6 +202,7 @@ def generate_views(
     num_inference_steps: int,
     guidance_scale: float,
     seed: int,
+    input_depression_deg: float | None = None,
 ) -> np.ndarray:
     """All requested views of one chip in a single batched pipeline call (``train/evaluate.py``'s
     ``generate_pair_targets`` generates one view per view pair instead).
@@ -153,6 +215,8 @@ def generate_views(
         num_inference_steps: Denoising steps.
         guidance_scale: Classifier-free guidance weight.
         seed: View ``i`` is sampled with ``torch.Generator().manual_seed(seed + i)``.
+        input_depression_deg: The chip's absolute depression in degrees, for a pipeline whose pose
+            carries it (``pose_projection.config.input_depression``).
 
     Returns:
         Views in normalised dB, float32, shape ``(V, H, W)``.
@@ -165,6 +229,7 @@ def generate_views(
         images,
         d_az=list(d_az),
         d_el=d_el,
+        input_depression_deg=input_depression_deg,
         num_inference_steps=num_inference_steps,
         guidance_scale=guidance_scale,
         generator=generators,
@@ -207,8 +272,27 @@ def main(argv: Sequence[str] | None = None) -> Path:
     pipe = SARZero123Pipeline.from_pretrained(config.pipeline).to(config.device)
     size = config.image_size or pipe.default_image_size
     chip = load_input_chip(config, size)
+    input_depression_deg = None
+    if getattr(pipe.pose_projection.config, "input_depression", False):
+        input_depression_deg, source = resolve_input_depression(config.image, config.input_depression)
+        if source == "default":
+            print(
+                f"note: {config.image!r} records no depression angle; assuming the input chip was taken at "
+                f"{input_depression_deg:g} deg (MSTAR's training depression); give --input_depression"
+            )
+        elif source == "file":
+            print(f"note: input depression {input_depression_deg:g} deg, read from {config.image!r}")
+    elif config.input_depression is not None:
+        print("note: this pipeline's pose does not take the input's depression; ignoring --input_depression")
     views = generate_views(
-        pipe, chip, config.d_az, config.d_el, config.num_inference_steps, config.guidance_scale, config.seed
+        pipe,
+        chip,
+        config.d_az,
+        config.d_el,
+        config.num_inference_steps,
+        config.guidance_scale,
+        config.seed,
+        input_depression_deg=input_depression_deg,
     )
 
     d_el = config.d_el * len(config.d_az) if len(config.d_el) == 1 else config.d_el

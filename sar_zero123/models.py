@@ -20,6 +20,7 @@ from sar_zero123.conditioning import POSE_DIM, PoseProjection, downsampling_fact
 from sar_zero123.data import ViewPairDataset
 from sar_zero123.orientation import AZIMUTH_DIM, AzimuthEstimator
 from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.pretrained import resolve_pretrained
 
 __all__ = [
     "SAR_ZERO123_SIZES",
@@ -299,8 +300,10 @@ def load_sar_zero123(
     """The pipeline a run starts from: a saved or zero-1-to-3 checkpoint, or a new model of a named size.
 
     Args:
-        pretrained: A ``save_pretrained`` folder (``model_index.json``), any zero-1-to-3 layout
-            (:meth:`SARZero123Pipeline.from_zero123`), or ``None`` to :func:`build_sar_zero123`.
+        pretrained: A ``save_pretrained`` folder (``model_index.json``), the name of a bundled pipeline
+            (``"sar-zero123/sim-prior"``, :func:`sar_zero123.pretrained.resolve_pretrained`), any
+            zero-1-to-3 layout (:meth:`SARZero123Pipeline.from_zero123`), or ``None`` to
+            :func:`build_sar_zero123`.
         size, image_size, seed, pose_in_time_embedding, estimate_input_azimuth, input_code_dim,
             input_depression: For ``pretrained=None``, see
             :func:`build_sar_zero123`.
@@ -312,7 +315,8 @@ def load_sar_zero123(
         The pipeline (float32, CPU).
 
     Raises:
-        FileNotFoundError: If ``pretrained`` or ``vae`` does not exist.
+        FileNotFoundError: If ``pretrained`` or ``vae`` does not exist, or ``pretrained`` names a bundled
+            pipeline whose weights are missing from this install.
         ValueError: If the VAE does not fit the UNet (:func:`check_vae_fits`).
     """
     if pretrained is None:
@@ -326,7 +330,7 @@ def load_sar_zero123(
             input_depression=input_depression,
         )
     else:
-        path = Path(pretrained)
+        path = resolve_pretrained(pretrained)
         if not path.exists():
             raise FileNotFoundError(f"pretrained: no such file or folder {str(path)!r}")
         if (path / "model_index.json").is_file():

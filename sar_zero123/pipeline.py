@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import inspect
 import numbers
+import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -41,6 +42,7 @@ from sar_zero123.conditioning import (
 )
 from sar_zero123.data import signed_to_unit
 from sar_zero123.orientation import AzimuthEstimator, target_view_features
+from sar_zero123.pretrained import is_bundled_name, resolve_pretrained
 
 __all__ = ["SARZero123Pipeline", "SARZero123PipelineOutput"]
 
@@ -157,6 +159,30 @@ class SARZero123Pipeline(DiffusionPipeline):
         return int(sample_size) * self.vae_scale_factor
 
     # ------------------------------------------------------------------------------------ loading
+    @classmethod
+    def from_pretrained(
+        cls, pretrained_model_name_or_path: str | os.PathLike, **kwargs: Any
+    ) -> SARZero123Pipeline:
+        """diffusers' ``from_pretrained``, after resolving the name of a pipeline bundled with the package.
+
+        Args:
+            pretrained_model_name_or_path: A registered name such as ``"sar-zero123/sim-prior"``
+                (:data:`sar_zero123.pretrained.SIM_PRIOR`), a ``save_pretrained`` folder, or anything
+                else diffusers loads (passed on unchanged; an existing path wins over a name).
+            **kwargs: diffusers' loading options (``torch_dtype``, ...).
+
+        Returns:
+            The pipeline.
+
+        Raises:
+            FileNotFoundError: For a registered name whose weights are missing from this install.
+        """
+        if isinstance(pretrained_model_name_or_path, str | os.PathLike) and is_bundled_name(
+            pretrained_model_name_or_path
+        ):
+            pretrained_model_name_or_path = resolve_pretrained(pretrained_model_name_or_path)
+        return super().from_pretrained(pretrained_model_name_or_path, **kwargs)
+
     @classmethod
     def from_zero123(
         cls,

@@ -9,10 +9,21 @@ import PIL.Image
 import pytest
 import torch
 from dummies import get_dummy_components
+from test_data_mstar_raw import write_mstar
 
+import sar_zero123.pretrained as pretrained
 from sar_zero123.data import SCALING_FILE, DecibelScaling
-from sar_zero123.generate import GenerateConfig, load_input_chip, main
+from sar_zero123.generate import (
+    GenerateConfig,
+    chip_depression_deg,
+    generate_views,
+    load_input_chip,
+    main,
+    resolve_input_depression,
+)
+from sar_zero123.models import build_sar_zero123
 from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.pretrained import SIM_PRIOR
 
 
 @pytest.fixture(scope="module")
@@ -82,6 +93,9 @@ def test_input_chip_uses_the_pipeline_scaling_file(pipeline_dir, chip_png, tmp_p
         ({"d_az": [10.0, 20.0], "d_el": [0.0, 1.0, 2.0]}, "d_el"),
         ({"d_az": [float("nan")]}, "finite"),
         ({"num_inference_steps": 0}, "num_inference_steps"),
+        ({"input_depression": 90.0}, r"input_depression must lie in \(0, 90\) degrees, got 90.0"),
+        ({"input_depression": 0.0}, r"input_depression must lie in \(0, 90\) degrees"),
+        ({"input_depression": float("nan")}, r"input_depression must lie in \(0, 90\) degrees"),
     ],
 )
 def test_config_rejects_bad_values(fields, match):
@@ -142,3 +156,89 @@ def test_nan_pipeline_writes_no_views_and_out_that_is_a_file_is_refused(chip_png
     (tmp_path / "file").write_text("x")
     with pytest.raises(NotADirectoryError, match=r"output_dir: .*file' is a file"):
         main([*argv, "--output_dir", str(tmp_path / "file")])
+
+
+@pytest.fixture(scope="module")
+def registry_dir(tmp_path_factory):
+    """A registry folder whose ``sim_prior`` is a tiny pipeline whose pose takes the input's depression."""
+    registry = tmp_path_factory.mktemp("registry")
+    build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True).save_pretrained(
+        registry / "sim_prior"
+    )
+    scaling = DecibelScaling(min_db=-60.0, max_db=6.0)  # not the unit default: shows which file is read
+    (registry / "sim_prior" / SCALING_FILE).write_text(json.dumps(scaling.to_dict()))
+    return registry
+
+
+def _run(tmp_path, name, *argv):
+    out = tmp_path / name
+    main([*argv, "--num-inference-steps", "2", "--output_dir", str(out)])
+    return out, {p.name: np.load(p) for p in sorted(out.glob("view_*.npy"))}
+
+
+def test_default_pipeline_is_the_bundled_prior_with_17_deg_and_a_note(registry_dir, chip_png, tmp_path,
+                                                                      monkeypatch, capsys):
+    assert GenerateConfig(image="chip.png").pipeline == SIM_PRIOR
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", registry_dir)
+    _, default = _run(tmp_path, "default", "--image", str(chip_png), "--d-az", "30", "--d-el", "10")
+    note = f"note: {str(chip_png)!r} records no depression angle; assuming the input chip was taken at 17 deg"
+    assert note in capsys.readouterr().out
+    assert list(default) == ["view_00_daz+030.00_del+10.00.npy"]
+    folder = str(registry_dir / "sim_prior")
+    argv = ["--pipeline", folder, "--image", str(chip_png), "--d-az", "30", "--d-el", "10"]
+    _, explicit = _run(tmp_path, "explicit", *argv, "--input_depression", "17")
+    assert "note" not in capsys.readouterr().out
+    np.testing.assert_array_equal(default["view_00_daz+030.00_del+10.00.npy"],
+                                  explicit["view_00_daz+030.00_del+10.00.npy"])  # fmt: skip
+    # the chip went through the registered folder's decibel_scaling.json, not the unit default
+    magnitude = np.asarray(PIL.Image.open(chip_png), np.float32)[4:36, 4:36] / 255.0
+    expected = DecibelScaling(min_db=-60.0, max_db=6.0).normalize(magnitude)
+    np.testing.assert_allclose(load_input_chip(GenerateConfig(image=str(chip_png)), 32), expected, atol=1e-6)
+
+
+def test_input_depression_reaches_the_pipeline(registry_dir, chip_png, tmp_path):
+    folder = registry_dir / "sim_prior"
+    argv = ["--pipeline", str(folder), "--image", str(chip_png), "--d-az", "30", "90", "--d-el", "0", "10"]
+    out, at_17 = _run(tmp_path, "at_17", *argv, "--input-depression", "17")
+    _, at_40 = _run(tmp_path, "at_40", *argv, "--input_depression", "40")
+    names = ["view_00_daz+030.00_del+00.00.npy", "view_01_daz+090.00_del+10.00.npy"]
+    assert list(at_17) == list(at_40) == names
+    for name in at_17:
+        assert np.abs(at_17[name] - at_40[name]).max() > 1e-3, name
+    assert json.loads((out / "config.json").read_text())["input_depression"] == 17.0
+    # the same views straight from the pipeline; without the depression it refuses
+    pipe = SARZero123Pipeline.from_pretrained(folder)
+    pipe.set_progress_bar_config(disable=True)
+    chip = load_input_chip(GenerateConfig(pipeline=str(folder), image=str(chip_png)), 32)
+    views = generate_views(pipe, chip, [30.0, 90.0], [0.0, 10.0], 2, 3.0, 0, input_depression_deg=40.0)
+    np.testing.assert_allclose(views[1], at_40["view_01_daz+090.00_del+10.00.npy"], atol=1e-5)
+    with pytest.raises(ValueError, match=r"`input_depression_deg`: this pipeline's pose carries"):
+        generate_views(pipe, chip, [30.0], [0.0], 1, 3.0, 0)
+
+
+def test_depression_recorded_in_the_chip_file_is_used(registry_dir, tmp_path, capsys):
+    magnitude = np.random.default_rng(0).rayleigh(0.1, size=(40, 40)).astype(np.float32)
+    raw = write_mstar(tmp_path / "HB00001.015", magnitude, fields={"DesiredDepression": "30"})
+    assert chip_depression_deg(raw) == 30.0
+    assert chip_depression_deg(tmp_path / "2s1_real_A_elevDeg_015_azCenter_010_22_serial_b01.png") == 15.0
+    assert chip_depression_deg(tmp_path / "chip.png") is None
+    assert resolve_input_depression(raw, None) == (30.0, "file")
+    assert resolve_input_depression(raw, 20.0) == (20.0, "given")
+    assert resolve_input_depression(tmp_path / "chip.npy", None) == (17.0, "default")
+    argv = ["--pipeline", str(registry_dir / "sim_prior"), "--image", str(raw), "--d-az", "30"]
+    _, from_file = _run(tmp_path, "from_file", *argv)
+    assert f"note: input depression 30 deg, read from {str(raw)!r}" in capsys.readouterr().out
+    _, given = _run(tmp_path, "given", *argv, "--input_depression", "30")
+    np.testing.assert_array_equal(from_file["view_00_daz+030.00_del+00.00.npy"],
+                                  given["view_00_daz+030.00_del+00.00.npy"])  # fmt: skip
+
+
+def test_input_depression_is_ignored_with_a_note_by_a_pipeline_without_it(pipeline_dir, chip_png, tmp_path,
+                                                                            capsys):
+    argv = ["--pipeline", str(pipeline_dir), "--image", str(chip_png), "--d-az", "30"]
+    _, plain = _run(tmp_path, "plain", *argv)
+    assert capsys.readouterr().out == ""
+    _, given = _run(tmp_path, "given", *argv, "--input_depression", "40")
+    assert "ignoring --input_depression" in capsys.readouterr().out
+    name = "view_00_daz+030.00_del+00.00.npy"
+    np.testing.assert_array_equal(plain[name], given[name])

@@ -1,0 +1,67 @@
+"""Pipelines bundled inside the package, loadable by name.
+
+Example::
+
+    from sar_zero123 import SIM_PRIOR, SARZero123Pipeline
+
+    pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR)  # "sar-zero123/sim-prior"
+
+A registered name resolves to a ``save_pretrained`` folder next to this file, shipped as package data
+(``pyproject.toml``). A path that exists on disk always wins over a name spelled the same, so a local
+folder called ``sar-zero123/sim-prior`` still loads as that folder. ``README.md`` here lists the
+bundled pipelines; each one's model card sits beside it (``sim_prior.md``).
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+__all__ = ["BUNDLED_PIPELINES", "PRETRAINED_DIR", "SIM_PRIOR", "is_bundled_name", "resolve_pretrained"]
+
+#: The multi-view SAR prior trained on procedural simulated vehicles only (model card: ``sim_prior.md``).
+SIM_PRIOR = "sar-zero123/sim-prior"
+#: Registered name -> folder under :data:`PRETRAINED_DIR`.
+BUNDLED_PIPELINES: dict[str, str] = {SIM_PRIOR: "sim_prior"}
+#: Where the bundled folders live (this package's own folder).
+PRETRAINED_DIR = Path(__file__).resolve().parent
+
+
+def is_bundled_name(name_or_path: str | os.PathLike) -> bool:
+    """Whether ``name_or_path`` is a registered name and no file or folder of that path exists.
+
+    Args:
+        name_or_path: A registered name or a path.
+
+    Returns:
+        True for a registered name that :func:`resolve_pretrained` maps to a bundled folder.
+    """
+    text = os.fspath(name_or_path)
+    return text in BUNDLED_PIPELINES and not Path(text).exists()
+
+
+def resolve_pretrained(name_or_path: str | os.PathLike) -> Path:
+    """The folder a registered name stands for; any other argument as a path, unchanged.
+
+    Args:
+        name_or_path: A name of :data:`BUNDLED_PIPELINES` (e.g. :data:`SIM_PRIOR`) or a path. An
+            existing path is returned as itself even when it is spelled like a registered name.
+
+    Returns:
+        The bundled folder for a registered name, else ``Path(name_or_path)``.
+
+    Raises:
+        FileNotFoundError: For a registered name whose folder has no ``model_index.json`` (the weights
+            are missing from this install).
+    """
+    if not is_bundled_name(name_or_path):
+        return Path(name_or_path)
+    name = os.fspath(name_or_path)
+    folder = PRETRAINED_DIR / BUNDLED_PIPELINES[name]
+    if not (folder / "model_index.json").is_file():
+        raise FileNotFoundError(
+            f"bundled pipeline {name!r}: its weights are missing from this install (no model_index.json "
+            f"in {str(folder)!r}); reinstall sar_zero123 from a release that ships them, or pass the "
+            "folder of a saved pipeline instead"
+        )
+    return folder

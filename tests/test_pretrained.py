@@ -1,0 +1,140 @@
+"""Tests for the bundled-pipeline registry (`sar_zero123.pretrained`) and the bundled prior itself."""
+
+from __future__ import annotations
+
+import json
+import re
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+from scipy.ndimage import gaussian_filter
+
+import sar_zero123
+import sar_zero123.pretrained as pretrained
+from sar_zero123.data import SCALING_FILE, DecibelScaling
+from sar_zero123.models import build_sar_zero123, load_sar_zero123
+from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.pretrained import SIM_PRIOR, is_bundled_name, resolve_pretrained
+from sar_zero123.sim import make_target, render_chip
+
+PACKAGE_PRIOR = Path(pretrained.__file__).resolve().parent / "sim_prior"
+
+
+@pytest.fixture(scope="module")
+def tiny_prior(tmp_path_factory):
+    """A tiny pipeline shaped like the bundled prior, saved as ``<registry dir>/sim_prior``."""
+    registry = tmp_path_factory.mktemp("registry")
+    pipe = build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True)
+    pipe.save_pretrained(registry / "sim_prior")
+    scaling = DecibelScaling(min_db=-50.0, max_db=0.0)
+    (registry / "sim_prior" / SCALING_FILE).write_text(json.dumps(scaling.to_dict()))
+    return registry, pipe
+
+
+def _assert_same_weights(loaded: SARZero123Pipeline, saved: SARZero123Pipeline) -> None:
+    for name in ("unet", "vae", "image_encoder", "pose_projection", "azimuth_estimator"):
+        expected = getattr(saved, name).state_dict()
+        actual = getattr(loaded, name).state_dict()
+        assert actual.keys() == expected.keys(), name
+        for key, value in actual.items():
+            torch.testing.assert_close(value, expected[key], rtol=0, atol=0, msg=f"{name}.{key}")
+
+
+def test_registered_name_resolves_to_the_package_folder(tmp_path, monkeypatch):
+    assert sar_zero123.SIM_PRIOR == SIM_PRIOR == "sar-zero123/sim-prior"
+    assert pretrained.PRETRAINED_DIR / pretrained.BUNDLED_PIPELINES[SIM_PRIOR] == PACKAGE_PRIOR
+    if (PACKAGE_PRIOR / "model_index.json").is_file():
+        assert resolve_pretrained(SIM_PRIOR) == PACKAGE_PRIOR
+    else:  # the weights are not copied in yet: the message names the package folder
+        with pytest.raises(FileNotFoundError, match=re.escape(str(PACKAGE_PRIOR))):
+            resolve_pretrained(SIM_PRIOR)
+    (tmp_path / "sim_prior").mkdir()
+    (tmp_path / "sim_prior" / "model_index.json").write_text("{}")
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path)
+    assert resolve_pretrained(SIM_PRIOR) == tmp_path / "sim_prior"
+    assert is_bundled_name(SIM_PRIOR) and not is_bundled_name("sar-zero123/other")
+
+
+@pytest.mark.parametrize("path", ["runs/pfm/pipeline", "sar-zero123/other", "sim_prior", Path("a/b")])
+def test_anything_else_is_returned_as_a_path_unchanged(path):
+    assert resolve_pretrained(path) == Path(path)
+
+
+def test_missing_weights_raise_naming_the_name(tmp_path, monkeypatch):
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path)
+    (tmp_path / "sim_prior").mkdir()  # a folder without model_index.json
+    message = (
+        r"bundled pipeline 'sar-zero123/sim-prior': its weights are missing from this install "
+        rf"\(no model_index.json in '{re.escape(str(tmp_path / 'sim_prior'))}'\)"
+    )
+    with pytest.raises(FileNotFoundError, match=message):
+        resolve_pretrained(SIM_PRIOR)
+    with pytest.raises(FileNotFoundError, match=message):
+        SARZero123Pipeline.from_pretrained(SIM_PRIOR)
+    with pytest.raises(FileNotFoundError, match=message):
+        load_sar_zero123(SIM_PRIOR)
+
+
+def test_name_loads_the_registered_pipeline(tiny_prior, monkeypatch):
+    registry, saved = tiny_prior
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", registry)
+    pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR)
+    assert isinstance(pipe, SARZero123Pipeline)
+    assert pipe.pose_projection.config.input_depression and pipe.azimuth_estimator is not None
+    _assert_same_weights(pipe, saved)
+    _assert_same_weights(load_sar_zero123(pretrained=SIM_PRIOR), saved)
+
+
+def test_existing_folder_spelled_like_the_name_wins(tiny_prior, tmp_path, monkeypatch):
+    registry, saved = tiny_prior
+    monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "empty_registry")  # no bundled weights
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sar-zero123").mkdir()
+    (tmp_path / "sar-zero123" / "sim-prior").symlink_to(registry / "sim_prior", target_is_directory=True)
+    assert not is_bundled_name(SIM_PRIOR)
+    assert resolve_pretrained(SIM_PRIOR) == Path("sar-zero123/sim-prior")
+    _assert_same_weights(SARZero123Pipeline.from_pretrained(SIM_PRIOR), saved)
+
+
+def _pearson(a: np.ndarray, b: np.ndarray) -> float:
+    return float(np.corrcoef(a.ravel(), b.ravel())[0, 1])
+
+
+def test_bundled_prior_follows_pose():
+    """Views of the bundled prior look more like the simulator's view at the requested pose than at the
+    input pose, for unseen named vehicle classes (the prior trained on procedural vehicles only)."""
+    if not (PACKAGE_PRIOR / "model_index.json").is_file():
+        pytest.skip(f"bundled prior weights not installed (no model_index.json in {PACKAGE_PRIOR})")
+    pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR)
+    pipe.set_progress_bar_config(disable=True)
+    scaling = DecibelScaling.from_dict(json.loads((PACKAGE_PRIOR / SCALING_FILE).read_text()))
+    targets = [make_target(name) for name in ("TANK", "TRUCK", "DOZER", "SPG")]
+    azimuths_deg, depression_deg = (30.0, 120.0, 210.0, 300.0), 17.0
+
+    def render(target_index: int, azimuth_deg: float, depression: float, seed: int) -> np.ndarray:
+        magnitude = render_chip(
+            targets[target_index], azimuth_deg, depression, size=64, generator=np.random.default_rng(seed)
+        )
+        return scaling.normalize(magnitude).astype(np.float32)
+
+    inputs = np.stack([render(k, azimuths_deg[k], depression_deg, k) for k in range(4)])
+    for d_az, d_el in ((90.0, 0.0), (0.0, 28.0)):
+        views = pipe(
+            torch.from_numpy(inputs)[:, None],
+            d_az=d_az,
+            d_el=d_el,
+            input_depression_deg=depression_deg,
+            num_inference_steps=10,
+            generator=[torch.Generator().manual_seed(k) for k in range(4)],
+            output_type="np",
+        ).images[..., 0]
+        wins = 0
+        for k, view in enumerate(views):
+            # references with their own clutter, so the input's speckle favours neither pose
+            at_target = render(k, azimuths_deg[k] + d_az, depression_deg + d_el, 100 + k)
+            at_input = render(k, azimuths_deg[k], depression_deg, 100 + k)
+            blurred = [gaussian_filter(image, sigma=1.5) for image in (view, at_target, at_input)]
+            wins += _pearson(blurred[0], blurred[1]) > _pearson(blurred[0], blurred[2])
+        assert wins >= 3, f"d_az {d_az:g}, d_el {d_el:g}: the requested pose wins for only {wins} of 4 chips"
