@@ -8,6 +8,11 @@ Two networks exist only to measure generated images; they are trained on real ch
 * `AzimuthRegressor`: a ResNet-18 plus an MLP (256-256, sigmoid) predicting azimuth / 2pi; it gives the
   azimuth error, and its pre-head features (the 512-d pooled ResNet feature) give SFD. With a frozen
   SimCLR encoder and only the MLP trained it is a Table IV "probe".
+* `DepressionRegressor` (optional): the same body and MLP predicting depression / 90 deg, trained on chips
+  at many depressions; it gives the depression error of views generated for a depression change.
+
+`closer_to_target_depression` compares a generated view with two true views of the target azimuth, one
+at the requested depression and one at the input's, without any trained model.
 
 Each model is saved as a folder with `evaluator.json` (kind, encoder config, class list, decibel scaling,
 head sizes) and `model.safetensors`. Loading checks the class list so that an evaluator trained on other
@@ -24,9 +29,11 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 import torch.nn.functional as F
 from safetensors.torch import load_file, save_file
+from scipy.ndimage import gaussian_filter
 from torch import nn
 
 from sar_zero123.data import DecibelScaling
@@ -46,18 +53,24 @@ EVALUATOR_WEIGHTS_NAME = "model.safetensors"
 CLASSIFIER_DIR = "classifier"
 REGRESSOR_DIR = "regressor"
 PROBES_DIR = "probes"
+DEPRESSION_REGRESSOR_DIR = "depression_regressor"
+MAX_DEPRESSION_DEG = 90.0  # the depression regressor's sigmoid spans (0, 90) deg
 
 __all__ = [
     "pose_following",
     "AzimuthRegressor",
+    "DepressionRegressor",
     "Evaluators",
     "SARClassifier",
     "azimuth_regression_loss",
     "check_class_names",
+    "closer_to_target_depression",
+    "depression_regression_loss",
     "load_evaluator",
     "load_evaluators",
     "resize_for_evaluator",
     "score_views",
+    "standard_error",
 ]
 
 
@@ -97,6 +110,27 @@ def azimuth_regression_loss(predicted_fraction: torch.Tensor, azimuth_deg: torch
     """
     target = torch.remainder(azimuth_deg, 360.0) / 360.0
     return 1.0 - torch.cos(2.0 * math.pi * (predicted_fraction - target))
+
+
+def depression_regression_loss(
+    predicted_fraction: torch.Tensor, depression_deg: torch.Tensor
+) -> torch.Tensor:
+    """Squared error `(p - d / 90)^2` of the sigmoid output `p` against the depression `d` in degrees.
+
+    Depression is not periodic on (0, 90) deg, so a plain squared error fits where azimuth needs the
+    circular form of :func:`azimuth_regression_loss`.
+
+    Args:
+        predicted_fraction: Sigmoid outputs in (0, 1), read as depression / 90 deg.
+        depression_deg: True depressions in degrees.
+
+    Returns:
+        Per-sample loss.
+
+    Shape:
+        `(B,)`, `(B,)` -> `(B,)`.
+    """
+    return (predicted_fraction - depression_deg / MAX_DEPRESSION_DEG) ** 2
 
 
 class _Evaluator(nn.Module):
@@ -200,8 +234,8 @@ class SARClassifier(_Evaluator):
         return self.head(self.features(images))
 
 
-class AzimuthRegressor(_Evaluator):
-    """ResNet-18 + MLP azimuth regressor with sigmoid output = azimuth / 2pi (Table III "Az. err.", SFD).
+class _MLPRegressor(_Evaluator):
+    """Shared parts of the regressors: the ResNet-18 body and an MLP head ending in a sigmoid.
 
     Args:
         encoder_config: Architecture of the ResNet-18 body.
@@ -209,8 +243,6 @@ class AzimuthRegressor(_Evaluator):
         scaling: Decibel scaling of the training chips.
         hidden_sizes: MLP widths (256-256 in the paper).
     """
-
-    kind = "azimuth_regressor"
 
     def __init__(
         self,
@@ -235,12 +267,21 @@ class AzimuthRegressor(_Evaluator):
         return {"hidden_sizes": self.hidden_sizes}
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        """Predicted azimuth / 360 deg in (0, 1).
+        """The sigmoid output in (0, 1): the predicted angle as a fraction of its range.
 
         Shape:
             `(B, 1, S, S)` -> `(B,)`.
         """
         return self.head(self.features(images)).squeeze(1)
+
+
+class AzimuthRegressor(_MLPRegressor):
+    """ResNet-18 + MLP azimuth regressor with sigmoid output = azimuth / 2pi (Table III "Az. err.", SFD).
+
+    Args: see `_MLPRegressor`.
+    """
+
+    kind = "azimuth_regressor"
 
     def predict_azimuth_deg(self, images: torch.Tensor) -> torch.Tensor:
         """Predicted azimuth in degrees, [0, 360).
@@ -251,11 +292,33 @@ class AzimuthRegressor(_Evaluator):
         return torch.remainder(self(images) * 360.0, 360.0)
 
 
+class DepressionRegressor(_MLPRegressor):
+    """ResNet-18 + MLP depression regressor with sigmoid output = depression / 90 deg ("Dep. err.").
+
+    The bounded head keeps every prediction inside (0, 90) deg, the only depressions a chip can have.
+
+    Args: see `_MLPRegressor`.
+    """
+
+    kind = "depression_regressor"
+
+    def predict_depression_deg(self, images: torch.Tensor) -> torch.Tensor:
+        """Predicted depression in degrees, (0, 90).
+
+        Shape:
+            `(B, 1, S, S)` -> `(B,)`.
+        """
+        return self(images) * MAX_DEPRESSION_DEG
+
+
+EVALUATOR_KINDS = {model.kind: model for model in (SARClassifier, AzimuthRegressor, DepressionRegressor)}
+
+
 def load_evaluator(
     directory: str | Path,
     class_names: Sequence[str] | None = None,
     device: str | torch.device = "cpu",
-) -> SARClassifier | AzimuthRegressor:
+) -> SARClassifier | AzimuthRegressor | DepressionRegressor:
     """Loads an evaluator folder written by `save_pretrained`, in eval mode.
 
     Args:
@@ -264,7 +327,7 @@ def load_evaluator(
         device: Device for the weights.
 
     Returns:
-        The classifier or regressor, in eval mode, with `metrics` restored.
+        The classifier or a regressor, in eval mode, with `metrics` restored.
 
     Raises:
         FileNotFoundError: If a file is missing.
@@ -278,13 +341,11 @@ def load_evaluator(
     check_class_names(payload["class_names"], class_names, str(directory))
     encoder_config = SAREncoderConfig.from_dict(payload["encoder"])
     scaling = DecibelScaling.from_dict(payload["scaling"])
-    model: SARClassifier | AzimuthRegressor
-    if payload["kind"] == SARClassifier.kind:
-        model = SARClassifier(encoder_config, payload["class_names"], scaling)
-    elif payload["kind"] == AzimuthRegressor.kind:
-        model = AzimuthRegressor(encoder_config, payload["class_names"], scaling, **payload["head"])
-    else:
+    if payload["kind"] not in EVALUATOR_KINDS:
         raise ValueError(f"{directory}: unknown evaluator kind {payload['kind']!r}")
+    model = EVALUATOR_KINDS[payload["kind"]](
+        encoder_config, payload["class_names"], scaling, **payload["head"]
+    )
     model.load_state_dict(load_file(str(directory / EVALUATOR_WEIGHTS_NAME), device=str(device)))
     model.metrics = dict(payload.get("metrics", {}))
     return model.to(device).eval()
@@ -298,11 +359,14 @@ class Evaluators:
         classifier: Scratch ResNet-18 classifier.
         regressor: Scratch ResNet-18 + MLP azimuth regressor (its features give SFD).
         probes: Extra azimuth regressors for Table IV (frozen SimCLR encoders + trained MLP), by name.
+        depression_regressor: Scratch ResNet-18 + MLP depression regressor, or None when the evaluators
+            were trained without chips at several depressions.
     """
 
     classifier: SARClassifier
     regressor: AzimuthRegressor
     probes: dict[str, AzimuthRegressor] = field(default_factory=dict)
+    depression_regressor: DepressionRegressor | None = None
 
     @property
     def class_names(self) -> list[str]:
@@ -324,7 +388,11 @@ def load_evaluators(
     class_names: Sequence[str] | None = None,
     device: str | torch.device = "cpu",
 ) -> Evaluators:
-    """Loads `DIR/classifier`, `DIR/regressor` and every `DIR/probes/<name>`.
+    """Loads `DIR/classifier`, `DIR/regressor`, every `DIR/probes/<name>` and `DIR/depression_regressor`.
+
+    The depression regressor is optional (folders written before it existed load with it None); it may
+    have been trained on another chip folder, so its class list is not checked, but its decibel scaling
+    must be the classifier's: it scores the same views.
 
     Args:
         directory: Output folder of `train/train_evaluators.py`.
@@ -336,7 +404,8 @@ def load_evaluators(
 
     Raises:
         FileNotFoundError: If the classifier or regressor is missing.
-        ValueError: For a class-list mismatch, or evaluators with different class lists or image sizes.
+        ValueError: For a class-list mismatch, evaluators with different class lists, image sizes or (the
+            depression regressor) decibel scalings.
     """
     directory = Path(directory)
     classifier = load_evaluator(directory / CLASSIFIER_DIR, class_names, device)
@@ -353,10 +422,22 @@ def load_evaluators(
             if not isinstance(probe, AzimuthRegressor):
                 raise ValueError(f"{probe_dir}: a probe must be an azimuth regressor")
             probes[probe_dir.name] = probe
-    sizes = {model.image_size for model in (classifier, regressor, *probes.values())}
+    depression_regressor = None
+    if (directory / DEPRESSION_REGRESSOR_DIR / EVALUATOR_CONFIG_NAME).is_file():
+        depression_regressor = load_evaluator(directory / DEPRESSION_REGRESSOR_DIR, device=device)
+        if not isinstance(depression_regressor, DepressionRegressor):
+            raise ValueError(f"{directory}: expected a depression regressor in {DEPRESSION_REGRESSOR_DIR}/")
+        if depression_regressor.scaling.to_dict() != classifier.scaling.to_dict():
+            raise ValueError(
+                f"{directory}: the depression regressor was trained with decibel scaling "
+                f"{depression_regressor.scaling.to_dict()} but the classifier with "
+                f"{classifier.scaling.to_dict()}; train both in one train/train_evaluators.py run"
+            )
+    others = (*probes.values(), *([depression_regressor] if depression_regressor is not None else []))
+    sizes = {model.image_size for model in (classifier, regressor, *others)}
     if len(sizes) != 1:
         raise ValueError(f"{directory}: evaluators take different image sizes {sorted(sizes)}")
-    return Evaluators(classifier=classifier, regressor=regressor, probes=probes)
+    return Evaluators(classifier, regressor, probes, depression_regressor)
 
 
 def resize_for_evaluator(images: torch.Tensor, size: int) -> torch.Tensor:
@@ -367,6 +448,16 @@ def resize_for_evaluator(images: torch.Tensor, size: int) -> torch.Tensor:
     return resized.clamp(0.0, 1.0)
 
 
+def standard_error(values: torch.Tensor) -> float:
+    """Standard error of the mean of per-sample values: sample standard deviation / sqrt(n); NaN for n < 2.
+
+    Shape:
+        `(N,)` -> scalar.
+    """
+    n = values.numel()
+    return values.double().std(correction=1).item() / math.sqrt(n) if n > 1 else float("nan")
+
+
 @torch.no_grad()
 def score_views(
     generated: torch.Tensor,
@@ -375,6 +466,7 @@ def score_views(
     target_azimuth_deg: torch.Tensor,
     evaluators: Evaluators,
     *,
+    target_depression_deg: torch.Tensor | None = None,
     crop_size: int | None = CROP_SIZE,
     paper_scoring_size: int | None = PAPER_SCORING_SIZE,
     batch_size: int = 64,
@@ -388,14 +480,17 @@ def score_views(
     MS-SSIM and Kuan+SSIM: generated against target on the centre crop. `ms_ssim` and `kuan_ssim` are the
     paper-comparable values (`sar_zero123.paper_metrics`: the authors' calls on 8-bit views resized to
     `paper_scoring_size`); `ms_ssim_corrected` and `kuan_ssim_corrected` are the corrected variants
-    (`sar_zero123.metrics`) at the generated resolution.
+    (`sar_zero123.metrics`) at the generated resolution. Depression error (with `target_depression_deg` and a
+    depression regressor among the evaluators): |predicted - true depression of the target view|.
 
     Args:
         generated: Generated views in [0, 1].
         targets: The real target views in [0, 1], same shape.
         labels: Class indices of the objects (in `evaluators.class_names` order).
         target_azimuth_deg: True azimuth of each target view in degrees.
-        evaluators: The evaluator set (classifier, regressor, probes).
+        evaluators: The evaluator set (classifier, regressor, probes, optional depression regressor).
+        target_depression_deg: True depression of each target view in degrees; gives
+            `depression_error_deg` when the evaluators have a depression regressor.
         crop_size: Centre crop for MS-SSIM and Kuan+SSIM (64 in the paper; `None` only for the corrected
             variants, the paper-comparable ones then use 64).
         paper_scoring_size: Side the views are resized to before the paper-comparable crop (256, the
@@ -406,10 +501,11 @@ def score_views(
     Returns:
         `{"accuracy": %, "azimuth_error_deg", "sfd", "ms_ssim", "kuan_ssim", "ms_ssim_corrected",
         "kuan_ssim_corrected", "n",
-        "azimuth_error_deg/<regressor>"...}` with the means over the samples.
+        "azimuth_error_deg/<regressor>"..., "depression_error_deg" (see above)}` with the means over the
+        samples, and `<metric>_se`, the standard error of each mean.
 
     Shape:
-        generated, targets `(N, 1, H, W)`; labels, target_azimuth_deg `(N,)`.
+        generated, targets `(N, 1, H, W)`; labels, target_azimuth_deg, target_depression_deg `(N,)`.
 
     Raises:
         ValueError: For mismatched sizes or counts, or images outside [0, 1].
@@ -420,6 +516,11 @@ def score_views(
             f"labels {tuple(labels.shape)} and target_azimuth_deg {tuple(target_azimuth_deg.shape)} must be "
             f"({n},) to match generated {tuple(generated.shape)}"
         )
+    if target_depression_deg is not None and target_depression_deg.shape != (n,):
+        raise ValueError(
+            f"target_depression_deg {tuple(target_depression_deg.shape)} must be ({n},) to match generated"
+        )
+    depression_regressor = evaluators.depression_regressor if target_depression_deg is not None else None
     # Image metrics first: they validate sizes and ranges of both sets.
     structural = {name: [] for name in ("ms_ssim", "kuan_ssim", "ms_ssim_corrected", "kuan_ssim_corrected")}
     paper_crop = {"scoring_size": paper_scoring_size, "crop_size": crop_size or CROP_SIZE}
@@ -427,6 +528,7 @@ def score_views(
     regressors = evaluators.azimuth_regressors()
     for name in regressors:
         predictions[name] = []
+    predictions["depression"] = []
     generated_features, target_features = [], []
     for start in range(0, n, batch_size):
         fake = generated[start : start + batch_size].float().cpu()
@@ -440,6 +542,8 @@ def score_views(
         predictions["class"].append(evaluators.classifier(fake_eval).argmax(dim=1).cpu())
         for name, regressor in regressors.items():
             predictions[name].append(regressor.predict_azimuth_deg(fake_eval).cpu())
+        if depression_regressor is not None:
+            predictions["depression"].append(depression_regressor.predict_depression_deg(fake_eval).cpu())
         generated_features.append(evaluators.regressor.features(fake_eval).cpu())
         target_features.append(evaluators.regressor.features(real_eval).cpu())
     target_azimuth_deg = target_azimuth_deg.double().cpu()
@@ -449,6 +553,11 @@ def score_views(
         "azimuth_error_deg": azimuth_error_deg(predicted_azimuth_deg, target_azimuth_deg),
         **{name: torch.cat(values).double() for name, values in structural.items()},
     }
+    if depression_regressor is not None:
+        predicted_depression_deg = torch.cat(predictions["depression"]).double()
+        per_sample["depression_error_deg"] = (
+            predicted_depression_deg - target_depression_deg.double().cpu()
+        ).abs()
     scores = {
         "accuracy": 100.0 * classification_accuracy(torch.cat(predictions["class"]), labels.cpu()),
         "azimuth_error_deg": per_sample["azimuth_error_deg"].mean().item(),
@@ -456,13 +565,73 @@ def score_views(
         **{name: per_sample[name].mean().item() for name in structural},
         "n": float(n),
     }
-    # standard error of each mean (sample standard deviation / sqrt(n)); SFD has no per-sample terms
+    if depression_regressor is not None:
+        scores["depression_error_deg"] = per_sample["depression_error_deg"].mean().item()
+    # SFD has no per-sample terms, hence no standard error
     for name, values in per_sample.items():
-        scores[f"{name}_se"] = values.std(correction=1).item() / math.sqrt(n) if n > 1 else float("nan")
+        scores[f"{name}_se"] = standard_error(values)
     for name in regressors:
         error = azimuth_error_deg(torch.cat(predictions[name]).double(), target_azimuth_deg)
         scores[f"azimuth_error_deg/{name}"] = error.mean().item()
     return scores
+
+
+def closer_to_target_depression(
+    generated: torch.Tensor | np.ndarray,
+    targets: torch.Tensor | np.ndarray,
+    input_depression_views: torch.Tensor | np.ndarray,
+    sigma_px: float = 1.5,
+) -> torch.Tensor:
+    """Whether each blurred generated view correlates more with the requested depression's truth.
+
+    A view generated for a depression change `d_el != 0` should look like the target view (target azimuth,
+    target depression) more than like the view at the target azimuth but the input's depression, which is
+    what a model that turns the azimuth and ignores `d_el` returns. All three views are blurred with a
+    Gaussian of `sigma_px` pixels first, so that speckle-scale detail, which no generator can reproduce,
+    does not decide the comparison; the Pearson correlation of the generated view with each truth decides
+    it. A constant view correlates 0 with anything.
+
+    Args:
+        generated: Generated views.
+        targets: True views at the target azimuth and target depression.
+        input_depression_views: True views at the target azimuth and the input's depression.
+        sigma_px: Standard deviation of the Gaussian blur in pixels.
+
+    Returns:
+        `(N,)` bool: `corr(generated, targets) > corr(generated, input_depression_views)` (ties: False).
+
+    Shape:
+        `(N, 1, H, W)` each -> `(N,)`.
+
+    Raises:
+        ValueError: For views of different shapes, not `(N, 1, H, W)`, or a negative `sigma_px`.
+    """
+    views = [
+        np.asarray(torch.as_tensor(v).detach().cpu(), dtype=np.float64)
+        for v in (generated, targets, input_depression_views)
+    ]
+    if views[0].ndim != 4 or views[0].shape[1] != 1 or any(v.shape != views[0].shape for v in views):
+        raise ValueError(
+            f"generated, targets and input_depression_views must share one (N, 1, H, W) shape, got "
+            f"{[v.shape for v in views]}"
+        )
+    if sigma_px < 0:
+        raise ValueError(f"sigma_px must be >= 0, got {sigma_px}")
+    blurred = [gaussian_filter(v, sigma=(0.0, 0.0, sigma_px, sigma_px)) for v in views]
+    generated_blurred, target_blurred, input_depression_blurred = blurred
+    to_target = _pearson(generated_blurred, target_blurred)
+    return torch.from_numpy(to_target > _pearson(generated_blurred, input_depression_blurred))
+
+
+def _pearson(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pearson correlation of each pair of views, 0 where one is constant. Shape: `(N, ...)` x2 -> `(N,)`."""
+    a = a.reshape(a.shape[0], -1)
+    b = b.reshape(b.shape[0], -1)
+    a = a - a.mean(axis=1, keepdims=True)
+    b = b - b.mean(axis=1, keepdims=True)
+    norms = np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
+    covariance = (a * b).sum(axis=1)
+    return np.divide(covariance, norms, out=np.zeros_like(covariance), where=norms > 0)
 
 
 @torch.no_grad()
@@ -476,6 +645,7 @@ def pose_following(
     num_inference_steps: int = 20,
     guidance_scale: float = 3.0,
     seed: int = 0,
+    input_depression_deg: float | None = None,
 ) -> dict[str, Any]:
     """Does a pipeline's output turn with the requested pose? One input view, several ``d_az``.
 
@@ -492,6 +662,8 @@ def pose_following(
         num_inference_steps: Sampler steps.
         guidance_scale: Classifier-free guidance weight.
         seed: Seed of the generator of every request (the same noise for each, so only the pose differs).
+        input_depression_deg: The input view's depression, for a pipeline whose pose carries it
+            (``pose_projection.config.input_depression``).
 
     Returns:
         ``{"requested_deg", "predicted_deg", "error_deg" (per request), "mean_error_deg", "floor_deg"}``.
@@ -507,6 +679,7 @@ def pose_following(
         image.expand(count, -1, -1, -1).to(pipe.device),
         d_az=requests.float(),
         d_el=torch.zeros(count),
+        input_depression_deg=input_depression_deg,
         num_inference_steps=num_inference_steps,
         guidance_scale=guidance_scale,
         generator=[torch.Generator().manual_seed(seed) for _ in range(count)],
@@ -525,4 +698,3 @@ def pose_following(
         "mean_error_deg": error.mean().item(),
         "floor_deg": floor.mean().item(),
     }
-

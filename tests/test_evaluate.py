@@ -11,21 +11,35 @@ import torch
 from dummies import get_dummy_components
 from test_evaluators import TINY_ENCODER, write_chip_folder
 
+from sar_zero123.data import load_chip
 from sar_zero123.encoder import SAREncoderConfig
-from sar_zero123.evaluators import AzimuthRegressor, Evaluators, SARClassifier, score_views
+from sar_zero123.evaluators import (
+    AzimuthRegressor,
+    DepressionRegressor,
+    Evaluators,
+    SARClassifier,
+    load_evaluators,
+    score_views,
+)
+from sar_zero123.models import build_sar_zero123
 from sar_zero123.pipeline import SARZero123Pipeline
 from train import evaluate
 
 
-def _evaluators(directory: Path, image_size: int = 32) -> Evaluators:
-    """Untrained tiny evaluators saved the way train_evaluators.py saves them."""
+def _evaluators(directory: Path, image_size: int = 32, depression: bool = False) -> Evaluators:
+    """Untrained tiny evaluators saved the way train_evaluators.py saves them (with a depression
+    regressor when `depression`)."""
     config = SAREncoderConfig(**{**TINY_ENCODER, "image_size": image_size})
     torch.manual_seed(0)
     classifier = SARClassifier(config, ["A", "B"])
     regressor = AzimuthRegressor(config, ["A", "B"], hidden_sizes=(16, 16))
     classifier.save_pretrained(directory / "classifier")
     regressor.save_pretrained(directory / "regressor")
-    return Evaluators(classifier.eval(), regressor.eval())
+    depression_regressor = None
+    if depression:
+        depression_regressor = DepressionRegressor(config, ["A", "B"], hidden_sizes=(16,)).eval()
+        depression_regressor.save_pretrained(directory / "depression_regressor")
+    return Evaluators(classifier.eval(), regressor.eval(), depression_regressor=depression_regressor)
 
 
 def test_score_views_identical_images(tmp_path: Path) -> None:
@@ -147,3 +161,131 @@ def test_gap_closed_is_the_fraction_between_floor_and_ceiling() -> None:
     assert script.gap_closed(55.0, floor=90.0, ceiling=20.0, gap_se=6.0) == pytest.approx(0.5)
     assert math.isnan(script.gap_closed(85.0, floor=100.0, ceiling=70.0, higher_is_better=True))
 
+
+def test_depression_gap_closed_and_columns_on_hand_made_numbers() -> None:
+    script = evaluate
+    floor, target, round_trip = script.INPUT_COPY, script.REAL_TARGET, script.VAE_ROUND_TRIP
+
+    def row(azimuth: float, accuracy: float, depression: float | None, se: float = 1.0) -> dict[str, float]:
+        values = {"azimuth_error_deg": azimuth, "azimuth_error_deg_se": se, "accuracy": accuracy,
+                  "accuracy_se": se, "n": 8.0}  # fmt: skip
+        if depression is not None:
+            values.update(depression_error_deg=depression, depression_error_deg_se=se)
+        return values
+
+    results = {
+        floor: {"seen": row(90.0, 50.0, 20.0), "unseen": row(90.0, 50.0, 5.0)},
+        target: {"seen": row(10.0, 95.0, 2.0), "unseen": row(10.0, 95.0, 2.0)},
+        round_trip: {"seen": row(20.0, 90.0, 4.0), "unseen": row(20.0, 90.0, 4.0)},
+        "model": {"seen": row(55.0, 70.0, 8.0), "unseen": row(55.0, 70.0, 3.0)},
+    }
+    script.add_gap_closed(results, floor=floor, ceiling=round_trip)
+    seen, unseen = results["model"]["seen"], results["model"]["unseen"]
+    assert seen["depression_gap_closed"] == pytest.approx((20.0 - 8.0) / (20.0 - 4.0))  # 0.75
+    assert seen["azimuth_gap_closed"] == pytest.approx(0.5) and seen["accuracy_gap_closed"] == pytest.approx(
+        0.5
+    )
+    # floor 5 vs ceiling 4 deg at a standard error of 1 each: a gap the pairs do not resolve
+    assert math.isnan(unseen["depression_gap_closed"])
+    assert "depression_gap_closed" not in results[floor]["seen"]
+
+    results["model"]["seen"]["closer_to_target_depression"] = 0.625
+    markdown = script.table3_markdown(results, include_paper=True)
+    header = markdown.splitlines()[0]
+    assert "Dep. err. (deg) ↓ | Closer to target dep. ↑ | Az. gap closed ↑ | Acc. gap closed ↑ | " in header
+    assert header.endswith("| Dep. gap closed ↑ | n |")
+    assert "| model | seen | " in markdown and "| 8.0 ± 1.0 | 0.62 | 50 % | 50 % | 75 % | 8 |" in markdown
+    assert "| model | unseen | " in markdown and "| 3.0 ± 1.0 | - | 50 % | 50 % | no gap | 8 |" in markdown
+    assert "| 89.0 | 23.5 | 1.84 | 0.6720 | 0.7374 | - | - | - | - |" in markdown  # paper rows: no depression
+
+    # without a depression regressor (older evaluator folders) the table keeps its columns
+    plain = {method: {g: row(50.0, 50.0, None) for g in ("seen",)} for method in (floor, round_trip, "model")}
+    script.add_gap_closed(plain, floor=floor, ceiling=round_trip)
+    assert "depression_gap_closed" not in plain["model"]["seen"]
+    assert "Dep." not in script.table3_markdown(plain, include_paper=False).splitlines()[0]
+
+
+def test_evaluate_depression_protocol_passes_input_depression(tmp_path: Path, monkeypatch) -> None:
+    data = write_chip_folder(
+        tmp_path / "data",
+        azimuths_deg=tuple(range(0, 360, 60)),
+        depressions_deg=(10.0, 17.0, 30.0, 45.0),
+        size=32,
+        spot_px_per_depression_deg=0.2,
+    )
+    _evaluators(tmp_path / "evaluators", depression=True)
+    pipe = build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True)
+    pipe.save_pretrained(tmp_path / "pipe")
+    requested: list[torch.Tensor] = []
+    call = SARZero123Pipeline.__call__
+
+    def spy(self, *args, **kwargs):
+        requested.append(torch.as_tensor(kwargs["input_depression_deg"]).cpu())
+        return call(self, *args, **kwargs)
+
+    monkeypatch.setattr(SARZero123Pipeline, "__call__", spy)
+    out = tmp_path / "eval"
+    argv = [
+        "--pipeline", str(tmp_path / "pipe"), "--evaluators", str(tmp_path / "evaluators"),
+        "--data", str(data), "--protocol", "ood-B", "--input_depression_deg", "17",
+        "--target_depressions_deg", "10", "30", "45",
+        "--no-same_depression", "--n", "6", "--num-inference-steps", "1", "--crop_size", "32",
+        "--steps", "1", "--schedulers", "ddim", "--speed_n", "2", "--eval_batch_size", "3",
+        "--num_figure_pairs", "1", "--output_dir", str(out), "--device", "cpu",
+    ]  # fmt: skip
+    with pytest.warns(UserWarning, match="rank-deficient"):
+        evaluate.main(argv)
+    # Table III: 2 groups x 1 batch of 3; the sweep: a warm-up of 1 pair, then 2 pairs
+    assert [len(r) for r in requested] == [3, 3, 1, 2] and all((r == 17.0).all() for r in requested)
+
+    written = json.loads((out / "table3.json").read_text())
+    table3 = written["results"]
+    assert written["input_depression_deg"] == 17.0 and written["target_depressions_deg"] == [10.0, 30.0, 45.0]
+    for group in ("seen", "unseen"):
+        assert set(written["pairs_per_d_el_deg"][group]) <= {"-7", "+13", "+28"}
+        assert sum(written["pairs_per_d_el_deg"][group].values()) == 3
+    # the same pairs again: the real target's depression error is the regressor's own on the targets
+    config = evaluate.EvaluateConfig(**json.loads((out / "config.json").read_text()))
+    evaluators = load_evaluators(tmp_path / "evaluators")
+    pair_sets = evaluate.build_pair_sets(config, evaluators, image_size=32)
+    floor, target, round_trip = evaluate.INPUT_COPY, evaluate.REAL_TARGET, evaluate.VAE_ROUND_TRIP
+    for group, pairs in pair_sets.items():
+        assert (pairs.input_depression_deg == 17.0).all() and pairs.has_reference.all()
+        torch.testing.assert_close(pairs.d_el_deg, pairs.target_depression_deg - 17.0)
+        for i in range(len(pairs)):  # the reference: same object, target azimuth, input depression
+            name = evaluators.class_names[pairs.labels[i]]
+            path = data / f"{name}_17_{int(pairs.target_azimuth_deg[i]):03d}.npy"
+            reference = evaluators.classifier.scaling.normalize(torch.from_numpy(load_chip(path, 32))[None])
+            torch.testing.assert_close(pairs.references[i], reference)
+        with torch.no_grad():
+            predicted = evaluators.depression_regressor.predict_depression_deg(pairs.targets).double()
+        expected = (predicted - pairs.target_depression_deg.double()).abs().mean().item()
+        assert table3[target][group]["depression_error_deg"] == pytest.approx(expected, rel=1e-6)
+        # the true target is always closer to itself than to the view at the input's depression
+        assert table3[target][group]["closer_to_target_depression"] == 1.0
+        assert table3[target][group]["closer_to_target_depression_n"] == 3
+        for method in (floor, round_trip, "pipe"):
+            assert 0.0 <= table3[method][group]["closer_to_target_depression"] <= 1.0
+            assert 0.0 <= table3[method][group]["depression_error_deg"] <= 90.0
+        values, low, high = (table3[m][group] for m in ("pipe", floor, round_trip))
+        key = "depression_error_deg"
+        expected_gap = evaluate.gap_closed(
+            values[key], low[key], high[key], gap_se=math.hypot(low[f"{key}_se"], high[f"{key}_se"])
+        )
+        assert values["depression_gap_closed"] == pytest.approx(expected_gap, nan_ok=True)
+    markdown = (out / "table3.md").read_text()
+    assert "Dep. err. (deg) ↓" in markdown and "Closer to target dep. ↑" in markdown
+    assert "Dep. gap closed ↑" in markdown
+
+
+def test_evaluate_rejects_bad_depression_requests() -> None:
+    with pytest.raises(ValueError, match="pass --no-same_depression"):
+        evaluate.EvaluateConfig(pipeline=["a"], input_depression_deg=17.0, target_depressions_deg=[30.0])
+    with pytest.raises(ValueError, match=r"target_depressions_deg must lie in \(0, 90\) degrees"):
+        evaluate.EvaluateConfig(pipeline=["a"], target_depressions_deg=[90.0], same_depression=False)
+    with pytest.raises(ValueError, match=r"input_depression_deg must lie in \(0, 90\) degrees"):
+        evaluate.EvaluateConfig(pipeline=["a"], input_depression_deg=0.0)
+    with pytest.raises(ValueError, match="target_depressions_deg: give at least one"):
+        evaluate.EvaluateConfig(pipeline=["a"], target_depressions_deg=[])
+    # one depression for input and target is a same-depression request
+    evaluate.EvaluateConfig(pipeline=["a"], input_depression_deg=17.0, target_depressions_deg=[17.0])

@@ -10,6 +10,12 @@ Protocol: pairs of two test views of one object (input, target), conditioned on 
 pairs are seen. Each pipeline generates the target view from the input view; the five metrics of
 `sar_zero123.evaluators.score_views` score it. Pairs and generator seeds are the same for every pipeline.
 
+Depression requests: `--input_depression_deg 17 --target_depressions_deg 10 30 45 --no-same_depression`
+pairs 17 deg inputs with targets at 10, 30 and 45 deg (d_el = -7, +13, +28), drawn from every chip of the
+seen (and unseen) classes at every depression. With a depression regressor among the evaluators
+(`train_evaluators.py --depression_data`) Table III gains `Dep. err.` and `Dep. gap closed`; for pairs with
+d_el != 0 it gains `Closer to target dep.` (`sar_zero123.evaluators.closer_to_target_depression`).
+
 Outputs in `--output_dir`: `table3.{json,md}` (the paper's rows beside ours, plus an "input copy" baseline
 that returns the input view unchanged), `table4.{json,md}` (azimuth error under every evaluator backbone),
 `views.png` (input | each pipeline | target, Fig. 7/8), `lambda_sweep.png` (with `--lambdas`, Fig. 12),
@@ -34,8 +40,24 @@ from tqdm.auto import tqdm
 
 from sar_zero123.conditioning import encode_condition_latents
 from sar_zero123.config import check_minimum, parse_config, save_config, write_json_atomic
-from sar_zero123.data import SCALING_FILE, DecibelScaling, ViewPairDataset, prepare_splits, split_records
-from sar_zero123.evaluators import Evaluators, check_class_names, load_evaluators, score_views
+from sar_zero123.data import (
+    SCALING_FILE,
+    ChipRecord,
+    DecibelScaling,
+    ViewPairDataset,
+    load_chip,
+    load_index,
+    prepare_splits,
+    split_records,
+)
+from sar_zero123.evaluators import (
+    Evaluators,
+    check_class_names,
+    closer_to_target_depression,
+    load_evaluators,
+    score_views,
+    standard_error,
+)
 from sar_zero123.pipeline import SARZero123Pipeline
 
 logger = logging.getLogger(__name__)
@@ -52,7 +74,19 @@ METRIC_LABELS = {
     "kuan_ssim": "Kuan+SSIM ↑",
     "ms_ssim_corrected": "MS-SSIM corr. ↑",
     "kuan_ssim_corrected": "Kuan+SSIM corr. ↑",
+    "depression_error_deg": "Dep. err. (deg) ↓",
+    "closer_to_target_depression": "Closer to target dep. ↑",
 }
+# columns only pairs with a depression change (and a depression regressor, for the error) give
+DEPRESSION_METRICS = ("depression_error_deg", "closer_to_target_depression")
+# the errors whose floor-to-ceiling gap Table III reports, keyed `<first word>_gap_closed`
+GAP_METRICS = ("azimuth_error_deg", "accuracy", "depression_error_deg")
+GAP_LABELS = {
+    "azimuth_gap_closed": "Az. gap closed ↑",
+    "accuracy_gap_closed": "Acc. gap closed ↑",
+    "depression_gap_closed": "Dep. gap closed ↑",
+}
+BLUR_SIGMA_PX = 1.5  # Gaussian blur before the "closer to target depression" correlations
 # Table III of the paper (zero123 fine-tuned on MSTAR, 1,000 samples: 500 seen, 500 unseen T72).
 PAPER_TABLE3 = {
     "paper: w/o PFM": {
@@ -111,6 +145,8 @@ class EvaluateConfig:
     work_dir: str | None = None  # cache of the simulated dataset (default: output_dir)
     protocol: str = "extended"  # "extended" (seen only) or "ood-<CLASS>" (half seen, half unseen)
     same_depression: bool = True  # pair views at one depression; False also pairs across (d_el != 0)
+    input_depression_deg: float | None = None  # only pairs whose input is at this depression (None: any)
+    target_depressions_deg: list[float] | None = None  # only pairs with targets at one of these (None: any)
     max_d_az_deg: float | None = None  # largest |d_az| of a pair (None: any)
     n: int = 1000  # generated samples in total (split evenly between seen and unseen)
     num_inference_steps: int = 50  # denoising steps for Tables III/IV
@@ -160,6 +196,23 @@ class EvaluateConfig:
             raise ValueError(f"steps must be >= 1, got {self.steps}")
         check_minimum(self, "speed_n", minimum=1, optional=True)
         check_minimum(self, "num_figure_pairs", minimum=0)
+        if self.target_depressions_deg is not None and not self.target_depressions_deg:
+            raise ValueError("target_depressions_deg: give at least one depression, or none for any")
+        for name, values in (
+            ("input_depression_deg", [self.input_depression_deg]),
+            ("target_depressions_deg", self.target_depressions_deg or []),
+        ):
+            if any(value is not None and not 0.0 < value < 90.0 for value in values):
+                raise ValueError(f"{name} must lie in (0, 90) degrees, got {getattr(self, name)}")
+        if (
+            self.same_depression
+            and self.input_depression_deg is not None
+            and any(t != self.input_depression_deg for t in self.target_depressions_deg or [])
+        ):
+            raise ValueError(
+                f"same_depression pairs views at one depression, so no {self.input_depression_deg} deg input "
+                f"has a target at {self.target_depressions_deg} deg; pass --no-same_depression"
+            )
 
     @property
     def names(self) -> list[str]:
@@ -170,6 +223,11 @@ class EvaluateConfig:
         if len(set(names)) != len(names):
             names = [f"{Path(p).parent.name}/{Path(p).name}" for p in self.pipeline]
         return names
+
+    @property
+    def depression_requests(self) -> bool:
+        """Whether pairs are chosen by depression (`input_depression_deg` or `target_depressions_deg`)."""
+        return self.input_depression_deg is not None or self.target_depressions_deg is not None
 
 
 # --------------------------------------------------------------------------------------------- data
@@ -184,36 +242,59 @@ class PairSet:
     labels: torch.Tensor  # (N,)
     target_azimuth_deg: torch.Tensor  # (N,)
     seeds: torch.Tensor  # (N,) generator seed of each sample
+    input_depression_deg: torch.Tensor  # (N,)
+    target_depression_deg: torch.Tensor  # (N,)
+    # (N,) whether the pair has d_el != 0 and a true view at the target azimuth and the input's depression
+    has_reference: torch.Tensor
+    # (N, 1, S, S) those views (zeros where has_reference is False); None where no pair has one
+    references: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return self.inputs.shape[0]
 
     def subset(self, count: int) -> PairSet:
         """The first `count` pairs."""
-        return PairSet(*(getattr(self, f)[:count] for f in self.__dataclass_fields__))
+        columns = (getattr(self, f) for f in self.__dataclass_fields__)
+        return PairSet(*(None if column is None else column[:count] for column in columns))
+
+
+def evaluation_groups(config: EvaluateConfig, work_dir: Path) -> tuple[list[ChipRecord], dict[str, list]]:
+    """Every chip of the data, and the chips each group ("seen", and "unseen" for ood) draws pairs from.
+
+    The paper's groups: seen = the extended test split (15 deg) without the held-out class, unseen = every
+    chip of the held-out class. Pairs chosen by depression need chips at other depressions than the
+    extended split's 17 and 15 deg: there, seen = every chip of the seen classes, at every depression.
+    """
+    if config.depression_requests and config.data is not None:
+        records = load_index(config.data)
+        seen = records
+    else:
+        extended = prepare_splits(config.data, "extended", work_dir, seed=config.seed)
+        records = extended["train"] + extended["test"]
+        seen = records if config.depression_requests else extended["test"]
+    if config.protocol == "extended":
+        return records, {"seen": seen}
+    ood = split_records(records, config.protocol, seed=config.seed)
+    held_out = ood["test"][0].target_class
+    return records, {"seen": [r for r in seen if r.target_class != held_out], "unseen": ood["test"]}
 
 
 def build_pair_sets(config: EvaluateConfig, evaluators: Evaluators, image_size: int) -> dict[str, PairSet]:
     """Samples the seen (and unseen) pairs of the protocol with the evaluators' scaling and classes."""
     work_dir = Path(config.work_dir) if config.work_dir is not None else Path(config.output_dir)
-    extended = prepare_splits(config.data, "extended", work_dir, seed=config.seed)
-    data_classes = sorted({r.target_class for r in extended["train"] + extended["test"]})
+    records, groups = evaluation_groups(config, work_dir)
+    data_classes = sorted({r.target_class for r in records})
     check_class_names(evaluators.class_names, data_classes, config.evaluators)
-    groups: dict[str, list] = {}
     if config.protocol == "extended":
-        groups["seen"] = extended["test"]
         counts = {"seen": config.n}
     else:
-        ood = split_records(extended["train"] + extended["test"], config.protocol, seed=config.seed)
-        held_out = ood["test"][0].target_class
-        groups["seen"] = [r for r in extended["test"] if r.target_class != held_out]
-        groups["unseen"] = ood["test"]
         counts = {"seen": config.n - config.n // 2, "unseen": config.n // 2}
     scaling = evaluators.classifier.scaling
+    input_depressions = None if config.input_depression_deg is None else [config.input_depression_deg]
     pair_sets = {}
-    for offset, (group, records) in enumerate(groups.items()):
+    for offset, (group, group_records) in enumerate(groups.items()):
         dataset = ViewPairDataset(
-            records,
+            group_records,
             size=image_size,
             scaling=scaling,
             max_d_az_deg=config.max_d_az_deg,
@@ -222,12 +303,17 @@ def build_pair_sets(config: EvaluateConfig, evaluators: Evaluators, image_size: 
             num_pairs=counts[group],
             class_names=evaluators.class_names,
             crop_size=config.chip_crop_size,
+            input_depressions_deg=input_depressions,
+            target_depressions_deg=config.target_depressions_deg,
         )
         columns: dict[str, list[torch.Tensor]] = {}
+        keys = ("input", "target", "d_az_deg", "d_el_deg", "label", "target_azimuth_deg",
+                "input_depression_deg", "target_depression_deg")  # fmt: skip
         for batch in DataLoader(dataset, batch_size=64, shuffle=False):
-            for key in ("input", "target", "d_az_deg", "d_el_deg", "label", "target_azimuth_deg"):
+            for key in keys:
                 columns.setdefault(key, []).append(torch.as_tensor(batch[key]))
         count = len(dataset)
+        references, has_reference = input_depression_views(dataset)
         pair_sets[group] = PairSet(
             inputs=torch.cat(columns["input"]),
             targets=torch.cat(columns["target"]),
@@ -237,9 +323,33 @@ def build_pair_sets(config: EvaluateConfig, evaluators: Evaluators, image_size: 
             target_azimuth_deg=torch.cat(columns["target_azimuth_deg"]).double(),
             # Distinct seeds per group and sample: a sample's noise does not depend on the batch size.
             seeds=torch.arange(count) + config.seed * 1_000_003 + offset * 100_003,
+            input_depression_deg=torch.cat(columns["input_depression_deg"]).float(),
+            target_depression_deg=torch.cat(columns["target_depression_deg"]).float(),
+            has_reference=has_reference,
+            references=references,
         )
-        logger.info("%s: %d pairs from %d chips", group, count, len(records))
+        logger.info("%s: %d pairs from %d chips", group, count, len(group_records))
     return pair_sets
+
+
+def input_depression_views(dataset: ViewPairDataset) -> tuple[torch.Tensor | None, torch.Tensor]:
+    """For each pair with d_el != 0: the true view at its target azimuth but its input's depression
+    (`ViewPairDataset.target_at_input_depression`: same object, azimuth within 0.01 deg).
+
+    Returns:
+        ``(views (N, 1, S, S) normalised dB, zeros where missing, or None where every view is missing;
+        found (N,) bool, False for pairs with d_el = 0 or without such a view)``.
+    """
+    indices = [dataset.target_at_input_depression(i) for i in range(len(dataset))]
+    found = torch.tensor([index is not None for index in indices], dtype=torch.bool)
+    if not found.any():
+        return None, found
+    views = torch.zeros(len(dataset), 1, dataset.size, dataset.size)
+    for i, index in enumerate(indices):
+        if index is not None:
+            magnitude = load_chip(dataset.records[index].path, dataset.size, dataset.crop_size)
+            views[i] = dataset.scaling.normalize(torch.from_numpy(magnitude)[None])
+    return views, found
 
 
 def check_pipeline_scaling(pipeline_dir: str | Path, evaluators: Evaluators) -> None:
@@ -283,15 +393,19 @@ def generate_pair_targets(
 ) -> tuple[torch.Tensor, float]:
     """Generates the target view of every pair (seeded per pair), in batches, timing the pipeline calls.
 
-    Not :func:`sar_zero123.generate.generate_views`, which generates several views of one chip.
+    Not :func:`sar_zero123.generate.generate_views`, which generates several views of one chip. A pipeline
+    whose pose carries the input's absolute depression (``pose_projection.config.input_depression``) gets
+    each pair's input depression.
 
     Returns:
         ``(images (N, 1, S, S) on CPU, seconds spent in the pipeline)``.
     """
     outputs, seconds = [], 0.0
+    takes_depression = getattr(pipe.pose_projection.config, "input_depression", False)
     for start in tqdm(range(0, len(pairs), batch_size), desc=desc, leave=False):
         stop = min(start + batch_size, len(pairs))
         generators = [torch.Generator(device).manual_seed(int(s)) for s in pairs.seeds[start:stop]]
+        depression = pairs.input_depression_deg[start:stop].to(device) if takes_depression else None
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         begin = time.perf_counter()
@@ -299,6 +413,7 @@ def generate_pair_targets(
             image=pairs.inputs[start:stop].to(device),
             d_az=pairs.d_az_deg[start:stop].to(device),
             d_el=pairs.d_el_deg[start:stop].to(device),
+            input_depression_deg=depression,
             num_inference_steps=num_inference_steps,
             guidance_scale=guidance_scale,
             generator=generators,
@@ -341,14 +456,15 @@ def gap_closed(
 
 
 def add_gap_closed(results: dict[str, dict[str, dict[str, float]]], floor: str, ceiling: str) -> None:
-    """Adds ``azimuth_gap_closed`` and ``accuracy_gap_closed`` to every row except the reference rows."""
+    """Adds ``azimuth_gap_closed``, ``accuracy_gap_closed`` and, where the rows have a depression error,
+    ``depression_gap_closed`` to every row except the reference rows."""
     for method, groups in results.items():
         if method.startswith(REFERENCE_ROWS):  # the rows themselves and per-pipeline VAE round trips
             continue
         for group, values in groups.items():
-            for metric in ("azimuth_error_deg", "accuracy"):
+            low, high = results[floor][group], results[ceiling][group]
+            for metric in (m for m in GAP_METRICS if m in values and m in low and m in high):
                 key = f"{metric.split('_')[0]}_gap_closed"
-                low, high = results[floor][group], results[ceiling][group]
                 gap_se = math.hypot(low.get(f"{metric}_se", 0.0), high.get(f"{metric}_se", 0.0))
                 higher_is_better = metric == "accuracy"
                 values[key] = gap_closed(values[metric], low[metric], high[metric], higher_is_better, gap_se)
@@ -357,18 +473,31 @@ def add_gap_closed(results: dict[str, dict[str, dict[str, float]]], floor: str, 
 def score(
     generated: torch.Tensor, pairs: PairSet, evaluators: Evaluators, config: EvaluateConfig, device
 ) -> dict:
-    """Table III/IV metrics of a generated set (see `score_views`)."""
-    return score_views(
+    """Table III/IV metrics of a generated set (see `score_views`), and for the pairs with a depression
+    change and a true view at the target azimuth and the input's depression, the fraction of generated
+    views closer to the requested depression's truth (`closer_to_target_depression`, with its standard
+    error and `closer_to_target_depression_n`, the pairs it counts)."""
+    scores = score_views(
         generated,
         pairs.targets,
         pairs.labels,
         pairs.target_azimuth_deg,
         evaluators,
+        target_depression_deg=pairs.target_depression_deg,
         crop_size=config.crop_size,
         paper_scoring_size=config.paper_scoring_size,
         batch_size=max(config.eval_batch_size, 32),
         device=device,
     )
+    if pairs.references is not None:
+        mask = pairs.has_reference
+        closer = closer_to_target_depression(
+            generated[mask], pairs.targets[mask], pairs.references[mask], sigma_px=BLUR_SIGMA_PX
+        ).double()
+        scores["closer_to_target_depression"] = closer.mean().item()
+        scores["closer_to_target_depression_se"] = standard_error(closer)
+        scores["closer_to_target_depression_n"] = float(closer.numel())
+    return scores
 
 
 # ------------------------------------------------------------------------------------------ reports
@@ -377,9 +506,9 @@ def _format(metric: str, value: float | None) -> str:
         return "-"
     if metric == "accuracy":
         return f"{value:.1f}"
-    if metric == "azimuth_error_deg":
+    if metric in ("azimuth_error_deg", "depression_error_deg"):
         return f"{value:.1f}"
-    if metric == "sfd":
+    if metric in ("sfd", "closer_to_target_depression"):
         return f"{value:.2f}"
     return f"{value:.4f}"
 
@@ -402,10 +531,14 @@ def _fraction(value: float | None) -> str:
 def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_paper: bool) -> str:
     """Markdown Table III: one row per (method, group), the paper's rows first when `include_paper`.
 
-    Metrics carry ± their standard error; the two gap columns give the fraction of the gap between the
-    input copy (floor) and the VAE round trip (ceiling) that each model closes.
+    Metrics carry ± their standard error; the gap columns give the fraction of the gap between the
+    input copy (floor) and the VAE round trip (ceiling) that each model closes. The depression columns
+    appear when some row has them (a depression regressor, pairs with d_el != 0).
     """
-    labels = [METRIC_LABELS[m] for m in METRICS] + ["Az. gap closed ↑", "Acc. gap closed ↑"]
+    present = {key for groups in results.values() for values in groups.values() for key in values}
+    metrics = [*METRICS, *(m for m in DEPRESSION_METRICS if m in present)]
+    gaps = [key for key in GAP_LABELS if key != "depression_gap_closed" or "depression_error_deg" in present]
+    labels = [METRIC_LABELS[m] for m in metrics] + [GAP_LABELS[key] for key in gaps]
     header = "| Method | Views | " + " | ".join(labels) + " | n |"
     lines = [header, "|" + " --- |" * (len(labels) + 3)]
     rows = dict(PAPER_TABLE3) if include_paper else {}
@@ -413,9 +546,9 @@ def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_pap
     for method, groups in rows.items():
         for group, values in groups.items():
             n = values.get("n")
-            cells = " | ".join(_cell(m, values) for m in METRICS)
-            gaps = " | ".join(_fraction(values.get(k)) for k in ("azimuth_gap_closed", "accuracy_gap_closed"))
-            lines.append(f"| {method} | {group} | {cells} | {gaps} | {'' if n is None else int(n)} |")
+            cells = " | ".join(_cell(m, values) for m in metrics)
+            fractions = " | ".join(_fraction(values.get(key)) for key in gaps)
+            lines.append(f"| {method} | {group} | {cells} | {fractions} | {'' if n is None else int(n)} |")
     lines.append("")
     lines.append(
         f"Floor: `{INPUT_COPY}` returns the input view (a generator that ignores the pose). Ceilings: "
@@ -431,6 +564,18 @@ def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_pap
         "(`sar_zero123.metrics`: true 7x7 Gaussian windows, centred 7x7 Kuan filter, generated resolution); "
         "SFD: Frechet distance of the azimuth regressor's pooled features at the n shown."
     )
+    if "depression_error_deg" in present:
+        lines.append(
+            "Dep. err.: |depression regressor's prediction on the view - the target's true depression|."
+        )
+    if "closer_to_target_depression" in present:
+        lines.append(
+            "Closer to target dep.: fraction of the pairs with d_el != 0 whose view, blurred (Gaussian, "
+            f"sigma {BLUR_SIGMA_PX:g} px) like both truths, correlates more with the true target view than "
+            "with the true view at the target azimuth but the input's depression (a model that ignores "
+            "d_el returns the latter); counted over the pairs where that view exists "
+            "(`closer_to_target_depression_n` in table3.json)."
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -633,6 +778,15 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             logger.info("%s %s: %s", name, group, json.dumps(results[name][group]))
     add_gap_closed(results, floor=INPUT_COPY, ceiling=VAE_ROUND_TRIP)
     include_paper = config.protocol.startswith("ood-")
+    evaluator_metrics = {
+        name: model.metrics
+        for name, model in (
+            ("classifier", evaluators.classifier),
+            ("regressor", evaluators.regressor),
+            ("depression_regressor", evaluators.depression_regressor),
+        )
+        if model is not None
+    }
     write_json_atomic(
         {
             "protocol": config.protocol,
@@ -641,10 +795,11 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             "guidance_scale": config.guidance_scale,
             "results": results,
             "paper": PAPER_TABLE3,
-            "evaluator_test_metrics": {
-                "classifier": evaluators.classifier.metrics,
-                "regressor": evaluators.regressor.metrics,
-            },
+            "evaluator_test_metrics": evaluator_metrics,
+            "same_depression": config.same_depression,
+            "input_depression_deg": config.input_depression_deg,
+            "target_depressions_deg": config.target_depressions_deg,
+            "pairs_per_d_el_deg": {group: d_el_counts(pairs.d_el_deg) for group, pairs in pair_sets.items()},
         },
         output_dir / "table3.json",
     )
@@ -707,6 +862,12 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
     print(table3_markdown(results, include_paper))
     return {"table3": results, "speed_error": speed_rows}
+
+
+def d_el_counts(d_el_deg: torch.Tensor) -> dict[str, int]:
+    """How many pairs ask for each depression change, keyed by the change in degrees (``"+13"``)."""
+    values, counts = torch.unique(d_el_deg.double().round(decimals=3), return_counts=True)
+    return {f"{value:+g}": int(count) for value, count in zip(values.tolist(), counts.tolist())}
 
 
 def same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:

@@ -12,6 +12,7 @@ the dataset is built, so every DataLoader worker sees the same pairs and a run i
 
 from __future__ import annotations
 
+import functools
 import os
 from collections import defaultdict
 from collections.abc import Sequence
@@ -25,7 +26,7 @@ from torch.utils.data import Dataset
 from .datasets import load_chip, resolve_class_names
 from .index import ChipRecord
 from .scaling import DecibelScaling
-from .splits import prepare_splits
+from .splits import _DEPRESSION_TOL_DEG, prepare_splits
 
 __all__ = ["ViewPairDataset", "wrap_azimuth_deg"]
 
@@ -45,6 +46,12 @@ def wrap_azimuth_deg(angle_deg: float | np.ndarray) -> float | np.ndarray:
     return float(wrapped) if np.ndim(wrapped) == 0 else wrapped
 
 
+def _near_any(depressions_deg: np.ndarray, wanted_deg: Sequence[float]) -> np.ndarray:
+    """Which depressions lie within the protocols' nominal tolerance of one of ``wanted_deg``."""
+    distance = np.abs(depressions_deg[:, None] - np.asarray(wanted_deg, dtype=np.float64)[None, :])
+    return (distance < _DEPRESSION_TOL_DEG).any(axis=1)
+
+
 class ViewPairDataset(Dataset):
     """Pairs of chips of one object at two poses, for novel-view training and evaluation.
 
@@ -55,9 +62,9 @@ class ViewPairDataset(Dataset):
     float entries into float64 tensors and the label into int64.)
 
     Sampling: every input chip with at least one admissible partner (same object, not itself, within
-    ``max_d_az_deg``, same depression if ``same_depression``) contributes ``pairs_per_chip`` pairs, the
-    targets drawn uniformly from its partners; or, with ``num_pairs``, that many pairs with the input chip
-    drawn uniformly from the admissible ones.
+    ``max_d_az_deg``, same depression if ``same_depression``, input and target at the depressions asked
+    for) contributes ``pairs_per_chip`` pairs, the targets drawn uniformly from its partners; or, with
+    ``num_pairs``, that many pairs with the input chip drawn uniformly from the admissible ones.
 
     Args:
         records: The chips.
@@ -65,6 +72,9 @@ class ViewPairDataset(Dataset):
         scaling: Decibel bounds (default :meth:`DecibelScaling.for_unit_magnitude`).
         max_d_az_deg: Largest |d_az| in degrees (``None``: any).
         same_depression: Pair only chips at the same depression (else also across depressions).
+        input_depressions_deg: Only input chips at one of these depressions (``None``: any); matched
+            within the nominal tolerance of the protocols (0.5 deg).
+        target_depressions_deg: Only target chips at one of these depressions (``None``: any).
         seed: Seed of the pair list.
         pairs_per_chip: Pairs per admissible input chip (ignored when ``num_pairs`` is set).
         num_pairs: Fixed number of pairs per epoch.
@@ -89,6 +99,8 @@ class ViewPairDataset(Dataset):
         class_names: Sequence[str] | None = None,
         return_magnitude: bool = False,
         crop_size: int | None = None,
+        input_depressions_deg: Sequence[float] | None = None,
+        target_depressions_deg: Sequence[float] | None = None,
     ) -> None:
         if size < 1:
             raise ValueError(f"size must be >= 1, got {size}")
@@ -105,6 +117,8 @@ class ViewPairDataset(Dataset):
         self.scaling = scaling if scaling is not None else DecibelScaling.for_unit_magnitude()
         self.max_d_az_deg = max_d_az_deg
         self.same_depression = same_depression
+        self.input_depressions_deg = None if input_depressions_deg is None else list(input_depressions_deg)
+        self.target_depressions_deg = None if target_depressions_deg is None else list(target_depressions_deg)
         self.seed = seed
         self.pairs_per_chip = pairs_per_chip
         self.num_pairs = num_pairs
@@ -114,7 +128,9 @@ class ViewPairDataset(Dataset):
         if not any(allowed.any() for _, allowed in self._groups):
             raise ValueError(
                 f"no chip has a partner view of the same object (max_d_az_deg={max_d_az_deg}, "
-                f"same_depression={same_depression}, {len(self.records)} chips)"
+                f"same_depression={same_depression}, input_depressions_deg={input_depressions_deg}, "
+                f"target_depressions_deg={target_depressions_deg}, {len(self.records)} chips at depressions "
+                f"{sorted({r.depression_deg for r in self.records})})"
             )
         self.set_epoch(0)
 
@@ -131,6 +147,11 @@ class ViewPairDataset(Dataset):
             allowed = ~np.eye(len(members), dtype=bool)
             if self.max_d_az_deg is not None:
                 allowed &= d_az <= self.max_d_az_deg
+            depressions = np.array([self.records[i].depression_deg for i in members])
+            if self.input_depressions_deg is not None:
+                allowed &= _near_any(depressions, self.input_depressions_deg)[:, None]
+            if self.target_depressions_deg is not None:
+                allowed &= _near_any(depressions, self.target_depressions_deg)[None, :]
             result.append((np.asarray(members, dtype=np.int64), allowed))
         return result
 
@@ -171,6 +192,33 @@ class ViewPairDataset(Dataset):
             "input_depression_deg": float(source.depression_deg),
             "target_depression_deg": float(target.depression_deg),
         }
+
+    @functools.cached_property
+    def _object_members(self) -> dict[tuple[str, str], list[int]]:
+        """Record indices of each object's chips, at every depression."""
+        members: dict[tuple[str, str], list[int]] = defaultdict(list)
+        for i, record in enumerate(self.records):
+            members[record.object_id].append(i)
+        return members
+
+    def target_at_input_depression(self, index: int, azimuth_tol_deg: float = 0.01) -> int | None:
+        """The record index of the view pair ``index`` would have as target without its depression change.
+
+        That is the chip of the same object at the target's azimuth (within ``azimuth_tol_deg``) and the
+        input's depression (within the nominal 0.5 deg); ``None`` where the records hold no such chip or
+        where the target itself is at the input's depression.
+        """
+        source, target = (self.records[i] for i in self.pairs[index])
+        if abs(target.depression_deg - source.depression_deg) < _DEPRESSION_TOL_DEG:
+            return None
+        for i in self._object_members[source.object_id]:
+            record = self.records[i]
+            if (
+                abs(record.depression_deg - source.depression_deg) < _DEPRESSION_TOL_DEG
+                and abs(wrap_azimuth_deg(record.azimuth_deg - target.azimuth_deg)) <= azimuth_tol_deg
+            ):
+                return i
+        return None
 
     def __getitem__(self, index: int) -> dict[str, Any]:
         source, target = (self.records[i] for i in self.pairs[index])
