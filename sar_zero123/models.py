@@ -185,6 +185,7 @@ for _spec in SAR_ZERO123_SIZES.values():  # a size may share another size's VAE 
     if isinstance(_spec["vae"], str):
         _spec["vae"] = SAR_ZERO123_SIZES[_spec["vae"]]["vae"]
 
+
 def build_sar_zero123(
     size: str,
     image_size: int | None = None,
@@ -394,25 +395,26 @@ def replace_vae(pipe: SARZero123Pipeline, path: str | os.PathLike) -> SARZero123
 def record_trained_pose_ranges(pose_projection: PoseProjection, pairs: ViewPairDataset) -> tuple[list, list]:
     """Widen the pose projection's recorded training ranges to cover ``pairs`` (saved with its config).
 
-    ``trained_d_el_deg`` becomes the union of its current range and the pairs' ``d_el``;
-    ``trained_depression_deg`` the union with the depressions of the pairs' chips. A pipeline refuses
-    requests outside them (:meth:`SARZero123Pipeline.__call__`), and a fine-tune of a pretrained prior keeps
-    the prior's ranges.
+    ``trained_depression_deg`` becomes the union of its current range and the depressions of the pairs'
+    chips; ``trained_d_el_deg`` the union with every depression change those chips can pair into (the pairs
+    are redrawn each epoch): ``[low - high, high - low]`` across depressions, ``[0, 0]`` for pairs at one
+    depression. A pipeline refuses requests outside them (:meth:`SARZero123Pipeline.__call__`), and a
+    fine-tune of a pretrained prior keeps the prior's ranges.
 
     Returns:
         The new ``(trained_d_el_deg, trained_depression_deg)``.
     """
-    d_el, depressions = [], []
-    for index in range(len(pairs)):
-        fields = pairs.pair_fields(index)
-        d_el.append(fields["d_el_deg"])
-        depressions += [fields["input_depression_deg"], fields["target_depression_deg"]]
+    depressions = [float(record.depression_deg) for record in pairs.records]
+    low, high = min(depressions), max(depressions)
+    spread = 0.0 if pairs.same_depression else high - low
     ranges = []
-    for name, values in (("trained_d_el_deg", d_el), ("trained_depression_deg", depressions)):
+    for name, (new_low, new_high) in (
+        ("trained_d_el_deg", (-spread, spread)),
+        ("trained_depression_deg", (low, high)),
+    ):
         old = getattr(pose_projection.config, name, None)
-        low, high = min(values), max(values)
         if old is not None:
-            low, high = min(low, float(old[0])), max(high, float(old[1]))
-        ranges.append([round(low, 4), round(high, 4)])
+            new_low, new_high = min(new_low, float(old[0])), max(new_high, float(old[1]))
+        ranges.append([round(new_low, 4), round(new_high, 4)])
     pose_projection.register_to_config(trained_d_el_deg=ranges[0], trained_depression_deg=ranges[1])
     return ranges[0], ranges[1]

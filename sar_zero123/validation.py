@@ -121,10 +121,12 @@ def validate_pairs(
             **{**pipe.components, "scheduler": DDIMScheduler.from_config(pipe.scheduler.config)}
         )
         sampler.set_progress_bar_config(disable=True)
+        takes_depression = getattr(pipe.pose_projection.config, "input_depression", False)
         generated = sampler(
             batch["input"].to(sampler.device, torch.float32),
             d_az=batch["d_az_deg"],
             d_el=batch["d_el_deg"],
+            input_depression_deg=batch["input_depression_deg"] if takes_depression else None,
             num_inference_steps=num_inference_steps,
             guidance_scale=guidance_scale,
             generator=torch.Generator().manual_seed(seed),
@@ -152,6 +154,7 @@ def validate_pairs(
                 num_inference_steps=num_inference_steps,
                 guidance_scale=guidance_scale,
                 seed=seed,
+                input_depression_deg=float(batch["input_depression_deg"][0]) if takes_depression else None,
             )
             logs["validation/pose_following_error_deg"] = following["mean_error_deg"]
             logs["validation/pose_following_floor_deg"] = following["floor_deg"]

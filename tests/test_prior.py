@@ -171,13 +171,19 @@ def test_trained_ranges_are_the_union_of_the_prior_and_the_new_pairs(tmp_path: P
     pairs = ViewPairDataset(records, size=32, same_depression=False, seed=0)
     pipe = build_sar_zero123("tiny")
     d_el, depressions = record_trained_pose_ranges(pipe.pose_projection, pairs)
+    used = [r.depression_deg for r in records]
+    spread = round(max(used) - min(used), 4)
+    assert depressions == [round(min(used), 4), round(max(used), 4)] and d_el == [-spread, spread]
     fields = [pairs.pair_fields(i) for i in range(len(pairs))]
-    assert d_el == [
-        round(min(f["d_el_deg"] for f in fields), 4),
-        round(max(f["d_el_deg"] for f in fields), 4),
-    ]
-    used = [f[k] for f in fields for k in ("input_depression_deg", "target_depression_deg")]
-    assert depressions == [round(min(used), 4), round(max(used), 4)]
+    assert all(-spread <= f["d_el_deg"] <= spread for f in fields)
+    # pairs at one depression: no depression change
+    fresh = build_sar_zero123("tiny")
+    write_prior_corpus(
+        tmp_path / "m", num_vehicles=2, views_per_vehicle=6, num_validation_vehicles=1, size=32,
+        mstar_fraction=1.0, progress=False,
+    )  # every view at 15 or 17 deg
+    same = ViewPairDataset(load_index(tmp_path / "m"), size=32, same_depression=True, seed=0)
+    assert record_trained_pose_ranges(fresh.pose_projection, same)[0] == [0.0, 0.0]
     # a fine-tune on same-depression pairs keeps the prior's wider range
     pipe.pose_projection.register_to_config(
         trained_d_el_deg=[-50.0, 50.0], trained_depression_deg=[5.0, 80.0]

@@ -47,6 +47,7 @@ from sar_zero123.config import parse_config, save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE
 from sar_zero123.data.splits import check_protocol
 from sar_zero123.models import SAR_ZERO123_SIZES
+from sar_zero123.pretrained import SIM_PRIOR, resolve_pretrained
 from sar_zero123.sim import simulate_dataset
 
 if not __package__:  # run as a file: Python put only train/ on sys.path (see train/__init__.py)
@@ -104,6 +105,10 @@ class Preset:
     # accelerate mixed precision of every training stage ("bf16" on a recent GPU); the evaluation samples
     # in float32 either way
     mixed_precision: str = "no"
+    # a pretrained pipeline (a bundled name such as "sar-zero123/sim-prior", or a folder) that every fine-tune
+    # starts from, as the paper fine-tunes zero-1-to-3: its VAE is kept and no base model is trained
+    # (vae_* and base_steps unused); None trains the VAE and a base model from scratch
+    prior: str | None = None
 
     def __post_init__(self) -> None:
         if self.checkpointing_steps < 1:
@@ -166,10 +171,15 @@ DEFAULT_PRESET = Preset(
     speed_steps=(5, 20),
     speed_n=4,
     schedulers=("ddim", "dpmsolver++", "euler"),
+    # the paper's regime: both fine-tunes start from the bundled multi-view prior (its VAE kept)
+    prior=SIM_PRIOR,
 )
 
 PRESETS: dict[str, Preset] = {
     "default": DEFAULT_PRESET,
+    # the default trained from scratch (VAE and a base model of base_steps, then the fine-tunes): the
+    # comparison row for the prior
+    "scratch": dataclasses.replace(DEFAULT_PRESET, prior=None),
     # Target 2 of issue 9: the same simulated data, the default's VAE trained 3,000 steps instead of 540 and
     # 15,000 base steps, with the default's v prediction and Min-SNR-5 (on 512 + 512 pairs the seen class
     # is kept in 91.6 % of views against 88.1 % for epsilon L_simple on the same data, VAE and evaluators,
@@ -177,7 +187,7 @@ PRESETS: dict[str, Preset] = {
     # (docs/results/learning.md, sections 6d, 8c, 9 and 9i)
     "long": dataclasses.replace(
         DEFAULT_PRESET, vae_steps=3000, base_steps=15000, finetune_steps=600, eval_n=256,
-        speed_steps=(5, 10, 20, 50), speed_n=32,
+        speed_steps=(5, 10, 20, 50), speed_n=32, prior=None,
     ),
     # Real chips (`--data /path/to/mstar --protocol ood-T72` or `extended`): 64 px centre crops at the
     # native 0.2 m spacing, about 6,000 training chips, so fewer evaluator epochs and more base steps, and
@@ -188,6 +198,7 @@ PRESETS: dict[str, Preset] = {
         base_steps=8000, finetune_steps=1000,
         evaluator_epochs=20, eval_n=400, speed_steps=(5, 10, 20), speed_n=16,
         prediction_type="epsilon", snr_gamma=None,  # as measured (mstar_novel_views.md)
+        prior=None,  # the prior's dB scaling and chips are the simulator's
     ),
     "smoke": Preset(
         classes=("TANK", "APC", "TRUCK"),
@@ -237,7 +248,7 @@ class QuickstartConfig:
 
     output_dir: str = "runs/quickstart"  # run folder (every stage writes a subfolder; report.md at the top)
     # "default" (~12 min on 2 CPU cores), "long" (40-50 min), "mstar" (real data, ~80 min), "smoke" (seconds)
-    preset: Literal["default", "long", "mstar", "smoke"] = "default"
+    preset: Literal["default", "scratch", "long", "mstar", "smoke"] = "default"
     data: str | None = None  # chip folder (index.csv or raw MSTAR files); None simulates the preset's classes
     protocol: str | None = None  # "extended" or "ood-<CLASS>"; None = ood-<last simulated class>
     # PFM weights fine-tuned from the base model and evaluated side by side (a lambda sweep: 0 1 4 16);
@@ -441,8 +452,9 @@ def main(argv: Sequence[str] | None = None) -> Path:
         "resume_from_checkpoint": "latest",
         "report_to": "none",
     }
-    # decibel_scaling.json is the last file train_vae writes into its VAE folder
-    run_stage("vae", vae_dir / SCALING_FILE, timings, train_vae.main, script_argv(train_vae, vae_args))
+    # decibel_scaling.json is the last file train_vae writes into its VAE folder; a prior keeps its own VAE
+    if preset.prior is None:
+        run_stage("vae", vae_dir / SCALING_FILE, timings, train_vae.main, script_argv(train_vae, vae_args))
 
     # 4. a base model (lambda = 0), then fine-tunes from it with lambda = 0 and lambda = 4, as the paper
     #    fine-tunes one pretrained zero-1-to-3 checkpoint with and without PFM
@@ -455,7 +467,6 @@ def main(argv: Sequence[str] | None = None) -> Path:
             "pfm_weight": weight,
             "pfm_fraction": preset.pfm_fraction,
             "encoder": str(simclr_dir / "encoder"),
-            "vae": str(vae_dir),
             "train_batch_size": preset.finetune_batch_size,
             "max_train_steps": steps,
             "learning_rate": preset.finetune_learning_rate,
@@ -477,6 +488,8 @@ def main(argv: Sequence[str] | None = None) -> Path:
             finetune_args["snr_gamma"] = preset.snr_gamma
         if preset.pfm_projection_dim is not None:
             finetune_args["pfm_projection_dim"] = preset.pfm_projection_dim
+        if preset.prior is None:
+            finetune_args["vae"] = str(vae_dir)
         if pretrained is None:
             finetune_args["size"] = preset.model_size
             finetune_args["estimate_input_azimuth"] = preset.estimate_input_azimuth
@@ -487,7 +500,10 @@ def main(argv: Sequence[str] | None = None) -> Path:
         run_stage(name, done, timings, finetune_pfm.main, script_argv(finetune_pfm, finetune_args))
         return run_dir / "pipeline"
 
-    base = finetune_stage("base model", out / "base", preset.base_steps, 0.0, None)
+    if preset.prior is None:
+        base = finetune_stage("base model", out / "base", preset.base_steps, 0.0, None)
+    else:  # the paper's regime: both fine-tunes start from one pretrained multi-view prior
+        base = resolve_pretrained(preset.prior)
     pipelines = {}
     for weight in config.lambdas:
         name = f"lambda={weight:g}"
