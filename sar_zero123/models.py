@@ -415,6 +415,6 @@ def record_trained_pose_ranges(pose_projection: PoseProjection, pairs: ViewPairD
         old = getattr(pose_projection.config, name, None)
         if old is not None:
             new_low, new_high = min(new_low, float(old[0])), max(new_high, float(old[1]))
-        ranges.append([round(new_low, 4), round(new_high, 4)])
+        ranges.append([round(new_low, 4) + 0.0, round(new_high, 4) + 0.0])  # + 0.0: no "-0"
     pose_projection.register_to_config(trained_d_el_deg=ranges[0], trained_depression_deg=ranges[1])
     return ranges[0], ranges[1]

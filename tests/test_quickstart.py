@@ -39,7 +39,15 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
         warnings.simplefilter("ignore")  # tiny sample counts: the Frechet distance warns about n <= D
         report = quickstart.main(["--output_dir", str(out), "--preset", "smoke"])
     text = report.read_text()
-    assert "| paper: PFM (lambda=4) | seen | 89.0 | 23.5 | 1.84 | 0.6720 | 0.7374 | - | - |  |  |  |" in text
+    # with a depression regressor among the evaluators Table III has a Dep. err. column and its gap closed
+    paper_row = "| paper: PFM (lambda=4) | seen | 89.0 | 23.5 | 1.84 | 0.6720 | 0.7374 | - | - | - |"
+    assert paper_row + "  |  |  |  |" in text
+    # the depression table: 17 deg inputs asked for 30 deg; the from-scratch smoke model never saw d_el != 0
+    assert "## Depression changes (17 deg inputs, targets at 30 deg)" in text
+    assert "| Closer to target dep. ↑ |" in text and "never trained on these depression changes" in text
+    depression = json.loads((out / "eval_depression" / "table3.json").read_text())
+    assert depression["pairs_per_d_el_deg"]["seen"] == {"+13": 2}
+    assert depression["outside_trained_range"]["lambda=0"]["trained_d_el_deg"] == [0.0, 0.0]
     rows = ("| lambda=0 | seen |", "| lambda=4 | unseen |", "| input copy (floor) | seen |")
     for row in (*rows, "| real target (ceiling) | seen |", "| VAE round trip (ceiling) | unseen |"):
         assert row in text
@@ -47,9 +55,8 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     for name in ("views.png", "speed_error.png", "lambda_sweep.png"):
         assert (out / "eval" / name).stat().st_size > 0
     timings = json.loads((out / "timings.json").read_text())
-    assert {"simulate", "simclr", "finetune lambda=0", "finetune lambda=4", "evaluators", "evaluate"} <= set(
-        timings
-    )
+    stages = {"simulate", "simclr", "finetune lambda=0", "finetune lambda=4", "evaluators", "evaluate"}
+    assert stages | {"simulate depressions", "evaluate depressions"} <= set(timings)
     # the preset's optional training settings reach every fine-tune
     for stage in ("base", "finetune_lambda0", "finetune_lambda4"):
         settings = json.loads((out / stage / "config.json").read_text())
@@ -62,7 +69,7 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
         scheduler = json.loads((out / stage / "pipeline" / "scheduler" / "scheduler_config.json").read_text())
         assert scheduler["prediction_type"] == "v_prediction"
     metrics = json.loads((out / "evaluators" / "metrics.json").read_text())
-    assert set(metrics["models"]) == {"classifier", "regressor", "probe:simclr"}
+    assert set(metrics["models"]) == {"classifier", "regressor", "depression_regressor", "probe:simclr"}
     assert metrics["class_names"] == ["APC", "TANK", "TRUCK"]  # the held-out TRUCK included
     # A second call finds every stage done and only rewrites the report.
     quickstart.main(["--output_dir", str(out), "--preset", "smoke"])
@@ -73,7 +80,8 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
         report = quickstart.main(["--output_dir", str(out), "--preset", "smoke", "--lambdas", "0", "4", "1"])
     text = report.read_text()
     timings = json.loads((out / "timings.json").read_text())
-    assert {name for name, seconds in timings.items() if seconds > 0} == {"finetune lambda=1", "evaluate"}
+    evaluated = {"finetune lambda=1", "evaluate", "evaluate depressions"}
+    assert {name for name, seconds in timings.items() if seconds > 0} == evaluated
     assert "| lambda=1 | unseen |" in text and "(input | lambda=0 | lambda=4 | lambda=1 | target)" in text
     # the same folder with another preset value is refused before any stage (its stages would be reused)
     with pytest.raises(ValueError, match=r"base_steps 2 -> 5"):

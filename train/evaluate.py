@@ -64,7 +64,13 @@ logger = logging.getLogger(__name__)
 
 # ms_ssim / kuan_ssim are paper-comparable (the authors' calls); the *_corrected columns sit beside them.
 METRICS = (
-    "accuracy", "azimuth_error_deg", "sfd", "ms_ssim", "kuan_ssim", "ms_ssim_corrected", "kuan_ssim_corrected"
+    "accuracy",
+    "azimuth_error_deg",
+    "sfd",
+    "ms_ssim",
+    "kuan_ssim",
+    "ms_ssim_corrected",
+    "kuan_ssim_corrected",
 )
 METRIC_LABELS = {
     "accuracy": "Acc. (%) ↑",
@@ -147,6 +153,9 @@ class EvaluateConfig:
     same_depression: bool = True  # pair views at one depression; False also pairs across (d_el != 0)
     input_depression_deg: float | None = None  # only pairs whose input is at this depression (None: any)
     target_depressions_deg: list[float] | None = None  # only pairs with targets at one of these (None: any)
+    # evaluate requests outside a pipeline's trained d_el / depression range (its refusal lifted, listed in
+    # table3.json): to measure how a model that never saw such requests answers them
+    outside_trained_range: bool = False
     max_d_az_deg: float | None = None  # largest |d_az| of a pair (None: any)
     n: int = 1000  # generated samples in total (split evenly between seen and unseen)
     num_inference_steps: int = 50  # denoising steps for Tables III/IV
@@ -307,8 +316,16 @@ def build_pair_sets(config: EvaluateConfig, evaluators: Evaluators, image_size: 
             target_depressions_deg=config.target_depressions_deg,
         )
         columns: dict[str, list[torch.Tensor]] = {}
-        keys = ("input", "target", "d_az_deg", "d_el_deg", "label", "target_azimuth_deg",
-                "input_depression_deg", "target_depression_deg")  # fmt: skip
+        keys = (
+            "input",
+            "target",
+            "d_az_deg",
+            "d_el_deg",
+            "label",
+            "target_azimuth_deg",
+            "input_depression_deg",
+            "target_depression_deg",
+        )
         for batch in DataLoader(dataset, batch_size=64, shuffle=False):
             for key in keys:
                 columns.setdefault(key, []).append(torch.as_tensor(batch[key]))
@@ -553,7 +570,7 @@ def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_pap
     lines.append(
         f"Floor: `{INPUT_COPY}` returns the input view (a generator that ignores the pose). Ceilings: "
         f"`{REAL_TARGET}` scores the true target view, `{VAE_ROUND_TRIP}` the target encoded and decoded by "
-        "the pipeline's VAE. Gap closed = (floor - model) / (floor - VAE round trip); \"no gap\" where "
+        'the pipeline\'s VAE. Gap closed = (floor - model) / (floor - VAE round trip); "no gap" where '
         "the floor scores at least as well as the ceiling, or within one standard error of their difference "
         "(accuracy: the input copy keeps the class). ± is one standard error of the mean over the n pairs."
     )
@@ -728,11 +745,24 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     # 1. models
     evaluators = load_evaluators(config.evaluators, device=device)
     pipes = {}
+    lifted: dict[str, dict] = {}  # pipelines whose trained-range refusal was lifted, with their ranges
     for name, path in zip(config.names, config.pipeline):
         check_pipeline_scaling(path, evaluators)
         pipe = SARZero123Pipeline.from_pretrained(path).to(device)
         pipe.set_progress_bar_config(disable=True)
         pipes[name] = pipe
+        projection = pipe.pose_projection.config
+        if config.outside_trained_range and projection.get("trained_d_el_deg") is not None:
+            logger.warning(
+                "%s: trained d_el range %s lifted (--outside_trained_range)",
+                name,
+                projection["trained_d_el_deg"],
+            )
+            lifted[name] = {
+                "trained_d_el_deg": projection["trained_d_el_deg"],
+                "trained_depression_deg": projection.get("trained_depression_deg"),
+            }
+            pipe.pose_projection.register_to_config(trained_d_el_deg=None, trained_depression_deg=None)
     sizes = {pipe.default_image_size for pipe in pipes.values()}
     if config.image_size is None and len(sizes) != 1:
         raise ValueError(f"pipelines were built for different image sizes {sorted(sizes)}; pass --image_size")
@@ -755,10 +785,15 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         if round_trip_rows and same_weights(pipe.vae, pipes[config.names[0]].vae):
             continue  # one row per distinct VAE
         results[row] = {
-            group: score(vae_round_trip(pipe, pairs.targets, config.eval_batch_size, device), pairs,
-                         evaluators, config, device)
+            group: score(
+                vae_round_trip(pipe, pairs.targets, config.eval_batch_size, device),
+                pairs,
+                evaluators,
+                config,
+                device,
+            )
             for group, pairs in pair_sets.items()
-        }  # fmt: skip
+        }
         round_trip_rows.append(row)
     generated: dict[str, dict[str, torch.Tensor]] = {}
     for name, pipe in pipes.items():
@@ -797,6 +832,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             "paper": PAPER_TABLE3,
             "evaluator_test_metrics": evaluator_metrics,
             "same_depression": config.same_depression,
+            "outside_trained_range": lifted,
             "input_depression_deg": config.input_depression_deg,
             "target_depressions_deg": config.target_depressions_deg,
             "pairs_per_d_el_deg": {group: d_el_counts(pairs.d_el_deg) for group, pairs in pair_sets.items()},

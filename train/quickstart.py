@@ -109,6 +109,9 @@ class Preset:
     # starts from, as the paper fine-tunes zero-1-to-3: its VAE is kept and no base model is trained
     # (vae_* and base_steps unused); None trains the VAE and a base model from scratch
     prior: str | None = None
+    # target depressions of a second Table III from 17 deg inputs (d_el = target - 17) on a simulated set
+    # at 17 deg and these depressions, with a depression regressor among the evaluators; () skips it
+    depression_targets_deg: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
         if self.checkpointing_steps < 1:
@@ -173,6 +176,7 @@ DEFAULT_PRESET = Preset(
     schedulers=("ddim", "dpmsolver++", "euler"),
     # the paper's regime: both fine-tunes start from the bundled multi-view prior (its VAE kept)
     prior=SIM_PRIOR,
+    depression_targets_deg=(10.0, 30.0, 45.0),
 )
 
 PRESETS: dict[str, Preset] = {
@@ -199,6 +203,7 @@ PRESETS: dict[str, Preset] = {
         evaluator_epochs=20, eval_n=400, speed_steps=(5, 10, 20), speed_n=16,
         prediction_type="epsilon", snr_gamma=None,  # as measured (mstar_novel_views.md)
         prior=None,  # the prior's dB scaling and chips are the simulator's
+        depression_targets_deg=(),  # real chips: 15 and 17 deg only
     ),
     "smoke": Preset(
         classes=("TANK", "APC", "TRUCK"),
@@ -238,6 +243,7 @@ PRESETS: dict[str, Preset] = {
         snr_gamma=5.0,
         timestep_sampling="logit_normal",
         checkpointing_steps=1,
+        depression_targets_deg=(30.0,),
     ),
 }
 
@@ -408,6 +414,24 @@ def main(argv: Sequence[str] | None = None) -> Path:
             ),
         )
 
+    # 1b. views at other depressions of the same vehicles, for the depression Table III and its regressor
+    depression_data = out / "data_depression"
+    if config.data is None and preset.depression_targets_deg:
+        run_stage(
+            "simulate depressions",
+            depression_data / "index.csv",
+            timings,
+            lambda: simulate_dataset(
+                depression_data,
+                classes=preset.classes,
+                instances=preset.instances,
+                azimuth_step_deg=preset.azimuth_step_deg,
+                depressions_deg=sorted({17.0, *preset.depression_targets_deg}),
+                size=preset.image_size,
+                seed=config.seed,
+            ),
+        )
+
     # 2. SimCLR encoder with Speckle Rayleigh + Monotonic (on the seen classes' train split)
     simclr_dir = out / "simclr"
     simclr_args = {
@@ -427,7 +451,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
         "report_to": "none",
     }
     run_stage("simclr", simclr_dir / "encoder" / "model.safetensors", timings, pretrain_simclr.main,
-              script_argv(pretrain_simclr, simclr_args))  # fmt: skip
+              script_argv(pretrain_simclr, simclr_args))
 
     # 3. VAE sized for SAR chips: the preset's widths, the model's depth and latent shape (any VAE with the
     #    model's latent shape replaces its own, models.check_vae_fits)
@@ -524,37 +548,52 @@ def main(argv: Sequence[str] | None = None) -> Path:
         "train_batch_size": 32,
         "simclr_encoders": [str(simclr_dir)],
     }
+    if (depression_data / "index.csv").is_file():
+        evaluator_args["depression_data"] = str(depression_data)
     run_stage("evaluators", evaluator_dir / "metrics.json", timings, train_evaluators.main,
-              script_argv(train_evaluators, evaluator_args))  # fmt: skip
+              script_argv(train_evaluators, evaluator_args))
 
     # 6. evaluation
-    eval_dir = out / "eval"
-    eval_argv = [
-        *[token for path in pipelines.values() for token in ("--pipeline", str(path))],
-        *script_argv(
-            evaluate,
+    def evaluate_stage(name: str, eval_dir: Path, values: dict[str, Any]) -> None:
+        eval_argv = [
+            *[token for path in pipelines.values() for token in ("--pipeline", str(path))],
+            *script_argv(
+                evaluate,
+                {
+                    "seed": config.seed,
+                    "pipeline_names": list(pipelines),
+                    "lambdas": list(config.lambdas),
+                    "evaluators": str(evaluator_dir),
+                    "protocol": protocol,
+                    "n": preset.eval_n,
+                    "num_inference_steps": preset.eval_steps,
+                    "guidance_scale": 3.0,
+                    "crop_size": min(64, preset.image_size),
+                    "eval_batch_size": 8,
+                    "output_dir": str(eval_dir),
+                    **values,
+                },
+            ),
+        ]
+        table3 = eval_dir / "table3.json"
+        evaluated = table3.is_file() and set(pipelines) <= set(json.loads(table3.read_text())["results"])
+        run_stage(name, evaluated, timings, evaluate.main, eval_argv)
+
+    speed = {"steps": preset.speed_steps, "schedulers": list(preset.schedulers), "speed_n": preset.speed_n}
+    evaluate_stage("evaluate", out / "eval", {"data": str(data), **speed})
+    # 6b. depression requests from 17 deg inputs (same evaluators; both groups' pairs change depression)
+    if (depression_data / "index.csv").is_file():
+        evaluate_stage(
+            "evaluate depressions",
+            out / "eval_depression",
             {
-                "data": str(data),
-                "seed": config.seed,
-                "pipeline_names": list(pipelines),
-                "lambdas": list(config.lambdas),
-                "evaluators": str(evaluator_dir),
-                "protocol": protocol,
-                "n": preset.eval_n,
-                "num_inference_steps": preset.eval_steps,
-                "guidance_scale": 3.0,
-                "steps": preset.speed_steps,
-                "schedulers": list(preset.schedulers),
-                "speed_n": preset.speed_n,
-                "crop_size": min(64, preset.image_size),
-                "eval_batch_size": 8,
-                "output_dir": str(eval_dir),
+                "data": str(depression_data),
+                "same_depression": False,
+                "input_depression_deg": 17.0,
+                "target_depressions_deg": list(preset.depression_targets_deg),
+                "outside_trained_range": True,  # a from-scratch model never saw d_el != 0: score it anyway
             },
-        ),
-    ]
-    table3 = eval_dir / "table3.json"
-    evaluated = table3.is_file() and set(pipelines) <= set(json.loads(table3.read_text())["results"])
-    run_stage("evaluate", evaluated, timings, evaluate.main, eval_argv)
+        )
 
     # 7. report
     write_json_atomic(timings, out / "timings.json")
@@ -591,13 +630,16 @@ def write_report(
             "are half seen (15 deg test views of the other classes) and half unseen (all views of the "
             "held-out class). "
         )
+    if preset.prior is None:
+        start = f"a `{preset.model_size}` model trained from scratch for {preset.base_steps} steps (lambda 0)"
+    else:
+        start = f"the pretrained multi-view prior `{preset.prior}` (procedural simulated vehicles)"
     lines = [
         "# sar_zero123 quickstart report",
         "",
         f"Preset `{config.preset}`, seed {config.seed}, device {device} ({torch.get_num_threads()} threads), "
-        f"total {total / 60:.1f} min. **CPU quick-run numbers on {data_kind}**: a `{preset.model_size}` "
-        f"model trained from scratch for {preset.base_steps} steps (lambda = 0), then fine-tuned for "
-        f"{preset.finetune_steps} more steps with each lambda (PFM on {preset.pfm_fraction:g} of the "
+        f"total {total / 60:.1f} min. **CPU quick-run numbers on {data_kind}**: {start}, then fine-tuned for "
+        f"{preset.finetune_steps} steps with each lambda (PFM on {preset.pfm_fraction:g} of the "
         f"eligible samples, features projected to {preset.pfm_projection_dim} dimensions as the authors "
         "did), not the paper's zero-1-to-3 fine-tune (Objaverse initialisation, 20,000 iterations, real "
         "MSTAR); compare the rows with each other, not with the paper.",
@@ -634,11 +676,43 @@ def write_report(
     ]
     if (eval_dir / "speed_error.md").is_file():
         lines += ["## Speed against error", "", (eval_dir / "speed_error.md").read_text(),
-                  "![speed and error](eval/speed_error.png)", ""]  # fmt: skip
+                  "![speed and error](eval/speed_error.png)", ""]
     columns = " | ".join(f"lambda={weight:g}" for weight in config.lambdas)
     lines += [f"## Generated views (input | {columns} | target)", "", "![views](eval/views.png)", ""]
     if (eval_dir / "lambda_sweep.png").is_file():
         lines += ["## Metrics against lambda", "", "![lambda](eval/lambda_sweep.png)", ""]
+    depression_dir = out / "eval_depression"
+    if (depression_dir / "table3.md").is_file():
+        targets = ", ".join(f"{d:g}" for d in preset.depression_targets_deg)
+        lifted = json.loads((depression_dir / "table3.json").read_text()).get("outside_trained_range", {})
+        outside = [
+            name
+            for name, ranges in lifted.items()
+            if not all(
+                ranges["trained_d_el_deg"][0] <= d - 17.0 <= ranges["trained_d_el_deg"][1]
+                for d in preset.depression_targets_deg
+            )
+        ]
+        warning = (
+            f"**{', '.join(outside)} never trained on these depression changes** (trained d_el range "
+            f"{lifted[outside[0]]['trained_d_el_deg']} deg): a pipeline refuses such requests; they are "
+            "scored here only to measure it. "
+            if outside
+            else ""
+        )
+        lines += [
+            f"## Depression changes (17 deg inputs, targets at {targets} deg)",
+            "",
+            "The same models asked for a depression change (and the pair's azimuth change) on simulated "
+            f"views of the same vehicles at {targets} deg. `Dep. err.` is the depression regressor's error "
+            "on the generated view against the requested depression; `Closer to target dep.` the share of "
+            "pairs whose blurred view correlates better with the true view at the requested depression than "
+            "with the true view at the input's depression (same target azimuth). " + warning,
+            "",
+            (depression_dir / "table3.md").read_text(),
+            "![depression views](eval_depression/views.png)",
+            "",
+        ]
     lines += ["## Stage timings", "", "| Stage | seconds |", "| --- | --- |"]
     lines += [f"| {name} | {seconds:.1f} |" for name, seconds in timings.items()]
     report = out / "report.md"
