@@ -48,6 +48,7 @@ from sar_zero123.run_state import (
     check_resume_config,
     check_resume_state,
     end_run,
+    read_run_state,
     resolve_resume_checkpoint,
     resumable_batches,
     resume_step,
@@ -244,7 +245,10 @@ def main(argv: list[str] | None = None) -> Path:
     trained_tower = image_embedder if config.train_image_encoder else None
     if encoder is not None:
         encoder = encoder.to(accelerator.device, dtype=weight_dtype)
-    if config.cache_latents:  # the VAE (and a frozen tower) never change: encode each chip once
+    # a resume whose checkpoint already reached max_train_steps only exports: no step needs the cache
+    resumed_step = 0 if resume_path is None else int(read_run_state(resume_path)["step"])
+    export_only = resumed_step >= config.max_train_steps
+    if config.cache_latents and not export_only:  # the VAE (and a frozen tower) never change: encode once
         frozen_tower = None if config.train_image_encoder else image_embedder.image_encoder
         cache = ChipLatentCache.encode(load_chip_images(train_dataset), vae, frozen_tower)
         train_dataset = CachedViewPairs(train_dataset, cache)
