@@ -7,6 +7,7 @@ schedule, VAE scaling factor, CLIP preprocessing) live in :mod:`sar_zero123.chec
 from __future__ import annotations
 
 import json
+import math
 import os
 from pathlib import Path
 from typing import Any, Literal
@@ -398,8 +399,8 @@ def record_trained_pose_ranges(pose_projection: PoseProjection, pairs: ViewPairD
     ``trained_depression_deg`` becomes the union of its current range and the depressions of the pairs'
     chips; ``trained_d_el_deg`` the union with every depression change those chips can pair into (the pairs
     are redrawn each epoch): ``[low - high, high - low]`` across depressions, ``[0, 0]`` for pairs at one
-    depression. A pipeline refuses requests outside them (:meth:`SARZero123Pipeline.__call__`), and a
-    fine-tune of a pretrained prior keeps the prior's ranges.
+    depression. Both are widened outward to a multiple of 0.1 deg. A pipeline refuses requests outside them
+    (:meth:`SARZero123Pipeline.__call__`), and a fine-tune of a pretrained prior keeps the prior's ranges.
 
     Returns:
         The new ``(trained_d_el_deg, trained_depression_deg)``.
@@ -415,6 +416,10 @@ def record_trained_pose_ranges(pose_projection: PoseProjection, pairs: ViewPairD
         old = getattr(pose_projection.config, name, None)
         if old is not None:
             new_low, new_high = min(new_low, float(old[0])), max(new_high, float(old[1]))
-        ranges.append([round(new_low, 4) + 0.0, round(new_high, 4) + 0.0])  # + 0.0: no "-0"
+        # outward to 0.1 deg (finer than any chip's depression metadata), so that a corpus drawn uniformly
+        # in [10, 60] accepts a request for 10; + 0.0: no "-0"
+        ranges.append(
+            [math.floor(round(new_low * 10, 6)) / 10 + 0.0, math.ceil(round(new_high * 10, 6)) / 10 + 0.0]
+        )
     pose_projection.register_to_config(trained_d_el_deg=ranges[0], trained_depression_deg=ranges[1])
     return ranges[0], ranges[1]

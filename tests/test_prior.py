@@ -172,8 +172,9 @@ def test_trained_ranges_are_the_union_of_the_prior_and_the_new_pairs(tmp_path: P
     pipe = build_sar_zero123("tiny")
     d_el, depressions = record_trained_pose_ranges(pipe.pose_projection, pairs)
     used = [r.depression_deg for r in records]
-    spread = round(max(used) - min(used), 4)
-    assert depressions == [round(min(used), 4), round(max(used), 4)] and d_el == [-spread, spread]
+    spread = math.ceil((max(used) - min(used)) * 10) / 10
+    assert depressions == [math.floor(min(used) * 10) / 10, math.ceil(max(used) * 10) / 10]
+    assert d_el == [-spread, spread]
     fields = [pairs.pair_fields(i) for i in range(len(pairs))]
     assert all(-spread <= f["d_el_deg"] <= spread for f in fields)
     # pairs at one depression: no depression change
