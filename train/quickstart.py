@@ -3,28 +3,31 @@
     python train/quickstart.py --output_dir runs/quickstart
     python train/quickstart.py --preset mstar --data /path/to/mstar --protocol ood-T72 --output_dir runs/mstar
 
-On a 2-core CPU in about twelve minutes (default preset) it
+With the default preset, on a 2-core CPU, it
 
 1. simulates a small MSTAR-like dataset (`sar_zero123.sim`), one class held out (MSTAR-OOD style), unless
-   `--data` names real chips (with `--protocol extended` or `ood-<CLASS>`),
+   `--data` names real chips (with `--protocol extended` or `ood-<CLASS>`), and views of the same vehicles at
+   `Preset.depression_targets_deg` for depression requests,
 2. pretrains a small SimCLR encoder with the Speckle Rayleigh + Monotonic augmentation (`pretrain_simclr.py`),
-3. trains a small VAE sized for SAR chips (`train_vae.py`),
-4. trains a `micro` zero-1-to-3 model with the estimated-azimuth pose path (`sar_zero123.orientation`)
-   with lambda = 0 (the stand-in for the paper's Objaverse checkpoint), then fine-tunes it further with
-   each PFM weight of `--lambdas` (default 0 and 4) for the same number of steps (`finetune_pfm.py`),
-5. trains the evaluator classifier and azimuth regressor (plus a probe on the SimCLR encoder) on all classes,
-6. evaluates the fine-tuned pipelines (Table III, Table IV, views, lambda plot, speed against error:
-   `evaluate.py`),
-7. writes `report.md` with the tables and figures.
+3. fine-tunes the bundled multi-view prior (`Preset.prior`, `sar-zero123/sim-prior`) with each PFM weight of
+   `--lambdas` (default 0 and 4) from the same prior, as the paper fine-tunes one zero-1-to-3 checkpoint
+   (`finetune_pfm.py`); presets without a prior first train a VAE (`train_vae.py`) and a base model from
+   scratch,
+4. trains the evaluator classifier, azimuth regressor and depression regressor (plus a probe on the SimCLR
+   encoder) on all classes,
+5. evaluates the fine-tuned pipelines (Table III, Table IV, views, lambda plot, speed against error, and a
+   second Table III of depression requests from 17 deg inputs: `evaluate.py`),
+6. writes `report.md` with the tables and figures.
 
 Every stage calls the stage script's `main(argv)` (imported as `train.<name>`) in this process and is
 skipped when its output already exists, and each training stage resumes from its newest checkpoint
 (`Preset.checkpointing_steps`), so an interrupted run continues where it stopped, and a re-run
 with more `--lambdas` trains only the new fine-tunes (then evaluates them all on the same pairs); a
 re-run with other preset values (`--preset`, `--override`) in the same folder is refused. Presets:
-`default` (~12 min), `long` (~50 min, the simulator), `mstar` (real chips, ~80 min) and `smoke` (tiny
-settings in seconds, for tests). The numbers are CPU quick-run numbers, far from the paper's setting
-(20,000 iterations from an Objaverse checkpoint on real MSTAR at 128 px).
+`default` (the prior), `scratch` (the default trained from scratch), `long` (from scratch, longer), `mstar`
+(real chips) and `smoke` (tiny settings in seconds, for tests); their measured times are in
+docs/results/. The numbers are CPU quick-run numbers, far from the paper's setting (20,000 iterations from
+an Objaverse checkpoint on real MSTAR at 128 px).
 """
 
 from __future__ import annotations
@@ -253,7 +256,7 @@ class QuickstartConfig:
     """Simulate (or read `data`), pretrain SimCLR, fine-tune each lambda, train evaluators, evaluate."""
 
     output_dir: str = "runs/quickstart"  # run folder (every stage writes a subfolder; report.md at the top)
-    # "default" (~12 min on 2 CPU cores), "long" (40-50 min), "mstar" (real data, ~80 min), "smoke" (seconds)
+    # "default" (the bundled prior), "scratch" (from scratch), "long", "mstar" (real data), "smoke" (seconds)
     preset: Literal["default", "scratch", "long", "mstar", "smoke"] = "default"
     data: str | None = None  # chip folder (index.csv or raw MSTAR files); None simulates the preset's classes
     protocol: str | None = None  # "extended" or "ood-<CLASS>"; None = ood-<last simulated class>
