@@ -400,40 +400,16 @@ def main(argv: Sequence[str] | None = None) -> Path:
         "hidden_sizes": preset.encoder_widths,
     }
 
-    # 1. simulated dataset (15 and 17 deg, as MSTAR), unless real chips are given
-    if config.data is None:
-        run_stage(
-            "simulate",
-            data / "index.csv",
-            timings,
-            lambda: simulate_dataset(
-                data,
-                classes=preset.classes,
-                instances=preset.instances,
-                azimuth_step_deg=preset.azimuth_step_deg,
-                depressions_deg=(15.0, 17.0),
-                size=preset.image_size,
-                seed=config.seed,
-            ),
-        )
-
-    # 1b. views at other depressions of the same vehicles, for the depression Table III and its regressor
+    # 1. simulated dataset (15 and 17 deg, as MSTAR), unless real chips are given, and views of the same
+    #    vehicles at other depressions for the depression Table III and its regressor
     depression_data = out / "data_depression"
-    if config.data is None and preset.depression_targets_deg:
-        run_stage(
-            "simulate depressions",
-            depression_data / "index.csv",
-            timings,
-            lambda: simulate_dataset(
-                depression_data,
-                classes=preset.classes,
-                instances=preset.instances,
-                azimuth_step_deg=preset.azimuth_step_deg,
-                depressions_deg=sorted({17.0, *preset.depression_targets_deg}),
-                size=preset.image_size,
-                seed=config.seed,
-            ),
-        )
+    simulated = [("simulate", data, (15.0, 17.0))]
+    if preset.depression_targets_deg:
+        depressions = tuple(sorted({17.0, *preset.depression_targets_deg}))
+        simulated.append(("simulate depressions", depression_data, depressions))
+    for name, folder, depressions in simulated if config.data is None else []:
+        run_stage(name, folder / "index.csv", timings, simulate_dataset, folder, preset.classes,
+                  preset.instances, preset.azimuth_step_deg, depressions, preset.image_size, config.seed)
 
     # 2. SimCLR encoder with Speckle Rayleigh + Monotonic (on the seen classes' train split)
     simclr_dir = out / "simclr"

@@ -16,7 +16,6 @@ is written last; a folder written with other options is refused, naming each dif
 
 from __future__ import annotations
 
-import csv
 import json
 import os
 import tempfile
@@ -25,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-from sar_zero123.sim.dataset import INDEX_COLUMNS
+from sar_zero123.sim.dataset import write_index_atomic
 from sar_zero123.sim.procedural import PROCEDURAL_CLASS, PROCEDURAL_SEED_KEY, make_procedural_target
 from sar_zero123.sim.render import CLUTTER_DB, render_chip
 
@@ -191,14 +190,5 @@ def write_prior_corpus(
         executor.shutdown()
 
     # 3. the index last, atomically
-    fd, tmp = tempfile.mkstemp(prefix=".index-", suffix=".csv.tmp", dir=out)
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            writer = csv.writer(f, lineterminator="\n")
-            writer.writerow(INDEX_COLUMNS)
-            writer.writerows(rows)
-        os.replace(tmp, out / "index.csv")
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_index_atomic(out, rows)
     return out

@@ -16,7 +16,7 @@ import numpy as np
 from sar_zero123.sim.render import CALIBRATION_AMPLITUDE, CLUTTER_DB, render_chip
 from sar_zero123.sim.targets import TARGET_CLASSES, make_target
 
-__all__ = ["INDEX_COLUMNS", "chip_generator", "simulate_dataset"]
+__all__ = ["INDEX_COLUMNS", "chip_generator", "simulate_dataset", "write_index_atomic"]
 
 INDEX_COLUMNS = (
     "path",
@@ -218,7 +218,19 @@ def simulate_dataset(
                     )
 
     # 3. write the index last and atomically
-    fd, tmp = tempfile.mkstemp(prefix=".index-", suffix=".csv.tmp", dir=out)
+    write_index_atomic(out, rows)
+    return out
+
+
+def write_index_atomic(out_dir: str | os.PathLike[str], rows: Sequence[Sequence[str]]) -> Path:
+    """Write ``out_dir/index.csv`` (:data:`INDEX_COLUMNS`, then ``rows``) through a temporary file and
+    ``os.replace``, so that a reader never sees a half-written index.
+
+    Returns:
+        The index path.
+    """
+    index_path = Path(out_dir) / "index.csv"
+    fd, tmp = tempfile.mkstemp(prefix=".index-", suffix=".csv.tmp", dir=out_dir)
     try:
         with os.fdopen(fd, "w", newline="") as f:
             writer = csv.writer(f, lineterminator="\n")
@@ -228,4 +240,4 @@ def simulate_dataset(
     except BaseException:
         Path(tmp).unlink(missing_ok=True)
         raise
-    return out
+    return index_path
