@@ -180,8 +180,13 @@ def test_trained_ranges_are_the_union_of_the_prior_and_the_new_pairs(tmp_path: P
     # pairs at one depression: no depression change
     fresh = build_sar_zero123("tiny")
     write_prior_corpus(
-        tmp_path / "m", num_vehicles=2, views_per_vehicle=6, num_validation_vehicles=1, size=32,
-        mstar_fraction=1.0, progress=False,
+        tmp_path / "m",
+        num_vehicles=2,
+        views_per_vehicle=6,
+        num_validation_vehicles=1,
+        size=32,
+        mstar_fraction=1.0,
+        progress=False,
     )  # every view at 15 or 17 deg
     same = ViewPairDataset(load_index(tmp_path / "m"), size=32, same_depression=True, seed=0)
     assert record_trained_pose_ranges(fresh.pose_projection, same)[0] == [0.0, 0.0]
@@ -193,3 +198,61 @@ def test_trained_ranges_are_the_union_of_the_prior_and_the_new_pairs(tmp_path: P
     pipe.pose_projection.save_pretrained(tmp_path / "proj")
     saved = json.loads((tmp_path / "proj" / "config.json").read_text())
     assert saved["trained_d_el_deg"] == [-50.0, 50.0]
+
+
+# ------------------------------------------------------------------------------- pretrain_prior
+def test_pretrain_prior_smoke_writes_a_pipeline_that_takes_depression(tmp_path: Path):
+    from train import pretrain_prior
+
+    argv = [
+        "--output_dir",
+        str(tmp_path / "prior"),
+        "--num_vehicles",
+        "6",
+        "--views_per_vehicle",
+        "4",
+        "--num_validation_vehicles",
+        "2",
+        "--image_size",
+        "32",
+        "--model_size",
+        "tiny",
+        "--vae_widths",
+        "16",
+        "32",
+        "--vae_steps",
+        "2",
+        "--base_steps",
+        "2",
+        "--train_batch_size",
+        "2",
+        "--vae_batch_size",
+        "2",
+        "--corpus_workers",
+        "1",
+    ]
+    pipeline = pretrain_prior.main(argv)
+    projection = json.loads((pipeline / "pose_projection" / "config.json").read_text())
+    assert projection["input_depression"] is True
+    records = load_index(tmp_path / "prior" / "corpus")
+    used = [r.depression_deg for r in records if r.target_class == PROCEDURAL_CLASS]
+    assert projection["trained_depression_deg"] == [
+        math.floor(min(used) * 10) / 10,
+        math.ceil(max(used) * 10) / 10,
+    ]
+    base = json.loads((tmp_path / "prior" / "base" / "config.json").read_text())
+    assert (base["same_depression"], base["prediction_type"], base["snr_gamma"]) == (
+        False,
+        "v_prediction",
+        5.0,
+    )
+    timings = json.loads((tmp_path / "prior" / "timings.json").read_text())
+    assert set(timings) == {"corpus", "vae", "base"}
+    # a re-run finds every stage done; more base steps resume the run and export again
+    assert pretrain_prior.main(argv) == pipeline
+    longer = list(argv)
+    longer[longer.index("--base_steps") + 1] = "3"
+    pretrain_prior.main(longer)
+    assert json.loads((tmp_path / "prior" / "base" / "config.json").read_text())["max_train_steps"] == 3
+    with pytest.raises(ValueError, match="depression_range_deg"):
+        pretrain_prior.PriorConfig(depression_range_deg=[50.0, 20.0])

@@ -32,6 +32,8 @@ from pathlib import Path
 if not __package__:  # run as a file: Python put only train/ on sys.path (see train/__init__.py)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+from accelerate import PartialState  # noqa: E402
+
 from sar_zero123.config import check_minimum, parse_config, save_config, write_json_atomic  # noqa: E402
 from sar_zero123.data import SCALING_FILE  # noqa: E402
 from sar_zero123.models import SAR_ZERO123_SIZES  # noqa: E402
@@ -60,7 +62,7 @@ class PriorConfig:
     vae_norm_groups: int = 8  # GroupNorm groups of the VAE
     vae_steps: int = 3000  # VAE optimisation steps
     vae_batch_size: int = 8  # chips per VAE step
-    base_steps: int = 30000  # UNet optimisation steps (constant LR: a re-run may extend them)
+    base_steps: int = 25000  # UNet optimisation steps (constant LR: a re-run may extend them)
     train_batch_size: int = 16  # pairs per UNet step
     learning_rate: float = 1e-3  # AdamW learning rate of the UNet (trained from scratch)
     input_depression: bool = True  # the pose's 4th entry is the input's absolute depression
@@ -113,9 +115,13 @@ def main(argv: Sequence[str] | None = None) -> Path:
     """Run (or resume) the three stages; returns the prior's pipeline folder."""
     config = parse_config(PriorConfig, argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    # under `accelerate launch` every process runs this function: one writes the corpus and the records, the
+    # training stages share the work through their own Accelerator
+    state = PartialState()
     out = Path(config.output_dir)
     out.mkdir(parents=True, exist_ok=True)
-    save_config(config, out)
+    if state.is_main_process:
+        save_config(config, out)
     timings_path = out / "timings.json"
     timings: dict[str, float] = json.loads(timings_path.read_text()) if timings_path.is_file() else {}
     protocol = f"ood-{VALIDATION_CLASS}"
@@ -132,22 +138,23 @@ def main(argv: Sequence[str] | None = None) -> Path:
 
     # 1. corpus (its index is written last)
     corpus = Path(config.corpus) if config.corpus is not None else out / "corpus"
-    stage(
-        "corpus",
-        corpus / "index.csv",
-        timings,
-        lambda: write_prior_corpus(
-            corpus,
-            num_vehicles=config.num_vehicles,
-            views_per_vehicle=config.views_per_vehicle,
-            num_validation_vehicles=config.num_validation_vehicles,
-            depression_range_deg=tuple(config.depression_range_deg),
-            mstar_fraction=config.mstar_fraction,
-            size=config.image_size,
-            seed=config.seed,
-            num_workers=config.corpus_workers,
-        ),
-    )
+    with state.main_process_first():  # the others then find its index and skip the stage
+        stage(
+            "corpus",
+            corpus / "index.csv",
+            timings,
+            lambda: write_prior_corpus(
+                corpus,
+                num_vehicles=config.num_vehicles,
+                views_per_vehicle=config.views_per_vehicle,
+                num_validation_vehicles=config.num_validation_vehicles,
+                depression_range_deg=tuple(config.depression_range_deg),
+                mstar_fraction=config.mstar_fraction,
+                size=config.image_size,
+                seed=config.seed,
+                num_workers=config.corpus_workers,
+            ),
+        )
     common["data"] = str(corpus)
 
     # 2. VAE (decibel_scaling.json is the last file train_vae writes)
@@ -192,8 +199,9 @@ def main(argv: Sequence[str] | None = None) -> Path:
     if done.exists() and json.loads(base_config.read_text())["max_train_steps"] < config.base_steps:
         done = out / "base" / f"extended_to_{config.base_steps}"  # more steps asked: resume and re-export
     stage("base", done, timings, finetune_pfm.main, script_argv(finetune_pfm, base_args))
-    write_json_atomic(timings, timings_path)
-    write_json_atomic(dataclasses.asdict(config), out / "prior_config.json")
+    if state.is_main_process:
+        write_json_atomic(timings, timings_path)
+        write_json_atomic(dataclasses.asdict(config), out / "prior_config.json")
     print(f"prior pipeline: {pipeline}")
     return pipeline
 
