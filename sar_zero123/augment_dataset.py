@@ -1,0 +1,582 @@
+"""Turn a folder of labelled chips into a larger training set with novel views from a pipeline.
+
+Example::
+
+    python -m sar_zero123.augment_dataset --data ../shared/data/mstar --out runs/mstar_aug \\
+        --d_az -30 30 --d_el 0 --classes T72 --include_real
+
+For every selected chip and every request (an azimuth change ``--d_az`` or an absolute
+``--target_azimuths_deg``, each combined with every ``--d_el``), the pipeline generates one view. The
+output folder is a dataset every script reads (:func:`sar_zero123.data.load_index`):
+
+* ``views/<CLASS>/<stem>_r<row>_v<request>.npy``: float32 magnitude ``scaling.denormalize(view)`` (in
+  [0, 1] for the unit-magnitude scaling of the simulator and the 8-bit chips), ``row`` being the chip's
+  position in the source index (0 = first chip) and ``request`` the request's position;
+* ``index.csv`` with the standard columns (:data:`sar_zero123.sim.dataset.INDEX_COLUMNS`), written last;
+* ``provenance.csv``: the same rows and columns plus :data:`PROVENANCE_COLUMNS`. They live in a file of
+  their own because ``load_index`` refuses columns it does not know;
+* ``augment.json``: the options. A folder made with other options is refused, so that a re-run after a
+  kill resumes (views already on disk are kept) and never mixes two augmentations.
+
+Each view has its own random stream (:func:`view_generator`), so its noise does not depend on which
+other views share its batch. Its bytes still do, by float rounding: PyTorch's CPU convolutions and matrix
+products choose their kernels by batch size. So the batches are fixed (consecutive views of the plan,
+``--batch_size`` of them), a resumed run regenerates each batch that misses a view and writes only the
+missing files, and ``batch_size`` is one of the options a resumed run must keep: a view is then the same
+bytes whether it was written before or after a kill (same machine and threads).
+"""
+
+from __future__ import annotations
+
+import csv
+import functools
+import io
+import json
+import os
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, Literal
+
+import numpy as np
+import torch
+from diffusers import DDIMScheduler, DPMSolverMultistepScheduler, EulerDiscreteScheduler
+from tqdm.auto import tqdm
+
+from sar_zero123.augment import rayleigh_speckle
+from sar_zero123.config import (
+    check_minimum,
+    check_output_dir,
+    config_to_dict,
+    parse_config,
+    write_json_atomic,
+)
+from sar_zero123.data import ChipRecord, DecibelScaling, load_index, load_magnitude, wrap_azimuth_deg
+from sar_zero123.generate import GenerateConfig, _resolve_scaling, load_input_chip
+from sar_zero123.pipeline import MAX_ABS_D_AZ_DEG, MAX_ABS_D_EL_DEG, MAX_GUIDANCE_SCALE, SARZero123Pipeline
+from sar_zero123.pretrained import SIM_PRIOR, is_bundled_name, resolve_pretrained
+from sar_zero123.sim.dataset import INDEX_COLUMNS, write_index_atomic
+
+__all__ = [
+    "AUGMENT_FILE",
+    "PROVENANCE_COLUMNS",
+    "PROVENANCE_FILE",
+    "AugmentConfig",
+    "ViewRequest",
+    "augment_dataset",
+    "check_trained_ranges",
+    "main",
+    "plan_views",
+    "select_records",
+    "view_generator",
+]
+
+#: The options of an augmentation, in its output folder.
+AUGMENT_FILE = "augment.json"
+#: The index rows with their provenance (``load_index`` refuses unknown columns in ``index.csv``).
+PROVENANCE_FILE = "provenance.csv"
+#: Columns ``provenance.csv`` adds to :data:`~sar_zero123.sim.dataset.INDEX_COLUMNS`.
+PROVENANCE_COLUMNS = ("source_path", "d_az_deg", "d_el_deg", "pipeline", "seed", "generated")
+#: Samplers ``--scheduler`` names; each keeps the pipeline's noise schedule.
+SCHEDULERS = {
+    "ddim": (DDIMScheduler, {}),
+    "dpmsolver++": (DPMSolverMultistepScheduler, {"algorithm_type": "dpmsolver++"}),
+    "euler": (EulerDiscreteScheduler, {}),
+}
+# The pipeline's own tolerance for the trained ranges.
+_RANGE_TOL_DEG = 1e-6
+
+
+@dataclass
+class AugmentConfig:
+    """Add novel views from a SARZero123Pipeline to a dataset of labelled chips."""
+
+    data: str = ""  # dataset folder: index.csv, or a tree of original MSTAR files
+    pipeline: str = SIM_PRIOR  # SARZero123Pipeline.save_pretrained folder, or a bundled one's name
+    out: str = ""  # output dataset folder (a re-run with the same options resumes it)
+    d_az: list[float] = field(default_factory=list)  # azimuth changes in degrees (or target_azimuths_deg)
+    target_azimuths_deg: list[float] = field(default_factory=list)  # absolute azimuths (deg), instead of d_az
+    d_el: list[float] = field(default_factory=lambda: [0.0])  # depression changes (deg), each with every d_az
+    classes: list[str] = field(default_factory=list)  # only these target classes (empty: all)
+    depressions_deg: list[float] = field(default_factory=list)  # only chips at these depressions (empty: all)
+    max_chips_per_class: int | None = None  # at most this many chips per class, evenly spaced in index order
+    include_real: bool = False  # also list the selected real chips (generated 0, absolute paths)
+    num_inference_steps: int = 20  # denoising steps
+    guidance_scale: float = 3.0  # classifier-free guidance weight (<= 1 disables it)
+    scheduler: Literal["ddim", "dpmsolver++", "euler"] = "ddim"  # sampler
+    batch_size: int = 8  # views per pipeline call (a view changes with it by float rounding only)
+    seed: int = 0  # view (row, request) is sampled with view_generator(seed, row, request)
+    speckle: bool = False  # re-add Rayleigh speckle (Eq. 17-18) to the generated magnitudes
+    speckle_sigma: float = 10.0  # Rayleigh sigma of the speckle (with --speckle)
+    scaling_file: str | None = None  # DecibelScaling JSON (default: <pipeline>/decibel_scaling.json or unit)
+    device: str = "cpu"  # torch device
+
+    def __post_init__(self) -> None:
+        if not self.data:
+            raise ValueError("data: a dataset folder is required")
+        if not self.out:
+            raise ValueError("out: an output folder is required")
+        if not self.pipeline:
+            raise ValueError("pipeline: a pipeline folder or a bundled pipeline's name is required")
+        if bool(self.d_az) == bool(self.target_azimuths_deg):
+            raise ValueError(
+                f"d_az/target_azimuths_deg: give exactly one of them, got d_az={self.d_az} and "
+                f"target_azimuths_deg={self.target_azimuths_deg}"
+            )
+        if not self.d_el:
+            raise ValueError("d_el: give at least one depression change (0 keeps the depression)")
+        for name in ("d_az", "target_azimuths_deg", "d_el", "depressions_deg"):
+            if not all(np.isfinite(getattr(self, name))):
+                raise ValueError(f"{name} must be finite, got {getattr(self, name)}")
+        if not all(0.0 <= a < 360.0 for a in self.target_azimuths_deg):
+            raise ValueError(f"target_azimuths_deg must lie in [0, 360), got {self.target_azimuths_deg}")
+        for name, limit in (("d_az", MAX_ABS_D_AZ_DEG), ("d_el", MAX_ABS_D_EL_DEG)):
+            values = getattr(self, name)
+            if any(abs(v) > limit for v in values):
+                raise ValueError(f"{name} must lie in [-{limit:g}, {limit:g}] degrees, got {values}")
+        if not (np.isfinite(self.guidance_scale) and self.guidance_scale <= MAX_GUIDANCE_SCALE):
+            raise ValueError(
+                f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE:g}, got {self.guidance_scale}"
+            )
+        check_minimum(self, "num_inference_steps", "batch_size", minimum=1)
+        check_minimum(self, "max_chips_per_class", minimum=1, optional=True)
+        check_minimum(self, "seed", minimum=0)
+        check_minimum(self, "speckle_sigma", minimum=0.0, strict=True)
+        if not Path(self.data).is_dir():
+            raise FileNotFoundError(f"data: dataset folder not found: {self.data!r}")
+        if not resolve_pretrained(self.pipeline).is_dir():
+            raise FileNotFoundError(f"pipeline: pipeline folder not found: {self.pipeline!r}")
+        if self.scaling_file is not None and not Path(self.scaling_file).is_file():
+            raise FileNotFoundError(f"scaling_file: no such file {self.scaling_file!r}")
+
+
+@dataclass(frozen=True)
+class ViewRequest:
+    """One view to generate: a source chip, the pose change, and where the view goes.
+
+    Attributes:
+        row_index: The chip's position in the source index (0 = first chip).
+        request_index: The request's position in the chip's list of requests.
+        record: The source chip.
+        d_az_deg: Azimuth change (target - input), degrees.
+        d_el_deg: Depression change (target - input), degrees.
+        azimuth_deg: The view's azimuth in [0, 360).
+        depression_deg: The view's depression, ``record.depression_deg + d_el_deg``.
+        path: The view's file, relative to the output folder.
+    """
+
+    row_index: int
+    request_index: int
+    record: ChipRecord
+    d_az_deg: float
+    d_el_deg: float
+    azimuth_deg: float
+    depression_deg: float
+    path: Path
+
+
+def select_records(
+    records: Sequence[ChipRecord],
+    classes: Sequence[str] = (),
+    depressions_deg: Sequence[float] = (),
+    max_chips_per_class: int | None = None,
+) -> list[tuple[int, ChipRecord]]:
+    """The chips to augment, with their positions in the source index.
+
+    Args:
+        records: The source index (:func:`~sar_zero123.data.load_index`).
+        classes: Keep only these target classes; empty keeps all.
+        depressions_deg: Keep only chips within 0.01 degrees of one of these depressions; empty keeps all.
+        max_chips_per_class: Keep at most this many chips of each class, evenly spaced over the class's
+            chips in index order (so they spread over the azimuths of an index sorted by azimuth).
+
+    Returns:
+        ``(row_index, record)`` pairs in index order.
+
+    Raises:
+        ValueError: naming ``classes`` for a class the index does not list, or ``depressions_deg`` /
+            the selection when nothing is left.
+    """
+    unknown = sorted(set(classes) - {r.target_class for r in records})
+    if unknown:
+        listed = sorted({r.target_class for r in records})
+        raise ValueError(f"classes: {unknown} not in the dataset, which lists {listed}")
+    selected = [
+        (row, record)
+        for row, record in enumerate(records)
+        if (not classes or record.target_class in classes)
+        and (not depressions_deg or any(abs(record.depression_deg - d) < 0.01 for d in depressions_deg))
+    ]
+    if not selected:
+        raise ValueError(f"depressions_deg: no chip of the selected classes at {list(depressions_deg)} deg")
+    if max_chips_per_class is None:
+        return selected
+    keep = set()
+    for target_class in {record.target_class for _, record in selected}:
+        rows = [row for row, record in selected if record.target_class == target_class]
+        picks = np.unique(np.linspace(0, len(rows) - 1, min(max_chips_per_class, len(rows))).round())
+        keep.update(rows[int(i)] for i in picks)
+    return [(row, record) for row, record in selected if row in keep]
+
+
+def plan_views(
+    selected: Sequence[tuple[int, ChipRecord]],
+    d_az: Sequence[float] = (),
+    target_azimuths_deg: Sequence[float] = (),
+    d_el: Sequence[float] = (0.0,),
+) -> list[ViewRequest]:
+    """Every requested view of every selected chip: azimuth requests x ``d_el``, in that order.
+
+    Args:
+        selected: ``(row_index, record)`` pairs (:func:`select_records`).
+        d_az: Azimuth changes in degrees; or
+        target_azimuths_deg: absolute target azimuths in degrees (``d_az = wrap(target - input)`` in
+            (-180, 180], :func:`~sar_zero123.data.wrap_azimuth_deg`).
+        d_el: Depression changes in degrees.
+
+    Returns:
+        The views, chip after chip; request ``i * len(d_el) + j`` is azimuth request ``i`` with ``d_el[j]``.
+
+    Raises:
+        ValueError: naming ``d_el`` when a target depression leaves (0, 90) degrees.
+    """
+    views = []
+    for row, record in selected:
+        if target_azimuths_deg:
+            azimuths = [(wrap_azimuth_deg(t - record.azimuth_deg), float(t)) for t in target_azimuths_deg]
+        else:
+            # 6 decimals keep the index readable (17.299999999999997); rounding up to 360 wraps to 0
+            azimuths = [(float(a), round((record.azimuth_deg + a) % 360.0, 6) % 360.0) for a in d_az]
+        requests = [(a, target, e) for a, target in azimuths for e in d_el]
+        for request, (d_az_deg, azimuth_deg, d_el_deg) in enumerate(requests):
+            depression_deg = round(record.depression_deg + float(d_el_deg), 6)
+            if not 0.0 < depression_deg < 90.0:
+                raise ValueError(
+                    f"d_el: {record.path} at {record.depression_deg:g} deg + d_el {d_el_deg:g} leaves (0, 90)"
+                )
+            name = f"{record.path.stem}_r{row:06d}_v{request:03d}.npy"
+            views.append(
+                ViewRequest(
+                    row_index=row,
+                    request_index=request,
+                    record=record,
+                    d_az_deg=float(d_az_deg),
+                    d_el_deg=float(d_el_deg),
+                    azimuth_deg=float(azimuth_deg),
+                    depression_deg=depression_deg,
+                    path=Path("views") / record.target_class / name,
+                )
+            )
+    return views
+
+
+def check_trained_ranges(
+    pose_config: Any, d_el: Sequence[float], input_depressions_deg: Sequence[float]
+) -> None:
+    """Refuse, before any generation, requests the pipeline would refuse mid-run.
+
+    Args:
+        pose_config: ``pipe.pose_projection.config`` (``trained_d_el_deg``, ``trained_depression_deg``,
+            ``input_depression``; a range of ``None`` is unknown and not checked).
+        d_el: The depression changes requested.
+        input_depressions_deg: The depressions of the selected chips.
+
+    Raises:
+        ValueError: naming ``d_el`` or ``depressions_deg`` and the pipeline's field, for a change outside
+            ``trained_d_el_deg``, or (for a pipeline whose pose carries the input's depression, the ones
+            the pipeline checks) an input or target depression outside ``trained_depression_deg``.
+    """
+    trained_d_el = getattr(pose_config, "trained_d_el_deg", None)
+    if trained_d_el is not None:
+        low, high = float(trained_d_el[0]), float(trained_d_el[1])
+        outside = sorted({v for v in d_el if not low - _RANGE_TOL_DEG <= v <= high + _RANGE_TOL_DEG})
+        if outside:
+            raise ValueError(
+                f"d_el: {outside} deg lie outside the range the pipeline was trained on, [{low:g}, {high:g}] "
+                "deg (pose_projection.config.trained_d_el_deg)"
+            )
+    trained_depression = getattr(pose_config, "trained_depression_deg", None)
+    if trained_depression is None or not getattr(pose_config, "input_depression", False):
+        return
+    low, high = float(trained_depression[0]), float(trained_depression[1])
+    inputs = sorted(set(input_depressions_deg))
+    targets = sorted({i + e for i in inputs for e in d_el})
+    for name, values in (("depressions_deg", inputs), ("d_el", targets)):
+        outside = [v for v in values if not low - _RANGE_TOL_DEG <= v <= high + _RANGE_TOL_DEG]
+        if outside:
+            what = "input depressions" if name == "depressions_deg" else "target depressions (input + d_el)"
+            raise ValueError(
+                f"{name}: {what} {outside} deg lie outside the range the pipeline was trained on, "
+                f"[{low:g}, {high:g}] deg (pose_projection.config.trained_depression_deg)"
+            )
+
+
+def view_generator(seed: int, row_index: int, request_index: int, stream: int = 0) -> torch.Generator:
+    """CPU generator of one view; a pure function of its arguments, whatever else the batch holds.
+
+    Args:
+        seed: The run's seed.
+        row_index: The source chip's position in the source index.
+        request_index: The request's position in the chip's requests.
+        stream: 0 for the pipeline's noise, 1 for the speckle.
+
+    Returns:
+        A seeded ``torch.Generator``.
+    """
+    key = [seed, row_index, request_index, stream]
+    state = np.random.SeedSequence(key).generate_state(2, dtype=np.uint32)
+    return torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))
+
+
+def _recorded_options(config: AugmentConfig) -> dict[str, Any]:
+    """The options that decide the output, with local paths made absolute."""
+    options = config_to_dict(config)
+    options["data"] = str(Path(config.data).resolve())
+    if not is_bundled_name(config.pipeline):
+        options["pipeline"] = str(Path(config.pipeline).resolve())
+    if config.scaling_file is not None:
+        options["scaling_file"] = str(Path(config.scaling_file).resolve())
+    options.pop("out")
+    return options
+
+
+def _check_out_folder(out: Path, options: dict[str, Any]) -> bool:
+    """Whether ``out`` holds this augmentation already (resume); refuses any other non-empty folder.
+
+    Raises:
+        ValueError: naming ``out``, for a non-empty folder without :data:`AUGMENT_FILE`, or one made with
+            other options (the differences listed).
+    """
+    check_output_dir(out, "out")
+    if not out.is_dir() or not any(out.iterdir()):
+        return False
+    if not (out / AUGMENT_FILE).is_file():
+        raise ValueError(f"out: {str(out)!r} is not empty and has no {AUGMENT_FILE}; choose an empty folder")
+    recorded = json.loads((out / AUGMENT_FILE).read_text())
+    differences = [
+        f"{name}: {recorded.get(name)!r} there, {options.get(name)!r} now"
+        for name in sorted(set(recorded) | set(options))
+        if recorded.get(name) != options.get(name)
+    ]
+    if differences:
+        raise ValueError(
+            f"out: {str(out)!r} holds an augmentation made with other options ({'; '.join(differences)}); "
+            "use another folder or the same options"
+        )
+    return True
+
+
+def _check_chip_sizes(records: Sequence[ChipRecord], size: int) -> None:
+    """Refuse chips smaller than the pipeline's size (they would be upsampled, changing the pixel spacing)."""
+    small = []
+    for record in records:
+        shape = (record.height, record.width)
+        if None in shape:
+            shape = load_magnitude(record.path).shape
+        if min(shape) < size:
+            small.append(f"{record.path} ({shape[0]}x{shape[1]})")
+    if small:
+        raise ValueError(
+            f"data: {len(small)} chip(s) are smaller than the pipeline's {size} px, e.g. {small[0]}; "
+            "use a pipeline of their size"
+        )
+
+
+def _write_atomic(path: Path, data: bytes) -> None:
+    """Write ``data`` through a temporary file and ``os.replace``: a kill never leaves a partial file."""
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_bytes(data)
+    os.replace(tmp, path)
+
+
+def _index_row(
+    path: str, record: ChipRecord, depression_deg: float, azimuth_deg: float, size: int | None
+) -> list[str]:
+    """One ``index.csv`` row (:data:`~sar_zero123.sim.dataset.INDEX_COLUMNS`); ``size`` for a view."""
+    height, width = (size, size) if size is not None else (record.height, record.width)
+    return [
+        path,
+        record.target_class,
+        record.target_type or "",
+        record.serial,
+        repr(depression_deg),
+        repr(azimuth_deg),
+        "" if height is None else str(height),
+        "" if width is None else str(width),
+    ]
+
+
+def augment_dataset(config: AugmentConfig) -> Path:
+    """Generate the requested views of the selected chips and write them as a dataset.
+
+    Args:
+        config: The options (:class:`AugmentConfig`).
+
+    Returns:
+        The output folder (pass it to :func:`~sar_zero123.data.load_index`).
+
+    Raises:
+        ValueError: naming the field, for an output folder that holds something else, a selection that is
+            empty, chips smaller than the pipeline's size or that the decibel scaling does not fit (more
+            than half the pixels clipped), or requests outside the pipeline's trained ranges; all but the
+            scaling are checked before any generation.
+    """
+    # 1. the source chips, the views they get, and the output folder's state
+    out = Path(config.out)
+    options = _recorded_options(config)
+    resuming = _check_out_folder(out, options)
+    records = load_index(config.data)
+    selected = select_records(records, config.classes, config.depressions_deg, config.max_chips_per_class)
+    views = plan_views(selected, config.d_az, config.target_azimuths_deg, config.d_el)
+
+    # 2. the pipeline, and every check that can fail before generating
+    pipe = SARZero123Pipeline.from_pretrained(config.pipeline).to(config.device)
+    pipe.set_progress_bar_config(disable=True)
+    scheduler_class, overrides = SCHEDULERS[config.scheduler]
+    pipe.scheduler = scheduler_class.from_config(pipe.scheduler.config, **overrides)
+    size = pipe.default_image_size
+    _check_chip_sizes([record for _, record in selected], size)
+    check_trained_ranges(pipe.pose_projection.config, config.d_el, [r.depression_deg for _, r in selected])
+    out.mkdir(parents=True, exist_ok=True)
+    if not resuming:
+        write_json_atomic(options, out / AUGMENT_FILE)
+
+    # 3. generate the batches that miss a view; each view has its own generators
+    batches = [views[start : start + config.batch_size] for start in range(0, len(views), config.batch_size)]
+    pending = [batch for batch in batches if not all((out / view.path).is_file() for view in batch)]
+    for folder in sorted({(out / view.path).parent for batch in pending for view in batch}):
+        folder.mkdir(parents=True, exist_ok=True)
+    prepared_chip = _chip_loader(config.pipeline, config.scaling_file, size)
+    scaling = _resolve_scaling(config.scaling_file, config.pipeline)
+    speckle_sigma = config.speckle_sigma if config.speckle else None
+    with tqdm(total=sum(len(batch) for batch in pending), desc="augmenting", unit="view") as progress:
+        for batch in pending:
+            chips = np.stack([prepared_chip(view.record.path) for view in batch])  # (B, S, S)
+            images = _generate(
+                pipe,
+                chips,
+                batch,
+                num_inference_steps=config.num_inference_steps,
+                guidance_scale=config.guidance_scale,
+                seed=config.seed,
+            )
+            for view, image in zip(batch, images):
+                if (out / view.path).is_file():  # written before a kill, from this same batch
+                    continue
+                speckle = view_generator(config.seed, view.row_index, view.request_index, stream=1)
+                magnitude = _view_magnitude(image, scaling, speckle_sigma=speckle_sigma, generator=speckle)
+                buffer = io.BytesIO()
+                np.save(buffer, magnitude)
+                _write_atomic(out / view.path, buffer.getvalue())
+            progress.update(len(batch))
+
+    # 4. the provenance, then the index, last
+    real = selected if config.include_real else []
+    rows = _index_rows(real, views, size, pipeline=config.pipeline, seed=config.seed, data_root=config.data)
+    text = io.StringIO()
+    csv.writer(text, lineterminator="\n").writerows([[*INDEX_COLUMNS, *PROVENANCE_COLUMNS], *rows])
+    _write_atomic(out / PROVENANCE_FILE, text.getvalue().encode())
+    write_index_atomic(out, [row[: len(INDEX_COLUMNS)] for row in rows])
+    return out
+
+
+def _chip_loader(pipeline: str, scaling_file: str | None, size: int) -> Callable[[Path], np.ndarray]:
+    """``path -> normalised dB chip`` (``generate.py``'s :func:`~sar_zero123.generate.load_input_chip`),
+    remembering the last chips: a chip's requests follow one another."""
+
+    @functools.lru_cache(maxsize=64)
+    def prepared_chip(path: Path) -> np.ndarray:
+        try:
+            chip_config = GenerateConfig(pipeline=pipeline, image=str(path), scaling_file=scaling_file)
+            return load_input_chip(chip_config, size)
+        except ValueError as error:
+            raise ValueError(f"data: chip {path}: {error}") from None
+
+    return prepared_chip
+
+
+def _generate(
+    pipe: SARZero123Pipeline,
+    chips: np.ndarray,
+    batch: Sequence[ViewRequest],
+    *,
+    num_inference_steps: int,
+    guidance_scale: float,
+    seed: int,
+) -> np.ndarray:
+    """One pipeline call for a batch of views: ``(B, S, S)`` normalised dB from ``(B, S, S)`` chips."""
+    takes_depression = getattr(pipe.pose_projection.config, "input_depression", False)
+    return pipe(
+        torch.from_numpy(chips)[:, None],  # (B, 1, S, S)
+        d_az=[view.d_az_deg for view in batch],
+        d_el=[view.d_el_deg for view in batch],
+        input_depression_deg=[view.record.depression_deg for view in batch] if takes_depression else None,
+        num_inference_steps=num_inference_steps,
+        guidance_scale=guidance_scale,
+        generator=[view_generator(seed, view.row_index, view.request_index) for view in batch],
+        output_type="np",
+    ).images[..., 0]
+
+
+def _view_magnitude(
+    image: np.ndarray,
+    scaling: DecibelScaling,
+    *,
+    speckle_sigma: float | None = None,
+    generator: torch.Generator | None = None,
+) -> np.ndarray:
+    """A generated view (normalised dB) as the float32 magnitude written to disk; with ``speckle_sigma``,
+    Rayleigh speckle (Eq. 17-18, :func:`~sar_zero123.augment.rayleigh_speckle`) is re-added to it."""
+    peak = float(scaling.denormalize(np.float64(1.0)))  # the largest magnitude the scaling represents
+    magnitude = np.clip(scaling.denormalize(image.astype(np.float64)), 0.0, peak)
+    if speckle_sigma is not None:
+        unit = torch.from_numpy(magnitude / peak)[None, None]  # (1, 1, S, S) in [0, 1]
+        magnitude = rayleigh_speckle(unit, speckle_sigma, generator=generator)[0, 0].numpy() * peak
+    return magnitude.astype(np.float32)
+
+
+def _index_rows(
+    real: Sequence[tuple[int, ChipRecord]],
+    views: Sequence[ViewRequest],
+    size: int,
+    *,
+    pipeline: str,
+    seed: int,
+    data_root: str | Path,
+) -> list[list[str]]:
+    """Rows of ``provenance.csv``: the index columns, then :data:`PROVENANCE_COLUMNS`."""
+    data_root = Path(data_root).resolve()
+    rows = []
+    for _, record in real:
+        row = _index_row(str(record.path), record, record.depression_deg, record.azimuth_deg, None)
+        rows.append([*row, _source_path(record, data_root), "0.0", "0.0", "", "", "0"])
+    for view in views:
+        row = _index_row(view.path.as_posix(), view.record, view.depression_deg, view.azimuth_deg, size)
+        source = _source_path(view.record, data_root)
+        d_angles = [repr(view.d_az_deg), repr(view.d_el_deg)]
+        rows.append([*row, source, *d_angles, pipeline, str(seed), "1"])
+    return rows
+
+
+def _source_path(record: ChipRecord, data_root: Path) -> str:
+    """The chip's path as the source index gives it: relative to the data folder when inside it."""
+    try:
+        return record.path.relative_to(data_root).as_posix()
+    except ValueError:
+        return str(record.path)
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    """Command-line entry point (``python -m sar_zero123.augment_dataset``).
+
+    Args:
+        argv: Arguments without the program name; ``None`` reads ``sys.argv``.
+
+    Returns:
+        The output folder.
+    """
+    return augment_dataset(parse_config(AugmentConfig, argv))
+
+
+if __name__ == "__main__":
+    main()
