@@ -105,7 +105,8 @@ def _pearson(a: np.ndarray, b: np.ndarray) -> float:
 def test_bundled_prior_follows_depression():
     """Views of the bundled prior asked for a depression change look more like the simulator's view at the
     requested depression than at the input's, for named vehicles it never saw (it trained on procedural
-    vehicles only). Azimuth requests on unseen vehicles are not followed (docs/results/prior.md): not tested."""
+    vehicles only). Azimuth requests on unseen vehicles are not followed (docs/results/prior.md): not
+    tested."""
     if not (PACKAGE_PRIOR / "model_index.json").is_file():
         pytest.skip(f"bundled prior weights not installed (no model_index.json in {PACKAGE_PRIOR})")
     pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR)
