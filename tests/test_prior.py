@@ -53,6 +53,12 @@ def test_procedural_vehicle_renders_inside_the_chip_with_its_shadow():
     target = make_procedural_target(3)
     chip = render_chip(target, 30.0, 17.0, 64, np.random.default_rng(0))
     assert chip.shape == (64, 64) and chip.dtype == np.float32 and float(chip.max()) == 1.0
+    # radar at the bottom: the shadow lies above the vehicle, well below the clutter level in front of it,
+    # and shortens at a steeper depression (the band above the vehicle brightens)
+    behind, front = np.median(chip[4:24, 24:40]), np.median(chip[44:60, 24:40])
+    assert behind < 0.5 * front
+    steep = render_chip(target, 30.0, 45.0, 64, np.random.default_rng(0))
+    assert np.median(steep[4:24, 24:40]) > 2.0 * behind
     with pytest.raises(ValueError, match="seed"):
         make_procedural_target(-1)
     with pytest.raises(ValueError, match="seed"):
