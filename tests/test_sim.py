@@ -394,7 +394,7 @@ def test_cli_writes_folder_and_contact_sheet(tmp_path, capsys):
     assert main(argv.split()) == 0
     assert len(_read_index(out)) == 2 * 3
     assert (out / "contact_sheet.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
-    assert "wrote 6 chips" in capsys.readouterr().out
+    assert "index.csv: 6 chips" in capsys.readouterr().out
 
 
 @pytest.mark.shared_data
@@ -410,3 +410,35 @@ def test_contact_sheet_with_real_chips(tmp_path, mstar_root):
         tmp_path / "sheet.png", ["TANK"], (0.0, 90.0), real_root=mstar_root, real_classes=["T62"]
     )
     assert png.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_cli_refuses_a_folder_holding_another_dataset(tmp_path):
+    """The simulate stage never replaces a dataset: other settings are refused, nothing on disk changes."""
+    from sar_zero123.sim.__main__ import main
+
+    out = tmp_path / "data"
+    flags = ["--out", str(out), "--instances", "1", "--azimuth-step", "120", "--size", "16"]
+    assert main([*flags, "--classes", "TANK", "APC"]) == 0
+    before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
+    assert len(before) == 2 * 2 * 3 + 2  # chips, index.csv, run.json
+    with pytest.raises(ValueError, match=r"classes: folder \['TANK', 'APC'\], this run \['TANK'\]"):
+        main([*flags, "--classes", "TANK"])
+    with pytest.raises(ValueError, match="already holds a finished simulate run.*--restart"):
+        main([*flags, "--classes", "TANK", "APC"])
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    assert main([*flags, "--classes", "TANK", "APC", "--resume"]) == 0  # finished: kept as it is
+    assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
+    assert main([*flags, "--classes", "TANK", "--restart"]) == 0
+    (moved,) = tmp_path.glob("data.replaced-*")
+    assert len((moved / "index.csv").read_text().splitlines()) == 1 + 12
+    assert len((out / "index.csv").read_text().splitlines()) == 1 + 6
+
+
+def test_simulate_config_refuses_unbounded_sheets_before_any_work(tmp_path):
+    from sar_zero123.stages.simulate import SimulateConfig
+
+    with pytest.raises(ValueError, match="procedural_sheet: expected 0 to 512 vehicles, got 5000"):
+        SimulateConfig(out=str(tmp_path / "x"), procedural_sheet=5000)
+    with pytest.raises(ValueError, match="azimuth_step_deg: expected a value in"):
+        SimulateConfig(out=str(tmp_path / "x"), azimuth_step_deg=0.0)
+    assert not (tmp_path / "x").exists()

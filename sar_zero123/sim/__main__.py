@@ -6,7 +6,6 @@ import argparse
 import time
 from collections.abc import Sequence
 
-from sar_zero123.sim.dataset import simulate_dataset
 from sar_zero123.sim.targets import TARGET_CLASSES
 
 
@@ -45,44 +44,42 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help="also write DIR/procedural_sheet.png of procedural vehicles 0..N-1 at 17 and 45 deg",
     )
+    p.add_argument(
+        "--resume", action="store_true", help="redo an unfinished dataset in DIR with the same settings"
+    )
+    p.add_argument(
+        "--restart", action="store_true", help="move an existing DIR aside (never deleted) and simulate anew"
+    )
     return p
 
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the command; returns the exit status."""
+    # imported here: the simulator package itself imports nothing from the run plumbing
+    from sar_zero123.stages.simulate import SimulateConfig, run_simulate
+
     args = build_parser().parse_args(argv)
     start = time.perf_counter()
-    out = simulate_dataset(
-        args.out,
-        classes=args.classes,
+    config = SimulateConfig(
+        out=args.out,
+        classes=list(args.classes or TARGET_CLASSES),
         instances=args.instances,
         azimuth_step_deg=args.azimuth_step,
-        depressions_deg=tuple(args.depressions),
+        azimuth_jitter_deg=args.azimuth_jitter,
+        depressions_deg=list(args.depressions),
         size=args.size,
         seed=args.seed,
-        azimuth_jitter_deg=args.azimuth_jitter,
         normalization=args.normalization,
+        contact_sheet=args.contact_sheet,
+        real_root=args.real_root,
+        procedural_sheet=args.procedural_sheet,
+        resume=args.resume,
+        restart=args.restart,
     )
+    out = run_simulate(config)
     with open(out / "index.csv") as f:
         n_chips = sum(1 for _ in f) - 1
-    print(f"wrote {n_chips} chips and {out / 'index.csv'} in {time.perf_counter() - start:.1f} s")
-    if args.contact_sheet:
-        from sar_zero123.sim.contact_sheet import contact_sheet
-
-        sheet = contact_sheet(
-            out / "contact_sheet.png",
-            classes=args.classes,
-            depression_deg=args.depressions[-1],
-            size=args.size,
-            seed=args.seed,
-            real_root=args.real_root,
-        )
-        print(f"wrote {sheet}")
-    if args.procedural_sheet > 0:
-        from sar_zero123.sim.contact_sheet import procedural_contact_sheet
-
-        sheet = procedural_contact_sheet(out / "procedural_sheet.png", seeds=range(args.procedural_sheet))
-        print(f"wrote {sheet}")
+    print(f"{out / 'index.csv'}: {n_chips} chips ({time.perf_counter() - start:.1f} s)")
     return 0
 
 

@@ -16,7 +16,13 @@ import numpy as np
 from sar_zero123.sim.render import CALIBRATION_AMPLITUDE, CLUTTER_DB, render_chip
 from sar_zero123.sim.targets import TARGET_CLASSES, make_target
 
-__all__ = ["INDEX_COLUMNS", "chip_generator", "simulate_dataset", "write_index_atomic"]
+__all__ = [
+    "INDEX_COLUMNS",
+    "check_simulation_options",
+    "chip_generator",
+    "simulate_dataset",
+    "write_index_atomic",
+]
 
 INDEX_COLUMNS = (
     "path",
@@ -59,7 +65,7 @@ def chip_generator(
 MAX_SIM_CHIPS = 200_000
 
 
-def _check(
+def check_simulation_options(
     classes: Sequence[str],
     instances: int,
     azimuth_step_deg: float,
@@ -70,6 +76,12 @@ def _check(
     normalization: str,
     clutter_db_spread: float,
 ) -> None:
+    """Refuse options :func:`simulate_dataset` cannot honour, naming the option and what it expects.
+
+    Raises:
+        ValueError: For an unknown class, a count below 1, an angle out of range, or more chips than
+            ``MAX_SIM_CHIPS``.
+    """
     unknown = [c for c in classes if c not in TARGET_CLASSES]
     if not classes or unknown:
         raise ValueError(f"classes: unknown or empty {list(classes)!r}; expected names from {TARGET_CLASSES}")
@@ -158,7 +170,7 @@ def simulate_dataset(
     # 1. check inputs
     classes = list(TARGET_CLASSES) if classes is None else [str(c).upper() for c in classes]
     depressions = [float(d) for d in depressions_deg]
-    _check(
+    check_simulation_options(
         classes,
         instances,
         azimuth_step_deg,
