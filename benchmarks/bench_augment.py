@@ -3,7 +3,7 @@
 Times ``augment_batch`` on a batch of SAR-like magnitudes (``U ** 4``: dark clutter with a few bright
 pixels; the cost does not depend on the content) after warm-up runs, on the requested device.
 
-    python benchmarks/bench_augment.py --out docs/results/bench_augment_cpu.json
+    python benchmarks/bench_augment.py --out docs/results/data/bench_augment_cpu.json
 """
 
 from __future__ import annotations

@@ -1,7 +1,7 @@
 """Fine-tuning throughput (pairs/s) per model size and training-step variant, as ratios in one run.
 
     python benchmarks/bench_finetune_throughput.py --sizes micro compact small --batch_size 16 \\
-        --out docs/results/finetune_throughput_cpu.json
+        --out docs/results/data/finetune_throughput_cpu.json
 
 Each variant runs :func:`sar_zero123.training.compute_losses` + backward + AdamW on one fixed batch of
 random 64 px chips (lambda = 0, no CFG dropout) and reports the median step time after warm-up:

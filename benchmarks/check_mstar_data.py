@@ -2,7 +2,7 @@
 
 Usage::
 
-    python benchmarks/check_mstar_data.py --data ../shared/data/mstar --output docs/results/data.json
+    python benchmarks/check_mstar_data.py --data ../shared/data/mstar --output docs/results/data/data.json
 
 Prints a JSON report and writes it to ``--output``:
 
@@ -165,7 +165,9 @@ def check_datasets(data: Path) -> dict:
 def main(argv: list[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=Path("../shared/data/mstar"), help="MSTAR folder")
-    parser.add_argument("--output", type=Path, default=Path("docs/results/data.json"), help="JSON report")
+    parser.add_argument(
+        "--output", type=Path, default=Path("docs/results/data/data.json"), help="JSON report"
+    )
     args = parser.parse_args(argv)
     if not (args.data / "index.csv").is_file():
         raise FileNotFoundError(f"no MSTAR index at {args.data / 'index.csv'}; pass --data")
