@@ -31,7 +31,6 @@ from __future__ import annotations
 import csv
 import functools
 import io
-import json
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -49,6 +48,7 @@ from sar_zero123.config import (
     check_output_dir,
     config_to_dict,
     parse_config,
+    read_json,
     write_json_atomic,
 )
 from sar_zero123.data import ChipRecord, DecibelScaling, load_index, load_magnitude, wrap_azimuth_deg
@@ -59,6 +59,9 @@ from sar_zero123.sim.dataset import INDEX_COLUMNS, write_index_atomic
 
 __all__ = [
     "AUGMENT_FILE",
+    "MAX_AUGMENT_VIEWS",
+    "MAX_BATCH_SIZE",
+    "MAX_REQUESTS_PER_CHIP",
     "PROVENANCE_COLUMNS",
     "PROVENANCE_FILE",
     "AugmentConfig",
@@ -85,6 +88,12 @@ SCHEDULERS = {
 }
 # The pipeline's own tolerance for the trained ranges.
 _RANGE_TOL_DEG = 1e-6
+#: Most views per pipeline call (``batch_size``): the batch's latents and activations are allocated at once.
+MAX_BATCH_SIZE = 256
+#: Most requests per chip (azimuth requests x ``d_el``): a 1 deg azimuth grid at 11 depression changes fits.
+MAX_REQUESTS_PER_CHIP = 4096
+#: Most views one augmentation writes (about 64 GiB of 128 px float32 chips).
+MAX_AUGMENT_VIEWS = 1_000_000
 
 
 @dataclass
@@ -139,6 +148,14 @@ class AugmentConfig:
                 f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE:g}, got {self.guidance_scale}"
             )
         check_minimum(self, "num_inference_steps", "batch_size", minimum=1)
+        if self.batch_size > MAX_BATCH_SIZE:
+            raise ValueError(f"batch_size must be <= {MAX_BATCH_SIZE} views per call, got {self.batch_size}")
+        requests = len(self.d_az or self.target_azimuths_deg) * len(self.d_el)
+        if requests > MAX_REQUESTS_PER_CHIP:
+            raise ValueError(
+                f"d_az/target_azimuths_deg x d_el: at most {MAX_REQUESTS_PER_CHIP} requests per chip, got "
+                f"{len(self.d_az or self.target_azimuths_deg)} x {len(self.d_el)} = {requests}"
+            )
         check_minimum(self, "max_chips_per_class", minimum=1, optional=True)
         check_minimum(self, "seed", minimum=0)
         check_minimum(self, "speckle_sigma", minimum=0.0, strict=True)
@@ -352,7 +369,9 @@ def _check_out_folder(out: Path, options: dict[str, Any]) -> bool:
         return False
     if not (out / AUGMENT_FILE).is_file():
         raise ValueError(f"out: {str(out)!r} is not empty and has no {AUGMENT_FILE}; choose an empty folder")
-    recorded = json.loads((out / AUGMENT_FILE).read_text())
+    recorded = read_json(out / AUGMENT_FILE, what="the options the augmentation was made with")
+    if not isinstance(recorded, dict):
+        raise ValueError(f"{out / AUGMENT_FILE}: expected a JSON object of the augmentation's options")
     differences = [
         f"{name}: {recorded.get(name)!r} there, {options.get(name)!r} now"
         for name in sorted(set(recorded) | set(options))
@@ -417,9 +436,10 @@ def augment_dataset(config: AugmentConfig) -> Path:
 
     Raises:
         ValueError: naming the field, for an output folder that holds something else, a selection that is
-            empty, chips smaller than the pipeline's size or that the decibel scaling does not fit (more
-            than half the pixels clipped), or requests outside the pipeline's trained ranges; all but the
-            scaling are checked before any generation.
+            empty or would write more than :data:`MAX_AUGMENT_VIEWS` views, chips smaller than the
+            pipeline's size or that the decibel scaling does not fit (more than half the pixels clipped),
+            or requests outside the pipeline's trained ranges; all but the scaling are checked before any
+            generation.
     """
     # 1. the source chips, the views they get, and the output folder's state
     out = Path(config.out)
@@ -427,6 +447,13 @@ def augment_dataset(config: AugmentConfig) -> Path:
     resuming = _check_out_folder(out, options)
     records = load_index(config.data)
     selected = select_records(records, config.classes, config.depressions_deg, config.max_chips_per_class)
+    requests = len(config.d_az or config.target_azimuths_deg) * len(config.d_el)
+    if len(selected) * requests > MAX_AUGMENT_VIEWS:
+        raise ValueError(
+            f"data: {len(selected)} chips x {requests} requests = {len(selected) * requests} views, more "
+            f"than {MAX_AUGMENT_VIEWS}; select fewer chips (classes, depressions_deg, max_chips_per_class) "
+            "or fewer requests"
+        )
     views = plan_views(selected, config.d_az, config.target_azimuths_deg, config.d_el)
 
     # 2. the pipeline, and every check that can fail before generating

@@ -25,7 +25,6 @@ scaling factor and the CLIP image processor class.
 
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Any
 
@@ -42,6 +41,8 @@ except ImportError:  # transformers 4.x
     from transformers import CLIPImageProcessor
 
 from sar_zero123.conditioning import POSE_DIM, PoseProjection
+from sar_zero123.config import read_json
+from sar_zero123.loading import load_component
 
 __all__ = [
     "PROJECTION_FOLDERS",
@@ -206,7 +207,9 @@ def _load_projection(folder: Path) -> PoseProjection:
     projection = _projection_from_tensors(state_dict.get(weight_key), state_dict.get(bias_key), str(folder))
     config_file = folder / "config.json"
     if folder.name == "clip_camera_projection" and config_file.exists():
-        config = json.loads(config_file.read_text())
+        config = read_json(config_file, what="the projection's config {embedding_dim, additional_embeddings}")
+        if not isinstance(config, dict):
+            raise ValueError(f"{config_file}: expected a JSON object (the projection's config)")
         stated = config.get("embedding_dim"), config.get("additional_embeddings", POSE_DIM)
         if stated[0] is not None and (stated[0] + stated[1], stated[0]) != (
             projection.config.in_features,
@@ -225,7 +228,10 @@ def _load_scheduler(folder: Path) -> Any:
     config_file = folder / "scheduler_config.json"
     if not config_file.exists():
         return DDIMScheduler(**ZERO123_SCHEDULER_CONFIG)
-    class_name = json.loads(config_file.read_text()).get("_class_name", "DDIMScheduler")
+    config = read_json(config_file, what="a diffusers scheduler config")
+    if not isinstance(config, dict):
+        raise ValueError(f"{config_file}: expected a JSON object (a diffusers scheduler config)")
+    class_name = config.get("_class_name", "DDIMScheduler")
     scheduler_class = getattr(diffusers, class_name, None)
     if scheduler_class is None:
         raise ValueError(f"{config_file}: unknown scheduler class {class_name!r} (not in diffusers)")
@@ -247,9 +253,9 @@ def _load_folder(path: Path, image_encoder_path: str | Path | None) -> dict[str,
     encoder_dir = Path(image_encoder_path) if image_encoder_path is not None else path / "image_encoder"
     feature_dir = encoder_dir if image_encoder_path is not None else path / "feature_extractor"
     return dict(
-        vae=AutoencoderKL.from_pretrained(path / "vae").eval(),
-        image_encoder=CLIPVisionModelWithProjection.from_pretrained(encoder_dir).eval(),
-        unet=UNet2DConditionModel.from_pretrained(path / "unet").eval(),
+        vae=load_component(AutoencoderKL, path / "vae", "vae").eval(),
+        image_encoder=load_component(CLIPVisionModelWithProjection, encoder_dir, "image_encoder").eval(),
+        unet=load_component(UNet2DConditionModel, path / "unet", "unet").eval(),
         scheduler=_load_scheduler(path / "scheduler"),
         pose_projection=_load_projection(path / projection_folders[0]).eval(),
         feature_extractor=_load_feature_extractor(feature_dir),

@@ -113,13 +113,19 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
 
     Raises:
         FileNotFoundError: if ``path`` does not exist.
-        ValueError: if the file does not hold a mapping.
+        ValueError: if the file is not valid JSON/YAML (naming the file) or does not hold a mapping.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"--config: no such file {str(path)!r}")
-    with path.open() as handle:
-        values = json.load(handle) if path.suffix == ".json" else yaml.safe_load(handle)
+    if path.suffix == ".json":
+        values = read_json(path, what="a JSON mapping of config values")
+    else:
+        try:
+            with path.open() as handle:
+                values = yaml.safe_load(handle)
+        except (yaml.YAMLError, UnicodeDecodeError) as error:
+            raise ValueError(f"--config {str(path)!r}: not valid YAML ({error})") from None
     if values is None:
         return {}
     if not isinstance(values, dict):
@@ -260,6 +266,33 @@ def write_json_atomic(data: Any, path: str | os.PathLike) -> Path:
         Path(tmp_name).unlink(missing_ok=True)
         raise
     return path
+
+
+def read_json(path: str | os.PathLike, what: str = "JSON") -> Any:
+    """The JSON value stored in ``path``, with errors that name the file.
+
+    Args:
+        path: The file.
+        what: What the file should hold, for the messages (e.g. ``"a DecibelScaling (min_db, max_db)"``).
+
+    Returns:
+        The parsed value.
+
+    Raises:
+        FileNotFoundError: If ``path`` is not a file.
+        ValueError: If the file is not UTF-8 JSON; the message names the file, the line and the column.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file; expected {what}")
+    try:
+        return json.loads(path.read_text(encoding="utf-8"))
+    except json.JSONDecodeError as error:
+        raise ValueError(
+            f"{path}: invalid JSON at line {error.lineno} column {error.colno} ({error.msg}); expected {what}"
+        ) from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a UTF-8 text file; expected {what}") from None
 
 
 def save_config(config: Any, directory: str | os.PathLike, name: str = "config.json") -> Path:

@@ -21,12 +21,14 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 from torch import nn
 from transformers import ResNetConfig, ResNetModel
 from transformers.models.resnet.modeling_resnet import ResNetConvLayer
 
+from .config import read_json
 from .data import unit_to_signed
+from .loading import load_weights_file
 
 CONFIG_NAME = "config.json"
 WEIGHTS_NAME = "model.safetensors"
@@ -202,14 +204,20 @@ class SAREncoder(nn.Module):
 
         Raises:
             FileNotFoundError: If the folder or one of its two files is missing.
+            ValueError: If `config.json` is not valid JSON or not a valid config, or the weights are
+                unreadable or do not fit the config; the message names the file.
         """
         directory = Path(pretrained_path)
         for path in (directory / CONFIG_NAME, directory / WEIGHTS_NAME):
             if not path.is_file():
                 raise FileNotFoundError(f"SAR encoder checkpoint not found: {path}")
-        config = SAREncoderConfig.from_dict(json.loads((directory / CONFIG_NAME).read_text()))
+        values = read_json(directory / CONFIG_NAME, what="a SAR encoder config (SAREncoderConfig.to_dict)")
+        try:
+            config = SAREncoderConfig.from_dict(values)
+        except (AttributeError, TypeError, ValueError) as error:
+            raise ValueError(f"{directory / CONFIG_NAME}: not a valid SAR encoder config ({error})") from None
         encoder = cls(config)
-        encoder.load_state_dict(load_file(str(directory / WEIGHTS_NAME), device=str(device)))
+        load_weights_file(encoder, directory / WEIGHTS_NAME, f"the SAR encoder in {str(directory)!r}", device)
         return encoder.to(device).eval()
 
 

@@ -19,7 +19,6 @@ input chip's absolute depression gets ``--input_depression``, else the depressio
 
 from __future__ import annotations
 
-import json
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -49,6 +48,8 @@ from sar_zero123.pretrained import SIM_PRIOR, resolve_pretrained
 
 __all__ = [
     "DEFAULT_INPUT_DEPRESSION_DEG",
+    "MAX_IMAGE_SIZE",
+    "MAX_VIEWS",
     "GenerateConfig",
     "chip_depression_deg",
     "generate_views",
@@ -62,6 +63,10 @@ __all__ = [
 MAX_CLIPPED_FRACTION = 0.5
 #: Input depression assumed for a chip that records none: MSTAR's training depression.
 DEFAULT_INPUT_DEPRESSION_DEG = TRAIN_DEPRESSION_DEG
+#: Most views one call generates: they are sampled as one batch and shown as one contact-sheet row.
+MAX_VIEWS = 64
+#: Largest ``image_size``: 4x the zero-1-to-3 resolution (the allocations grow with its square).
+MAX_IMAGE_SIZE = 1024
 
 
 @dataclass
@@ -89,6 +94,11 @@ class GenerateConfig:
             raise ValueError("image: an input chip file is required")
         if not self.d_az:
             raise ValueError("d_az: give at least one azimuth delta")
+        if len(self.d_az) > MAX_VIEWS:
+            raise ValueError(
+                f"d_az: at most {MAX_VIEWS} views per call (one batch, one contact-sheet column each), got "
+                f"{len(self.d_az)}; split the request into several calls"
+            )
         if not all(np.isfinite(self.d_az)) or not all(np.isfinite(self.d_el)):
             raise ValueError(f"d_az/d_el must be finite, got {self.d_az} and {self.d_el}")
         if any(abs(v) > MAX_ABS_D_EL_DEG for v in self.d_el):
@@ -104,8 +114,8 @@ class GenerateConfig:
             raise ValueError(f"d_el: give 1 value or one per d_az ({len(self.d_az)}), got {len(self.d_el)}")
         if self.num_inference_steps < 1:
             raise ValueError(f"num_inference_steps must be >= 1, got {self.num_inference_steps}")
-        if self.image_size is not None and self.image_size < 1:
-            raise ValueError(f"image_size must be positive, got {self.image_size}")
+        if self.image_size is not None and not 1 <= self.image_size <= MAX_IMAGE_SIZE:
+            raise ValueError(f"image_size must lie in [1, {MAX_IMAGE_SIZE}] pixels, got {self.image_size}")
         if self.input_depression is not None and not 0.0 < self.input_depression < 90.0:
             raise ValueError(f"input_depression must lie in (0, 90) degrees, got {self.input_depression}")
 
@@ -114,7 +124,7 @@ def _resolve_scaling(scaling_file: str | None, pipeline: str) -> DecibelScaling:
     path = Path(scaling_file) if scaling_file is not None else resolve_pretrained(pipeline) / SCALING_FILE
     if scaling_file is None and not path.exists():
         return DecibelScaling()
-    return DecibelScaling.from_dict(json.loads(path.read_text()))
+    return DecibelScaling.from_file(path)
 
 
 def load_input_chip(config: GenerateConfig, size: int) -> np.ndarray:
@@ -132,7 +142,7 @@ def load_input_chip(config: GenerateConfig, size: int) -> np.ndarray:
             or more than :data:`MAX_CLIPPED_FRACTION` of the pixels leave the dB range (a warning with
             the fraction when fewer do).
     """
-    chip = center_crop_resize(load_magnitude(config.image), size=size)
+    chip = center_crop_resize(load_magnitude(config.image), size=size, name=f"image {config.image!r}")
     if config.input_domain == "magnitude":
         scaling = _resolve_scaling(config.scaling_file, config.pipeline)
         check_magnitude(chip, name=f"image {config.image!r}")

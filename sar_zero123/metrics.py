@@ -25,14 +25,14 @@ Cross-checks (pinned in tests/test_metrics.py): with a 9x9 window, single-scale 
 `skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.0, use_sample_covariance=False)` to
 1e-12, and the MS-SSIM contrast-structure terms equal torchmetrics' to 1e-5. The full `ms_ssim` is *not*
 torchmetrics' number even with a 9x9 window: torchmetrics averages the last scale's SSIM term over the whole
-reflect-padded map, which moves near-identical pairs by a few 1e-3 but dissimilar real pairs by up to
-several tenths (measured in docs/results/evaluation.md). pytorch-msssim refuses 64x64 inputs with a 7x7
-window.
+reflect-padded map, which moves dissimilar pairs far more than near-identical ones (the differences on
+real pairs are in docs/results/evaluation.md). pytorch-msssim refuses 64x64 inputs with a 7x7 window.
 """
 
 from __future__ import annotations
 
 import math
+import numbers
 import warnings
 from collections.abc import Sequence
 
@@ -96,15 +96,19 @@ def classification_accuracy(predictions: torch.Tensor, labels: torch.Tensor) -> 
     return (predictions.long() == labels.long()).double().mean().item()
 
 
-def azimuth_error_deg(predicted_deg: torch.Tensor, target_deg: torch.Tensor) -> torch.Tensor:
+def azimuth_error_deg(
+    predicted_deg: torch.Tensor | float | Sequence[float], target_deg: torch.Tensor | float | Sequence[float]
+) -> torch.Tensor | float:
     """Circular absolute azimuth error `min(|a - b|, 360 - |a - b|)` in degrees.
 
     Args:
-        predicted_deg: predicted azimuths in degrees (any real values; they are taken modulo 360).
+        predicted_deg: predicted azimuths in degrees (any real values; they are taken modulo 360): a
+            tensor, a list or a plain number.
         target_deg: true azimuths in degrees, broadcastable to `predicted_deg`.
 
     Returns:
-        Per-sample error in [0, 180] degrees, same shape as the broadcast inputs.
+        Per-sample error in [0, 180] degrees, same shape as the broadcast inputs; a plain `float` when both
+        inputs are plain numbers (`azimuth_error_deg(350.0, 10.0) == 20.0`).
 
     Shape:
         `(B,)` -> `(B,)`; a scalar target broadcasts, other shapes must be equal.
@@ -113,6 +117,12 @@ def azimuth_error_deg(predicted_deg: torch.Tensor, target_deg: torch.Tensor) -> 
         ValueError: if the shapes differ (broadcasting `(B, 1)` against `(B,)` would compare every pair) or
             a value is not finite.
     """
+    scalars = isinstance(predicted_deg, numbers.Real) and isinstance(target_deg, numbers.Real)
+    # Numbers and lists become float64 tensors; a tensor keeps its dtype and device.
+    if not isinstance(predicted_deg, torch.Tensor):
+        predicted_deg = torch.as_tensor(predicted_deg, dtype=torch.float64)
+    if not isinstance(target_deg, torch.Tensor):
+        target_deg = torch.as_tensor(target_deg, dtype=torch.float64, device=predicted_deg.device)
     if predicted_deg.shape != target_deg.shape and target_deg.numel() != 1:
         raise ValueError(
             f"predicted_deg {tuple(predicted_deg.shape)} and target_deg {tuple(target_deg.shape)} must have "
@@ -122,7 +132,8 @@ def azimuth_error_deg(predicted_deg: torch.Tensor, target_deg: torch.Tensor) -> 
         if not torch.isfinite(value).all():
             raise ValueError(f"{name} contains non-finite azimuths")
     difference = torch.remainder(predicted_deg - target_deg, 360.0)
-    return torch.minimum(difference, 360.0 - difference)
+    error = torch.minimum(difference, 360.0 - difference)
+    return float(error) if scalars else error
 
 
 def frechet_distance_from_moments(

@@ -19,6 +19,7 @@ from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
 from sar_zero123.checkpoints import SD_VAE_SCALING_FACTOR, ZERO123_SCHEDULER_CONFIG, CLIPImageProcessor
 from sar_zero123.conditioning import POSE_DIM, PoseProjection, downsampling_factor
 from sar_zero123.data import ViewPairDataset
+from sar_zero123.loading import load_component
 from sar_zero123.orientation import AZIMUTH_DIM, AzimuthEstimator
 from sar_zero123.pipeline import SARZero123Pipeline
 from sar_zero123.pretrained import resolve_pretrained
@@ -99,9 +100,9 @@ SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
         },
     },
     # Faster CPU models for 64 px chips, with `small`'s VAE (one trained VAE folder fits all three):
-    # UNets of about a third (`compact`, 6.7 M) and a tenth (`micro`, 1.7 M) of `small`'s 18.2 M, 2-6x
-    # the pairs per second (docs/results/learning.md). With `estimate_input_azimuth`, `micro` is the
-    # quickstart's model and turns its views with the requested pose on a CPU (learning.md, sections 4-7).
+    # UNets of about a third (`compact`) and a tenth (`micro`) of `small`'s parameters, so a CPU step sees
+    # more pairs per second (docs/results/learning.md, sections 1 and 7c). With `estimate_input_azimuth`,
+    # `micro` is the quickstart's model (learning.md, sections 4-7).
     "compact": {
         "image_size": 64,
         "vae": "small",
@@ -201,15 +202,16 @@ def build_sar_zero123(
     Each component is initialised from ``torch.manual_seed(seed)`` inside ``torch.random.fork_rng``, so
     the result depends only on ``seed`` and the global RNG state is left untouched.
 
-    Sizes (parameter counts in ``docs/RESULTS.md``):
+    Sizes (parameter counts in ``docs/results/pipeline.md``):
 
     - ``"tiny"``: 32 px, for unit tests, well under 1 M parameters.
     - ``"small"``: 64 px SAR chips (64-128 px work) on a CPU; 1-channel VAE, 16x16x4 latents.
+    - ``"compact"``, ``"micro"``: ``small``'s VAE with a narrower UNet and image encoder (faster on a CPU).
     - ``"zero123"``: exactly the Objaverse zero-1-to-3 shapes at 256 px (load real weights with
       :meth:`SARZero123Pipeline.from_zero123`).
 
     Args:
-        size: One of ``"tiny"``, ``"small"``, ``"zero123"``.
+        size: One of ``"tiny"``, ``"small"``, ``"compact"``, ``"micro"``, ``"zero123"``.
         image_size: Chip size in pixels; defaults to the size's own. Sets the VAE and UNet
             ``sample_size`` (the networks themselves are size-agnostic).
         seed: Initialisation seed.
@@ -370,8 +372,9 @@ def replace_vae(pipe: SARZero123Pipeline, path: str | os.PathLike) -> SARZero123
 
     Raises:
         FileNotFoundError: If ``path`` holds no ``AutoencoderKL`` ``config.json`` (a ``train_vae.py`` run
-            folder holds its VAE in the ``vae`` subfolder: the message says so).
-        ValueError: If the VAE does not fit (:func:`check_vae_fits`).
+            folder holds its VAE in the ``vae`` subfolder: the message says so) or no weights (naming
+            the file expected).
+        ValueError: If the weights do not load or the VAE does not fit (:func:`check_vae_fits`).
     """
     path = Path(path)
     config_file = path / "config.json"
@@ -387,7 +390,7 @@ def replace_vae(pipe: SARZero123Pipeline, path: str | os.PathLike) -> SARZero123
             f"vae: {str(path)!r} is not an AutoencoderKL folder (its config.json is not an AutoencoderKL "
             f"config){hint}"
         )
-    vae = AutoencoderKL.from_pretrained(path)
+    vae = load_component(AutoencoderKL, path, "vae")
     check_vae_fits(vae, pipe, name=f"vae: {str(path)!r}")
     # `pipe.components`, not `from_pipe`: that casts every module to one dtype (float32 by default)
     return SARZero123Pipeline(**{**pipe.components, "vae": vae.eval()})

@@ -3,9 +3,9 @@
 zero-1-to-3 gives its UNet only the *relative* pose. To place the target view, a UNet trained from
 scratch must then read the input's azimuth ``a`` off the condition latent and add ``d_az`` to it inside
 its own layers; ``sin(a + d) = sin a cos d + cos a sin d`` is a product of two inputs, which additive
-conditioning learns slowly. Measured on the simulator (``docs/results/learning.md``, section 3): a
-``micro`` UNet given the target's absolute azimuth places views at 40 deg error after 1,000 steps, while
-the same UNet given ``a`` and ``d_az`` as separate inputs stays near the 90 deg floor after 3,000.
+conditioning learns slowly. An oracle ablation on the simulator shows it: a small UNet given the target's
+absolute azimuth learns to place views, while the same UNet given ``a`` and ``d_az`` as separate inputs
+stays near the input copy's error (``docs/results/learning.md``, section 4a).
 
 :class:`AzimuthEstimator` reads ``a`` from the condition latent (trained with the UNet and supervised by
 the input chip's known azimuth, :func:`azimuth_estimation_loss`), and :func:`turn_azimuth` adds ``d_az``
@@ -113,7 +113,8 @@ class AzimuthEstimator(ModelMixin, ConfigMixin):
     azimuth part is normalised to unit length and supervised (:func:`azimuth_estimation_loss`); the
     ``code_dim`` further outputs are a code of the input view (its class and appearance) that only the
     denoising loss trains. Without it, the UNet must read the object's identity from the condition latent
-    of a view at another azimuth, and its outputs follow the pose but lose the class (``learning.md``).
+    of a view at another azimuth, and its outputs follow the pose but lose the class
+    (``docs/results/learning.md``, sections 4a-4b).
 
     Args:
         latent_channels: Channels of the VAE latent.

@@ -41,6 +41,7 @@ from sar_zero123.conditioning import (
     pose_class_labels,
 )
 from sar_zero123.data import signed_to_unit
+from sar_zero123.loading import check_pipeline_folder, find_failing_component
 from sar_zero123.orientation import AzimuthEstimator, target_view_features
 from sar_zero123.pretrained import is_bundled_name, resolve_pretrained
 
@@ -175,13 +176,28 @@ class SARZero123Pipeline(DiffusionPipeline):
             The pipeline.
 
         Raises:
-            FileNotFoundError: For a registered name whose weights are missing from this install.
+            FileNotFoundError: For a registered name whose weights are missing from this install, or a
+                folder without ``model_index.json`` or missing a component's folder, config or weights;
+                the message names the component, the file expected and the folder.
+            ValueError: For a folder whose JSON is invalid (naming the file), or a component whose files
+                do not load (a config that does not fit its weights, a truncated weight file), naming it.
         """
         if isinstance(pretrained_model_name_or_path, str | os.PathLike) and is_bundled_name(
             pretrained_model_name_or_path
         ):
             pretrained_model_name_or_path = resolve_pretrained(pretrained_model_name_or_path)
-        return super().from_pretrained(pretrained_model_name_or_path, **kwargs)
+        folder = pretrained_model_name_or_path
+        if not (isinstance(folder, str | os.PathLike) and os.path.isdir(folder)):
+            return super().from_pretrained(folder, **kwargs)
+        # 1. a local folder: each component's files are checked, naming the component, before diffusers
+        # reads them (diffusers names a fallback `.bin` file or the pipeline folder instead)
+        components = check_pipeline_folder(folder, given=kwargs)
+        try:
+            return super().from_pretrained(folder, **kwargs)
+        except (OSError, ValueError, RuntimeError, TypeError, KeyError):
+            # 2. the files are there but something does not load: say which component
+            find_failing_component(folder, components)
+            raise
 
     @classmethod
     def from_zero123(
@@ -283,6 +299,13 @@ class SARZero123Pipeline(DiffusionPipeline):
     ) -> None:
         if not isinstance(num_inference_steps, numbers.Integral) or num_inference_steps < 1:
             raise ValueError(f"`num_inference_steps` must be an integer >= 1, got {num_inference_steps!r}")
+        # more steps than the schedule has timesteps repeat timesteps (or hang a loop of millions of steps)
+        max_steps = int(getattr(self.scheduler.config, "num_train_timesteps", 1000))
+        if num_inference_steps > max_steps:
+            raise ValueError(
+                f"`num_inference_steps` must be <= {max_steps} (the scheduler's num_train_timesteps), "
+                f"got {num_inference_steps}"
+            )
         if isinstance(guidance_scale, bool) or not isinstance(guidance_scale, numbers.Real):
             kind = type(guidance_scale).__name__
             raise TypeError(f"`guidance_scale` must be a real number, got {kind} {guidance_scale!r}")

@@ -214,8 +214,8 @@ def _blur_matrix(kernel: torch.Tensor, n: int) -> torch.Tensor:
     """Banded matrices M with ``(M @ v)[i] = sum_k kernel[k] * v[reflect(i + k - K // 2)]``.
 
     Blurring as ``M_rows @ X @ M_cols^T`` (one batched matmul per axis) handles a different kernel per
-    sample and is about twice as fast on CPU as a grouped ``conv2d`` with B groups; reflect padding
-    (edge pixel not repeated, like ``F.pad(mode="reflect")``) is folded into the matrix.
+    sample and is faster on CPU than a grouped ``conv2d`` with B groups (docs/results/augment.md);
+    reflect padding (edge pixel not repeated, like ``F.pad(mode="reflect")``) is folded into the matrix.
 
     Shape:
         kernel: ``(B, K)``; output: ``(B, n, n)``.

@@ -12,7 +12,7 @@ Public names (see ``docs/ARCHITECTURE.md``)::
 """
 
 from .datasets import ChipDataset, load_chip, resolve_class_names
-from .images import center_crop, center_crop_resize, load_magnitude
+from .images import MIN_CHIP_SIZE, center_crop, center_crop_resize, load_magnitude
 from .index import INDEX_COLUMNS, ChipRecord, class_names_of, load_index, write_index
 from .mstar_raw import MSTARChip, read_mstar_header, read_mstar_raw, target_class_from_type
 from .sample import SamplePair, load_sample, parse_sample_name
@@ -34,6 +34,7 @@ from .view_pairs import ViewPairDataset, train_validation_pairs, wrap_azimuth_de
 
 __all__ = [
     "INDEX_COLUMNS",
+    "MIN_CHIP_SIZE",
     "MSTAR_RAW_MAX_DB",
     "PROTOCOLS",
     "UNIT_MAGNITUDE_MAX_DB",

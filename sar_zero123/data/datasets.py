@@ -37,8 +37,12 @@ def resolve_class_names(records: Sequence[ChipRecord], class_names: Sequence[str
 
 
 def load_chip(path: Any, size: int, crop_size: int | None = None) -> np.ndarray:
-    """Reads a chip file as magnitude, centre-cropped and resized to ``size``. Shape: (size, size)."""
-    return center_crop_resize(load_magnitude(path), size=size, crop_size=crop_size)
+    """Reads a chip file as magnitude, centre-cropped and resized to ``size``. Shape: (size, size).
+
+    Raises:
+        ValueError: If the file is unreadable or smaller than :data:`~sar_zero123.data.MIN_CHIP_SIZE`.
+    """
+    return center_crop_resize(load_magnitude(path), size=size, crop_size=crop_size, name=str(path))
 
 
 class ChipDataset(Dataset):

@@ -24,19 +24,28 @@ from skimage.transform import resize
 from .mstar_raw import is_mstar_raw, read_mstar_raw
 from .scaling import Array
 
-__all__ = ["IMAGE_SUFFIXES", "center_crop", "center_crop_resize", "load_magnitude"]
+__all__ = ["IMAGE_SUFFIXES", "MIN_CHIP_SIZE", "center_crop", "center_crop_resize", "load_magnitude"]
 
 IMAGE_SUFFIXES = (".jpeg", ".jpg", ".png", ".tif", ".tiff", ".bmp")
+#: Smallest side (pixels) of an image taken as a chip: below it an image is an icon or a mistake, and
+#: upsampling it would invent the chip (MSTAR chips are 128 to 193 px; the tiny model takes 32 px).
+MIN_CHIP_SIZE = 16
 # Keys of the complex image in SAMPLE .mat files, in order of preference.
 _MAT_IMAGE_KEYS = ("complex_img", "complex_img_unshifted")
 
 
 def _load_image_file(path: Path) -> np.ndarray:
-    with Image.open(path) as image:
-        if image.mode in ("RGB", "RGBA", "P", "LA"):
-            # Grayscale stored as colour: the channels are equal for SAR chips; take luminance.
-            image = image.convert("L")
-        pixels = np.asarray(image)
+    try:
+        with Image.open(path) as image:
+            if image.mode in ("RGB", "RGBA", "P", "LA"):
+                # Grayscale stored as colour: the channels are equal for SAR chips; take luminance.
+                image = image.convert("L")
+            pixels = np.asarray(image)
+    except (OSError, SyntaxError, ValueError) as error:  # PIL's errors for truncated or foreign bytes
+        raise ValueError(
+            f"{path}: cannot read the {path.suffix} image ({error}); the file is truncated, corrupt or not "
+            "an image"
+        ) from None
     if pixels.dtype == np.uint8:
         return pixels.astype(np.float32) / 255.0
     if pixels.dtype in (np.uint16, np.int32) and image.mode.startswith("I"):
@@ -51,8 +60,13 @@ def _load_image_file(path: Path) -> np.ndarray:
 
 def _load_mat(path: Path) -> np.ndarray:
     from scipy.io import loadmat
+    from scipy.io.matlab import MatReadError
 
-    contents = loadmat(path)
+    try:
+        contents = loadmat(path)
+    except (MatReadError, OSError, ValueError, TypeError) as error:
+        message = f"{path}: cannot read the .mat file ({error}); the file is truncated or corrupt"
+        raise ValueError(message) from None
     for key in _MAT_IMAGE_KEYS:
         if key in contents:
             return np.abs(np.asarray(contents[key])).astype(np.float32)
@@ -74,15 +88,19 @@ def load_magnitude(path: str | Path) -> np.ndarray:
 
     Raises:
         FileNotFoundError: If ``path`` does not exist.
-        ValueError: If the file is not a single-channel 2-D image, or holds negative or non-finite
-            magnitudes.
+        ValueError: If the file cannot be read (truncated or corrupt; the message names it), is not a
+            single-channel 2-D image, or holds negative or non-finite magnitudes.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"chip file not found: {path}")
     suffix = path.suffix.lower()
     if suffix == ".npy":
-        magnitude = np.load(path, allow_pickle=False)
+        try:
+            magnitude = np.load(path, allow_pickle=False)
+        except (OSError, ValueError, EOFError) as error:
+            message = f"{path}: cannot read the .npy array ({error}); the file is truncated or corrupt"
+            raise ValueError(message) from None
         if not (np.issubdtype(magnitude.dtype, np.floating) or np.issubdtype(magnitude.dtype, np.integer)):
             raise ValueError(f"{path}: .npy chip must hold real numbers, got dtype {magnitude.dtype}")
         magnitude = magnitude.astype(np.float32)
@@ -136,29 +154,41 @@ def center_crop(image: Array, crop_size: int) -> Array:
     return image[..., top : top + crop_size, left : left + crop_size]
 
 
-def center_crop_resize(image: np.ndarray, size: int = 128, crop_size: int | None = None) -> np.ndarray:
+def center_crop_resize(
+    image: np.ndarray, size: int = 128, crop_size: int | None = None, name: str = "image"
+) -> np.ndarray:
     """Centre-crops a chip to a square and resizes it to ``size x size``.
 
     With ``crop_size=None`` the crop keeps the pixel spacing whenever possible: a chip at least ``size``
     pixels on each side is cropped to ``size`` with no resampling (MSTAR chips of 128 to 193 pixels all
     keep their 0.2 m pixels); a smaller chip is cropped to its shorter side and upsampled. An explicit
     ``crop_size`` crops that square and resizes it to ``size`` (bilinear, anti-aliased when shrinking).
+    An image with a side below :data:`MIN_CHIP_SIZE` (or below ``size``, when that is smaller) is not a
+    chip and is refused rather than upsampled.
 
     Args:
         image: Magnitude image. Shape: (H, W).
         size: Output side in pixels.
         crop_size: Side of the central square to cut before resizing; ``None`` = ``min(size, H, W)``.
+        name: What the image is called in error messages (its file).
 
     Returns:
         Float32 image. Shape: (size, size).
 
     Raises:
-        ValueError: If ``image`` is not 2-D, ``size`` < 1, or ``crop_size`` exceeds the image.
+        ValueError: If ``image`` is not 2-D or too small to be a chip, ``size`` < 1, or ``crop_size``
+            exceeds the image.
     """
     if image.ndim != 2:
-        raise ValueError(f"image must have shape (H, W), got {image.shape}")
+        raise ValueError(f"{name} must have shape (H, W), got {image.shape}")
     if size < 1:
         raise ValueError(f"size must be >= 1, got {size}")
+    smallest = min(size, MIN_CHIP_SIZE)
+    if min(image.shape) < smallest:
+        raise ValueError(
+            f"{name}: a {image.shape[0]}x{image.shape[1]} image is too small to be a chip; expected at least "
+            f"{smallest}x{smallest} pixels (MIN_CHIP_SIZE = {MIN_CHIP_SIZE})"
+        )
     if crop_size is None:
         crop_size = min(size, *image.shape)
     crop = center_crop(image, crop_size)

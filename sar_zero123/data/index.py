@@ -60,7 +60,7 @@ class ChipRecord:
         path: Absolute path of the image file (JPEG/PNG, ``.npy`` or original MSTAR).
         target_class: Class name (e.g. ``"T72"``); labels are indices into the sorted class names.
         serial: Serial number of the physical object; (target_class, serial) identifies one object.
-        depression_deg: Nominal depression angle in degrees.
+        depression_deg: Nominal depression angle in degrees, in (0, 90).
         azimuth_deg: Target azimuth in degrees, in [0, 360).
         target_type: Finer type name if known (e.g. ``"t72_tank"``).
         height: Image height in pixels if known.
@@ -85,8 +85,10 @@ class ChipRecord:
         object.__setattr__(self, "azimuth_deg", float(self.azimuth_deg))
         if not self.target_class:
             raise ValueError(f"{self.path}: target_class must be a non-empty string")
-        if not math.isfinite(self.depression_deg):
-            raise ValueError(f"{self.path}: depression_deg must be finite, got {self.depression_deg}")
+        if not (math.isfinite(self.depression_deg) and 0.0 < self.depression_deg < 90.0):
+            raise ValueError(
+                f"{self.path}: depression_deg must lie in (0, 90) degrees, got {self.depression_deg}"
+            )
         if not (math.isfinite(self.azimuth_deg) and 0.0 <= self.azimuth_deg < 360.0):
             raise ValueError(f"{self.path}: azimuth_deg must lie in [0, 360) degrees, got {self.azimuth_deg}")
 
@@ -153,12 +155,17 @@ def _read_index_csv(index_path: Path) -> list[ChipRecord]:
             azimuth_deg = _parse_float(row["azimuth_deg"], "azimuth_deg", where)
             if not 0.0 <= azimuth_deg < 360.0:
                 raise ValueError(f"{where}: column 'azimuth_deg' must lie in [0, 360), got {azimuth_deg}")
+            depression_deg = _parse_float(row["depression_deg"], "depression_deg", where)
+            if not 0.0 < depression_deg < 90.0:
+                raise ValueError(
+                    f"{where}: column 'depression_deg' must lie in (0, 90) degrees, got {depression_deg}"
+                )
             records.append(
                 ChipRecord(
                     path=path,
                     target_class=row["target_class"],
                     serial=row["serial"],
-                    depression_deg=_parse_float(row["depression_deg"], "depression_deg", where),
+                    depression_deg=depression_deg,
                     azimuth_deg=azimuth_deg,
                     target_type=row.get("target_type") or None,
                     height=_parse_optional_int(row.get("height"), "height", where),
@@ -280,7 +287,8 @@ def load_index(root: str | Path) -> list[ChipRecord]:
     Raises:
         FileNotFoundError: If ``root`` does not exist or a path in the index does not exist.
         ValueError: If the index misses a required column or has an unknown one, a value is malformed
-            or out of range (azimuth outside [0, 360), non-finite angles), a chip file is listed twice
+            or out of range (azimuth outside [0, 360), depression outside (0, 90); the message names
+            the file and line), a chip file is listed twice
             (or under two classes), or the folder holds no chips.
     """
     root = Path(root)

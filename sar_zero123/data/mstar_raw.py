@@ -182,7 +182,8 @@ def read_mstar_raw(path: str | Path) -> MSTARChip:
         ValueError: If the header lacks a required field or a field is malformed, the file length is
             not the header lengths plus exactly one or two planes of ``NumberOfRows x NumberOfColumns``
             float32 values (a cut file, a missing part of the phase plane, an edited size or header
-            length), the magnitude is negative or not finite, or ``TargetAz`` lies outside [0, 360).
+            length), the magnitude is negative or not finite, ``TargetAz`` lies outside [0, 360) or
+            ``DesiredDepression`` outside (0, 90).
     """
     # 1. header
     path = Path(path)
@@ -202,6 +203,10 @@ def read_mstar_raw(path: str | Path) -> MSTARChip:
     if not 0.0 <= azimuth_deg < 360.0:
         raise ValueError(f"{path}: header field 'TargetAz' must lie in [0, 360) degrees, got {azimuth_deg}")
     depression_deg = float(_header_number(header, "DesiredDepression", path))
+    if not 0.0 < depression_deg < 90.0:
+        raise ValueError(
+            f"{path}: header field 'DesiredDepression' must lie in (0, 90) degrees, got {depression_deg}"
+        )
     if not header["TargetType"].strip():
         raise ValueError(f"{path}: header field 'TargetType' is empty; expected a name such as 't72_tank'")
 

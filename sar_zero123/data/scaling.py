@@ -13,12 +13,15 @@ pipeline normalise identically.
 from __future__ import annotations
 
 import math
+import os
 from collections.abc import Iterable
 from dataclasses import dataclass
 from typing import Any, TypeVar
 
 import numpy as np
 import torch
+
+from ..config import read_json
 
 __all__ = [
     "DB_EPS",
@@ -235,9 +238,32 @@ class DecibelScaling:
         """Rebuilds the scaling saved by :meth:`to_dict`.
 
         Raises:
-            ValueError: If ``min_db`` or ``max_db`` is missing or invalid.
+            ValueError: If ``values`` is not a dict, or ``min_db`` or ``max_db`` is missing or invalid.
         """
+        if not isinstance(values, dict):
+            raise ValueError(f"decibel scaling must be a mapping with 'min_db' and 'max_db', got {values!r}")
         missing = [key for key in ("min_db", "max_db") if key not in values]
         if missing:
             raise ValueError(f"decibel scaling dict lacks {missing}; expected keys 'min_db' and 'max_db'")
-        return cls(min_db=float(values["min_db"]), max_db=float(values["max_db"]))
+        try:
+            min_db, max_db = float(values["min_db"]), float(values["max_db"])
+        except (TypeError, ValueError):
+            raise ValueError(
+                f"decibel scaling: min_db and max_db must be numbers, got {values['min_db']!r} and "
+                f"{values['max_db']!r}"
+            ) from None
+        return cls(min_db=min_db, max_db=max_db)
+
+    @classmethod
+    def from_file(cls, path: str | os.PathLike) -> DecibelScaling:
+        """Reads a scaling saved as JSON by :meth:`to_dict` (a run's or pipeline's :data:`SCALING_FILE`).
+
+        Raises:
+            FileNotFoundError: If ``path`` is not a file.
+            ValueError: If the file is not JSON or not a valid scaling; the message names the file.
+        """
+        values = read_json(path, what="a decibel scaling {'min_db': ..., 'max_db': ...}")
+        try:
+            return cls.from_dict(values)
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from None

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from ..config import read_json
 from .index import INDEX_FILENAME, ChipRecord, load_index
 
 __all__ = [
@@ -201,7 +202,7 @@ def prepare_splits(
         options = json.loads(json.dumps({"seed": seed, **sim_kwargs}))  # tuples -> lists, as stored
         options_path = root / SIM_OPTIONS_FILENAME
         cached = (root / INDEX_FILENAME).is_file() and options_path.is_file()
-        if not cached or json.loads(options_path.read_text()) != options:
+        if not cached or read_json(options_path, what="the simulator options of the cached data") != options:
             # Imported here: the simulator is only needed for the built-in dataset.
             from sar_zero123.sim import simulate_dataset
 

@@ -15,9 +15,13 @@ from sar_zero123.data import center_crop
 from sar_zero123.sim.render import render_chip
 from sar_zero123.sim.targets import TARGET_CLASSES, make_target
 
-__all__ = ["DISPLAY_RANGE_DB", "to_display_db", "contact_sheet"]
+__all__ = ["DISPLAY_RANGE_DB", "MAX_SHEET_CELLS", "MAX_SHEET_COLUMNS", "to_display_db", "contact_sheet"]
 
 DISPLAY_RANGE_DB = (-40.0, 0.0)
+#: Most columns of a contact sheet (one chip each): wider sheets are unreadable and slow to render.
+MAX_SHEET_COLUMNS = 64
+#: Most chips on one sheet (each is rendered, then drawn by matplotlib).
+MAX_SHEET_CELLS = 1024
 # Real classes shown by default, chosen to mirror the simulated shapes (tank, carrier, truck,
 # bulldozer, self-propelled gun, anti-aircraft gun).
 _REAL_CLASSES = ("T62", "BMP2", "ZIL131", "D7", "2S1", "ZSU234")
@@ -77,13 +81,28 @@ def contact_sheet(
 
     Returns:
         The PNG path.
+
+    Raises:
+        ValueError: For more than :data:`MAX_SHEET_COLUMNS` azimuths (or none) or :data:`MAX_SHEET_CELLS`
+            chips, before any chip is rendered.
     """
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    if not 1 <= len(azimuths_deg) <= MAX_SHEET_COLUMNS:
+        raise ValueError(
+            f"azimuths_deg: expected 1 to {MAX_SHEET_COLUMNS} azimuths (one sheet column each), "
+            f"got {len(azimuths_deg)}"
+        )
     classes = list(TARGET_CLASSES) if classes is None else [str(c).upper() for c in classes]
+    planned_rows = len(classes) + (len(real_classes) if real_root is not None else 0)
+    if planned_rows * len(azimuths_deg) > MAX_SHEET_CELLS:
+        raise ValueError(
+            f"classes x azimuths_deg: at most {MAX_SHEET_CELLS} chips per sheet, got {planned_rows} rows x "
+            f"{len(azimuths_deg)} azimuths"
+        )
     rows: list[tuple[str, list[tuple[float, np.ndarray]]]] = []
     for i, class_name in enumerate(classes):
         target = make_target(class_name, instance)
@@ -152,6 +171,10 @@ def procedural_contact_sheet(
 
     Returns:
         The PNG path.
+
+    Raises:
+        ValueError: For a sheet wider than :data:`MAX_SHEET_COLUMNS` cells or with more than
+            :data:`MAX_SHEET_CELLS` chips, or an empty one, before any chip is rendered.
     """
     import matplotlib
 
@@ -162,6 +185,16 @@ def procedural_contact_sheet(
 
     seeds = [int(s) for s in seeds]
     per_row = int(columns) * len(depressions_deg)
+    if not seeds or int(columns) < 1 or not 1 <= per_row <= MAX_SHEET_COLUMNS:
+        raise ValueError(
+            f"columns x depressions_deg: expected 1 to {MAX_SHEET_COLUMNS} cells per row and at least one "
+            f"seed, got {int(columns)} x {len(depressions_deg)} and {len(seeds)} seeds"
+        )
+    if len(seeds) * len(depressions_deg) > MAX_SHEET_CELLS:
+        raise ValueError(
+            f"seeds: at most {MAX_SHEET_CELLS} chips per sheet, got {len(seeds)} vehicles x "
+            f"{len(depressions_deg)} depressions"
+        )
     n_rows = -(-len(seeds) // int(columns))
     fig, axes = plt.subplots(n_rows, per_row, figsize=(1.1 * per_row, 1.25 * n_rows), squeeze=False)
     for ax in axes.flat:

@@ -158,7 +158,12 @@ def write_prior_corpus(
     out.mkdir(parents=True, exist_ok=True)
     options_path = out / CORPUS_OPTIONS_FILE
     if options_path.is_file():
-        old = json.loads(options_path.read_text())
+        try:
+            old = json.loads(options_path.read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError) as error:
+            raise ValueError(
+                f"{options_path}: invalid JSON ({error}); expected the options the corpus was written with"
+            ) from None
         changed = {k: (old.get(k), v) for k, v in options.items() if old.get(k) != v}
         if changed:
             listed = ", ".join(f"{k} {a!r} -> {b!r}" for k, (a, b) in sorted(changed.items()))

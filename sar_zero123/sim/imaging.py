@@ -13,9 +13,9 @@ is circular complex Gaussian.
 Defaults follow MSTAR: X band (9.6 GHz), 0.3047 m (1 ft) nominal resolution on 0.2021 m pixels,
 -35 dB Taylor weighting (``nbar = 4``) in both dimensions. "Nominal resolution" is the inverse of the
 collected bandwidth (``c / 2B`` in range, ``lambda / (2 * aperture angle)`` in cross-range); the
-Taylor weighting widens the -3 dB width of the impulse response to ``1.18 x`` that, 0.36 m. This
-reproduces the correlation of real MSTAR clutter: intensity autocorrelation at a lag of one pixel
-0.6 in the shared JPEG chips (0.47 with the band set so that the -3 dB width is 0.3 m).
+Taylor weighting widens the -3 dB width of the impulse response to ``1.18 x`` that, 0.36 m. Of the two
+conventions (nominal resolution or -3 dB width at 0.3 m), this one reproduces the one-pixel intensity
+autocorrelation of real MSTAR clutter (docs/results/sim.md, "Realism checks").
 """
 
 from __future__ import annotations

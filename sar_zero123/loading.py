@@ -1,0 +1,258 @@
+"""Loading saved components with errors that name the component, the file expected and the folder.
+
+diffusers and transformers report a broken pipeline folder in their own terms: a missing
+``diffusion_pytorch_model.safetensors`` is reported as a missing ``.bin`` file (the fallback they tried
+last), a removed component folder as "no file named config.json" in the pipeline folder, and a config that
+does not match its weights as "Cannot load  because ..." with the name left blank. Here a folder is
+checked file by file before diffusers reads it (:func:`check_pipeline_folder`), and a load that still
+fails is traced to its component (:func:`load_component`, :func:`find_failing_component`).
+"""
+
+from __future__ import annotations
+
+import importlib
+import os
+import re
+from collections.abc import Collection, Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+from diffusers import ModelMixin
+from diffusers.schedulers.scheduling_utils import SchedulerMixin
+from safetensors import SafetensorError
+from safetensors.torch import load_file
+from transformers import PreTrainedModel
+from transformers.image_processing_base import ImageProcessingMixin
+
+from sar_zero123.config import read_json
+
+__all__ = [
+    "PIPELINE_INDEX",
+    "check_component_folder",
+    "check_pipeline_folder",
+    "expected_files",
+    "find_failing_component",
+    "load_component",
+    "load_weights_file",
+]
+
+#: The file ``DiffusionPipeline.save_pretrained`` writes: component name -> [library, class name].
+PIPELINE_INDEX = "model_index.json"
+# Weight file stems; each may end in .safetensors or .bin, carry a variant (`.fp16`) or be sharded (index).
+_WEIGHT_SUFFIXES = (".safetensors", ".bin", ".safetensors.index.json", ".bin.index.json")
+# diffusers' shape-mismatch message: "Cannot load <name> because <param> expected shape torch.Size([..]),
+# but got torch.Size([..]). If you want to ..."
+_SHAPE_MISMATCH = re.compile(
+    r"because (?P<param>\S+) expected shape torch\.Size\((?P<config>\[[^\]]*\])\), "
+    r"but got torch\.Size\((?P<weights>\[[^\]]*\])\)"
+)
+
+
+def expected_files(component_class: type) -> tuple[str | None, tuple[str, ...]]:
+    """The config file and the weight file stems a ``from_pretrained`` folder of ``component_class`` holds.
+
+    Args:
+        component_class: A diffusers model or scheduler, a transformers model or image processor.
+
+    Returns:
+        ``(config_name, weight_stems)``, e.g. ``("config.json", ("diffusion_pytorch_model",))``; no stems
+        for classes without weights, and ``None`` for a class this module does not know.
+    """
+    if issubclass(component_class, ModelMixin):
+        return component_class.config_name, ("diffusion_pytorch_model",)
+    if issubclass(component_class, PreTrainedModel):
+        return "config.json", ("model", "pytorch_model")
+    if issubclass(component_class, SchedulerMixin):
+        return component_class.config_name, ()
+    if issubclass(component_class, ImageProcessingMixin):
+        return "preprocessor_config.json", ()
+    return getattr(component_class, "config_name", None), ()
+
+
+def _describe(name: str, component_class: type) -> str:
+    return f"component '{name}' ({component_class.__name__})"
+
+
+def check_component_folder(folder: str | os.PathLike, name: str, component_class: type) -> None:
+    """Refuse a component folder that lacks its config or its weights, or whose config is not JSON.
+
+    Args:
+        folder: The component's folder (``<pipeline>/<name>``).
+        name: The component's name (``"unet"``, ``"azimuth_estimator"``, ...), for the messages.
+        component_class: Its class (:func:`expected_files`).
+
+    Raises:
+        FileNotFoundError: If the folder, its config file or its weights are missing; the message names
+            the component, the file expected and the folder.
+        ValueError: If the config file is not a JSON object (naming the file).
+    """
+    folder = Path(folder)
+    what = _describe(name, component_class)
+    if not folder.is_dir():
+        raise FileNotFoundError(f"{what} is missing: no folder {str(folder)!r}")
+    config_name, weight_stems = expected_files(component_class)
+    if config_name is not None:
+        config = read_json(folder / config_name, what=f"the {config_name} of {what}")
+        if not isinstance(config, dict):
+            raise ValueError(f"{folder / config_name}: expected a JSON object (the config of {what})")
+    if weight_stems:
+        names = [file.name for file in folder.iterdir() if file.is_file()]
+        found = any(
+            file_name.startswith(f"{stem}.") and file_name.endswith(_WEIGHT_SUFFIXES)
+            for stem in weight_stems
+            for file_name in names
+        )
+        if not found:
+            raise FileNotFoundError(
+                f"{what} has no weights: expected {weight_stems[0]}.safetensors in {str(folder)!r} "
+                f"(it holds {sorted(names)})"
+            )
+
+
+def _import_class(library: str, class_name: str, name: str, index_path: Path) -> type:
+    try:
+        return getattr(importlib.import_module(library), class_name)
+    except (ImportError, AttributeError):
+        raise ValueError(
+            f"{index_path}: component '{name}' is listed as {library}.{class_name}, which cannot be imported"
+        ) from None
+
+
+def check_pipeline_folder(folder: str | os.PathLike, given: Collection[str] = ()) -> dict[str, type]:
+    """Check a ``save_pretrained`` pipeline folder file by file before diffusers loads it.
+
+    Args:
+        folder: The pipeline folder.
+        given: Components passed to ``from_pretrained`` as objects (their folders are not read).
+
+    Returns:
+        Component name -> class, for every component :data:`PIPELINE_INDEX` lists (``None`` entries,
+        absent optional components, are left out).
+
+    Raises:
+        FileNotFoundError: If :data:`PIPELINE_INDEX`, a listed component's folder, its config file or its
+            weights are missing; the message names the component, the file expected and the folder.
+        ValueError: If a JSON file is invalid (naming it) or a listed class cannot be imported.
+    """
+    folder = Path(folder)
+    index_path = folder / PIPELINE_INDEX
+    if not index_path.is_file():
+        raise FileNotFoundError(
+            f"{str(folder)!r} is not a saved pipeline folder: no {PIPELINE_INDEX} in it (the file "
+            "save_pretrained writes beside the component folders)"
+        )
+    index = read_json(index_path, what="the pipeline's component list {name: [library, class]}")
+    if not isinstance(index, dict):
+        raise ValueError(f"{index_path}: expected a JSON object {{name: [library, class]}}")
+    components: dict[str, type] = {}
+    for name, entry in index.items():
+        if name.startswith("_"):
+            continue
+        if not (isinstance(entry, list) and len(entry) == 2):
+            raise ValueError(f"{index_path}: component '{name}' must be [library, class], got {entry!r}")
+        library, class_name = entry
+        if library is None or class_name is None or name in given:
+            continue
+        component_class = _import_class(library, class_name, name, index_path)
+        if not (folder / name).is_dir():
+            raise FileNotFoundError(
+                f"{_describe(name, component_class)} is missing: {PIPELINE_INDEX} lists it, but "
+                f"{str(folder)!r} has no folder {name!r}"
+            )
+        check_component_folder(folder / name, name, component_class)
+        components[name] = component_class
+    return components
+
+
+def _explain(error: BaseException) -> str:
+    """The cause of a failed ``from_pretrained``, without diffusers' blank-named shape message."""
+    message = str(error)
+    mismatch = _SHAPE_MISMATCH.search(message)
+    if mismatch is not None:
+        return (
+            f"its config does not match its weights: the config builds {mismatch['param']} with shape "
+            f"{mismatch['config']}, the weights hold {mismatch['weights']} (config and weights come from "
+            "different models)"
+        )
+    return message.split(". If you want to instead overwrite")[0].strip()
+
+
+def load_component(component_class: type, folder: str | os.PathLike, name: str, **kwargs: Any) -> Any:
+    """``component_class.from_pretrained(folder)``, with errors that name the component and the folder.
+
+    Args:
+        component_class: The class to load.
+        folder: The component's folder.
+        name: The component's name, for the messages.
+        **kwargs: Passed to ``from_pretrained``.
+
+    Returns:
+        The loaded component.
+
+    Raises:
+        FileNotFoundError: If the folder, its config or its weights are missing
+            (:func:`check_component_folder`).
+        ValueError: If the files are there but do not load (a config that does not fit its weights, a
+            truncated weight file); the message names the component and the folder.
+    """
+    check_component_folder(folder, name, component_class)
+    try:
+        return component_class.from_pretrained(folder, **kwargs)
+    except (OSError, ValueError, RuntimeError, TypeError, KeyError) as error:
+        raise ValueError(
+            f"{_describe(name, component_class)} cannot be loaded from {str(folder)!r}: {_explain(error)}"
+        ) from error
+
+
+def find_failing_component(folder: str | os.PathLike, components: Mapping[str, type]) -> None:
+    """Load each component of a pipeline folder on its own and raise for the first that fails.
+
+    Called after a whole-pipeline load failed, to say which component made it fail.
+
+    Args:
+        folder: The pipeline folder.
+        components: Component name -> class (:func:`check_pipeline_folder`).
+
+    Raises:
+        ValueError: For the first component that does not load (:func:`load_component`); returns
+            normally when every component loads on its own.
+    """
+    for name, component_class in components.items():
+        load_component(component_class, Path(folder) / name, name)
+
+
+def load_weights_file(
+    module: torch.nn.Module, path: str | os.PathLike, what: str, device: str | torch.device = "cpu"
+) -> None:
+    """Load a ``.safetensors`` state dict into ``module`` (strictly), with errors that name the file.
+
+    Args:
+        module: The model, built from the config saved beside the weights.
+        path: The weight file.
+        what: What the weights belong to, for the messages (e.g. ``"the SAR encoder in '<folder>'"``).
+        device: Where the tensors are loaded.
+
+    Raises:
+        FileNotFoundError: If ``path`` is not a file.
+        ValueError: If the file is not a readable safetensors file (truncated, corrupt), or its tensors
+            do not fit ``module`` (the config and the weights come from different models).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file; expected the weights of {what}")
+    try:
+        state_dict = load_file(str(path), device=str(device))
+    except (SafetensorError, OSError) as error:
+        raise ValueError(
+            f"{path}: cannot read the weights of {what} ({error}); the file is truncated or corrupt"
+        ) from None
+    try:
+        module.load_state_dict(state_dict)
+    except RuntimeError as error:
+        first = str(error).strip().splitlines()
+        detail = "; ".join(line.strip() for line in first[1:4]) or first[0]
+        raise ValueError(
+            f"{path}: the weights do not fit {what} as its config describes it ({detail}); the config and "
+            "the weights come from different models"
+        ) from None
