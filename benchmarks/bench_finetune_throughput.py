@@ -30,6 +30,7 @@ from pathlib import Path
 import torch
 from diffusers import DDPMScheduler
 
+from sar_zero123.losses import LossSettings
 from sar_zero123.models import build_sar_zero123
 from sar_zero123.training import ChipLatentCache, ImageEmbedder, compute_losses
 
@@ -84,9 +85,7 @@ def time_variant(size: str, variant: str, batch_size: int, steps: int, warmup: i
                 encoder=None,
                 noise_scheduler=scheduler,
                 generator=torch.Generator().manual_seed(step),
-                drop_image_prob=0.0,
-                drop_both_prob=0.0,
-                drop_latent_prob=0.0,
+                loss_settings=LossSettings(drop_image_prob=0.0, drop_both_prob=0.0, drop_latent_prob=0.0),
             )
         losses.loss.float().mean().backward()
         optimizer.step()

@@ -46,6 +46,7 @@ sys.path.insert(0, str(ROOT))
 from sar_zero123.conditioning import downsampling_factor, encode_condition_latents  # noqa: E402
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig  # noqa: E402
 from sar_zero123.losses import (  # noqa: E402
+    LossSettings,
     estimate_x0,
     pfm_loss,
     signal_to_noise_ratio,
@@ -151,7 +152,7 @@ def prepare_variant(name: str, pipe, encoder, image_size: int) -> dict:
         vae.enable_gradient_checkpointing()
     image_encoder = copy.deepcopy(pipe.image_encoder).to(frozen_dtype).eval().requires_grad_(False)
     return {
-        **loss_options,
+        "loss_settings": LossSettings(**loss_options),
         "vae": vae,
         "image_encoder": ImageEmbedder(image_encoder),
         "encoder": variant_encoder if loss_options["pfm_weight"] > 0 else None,

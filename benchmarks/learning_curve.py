@@ -4,14 +4,15 @@
         --protocol ood-TANK --sizes micro compact small --chunk_steps 600 --max_steps 3000 \\
         --work_dir CURVES --out learning_curve.jsonl [--plot learning_curve.png]
 
-For each size, `train/finetune_pfm.py` trains one lambda = 0 model from scratch on the SAR-sized pose path
-(`--estimate_input_azimuth`) in chunks of `--chunk_steps`: each chunk resumes the previous chunk's
-checkpoint (at a constant learning rate, so the chunks train as one long call would), validates (pose
-sensitivity and pose following, `sar_zero123.validation`) and exports its pipeline; `train/evaluate.py`
-then scores that pipeline on the same `--n` pairs (Table III with the input-copy floor and the VAE-round-trip
-ceiling). One JSON line per (size, steps): cumulative training seconds (the finetune calls: training,
-checkpoint, validation and export; evaluation excluded), UNet parameters, and the seen/unseen azimuth
-error, accuracy and gap closed with standard errors. Lines already in `--out` are kept and skipped, so a
+For each size, the fine-tune stage (`sar_zero123.stages.finetune.run_finetune`) trains one lambda = 0 model
+from scratch on the SAR-sized pose path (`estimate_input_azimuth`) in chunks of `--chunk_steps`: each chunk
+resumes the previous chunk's checkpoint (at a constant learning rate, so the chunks train as one long call
+would), validates (pose sensitivity and pose following, `sar_zero123.validation`) and exports its pipeline;
+the evaluate stage (`sar_zero123.stages.evaluate.run_evaluate`) then scores that pipeline on the same `--n`
+pairs (Table III with the input-copy floor and the VAE-round-trip ceiling). One JSON line per
+(size, steps): cumulative training seconds (the finetune calls: training, checkpoint, validation and
+export; evaluation excluded), UNet parameters, and the seen/unseen azimuth error, accuracy and gap closed
+with standard errors. Lines already in `--out` are kept and skipped, so a
 killed benchmark continues where it stopped (and a run whose points are all in `--out` only plots them).
 
 A curve is one (size, learning rate, batch size): its run folder is ``WORK_DIR/<size>_lr<lr>_b<batch>``,
@@ -27,16 +28,15 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import sys
 import time
 from pathlib import Path
 
 from safetensors import safe_open
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `train`
-from sar_zero123.config import write_json_atomic  # noqa: E402
-from sar_zero123.models import SAR_ZERO123_SIZES  # noqa: E402
-from train import evaluate, finetune_pfm  # noqa: E402
+from sar_zero123.config import write_json_atomic
+from sar_zero123.models import SAR_ZERO123_SIZES
+from sar_zero123.stages.evaluate import EvaluateConfig, load_evaluation, run_evaluate
+from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
 
 ROW_KEYS = ("azimuth_error_deg", "azimuth_error_deg_se", "azimuth_gap_closed", "accuracy", "accuracy_se")
 VALIDATION_KEYS = ("sensitivity_pose_t500", "sensitivity_input_t500", "pose_following_error_deg")
@@ -60,7 +60,7 @@ def last_validation(run_dir: Path) -> dict[str, float]:
 
 def model_row(results: dict[str, dict]) -> dict[str, float]:
     """Seen/unseen azimuth error, accuracy and gap closed (with standard errors) of one Table III row
-    (``{"seen": {...}, "unseen": {...}}`` of ``evaluate.main``'s ``table3``)."""
+    (``{"seen": {...}, "unseen": {...}}`` of ``load_evaluation``'s ``table3``)."""
     row = {}
     for views, result in results.items():
         for key in ROW_KEYS:
@@ -68,25 +68,35 @@ def model_row(results: dict[str, dict]) -> dict[str, float]:
     return row
 
 
-def finetune_argv(args: argparse.Namespace, size: str, steps: int, run_dir: Path) -> list[str]:
-    """`train/finetune_pfm.py` flags of one chunk: lambda = 0 up to `steps`, resuming the last chunk."""
-    return [
-        "--data", args.data, "--protocol", args.protocol, "--size", size, "--estimate_input_azimuth",
-        "--pfm_weight", "0", "--vae", args.vae, "--image_size", "64", "--seed", str(args.seed),
-        "--train_batch_size", str(args.train_batch_size), "--learning_rate", str(args.learning_rate),
-        "--max_train_steps", str(steps), "--no-use_ema",
-        "--checkpointing_steps", str(args.chunk_steps), "--checkpoints_total_limit", "1",
-        "--resume_from_checkpoint", "latest",
-        "--validation_steps", str(args.chunk_steps), "--num_validation_images", "8",
-        "--evaluators", args.evaluators, "--report_to", "none", "--output_dir", str(run_dir),
-    ]  # fmt: skip
+def finetune_config(args: argparse.Namespace, size: str, steps: int, run_dir: Path) -> FinetuneConfig:
+    """The fine-tune of one chunk: lambda = 0 up to `steps`, resuming the last chunk."""
+    return FinetuneConfig(
+        data=args.data, protocol=args.protocol, size=size, estimate_input_azimuth=True, pfm_weight=0.0,
+        vae=args.vae, image_size=64, seed=args.seed, train_batch_size=args.train_batch_size,
+        learning_rate=args.learning_rate, max_train_steps=steps, use_ema=False,
+        checkpointing_steps=args.chunk_steps, checkpoints_total_limit=1, resume_from_checkpoint="latest",
+        validation_steps=args.chunk_steps, num_validation_images=8, evaluators=args.evaluators,
+        report_to=None, output_dir=str(run_dir),
+    )  # fmt: skip
+
+
+def evaluate_config(args: argparse.Namespace, run_dir: Path, steps: int) -> EvaluateConfig:
+    """The evaluation of one chunk's pipeline into `run_dir/eval_<steps>` (one that a kill interrupted is
+    redone; a finished one is read as it is)."""
+    return EvaluateConfig(
+        pipeline=[str(run_dir / "pipeline")], pipeline_names=["model"], lambdas=[0.0], data=args.data,
+        evaluators=args.evaluators, protocol=args.protocol, n=args.n,
+        num_inference_steps=args.num_inference_steps, guidance_scale=args.guidance_scale,
+        steps=[args.num_inference_steps], schedulers=["ddim"], speed_n=2, crop_size=64, seed=args.seed,
+        output_dir=str(run_dir / f"eval_{steps}"), resume=True,
+    )  # fmt: skip
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", required=True, help="chip folder with index.csv")
-    parser.add_argument("--vae", required=True, help="AutoencoderKL folder of train/train_vae.py")
-    parser.add_argument("--evaluators", required=True, help="folder of train/train_evaluators.py")
+    parser.add_argument("--vae", required=True, help="AutoencoderKL folder of the VAE stage")
+    parser.add_argument("--evaluators", required=True, help="folder of the evaluators stage")
     parser.add_argument("--protocol", required=True, help='"extended" or "ood-<CLASS>"')
     parser.add_argument("--sizes", nargs="+", required=True, help="build_sar_zero123 sizes")
     parser.add_argument("--chunk_steps", type=int, default=600, help="steps between two evaluations")
@@ -129,18 +139,10 @@ def main(argv: list[str] | None = None) -> list[dict]:
             chunk_seconds = json.loads(timing_file.read_text()) if timing_file.is_file() else {}
             if str(steps) not in chunk_seconds:
                 start = time.perf_counter()
-                finetune_pfm.main(finetune_argv(args, size, steps, run_dir))
+                run_finetune(finetune_config(args, size, steps, run_dir))
                 chunk_seconds[str(steps)] = round(time.perf_counter() - start, 1)
                 write_json_atomic(chunk_seconds, timing_file)
-            eval_dir = run_dir / f"eval_{steps}"
-            result = evaluate.main([
-                "--pipeline", str(run_dir / "pipeline"), "--pipeline_names", "model", "--lambdas", "0",
-                "--data", args.data, "--evaluators", args.evaluators, "--protocol", args.protocol,
-                "--n", str(args.n), "--num_inference_steps", str(args.num_inference_steps),
-                "--guidance_scale", str(args.guidance_scale), "--steps", str(args.num_inference_steps),
-                "--schedulers", "ddim", "--speed_n", "2", "--crop_size", "64", "--seed", str(args.seed),
-                "--output_dir", str(eval_dir),
-            ])  # fmt: skip
+            result = load_evaluation(run_evaluate(evaluate_config(args, run_dir, steps)))
             trained = sum(seconds for chunk, seconds in chunk_seconds.items() if int(chunk) <= steps)
             row = {
                 "size": size,

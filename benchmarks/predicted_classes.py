@@ -5,7 +5,7 @@
         --pipeline_names lambda=0 lambda=4 --evaluators RUN/evaluators --data DATA --protocol ood-T72 \\
         --n 128 --out predicted_classes.json
 
-Generates the target view of the evaluation pairs of `train/evaluate.py` (same pairs and seeds for the same
+Generates the target view of the evaluate stage's pairs (same pairs and seeds for the same
 `--n`, `--seed` and protocol) and counts the classifier's predictions per group. A model whose unseen-class
 accuracy rises because it draws every view more like that class shows the same rise on the seen pairs.
 """
@@ -15,17 +15,13 @@ from __future__ import annotations
 import argparse
 import collections
 import json
-import sys
 from pathlib import Path
 
 import torch
 
-from sar_zero123.config import parse_config
+from sar_zero123.evaluation_protocol import build_pair_sets, generate_pair_targets
 from sar_zero123.evaluators import load_evaluators, resize_for_evaluator
 from sar_zero123.pipeline import SARZero123Pipeline
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `train`
-from train.evaluate import EvaluateConfig, build_pair_sets, generate_pair_targets  # noqa: E402
 
 
 def main() -> None:
@@ -44,12 +40,6 @@ def main() -> None:
     if len(args.pipeline) != len(args.pipeline_names):
         raise ValueError(f"pipeline_names: {len(args.pipeline_names)} names, {len(args.pipeline)} pipelines")
     device = torch.device("cpu")
-    config = parse_config(
-        EvaluateConfig,
-        ["--pipeline", *args.pipeline, "--evaluators", args.evaluators, "--data", args.data,
-         "--protocol", args.protocol, "--n", str(args.n), "--seed", str(args.seed),
-         "--output_dir", str(Path(args.out).parent)],
-    )  # fmt: skip
     evaluators = load_evaluators(args.evaluators, device=device)
     result: dict = {"protocol": args.protocol, "n": args.n, "models": {}}
     pairs = None
@@ -57,7 +47,11 @@ def main() -> None:
         pipe = SARZero123Pipeline.from_pretrained(path)
         pipe.set_progress_bar_config(disable=True)
         if pairs is None:
-            pairs = build_pair_sets(config, evaluators, pipe.default_image_size)
+            pairs = build_pair_sets(
+                evaluators, data=args.data, protocol=args.protocol, n=args.n, seed=args.seed,
+                image_size=pipe.default_image_size, work_dir=Path(args.out).parent,
+                evaluators_name=args.evaluators,
+            )  # fmt: skip
         for group, pair_set in pairs.items():
             images, _ = generate_pair_targets(
                 pipe, pair_set, num_inference_steps=args.num_inference_steps,

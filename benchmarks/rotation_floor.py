@@ -3,24 +3,22 @@
     python benchmarks/rotation_floor.py --evaluators runs/quickstart/evaluators --data runs/quickstart/data \\
         --protocol ood-SPG --n 128 --out rotation_floor.json
 
-Scores, on `train/evaluate.py`'s pairs and with its evaluators, the input copy and the input rotated in the
-image plane by +d_az and by -d_az (bilinear, reflection padding), and writes the scores as JSON.
+Scores, on the evaluate stage's pairs (`sar_zero123.evaluation_protocol.build_pair_sets`) and with its
+evaluators, the input copy and the input rotated in the image plane by +d_az and by -d_az (bilinear,
+reflection padding), and writes the scores as JSON.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
-import sys
 from pathlib import Path
 
 import torch
 import torch.nn.functional as F
 
+from sar_zero123.evaluation_protocol import build_pair_sets, score
 from sar_zero123.evaluators import load_evaluators
-
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `train`
-from train import evaluate  # noqa: E402
 
 
 def rotate(images: torch.Tensor, angle_deg: torch.Tensor) -> torch.Tensor:
@@ -43,20 +41,23 @@ def main() -> None:
     parser.add_argument("--work_dir", default="rotation_floor_cache")
     parser.add_argument("--out", default="rotation_floor.json")
     args = parser.parse_args()
-    config = evaluate.EvaluateConfig(
-        pipeline=["unused"], evaluators=args.evaluators, data=args.data, protocol=args.protocol, n=args.n,
-        crop_size=min(64, args.image_size), work_dir=args.work_dir, output_dir=args.work_dir,
+    evaluators = load_evaluators(args.evaluators)
+    pair_sets = build_pair_sets(
+        evaluators, data=args.data, protocol=args.protocol, n=args.n, image_size=args.image_size,
+        work_dir=args.work_dir, evaluators_name=args.evaluators,
     )  # fmt: skip
-    evaluators = load_evaluators(config.evaluators)
+    # the evaluate stage's scoring settings (its defaults: 256 px before the paper's crop, 32 views a call)
+    scoring = {"crop_size": min(64, args.image_size), "paper_scoring_size": 256, "batch_size": 32,
+               "device": "cpu"}  # fmt: skip
     rows = {}
-    for group, pairs in evaluate.build_pair_sets(config, evaluators, args.image_size).items():
+    for group, pairs in pair_sets.items():
         candidates = {
             "input copy": pairs.inputs,
             "input rotated by +d_az": rotate(pairs.inputs, pairs.d_az_deg),
             "input rotated by -d_az": rotate(pairs.inputs, -pairs.d_az_deg),
         }
         for name, views in candidates.items():
-            scores = evaluate.score(views, pairs, evaluators, config, "cpu")
+            scores = score(views, pairs, evaluators, **scoring)
             rows.setdefault(name, {})[group] = scores
             error, se = scores["azimuth_error_deg"], scores["azimuth_error_deg_se"]
             print(f"{group:7s} {name:24s} acc {scores['accuracy']:5.1f} %  az {error:5.1f} ± {se:.1f} deg")

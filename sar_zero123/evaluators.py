@@ -32,12 +32,14 @@ from typing import Any
 import numpy as np
 import torch
 import torch.nn.functional as F
-from safetensors.torch import load_file, save_file
+from safetensors.torch import save_file
 from scipy.ndimage import gaussian_filter
 from torch import nn
 
+from sar_zero123.config import read_json
 from sar_zero123.data import DecibelScaling
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
+from sar_zero123.loading import load_weights_file
 from sar_zero123.metrics import (
     CROP_SIZE,
     azimuth_error_deg,
@@ -55,6 +57,7 @@ REGRESSOR_DIR = "regressor"
 PROBES_DIR = "probes"
 DEPRESSION_REGRESSOR_DIR = "depression_regressor"
 MAX_DEPRESSION_DEG = 90.0  # the depression regressor's sigmoid spans (0, 90) deg
+MAX_POSE_REQUESTS = 64  # most d_az requests `pose_following` samples, as one batch
 
 __all__ = [
     "pose_following",
@@ -331,22 +334,32 @@ def load_evaluator(
 
     Raises:
         FileNotFoundError: If a file is missing.
-        ValueError: For an unknown kind or a class-list mismatch.
+        ValueError: For an unknown kind or a class-list mismatch, an `evaluator.json` that is not valid
+            JSON or lacks a field, or weights that are unreadable or do not fit it (naming the file).
     """
     directory = Path(directory)
     for path in (directory / EVALUATOR_CONFIG_NAME, directory / EVALUATOR_WEIGHTS_NAME):
         if not path.is_file():
             raise FileNotFoundError(f"evaluator checkpoint not found: {path}")
-    payload = json.loads((directory / EVALUATOR_CONFIG_NAME).read_text())
+    config_path = directory / EVALUATOR_CONFIG_NAME
+    fields = ("kind", "encoder", "class_names", "scaling", "head")
+    payload = read_json(config_path, what=f"an evaluator description {list(fields)}")
+    if not isinstance(payload, dict) or any(key not in payload for key in fields):
+        found = sorted(payload) if isinstance(payload, dict) else type(payload).__name__
+        raise ValueError(f"{config_path}: expected a JSON object with the fields {list(fields)}, got {found}")
     check_class_names(payload["class_names"], class_names, str(directory))
-    encoder_config = SAREncoderConfig.from_dict(payload["encoder"])
-    scaling = DecibelScaling.from_dict(payload["scaling"])
     if payload["kind"] not in EVALUATOR_KINDS:
         raise ValueError(f"{directory}: unknown evaluator kind {payload['kind']!r}")
-    model = EVALUATOR_KINDS[payload["kind"]](
-        encoder_config, payload["class_names"], scaling, **payload["head"]
-    )
-    model.load_state_dict(load_file(str(directory / EVALUATOR_WEIGHTS_NAME), device=str(device)))
+    try:
+        encoder_config = SAREncoderConfig.from_dict(payload["encoder"])
+        scaling = DecibelScaling.from_dict(payload["scaling"])
+        model = EVALUATOR_KINDS[payload["kind"]](
+            encoder_config, payload["class_names"], scaling, **payload["head"]
+        )
+    except (AttributeError, TypeError, ValueError) as error:
+        raise ValueError(f"{config_path}: not a valid evaluator description ({error})") from None
+    weights_path = directory / EVALUATOR_WEIGHTS_NAME
+    load_weights_file(model, weights_path, f"the evaluator in {str(directory)!r}", device)
     model.metrics = dict(payload.get("metrics", {}))
     return model.to(device).eval()
 
@@ -669,12 +682,15 @@ def pose_following(
         ``{"requested_deg", "predicted_deg", "error_deg" (per request), "mean_error_deg", "floor_deg"}``.
 
     Raises:
-        ValueError: If ``image`` is not one ``(1, 1, S, S)`` view.
+        ValueError: If ``image`` is not one ``(1, 1, S, S)`` view, or ``d_az_deg`` holds no request or more
+            than :data:`MAX_POSE_REQUESTS`.
     """
     if image.ndim != 4 or image.shape[:2] != (1, 1):
         raise ValueError(f"image must be one view of shape (1, 1, S, S), got {tuple(image.shape)}")
     requests = torch.tensor([float(d) for d in d_az_deg], dtype=torch.float64)
     count = requests.numel()
+    if not 1 <= count <= MAX_POSE_REQUESTS:
+        raise ValueError(f"d_az_deg: expected 1 to {MAX_POSE_REQUESTS} requests (one batch), got {count}")
     generated = pipe(
         image.expand(count, -1, -1, -1).to(pipe.device),
         d_az=requests.float(),

@@ -1,6 +1,7 @@
 """The parts of a zero-1-to-3 fine-tuning run around its training step (:mod:`sar_zero123.training`).
 
-``train/finetune_pfm.py`` assembles a run from these, each with explicit arguments:
+The fine-tune stage (:mod:`sar_zero123.stages.finetune`) assembles a run from these, each with explicit
+arguments:
 
 - :func:`training_image_size`: the chip side a run trains at (the model's own unless given).
 - :func:`finetuning_modules`: which modules train and in which dtype: the UNet, the pose projection and

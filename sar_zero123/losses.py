@@ -25,6 +25,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -32,6 +33,7 @@ from safetensors.torch import save_file
 from torch import nn
 
 from .conditioning import downsampling_factor
+from .config import check_minimum
 from .data import center_crop, signed_to_unit, unit_to_signed
 from .encoder import SAREncoder
 
@@ -462,13 +464,59 @@ def pfm_timestep_mask(timesteps: torch.Tensor, scheduler,
     return signal_to_noise_ratio(scheduler, timesteps) >= min_snr
 
 
+@dataclass(frozen=True)
+class LossSettings:
+    """Everything that shapes the loss of a training step, as one object: built once from a stage's config
+    (``FinetuneConfig.loss_settings``) and passed whole to :func:`~sar_zero123.training.compute_losses`.
+
+    Covers lambda of Eq. (21) and where PFM applies, zero-1-to-3's CFG dropout, the timestep density, the
+    Min-SNR weighting of L_simple and the weight of the azimuth estimator's loss. Each value is validated
+    here, once; the field names are the config's (and the command line's), so errors name the user's flag.
+
+    Raises:
+        ValueError: Naming the first field out of range.
+    """
+
+    pfm_weight: float = 0.0  # lambda of Eq. (21); 0 = plain zero-1-to-3 fine-tuning (no PFM computed)
+    pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
+    pfm_fraction: float = 1.0  # fraction in (0, 1] of the eligible samples on which PFM is computed
+    pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
+    drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
+    drop_both_prob: float = 0.05  # CFG dropout: projected token and condition latent (the sampling null)
+    drop_latent_prob: float = 0.05  # CFG dropout: condition latent only
+    timestep_sampling: Literal["uniform", "logit_normal"] = "uniform"  # training t density (uniform: paper)
+    timestep_logit_mean: float = 0.0  # logit_normal: mean of logit(t / T); > 0 favours high noise
+    timestep_logit_std: float = 1.0  # logit_normal: standard deviation of logit(t / T)
+    snr_gamma: float | None = None  # Min-SNR-gamma weighting of L_simple; None: the paper's L_simple
+    azimuth_loss_weight: float = 1.0  # weight of an azimuth estimator's loss (models that have one)
+
+    def __post_init__(self) -> None:
+        check_minimum(self, "pfm_weight", "pfm_min_snr", "azimuth_loss_weight", minimum=0)
+        if not 0 < self.pfm_fraction <= 1:
+            raise ValueError(f"pfm_fraction must be in (0, 1], got {self.pfm_fraction}")
+        check_minimum(self, "pfm_crop_size", minimum=1, optional=True)
+        probs = (self.drop_image_prob, self.drop_both_prob, self.drop_latent_prob)
+        if not (min(probs) >= 0 and sum(probs) <= 1):
+            raise ValueError(
+                f"drop_image_prob, drop_both_prob, drop_latent_prob must be >= 0 with sum <= 1, got {probs}"
+            )
+        if self.timestep_sampling not in ("uniform", "logit_normal"):
+            raise ValueError(
+                f"timestep_sampling must be 'uniform' or 'logit_normal', got {self.timestep_sampling!r}"
+            )
+        if self.timestep_sampling == "logit_normal":
+            check_minimum(self, "timestep_logit_std", minimum=0, strict=True)
+        check_minimum(self, "snr_gamma", minimum=0, strict=True, optional=True)
+
+
 @dataclass
 class LossOutput:
     """Per-sample losses of one training step (all ``(B,)`` float32).
 
     Attributes:
-        loss: ``denoising + pfm_weight * pfm`` (Eq. 21).
-        denoising: L_simple.
+        loss: ``denoising + pfm_weight * pfm`` (Eq. 21, :func:`total_loss`), plus the weighted azimuth loss
+            of a model with an azimuth estimator.
+        denoising: L_simple (Min-SNR weighted when the step asks for it).
         pfm: L_PFM, zero where it was not computed (lambda = 0, SNR below the threshold, or outside the
             sampled fraction); sampled entries are scaled by ``B_eligible / B_sampled`` so the batch mean
             stays unbiased.
@@ -501,9 +549,10 @@ def total_loss(
     pfm_fraction: float = 1.0,
     crop_size: int | None = None,
     generator: torch.Generator | None = None,
+    denoising_weights: torch.Tensor | None = None,
 ) -> LossOutput:
     """L = L_simple + lambda * L_PFM, Eq. (21); ``pfm_weight = 0`` is plain zero-1-to-3 fine-tuning and
-    skips every PFM computation (no decode, no encoder pass).
+    skips every PFM computation (no decode, no encoder pass). The only place Eq. (21) is assembled.
 
     Args:
         model_output: Network prediction.
@@ -519,9 +568,11 @@ def total_loss(
         pfm_fraction: Fraction in (0, 1] of the eligible samples on which PFM is computed (at least one).
         crop_size: Optional centre crop in pixels for PFM (see :func:`pfm_loss`).
         generator: Draws the PFM subset when ``pfm_fraction < 1``.
+        denoising_weights: Optional per-sample weights of L_simple (Min-SNR-gamma,
+            :func:`~sar_zero123.training.min_snr_weights`), applied before the sum.
 
     Returns:
-        A :class:`LossOutput` of per-sample tensors.
+        A :class:`LossOutput` of per-sample tensors (``denoising`` already weighted).
 
     Shape:
         ``model_output``, ``target``, ``x_t``: ``(B, C, h, w)``; ``timesteps``: ``(B,)``; outputs ``(B,)``.
@@ -534,6 +585,8 @@ def total_loss(
     if not 0 < pfm_fraction <= 1:
         raise ValueError(f"pfm_fraction must be in (0, 1], got {pfm_fraction}")
     denoising = denoising_loss(model_output, target)
+    if denoising_weights is not None:
+        denoising = denoising * denoising_weights
     pfm = torch.zeros_like(denoising)
     mask = torch.zeros_like(denoising, dtype=torch.bool)
     if pfm_weight > 0:

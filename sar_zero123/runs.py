@@ -113,22 +113,40 @@ def check_distributed_launch(accelerator: Accelerator) -> None:
 
 
 def check_global_batch(
-    num_examples: int, batch_size: int, num_processes: int, what: str = "examples"
+    num_examples: int,
+    batch_size: int,
+    num_processes: int,
+    what: str = "examples",
+    gradient_accumulation_steps: int = 1,
 ) -> None:
-    """Refuse a training split smaller than one global batch: a ``drop_last`` loader would yield no batch.
+    """Refuse a training split smaller than one optimisation step's examples.
+
+    A ``drop_last`` loader yields ``num_examples // (batch_size x processes)`` micro-batches per epoch: none
+    when the split is smaller than one global batch, and fewer than one optimisation step when
+    ``gradient_accumulation_steps`` exceeds that count (each step would then take several epochs, and a
+    large value leaves the run at step 0 for hours).
 
     Args:
         num_examples: Size of the training split.
         batch_size: Examples per process per micro-batch.
         num_processes: ``accelerator.num_processes``.
         what: What an example is called in the message (``"pairs"``, ``"chips"``).
+        gradient_accumulation_steps: Micro-batches per optimisation step.
 
     Raises:
-        ValueError: ``"data: <N> training <what>, fewer than one global batch of <batch_size x processes>"``.
+        ValueError: ``"data: <N> training <what>, fewer than a global batch of <batch_size x processes>"``,
+            or naming ``gradient_accumulation_steps`` and its bound, the micro-batches of one epoch.
     """
     global_batch = batch_size * num_processes
     if num_examples < global_batch:
         raise ValueError(f"data: {num_examples} training {what}, fewer than a global batch of {global_batch}")
+    per_epoch = num_examples // global_batch
+    if gradient_accumulation_steps > per_epoch:
+        raise ValueError(
+            f"gradient_accumulation_steps must be <= {per_epoch} for {num_examples} training {what} in "
+            f"global batches of {global_batch} (one optimisation step may take at most one epoch's "
+            f"{per_epoch} micro-batches), got {gradient_accumulation_steps}"
+        )
 
 
 def tracker_hparams(config: Any) -> dict[str, int | float | str | bool]:

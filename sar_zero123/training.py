@@ -1,18 +1,19 @@
 """The zero-1-to-3 training step: CFG dropout, cached frozen encodings, losses (Eq. 21).
 
-``train/finetune_pfm.py`` only assembles a run around these pieces; benchmarks and tests import them
-from here.
+The fine-tune stage (:mod:`sar_zero123.stages.finetune`) only assembles a run around these pieces;
+benchmarks and tests import them from here.
 
 - :func:`micro_batch_generator`: every random draw of one micro-batch from a pure function of
   ``(seed, micro-batch index, process index)``, which makes resuming bitwise exact.
 - :class:`ImageEmbedder`: the CLIP tower as a module whose ``forward`` includes the preprocessing, so
   that ``accelerate.prepare`` (DDP, autocast) covers it when the tower is trained.
-- :func:`cfg_dropout_masks`: zero-1-to-3's classifier-free-guidance dropout.
+- :func:`cfg_dropout_masks` / :func:`dropped_conditioning`: zero-1-to-3's classifier-free-guidance dropout.
 - :class:`ChipLatentCache` / :class:`CachedViewPairs`: the frozen VAE's posterior (mean and log-variance)
   and the frozen CLIP embedding of every chip, computed once. The VAE never changes during fine-tuning,
   so encoding two chips per pair per step repeats the same work; the cache keeps the posterior *sample*
   of the target latent random per step (drawn from the cached mean and log-variance).
-- :func:`compute_losses`: the per-sample losses of one micro-batch.
+- :func:`compute_losses`: the per-sample losses of one micro-batch, shaped by one
+  :class:`~sar_zero123.losses.LossSettings`.
 """
 
 from __future__ import annotations
@@ -31,7 +32,7 @@ from transformers import CLIPVisionModelWithProjection
 
 from .conditioning import embed_pose, encode_image_embeddings, pose_class_labels, vae_input
 from .data import ViewPairDataset, load_chip
-from .losses import DEFAULT_PFM_MIN_SNR, LossOutput, denoising_target, total_loss
+from .losses import LossOutput, LossSettings, denoising_target, total_loss
 from .orientation import azimuth_estimation_loss, target_view_features
 
 __all__ = [
@@ -41,6 +42,7 @@ __all__ = [
     "cfg_dropout_masks",
     "compute_losses",
     "conditioning_sensitivity",
+    "dropped_conditioning",
     "encode_batch",
     "micro_batch_generator",
     "min_snr_weights",
@@ -331,6 +333,41 @@ def conditioning_sensitivity(
     return result
 
 
+def dropped_conditioning(
+    image_embeds: torch.Tensor,
+    condition_latents: torch.Tensor,
+    pose: torch.Tensor,
+    *,
+    pose_projection: torch.nn.Module,
+    settings: LossSettings,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The UNet's conditioning after zero-1-to-3's CFG dropout (:func:`cfg_dropout_masks`, one draw).
+
+    Dropping the image embedding keeps the pose in the projected token; dropping "both" zeroes the token and
+    the condition latent, the pipeline's sampling null; dropping the latent zeroes the condition latent.
+
+    Returns:
+        ``(tokens, condition_latents)``.
+
+    Shape:
+        ``(B, 1, D)``, ``(B, C, h, w)``, ``(B, 1, 4)`` -> ``(B, 1, C_cross)``, ``(B, C, h, w)``.
+    """
+    drop_image, drop_both, drop_latent = (
+        mask.to(pose.device)
+        for mask in cfg_dropout_masks(
+            pose.shape[0],
+            drop_image_prob=settings.drop_image_prob,
+            drop_both_prob=settings.drop_both_prob,
+            drop_latent_prob=settings.drop_latent_prob,
+            generator=generator,
+        )
+    )
+    image_embeds = image_embeds * (~drop_image).float()[:, None, None]
+    tokens = pose_projection(image_embeds, pose) * (~drop_both).float()[:, None, None]  # (B, 1, C)
+    return tokens, condition_latents * (~(drop_both | drop_latent)).float()[:, None, None, None]
+
+
 def compute_losses(
     batch: dict,
     *,
@@ -341,37 +378,22 @@ def compute_losses(
     encoder: torch.nn.Module | None,
     noise_scheduler: DDPMScheduler,
     generator: torch.Generator,
-    pfm_weight: float = 0.0,
-    pfm_min_snr: float = DEFAULT_PFM_MIN_SNR,
-    pfm_fraction: float = 1.0,
-    pfm_crop_size: int | None = None,
-    drop_image_prob: float = 0.05,
-    drop_both_prob: float = 0.05,
-    drop_latent_prob: float = 0.05,
+    loss_settings: LossSettings | None = None,
     apply_dropout: bool = True,
-    timestep_sampling: str = "uniform",
-    timestep_logit_mean: float = 0.0,
-    timestep_logit_std: float = 1.0,
-    snr_gamma: float | None = None,
     azimuth_estimator: torch.nn.Module | None = None,
-    azimuth_loss_weight: float = 1.0,
 ) -> LossOutput:
     """Per-sample losses of one micro-batch (zero-1-to-3 conditioning, CFG dropout, Eq. 21).
 
-    The UNet sees ``[x_t, condition latent]`` (the condition latent is the unscaled VAE posterior mode of
-    the input view; only the target latent is scaled) and cross-attends to
-    ``pose_projection([CLIP image embedding, pose])``. With cached encodings in ``batch``
-    (:class:`CachedViewPairs`) the VAE is not run; the target latent is still a fresh posterior sample.
-
-    ``image_encoder`` is an :class:`ImageEmbedder` (prepared by accelerate when it is trained); the CLIP
-    embedding is differentiable exactly when its parameters require gradients, and is read from
-    ``batch["input_image_embeds"]`` when the batch carries it (frozen tower). Timesteps are uniform (the
-    paper's L_simple) unless ``timestep_sampling="logit_normal"`` (:func:`sample_timesteps`). With
-    ``snr_gamma``, L_simple of each sample is weighted by Min-SNR-gamma (:func:`min_snr_weights`). With an
-    ``azimuth_estimator`` (``sar_zero123.orientation``), the UNet's timestep embedding also receives the
-    target's estimated azimuth (the input's, read from its condition latent, turned by ``d_az``) and the
-    input's code, and
-    ``azimuth_loss_weight`` times the estimator's loss against ``batch["input_azimuth_deg"]`` joins the loss.
+    The UNet sees ``[x_t, condition latent]`` (the unscaled VAE posterior mode of the input view; only the
+    target latent is scaled) and cross-attends to ``pose_projection([CLIP image embedding, pose])``; cached
+    encodings in ``batch`` (:class:`CachedViewPairs`) replace the VAE and a frozen ``image_encoder`` (an
+    :class:`ImageEmbedder`). ``loss_settings`` (:class:`~sar_zero123.losses.LossSettings`; ``None``: plain
+    zero-1-to-3 without PFM) sets lambda of Eq. (21) and where PFM applies, the CFG dropout (skipped
+    without ``apply_dropout``, as in validation), the timestep density (:func:`sample_timesteps`), the
+    Min-SNR weighting of L_simple (:func:`min_snr_weights`) and the azimuth loss weight. An
+    ``azimuth_estimator`` (``sar_zero123.orientation``) reads the input's azimuth from its condition latent;
+    turned by ``d_az`` it enters the UNet's timestep embedding, and ``azimuth_loss_weight`` times its loss
+    against ``batch["input_azimuth_deg"]`` joins the loss.
 
     Raises:
         ValueError: If the model has an azimuth estimator and the batch has no ``input_azimuth_deg``.
@@ -379,15 +401,12 @@ def compute_losses(
     Shape:
         ``batch["input"]``, ``batch["target"]``: ``(B, 1, S, S)``; outputs ``(B,)``.
     """
-    # 1. frozen encodings
+    settings = loss_settings if loss_settings is not None else LossSettings()
+    # 1. frozen encodings (a fresh posterior sample of the target latent)
     latents, condition_latents, image_embeds, pose = encode_batch(
-        batch,
-        vae=vae,
-        image_encoder=image_encoder,
-        generator=generator,
+        batch, vae=vae, image_encoder=image_encoder, generator=generator,
         input_depression=uses_input_depression(pose_projection),
-    )
-    batch_size, device = latents.shape[0], latents.device
+    )  # fmt: skip
     target_features = azimuth_loss = None
     if azimuth_estimator is not None:
         if "input_azimuth_deg" not in batch:
@@ -395,33 +414,20 @@ def compute_losses(
         estimate = azimuth_estimator(condition_latents)  # before CFG dropout: like the pose, never dropped
         azimuth_loss = azimuth_estimation_loss(estimate, batch["input_azimuth_deg"])
         target_features = target_view_features(estimate, pose)
-    targets = batch["target"].to(device=device, dtype=vae.dtype)
-    # 2. classifier-free-guidance dropout; the "both" case equals the pipeline's sampling null
+    # 2. classifier-free-guidance dropout
     if apply_dropout:
-        drop_image, drop_both, drop_latent = cfg_dropout_masks(
-            batch_size,
-            drop_image_prob=drop_image_prob,
-            drop_both_prob=drop_both_prob,
-            drop_latent_prob=drop_latent_prob,
+        tokens, condition_latents = dropped_conditioning(
+            image_embeds, condition_latents, pose, pose_projection=pose_projection, settings=settings,
             generator=generator,
-        )
+        )  # fmt: skip
     else:
-        drop_image = drop_both = drop_latent = torch.zeros(batch_size, dtype=torch.bool)
-    drop_image, drop_both, drop_latent = (m.to(device) for m in (drop_image, drop_both, drop_latent))
-    image_embeds = image_embeds * (~drop_image).float()[:, None, None]
-    tokens = pose_projection(image_embeds, pose) * (~drop_both).float()[:, None, None]  # (B, 1, C)
-    condition_latents = condition_latents * (~(drop_both | drop_latent)).float()[:, None, None, None]
+        tokens = pose_projection(image_embeds, pose)  # (B, 1, C)
     # 3. forward diffusion and prediction
-    noise = torch.randn(latents.shape, generator=generator).to(device)
-    num_train_timesteps = noise_scheduler.config.num_train_timesteps
+    noise = torch.randn(latents.shape, generator=generator).to(latents.device)
     timesteps = sample_timesteps(
-        batch_size,
-        num_train_timesteps,
-        sampling=timestep_sampling,
-        logit_mean=timestep_logit_mean,
-        logit_std=timestep_logit_std,
-        generator=generator,
-    ).to(device)
+        latents.shape[0], noise_scheduler.config.num_train_timesteps, sampling=settings.timestep_sampling,
+        logit_mean=settings.timestep_logit_mean, logit_std=settings.timestep_logit_std, generator=generator,
+    ).to(latents.device)  # fmt: skip
     x_t = noise_scheduler.add_noise(latents, noise, timesteps)
     model_output = unet(
         torch.cat([x_t, condition_latents], dim=1),
@@ -429,30 +435,20 @@ def compute_losses(
         encoder_hidden_states=tokens,
         class_labels=pose_class_labels(unet, pose, target_features),
     ).sample
-    target = denoising_target(latents, noise, timesteps, noise_scheduler)
-    # 4. Eq. (21)
+    # 4. Eq. (21), L_simple optionally Min-SNR weighted
+    weights = None
+    if settings.snr_gamma is not None:
+        weights = min_snr_weights(noise_scheduler, timesteps, settings.snr_gamma)
     losses = total_loss(
-        model_output,
-        target,
-        x_t,
-        timesteps,
-        noise_scheduler,
-        pfm_weight=pfm_weight,
-        target_images=targets,
-        vae=vae,
-        encoder=encoder,
-        pfm_min_snr=pfm_min_snr,
-        pfm_fraction=pfm_fraction,
-        crop_size=pfm_crop_size,
-        generator=generator,
-    )
-    if snr_gamma is not None:
-        weights = min_snr_weights(noise_scheduler, timesteps, snr_gamma)
-        denoising = losses.denoising * weights
-        losses = dataclasses.replace(losses, denoising=denoising, loss=denoising + pfm_weight * losses.pfm)
+        model_output, denoising_target(latents, noise, timesteps, noise_scheduler), x_t, timesteps,
+        noise_scheduler, pfm_weight=settings.pfm_weight,
+        target_images=batch["target"].to(device=latents.device, dtype=vae.dtype), vae=vae, encoder=encoder,
+        pfm_min_snr=settings.pfm_min_snr, pfm_fraction=settings.pfm_fraction,
+        crop_size=settings.pfm_crop_size, generator=generator, denoising_weights=weights,
+    )  # fmt: skip
     if azimuth_loss is not None:
         losses = dataclasses.replace(
-            losses, loss=losses.loss + azimuth_loss_weight * azimuth_loss, azimuth=azimuth_loss
+            losses, loss=losses.loss + settings.azimuth_loss_weight * azimuth_loss, azimuth=azimuth_loss
         )
     return dataclasses.replace(losses, timesteps=timesteps)
 

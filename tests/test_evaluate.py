@@ -1,8 +1,11 @@
-"""Tests for train/evaluate.py and evaluators.score_views on a tiny pipeline and fabricated chips."""
+"""Tests for the evaluate stage (sar_zero123.stages.evaluate, train/evaluate.py), the Table III protocol and
+evaluators.score_views, on a tiny pipeline and fabricated chips."""
 
 from __future__ import annotations
 
+import dataclasses
 import json
+import logging
 import math
 from pathlib import Path
 
@@ -11,8 +14,18 @@ import torch
 from dummies import get_dummy_components
 from test_evaluators import TINY_ENCODER, write_chip_folder
 
+from sar_zero123.config import save_config, write_json_atomic
 from sar_zero123.data import load_chip
 from sar_zero123.encoder import SAREncoderConfig
+from sar_zero123.evaluation_protocol import (
+    INPUT_COPY,
+    REAL_TARGET,
+    VAE_ROUND_TRIP,
+    add_gap_closed,
+    build_pair_sets,
+    gap_closed,
+)
+from sar_zero123.evaluation_tables import table3_markdown
 from sar_zero123.evaluators import (
     AzimuthRegressor,
     DepressionRegressor,
@@ -23,6 +36,10 @@ from sar_zero123.evaluators import (
 )
 from sar_zero123.models import build_sar_zero123
 from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.run_folder import data_identity, finish_run, open_run_folder, read_run_record
+from sar_zero123.stages import evaluate as stage
+from sar_zero123.stages.evaluate import EvaluateConfig, evaluation_pairs
+from sar_zero123.stages.evaluators import TrainEvaluatorsConfig
 from train import evaluate
 
 
@@ -70,13 +87,22 @@ def test_score_views_identical_images(tmp_path: Path) -> None:
         score_views(targets + 1.0, targets, labels, predicted_deg, evaluators, crop_size=32)
 
 
-def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path) -> None:
+def _snapshot(folder: Path) -> dict[str, tuple[bytes, int]]:
+    """Every file under `folder` with its bytes and modification time."""
+    files = sorted(p for p in folder.rglob("*") if p.is_file())
+    return {p.relative_to(folder).as_posix(): (p.read_bytes(), p.stat().st_mtime_ns) for p in files}
+
+
+def _no_work(*args, **kwargs):
+    raise AssertionError("a finished evaluation was redone")
+
+
+def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path, monkeypatch, caplog) -> None:
     data = write_chip_folder(tmp_path / "data", azimuths_deg=tuple(range(0, 360, 60)), size=32)
     _evaluators(tmp_path / "evaluators")
     pipe = SARZero123Pipeline(**get_dummy_components())
     pipe.save_pretrained(tmp_path / "lambda0")
     pipe.save_pretrained(tmp_path / "lambda4")
-    script = evaluate
     out = tmp_path / "eval"
     argv = [
         "--pipeline", str(tmp_path / "lambda0"), "--pipeline", str(tmp_path / "lambda4"),
@@ -86,8 +112,13 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path) -> None:
         "--steps", "1", "2", "--schedulers", "ddim", "euler", "--speed_n", "2", "--eval_batch_size", "2",
         "--num_figure_pairs", "1", "--output_dir", str(out), "--device", "cpu",
     ]  # fmt: skip
+    caplog.set_level(logging.INFO, logger="sar_zero123.evaluation_protocol")
     with pytest.warns(UserWarning, match="rank-deficient"):
-        result = script.main(argv)
+        result = evaluate.main(argv)
+    # every batch of generation logs its progress: a long evaluation is never silent
+    for line in ("lambda0 seen: 2/2 views generated", "lambda4 unseen: 2/2 views generated",
+                 "lambda4 euler 2 steps: 2/2 views generated"):  # fmt: skip
+        assert line in caplog.text
     table3 = json.loads((out / "table3.json").read_text())["results"]
     floor, target, round_trip = "input copy (floor)", "real target (ceiling)", "VAE round trip (ceiling)"
     assert set(table3) == {floor, target, round_trip, "lambda0", "lambda4"}  # both share one VAE: one row
@@ -98,7 +129,7 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path) -> None:
         values, low, high = (table3[m][group] for m in ("lambda0", floor, round_trip))
         key = "azimuth_error_deg"
         gap_se = math.hypot(low[f"{key}_se"], high[f"{key}_se"])
-        expected = script.gap_closed(values[key], low[key], high[key], gap_se=gap_se)
+        expected = gap_closed(values[key], low[key], high[key], gap_se=gap_se)
         assert values["azimuth_gap_closed"] == pytest.approx(expected, nan_ok=True)
         assert "azimuth_gap_closed" not in low and values["azimuth_error_deg_se"] >= 0.0
     for method in ("lambda0", "lambda4"):
@@ -124,47 +155,118 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path) -> None:
     assert all(row["images_per_s"] > 0 and row["n"] == 2 for row in rows)
     assert isinstance(pipe.scheduler, type(get_dummy_components()["scheduler"]))
 
+    # the run folder records what made it and is finished only with its last output
+    record = read_run_record(out)
+    assert record["stage"] == "evaluate" and record["finished"] and "speed_error.png" in record["outputs"]
+    assert record["data"]["pipelines"][1]["path"] == str((tmp_path / "lambda4").resolve())
+    before = _snapshot(out)
+    with pytest.raises(ValueError, match="already holds a finished evaluate run with these settings"):
+        evaluate.main(argv)
+    with pytest.raises(ValueError, match="Differences: n: folder 4, this run 6"):
+        evaluate.main([*argv, "--n", "6", "--resume"])
+    # --resume returns the finished run as it is (on any device), without loading a model
+    monkeypatch.setattr(stage, "load_evaluators", _no_work)
+    resumed = evaluate.main([*argv, "--resume", "--device", "cuda"])
+    assert json.dumps(resumed, sort_keys=True) == json.dumps(result, sort_keys=True)
+    assert _snapshot(out) == before
+    # --restart moves the old run aside, untouched, and starts over
+    monkeypatch.undo()
+    with pytest.warns(UserWarning, match="rank-deficient"):
+        evaluate.main([*argv, "--num_figure_pairs", "0", "--restart"])
+    moved = [p for p in tmp_path.iterdir() if p.name.startswith("eval.replaced-")]
+    assert len(moved) == 1 and _snapshot(moved[0]) == before
+    assert read_run_record(out)["finished"] and read_run_record(out)["config"]["num_figure_pairs"] == 0
+    assert not (out / "views.png").exists() and (out / "table3.json").is_file()
+
+
+def test_evaluate_into_an_evaluators_folder_is_refused_and_changes_nothing(tmp_path: Path) -> None:
+    data = write_chip_folder(tmp_path / "data", azimuths_deg=(0.0, 120.0, 240.0), size=32)
+    evaluators_dir = tmp_path / "evaluators"
+    trained = TrainEvaluatorsConfig(output_dir=str(evaluators_dir), data=str(data), image_size=32)
+    open_run_folder(evaluators_dir, "evaluators", trained, data={"data": data_identity(data)})
+    save_config(trained, evaluators_dir)
+    _evaluators(evaluators_dir)
+    finish_run(evaluators_dir, ["classifier", "regressor"])
+    (tmp_path / "pipe").mkdir()
+    before = _snapshot(evaluators_dir)
+    argv = ["--pipeline", str(tmp_path / "pipe"), "--evaluators", str(evaluators_dir), "--data", str(data),
+            "--n", "2", "--output_dir", str(evaluators_dir), "--device", "cpu"]  # fmt: skip
+    for extra in ([], ["--resume"]):
+        with pytest.raises(ValueError, match="Differences: stage: folder 'evaluators', this run 'evaluate'"):
+            evaluate.main([*argv, *extra])
+    assert _snapshot(evaluators_dir) == before
+    # a folder without a record (written before the run-folder rule, or by hand) is refused too
+    (evaluators_dir / "run.json").unlink()
+    with pytest.raises(ValueError, match="is not empty and holds no run.json"):
+        evaluate.main(argv)
+    assert (evaluators_dir / "config.json").read_bytes() == before["config.json"][0]
+
+
+def test_evaluate_bounds_what_a_user_can_size(tmp_path: Path) -> None:
+    assert stage.MAX_EVALUATION_PAIRS == 100_000
+    with pytest.raises(ValueError, match="n must be <= 100,000, got 100,000,000"):
+        EvaluateConfig(pipeline=["a"], n=100_000_000)
+    with pytest.raises(ValueError, match="num_inference_steps must be <= 1,000, got 5,000"):
+        EvaluateConfig(pipeline=["a"], num_inference_steps=5000)
+    with pytest.raises(ValueError, match="eval_batch_size must be <= 1,024"):
+        EvaluateConfig(pipeline=["a"], eval_batch_size=4096)
+    with pytest.raises(ValueError, match="num_figure_pairs must be <= 32, got 5,000"):
+        EvaluateConfig(pipeline=["a"], num_figure_pairs=5000)
+    with pytest.raises(ValueError, match="steps: at most 16 step counts, got 17"):
+        EvaluateConfig(pipeline=["a"], steps=list(range(1, 18)), schedulers=["ddim"])
+    with pytest.raises(ValueError, match=r"steps: each value once, got \[5, 5\]"):
+        EvaluateConfig(pipeline=["a"], steps=[5, 5], schedulers=["ddim"])
+    with pytest.raises(ValueError, match=r"steps must lie in \[1, 1000\]"):
+        EvaluateConfig(pipeline=["a"], steps=[2000], schedulers=["ddim"])
+    with pytest.raises(ValueError, match="speed_n must be <= the 2 seen pairs"):
+        EvaluateConfig(pipeline=["a"], protocol="ood-B", n=4, steps=[1], schedulers=["ddim"], speed_n=3)
+    # what the data can give: two chips of an object at one depression admit two distinct pairs
+    data = write_chip_folder(tmp_path / "data", azimuths_deg=(0.0, 90.0), size=32)
+    evaluators = _evaluators(tmp_path / "evaluators")
+    kwargs = {"data": data, "protocol": "extended", "image_size": 32, "work_dir": tmp_path}
+    with pytest.raises(ValueError, match="n: the seen group needs 5 distinct pairs .* 4 chips admit only 4"):
+        build_pair_sets(evaluators, n=5, **kwargs)
+    assert len(build_pair_sets(evaluators, n=4, **kwargs)["seen"]) == 4
+
 
 def test_evaluate_rejects_bad_config() -> None:
-    script = evaluate
     with pytest.raises(ValueError, match="n must be >= 4 for an ood protocol"):
-        script.EvaluateConfig(pipeline=["a"], protocol="ood-T72", n=3)
+        EvaluateConfig(pipeline=["a"], protocol="ood-T72", n=3)
     with pytest.raises(ValueError, match="n must be >= 2"):
-        script.EvaluateConfig(pipeline=["a"], n=1)
+        EvaluateConfig(pipeline=["a"], n=1)
     with pytest.raises(ValueError, match="lambdas has 1 values for 2 pipelines"):
-        script.EvaluateConfig(pipeline=["a", "b"], lambdas=[0.0])
+        EvaluateConfig(pipeline=["a", "b"], lambdas=[0.0])
     with pytest.raises(ValueError, match="schedulers: unknown"):
-        script.EvaluateConfig(pipeline=["a"], steps=[10], schedulers=["heun"])
+        EvaluateConfig(pipeline=["a"], steps=[10], schedulers=["heun"])
+    with pytest.raises(ValueError, match=r"pipeline_names: each row needs its own name, got \['runs/a', 'r"):
+        EvaluateConfig(pipeline=["runs/a", "runs/a"])  # one row would overwrite the other
 
 
 def test_evaluate_rejects_evaluators_for_other_classes(tmp_path: Path) -> None:
     data = write_chip_folder(tmp_path / "data", classes=("A", "C"), azimuths_deg=(0.0, 90.0), size=32)
     evaluators = _evaluators(tmp_path / "evaluators")
-    script = evaluate
-    config = script.EvaluateConfig(pipeline=["unused"], data=str(data), evaluators="evaluators/", n=2)
     with pytest.raises(
         ValueError, match=r"evaluators/ was trained on classes \['A', 'B'\] but the data uses"
     ):
-        script.build_pair_sets(config, evaluators, image_size=32)
+        build_pair_sets(evaluators, data=data, protocol="extended", n=2, image_size=32, work_dir=tmp_path,
+                        evaluators_name="evaluators/")  # fmt: skip
 
 
 def test_gap_closed_is_the_fraction_between_floor_and_ceiling() -> None:
-    script = evaluate
-    assert script.gap_closed(55.0, floor=90.0, ceiling=20.0) == pytest.approx(0.5)
-    assert script.gap_closed(20.0, floor=90.0, ceiling=20.0) == pytest.approx(1.0)
-    assert script.gap_closed(100.0, floor=90.0, ceiling=20.0) == pytest.approx(-1 / 7)
-    assert script.gap_closed(60.0, floor=40.0, ceiling=80.0, higher_is_better=True) == pytest.approx(0.5)
-    assert math.isnan(script.gap_closed(50.0, floor=90.0, ceiling=90.0))
-    assert math.isnan(script.gap_closed(50.0, floor=20.0, ceiling=30.0))  # the floor beats the ceiling
+    assert gap_closed(55.0, floor=90.0, ceiling=20.0) == pytest.approx(0.5)
+    assert gap_closed(20.0, floor=90.0, ceiling=20.0) == pytest.approx(1.0)
+    assert gap_closed(100.0, floor=90.0, ceiling=20.0) == pytest.approx(-1 / 7)
+    assert gap_closed(60.0, floor=40.0, ceiling=80.0, higher_is_better=True) == pytest.approx(0.5)
+    assert math.isnan(gap_closed(50.0, floor=90.0, ceiling=90.0))
+    assert math.isnan(gap_closed(50.0, floor=20.0, ceiling=30.0))  # the floor beats the ceiling
     # a gap the pairs do not resolve (95.3 vs 96.1 % at a standard error of 2.6) is no gap, not -11,500 %
-    assert math.isnan(script.gap_closed(3.1, floor=95.3, ceiling=96.1, higher_is_better=True, gap_se=2.6))
-    assert script.gap_closed(55.0, floor=90.0, ceiling=20.0, gap_se=6.0) == pytest.approx(0.5)
-    assert math.isnan(script.gap_closed(85.0, floor=100.0, ceiling=70.0, higher_is_better=True))
+    assert math.isnan(gap_closed(3.1, floor=95.3, ceiling=96.1, higher_is_better=True, gap_se=2.6))
+    assert gap_closed(55.0, floor=90.0, ceiling=20.0, gap_se=6.0) == pytest.approx(0.5)
+    assert math.isnan(gap_closed(85.0, floor=100.0, ceiling=70.0, higher_is_better=True))
 
 
 def test_depression_gap_closed_and_columns_on_hand_made_numbers() -> None:
-    script = evaluate
-    floor, target, round_trip = script.INPUT_COPY, script.REAL_TARGET, script.VAE_ROUND_TRIP
+    floor, target, round_trip = INPUT_COPY, REAL_TARGET, VAE_ROUND_TRIP
 
     def row(azimuth: float, accuracy: float, depression: float | None, se: float = 1.0) -> dict[str, float]:
         values = {"azimuth_error_deg": azimuth, "azimuth_error_deg_se": se, "accuracy": accuracy,
@@ -179,7 +281,7 @@ def test_depression_gap_closed_and_columns_on_hand_made_numbers() -> None:
         round_trip: {"seen": row(20.0, 90.0, 4.0), "unseen": row(20.0, 90.0, 4.0)},
         "model": {"seen": row(55.0, 70.0, 8.0), "unseen": row(55.0, 70.0, 3.0)},
     }
-    script.add_gap_closed(results, floor=floor, ceiling=round_trip)
+    add_gap_closed(results, floor=floor, ceiling=round_trip)
     seen, unseen = results["model"]["seen"], results["model"]["unseen"]
     assert seen["depression_gap_closed"] == pytest.approx((20.0 - 8.0) / (20.0 - 4.0))  # 0.75
     assert seen["azimuth_gap_closed"] == pytest.approx(0.5) and seen["accuracy_gap_closed"] == pytest.approx(
@@ -190,7 +292,7 @@ def test_depression_gap_closed_and_columns_on_hand_made_numbers() -> None:
     assert "depression_gap_closed" not in results[floor]["seen"]
 
     results["model"]["seen"]["closer_to_target_depression"] = 0.625
-    markdown = script.table3_markdown(results, include_paper=True)
+    markdown = table3_markdown(results, include_paper=True)
     header = markdown.splitlines()[0]
     assert "Dep. err. (deg) ↓ | Closer to target dep. ↑ | Az. gap closed ↑ | Acc. gap closed ↑ | " in header
     assert header.endswith("| Dep. gap closed ↑ | n |")
@@ -200,9 +302,9 @@ def test_depression_gap_closed_and_columns_on_hand_made_numbers() -> None:
 
     # without a depression regressor (older evaluator folders) the table keeps its columns
     plain = {method: {g: row(50.0, 50.0, None) for g in ("seen",)} for method in (floor, round_trip, "model")}
-    script.add_gap_closed(plain, floor=floor, ceiling=round_trip)
+    add_gap_closed(plain, floor=floor, ceiling=round_trip)
     assert "depression_gap_closed" not in plain["model"]["seen"]
-    assert "Dep." not in script.table3_markdown(plain, include_paper=False).splitlines()[0]
+    assert "Dep." not in table3_markdown(plain, include_paper=False).splitlines()[0]
 
 
 def test_evaluate_depression_protocol_passes_input_depression(tmp_path: Path, monkeypatch) -> None:
@@ -245,10 +347,10 @@ def test_evaluate_depression_protocol_passes_input_depression(tmp_path: Path, mo
         assert set(written["pairs_per_d_el_deg"][group]) <= {"-7", "+13", "+28"}
         assert sum(written["pairs_per_d_el_deg"][group].values()) == 3
     # the same pairs again: the real target's depression error is the regressor's own on the targets
-    config = evaluate.EvaluateConfig(**json.loads((out / "config.json").read_text()))
+    config = EvaluateConfig(**json.loads((out / "config.json").read_text()))
     evaluators = load_evaluators(tmp_path / "evaluators")
-    pair_sets = evaluate.build_pair_sets(config, evaluators, image_size=32)
-    floor, target, round_trip = evaluate.INPUT_COPY, evaluate.REAL_TARGET, evaluate.VAE_ROUND_TRIP
+    pair_sets = evaluation_pairs(config, evaluators, image_size=32)
+    floor, target, round_trip = INPUT_COPY, REAL_TARGET, VAE_ROUND_TRIP
     for group, pairs in pair_sets.items():
         assert (pairs.input_depression_deg == 17.0).all() and pairs.has_reference.all()
         torch.testing.assert_close(pairs.d_el_deg, pairs.target_depression_deg - 17.0)
@@ -269,7 +371,7 @@ def test_evaluate_depression_protocol_passes_input_depression(tmp_path: Path, mo
             assert 0.0 <= table3[method][group]["depression_error_deg"] <= 90.0
         values, low, high = (table3[m][group] for m in ("pipe", floor, round_trip))
         key = "depression_error_deg"
-        expected_gap = evaluate.gap_closed(
+        expected_gap = gap_closed(
             values[key], low[key], high[key], gap_se=math.hypot(low[f"{key}_se"], high[f"{key}_se"])
         )
         assert values["depression_gap_closed"] == pytest.approx(expected_gap, nan_ok=True)
@@ -280,12 +382,35 @@ def test_evaluate_depression_protocol_passes_input_depression(tmp_path: Path, mo
 
 def test_evaluate_rejects_bad_depression_requests() -> None:
     with pytest.raises(ValueError, match="pass --no-same_depression"):
-        evaluate.EvaluateConfig(pipeline=["a"], input_depression_deg=17.0, target_depressions_deg=[30.0])
+        EvaluateConfig(pipeline=["a"], input_depression_deg=17.0, target_depressions_deg=[30.0])
     with pytest.raises(ValueError, match=r"target_depressions_deg must lie in \(0, 90\) degrees"):
-        evaluate.EvaluateConfig(pipeline=["a"], target_depressions_deg=[90.0], same_depression=False)
+        EvaluateConfig(pipeline=["a"], target_depressions_deg=[90.0], same_depression=False)
     with pytest.raises(ValueError, match=r"input_depression_deg must lie in \(0, 90\) degrees"):
-        evaluate.EvaluateConfig(pipeline=["a"], input_depression_deg=0.0)
+        EvaluateConfig(pipeline=["a"], input_depression_deg=0.0)
     with pytest.raises(ValueError, match="target_depressions_deg: give at least one"):
-        evaluate.EvaluateConfig(pipeline=["a"], target_depressions_deg=[])
+        EvaluateConfig(pipeline=["a"], target_depressions_deg=[])
     # one depression for input and target is a same-depression request
-    evaluate.EvaluateConfig(pipeline=["a"], input_depression_deg=17.0, target_depressions_deg=[17.0])
+    EvaluateConfig(pipeline=["a"], input_depression_deg=17.0, target_depressions_deg=[17.0])
+
+
+def test_evaluate_whose_setup_fails_leaves_no_record(tmp_path: Path) -> None:
+    data = write_chip_folder(tmp_path / "data", azimuths_deg=(0.0, 90.0), size=32)
+    _evaluators(tmp_path / "evaluators")
+    SARZero123Pipeline(**get_dummy_components()).save_pretrained(tmp_path / "pipe")
+    out = tmp_path / "eval"
+    config = EvaluateConfig(pipeline=[str(tmp_path / "pipe")], evaluators=str(tmp_path / "evaluators"),
+                            data=str(data), n=5, crop_size=32, output_dir=str(out), device="cpu")  # fmt: skip
+    with pytest.raises(ValueError, match="the seen group needs 5 distinct pairs"):
+        stage.run_evaluate(config)
+    # the run never began: the corrected command is not refused for differing from it
+    assert not out.exists() or not any(out.iterdir())
+    config = dataclasses.replace(config, n=2, num_figure_pairs=0)
+    with pytest.warns(UserWarning, match="rank-deficient"):
+        stage.run_evaluate(config)
+    # a run killed before its last output is redone with --resume, and only then finished
+    record = read_run_record(out)
+    write_json_atomic({**record, "finished": False}, out / "run.json")
+    (out / "table3.json").unlink()
+    with pytest.warns(UserWarning, match="rank-deficient"):
+        stage.run_evaluate(dataclasses.replace(config, resume=True))
+    assert read_run_record(out)["finished"] and json.loads((out / "table3.json").read_text())["results"]

@@ -1,4 +1,5 @@
-"""Tests for sar_zero123.evaluators and train/train_evaluators.py (fabricated chips, tiny ResNets)."""
+"""Tests for sar_zero123.evaluators and the evaluators stage (sar_zero123.stages.evaluators,
+train/train_evaluators.py), on fabricated chips and tiny ResNets."""
 
 from __future__ import annotations
 
@@ -23,6 +24,9 @@ from sar_zero123.evaluators import (
     load_evaluator,
     load_evaluators,
 )
+from sar_zero123.run_folder import read_run_record
+from sar_zero123.stages import evaluators as stage
+from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, hold_out, run_evaluators
 from train import train_evaluators
 
 TINY_ENCODER = {
@@ -113,7 +117,17 @@ def test_load_evaluator_rejects_other_class_list(tmp_path: Path) -> None:
         load_evaluator(tmp_path / "missing")
 
 
-def test_train_evaluators_smoke_and_reproducible(tmp_path: Path) -> None:
+def _snapshot(folder: Path) -> dict[str, tuple[bytes, int]]:
+    """Every file under `folder` with its bytes and modification time."""
+    files = sorted(p for p in folder.rglob("*") if p.is_file())
+    return {p.relative_to(folder).as_posix(): (p.read_bytes(), p.stat().st_mtime_ns) for p in files}
+
+
+def _no_work(*args, **kwargs):
+    raise AssertionError("finished evaluators were trained again")
+
+
+def test_train_evaluators_smoke_and_reproducible(tmp_path: Path, monkeypatch) -> None:
     data = write_chip_folder(tmp_path / "data")
     args = [
         "--data", str(data), "--image_size", "16", "--depths", "1", "1", "--hidden_sizes", "8", "16",
@@ -137,13 +151,29 @@ def test_train_evaluators_smoke_and_reproducible(tmp_path: Path) -> None:
         second = load_file(str(tmp_path / "run2" / name / "model.safetensors"))
         assert all(torch.equal(first[key], second[key]) for key in first)
 
-    # Table IV probe on a frozen encoder: the encoder weights stay untouched.
+    # The run folder: the same settings again are refused; --resume returns the finished run untouched.
+    record = read_run_record(tmp_path / "run1")
+    assert record["stage"] == "evaluators" and record["finished"] and record["outputs"] == ["metrics.json"]
+    before = _snapshot(tmp_path / "run1")
+    with pytest.raises(ValueError, match="already holds a finished evaluators run with these settings"):
+        train_evaluators.main(["--output_dir", str(tmp_path / "run1"), *args])
+    with pytest.raises(ValueError, match="Differences: epochs: folder 2, this run 3"):
+        train_evaluators.main(["--output_dir", str(tmp_path / "run1"), *args, "--epochs", "3", "--resume"])
+    monkeypatch.setattr(stage, "prepare_splits", _no_work)
+    resumed = train_evaluators.main(["--output_dir", str(tmp_path / "run1"), *args, "--resume"])
+    assert resumed == results and _snapshot(tmp_path / "run1") == before
+    monkeypatch.undo()
+
+    # Table IV probe on a frozen encoder: the encoder weights stay untouched. Another setting in the same
+    # folder is a new run: --restart moves the first one aside, whole.
     encoder_dir = tmp_path / "simclr" / "encoder"
     evaluators.classifier.encoder.save_pretrained(encoder_dir)
-    probe_results = train_evaluators.main(
-        ["--output_dir", str(tmp_path / "run1"), *args, "--simclr_encoders", str(tmp_path / "simclr")]
-    )
+    probe_argv = ["--simclr_encoders", str(tmp_path / "simclr"), "--restart"]
+    probe_results = train_evaluators.main(["--output_dir", str(tmp_path / "run1"), *args, *probe_argv])
     assert "probe:simclr" in probe_results
+    moved = [p for p in tmp_path.iterdir() if p.name.startswith("run1.replaced-")]
+    assert len(moved) == 1 and _snapshot(moved[0]) == before
+    assert read_run_record(tmp_path / "run1")["data"]["simclr_encoders"][0]["files"] == 2  # config, weights
     probe = load_evaluators(tmp_path / "run1").probes["simclr"]
     for key, value in evaluators.classifier.encoder.state_dict().items():
         torch.testing.assert_close(probe.encoder.state_dict()[key], value)
@@ -215,7 +245,7 @@ def test_train_evaluators_trains_a_depression_regressor(tmp_path: Path) -> None:
     evaluators = load_evaluators(out, class_names=["A", "B"])
     regressor = evaluators.depression_regressor
     assert isinstance(regressor, DepressionRegressor) and regressor.metrics == metrics
-    _, test_records = train_evaluators.hold_out(load_index(depression_data), 0.2, seed=3 + 2)
+    _, test_records = hold_out(load_index(depression_data), 0.2, seed=3 + 2)
     chips = ChipDataset(test_records, size=16, scaling=evaluators.classifier.scaling)
     images = torch.stack([chips[i]["image"] for i in range(len(chips))])
     with torch.no_grad():
@@ -225,21 +255,26 @@ def test_train_evaluators_trains_a_depression_regressor(tmp_path: Path) -> None:
         (predicted - truth).abs().mean().item(), rel=1e-5
     )
 
+    # depression data at one depression is refused before any work: no folder, no simulated data
+    single = write_chip_folder(tmp_path / "single", depressions_deg=(15.0,))
+    config = TrainEvaluatorsConfig(depression_data=str(single), output_dir=str(tmp_path / "refused"))
     with pytest.raises(ValueError, match=r"holds chips at depressions \[15.0\] deg; a depression regressor"):
-        single = write_chip_folder(tmp_path / "single", depressions_deg=(15.0,))
-        config = train_evaluators.TrainEvaluatorsConfig(depression_data=str(single))
-        train_evaluators.train_depression_regressor(config, SAREncoderConfig(**TINY_ENCODER), None, out, 0)
+        run_evaluators(config)
+    assert not (tmp_path / "refused").exists()
     with pytest.raises(ValueError, match=r"depression_test_fraction must lie in \(0, 1\)"):
-        train_evaluators.TrainEvaluatorsConfig(depression_test_fraction=1.0)
+        TrainEvaluatorsConfig(depression_test_fraction=1.0)
+    for name, value, bound in (("epochs", 100_000_000, "10000"), ("image_size", 100_000, "1024")):
+        with pytest.raises(ValueError, match=f"{name} must be <= {bound}, got {value}"):
+            TrainEvaluatorsConfig(**{name: value})
 
 
 def test_hold_out_is_a_seeded_partition() -> None:
     records = list(range(10))
-    train, test = train_evaluators.hold_out(records, 0.25, seed=0)
+    train, test = hold_out(records, 0.25, seed=0)
     assert len(test) == 2 and sorted(train + test) == records  # round(2.5) = 2
-    assert train_evaluators.hold_out(records, 0.25, seed=0) == (train, test)
-    assert train_evaluators.hold_out(records, 0.25, seed=1) != (train, test)
-    assert len(train_evaluators.hold_out(records[:2], 0.01, seed=0)[1]) == 1  # at least one test chip
+    assert hold_out(records, 0.25, seed=0) == (train, test)
+    assert hold_out(records, 0.25, seed=1) != (train, test)
+    assert len(hold_out(records[:2], 0.01, seed=0)[1]) == 1  # at least one test chip
 
 
 def _pearson_reference(a: np.ndarray, b: np.ndarray) -> float:

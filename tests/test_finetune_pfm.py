@@ -1,8 +1,9 @@
-"""Tests of train/finetune_pfm.py: smoke run, CFG dropout, bad input, two-process run, SIGKILL + resume,
-trained image tower."""
+"""Tests of train/finetune_pfm.py (the fine-tune stage): smoke run, CFG dropout, bad input, two-process run,
+SIGKILL + resume, trained image tower, the run-folder rule (refusal, restart, extension), bounded work."""
 
 from __future__ import annotations
 
+import hashlib
 import json
 import logging
 import multiprocessing
@@ -23,10 +24,11 @@ from safetensors.torch import load_file
 
 from sar_zero123.data import ChipRecord, write_index
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
+from sar_zero123.losses import LossSettings
 from sar_zero123.models import build_sar_zero123
 from sar_zero123.orientation import AzimuthEstimator
 from sar_zero123.pipeline import SARZero123Pipeline
-from sar_zero123.runs import weights_digest
+from sar_zero123.runs import check_global_batch, weights_digest
 from sar_zero123.training import ImageEmbedder, compute_losses, micro_batch_generator
 from train import finetune_pfm
 
@@ -165,9 +167,7 @@ def test_cfg_dropout_both_matches_sampling_null() -> None:
         encoder=None,
         noise_scheduler=DDPMScheduler.from_config(components["scheduler"].config),
         generator=torch.Generator().manual_seed(0),
-        drop_image_prob=0.0,
-        drop_both_prob=1.0,
-        drop_latent_prob=0.0,
+        loss_settings=LossSettings(drop_image_prob=0.0, drop_both_prob=1.0, drop_latent_prob=0.0),
     )
     handle.remove()
     assert losses.loss.shape == (2,)
@@ -515,3 +515,85 @@ def test_estimate_input_azimuth_trains_checkpoints_and_exports_it(script, assets
     assert all(torch.equal(saved[k], trained[k]) for k in trained)
     logged = json.loads((out / "validation" / "metrics.jsonl").read_text().splitlines()[-1])
     assert 0.0 <= logged["validation/loss_azimuth"] <= 2.0
+
+
+# ------------------------------------------------------------------------------ the run-folder rule
+def snapshot(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` by relative path, with its bytes."""
+    files = sorted(p for p in folder.rglob("*") if p.is_file())
+    return {p.relative_to(folder).as_posix(): p.read_bytes() for p in files}
+
+
+def one_step_args(assets: dict[str, Path], output_dir: Path, *extra: str) -> list[str]:
+    return tiny_args(assets, output_dir, "--max_train_steps", "1", "--checkpointing_steps", "1",
+                     "--validation_steps", "0", "--pfm_weight", "0", *extra)  # fmt: skip
+
+
+@pytest.fixture(scope="module")
+def finished_run(script, assets, tmp_path_factory) -> Path:
+    """A finished one-step run (constant learning rate), copied by the tests that change it."""
+    out = script.main(one_step_args(assets, tmp_path_factory.mktemp("finished") / "run"))
+    AcceleratorState._reset_state(True)
+    GradientState._reset_state()
+    return out
+
+
+def test_a_finished_run_is_recorded_with_its_data_and_last_output(finished_run, assets) -> None:
+    record = json.loads((finished_run / "run.json").read_text())
+    assert record["stage"] == "finetune" and record["finished"] is True
+    assert record["outputs"] == ["train_state.json", "pipeline/model_index.json"]
+    assert record["results"] == {"final_step": 1} and record["seconds"] > 0
+    assert record["config"]["max_train_steps"] == 1 and record["config"]["restart"] is False
+    index = (assets["data"] / "index.csv").read_bytes()
+    assert record["data"]["data"]["index_sha256"] == hashlib.sha256(index).hexdigest()
+
+
+def test_reusing_a_finished_run_without_resume_is_refused_and_changes_nothing(script, assets, finished_run):
+    before = snapshot(finished_run)
+    message = rf"output_dir: '{re.escape(str(finished_run))}' already holds a finished finetune run"
+    with pytest.raises(ValueError, match=rf"{message}.*--resume_from_checkpoint latest.*--restart"):
+        script.main(one_step_args(assets, finished_run))
+    with pytest.raises(ValueError, match=r"Differences: learning_rate: folder 0.0001, this run 0.001\."):
+        script.main(one_step_args(assets, finished_run, "--learning_rate", "1e-3"))
+    assert snapshot(finished_run) == before
+
+
+def test_restart_moves_the_old_run_aside_and_starts_over(script, assets, finished_run, tmp_path) -> None:
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    before = snapshot(run)
+    script.main(one_step_args(assets, run, "--learning_rate", "1e-3", "--restart"))
+    (aside,) = tmp_path.glob("run.replaced-*")
+    assert snapshot(aside) == before  # the old run, every file as it was
+    record = json.loads((run / "run.json").read_text())
+    assert record["finished"] is True and record["config"]["learning_rate"] == 1e-3
+    assert (run / "pipeline" / "model_index.json").is_file()
+    with pytest.raises(ValueError, match="restart: .*resume_from_checkpoint"):
+        script.main(one_step_args(assets, run, "--restart", "--resume_from_checkpoint", "latest"))
+
+
+def test_resuming_a_constant_lr_run_with_more_steps_continues_it(script, assets, finished_run, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(finished_run, run)
+    script.main(one_step_args(assets, run, "--max_train_steps", "2", "--resume_from_checkpoint", "latest"))
+    record = json.loads((run / "run.json").read_text())
+    assert record["finished"] is True and record["results"] == {"final_step": 2}
+    assert record["config"]["max_train_steps"] == 2
+    assert [entry["changed"] for entry in record["continued"]] == [{"max_train_steps": {"from": 1, "to": 2}}]
+    assert json.loads((run / "train_state.json").read_text())["global_step"] == 2
+    assert sorted(p.name for p in run.glob("checkpoint-*")) == ["checkpoint-1", "checkpoint-2"]
+    # continued again with the same settings: finished, nothing to do, nothing rewritten
+    before = snapshot(run)
+    script.main(one_step_args(assets, run, "--max_train_steps", "2", "--resume_from_checkpoint", "latest"))
+    assert snapshot(run) == before
+
+
+def test_gradient_accumulation_beyond_one_epoch_is_refused_with_its_bound(script, assets, tmp_path) -> None:
+    run = tmp_path / "run"
+    with pytest.raises(ValueError, match=r"gradient_accumulation_steps must be <= \d+ for \d+ training pairs "
+                                         r"in global batches of 2 .*got 100000"):  # fmt: skip
+        script.main(one_step_args(assets, run, "--gradient_accumulation_steps", "100000"))
+    assert not run.exists() or not any(run.iterdir())  # the run never began: its record is withdrawn
+    with pytest.raises(ValueError, match=r"^gradient_accumulation_steps must be <= 12 for 48 training pairs"):
+        check_global_batch(48, 4, 1, what="pairs", gradient_accumulation_steps=13)
+    check_global_batch(48, 4, 1, what="pairs", gradient_accumulation_steps=12)  # one epoch per step

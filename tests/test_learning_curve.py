@@ -12,20 +12,15 @@ from safetensors.torch import save_file
 from benchmarks import learning_curve
 
 
-def flag(argv: list[str], name: str) -> str:
-    return argv[argv.index(name) + 1]
-
-
 def fake_stages(monkeypatch: pytest.MonkeyPatch, calls: list) -> None:
-    """finetune_pfm.main writes what a run leaves (UNet weights, a validation record); evaluate.main
-    returns a Table III whose seen error is 100 - steps / 100."""
+    """run_finetune writes what a run leaves (UNet weights, a validation record); the evaluation of a chunk
+    reads a Table III whose seen error is 100 - steps / 100."""
 
-    def finetune(argv: list[str]) -> None:
-        steps = int(flag(argv, "--max_train_steps"))
-        run_dir = Path(flag(argv, "--output_dir"))
-        calls.append(("finetune", flag(argv, "--size"), steps, flag(argv, "--resume_from_checkpoint")))
-        settings = flag(argv, "--learning_rate"), flag(argv, "--train_batch_size")
-        calls.append(("run_dir", run_dir.name, *settings))
+    def finetune(config) -> Path:
+        steps = config.max_train_steps
+        run_dir = Path(config.output_dir)
+        calls.append(("finetune", config.size, steps, config.resume_from_checkpoint))
+        calls.append(("run_dir", run_dir.name, config.learning_rate, config.train_batch_size))
         unet = run_dir / "pipeline" / "unet"
         unet.mkdir(parents=True, exist_ok=True)
         weights = {"a": torch.zeros(3, 4), "b": torch.zeros(5)}
@@ -35,16 +30,22 @@ def fake_stages(monkeypatch: pytest.MonkeyPatch, calls: list) -> None:
                   "validation/pose_following_error_deg": 90.0 - steps / 100}  # fmt: skip
         with (run_dir / "validation" / "metrics.jsonl").open("a") as handle:
             handle.write(json.dumps(record) + "\n")
+        return run_dir
 
-    def evaluate(argv: list[str]) -> dict:
-        steps = int(Path(flag(argv, "--output_dir")).name.split("_")[1])
-        calls.append(("evaluate", steps))
+    def evaluate(config) -> Path:
+        assert config.resume and config.pipeline == [str(Path(config.output_dir).parent / "pipeline")]
+        calls.append(("evaluate", int(Path(config.output_dir).name.split("_")[1])))
+        return Path(config.output_dir)
+
+    def load_evaluation(folder: Path) -> dict:
+        steps = int(folder.name.split("_")[1])
         views = {"azimuth_error_deg": 100 - steps / 100, "azimuth_error_deg_se": 1.0,
                  "azimuth_gap_closed": steps / 1e4, "accuracy": 50.0, "accuracy_se": 2.0}  # fmt: skip
         return {"table3": {"model": {"seen": views, "unseen": views}}}
 
-    monkeypatch.setattr(learning_curve.finetune_pfm, "main", finetune)
-    monkeypatch.setattr(learning_curve.evaluate, "main", evaluate)
+    monkeypatch.setattr(learning_curve, "run_finetune", finetune)
+    monkeypatch.setattr(learning_curve, "run_evaluate", evaluate)
+    monkeypatch.setattr(learning_curve, "load_evaluation", load_evaluation)
 
 
 def argv_for(tmp_path: Path, *extra: str) -> list[str]:
@@ -61,7 +62,7 @@ def test_one_row_per_chunk_and_a_rerun_continues_after_the_last_row(tmp_path, mo
     chunks = ("--sizes", "micro", "--chunk_steps", "200", "--max_steps")
     rows = learning_curve.main(argv_for(tmp_path, *chunks, "400"))
     assert [(row["size"], row["steps"]) for row in rows] == [("micro", 200), ("micro", 400)]
-    run_dir = ("run_dir", "micro_lr0.001_b16", "0.001", "16")
+    run_dir = ("run_dir", "micro_lr0.001_b16", 0.001, 16)
     assert calls == [("finetune", "micro", 200, "latest"), run_dir, ("evaluate", 200),
                      ("finetune", "micro", 400, "latest"), run_dir, ("evaluate", 400)]  # fmt: skip
     assert (rows[1]["learning_rate"], rows[1]["train_batch_size"]) == (1e-3, 16)
@@ -82,7 +83,7 @@ def test_one_row_per_chunk_and_a_rerun_continues_after_the_last_row(tmp_path, mo
     # another batch size in the same --work_dir and --out is its own curve: own folder, all its chunks
     calls.clear()
     rows = learning_curve.main(argv_for(tmp_path, *chunks, "400", "--train_batch_size", "32"))
-    other = ("run_dir", "micro_lr0.001_b32", "0.001", "32")
+    other = ("run_dir", "micro_lr0.001_b32", 0.001, 32)
     assert calls == [("finetune", "micro", 200, "latest"), other, ("evaluate", 200),
                      ("finetune", "micro", 400, "latest"), other, ("evaluate", 400)]  # fmt: skip
     assert [(row["train_batch_size"], row["steps"]) for row in rows] == [(16, 200), (16, 400), (16, 600),
@@ -106,17 +107,17 @@ def test_bad_arguments_are_refused_before_any_training(tmp_path, monkeypatch) ->
 def test_a_chunk_trained_before_a_crash_is_evaluated_without_training_it_again(tmp_path, monkeypatch) -> None:
     calls: list = []
     fake_stages(monkeypatch, calls)
-    evaluate = learning_curve.evaluate.main
+    evaluate = learning_curve.run_evaluate
 
-    def crash(argv: list[str]) -> dict:
+    def crash(config) -> Path:
         raise KeyboardInterrupt
 
-    monkeypatch.setattr(learning_curve.evaluate, "main", crash)
+    monkeypatch.setattr(learning_curve, "run_evaluate", crash)
     argv = argv_for(tmp_path, "--sizes", "micro", "--chunk_steps", "200", "--max_steps", "200")
     with pytest.raises(KeyboardInterrupt):
         learning_curve.main(argv)
     seconds = json.loads((tmp_path / "runs" / "micro_lr0.001_b16" / "chunk_seconds.json").read_text())["200"]
-    monkeypatch.setattr(learning_curve.evaluate, "main", evaluate)
+    monkeypatch.setattr(learning_curve, "run_evaluate", evaluate)
     calls.clear()
     rows = learning_curve.main(argv)
     assert calls == [("evaluate", 200)]

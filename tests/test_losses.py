@@ -15,6 +15,7 @@ from sar_zero123.losses import (
     DEFAULT_PFM_MIN_SNR,
     MIN_ALPHA_CUMPROD,
     PFM_PROJECTION_FILE,
+    LossSettings,
     ProjectedFeatureEncoder,
     append_dims,
     check_pfm_crop_size,
@@ -269,6 +270,50 @@ def test_total_loss_fraction_and_mask(vae, encoder) -> None:
     assert int(half.pfm_mask.sum()) == 2  # ceil(0.5 * 3 eligible)
     picked = half.pfm_mask.nonzero().flatten()
     torch.testing.assert_close(half.pfm[picked], full.pfm[picked] * 1.5)  # unbiased: 3 eligible / 2 kept
+
+
+def test_total_loss_weights_l_simple_before_adding_lambda_pfm(vae, encoder) -> None:
+    scheduler = scheduler_for("scaled_linear")
+    generator = torch.Generator().manual_seed(4)
+    x_t = torch.randn(3, 4, 16, 16, generator=generator)
+    output = torch.randn(3, 4, 16, 16, generator=generator)
+    target, images = torch.zeros(3, 4, 16, 16), torch.rand(3, 1, 32, 32, generator=generator)
+    timesteps, weights = torch.tensor([10, 300, 900]), torch.tensor([0.5, 1.0, 2.0])
+    kwargs = dict(pfm_weight=3.0, target_images=images, vae=vae, encoder=encoder, pfm_min_snr=0.0)
+    plain = total_loss(output, target, x_t, timesteps, scheduler, **kwargs)
+    weighted = total_loss(output, target, x_t, timesteps, scheduler, denoising_weights=weights, **kwargs)
+    mse = output.pow(2).flatten(1).mean(1)  # L_simple against a zero target, by hand
+    torch.testing.assert_close(weighted.denoising, mse * weights)
+    torch.testing.assert_close(weighted.pfm, plain.pfm)
+    torch.testing.assert_close(weighted.loss, mse * weights + 3.0 * plain.pfm)  # Eq. (21)
+
+
+@pytest.mark.parametrize(
+    ("values", "message"),
+    [
+        ({"pfm_weight": -1.0}, r"pfm_weight must be >= 0, got -1.0"),
+        ({"pfm_weight": float("nan")}, r"pfm_weight must be >= 0, got nan"),
+        ({"pfm_fraction": 0.0}, r"pfm_fraction must be in \(0, 1\], got 0.0"),
+        ({"pfm_crop_size": 0}, r"pfm_crop_size must be >= 1 or None, got 0"),
+        ({"drop_image_prob": 0.6, "drop_both_prob": 0.6}, r"drop_image_prob, .* got \(0.6, 0.6, 0.05\)"),
+        ({"timestep_sampling": "cosine"}, r"timestep_sampling must be 'uniform' or 'logit_normal'"),
+        ({"timestep_sampling": "logit_normal", "timestep_logit_std": 0.0}, r"timestep_logit_std must be > 0"),
+        ({"snr_gamma": 0.0}, r"snr_gamma must be > 0 or None, got 0.0"),
+        ({"azimuth_loss_weight": -0.5}, r"azimuth_loss_weight must be >= 0, got -0.5"),
+    ],
+)
+def test_loss_settings_refuse_each_bad_value_by_its_field_name(values, message) -> None:
+    with pytest.raises(ValueError, match=message):
+        LossSettings(**values)
+
+
+def test_loss_settings_are_frozen_and_default_to_plain_zero123() -> None:
+    settings = LossSettings()
+    assert settings.pfm_weight == 0.0 and settings.snr_gamma is None
+    assert settings.pfm_min_snr == DEFAULT_PFM_MIN_SNR
+    assert LossSettings(timestep_logit_std=0.0).timestep_logit_std == 0.0  # only read by logit_normal
+    with pytest.raises(AttributeError):
+        settings.pfm_weight = 4.0
 
 
 class TinyDenoiser(nn.Module):

@@ -10,6 +10,7 @@ from diffusers import DDPMScheduler
 
 from sar_zero123 import SARZero123Pipeline, build_sar_zero123, embed_pose
 from sar_zero123.conditioning import pose_class_labels
+from sar_zero123.losses import LossSettings
 from sar_zero123.orientation import (
     AzimuthEstimator,
     azimuth_deg,
@@ -184,7 +185,7 @@ def _losses(pipe: SARZero123Pipeline, batch: dict, weight: float):
         noise_scheduler=DDPMScheduler.from_config(pipe.scheduler.config),
         generator=torch.Generator().manual_seed(3),
         azimuth_estimator=pipe.azimuth_estimator,
-        azimuth_loss_weight=weight,
+        loss_settings=LossSettings(azimuth_loss_weight=weight),
     )
 
 

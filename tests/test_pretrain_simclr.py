@@ -72,9 +72,13 @@ def test_resume_from_latest_reproduces_an_uninterrupted_run(chip_folder, tmp_pat
     common = ["--data", str(chip_folder), "--report_to", "none", "--preset", "simclr-full", *TINY_ARGS]
     common += ["--max_train_steps", "3", "--checkpointing_steps", "1"]
     straight = script.main([*common, "--output_dir", str(tmp_path / "a")])
-    # emulate a crash right after step 1: keep only the first checkpoint
+    # emulate a crash right after step 1: keep only the first checkpoint and the unfinished run record
     crashed = tmp_path / "b"
     shutil.copytree(tmp_path / "a" / "checkpoint-1", crashed / "checkpoint-1")
+    record = json.loads((tmp_path / "a" / "run.json").read_text())
+    for key in ("finished_at", "outputs", "seconds", "results"):
+        record.pop(key)
+    (crashed / "run.json").write_text(json.dumps({**record, "finished": False}))
     resumed = script.main([*common, "--output_dir", str(crashed), "--resume_from_checkpoint", "latest"])
     assert resumed["start_step"] == 1 and resumed["steps"] == 3
     assert resumed["final_loss"] == pytest.approx(straight["final_loss"], rel=1e-5)
@@ -166,7 +170,28 @@ def test_checkpoint_written_with_the_old_batch_size_name_resumes(chip_folder, tm
     state["config"]["batch_size"] = state["config"].pop("global_batch_size")
     (checkpoint / "run_state.json").write_text(json.dumps(state))
     write_manifest(checkpoint)
-    metrics = pretrain_simclr.main([*common, "--resume_from_checkpoint", str(checkpoint)])
+    resumed = ["--output_dir", str(tmp_path / "resumed"), "--resume_from_checkpoint", str(checkpoint)]
+    metrics = pretrain_simclr.main([*common, *resumed])
     assert metrics["start_step"] == 1 and metrics["steps"] == 2
     with pytest.raises(ValueError, match=r"global_batch_size: checkpoint 4, this run 2"):
         pretrain_simclr.main([*common, "--global_batch_size", "2", "--resume_from_checkpoint", "latest"])
+
+
+def test_reusing_a_finished_run_is_refused_and_restart_moves_it_aside(chip_folder, tmp_path):
+    out = tmp_path / "run"
+    common = ["--data", str(chip_folder), "--output_dir", str(out), "--report_to", "none", *TINY_ARGS]
+    common += ["--max_train_steps", "1"]
+    first = pretrain_simclr.main(common)
+    before = {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    with pytest.raises(ValueError, match=r"already holds a finished simclr run.*--restart"):
+        pretrain_simclr.main(common)
+    differs = r"Differences: .*preset: folder 'speckle\+monotonic', this run 'simclr-full'"
+    with pytest.raises(ValueError, match=differs):
+        pretrain_simclr.main([*common, "--preset", "simclr-full", "--resume_from_checkpoint", "latest"])
+    # a continued finished run does no work and returns its metrics
+    assert pretrain_simclr.main([*common, "--resume_from_checkpoint", "latest"]) == first
+    assert {p.relative_to(out): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()} == before
+    pretrain_simclr.main([*common, "--restart"])
+    (aside,) = tmp_path.glob("run.replaced-*")
+    assert {p.relative_to(aside): p.read_bytes() for p in sorted(aside.rglob("*")) if p.is_file()} == before
+    assert json.loads((out / "run.json").read_text())["finished"] is True

@@ -260,5 +260,12 @@ def test_pretrain_prior_smoke_writes_a_pipeline_that_takes_depression(tmp_path: 
     longer[longer.index("--base_steps") + 1] = "3"
     pretrain_prior.main(longer)
     assert json.loads((tmp_path / "prior" / "base" / "config.json").read_text())["max_train_steps"] == 3
+    record = json.loads((tmp_path / "prior" / "run.json").read_text())
+    assert record["stage"] == "prior" and record["finished"] is True and record["config"]["base_steps"] == 3
+    assert json.loads((tmp_path / "prior" / "base" / "run.json").read_text())["results"] == {"final_step": 3}
+    # the same folder with another setting is refused before any work, naming it
+    refused = r"holds a prior run made with other settings.*seed: folder 0, this run 1\b"
+    with pytest.raises(ValueError, match=refused):
+        pretrain_prior.main([*longer, "--seed", "1"])
     with pytest.raises(ValueError, match="depression_range_deg"):
         pretrain_prior.PriorConfig(depression_range_deg=[50.0, 20.0])

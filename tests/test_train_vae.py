@@ -154,3 +154,21 @@ def test_resume_with_another_setting_is_refused(script, chips, tmp_path) -> None
     GradientState._reset_state()
     with pytest.raises(ValueError, match=r"kl_weight: checkpoint 1e-06, this run 0.5"):
         script.main([*argv, "--kl_weight", "0.5", "--resume_from_checkpoint", "latest"])
+
+
+def test_reusing_a_finished_run_is_refused_and_more_steps_continue_it(script, chips, tmp_path) -> None:
+    out = tmp_path / "vae"
+    argv = ["--data", str(chips), "--output_dir", str(out), "--checkpointing_steps", "1", *TINY]
+    script.main([*argv, "--max_train_steps", "1"])
+    AcceleratorState._reset_state(True)
+    GradientState._reset_state()
+    before = {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    with pytest.raises(ValueError, match=r"already holds a finished vae run.*--restart"):
+        script.main([*argv, "--max_train_steps", "1"])
+    with pytest.raises(ValueError, match=r"Differences: max_train_steps: folder 1, this run 2"):
+        script.main([*argv, "--max_train_steps", "2"])  # more steps only when continuing
+    assert {p: p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()} == before
+    script.main([*argv, "--max_train_steps", "2", "--resume_from_checkpoint", "latest"])
+    record = json.loads((out / "run.json").read_text())
+    assert record["finished"] is True and record["results"] == {"final_step": 2}
+    assert json.loads((out / "metrics.json").read_text())["steps"] == 2

@@ -8,6 +8,7 @@ import torch
 from diffusers import DDPMScheduler
 
 from sar_zero123.data import ChipRecord, ViewPairDataset
+from sar_zero123.losses import LossSettings
 from sar_zero123.training import (
     CachedViewPairs,
     ChipLatentCache,
@@ -15,6 +16,7 @@ from sar_zero123.training import (
     compute_losses,
     conditioning_sensitivity,
     load_chip_images,
+    min_snr_weights,
     timestep_bucket_losses,
 )
 from tests.dummies import dummy_images, get_dummy_components
@@ -25,7 +27,7 @@ def components():
     return get_dummy_components()
 
 
-def step_losses(batch, components, seed: int = 3):
+def step_losses(batch, components, seed: int = 3, loss_settings: LossSettings | None = None):
     return compute_losses(
         batch,
         unet=components["unet"],
@@ -35,6 +37,7 @@ def step_losses(batch, components, seed: int = 3):
         encoder=None,
         noise_scheduler=DDPMScheduler.from_config(components["scheduler"].config),
         generator=torch.Generator().manual_seed(seed),
+        loss_settings=loss_settings,
     )
 
 
@@ -205,3 +208,22 @@ def test_min_snr_weights_closed_form() -> None:
     torch.testing.assert_close(v_weights, torch.clamp(snr, max=5.0) / (snr + 1), rtol=1e-5, atol=0)
     with pytest.raises(ValueError, match="snr_gamma must be > 0"):
         min_snr_weights(scheduler, timesteps, 0.0)
+
+
+def test_min_snr_weighting_scales_l_simple_and_keeps_every_draw(components) -> None:
+    images = dummy_images(4, seed=5)
+    batch = {
+        "input": images[:2],
+        "target": images[2:],
+        "d_az_deg": torch.tensor([30.0, -150.0]),
+        "d_el_deg": torch.tensor([0.0, 2.0]),
+    }
+    with torch.no_grad():
+        plain = step_losses(batch, components)
+        weighted = step_losses(batch, components, loss_settings=LossSettings(snr_gamma=0.5))
+    assert torch.equal(weighted.timesteps, plain.timesteps)  # the same draws: only the weighting differs
+    scheduler = DDPMScheduler.from_config(components["scheduler"].config)
+    weights = min_snr_weights(scheduler, plain.timesteps, 0.5)
+    assert (weights < 1).any()  # gamma below SNR at some sampled t: the weighting changes the loss
+    torch.testing.assert_close(weighted.denoising, plain.denoising * weights)
+    torch.testing.assert_close(weighted.loss, weighted.denoising)  # lambda = 0: Eq. (21) is L_simple

@@ -51,13 +51,16 @@ from sar_zero123.data import SCALING_FILE
 from sar_zero123.data.splits import check_protocol
 from sar_zero123.models import SAR_ZERO123_SIZES
 from sar_zero123.pretrained import SIM_PRIOR, resolve_pretrained
-from sar_zero123.sim import simulate_dataset
+from sar_zero123.sim import TARGET_CLASSES, simulate_dataset
 
 if not __package__:  # run as a file: Python put only train/ on sys.path (see train/__init__.py)
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from train import evaluate, finetune_pfm, pretrain_simclr, train_evaluators, train_vae  # noqa: E402
 
 logger = logging.getLogger(__name__)
+
+#: Most evaluation pairs a preset may ask for (the evaluation generates each one).
+MAX_EVAL_N = 100_000
 
 
 @dataclass(frozen=True)
@@ -117,8 +120,55 @@ class Preset:
     depression_targets_deg: tuple[float, ...] = ()
 
     def __post_init__(self) -> None:
-        if self.checkpointing_steps < 1:
-            raise ValueError(f"checkpointing_steps must be >= 1, got {self.checkpointing_steps}")
+        # every field checked here, in the preset's own names, so that a bad --override fails before the
+        # first stage instead of when its stage starts
+        counts = ("instances", "simclr_steps", "simclr_batch_size", "vae_steps", "vae_batch_size",
+                  "base_steps", "finetune_steps", "finetune_batch_size", "evaluator_epochs", "eval_steps",
+                  "speed_n", "checkpointing_steps")  # fmt: skip
+        for name in counts:
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        if self.eval_n < 4:
+            raise ValueError(f"eval_n must be >= 4 (two seen and two unseen pairs), got {self.eval_n}")
+        if self.eval_n > MAX_EVAL_N:
+            raise ValueError(f"eval_n must be <= {MAX_EVAL_N}, got {self.eval_n}")
+        if len(self.classes) < 2 or len(set(self.classes)) != len(self.classes):
+            raise ValueError(f"classes must name at least two distinct classes, got {self.classes!r}")
+        unknown = sorted(set(self.classes) - set(TARGET_CLASSES))
+        if unknown:
+            raise ValueError(f"classes: unknown {unknown}; simulator classes are {list(TARGET_CLASSES)}")
+        if self.model_size not in SAR_ZERO123_SIZES:
+            raise ValueError(
+                f"model_size must be one of {sorted(SAR_ZERO123_SIZES)}, got {self.model_size!r}"
+            )
+        if self.image_size < 16:
+            raise ValueError(f"image_size must be >= 16, got {self.image_size}")
+        if not 0.0 < self.azimuth_step_deg <= 360.0:
+            raise ValueError(f"azimuth_step_deg must lie in (0, 360], got {self.azimuth_step_deg}")
+        if not 0.0 < self.pfm_fraction <= 1.0:
+            raise ValueError(f"pfm_fraction must lie in (0, 1], got {self.pfm_fraction}")
+        for name in ("finetune_learning_rate", "evaluator_learning_rate"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
+        if not self.encoder_depths or len(self.encoder_depths) != len(self.encoder_widths):
+            raise ValueError(
+                f"encoder_depths {self.encoder_depths} and encoder_widths {self.encoder_widths} must be "
+                "non-empty and of one length"
+            )
+        if not self.speed_steps or min(self.speed_steps) < 1:
+            raise ValueError(f"speed_steps must be step counts >= 1, got {self.speed_steps}")
+        unknown = sorted(set(self.schedulers) - set(evaluate.SCHEDULERS))
+        if not self.schedulers or unknown:
+            raise ValueError(
+                f"schedulers: choose from {sorted(evaluate.SCHEDULERS)}, got {self.schedulers!r}"
+            )
+        if any(not 0.0 < d < 90.0 for d in self.depression_targets_deg):
+            raise ValueError(f"depression_targets_deg must lie in (0, 90), got {self.depression_targets_deg}")
+        if self.lr_warmup_steps < 0:
+            raise ValueError(f"lr_warmup_steps must be >= 0, got {self.lr_warmup_steps}")
+        if self.ema_decay is not None and not 0.0 <= self.ema_decay < 1.0:
+            raise ValueError(f"ema_decay must lie in [0, 1) or be None, got {self.ema_decay}")
         if self.mixed_precision not in ("no", "fp16", "bf16"):
             raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
         if self.prediction_type not in ("epsilon", "v_prediction"):
@@ -151,18 +201,17 @@ DEFAULT_PRESET = Preset(
     encoder_widths=(16, 32, 64, 128),
     simclr_steps=200,
     simclr_batch_size=64,
-    # a VAE with a quarter of the "small" one's parameters trains 3x faster per chip; in the same two
-    # minutes it reaches 23.1 dB / SSIM 0.60 against 20.3 dB / 0.41 (learning.md, section 6b)
+    # a VAE with a quarter of the "small" one's parameters trains faster per chip, so the same stage time
+    # buys more chips and a better reconstruction (docs/results/learning.md, section 6b)
     vae_widths=(16, 32, 64),
     vae_norm_groups=8,
     vae_steps=540,
     vae_batch_size=8,
     estimate_input_azimuth=True,
-    # pose use emerges between 1,800 and 3,000 steps (learning.md, 7c): 3,000 is what 12 minutes buy
+    # enough steps for pose use to emerge, within the quickstart's time budget (learning.md, 7c-7d)
     base_steps=3000,
-    # v prediction with Min-SNR-5 weighting: on the same 3,000 steps it closes 87 % of the seen gap with
-    # the class kept in 60 % of views, against 70 % and 51 % for epsilon L_simple (256 + 256 pairs;
-    # learning.md, section 9h)
+    # v prediction with Min-SNR-5 weighting: on the same steps it turns more views to the requested pose
+    # and keeps their class more often than epsilon L_simple (learning.md, section 9h)
     prediction_type="v_prediction",
     snr_gamma=5.0,
     # from the prior, 1,000 steps turn the held-out vehicle best (200 keep more of the prior's depression
@@ -189,19 +238,18 @@ PRESETS: dict[str, Preset] = {
     # the default trained from scratch (VAE and a base model of base_steps, then the fine-tunes): the
     # comparison row for the prior
     "scratch": dataclasses.replace(DEFAULT_PRESET, prior=None, finetune_steps=200),
-    # Target 2 of issue 9: the same simulated data, the default's VAE trained 3,000 steps instead of 540 and
-    # 15,000 base steps, with the default's v prediction and Min-SNR-5 (on 512 + 512 pairs the seen class
-    # is kept in 91.6 % of views against 88.1 % for epsilon L_simple on the same data, VAE and evaluators,
-    # and 85-91 % across five epsilon models); 40-50 min on an otherwise idle 2-core CPU
-    # (docs/results/learning.md, sections 6d, 8c, 9 and 9i)
+    # the scratch preset trained longer, for the seen-accuracy and unseen-vehicle targets: the same
+    # simulated data, the VAE trained 3,000 steps instead of 540 and 15,000 base steps, with the default's
+    # v prediction and Min-SNR-5, which keeps the seen class more often than epsilon L_simple on the same
+    # data, VAE and evaluators (run times and results: docs/results/learning.md, sections 6d, 8c, 9 and 9i)
     "long": dataclasses.replace(
         DEFAULT_PRESET, vae_steps=3000, base_steps=15000, finetune_steps=600, eval_n=256,
         speed_steps=(5, 10, 20, 50), speed_n=32, prior=None,
     ),
     # Real chips (`--data /path/to/mstar --protocol ood-T72` or `extended`): 64 px centre crops at the
     # native 0.2 m spacing, about 6,000 training chips, so fewer evaluator epochs and more base steps, and
-    # the "small" model's VAE trained 600 x 16; 81 min measured on one shared thread
-    # (docs/results/mstar_novel_views.md). Simulator fields unused.
+    # the "small" model's VAE trained 600 x 16 (run time and results: docs/results/mstar_novel_views.md).
+    # Simulator fields unused.
     "mstar": dataclasses.replace(
         DEFAULT_PRESET, vae_widths=(32, 64, 128), vae_norm_groups=32, vae_steps=600, vae_batch_size=16,
         base_steps=8000, finetune_steps=1000,

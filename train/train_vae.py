@@ -2,286 +2,31 @@
 
     accelerate launch train/train_vae.py [--data /path/to/mstar --protocol extended] [--flag value ...]
 
-Default: 1-channel 128 px chips -> 32x32x4 latents (three encoder levels, downsampling 4), trained on the
-training split with an L1 (or L2) reconstruction loss plus a small KL term; the latent scaling factor is
-set to 1 / std of the training latents (how Stable Diffusion's 0.18215 was obtained), and reconstruction
-PSNR/SSIM (scikit-image, data range 1) on the test split is written to ``metrics.json``. The model is
-saved with ``save_pretrained`` into ``output_dir/vae`` and loads with ``AutoencoderKL.from_pretrained``
-(``train/finetune_pfm.py --vae output_dir/vae``).
+The flags are the fields of :class:`sar_zero123.stages.TrainVAEConfig`; the stage is
+:func:`sar_zero123.stages.run_vae`. The model lands in ``output_dir/vae``
+(``train/finetune_pfm.py --vae output_dir/vae``). A folder that already holds a run is continued only with
+``--resume_from_checkpoint latest`` and started over only with ``--restart``.
 """
 
 from __future__ import annotations
 
-import logging
-from dataclasses import dataclass
+from collections.abc import Sequence
 from pathlib import Path
-from typing import Literal
 
-import numpy as np
-import torch
-import torch.nn.functional as F
-from diffusers import AutoencoderKL
-from skimage.metrics import peak_signal_noise_ratio, structural_similarity
-from torch.utils.data import DataLoader
-from tqdm.auto import tqdm
+from sar_zero123.config import parse_config
+from sar_zero123.stages.vae import TrainVAEConfig, VAEObjective, build_vae, reconstruct, run_vae
 
-from sar_zero123.conditioning import downsampling_factor, encode_condition_latents, vae_input
-from sar_zero123.config import check_minimum, parse_config, save_config, write_json_atomic
-from sar_zero123.data import (
-    SCALING_FILE,
-    ChipDataset,
-    DecibelScaling,
-    check_protocol,
-    prepare_splits,
-    signed_to_unit,
-    unit_to_signed,
-)
-from sar_zero123.run_state import (
-    check_finite_state,
-    check_finite_step,
-    check_resume_config,
-    end_run,
-    resolve_resume_checkpoint,
-    resumable_batches,
-    resume_step,
-    save_checkpoint,
-)
-from sar_zero123.runs import check_global_batch, start_run, tracker_hparams
-from sar_zero123.training import micro_batch_generator
-
-logger = logging.getLogger(__name__)
+__all__ = ["TrainVAEConfig", "TrainVAEFlags", "VAEObjective", "build_vae", "main", "reconstruct"]
 
 
-@dataclass
-class TrainVAEConfig:
-    """Train an AutoencoderKL on SAR chips (normalised dB)."""
-
-    output_dir: str = "runs/vae"  # run folder: checkpoints, logs, metrics.json, vae/
-    data: str | None = None  # dataset folder with index.csv; None simulates the built-in dataset
-    protocol: str = "extended"  # split protocol: extended, soc or ood-<CLASS>
-    scaling: Literal["unit", "mstar_raw", "fit"] = "unit"  # dB bounds: unit magnitude, raw MSTAR, or fitted
-    image_size: int = 128  # chip side in pixels
-    block_out_channels: tuple[int, ...] = (32, 64, 128)  # encoder widths; n levels downsample by 2**(n-1)
-    layers_per_block: int = 2  # ResNet blocks per level
-    latent_channels: int = 4  # latent channels (4 for the zero-1-to-3 UNet)
-    norm_num_groups: int = 32  # GroupNorm groups (must divide every width)
-    reconstruction_loss: Literal["l1", "l2"] = "l1"  # pixel loss on [-1, 1] images
-    kl_weight: float = 1e-6  # weight of the KL term (per-sample sum over latent elements)
-    learning_rate: float = 1e-4  # AdamW learning rate
-    train_batch_size: int = 16  # chips per process per step
-    max_train_steps: int = 2000  # optimisation steps
-    max_grad_norm: float = 1.0  # gradient clipping norm
-    mixed_precision: Literal["no", "fp16", "bf16"] = "no"  # accelerate mixed precision
-    checkpointing_steps: int = 500  # save a resumable checkpoint every this many steps
-    checkpoints_total_limit: int | None = 2  # keep at most this many checkpoints
-    resume_from_checkpoint: str | None = None  # 'latest' or a checkpoint folder
-    num_eval_images: int = 256  # test chips scored for PSNR/SSIM (fewer if the split is smaller)
-    num_scaling_batches: int = 8  # training batches used to estimate the latent scaling factor
-    report_to: str | None = "tensorboard"  # accelerate tracker; None disables logging
-    seed: int = 0  # seed of initialisation, data order and posterior samples
-
-    def __post_init__(self) -> None:
-        self.block_out_channels = tuple(int(c) for c in self.block_out_channels)
-        if not self.block_out_channels or min(self.block_out_channels) < 1:
-            raise ValueError(
-                f"block_out_channels must be non-empty and positive, got {self.block_out_channels}"
-            )
-        if any(c % self.norm_num_groups for c in self.block_out_channels):
-            raise ValueError(
-                f"norm_num_groups={self.norm_num_groups} must divide every block_out_channels "
-                f"{self.block_out_channels}"
-            )
-        factor = downsampling_factor(self.block_out_channels)
-        if self.image_size < factor or self.image_size % factor:
-            raise ValueError(
-                f"image_size must be a positive multiple of the downsampling factor {factor}, "
-                f"got {self.image_size}"
-            )
-        check_protocol(self.protocol)
-        check_minimum(self, "kl_weight", minimum=0)
-        check_minimum(self, "learning_rate", "max_grad_norm", minimum=0, strict=True)
-        check_minimum(
-            self,
-            "layers_per_block",
-            "latent_channels",
-            "train_batch_size",
-            "max_train_steps",
-            "checkpointing_steps",
-            "num_eval_images",
-            "num_scaling_batches",
-            minimum=1,
-        )
-        check_minimum(self, "checkpoints_total_limit", minimum=1, optional=True)
+class TrainVAEFlags(TrainVAEConfig):
+    """This script's flags: :class:`TrainVAEConfig`'s fields, declared in this module for
+    ``train.quickstart.script_argv``, which reads a script's options from the dataclasses it defines."""
 
 
-def build_vae(config: TrainVAEConfig) -> AutoencoderKL:
-    """A randomly initialised 1-channel ``AutoencoderKL`` of the configured size."""
-    levels = len(config.block_out_channels)
-    return AutoencoderKL(
-        in_channels=1,
-        out_channels=1,
-        down_block_types=("DownEncoderBlock2D",) * levels,
-        up_block_types=("UpDecoderBlock2D",) * levels,
-        block_out_channels=config.block_out_channels,
-        layers_per_block=config.layers_per_block,
-        latent_channels=config.latent_channels,
-        norm_num_groups=config.norm_num_groups,
-        sample_size=config.image_size,
-    )
-
-
-class VAEObjective(torch.nn.Module):
-    """``forward`` = per-sample VAE losses, so that data-parallel wrappers see one forward call.
-
-    Args:
-        vae: The autoencoder being trained (1 input channel).
-        kl_weight: Weight of the KL term (per-sample sum over latent elements).
-        reconstruction_loss: ``"l1"`` or ``"l2"`` on the [-1, 1] images.
-    """
-
-    def __init__(self, vae: AutoencoderKL, kl_weight: float, reconstruction_loss: str) -> None:
-        super().__init__()
-        self.vae = vae
-        self.kl_weight = kl_weight
-        self.loss_fn = F.l1_loss if reconstruction_loss == "l1" else F.mse_loss
-
-    def forward(
-        self, images: torch.Tensor, generator: torch.Generator | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-sample ``(total, reconstruction)`` losses.
-
-        Args:
-            images: Chips, normalised dB in [0, 1].
-            generator: Draws the posterior sample.
-
-        Shape:
-            ``(B, 1, S, S) -> ((B,), (B,))``.
-        """
-        pixels = unit_to_signed(images)
-        posterior = self.vae.encode(pixels).latent_dist
-        recon = self.vae.decode(posterior.sample(generator=generator)).sample
-        reconstruction = self.loss_fn(recon.float(), pixels.float(), reduction="none").flatten(1).mean(dim=1)
-        return reconstruction + self.kl_weight * posterior.kl().float(), reconstruction
-
-
-@torch.no_grad()
-def reconstruct(vae: AutoencoderKL, images: torch.Tensor) -> torch.Tensor:
-    """Posterior-mode reconstruction in normalised dB, clipped to [0, 1]. Shape: ``(B, 1, S, S)``."""
-    latents = encode_condition_latents(vae, images)
-    return signed_to_unit(vae.decode(latents).sample.float()).clamp(0.0, 1.0)
-
-
-@torch.no_grad()
-def evaluate_reconstruction(
-    vae: AutoencoderKL, dataset: ChipDataset, num_images: int, batch_size: int
-) -> dict[str, float]:
-    """Mean PSNR and SSIM (scikit-image, data range 1) of posterior-mode reconstructions.
-
-    Returns:
-        ``{"psnr_db", "ssim", "num_images"}``.
-    """
-    count = min(num_images, len(dataset))
-    loader = DataLoader(torch.utils.data.Subset(dataset, range(count)), batch_size=batch_size)
-    psnrs, ssims = [], []
-    for batch in loader:
-        images = batch["image"].to(vae.device)
-        recon = reconstruct(vae, images).cpu().numpy()[:, 0].astype(np.float64)
-        reference = batch["image"].numpy()[:, 0].astype(np.float64)
-        for a, b in zip(reference, recon):
-            psnrs.append(peak_signal_noise_ratio(a, b, data_range=1.0))
-            ssims.append(structural_similarity(a, b, data_range=1.0))
-    return {"psnr_db": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)), "num_images": count}
-
-
-@torch.no_grad()
-def latent_scaling_factor(vae: AutoencoderKL, loader: DataLoader, num_batches: int) -> float:
-    """1 / std of posterior samples over training batches (the Stable Diffusion recipe)."""
-    generator = torch.Generator().manual_seed(0)
-    latents = []
-    for i, batch in enumerate(loader):
-        if i == num_batches:
-            break
-        posterior = vae.encode(vae_input(vae, batch["image"])).latent_dist
-        latents.append(posterior.sample(generator=generator).float().flatten())
-    return float(1.0 / torch.cat(latents).std())
-
-
-def main(argv: list[str] | None = None) -> Path:
+def main(argv: Sequence[str] | None = None) -> Path:
     """Train the VAE; returns the run folder (the model is in ``output_dir/vae``)."""
-    config = parse_config(TrainVAEConfig, argv)
-    output_dir = Path(config.output_dir)
-    accelerator = start_run(
-        output_dir, seed=config.seed, mixed_precision=config.mixed_precision, report_to=config.report_to
-    )
-
-    # 1. data and inputs, checked before any step
-    resume_path = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
-    check_resume_config(resume_path, config, may_differ=("max_train_steps",))  # constant LR: extendable
-    splits = prepare_splits(config.data, config.protocol, output_dir / "data", seed=config.seed)
-    scaling = DecibelScaling.from_choice(config.scaling, splits["train"])
-    train_dataset = ChipDataset(splits["train"], size=config.image_size, scaling=scaling)
-    test_dataset = ChipDataset(splits.get("test") or splits["train"], size=config.image_size, scaling=scaling)
-    check_global_batch(len(train_dataset), config.train_batch_size, accelerator.num_processes, what="chips")
-    if accelerator.is_main_process:
-        output_dir.mkdir(parents=True, exist_ok=True)
-        save_config(config, output_dir)
-
-    # 2. model, optimiser, data loader
-    objective = VAEObjective(build_vae(config).train(), config.kl_weight, config.reconstruction_loss)
-    optimizer = torch.optim.AdamW(objective.parameters(), lr=config.learning_rate)
-    train_loader = DataLoader(train_dataset, batch_size=config.train_batch_size, shuffle=True, drop_last=True)
-    objective, optimizer, train_loader = accelerator.prepare(objective, optimizer, train_loader)
-    global_step = resume_step(accelerator, resume_path)
-    accelerator.init_trackers("train_vae", config=tracker_hparams(config))
-
-    # 3. training loop (posterior samples from a generator seeded per step and process: resumable)
-    progress = tqdm(
-        total=config.max_train_steps,
-        initial=global_step,
-        desc="steps",
-        disable=not accelerator.is_local_main_process,
-    )
-    for step, _, batch in resumable_batches(accelerator, train_loader, global_step, config.max_train_steps):
-        generator = micro_batch_generator(config.seed, step, accelerator.process_index)
-        total, reconstruction = objective(batch["image"], generator=generator)
-        accelerator.backward(total.mean())
-        accelerator.clip_grad_norm_(objective.parameters(), config.max_grad_norm)
-        optimizer.step()
-        optimizer.zero_grad(set_to_none=True)
-        global_step = step + 1
-        progress.update(1)
-        loss = accelerator.gather(reconstruction.detach()).mean().item()
-        progress.set_postfix(reconstruction=f"{loss:.4f}")
-        accelerator.log({"train/reconstruction": loss}, step=global_step)
-        check_finite_step(global_step, loss=accelerator.gather(total.detach()).mean())
-        if global_step % config.checkpointing_steps == 0 or global_step == config.max_train_steps:
-            save_checkpoint(
-                accelerator, output_dir, global_step, config.checkpoints_total_limit, config=config
-            )
-    progress.close()
-
-    # 4. scaling factor, test-split PSNR/SSIM, export
-    accelerator.wait_for_everyone()
-    if accelerator.is_main_process:
-        model = accelerator.unwrap_model(objective).vae.eval()
-        model.register_to_config(
-            scaling_factor=latent_scaling_factor(model, train_loader, config.num_scaling_batches)
-        )
-        metrics = evaluate_reconstruction(
-            model, test_dataset, config.num_eval_images, config.train_batch_size
-        )
-        metrics.update(scaling_factor=model.config.scaling_factor, steps=global_step)
-        check_finite_step(global_step, scaling_factor=model.config.scaling_factor)
-        check_finite_state({"vae": model}, what=str(output_dir / "vae"))
-        write_json_atomic(metrics, output_dir / "metrics.json")
-        model.save_pretrained(output_dir / "vae")
-        write_json_atomic(scaling.to_dict(), output_dir / "vae" / SCALING_FILE)
-        accelerator.log({"test/psnr_db": metrics["psnr_db"], "test/ssim": metrics["ssim"]}, step=global_step)
-        logger.info("test reconstruction: PSNR %.2f dB, SSIM %.4f", metrics["psnr_db"], metrics["ssim"])
-    # no reference to the data-parallel wrapper (or a graph through it) may outlive the process group
-    objective = total = reconstruction = None
-    end_run(accelerator)
-    return output_dir
+    return run_vae(parse_config(TrainVAEConfig, argv))
 
 
 if __name__ == "__main__":

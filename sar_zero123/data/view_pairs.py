@@ -180,6 +180,12 @@ class ViewPairDataset(Dataset):
     def __len__(self) -> int:
         return len(self.pairs)
 
+    @property
+    def num_admissible_pairs(self) -> int:
+        """How many distinct (input, target) pairs the records admit: the most a draw can hold without
+        repeating one (``num_pairs`` draws with replacement)."""
+        return sum(int(allowed.sum()) for _, allowed in self._groups)
+
     def pair_fields(self, index: int) -> dict[str, Any]:
         """Everything of item ``index`` except the images: the relative pose, the label and both poses."""
         source, target = (self.records[i] for i in self.pairs[index])

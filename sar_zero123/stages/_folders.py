@@ -1,0 +1,108 @@
+"""The run-folder rule (:mod:`sar_zero123.run_folder`) for stages that may run as several processes.
+
+:func:`open_stage_folder` opens a stage's folder before any work under ``accelerate launch``: every process
+checks the folder as it is, so that all refuse together, then the main process writes the record.
+:func:`withdrawn_if_setup_fails` keeps a run that never began from blocking its corrected command.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Iterable, Iterator, Mapping
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Any
+
+from accelerate import PartialState
+from accelerate.utils import parse_flag_from_env
+
+from sar_zero123.run_folder import RUN_RECORD, RunFolder, open_run_folder
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["launch_state", "open_stage_folder", "withdrawn_if_setup_fails"]
+
+
+def launch_state() -> PartialState:
+    """The launch's process state, before (or after) the stage's ``Accelerator`` exists.
+
+    Made the way ``Accelerator`` makes it: ``accelerate launch --multi_gpu`` on CPU sets
+    ``ACCELERATE_USE_CPU``, without which a bare ``PartialState()`` would set up a one-process run that
+    the ``Accelerator`` then inherits.
+    """
+    return PartialState(cpu=parse_flag_from_env("ACCELERATE_USE_CPU"))
+
+
+def open_stage_folder(
+    path: str | os.PathLike,
+    stage: str,
+    config: Any,
+    *,
+    data: Mapping[str, Any],
+    resume: bool,
+    restart: bool,
+    may_differ: Iterable[str] = (),
+    may_extend: Iterable[str] = (),
+) -> RunFolder:
+    """:func:`~sar_zero123.run_folder.open_run_folder` on every process of a launch; the main process writes.
+
+    With several processes, each first checks the folder as it is on disk (nothing written), so a refusal
+    stops every process before any waits in a collective; then the main process opens it for real (writing
+    the record, moving an old run aside with ``restart``) while the others wait.
+
+    Args:
+        path: The stage's output folder.
+        stage: The stage's name, recorded and compared.
+        config: The stage's config dataclass.
+        data: The identity of each data input (``{"data": data_identity(config.data)}``).
+        resume: Continue a folder with the same record.
+        restart: Move an existing run aside first.
+        may_differ: Fields that never change what the folder holds.
+        may_extend: Fields that may change when continuing.
+
+    Returns:
+        The opened folder (the main process's view: on the others, the check's).
+
+    Raises:
+        ValueError: From ``open_run_folder``, naming the folder and each difference.
+    """
+    state = launch_state()
+    options = dict(data=data, resume=resume, restart=restart, may_differ=tuple(may_differ),
+                   may_extend=tuple(may_extend))  # fmt: skip
+    folder = None
+    if state.num_processes > 1:
+        folder = open_run_folder(path, stage, config, write=False, **options)
+        state.wait_for_everyone()
+    if state.is_main_process:
+        folder = open_run_folder(path, stage, config, write=True, **options)
+    state.wait_for_everyone()
+    return folder
+
+
+@contextmanager
+def withdrawn_if_setup_fails(folder: RunFolder) -> Iterator[None]:
+    """Around a stage's setup: a new run whose setup raises (a missing encoder, a protocol the data lacks)
+    leaves no record, so the corrected command starts it instead of being refused for differing from a run
+    that never began.
+
+    Only the record of a folder opened empty (``status == "new"``) is withdrawn, and only when the setup
+    wrote nothing else there (empty folders it made, such as ``logs/``, are removed too). A setup that wrote
+    files keeps its record, so that nothing in the folder is mixed with another run's.
+    """
+    try:
+        yield
+    except BaseException:
+        if folder.status == "new" and launch_state().is_main_process:
+            _withdraw(folder.path)
+        raise
+
+
+def _withdraw(path: Path) -> None:
+    entries = list(path.rglob("*"))
+    if [p for p in entries if not p.is_dir()] != [path / RUN_RECORD]:
+        return
+    (path / RUN_RECORD).unlink()
+    for directory in sorted((p for p in entries if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
+        directory.rmdir()
+    logger.info("%s: the run failed before it began; its record was withdrawn", path)

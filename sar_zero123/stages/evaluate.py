@@ -1,0 +1,511 @@
+"""The evaluate stage: novel-view pipelines scored with the paper's protocol, in a run folder.
+
+``python train/evaluate.py`` parses its flags into :class:`EvaluateConfig` and calls :func:`run_evaluate`.
+The protocol (pairs, generation, scores, floor and ceilings, gap closed) is
+:mod:`sar_zero123.evaluation_protocol`; the tables and figures :mod:`sar_zero123.evaluation_tables`.
+
+Depression requests (``input_depression_deg=17, target_depressions_deg=[10, 30, 45],
+same_depression=False``) pair 17 deg inputs with targets at 10, 30 and 45 deg (d_el = -7, +13, +28), drawn
+from every chip of the seen (and unseen) classes at every depression. With a depression regressor among the
+evaluators Table III gains ``Dep. err.`` and ``Dep. gap closed``; for pairs with d_el != 0 it gains
+``Closer to target dep.``.
+
+Outputs in ``output_dir``: ``table3.{json,md}`` (the paper's rows beside ours, with the floor and the
+ceilings), ``table4.{json,md}`` (azimuth error under every evaluator backbone), ``views.png`` (input | each
+pipeline | target, Fig. 7/8), ``lambda_sweep.png`` (with ``lambdas``, Fig. 12), and with
+``steps``/``schedulers``: ``speed_error.{json,md,png}`` (azimuth error and accuracy against images/s).
+
+The folder follows :mod:`sar_zero123.run_folder`: one holding other work (another stage, other settings,
+other data, pipelines or evaluators changed since) is refused before any work; ``resume`` redoes an
+unfinished run with the same settings and returns a finished one as it is; ``restart`` moves an old run aside.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from sar_zero123.config import check_minimum, save_config, write_json_atomic
+from sar_zero123.evaluation_protocol import (
+    INPUT_COPY,
+    PAPER_TABLE3,
+    REAL_TARGET,
+    SCHEDULERS,
+    VAE_ROUND_TRIP,
+    PairSet,
+    add_gap_closed,
+    build_pair_sets,
+    check_pipeline_scaling,
+    d_el_counts,
+    device_name,
+    generate_pair_targets,
+    same_weights,
+    score,
+    set_scheduler,
+    vae_round_trip,
+)
+from sar_zero123.evaluation_tables import (
+    plot_lambda_sweep,
+    plot_speed_error,
+    plot_views,
+    speed_markdown,
+    table3_markdown,
+    table4_markdown,
+)
+from sar_zero123.evaluators import Evaluators, load_evaluators
+from sar_zero123.pipeline import MAX_GUIDANCE_SCALE, SARZero123Pipeline
+from sar_zero123.run_folder import StageTimer, data_identity, finish_run, open_run_folder, read_run_record
+from sar_zero123.stages._folders import withdrawn_if_setup_fails
+from sar_zero123.stages.evaluators import model_identity
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "EVALUATE_MAY_DIFFER",
+    "MAX_EVALUATION_PAIRS",
+    "MAX_EVAL_BATCH_SIZE",
+    "MAX_FIGURE_PAIRS",
+    "MAX_IMAGE_SIZE",
+    "MAX_INFERENCE_STEPS",
+    "MAX_SWEEP_STEP_COUNTS",
+    "EvaluateConfig",
+    "evaluation_pairs",
+    "load_evaluation",
+    "run_evaluate",
+]
+
+#: Most pairs in one evaluation (the paper scores 1,000; 100,000 is hours of generation on one GPU).
+MAX_EVALUATION_PAIRS = 100_000
+#: Most denoising steps per view (the noise schedules have 1,000 training timesteps).
+MAX_INFERENCE_STEPS = 1_000
+#: Most step counts in the speed/error sweep (each is a full generation per pipeline and scheduler).
+MAX_SWEEP_STEP_COUNTS = 16
+#: Most pairs per group shown in ``views.png``.
+MAX_FIGURE_PAIRS = 32
+#: Most pairs per pipeline call.
+MAX_EVAL_BATCH_SIZE = 1_024
+#: Largest chip side (pipeline input, scoring sizes), in pixels.
+MAX_IMAGE_SIZE = 1_024
+#: Settings that never change what the folder holds: the device, where data is cached, how to reuse it.
+EVALUATE_MAY_DIFFER = ("resume", "restart", "device", "output_dir", "work_dir")
+
+
+@dataclass
+class EvaluateConfig:
+    """Score novel-view pipelines with the paper's protocol and write Tables III/IV and figures."""
+
+    pipeline: list[str] = field(default_factory=list)  # SARZero123Pipeline folders (repeat the flag)
+    pipeline_names: list[str] = field(default_factory=list)  # row labels (default: folder names)
+    lambdas: list[float] = field(default_factory=list)  # PFM weight of each pipeline, for the Fig. 12 sweep
+    evaluators: str = "runs/evaluators"  # output folder of train/train_evaluators.py
+    data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
+    work_dir: str | None = None  # cache of the simulated dataset (default: output_dir)
+    protocol: str = "extended"  # "extended" (seen only) or "ood-<CLASS>" (half seen, half unseen)
+    same_depression: bool = True  # pair views at one depression; False also pairs across (d_el != 0)
+    input_depression_deg: float | None = None  # only pairs whose input is at this depression (None: any)
+    target_depressions_deg: list[float] | None = None  # only pairs with targets at one of these (None: any)
+    # evaluate requests outside a pipeline's trained d_el / depression range (its refusal lifted, listed in
+    # table3.json): to measure how a model that never saw such requests answers them
+    outside_trained_range: bool = False
+    max_d_az_deg: float | None = None  # largest |d_az| of a pair (None: any)
+    n: int = 1000  # generated samples in total (split evenly between seen and unseen; at most 100,000)
+    num_inference_steps: int = 50  # denoising steps for Tables III/IV
+    guidance_scale: float = 3.0  # classifier-free guidance weight
+    steps: list[int] = field(default_factory=list)  # speed/error sweep: step counts (e.g. 10 20 50)
+    schedulers: list[str] = field(default_factory=list)  # speed/error sweep: ddim, dpmsolver++, euler
+    speed_n: int | None = None  # samples per speed/error point, from the seen pairs (None: all of them)
+    image_size: int | None = None  # chip size fed to the pipelines (None: the pipeline's own)
+    chip_crop_size: int | None = None  # centre crop of the chip files before resizing
+    crop_size: int = 64  # centre crop for MS-SSIM and Kuan+SSIM (paper: 64)
+    paper_scoring_size: int | None = 256  # side before the paper-comparable 64 crop (authors: 256)
+    eval_batch_size: int = 16  # pairs per pipeline call (and per VAE / evaluator call)
+    num_figure_pairs: int = 4  # pairs per group shown in views.png
+    output_dir: str = "runs/eval"  # where tables and figures go
+    device: str | None = None  # torch device (None: cuda when available)
+    seed: int = 0  # pair sampling and generator seeds
+    resume: bool = False  # an unfinished run with the same settings is redone; a finished one is returned
+    restart: bool = False  # move an existing run in output_dir aside (never deleted) and start over
+
+    def __post_init__(self) -> None:
+        self._check_pipelines()
+        self._check_sizes()
+        self._check_sweep()
+        self._check_depressions()
+        if self.resume and self.restart:
+            raise ValueError("resume and restart: choose one (continue this run, or move it aside)")
+
+    def _check_pipelines(self) -> None:
+        if not self.pipeline:
+            raise ValueError("pipeline: give at least one pipeline folder")
+        if self.pipeline_names and len(self.pipeline_names) != len(self.pipeline):
+            raise ValueError(
+                f"pipeline_names has {len(self.pipeline_names)} names for {len(self.pipeline)} pipelines"
+            )
+        if len(set(self.names)) != len(self.names):
+            raise ValueError(f"pipeline_names: each row needs its own name, got {self.names}")
+        if self.lambdas and len(self.lambdas) != len(self.pipeline):
+            raise ValueError(f"lambdas has {len(self.lambdas)} values for {len(self.pipeline)} pipelines")
+        if self.protocol != "extended" and not self.protocol.startswith("ood-"):
+            raise ValueError(f"protocol must be 'extended' or 'ood-<CLASS>', got {self.protocol!r}")
+        if not math.isfinite(self.guidance_scale) or self.guidance_scale > MAX_GUIDANCE_SCALE:
+            raise ValueError(
+                f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE}, got {self.guidance_scale}"
+            )
+
+    def _check_sizes(self) -> None:
+        check_minimum(self, "n", "num_inference_steps", "eval_batch_size", "crop_size", minimum=1)
+        check_minimum(self, "image_size", "chip_crop_size", "speed_n", minimum=1, optional=True)
+        check_minimum(self, "num_figure_pairs", minimum=0)
+        for name, bound in (
+            ("n", MAX_EVALUATION_PAIRS),
+            ("num_inference_steps", MAX_INFERENCE_STEPS),
+            ("eval_batch_size", MAX_EVAL_BATCH_SIZE),
+            ("num_figure_pairs", MAX_FIGURE_PAIRS),
+            ("image_size", MAX_IMAGE_SIZE),
+            ("crop_size", MAX_IMAGE_SIZE),
+            ("paper_scoring_size", MAX_IMAGE_SIZE),
+        ):
+            value = getattr(self, name)
+            if value is not None and value > bound:
+                raise ValueError(f"{name} must be <= {bound:,}, got {value:,}")
+        if self.paper_scoring_size is not None and self.paper_scoring_size < self.crop_size:
+            raise ValueError(
+                f"paper_scoring_size must be >= crop_size or None, got {self.paper_scoring_size}"
+            )
+        # the Frechet distance (SFD) needs two views per group: checked here, before any model runs
+        if self.protocol.startswith("ood-") and self.n < 4:
+            raise ValueError(
+                f"n must be >= 4 for an ood protocol (at least 2 seen and 2 unseen pairs), got {self.n}"
+            )
+        if self.n < 2:
+            raise ValueError(f"n must be >= 2 (the Frechet distance needs two views), got {self.n}")
+        if self.max_d_az_deg is not None and not 0.0 <= self.max_d_az_deg <= 180.0:
+            raise ValueError(f"max_d_az_deg must lie in [0, 180] degrees or be None, got {self.max_d_az_deg}")
+
+    def _check_sweep(self) -> None:
+        unknown = sorted(set(self.schedulers) - set(SCHEDULERS))
+        if unknown:
+            raise ValueError(f"schedulers: unknown {unknown}; choose from {sorted(SCHEDULERS)}")
+        if bool(self.steps) != bool(self.schedulers):
+            raise ValueError("steps and schedulers must be given together for the speed/error sweep")
+        for name in ("steps", "schedulers"):
+            if len(set(getattr(self, name))) != len(getattr(self, name)):
+                raise ValueError(f"{name}: each value once, got {getattr(self, name)}")
+        if len(self.steps) > MAX_SWEEP_STEP_COUNTS:
+            raise ValueError(f"steps: at most {MAX_SWEEP_STEP_COUNTS} step counts, got {len(self.steps)}")
+        if any(not 1 <= step <= MAX_INFERENCE_STEPS for step in self.steps):
+            raise ValueError(f"steps must lie in [1, {MAX_INFERENCE_STEPS}], got {self.steps}")
+        seen = self.n if self.protocol == "extended" else self.n - self.n // 2
+        if self.speed_n is not None and self.speed_n > seen:
+            raise ValueError(
+                f"speed_n must be <= the {seen} seen pairs its points are drawn from (n = {self.n}, protocol "
+                f"{self.protocol}), got {self.speed_n}"
+            )
+
+    def _check_depressions(self) -> None:
+        if self.target_depressions_deg is not None and not self.target_depressions_deg:
+            raise ValueError("target_depressions_deg: give at least one depression, or none for any")
+        for name, values in (
+            ("input_depression_deg", [self.input_depression_deg]),
+            ("target_depressions_deg", self.target_depressions_deg or []),
+        ):
+            if any(value is not None and not 0.0 < value < 90.0 for value in values):
+                raise ValueError(f"{name} must lie in (0, 90) degrees, got {getattr(self, name)}")
+        if (
+            self.same_depression
+            and self.input_depression_deg is not None
+            and any(t != self.input_depression_deg for t in self.target_depressions_deg or [])
+        ):
+            raise ValueError(
+                f"same_depression pairs views at one depression, so no {self.input_depression_deg} deg input "
+                f"has a target at {self.target_depressions_deg} deg; pass --no-same_depression"
+            )
+
+    @property
+    def names(self) -> list[str]:
+        """Row label of each pipeline."""
+        if self.pipeline_names:
+            return list(self.pipeline_names)
+        names = [Path(p).name for p in self.pipeline]
+        if len(set(names)) != len(names):
+            names = [f"{Path(p).parent.name}/{Path(p).name}" for p in self.pipeline]
+        return names
+
+
+def evaluation_pairs(config: EvaluateConfig, evaluators: Evaluators, image_size: int) -> dict[str, PairSet]:
+    """The pairs of ``config``'s protocol (:func:`~sar_zero123.evaluation_protocol.build_pair_sets`): the
+    same pairs and seeds for every pipeline, and for every evaluation with the same settings."""
+    return build_pair_sets(
+        evaluators,
+        data=config.data,
+        protocol=config.protocol,
+        n=config.n,
+        image_size=image_size,
+        work_dir=config.work_dir if config.work_dir is not None else config.output_dir,
+        seed=config.seed,
+        same_depression=config.same_depression,
+        input_depression_deg=config.input_depression_deg,
+        target_depressions_deg=config.target_depressions_deg,
+        max_d_az_deg=config.max_d_az_deg,
+        chip_crop_size=config.chip_crop_size,
+        evaluators_name=config.evaluators,
+    )
+
+
+def load_evaluation(folder: str | Path) -> dict[str, Any]:
+    """What a finished evaluation wrote: ``{"table3": {row: {group: scores}}, "speed_error": [rows]}``.
+
+    Raises:
+        ValueError: If ``folder`` holds no finished evaluate run (its tables would be partial or stale).
+    """
+    folder = Path(folder)
+    record = read_run_record(folder)
+    if record is None or record.get("stage") != "evaluate" or not record.get("finished"):
+        raise ValueError(f"{str(folder)!r} holds no finished evaluate run")
+    speed = folder / "speed_error.json"
+    return {
+        "table3": json.loads((folder / "table3.json").read_text())["results"],
+        "speed_error": json.loads(speed.read_text())["rows"] if speed.is_file() else [],
+    }
+
+
+def run_evaluate(config: EvaluateConfig) -> Path:
+    """Score every pipeline of ``config`` on the protocol's pairs, with the floor and the ceilings, and write
+    Tables III/IV, the figures and the speed/error sweep into ``config.output_dir``; returns the folder.
+
+    With ``resume`` a finished run with the same settings is returned at once, without loading anything.
+
+    Raises:
+        ValueError: From :func:`~sar_zero123.run_folder.open_run_folder`, for a folder holding other work
+            (nothing on disk is changed then); if the data cannot supply ``n`` distinct pairs.
+        FileNotFoundError: If the data, the evaluators or a pipeline folder does not exist.
+    """
+    timer = StageTimer()
+    # 1. the run-folder rule, before any work: the inputs are the data, the evaluators and the pipelines
+    inputs = {
+        "data": data_identity(config.data),
+        "evaluators": model_identity(config.evaluators, "evaluators"),
+        "pipelines": [model_identity(path, f"pipeline[{i}]") for i, path in enumerate(config.pipeline)],
+    }
+    folder = open_run_folder(
+        config.output_dir, "evaluate", config, data=inputs, resume=config.resume, restart=config.restart,
+        may_differ=EVALUATE_MAY_DIFFER,
+    )  # fmt: skip
+    if folder.finished:
+        logger.info("%s already holds this evaluation", folder.path)
+        return folder.path
+    device = torch.device(config.device or ("cuda" if torch.cuda.is_available() else "cpu"))
+
+    # 2. models and pairs (the same pairs and seeds for every pipeline); a new run whose setup fails leaves
+    # no record, so that the corrected command is not refused for differing from a run that never began
+    with withdrawn_if_setup_fails(folder):
+        evaluators = load_evaluators(config.evaluators, device=device)
+        pipes, lifted = _load_pipelines(config, evaluators, device)
+        sizes = {pipe.default_image_size for pipe in pipes.values()}
+        if config.image_size is None and len(sizes) != 1:
+            raise ValueError(
+                f"pipelines were built for different image sizes {sorted(sizes)}; pass --image_size"
+            )
+        pair_sets = evaluation_pairs(config, evaluators, config.image_size or sizes.pop())
+    save_config(config, folder.path)
+
+    # 3. Table III / IV, with the floor (input copy) and the ceilings (real target, VAE round trip)
+    results = _score_references(config, pipes, pair_sets, evaluators, device)
+    generated = _score_pipelines(config, pipes, pair_sets, evaluators, device, results)
+    add_gap_closed(results, floor=INPUT_COPY, ceiling=VAE_ROUND_TRIP)
+    outputs = _write_tables(config, folder.path, results, pair_sets, evaluators, lifted, device)
+    if config.num_figure_pairs > 0:
+        plot_views(pair_sets, generated, config.num_figure_pairs, folder.path / "views.png")
+        outputs.append("views.png")
+    if config.lambdas:
+        sweep = {name: results[name] for name in pipes}
+        plot_lambda_sweep(sweep, dict(zip(pipes, config.lambdas)), folder.path / "lambda_sweep.png")
+        outputs.append("lambda_sweep.png")
+
+    # 4. speed against error (seen pairs); the run is finished only once its last output is written
+    if config.steps:
+        outputs += _speed_sweep(config, folder.path, pipes, pair_sets["seen"], evaluators, device)
+    finish_run(
+        folder, outputs, seconds=timer.seconds,
+        results={"rows": list(results), "pairs": {group: len(p) for group, p in pair_sets.items()},
+                 "device": str(device)},
+    )  # fmt: skip
+    return folder.path
+
+
+def _load_pipelines(
+    config: EvaluateConfig, evaluators: Evaluators, device: torch.device
+) -> tuple[dict[str, SARZero123Pipeline], dict[str, dict]]:
+    """Each pipeline by its row name, and those whose trained-range refusal was lifted, with their ranges."""
+    pipes, lifted = {}, {}
+    for name, path in zip(config.names, config.pipeline):
+        check_pipeline_scaling(path, evaluators)
+        pipe = SARZero123Pipeline.from_pretrained(path).to(device)
+        pipe.set_progress_bar_config(disable=True)
+        pipes[name] = pipe
+        projection = pipe.pose_projection.config
+        if config.outside_trained_range and projection.get("trained_d_el_deg") is not None:
+            trained = projection["trained_d_el_deg"]
+            logger.warning("%s: trained d_el range %s lifted (--outside_trained_range)", name, trained)
+            lifted[name] = {
+                "trained_d_el_deg": trained,
+                "trained_depression_deg": projection.get("trained_depression_deg"),
+            }
+            pipe.pose_projection.register_to_config(trained_d_el_deg=None, trained_depression_deg=None)
+    return pipes, lifted
+
+
+def _scoring(config: EvaluateConfig, device: torch.device) -> dict[str, Any]:
+    """The keyword arguments of :func:`~sar_zero123.evaluation_protocol.score` for this evaluation."""
+    return {
+        "crop_size": config.crop_size,
+        "paper_scoring_size": config.paper_scoring_size,
+        "batch_size": max(config.eval_batch_size, 32),
+        "device": device,
+    }
+
+
+def _score_references(
+    config: EvaluateConfig,
+    pipes: dict[str, SARZero123Pipeline],
+    pair_sets: dict[str, PairSet],
+    evaluators: Evaluators,
+    device: torch.device,
+) -> dict[str, dict[str, dict[str, float]]]:
+    """The floor (input copy) and the ceilings (real target; VAE round trip, one row per distinct VAE)."""
+    scoring = _scoring(config, device)
+    results = {
+        INPUT_COPY: {group: score(p.inputs, p, evaluators, **scoring) for group, p in pair_sets.items()},
+        REAL_TARGET: {group: score(p.targets, p, evaluators, **scoring) for group, p in pair_sets.items()},
+    }
+    first_vae = next(iter(pipes.values())).vae
+    for index, (name, pipe) in enumerate(pipes.items()):
+        if index > 0 and same_weights(pipe.vae, first_vae):
+            continue
+        row = VAE_ROUND_TRIP if index == 0 else f"{VAE_ROUND_TRIP} ({name})"
+        results[row] = {}
+        for group, pairs in pair_sets.items():
+            views = vae_round_trip(pipe, pairs.targets, config.eval_batch_size, device)
+            results[row][group] = score(views, pairs, evaluators, **scoring)
+        logger.info("%s: %s", row, json.dumps(results[row]))
+    return results
+
+
+def _score_pipelines(
+    config: EvaluateConfig,
+    pipes: dict[str, SARZero123Pipeline],
+    pair_sets: dict[str, PairSet],
+    evaluators: Evaluators,
+    device: torch.device,
+    results: dict[str, dict[str, dict[str, float]]],
+) -> dict[str, dict[str, torch.Tensor]]:
+    """Adds each pipeline's row to ``results``; returns its generated views, ``{name: {group: views}}``."""
+    generated: dict[str, dict[str, torch.Tensor]] = {}
+    for name, pipe in pipes.items():
+        results[name], generated[name] = {}, {}
+        for group, pairs in pair_sets.items():
+            images, seconds = generate_pair_targets(
+                pipe,
+                pairs,
+                num_inference_steps=config.num_inference_steps,
+                guidance_scale=config.guidance_scale,
+                batch_size=config.eval_batch_size,
+                device=device,
+                desc=f"{name} {group}",
+            )
+            generated[name][group] = images
+            scores = score(images, pairs, evaluators, **_scoring(config, device))
+            results[name][group] = {**scores, "seconds": seconds}
+            logger.info("%s %s: %s", name, group, json.dumps(results[name][group]))
+    return generated
+
+
+def _write_tables(
+    config: EvaluateConfig,
+    output_dir: Path,
+    results: dict[str, dict[str, dict[str, float]]],
+    pair_sets: dict[str, PairSet],
+    evaluators: Evaluators,
+    lifted: dict[str, dict],
+    device: torch.device,
+) -> list[str]:
+    """``table3.{json,md}`` and ``table4.{json,md}``; returns their names."""
+    evaluator_metrics = {
+        name: model.metrics
+        for name, model in (
+            ("classifier", evaluators.classifier),
+            ("regressor", evaluators.regressor),
+            ("depression_regressor", evaluators.depression_regressor),
+        )
+        if model is not None
+    }
+    table3 = {
+        "protocol": config.protocol,
+        "device": str(device),
+        "num_inference_steps": config.num_inference_steps,
+        "guidance_scale": config.guidance_scale,
+        "results": results,
+        "paper": PAPER_TABLE3,
+        "evaluator_test_metrics": evaluator_metrics,
+        "same_depression": config.same_depression,
+        "outside_trained_range": lifted,
+        "input_depression_deg": config.input_depression_deg,
+        "target_depressions_deg": config.target_depressions_deg,
+        "pairs_per_d_el_deg": {group: d_el_counts(pairs.d_el_deg) for group, pairs in pair_sets.items()},
+    }
+    write_json_atomic(table3, output_dir / "table3.json")
+    (output_dir / "table3.md").write_text(table3_markdown(results, config.protocol.startswith("ood-")))
+    write_json_atomic(results, output_dir / "table4.json")
+    (output_dir / "table4.md").write_text(table4_markdown(results))
+    return ["table3.json", "table3.md", "table4.json", "table4.md"]
+
+
+def _speed_sweep(
+    config: EvaluateConfig,
+    output_dir: Path,
+    pipes: dict[str, SARZero123Pipeline],
+    seen: PairSet,
+    evaluators: Evaluators,
+    device: torch.device,
+) -> list[str]:
+    """Azimuth error and accuracy against images/s for every (pipeline, scheduler, step count), on the
+    first ``speed_n`` seen pairs; writes ``speed_error.{json,md,png}`` and returns their names."""
+    pairs = seen.subset(config.speed_n or len(seen))
+    rows: list[dict[str, Any]] = []
+    for name, pipe in pipes.items():
+        original = pipe.scheduler
+        for scheduler in config.schedulers:
+            set_scheduler(pipe, scheduler)
+            # a warm-up call, so one-time costs (allocation, kernel selection) do not count
+            generate_pair_targets(
+                pipe, pairs.subset(1), num_inference_steps=1, guidance_scale=config.guidance_scale,
+                batch_size=1, device=device, desc=f"{name} {scheduler} warm-up",
+            )  # fmt: skip
+            for steps in config.steps:
+                images, seconds = generate_pair_targets(
+                    pipe,
+                    pairs,
+                    num_inference_steps=steps,
+                    guidance_scale=config.guidance_scale,
+                    batch_size=config.eval_batch_size,
+                    device=device,
+                    desc=f"{name} {scheduler} {steps} steps",
+                )
+                scores = score(images, pairs, evaluators, **_scoring(config, device))
+                rows.append({
+                    "pipeline": name, "scheduler": scheduler, "steps": steps, "n": len(pairs),
+                    "images_per_s": len(pairs) / seconds, "azimuth_error_deg": scores["azimuth_error_deg"],
+                    "accuracy": scores["accuracy"], "ms_ssim": scores["ms_ssim"],
+                })  # fmt: skip
+                logger.info("speed %s", json.dumps(rows[-1]))
+        pipe.scheduler = original
+    write_json_atomic({"device": str(device), "rows": rows}, output_dir / "speed_error.json")
+    (output_dir / "speed_error.md").write_text(speed_markdown(rows, device_name(device)))
+    plot_speed_error(rows, output_dir / "speed_error.png")
+    return ["speed_error.json", "speed_error.md", "speed_error.png"]

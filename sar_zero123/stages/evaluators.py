@@ -1,0 +1,540 @@
+"""The evaluators stage: the models that score generated views (Table III, Table IV), in a run folder.
+
+``python train/train_evaluators.py`` parses its flags into :class:`TrainEvaluatorsConfig` and calls
+:func:`run_evaluators`, which writes into ``output_dir``: ``classifier/`` (ResNet-18 from scratch, linear
+head), ``regressor/`` (ResNet-18 + MLP 256-256, sigmoid, azimuth / 2pi), optionally ``probes/<name>/``
+(frozen SimCLR encoder + MLP, Table IV) and ``depression_regressor/`` (ResNet-18 + MLP, sigmoid,
+depression / 90 deg; with ``depression_data``), and ``metrics.json`` with test accuracy, circular test
+azimuth error and test depression error.
+
+Evaluators always train on the train split of the ``extended`` protocol, i.e. real chips of ALL classes at
+17 deg: for MSTAR-OOD the classifier must still know the held-out class (T72), as in the paper. They exist
+only to score generated images. The depression regressor needs chips at many depressions, which the
+protocols' splits (17 and 15 deg) lack: it trains on every chip of ``depression_data`` except a seeded,
+held-out ``depression_test_fraction`` of them, which give its test error.
+
+The folder follows :mod:`sar_zero123.run_folder`: a folder holding other work is refused before any
+training, an unfinished run with the same settings is continued only with ``resume`` (each model already
+saved is kept, an interrupted one resumes from its epoch checkpoint), and ``restart`` moves an old run aside.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import logging
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import torch
+import torch.nn.functional as F
+from accelerate.utils import set_seed
+from torch.utils.data import DataLoader
+from tqdm.auto import tqdm
+
+from sar_zero123.config import check_minimum, save_config, write_json_atomic
+from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_index, prepare_splits
+from sar_zero123.encoder import SAREncoder, SAREncoderConfig, resolve_encoder_dir
+from sar_zero123.evaluators import (
+    CLASSIFIER_DIR,
+    DEPRESSION_REGRESSOR_DIR,
+    EVALUATOR_CONFIG_NAME,
+    PROBES_DIR,
+    REGRESSOR_DIR,
+    AzimuthRegressor,
+    DepressionRegressor,
+    SARClassifier,
+    azimuth_regression_loss,
+    depression_regression_loss,
+    load_evaluator,
+)
+from sar_zero123.metrics import azimuth_error_deg, classification_accuracy
+from sar_zero123.run_folder import StageTimer, data_identity, finish_run, open_run_folder
+from sar_zero123.run_state import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
+from sar_zero123.runs import start_run
+from sar_zero123.stages._folders import withdrawn_if_setup_fails
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "EVALUATORS_MAY_DIFFER",
+    "MAX_EPOCHS",
+    "MAX_IMAGE_SIZE",
+    "EvaluatorTraining",
+    "TrainEvaluatorsConfig",
+    "hold_out",
+    "model_identity",
+    "run_evaluators",
+    "score_on_split",
+    "subsample",
+    "train_model",
+    "training_loss",
+]
+
+Evaluator = SARClassifier | AzimuthRegressor | DepressionRegressor
+
+#: Most passes over the train split per model (a larger value is a typo, not a plan).
+MAX_EPOCHS = 10_000
+#: Largest chip side fed to the evaluators, in pixels (MSTAR chips are 128).
+MAX_IMAGE_SIZE = 1024
+#: Most chips per step.
+MAX_BATCH_SIZE = 4096
+#: Settings that never change what the folder holds: where data is cached, how it is loaded, how to resume.
+EVALUATORS_MAY_DIFFER = (
+    "resume", "restart", "resume_from_checkpoint", "num_workers", "output_dir", "work_dir",
+)  # fmt: skip
+
+
+@dataclass(frozen=True)
+class EvaluatorTraining:
+    """How every evaluator model trains (AdamW, cosine decay to 0, epoch checkpoints)."""
+
+    batch_size: int  # chips per process per step (also the scoring batch)
+    learning_rate: float  # AdamW peak learning rate
+    weight_decay: float  # AdamW weight decay
+    checkpointing_epochs: int  # save a resumable checkpoint every this many epochs
+    resume_from_checkpoint: str | None  # "latest", a checkpoint folder, or None
+    num_workers: int  # DataLoader worker processes
+    mixed_precision: str  # accelerate mixed precision: "no", "fp16" or "bf16"
+
+
+@dataclass
+class TrainEvaluatorsConfig:
+    """Train the scratch ResNet-18 classifier, azimuth regressor (SimCLR probes, depression regressor)."""
+
+    output_dir: str = "runs/evaluators"  # folder for classifier/, regressor/, probes/, metrics.json
+    data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
+    depression_data: str | None = None  # chip folder (index.csv) at many depressions: depression_regressor/
+    depression_test_fraction: float = 0.2  # share of depression_data's chips held out for its test error
+    work_dir: str | None = None  # where the simulated dataset is cached (default: output_dir)
+    scaling: str = "unit"  # decibel bounds: "unit" (8-bit images, simulator), "mstar_raw" or "fit"
+    image_size: int = 128  # chip side in pixels fed to the evaluators
+    chip_crop_size: int | None = None  # centre crop before resizing (None keeps the pixel spacing)
+    cifar_stem: bool = True  # 3x3 stride-1 stem without max-pool (reference setting for SAR chips)
+    depths: tuple[int, ...] = (2, 2, 2, 2)  # ResNet-18 blocks per stage
+    hidden_sizes: tuple[int, ...] = (64, 128, 256, 512)  # ResNet-18 stage widths
+    mlp_hidden_sizes: tuple[int, ...] = (256, 256)  # azimuth MLP widths (paper: 256-256)
+    epochs: int = 30  # passes over the train split per scratch model
+    probe_epochs: int = 30  # passes for the MLP heads of the SimCLR probes
+    train_batch_size: int = 64  # chips per process per step (also the scoring batch)
+    learning_rate: float = 1e-3  # AdamW peak learning rate (cosine decay to 0)
+    weight_decay: float = 5e-4  # AdamW weight decay
+    simclr_encoders: list[str] = field(default_factory=list)  # SimCLR encoder folders to probe (Table IV)
+    max_train_chips: int | None = None  # subsample the train split (quick runs); None uses all
+    checkpointing_epochs: int = 5  # save a resumable checkpoint every this many epochs
+    resume_from_checkpoint: str | None = "latest"  # with resume: "latest", a checkpoint folder, or None
+    num_workers: int = 0  # DataLoader worker processes
+    mixed_precision: str = "no"  # accelerate mixed precision: "no", "fp16" or "bf16"
+    seed: int = 0  # seeds the split, the initialisation and the shuffling
+    resume: bool = False  # an unfinished run with the same settings is continued; a finished one is returned
+    restart: bool = False  # move an existing run in output_dir aside (never deleted) and start over
+
+    def __post_init__(self) -> None:
+        if self.scaling not in ("unit", "mstar_raw", "fit"):
+            raise ValueError(f"scaling must be 'unit', 'mstar_raw' or 'fit', got {self.scaling!r}")
+        counts = ("image_size", "epochs", "train_batch_size", "checkpointing_epochs", "probe_epochs")
+        check_minimum(self, *counts, minimum=1)
+        for name, bound in (("image_size", MAX_IMAGE_SIZE), ("epochs", MAX_EPOCHS),
+                            ("probe_epochs", MAX_EPOCHS), ("train_batch_size", MAX_BATCH_SIZE)):  # fmt: skip
+            if getattr(self, name) > bound:
+                raise ValueError(f"{name} must be <= {bound}, got {getattr(self, name)}")
+        check_minimum(self, "learning_rate", minimum=0, strict=True)
+        check_minimum(self, "weight_decay", "num_workers", minimum=0)
+        check_minimum(self, "max_train_chips", "chip_crop_size", minimum=1, optional=True)
+        if not 0.0 < self.depression_test_fraction < 1.0:
+            raise ValueError(
+                f"depression_test_fraction must lie in (0, 1), got {self.depression_test_fraction}"
+            )
+        if len(self.mlp_hidden_sizes) == 0 or min(self.mlp_hidden_sizes) < 1:
+            raise ValueError(f"mlp_hidden_sizes must be positive widths, got {self.mlp_hidden_sizes}")
+        if self.mixed_precision not in ("no", "fp16", "bf16"):
+            raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
+        names = [Path(p).name for p in self.simclr_encoders]
+        if len(set(names)) != len(names):
+            raise ValueError(f"simclr_encoders must have distinct folder names (probe names), got {names}")
+        if self.resume and self.restart:
+            raise ValueError("resume and restart: choose one (continue this run, or move it aside)")
+
+    @property
+    def training(self) -> EvaluatorTraining:
+        """The optimisation settings every model of the stage shares."""
+        return EvaluatorTraining(
+            batch_size=self.train_batch_size,
+            learning_rate=self.learning_rate,
+            weight_decay=self.weight_decay,
+            checkpointing_epochs=self.checkpointing_epochs,
+            resume_from_checkpoint=self.resume_from_checkpoint,
+            num_workers=self.num_workers,
+            mixed_precision=self.mixed_precision,
+        )
+
+
+def model_identity(path: str | os.PathLike, name: str) -> dict[str, Any]:
+    """What a model folder held when a stage read it: its files' names, sizes and modification times.
+
+    Recorded in a run folder beside :func:`~sar_zero123.run_folder.data_identity`, so that a model
+    retrained in place (same folder name, new weights) is not taken for the one a finished run scored.
+    Nothing is read but the file listing.
+
+    Raises:
+        FileNotFoundError: If ``path`` does not exist (naming the setting ``name``).
+    """
+    root = Path(path)
+    if not root.exists():
+        raise FileNotFoundError(f"{name}: {str(root)!r} does not exist")
+    files = sorted(p for p in root.rglob("*") if p.is_file()) if root.is_dir() else [root]
+    digest = hashlib.sha256()
+    for file in files:
+        stat = file.stat()
+        relative = file.relative_to(root).as_posix() if root.is_dir() else file.name
+        digest.update(f"{relative}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode())
+    return {"path": str(root.resolve()), "files": len(files), "files_sha256": digest.hexdigest()}
+
+
+# ------------------------------------------------------------------------------------- one model
+def _loader(dataset: ChipDataset, training: EvaluatorTraining, shuffle: bool, seed: int) -> DataLoader:
+    return DataLoader(
+        dataset,
+        batch_size=training.batch_size,
+        shuffle=shuffle,
+        num_workers=training.num_workers,
+        generator=torch.Generator().manual_seed(seed),
+        drop_last=False,
+    )
+
+
+def training_loss(
+    model: torch.nn.Module, evaluator: Evaluator, batch: dict[str, torch.Tensor]
+) -> torch.Tensor:
+    """Mean training loss of a batch: cross-entropy, circular azimuth or depression squared error.
+
+    `model` is what runs the forward pass (maybe a data-parallel wrapper), `evaluator` the bare model whose
+    kind picks the loss.
+    """
+    outputs = model(batch["image"])
+    if isinstance(evaluator, SARClassifier):
+        return F.cross_entropy(outputs, batch["label"].long())
+    if isinstance(evaluator, DepressionRegressor):
+        return depression_regression_loss(outputs, batch["depression_deg"].float()).mean()
+    return azimuth_regression_loss(outputs, batch["azimuth_deg"].float()).mean()
+
+
+@torch.no_grad()
+def score_on_split(model: Evaluator, loader: DataLoader, device: torch.device) -> dict[str, float]:
+    """Test accuracy (classifier), mean/median circular azimuth error (azimuth regressor) or mean/median
+    absolute depression error (depression regressor) on a split."""
+    model.eval()
+    outputs, truths = [], []
+    for batch in loader:
+        images = batch["image"].to(device)
+        if isinstance(model, SARClassifier):
+            outputs.append(model(images).argmax(dim=1).cpu())
+            truths.append(batch["label"])
+        elif isinstance(model, DepressionRegressor):
+            outputs.append(model.predict_depression_deg(images).cpu())
+            truths.append(batch["depression_deg"].float())
+        else:
+            outputs.append(model.predict_azimuth_deg(images).cpu())
+            truths.append(batch["azimuth_deg"].float())
+    predictions, truth = torch.cat(outputs), torch.cat(truths)
+    if isinstance(model, SARClassifier):
+        return {"test_accuracy": classification_accuracy(predictions, truth), "n_test": len(predictions)}
+    if isinstance(model, DepressionRegressor):
+        name, errors = "depression", (predictions - truth).abs()
+    else:
+        name, errors = "azimuth", azimuth_error_deg(predictions, truth)
+    return {
+        f"test_{name}_error_deg": errors.mean().item(),
+        f"test_{name}_error_median_deg": errors.median().item(),
+        "n_test": len(predictions),
+    }
+
+
+def train_model(
+    model: Evaluator,
+    train_set: ChipDataset,
+    test_set: ChipDataset,
+    stage_dir: Path,
+    *,
+    training: EvaluatorTraining,
+    epochs: int,
+    seed: int,
+) -> dict[str, float]:
+    """Trains one evaluator (its trainable parameters), saves it to `stage_dir` and returns test metrics.
+
+    A finished model (its `evaluator.json` exists) is loaded instead of retrained; an interrupted one
+    resumes from its latest epoch checkpoint (``training.resume_from_checkpoint``).
+    """
+    if (stage_dir / EVALUATOR_CONFIG_NAME).is_file():
+        logger.info("%s already trained; skipping", stage_dir)
+        return load_evaluator(stage_dir).metrics
+    # the loaders keep their own seeded generators: a model resumes at epoch boundaries only
+    accelerator = start_run(None, seed=seed, mixed_precision=training.mixed_precision, seedable_sampler=False)
+    parameters = [p for p in model.parameters() if p.requires_grad]
+    optimizer = torch.optim.AdamW(parameters, lr=training.learning_rate, weight_decay=training.weight_decay)
+    train_loader = _loader(train_set, training, shuffle=True, seed=seed)
+    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=epochs * len(train_loader))
+    model, optimizer, train_loader, scheduler = accelerator.prepare(model, optimizer, train_loader, scheduler)
+    checkpoint_dir = stage_dir / "checkpoints"
+    start_epoch = 0
+    resume = resolve_resume_checkpoint(checkpoint_dir, training.resume_from_checkpoint)
+    if resume is not None:
+        start_epoch = int(load_checkpoint(accelerator, resume)["epoch"])
+        logger.info("resumed %s at epoch %d", stage_dir.name, start_epoch)
+    unwrapped = accelerator.unwrap_model(model)
+    frozen_encoder = not any(p.requires_grad for p in unwrapped.encoder.parameters())
+    for epoch in range(start_epoch, epochs):
+        model.train()
+        if frozen_encoder:
+            unwrapped.encoder.eval()  # probes: frozen BatchNorm statistics of the SimCLR encoder
+        total, count = 0.0, 0
+        for batch in tqdm(train_loader, desc=f"{stage_dir.name} epoch {epoch + 1}/{epochs}", leave=False):
+            loss = training_loss(model, unwrapped, batch)
+            optimizer.zero_grad(set_to_none=True)
+            accelerator.backward(loss)
+            optimizer.step()
+            scheduler.step()
+            total += loss.item() * len(batch["image"])
+            count += len(batch["image"])
+        logger.info("%s epoch %d/%d: train loss %.4f", stage_dir.name, epoch + 1, epochs, total / count)
+        if (epoch + 1) % training.checkpointing_epochs == 0 and epoch + 1 < epochs:
+            save_checkpoint(
+                accelerator, checkpoint_dir, epoch + 1, total_limit=1, extra_state={"epoch": epoch + 1}
+            )
+    metrics = score_on_split(unwrapped, _loader(test_set, training, False, seed), accelerator.device)
+    metrics["n_train"] = len(train_set)
+    unwrapped.metrics = metrics
+    unwrapped.save_pretrained(stage_dir)
+    logger.info("%s: %s", stage_dir.name, json.dumps(metrics))
+    return metrics
+
+
+def subsample(records: list[ChipRecord], max_chips: int | None, seed: int) -> list[ChipRecord]:
+    """At most `max_chips` of the records (a seeded draw, in record order); all when `max_chips` is None."""
+    if max_chips is None or len(records) <= max_chips:
+        return records
+    keep = torch.randperm(len(records), generator=torch.Generator().manual_seed(seed))
+    return [records[i] for i in sorted(keep[:max_chips].tolist())]
+
+
+def hold_out(
+    records: list[ChipRecord], fraction: float, seed: int
+) -> tuple[list[ChipRecord], list[ChipRecord]]:
+    """Splits the records into `(train, test)` with `round(fraction * n)` (at least 1) seeded test chips.
+
+    Raises:
+        ValueError: If fewer than two records are given.
+    """
+    if len(records) < 2:
+        raise ValueError(f"a train/test split needs at least 2 chips, got {len(records)}")
+    count = min(max(1, round(fraction * len(records))), len(records) - 1)
+    order = torch.randperm(len(records), generator=torch.Generator().manual_seed(seed)).tolist()
+    test = set(order[:count])
+    train = [record for i, record in enumerate(records) if i not in test]
+    return train, [records[i] for i in sorted(test)]
+
+
+# ------------------------------------------------------------------------------------------ the stage
+def run_evaluators(config: TrainEvaluatorsConfig) -> Path:
+    """Train the classifier, the azimuth regressor, the SimCLR probes and the depression regressor into
+    ``config.output_dir``; returns the folder (a finished one, with ``resume``, at once).
+
+    Raises:
+        ValueError: From :func:`~sar_zero123.run_folder.open_run_folder`, for a folder holding other work
+            (nothing on disk is changed then); if ``depression_data`` holds chips at fewer than two
+            depressions (before any work).
+        FileNotFoundError: If ``data``, ``depression_data`` or a SimCLR encoder folder does not exist.
+    """
+    timer = StageTimer()
+    # 1. inputs checked, then the run-folder rule, before any work
+    depression_records = _depression_records(config.depression_data)
+    inputs: dict[str, Any] = {"data": data_identity(config.data)}
+    if config.depression_data is not None:
+        inputs["depression_data"] = data_identity(config.depression_data)
+    if config.simclr_encoders:
+        inputs["simclr_encoders"] = [
+            model_identity(path, f"simclr_encoders[{i}]") for i, path in enumerate(config.simclr_encoders)
+        ]
+    folder = open_run_folder(
+        config.output_dir, "evaluators", config, data=inputs, resume=config.resume, restart=config.restart,
+        may_differ=EVALUATORS_MAY_DIFFER,
+    )  # fmt: skip
+    if folder.finished:
+        logger.info("%s already holds these evaluators", folder.path)
+        return folder.path
+    output_dir = folder.path
+
+    # 2. data (the extended protocol's train split holds every class, the OOD class included) and the SimCLR
+    # encoders; a new run whose setup fails leaves no record, so the corrected command is not refused
+    with withdrawn_if_setup_fails(folder):
+        work_dir = Path(config.work_dir) if config.work_dir is not None else output_dir
+        splits = prepare_splits(config.data, "extended", work_dir, seed=config.seed)
+        train_records = subsample(splits["train"], config.max_train_chips, config.seed)
+        scaling = DecibelScaling.from_choice(config.scaling, train_records)
+        class_names = sorted({r.target_class for r in splits["train"] + splits["test"]})
+        train_set, test_set = (
+            _chips(records, config, scaling, class_names) for records in (train_records, splits["test"])
+        )
+        encoders = _probe_encoders(config)
+    save_config(config, output_dir)
+    logger.info(
+        "evaluators: %d train / %d test chips, classes %s", len(train_set), len(test_set), class_names
+    )
+    encoder_config = SAREncoderConfig(
+        image_size=config.image_size,
+        in_channels=1,
+        cifar_stem=config.cifar_stem,
+        depths=config.depths,
+        hidden_sizes=config.hidden_sizes,
+    )
+
+    # 3. scratch classifier and regressor, Table IV probes, depression regressor
+    results = _train_scratch_models(
+        config, encoder_config, scaling, class_names, train_set, test_set, output_dir
+    )
+    results.update(_train_probes(config, encoders, scaling, class_names, train_set, test_set, output_dir))
+    summary: dict[str, Any] = {"trained_on": "extended/train (all classes)"}
+    if depression_records is not None:
+        seed = config.seed + 2 + len(config.simclr_encoders)
+        results["depression_regressor"] = _train_depression_regressor(
+            config, depression_records, encoder_config, scaling, output_dir / DEPRESSION_REGRESSOR_DIR, seed
+        )
+        summary["depression_regressor_trained_on"] = (
+            f"{config.depression_data} except a held-out {config.depression_test_fraction:g} of its chips"
+        )
+
+    # 4. metrics.json, the last output
+    write_json_atomic(
+        {"class_names": class_names, "scaling": scaling.to_dict(), **summary, "models": results},
+        output_dir / "metrics.json",
+    )
+    finish_run(folder, ["metrics.json"], seconds=timer.seconds, results={"models": sorted(results)})
+    return output_dir
+
+
+def _depression_records(depression_data: str | None) -> list[ChipRecord] | None:
+    """The chips of ``depression_data`` (``None`` without one), checked to span several depressions.
+
+    Raises:
+        ValueError: If the folder's chips sit at fewer than two depressions.
+    """
+    if depression_data is None:
+        return None
+    records = load_index(depression_data)
+    depressions = sorted({round(r.depression_deg, 3) for r in records})
+    if len(depressions) < 2:
+        raise ValueError(
+            f"depression_data {depression_data} holds chips at depressions {depressions} deg; "
+            "a depression regressor needs at least two"
+        )
+    return records
+
+
+def _chips(
+    records: list[ChipRecord], config: TrainEvaluatorsConfig, scaling: DecibelScaling, class_names: list[str]
+) -> ChipDataset:
+    """The evaluators' view of some chips: ``image_size`` px, ``chip_crop_size`` crop, ``scaling``."""
+    return ChipDataset(
+        records,
+        size=config.image_size,
+        scaling=scaling,
+        class_names=class_names,
+        crop_size=config.chip_crop_size,
+    )
+
+
+def _train_scratch_models(
+    config: TrainEvaluatorsConfig,
+    encoder_config: SAREncoderConfig,
+    scaling: DecibelScaling,
+    class_names: list[str],
+    train_set: ChipDataset,
+    test_set: ChipDataset,
+    output_dir: Path,
+) -> dict[str, dict[str, float]]:
+    """The classifier (seed) and the azimuth regressor (seed + 1), from scratch."""
+    set_seed(config.seed)
+    classifier = SARClassifier(encoder_config, class_names, scaling)
+    results = {
+        "classifier": train_model(classifier, train_set, test_set, output_dir / CLASSIFIER_DIR,
+                                  training=config.training, epochs=config.epochs, seed=config.seed)
+    }  # fmt: skip
+    set_seed(config.seed + 1)
+    regressor = AzimuthRegressor(encoder_config, class_names, scaling, config.mlp_hidden_sizes)
+    results["regressor"] = train_model(
+        regressor, train_set, test_set, output_dir / REGRESSOR_DIR,
+        training=config.training, epochs=config.epochs, seed=config.seed + 1,
+    )  # fmt: skip
+    return results
+
+
+def _probe_encoders(config: TrainEvaluatorsConfig) -> dict[str, SAREncoder]:
+    """The SimCLR encoders to probe, by probe name (their folder names), checked before any training.
+
+    Raises:
+        ValueError: If an encoder takes another chip size than ``config.image_size``.
+    """
+    encoders = {}
+    for index, path in enumerate(config.simclr_encoders):
+        encoder = SAREncoder.from_pretrained(resolve_encoder_dir(path, field="simclr_encoders"))
+        if encoder.config.image_size != config.image_size:
+            raise ValueError(
+                f"simclr_encoders[{index}] {path} takes {encoder.config.image_size} px chips but "
+                f"image_size is {config.image_size}"
+            )
+        encoders[Path(path).name] = encoder
+    return encoders
+
+
+def _train_probes(
+    config: TrainEvaluatorsConfig,
+    encoders: dict[str, SAREncoder],
+    scaling: DecibelScaling,
+    class_names: list[str],
+    train_set: ChipDataset,
+    test_set: ChipDataset,
+    output_dir: Path,
+) -> dict[str, dict[str, float]]:
+    """Table IV probes: each SimCLR encoder frozen under a trained MLP head, keyed ``probe:<folder name>``."""
+    results = {}
+    for index, (name, encoder) in enumerate(encoders.items()):
+        set_seed(config.seed + 2 + index)
+        probe = AzimuthRegressor(encoder.config, class_names, scaling, config.mlp_hidden_sizes)
+        probe.encoder.load_state_dict(encoder.state_dict())
+        probe.encoder.requires_grad_(False)
+        results[f"probe:{name}"] = train_model(
+            probe, train_set, test_set, output_dir / PROBES_DIR / name,
+            training=config.training, epochs=config.probe_epochs, seed=config.seed,
+        )  # fmt: skip
+    return results
+
+
+def _train_depression_regressor(
+    config: TrainEvaluatorsConfig,
+    records: list[ChipRecord],
+    encoder_config: SAREncoderConfig,
+    scaling: DecibelScaling,
+    stage_dir: Path,
+    seed: int,
+) -> dict[str, float]:
+    """Trains the depression regressor on ``records`` (all chips but a held-out share).
+
+    The chips are normalised with the other evaluators' ``scaling``: the regressor scores the same views.
+    """
+    depressions = sorted({round(r.depression_deg, 3) for r in records})
+    train_records, test_records = hold_out(records, config.depression_test_fraction, seed)
+    train_records = subsample(train_records, config.max_train_chips, seed)
+    class_names = sorted({r.target_class for r in records})
+    train_set, test_set = (
+        _chips(part, config, scaling, class_names) for part in (train_records, test_records)
+    )
+    logger.info(
+        "depression regressor: %d train / %d test chips at depressions %s deg",
+        len(train_set), len(test_set), depressions,
+    )  # fmt: skip
+    set_seed(seed)
+    model = DepressionRegressor(encoder_config, class_names, scaling, config.mlp_hidden_sizes)
+    return train_model(model, train_set, test_set, stage_dir, training=config.training, epochs=config.epochs,
+                       seed=seed)  # fmt: skip

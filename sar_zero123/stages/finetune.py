@@ -1,0 +1,492 @@
+"""The fine-tune stage: a zero-1-to-3 style SAR novel-view model trained with Projected Feature Matching.
+
+``train/finetune_pfm.py`` parses its flags into :class:`FinetuneConfig` and calls :func:`run_finetune`;
+other stages (the prior, the quickstart) build the config directly.
+
+Training follows zero-1-to-3 (the step: :func:`sar_zero123.training.compute_losses`; the run's parts:
+:mod:`sar_zero123.finetuning`): AdamW with the pose projection at 10x the learning rate, CFG dropout of 5%
+image embedding, 5% both, 5% condition latent, and the loss ``L_simple + pfm_weight * L_PFM`` (Eq. 21),
+whose settings travel as one :class:`~sar_zero123.losses.LossSettings`; ``pfm_weight = 0`` is plain
+zero-1-to-3 fine-tuning.
+
+The CLIP image tower is frozen, as in zero-1-to-3, which is right on top of a pretrained tower. The
+named ``size`` models start from a *random* tower, whose embedding would stay a random projection of
+the input chip; ``train_image_encoder`` trains it with the UNet (float32 master weights, same learning
+rate, in the EMA, the checkpoints and the exported pipeline).
+
+The run folder follows :mod:`sar_zero123.run_folder`: a folder holding a run is continued only with
+``resume_from_checkpoint`` (a constant-LR run may then be extended with more ``max_train_steps``),
+started over only with ``restart`` (the old run moved aside), and refused otherwise, before any work.
+Resuming reaches bitwise the weights of an uninterrupted run with no RNG state beyond the step: the
+data order and the view pairs are functions of (seed, epoch) (``run_state.resumable_batches``), every
+random draw of a micro-batch one of (seed, micro-batch index, process index) (``micro_batch_generator``).
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import torch
+from accelerate import Accelerator
+from diffusers import DDPMScheduler
+from diffusers.optimization import get_scheduler
+from torch.utils.data import DataLoader, Dataset
+from tqdm.auto import tqdm
+
+from sar_zero123.config import check_minimum, save_config, write_json_atomic
+from sar_zero123.data import DecibelScaling, check_protocol, train_validation_pairs
+from sar_zero123.evaluators import load_evaluators
+from sar_zero123.finetuning import (
+    ema_models,
+    export_finetuned,
+    finetuning_modules,
+    finetuning_optimizer,
+    mixed_precision_dtype,
+    step_logs,
+    training_image_size,
+)
+from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossSettings, check_pfm_crop_size, load_pfm_encoder
+from sar_zero123.models import load_sar_zero123, record_trained_pose_ranges
+from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.run_folder import StageTimer, data_identity, finish_run
+from sar_zero123.run_state import (
+    RESUME_MAY_DIFFER,
+    check_finite_step,
+    check_resume_config,
+    check_resume_state,
+    end_run,
+    read_run_state,
+    resolve_resume_checkpoint,
+    resumable_batches,
+    resume_step,
+    save_checkpoint,
+)
+from sar_zero123.runs import check_global_batch, check_replicas_agree, start_run, tracker_hparams
+from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
+from sar_zero123.training import (
+    CachedViewPairs,
+    ChipLatentCache,
+    compute_losses,
+    load_chip_images,
+    micro_batch_generator,
+)
+from sar_zero123.validation import run_validation
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["FinetuneConfig", "run_finetune"]
+
+#: Schedulers whose learning rate does not depend on the step count: their runs may be extended.
+CONSTANT_LR_SCHEDULERS = ("constant", "constant_with_warmup")
+
+
+@dataclass
+class FinetuneConfig:
+    """Fine-tune a SAR zero-1-to-3 model with Projected Feature Matching."""
+
+    output_dir: str = "runs/finetune_pfm"  # run folder: checkpoints, logs, validation grids, final pipeline
+    pretrained: str | None = None  # pipeline folder or zero-1-to-3 checkpoint; None: build `size`
+    size: Literal["tiny", "micro", "compact", "small", "zero123"] = "small"  # built when pretrained is None
+    image_size: int | None = None  # chip side in pixels; None uses the model's own
+    pose_in_time_embedding: bool = False  # built sizes: the pose also enters the UNet's timestep embedding
+    # built sizes: an AzimuthEstimator reads the input's azimuth (and a code), turned by d_az it enters the
+    # UNet's timestep embedding (sar_zero123.orientation)
+    estimate_input_azimuth: bool = False
+    input_code_dim: int = 16  # with estimate_input_azimuth: size of the estimator's code of the input view
+    azimuth_loss_weight: float = 1.0  # weight of the estimator's loss on the input chip's known azimuth
+    vae: str | None = None  # AutoencoderKL folder (train/train_vae.py) replacing the pipeline's VAE
+    encoder: str | None = None  # frozen SAREncoder folder; required when pfm_weight > 0
+    data: str | None = None  # dataset folder with index.csv; None simulates the built-in dataset
+    protocol: str = "extended"  # split protocol: extended, soc or ood-<CLASS> (e.g. ood-T72)
+    scaling: Literal["unit", "mstar_raw", "fit"] = "unit"  # dB bounds: unit magnitude, raw MSTAR, or fitted
+    max_d_az_deg: float | None = None  # largest |d_az| of a training pair in degrees; None: any
+    same_depression: bool = True  # pair only chips at one depression; False also across (d_el != 0)
+    # built sizes: the pose's 4th entry is the input chip's absolute depression (Stable Zero123's convention)
+    input_depression: bool = False
+    pfm_weight: float = 4.0  # lambda of Eq. (21); 0 = plain zero-1-to-3 fine-tuning
+    pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
+    pfm_fraction: float = 1.0  # fraction of the eligible batch on which PFM is computed
+    pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
+    pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
+    learning_rate: float = 1e-4  # AdamW learning rate of the UNet
+    pose_lr_multiplier: float = 10.0  # pose projection learning rate = this x learning_rate
+    adam_weight_decay: float = 1e-2  # AdamW weight decay
+    lr_scheduler: str = "constant"  # diffusers scheduler name (constant, constant_with_warmup, cosine, ...)
+    lr_warmup_steps: int = 0  # warm-up optimisation steps
+    train_batch_size: int = 4  # pairs per process per micro-batch
+    gradient_accumulation_steps: int = 1  # micro-batches per optimisation step
+    max_train_steps: int = 1000  # optimisation steps
+    max_grad_norm: float = 1.0  # gradient clipping norm (all trained parameters together)
+    mixed_precision: Literal["no", "fp16", "bf16"] = "no"  # frozen VAE/encoders are cast to this dtype
+    gradient_checkpointing: bool = False  # checkpoint UNet activations
+    train_image_encoder: bool = False  # train the CLIP image tower too: use it when training from scratch
+    use_ema: bool = True  # EMA of the UNet (+ trained image tower): in checkpoints, validation, export
+    ema_decay: float = 0.9999  # EMA decay
+    drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
+    drop_both_prob: float = 0.05  # CFG dropout: projected token and condition latent (the sampling null)
+    drop_latent_prob: float = 0.05  # CFG dropout: condition latent only
+    timestep_sampling: Literal["uniform", "logit_normal"] = "uniform"  # training t density (uniform: paper)
+    timestep_logit_mean: float = 0.0  # logit_normal: mean of logit(t / T); > 0 favours high noise
+    timestep_logit_std: float = 1.0  # logit_normal: standard deviation of logit(t / T)
+    snr_gamma: float | None = None  # Min-SNR-gamma weighting of L_simple (e.g. 5); None: the paper's L_simple
+    prediction_type: Literal["epsilon", "v_prediction"] | None = None  # built sizes only (None: epsilon)
+    checkpointing_steps: int = 500  # save a resumable checkpoint every this many steps
+    checkpoints_total_limit: int | None = None  # keep at most this many checkpoints
+    resume_from_checkpoint: str | None = None  # 'latest' or a checkpoint folder
+    restart: bool = False  # move an existing run in output_dir aside (never deleted) and start over
+    validation_steps: int = 500  # validation grid and losses every this many steps (0: never)
+    num_validation_images: int = 4  # validation pairs (rows of the grid)
+    validation_inference_steps: int = 20  # DDIM steps for validation samples
+    guidance_scale: float = 3.0  # CFG scale for validation samples
+    num_workers: int = 0  # DataLoader workers
+    report_to: str | None = "tensorboard"  # accelerate tracker; None disables logging
+    seed: int = 0  # seed of initialisation, data order and every random draw
+    save_pipeline: bool = True  # save_pretrained the final SARZero123Pipeline into output_dir/pipeline
+    evaluators: str | None = None  # train_evaluators.py folder: validation also checks pose following
+    cache_latents: bool = True  # encode every training chip once with the frozen VAE (and frozen CLIP tower)
+
+    def __post_init__(self) -> None:
+        self.loss_settings()  # the loss fields are validated there, once
+        if self.pfm_weight > 0 and self.encoder is None:
+            raise ValueError("encoder: a frozen SAREncoder folder is required when pfm_weight > 0")
+        check_protocol(self.protocol)
+        check_minimum(self, "learning_rate", "pose_lr_multiplier", "max_grad_norm", minimum=0, strict=True)
+        check_minimum(self, "lr_warmup_steps", "validation_steps", "num_workers", minimum=0)
+        counts = ("train_batch_size", "gradient_accumulation_steps", "max_train_steps", "checkpointing_steps",
+                  "num_validation_images", "validation_inference_steps")  # fmt: skip
+        check_minimum(self, *counts, minimum=1)
+        check_minimum(self, "pfm_projection_dim", "checkpoints_total_limit", minimum=1, optional=True)
+        check_minimum(self, "image_size", minimum=8, optional=True)
+        if not 0 <= self.ema_decay < 1:
+            raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
+        if self.input_depression and self.pretrained is not None:
+            raise ValueError(
+                "input_depression: only for a model built from scratch (--size); a pretrained pipeline keeps "
+                "its pose convention (pose_projection.config.input_depression)"
+            )
+        if self.prediction_type is not None and self.pretrained is not None:
+            raise ValueError(
+                "prediction_type: only for a model built from scratch (--size); a pretrained checkpoint "
+                "keeps the prediction type it was trained with"
+            )
+        if self.restart and self.resume_from_checkpoint is not None:
+            raise ValueError("restart: starts over; it cannot be combined with resume_from_checkpoint")
+
+    def loss_settings(self) -> LossSettings:
+        """The settings of the training step's loss (validated by :class:`LossSettings`)."""
+        return LossSettings(
+            pfm_weight=self.pfm_weight,
+            pfm_min_snr=self.pfm_min_snr,
+            pfm_fraction=self.pfm_fraction,
+            pfm_crop_size=self.pfm_crop_size,
+            drop_image_prob=self.drop_image_prob,
+            drop_both_prob=self.drop_both_prob,
+            drop_latent_prob=self.drop_latent_prob,
+            timestep_sampling=self.timestep_sampling,
+            timestep_logit_mean=self.timestep_logit_mean,
+            timestep_logit_std=self.timestep_logit_std,
+            snr_gamma=self.snr_gamma,
+            azimuth_loss_weight=self.azimuth_loss_weight,
+        )
+
+    def extendable_fields(self) -> tuple[str, ...]:
+        """Fields a resumed run may change: ``max_train_steps`` when the learning rate ignores the steps."""
+        return ("max_train_steps",) if self.lr_scheduler in CONSTANT_LR_SCHEDULERS else ()
+
+
+@dataclass
+class _Inputs:
+    """What a fine-tune reads: the model it starts from, the PFM encoder, the data, a pose regressor."""
+
+    pipe: SARZero123Pipeline
+    image_size: int
+    encoder: torch.nn.Module | None
+    train_dataset: Dataset
+    validation_dataset: Dataset
+    scaling: DecibelScaling
+    regressor: torch.nn.Module | None
+
+
+@dataclass
+class _Trainer:
+    """The prepared training state of a fine-tune (data-parallel wrappers where accelerate made them)."""
+
+    trained_modules: list[torch.nn.Module]
+    unet: torch.nn.Module
+    pose_projection: torch.nn.Module
+    image_encoder: torch.nn.Module
+    azimuth_estimator: torch.nn.Module | None
+    image_embedder: torch.nn.Module
+    ema_pairs: list
+    optimizer: Any
+    lr_scheduler: Any
+    train_dataloader: DataLoader
+    train_dataset: Dataset
+    validation_batch: dict
+    loss_kwargs: dict[str, Any]
+    global_step: int
+
+
+def run_finetune(config: FinetuneConfig) -> Path:
+    """Fine-tune (or continue, or extend) a run in ``config.output_dir``; returns the run folder.
+
+    The pipeline lands in ``output_dir/pipeline`` (``save_pipeline``); ``run.json`` records the run and is
+    marked finished once the last output exists. A finished run continued with the same settings does no
+    work.
+
+    Raises:
+        ValueError: Before any work, for a folder holding another run, a finished or unfinished run of these
+            settings without ``resume_from_checkpoint`` or ``restart``, a checkpoint written with other
+            settings, or a data split smaller than one optimisation step.
+        FileNotFoundError: For a missing model, encoder, VAE or data folder.
+        FloatingPointError: If training diverges (nothing non-finite is saved or exported).
+    """
+    timer = StageTimer()
+    output_dir = Path(config.output_dir)
+    # 1. the checkpoint to continue from, compared with this run (reads only), then the run-folder rule
+    resume_path = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
+    # the checkpoint's module list must match this run's
+    check_resume_state(resume_path, "train_image_encoder", config.train_image_encoder, default=False)
+    extendable = config.extendable_fields()
+    check_resume_config(resume_path, config, may_differ=("guidance_scale", "restart", *extendable))
+    folder = open_stage_folder(
+        output_dir, "finetune", config, data={"data": data_identity(config.data)},
+        resume=config.resume_from_checkpoint is not None, restart=config.restart,
+        may_differ=(*RESUME_MAY_DIFFER, "guidance_scale", "restart"), may_extend=extendable,
+    )  # fmt: skip
+    if folder.finished:
+        logger.info("%s: this fine-tune is finished; nothing to do", output_dir)
+        return output_dir
+    accelerator = start_run(
+        output_dir,
+        seed=config.seed,
+        mixed_precision=config.mixed_precision,
+        report_to=config.report_to,
+        gradient_accumulation_steps=config.gradient_accumulation_steps,
+    )
+    # 2. inputs, modules, optimiser and data, every input checked before the first step
+    with withdrawn_if_setup_fails(folder):
+        inputs = _load_inputs(config, accelerator)
+        trainer = _prepare_training(config, accelerator, inputs, resume_path)
+    # 3. training, then the exported pipeline and the record
+    global_step = _train(config, accelerator, inputs, trainer)
+    outputs = _export(config, accelerator, inputs, trainer, global_step)
+    if accelerator.is_main_process:
+        finish_run(folder, outputs, seconds=timer.seconds, results={"final_step": global_step})
+    accelerator.wait_for_everyone()
+    # no reference to a data-parallel wrapper (or a graph through one) may outlive the process group
+    trainer = None
+    end_run(accelerator)
+    return output_dir
+
+
+def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> _Inputs:
+    """The model, the PFM encoder and the data, checked against each other; writes ``config.json``."""
+    output_dir = Path(config.output_dir)
+    pipe = load_sar_zero123(
+        config.pretrained,
+        size=config.size,
+        image_size=config.image_size,
+        seed=config.seed,
+        pose_in_time_embedding=config.pose_in_time_embedding,
+        estimate_input_azimuth=config.estimate_input_azimuth,
+        input_code_dim=config.input_code_dim,
+        prediction_type=config.prediction_type,
+        vae=config.vae,
+        input_depression=config.input_depression,
+    )
+    image_size = training_image_size(pipe, config.image_size)
+    encoder = None
+    if config.pfm_weight > 0:
+        encoder = load_pfm_encoder(
+            config.encoder, image_size=image_size, projection_dim=config.pfm_projection_dim, seed=config.seed
+        )
+    train_dataset, validation_dataset, scaling = train_validation_pairs(
+        config.data,
+        config.protocol,
+        output_dir / "data",
+        image_size=image_size,
+        scaling=config.scaling,
+        max_d_az_deg=config.max_d_az_deg,
+        num_validation_pairs=config.num_validation_images,
+        seed=config.seed,
+        same_depression=config.same_depression,
+    )
+    record_trained_pose_ranges(pipe.pose_projection, train_dataset)
+    regressor = None  # validation's pose-following check
+    if config.evaluators is not None and config.validation_steps:
+        regressor = load_evaluators(config.evaluators).regressor
+    check_global_batch(len(train_dataset), config.train_batch_size, accelerator.num_processes, what="pairs",
+                       gradient_accumulation_steps=config.gradient_accumulation_steps)  # fmt: skip
+    if config.pfm_crop_size is not None:
+        check_pfm_crop_size(config.pfm_crop_size, image_size=image_size,
+                            vae_scale_factor=pipe.vae_scale_factor, name="pfm_crop_size")  # fmt: skip
+    if accelerator.is_main_process:
+        save_config(config, output_dir)
+        if encoder is not None and config.pfm_projection_dim is not None:
+            encoder.save_projection(output_dir)
+    return _Inputs(pipe, image_size, encoder, train_dataset, validation_dataset, scaling, regressor)
+
+
+def _prepare_training(
+    config: FinetuneConfig, accelerator: Accelerator, inputs: _Inputs, resume_path: Path | None
+) -> _Trainer:
+    """Modules in their dtypes, EMA copies, the optimiser, the schedule and the data, prepared and resumed."""
+    # 1. frozen parts in the weight dtype, trainable parts in float32 (pipe's own modules), EMA copies
+    pipe = inputs.pipe
+    weight_dtype = mixed_precision_dtype(accelerator.mixed_precision)
+    vae, image_embedder, unet, pose_projection = finetuning_modules(
+        pipe,
+        device=accelerator.device,
+        weight_dtype=weight_dtype,
+        train_image_encoder=config.train_image_encoder,
+        gradient_checkpointing=config.gradient_checkpointing,
+    )
+    trained_tower = image_embedder if config.train_image_encoder else None
+    encoder = inputs.encoder
+    if encoder is not None:
+        encoder = encoder.to(accelerator.device, dtype=weight_dtype)
+    # a resume whose checkpoint already reached max_train_steps only exports: no step needs the cache
+    resumed_step = 0 if resume_path is None else int(read_run_state(resume_path)["step"])
+    train_dataset = inputs.train_dataset
+    if config.cache_latents and resumed_step < config.max_train_steps:  # the frozen parts never change
+        frozen_tower = None if config.train_image_encoder else image_embedder.image_encoder
+        cache = ChipLatentCache.encode(load_chip_images(train_dataset), vae, frozen_tower)
+        train_dataset = CachedViewPairs(train_dataset, cache)
+    noise_scheduler = DDPMScheduler.from_config(pipe.scheduler.config)
+    ema_pairs = ema_models(accelerator, unet, trained_tower, decay=config.ema_decay) if config.use_ema else []
+    # 2. optimiser (pose projection at pose_lr_multiplier x the learning rate), schedule, data
+    optimizer = finetuning_optimizer(
+        unet,
+        pose_projection,
+        trained_tower,
+        azimuth_estimator=pipe.azimuth_estimator,
+        learning_rate=config.learning_rate,
+        pose_lr_multiplier=config.pose_lr_multiplier,
+        weight_decay=config.adam_weight_decay,
+    )
+    lr_scheduler = get_scheduler(
+        config.lr_scheduler,
+        optimizer,
+        num_warmup_steps=config.lr_warmup_steps * accelerator.num_processes,
+        num_training_steps=config.max_train_steps * accelerator.num_processes,
+    )
+    train_dataloader = DataLoader(
+        train_dataset, config.train_batch_size, shuffle=True, drop_last=True, num_workers=config.num_workers
+    )
+    unet, pose_projection, optimizer, train_dataloader, lr_scheduler = accelerator.prepare(
+        unet, pose_projection, optimizer, train_dataloader, lr_scheduler
+    )
+    # prepared after the others so that the checkpoints of a frozen-tower run keep their file names
+    image_encoder = accelerator.prepare(image_embedder) if config.train_image_encoder else image_embedder
+    trained_modules = [unet, pose_projection] + ([image_encoder] if config.train_image_encoder else [])
+    azimuth_estimator = pipe.azimuth_estimator
+    if azimuth_estimator is not None:
+        azimuth_estimator = accelerator.prepare(azimuth_estimator)
+        trained_modules.append(azimuth_estimator)
+    validation_loader = DataLoader(inputs.validation_dataset, batch_size=config.num_validation_images)
+    validation_batch = next(iter(validation_loader))
+    # 3. resume
+    global_step = resume_step(accelerator, resume_path)
+    accelerator.init_trackers("finetune_pfm", config=tracker_hparams(config))
+    loss_kwargs = {"vae": vae, "encoder": encoder, "noise_scheduler": noise_scheduler,
+                   "loss_settings": config.loss_settings()}  # fmt: skip
+    return _Trainer(
+        trained_modules, unet, pose_projection, image_encoder, azimuth_estimator, image_embedder, ema_pairs,
+        optimizer, lr_scheduler, train_dataloader, train_dataset, validation_batch, loss_kwargs, global_step,
+    )  # fmt: skip
+
+
+def _train(config: FinetuneConfig, accelerator: Accelerator, inputs: _Inputs, trainer: _Trainer) -> int:
+    """The training loop from ``trainer.global_step`` to ``max_train_steps``; returns the last step."""
+    output_dir = Path(config.output_dir)
+    global_step = trainer.global_step
+    trainable = [parameter for module in trainer.trained_modules for parameter in module.parameters()]
+    progress = tqdm(total=config.max_train_steps, initial=global_step, desc="steps",
+                    disable=not accelerator.is_local_main_process)  # fmt: skip
+    noise_scheduler = trainer.loss_kwargs["noise_scheduler"]
+    accumulation = config.gradient_accumulation_steps  # micro-batch i belongs to step i // accumulation
+    first, stop = global_step * accumulation, config.max_train_steps * accumulation
+    batches = resumable_batches(
+        accelerator, trainer.train_dataloader, first, stop, datasets=[trainer.train_dataset]
+    )
+    for batch_index, epoch, batch in batches:
+        with accelerator.accumulate(*trainer.trained_modules):
+            generator = micro_batch_generator(config.seed, batch_index, accelerator.process_index)
+            losses = compute_losses(
+                batch,
+                unet=trainer.unet,
+                pose_projection=trainer.pose_projection,
+                image_encoder=trainer.image_encoder,
+                azimuth_estimator=trainer.azimuth_estimator,
+                generator=generator,
+                **trainer.loss_kwargs,
+            )
+            accelerator.backward(losses.loss.mean())
+            if accelerator.sync_gradients:
+                accelerator.clip_grad_norm_(trainable, config.max_grad_norm)
+            trainer.optimizer.step()
+            trainer.lr_scheduler.step()
+            trainer.optimizer.zero_grad(set_to_none=True)
+        if not accelerator.sync_gradients:
+            continue
+        global_step += 1
+        for ema, module in trainer.ema_pairs:
+            ema.step(module.parameters())
+        progress.update(1)
+        learning_rate = trainer.lr_scheduler.get_last_lr()[0]
+        logs = step_logs(accelerator, losses, learning_rate, noise_scheduler.config.num_train_timesteps)
+        progress.set_postfix(loss=f"{logs['train/loss']:.4f}")
+        accelerator.log(logs, step=global_step)
+        check_finite_step(global_step, loss=logs["train/loss"])  # gathered: every process stops
+        if global_step % config.checkpointing_steps == 0 or global_step == config.max_train_steps:
+            extra_state = {"epoch": epoch, "batch_index": batch_index + 1,
+                           "train_image_encoder": config.train_image_encoder}  # fmt: skip
+            save_checkpoint(accelerator, output_dir, global_step, config.checkpoints_total_limit,
+                            extra_state=extra_state, config=config)  # fmt: skip
+        if config.validation_steps and global_step % config.validation_steps == 0:
+            if accelerator.is_main_process:
+                run_validation(
+                    accelerator,
+                    output_dir / "validation",
+                    global_step,
+                    trainer.validation_batch,
+                    ema_pairs=trainer.ema_pairs,
+                    pipe=inputs.pipe,
+                    image_embedder=trainer.image_embedder,
+                    loss_kwargs=trainer.loss_kwargs,
+                    seed=config.seed,
+                    num_inference_steps=config.validation_inference_steps,
+                    guidance_scale=config.guidance_scale,
+                    regressor=inputs.regressor,
+                )
+            accelerator.wait_for_everyone()
+    progress.close()
+    return global_step
+
+
+def _export(
+    config: FinetuneConfig, accelerator: Accelerator, inputs: _Inputs, trainer: _Trainer, global_step: int
+) -> list[str]:
+    """Replica check, then the complete pipeline (EMA weights in the UNet and a trained tower).
+
+    Returns:
+        The outputs written, relative to the run folder (for :func:`~sar_zero123.run_folder.finish_run`).
+    """
+    output_dir = Path(config.output_dir)
+    accelerator.wait_for_everyone()
+    unwrapped = [accelerator.unwrap_model(module) for module in trainer.trained_modules]
+    digests = check_replicas_agree(accelerator, unwrapped)
+    outputs = ["train_state.json"]
+    if accelerator.is_main_process:
+        state = {"global_step": global_step, "image_size": inputs.image_size,
+                 "replica_weight_digests": digests}  # fmt: skip
+        write_json_atomic(state, output_dir / "train_state.json")
+        if config.save_pipeline:
+            export_finetuned(output_dir / "pipeline", inputs.pipe, inputs.scaling, trainer.ema_pairs)
+    if config.save_pipeline:
+        outputs.append("pipeline/model_index.json")
+    return outputs

@@ -1,0 +1,252 @@
+"""The prior stage: the multi-view SAR prior pretrained on procedural simulated vehicles (the bundled prior).
+
+``train/pretrain_prior.py`` parses its flags into :class:`PriorConfig` and calls :func:`run_prior`, which
+runs three stages in ``output_dir``, each resumable (a re-run of the same command continues where it
+stopped):
+
+1. the corpus (:func:`sar_zero123.sim.corpus.write_prior_corpus`): ``num_vehicles`` procedural vehicles,
+   each at ``views_per_vehicle`` random azimuths and depressions in ``depression_range_deg``; the named
+   simulator classes are never in it (they are the prior's unseen test vehicles);
+2. a VAE sized for the chip (:func:`~sar_zero123.stages.vae.run_vae`) on the corpus, in ``vae/``;
+3. the UNet with its pose path (:func:`~sar_zero123.stages.finetune.run_finetune`, lambda = 0), in
+   ``base/``: pairs of two views of one vehicle across depressions, the pose carrying the input's
+   absolute depression (Stable Zero123's fourth slot) and the SAR-sized estimated-azimuth path,
+   v prediction with Min-SNR weighting, latents cached once.
+
+The pipeline lands in ``output_dir/base/pipeline``; it records the d_el and depression ranges it was
+trained on, which it then enforces. The top folder follows the run-folder rule
+(:mod:`sar_zero123.run_folder`): a re-run with the same settings continues it, other settings are refused
+naming each, ``restart`` moves it aside. A constant learning rate makes ``base_steps`` extendable: a
+re-run with more steps resumes the UNet from its last checkpoint and exports it again.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import logging
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+from sar_zero123.config import check_minimum, save_config, write_json_atomic
+from sar_zero123.models import SAR_ZERO123_SIZES
+from sar_zero123.run_folder import StageTimer, data_identity, finish_run, read_run_record
+from sar_zero123.sim.corpus import VALIDATION_CLASS, write_prior_corpus
+from sar_zero123.stages._folders import launch_state, open_stage_folder
+from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
+from sar_zero123.stages.vae import TrainVAEConfig, run_vae
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["PriorConfig", "prior_base_config", "prior_vae_config", "run_prior"]
+
+
+@dataclass
+class PriorConfig:
+    """Corpus, VAE and UNet of the multi-view prior (defaults: the bundled prior's recipe)."""
+
+    output_dir: str = "runs/prior"  # run folder: corpus/, vae/, base/ (its pipeline/ is the prior)
+    corpus: str | None = None  # an existing corpus folder to train on; None writes output_dir/corpus
+    num_vehicles: int = 2000  # procedural vehicles in the corpus (validation ones included)
+    views_per_vehicle: int = 24  # chips per vehicle
+    num_validation_vehicles: int = 32  # vehicles held out as class PROCVAL (validation pairs)
+    depression_range_deg: list[float] = field(default_factory=lambda: [10.0, 60.0])  # corpus depressions
+    mstar_fraction: float = 0.25  # share of corpus views at MSTAR's 15/17 deg
+    image_size: int = 64  # chip side in pixels
+    corpus_workers: int = 2  # processes rendering the corpus
+    model_size: str = "micro"  # build_sar_zero123 size of the UNet
+    vae_widths: list[int] = field(default_factory=lambda: [16, 32, 64])  # VAE block widths (16x16 latents)
+    vae_norm_groups: int = 8  # GroupNorm groups of the VAE
+    vae_steps: int = 3000  # VAE optimisation steps
+    vae_batch_size: int = 8  # chips per VAE step
+    base_steps: int = 25000  # UNet optimisation steps (constant LR: a re-run may extend them)
+    train_batch_size: int = 16  # pairs per UNet step
+    learning_rate: float = 1e-3  # AdamW learning rate of the UNet (trained from scratch)
+    input_depression: bool = True  # the pose's 4th entry is the input's absolute depression
+    prediction_type: str = "v_prediction"  # the UNet's training target
+    snr_gamma: float | None = 5.0  # Min-SNR-gamma weighting of L_simple
+    checkpointing_steps: int = 1000  # resumable checkpoint interval of the VAE and UNet stages
+    mixed_precision: str = "no"  # accelerate mixed precision of both training stages ("bf16" on GPUs)
+    seed: int = 0  # seed of the corpus and of every stage
+    restart: bool = False  # move an existing run in output_dir aside (never deleted) and start over
+
+    def __post_init__(self) -> None:
+        check_minimum(self, "num_vehicles", "views_per_vehicle", minimum=2)
+        check_minimum(
+            self,
+            "num_validation_vehicles",
+            "corpus_workers",
+            "vae_steps",
+            "vae_batch_size",
+            "base_steps",
+            "train_batch_size",
+            "checkpointing_steps",
+            minimum=1,
+        )
+        check_minimum(self, "learning_rate", minimum=0, strict=True)
+        depressions = self.depression_range_deg
+        if len(depressions) != 2 or not 0 < depressions[0] < depressions[1] < 90:
+            raise ValueError(
+                f"depression_range_deg must be two values 0 < low < high < 90, got {depressions}"
+            )
+        if self.model_size not in SAR_ZERO123_SIZES:
+            raise ValueError(
+                f"model_size must be one of {sorted(SAR_ZERO123_SIZES)}, got {self.model_size!r}"
+            )
+        if self.corpus is not None and not (Path(self.corpus) / "index.csv").is_file():
+            raise FileNotFoundError(f"corpus: expected a corpus folder with index.csv, got {self.corpus}")
+        # the two training stages' configs validate their own fields: refuse here, before the corpus
+        out = Path(self.output_dir)
+        try:
+            prior_vae_config(self, out / "corpus")
+        except ValueError as error:
+            raise ValueError(
+                f"the VAE stage (image_size, vae_*, model_size) refuses these settings: {error}"
+            ) from None
+        try:
+            prior_base_config(self, out / "vae" / "vae")
+        except ValueError as error:
+            raise ValueError(
+                "the UNet stage (image_size, model_size, base_steps, train_batch_size, learning_rate, "
+                f"prediction_type, snr_gamma) refuses these settings: {error}"
+            ) from None
+
+
+def _stage_settings(config: PriorConfig) -> dict[str, Any]:
+    """The settings the VAE and the UNet stages share: seed, split, precision, checkpoints, resume."""
+    return {
+        "seed": config.seed,
+        "image_size": config.image_size,
+        "protocol": f"ood-{VALIDATION_CLASS}",
+        "mixed_precision": config.mixed_precision,
+        "checkpointing_steps": config.checkpointing_steps,
+        "checkpoints_total_limit": 2,
+        "resume_from_checkpoint": "latest",
+        "report_to": "none",
+    }
+
+
+def prior_vae_config(config: PriorConfig, corpus: Path) -> TrainVAEConfig:
+    """The VAE stage of the prior: ``model_size``'s latent shape at ``vae_widths``, trained on ``corpus``."""
+    vae_shape = SAR_ZERO123_SIZES[config.model_size]["vae"]
+    return TrainVAEConfig(
+        **_stage_settings(config),
+        output_dir=str(Path(config.output_dir) / "vae"),
+        data=str(corpus),
+        block_out_channels=tuple(config.vae_widths),
+        layers_per_block=vae_shape["layers_per_block"],
+        latent_channels=vae_shape["latent_channels"],
+        norm_num_groups=config.vae_norm_groups,
+        train_batch_size=config.vae_batch_size,
+        max_train_steps=config.vae_steps,
+        learning_rate=1e-3,
+        num_eval_images=64,
+    )
+
+
+def prior_base_config(config: PriorConfig, vae: Path, corpus: Path | None = None) -> FinetuneConfig:
+    """The UNet stage of the prior: lambda = 0 from scratch, across depressions, with the VAE at ``vae``."""
+    return FinetuneConfig(
+        **_stage_settings(config),
+        output_dir=str(Path(config.output_dir) / "base"),
+        data=None if corpus is None else str(corpus),
+        size=config.model_size,
+        estimate_input_azimuth=True,
+        input_depression=config.input_depression,
+        same_depression=False,
+        prediction_type=config.prediction_type,
+        snr_gamma=config.snr_gamma,
+        pfm_weight=0.0,
+        vae=str(vae),
+        train_batch_size=config.train_batch_size,
+        max_train_steps=config.base_steps,
+        learning_rate=config.learning_rate,
+        use_ema=False,
+        validation_steps=0,
+    )
+
+
+def run_prior(config: PriorConfig) -> Path:
+    """Run (or continue, or extend) the three stages in ``config.output_dir``; returns the prior's pipeline
+    folder (``output_dir/base/pipeline``).
+
+    Under ``accelerate launch`` every process runs this function: the main one writes the corpus and the
+    records, the training stages share the work through their own ``Accelerator``.
+
+    Raises:
+        ValueError: Before any work, for a folder holding another run or this run with other settings
+            (each difference named).
+    """
+    timer = StageTimer()
+    state = launch_state()
+    out = Path(config.output_dir)
+    pipeline = out / "base" / "pipeline"
+    folder = open_stage_folder(
+        out, "prior", config, data={"corpus": data_identity(config.corpus)}, resume=not config.restart,
+        restart=config.restart, may_differ=("output_dir", "restart", "corpus_workers", "checkpointing_steps"),
+        may_extend=("base_steps",),
+    )  # fmt: skip
+    if folder.finished:
+        logger.info("%s: this prior is finished; nothing to do", out)
+        return pipeline
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    if state.is_main_process:
+        save_config(config, out)
+    timings_path = out / "timings.json"
+    timings: dict[str, float] = json.loads(timings_path.read_text()) if timings_path.is_file() else {}
+
+    # 1. corpus (its index is written last)
+    corpus = Path(config.corpus) if config.corpus is not None else out / "corpus"
+    with state.main_process_first():  # the others then find its index and skip the stage
+        _stage("corpus", (corpus / "index.csv").is_file(), timings, lambda: _write_corpus(config, corpus))
+    # 2. VAE, then 3. the UNet and its pose path across depressions (each done once its record is finished)
+    vae_config = prior_vae_config(config, corpus)
+    _stage("vae", _finished(vae_config.output_dir), timings, lambda: run_vae(vae_config))
+    base_config = prior_base_config(config, Path(vae_config.output_dir) / "vae", corpus)
+    base_done = _finished(base_config.output_dir, min_steps=config.base_steps)  # more steps: resume, export
+    _stage("base", base_done, timings, lambda: run_finetune(base_config))
+    if state.is_main_process:
+        write_json_atomic(timings, timings_path)
+        write_json_atomic(dataclasses.asdict(config), out / "prior_config.json")
+        finish_run(folder, ["base/pipeline/model_index.json"], seconds=timer.seconds,
+                   results={"base_steps": config.base_steps})  # fmt: skip
+    state.wait_for_everyone()
+    print(f"prior pipeline: {pipeline}")
+    return pipeline
+
+
+def _write_corpus(config: PriorConfig, corpus: Path) -> None:
+    write_prior_corpus(
+        corpus,
+        num_vehicles=config.num_vehicles,
+        views_per_vehicle=config.views_per_vehicle,
+        num_validation_vehicles=config.num_validation_vehicles,
+        depression_range_deg=tuple(config.depression_range_deg),
+        mstar_fraction=config.mstar_fraction,
+        size=config.image_size,
+        seed=config.seed,
+        num_workers=config.corpus_workers,
+    )
+
+
+def _finished(folder: str | Path, min_steps: int | None = None) -> bool:
+    """Whether a stage folder's record says finished (after at least ``min_steps`` steps when given)."""
+    record = read_run_record(folder)
+    if record is None or not record.get("finished"):
+        return False
+    return min_steps is None or record["config"]["max_train_steps"] >= min_steps
+
+
+def _stage(name: str, done: bool, timings: dict[str, float], function: Callable[[], Any]) -> None:
+    """Run one stage unless it is done; record its wall time only when it ran."""
+    if done:
+        logger.info("stage %s: done", name)
+        return
+    logger.info("stage %s", name)
+    begin = time.perf_counter()
+    function()
+    timings[name] = time.perf_counter() - begin
+    logger.info("stage %s took %.1f s", name, timings[name])
