@@ -197,6 +197,7 @@ def open_run_folder(
     may_extend: Iterable[str] = (),
     write: bool = True,
     flag_hint: str = "output_dir",
+    resume_hint: str = "--resume_from_checkpoint latest",
 ) -> RunFolder:
     """Apply the run-folder rule to ``path`` before a stage does any work (see the module docstring).
 
@@ -212,6 +213,7 @@ def open_run_folder(
         may_extend: Fields that may change when continuing (``resume=True``), e.g. ``max_train_steps``.
         write: Write the record (``False`` on non-main processes of a distributed launch: they check only).
         flag_hint: The user's name for ``path``, used in messages.
+        resume_hint: How the user continues a run of this stage (``--resume``, ...), used in messages.
 
     Returns:
         The opened :class:`RunFolder`.
@@ -265,12 +267,19 @@ def open_run_folder(
             + ". Choose another folder, or pass --restart to move this run aside."
         )
     finished = bool(record.get("finished"))
+    missing = [name for name in record.get("outputs", []) if not (path / name).exists()]
+    if finished and missing:
+        # a finished record whose outputs are gone (deleted by hand, a partial copy) is not finished
+        logger.warning("%s: recorded as finished but %s are missing; the run is unfinished", path, missing)
+        finished = False
+        record = {**record, "finished": False}
+        if write and resume:
+            write_json_atomic(record, path / RUN_RECORD)
     if not resume:
         state = "finished" if finished else "unfinished"
         raise ValueError(
             f"{flag_hint}: {str(path)!r} already holds a {state} {stage} run with these settings; "
-            "continue it explicitly (--resume_from_checkpoint latest, or the quickstart's re-run) or pass "
-            "--restart to move it aside"
+            f"continue it explicitly ({resume_hint}) or pass --restart to move it aside"
         )
     changed = {
         name: {"from": record["config"].get(name), "to": values.get(name)}

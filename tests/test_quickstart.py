@@ -12,27 +12,32 @@ from pathlib import Path
 import pytest
 
 from sar_zero123.sim import simulate_dataset
-from train import finetune_pfm, pretrain_simclr, quickstart, train_evaluators, train_vae
+from train import quickstart
 
 
-def test_script_argv_builds_flags_and_rejects_undeclared_options() -> None:
-    argv = quickstart.script_argv(train_evaluators, {"epochs": 2, "cifar_stem": False, "depths": (1, 1)})
-    assert argv == ["--epochs", "2", "--no-cifar_stem", "--depths", "1", "1"]
-    with pytest.raises(ValueError, match="no option 'report_to'"):
-        quickstart.script_argv(train_evaluators, {"epochs": 2, "report_to": "none"})
-    # the preset's mixed precision reaches every training stage under the option's own name
-    for module in (pretrain_simclr, train_vae, finetune_pfm, train_evaluators):
-        assert quickstart.script_argv(module, {"mixed_precision": "bf16"}) == ["--mixed_precision", "bf16"]
-    # the preset's training target and loss weighting are the fine-tuning script's options
-    recipe = {"prediction_type": "v_prediction", "snr_gamma": 5.0, "timestep_sampling": "logit_normal",
-              "timestep_logit_mean": 1.0}  # fmt: skip
-    assert quickstart.script_argv(finetune_pfm, recipe) == [
-        "--prediction_type", "v_prediction", "--snr_gamma", "5.0", "--timestep_sampling", "logit_normal",
-        "--timestep_logit_mean", "1.0",
-    ]  # fmt: skip
+def test_every_stage_config_is_built_before_any_work(tmp_path: Path) -> None:
+    """plan_stages builds each stage's typed config; a setting a stage refuses fails before any folder."""
+    out = tmp_path / "run"
+    plans = quickstart.plan_stages(quickstart.QuickstartConfig(output_dir=str(out), preset="smoke"))
+    names = [plan.name for plan in plans]
+    assert names == ["simulate", "simulate depressions", "simclr", "vae", "base model", "finetune lambda=0",
+                     "finetune lambda=4", "evaluators", "evaluate", "evaluate depressions"]  # fmt: skip
+    by_name = {plan.name: plan.config for plan in plans}
+    assert type(by_name["finetune lambda=4"]).__name__ == "FinetuneConfig"
+    assert by_name["finetune lambda=4"].pfm_weight == 4.0
+    assert by_name["finetune lambda=4"].pretrained == str(out / "base" / "pipeline")
+    assert by_name["evaluate"].pipeline_names == ["lambda=0", "lambda=4"]
+    assert not out.exists()
+    # refused in the preset's own field names, before any stage (the override is checked at parse time)
+    for item, words in (("base_steps=0", "base_steps must be an integer >= 1, got 0"),
+                        ("eval_n=0", "eval_n must be >= 4"), ("model_size=huge", "model_size must be one of"),
+                        ("classes=()", "classes must name at least two distinct classes"),
+                        ("speed_n=100", "speed_n must be <= eval_n // 2 = 2")):  # fmt: skip
+        with pytest.raises(ValueError, match=words):
+            quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=[item])
+    assert not out.exists()
 
 
-@pytest.mark.slow
 def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     out = tmp_path / "quickstart"
     with warnings.catch_warnings():
@@ -71,22 +76,36 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     metrics = json.loads((out / "evaluators" / "metrics.json").read_text())
     assert set(metrics["models"]) == {"classifier", "regressor", "depression_regressor", "probe:simclr"}
     assert metrics["class_names"] == ["APC", "TANK", "TRUCK"]  # the held-out TRUCK included
-    # A second call finds every stage done and only rewrites the report.
-    quickstart.main(["--output_dir", str(out), "--preset", "smoke"])
-    assert all(seconds == 0.0 for seconds in json.loads((out / "timings.json").read_text()).values())
-    # A lambda sweep in the same folder trains only the new fine-tune, then evaluates all three.
+    assert all(t["seconds"] > 0 and t["ran"] for t in timings.values())
+    # The same command again is refused (the run would be overwritten); --resume finds it finished.
+    before = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
+    with pytest.raises(ValueError, match=r"already holds a finished quickstart run.*\(--resume\)"):
+        quickstart.main(["--output_dir", str(out), "--preset", "smoke"])
+    quickstart.main(["--output_dir", str(out), "--preset", "smoke", "--resume"])
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()} == before
+    # Another protocol, seed or preset value in the same folder is refused before any stage, each named:
+    # its stages would be reused and the report would describe settings that did not make them.
+    for flags, words in ((["--protocol", "ood-APC"], "protocol: folder None, this run 'ood-APC'"),
+                         (["--seed", "1"], "seed: folder 0, this run 1"),
+                         (["--override", "base_steps=5"], "preset.base_steps: folder 2, this run 5"),
+                         ):  # fmt: skip
+        with pytest.raises(ValueError, match=words):
+            quickstart.main(["--output_dir", str(out), "--preset", "smoke", "--resume", *flags])
+    assert {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()} == before
+    # A lambda sweep in the same folder trains only the new fine-tune, then evaluates all three (the old
+    # evaluations are moved aside); every stage keeps its recorded time.
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        report = quickstart.main(["--output_dir", str(out), "--preset", "smoke", "--lambdas", "0", "4", "1"])
+        report = quickstart.main(
+            ["--output_dir", str(out), "--preset", "smoke", "--lambdas", "0", "4", "1", "--resume"]
+        )
     text = report.read_text()
     timings = json.loads((out / "timings.json").read_text())
     evaluated = {"finetune lambda=1", "evaluate", "evaluate depressions"}
-    assert {name for name, seconds in timings.items() if seconds > 0} == evaluated
+    assert {name for name, t in timings.items() if t["ran"]} == evaluated
+    assert all(t["seconds"] > 0 for t in timings.values())
     assert "| lambda=1 | unseen |" in text and "(input | lambda=0 | lambda=4 | lambda=1 | target)" in text
-    # the same folder with another preset value is refused before any stage (its stages would be reused)
-    with pytest.raises(ValueError, match=r"base_steps 2 -> 5"):
-        quickstart.main(["--output_dir", str(out), "--preset", "smoke", "--override", "base_steps=5"])
-    assert json.loads((out / "preset.json").read_text())["base_steps"] == 2
+    assert len(list(out.glob("eval.replaced-*"))) == 1
 
 
 def test_quickstart_config_checks_data_and_protocol(tmp_path: Path) -> None:
@@ -170,9 +189,9 @@ def test_quickstart_smoke_on_a_given_folder_with_the_extended_protocol(
         warnings.simplefilter("ignore")
         quickstart.main(
             ["--output_dir", str(out), "--preset", "smoke", "--data", str(data), "--protocol", "extended",
-             "--override", "base_steps=3"]
+             "--override", "base_steps=3", "--resume"]
         )  # fmt: skip
     assert "resumed from" in caplog.text and "checkpoint-2 at step 2" in caplog.text
     assert (base / "pipeline" / "unet" / "diffusion_pytorch_model.safetensors").read_bytes() == weights
     timings = json.loads((out / "timings.json").read_text())
-    assert {name for name, seconds in timings.items() if seconds > 0} == {"base model"}
+    assert {name for name, t in timings.items() if t["ran"]} == {"base model"}

@@ -161,3 +161,16 @@ def test_a_corrupt_record_names_the_file(tmp_path):
     (folder / RUN_RECORD).write_text("{not json")
     with pytest.raises(ValueError, match="run.json: not a valid run record"):
         open_run_folder(folder, "vae", _Config(), resume=True)
+
+
+def test_a_finished_record_whose_outputs_are_gone_is_unfinished(tmp_path):
+    folder = tmp_path / "run"
+    open_run_folder(folder, "finetune", _Config())
+    (folder / "pipeline").mkdir()
+    finish_run(folder, ["pipeline"])
+    (folder / "pipeline").rmdir()
+    run = open_run_folder(folder, "finetune", _Config(), resume=True)
+    assert run.status == "continued"
+    assert read_run_record(folder)["finished"] is False
+    with pytest.raises(ValueError, match=r"unfinished finetune run.*\(--resume\)"):
+        open_run_folder(folder, "finetune", _Config(), resume_hint="--resume")

@@ -20,12 +20,8 @@ from sar_zero123.config import parse_config
 from sar_zero123.evaluation_protocol import SCHEDULERS
 from sar_zero123.stages.evaluate import EvaluateConfig, load_evaluation, run_evaluate
 
-__all__ = ["SCHEDULERS", "EvaluateFlags", "main"]  # SCHEDULERS: the quickstart checks its presets' names
+__all__ = ["SCHEDULERS", "main"]
 
-
-class EvaluateFlags(EvaluateConfig):
-    """The flags of this script, declared in it for `train.quickstart.script_argv` (which reads a script's
-    options from the dataclasses its module defines) until the quickstart builds `EvaluateConfig` itself."""
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:

@@ -16,12 +16,8 @@ from pathlib import Path
 from sar_zero123.config import parse_config
 from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
 
-__all__ = ["FinetuneConfig", "FinetuneFlags", "main"]
+__all__ = ["FinetuneConfig", "main"]
 
-
-class FinetuneFlags(FinetuneConfig):
-    """This script's flags: :class:`FinetuneConfig`'s fields, declared in this module for
-    ``train.quickstart.script_argv``, which reads a script's options from the dataclasses it defines."""
 
 
 def main(argv: Sequence[str] | None = None) -> Path:

@@ -18,12 +18,8 @@ from typing import Any
 from sar_zero123.config import parse_config
 from sar_zero123.stages.simclr import PretrainSimCLRConfig, run_simclr, select_chips
 
-__all__ = ["PretrainSimCLRConfig", "PretrainSimCLRFlags", "main", "select_chips"]
+__all__ = ["PretrainSimCLRConfig", "main", "select_chips"]
 
-
-class PretrainSimCLRFlags(PretrainSimCLRConfig):
-    """This script's flags: :class:`PretrainSimCLRConfig`'s fields, declared in this module for
-    ``train.quickstart.script_argv``, which reads a script's options from the dataclasses it defines."""
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:

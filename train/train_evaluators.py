@@ -17,11 +17,6 @@ from sar_zero123.config import parse_config
 from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, run_evaluators
 
 
-class TrainEvaluatorsFlags(TrainEvaluatorsConfig):
-    """The flags of this script, declared in it for `train.quickstart.script_argv` (which reads a script's
-    options from the dataclasses its module defines) until the quickstart builds the config itself."""
-
-
 def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     """Trains classifier, regressor, probes and depression regressor; returns `{name: test metrics}` as
     written to `metrics.json`."""

@@ -16,12 +16,8 @@ from pathlib import Path
 from sar_zero123.config import parse_config
 from sar_zero123.stages.vae import TrainVAEConfig, VAEObjective, build_vae, reconstruct, run_vae
 
-__all__ = ["TrainVAEConfig", "TrainVAEFlags", "VAEObjective", "build_vae", "main", "reconstruct"]
+__all__ = ["TrainVAEConfig", "VAEObjective", "build_vae", "main", "reconstruct"]
 
-
-class TrainVAEFlags(TrainVAEConfig):
-    """This script's flags: :class:`TrainVAEConfig`'s fields, declared in this module for
-    ``train.quickstart.script_argv``, which reads a script's options from the dataclasses it defines."""
 
 
 def main(argv: Sequence[str] | None = None) -> Path:

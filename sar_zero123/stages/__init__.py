@@ -25,6 +25,13 @@ _EXPORTS = {
     "run_evaluators": "evaluators",
     "EvaluateConfig": "evaluate",
     "run_evaluate": "evaluate",
+    "SimulateConfig": "simulate",
+    "run_simulate": "simulate",
+    "Preset": "presets",
+    "PRESETS": "presets",
+    "QuickstartConfig": "presets",
+    "plan_stages": "quickstart",
+    "run_quickstart": "quickstart",
 }
 
 __all__ = sorted(_EXPORTS)

@@ -295,7 +295,7 @@ def run_evaluate(config: EvaluateConfig) -> Path:
     }
     folder = open_run_folder(
         config.output_dir, "evaluate", config, data=inputs, resume=config.resume, restart=config.restart,
-        may_differ=EVALUATE_MAY_DIFFER,
+        may_differ=EVALUATE_MAY_DIFFER, resume_hint="--resume",
     )  # fmt: skip
     if folder.finished:
         logger.info("%s already holds this evaluation", folder.path)

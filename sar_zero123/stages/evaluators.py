@@ -359,7 +359,7 @@ def run_evaluators(config: TrainEvaluatorsConfig) -> Path:
         ]
     folder = open_run_folder(
         config.output_dir, "evaluators", config, data=inputs, resume=config.resume, restart=config.restart,
-        may_differ=EVALUATORS_MAY_DIFFER,
+        may_differ=EVALUATORS_MAY_DIFFER, resume_hint="--resume",
     )  # fmt: skip
     if folder.finished:
         logger.info("%s already holds these evaluators", folder.path)

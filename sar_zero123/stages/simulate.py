@@ -70,7 +70,7 @@ def run_simulate(config: SimulateConfig) -> Path:
     timer = StageTimer()
     folder = open_run_folder(
         config.out, "simulate", config, data=None, resume=config.resume, restart=config.restart,
-        may_differ=("resume", "restart"), flag_hint="out",
+        may_differ=("resume", "restart"), flag_hint="out", resume_hint="--resume",
     )  # fmt: skip
     if folder.finished:
         logger.info("%s already holds this dataset", folder.path)
