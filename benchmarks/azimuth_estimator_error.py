@@ -16,11 +16,11 @@ from pathlib import Path
 
 import torch
 
-from sar_zero123.conditioning import encode_condition_latents
 from sar_zero123.data import SCALING_FILE, DecibelScaling, load_chip, load_index, split_records
-from sar_zero123.evaluators import azimuth_error_deg
-from sar_zero123.orientation import azimuth_deg
-from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.evaluation.evaluators import azimuth_error_deg
+from sar_zero123.model.conditioning import encode_condition_latents
+from sar_zero123.model.orientation import azimuth_deg
+from sar_zero123.model.pipeline import SARZero123Pipeline
 
 
 def encode_chips(records, vae, scaling: DecibelScaling, size: int, batch_size: int = 256):

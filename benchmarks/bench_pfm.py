@@ -43,15 +43,15 @@ import torch.nn.functional as F
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from sar_zero123.conditioning import downsampling_factor, encode_condition_latents  # noqa: E402
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig  # noqa: E402
-from sar_zero123.losses import (  # noqa: E402
+from sar_zero123.model.conditioning import downsampling_factor, encode_condition_latents  # noqa: E402
+from sar_zero123.training.losses import (  # noqa: E402
     LossSettings,
     estimate_x0,
     pfm_loss,
     signal_to_noise_ratio,
 )
-from sar_zero123.training import ImageEmbedder, compute_losses  # noqa: E402
+from sar_zero123.training.step import ImageEmbedder, compute_losses  # noqa: E402
 
 #: lambda = 4 variants: (overrides of the fine-tuning config, frozen-module options).
 VARIANTS: dict[str, dict] = {
@@ -104,7 +104,7 @@ def peak_rss_mib() -> float:
 
 def build_step_setup(size: str, batch_size: int, seed: int = 0):
     """Pipeline parts, a random ResNet-18 SAR encoder at the chip size and one fixed batch."""
-    from sar_zero123.models import build_sar_zero123
+    from sar_zero123.model.build import build_sar_zero123
 
     pipe = build_sar_zero123(size, seed=seed)
     image_size = pipe.default_image_size

@@ -4,8 +4,8 @@
         --training_classes APC TRUCK SPG TANK --out estimator_holdout.json
 
 For each class of `--held_out` (protocol ``ood-<CLASS>``), trains a fresh :class:`AzimuthEstimator` (the
-model's pose path, ``sar_zero123.orientation``) alone on the frozen VAE's condition latents of the train split
-of the other classes of `--training_classes`, then reports its circular error on the held-out azimuth
+model's pose path, ``sar_zero123.model.orientation``) alone on the frozen VAE's condition latents of the train
+split of the other classes of `--training_classes`, then reports its circular error on the held-out azimuth
 intervals of those classes (val) and on every chip of the held-out class (test): mean, median and the
 share above 135 deg (front and back confused). Inside a model the estimator trains with the UNet; alone it
 takes seconds and shows the same front/back confusion (``ood-SPG``: 61 % of SPG chips above 135 deg in the
@@ -23,7 +23,7 @@ import torch
 from diffusers import AutoencoderKL
 
 from sar_zero123.data import SCALING_FILE, DecibelScaling, load_index, split_records
-from sar_zero123.orientation import AzimuthEstimator, azimuth_estimation_loss
+from sar_zero123.model.orientation import AzimuthEstimator, azimuth_estimation_loss
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `benchmarks`
 from benchmarks.azimuth_estimator_error import encode_chips, error_summary  # noqa: E402

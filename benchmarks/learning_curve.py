@@ -7,9 +7,9 @@
 For each size, the fine-tune stage (`sar_zero123.stages.finetune.run_finetune`) trains one lambda = 0 model
 from scratch on the SAR-sized pose path (`estimate_input_azimuth`) in chunks of `--chunk_steps`: each chunk
 resumes the previous chunk's checkpoint (at a constant learning rate, so the chunks train as one long call
-would), validates (pose sensitivity and pose following, `sar_zero123.validation`) and exports its pipeline;
-the evaluate stage (`sar_zero123.stages.evaluate.run_evaluate`) then scores that pipeline on the same `--n`
-pairs (Table III with the input-copy floor and the VAE-round-trip ceiling). One JSON line per
+would), validates (pose sensitivity and pose following, `sar_zero123.training.validation`) and exports its
+pipeline; the evaluate stage (`sar_zero123.stages.evaluate.run_evaluate`) then scores that pipeline on the
+same `--n` pairs (Table III with the input-copy floor and the VAE-round-trip ceiling). One JSON line per
 (size, steps): cumulative training seconds (the finetune calls: training, checkpoint, validation and
 export; evaluation excluded), UNet parameters, and the seen/unseen azimuth error, accuracy and gap closed
 with standard errors. Lines already in `--out` are kept and skipped, so a
@@ -34,7 +34,7 @@ from pathlib import Path
 from safetensors import safe_open
 
 from sar_zero123.config import write_json_atomic
-from sar_zero123.models import SAR_ZERO123_SIZES
+from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.stages.evaluate import EvaluateConfig, load_evaluation, run_evaluate
 from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
 

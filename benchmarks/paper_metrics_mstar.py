@@ -21,8 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from sar_zero123.data import ViewPairDataset, load_index, split_records  # noqa: E402
-from sar_zero123.metrics import kuan_ssim, ms_ssim  # noqa: E402
-from sar_zero123.paper_metrics import paper_kuan_ssim, paper_ms_ssim  # noqa: E402
+from sar_zero123.evaluation.metrics import kuan_ssim, ms_ssim  # noqa: E402
+from sar_zero123.evaluation.paper_metrics import paper_kuan_ssim, paper_ms_ssim  # noqa: E402
 
 
 def main(argv: list[str] | None = None) -> dict:

@@ -23,10 +23,10 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from sar_zero123.conditioning import encode_condition_latents  # noqa: E402
 from sar_zero123.data import signed_to_unit  # noqa: E402
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig  # noqa: E402
-from sar_zero123.losses import (  # noqa: E402
+from sar_zero123.model.conditioning import encode_condition_latents  # noqa: E402
+from sar_zero123.training.losses import (  # noqa: E402
     encode_target_features,
     estimate_x0,
     pfm_loss,

@@ -30,10 +30,10 @@ from typing import Literal
 import torch
 from diffusers import DDIMScheduler, DPMSolverMultistepScheduler, EulerDiscreteScheduler
 
-from sar_zero123.conditioning import embed_pose
 from sar_zero123.config import parse_config, write_json_atomic
-from sar_zero123.models import build_sar_zero123
-from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.model.build import build_sar_zero123
+from sar_zero123.model.conditioning import embed_pose
+from sar_zero123.model.pipeline import SARZero123Pipeline
 
 SCHEDULERS = {
     "ddim": (DDIMScheduler, {}),

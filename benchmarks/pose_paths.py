@@ -12,8 +12,8 @@ fixed pairs (DDIM, no guidance) and scores them with the evaluators (accuracy, a
 - ``source``: the input's condition latent, the input's true azimuth and ``d_az``: the UNet must add them.
 - ``relative``: the input's condition latent and ``d_az`` only (zero-1-to-3's conditioning).
 - ``composed``: the input's condition latent, ``d_az`` and the target's azimuth estimated by an
-  :class:`~sar_zero123.orientation.AzimuthEstimator` and turned in closed form
-  (:func:`~sar_zero123.orientation.turn_azimuth`), as ``--estimate_input_azimuth`` trains it.
+  :class:`~sar_zero123.model.orientation.AzimuthEstimator` and turned in closed form
+  (:func:`~sar_zero123.model.orientation.turn_azimuth`), as ``--estimate_input_azimuth`` trains it.
 
 Evaluation pairs are drawn from the training chips: this measures whether a pose path is learnable at
 all, not generalisation (``train/evaluate.py`` does that). Writes the learning curve as JSON and an
@@ -33,12 +33,17 @@ import torch
 import torch.nn.functional as F
 from diffusers import AutoencoderKL, DDIMScheduler, DDPMScheduler, UNet2DConditionModel
 
-from sar_zero123.checkpoints import ZERO123_SCHEDULER_CONFIG
-from sar_zero123.conditioning import embed_pose, vae_input
 from sar_zero123.data import SCALING_FILE, DecibelScaling, load_chip, load_index, signed_to_unit
-from sar_zero123.evaluators import azimuth_error_deg, load_evaluators, resize_for_evaluator
-from sar_zero123.models import SAR_ZERO123_SIZES
-from sar_zero123.orientation import AzimuthEstimator, azimuth_estimation_loss, azimuth_vector, turn_azimuth
+from sar_zero123.evaluation.evaluators import azimuth_error_deg, load_evaluators, resize_for_evaluator
+from sar_zero123.model.build import SAR_ZERO123_SIZES
+from sar_zero123.model.conditioning import embed_pose, vae_input
+from sar_zero123.model.orientation import (
+    AzimuthEstimator,
+    azimuth_estimation_loss,
+    azimuth_vector,
+    turn_azimuth,
+)
+from sar_zero123.model.zero123_checkpoints import ZERO123_SCHEDULER_CONFIG
 
 MODES = ("absolute", "source", "relative", "composed")
 

@@ -19,9 +19,9 @@ from pathlib import Path
 
 import torch
 
-from sar_zero123.evaluation_protocol import build_pair_sets, generate_pair_targets
-from sar_zero123.evaluators import load_evaluators, resize_for_evaluator
-from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.evaluation.evaluators import load_evaluators, resize_for_evaluator
+from sar_zero123.evaluation.protocol import build_pair_sets, generate_pair_targets
+from sar_zero123.model.pipeline import SARZero123Pipeline
 
 
 def main() -> None:

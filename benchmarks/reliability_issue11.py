@@ -111,7 +111,7 @@ def diverge_ft():
             TMP / "ft_div", "--learning_rate", "1e30", "--max_train_steps", "4", "--checkpointing_steps", "2"
         )
     )
-    from sar_zero123.pipeline import SARZero123Pipeline
+    from sar_zero123.model.pipeline import SARZero123Pipeline
 
     pipe = SARZero123Pipeline.from_pretrained(out / "pipeline")
     finite = all(torch.isfinite(p).all() for p in pipe.unet.parameters())
@@ -377,7 +377,7 @@ attempt("split with chips at 15.6 deg", stray_depression)
 # --- pipeline, generate, scaling
 from dummies import get_dummy_components  # noqa: E402
 
-from sar_zero123.pipeline import SARZero123Pipeline  # noqa: E402
+from sar_zero123.model.pipeline import SARZero123Pipeline  # noqa: E402
 
 pipe = SARZero123Pipeline(**get_dummy_components())
 pipe.set_progress_bar_config(disable=True)
@@ -474,7 +474,7 @@ attempt(
 )
 
 # --- metrics, evaluators, simulator, NT-Xent
-from sar_zero123 import metrics  # noqa: E402
+from sar_zero123.evaluation import metrics  # noqa: E402
 
 x = torch.rand(2, 1, 64, 64)
 attempt(
@@ -503,7 +503,7 @@ attempt(
     lambda: metrics.frechet_distance(np.full((4, 2), 1e200) * np.arange(4)[:, None], np.ones((4, 2))),
 )
 
-from sar_zero123.evaluators import SARClassifier  # noqa: E402
+from sar_zero123.evaluation.evaluators import SARClassifier  # noqa: E402
 
 attempt(
     "classifier of one class",

@@ -370,7 +370,7 @@ def main() -> None:
     )
     case(
         "azimuth_error_deg(350.0, 10.0)",
-        ["-c", "import sar_zero123.metrics as m; print(m.azimuth_error_deg(350.0, 10.0))"],
+        ["-c", "import sar_zero123.evaluation.metrics as m; print(m.azimuth_error_deg(350.0, 10.0))"],
     )
 
     OUTPUT.write_text(json.dumps({"tree": str(ROOT), "results": RESULTS}, indent=2) + "\n")

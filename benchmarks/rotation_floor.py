@@ -3,7 +3,7 @@
     python benchmarks/rotation_floor.py --evaluators runs/quickstart/evaluators --data runs/quickstart/data \\
         --protocol ood-SPG --n 128 --out rotation_floor.json
 
-Scores, on the evaluate stage's pairs (`sar_zero123.evaluation_protocol.build_pair_sets`) and with its
+Scores, on the evaluate stage's pairs (`sar_zero123.evaluation.protocol.build_pair_sets`) and with its
 evaluators, the input copy and the input rotated in the image plane by +d_az and by -d_az (bilinear,
 reflection padding), and writes the scores as JSON.
 """
@@ -17,8 +17,8 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 
-from sar_zero123.evaluation_protocol import build_pair_sets, score
-from sar_zero123.evaluators import load_evaluators
+from sar_zero123.evaluation.evaluators import load_evaluators
+from sar_zero123.evaluation.protocol import build_pair_sets, score
 
 
 def rotate(images: torch.Tensor, angle_deg: torch.Tensor) -> torch.Tensor:

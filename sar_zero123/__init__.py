@@ -13,11 +13,11 @@ from typing import Any
 __version__ = "0.1.0"
 
 _LAZY = {
-    "SARZero123Pipeline": "sar_zero123.pipeline",
-    "SARZero123PipelineOutput": "sar_zero123.pipeline",
-    "build_sar_zero123": "sar_zero123.models",
-    "PoseProjection": "sar_zero123.conditioning",
-    "embed_pose": "sar_zero123.conditioning",
+    "SARZero123Pipeline": "sar_zero123.model.pipeline",
+    "SARZero123PipelineOutput": "sar_zero123.model.pipeline",
+    "build_sar_zero123": "sar_zero123.model.build",
+    "PoseProjection": "sar_zero123.model.conditioning",
+    "embed_pose": "sar_zero123.model.conditioning",
     "SAREncoder": "sar_zero123.encoder",
     "SIM_PRIOR": "sar_zero123.pretrained",
     "resolve_pretrained": "sar_zero123.pretrained",

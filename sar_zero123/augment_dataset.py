@@ -12,7 +12,7 @@ output folder is a dataset every script reads (:func:`sar_zero123.data.load_inde
 * ``views/<CLASS>/<stem>_r<row>_v<request>.npy``: float32 magnitude ``scaling.denormalize(view)`` (in
   [0, 1] for the unit-magnitude scaling of the simulator and the 8-bit chips), ``row`` being the chip's
   position in the source index (0 = first chip) and ``request`` the request's position;
-* ``index.csv`` with the standard columns (:data:`sar_zero123.sim.dataset.INDEX_COLUMNS`), written last;
+* ``index.csv`` with the standard columns (:data:`sar_zero123.domain.INDEX_COLUMNS`), written last;
 * ``provenance.csv``: the same rows and columns plus :data:`PROVENANCE_COLUMNS`. They live in a file of
   their own because ``load_index`` refuses columns it does not know;
 * ``augment.json``: the options. A folder made with other options is refused, so that a re-run after a
@@ -52,10 +52,16 @@ from sar_zero123.config import (
     write_json_atomic,
 )
 from sar_zero123.data import ChipRecord, DecibelScaling, load_index, load_magnitude, wrap_azimuth_deg
+from sar_zero123.domain import INDEX_COLUMNS
 from sar_zero123.generate import GenerateConfig, _resolve_scaling, load_input_chip
-from sar_zero123.pipeline import MAX_ABS_D_AZ_DEG, MAX_ABS_D_EL_DEG, MAX_GUIDANCE_SCALE, SARZero123Pipeline
+from sar_zero123.model.pipeline import (
+    MAX_ABS_D_AZ_DEG,
+    MAX_ABS_D_EL_DEG,
+    MAX_GUIDANCE_SCALE,
+    SARZero123Pipeline,
+)
 from sar_zero123.pretrained import SIM_PRIOR, is_bundled_name, resolve_pretrained
-from sar_zero123.sim.dataset import INDEX_COLUMNS, write_index_atomic
+from sar_zero123.sim.dataset import write_index_atomic
 
 __all__ = [
     "AUGMENT_FILE",
@@ -78,7 +84,7 @@ __all__ = [
 AUGMENT_FILE = "augment.json"
 #: The index rows with their provenance (``load_index`` refuses unknown columns in ``index.csv``).
 PROVENANCE_FILE = "provenance.csv"
-#: Columns ``provenance.csv`` adds to :data:`~sar_zero123.sim.dataset.INDEX_COLUMNS`.
+#: Columns ``provenance.csv`` adds to :data:`~sar_zero123.domain.INDEX_COLUMNS`.
 PROVENANCE_COLUMNS = ("source_path", "d_az_deg", "d_el_deg", "pipeline", "seed", "generated")
 #: Samplers ``--scheduler`` names; each keeps the pipeline's noise schedule.
 SCHEDULERS = {
@@ -411,7 +417,7 @@ def _write_atomic(path: Path, data: bytes) -> None:
 def _index_row(
     path: str, record: ChipRecord, depression_deg: float, azimuth_deg: float, size: int | None
 ) -> list[str]:
-    """One ``index.csv`` row (:data:`~sar_zero123.sim.dataset.INDEX_COLUMNS`); ``size`` for a view."""
+    """One ``index.csv`` row (:data:`~sar_zero123.domain.INDEX_COLUMNS`); ``size`` for a view."""
     height, width = (size, size) if size is not None else (record.height, record.width)
     return [
         path,

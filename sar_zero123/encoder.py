@@ -26,9 +26,9 @@ from torch import nn
 from transformers import ResNetConfig, ResNetModel
 from transformers.models.resnet.modeling_resnet import ResNetConvLayer
 
-from .config import read_json
-from .data import unit_to_signed
-from .loading import load_weights_file
+from sar_zero123.config import read_json
+from sar_zero123.domain import unit_to_signed
+from sar_zero123.model.loading import load_weights_file
 
 CONFIG_NAME = "config.json"
 WEIGHTS_NAME = "model.safetensors"

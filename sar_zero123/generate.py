@@ -8,7 +8,11 @@ Example::
 
 writes, for each requested view ``i``, ``view_{i}_daz{d_az}_del{d_el}.png`` (8-bit, normalised dB) and
 the float32 array ``.npy`` (H, W) in the normalised dB domain, plus ``input.png``, ``contact_sheet.png``
-and the resolved ``config.json``. The chip is read with :func:`sar_zero123.data.load_magnitude`
+and the resolved ``config.json``. The output folder follows :mod:`sar_zero123.training.run_folder`: one
+that holds views made with other settings or from another input file is refused before any work, naming
+each difference; ``--resume`` returns a finished folder with the same settings as it is (and redoes an
+unfinished one), ``--restart`` moves an old folder aside; a bad input chip is refused before anything is
+written. The chip is read with :func:`sar_zero123.data.load_magnitude`
 (8-bit images as pixel/255), centre-cropped/resized to the pipeline's size and mapped to normalised dB
 with the pipeline folder's ``decibel_scaling.json`` (``DecibelScaling.to_dict``) when present, else
 ``--scaling_file`` or the unit-magnitude default. ``--pipeline`` defaults to the multi-view SAR prior
@@ -43,11 +47,13 @@ from sar_zero123.data import (
 )
 from sar_zero123.data.mstar_raw import is_mstar_raw
 from sar_zero123.data.splits import TRAIN_DEPRESSION_DEG
-from sar_zero123.pipeline import MAX_ABS_D_EL_DEG, MAX_GUIDANCE_SCALE, SARZero123Pipeline
+from sar_zero123.model.pipeline import MAX_ABS_D_EL_DEG, MAX_GUIDANCE_SCALE, SARZero123Pipeline
 from sar_zero123.pretrained import SIM_PRIOR, resolve_pretrained
+from sar_zero123.training.run_folder import RunFolder, StageTimer, data_identity, finish_run, open_run_folder
 
 __all__ = [
     "DEFAULT_INPUT_DEPRESSION_DEG",
+    "GENERATE_MAY_DIFFER",
     "MAX_IMAGE_SIZE",
     "MAX_VIEWS",
     "GenerateConfig",
@@ -67,6 +73,8 @@ DEFAULT_INPUT_DEPRESSION_DEG = TRAIN_DEPRESSION_DEG
 MAX_VIEWS = 64
 #: Largest ``image_size``: 4x the zero-1-to-3 resolution (the allocations grow with its square).
 MAX_IMAGE_SIZE = 1024
+#: Settings that never change the views a folder holds: where it is and how it is reused.
+GENERATE_MAY_DIFFER = ("output_dir", "resume", "restart")
 
 
 @dataclass
@@ -86,6 +94,8 @@ class GenerateConfig:
     image_size: int | None = None  # chip size fed to the model; default: the pipeline's own
     input_depression: float | None = None  # chip's depression (deg); None: the file's, else 17 (MSTAR's)
     device: str = "cpu"  # torch device
+    resume: bool = False  # return a finished folder with these settings as it is; redo an unfinished one
+    restart: bool = False  # move an existing folder at output_dir aside (never deleted) and generate anew
 
     def __post_init__(self) -> None:
         if not self.pipeline:
@@ -118,6 +128,8 @@ class GenerateConfig:
             raise ValueError(f"image_size must lie in [1, {MAX_IMAGE_SIZE}] pixels, got {self.image_size}")
         if self.input_depression is not None and not 0.0 < self.input_depression < 90.0:
             raise ValueError(f"input_depression must lie in (0, 90) degrees, got {self.input_depression}")
+        if self.resume and self.restart:
+            raise ValueError("resume and restart: choose one (keep this folder's views, or move it aside)")
 
 
 def _resolve_scaling(scaling_file: str | None, pipeline: str) -> DecibelScaling:
@@ -265,6 +277,23 @@ def _contact_sheet(chip: np.ndarray, views: np.ndarray, titles: list[str], path:
     figure.savefig(path, dpi=120)
 
 
+def _open_output_dir(config: GenerateConfig, write: bool) -> RunFolder:
+    """The run-folder rule on ``output_dir``; the input chip file is identified by its SHA-256.
+
+    Raises:
+        FileNotFoundError: If ``image`` is not a file.
+        ValueError: If the folder holds other work (each difference named), or views of these settings
+            without ``resume`` or ``restart``.
+    """
+    if not Path(config.image).is_file():
+        raise FileNotFoundError(f"image: {config.image!r} is not a file")
+    return open_run_folder(
+        config.output_dir, "generate", config, data={"image": data_identity(config.image)},
+        resume=config.resume, restart=config.restart, may_differ=GENERATE_MAY_DIFFER, write=write,
+        resume_hint="--resume",
+    )  # fmt: skip
+
+
 def main(argv: Sequence[str] | None = None) -> Path:
     """Command-line entry point (``python -m sar_zero123.generate``).
 
@@ -272,13 +301,18 @@ def main(argv: Sequence[str] | None = None) -> Path:
         argv: Arguments without the program name; ``None`` reads ``sys.argv``.
 
     Returns:
-        The output folder.
+        The output folder (with ``--resume``, a finished one as it is).
+
+    Raises:
+        ValueError: Before anything is written, for a folder holding other work or a bad input chip.
+        FileNotFoundError: Before anything is written, for a missing chip or pipeline.
     """
     config = parse_config(GenerateConfig, argv)
-    out = Path(config.output_dir)
-    out.mkdir(parents=True, exist_ok=True)
-    save_config(config, out)
-
+    timer = StageTimer()
+    # 1. the folder checked (nothing written), then the pipeline and the chip, then the views in memory:
+    # a folder holding other work, a bad chip and a failed sampling all leave the disk as it was
+    if _open_output_dir(config, write=False).finished:
+        return Path(config.output_dir)
     pipe = SARZero123Pipeline.from_pretrained(config.pipeline).to(config.device)
     size = config.image_size or pipe.default_image_size
     chip = load_input_chip(config, size)
@@ -305,8 +339,12 @@ def main(argv: Sequence[str] | None = None) -> Path:
         input_depression_deg=input_depression_deg,
     )
 
+    # 2. the folder opened for real (an old one moved aside with --restart), the views written, the record
+    folder = _open_output_dir(config, write=True)
+    out = folder.path
+    save_config(config, out)
     d_el = config.d_el * len(config.d_az) if len(config.d_el) == 1 else config.d_el
-    titles = []
+    titles, outputs = [], ["config.json", "input.png"]
     _save_png(chip, out / "input.png")
     for index, (view, d_az_deg, d_el_deg) in enumerate(
         tqdm(list(zip(views, config.d_az, d_el)), desc="writing views", unit="view")
@@ -315,7 +353,9 @@ def main(argv: Sequence[str] | None = None) -> Path:
         _save_png(view, out / f"{stem}.png")
         np.save(out / f"{stem}.npy", view.astype(np.float32))
         titles.append(f"d_az {d_az_deg:g}, d_el {d_el_deg:g}")
+        outputs += [f"{stem}.png", f"{stem}.npy"]
     _contact_sheet(chip, views, titles, out / "contact_sheet.png")
+    finish_run(folder, [*outputs, "contact_sheet.png"], seconds=timer.seconds)
     return out
 
 

@@ -13,9 +13,9 @@ import torch
 from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
 from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
 
-from sar_zero123.checkpoints import ZERO123_SCHEDULER_CONFIG
-from sar_zero123.conditioning import POSE_DIM, PoseProjection
-from sar_zero123.models import SAR_ZERO123_SIZES
+from sar_zero123.model.build import SAR_ZERO123_SIZES
+from sar_zero123.model.conditioning import POSE_DIM, PoseProjection
+from sar_zero123.model.zero123_checkpoints import ZERO123_SCHEDULER_CONFIG
 
 __all__ = ["DUMMY_IMAGE_SIZE", "dummy_images", "get_dummy_components"]
 

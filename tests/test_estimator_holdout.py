@@ -12,8 +12,8 @@ from diffusers import AutoencoderKL
 from benchmarks import estimator_holdout
 from benchmarks.azimuth_estimator_error import error_summary
 from sar_zero123.data import SCALING_FILE, DecibelScaling
-from sar_zero123.models import SAR_ZERO123_SIZES
-from sar_zero123.orientation import azimuth_vector
+from sar_zero123.model.build import SAR_ZERO123_SIZES
+from sar_zero123.model.orientation import azimuth_vector
 from sar_zero123.sim import simulate_dataset
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 
 import numpy as np
@@ -21,8 +22,8 @@ from sar_zero123.generate import (
     main,
     resolve_input_depression,
 )
-from sar_zero123.models import build_sar_zero123
-from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.model.build import build_sar_zero123
+from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.pretrained import SIM_PRIOR
 
 
@@ -152,7 +153,7 @@ def test_nan_pipeline_writes_no_views_and_out_that_is_a_file_is_refused(chip_png
             "--num-inference-steps", "1"]  # fmt: skip
     with pytest.raises(FloatingPointError, match=r"non-finite decoded images .*\['vae'\]"):
         main([*argv, "--output_dir", str(out)])
-    assert not list(out.glob("view_*"))
+    assert not out.exists()  # the folder is opened only once the views exist
     (tmp_path / "file").write_text("x")
     with pytest.raises(NotADirectoryError, match=r"output_dir: .*file' is a file"):
         main([*argv, "--output_dir", str(tmp_path / "file")])
@@ -242,3 +243,65 @@ def test_input_depression_is_ignored_with_a_note_by_a_pipeline_without_it(pipeli
     assert "ignoring --input_depression" in capsys.readouterr().out
     name = "view_00_daz+030.00_del+00.00.npy"
     np.testing.assert_array_equal(plain[name], given[name])
+
+
+def _snapshot(folder):
+    return {p.relative_to(folder).as_posix(): (p.read_bytes(), p.stat().st_mtime_ns)
+            for p in sorted(folder.rglob("*")) if p.is_file()}  # fmt: skip
+
+
+def test_output_dir_refuses_other_settings_returns_with_resume_and_moves_aside_with_restart(
+    pipeline_dir, chip_png, tmp_path, monkeypatch
+):
+    chip = tmp_path / "chip.png"
+    chip.write_bytes(chip_png.read_bytes())
+    out = tmp_path / "views"
+    argv = ["--pipeline", str(pipeline_dir), "--image", str(chip), "--d-az", "30",
+            "--num-inference-steps", "1", "--output_dir", str(out)]  # fmt: skip
+    assert main(argv) == out
+    record = json.loads((out / "run.json").read_text())
+    assert (record["stage"], record["finished"]) == ("generate", True)
+    assert record["data"]["image"]["index_sha256"] == hashlib.sha256(chip.read_bytes()).hexdigest()
+    assert {"view_00_daz+030.00_del+00.00.npy", "contact_sheet.png"} <= set(record["outputs"])
+    before = _snapshot(out)
+    # other settings, another chip in the same file, or the same request without a flag: refused, naming the
+    # difference, and nothing on disk changed
+    with pytest.raises(ValueError, match=r"holds a generate run made with other settings.*seed: folder 0, "
+                                         r"this run 1.*--restart"):  # fmt: skip
+        main([*argv, "--seed", "1"])
+    PIL.Image.fromarray(np.full((40, 40), 128, np.uint8), mode="L").save(chip)
+    with pytest.raises(ValueError, match=r"Differences: data: folder \{'image': .*'index_sha256'"):
+        main(argv)
+    chip.write_bytes(chip_png.read_bytes())
+    same = r"already holds a finished generate run with these settings; continue it explicitly \(--resume\)"
+    with pytest.raises(ValueError, match=same):
+        main(argv)
+    assert _snapshot(out) == before
+    # --resume: the finished folder as it is; the pipeline is not even loaded
+    def no_work(*args, **kwargs):
+        raise AssertionError("a finished folder continued with --resume must not be worked on")
+
+    monkeypatch.setattr(SARZero123Pipeline, "from_pretrained", no_work)
+    assert main([*argv, "--resume"]) == out
+    assert _snapshot(out) == before
+    monkeypatch.undo()
+    # --restart: the old views moved aside untouched, the new ones in their place
+    assert main([*argv, "--seed", "1", "--restart"]) == out
+    (aside,) = tmp_path.glob("views.replaced-*")
+    assert _snapshot(aside) == before
+    assert json.loads((out / "config.json").read_text())["seed"] == 1
+
+
+@pytest.mark.parametrize(
+    ("image", "error", "match"),
+    [
+        ("tiny.png", ValueError, r"a 1x1 image is too small to be a chip; expected at least 16x16 pixels"),
+        ("missing.png", FileNotFoundError, r"image: .*missing.png' is not a file"),
+    ],
+)
+def test_bad_input_is_refused_before_anything_is_written(pipeline_dir, tmp_path, image, error, match):
+    PIL.Image.fromarray(np.zeros((1, 1), np.uint8), mode="L").save(tmp_path / "tiny.png")
+    out = tmp_path / "views"
+    with pytest.raises(error, match=match):
+        main(["--pipeline", str(pipeline_dir), "--image", str(tmp_path / image), "--output_dir", str(out)])
+    assert not out.exists()

@@ -14,8 +14,8 @@ from scipy.ndimage import gaussian_filter
 import sar_zero123
 import sar_zero123.pretrained as pretrained
 from sar_zero123.data import SCALING_FILE, DecibelScaling
-from sar_zero123.models import build_sar_zero123, load_sar_zero123
-from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.model.build import build_sar_zero123, load_sar_zero123
+from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.pretrained import SIM_PRIOR, is_bundled_name, resolve_pretrained
 from sar_zero123.sim import make_target, render_chip
 

@@ -31,12 +31,12 @@ from sar_zero123.data import (
     load_magnitude,
 )
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
-from sar_zero123.evaluators import MAX_POSE_REQUESTS, SARClassifier, load_evaluator, pose_following
+from sar_zero123.evaluation.evaluators import MAX_POSE_REQUESTS, SARClassifier, load_evaluator, pose_following
+from sar_zero123.evaluation.metrics import azimuth_error_deg
 from sar_zero123.generate import MAX_VIEWS, GenerateConfig, load_input_chip
 from sar_zero123.generate import main as generate_main
-from sar_zero123.metrics import azimuth_error_deg
-from sar_zero123.models import build_sar_zero123
-from sar_zero123.pipeline import SARZero123Pipeline
+from sar_zero123.model.build import build_sar_zero123
+from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.sim.contact_sheet import MAX_SHEET_CELLS, contact_sheet, procedural_contact_sheet
 from sar_zero123.sim.corpus import corpus_views
 

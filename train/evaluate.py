@@ -17,7 +17,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from sar_zero123.config import parse_config
-from sar_zero123.evaluation_protocol import SCHEDULERS
+from sar_zero123.evaluation.protocol import SCHEDULERS
 from sar_zero123.stages.evaluate import EvaluateConfig, load_evaluation, run_evaluate
 
 __all__ = ["SCHEDULERS", "main"]

@@ -21,10 +21,11 @@ import numpy as np
 from PIL import Image
 from skimage.transform import resize
 
-from .mstar_raw import is_mstar_raw, read_mstar_raw
-from .scaling import Array
+from sar_zero123.domain import center_crop
 
-__all__ = ["IMAGE_SUFFIXES", "MIN_CHIP_SIZE", "center_crop", "center_crop_resize", "load_magnitude"]
+from .mstar_raw import is_mstar_raw, read_mstar_raw
+
+__all__ = ["IMAGE_SUFFIXES", "MIN_CHIP_SIZE", "center_crop_resize", "load_magnitude"]
 
 IMAGE_SUFFIXES = (".jpeg", ".jpg", ".png", ".tif", ".tiff", ".bmp")
 #: Smallest side (pixels) of an image taken as a chip: below it an image is an icon or a mistake, and
@@ -124,34 +125,6 @@ def load_magnitude(path: str | Path) -> np.ndarray:
     if (magnitude < 0).any():
         raise ValueError(f"{path}: magnitude contains negative values; expected magnitudes >= 0")
     return magnitude
-
-
-def center_crop(image: Array, crop_size: int) -> Array:
-    """Cuts the central ``crop_size x crop_size`` square (the target sits at the chip centre).
-
-    The one centre crop of the package: chips on load, the metrics' 64x64 scoring window, PFM's crop and
-    its latent window. NumPy arrays and torch tensors alike.
-
-    For an odd margin the extra row/column is dropped at the end, so a 129x128 chip loses its last row.
-
-    Args:
-        image: Image (array or tensor) of shape (..., H, W) with H, W >= crop_size.
-        crop_size: Side of the square.
-
-    Returns:
-        The crop (a view). Shape: (..., crop_size, crop_size).
-
-    Raises:
-        ValueError: If the image is smaller than ``crop_size`` or ``crop_size`` < 1.
-    """
-    height, width = image.shape[-2:]
-    if crop_size < 1:
-        raise ValueError(f"crop_size must be >= 1, got {crop_size}")
-    if height < crop_size or width < crop_size:
-        raise ValueError(f"image of size {height}x{width} is smaller than crop_size={crop_size}")
-    top = (height - crop_size) // 2
-    left = (width - crop_size) // 2
-    return image[..., top : top + crop_size, left : left + crop_size]
 
 
 def center_crop_resize(

@@ -22,11 +22,14 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+from sar_zero123.domain import INDEX_COLUMNS, INDEX_FILENAME
+
 from .mstar_raw import is_mstar_raw, read_mstar_raw, target_class_from_type
 
 __all__ = [
     "INDEX_COLUMNS",
     "INDEX_FILENAME",
+    "MSTAR_SOURCE_COLUMN",
     "OPTIONAL_COLUMNS",
     "REQUIRED_COLUMNS",
     "ChipRecord",
@@ -35,21 +38,9 @@ __all__ = [
     "write_index",
 ]
 
-INDEX_FILENAME = "index.csv"
 REQUIRED_COLUMNS = ("path", "target_class", "serial", "depression_deg", "azimuth_deg")
-OPTIONAL_COLUMNS = ("target_type", "height", "width", "mstar_source")
-# Column order written by :func:`write_index`.
-INDEX_COLUMNS = (
-    "path",
-    "target_class",
-    "target_type",
-    "serial",
-    "depression_deg",
-    "azimuth_deg",
-    "height",
-    "width",
-    "mstar_source",
-)
+MSTAR_SOURCE_COLUMN = "mstar_source"  # the original MSTAR file a converted chip came from
+OPTIONAL_COLUMNS = ("target_type", "height", "width", MSTAR_SOURCE_COLUMN)
 
 
 @dataclass(frozen=True)
@@ -170,7 +161,7 @@ def _read_index_csv(index_path: Path) -> list[ChipRecord]:
                     target_type=row.get("target_type") or None,
                     height=_parse_optional_int(row.get("height"), "height", where),
                     width=_parse_optional_int(row.get("width"), "width", where),
-                    source=row.get("mstar_source") or None,
+                    source=row.get(MSTAR_SOURCE_COLUMN) or None,
                 )
             )
     if not records:
@@ -210,7 +201,7 @@ def write_index(records: Sequence[ChipRecord], root: str | Path) -> Path:
                 "azimuth_deg": repr(float(record.azimuth_deg)),
                 "height": "" if record.height is None else record.height,
                 "width": "" if record.width is None else record.width,
-                "mstar_source": record.source or "",
+                MSTAR_SOURCE_COLUMN: record.source or "",
             }
         )
     index_path = root / INDEX_FILENAME
@@ -219,7 +210,7 @@ def write_index(records: Sequence[ChipRecord], root: str | Path) -> Path:
     )
     try:
         with handle:
-            writer = csv.DictWriter(handle, fieldnames=list(INDEX_COLUMNS))
+            writer = csv.DictWriter(handle, fieldnames=[*INDEX_COLUMNS, MSTAR_SOURCE_COLUMN])
             writer.writeheader()
             writer.writerows(rows)
         os.chmod(handle.name, 0o644)  # NamedTemporaryFile creates 0600; an index is meant to be shared

@@ -16,15 +16,17 @@ import math
 import os
 from collections.abc import Iterable
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any
 
 import numpy as np
 import torch
 
-from ..config import read_json
+from sar_zero123.config import read_json
+from sar_zero123.domain import DB_EPS, Array, from_decibels, to_decibels
+
+from .images import load_magnitude
 
 __all__ = [
-    "DB_EPS",
     "SCALING_CHOICES",
     "SCALING_FILE",
     "check_magnitude",
@@ -32,13 +34,8 @@ __all__ = [
     "UNIT_MAGNITUDE_MAX_DB",
     "ZERO_MAGNITUDE_DB",
     "DecibelScaling",
-    "from_decibels",
-    "signed_to_unit",
-    "to_decibels",
-    "unit_to_signed",
 ]
 
-DB_EPS = 1e-3
 SCALING_FILE = "decibel_scaling.json"  # the DecibelScaling a VAE or pipeline folder expects (to_dict)
 SCALING_CHOICES = ("unit", "mstar_raw", "fit")  # the training scripts' --scaling values
 ZERO_MAGNITUDE_DB = 20.0 * math.log10(DB_EPS)  # -60 dB
@@ -46,52 +43,6 @@ ZERO_MAGNITUDE_DB = 20.0 * math.log10(DB_EPS)  # -60 dB
 UNIT_MAGNITUDE_MAX_DB = 20.0 * math.log10(1.0 + DB_EPS)  # 0.00868 dB
 # Upper bound the paper's reference implementation uses for calibrated (raw) MSTAR magnitudes.
 MSTAR_RAW_MAX_DB = 24.4912
-
-Array = TypeVar("Array", np.ndarray, torch.Tensor)
-
-
-def to_decibels(magnitude: Array) -> Array:
-    """Magnitude to decibels, ``20 * log10(m + 1e-3)`` (zero magnitude maps to -60 dB).
-
-    Args:
-        magnitude: Non-negative magnitudes (NumPy array or torch tensor).
-
-    Returns:
-        Decibels, same type, shape and floating dtype as the input.
-    """
-    if isinstance(magnitude, torch.Tensor):
-        return 20.0 * torch.log10(magnitude + DB_EPS)
-    return (20.0 * np.log10(np.asarray(magnitude) + DB_EPS)).astype(np.result_type(magnitude, np.float32))
-
-
-def from_decibels(decibels: Array) -> Array:
-    """Inverse of :func:`to_decibels`: ``10 ** (db / 20) - 1e-3``.
-
-    Args:
-        decibels: Decibel values (NumPy array or torch tensor).
-
-    Returns:
-        Magnitudes, same type and shape as the input.
-    """
-    if isinstance(decibels, torch.Tensor):
-        return torch.pow(10.0, decibels / 20.0) - DB_EPS
-    return (np.power(10.0, np.asarray(decibels) / 20.0) - DB_EPS).astype(np.result_type(decibels, np.float32))
-
-
-def unit_to_signed(x: Array) -> Array:
-    """Normalised dB in [0, 1] -> [-1, 1], the input range of the VAE and of the SAR encoder's ResNet.
-
-    Inverse of :func:`signed_to_unit`; elementwise, any shape.
-    """
-    return x * 2.0 - 1.0
-
-
-def signed_to_unit(x: Array) -> Array:
-    """[-1, 1] (a VAE's decoded image) -> normalised dB in [0, 1]; no clipping.
-
-    Inverse of :func:`unit_to_signed`; elementwise, any shape.
-    """
-    return (x + 1.0) / 2.0
 
 
 def check_magnitude(magnitude: Array, name: str = "magnitude") -> None:
@@ -180,8 +131,6 @@ class DecibelScaling:
             ValueError: If ``data`` is empty, a magnitude is negative or not finite, or all pixels
                 have the same value.
         """
-        from .images import load_magnitude  # images imports this module
-
         low, high, count = math.inf, -math.inf, 0
         for item in data:
             if isinstance(item, torch.Tensor):

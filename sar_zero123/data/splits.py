@@ -21,8 +21,10 @@ from typing import Any
 
 import numpy as np
 
-from ..config import read_json
-from .index import INDEX_FILENAME, ChipRecord, load_index
+from sar_zero123.config import read_json
+from sar_zero123.domain import INDEX_FILENAME
+
+from .index import ChipRecord, load_index
 
 __all__ = [
     "OOD_INTERVAL_WIDTH_DEG",

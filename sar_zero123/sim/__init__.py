@@ -1,7 +1,8 @@
 """Built-in SAR target simulator: procedural vehicles, physical scattering, coherent imaging.
 
 The embedded default dataset for the quick-start and the tests, and a source of exact ground truth
-at any pose. numpy (and scipy's Taylor window) only; no diffusion imports.
+at any pose. numpy (and scipy's Taylor window) only; from the rest of the package it imports only the
+domain conventions (:mod:`sar_zero123.domain`: the ``index.csv`` columns, decibels, the centre crop).
 
 Example:
     >>> import numpy as np
@@ -12,7 +13,8 @@ Example:
     ((128, 128), dtype('float32'), 1.0)
 """
 
-from sar_zero123.sim.dataset import INDEX_COLUMNS, chip_generator, simulate_dataset
+from sar_zero123.domain import INDEX_COLUMNS
+from sar_zero123.sim.dataset import chip_generator, simulate_dataset
 from sar_zero123.sim.imaging import PIXEL_SPACING_M, RESOLUTION_M, WAVELENGTH_M, PointSpreadFunction
 from sar_zero123.sim.render import (
     CALIBRATION_AMPLITUDE,

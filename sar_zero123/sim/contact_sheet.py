@@ -11,11 +11,11 @@ from pathlib import Path
 import numpy as np
 from PIL import Image
 
-from sar_zero123.data import center_crop
+from sar_zero123.domain import center_crop, to_decibels
 from sar_zero123.sim.render import render_chip
 from sar_zero123.sim.targets import TARGET_CLASSES, make_target
 
-__all__ = ["DISPLAY_RANGE_DB", "MAX_SHEET_CELLS", "MAX_SHEET_COLUMNS", "to_display_db", "contact_sheet"]
+__all__ = ["DISPLAY_RANGE_DB", "MAX_SHEET_CELLS", "MAX_SHEET_COLUMNS", "contact_sheet"]
 
 DISPLAY_RANGE_DB = (-40.0, 0.0)
 #: Most columns of a contact sheet (one chip each): wider sheets are unreadable and slow to render.
@@ -25,11 +25,6 @@ MAX_SHEET_CELLS = 1024
 # Real classes shown by default, chosen to mirror the simulated shapes (tank, carrier, truck,
 # bulldozer, self-propelled gun, anti-aircraft gun).
 _REAL_CLASSES = ("T62", "BMP2", "ZIL131", "D7", "2S1", "ZSU234")
-
-
-def to_display_db(magnitude: np.ndarray) -> np.ndarray:
-    """Decibels for display, ``20 log10(m + 1e-3)``, as the data layer's ``to_decibels``."""
-    return 20.0 * np.log10(np.asarray(magnitude, dtype=np.float64) + 1e-3)
 
 
 def _real_chips(
@@ -120,7 +115,7 @@ def contact_sheet(
     for r, (label, chips) in enumerate(rows):
         for c, (az, chip) in enumerate(chips):
             ax = axes[r, c]
-            ax.imshow(to_display_db(chip), cmap="gray", vmin=DISPLAY_RANGE_DB[0], vmax=DISPLAY_RANGE_DB[1])
+            ax.imshow(to_decibels(chip), cmap="gray", vmin=DISPLAY_RANGE_DB[0], vmax=DISPLAY_RANGE_DB[1])
             ax.set_xticks([])
             ax.set_yticks([])
             ax.set_title(f"{az:.0f} deg", fontsize=7, pad=2)
@@ -205,7 +200,7 @@ def procedural_contact_sheet(
             rng = np.random.default_rng([int(seed), i, j])
             chip = render_chip(target, azimuth_deg, depression, size, rng)
             ax = axes[i // int(columns), (i % int(columns)) * len(depressions_deg) + j]
-            ax.imshow(to_display_db(chip), cmap="gray", vmin=DISPLAY_RANGE_DB[0], vmax=DISPLAY_RANGE_DB[1])
+            ax.imshow(to_decibels(chip), cmap="gray", vmin=DISPLAY_RANGE_DB[0], vmax=DISPLAY_RANGE_DB[1])
             ax.set_title(f"#{vehicle} {depression:g} deg", fontsize=6, pad=1)
     fig.suptitle(
         f"procedural vehicles at azimuth {azimuth_deg:g} deg, depressions {list(depressions_deg)} deg, "

@@ -13,27 +13,16 @@ from typing import Literal
 
 import numpy as np
 
+from sar_zero123.domain import INDEX_COLUMNS, INDEX_FILENAME
 from sar_zero123.sim.render import CALIBRATION_AMPLITUDE, CLUTTER_DB, render_chip
 from sar_zero123.sim.targets import TARGET_CLASSES, make_target
 
 __all__ = [
-    "INDEX_COLUMNS",
     "check_simulation_options",
     "chip_generator",
     "simulate_dataset",
     "write_index_atomic",
 ]
-
-INDEX_COLUMNS = (
-    "path",
-    "target_class",
-    "target_type",
-    "serial",
-    "depression_deg",
-    "azimuth_deg",
-    "height",
-    "width",
-)
 
 
 def chip_generator(
@@ -241,7 +230,7 @@ def write_index_atomic(out_dir: str | os.PathLike[str], rows: Sequence[Sequence[
     Returns:
         The index path.
     """
-    index_path = Path(out_dir) / "index.csv"
+    index_path = Path(out_dir) / INDEX_FILENAME
     fd, tmp = tempfile.mkstemp(prefix=".index-", suffix=".csv.tmp", dir=out_dir)
     try:
         with os.fdopen(fd, "w", newline="") as f:

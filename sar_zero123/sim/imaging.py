@@ -38,7 +38,7 @@ WAVELENGTH_M = 0.0312  # X band, 9.6 GHz
 PIXEL_SPACING_M = 0.2021
 RESOLUTION_M = 0.3047
 # -3 dB width of the Taylor(nbar=4, -35 dB) weighted response in units of 1 / bandwidth; the
-# unweighted sinc has 0.886. Measured once from scipy's window (checked in tests/test_sim.py).
+# unweighted sinc has 0.886. Measured once from scipy's window (checked in tests/sim/test_sim.py).
 TAYLOR_BROADENING = 1.18
 _TAYLOR_NBAR, _TAYLOR_SLL_DB = 4, 35
 

@@ -2,8 +2,8 @@
 
 ``train/*.py`` parse flags into these configs and call the stage; stages that drive others (the prior,
 the quickstart) build the configs directly. Every stage applies the run-folder rule
-(:mod:`sar_zero123.run_folder`) before any work. Names are imported on first use, so that a light stage
-(the simulator) does not load the training stack.
+(:mod:`sar_zero123.training.run_folder`) before any work. Names are imported on first use, so that a light
+stage (the simulator) does not load the training stack.
 """
 
 from __future__ import annotations
@@ -27,6 +27,10 @@ _EXPORTS = {
     "run_evaluate": "evaluate",
     "SimulateConfig": "simulate",
     "run_simulate": "simulate",
+    "Table1Config": "table1",
+    "run_table1": "table1",
+    "SynthToRealConfig": "synth_to_real",
+    "run_synth_to_real": "synth_to_real",
     "Preset": "presets",
     "PRESETS": "presets",
     "QuickstartConfig": "presets",

@@ -2,7 +2,7 @@
 
 ``python train/evaluate.py`` parses its flags into :class:`EvaluateConfig` and calls :func:`run_evaluate`.
 The protocol (pairs, generation, scores, floor and ceilings, gap closed) is
-:mod:`sar_zero123.evaluation_protocol`; the tables and figures :mod:`sar_zero123.evaluation_tables`.
+:mod:`sar_zero123.evaluation.protocol`; the tables and figures :mod:`sar_zero123.evaluation.tables`.
 
 Depression requests (``input_depression_deg=17, target_depressions_deg=[10, 30, 45],
 same_depression=False``) pair 17 deg inputs with targets at 10, 30 and 45 deg (d_el = -7, +13, +28), drawn
@@ -15,8 +15,8 @@ ceilings), ``table4.{json,md}`` (azimuth error under every evaluator backbone), 
 pipeline | target, Fig. 7/8), ``lambda_sweep.png`` (with ``lambdas``, Fig. 12), and with
 ``steps``/``schedulers``: ``speed_error.{json,md,png}`` (azimuth error and accuracy against images/s).
 
-The folder follows :mod:`sar_zero123.run_folder`: one holding other work (another stage, other settings,
-other data, pipelines or evaluators changed since) is refused before any work; ``resume`` redoes an
+The folder follows :mod:`sar_zero123.training.run_folder`: one holding other work (another stage, other
+settings, other data, pipelines or evaluators changed since) is refused before any work; ``resume`` redoes an
 unfinished run with the same settings and returns a finished one as it is; ``restart`` moves an old run aside.
 """
 
@@ -32,7 +32,8 @@ from typing import Any
 import torch
 
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
-from sar_zero123.evaluation_protocol import (
+from sar_zero123.evaluation.evaluators import Evaluators, load_evaluators
+from sar_zero123.evaluation.protocol import (
     INPUT_COPY,
     PAPER_TABLE3,
     REAL_TARGET,
@@ -50,7 +51,7 @@ from sar_zero123.evaluation_protocol import (
     set_scheduler,
     vae_round_trip,
 )
-from sar_zero123.evaluation_tables import (
+from sar_zero123.evaluation.tables import (
     plot_lambda_sweep,
     plot_speed_error,
     plot_views,
@@ -58,11 +59,16 @@ from sar_zero123.evaluation_tables import (
     table3_markdown,
     table4_markdown,
 )
-from sar_zero123.evaluators import Evaluators, load_evaluators
-from sar_zero123.pipeline import MAX_GUIDANCE_SCALE, SARZero123Pipeline
-from sar_zero123.run_folder import StageTimer, data_identity, finish_run, open_run_folder, read_run_record
+from sar_zero123.model.pipeline import MAX_GUIDANCE_SCALE, SARZero123Pipeline
 from sar_zero123.stages._folders import withdrawn_if_setup_fails
 from sar_zero123.stages.evaluators import model_identity
+from sar_zero123.training.run_folder import (
+    StageTimer,
+    data_identity,
+    finish_run,
+    open_run_folder,
+    read_run_record,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -239,7 +245,7 @@ class EvaluateConfig:
 
 
 def evaluation_pairs(config: EvaluateConfig, evaluators: Evaluators, image_size: int) -> dict[str, PairSet]:
-    """The pairs of ``config``'s protocol (:func:`~sar_zero123.evaluation_protocol.build_pair_sets`): the
+    """The pairs of ``config``'s protocol (:func:`~sar_zero123.evaluation.protocol.build_pair_sets`): the
     same pairs and seeds for every pipeline, and for every evaluation with the same settings."""
     return build_pair_sets(
         evaluators,
@@ -282,8 +288,8 @@ def run_evaluate(config: EvaluateConfig) -> Path:
     With ``resume`` a finished run with the same settings is returned at once, without loading anything.
 
     Raises:
-        ValueError: From :func:`~sar_zero123.run_folder.open_run_folder`, for a folder holding other work
-            (nothing on disk is changed then); if the data cannot supply ``n`` distinct pairs.
+        ValueError: From :func:`~sar_zero123.training.run_folder.open_run_folder`, for a folder holding
+            other work (nothing on disk is changed then); if the data cannot supply ``n`` distinct pairs.
         FileNotFoundError: If the data, the evaluators or a pipeline folder does not exist.
     """
     timer = StageTimer()
@@ -362,7 +368,7 @@ def _load_pipelines(
 
 
 def _scoring(config: EvaluateConfig, device: torch.device) -> dict[str, Any]:
-    """The keyword arguments of :func:`~sar_zero123.evaluation_protocol.score` for this evaluation."""
+    """The keyword arguments of :func:`~sar_zero123.evaluation.protocol.score` for this evaluation."""
     return {
         "crop_size": config.crop_size,
         "paper_scoring_size": config.paper_scoring_size,

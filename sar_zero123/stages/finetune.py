@@ -3,10 +3,10 @@
 ``train/finetune_pfm.py`` parses its flags into :class:`FinetuneConfig` and calls :func:`run_finetune`;
 other stages (the prior, the quickstart) build the config directly.
 
-Training follows zero-1-to-3 (the step: :func:`sar_zero123.training.compute_losses`; the run's parts:
-:mod:`sar_zero123.finetuning`): AdamW with the pose projection at 10x the learning rate, CFG dropout of 5%
-image embedding, 5% both, 5% condition latent, and the loss ``L_simple + pfm_weight * L_PFM`` (Eq. 21),
-whose settings travel as one :class:`~sar_zero123.losses.LossSettings`; ``pfm_weight = 0`` is plain
+Training follows zero-1-to-3 (the step: :func:`sar_zero123.training.step.compute_losses`; the run's parts:
+:mod:`sar_zero123.training.finetuning`): AdamW with the pose projection at 10x the learning rate, CFG dropout
+of 5% image embedding, 5% both, 5% condition latent, and the loss ``L_simple + pfm_weight * L_PFM`` (Eq. 21),
+whose settings travel as one :class:`~sar_zero123.training.losses.LossSettings`; ``pfm_weight = 0`` is plain
 zero-1-to-3 fine-tuning.
 
 The CLIP image tower is frozen, as in zero-1-to-3, which is right on top of a pretrained tower. The
@@ -14,7 +14,7 @@ named ``size`` models start from a *random* tower, whose embedding would stay a 
 the input chip; ``train_image_encoder`` trains it with the UNet (float32 master weights, same learning
 rate, in the EMA, the checkpoints and the exported pipeline).
 
-The run folder follows :mod:`sar_zero123.run_folder`: a folder holding a run is continued only with
+The run folder follows :mod:`sar_zero123.training.run_folder`: a folder holding a run is continued only with
 ``resume_from_checkpoint`` (a constant-LR run may then be extended with more ``max_train_steps``),
 started over only with ``restart`` (the old run moved aside), and refused otherwise, before any work.
 Resuming reaches bitwise the weights of an uninterrupted run with no RNG state beyond the step: the
@@ -38,8 +38,11 @@ from tqdm.auto import tqdm
 
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import DecibelScaling, check_protocol, train_validation_pairs
-from sar_zero123.evaluators import load_evaluators
-from sar_zero123.finetuning import (
+from sar_zero123.evaluation.evaluators import load_evaluators
+from sar_zero123.model.build import load_sar_zero123, record_trained_pose_ranges
+from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
+from sar_zero123.training.finetuning import (
     ema_models,
     export_finetuned,
     finetuning_modules,
@@ -48,11 +51,16 @@ from sar_zero123.finetuning import (
     step_logs,
     training_image_size,
 )
-from sar_zero123.losses import DEFAULT_PFM_MIN_SNR, LossSettings, check_pfm_crop_size, load_pfm_encoder
-from sar_zero123.models import load_sar_zero123, record_trained_pose_ranges
-from sar_zero123.pipeline import SARZero123Pipeline
-from sar_zero123.run_folder import StageTimer, data_identity, finish_run
-from sar_zero123.run_state import (
+from sar_zero123.training.losses import (
+    DEFAULT_PFM_MIN_SNR,
+    TRAINED_PREDICTION_TYPES,
+    LossSettings,
+    check_pfm_crop_size,
+    check_prediction_type,
+    load_pfm_encoder,
+)
+from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run
+from sar_zero123.training.run_state import (
     RESUME_MAY_DIFFER,
     check_finite_step,
     check_resume_config,
@@ -64,16 +72,15 @@ from sar_zero123.run_state import (
     resume_step,
     save_checkpoint,
 )
-from sar_zero123.runs import check_global_batch, check_replicas_agree, start_run, tracker_hparams
-from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
-from sar_zero123.training import (
+from sar_zero123.training.runs import check_global_batch, check_replicas_agree, start_run, tracker_hparams
+from sar_zero123.training.step import (
     CachedViewPairs,
     ChipLatentCache,
     compute_losses,
     load_chip_images,
     micro_batch_generator,
 )
-from sar_zero123.validation import run_validation
+from sar_zero123.training.validation import run_validation
 
 logger = logging.getLogger(__name__)
 
@@ -93,7 +100,7 @@ class FinetuneConfig:
     image_size: int | None = None  # chip side in pixels; None uses the model's own
     pose_in_time_embedding: bool = False  # built sizes: the pose also enters the UNet's timestep embedding
     # built sizes: an AzimuthEstimator reads the input's azimuth (and a code), turned by d_az it enters the
-    # UNet's timestep embedding (sar_zero123.orientation)
+    # UNet's timestep embedding (sar_zero123.model.orientation)
     estimate_input_azimuth: bool = False
     input_code_dim: int = 16  # with estimate_input_azimuth: size of the estimator's code of the input view
     azimuth_loss_weight: float = 1.0  # weight of the estimator's loss on the input chip's known azimuth
@@ -167,6 +174,8 @@ class FinetuneConfig:
                 "input_depression: only for a model built from scratch (--size); a pretrained pipeline keeps "
                 "its pose convention (pose_projection.config.input_depression)"
             )
+        if self.prediction_type is not None:
+            check_prediction_type(self.prediction_type, TRAINED_PREDICTION_TYPES)
         if self.prediction_type is not None and self.pretrained is not None:
             raise ValueError(
                 "prediction_type: only for a model built from scratch (--size); a pretrained checkpoint "
@@ -474,7 +483,8 @@ def _export(
     """Replica check, then the complete pipeline (EMA weights in the UNet and a trained tower).
 
     Returns:
-        The outputs written, relative to the run folder (for :func:`~sar_zero123.run_folder.finish_run`).
+        The outputs written, relative to the run folder (for
+        :func:`~sar_zero123.training.run_folder.finish_run`).
     """
     output_dir = Path(config.output_dir)
     accelerator.wait_for_everyone()

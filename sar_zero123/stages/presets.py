@@ -18,11 +18,12 @@ from pathlib import Path
 from typing import Any, Literal
 
 from sar_zero123.data.splits import check_protocol
-from sar_zero123.evaluation_protocol import SCHEDULERS
-from sar_zero123.models import SAR_ZERO123_SIZES
+from sar_zero123.evaluation.protocol import SCHEDULERS
+from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.pretrained import SIM_PRIOR
 from sar_zero123.sim import TARGET_CLASSES
 from sar_zero123.stages.evaluate import MAX_EVALUATION_PAIRS, MAX_SWEEP_STEP_COUNTS
+from sar_zero123.training.losses import TRAINED_PREDICTION_TYPES, check_prediction_type
 
 __all__ = ["DEFAULT_PRESET", "MAX_EVAL_N", "PRESETS", "Preset", "QuickstartConfig", "apply_overrides"]
 
@@ -150,10 +151,7 @@ class Preset:
             raise ValueError(f"ema_decay must lie in [0, 1) or be None, got {self.ema_decay}")
         if self.mixed_precision not in ("no", "fp16", "bf16"):
             raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
-        if self.prediction_type not in ("epsilon", "v_prediction"):
-            raise ValueError(
-                f"prediction_type must be 'epsilon' or 'v_prediction', got {self.prediction_type!r}"
-            )
+        check_prediction_type(self.prediction_type, TRAINED_PREDICTION_TYPES)
         if self.timestep_sampling not in ("uniform", "logit_normal"):
             raise ValueError(
                 f"timestep_sampling must be 'uniform' or 'logit_normal', got {self.timestep_sampling!r}"

@@ -26,7 +26,6 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
-from sar_zero123.conditioning import downsampling_factor, encode_condition_latents, vae_input
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import (
     SCALING_FILE,
@@ -37,8 +36,10 @@ from sar_zero123.data import (
     signed_to_unit,
     unit_to_signed,
 )
-from sar_zero123.run_folder import StageTimer, data_identity, finish_run
-from sar_zero123.run_state import (
+from sar_zero123.model.conditioning import downsampling_factor, encode_condition_latents, vae_input
+from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
+from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run
+from sar_zero123.training.run_state import (
     RESUME_MAY_DIFFER,
     check_finite_state,
     check_finite_step,
@@ -49,9 +50,8 @@ from sar_zero123.run_state import (
     resume_step,
     save_checkpoint,
 )
-from sar_zero123.runs import check_global_batch, start_run, tracker_hparams
-from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
-from sar_zero123.training import micro_batch_generator
+from sar_zero123.training.runs import check_global_batch, start_run, tracker_hparams
+from sar_zero123.training.step import micro_batch_generator
 
 logger = logging.getLogger(__name__)
 

@@ -1,0 +1,134 @@
+"""The SAR domain's shared conventions: decibels, the signed and unit ranges, the centre crop, index.csv.
+
+Every wing meets these: the data layer reads chips into normalised dB, the simulator writes chips and
+their ``index.csv``, the encoder and the VAE take [-1, 1], the metrics and PFM score a centre crop. They
+live here, once, in a module that imports nothing from the rest of the package and does not import torch
+(the simulator is numpy only): a torch tensor is recognised only once torch has been imported by its
+owner.
+
+Conventions::
+
+    db = 20 * log10(m + 1e-3)      # to_decibels; zero magnitude is -60 dB
+    x_signed = 2 * x_unit - 1      # unit_to_signed: normalised dB [0, 1] -> [-1, 1]
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import TYPE_CHECKING, Any, TypeVar
+
+import numpy as np
+
+if TYPE_CHECKING:
+    import torch
+
+__all__ = [
+    "DB_EPS",
+    "INDEX_COLUMNS",
+    "INDEX_FILENAME",
+    "Array",
+    "center_crop",
+    "from_decibels",
+    "is_tensor",
+    "signed_to_unit",
+    "to_decibels",
+    "unit_to_signed",
+]
+
+#: Added to magnitudes before the logarithm, so zero magnitude is -60 dB rather than -inf.
+DB_EPS = 1e-3
+
+#: The file that lists a chip folder's chips, one row per chip.
+INDEX_FILENAME = "index.csv"
+#: The columns of ``index.csv`` in the order every writer of the package writes them (the simulator, the
+#: dataset augmentation, :func:`sar_zero123.data.write_index`, which may add ``mstar_source``).
+INDEX_COLUMNS = (
+    "path",
+    "target_class",
+    "target_type",
+    "serial",
+    "depression_deg",
+    "azimuth_deg",
+    "height",
+    "width",
+)
+
+Array = TypeVar("Array", "np.ndarray", "torch.Tensor")
+
+
+def is_tensor(value: Any) -> bool:
+    """Whether ``value`` is a torch tensor, without importing torch (no tensor exists before it is)."""
+    torch_module = sys.modules.get("torch")
+    return torch_module is not None and isinstance(value, torch_module.Tensor)
+
+
+def to_decibels(magnitude: Array) -> Array:
+    """Magnitude to decibels, ``20 * log10(m + 1e-3)`` (zero magnitude maps to -60 dB).
+
+    Args:
+        magnitude: Non-negative magnitudes (NumPy array or torch tensor).
+
+    Returns:
+        Decibels, same type, shape and floating dtype as the input.
+    """
+    if is_tensor(magnitude):
+        return 20.0 * (magnitude + DB_EPS).log10()
+    return (20.0 * np.log10(np.asarray(magnitude) + DB_EPS)).astype(np.result_type(magnitude, np.float32))
+
+
+def from_decibels(decibels: Array) -> Array:
+    """Inverse of :func:`to_decibels`: ``10 ** (db / 20) - 1e-3``.
+
+    Args:
+        decibels: Decibel values (NumPy array or torch tensor).
+
+    Returns:
+        Magnitudes, same type and shape as the input.
+    """
+    if is_tensor(decibels):
+        return 10.0 ** (decibels / 20.0) - DB_EPS
+    return (np.power(10.0, np.asarray(decibels) / 20.0) - DB_EPS).astype(np.result_type(decibels, np.float32))
+
+
+def unit_to_signed(x: Array) -> Array:
+    """Normalised dB in [0, 1] -> [-1, 1], the input range of the VAE and of the SAR encoder's ResNet.
+
+    Inverse of :func:`signed_to_unit`; elementwise, any shape.
+    """
+    return x * 2.0 - 1.0
+
+
+def signed_to_unit(x: Array) -> Array:
+    """[-1, 1] (a VAE's decoded image) -> normalised dB in [0, 1]; no clipping.
+
+    Inverse of :func:`unit_to_signed`; elementwise, any shape.
+    """
+    return (x + 1.0) / 2.0
+
+
+def center_crop(image: Array, crop_size: int) -> Array:
+    """Cuts the central ``crop_size x crop_size`` square (the target sits at the chip centre).
+
+    The one centre crop of the package: chips on load, the metrics' 64x64 scoring window, PFM's crop and
+    its latent window. NumPy arrays and torch tensors alike.
+
+    For an odd margin the extra row/column is dropped at the end, so a 129x128 chip loses its last row.
+
+    Args:
+        image: Image (array or tensor) of shape (..., H, W) with H, W >= crop_size.
+        crop_size: Side of the square.
+
+    Returns:
+        The crop (a view). Shape: (..., crop_size, crop_size).
+
+    Raises:
+        ValueError: If the image is smaller than ``crop_size`` or ``crop_size`` < 1.
+    """
+    height, width = image.shape[-2:]
+    if crop_size < 1:
+        raise ValueError(f"crop_size must be >= 1, got {crop_size}")
+    if height < crop_size or width < crop_size:
+        raise ValueError(f"image of size {height}x{width} is smaller than crop_size={crop_size}")
+    top = (height - crop_size) // 2
+    left = (width - crop_size) // 2
+    return image[..., top : top + crop_size, left : left + crop_size]

@@ -1,0 +1,11 @@
+"""Evaluation: metrics, evaluator models and the Table III protocol.
+
+- :mod:`~sar_zero123.evaluation.metrics`: image and pose metrics of the reference implementation.
+- :mod:`~sar_zero123.evaluation.paper_metrics`: the paper-comparable SSIM variants.
+- :mod:`~sar_zero123.evaluation.evaluators`: the classifier and azimuth regressor that score views.
+- :mod:`~sar_zero123.evaluation.protocol`: the Table III protocol (pairs, generation, scoring).
+- :mod:`~sar_zero123.evaluation.tables`: the protocol's results as tables.
+- :mod:`~sar_zero123.evaluation.probes`: frozen-feature probes of a SAR encoder.
+
+Nothing is imported here, so that importing one module does not load the others.
+"""

@@ -1,0 +1,717 @@
+"""Evaluator models that score generated views (paper Table III and Table IV).
+
+Two networks exist only to measure generated images; they are trained on real chips of every class
+(train split), so that on MSTAR-OOD the classifier still knows the held-out class:
+
+* `SARClassifier`: a ResNet-18 (`SAREncoder`) trained from scratch plus a linear layer over the classes;
+  it gives the classification accuracy of generated views.
+* `AzimuthRegressor`: a ResNet-18 plus an MLP (256-256, sigmoid) predicting azimuth / 2pi; it gives the
+  azimuth error, and its pre-head features (the 512-d pooled ResNet feature) give SFD. With a frozen
+  SimCLR encoder and only the MLP trained it is a Table IV "probe".
+* `DepressionRegressor` (optional): the same body and MLP predicting depression / 90 deg, trained on chips
+  at many depressions; it gives the depression error of views generated for a depression change.
+
+`closer_to_target_depression` compares a generated view with two true views of the target azimuth, one
+at the requested depression and one at the input's, without any trained model.
+
+Each model is saved as a folder with `evaluator.json` (kind, encoder config, class list, decibel scaling,
+head sizes) and `model.safetensors`. Loading checks the class list so that an evaluator trained on other
+classes is rejected with a clear error instead of silently scoring with mismatched labels.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import warnings
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from safetensors.torch import save_file
+from scipy.ndimage import gaussian_filter
+from torch import nn
+
+from sar_zero123.config import read_json
+from sar_zero123.data import DecibelScaling
+from sar_zero123.encoder import SAREncoder, SAREncoderConfig
+from sar_zero123.evaluation.metrics import (
+    CROP_SIZE,
+    azimuth_error_deg,
+    classification_accuracy,
+    frechet_distance,
+    kuan_ssim,
+    ms_ssim,
+)
+from sar_zero123.evaluation.paper_metrics import PAPER_SCORING_SIZE, paper_kuan_ssim, paper_ms_ssim
+from sar_zero123.model.loading import load_weights_file
+
+EVALUATOR_CONFIG_NAME = "evaluator.json"
+EVALUATOR_WEIGHTS_NAME = "model.safetensors"
+CLASSIFIER_DIR = "classifier"
+REGRESSOR_DIR = "regressor"
+PROBES_DIR = "probes"
+DEPRESSION_REGRESSOR_DIR = "depression_regressor"
+MAX_DEPRESSION_DEG = 90.0  # the depression regressor's sigmoid spans (0, 90) deg
+MAX_POSE_REQUESTS = 64  # most d_az requests `pose_following` samples, as one batch
+
+__all__ = [
+    "pose_following",
+    "AzimuthRegressor",
+    "DepressionRegressor",
+    "Evaluators",
+    "SARClassifier",
+    "azimuth_regression_loss",
+    "check_class_names",
+    "closer_to_target_depression",
+    "depression_regression_loss",
+    "load_evaluator",
+    "load_evaluators",
+    "resize_for_evaluator",
+    "score_views",
+    "standard_error",
+]
+
+
+def check_class_names(saved: Sequence[str], expected: Sequence[str] | None, source: str) -> None:
+    """Rejects an evaluator whose class list differs from the data's.
+
+    Args:
+        saved: Class names the evaluator was trained with (label order).
+        expected: Class names of the data being scored (label order), or `None` to skip the check.
+        source: Where the evaluator came from, for the message.
+
+    Raises:
+        ValueError: If the lists differ (in content or order).
+    """
+    if expected is not None and list(saved) != list(expected):
+        raise ValueError(
+            f"evaluator {source} was trained on classes {list(saved)} but the data uses {list(expected)}; "
+            f"train evaluators on this class list (train/train_evaluators.py)"
+        )
+
+
+def azimuth_regression_loss(predicted_fraction: torch.Tensor, azimuth_deg: torch.Tensor) -> torch.Tensor:
+    """Circular regression loss `1 - cos(2pi (p - t))` on the sigmoid output `p` and target `t = az / 2pi`.
+
+    The paper regresses azimuth / 2pi with a sigmoid head; a plain squared error would treat 359 deg and
+    1 deg as 358 deg apart, so the periodic form is used (it equals `2 pi^2 (p - t)^2` for small errors).
+
+    Args:
+        predicted_fraction: Sigmoid outputs in (0, 1), read as azimuth / 360 deg.
+        azimuth_deg: True azimuths in degrees (any real value; taken modulo 360).
+
+    Returns:
+        Per-sample loss in [0, 2].
+
+    Shape:
+        `(B,)`, `(B,)` -> `(B,)`.
+    """
+    target = torch.remainder(azimuth_deg, 360.0) / 360.0
+    return 1.0 - torch.cos(2.0 * math.pi * (predicted_fraction - target))
+
+
+def depression_regression_loss(
+    predicted_fraction: torch.Tensor, depression_deg: torch.Tensor
+) -> torch.Tensor:
+    """Squared error `(p - d / 90)^2` of the sigmoid output `p` against the depression `d` in degrees.
+
+    Depression is not periodic on (0, 90) deg, so a plain squared error fits where azimuth needs the
+    circular form of :func:`azimuth_regression_loss`.
+
+    Args:
+        predicted_fraction: Sigmoid outputs in (0, 1), read as depression / 90 deg.
+        depression_deg: True depressions in degrees.
+
+    Returns:
+        Per-sample loss.
+
+    Shape:
+        `(B,)`, `(B,)` -> `(B,)`.
+    """
+    return (predicted_fraction - depression_deg / MAX_DEPRESSION_DEG) ** 2
+
+
+class _Evaluator(nn.Module):
+    """Shared parts: the SAR encoder, the metadata and the folder format."""
+
+    kind: str = ""
+
+    def __init__(
+        self,
+        encoder_config: SAREncoderConfig,
+        class_names: Sequence[str],
+        scaling: DecibelScaling | None = None,
+    ) -> None:
+        super().__init__()
+        if len(class_names) == 0 or len(set(class_names)) != len(class_names):
+            raise ValueError(f"class_names must be non-empty and distinct, got {list(class_names)}")
+        self.encoder = SAREncoder(encoder_config)
+        self.class_names = list(class_names)
+        self.scaling = scaling if scaling is not None else DecibelScaling.for_unit_magnitude()
+        self.metrics: dict[str, float] = {}
+
+    @property
+    def image_size(self) -> int:
+        """Side of the square chips the evaluator takes."""
+        return self.encoder.config.image_size
+
+    def features(self, images: torch.Tensor) -> torch.Tensor:
+        """Pre-head features: the encoder's pooled 512-d ResNet feature.
+
+        Args:
+            images: Normalised dB chips in [0, 1].
+
+        Returns:
+            Features `(B, D)`.
+
+        Shape:
+            `(B, 1, S, S)` -> `(B, D)` with `S = image_size`.
+        """
+        return self.encoder(images)
+
+    def _head_config(self) -> dict[str, Any]:
+        return {}
+
+    def save_pretrained(self, directory: str | Path) -> Path:
+        """Writes `evaluator.json` (kind, encoder config, classes, scaling, head, metrics) and the weights.
+
+        Args:
+            directory: Target folder, created if needed.
+
+        Returns:
+            The folder.
+        """
+        directory = Path(directory)
+        directory.mkdir(parents=True, exist_ok=True)
+        state = {k: v.detach().cpu().contiguous() for k, v in self.state_dict().items()}
+        save_file(state, str(directory / EVALUATOR_WEIGHTS_NAME), metadata={"format": "pt"})
+        payload = {
+            "kind": self.kind,
+            "encoder": self.encoder.config.to_dict(),
+            "class_names": self.class_names,
+            "scaling": self.scaling.to_dict(),
+            "head": self._head_config(),
+            "metrics": self.metrics,
+        }
+        (directory / EVALUATOR_CONFIG_NAME).write_text(json.dumps(payload, indent=2) + "\n")
+        return directory
+
+
+class SARClassifier(_Evaluator):
+    """ResNet-18 classifier trained from scratch on real chips (Table III "Acc.").
+
+    Args:
+        encoder_config: Architecture of the ResNet-18 body.
+        class_names: Class names in label order.
+        scaling: Decibel scaling of the chips it was trained on (stored with the weights).
+    """
+
+    kind = "classifier"
+
+    def __init__(
+        self,
+        encoder_config: SAREncoderConfig,
+        class_names: Sequence[str],
+        scaling: DecibelScaling | None = None,
+    ) -> None:
+        super().__init__(encoder_config, class_names, scaling)
+        if len(self.class_names) == 1:
+            warnings.warn(
+                f"classifier of a single class {self.class_names}: its accuracy is 100% whatever the input; "
+                "train it on every class of the data (is the held-out class the only one in the split?)",
+                stacklevel=2,
+            )
+        self.head = nn.Linear(self.encoder.feature_dim, len(self.class_names))
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        """Class logits.
+
+        Shape:
+            `(B, 1, S, S)` -> `(B, K)`.
+        """
+        return self.head(self.features(images))
+
+
+class _MLPRegressor(_Evaluator):
+    """Shared parts of the regressors: the ResNet-18 body and an MLP head ending in a sigmoid.
+
+    Args:
+        encoder_config: Architecture of the ResNet-18 body.
+        class_names: Class names of the training data (stored to reject mismatched evaluation data).
+        scaling: Decibel scaling of the training chips.
+        hidden_sizes: MLP widths (256-256 in the paper).
+    """
+
+    def __init__(
+        self,
+        encoder_config: SAREncoderConfig,
+        class_names: Sequence[str],
+        scaling: DecibelScaling | None = None,
+        hidden_sizes: Sequence[int] = (256, 256),
+    ) -> None:
+        super().__init__(encoder_config, class_names, scaling)
+        if len(hidden_sizes) == 0 or min(hidden_sizes) < 1:
+            raise ValueError(f"hidden_sizes must be non-empty positive widths, got {list(hidden_sizes)}")
+        self.hidden_sizes = [int(width) for width in hidden_sizes]
+        layers: list[nn.Module] = []
+        width = self.encoder.feature_dim
+        for hidden in self.hidden_sizes:
+            layers += [nn.Linear(width, hidden), nn.ReLU()]
+            width = hidden
+        layers += [nn.Linear(width, 1), nn.Sigmoid()]
+        self.head = nn.Sequential(*layers)
+
+    def _head_config(self) -> dict[str, Any]:
+        return {"hidden_sizes": self.hidden_sizes}
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        """The sigmoid output in (0, 1): the predicted angle as a fraction of its range.
+
+        Shape:
+            `(B, 1, S, S)` -> `(B,)`.
+        """
+        return self.head(self.features(images)).squeeze(1)
+
+
+class AzimuthRegressor(_MLPRegressor):
+    """ResNet-18 + MLP azimuth regressor with sigmoid output = azimuth / 2pi (Table III "Az. err.", SFD).
+
+    Args: see `_MLPRegressor`.
+    """
+
+    kind = "azimuth_regressor"
+
+    def predict_azimuth_deg(self, images: torch.Tensor) -> torch.Tensor:
+        """Predicted azimuth in degrees, [0, 360).
+
+        Shape:
+            `(B, 1, S, S)` -> `(B,)`.
+        """
+        return torch.remainder(self(images) * 360.0, 360.0)
+
+
+class DepressionRegressor(_MLPRegressor):
+    """ResNet-18 + MLP depression regressor with sigmoid output = depression / 90 deg ("Dep. err.").
+
+    The bounded head keeps every prediction inside (0, 90) deg, the only depressions a chip can have.
+
+    Args: see `_MLPRegressor`.
+    """
+
+    kind = "depression_regressor"
+
+    def predict_depression_deg(self, images: torch.Tensor) -> torch.Tensor:
+        """Predicted depression in degrees, (0, 90).
+
+        Shape:
+            `(B, 1, S, S)` -> `(B,)`.
+        """
+        return self(images) * MAX_DEPRESSION_DEG
+
+
+EVALUATOR_KINDS = {model.kind: model for model in (SARClassifier, AzimuthRegressor, DepressionRegressor)}
+
+
+def load_evaluator(
+    directory: str | Path,
+    class_names: Sequence[str] | None = None,
+    device: str | torch.device = "cpu",
+) -> SARClassifier | AzimuthRegressor | DepressionRegressor:
+    """Loads an evaluator folder written by `save_pretrained`, in eval mode.
+
+    Args:
+        directory: Folder with `evaluator.json` and `model.safetensors`.
+        class_names: Class list of the data to score; a different saved list raises.
+        device: Device for the weights.
+
+    Returns:
+        The classifier or a regressor, in eval mode, with `metrics` restored.
+
+    Raises:
+        FileNotFoundError: If a file is missing.
+        ValueError: For an unknown kind or a class-list mismatch, an `evaluator.json` that is not valid
+            JSON or lacks a field, or weights that are unreadable or do not fit it (naming the file).
+    """
+    directory = Path(directory)
+    for path in (directory / EVALUATOR_CONFIG_NAME, directory / EVALUATOR_WEIGHTS_NAME):
+        if not path.is_file():
+            raise FileNotFoundError(f"evaluator checkpoint not found: {path}")
+    config_path = directory / EVALUATOR_CONFIG_NAME
+    fields = ("kind", "encoder", "class_names", "scaling", "head")
+    payload = read_json(config_path, what=f"an evaluator description {list(fields)}")
+    if not isinstance(payload, dict) or any(key not in payload for key in fields):
+        found = sorted(payload) if isinstance(payload, dict) else type(payload).__name__
+        raise ValueError(f"{config_path}: expected a JSON object with the fields {list(fields)}, got {found}")
+    check_class_names(payload["class_names"], class_names, str(directory))
+    if payload["kind"] not in EVALUATOR_KINDS:
+        raise ValueError(f"{directory}: unknown evaluator kind {payload['kind']!r}")
+    try:
+        encoder_config = SAREncoderConfig.from_dict(payload["encoder"])
+        scaling = DecibelScaling.from_dict(payload["scaling"])
+        model = EVALUATOR_KINDS[payload["kind"]](
+            encoder_config, payload["class_names"], scaling, **payload["head"]
+        )
+    except (AttributeError, TypeError, ValueError) as error:
+        raise ValueError(f"{config_path}: not a valid evaluator description ({error})") from None
+    weights_path = directory / EVALUATOR_WEIGHTS_NAME
+    load_weights_file(model, weights_path, f"the evaluator in {str(directory)!r}", device)
+    model.metrics = dict(payload.get("metrics", {}))
+    return model.to(device).eval()
+
+
+@dataclass
+class Evaluators:
+    """The evaluator set written by `train/train_evaluators.py`.
+
+    Attributes:
+        classifier: Scratch ResNet-18 classifier.
+        regressor: Scratch ResNet-18 + MLP azimuth regressor (its features give SFD).
+        probes: Extra azimuth regressors for Table IV (frozen SimCLR encoders + trained MLP), by name.
+        depression_regressor: Scratch ResNet-18 + MLP depression regressor, or None when the evaluators
+            were trained without chips at several depressions.
+    """
+
+    classifier: SARClassifier
+    regressor: AzimuthRegressor
+    probes: dict[str, AzimuthRegressor] = field(default_factory=dict)
+    depression_regressor: DepressionRegressor | None = None
+
+    @property
+    def class_names(self) -> list[str]:
+        """Class names in label order."""
+        return self.classifier.class_names
+
+    @property
+    def image_size(self) -> int:
+        """Chip side the evaluators take."""
+        return self.classifier.image_size
+
+    def azimuth_regressors(self) -> dict[str, AzimuthRegressor]:
+        """All azimuth regressors for Table IV: `"scratch"` first, then the probes."""
+        return {"scratch": self.regressor, **self.probes}
+
+
+def load_evaluators(
+    directory: str | Path,
+    class_names: Sequence[str] | None = None,
+    device: str | torch.device = "cpu",
+) -> Evaluators:
+    """Loads `DIR/classifier`, `DIR/regressor`, every `DIR/probes/<name>` and `DIR/depression_regressor`.
+
+    The depression regressor is optional (folders written before it existed load with it None); it may
+    have been trained on another chip folder, so its class list is not checked, but its decibel scaling
+    must be the classifier's: it scores the same views.
+
+    Args:
+        directory: Output folder of `train/train_evaluators.py`.
+        class_names: Class list of the data to score (checked against every model).
+        device: Device for the weights.
+
+    Returns:
+        The evaluator set.
+
+    Raises:
+        FileNotFoundError: If the classifier or regressor is missing.
+        ValueError: For a class-list mismatch, evaluators with different class lists, image sizes or (the
+            depression regressor) decibel scalings.
+    """
+    directory = Path(directory)
+    classifier = load_evaluator(directory / CLASSIFIER_DIR, class_names, device)
+    regressor = load_evaluator(directory / REGRESSOR_DIR, classifier.class_names, device)
+    if not isinstance(classifier, SARClassifier) or not isinstance(regressor, AzimuthRegressor):
+        raise ValueError(
+            f"{directory}: expected a classifier in {CLASSIFIER_DIR}/ and a regressor in {REGRESSOR_DIR}/"
+        )
+    probes: dict[str, AzimuthRegressor] = {}
+    probes_dir = directory / PROBES_DIR
+    if probes_dir.is_dir():
+        for probe_dir in sorted(p for p in probes_dir.iterdir() if (p / EVALUATOR_CONFIG_NAME).is_file()):
+            probe = load_evaluator(probe_dir, classifier.class_names, device)
+            if not isinstance(probe, AzimuthRegressor):
+                raise ValueError(f"{probe_dir}: a probe must be an azimuth regressor")
+            probes[probe_dir.name] = probe
+    depression_regressor = None
+    if (directory / DEPRESSION_REGRESSOR_DIR / EVALUATOR_CONFIG_NAME).is_file():
+        depression_regressor = load_evaluator(directory / DEPRESSION_REGRESSOR_DIR, device=device)
+        if not isinstance(depression_regressor, DepressionRegressor):
+            raise ValueError(f"{directory}: expected a depression regressor in {DEPRESSION_REGRESSOR_DIR}/")
+        if depression_regressor.scaling.to_dict() != classifier.scaling.to_dict():
+            raise ValueError(
+                f"{directory}: the depression regressor was trained with decibel scaling "
+                f"{depression_regressor.scaling.to_dict()} but the classifier with "
+                f"{classifier.scaling.to_dict()}; train both in one train/train_evaluators.py run"
+            )
+    others = (*probes.values(), *([depression_regressor] if depression_regressor is not None else []))
+    sizes = {model.image_size for model in (classifier, regressor, *others)}
+    if len(sizes) != 1:
+        raise ValueError(f"{directory}: evaluators take different image sizes {sorted(sizes)}")
+    return Evaluators(classifier, regressor, probes, depression_regressor)
+
+
+def resize_for_evaluator(images: torch.Tensor, size: int) -> torch.Tensor:
+    """Resizes `(B, 1, H, W)` images to the evaluators' `size` (bilinear, anti-aliased); no-op when equal."""
+    if images.shape[-2:] == (size, size):
+        return images
+    resized = F.interpolate(images, size=(size, size), mode="bilinear", antialias=True, align_corners=False)
+    return resized.clamp(0.0, 1.0)
+
+
+def standard_error(values: torch.Tensor) -> float:
+    """Standard error of the mean of per-sample values: sample standard deviation / sqrt(n); NaN for n < 2.
+
+    Shape:
+        `(N,)` -> scalar.
+    """
+    n = values.numel()
+    return values.double().std(correction=1).item() / math.sqrt(n) if n > 1 else float("nan")
+
+
+@torch.no_grad()
+def score_views(
+    generated: torch.Tensor,
+    targets: torch.Tensor,
+    labels: torch.Tensor,
+    target_azimuth_deg: torch.Tensor,
+    evaluators: Evaluators,
+    *,
+    target_depression_deg: torch.Tensor | None = None,
+    crop_size: int | None = CROP_SIZE,
+    paper_scoring_size: int | None = PAPER_SCORING_SIZE,
+    batch_size: int = 64,
+    device: str | torch.device = "cpu",
+) -> dict[str, float]:
+    """All five Table III metrics of generated views against their targets, plus Table IV errors.
+
+    Accuracy: the classifier's prediction on the generated view against the object's class. Azimuth error:
+    the regressor's prediction on the generated view against the target view's true azimuth (circular).
+    SFD: Frechet distance between the regressor's pre-head features of generated and of target views.
+    MS-SSIM and Kuan+SSIM: generated against target on the centre crop. `ms_ssim` and `kuan_ssim` are the
+    paper-comparable values (`sar_zero123.evaluation.paper_metrics`: the authors' calls on 8-bit views resized
+    to `paper_scoring_size`); `ms_ssim_corrected` and `kuan_ssim_corrected` are the corrected variants
+    (`sar_zero123.evaluation.metrics`) at the generated resolution. Depression error (with
+    `target_depression_deg` and a depression regressor among the evaluators): |predicted - true depression of
+    the target view|.
+
+    Args:
+        generated: Generated views in [0, 1].
+        targets: The real target views in [0, 1], same shape.
+        labels: Class indices of the objects (in `evaluators.class_names` order).
+        target_azimuth_deg: True azimuth of each target view in degrees.
+        evaluators: The evaluator set (classifier, regressor, probes, optional depression regressor).
+        target_depression_deg: True depression of each target view in degrees; gives
+            `depression_error_deg` when the evaluators have a depression regressor.
+        crop_size: Centre crop for MS-SSIM and Kuan+SSIM (64 in the paper; `None` only for the corrected
+            variants, the paper-comparable ones then use 64).
+        paper_scoring_size: Side the views are resized to before the paper-comparable crop (256, the
+            authors' resolution; `None` scores them at the generated resolution).
+        batch_size: Images per evaluator forward pass.
+        device: Device of the evaluator models.
+
+    Returns:
+        `{"accuracy": %, "azimuth_error_deg", "sfd", "ms_ssim", "kuan_ssim", "ms_ssim_corrected",
+        "kuan_ssim_corrected", "n",
+        "azimuth_error_deg/<regressor>"..., "depression_error_deg" (see above)}` with the means over the
+        samples, and `<metric>_se`, the standard error of each mean.
+
+    Shape:
+        generated, targets `(N, 1, H, W)`; labels, target_azimuth_deg, target_depression_deg `(N,)`.
+
+    Raises:
+        ValueError: For mismatched sizes or counts, or images outside [0, 1].
+    """
+    n = generated.shape[0]
+    if labels.shape != (n,) or target_azimuth_deg.shape != (n,):
+        raise ValueError(
+            f"labels {tuple(labels.shape)} and target_azimuth_deg {tuple(target_azimuth_deg.shape)} must be "
+            f"({n},) to match generated {tuple(generated.shape)}"
+        )
+    if target_depression_deg is not None and target_depression_deg.shape != (n,):
+        raise ValueError(
+            f"target_depression_deg {tuple(target_depression_deg.shape)} must be ({n},) to match generated"
+        )
+    depression_regressor = evaluators.depression_regressor if target_depression_deg is not None else None
+    # Image metrics first: they validate sizes and ranges of both sets.
+    structural = {name: [] for name in ("ms_ssim", "kuan_ssim", "ms_ssim_corrected", "kuan_ssim_corrected")}
+    paper_crop = {"scoring_size": paper_scoring_size, "crop_size": crop_size or CROP_SIZE}
+    predictions: dict[str, list[torch.Tensor]] = {"class": []}
+    regressors = evaluators.azimuth_regressors()
+    for name in regressors:
+        predictions[name] = []
+    predictions["depression"] = []
+    generated_features, target_features = [], []
+    for start in range(0, n, batch_size):
+        fake = generated[start : start + batch_size].float().cpu()
+        real = targets[start : start + batch_size].float().cpu()
+        structural["ms_ssim"].append(paper_ms_ssim(fake, real, **paper_crop))
+        structural["kuan_ssim"].append(paper_kuan_ssim(fake, real, **paper_crop))
+        structural["ms_ssim_corrected"].append(ms_ssim(fake, real, crop_size=crop_size))
+        structural["kuan_ssim_corrected"].append(kuan_ssim(fake, real, crop_size=crop_size))
+        fake_eval = resize_for_evaluator(fake, evaluators.image_size).to(device)
+        real_eval = resize_for_evaluator(real, evaluators.image_size).to(device)
+        predictions["class"].append(evaluators.classifier(fake_eval).argmax(dim=1).cpu())
+        for name, regressor in regressors.items():
+            predictions[name].append(regressor.predict_azimuth_deg(fake_eval).cpu())
+        if depression_regressor is not None:
+            predictions["depression"].append(depression_regressor.predict_depression_deg(fake_eval).cpu())
+        generated_features.append(evaluators.regressor.features(fake_eval).cpu())
+        target_features.append(evaluators.regressor.features(real_eval).cpu())
+    target_azimuth_deg = target_azimuth_deg.double().cpu()
+    predicted_azimuth_deg = torch.cat(predictions["scratch"]).double()
+    per_sample = {
+        "accuracy": 100.0 * (torch.cat(predictions["class"]) == labels.cpu()).double(),
+        "azimuth_error_deg": azimuth_error_deg(predicted_azimuth_deg, target_azimuth_deg),
+        **{name: torch.cat(values).double() for name, values in structural.items()},
+    }
+    if depression_regressor is not None:
+        predicted_depression_deg = torch.cat(predictions["depression"]).double()
+        per_sample["depression_error_deg"] = (
+            predicted_depression_deg - target_depression_deg.double().cpu()
+        ).abs()
+    scores = {
+        "accuracy": 100.0 * classification_accuracy(torch.cat(predictions["class"]), labels.cpu()),
+        "azimuth_error_deg": per_sample["azimuth_error_deg"].mean().item(),
+        "sfd": frechet_distance(torch.cat(generated_features), torch.cat(target_features)),
+        **{name: per_sample[name].mean().item() for name in structural},
+        "n": float(n),
+    }
+    if depression_regressor is not None:
+        scores["depression_error_deg"] = per_sample["depression_error_deg"].mean().item()
+    # SFD has no per-sample terms, hence no standard error
+    for name, values in per_sample.items():
+        scores[f"{name}_se"] = standard_error(values)
+    for name in regressors:
+        error = azimuth_error_deg(torch.cat(predictions[name]).double(), target_azimuth_deg)
+        scores[f"azimuth_error_deg/{name}"] = error.mean().item()
+    return scores
+
+
+def closer_to_target_depression(
+    generated: torch.Tensor | np.ndarray,
+    targets: torch.Tensor | np.ndarray,
+    input_depression_views: torch.Tensor | np.ndarray,
+    sigma_px: float = 1.5,
+) -> torch.Tensor:
+    """Whether each blurred generated view correlates more with the requested depression's truth.
+
+    A view generated for a depression change `d_el != 0` should look like the target view (target azimuth,
+    target depression) more than like the view at the target azimuth but the input's depression, which is
+    what a model that turns the azimuth and ignores `d_el` returns. All three views are blurred with a
+    Gaussian of `sigma_px` pixels first, so that speckle-scale detail, which no generator can reproduce,
+    does not decide the comparison; the Pearson correlation of the generated view with each truth decides
+    it. A constant view correlates 0 with anything.
+
+    Args:
+        generated: Generated views.
+        targets: True views at the target azimuth and target depression.
+        input_depression_views: True views at the target azimuth and the input's depression.
+        sigma_px: Standard deviation of the Gaussian blur in pixels.
+
+    Returns:
+        `(N,)` bool: `corr(generated, targets) > corr(generated, input_depression_views)` (ties: False).
+
+    Shape:
+        `(N, 1, H, W)` each -> `(N,)`.
+
+    Raises:
+        ValueError: For views of different shapes, not `(N, 1, H, W)`, or a negative `sigma_px`.
+    """
+    views = [
+        np.asarray(torch.as_tensor(v).detach().cpu(), dtype=np.float64)
+        for v in (generated, targets, input_depression_views)
+    ]
+    if views[0].ndim != 4 or views[0].shape[1] != 1 or any(v.shape != views[0].shape for v in views):
+        raise ValueError(
+            f"generated, targets and input_depression_views must share one (N, 1, H, W) shape, got "
+            f"{[v.shape for v in views]}"
+        )
+    if sigma_px < 0:
+        raise ValueError(f"sigma_px must be >= 0, got {sigma_px}")
+    blurred = [gaussian_filter(v, sigma=(0.0, 0.0, sigma_px, sigma_px)) for v in views]
+    generated_blurred, target_blurred, input_depression_blurred = blurred
+    to_target = _pearson(generated_blurred, target_blurred)
+    return torch.from_numpy(to_target > _pearson(generated_blurred, input_depression_blurred))
+
+
+def _pearson(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Pearson correlation of each pair of views, 0 where one is constant. Shape: `(N, ...)` x2 -> `(N,)`."""
+    a = a.reshape(a.shape[0], -1)
+    b = b.reshape(b.shape[0], -1)
+    a = a - a.mean(axis=1, keepdims=True)
+    b = b - b.mean(axis=1, keepdims=True)
+    norms = np.sqrt((a * a).sum(axis=1) * (b * b).sum(axis=1))
+    covariance = (a * b).sum(axis=1)
+    return np.divide(covariance, norms, out=np.zeros_like(covariance), where=norms > 0)
+
+
+@torch.no_grad()
+def pose_following(
+    pipe,
+    image: torch.Tensor,
+    input_azimuth_deg: float,
+    regressor: AzimuthRegressor,
+    *,
+    d_az_deg: Sequence[float] = (-135.0, -90.0, -45.0, 0.0, 45.0, 90.0, 135.0, 180.0),
+    num_inference_steps: int = 20,
+    guidance_scale: float = 3.0,
+    seed: int = 0,
+    input_depression_deg: float | None = None,
+) -> dict[str, Any]:
+    """Does a pipeline's output turn with the requested pose? One input view, several ``d_az``.
+
+    The regressor reads the azimuth of each generated view; a model that follows the pose returns views at
+    ``input_azimuth_deg + d_az`` (error near the regressor's own), one that ignores it returns the input's
+    azimuth for every request (error near the mean ``|d_az|`` of the request list, here the floor).
+
+    Args:
+        pipe: A :class:`~sar_zero123.model.pipeline.SARZero123Pipeline`.
+        image: The input view ``(1, 1, S, S)`` in [0, 1].
+        input_azimuth_deg: Its true azimuth.
+        regressor: The evaluator azimuth regressor.
+        d_az_deg: Requested azimuth changes.
+        num_inference_steps: Sampler steps.
+        guidance_scale: Classifier-free guidance weight.
+        seed: Seed of the generator of every request (the same noise for each, so only the pose differs).
+        input_depression_deg: The input view's depression, for a pipeline whose pose carries it
+            (``pose_projection.config.input_depression``).
+
+    Returns:
+        ``{"requested_deg", "predicted_deg", "error_deg" (per request), "mean_error_deg", "floor_deg"}``.
+
+    Raises:
+        ValueError: If ``image`` is not one ``(1, 1, S, S)`` view, or ``d_az_deg`` holds no request or more
+            than :data:`MAX_POSE_REQUESTS`.
+    """
+    if image.ndim != 4 or image.shape[:2] != (1, 1):
+        raise ValueError(f"image must be one view of shape (1, 1, S, S), got {tuple(image.shape)}")
+    requests = torch.tensor([float(d) for d in d_az_deg], dtype=torch.float64)
+    count = requests.numel()
+    if not 1 <= count <= MAX_POSE_REQUESTS:
+        raise ValueError(f"d_az_deg: expected 1 to {MAX_POSE_REQUESTS} requests (one batch), got {count}")
+    generated = pipe(
+        image.expand(count, -1, -1, -1).to(pipe.device),
+        d_az=requests.float(),
+        d_el=torch.zeros(count),
+        input_depression_deg=input_depression_deg,
+        num_inference_steps=num_inference_steps,
+        guidance_scale=guidance_scale,
+        generator=[torch.Generator().manual_seed(seed) for _ in range(count)],
+        output_type="pt",
+    ).images.float()
+    device = next(regressor.parameters()).device
+    views = resize_for_evaluator(generated.cpu(), regressor.image_size).to(device)
+    predicted = regressor.predict_azimuth_deg(views)
+    wanted = (input_azimuth_deg + requests) % 360.0
+    error = azimuth_error_deg(predicted.double().cpu(), wanted)
+    floor = azimuth_error_deg(torch.full_like(wanted, input_azimuth_deg), wanted)
+    return {
+        "requested_deg": requests.tolist(),
+        "predicted_deg": predicted.double().cpu().tolist(),
+        "error_deg": error.tolist(),
+        "mean_error_deg": error.mean().item(),
+        "floor_deg": floor.mean().item(),
+    }

@@ -1,0 +1,364 @@
+"""Paper-comparable MS-SSIM and Kuan+SSIM: the authors' scoring calls, reproduced without their libraries.
+
+The paper's Table III numbers come from the authors' evaluation scripts, not from the metric definitions
+in its text. Those scripts (public, `zero123/eval_metrics/` of AmirooR/noise-tolerant-sar-synthesis):
+
+1. read the generated and target views back from 8-bit PNG files. The views were 256 x 256: their data
+   module resizes every 128 px chip to 256 (`image_transforms.size: 256`, bilinear) and zero-1-to-3
+   decodes 32 x 32 latents to 256 px. Their public image writers quantise by truncation,
+   `(x * 255).astype(np.uint8)`; the script that wrote the scored files is not public.
+2. crop the centre 64 x 64 of those 256 px images, i.e. the central quarter of the field of view
+   (the central 32 x 32 pixels of a 128 px chip, upsampled two-fold);
+3. MS-SSIM: torchmetrics `MultiScaleStructuralSimilarityIndexMeasure(data_range=1.0, kernel_size=7,
+   sigma=1.0, betas=(0.0448, 0.3001, 0.1333))` on pixel / 255. With its default `gaussian_kernel=True`
+   torchmetrics ignores `kernel_size` and builds a 9 x 9 Gaussian from sigma (radius
+   `int(3.5 sigma + 0.5)`); its contrast-structure terms average the valid region while the last scale's
+   SSIM term averages the whole reflect-padded map; negative terms are clipped to 0 (`normalize="relu"`);
+4. Kuan+SSIM: the 0-255 image goes through findpeaks' `kuan_filter(win_size=7, cu=0.25)`, whose window
+   for pixel `(i, j)` is rows `i-3 .. i+2` and columns `j-3 .. j+2` (6 x 6, not centred), truncated at the
+   image borders (no padding), with a coefficient of variation from the population standard deviation
+   and an output rounded to an integer (half to even); then scikit-image's
+   `structural_similarity(data_range=255, win_size=7)` with its defaults: uniform 7 x 7 window, sample
+   covariance (`N / (N - 1)`), mean over the valid region.
+
+The functions here compute exactly that in float64 (tests/evaluation/test_paper_metrics.py checks them against
+torchmetrics, scikit-image and a per-pixel loop port of the findpeaks filter). The corrected variants
+(true 7 x 7 Gaussian windows, a centred reflect-padded Kuan filter, scored at the generated resolution)
+are in `sar_zero123.evaluation.metrics`; `docs/results/evaluation.md` lists the measured differences.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import torch
+import torch.nn.functional as F
+
+from sar_zero123.evaluation.metrics import CROP_SIZE, PAPER_MS_SSIM_BETAS, combine_scales, gaussian_kernel_1d
+
+PAPER_SCORING_SIZE = 256
+"""Side in pixels of the images the authors scored (zero-1-to-3 resolution; 128 px chips resized to it)."""
+
+PAPER_MS_SSIM_SIGMA = 1.0
+"""Gaussian sigma of the authors' MS-SSIM; torchmetrics derives a 9 x 9 window from it."""
+
+PAPER_KUAN_WINDOW = 7
+"""`win_size` the authors passed to findpeaks' Kuan filter (a 6 x 6 effective window)."""
+
+PAPER_KUAN_CU = 0.25
+"""Speckle coefficient of variation the authors passed to the Kuan filter."""
+
+PAPER_SSIM_WINDOW = 7
+"""Uniform SSIM window after the Kuan filter (scikit-image's default `win_size`)."""
+
+_K1 = 0.01
+_K2 = 0.03
+
+
+def to_paper_scoring_images(
+    images: torch.Tensor, *, scoring_size: int | None = PAPER_SCORING_SIZE, crop_size: int = CROP_SIZE
+) -> torch.Tensor:
+    """The 8-bit centre crop the authors scored: resize to `scoring_size`, quantise, crop.
+
+    1. Channels are averaged to one grey channel (the authors read grey images).
+    2. Images whose side is not `scoring_size` are resized to it (bilinear, `align_corners=False`, as the
+       authors' torchvision `Resize` of their 128 px chips to 256; antialiased when shrinking).
+    3. Quantise to 8 bits by truncation, `floor(255 x)`, as the authors' image writers.
+    4. Centre `crop_size` crop.
+
+    Args:
+        images: Views in [0, 1] (normalised dB).
+        scoring_size: Side the images are resized to before the crop; `None` keeps the given size.
+        crop_size: Side of the centre crop (64 in the paper).
+
+    Returns:
+        Float64 integer values in [0, 255].
+
+    Shape:
+        `(B, C, H, W) -> (B, 1, crop_size, crop_size)`.
+
+    Raises:
+        ValueError: For images that are not 4-D, outside [0, 1] or not finite, or a crop larger than the
+            scored image.
+    """
+    if images.ndim != 4:
+        raise ValueError(f"images must be (B, C, H, W); got {tuple(images.shape)}")
+    if not torch.isfinite(images).all():
+        raise ValueError("images contain non-finite values")
+    low, high = images.min().item(), images.max().item()
+    if low < 0.0 or high > 1.0:
+        raise ValueError(f"images have values in [{low:.4g}, {high:.4g}], outside [0, 1]")
+    grey = images.double().mean(dim=1, keepdim=True)
+    if scoring_size is not None and tuple(grey.shape[-2:]) != (scoring_size, scoring_size):
+        shrinking = min(grey.shape[-2:]) > scoring_size
+        grey = F.interpolate(
+            grey, size=(scoring_size, scoring_size), mode="bilinear", align_corners=False, antialias=shrinking
+        ).clamp(0.0, 1.0)
+    height, width = grey.shape[-2:]
+    if height < crop_size or width < crop_size:
+        raise ValueError(f"images of size {height}x{width} are smaller than the {crop_size}x{crop_size} crop")
+    quantised = torch.floor(grey * 255.0)
+    top, left = (height - crop_size) // 2, (width - crop_size) // 2
+    return quantised[..., top : top + crop_size, left : left + crop_size]
+
+
+def _box_sums(image: torch.Tensor, offset: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Sums over the truncated windows `[i - offset, i + offset)` x `[j - offset, j + offset)`, and counts."""
+    height, width = image.shape[-2:]
+    integral = F.pad(image.cumsum(-2).cumsum(-1), (1, 0, 1, 0))  # (..., H + 1, W + 1)
+    rows = torch.arange(height)
+    cols = torch.arange(width)
+    top, bottom = (rows - offset).clamp_min(0), (rows + offset).clamp_max(height)
+    left, right = (cols - offset).clamp_min(0), (cols + offset).clamp_max(width)
+
+    def corner(r: torch.Tensor, c: torch.Tensor) -> torch.Tensor:
+        return integral[..., r, :][..., c]
+
+    sums = corner(bottom, right) - corner(top, right) - corner(bottom, left) + corner(top, left)
+    counts = ((bottom - top)[:, None] * (right - left)[None, :]).to(image.dtype)  # (H, W)
+    return sums, counts
+
+
+def kuan_filter_findpeaks(
+    image: torch.Tensor, *, win_size: int = PAPER_KUAN_WINDOW, cu: float = PAPER_KUAN_CU
+) -> torch.Tensor:
+    """Kuan filter as findpeaks' `kuan_filter` computes it (the filter behind the paper's Kuan+SSIM).
+
+    With `o = win_size // 2`, the window of pixel `(i, j)` is rows `max(0, i - o) .. min(i + o, H) - 1` and
+    the same for columns: `2 o` pixels wide (6 for `win_size = 7`), one more above/left of the pixel than
+    below/right, and truncated at the borders. With window mean `m` and population coefficient of
+    variation `Ci = std / m`: `W = 0` where `Ci < Cu`, else `W = (1 - Cu^2 / Ci^2) / (1 + Cu^2)`;
+    `out = round(W pix + (1 - W) m)` (half to even). An all-zero window gives 0.
+
+    Args:
+        image: Non-negative image, on the 0-255 scale the authors used.
+        win_size: findpeaks' `win_size` (>= 3).
+        cu: Speckle coefficient of variation.
+
+    Returns:
+        Float64 integer-valued filtered image, same shape.
+
+    Shape:
+        `(H, W)` or `(B, C, H, W)`.
+
+    Raises:
+        ValueError: For `win_size < 3`, negative `cu` or values, or an image that is not 2-D or 4-D.
+    """
+    if win_size < 3:
+        raise ValueError(f"win_size must be >= 3; got {win_size}")
+    if cu < 0:
+        raise ValueError(f"cu must be non-negative; got {cu}")
+    if image.ndim not in (2, 4):
+        raise ValueError(f"image must be (H, W) or (B, C, H, W); got {tuple(image.shape)}")
+    work = image.double()
+    if (work < 0).any():
+        raise ValueError("image has negative values; the Kuan filter needs magnitudes")
+    # Integer-valued inputs keep the window sums exact, so the mean matches findpeaks' bit for bit.
+    sums, counts = _box_sums(work, win_size // 2)
+    squares, _ = _box_sums(work * work, win_size // 2)
+    mean = sums / counts
+    variance = (squares / counts - mean * mean).clamp_min(0.0)
+    ci_squared = torch.where(mean > 0, variance / (mean * mean).clamp_min(1e-300), 0.0)
+    weight = torch.where(
+        ci_squared < cu**2, 0.0, (1.0 - cu**2 / ci_squared.clamp_min(1e-300)) / (1.0 + cu**2)
+    )
+    return torch.round(work * weight + mean * (1.0 - weight))
+
+
+def ssim_uniform_window(
+    x: torch.Tensor, y: torch.Tensor, *, win_size: int = PAPER_SSIM_WINDOW, data_range: float = 255.0
+) -> torch.Tensor:
+    """SSIM as scikit-image's `structural_similarity` computes it with its defaults.
+
+    Uniform `win_size x win_size` window, sample (co)variances (`N / (N - 1)`, N = win_size^2), constants
+    `C1 = (0.01 L)^2`, `C2 = (0.03 L)^2`, mean of the SSIM map over the valid region (scikit-image filters
+    with reflection and then drops `(win_size - 1) / 2` pixels at each border, which leaves exactly the
+    windows inside the image). No clipping of the variances, as in scikit-image.
+
+    Args:
+        x: First images.
+        y: Second images, same shape.
+        win_size: Odd window side.
+        data_range: Dynamic range L (255 for the authors' 0-255 images).
+
+    Returns:
+        Per-sample SSIM (float64), averaged over channels and pixels.
+
+    Shape:
+        `(B, C, H, W) -> (B,)`.
+
+    Raises:
+        ValueError: For mismatched shapes, an even window, or images smaller than the window.
+    """
+    if x.shape != y.shape or x.ndim != 4:
+        raise ValueError(f"x and y must be equal (B, C, H, W); got {tuple(x.shape)} and {tuple(y.shape)}")
+    if win_size % 2 == 0 or min(x.shape[-2:]) < win_size:
+        raise ValueError(f"win_size must be odd and <= the image side; got {win_size} for {tuple(x.shape)}")
+    x, y = x.double(), y.double()
+
+    def box(image: torch.Tensor) -> torch.Tensor:
+        return F.avg_pool2d(image, win_size, stride=1)
+
+    covariance_norm = win_size**2 / (win_size**2 - 1.0)
+    c1, c2 = (_K1 * data_range) ** 2, (_K2 * data_range) ** 2
+    mu_x, mu_y = box(x), box(y)
+    var_x = covariance_norm * (box(x * x) - mu_x * mu_x)
+    var_y = covariance_norm * (box(y * y) - mu_y * mu_y)
+    cov_xy = covariance_norm * (box(x * y) - mu_x * mu_y)
+    ssim_map = ((2 * mu_x * mu_y + c1) * (2 * cov_xy + c2)) / (
+        (mu_x * mu_x + mu_y * mu_y + c1) * (var_x + var_y + c2)
+    )
+    return ssim_map.flatten(1).mean(1)
+
+
+def _torchmetrics_ssim_terms(
+    x: torch.Tensor, y: torch.Tensor, kernel_1d: torch.Tensor, data_range: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-sample (SSIM over the whole reflect-padded map, contrast-structure over the valid region)."""
+    channels, size = x.shape[1], kernel_1d.shape[0]
+    pad = (size - 1) // 2
+    window = kernel_1d.to(x)
+    window_h = window.view(1, 1, size, 1).expand(channels, 1, size, 1)
+    window_w = window.view(1, 1, 1, size).expand(channels, 1, 1, size)
+
+    def blur(image: torch.Tensor) -> torch.Tensor:
+        return F.conv2d(F.conv2d(image, window_h, groups=channels), window_w, groups=channels)
+
+    x = F.pad(x, (pad, pad, pad, pad), mode="reflect")
+    y = F.pad(y, (pad, pad, pad, pad), mode="reflect")
+    c1, c2 = (_K1 * data_range) ** 2, (_K2 * data_range) ** 2
+    mu_x, mu_y = blur(x), blur(y)
+    var_x = (blur(x * x) - mu_x**2).clamp_min(0.0)
+    var_y = (blur(y * y) - mu_y**2).clamp_min(0.0)
+    cov_xy = blur(x * y) - mu_x * mu_y
+    contrast_structure = (2.0 * cov_xy + c2) / (var_x + var_y + c2)
+    ssim_map = (2.0 * mu_x * mu_y + c1) / (mu_x**2 + mu_y**2 + c1) * contrast_structure
+    valid = contrast_structure[..., pad:-pad, pad:-pad]
+    return ssim_map.flatten(1).mean(1), valid.flatten(1).mean(1)
+
+
+def ms_ssim_torchmetrics(
+    x: torch.Tensor,
+    y: torch.Tensor,
+    *,
+    betas: Sequence[float] = PAPER_MS_SSIM_BETAS,
+    sigma: float = PAPER_MS_SSIM_SIGMA,
+    data_range: float = 1.0,
+) -> torch.Tensor:
+    """MS-SSIM as torchmetrics computes it with `gaussian_kernel=True` (whatever `kernel_size` says).
+
+    Window: Gaussian of side `2 int(3.5 sigma + 0.5) + 1` (9 for sigma 1.0). Scales `1 .. M - 1` contribute
+    their contrast-structure mean over the valid region, the last scale its SSIM mean over the whole
+    reflect-padded map; each term is clipped at 0 and raised to its beta; 2 x 2 average pooling between
+    scales.
+
+    Args:
+        x: First images in [0, `data_range`].
+        y: Second images, same shape.
+        betas: Per-scale exponents.
+        sigma: Gaussian standard deviation.
+        data_range: Dynamic range.
+
+    Returns:
+        Per-sample MS-SSIM (float64).
+
+    Shape:
+        `(B, C, H, W) -> (B,)`.
+
+    Raises:
+        ValueError: For mismatched shapes or images too small for the window at the coarsest scale.
+    """
+    if x.shape != y.shape or x.ndim != 4:
+        raise ValueError(f"x and y must be equal (B, C, H, W); got {tuple(x.shape)} and {tuple(y.shape)}")
+    kernel = gaussian_kernel_1d(2 * int(3.5 * sigma + 0.5) + 1, sigma)
+    coarsest = min(x.shape[-2:]) // 2 ** (len(betas) - 1)
+    if coarsest <= kernel.shape[0] // 2:
+        raise ValueError(f"images of size {tuple(x.shape[-2:])} are too small for {len(betas)} scales")
+    terms = lambda a, b: _torchmetrics_ssim_terms(a, b, kernel, data_range)  # noqa: E731
+    return combine_scales(x.double(), y.double(), betas, terms)
+
+
+def paper_ms_ssim(
+    x: torch.Tensor,
+    y: torch.Tensor,
+    *,
+    scoring_size: int | None = PAPER_SCORING_SIZE,
+    crop_size: int = CROP_SIZE,
+) -> torch.Tensor:
+    """Paper-comparable MS-SSIM (Table III): the authors' torchmetrics call on their 8-bit 64 x 64 crop.
+
+    Args:
+        x: Generated views in [0, 1].
+        y: Target views in [0, 1], same shape.
+        scoring_size: Side the views are resized to before cropping (256 as the authors'; `None` keeps the
+            given size).
+        crop_size: Centre crop side (64).
+
+    Returns:
+        Per-sample MS-SSIM (float64).
+
+    Shape:
+        `(B, C, H, W) -> (B,)`.
+
+    Raises:
+        ValueError: For mismatched shapes or values outside [0, 1].
+    """
+    x8, y8 = _paper_crops(x, y, scoring_size, crop_size)
+    return ms_ssim_torchmetrics(x8 / 255.0, y8 / 255.0)
+
+
+def paper_kuan_ssim(
+    x: torch.Tensor,
+    y: torch.Tensor,
+    *,
+    scoring_size: int | None = PAPER_SCORING_SIZE,
+    crop_size: int = CROP_SIZE,
+) -> torch.Tensor:
+    """Paper-comparable Kuan+SSIM (Table III): findpeaks' Kuan filter, then scikit-image's default SSIM.
+
+    The 8-bit crop (0-255) is filtered (the crop, not the whole image, as the authors did) and scored
+    with `data_range=255`.
+
+    Args:
+        x: Generated views in [0, 1].
+        y: Target views in [0, 1], same shape.
+        scoring_size: Side the views are resized to before cropping (256; `None` keeps the given size).
+        crop_size: Centre crop side (64).
+
+    Returns:
+        Per-sample Kuan+SSIM (float64).
+
+    Shape:
+        `(B, C, H, W) -> (B,)`.
+
+    Raises:
+        ValueError: For mismatched shapes or values outside [0, 1].
+    """
+    x8, y8 = _paper_crops(x, y, scoring_size, crop_size)
+    return ssim_uniform_window(kuan_filter_findpeaks(x8), kuan_filter_findpeaks(y8), data_range=255.0)
+
+
+def _paper_crops(
+    x: torch.Tensor, y: torch.Tensor, scoring_size: int | None, crop_size: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Generated and target views as the authors scored them (:func:`to_paper_scoring_images`)."""
+    if x.shape != y.shape:
+        raise ValueError(f"generated and target images differ in size: {tuple(x.shape)} != {tuple(y.shape)}")
+    x8 = to_paper_scoring_images(x, scoring_size=scoring_size, crop_size=crop_size)
+    return x8, to_paper_scoring_images(y, scoring_size=scoring_size, crop_size=crop_size)
+
+
+__all__ = [
+    "PAPER_KUAN_CU",
+    "PAPER_KUAN_WINDOW",
+    "PAPER_MS_SSIM_SIGMA",
+    "PAPER_SCORING_SIZE",
+    "PAPER_SSIM_WINDOW",
+    "kuan_filter_findpeaks",
+    "ms_ssim_torchmetrics",
+    "paper_kuan_ssim",
+    "paper_ms_ssim",
+    "ssim_uniform_window",
+    "to_paper_scoring_images",
+]
+

@@ -1,0 +1,716 @@
+"""`SARZero123Pipeline`: novel views of a SAR chip at a requested relative pose (zero-1-to-3 sampling).
+
+The sampler follows zero-1-to-3: the UNet input is the noisy latent concatenated with the unscaled VAE
+posterior mode of the input chip (8 channels); cross-attention sees one token,
+``PoseProjection([clip_image_embedding, pose])``; classifier-free guidance uses zeros for both the
+projected token and the condition latent as the unconditional input and runs conditional and
+unconditional branches in one batched UNet call.
+"""
+
+from __future__ import annotations
+
+import inspect
+import numbers
+import os
+import sys
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any, Literal
+
+import diffusers
+import numpy as np
+import PIL.Image
+import torch
+from diffusers import AutoencoderKL, DiffusionPipeline, UNet2DConditionModel
+from diffusers.callbacks import MultiPipelineCallbacks, PipelineCallback
+from diffusers.schedulers.scheduling_utils import SchedulerMixin
+from diffusers.utils import BaseOutput
+from diffusers.utils.torch_utils import randn_tensor
+from transformers import CLIPVisionModelWithProjection
+
+from sar_zero123.domain import signed_to_unit
+from sar_zero123.model.conditioning import (
+    POSE_DIM,
+    PoseProjection,
+    as_angle_tensor,
+    downsampling_factor,
+    embed_pose,
+    encode_condition_latents,
+    encode_image_embeddings,
+    match_channels,
+    pose_class_labels,
+)
+from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
+from sar_zero123.model.orientation import AzimuthEstimator, target_view_features
+from sar_zero123.model.zero123_checkpoints import CLIPImageProcessor, load_zero123_components
+from sar_zero123.pretrained import is_bundled_name, resolve_pretrained
+
+__all__ = ["SARZero123Pipeline", "SARZero123PipelineOutput"]
+
+ImageInput = PIL.Image.Image | np.ndarray | torch.Tensor | Sequence[PIL.Image.Image] | Sequence[np.ndarray]
+OUTPUT_TYPES = ("pil", "np", "pt", "latent")
+#: Larger guidance scales overflow the guided noise estimate (NaN images); zero-1-to-3 samples with 3.
+MAX_GUIDANCE_SCALE = 100.0
+#: A depression delta is the difference of two depression angles in [0, 90] degrees.
+MAX_ABS_D_EL_DEG = 90.0
+#: Azimuth deltas beyond this many degrees (~2,800 turns) are almost surely a unit error, and float64
+#: loses the angle's fraction of a degree long before 1e15.
+MAX_ABS_D_AZ_DEG = 1e6
+
+
+@dataclass
+class SARZero123PipelineOutput(BaseOutput):
+    """Output of :class:`SARZero123Pipeline`.
+
+    Args:
+        images: Generated views in the normalised dB domain, ``B * num_images_per_prompt`` of them,
+            grouped by input image (all samples of input 0 first). A list of single-channel PIL images
+            (``"pil"``), a float32 array ``(N, H, W, 1)`` (``"np"``), a tensor ``(N, 1, H, W)``
+            (``"pt"``), or the final latents ``(N, 4, h, w)`` (``"latent"``).
+    """
+
+    images: list[PIL.Image.Image] | np.ndarray | torch.Tensor
+
+
+class SARZero123Pipeline(DiffusionPipeline):
+    """Novel-view synthesis of SAR chips with a zero-1-to-3 latent diffusion model.
+
+    Args:
+        vae: Autoencoder; 1-channel (trained on SAR) or 3-channel (Stable Diffusion) input.
+        image_encoder: CLIP vision tower whose ``image_embeds`` condition the UNet.
+        unet: Denoiser with ``in_channels = 2 * vae.config.latent_channels``.
+        scheduler: Any diffusers scheduler (DDIM, DPM-Solver++, Euler, ...).
+        pose_projection: Projection of ``[image_embeds, pose]`` to the cross-attention dimension.
+        feature_extractor: Optional CLIP image processor; only its ``image_mean`` / ``image_std`` are
+            used (preprocessing runs in torch, see :func:`encode_image_embeddings`).
+        azimuth_estimator: Optional :class:`~sar_zero123.model.orientation.AzimuthEstimator`, given exactly
+            when the UNet's timestep embedding takes the target's estimated azimuth after the pose.
+
+    Raises:
+        ValueError: If the component sizes do not fit together.
+    """
+
+    model_cpu_offload_seq = "image_encoder->pose_projection->unet->vae"
+    _optional_components = ["feature_extractor", "azimuth_estimator"]
+    _callback_tensor_inputs = ["latents"]
+
+    def __init__(
+        self,
+        vae: AutoencoderKL,
+        image_encoder: CLIPVisionModelWithProjection,
+        unet: UNet2DConditionModel,
+        scheduler: SchedulerMixin,
+        pose_projection: PoseProjection,
+        feature_extractor: CLIPImageProcessor | None = None,
+        azimuth_estimator: AzimuthEstimator | None = None,
+    ) -> None:
+        super().__init__()
+        latent_channels = vae.config.latent_channels
+        if unet.config.in_channels != 2 * latent_channels:
+            raise ValueError(
+                f"`unet.config.in_channels` must be 2 * vae latent channels = {2 * latent_channels} "
+                f"(noisy latent + condition latent), got {unet.config.in_channels}"
+            )
+        if pose_projection.config.in_features != image_encoder.config.projection_dim + POSE_DIM:
+            raise ValueError(
+                f"`pose_projection.config.in_features` must be image_encoder projection_dim + {POSE_DIM} = "
+                f"{image_encoder.config.projection_dim + POSE_DIM}, got {pose_projection.config.in_features}"
+            )
+        if pose_projection.config.out_features != unet.config.cross_attention_dim:
+            raise ValueError(
+                f"`pose_projection.config.out_features` must equal unet cross_attention_dim "
+                f"{unet.config.cross_attention_dim}, got {pose_projection.config.out_features}"
+            )
+        pose_inputs = getattr(unet.config, "projection_class_embeddings_input_dim", None) or POSE_DIM
+        if unet.config.class_embed_type != "projection":
+            pose_inputs = POSE_DIM
+        estimated = 0 if azimuth_estimator is None else azimuth_estimator.output_dim
+        if pose_inputs != POSE_DIM + estimated:
+            raise ValueError(
+                f"`azimuth_estimator` must be given exactly when the UNet's pose embedding takes more than "
+                f"the {POSE_DIM} pose inputs, with as many outputs as the extra inputs: the UNet takes "
+                f"{pose_inputs}, the azimuth_estimator gives {estimated}"
+            )
+        self.register_modules(
+            vae=vae,
+            image_encoder=image_encoder,
+            unet=unet,
+            scheduler=scheduler,
+            pose_projection=pose_projection,
+            feature_extractor=feature_extractor,
+            azimuth_estimator=azimuth_estimator,
+        )
+
+    # ----------------------------------------------------------------------------------------- sizes
+    @property
+    def vae_scale_factor(self) -> int:
+        """Downsampling factor from pixels to latents."""
+        return downsampling_factor(self.vae.config.block_out_channels)
+
+    @property
+    def size_multiple(self) -> int:
+        """Image height and width must be multiples of this (VAE factor times UNet downsamplings)."""
+        return self.vae_scale_factor * downsampling_factor(self.unet.config.block_out_channels)
+
+    @property
+    def default_image_size(self) -> int:
+        """Image size the model was built for (``unet.config.sample_size * vae_scale_factor``)."""
+        sample_size = self.unet.config.sample_size
+        sample_size = sample_size[0] if isinstance(sample_size, list | tuple) else sample_size
+        return int(sample_size) * self.vae_scale_factor
+
+    # ------------------------------------------------------------------------------------ loading
+    @classmethod
+    def from_pretrained(
+        cls, pretrained_model_name_or_path: str | os.PathLike, **kwargs: Any
+    ) -> SARZero123Pipeline:
+        """diffusers' ``from_pretrained``, after resolving the name of a pipeline bundled with the package.
+
+        Args:
+            pretrained_model_name_or_path: A registered name such as ``"sar-zero123/sim-prior"``
+                (:data:`sar_zero123.pretrained.SIM_PRIOR`), a ``save_pretrained`` folder, or anything
+                else diffusers loads (passed on unchanged; an existing path wins over a name).
+            **kwargs: diffusers' loading options (``torch_dtype``, ...).
+
+        Returns:
+            The pipeline.
+
+        Raises:
+            FileNotFoundError: For a registered name whose weights are missing from this install, or a
+                folder without ``model_index.json`` or missing a component's folder, config or weights;
+                the message names the component, the file expected and the folder.
+            ValueError: For a folder whose JSON is invalid (naming the file), or a component whose files
+                do not load (a config that does not fit its weights, a truncated weight file), naming it.
+        """
+        if isinstance(pretrained_model_name_or_path, str | os.PathLike) and is_bundled_name(
+            pretrained_model_name_or_path
+        ):
+            pretrained_model_name_or_path = resolve_pretrained(pretrained_model_name_or_path)
+        folder = pretrained_model_name_or_path
+        if not (isinstance(folder, str | os.PathLike) and os.path.isdir(folder)):
+            return super().from_pretrained(folder, **kwargs)
+        # 1. a local folder: each component's files are checked, naming the component, before diffusers
+        # reads them (diffusers names a fallback `.bin` file or the pipeline folder instead)
+        components = check_pipeline_folder(folder, given=kwargs)
+        try:
+            return super().from_pretrained(folder, **kwargs)
+        except (OSError, ValueError, RuntimeError, TypeError, KeyError):
+            # 2. the files are there but something does not load: say which component
+            find_failing_component(folder, components)
+            raise
+
+    @classmethod
+    def from_zero123(
+        cls,
+        path: str | Path,
+        use_ema: bool = True,
+        image_encoder_path: str | Path | None = None,
+        torch_dtype: torch.dtype | None = None,
+        **conversion: Any,
+    ) -> SARZero123Pipeline:
+        """Load an Objaverse zero-1-to-3 checkpoint (diffusers folder, threestudio folder, or LDM file).
+
+        See :func:`sar_zero123.model.zero123_checkpoints.load_zero123_components` for the accepted layouts.
+
+        Args:
+            path: A diffusers folder (``cc_projection`` or ``clip_camera_projection``) or an LDM
+                ``.ckpt`` / ``.safetensors`` state dict.
+            use_ema: For LDM files holding ``model_ema.*``, load the EMA UNet weights.
+            image_encoder_path: Folder of a ``CLIPVisionModelWithProjection`` (and optionally its
+                ``CLIPImageProcessor``) for LDM files; ignored for folders that ship one.
+            torch_dtype: Optional dtype for all modules.
+            **conversion: LDM files only: ``unet_config``, ``vae_config``, ``image_encoder_config``
+                overrides and ``weights_only`` (see ``load_zero123_components``).
+
+        Returns:
+            The pipeline in eval mode, with a DDIM scheduler for LDM files.
+        """
+        components = load_zero123_components(
+            path, use_ema=use_ema, image_encoder_path=image_encoder_path, **conversion
+        )
+        pipe = cls(**components)
+        if torch_dtype is not None:
+            pipe.to(dtype=torch_dtype)
+        return pipe
+
+    # ----------------------------------------------------------------------------- input checking
+    def preprocess_image(self, image: ImageInput) -> torch.Tensor:
+        """Validate and convert pipeline input images to a float32 batch in the normalised dB domain.
+
+        Accepted: a PIL image (modes ``L``, ``RGB``, ``I;16``, ``F``) or a list of them, a numpy array
+        ``(H, W)`` / ``(H, W, C)`` or a list of them (float in [0, 1]; ``uint8`` is divided by 255), a
+        tensor ``(B, 1 | 3, H, W)`` in [0, 1].
+
+        Args:
+            image: The input chip(s).
+
+        Returns:
+            The batch on the CPU.
+
+        Shape:
+            - Output: ``(B, 1 | 3, H, W)``
+
+        Raises:
+            ValueError: (naming ``image``) for an empty batch, a wrong rank or channel count, mixed sizes,
+                non-finite or out-of-range values, or a size the VAE and UNet cannot take.
+        """
+        if isinstance(image, torch.Tensor):
+            if image.ndim != 4:
+                raise ValueError(f"`image` tensors must be (B, 1 | 3, H, W), got shape {tuple(image.shape)}")
+            batch = image.detach().to("cpu", torch.float32)
+        else:
+            items = list(image) if isinstance(image, list | tuple) else [image]
+            if not items:
+                raise ValueError("`image` is an empty list")
+            arrays = [_to_hwc_array(item) for item in items]
+            if len({a.shape for a in arrays}) != 1:
+                shapes = sorted({a.shape for a in arrays})
+                raise ValueError(f"`image` items must share one shape, got {shapes}")
+            batch = torch.from_numpy(np.stack(arrays)).permute(0, 3, 1, 2)  # (B, C, H, W)
+        # Standard strides whatever the source layout, so equal inputs give bit-equal outputs.
+        batch = batch.clone(memory_format=torch.contiguous_format)
+        if batch.shape[0] == 0:
+            raise ValueError("`image` is an empty batch")
+        if batch.shape[1] not in (1, 3):
+            raise ValueError(f"`image` must have 1 or 3 channels, got {batch.shape[1]}")
+        if not torch.isfinite(batch).all():
+            raise ValueError("`image` contains NaN or inf values")
+        low, high = float(batch.min()), float(batch.max())
+        if low < 0.0 or high > 1.0:
+            raise ValueError(
+                f"`image` must lie in [0, 1] (normalised dB), got values in [{low:.4g}, {high:.4g}]"
+            )
+        height, width = batch.shape[-2:]
+        multiple = self.size_multiple
+        if height % multiple or width % multiple:
+            raise ValueError(
+                f"`image` height and width must be positive multiples of {multiple} (VAE factor "
+                f"{self.vae_scale_factor} x UNet downsampling), got {height}x{width}"
+            )
+        return batch
+
+    def _check_inputs(
+        self,
+        num_inference_steps: int,
+        guidance_scale: float,
+        num_images_per_prompt: int,
+        output_type: str,
+        callback_on_step_end_tensor_inputs: Sequence[str],
+    ) -> None:
+        if not isinstance(num_inference_steps, numbers.Integral) or num_inference_steps < 1:
+            raise ValueError(f"`num_inference_steps` must be an integer >= 1, got {num_inference_steps!r}")
+        # more steps than the schedule has timesteps repeat timesteps (or hang a loop of millions of steps)
+        max_steps = int(getattr(self.scheduler.config, "num_train_timesteps", 1000))
+        if num_inference_steps > max_steps:
+            raise ValueError(
+                f"`num_inference_steps` must be <= {max_steps} (the scheduler's num_train_timesteps), "
+                f"got {num_inference_steps}"
+            )
+        if isinstance(guidance_scale, bool) or not isinstance(guidance_scale, numbers.Real):
+            kind = type(guidance_scale).__name__
+            raise TypeError(f"`guidance_scale` must be a real number, got {kind} {guidance_scale!r}")
+        if not np.isfinite(guidance_scale):
+            raise ValueError(f"`guidance_scale` must be finite, got {guidance_scale}")
+        if guidance_scale > MAX_GUIDANCE_SCALE:  # the guided noise estimate overflows to NaN images
+            raise ValueError(
+                f"`guidance_scale` must be <= {MAX_GUIDANCE_SCALE} (zero-1-to-3 uses 3), got {guidance_scale}"
+            )
+        if not isinstance(num_images_per_prompt, numbers.Integral) or num_images_per_prompt < 1:
+            raise ValueError(
+                f"`num_images_per_prompt` must be an integer >= 1, got {num_images_per_prompt!r}"
+            )
+        if output_type not in OUTPUT_TYPES:
+            raise ValueError(f"`output_type` must be one of {OUTPUT_TYPES}, got {output_type!r}")
+        unknown = [k for k in callback_on_step_end_tensor_inputs if k not in self._callback_tensor_inputs]
+        if unknown:
+            raise ValueError(
+                f"`callback_on_step_end_tensor_inputs` must be among {self._callback_tensor_inputs}, "
+                f"got {unknown}"
+            )
+
+    def _check_finite_output(self, samples: torch.Tensor, what: str, guidance_scale: float) -> None:
+        """Raise instead of returning samples with NaN or inf, saying which component is at fault."""
+        bad = ~torch.isfinite(samples.flatten(1)).all(dim=1)
+        if not bad.any():
+            return
+        broken = [
+            name
+            for name in ("unet", "vae", "image_encoder", "pose_projection", "azimuth_estimator")
+            if getattr(self, name) is not None
+            and any(not torch.isfinite(p).all() for p in getattr(self, name).parameters())
+        ]
+        cause = (
+            f"these components hold NaN/inf weights (a diverged training run?): {broken}"
+            if broken
+            else f"the weights are finite; guidance_scale={guidance_scale} or the inputs may be too extreme"
+        )
+        raise FloatingPointError(
+            f"the pipeline produced non-finite {what} for {int(bad.sum())} of {len(bad)} samples; {cause}"
+        )
+
+    # ---------------------------------------------------------------------------------- sampling
+    def encode_conditioning(
+        self, images: torch.Tensor, pose: torch.Tensor
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Cross-attention token and condition latent of a batch of input chips.
+
+        Args:
+            images: Normalised dB images in [0, 1].
+            pose: Pose vectors from :func:`embed_pose`.
+
+        Returns:
+            ``(tokens, condition_latents)``.
+
+        Shape:
+            - images: ``(B, 1 | 3, H, W)``; pose: ``(B, 1, 4)``
+            - tokens: ``(B, 1, cross_attention_dim)``; condition_latents: ``(B, 4, H / f, W / f)``
+        """
+        if self.feature_extractor is not None:
+            mean, std = tuple(self.feature_extractor.image_mean), tuple(self.feature_extractor.image_std)
+            image_embeds = encode_image_embeddings(self.image_encoder, images, image_mean=mean, image_std=std)
+        else:
+            image_embeds = encode_image_embeddings(self.image_encoder, images)
+        tokens = self.pose_projection(image_embeds, pose.to(image_embeds.device))
+        condition_latents = encode_condition_latents(self.vae, images)
+        return tokens, condition_latents
+
+    def decode_latents(self, latents: torch.Tensor) -> torch.Tensor:
+        """Decode scaled latents to single-channel images in the normalised dB domain.
+
+        Args:
+            latents: Scaled latents (``z * vae.config.scaling_factor``).
+
+        Returns:
+            Images in [0, 1], float32; 3-channel VAE outputs are averaged to one channel.
+
+        Shape:
+            - latents: ``(N, 4, h, w)``
+            - Output: ``(N, 1, h * f, w * f)``
+        """
+        decoded = self.vae.decode(latents.to(self.vae.dtype) / self.vae.config.scaling_factor).sample
+        images = signed_to_unit(decoded.float()).clamp(0.0, 1.0)
+        return match_channels(images, 1)
+
+    def _scheduler_step_kwargs(
+        self, generator: torch.Generator | list[torch.Generator] | None
+    ) -> dict[str, Any]:
+        # Stochastic schedulers (DDPM, Euler ancestral, SDE DPM-Solver) take the generator in `step`.
+        accepts_generator = "generator" in inspect.signature(self.scheduler.step).parameters
+        return {"generator": generator} if accepts_generator and generator is not None else {}
+
+    @torch.no_grad()
+    def __call__(
+        self,
+        image: ImageInput,
+        d_az: float | Sequence[float] | torch.Tensor,
+        d_el: float | Sequence[float] | torch.Tensor = 0.0,
+        input_depression_deg: float | Sequence[float] | torch.Tensor | None = None,
+        num_inference_steps: int = 50,
+        guidance_scale: float = 3.0,
+        num_images_per_prompt: int = 1,
+        generator: torch.Generator | list[torch.Generator] | None = None,
+        latents: torch.Tensor | None = None,
+        output_type: Literal["pil", "np", "pt", "latent"] = "pil",
+        return_dict: bool = True,
+        callback_on_step_end: Callable[[DiffusionPipeline, int, torch.Tensor, dict[str, torch.Tensor]], dict]
+        | PipelineCallback
+        | MultiPipelineCallbacks
+        | None = None,
+        callback_on_step_end_tensor_inputs: Sequence[str] = ("latents",),
+    ) -> SARZero123PipelineOutput | tuple:
+        """Generate views of each input chip at ``(d_az, d_el)`` relative to it.
+
+        Args:
+            image: Input chip(s) in the normalised dB domain (see :meth:`preprocess_image`).
+            d_az: Azimuth delta in degrees (target - input); a scalar or one value per input image.
+                Any real value (370 == 10).
+            d_el: Depression delta in degrees (target - input); a scalar or one value per input image.
+            input_depression_deg: The input chip's absolute depression in degrees (a scalar or one value
+                per input image), from its metadata; required by a pipeline whose pose carries it
+                (``pose_projection.config.input_depression``), ignored otherwise. Requests outside the
+                ranges the pipeline was trained on (``trained_d_el_deg``, ``trained_depression_deg`` of
+                its pose projection) are refused.
+            num_inference_steps: Number of denoising steps.
+            guidance_scale: Classifier-free guidance weight; guidance is off when ``<= 1``.
+            num_images_per_prompt: Samples per input image.
+            generator: One generator, or one per output sample (``B * num_images_per_prompt``).
+            latents: Optional initial noise ``(B * num_images_per_prompt, 4, h, w)``, unscaled by
+                ``init_noise_sigma`` (the scheduler's scaling is applied here).
+            output_type: ``"pil"``, ``"np"``, ``"pt"`` or ``"latent"``.
+            return_dict: Return a :class:`SARZero123PipelineOutput` instead of a tuple.
+            callback_on_step_end: Called as ``f(pipe, step, timestep, callback_kwargs)`` after each step;
+                may return a dict replacing entries of ``callback_kwargs`` (``"latents"``).
+            callback_on_step_end_tensor_inputs: Tensors passed in ``callback_kwargs``.
+
+        Returns:
+            :class:`SARZero123PipelineOutput`, or ``(images,)`` when ``return_dict`` is False.
+
+        Raises:
+            ValueError: For invalid images, angles, sizes, counts or generators (the message names the
+                argument).
+        """
+        if isinstance(callback_on_step_end, PipelineCallback | MultiPipelineCallbacks):
+            callback_on_step_end_tensor_inputs = callback_on_step_end.tensor_inputs
+
+        # 1. check inputs
+        self._check_inputs(
+            num_inference_steps,
+            guidance_scale,
+            num_images_per_prompt,
+            output_type,
+            callback_on_step_end_tensor_inputs,
+        )
+        images = self.preprocess_image(image)
+        batch_size = images.shape[0]
+        pose = _broadcast_pose(d_az, d_el, batch_size)  # (B, 1, 4)
+        pose = self._pose_with_depression(pose, d_el, input_depression_deg)
+        num_samples = batch_size * num_images_per_prompt
+        if isinstance(generator, list) and len(generator) != num_samples:
+            raise ValueError(
+                f"`generator` is a list of {len(generator)} generators; expected one per output sample, "
+                f"batch {batch_size} x num_images_per_prompt {num_images_per_prompt} = {num_samples}"
+            )
+        device = self._execution_device
+        do_classifier_free_guidance = guidance_scale > 1.0
+
+        # 2. encode conditioning (once per input image, then repeated per sample)
+        tokens, condition_latents = self.encode_conditioning(images.to(device), pose.to(device))
+        # Read once: `ModelMixin.dtype` walks every parameter of the UNet on each access.
+        dtype = self.unet.dtype
+        tokens = tokens.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
+        condition_latents = condition_latents.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
+        # None unless the UNet embeds the pose; with an estimator, the target's estimated azimuth follows it
+        pose = pose.to(device)
+        target_features = None
+        if self.azimuth_estimator is not None:  # once per input image, like the encodings above
+            estimate = self.azimuth_estimator(condition_latents[::num_images_per_prompt])
+            target_features = target_view_features(estimate, pose)
+            target_features = target_features.repeat_interleave(num_images_per_prompt, dim=0)
+        sample_pose = pose.repeat_interleave(num_images_per_prompt, dim=0)
+        class_labels = pose_class_labels(self.unet, sample_pose, target_features)
+        if class_labels is not None:
+            class_labels = class_labels.to(dtype)
+        if do_classifier_free_guidance:
+            # zero-1-to-3's sampling null: zeros after the projection and for the condition latent; the
+            # pose itself is never dropped
+            tokens = torch.cat([torch.zeros_like(tokens), tokens])
+            condition_latents = torch.cat([torch.zeros_like(condition_latents), condition_latents])
+            if class_labels is not None:
+                class_labels = torch.cat([class_labels, class_labels])
+
+        # 3. timesteps
+        self.scheduler.set_timesteps(int(num_inference_steps), device=device)
+        timesteps = self.scheduler.timesteps
+
+        # 4. initial noise
+        shape = (num_samples, self.vae.config.latent_channels, *condition_latents.shape[-2:])
+        if latents is None:
+            latents = randn_tensor(shape, generator=generator, device=device, dtype=dtype)
+        else:
+            if tuple(latents.shape) != shape:
+                raise ValueError(f"`latents` must have shape {shape}, got {tuple(latents.shape)}")
+            if not torch.isfinite(latents).all():
+                raise ValueError("`latents` contains NaN or inf values")
+            latents = latents.to(device=device, dtype=dtype)
+        latents = latents * self.scheduler.init_noise_sigma
+        step_kwargs = self._scheduler_step_kwargs(generator)
+
+        # 5. denoising loop: one UNet call per step with [unconditional; conditional] stacked
+        self._num_timesteps = len(timesteps)
+        with self.progress_bar(total=len(timesteps)) as progress_bar:
+            for step_index, timestep in enumerate(timesteps):
+                model_input = torch.cat([latents] * 2) if do_classifier_free_guidance else latents
+                model_input = self.scheduler.scale_model_input(model_input, timestep)
+                model_input = torch.cat([model_input, condition_latents], dim=1)  # (N | 2N, 8, h, w)
+                noise_pred = self.unet(
+                    model_input, timestep, encoder_hidden_states=tokens, class_labels=class_labels
+                ).sample
+                if do_classifier_free_guidance:
+                    noise_uncond, noise_cond = noise_pred.chunk(2)
+                    noise_pred = noise_uncond + guidance_scale * (noise_cond - noise_uncond)
+                latents = self.scheduler.step(noise_pred, timestep, latents, **step_kwargs).prev_sample
+                latents = latents.to(dtype)
+
+                if callback_on_step_end is not None:
+                    step_tensors = {"latents": latents}
+                    callback_kwargs = {k: step_tensors[k] for k in callback_on_step_end_tensor_inputs}
+                    callback_outputs = callback_on_step_end(self, step_index, timestep, callback_kwargs)
+                    latents = callback_outputs.pop("latents", latents)
+                progress_bar.update()
+
+        # 6. decode to single-channel normalised dB; never return NaN or inf as an image
+        self._check_finite_output(latents, "latents", guidance_scale)
+        if output_type == "latent":
+            output: Any = latents
+        else:
+            decoded = self.decode_latents(latents)  # (N, 1, H, W)
+            self._check_finite_output(decoded, "decoded images", guidance_scale)
+            if output_type == "pt":
+                output = decoded
+            else:
+                array = decoded.permute(0, 2, 3, 1).cpu().numpy()  # (N, H, W, 1)
+                output = array if output_type == "np" else _to_pil(array)
+        self.maybe_free_model_hooks()
+        if not return_dict:
+            return (output,)
+        return SARZero123PipelineOutput(images=output)
+
+
+    def _pose_with_depression(
+        self,
+        pose: torch.Tensor,
+        d_el: float | Sequence[float] | torch.Tensor,
+        input_depression_deg: float | Sequence[float] | torch.Tensor | None,
+    ) -> torch.Tensor:
+        """``pose`` with the input's depression in its fourth entry when the pipeline takes it, after
+        checking the request against the ranges the pipeline was trained on.
+
+        Raises:
+            ValueError: naming the argument, for a missing, non-finite or mis-sized input depression, or a
+                ``d_el``, input depression or target depression outside the trained range.
+        """
+        config = self.pose_projection.config
+        batch_size = pose.shape[0]
+        d_el_values = torch.as_tensor(d_el, dtype=torch.float64).reshape(-1).expand(batch_size)
+        depression = None
+        if input_depression_deg is not None:
+            _check_real_angles(input_depression_deg, "input_depression_deg")
+            depression = as_angle_tensor(input_depression_deg, "input_depression_deg").double().reshape(-1)
+            if depression.numel() not in (1, batch_size):
+                raise ValueError(
+                    f"`input_depression_deg` has {depression.numel()} values; expected 1 or one per input "
+                    f"image ({batch_size})"
+                )
+            if float(depression.min()) <= 0.0 or float(depression.max()) >= 90.0:
+                raise ValueError(
+                    f"`input_depression_deg` must lie in (0, 90) degrees, got {depression.tolist()}"
+                )
+            depression = depression.expand(batch_size)
+        elif getattr(config, "input_depression", False):
+            raise ValueError(
+                "`input_depression_deg`: this pipeline's pose carries the input chip's absolute depression "
+                "(pose_projection.config.input_depression); give it in degrees, from the chip's metadata"
+            )
+        trained_d_el = getattr(config, "trained_d_el_deg", None)
+        if trained_d_el is not None:
+            low, high = float(trained_d_el[0]), float(trained_d_el[1])
+            if float(d_el_values.min()) < low - 1e-6 or float(d_el_values.max()) > high + 1e-6:
+                raise ValueError(
+                    f"`d_el` must lie in the trained range [{low:g}, {high:g}] degrees "
+                    f"(pose_projection.config.trained_d_el_deg), got {sorted(set(d_el_values.tolist()))}"
+                )
+        trained_depression = getattr(config, "trained_depression_deg", None)
+        if trained_depression is not None and depression is not None:
+            low, high = float(trained_depression[0]), float(trained_depression[1])
+            for name, values in (("input_depression_deg", depression), ("input_depression_deg + d_el",
+                                                                        depression + d_el_values)):
+                if float(values.min()) < low - 1e-6 or float(values.max()) > high + 1e-6:
+                    raise ValueError(
+                        f"`{name}` must lie in the trained depression range [{low:g}, {high:g}] degrees "
+                        f"(pose_projection.config.trained_depression_deg), got {sorted(set(values.tolist()))}"
+                    )
+        if not getattr(config, "input_depression", False):
+            return pose
+        pose = pose.clone()
+        pose[:, 0, 3] = torch.deg2rad(depression).to(pose.dtype)
+        return pose
+
+
+# ------------------------------------------------------------------------------------- helpers
+def _to_hwc_array(item: PIL.Image.Image | np.ndarray) -> np.ndarray:
+    """One PIL image or numpy array as float32 ``(H, W, C)`` without range checks (done by the caller)."""
+    if isinstance(item, PIL.Image.Image):
+        scale = {"L": 255.0, "RGB": 255.0, "I;16": 65535.0, "F": 1.0}.get(item.mode)
+        if scale is None:
+            raise ValueError(f"`image` PIL mode must be one of L, RGB, I;16, F, got {item.mode!r}")
+        array = np.asarray(item, dtype=np.float32) / scale
+    elif isinstance(item, np.ndarray):
+        if item.dtype == np.uint8:
+            array = item.astype(np.float32) / 255.0
+        elif np.issubdtype(item.dtype, np.floating):
+            array = item.astype(np.float32)
+        else:
+            raise ValueError(f"`image` arrays must be float (in [0, 1]) or uint8, got dtype {item.dtype}")
+    else:
+        raise ValueError(
+            f"`image` must be a PIL image, numpy array or torch tensor, got {type(item).__name__}"
+        )
+    if array.ndim == 2:
+        array = array[:, :, None]
+    if array.ndim != 3:
+        raise ValueError(f"`image` arrays must be (H, W) or (H, W, C), got shape {array.shape}")
+    if array.size == 0:
+        raise ValueError(f"`image` is empty, got shape {array.shape}")
+    return array
+
+
+def _broadcast_pose(
+    d_az: float | Sequence[float] | torch.Tensor,
+    d_el: float | Sequence[float] | torch.Tensor,
+    batch_size: int,
+) -> torch.Tensor:
+    """Pose vectors for a batch, checking that each angle is a scalar or has one value per image, real,
+    and physically possible."""
+    for name, value in (("d_az", d_az), ("d_el", d_el)):
+        _check_real_angles(value, name)
+        count = as_angle_tensor(value, name).numel()  # checked under the pipeline's own argument names
+        if count not in (1, batch_size):
+            raise ValueError(f"`{name}` has {count} values; expected 1 or one per input image ({batch_size})")
+    pose = embed_pose(d_az, d_el)  # (1 | B, 1, 4); cannot fail on angles that passed the checks above
+    for name, value, limit, why in (
+        ("d_el", d_el, MAX_ABS_D_EL_DEG, "a difference of two depression angles in [0, 90]"),
+        ("d_az", d_az, MAX_ABS_D_AZ_DEG, "larger values lose the angle's precision: a unit error?"),
+    ):
+        largest = float(torch.as_tensor(value, dtype=torch.float64).abs().max())
+        if largest > limit:
+            raise ValueError(f"`{name}` must lie in [-{limit:g}, {limit:g}] degrees ({why}), got {largest:g}")
+    return pose.expand(batch_size, -1, -1) if pose.shape[0] == 1 else pose
+
+
+def _check_real_angles(value: Any, name: str) -> None:
+    """Angles are real numbers (a scalar, a sequence of them, or a real tensor/array).
+
+    Raises:
+        TypeError: naming the argument, for strings, ``None``, booleans, complex numbers and the like.
+    """
+    if isinstance(value, torch.Tensor):
+        if value.dtype == torch.bool or value.dtype.is_complex:
+            raise TypeError(f"`{name}` must hold real angles in degrees, got dtype {value.dtype}")
+        return
+    if isinstance(value, np.ndarray):
+        if not (np.issubdtype(value.dtype, np.integer) or np.issubdtype(value.dtype, np.floating)):
+            raise TypeError(f"`{name}` must hold real angles in degrees, got dtype {value.dtype}")
+        return
+    items = list(value) if isinstance(value, list | tuple) else [value]
+    for item in items:
+        if isinstance(item, bool) or not isinstance(item, numbers.Real):
+            raise TypeError(
+                f"`{name}` must be a real number of degrees or a list of them, got {type(item).__name__} "
+                f"{item!r}"
+            )
+
+
+def _to_pil(array: np.ndarray) -> list[PIL.Image.Image]:
+    """(N, H, W, 1) float in [0, 1] -> list of 8-bit single-channel PIL images."""
+    return [PIL.Image.fromarray((a[..., 0] * 255.0).round().astype(np.uint8), mode="L") for a in array]
+
+
+# diffusers resolves the `_class_name` of model_index.json inside its own namespace
+# (`_get_pipeline_class` in diffusers 0.42), so a saved SAR pipeline would only load through
+# `SARZero123Pipeline.from_pretrained`. Registering the class there lets the generic
+# `DiffusionPipeline.from_pretrained(folder)` load it too, once `sar_zero123` is imported, without
+# `trust_remote_code` or code copied into the folder.
+if getattr(diffusers, SARZero123Pipeline.__name__, None) is None:
+    setattr(diffusers, SARZero123Pipeline.__name__, SARZero123Pipeline)
+
+#: Module paths that pipelines saved before the package was grouped into wings (``model/``, ``training/``,
+#: ``evaluation/``) name in their ``model_index.json`` -> the module that defines those components now.
+MOVED_COMPONENT_MODULES = {
+    "sar_zero123.conditioning": PoseProjection.__module__,
+    "sar_zero123.orientation": AzimuthEstimator.__module__,
+}
+# diffusers imports each component's module by the name model_index.json gives, so such a folder loads
+# only if the old names answer with the moved modules.
+for _old, _new in MOVED_COMPONENT_MODULES.items():
+    sys.modules.setdefault(_old, sys.modules[_new])

@@ -1,0 +1,233 @@
+"""The parts of a zero-1-to-3 fine-tuning run around its training step (:mod:`sar_zero123.training.step`).
+
+The fine-tune stage (:mod:`sar_zero123.stages.finetune`) assembles a run from these, each with explicit
+arguments:
+
+- :func:`training_image_size`: the chip side a run trains at (the model's own unless given).
+- :func:`finetuning_modules`: which modules train and in which dtype: the UNet, the pose projection and
+  (when asked) the CLIP tower in float32, the frozen VAE and tower in the mixed-precision dtype.
+- :func:`ema_models`: EMA copies of the UNet and of a trained tower, averaged over the same steps.
+- :func:`finetuning_optimizer`: AdamW over zero-1-to-3's parameter groups (the pose projection at 10x
+  the learning rate).
+- :func:`step_logs`: the scalars of one optimisation step, gathered from every process.
+- :func:`export_finetuned`: the complete pipeline with the EMA weights, a DDIM scheduler and the
+  ``DecibelScaling`` it expects, saved in float32.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+
+import torch
+from accelerate import Accelerator
+from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
+from diffusers.training_utils import EMAModel
+
+from sar_zero123.config import write_json_atomic
+from sar_zero123.data import SCALING_FILE, DecibelScaling
+from sar_zero123.model.conditioning import PoseProjection
+from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.training.losses import LossOutput
+from sar_zero123.training.run_state import check_finite_state
+from sar_zero123.training.step import ImageEmbedder, timestep_bucket_losses
+
+__all__ = [
+    "ema_models",
+    "export_finetuned",
+    "finetuning_modules",
+    "finetuning_optimizer",
+    "mixed_precision_dtype",
+    "step_logs",
+    "training_image_size",
+]
+
+
+def mixed_precision_dtype(mixed_precision: str) -> torch.dtype:
+    """The dtype of frozen modules under accelerate's ``mixed_precision`` (``"no"``: float32)."""
+    return {"fp16": torch.float16, "bf16": torch.bfloat16}.get(mixed_precision, torch.float32)
+
+
+def training_image_size(pipe: SARZero123Pipeline, image_size: int | None = None) -> int:
+    """The chip side a run trains at: ``image_size``, or the size the model was built for.
+
+    Raises:
+        ValueError: If it is not a multiple of ``pipe.size_multiple`` (VAE factor x UNet downsampling).
+    """
+    image_size = image_size if image_size is not None else pipe.default_image_size
+    if image_size % pipe.size_multiple:
+        raise ValueError(f"image_size must be a multiple of {pipe.size_multiple}, got {image_size}")
+    return image_size
+
+
+def finetuning_modules(
+    pipe: SARZero123Pipeline,
+    *,
+    device: torch.device | str,
+    weight_dtype: torch.dtype,
+    train_image_encoder: bool = False,
+    gradient_checkpointing: bool = False,
+) -> tuple[AutoencoderKL, ImageEmbedder, UNet2DConditionModel, PoseProjection]:
+    """``pipe``'s modules set up for fine-tuning (in place): frozen ones cast, trained ones in float32.
+
+    zero-1-to-3 keeps the CLIP tower frozen; ``train_image_encoder`` trains it too (float32 master
+    weights), for models built from scratch whose tower is random.
+
+    Args:
+        pipe: The pipeline the run starts from (:func:`sar_zero123.model.build.load_sar_zero123`).
+        device: Where the frozen modules (and a trained tower) go.
+        weight_dtype: dtype of the frozen modules (:func:`mixed_precision_dtype`).
+        train_image_encoder: Train the CLIP tower with the UNet.
+        gradient_checkpointing: Checkpoint the UNet's activations.
+
+    Returns:
+        ``(vae, image_embedder, unet, pose_projection)``, ``pipe``'s own modules: the VAE frozen in
+        ``weight_dtype`` on ``device``; the CLIP tower in an :class:`ImageEmbedder`, trained in float32 or
+        frozen in ``weight_dtype``; the UNet, the pose projection (and an azimuth estimator,
+        ``pipe.azimuth_estimator``) trained, float32, in train mode (left where they are for
+        ``accelerate.prepare``).
+    """
+    vae = pipe.vae.to(device, dtype=weight_dtype).eval().requires_grad_(False)
+    if train_image_encoder:
+        image_embedder = ImageEmbedder(pipe.image_encoder.to(device, dtype=torch.float32))
+        image_embedder.train().requires_grad_(True)
+    else:
+        image_embedder = ImageEmbedder(
+            pipe.image_encoder.to(device, dtype=weight_dtype).eval().requires_grad_(False)
+        )
+    unet, pose_projection = pipe.unet.train(), pipe.pose_projection.train()
+    unet.requires_grad_(True)
+    pose_projection.requires_grad_(True)
+    if pipe.azimuth_estimator is not None:  # trained like the pose projection (sar_zero123.model.orientation)
+        pipe.azimuth_estimator.train().requires_grad_(True)
+    if gradient_checkpointing:
+        unet.enable_gradient_checkpointing()
+    return vae, image_embedder, unet, pose_projection
+
+
+def ema_models(
+    accelerator: Accelerator,
+    unet: UNet2DConditionModel,
+    image_embedder: ImageEmbedder | None = None,
+    *,
+    decay: float,
+) -> list[tuple[EMAModel, torch.nn.Module]]:
+    """EMA copies of the UNet and, when it is trained (``image_embedder`` given), of the CLIP tower, on
+    the accelerator's device and registered for its checkpoints (in this order: the checkpoint file names).
+
+    The exported UNet is the EMA one, so a trained tower that conditions it is averaged over the same steps.
+
+    Args:
+        accelerator: The run's accelerator.
+        unet: The trained UNet (not the prepared wrapper: its parameters are the same tensors).
+        image_embedder: The trained tower, or ``None`` when it is frozen.
+        decay: EMA decay.
+
+    Returns:
+        ``(ema, module)`` pairs, UNet first: step each with ``ema.step(module.parameters())``; the form
+        :func:`~sar_zero123.training.validation.ema_weights` and :func:`export_finetuned` take.
+    """
+    ema_unet = EMAModel(
+        unet.parameters(), decay=decay, model_cls=UNet2DConditionModel, model_config=unet.config
+    )
+    pairs = [(ema_unet, unet)]
+    if image_embedder is not None:
+        pairs.append((EMAModel(image_embedder.parameters(), decay=decay), image_embedder))
+    for ema, _ in pairs:
+        ema.to(accelerator.device)
+        accelerator.register_for_checkpointing(ema)
+    return pairs
+
+
+def finetuning_optimizer(
+    unet: torch.nn.Module,
+    pose_projection: torch.nn.Module,
+    image_embedder: torch.nn.Module | None = None,
+    *,
+    learning_rate: float,
+    pose_lr_multiplier: float = 10.0,
+    weight_decay: float = 1e-2,
+    azimuth_estimator: torch.nn.Module | None = None,
+) -> torch.optim.AdamW:
+    """AdamW over zero-1-to-3's parameter groups: the UNet, a trained tower (``image_embedder``) and an
+    azimuth estimator at ``learning_rate``, the pose projection at ``pose_lr_multiplier`` times it
+    (zero-1-to-3: 10x)."""
+    param_groups = [
+        {"params": list(unet.parameters()), "lr": learning_rate},
+        {"params": list(pose_projection.parameters()), "lr": learning_rate * pose_lr_multiplier},
+    ]
+    if image_embedder is not None:
+        param_groups.append({"params": list(image_embedder.parameters()), "lr": learning_rate})
+    if azimuth_estimator is not None:
+        param_groups.append({"params": list(azimuth_estimator.parameters()), "lr": learning_rate})
+    return torch.optim.AdamW(param_groups, weight_decay=weight_decay)
+
+
+def step_logs(
+    accelerator: Accelerator, losses: LossOutput, learning_rate: float, num_train_timesteps: int
+) -> dict[str, float]:
+    """The scalars of one optimisation step, means over every process's samples (call it on all).
+
+    Args:
+        accelerator: The run's accelerator (gathers the per-sample losses).
+        losses: The last micro-batch's :class:`~sar_zero123.training.losses.LossOutput`, with its timesteps.
+        learning_rate: The UNet's current learning rate.
+        num_train_timesteps: ``T`` of the noise schedule, for the per-quarter L_simple.
+
+    Returns:
+        ``train/loss``, ``train/loss_simple``, ``train/loss_pfm``, ``lr`` and ``train/loss_simple_<quarter>``
+        (:func:`~sar_zero123.training.step.timestep_bucket_losses`).
+    """
+    denoising = accelerator.gather(losses.denoising.detach())
+    logs = {
+        "train/loss": accelerator.gather(losses.loss.detach()).mean().item(),
+        "train/loss_simple": denoising.mean().item(),
+        "train/loss_pfm": accelerator.gather(losses.pfm.detach()).mean().item(),
+        "lr": learning_rate,
+    }
+    if losses.azimuth is not None:
+        logs["train/loss_azimuth"] = accelerator.gather(losses.azimuth.detach()).mean().item()
+    buckets = timestep_bucket_losses(denoising, accelerator.gather(losses.timesteps), num_train_timesteps)
+    logs.update({f"train/loss_simple_{name}": value for name, value in buckets.items()})
+    return logs
+
+
+def export_finetuned(
+    directory: str | os.PathLike,
+    pipe: SARZero123Pipeline,
+    scaling: DecibelScaling,
+    ema_pairs: Sequence[tuple[EMAModel, torch.nn.Module]] = (),
+) -> Path:
+    """``save_pretrained`` of the fine-tuned pipeline (float32) plus the ``DecibelScaling`` it expects.
+
+    ``pipe`` holds the trained modules (:func:`finetuning_modules` trains ``pipe``'s own objects); the EMA
+    weights of ``ema_pairs`` are copied into them first, and the sampler is a ``DDIMScheduler`` on
+    ``pipe``'s schedule. Call it on the main process after the last step.
+
+    Args:
+        directory: The pipeline folder to write.
+        pipe: The pipeline the run started from, with its trained modules.
+        scaling: The dB scaling of the training data (written as ``decibel_scaling.json``).
+        ema_pairs: ``(ema, module)`` pairs from :func:`ema_models` (empty without EMA).
+
+    Returns:
+        ``directory``.
+
+    Raises:
+        FloatingPointError: If a weight is not finite (nothing is written).
+    """
+    directory = Path(directory)
+    for ema, module in ema_pairs:
+        ema.copy_to(module.parameters())
+    export = SARZero123Pipeline(
+        **{**pipe.components, "scheduler": DDIMScheduler.from_config(pipe.scheduler.config)}
+    )
+    for module in (export.unet, export.image_encoder, export.pose_projection, export.azimuth_estimator):
+        if module is not None:
+            module.eval()
+    check_finite_state(export.components, what=str(directory))
+    export.to(torch.float32)
+    export.save_pretrained(directory)
+    write_json_atomic(scaling.to_dict(), directory / SCALING_FILE)
+    return directory

@@ -1,0 +1,635 @@
+"""Training losses: the x0 estimate (Eq. 19), L_simple, Projected Feature Matching (Eq. 20) and the total
+loss (Eq. 21) of "Noise-Tolerant Novel-View SAR Synthesis via Denoising Diffusion".
+
+All losses are per sample, shape ``(B,)``; the training script takes the mean.
+
+Numerical safety of the x0 estimate. For epsilon prediction, Eq. (19) divides by ``sqrt(abar_t)``; the
+amplification ``sqrt(1 / abar_t - 1) = 1 / sqrt(SNR(t))`` applied to the noise-prediction error is 14.6
+at t = T - 1 for the Stable Diffusion ``scaled_linear`` schedule, 157 for ``linear``, 2e4 for
+``squaredcos_cap_v2`` and infinite for zero-terminal-SNR schedules. Two mechanisms keep PFM
+meaningful there:
+
+1. :func:`estimate_x0` computes in float32 and floors ``abar_t`` at ``2**-24`` (the value diffusers'
+   ``EulerDiscreteScheduler`` substitutes for a zero terminal ``abar``), so the estimate is always finite.
+2. :func:`total_loss` computes PFM only for samples whose ``SNR(t) >= pfm_min_snr``
+   (:func:`pfm_timestep_mask`); the others are trained by L_simple alone. The default, 0.004, bounds the
+   amplification ``1 / sqrt(SNR)`` by 15.8: every timestep of the paper's ``scaled_linear`` schedule
+   (SNR(T-1) = 0.00468, amplification 14.6) keeps PFM, so the default is the paper's setting there, while
+   schedules that reach far lower SNR (linear, cosine, zero terminal SNR) drop PFM exactly where their
+   x0 estimate would be amplified beyond anything the paper trained with. The measurements behind it
+   (gradient norms and x0 errors against t on real MSTAR latents) are in ``docs/results/pfm.md``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Literal
+
+import torch
+import torch.nn.functional as F
+from safetensors.torch import save_file
+from torch import nn
+
+from sar_zero123.config import check_minimum
+from sar_zero123.domain import center_crop, signed_to_unit, unit_to_signed
+from sar_zero123.encoder import SAREncoder
+from sar_zero123.model.conditioning import downsampling_factor
+
+#: Floor on ``abar_t`` in the epsilon-prediction x0 estimate (diffusers' EulerDiscreteScheduler uses the same
+#: value for zero-terminal-SNR schedules); keeps ``1 / sqrt(abar_t)`` at most 4096.
+MIN_ALPHA_CUMPROD = 2.0**-24
+
+#: Default SNR threshold below which PFM is skipped: amplification 1/sqrt(SNR) <= 15.8, which keeps every
+#: timestep of the paper's scaled_linear schedule (see module docstring and docs/results/pfm.md).
+DEFAULT_PFM_MIN_SNR = 0.004
+
+#: What a diffusers scheduler's ``prediction_type`` may say the network predicts: the noise (zero-1-to-3,
+#: the paper), the velocity, or the clean latent itself.
+PREDICTION_TYPES = ("epsilon", "v_prediction", "sample")
+#: The prediction types a model of this package is trained with.
+TRAINED_PREDICTION_TYPES = ("epsilon", "v_prediction")
+
+
+def check_prediction_type(
+    prediction_type: str, allowed: tuple[str, ...] = PREDICTION_TYPES, name: str = "prediction_type"
+) -> str:
+    """The one check of a prediction type, wherever it is set or read (configs, Eq. (19), L_simple, min-SNR).
+
+    Args:
+        prediction_type: The value to check.
+        allowed: The values accepted here (:data:`PREDICTION_TYPES` or :data:`TRAINED_PREDICTION_TYPES`).
+        name: How the error names the setting (a config field, ``scheduler.config.prediction_type``).
+
+    Returns:
+        ``prediction_type``, unchanged.
+
+    Raises:
+        ValueError: If ``prediction_type`` is not one of ``allowed``, naming ``name`` and the choices.
+    """
+    if prediction_type not in allowed:
+        choices = " or ".join(f"{value!r}" for value in allowed)
+        if len(allowed) > 2:
+            choices = ", ".join(f"{value!r}" for value in allowed[:-1]) + f" or {allowed[-1]!r}"
+        raise ValueError(f"{name} must be {choices}, got {prediction_type!r}")
+    return prediction_type
+
+
+def append_dims(values: torch.Tensor, target_ndim: int) -> torch.Tensor:
+    """Append trailing singleton dimensions so per-sample values broadcast against a batch tensor.
+
+    Args:
+        values: Per-sample values.
+        target_ndim: Number of dimensions of the tensor to broadcast against.
+
+    Returns:
+        ``values`` viewed with ``target_ndim - values.ndim`` trailing singleton dimensions.
+
+    Shape:
+        ``(B,) -> (B, 1, ..., 1)``.
+
+    Raises:
+        ValueError: If ``values`` already has more than ``target_ndim`` dimensions.
+    """
+    missing = target_ndim - values.ndim
+    if missing < 0:
+        raise ValueError(f"values has {values.ndim} dims, more than target_ndim={target_ndim}")
+    return values[(...,) + (None,) * missing]
+
+
+def _alphas_cumprod_at(scheduler, timesteps: torch.Tensor) -> torch.Tensor:
+    """``abar_t`` of a diffusers scheduler at integer timesteps, float32 on the timesteps' device."""
+    if timesteps.dtype.is_floating_point:
+        raise ValueError(f"timesteps must be integer, got dtype {timesteps.dtype}")
+    alphas_cumprod = scheduler.alphas_cumprod.to(device=timesteps.device, dtype=torch.float32)
+    num_train_timesteps = alphas_cumprod.shape[0]
+    if timesteps.numel() and (int(timesteps.min()) < 0 or int(timesteps.max()) >= num_train_timesteps):
+        raise ValueError(f"timesteps must lie in [0, {num_train_timesteps - 1}], got "
+                         f"[{int(timesteps.min())}, {int(timesteps.max())}]")
+    return alphas_cumprod[timesteps]
+
+
+def signal_to_noise_ratio(scheduler, timesteps: torch.Tensor) -> torch.Tensor:
+    """SNR(t) = abar_t / (1 - abar_t) of a diffusers scheduler.
+
+    Args:
+        scheduler: A diffusers noise scheduler with ``alphas_cumprod``.
+        timesteps: Integer timesteps.
+
+    Returns:
+        Float32 SNR per timestep (``inf`` at abar_t = 1, ``0`` at a zero terminal SNR).
+
+    Shape:
+        ``(B,) -> (B,)``.
+
+    Raises:
+        ValueError: If the timesteps are not integers in ``[0, num_train_timesteps)``.
+    """
+    alphas_cumprod = _alphas_cumprod_at(scheduler, timesteps)
+    return alphas_cumprod / (1.0 - alphas_cumprod)
+
+
+def estimate_x0(
+    x_t: torch.Tensor,
+    model_output: torch.Tensor,
+    timesteps: torch.Tensor,
+    scheduler,
+) -> torch.Tensor:
+    """One-step estimate of the clean latent from the network output, Eq. (19).
+
+    ``epsilon``: ``x0 = x_t / sqrt(abar_t) - sqrt(1 / abar_t - 1) * eps`` with ``abar_t`` floored at
+    :data:`MIN_ALPHA_CUMPROD`; ``v_prediction``: ``x0 = sqrt(abar_t) * x_t - sqrt(1 - abar_t) * v``
+    (finite for every t); ``sample``: the output is the estimate. Computed in float32 and returned in
+    the dtype of ``model_output`` so gradients reach the network in its own precision.
+
+    Args:
+        x_t: Noisy latents the network saw.
+        model_output: Network prediction, interpreted by ``scheduler.config.prediction_type``.
+        timesteps: Integer training timesteps, one per sample.
+        scheduler: A diffusers noise scheduler (``alphas_cumprod``, ``config.prediction_type``).
+
+    Returns:
+        The x0 estimate.
+
+    Shape:
+        ``x_t``, ``model_output``: ``(B, C, h, w)``; ``timesteps``: ``(B,)``; returns ``(B, C, h, w)``.
+
+    Raises:
+        ValueError: On mismatched shapes, bad timesteps or an unknown prediction type.
+    """
+    if x_t.shape != model_output.shape:
+        raise ValueError(f"x_t {tuple(x_t.shape)} and model_output {tuple(model_output.shape)} differ")
+    if timesteps.shape != (x_t.shape[0],):
+        raise ValueError(f"timesteps must have shape ({x_t.shape[0]},), got {tuple(timesteps.shape)}")
+    prediction_type = check_prediction_type(
+        scheduler.config.prediction_type, name="scheduler.config.prediction_type"
+    )
+    if prediction_type == "sample":
+        return model_output
+    alphas_cumprod = append_dims(_alphas_cumprod_at(scheduler, timesteps), x_t.ndim)
+    x_t32, output32 = x_t.float(), model_output.float()
+    if prediction_type == "epsilon":
+        alphas_cumprod = alphas_cumprod.clamp(min=MIN_ALPHA_CUMPROD)
+        x0 = (x_t32 - (1.0 - alphas_cumprod).sqrt() * output32) / alphas_cumprod.sqrt()
+    else:  # v_prediction
+        x0 = alphas_cumprod.sqrt() * x_t32 - (1.0 - alphas_cumprod).sqrt() * output32
+    return x0.to(model_output.dtype)
+
+
+def denoising_target(latents: torch.Tensor, noise: torch.Tensor, timesteps: torch.Tensor,
+                     scheduler) -> torch.Tensor:
+    """Regression target of L_simple for the scheduler's prediction type.
+
+    Args:
+        latents: Clean (scaled) latents x0.
+        noise: The Gaussian noise added to make x_t.
+        timesteps: Integer timesteps.
+        scheduler: A diffusers noise scheduler.
+
+    Returns:
+        ``noise`` (epsilon), ``scheduler.get_velocity(latents, noise, timesteps)`` (v) or ``latents``.
+
+    Shape:
+        ``(B, C, h, w)``.
+
+    Raises:
+        ValueError: On an unknown prediction type.
+    """
+    prediction_type = check_prediction_type(
+        scheduler.config.prediction_type, name="scheduler.config.prediction_type"
+    )
+    if prediction_type == "epsilon":
+        return noise
+    if prediction_type == "v_prediction":
+        return scheduler.get_velocity(latents, noise, timesteps)
+    return latents  # sample
+
+
+def denoising_loss(model_output: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
+    """L_simple: per-sample mean squared error between network output and target, in float32.
+
+    Args:
+        model_output: Network prediction.
+        target: Regression target (see :func:`denoising_target`).
+
+    Returns:
+        Per-sample loss.
+
+    Shape:
+        ``(B, ...) -> (B,)``.
+
+    Raises:
+        ValueError: If the shapes differ.
+    """
+    if model_output.shape != target.shape:
+        raise ValueError(f"model_output {tuple(model_output.shape)} and target {tuple(target.shape)} differ")
+    return F.mse_loss(model_output.float(), target.float(), reduction="none").flatten(1).mean(dim=1)
+
+
+#: Width of the authors' random projection of the SimCLR features in PFM (a 10-way fc layer).
+PAPER_PFM_PROJECTION_DIM = 10
+
+#: File name of the projection weights saved in a run folder.
+PFM_PROJECTION_FILE = "pfm_projection.safetensors"
+
+
+def random_feature_projection(in_features: int, out_features: int = PAPER_PFM_PROJECTION_DIM, *,
+                              seed: int = 0) -> torch.Tensor:
+    """Weights of the authors' PFM projection: a freshly initialised ``nn.Linear(in, out)`` weight.
+
+    The reference implementation applies the encoder's ``fc`` layer, absent from its checkpoint and so left
+    at PyTorch's default initialisation, ``U(-1/sqrt(in), 1/sqrt(in))``, before the distance. The bias
+    cancels in a difference of features and is omitted. Drawn from a CPU generator seeded with ``seed``:
+    same seed, same bytes.
+
+    Args:
+        in_features: Encoder feature size (512 for ResNet-18).
+        out_features: Projected size (10 in the paper's runs).
+        seed: Seed of the draw.
+
+    Returns:
+        Float32 weight.
+
+    Shape:
+        ``(out_features, in_features)``.
+
+    Raises:
+        ValueError: If a size is not positive.
+    """
+    if in_features < 1 or out_features < 1:
+        raise ValueError(f"sizes must be positive, got in_features={in_features}, "
+                         f"out_features={out_features}")
+    generator = torch.Generator().manual_seed(seed)
+    bound = 1.0 / math.sqrt(in_features)
+    uniform = torch.rand(out_features, in_features, generator=generator, dtype=torch.float64)
+    return ((2.0 * uniform - 1.0) * bound).float()
+
+
+class ProjectedFeatureEncoder(nn.Module):
+    """A frozen SAR encoder followed by a frozen random projection: the paper-comparable PFM features.
+
+    ``forward`` returns ``W f(x) / sqrt(k)`` for the ``(k, D)`` weight ``W``, so that the squared L2
+    distance of :func:`pfm_loss` equals the authors' ``mse_loss`` of the projected features, i.e. the
+    *mean* over the ``k`` outputs of the squared difference. With ``W`` from
+    :func:`random_feature_projection` this is their PFM, whose lambda values the paper reports. Its
+    expectation over the draw of ``W`` is ``||f(x0) - f(x0_hat)||^2 / (3 D)`` (each entry has variance
+    ``1 / (3 D)``), i.e. 1536x smaller than the 512-d form for ``D = 512``; one draw scatters around that
+    (measured ratios on real MSTAR latents: ``docs/results/pfm.md``).
+
+    The weight is a buffer: it moves with ``.to()``, is saved in ``state_dict`` and never trains.
+    ``config`` is the wrapped encoder's (``image_size`` is read by :func:`pfm_loss`).
+
+    Args:
+        encoder: The frozen SAR encoder (``forward((B, 1, S, S)) -> (B, D)``).
+        weight: ``(k, D)`` projection.
+    """
+
+    def __init__(self, encoder: nn.Module, weight: torch.Tensor) -> None:
+        super().__init__()
+        if weight.ndim != 2:
+            raise ValueError(f"weight must be (k, D), got {tuple(weight.shape)}")
+        self.encoder = encoder
+        self.config = encoder.config
+        self.register_buffer("weight", weight.detach().clone())
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        features = self.encoder(images)  # (B, D)
+        return F.linear(features, self.weight.to(features.dtype)) / math.sqrt(self.weight.shape[0])
+
+    def save_projection(self, directory) -> None:
+        """Write the weight to ``directory / PFM_PROJECTION_FILE`` (safetensors)."""
+        save_file({"weight": self.weight.detach().float().cpu().contiguous()},
+                  str(Path(directory) / PFM_PROJECTION_FILE))
+
+
+def project_encoder_features(encoder: nn.Module, projection_dim: int | None, *, seed: int = 0) -> nn.Module:
+    """``encoder`` unchanged when ``projection_dim`` is None, else wrapped in a seeded
+    :class:`ProjectedFeatureEncoder` (the paper-comparable PFM with ``projection_dim = 10``)."""
+    if projection_dim is None:
+        return encoder
+    weight = random_feature_projection(encoder.feature_dim, projection_dim, seed=seed)
+    return ProjectedFeatureEncoder(encoder, weight).eval().requires_grad_(False)
+
+
+def load_pfm_encoder(
+    path: str | Path, *, image_size: int, projection_dim: int | None = None, seed: int = 0
+) -> nn.Module:
+    """The frozen SAR encoder ``f`` of Eq. (20), checked against the training resolution; with
+    ``projection_dim`` followed by the seeded random projection (:func:`project_encoder_features`).
+
+    Args:
+        path: A ``SAREncoder.save_pretrained`` folder (``train/pretrain_simclr.py``'s ``encoder/``).
+        image_size: The chip side the diffusion model trains on.
+        projection_dim: ``None`` (full features) or ``k`` (the paper-comparable projection).
+        seed: Seed of the projection.
+
+    Raises:
+        FileNotFoundError: If the folder or its files are missing.
+        ValueError: If the encoder was trained at another resolution.
+    """
+    encoder = SAREncoder.from_pretrained(path)
+    if encoder.config.image_size != image_size:
+        raise ValueError(
+            f"encoder: {str(path)!r} was trained on {encoder.config.image_size} px chips but training "
+            f"runs at image_size={image_size}; train the encoder at {image_size} px or set --image_size "
+            f"{encoder.config.image_size}"
+        )
+    encoder = encoder.eval().requires_grad_(False)
+    return project_encoder_features(encoder, projection_dim, seed=seed)
+
+
+def _require_frozen(module: nn.Module, name: str) -> None:
+    if module.training:
+        raise ValueError(f"{name} must be in eval mode (call {name}.eval())")
+    if any(p.requires_grad for p in module.parameters()):
+        raise ValueError(f"{name} must be frozen ({name}.requires_grad_(False)): PFM gradients may only "
+                         "reach the diffusion parameters")
+
+
+def _to_encoder_input(images: torch.Tensor, size: int) -> torch.Tensor:
+    """(B, C, H, W) VAE-domain images in [-1, 1] -> (B, 1, size, size) normalised dB in [0, 1]."""
+    images = images.mean(dim=1, keepdim=True) if images.shape[1] > 1 else images
+    images = signed_to_unit(images)
+    if images.shape[-1] != size or images.shape[-2] != size:
+        # antialiased resize has no bf16/fp16 CPU kernel: resize in float32
+        images = F.interpolate(images.float(), size=(size, size), mode="bilinear", align_corners=False,
+                               antialias=True)
+    return images
+
+
+@torch.no_grad()
+def encode_target_features(target_images: torch.Tensor, encoder: nn.Module, *,
+                           crop_size: int | None = None) -> torch.Tensor:
+    """Frozen-encoder features h = f(x0) of the real target views (no gradient).
+
+    Args:
+        target_images: Target views, normalised dB in [0, 1].
+        encoder: Frozen SAR encoder (``forward((B, 1, S, S)) -> (B, D)``, ``config.image_size``).
+        crop_size: Optional centre crop in pixels (before the resize to ``encoder.config.image_size``).
+
+    Returns:
+        Float32 features.
+
+    Shape:
+        ``(B, 1, H, W) -> (B, D)``.
+    """
+    images = center_crop(target_images, crop_size) if crop_size is not None else target_images
+    images = unit_to_signed(images)  # to the VAE's [-1, 1] so both branches share one mapping
+    encoder_dtype = next(encoder.parameters()).dtype
+    return encoder(_to_encoder_input(images, encoder.config.image_size).to(encoder_dtype)).float()
+
+
+def check_pfm_crop_size(
+    crop_size: int, *, image_size: int, vae_scale_factor: int, name: str = "crop_size"
+) -> None:
+    """Refuse a PFM centre crop whose latent window is not centred on whole latent pixels.
+
+    Args:
+        crop_size: Side of the centre crop in pixels.
+        image_size: Side of the images in pixels.
+        vae_scale_factor: The VAE's downsampling factor (pixels per latent pixel).
+        name: What the crop size is called in the message (a flag, an argument).
+
+    Raises:
+        ValueError: Unless ``0 < crop_size <= image_size`` and ``image_size - crop_size`` is a multiple of
+            ``2 * vae_scale_factor``.
+    """
+    if crop_size <= 0 or crop_size > image_size or (image_size - crop_size) % (2 * vae_scale_factor):
+        raise ValueError(f"{name} must be in (0, {image_size}] with (image_size - {name}) a multiple of "
+                         f"{2 * vae_scale_factor} so the latent window is centred, got {crop_size}")
+
+
+def pfm_loss(
+    x0_hat_latents: torch.Tensor,
+    target_images: torch.Tensor,
+    vae,
+    encoder: nn.Module,
+    *,
+    crop_size: int | None = None,
+    target_features: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """Projected Feature Matching, Eq. (20): ``||f(x0) - f(D(x0_hat))||^2`` per sample.
+
+    ``x0_hat`` is divided by ``vae.config.scaling_factor`` and decoded by the frozen VAE; the decoded image
+    (VAE domain [-1, 1]) is averaged to one channel, mapped to normalised dB ``(x + 1) / 2`` and resized to
+    the encoder's input size; ``f`` is the encoder's pooled feature. With ``crop_size`` only the latent
+    window covering the centre ``crop_size`` pixels is decoded (the paper scores the 64x64 centre of a
+    128 px chip), which cuts the decoder cost by ``(image_size / crop_size)**2``; the crop of the
+    target and of the estimate are both resized to the encoder's input size, so the encoder cost stays.
+    Decoding a latent window is not the centre of the full decode: the VAE's mid-block self-attention
+    sees only the window, which changes interior pixels as much as border ones (numbers in
+    ``docs/results/pfm.md``).
+
+    Gradients flow through the frozen decoder and encoder into ``x0_hat_latents`` only.
+
+    Args:
+        x0_hat_latents: Scaled x0 estimate from :func:`estimate_x0`.
+        target_images: Real target views, normalised dB in [0, 1] (the same chips the latents encode).
+        vae: Frozen ``AutoencoderKL`` (eval mode, no gradients).
+        encoder: Frozen SAR encoder with ``config.image_size`` (eval mode, no gradients).
+        crop_size: Optional side in pixels of the centre crop; ``image_size - crop_size`` must be a
+            multiple of twice the VAE downsampling factor.
+        target_features: Optional precomputed :func:`encode_target_features` output.
+
+    Returns:
+        Float32 per-sample squared L2 feature distance.
+
+    Shape:
+        ``x0_hat_latents``: ``(B, 4, h, w)``; ``target_images``: ``(B, 1, H, W)`` with
+        ``H = h * factor``; returns ``(B,)``.
+
+    Raises:
+        ValueError: On frozen-module violations, mismatched batch or sizes, or a bad ``crop_size``.
+    """
+    # 1. check inputs
+    _require_frozen(vae, "vae")
+    _require_frozen(encoder, "encoder")
+    if x0_hat_latents.shape[0] != target_images.shape[0]:
+        raise ValueError(f"batch sizes differ: x0_hat_latents {x0_hat_latents.shape[0]}, "
+                         f"target_images {target_images.shape[0]}")
+    factor = downsampling_factor(vae.config.block_out_channels)
+    image_size = target_images.shape[-1]
+    if x0_hat_latents.shape[-1] * factor != image_size:
+        raise ValueError(f"target_images side {image_size} != latent side {x0_hat_latents.shape[-1]} x "
+                         f"VAE factor {factor}")
+    latents = x0_hat_latents
+    if crop_size is not None:
+        check_pfm_crop_size(crop_size, image_size=image_size, vae_scale_factor=factor)
+        latents = center_crop(latents, crop_size // factor)
+    # 2. features of the real target (no gradient)
+    if target_features is None:
+        target_features = encode_target_features(target_images, encoder, crop_size=crop_size)
+    # 3. decode the estimate and encode it; gradients flow to x0_hat_latents
+    vae_dtype = next(vae.parameters()).dtype
+    decoded = vae.decode(latents.to(vae_dtype) / vae.config.scaling_factor).sample  # (B, C, crop, crop)
+    encoder_dtype = next(encoder.parameters()).dtype
+    features = encoder(_to_encoder_input(decoded, encoder.config.image_size).to(encoder_dtype)).float()
+    return (features - target_features).pow(2).sum(dim=1)
+
+
+def pfm_timestep_mask(timesteps: torch.Tensor, scheduler,
+                      min_snr: float = DEFAULT_PFM_MIN_SNR) -> torch.Tensor:
+    """Samples whose timestep is informative enough for PFM: ``SNR(t) >= min_snr``.
+
+    Args:
+        timesteps: Integer timesteps.
+        scheduler: A diffusers noise scheduler.
+        min_snr: SNR threshold; ``0`` keeps every timestep (the paper's setting, finite thanks to the
+            ``abar_t`` floor of :func:`estimate_x0`).
+
+    Returns:
+        Boolean mask.
+
+    Shape:
+        ``(B,) -> (B,)``.
+
+    Raises:
+        ValueError: If ``min_snr`` is negative.
+    """
+    if min_snr < 0:
+        raise ValueError(f"min_snr must be >= 0, got {min_snr}")
+    return signal_to_noise_ratio(scheduler, timesteps) >= min_snr
+
+
+@dataclass(frozen=True)
+class LossSettings:
+    """Everything that shapes the loss of a training step, as one object: built once from a stage's config
+    (``FinetuneConfig.loss_settings``) and passed whole to :func:`~sar_zero123.training.step.compute_losses`.
+
+    Covers lambda of Eq. (21) and where PFM applies, zero-1-to-3's CFG dropout, the timestep density, the
+    Min-SNR weighting of L_simple and the weight of the azimuth estimator's loss. Each value is validated
+    here, once; the field names are the config's (and the command line's), so errors name the user's flag.
+
+    Raises:
+        ValueError: Naming the first field out of range.
+    """
+
+    pfm_weight: float = 0.0  # lambda of Eq. (21); 0 = plain zero-1-to-3 fine-tuning (no PFM computed)
+    pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
+    pfm_fraction: float = 1.0  # fraction in (0, 1] of the eligible samples on which PFM is computed
+    pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
+    drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
+    drop_both_prob: float = 0.05  # CFG dropout: projected token and condition latent (the sampling null)
+    drop_latent_prob: float = 0.05  # CFG dropout: condition latent only
+    timestep_sampling: Literal["uniform", "logit_normal"] = "uniform"  # training t density (uniform: paper)
+    timestep_logit_mean: float = 0.0  # logit_normal: mean of logit(t / T); > 0 favours high noise
+    timestep_logit_std: float = 1.0  # logit_normal: standard deviation of logit(t / T)
+    snr_gamma: float | None = None  # Min-SNR-gamma weighting of L_simple; None: the paper's L_simple
+    azimuth_loss_weight: float = 1.0  # weight of an azimuth estimator's loss (models that have one)
+
+    def __post_init__(self) -> None:
+        check_minimum(self, "pfm_weight", "pfm_min_snr", "azimuth_loss_weight", minimum=0)
+        if not 0 < self.pfm_fraction <= 1:
+            raise ValueError(f"pfm_fraction must be in (0, 1], got {self.pfm_fraction}")
+        check_minimum(self, "pfm_crop_size", minimum=1, optional=True)
+        probs = (self.drop_image_prob, self.drop_both_prob, self.drop_latent_prob)
+        if not (min(probs) >= 0 and sum(probs) <= 1):
+            raise ValueError(
+                f"drop_image_prob, drop_both_prob, drop_latent_prob must be >= 0 with sum <= 1, got {probs}"
+            )
+        if self.timestep_sampling not in ("uniform", "logit_normal"):
+            raise ValueError(
+                f"timestep_sampling must be 'uniform' or 'logit_normal', got {self.timestep_sampling!r}"
+            )
+        if self.timestep_sampling == "logit_normal":
+            check_minimum(self, "timestep_logit_std", minimum=0, strict=True)
+        check_minimum(self, "snr_gamma", minimum=0, strict=True, optional=True)
+
+
+@dataclass
+class LossOutput:
+    """Per-sample losses of one training step (all ``(B,)`` float32).
+
+    Attributes:
+        loss: ``denoising + pfm_weight * pfm`` (Eq. 21, :func:`total_loss`), plus the weighted azimuth loss
+            of a model with an azimuth estimator.
+        denoising: L_simple (Min-SNR weighted when the step asks for it).
+        pfm: L_PFM, zero where it was not computed (lambda = 0, SNR below the threshold, or outside the
+            sampled fraction); sampled entries are scaled by ``B_eligible / B_sampled`` so the batch mean
+            stays unbiased.
+        pfm_mask: Where PFM was computed.
+        timesteps: The sampled timesteps, when the caller records them (for per-timestep logging).
+        azimuth: The input-azimuth estimation loss
+            (:func:`~sar_zero123.model.orientation.azimuth_estimation_loss`) when the model has an azimuth
+            estimator, already included in ``loss`` with its weight.
+    """
+
+    loss: torch.Tensor
+    denoising: torch.Tensor
+    pfm: torch.Tensor
+    pfm_mask: torch.Tensor
+    timesteps: torch.Tensor | None = None
+    azimuth: torch.Tensor | None = None
+
+
+def total_loss(
+    model_output: torch.Tensor,
+    target: torch.Tensor,
+    x_t: torch.Tensor,
+    timesteps: torch.Tensor,
+    scheduler,
+    *,
+    pfm_weight: float,
+    target_images: torch.Tensor | None = None,
+    vae=None,
+    encoder: nn.Module | None = None,
+    pfm_min_snr: float = DEFAULT_PFM_MIN_SNR,
+    pfm_fraction: float = 1.0,
+    crop_size: int | None = None,
+    generator: torch.Generator | None = None,
+    denoising_weights: torch.Tensor | None = None,
+) -> LossOutput:
+    """L = L_simple + lambda * L_PFM, Eq. (21); ``pfm_weight = 0`` is plain zero-1-to-3 fine-tuning and
+    skips every PFM computation (no decode, no encoder pass). The only place Eq. (21) is assembled.
+
+    Args:
+        model_output: Network prediction.
+        target: L_simple target (:func:`denoising_target`).
+        x_t: Noisy latents the network saw.
+        timesteps: Integer timesteps.
+        scheduler: The training noise scheduler.
+        pfm_weight: lambda >= 0 (the paper's best is 4).
+        target_images: Real target views, normalised dB; required when ``pfm_weight > 0``.
+        vae: Frozen VAE; required when ``pfm_weight > 0``.
+        encoder: Frozen SAR encoder; required when ``pfm_weight > 0``.
+        pfm_min_snr: PFM only where ``SNR(t) >= pfm_min_snr`` (:func:`pfm_timestep_mask`).
+        pfm_fraction: Fraction in (0, 1] of the eligible samples on which PFM is computed (at least one).
+        crop_size: Optional centre crop in pixels for PFM (see :func:`pfm_loss`).
+        generator: Draws the PFM subset when ``pfm_fraction < 1``.
+        denoising_weights: Optional per-sample weights of L_simple (Min-SNR-gamma,
+            :func:`~sar_zero123.training.step.min_snr_weights`), applied before the sum.
+
+    Returns:
+        A :class:`LossOutput` of per-sample tensors (``denoising`` already weighted).
+
+    Shape:
+        ``model_output``, ``target``, ``x_t``: ``(B, C, h, w)``; ``timesteps``: ``(B,)``; outputs ``(B,)``.
+
+    Raises:
+        ValueError: If ``pfm_weight < 0``, ``pfm_fraction`` is outside (0, 1], or PFM inputs are missing.
+    """
+    if not pfm_weight >= 0:
+        raise ValueError(f"pfm_weight must be >= 0, got {pfm_weight}")
+    if not 0 < pfm_fraction <= 1:
+        raise ValueError(f"pfm_fraction must be in (0, 1], got {pfm_fraction}")
+    denoising = denoising_loss(model_output, target)
+    if denoising_weights is not None:
+        denoising = denoising * denoising_weights
+    pfm = torch.zeros_like(denoising)
+    mask = torch.zeros_like(denoising, dtype=torch.bool)
+    if pfm_weight > 0:
+        if target_images is None or vae is None or encoder is None:
+            raise ValueError("pfm_weight > 0 needs target_images, vae and encoder")
+        eligible = pfm_timestep_mask(timesteps, scheduler, pfm_min_snr).nonzero().flatten()
+        num_eligible = eligible.numel()
+        if num_eligible:
+            keep = max(1, math.ceil(pfm_fraction * num_eligible))
+            if keep < num_eligible:
+                order = torch.randperm(eligible.numel(), generator=generator, device="cpu")
+                eligible = eligible[order[:keep].to(eligible.device)]
+            x0_hat = estimate_x0(x_t[eligible], model_output[eligible], timesteps[eligible], scheduler)
+            values = pfm_loss(x0_hat, target_images[eligible], vae, encoder, crop_size=crop_size)
+            pfm = pfm.index_put((eligible,), values * (num_eligible / keep))
+            mask[eligible] = True
+    return LossOutput(loss=denoising + pfm_weight * pfm, denoising=denoising, pfm=pfm, pfm_mask=mask)

@@ -1,0 +1,353 @@
+"""One rule for run folders, shared by every stage: nothing is overwritten, nothing is misdescribed.
+
+A stage (simulate, SimCLR, VAE, fine-tune, evaluators, evaluate, ...) writes into one folder. The folder
+holds ``run.json``, the record of what made it: the stage, its resolved config, the identity of its data,
+its seed (a config field), the code version, and whether it finished. :func:`open_run_folder` applies the
+rule before any work:
+
+* an absent or empty folder starts a new run (``run.json`` written at once, ``finished: false``);
+* a folder whose record has another stage, another config or other data is refused, naming each
+  difference: reusing it would replace or misdescribe finished work;
+* a folder with the same record is continued only when asked (``resume=True``: a script's
+  ``--resume_from_checkpoint``, the quickstart's re-run); some fields may then change (``may_extend``, e.g.
+  ``max_train_steps`` of a constant-LR run), and the record keeps what changed;
+* starting over is explicit (``restart=True``): the old folder is moved aside to
+  ``<name>.replaced-<UTC time>``, never deleted;
+* a non-empty folder without a record is refused: it is not a run of this stage (or was written by a
+  version before the rule), and nothing in it should be mixed with a new run.
+
+:func:`finish_run` marks the run finished once its last output exists, with the seconds the stage took;
+a stage is done only then. Reports read those records (:func:`read_run_record`), never an assumption.
+Every write is atomic (``write_json_atomic``), so a kill leaves the previous record intact.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import logging
+import os
+import shutil
+import time
+from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Any, Literal
+
+from sar_zero123.config import config_to_dict, write_json_atomic
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "RUN_RECORD",
+    "RunFolder",
+    "StageTimer",
+    "code_version",
+    "data_identity",
+    "finish_run",
+    "open_run_folder",
+    "read_run_record",
+    "run_differences",
+]
+
+#: The record of a run folder.
+RUN_RECORD = "run.json"
+_FORMAT = 1
+
+
+@dataclass(frozen=True)
+class RunFolder:
+    """An opened run folder.
+
+    Attributes:
+        path: The folder.
+        status: ``"new"`` (empty before), ``"continued"`` (same record, resumed, not finished) or
+            ``"finished"`` (same record, resumed, already finished: a stage may skip its work).
+        record: The record as written in ``run.json``.
+    """
+
+    path: Path
+    status: Literal["new", "continued", "finished"]
+    record: dict[str, Any]
+
+    @property
+    def finished(self) -> bool:
+        return self.status == "finished"
+
+
+def code_version() -> str:
+    """The package version, and the git commit of its checkout where there is one (read, not run).
+
+    Recorded, never compared: a run continued by a newer version of the code says so in its record.
+    """
+    from sar_zero123 import __version__
+
+    version = __version__
+    git = Path(__file__).resolve().parents[2] / ".git"  # the checkout holding sar_zero123/
+    try:
+        head = (git / "HEAD").read_text().strip()
+        if head.startswith("ref: "):
+            ref = head[5:]
+            ref_file = git / ref
+            if ref_file.is_file():
+                head = ref_file.read_text().strip()
+            else:
+                packed = (git / "packed-refs").read_text().splitlines()
+                head = next((line.split()[0] for line in packed if line.endswith(" " + ref)), "")
+        if head:
+            version += f"+g{head[:12]}"
+    except OSError:
+        pass
+    return version
+
+
+def data_identity(data: str | os.PathLike | None) -> dict[str, Any]:
+    """What a run read, so that the same folder name with other contents is not taken for the same data.
+
+    A folder with ``index.csv``: the SHA-256 of the index (chip paths, classes and poses). Any other folder
+    (a raw MSTAR tree): the SHA-256 of its sorted relative file names and sizes. ``None``: the built-in
+    simulator, identified by the config's own settings.
+
+    Raises:
+        FileNotFoundError: If ``data`` is given and does not exist.
+    """
+    if data is None:
+        return {"source": "built-in simulator"}
+    root = Path(data)
+    if not root.exists():
+        raise FileNotFoundError(f"data: {str(root)!r} does not exist")
+    index = root / "index.csv" if root.is_dir() else root
+    digest = hashlib.sha256()
+    if index.is_file():
+        with open(index, "rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(block)
+        return {"path": str(root.resolve()), "index_sha256": digest.hexdigest()}
+    count = 0
+    for path in sorted(p for p in root.rglob("*") if p.is_file()):
+        digest.update(f"{path.relative_to(root).as_posix()}\0{path.stat().st_size}\n".encode())
+        count += 1
+    return {"path": str(root.resolve()), "files": count, "files_sha256": digest.hexdigest()}
+
+
+def read_run_record(folder: str | os.PathLike) -> dict[str, Any] | None:
+    """The ``run.json`` of a folder, or ``None`` when it has none.
+
+    Raises:
+        ValueError: If the record is not valid JSON (naming the file).
+    """
+    path = Path(folder) / RUN_RECORD
+    if not path.is_file():
+        return None
+    try:
+        return json.loads(path.read_text())
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path}: not a valid run record ({error})") from error
+
+
+def _as_dict(config: Any) -> dict[str, Any]:
+    if dataclasses.is_dataclass(config) and not isinstance(config, type):
+        return config_to_dict(config)
+    # a JSON round trip gives the same types a record read back has (tuples become lists)
+    return json.loads(json.dumps(dict(config)))
+
+
+def run_differences(
+    record: Mapping[str, Any], stage: str, config: Mapping[str, Any], data: Mapping[str, Any],
+    ignore: Iterable[str] = (),
+) -> list[str]:
+    """Every difference between a folder's record and a new run, as ``"field: folder X, this run Y"``."""
+    if record.get("stage") != stage:
+        return [f"stage: folder {record.get('stage')!r}, this run {stage!r}"]
+    ignored = set(ignore)
+    written = record.get("config", {})
+    differences = [
+        f"{name}: folder {written.get(name, '<absent>')!r}, this run {config.get(name, '<absent>')!r}"
+        for name in sorted(set(written) | set(config))
+        if name not in ignored and written.get(name, "<absent>") != config.get(name, "<absent>")
+    ]
+    if record.get("data") != dict(data):
+        differences.append(f"data: folder {record.get('data')!r}, this run {dict(data)!r}")
+    return differences
+
+
+def _move_aside(path: Path) -> Path:
+    stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
+    target = path.with_name(f"{path.name}.replaced-{stamp}")
+    suffix = 1
+    while target.exists():
+        target = path.with_name(f"{path.name}.replaced-{stamp}-{suffix}")
+        suffix += 1
+    shutil.move(str(path), str(target))
+    logger.warning("restart: moved the old run %s aside to %s", path, target)
+    return target
+
+
+def open_run_folder(
+    path: str | os.PathLike,
+    stage: str,
+    config: Any,
+    *,
+    data: str | os.PathLike | None | Mapping[str, Any] = None,
+    resume: bool = False,
+    restart: bool = False,
+    may_differ: Iterable[str] = (),
+    may_extend: Iterable[str] = (),
+    write: bool = True,
+    flag_hint: str = "output_dir",
+    resume_hint: str = "--resume_from_checkpoint latest",
+) -> RunFolder:
+    """Apply the run-folder rule to ``path`` before a stage does any work (see the module docstring).
+
+    Args:
+        path: The stage's output folder.
+        stage: The stage's name (``"finetune"``, ``"vae"``, ...): a folder of another stage is refused.
+        config: The stage's resolved config (a dataclass or a mapping).
+        data: The data folder the stage reads (``None``: the built-in simulator), or an identity already
+            computed by :func:`data_identity`.
+        resume: Continue a folder with the same record (and check nothing but ``may_extend`` changed).
+        restart: Move an existing non-empty folder aside first, then start a new run.
+        may_differ: Fields that never change what a folder holds (where logs go, how often to print).
+        may_extend: Fields that may change when continuing (``resume=True``), e.g. ``max_train_steps``.
+        write: Write the record (``False`` on non-main processes of a distributed launch: they check only).
+        flag_hint: The user's name for ``path``, used in messages.
+        resume_hint: How the user continues a run of this stage (``--resume``, ...), used in messages.
+
+    Returns:
+        The opened :class:`RunFolder`.
+
+    Raises:
+        ValueError: If ``resume`` and ``restart`` are both set; if the folder is not empty and has no
+            record; if its record differs (every difference named); if it has the same record and neither
+            ``resume`` nor ``restart`` is set (the run would be overwritten).
+    """
+    if resume and restart:
+        raise ValueError(
+            "resume and restart: choose one (continue this run, or move it aside and start anew)"
+        )
+    path = Path(path)
+    identity = dict(data) if isinstance(data, Mapping) else data_identity(data)
+    values = _as_dict(config)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{flag_hint}: {str(path)!r} is a file, not a folder")
+    occupied = path.is_dir() and any(path.iterdir())
+    if occupied and restart:
+        if write:
+            _move_aside(path)
+        occupied = False
+    now = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    if not occupied:
+        record = {
+            "format": _FORMAT,
+            "stage": stage,
+            "config": values,
+            "data": identity,
+            "code_version": code_version(),
+            "created": now,
+            "finished": False,
+        }
+        if write:
+            path.mkdir(parents=True, exist_ok=True)
+            write_json_atomic(record, path / RUN_RECORD)
+        return RunFolder(path, "new", record)
+    record = read_run_record(path)
+    if record is None:
+        raise ValueError(
+            f"{flag_hint}: {str(path)!r} is not empty and holds no {RUN_RECORD} (not a {stage} run of this "
+            "version): choose an empty folder, or pass --restart to move its contents aside"
+        )
+    extendable = set(may_extend) if resume else set()
+    differences = run_differences(record, stage, values, identity, ignore=set(may_differ) | extendable)
+    if differences:
+        raise ValueError(
+            f"{flag_hint}: {str(path)!r} holds a {record.get('stage')} run made with other settings; reusing "
+            "it would replace or misdescribe that work. Differences: " + "; ".join(differences)
+            + ". Choose another folder, or pass --restart to move this run aside."
+        )
+    finished = bool(record.get("finished"))
+    missing = [name for name in record.get("outputs", []) if not (path / name).exists()]
+    if finished and missing:
+        # a finished record whose outputs are gone (deleted by hand, a partial copy) is not finished
+        logger.warning("%s: recorded as finished but %s are missing; the run is unfinished", path, missing)
+        finished = False
+        record = {**record, "finished": False}
+        if write and resume:
+            write_json_atomic(record, path / RUN_RECORD)
+    if not resume:
+        state = "finished" if finished else "unfinished"
+        raise ValueError(
+            f"{flag_hint}: {str(path)!r} already holds {'an' if state == 'unfinished' else 'a'} {state} "
+            f"{stage} run with these settings; "
+            f"continue it explicitly ({resume_hint}) or pass --restart to move it aside"
+        )
+    changed = {
+        name: {"from": record["config"].get(name), "to": values.get(name)}
+        for name in sorted(extendable)
+        if record["config"].get(name) != values.get(name)
+    }
+    if changed:
+        # a longer run is a new run of the same folder: not finished until it finishes again
+        record = {**record, "config": values, "finished": False,
+                  "continued": [*record.get("continued", []), {"at": now, "changed": changed,
+                                                              "code_version": code_version()}]}  # fmt: skip
+        finished = False
+        if write:
+            write_json_atomic(record, path / RUN_RECORD)
+    return RunFolder(path, "finished" if finished else "continued", record)
+
+
+def finish_run(
+    folder: RunFolder | str | os.PathLike,
+    outputs: Iterable[str | os.PathLike] = (),
+    *,
+    seconds: float | None = None,
+    results: Mapping[str, Any] | None = None,
+    write: bool = True,
+) -> dict[str, Any]:
+    """Mark a run finished, after checking that its outputs exist.
+
+    Args:
+        folder: The opened folder (or its path).
+        outputs: Files or folders the stage must have written, relative to the folder or absolute.
+        seconds: Wall time of the stage; added to the time of earlier sessions of the same run.
+        results: Small JSON-able facts a report may quote (e.g. the final step).
+        write: ``False`` on non-main processes.
+
+    Returns:
+        The updated record.
+
+    Raises:
+        FileNotFoundError: If an output is missing (the run is then not marked finished).
+        ValueError: If the folder holds no record.
+    """
+    path = folder.path if isinstance(folder, RunFolder) else Path(folder)
+    record = read_run_record(path)
+    if record is None:
+        raise ValueError(f"{path}: no {RUN_RECORD}; open the folder with open_run_folder first")
+    missing = [str(p) for p in outputs if not (path / p).exists()]
+    if missing:
+        raise FileNotFoundError(f"{path}: the run is not finished, missing outputs: {missing}")
+    record = dict(record)
+    record["finished"] = True
+    record["finished_at"] = datetime.now(timezone.utc).isoformat(timespec="seconds")
+    record["outputs"] = [str(p) for p in outputs]
+    if seconds is not None:
+        record["seconds"] = float(record.get("seconds", 0.0)) + float(seconds)
+    if results is not None:
+        record["results"] = {**record.get("results", {}), **dict(results)}
+    if write:
+        write_json_atomic(record, path / RUN_RECORD)
+    return record
+
+
+class StageTimer:
+    """Wall time of a stage session (``time.perf_counter``), for :func:`finish_run`'s ``seconds``."""
+
+    def __init__(self) -> None:
+        self.start = time.perf_counter()
+
+    @property
+    def seconds(self) -> float:
+        return time.perf_counter() - self.start

@@ -1,0 +1,199 @@
+"""Starting a training run under ``accelerate``, the same way in every script.
+
+Each script in ``train/`` that trains under accelerate calls :func:`start_run` first: it builds the
+``Accelerator`` (mixed precision, tracker, gradient accumulation, seedable data order, logging folder),
+refuses a multi-process launch that accelerate did not turn into a distributed run (N processes that
+would overwrite each other's checkpoints), sets up logging and seeds every RNG. :func:`tracker_hparams`
+turns a config into the hyperparameters a tracker accepts, :func:`check_global_batch` refuses a split
+smaller than one global batch, and :func:`check_replicas_agree` compares the trained weights of
+data-parallel replicas at the end of a run. Saving, resuming and ending a run are in
+:mod:`sar_zero123.training.run_state`; per-step generators in
+:func:`sar_zero123.training.step.micro_batch_generator`.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import logging
+import os
+from pathlib import Path
+from typing import Any
+
+import torch
+from accelerate import Accelerator
+from accelerate.utils import (
+    DataLoaderConfiguration,
+    GradientAccumulationPlugin,
+    ProjectConfiguration,
+    set_seed,
+)
+
+from sar_zero123.config import config_to_dict
+
+__all__ = [
+    "check_distributed_launch",
+    "check_global_batch",
+    "check_replicas_agree",
+    "start_run",
+    "tracker_hparams",
+    "weights_digest",
+]
+
+logger = logging.getLogger(__name__)
+
+
+def start_run(
+    output_dir: str | os.PathLike | None,
+    *,
+    seed: int,
+    mixed_precision: str = "no",
+    report_to: str | None = None,
+    gradient_accumulation_steps: int = 1,
+    seedable_sampler: bool = True,
+) -> Accelerator:
+    """The run's ``Accelerator``, after checking the launch; logging set up and every RNG seeded.
+
+    Args:
+        output_dir: The run folder; trackers log under ``output_dir/logs``. ``None``: no tracker folder.
+        seed: Passed to ``accelerate.utils.set_seed`` (Python, NumPy and torch on every device).
+        mixed_precision: ``"no"``, ``"fp16"`` or ``"bf16"``.
+        report_to: An accelerate tracker (``"tensorboard"``, ...); ``None`` or ``"none"``: no tracker.
+        gradient_accumulation_steps: Micro-batches per optimisation step (``accelerator.accumulate``);
+            the data loader's length does not end an accumulation cycle, so a resumed run that skips
+            batches keeps the cycles of an uninterrupted one.
+        seedable_sampler: Make a prepared data loader's shuffled order a function of the seed and the
+            epoch (``set_epoch``), which a resumed run continues exactly. ``False`` keeps the loader's own
+            generator (scripts that resume at epoch boundaries only).
+
+    Returns:
+        The accelerator.
+
+    Raises:
+        RuntimeError: From :func:`check_distributed_launch`.
+    """
+    log_with = None if report_to in (None, "none") else report_to
+    project_config = None
+    if output_dir is not None:
+        project_config = ProjectConfiguration(
+            project_dir=str(output_dir), logging_dir=str(Path(output_dir) / "logs")
+        )
+    accelerator = Accelerator(
+        mixed_precision=mixed_precision,
+        gradient_accumulation_plugin=GradientAccumulationPlugin(
+            num_steps=gradient_accumulation_steps, sync_with_dataloader=False
+        ),
+        dataloader_config=DataLoaderConfiguration(use_seedable_sampler=seedable_sampler),
+        log_with=log_with,
+        project_config=project_config,
+    )
+    logging.basicConfig(
+        level=logging.INFO if accelerator.is_main_process else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    check_distributed_launch(accelerator)
+    set_seed(seed)
+    return accelerator
+
+
+def check_distributed_launch(accelerator: Accelerator) -> None:
+    """Refuse a multi-process launch that accelerate did not turn into a distributed run.
+
+    ``accelerate launch --multi_gpu --num_processes N`` on a machine without GPUs starts N processes that
+    each believe they are alone (and overwrite each other's checkpoints) unless ``ACCELERATE_USE_CPU=true``
+    is set, which selects gloo data parallelism on CPU.
+
+    Raises:
+        RuntimeError: If ``WORLD_SIZE > 1`` but accelerate runs a single process.
+    """
+    world_size = int(os.environ.get("WORLD_SIZE", "1"))
+    if world_size > 1 and accelerator.num_processes == 1:
+        raise RuntimeError(
+            f"WORLD_SIZE={world_size} but accelerate started a non-distributed run; on CPU launch with "
+            "ACCELERATE_USE_CPU=true accelerate launch --multi_gpu --num_processes N ..."
+        )
+
+
+def check_global_batch(
+    num_examples: int,
+    batch_size: int,
+    num_processes: int,
+    what: str = "examples",
+    gradient_accumulation_steps: int = 1,
+) -> None:
+    """Refuse a training split smaller than one optimisation step's examples.
+
+    A ``drop_last`` loader yields ``num_examples // (batch_size x processes)`` micro-batches per epoch: none
+    when the split is smaller than one global batch, and fewer than one optimisation step when
+    ``gradient_accumulation_steps`` exceeds that count (each step would then take several epochs, and a
+    large value leaves the run at step 0 for hours).
+
+    Args:
+        num_examples: Size of the training split.
+        batch_size: Examples per process per micro-batch.
+        num_processes: ``accelerator.num_processes``.
+        what: What an example is called in the message (``"pairs"``, ``"chips"``).
+        gradient_accumulation_steps: Micro-batches per optimisation step.
+
+    Raises:
+        ValueError: ``"data: <N> training <what>, fewer than a global batch of <batch_size x processes>"``,
+            or naming ``gradient_accumulation_steps`` and its bound, the micro-batches of one epoch.
+    """
+    global_batch = batch_size * num_processes
+    if num_examples < global_batch:
+        raise ValueError(f"data: {num_examples} training {what}, fewer than a global batch of {global_batch}")
+    per_epoch = num_examples // global_batch
+    if gradient_accumulation_steps > per_epoch:
+        raise ValueError(
+            f"gradient_accumulation_steps must be <= {per_epoch} for {num_examples} training {what} in "
+            f"global batches of {global_batch} (one optimisation step may take at most one epoch's "
+            f"{per_epoch} micro-batches), got {gradient_accumulation_steps}"
+        )
+
+
+def tracker_hparams(config: Any) -> dict[str, int | float | str | bool]:
+    """Every field of a config dataclass as a tracker hyperparameter (TensorBoard takes only scalars).
+
+    Returns:
+        Field name -> value; ``None``, lists and paths become their ``str``.
+    """
+    return {
+        name: value if isinstance(value, (int, float, str, bool)) else str(value)
+        for name, value in config_to_dict(config).items()
+    }
+
+
+def weights_digest(modules: list[torch.nn.Module]) -> torch.Tensor:
+    """A 63-bit digest of the exact bytes of every parameter, to compare data-parallel replicas.
+
+    Shape:
+        ``(1,)`` int64.
+    """
+    digest = hashlib.sha256()
+    for module in modules:
+        for name, parameter in module.named_parameters():
+            digest.update(name.encode())
+            digest.update(parameter.detach().cpu().contiguous().view(torch.uint8).numpy().tobytes())
+    return torch.tensor([int.from_bytes(digest.digest()[:8], "little") >> 1], dtype=torch.int64)
+
+
+def check_replicas_agree(accelerator: Accelerator, modules: list[torch.nn.Module]) -> list[int]:
+    """Gather every process's :func:`weights_digest` of its trained modules; call it on every process.
+
+    Data-parallel replicas start equal and apply the same averaged gradients, so their weights must be
+    bitwise equal at the end; a difference means a process trained on something else (a bug, a broken
+    all-reduce). One SHA-256 pass over the weights: about 1 s per GB on a CPU core.
+
+    Args:
+        accelerator: The run's accelerator.
+        modules: The trained modules, unwrapped (``accelerator.unwrap_model``).
+
+    Returns:
+        The digests, one per process in process order.
+
+    Raises:
+        RuntimeError: If the digests differ (the message lists them).
+    """
+    digests = accelerator.gather(weights_digest(modules).to(accelerator.device)).tolist()
+    if len(set(digests)) != 1:
+        raise RuntimeError(f"data-parallel replicas diverged: weight digests {digests}")
+    return digests

@@ -1,0 +1,540 @@
+"""The zero-1-to-3 training step: CFG dropout, cached frozen encodings, losses (Eq. 21).
+
+The fine-tune stage (:mod:`sar_zero123.stages.finetune`) only assembles a run around these pieces;
+benchmarks and tests import them from here.
+
+- :func:`micro_batch_generator`: every random draw of one micro-batch from a pure function of
+  ``(seed, micro-batch index, process index)``, which makes resuming bitwise exact.
+- :class:`ImageEmbedder`: the CLIP tower as a module whose ``forward`` includes the preprocessing, so
+  that ``accelerate.prepare`` (DDP, autocast) covers it when the tower is trained.
+- :func:`cfg_dropout_masks` / :func:`dropped_conditioning`: zero-1-to-3's classifier-free-guidance dropout.
+- :class:`ChipLatentCache` / :class:`CachedViewPairs`: the frozen VAE's posterior (mean and log-variance)
+  and the frozen CLIP embedding of every chip, computed once. The VAE never changes during fine-tuning,
+  so encoding two chips per pair per step repeats the same work; the cache keeps the posterior *sample*
+  of the target latent random per step (drawn from the cached mean and log-variance).
+- :func:`compute_losses`: the per-sample losses of one micro-batch, shaped by one
+  :class:`~sar_zero123.training.losses.LossSettings`.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+from diffusers import AutoencoderKL, DDPMScheduler
+from diffusers.training_utils import compute_density_for_timestep_sampling, compute_snr
+from torch.utils.data import Dataset
+from transformers import CLIPVisionModelWithProjection
+
+from sar_zero123.data import ViewPairDataset, load_chip
+from sar_zero123.model.conditioning import embed_pose, encode_image_embeddings, pose_class_labels, vae_input
+from sar_zero123.model.orientation import azimuth_estimation_loss, target_view_features
+from sar_zero123.training.losses import (
+    TRAINED_PREDICTION_TYPES,
+    LossOutput,
+    LossSettings,
+    check_prediction_type,
+    denoising_target,
+    total_loss,
+)
+
+__all__ = [
+    "CachedViewPairs",
+    "ChipLatentCache",
+    "ImageEmbedder",
+    "cfg_dropout_masks",
+    "compute_losses",
+    "conditioning_sensitivity",
+    "dropped_conditioning",
+    "encode_batch",
+    "micro_batch_generator",
+    "min_snr_weights",
+    "sample_timesteps",
+    "timestep_bucket_losses",
+]
+
+
+def micro_batch_generator(seed: int, batch_index: int, process_index: int) -> torch.Generator:
+    """CPU generator for every random draw of one micro-batch; a pure function of its arguments."""
+    state = np.random.SeedSequence([seed, batch_index, process_index]).generate_state(2, dtype=np.uint32)
+    return torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))
+
+
+class ImageEmbedder(torch.nn.Module):
+    """The CLIP image tower as one module whose forward is :func:`encode_image_embeddings`.
+
+    ``accelerate.prepare`` (DDP, FSDP, autocast) only acts on what runs through a prepared module's
+    ``forward``; the library's preprocessing reads the tower's ``config``, ``device`` and ``dtype``, which
+    a DDP wrapper hides. Wrapping the tower here lets the preprocessing run inside the prepared forward.
+
+    Args:
+        image_encoder: The CLIP vision tower with projection.
+
+    Shape:
+        - images: ``(B, 1 | 3, H, W)`` normalised dB in [0, 1]
+        - Output: ``(B, 1, projection_dim)``
+    """
+
+    def __init__(self, image_encoder: CLIPVisionModelWithProjection) -> None:
+        super().__init__()
+        self.image_encoder = image_encoder
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        return encode_image_embeddings(self.image_encoder, images)
+
+
+def cfg_dropout_masks(
+    batch_size: int,
+    *,
+    drop_image_prob: float,
+    drop_both_prob: float,
+    drop_latent_prob: float,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """zero-1-to-3's classifier-free-guidance dropout, one uniform draw per sample.
+
+    The three cases are disjoint: the image embedding only (pose kept), both the projected token and the
+    condition latent (the pipeline's sampling null), the condition latent only.
+
+    Returns:
+        Boolean masks ``(drop_image, drop_both, drop_latent)``, each ``(B,)`` on the CPU.
+
+    Raises:
+        ValueError: If a probability is negative or they sum to more than 1.
+    """
+    probs = (drop_image_prob, drop_both_prob, drop_latent_prob)
+    if min(probs) < 0 or sum(probs) > 1:
+        raise ValueError(f"CFG dropout probabilities must be >= 0 with sum <= 1, got {probs}")
+    u = torch.rand(batch_size, generator=generator)
+    drop_image = u < drop_image_prob
+    drop_both = (u >= drop_image_prob) & (u < drop_image_prob + drop_both_prob)
+    drop_latent = (u >= drop_image_prob + drop_both_prob) & (u < sum(probs))
+    return drop_image, drop_both, drop_latent
+
+
+# ------------------------------------------------------------------------------------- latent cache
+@dataclass
+class ChipLatentCache:
+    """Frozen encodings of every chip of a split, computed once before fine-tuning.
+
+    Attributes:
+        images: Normalised dB chips ``(N, 1, S, S)`` (the CLIP tower's input when it is trained, and the
+            PFM target).
+        latent_mean: VAE posterior mean ``(N, C, h, w)``, unscaled (the condition latent is this mode).
+        latent_logvar: VAE posterior log-variance ``(N, C, h, w)``.
+        image_embeds: Frozen CLIP embeddings ``(N, 1, D)``, or ``None`` when the tower is trained.
+        scaling_factor: ``vae.config.scaling_factor`` (multiplies the target latent only).
+    """
+
+    images: torch.Tensor
+    latent_mean: torch.Tensor
+    latent_logvar: torch.Tensor
+    image_embeds: torch.Tensor | None
+    scaling_factor: float
+
+    @classmethod
+    @torch.no_grad()
+    def encode(
+        cls,
+        images: torch.Tensor,
+        vae: AutoencoderKL,
+        image_encoder: CLIPVisionModelWithProjection | None = None,
+        batch_size: int = 64,
+    ) -> ChipLatentCache:
+        """Encodes ``images`` (normalised dB, ``(N, 1, S, S)``) with the frozen VAE (and CLIP tower).
+
+        Raises:
+            ValueError: If ``images`` is not a non-empty ``(N, 1, S, S)`` tensor of finite values.
+        """
+        if images.ndim != 4 or images.shape[0] == 0:
+            raise ValueError(
+                f"images must be a non-empty (N, C, S, S) tensor, got shape {tuple(images.shape)}"
+            )
+        if not torch.isfinite(images).all():
+            raise ValueError("images contain non-finite values")
+        means, logvars, embeds = [], [], []
+        for start in range(0, images.shape[0], batch_size):
+            chunk = images[start : start + batch_size]
+            posterior = vae.encode(vae_input(vae, chunk)).latent_dist
+            means.append(posterior.mean.float().cpu())
+            logvars.append(posterior.logvar.float().cpu())
+            if image_encoder is not None:
+                embeds.append(encode_image_embeddings(image_encoder, chunk).float().cpu())
+        return cls(
+            images=images.float().cpu(),
+            latent_mean=torch.cat(means),
+            latent_logvar=torch.cat(logvars),
+            image_embeds=torch.cat(embeds) if embeds else None,
+            scaling_factor=float(vae.config.scaling_factor),
+        )
+
+
+def load_chip_images(pairs: ViewPairDataset) -> torch.Tensor:
+    """Every record of a pair dataset, read once and normalised as its items are.
+
+    Shape:
+        ``(len(pairs.records), 1, S, S)`` float32.
+    """
+    chips = [
+        pairs.scaling.normalize(torch.from_numpy(load_chip(record.path, pairs.size, pairs.crop_size))[None])
+        for record in pairs.records
+    ]
+    return torch.stack(chips).float()
+
+
+class CachedViewPairs(Dataset):
+    """The pairs of a :class:`ViewPairDataset` served from a :class:`ChipLatentCache` (no file reads).
+
+    Items hold the wrapped dataset's keys (``input``, ``target``, :meth:`ViewPairDataset.pair_fields`) plus
+    ``input_latent_mean``, ``target_latent_mean``, ``target_latent_logvar`` and, with a frozen tower,
+    ``input_image_embeds``. :meth:`set_epoch` redraws the wrapped pair list, so data order and pairs are
+    those of the uncached dataset.
+    """
+
+    def __init__(self, pairs: ViewPairDataset, cache: ChipLatentCache) -> None:
+        if cache.images.shape[0] != len(pairs.records):
+            raise ValueError(
+                f"cache holds {cache.images.shape[0]} chips but the pair dataset has "
+                f"{len(pairs.records)} records"
+            )
+        self.pairs = pairs
+        self.cache = cache
+
+    def set_epoch(self, epoch: int) -> None:
+        self.pairs.set_epoch(epoch)
+
+    def __len__(self) -> int:
+        return len(self.pairs)
+
+    def __getitem__(self, index: int) -> dict:
+        source, target = (int(i) for i in self.pairs.pairs[index])
+        cache = self.cache
+        item = {
+            "input": cache.images[source],
+            "target": cache.images[target],
+            **self.pairs.pair_fields(index),
+            "input_latent_mean": cache.latent_mean[source],
+            "target_latent_mean": cache.latent_mean[target],
+            "target_latent_logvar": cache.latent_logvar[target],
+        }
+        if cache.image_embeds is not None:
+            item["input_image_embeds"] = cache.image_embeds[source]
+        return item
+
+
+# ------------------------------------------------------------------------------------------ the step
+def encode_batch(
+    batch: dict,
+    *,
+    vae: AutoencoderKL,
+    image_encoder: torch.nn.Module,
+    generator: torch.Generator | None = None,
+    input_depression: bool = False,
+) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
+    """The conditioning and the diffusion target of a pair batch, from its cached encodings or the models.
+
+    With ``input_depression`` the pose's fourth entry is the input chip's absolute depression
+    (``batch["input_depression_deg"]``, :func:`~sar_zero123.model.conditioning.embed_pose`).
+
+    Returns:
+        ``(latents, condition_latents, image_embeds, pose)``: the scaled posterior sample of the target
+        (a fresh draw from ``generator``), the unscaled posterior mode of the input, the CLIP embedding of
+        the input (differentiable when the tower is trained) and the pose vector (Eq. 9), all float32.
+
+    Shape:
+        ``(B, C, h, w)``, ``(B, C, h, w)``, ``(B, 1, D)``, ``(B, 1, 4)``.
+    """
+    device, dtype = vae.device, vae.dtype
+    inputs = batch["input"].to(device=device, dtype=dtype)
+    if "target_latent_mean" in batch:
+        mean = batch["target_latent_mean"].to(device=device, dtype=torch.float32)
+        logvar = batch["target_latent_logvar"].to(device=device, dtype=torch.float32)
+        std = torch.exp(0.5 * logvar.clamp(-30.0, 20.0))  # diffusers' DiagonalGaussianDistribution clamp
+        sample = mean + std * torch.randn(mean.shape, generator=generator).to(device)
+        latents = sample * vae.config.scaling_factor
+        condition_latents = batch["input_latent_mean"].to(device=device, dtype=torch.float32)
+    else:
+        targets = batch["target"].to(device=device, dtype=dtype)
+        with torch.no_grad():
+            posterior = vae.encode(vae_input(vae, targets)).latent_dist
+            latents = (posterior.sample(generator=generator) * vae.config.scaling_factor).float()
+            condition_latents = vae.encode(vae_input(vae, inputs)).latent_dist.mode().float()
+    if "input_image_embeds" in batch:
+        image_embeds = batch["input_image_embeds"].to(device=device, dtype=torch.float32)
+    else:
+        image_embeds = image_encoder(inputs).float()  # (B, 1, D)
+    depression = batch["input_depression_deg"] if input_depression else None
+    pose = embed_pose(batch["d_az_deg"], batch["d_el_deg"], depression).to(device)  # (B, 1, 4)
+    return latents, condition_latents, image_embeds, pose
+
+
+def uses_input_depression(pose_projection: torch.nn.Module) -> bool:
+    """Whether a (possibly DDP-wrapped) :class:`PoseProjection` takes the input's absolute depression."""
+    config = getattr(pose_projection, "module", pose_projection).config
+    return bool(getattr(config, "input_depression", False))
+
+
+@torch.no_grad()
+def conditioning_sensitivity(
+    batch: dict,
+    *,
+    unet: torch.nn.Module,
+    pose_projection: torch.nn.Module,
+    vae: AutoencoderKL,
+    image_encoder: torch.nn.Module,
+    noise_scheduler: DDPMScheduler,
+    timesteps: Sequence[int] = (100, 500, 900),
+    seed: int = 0,
+    azimuth_estimator: torch.nn.Module | None = None,
+) -> dict[str, float]:
+    """How much the UNet's prediction depends on the pose and on the input view.
+
+    At each timestep, the relative L2 change ``||f(c') - f(c)|| / ||f(c)||`` of the prediction on the same
+    noisy target latents when (a) every ``d_az`` turns by 180 degrees (``pose_t<t>``) and (b) the input views
+    (condition latent and image embedding) are swapped between pairs, the pose kept (``input_t<t>``). A
+    model that ignores its conditioning scores ~0 on both; one that follows the pose, clearly above 0.
+
+    Shape:
+        a pair batch of ``B >= 2``.
+
+    Raises:
+        ValueError: If the batch holds fewer than two pairs (the input swap needs two).
+    """
+    if batch["input"].shape[0] < 2:
+        raise ValueError("conditioning_sensitivity needs a batch of at least 2 pairs")
+    generator = torch.Generator().manual_seed(seed)
+    input_depression = uses_input_depression(pose_projection)
+    latents, condition, embeds, pose = encode_batch(
+        batch, vae=vae, image_encoder=image_encoder, generator=generator, input_depression=input_depression
+    )
+    depression = batch["input_depression_deg"] if input_depression else None
+    turned = embed_pose(torch.as_tensor(batch["d_az_deg"]) + 180.0, batch["d_el_deg"], depression)
+    turned = turned.to(pose.device)
+    noise = torch.randn(latents.shape, generator=generator).to(latents.device)
+
+    def predict(t: torch.Tensor, condition: torch.Tensor, embeds: torch.Tensor, pose: torch.Tensor):
+        x_t = noise_scheduler.add_noise(latents, noise, t)
+        tokens = pose_projection(embeds, pose)
+        target_features = None
+        if azimuth_estimator is not None:
+            target_features = target_view_features(azimuth_estimator(condition), pose)
+        return unet(
+            torch.cat([x_t, condition], dim=1),
+            t,
+            encoder_hidden_states=tokens,
+            class_labels=pose_class_labels(unet, pose, target_features),
+        ).sample
+
+    result = {}
+    for step in timesteps:
+        t = torch.full((latents.shape[0],), int(step), dtype=torch.long, device=latents.device)
+        reference = predict(t, condition, embeds, pose)
+        norm = reference.norm().clamp_min(1e-12)
+        result[f"pose_t{step}"] = ((predict(t, condition, embeds, turned) - reference).norm() / norm).item()
+        swapped = predict(t, condition.roll(1, 0), embeds.roll(1, 0), pose)
+        result[f"input_t{step}"] = ((swapped - reference).norm() / norm).item()
+    return result
+
+
+def dropped_conditioning(
+    image_embeds: torch.Tensor,
+    condition_latents: torch.Tensor,
+    pose: torch.Tensor,
+    *,
+    pose_projection: torch.nn.Module,
+    settings: LossSettings,
+    generator: torch.Generator | None = None,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The UNet's conditioning after zero-1-to-3's CFG dropout (:func:`cfg_dropout_masks`, one draw).
+
+    Dropping the image embedding keeps the pose in the projected token; dropping "both" zeroes the token and
+    the condition latent, the pipeline's sampling null; dropping the latent zeroes the condition latent.
+
+    Returns:
+        ``(tokens, condition_latents)``.
+
+    Shape:
+        ``(B, 1, D)``, ``(B, C, h, w)``, ``(B, 1, 4)`` -> ``(B, 1, C_cross)``, ``(B, C, h, w)``.
+    """
+    drop_image, drop_both, drop_latent = (
+        mask.to(pose.device)
+        for mask in cfg_dropout_masks(
+            pose.shape[0],
+            drop_image_prob=settings.drop_image_prob,
+            drop_both_prob=settings.drop_both_prob,
+            drop_latent_prob=settings.drop_latent_prob,
+            generator=generator,
+        )
+    )
+    image_embeds = image_embeds * (~drop_image).float()[:, None, None]
+    tokens = pose_projection(image_embeds, pose) * (~drop_both).float()[:, None, None]  # (B, 1, C)
+    return tokens, condition_latents * (~(drop_both | drop_latent)).float()[:, None, None, None]
+
+
+def compute_losses(
+    batch: dict,
+    *,
+    unet: torch.nn.Module,
+    pose_projection: torch.nn.Module,
+    vae: AutoencoderKL,
+    image_encoder: torch.nn.Module,
+    encoder: torch.nn.Module | None,
+    noise_scheduler: DDPMScheduler,
+    generator: torch.Generator,
+    loss_settings: LossSettings | None = None,
+    apply_dropout: bool = True,
+    azimuth_estimator: torch.nn.Module | None = None,
+) -> LossOutput:
+    """Per-sample losses of one micro-batch (zero-1-to-3 conditioning, CFG dropout, Eq. 21).
+
+    The UNet sees ``[x_t, condition latent]`` (the unscaled VAE posterior mode of the input view; only the
+    target latent is scaled) and cross-attends to ``pose_projection([CLIP image embedding, pose])``; cached
+    encodings in ``batch`` (:class:`CachedViewPairs`) replace the VAE and a frozen ``image_encoder`` (an
+    :class:`ImageEmbedder`). ``loss_settings`` (:class:`~sar_zero123.training.losses.LossSettings`; ``None``:
+    plain zero-1-to-3 without PFM) sets lambda of Eq. (21) and where PFM applies, the CFG dropout (skipped
+    without ``apply_dropout``, as in validation), the timestep density (:func:`sample_timesteps`), the
+    Min-SNR weighting of L_simple (:func:`min_snr_weights`) and the azimuth loss weight. An
+    ``azimuth_estimator`` (``sar_zero123.model.orientation``) reads the input's azimuth from its condition
+    latent; turned by ``d_az`` it enters the UNet's timestep embedding, and ``azimuth_loss_weight`` times its
+    loss against ``batch["input_azimuth_deg"]`` joins the loss.
+
+    Raises:
+        ValueError: If the model has an azimuth estimator and the batch has no ``input_azimuth_deg``.
+
+    Shape:
+        ``batch["input"]``, ``batch["target"]``: ``(B, 1, S, S)``; outputs ``(B,)``.
+    """
+    settings = loss_settings if loss_settings is not None else LossSettings()
+    # 1. frozen encodings (a fresh posterior sample of the target latent)
+    latents, condition_latents, image_embeds, pose = encode_batch(
+        batch, vae=vae, image_encoder=image_encoder, generator=generator,
+        input_depression=uses_input_depression(pose_projection),
+    )  # fmt: skip
+    target_features = azimuth_loss = None
+    if azimuth_estimator is not None:
+        if "input_azimuth_deg" not in batch:
+            raise ValueError("batch: an azimuth estimator is trained on `input_azimuth_deg`, which it lacks")
+        estimate = azimuth_estimator(condition_latents)  # before CFG dropout: like the pose, never dropped
+        azimuth_loss = azimuth_estimation_loss(estimate, batch["input_azimuth_deg"])
+        target_features = target_view_features(estimate, pose)
+    # 2. classifier-free-guidance dropout
+    if apply_dropout:
+        tokens, condition_latents = dropped_conditioning(
+            image_embeds, condition_latents, pose, pose_projection=pose_projection, settings=settings,
+            generator=generator,
+        )  # fmt: skip
+    else:
+        tokens = pose_projection(image_embeds, pose)  # (B, 1, C)
+    # 3. forward diffusion and prediction
+    noise = torch.randn(latents.shape, generator=generator).to(latents.device)
+    timesteps = sample_timesteps(
+        latents.shape[0], noise_scheduler.config.num_train_timesteps, sampling=settings.timestep_sampling,
+        logit_mean=settings.timestep_logit_mean, logit_std=settings.timestep_logit_std, generator=generator,
+    ).to(latents.device)  # fmt: skip
+    x_t = noise_scheduler.add_noise(latents, noise, timesteps)
+    model_output = unet(
+        torch.cat([x_t, condition_latents], dim=1),
+        timesteps,
+        encoder_hidden_states=tokens,
+        class_labels=pose_class_labels(unet, pose, target_features),
+    ).sample
+    # 4. Eq. (21), L_simple optionally Min-SNR weighted
+    weights = None
+    if settings.snr_gamma is not None:
+        weights = min_snr_weights(noise_scheduler, timesteps, settings.snr_gamma)
+    losses = total_loss(
+        model_output, denoising_target(latents, noise, timesteps, noise_scheduler), x_t, timesteps,
+        noise_scheduler, pfm_weight=settings.pfm_weight,
+        target_images=batch["target"].to(device=latents.device, dtype=vae.dtype), vae=vae, encoder=encoder,
+        pfm_min_snr=settings.pfm_min_snr, pfm_fraction=settings.pfm_fraction,
+        crop_size=settings.pfm_crop_size, generator=generator, denoising_weights=weights,
+    )  # fmt: skip
+    if azimuth_loss is not None:
+        losses = dataclasses.replace(
+            losses, loss=losses.loss + settings.azimuth_loss_weight * azimuth_loss, azimuth=azimuth_loss
+        )
+    return dataclasses.replace(losses, timesteps=timesteps)
+
+
+def min_snr_weights(noise_scheduler: DDPMScheduler, timesteps: torch.Tensor, gamma: float) -> torch.Tensor:
+    """Min-SNR-gamma loss weights (Hang et al., 2023), as diffusers' training examples apply them.
+
+    The L_simple of epsilon prediction weighs each sample's x0 error by SNR(t), so nearly all of the loss
+    sits at low noise (fine detail: here, speckle) and almost none at high noise, where the layout of the
+    target view (its pose) is decided. Min-SNR caps that weight at ``gamma``:
+    ``min(SNR, gamma) / SNR`` for epsilon, ``min(SNR, gamma) / (SNR + 1)`` for v prediction.
+
+    Raises:
+        ValueError: If ``gamma <= 0`` or the prediction type is not epsilon or v_prediction.
+
+    Shape:
+        ``(B,)`` float32, on the timesteps' device.
+    """
+    if not gamma > 0:
+        raise ValueError(f"snr_gamma must be > 0, got {gamma}")
+    snr = compute_snr(noise_scheduler, timesteps).float()
+    capped = torch.clamp(snr, max=gamma)
+    prediction_type = check_prediction_type(
+        noise_scheduler.config.prediction_type,
+        TRAINED_PREDICTION_TYPES,
+        name="noise_scheduler.config.prediction_type (min-SNR weights)",
+    )
+    if prediction_type == "epsilon":
+        return capped / snr
+    return capped / (snr + 1)  # v_prediction
+
+
+def sample_timesteps(
+    batch_size: int,
+    num_train_timesteps: int,
+    *,
+    sampling: str = "uniform",
+    logit_mean: float = 0.0,
+    logit_std: float = 1.0,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor:
+    """Training timesteps: uniform (DDPM's L_simple), or logit-normal (diffusers' SD3 density).
+
+    ``"logit_normal"`` draws ``u = sigmoid(N(logit_mean, logit_std))`` with
+    :func:`diffusers.training_utils.compute_density_for_timestep_sampling` and takes ``t = floor(u T)``:
+    ``logit_mean > 0`` spends more of the batch at high noise, where the coarse layout (and so the pose)
+    of the target is decided and a model that ignores its conditioning pays most.
+
+    Raises:
+        ValueError: For an unknown ``sampling`` or ``logit_std <= 0``.
+
+    Shape:
+        ``(batch_size,)`` int64 in ``[0, num_train_timesteps)``, on the CPU.
+    """
+    if sampling == "uniform":
+        return torch.randint(0, num_train_timesteps, (batch_size,), generator=generator)
+    if sampling != "logit_normal":
+        raise ValueError(f"timestep_sampling must be 'uniform' or 'logit_normal', got {sampling!r}")
+    if not logit_std > 0:
+        raise ValueError(f"timestep_logit_std must be > 0, got {logit_std}")
+    u = compute_density_for_timestep_sampling(
+        "logit_normal", batch_size, logit_mean=logit_mean, logit_std=logit_std, generator=generator
+    )
+    return (u * num_train_timesteps).long().clamp(0, num_train_timesteps - 1)
+
+
+def timestep_bucket_losses(
+    losses: torch.Tensor, timesteps: torch.Tensor, num_train_timesteps: int, num_buckets: int = 4
+) -> dict[str, float]:
+    """Mean per-sample loss in equal timestep buckets, for logging where the model learns.
+
+    Returns:
+        ``{"t000-249": value, ...}`` for the buckets that hold at least one sample.
+    """
+    width = math.ceil(num_train_timesteps / num_buckets)
+    result = {}
+    for k in range(num_buckets):
+        low, high = k * width, min((k + 1) * width, num_train_timesteps) - 1
+        mask = (timesteps >= low) & (timesteps <= high)
+        if mask.any():
+            result[f"t{low:03d}-{high:03d}"] = losses[mask].float().mean().item()
+    return result

@@ -1,0 +1,216 @@
+"""Tests for ``python -m sar_zero123.augment_dataset`` on the tiny pipeline and a tiny simulated dataset."""
+
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from sar_zero123.augment_dataset import (
+    AUGMENT_FILE,
+    PROVENANCE_COLUMNS,
+    PROVENANCE_FILE,
+    AugmentConfig,
+    main,
+    plan_views,
+    select_records,
+)
+from sar_zero123.data import SCALING_FILE, ChipRecord, DecibelScaling, load_index
+from sar_zero123.model.build import build_sar_zero123
+from sar_zero123.sim import INDEX_COLUMNS, simulate_dataset
+
+# 2 classes x 4 azimuths (0, 90, 180, 270) at 17 deg; d_el 2 keeps 19 deg inside the trained [10, 20]
+CHIPS = 8
+D_AZ = ["-90", "90"]
+
+
+@pytest.fixture(scope="module")
+def pipeline_dir(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("pipeline")
+    pipe = build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True)
+    pipe.pose_projection.register_to_config(trained_d_el_deg=[-5.0, 5.0], trained_depression_deg=[10.0, 20.0])
+    pipe.save_pretrained(folder)
+    (folder / SCALING_FILE).write_text(json.dumps(DecibelScaling.for_unit_magnitude().to_dict()))
+    return folder
+
+
+@pytest.fixture(scope="module")
+def data_dir(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("data")
+    return simulate_dataset(
+        folder, classes=("TANK", "APC"), instances=1, azimuth_step_deg=90, depressions_deg=(17.0,), size=32
+    )
+
+
+def run_args(data_dir, pipeline_dir, out, *extra):
+    return ["--data", str(data_dir), "--pipeline", str(pipeline_dir), "--out", str(out), "--d_az", *D_AZ,
+            "--d_el", "2", "--num_inference_steps", "2", *extra]
+
+
+@pytest.fixture(scope="module")
+def augmented(data_dir, pipeline_dir, tmp_path_factory):
+    out = tmp_path_factory.mktemp("augmented") / "out"
+    assert main(run_args(data_dir, pipeline_dir, out, "--batch_size", "3")) == out
+    return out
+
+
+def read_csv(path):
+    with open(path, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def view_files(out):
+    return sorted(path.relative_to(out) for path in (out / "views").rglob("*.npy"))
+
+
+def test_output_is_a_dataset_with_one_row_per_chip_and_request(augmented, data_dir, pipeline_dir):
+    records = load_index(augmented)
+    assert len(records) == CHIPS * len(D_AZ) == len(view_files(augmented))
+    with open(augmented / "index.csv", newline="") as handle:
+        assert next(csv.reader(handle)) == list(INDEX_COLUMNS)
+    provenance = read_csv(augmented / PROVENANCE_FILE)
+    assert list(provenance[0]) == [*INDEX_COLUMNS, *PROVENANCE_COLUMNS]
+    sources = {(r.path.relative_to(data_dir.resolve()).as_posix()): r for r in load_index(data_dir)}
+    for record, row in zip(records, provenance):
+        source = sources[row["source_path"]]
+        d_az = float(row["d_az_deg"])
+        assert record.path == (augmented / row["path"]).resolve()
+        assert (record.target_class, record.serial) == (source.target_class, source.serial)
+        assert record.target_type == source.target_type
+        assert record.depression_deg == 19.0 and float(row["d_el_deg"]) == 2.0
+        assert record.azimuth_deg == (source.azimuth_deg + d_az) % 360.0
+        assert (record.height, record.width) == (32, 32)
+        assert row["generated"] == "1" and row["seed"] == "0" and row["pipeline"] == str(pipeline_dir)
+        view = np.load(record.path)
+        assert view.shape == (32, 32) and view.dtype == np.float32
+        assert 0.0 <= view.min() and view.max() <= 1.0
+    # hand-computed wraps: 270 + 90 -> 0 and 0 - 90 -> 270
+    pairs = {(sources[row["source_path"]].azimuth_deg, float(row["d_az_deg"])): float(row["azimuth_deg"])
+             for row in provenance}
+    assert pairs[(270.0, 90.0)] == 0.0 and pairs[(0.0, -90.0)] == 270.0
+    assert sorted({float(row["d_az_deg"]) for row in provenance}) == [-90.0, 90.0]
+    assert json.loads((augmented / AUGMENT_FILE).read_text())["d_az"] == [-90.0, 90.0]
+
+
+def test_target_azimuths_selection_and_real_rows(data_dir, pipeline_dir, tmp_path):
+    out = tmp_path / "out"
+    main(["--data", str(data_dir), "--pipeline", str(pipeline_dir), "--out", str(out),
+          "--target_azimuths_deg", "10", "350", "--classes", "TANK", "--max_chips_per_class", "2",
+          "--num_inference_steps", "1", "--include_real"])
+    records = load_index(out)  # real rows by absolute path, views relative
+    provenance = read_csv(out / PROVENANCE_FILE)
+    real = [row for row in provenance if row["generated"] == "0"]
+    # 2 of the 4 TANK chips, evenly spaced in index order: azimuths 0 and 270
+    assert [float(row["azimuth_deg"]) for row in real] == [0.0, 270.0]
+    assert all(records[i].path == (data_dir / row["source_path"]).resolve() for i, row in enumerate(real))
+    views = [row for row in provenance if row["generated"] == "1"]
+    assert len(records) == 2 + 2 * 2 == len(provenance)
+    # d_az = wrap(target - input) in (-180, 180]: from 0 -> +10, -10; from 270 -> +100, +80
+    assert [float(row["d_az_deg"]) for row in views] == [10.0, -10.0, 100.0, 80.0]
+    assert [float(row["azimuth_deg"]) for row in views] == [10.0, 350.0, 10.0, 350.0]
+
+
+def test_views_agree_across_batch_sizes_up_to_float_rounding(augmented, data_dir, pipeline_dir, tmp_path):
+    # Same per-view noise; PyTorch's CPU kernels round differently per batch size (about 1e-6 in
+    # normalised dB here), so bytes are equal only for equal batches (test_resume_...).
+    out = main(run_args(data_dir, pipeline_dir, tmp_path / "out", "--batch_size", "1"))
+    assert view_files(out) == view_files(augmented)
+    scaling = DecibelScaling.for_unit_magnitude()
+    for path in view_files(out):
+        one, three = (scaling.normalize(np.load(folder / path)) for folder in (out, augmented))
+        np.testing.assert_allclose(one, three, rtol=0, atol=1e-5)
+    assert (out / "index.csv").read_bytes() == (augmented / "index.csv").read_bytes()
+
+
+def test_resume_generates_only_what_is_missing(augmented, data_dir, pipeline_dir, tmp_path):
+    out = tmp_path / "out"
+    shutil.copytree(augmented, out)
+    deleted = view_files(out)[5]
+    (out / deleted).unlink()
+    (out / "index.csv").unlink()
+    kept = {path: (out / path).stat().st_mtime_ns for path in view_files(out)}
+    main(run_args(data_dir, pipeline_dir, out, "--batch_size", "3"))
+    assert {path: (out / path).stat().st_mtime_ns for path in kept} == kept
+    assert (out / deleted).read_bytes() == (augmented / deleted).read_bytes()
+    assert (out / "index.csv").read_bytes() == (augmented / "index.csv").read_bytes()
+    assert not list(out.rglob(".*.tmp"))
+
+
+def test_refuses_a_folder_of_other_options_or_other_files(augmented, data_dir, pipeline_dir, tmp_path):
+    out = tmp_path / "out"
+    shutil.copytree(augmented, out)
+    with pytest.raises(ValueError, match=r"out: .*other options \(seed: 0 there, 1 now\)"):
+        main(run_args(data_dir, pipeline_dir, out, "--batch_size", "3", "--seed", "1"))
+    with pytest.raises(ValueError, match=r"out: .*other options \(batch_size: 3 there, 8 now\)"):
+        main(run_args(data_dir, pipeline_dir, out))
+    other = tmp_path / "other"
+    other.mkdir()
+    (other / "notes.txt").write_text("x")
+    with pytest.raises(ValueError, match=f"out: .*has no {AUGMENT_FILE}"):
+        main(run_args(data_dir, pipeline_dir, other))
+
+
+@pytest.mark.parametrize(("d_el", "field"), [("6", "trained_d_el_deg"), ("4", "trained_depression_deg")])
+def test_refuses_d_el_outside_the_trained_ranges_before_generating(data_dir, pipeline_dir, tmp_path, d_el,
+                                                                   field):
+    out = tmp_path / "out"
+    with pytest.raises(ValueError, match=rf"^d_el: .*pose_projection\.config\.{field}"):
+        main([*run_args(data_dir, pipeline_dir, out), "--d_el", d_el])
+    assert not out.exists()
+
+
+def test_refuses_chips_smaller_than_the_pipeline_or_off_its_scaling(pipeline_dir, tmp_path):
+    small = simulate_dataset(tmp_path / "small", classes=("TANK",), instances=1, azimuth_step_deg=180,
+                             depressions_deg=(17.0,), size=16)
+    with pytest.raises(ValueError, match=r"^data: 2 chip\(s\) are smaller than the pipeline's 32 px"):
+        main(run_args(small, pipeline_dir, tmp_path / "a"))
+    chips = simulate_dataset(tmp_path / "chips", classes=("TANK",), instances=1, azimuth_step_deg=180,
+                             depressions_deg=(17.0,), size=32)
+    scaling = tmp_path / "scaling.json"  # clutter lies far below -10 dB: most pixels clip
+    scaling.write_text(json.dumps(DecibelScaling(min_db=-10.0, max_db=0.0).to_dict()))
+    with pytest.raises(ValueError, match=r"^data: chip .* outside the scaling's dB range"):
+        main(run_args(chips, pipeline_dir, tmp_path / "b", "--scaling_file", str(scaling)))
+
+
+def test_speckle_changes_the_views(augmented, data_dir, pipeline_dir, tmp_path):
+    selection = ["--classes", "APC", "--max_chips_per_class", "1"]
+    out = main(run_args(data_dir, pipeline_dir, tmp_path / "out", *selection, "--speckle"))
+    paths = view_files(out)
+    assert len(paths) == 2
+    for path in paths:
+        speckled, clean = np.load(out / path), np.load(augmented / path)
+        assert speckled.dtype == np.float32 and speckled.min() >= 0.0
+        assert speckled.max() == pytest.approx(1.0, abs=1e-6)  # per-view min-max back to [0, 1]
+        assert np.abs(speckled - clean).mean() > 0.01
+    assert json.loads((out / AUGMENT_FILE).read_text())["speckle"] is True
+
+
+def test_plan_and_selection_by_hand():
+    records = [ChipRecord(path=f"/d/{c}{k}.npy", target_class=c, serial="s", depression_deg=17.0,
+                          azimuth_deg=90.0 * k) for c in ("A", "B") for k in range(4)]
+    # B's chips are rows 4-7; 3 of 4 evenly spaced: positions round(0, 1.5, 3) = 0, 2, 3
+    assert [row for row, _ in select_records(records, classes=["B"], max_chips_per_class=3)] == [4, 6, 7]
+    assert [row for row, _ in select_records(records, depressions_deg=[15.0, 17.0])] == list(range(8))
+    views = plan_views([(3, records[3])], d_az=[100.0], d_el=[0.0, -2.0])
+    assert [(v.azimuth_deg, v.d_el_deg, v.depression_deg, v.request_index) for v in views] == [
+        (10.0, 0.0, 17.0, 0), (10.0, -2.0, 15.0, 1)]
+    assert views[1].path.as_posix() == "views/A/A3_r000003_v001.npy"
+    with pytest.raises(ValueError, match="^classes: "):
+        select_records(records, classes=["C"])
+    with pytest.raises(ValueError, match="^d_el: "):
+        plan_views([(0, records[0])], d_az=[0.0], d_el=[-20.0])
+
+
+def test_config_refuses_bad_values(data_dir, pipeline_dir):
+    base = {"data": str(data_dir), "pipeline": str(pipeline_dir), "out": "x"}
+    with pytest.raises(ValueError, match="^d_az/target_azimuths_deg: "):
+        AugmentConfig(**base)
+    with pytest.raises(ValueError, match="^target_azimuths_deg "):
+        AugmentConfig(**base, target_azimuths_deg=[360.0])
+    with pytest.raises(ValueError, match="^batch_size "):
+        AugmentConfig(**base, d_az=[30.0], batch_size=0)
+    with pytest.raises(FileNotFoundError, match="^data: "):
+        AugmentConfig(**{**base, "data": str(data_dir / "missing")}, d_az=[30.0])
