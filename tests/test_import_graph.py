@@ -1,4 +1,4 @@
-"""The package's import graph (docs/ARCHITECTURE.md, "Layout"): acyclic between modules and between wings,
+"""The package's import graph (docs/ARCHITECTURE.md, "Allowed imports"): acyclic between modules and between wings,
 function-level imports included, and the simulator and the domain conventions at the bottom."""
 
 from __future__ import annotations
