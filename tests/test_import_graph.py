@@ -1,5 +1,5 @@
-"""The package's import graph (docs/ARCHITECTURE.md, "Allowed imports"): acyclic between modules and between wings,
-function-level imports included, and the simulator and the domain conventions at the bottom."""
+"""The package's import graph (docs/ARCHITECTURE.md, "Allowed imports"): acyclic between modules and
+between wings, function-level imports included, and the simulator and the domain conventions at the bottom."""
 
 from __future__ import annotations
 
