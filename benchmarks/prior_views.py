@@ -24,7 +24,7 @@ from scipy.ndimage import gaussian_filter
 
 from sar_zero123 import SIM_PRIOR, SARZero123Pipeline, resolve_pretrained
 from sar_zero123.data import SCALING_FILE, DecibelScaling
-from sar_zero123.sim import make_target, render_chip
+from sar_zero123.sim import Target, make_target, render_chip
 
 REQUESTS = ((60.0, 0.0), (150.0, 0.0), (0.0, -7.0), (0.0, 13.0), (0.0, 28.0), (90.0, 28.0))
 
@@ -35,7 +35,7 @@ def pearson(a: np.ndarray, b: np.ndarray) -> float:
     return float((a * b).sum() / max(np.sqrt((a * a).sum() * (b * b).sum()), 1e-12))
 
 
-def main(argv: Sequence[str] | None = None) -> Path:
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--pipeline", default=SIM_PRIOR, help="pipeline folder or bundled name")
     parser.add_argument("--classes", nargs="+", default=["TANK", "TRUCK", "AAGUN"], help="named vehicles")
@@ -43,13 +43,33 @@ def main(argv: Sequence[str] | None = None) -> Path:
     parser.add_argument("--num_inference_steps", type=int, default=20, help="DDIM steps")
     parser.add_argument("--seed", type=int, default=0, help="clutter and sampling seed")
     parser.add_argument("--out", default="prior_views.png", help="output PNG (and .json beside it)")
-    args = parser.parse_args(argv)
+    return parser.parse_args(argv)
 
-    import matplotlib
 
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+def simulated_view(
+    target: Target,
+    azimuth_deg: float,
+    depression_deg: float,
+    size: int,
+    scaling: DecibelScaling,
+    seed: Sequence[int],
+) -> np.ndarray:
+    """The simulator's normalised chip of ``target`` at one pose, its clutter drawn from ``seed``."""
+    rng = np.random.default_rng(seed)
+    return scaling.normalize(render_chip(target, azimuth_deg % 360.0, depression_deg, size, rng)).astype(
+        np.float32
+    )
 
+
+def generate_views(
+    args: argparse.Namespace,
+) -> tuple[list[tuple[str, list[np.ndarray]]], dict[str, list[bool]], float]:
+    """Each vehicle's generated and true views, and per request whether each view is closer to the truth.
+
+    Returns:
+        ``(rows, scores, seconds)``: two labelled rows of images per vehicle (the input chip first), per
+        request one bool per vehicle, and the seconds it took after loading the pipeline.
+    """
     pipe = SARZero123Pipeline.from_pretrained(args.pipeline)
     pipe.set_progress_bar_config(disable=True)
     folder = resolve_pretrained(args.pipeline)
@@ -62,10 +82,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
         target = make_target(name)
 
         def view(azimuth: float, depression: float, stream: int, target=target, i=i) -> np.ndarray:
-            rng = np.random.default_rng([args.seed, i, stream])
-            return scaling.normalize(render_chip(target, azimuth % 360.0, depression, size, rng)).astype(
-                np.float32
-            )
+            return simulated_view(target, azimuth, depression, size, scaling, [args.seed, i, stream])
 
         chip = view(args.input_azimuth_deg, input_depression, 0)
         d_az = [r[0] for r in REQUESTS]
@@ -89,7 +106,15 @@ def main(argv: Sequence[str] | None = None) -> Path:
             scores.setdefault(f"d_az {a:+g}, d_el {e:+g}", []).append(bool(closer))
         rows.append((f"{name}: generated", [chip, *generated]))
         rows.append((f"{name}: truth", [chip, *truth]))
-    seconds = time.perf_counter() - begin
+    return rows, scores, time.perf_counter() - begin
+
+
+def draw_views(rows: list[tuple[str, list[np.ndarray]]], out: Path) -> None:
+    """The figure: one labelled row per entry of ``rows``, one column per request (the input first)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
 
     titles = ["input (17 deg)", *[f"d_az {a:+g}\nd_el {e:+g}" for a, e in REQUESTS]]
     fig, axes = plt.subplots(
@@ -106,10 +131,13 @@ def main(argv: Sequence[str] | None = None) -> Path:
             if c == 0:
                 ax.set_ylabel(label, fontsize=6)
     fig.tight_layout()
-    out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=80)
     plt.close(fig)
+
+
+def write_record(args: argparse.Namespace, scores: dict[str, list[bool]], seconds: float, out: Path) -> None:
+    """The scores as JSON beside the figure, and a line per request on stdout."""
     record = {
         "pipeline": str(args.pipeline),
         "classes": args.classes,
@@ -122,6 +150,14 @@ def main(argv: Sequence[str] | None = None) -> Path:
     for request, wins in scores.items():
         print(f"{request}: closer to the requested pose's truth in {sum(wins)}/{len(wins)}")
     print(f"wrote {out} ({seconds:.1f} s)")
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    args = parse_args(argv)
+    rows, scores, seconds = generate_views(args)
+    out = Path(args.out)
+    draw_views(rows, out)
+    write_record(args, scores, seconds, out)
     return out
 
 

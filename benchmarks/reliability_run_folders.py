@@ -23,6 +23,7 @@ import sys
 import tempfile
 import time
 from collections.abc import Callable, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
@@ -90,23 +91,60 @@ def index_rows(folder: Path) -> int:
     return len((folder / "index.csv").read_text().splitlines()) - 1
 
 
-def main() -> None:
+@dataclass
+class Folders:
+    """What the groups of cases share: the smoke quickstart's folders and, once drawn, one of its chips."""
+
+    quick: Path  # the finished smoke quickstart
+    data: Path  # its simulated dataset
+    pipeline: Path  # its lambda = 0 pipeline
+    evaluators: Path  # its evaluator models
+    chip: Path | None = None  # one chip of `data`, drawn by the unbounded-work cases
+
+    @property
+    def quickstart(self) -> list[str]:
+        """The smoke quickstart's command line, into `quick`."""
+        return ["train/quickstart.py", "--output_dir", str(self.quick), *SMOKE]
+
+    @property
+    def evaluate(self) -> list[str]:
+        """A tiny evaluation of `pipeline`, without its output folder."""
+        return ["train/evaluate.py", "--pipeline", str(self.pipeline), "--evaluators", str(self.evaluators),
+                "--data", str(self.data), "--protocol", "ood-TRUCK", "--n", "4", "--num_inference_steps",
+                "2", "--image_size", "32", "--crop_size", "32"]  # fmt: skip
+
+
+def finetune_args(data: Path, output_dir: Path) -> list[str]:
+    """A two-step fine-tune of a tiny model on `data`, into `output_dir`."""
+    return ["train/finetune_pfm.py", "--output_dir", str(output_dir), "--size", "tiny", "--image_size",
+            "32", "--data", str(data), "--protocol", "ood-TRUCK", "--pfm_weight", "0",
+            "--train_batch_size", "2", "--max_train_steps", "2", "--validation_steps", "0",
+            "--report_to", "none"]  # fmt: skip
+
+
+def generate_args(pipeline: Path, image: Path, d_az: Sequence[str], output_dir: Path) -> list[str]:
+    """`python -m sar_zero123.generate` of `image` with `pipeline`, two DDIM steps."""
+    return ["-m", "sar_zero123.generate", "--pipeline", str(pipeline), "--image", str(image),
+            "--d_az", *d_az, "--num_inference_steps", "2", "--output_dir", str(output_dir)]  # fmt: skip
+
+
+def run_smoke_quickstart() -> Folders:
+    """Runs the smoke quickstart every case starts from; stops if it fails."""
     quick = TMP / "quickstart"
     setup = run(["train/quickstart.py", "--output_dir", str(quick), *SMOKE])
     if setup["rc"] != 0:
         raise SystemExit(f"the smoke quickstart failed on {ROOT}: {setup}")
-    data = quick / "data"
-    pipeline = quick / "finetune_lambda0" / "pipeline"
-    evaluators = quick / "evaluators"
+    return Folders(
+        quick=quick,
+        data=quick / "data",
+        pipeline=quick / "finetune_lambda0" / "pipeline",
+        evaluators=quick / "evaluators",
+    )
 
-    # --- overwrites
-    def finetune_args(output_dir: Path) -> list[str]:
-        return ["train/finetune_pfm.py", "--output_dir", str(output_dir), "--size", "tiny", "--image_size",
-                "32", "--data", str(data), "--protocol", "ood-TRUCK", "--pfm_weight", "0",
-                "--train_batch_size", "2", "--max_train_steps", "2", "--validation_steps", "0",
-                "--report_to", "none"]  # fmt: skip
 
-    finetune = finetune_args(TMP / "ft")
+def overwrite_cases(folders: Folders) -> None:
+    """Commands pointed at a finished run or an existing folder: do they overwrite it?"""
+    finetune = finetune_args(folders.data, TMP / "ft")
     run(finetune)
     case("finetune --output_dir <a finished run>, no --resume_from_checkpoint", finetune, [TMP / "ft"])
     case(
@@ -119,18 +157,8 @@ def main() -> None:
         [*finetune, "--restart"],
         facts=lambda: {"moved_aside": len(list(TMP.glob("ft.replaced-*")))},
     )
-    sim = [
-        "-m",
-        "sar_zero123.sim",
-        "--out",
-        str(TMP / "sim"),
-        "--instances",
-        "1",
-        "--azimuth-step",
-        "30",
-        "--size",
-        "16",
-    ]
+    sim = ["-m", "sar_zero123.sim", "--out", str(TMP / "sim"), "--instances", "1", "--azimuth-step", "30",
+           "--size", "16"]  # fmt: skip
     run([*sim, "--classes", "TANK", "APC", "TRUCK", "DOZER"])
     case(
         "sim --out <an existing dataset> with other classes",
@@ -138,33 +166,16 @@ def main() -> None:
         [TMP / "sim"],
         facts=lambda: {"index_rows": index_rows(TMP / "sim")},
     )
-    evaluate = [
-        "train/evaluate.py",
-        "--pipeline",
-        str(pipeline),
-        "--evaluators",
-        str(evaluators),
-        "--data",
-        str(data),
-        "--protocol",
-        "ood-TRUCK",
-        "--n",
-        "4",
-        "--num_inference_steps",
-        "2",
-        "--image_size",
-        "32",
-        "--crop_size",
-        "32",
-    ]
     case(
         "evaluate --output_dir <an evaluators folder>",
-        [*evaluate, "--output_dir", str(evaluators)],
-        [evaluators],
+        [*folders.evaluate, "--output_dir", str(folders.evaluators)],
+        [folders.evaluators],
     )
 
-    # --- reports that lie
-    qs = ["train/quickstart.py", "--output_dir", str(quick), *SMOKE]
+
+def lying_report_cases(folders: Folders) -> None:
+    """Quickstart re-runs whose report could describe settings that did not make its stages."""
+    quick, qs = folders.quick, folders.quickstart
     case(
         "quickstart <finished> --protocol ood-APC",
         [*qs, "--protocol", "ood-APC"],
@@ -210,7 +221,9 @@ def main() -> None:
         facts=lambda: {"views_png": (quick / "eval" / "views.png").is_file()},
     )
 
-    # --- late refusals: each override fails before any stage (no folder written)
+
+def late_refusal_cases() -> None:
+    """Bad overrides: each must fail before any stage (no folder written)."""
     for item in (
         "base_steps=0",
         "finetune_steps=-1",
@@ -229,150 +242,98 @@ def main() -> None:
             },
         )
 
-    # --- unbounded work
+
+def unbounded_work_cases(folders: Folders) -> None:
+    """Requests for unbounded work: refused at once, or killed after two minutes."""
     case(
         "finetune --gradient_accumulation_steps 100000",
-        [*finetune_args(TMP / "ga"), "--gradient_accumulation_steps", "100000"],
+        [*finetune_args(folders.data, TMP / "ga"), "--gradient_accumulation_steps", "100000"],
         timeout=120,
     )
     case(
         "evaluate --n 100000000",
-        [*evaluate, "--n", "100000000", "--output_dir", str(TMP / "bign")],
+        [*folders.evaluate, "--n", "100000000", "--output_dir", str(TMP / "bign")],
         timeout=120,
     )
-    chip = next((data / "chips").rglob("*.npy"))
+    folders.chip = next((folders.data / "chips").rglob("*.npy"))
     d_az = [str(a % 360) for a in range(5000)]
     case(
         "generate 5000 --d_az values",
-        [
-            "-m",
-            "sar_zero123.generate",
-            "--pipeline",
-            str(pipeline),
-            "--image",
-            str(chip),
-            "--d_az",
-            *d_az,
-            "--num_inference_steps",
-            "2",
-            "--output_dir",
-            str(TMP / "gen5000"),
-        ],
+        generate_args(folders.pipeline, folders.chip, d_az, TMP / "gen5000"),
         timeout=120,
     )
 
-    # --- accepted nonsense
+
+def accepted_nonsense_cases(folders: Folders) -> None:
+    """Inputs outside any physical range: impossible depressions, a 1x1 image."""
     for depression in ("400", "-10", "91"):
         folder = TMP / f"dep{depression}"
-        shutil.copytree(data, folder, ignore=shutil.ignore_patterns("run.json"))
+        shutil.copytree(folders.data, folder, ignore=shutil.ignore_patterns("run.json"))
         lines = (folder / "index.csv").read_text().splitlines()
         fields = lines[1].split(",")
         fields[4] = depression
         (folder / "index.csv").write_text("\n".join([lines[0], ",".join(fields), *lines[2:]]) + "\n")
-        case(
-            f"index.csv depression {depression} deg",
-            [
-                "train/train_evaluators.py",
-                "--output_dir",
-                str(TMP / f"ev{depression}"),
-                "--data",
-                str(folder),
-                "--epochs",
-                "1",
-                "--image_size",
-                "32",
-            ],
-            timeout=120,
-        )
+        train = ["train/train_evaluators.py", "--output_dir", str(TMP / f"ev{depression}"), "--data",
+                 str(folder), "--epochs", "1", "--image_size", "32"]  # fmt: skip
+        case(f"index.csv depression {depression} deg", train, timeout=120)
     Image.new("L", (1, 1), 128).save(TMP / "one.png")
-    case(
-        "generate a 1x1 PNG",
-        [
-            "-m",
-            "sar_zero123.generate",
-            "--pipeline",
-            str(pipeline),
-            "--image",
-            str(TMP / "one.png"),
-            "--d_az",
-            "30",
-            "--num_inference_steps",
-            "2",
-            "--output_dir",
-            str(TMP / "gen1"),
-        ],
-    )
+    case("generate a 1x1 PNG", generate_args(folders.pipeline, TMP / "one.png", ["30"], TMP / "gen1"))
 
-    # --- unclear errors
+
+def generate_with_broken_pipeline(folders: Folders, edit: Callable[[Path], None], name: str) -> None:
+    """Case `name`: generate with a copy of the pipeline that `edit` broke."""
     broken = TMP / "broken"
+    shutil.rmtree(broken, ignore_errors=True)
+    shutil.copytree(folders.pipeline, broken)
+    edit(broken)
+    assert folders.chip is not None, "the unbounded-work cases draw the chip"
+    case(name, generate_args(broken, folders.chip, ["30"], TMP / "gen_broken"))
+    shutil.rmtree(TMP / "gen_broken", ignore_errors=True)
 
-    def broken_copy(edit: Callable[[Path], None]) -> Path:
-        shutil.rmtree(broken, ignore_errors=True)
-        shutil.copytree(pipeline, broken)
-        edit(broken)
-        return broken
 
-    def generate_with(edit: Callable[[Path], None], name: str) -> None:
-        folder = broken_copy(edit)
-        case(
-            name,
-            [
-                "-m",
-                "sar_zero123.generate",
-                "--pipeline",
-                str(folder),
-                "--image",
-                str(chip),
-                "--d_az",
-                "30",
-                "--num_inference_steps",
-                "2",
-                "--output_dir",
-                str(TMP / "gen_broken"),
-            ],
-        )
-        shutil.rmtree(TMP / "gen_broken", ignore_errors=True)
+def wrong_estimator(pipeline: Path) -> None:
+    """Makes the azimuth estimator's config disagree with its weights."""
+    config = json.loads((pipeline / "azimuth_estimator" / "config.json").read_text())
+    config["code_dim"] = config.get("code_dim", 0) + 3
+    (pipeline / "azimuth_estimator" / "config.json").write_text(json.dumps(config))
 
-    generate_with(
-        lambda p: next((p / "unet").glob("*.safetensors")).unlink(), "pipeline without unet weights"
+
+def unclear_error_cases(folders: Folders) -> None:
+    """Broken pipelines, a truncated PNG and a metric call: does the error name the problem?"""
+    generate_with_broken_pipeline(
+        folders, lambda p: next((p / "unet").glob("*.safetensors")).unlink(), "pipeline without unet weights"
     )
-    generate_with(lambda p: shutil.rmtree(p / "azimuth_estimator"), "pipeline without its azimuth_estimator")
-
-    def wrong_estimator(p: Path) -> None:
-        config = json.loads((p / "azimuth_estimator" / "config.json").read_text())
-        config["code_dim"] = config.get("code_dim", 0) + 3
-        (p / "azimuth_estimator" / "config.json").write_text(json.dumps(config))
-
-    generate_with(wrong_estimator, "pipeline with a wrong azimuth_estimator config")
-    generate_with(
+    generate_with_broken_pipeline(
+        folders, lambda p: shutil.rmtree(p / "azimuth_estimator"), "pipeline without its azimuth_estimator"
+    )
+    generate_with_broken_pipeline(folders, wrong_estimator, "pipeline with a wrong azimuth_estimator config")
+    generate_with_broken_pipeline(
+        folders,
         lambda p: (p / "decibel_scaling.json").write_text('{"min_db": -40, "max_db": }'),
         "pipeline with invalid JSON in decibel_scaling.json",
     )
+    assert folders.chip is not None, "the unbounded-work cases draw the chip"
     png = TMP / "chip.png"
-    Image.fromarray((np.load(chip) * 255).astype(np.uint8)).save(png)
+    Image.fromarray((np.load(folders.chip) * 255).astype(np.uint8)).save(png)
     png.write_bytes(png.read_bytes()[:-40])
-    case(
-        "generate a truncated PNG",
-        [
-            "-m",
-            "sar_zero123.generate",
-            "--pipeline",
-            str(pipeline),
-            "--image",
-            str(png),
-            "--d_az",
-            "30",
-            "--num_inference_steps",
-            "2",
-            "--output_dir",
-            str(TMP / "gen_trunc"),
-        ],
-    )
+    case("generate a truncated PNG", generate_args(folders.pipeline, png, ["30"], TMP / "gen_trunc"))
     case(
         "azimuth_error_deg(350.0, 10.0)",
         ["-c", "import sar_zero123.evaluation.metrics as m; print(m.azimuth_error_deg(350.0, 10.0))"],
     )
 
+
+def main() -> None:
+    # 1. the finished smoke quickstart every case starts from
+    folders = run_smoke_quickstart()
+    # 2. the cases, group by group, in the order of the results
+    overwrite_cases(folders)
+    lying_report_cases(folders)
+    late_refusal_cases()
+    unbounded_work_cases(folders)
+    accepted_nonsense_cases(folders)
+    unclear_error_cases(folders)
+    # 3. the results
     OUTPUT.write_text(json.dumps({"tree": str(ROOT), "results": RESULTS}, indent=2) + "\n")
     shutil.rmtree(TMP, ignore_errors=True)
 

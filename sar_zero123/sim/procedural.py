@@ -14,6 +14,8 @@ named classes are the prior's unseen test vehicles).
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from sar_zero123.sim.primitives import Box, HorizontalCylinder, Primitive, VerticalCylinder, Wedge
@@ -75,160 +77,202 @@ def _turret(
     return parts
 
 
-def procedural_parts(seed: int) -> tuple[list[Primitive], int]:
-    """The solids of procedural vehicle ``seed`` and its number of bright details.
+class _LoadBay(NamedTuple):
+    """Where a superstructure sits: its length and centre along the hull, and its floor height."""
 
-    Args:
-        seed: Vehicle seed (>= 0).
+    length: float
+    center_u: float
+    floor_z: float
 
-    Returns:
-        ``(primitives, detail_count)``, drawn from one numpy stream keyed by ``seed``.
-    """
-    rng = np.random.default_rng([PROCEDURAL_SEED_KEY, int(seed)])
-    tracked = rng.uniform() < 0.55
-    hull_l = rng.uniform(4.2, 8.2)
-    hull_w = rng.uniform(2.2, 3.6)
-    parts: list[Primitive] = []
-    # 1. running gear
+
+def _running_gear(
+    rng: np.random.Generator, tracked: bool, hull_l: float, hull_w: float
+) -> tuple[list[Primitive], float]:
+    """Two tracks or 2-4 wheel axles, and the height of the hull's bottom above them."""
     if tracked:
         track_h, track_w = rng.uniform(0.6, 1.0), rng.uniform(0.4, 0.65)
         off = hull_w / 2 - track_w / 2
-        parts += [Box(0.0, s * off, hull_l, track_w, 0.0, track_h) for s in (1.0, -1.0)]
-        hull_bottom = rng.uniform(0.35, 0.5)
-    else:
-        n_axles = int(rng.choice([2, 3, 4], p=[0.4, 0.4, 0.2]))
-        wheel_r = rng.uniform(0.4, 0.6)
-        spacing = (hull_l - 2 * wheel_r - 0.4) / max(n_axles - 1, 1)
-        first = hull_l / 2 - wheel_r - 0.2
-        parts += [
-            HorizontalCylinder(first - i * spacing, 0.0, wheel_r, wheel_r, hull_w + 0.1, 90.0)
-            for i in range(n_axles)
-        ]
-        hull_bottom = wheel_r + rng.uniform(0.0, 0.3)
-    # 2. hull, with a sloped nose or a blunt one
-    body_w = hull_w - (rng.uniform(0.6, 1.2) if tracked else rng.uniform(0.0, 0.3))
-    body_h = rng.uniform(0.6, 1.5)
-    deck_z = hull_bottom + body_h
-    superstructure = str(rng.choice(_SUPERSTRUCTURES, p=(_TRACKED_WEIGHTS if tracked else _WHEELED_WEIGHTS)))
-    truck_like = superstructure in ("open_bed", "covered_bed", "shelter", "radar") and not tracked
-    if truck_like:  # chassis frame, a cab at the front (behind an engine hood or not), the load behind
-        cab_l = rng.uniform(1.4, 2.2)
-        hood_l = rng.uniform(0.9, 1.4) if rng.uniform() < 0.6 else 0.0
-        cab_u = hull_l / 2 - hood_l - cab_l / 2 - 0.1
-        parts.append(Box(0.0, 0.0, hull_l - 0.2, 1.0, hull_bottom, 0.35))
-        parts.append(Box(cab_u, 0.0, cab_l, hull_w - 0.1, hull_bottom, rng.uniform(1.2, 1.7)))
-        if hood_l:
-            parts.append(Box(hull_l / 2 - hood_l / 2 - 0.1, 0.0, hood_l, hull_w - 0.5, hull_bottom, 0.75))
-        load_l = max(hull_l - hood_l - cab_l - 0.5, 1.8)
-        load_u = -hull_l / 2 + load_l / 2 + 0.1
-        floor_z = hull_bottom + 0.35
-    else:
-        nose = rng.uniform() < 0.65
-        nose_l = rng.uniform(0.8, 1.8) if nose else 0.0
-        parts.append(Box(-nose_l / 2, 0.0, hull_l - nose_l, body_w, hull_bottom, body_h))
-        if nose:
-            parts.append(
-                Wedge(
-                    hull_l / 2 - nose_l / 2,
-                    0.0,
-                    nose_l,
-                    body_w,
-                    hull_bottom,
-                    body_h,
-                    front_height=rng.uniform(0.15, 0.5),
-                )
-            )
-        load_l, load_u, floor_z = hull_l * 0.55, -hull_l * 0.18, deck_z
-    # 3. superstructure
-    if superstructure in ("round_turret", "box_turret") and not truck_like:
-        parts += _turret(rng, hull_l, body_w, deck_z, superstructure == "round_turret")
-    elif superstructure == "open_bed":
-        wall_h = rng.uniform(0.4, 1.0)
-        bed_w = hull_w - 0.1
-        parts += [
-            Box(load_u, 0.0, load_l, bed_w, floor_z, 0.06),
-            Box(load_u, bed_w / 2, load_l, 0.08, floor_z, wall_h),
-            Box(load_u, -bed_w / 2, load_l, 0.08, floor_z, wall_h),
-            Box(load_u - load_l / 2, 0.0, 0.08, bed_w, floor_z, wall_h),
-            Box(load_u + load_l / 2, 0.0, 0.08, bed_w, floor_z, wall_h),
-        ]
-        if rng.uniform() < 0.4:  # cargo: a few crates
-            for _ in range(int(rng.integers(1, 4))):
-                parts.append(
-                    Box(
-                        load_u + rng.uniform(-0.35, 0.35) * load_l,
-                        rng.uniform(-0.5, 0.5),
-                        rng.uniform(0.5, 1.2),
-                        rng.uniform(0.5, 1.0),
-                        floor_z,
-                        rng.uniform(0.3, 0.8),
-                        float(rng.uniform(-20, 20)),
-                    )
-                )
-    elif superstructure in ("covered_bed", "shelter"):
-        top = rng.uniform(1.0, 1.4) if superstructure == "covered_bed" else rng.uniform(1.4, 2.0)
-        parts.append(Box(load_u, 0.0, load_l, hull_w - 0.1, floor_z, top))
-    elif superstructure == "radar":
-        parts.append(Box(load_u, 0.0, load_l * 0.8, hull_w - 0.2, floor_z, rng.uniform(1.0, 1.6)))
-        mast_h = rng.uniform(0.6, 1.6)
-        parts.append(VerticalCylinder(load_u, 0.0, 0.15, floor_z + 1.0, mast_h))
+        parts: list[Primitive] = [Box(0.0, s * off, hull_l, track_w, 0.0, track_h) for s in (1.0, -1.0)]
+        return parts, rng.uniform(0.35, 0.5)
+    n_axles = int(rng.choice([2, 3, 4], p=[0.4, 0.4, 0.2]))
+    wheel_r = rng.uniform(0.4, 0.6)
+    spacing = (hull_l - 2 * wheel_r - 0.4) / max(n_axles - 1, 1)
+    first = hull_l / 2 - wheel_r - 0.2
+    parts = [
+        HorizontalCylinder(first - i * spacing, 0.0, wheel_r, wheel_r, hull_w + 0.1, 90.0)
+        for i in range(n_axles)
+    ]
+    return parts, wheel_r + rng.uniform(0.0, 0.3)
+
+
+def _truck_chassis(
+    rng: np.random.Generator, hull_l: float, hull_w: float, hull_bottom: float
+) -> tuple[list[Primitive], _LoadBay]:
+    """A chassis frame, a cab at the front (behind an engine hood or not), and the load bay behind."""
+    cab_l = rng.uniform(1.4, 2.2)
+    hood_l = rng.uniform(0.9, 1.4) if rng.uniform() < 0.6 else 0.0
+    cab_u = hull_l / 2 - hood_l - cab_l / 2 - 0.1
+    parts: list[Primitive] = [Box(0.0, 0.0, hull_l - 0.2, 1.0, hull_bottom, 0.35)]
+    parts.append(Box(cab_u, 0.0, cab_l, hull_w - 0.1, hull_bottom, rng.uniform(1.2, 1.7)))
+    if hood_l:
+        parts.append(Box(hull_l / 2 - hood_l / 2 - 0.1, 0.0, hood_l, hull_w - 0.5, hull_bottom, 0.75))
+    load_l = max(hull_l - hood_l - cab_l - 0.5, 1.8)
+    return parts, _LoadBay(load_l, -hull_l / 2 + load_l / 2 + 0.1, hull_bottom + 0.35)
+
+
+def _armoured_hull(
+    rng: np.random.Generator, hull_l: float, body_w: float, body_h: float, hull_bottom: float, deck_z: float
+) -> tuple[list[Primitive], _LoadBay]:
+    """A hull body with a sloped nose or a blunt one; the load bay is on its deck."""
+    nose = rng.uniform() < 0.65
+    nose_l = rng.uniform(0.8, 1.8) if nose else 0.0
+    parts: list[Primitive] = [Box(-nose_l / 2, 0.0, hull_l - nose_l, body_w, hull_bottom, body_h)]
+    if nose:
         parts.append(
-            Box(
-                load_u,
+            Wedge(
+                hull_l / 2 - nose_l / 2,
                 0.0,
-                0.12,
-                rng.uniform(2.0, 3.6),
-                floor_z + 1.0 + mast_h,
-                rng.uniform(1.0, 1.8),
-                float(rng.uniform(-90, 90)),
+                nose_l,
+                body_w,
+                hull_bottom,
+                body_h,
+                front_height=rng.uniform(0.15, 0.5),
             )
         )
-    else:  # a low deck with an engine box, and a blade, a crane arm or a superstructure block
-        parts.append(
-            Box(
-                -hull_l * rng.uniform(0.1, 0.3),
-                0.0,
-                rng.uniform(1.2, 2.4),
-                rng.uniform(0.6, 1.0) * body_w,
-                deck_z,
-                rng.uniform(0.3, 0.9),
-            )
-        )
-        extra = rng.choice(["blade", "crane", "cabin", "none"])
-        if extra == "blade":
+    return parts, _LoadBay(hull_l * 0.55, -hull_l * 0.18, deck_z)
+
+
+def _open_bed(rng: np.random.Generator, hull_w: float, load: _LoadBay) -> list[Primitive]:
+    """A flat bed with four low walls, sometimes carrying a few crates."""
+    load_l, load_u, floor_z = load
+    wall_h = rng.uniform(0.4, 1.0)
+    bed_w = hull_w - 0.1
+    parts: list[Primitive] = [
+        Box(load_u, 0.0, load_l, bed_w, floor_z, 0.06),
+        Box(load_u, bed_w / 2, load_l, 0.08, floor_z, wall_h),
+        Box(load_u, -bed_w / 2, load_l, 0.08, floor_z, wall_h),
+        Box(load_u - load_l / 2, 0.0, 0.08, bed_w, floor_z, wall_h),
+        Box(load_u + load_l / 2, 0.0, 0.08, bed_w, floor_z, wall_h),
+    ]
+    if rng.uniform() < 0.4:  # cargo: a few crates
+        for _ in range(int(rng.integers(1, 4))):
             parts.append(
                 Box(
-                    hull_l / 2 + 0.5,
-                    0.0,
-                    0.25,
-                    hull_w + rng.uniform(0.2, 1.2),
-                    0.0,
-                    rng.uniform(0.9, 1.6),
-                    float(rng.uniform(-8, 8)),
-                )
-            )
-        elif extra == "crane":
-            yaw = float(rng.uniform(-180, 180))
-            arm_l = rng.uniform(2.5, 5.0)
-            y = np.deg2rad(yaw)
-            parts.append(VerticalCylinder(0.0, 0.0, 0.5, deck_z, 0.8))
-            parts.append(
-                HorizontalCylinder(
-                    arm_l / 2 * np.cos(y), arm_l / 2 * np.sin(y), 0.15, deck_z + 1.0, arm_l, yaw
-                )
-            )
-        elif extra == "cabin":
-            parts.append(
-                Box(
-                    hull_l * rng.uniform(0.0, 0.3),
+                    load_u + rng.uniform(-0.35, 0.35) * load_l,
                     rng.uniform(-0.5, 0.5),
-                    rng.uniform(1.2, 2.0),
-                    rng.uniform(1.2, 1.8),
-                    deck_z,
-                    rng.uniform(0.8, 1.5),
+                    rng.uniform(0.5, 1.2),
+                    rng.uniform(0.5, 1.0),
+                    floor_z,
+                    rng.uniform(0.3, 0.8),
+                    float(rng.uniform(-20, 20)),
                 )
             )
-    # 4. antennas, stowage (boxes, drums), and a rear door or stowage rack
+    return parts
+
+
+def _radar(rng: np.random.Generator, hull_w: float, load: _LoadBay) -> list[Primitive]:
+    """An equipment box with a mast carrying a yawed radar plate."""
+    load_l, load_u, floor_z = load
+    parts: list[Primitive] = [Box(load_u, 0.0, load_l * 0.8, hull_w - 0.2, floor_z, rng.uniform(1.0, 1.6))]
+    mast_h = rng.uniform(0.6, 1.6)
+    parts.append(VerticalCylinder(load_u, 0.0, 0.15, floor_z + 1.0, mast_h))
+    parts.append(
+        Box(
+            load_u,
+            0.0,
+            0.12,
+            rng.uniform(2.0, 3.6),
+            floor_z + 1.0 + mast_h,
+            rng.uniform(1.0, 1.8),
+            float(rng.uniform(-90, 90)),
+        )
+    )
+    return parts
+
+
+def _engine_deck(
+    rng: np.random.Generator, hull_l: float, hull_w: float, body_w: float, deck_z: float
+) -> list[Primitive]:
+    """A low deck with an engine box, and a blade, a crane arm, a superstructure block or nothing."""
+    parts: list[Primitive] = [
+        Box(
+            -hull_l * rng.uniform(0.1, 0.3),
+            0.0,
+            rng.uniform(1.2, 2.4),
+            rng.uniform(0.6, 1.0) * body_w,
+            deck_z,
+            rng.uniform(0.3, 0.9),
+        )
+    ]
+    extra = rng.choice(["blade", "crane", "cabin", "none"])
+    if extra == "blade":
+        parts.append(
+            Box(
+                hull_l / 2 + 0.5,
+                0.0,
+                0.25,
+                hull_w + rng.uniform(0.2, 1.2),
+                0.0,
+                rng.uniform(0.9, 1.6),
+                float(rng.uniform(-8, 8)),
+            )
+        )
+    elif extra == "crane":
+        yaw = float(rng.uniform(-180, 180))
+        arm_l = rng.uniform(2.5, 5.0)
+        y = np.deg2rad(yaw)
+        parts.append(VerticalCylinder(0.0, 0.0, 0.5, deck_z, 0.8))
+        parts.append(
+            HorizontalCylinder(arm_l / 2 * np.cos(y), arm_l / 2 * np.sin(y), 0.15, deck_z + 1.0, arm_l, yaw)
+        )
+    elif extra == "cabin":
+        parts.append(
+            Box(
+                hull_l * rng.uniform(0.0, 0.3),
+                rng.uniform(-0.5, 0.5),
+                rng.uniform(1.2, 2.0),
+                rng.uniform(1.2, 1.8),
+                deck_z,
+                rng.uniform(0.8, 1.5),
+            )
+        )
+    return parts
+
+
+def _superstructure(
+    rng: np.random.Generator,
+    superstructure: str,
+    truck_like: bool,
+    hull_l: float,
+    hull_w: float,
+    body_w: float,
+    deck_z: float,
+    load: _LoadBay,
+) -> list[Primitive]:
+    """The solids of one of :data:`_SUPERSTRUCTURES`: on the deck, or in the load bay of a truck."""
+    if superstructure in ("round_turret", "box_turret") and not truck_like:
+        return _turret(rng, hull_l, body_w, deck_z, superstructure == "round_turret")
+    if superstructure == "open_bed":
+        return _open_bed(rng, hull_w, load)
+    if superstructure in ("covered_bed", "shelter"):
+        top = rng.uniform(1.0, 1.4) if superstructure == "covered_bed" else rng.uniform(1.4, 2.0)
+        return [Box(load.center_u, 0.0, load.length, hull_w - 0.1, load.floor_z, top)]
+    if superstructure == "radar":
+        return _radar(rng, hull_w, load)
+    return _engine_deck(rng, hull_l, hull_w, body_w, deck_z)
+
+
+def _fittings(
+    rng: np.random.Generator,
+    hull_l: float,
+    hull_w: float,
+    body_w: float,
+    body_h: float,
+    hull_bottom: float,
+    deck_z: float,
+) -> list[Primitive]:
+    """Antennas, stowage (boxes, drums), and sometimes a rear door or stowage rack."""
+    parts: list[Primitive] = []
     for _ in range(int(rng.choice([0, 0, 1, 1, 2, 3]))):
         parts.append(
             VerticalCylinder(
@@ -258,6 +302,43 @@ def procedural_parts(seed: int) -> tuple[list[Primitive], int]:
                 rng.uniform(0.4, body_h),
             )
         )
+    return parts
+
+
+def procedural_parts(seed: int) -> tuple[list[Primitive], int]:
+    """The solids of procedural vehicle ``seed`` and its number of bright details.
+
+    Every helper draws from the same numpy stream, in a fixed order (running gear, hull, superstructure,
+    fittings, detail count); changing that order changes every procedural vehicle, and with them the
+    prior's training corpus.
+
+    Args:
+        seed: Vehicle seed (>= 0).
+
+    Returns:
+        ``(primitives, detail_count)``, drawn from one numpy stream keyed by ``seed``.
+    """
+    rng = np.random.default_rng([PROCEDURAL_SEED_KEY, int(seed)])
+    tracked = rng.uniform() < 0.55
+    hull_l = rng.uniform(4.2, 8.2)
+    hull_w = rng.uniform(2.2, 3.6)
+    # 1. running gear
+    parts, hull_bottom = _running_gear(rng, tracked, hull_l, hull_w)
+    # 2. hull, with a sloped nose or a blunt one (or a truck's chassis and cab)
+    body_w = hull_w - (rng.uniform(0.6, 1.2) if tracked else rng.uniform(0.0, 0.3))
+    body_h = rng.uniform(0.6, 1.5)
+    deck_z = hull_bottom + body_h
+    superstructure = str(rng.choice(_SUPERSTRUCTURES, p=(_TRACKED_WEIGHTS if tracked else _WHEELED_WEIGHTS)))
+    truck_like = superstructure in ("open_bed", "covered_bed", "shelter", "radar") and not tracked
+    if truck_like:
+        hull, load = _truck_chassis(rng, hull_l, hull_w, hull_bottom)
+    else:
+        hull, load = _armoured_hull(rng, hull_l, body_w, body_h, hull_bottom, deck_z)
+    parts += hull
+    # 3. superstructure
+    parts += _superstructure(rng, superstructure, truck_like, hull_l, hull_w, body_w, deck_z, load)
+    # 4. antennas, stowage (boxes, drums), and a rear door or stowage rack
+    parts += _fittings(rng, hull_l, hull_w, body_w, body_h, hull_bottom, deck_z)
     detail_count = int(rng.integers(8, 22))
     return parts, detail_count
 

@@ -30,32 +30,60 @@ def write_report(
     eval_dir = out / "eval"
     table3 = json.loads((eval_dir / "table3.json").read_text())
     evaluator_metrics = json.loads((out / "evaluators" / "metrics.json").read_text())["models"]
-    device = "CUDA " + torch.cuda.get_device_name() if torch.cuda.is_available() else "CPU"
-    total = sum(t["seconds"] for t in timings.values())
-    data_kind = "simulated data" if config.data is None else f"real chips from `{config.data}`"
+    lines = _setup_lines(preset, config, held_out, timings)
+    lines += _evaluator_lines(evaluator_metrics)
+    lines += _table_lines(eval_dir, table3)
+    lines += _speed_lines(eval_dir)
+    lines += _view_lines(eval_dir, config.lambdas)
+    lines += _depression_lines(out / "eval_depression", preset.depression_targets_deg)
+    lines += _timing_lines(timings)
+    report = out / "report.md"
+    report.write_text("\n".join(lines) + "\n")
+    return report
+
+
+def _data_sentence(preset: Preset, config: QuickstartConfig) -> str:
+    """The setup's data sentence: the simulated classes and grid, or the given folder."""
     if config.data is None:
-        data_line = (
+        return (
             f"Data: simulator classes {list(preset.classes)} ({preset.instances} object each, azimuth step "
             f"{preset.azimuth_step_deg:g} deg, 15 and 17 deg depression, {preset.image_size} px). "
         )
-    else:
-        data_line = f"Data: `{config.data}`, {preset.image_size} px centre crops. "
+    return f"Data: `{config.data}`, {preset.image_size} px centre crops. "
+
+
+def _protocol_sentence(held_out: str | None) -> str:
+    """The setup's protocol sentence: `extended` (no held-out class) or `ood-<class>`."""
     if held_out is None:
-        protocol_line = (
+        return (
             "Protocol `extended`: the model trains on the 17 deg chips of every class and is evaluated on "
             "pairs of 15 deg test views (seen classes only). "
         )
-    else:
-        protocol_line = (
-            f"Protocol `ood-{held_out}`: {held_out} is never seen in SimCLR or fine-tuning; evaluation pairs "
-            "are half seen (15 deg test views of the other classes) and half unseen (all views of the "
-            "held-out class). "
-        )
+    return (
+        f"Protocol `ood-{held_out}`: {held_out} is never seen in SimCLR or fine-tuning; evaluation pairs "
+        "are half seen (15 deg test views of the other classes) and half unseen (all views of the "
+        "held-out class). "
+    )
+
+
+def _starting_model(preset: Preset) -> str:
+    """What the fine-tunes start from: a base model trained from scratch, or the pretrained prior."""
     if preset.prior is None:
-        start = f"a `{preset.model_size}` model trained from scratch for {preset.base_steps} steps (lambda 0)"
-    else:
-        start = f"the pretrained multi-view prior `{preset.prior}` (procedural simulated vehicles)"
-    lines = [
+        return f"a `{preset.model_size}` model trained from scratch for {preset.base_steps} steps (lambda 0)"
+    return f"the pretrained multi-view prior `{preset.prior}` (procedural simulated vehicles)"
+
+
+def _setup_lines(
+    preset: Preset, config: QuickstartConfig, held_out: str | None, timings: dict[str, Any]
+) -> list[str]:
+    """The title and the setup paragraphs: preset, seed, device, total stage time, data and protocol."""
+    device = "CUDA " + torch.cuda.get_device_name() if torch.cuda.is_available() else "CPU"
+    total = sum(t["seconds"] for t in timings.values())
+    data_kind = "simulated data" if config.data is None else f"real chips from `{config.data}`"
+    data_line = _data_sentence(preset, config)
+    protocol_line = _protocol_sentence(held_out)
+    start = _starting_model(preset)
+    return [
         "# sar_zero123 quickstart report",
         "",
         f"Preset `{config.preset}`, seed {config.seed}, device {device} ({torch.get_num_threads()} threads), "
@@ -70,6 +98,12 @@ def write_report(
         + protocol_line
         + "The evaluators are trained on the 17 deg chips of all classes, as in the paper.",
         "",
+    ]
+
+
+def _evaluator_lines(evaluator_metrics: dict[str, Any]) -> list[str]:
+    """The evaluators' section: test accuracy, test azimuth error and chip counts per model."""
+    lines = [
         "## Evaluators (test split, 15 deg)",
         "",
         "| Model | Test accuracy (%) | Test azimuth error (deg) | train / test chips |",
@@ -82,7 +116,12 @@ def write_report(
             f"| {name} | {'-' if accuracy is None else f'{100 * accuracy:.1f}'} | "
             f"{'-' if error is None else f'{error:.1f}'} | {values.get('n_train')} / {values.get('n_test')} |"
         )
-    lines += [
+    return lines
+
+
+def _table_lines(eval_dir: Path, table3: dict[str, Any]) -> list[str]:
+    """The Table III and Table IV sections, from the evaluation stage's Markdown tables."""
+    return [
         "",
         f"## Table III ({table3['num_inference_steps']} DDIM steps, guidance {table3['guidance_scale']})",
         "",
@@ -96,51 +135,67 @@ def write_report(
         "",
         (eval_dir / "table4.md").read_text(),
     ]
-    if (eval_dir / "speed_error.md").is_file():
-        lines += ["## Speed against error", "", (eval_dir / "speed_error.md").read_text(),
-                  "![speed and error](eval/speed_error.png)", ""]
-    columns = " | ".join(f"lambda={weight:g}" for weight in config.lambdas)
-    lines += [f"## Generated views (input | {columns} | target)", "", "![views](eval/views.png)", ""]
+
+
+def _speed_lines(eval_dir: Path) -> list[str]:
+    """The speed-against-error section, if the evaluation stage swept step counts."""
+    if not (eval_dir / "speed_error.md").is_file():
+        return []
+    return ["## Speed against error", "", (eval_dir / "speed_error.md").read_text(),
+            "![speed and error](eval/speed_error.png)", ""]  # fmt: skip
+
+
+def _view_lines(eval_dir: Path, lambdas: list[float]) -> list[str]:
+    """The generated-views figure (one column per lambda) and, if drawn, the metrics-against-lambda one."""
+    columns = " | ".join(f"lambda={weight:g}" for weight in lambdas)
+    lines = [f"## Generated views (input | {columns} | target)", "", "![views](eval/views.png)", ""]
     if (eval_dir / "lambda_sweep.png").is_file():
         lines += ["## Metrics against lambda", "", "![lambda](eval/lambda_sweep.png)", ""]
-    depression_dir = out / "eval_depression"
-    if (depression_dir / "table3.md").is_file():
-        targets = ", ".join(f"{d:g}" for d in preset.depression_targets_deg)
-        lifted = json.loads((depression_dir / "table3.json").read_text()).get("outside_trained_range", {})
-        outside = [
-            name
-            for name, ranges in lifted.items()
-            if not all(
-                ranges["trained_d_el_deg"][0] <= d - 17.0 <= ranges["trained_d_el_deg"][1]
-                for d in preset.depression_targets_deg
-            )
-        ]
-        warning = (
-            f"**{', '.join(outside)} never trained on these depression changes** (trained d_el range "
-            f"{lifted[outside[0]]['trained_d_el_deg']} deg): a pipeline refuses such requests; they are "
-            "scored here only to measure it. "
-            if outside
-            else ""
+    return lines
+
+
+def _depression_lines(depression_dir: Path, depression_targets_deg: tuple[float, ...]) -> list[str]:
+    """The depression-change section, if that evaluation ran; it warns of models never trained on it."""
+    if not (depression_dir / "table3.md").is_file():
+        return []
+    targets = ", ".join(f"{d:g}" for d in depression_targets_deg)
+    lifted = json.loads((depression_dir / "table3.json").read_text()).get("outside_trained_range", {})
+    outside = [
+        name
+        for name, ranges in lifted.items()
+        if not all(
+            ranges["trained_d_el_deg"][0] <= d - 17.0 <= ranges["trained_d_el_deg"][1]
+            for d in depression_targets_deg
         )
-        lines += [
-            f"## Depression changes (17 deg inputs, targets at {targets} deg)",
-            "",
-            "The same models asked for a depression change (and the pair's azimuth change) on simulated "
-            f"views of the same vehicles at {targets} deg. `Dep. err.` is the depression regressor's error "
-            "on the generated view against the requested depression; `Closer to target dep.` the share of "
-            "pairs whose blurred view correlates better with the true view at the requested depression than "
-            "with the true view at the input's depression (same target azimuth). " + warning,
-            "",
-            (depression_dir / "table3.md").read_text(),
-            "![depression views](eval_depression/views.png)",
-            "",
-        ]
-    lines += ["## Stage timings (from each stage's run record)", "",
-              "| Stage | seconds | ran in this session |", "| --- | --- | --- |"]  # fmt: skip
+    ]
+    warning = (
+        f"**{', '.join(outside)} never trained on these depression changes** (trained d_el range "
+        f"{lifted[outside[0]]['trained_d_el_deg']} deg): a pipeline refuses such requests; they are "
+        "scored here only to measure it. "
+        if outside
+        else ""
+    )
+    return [
+        f"## Depression changes (17 deg inputs, targets at {targets} deg)",
+        "",
+        "The same models asked for a depression change (and the pair's azimuth change) on simulated "
+        f"views of the same vehicles at {targets} deg. `Dep. err.` is the depression regressor's error "
+        "on the generated view against the requested depression; `Closer to target dep.` the share of "
+        "pairs whose blurred view correlates better with the true view at the requested depression than "
+        "with the true view at the input's depression (same target azimuth). " + warning,
+        "",
+        (depression_dir / "table3.md").read_text(),
+        "![depression views](eval_depression/views.png)",
+        "",
+    ]
+
+
+def _timing_lines(timings: dict[str, Any]) -> list[str]:
+    """The stage-timings table, from each stage's run record."""
+    lines = ["## Stage timings (from each stage's run record)", "",
+             "| Stage | seconds | ran in this session |", "| --- | --- | --- |"]  # fmt: skip
     lines += [
         f"| {name} | {t['seconds']:.1f} | {'yes' if t['ran'] else 'no (finished before)'} |"
         for name, t in timings.items()
     ]
-    report = out / "report.md"
-    report.write_text("\n".join(lines) + "\n")
-    return report
+    return lines
