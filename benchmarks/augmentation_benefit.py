@@ -1,0 +1,552 @@
+"""Do generated views help a classifier that has few real views? (issue 26, section 2)
+
+Sparse-azimuth benchmark on a dataset with 17 and 15 deg chips (real MSTAR): keep K chips per class, evenly
+spaced in azimuth, at 17 deg, and train the same small classifier (``SARClassifier``, a four-stage ResNet on
+64 px centre crops, random +-4 px shifts) in three arms, each tested on every 15 deg chip:
+
+- ``real_k{K}``: the K kept chips per class only (the floor);
+- ``generated_k{K}``: the kept chips plus ``views_per_chip`` generated views of each, at the azimuths
+  between the kept ones, from a generator that saw only the kept chips (the pipeline ``pipeline`` fine-tuned
+  on them with :func:`sar_zero123.stages.run_finetune`, the views written by
+  :func:`sar_zero123.augment_dataset.augment_dataset`);
+- ``all_chips``: every 17 deg chip (the ceiling).
+
+Optional arms: ``--sectors`` keeps only the chips in a ``sector_deg`` azimuth sector per class (views at
+the other sectors); ``--unseen_class T72`` adds, per K, a generator fine-tuned without that class, whose views
+of it are what a user gets for a new vehicle. For each generated arm, ``view_quality`` says what limits the
+views: the ceiling classifier's accuracy on the generated views against their source's class, on the VAE
+round trip of real 15 deg chips (the generator's decoder bound) and on the same real chips.
+
+Every arm writes into its own folder under ``--out`` and ends with ``result.json``; an arm whose
+``result.json`` exists is skipped, a generator or an augmentation cut short resumes (run-folder rule), so
+a killed run is continued by the same command. ``--out``/``results.json`` gathers every finished arm.
+
+    python benchmarks/augmentation_benefit.py --data ../shared/data/mstar --out runs/aug26 [--quick]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import math
+import os
+import platform
+import time
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from sar_zero123 import SIM_PRIOR, SARZero123Pipeline
+from sar_zero123.augment_dataset import AugmentConfig, augment_dataset
+from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_index, signed_to_unit
+from sar_zero123.encoder import SAREncoderConfig
+from sar_zero123.evaluation.evaluators import SARClassifier, load_evaluator
+from sar_zero123.stages import FinetuneConfig, run_finetune
+
+logger = logging.getLogger("augmentation_benefit")
+
+TRAIN_DEPRESSION_DEG = 17.0
+TEST_DEPRESSION_DEG = 15.0
+RESULT_FILE = "result.json"
+#: Fields that only add or drop arms: a resumed benchmark may change them; any other change is refused.
+ARM_SELECTION_FIELDS = ("data", "out", "ks", "sectors", "unseen_class", "unseen_k")
+#: The reduced configuration that fits about an hour on the 2-core CPU (docs/results/augmentation_benefit.md).
+QUICK = {"ks": [12, 48], "sectors": False, "unseen_class": None, "finetune_steps": 400}
+
+
+@dataclass
+class BenchmarkConfig:
+    """The whole benchmark; the defaults are the full configuration of issue 26."""
+
+    data: str = ""  # dataset folder with index.csv holding 17 and 15 deg chips
+    out: str = ""  # benchmark folder: one sub-folder per arm and generator, results.json
+    ks: list[int] = field(default_factory=lambda: [12, 24, 48])  # kept 17 deg chips per class
+    seeds: list[int] = field(default_factory=lambda: [0, 1, 2])  # classifier seeds per arm
+    sectors: bool = True  # also the missing-sector arms
+    sector_deg: float = 90.0  # width of the kept azimuth sector (from 0 deg)
+    unseen_class: str | None = "T72"  # class the unseen-class generator never sees (None: no variant)
+    unseen_k: int = 12  # K of the unseen-class variant
+    views_per_chip: int = 3  # generated views per kept chip, evenly between it and its neighbours
+    pipeline: str = SIM_PRIOR  # pretrained pipeline each generator is fine-tuned from
+    finetune_steps: int = 1000  # fine-tune steps per generator
+    finetune_batch_size: int = 16  # pairs per fine-tune step
+    finetune_learning_rate: float = 1e-3  # AdamW learning rate of the fine-tune
+    num_inference_steps: int = 10  # DDIM steps per generated view
+    guidance_scale: float = 3.0  # classifier-free guidance of the generated views
+    image_size: int = 64  # classifier input: centre crop in pixels at the native spacing
+    classifier_steps: int = 1000  # optimisation steps per classifier (the same in every arm)
+    classifier_batch_size: int = 32  # chips per classifier step
+    classifier_learning_rate: float = 2e-3  # AdamW peak learning rate (cosine decay to 0)
+    classifier_weight_decay: float = 5e-4  # AdamW weight decay
+    max_shift_px: int = 4  # training augmentation: random shifts up to this many pixels
+    quality_chips_per_class: int = 50  # 15 deg chips per class for the VAE round-trip bound
+
+    def __post_init__(self) -> None:
+        if not self.ks or min(self.ks) < 2:
+            raise ValueError(f"ks must hold values >= 2, got {self.ks}")
+        if not self.seeds:
+            raise ValueError("seeds must not be empty")
+        if self.views_per_chip < 1:
+            raise ValueError(f"views_per_chip must be >= 1, got {self.views_per_chip}")
+        if not 0.0 < self.sector_deg < 360.0:
+            raise ValueError(f"sector_deg must lie in (0, 360), got {self.sector_deg}")
+        for name in ("finetune_steps", "classifier_steps", "classifier_batch_size", "num_inference_steps"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+
+
+# ------------------------------------------------------------------------------------------ selection
+def at_depression(records: Sequence[ChipRecord], depression_deg: float) -> list[ChipRecord]:
+    """The records within 0.01 deg of a depression."""
+    return [r for r in records if abs(r.depression_deg - depression_deg) < 0.01]
+
+
+def circular_distance_deg(a: float, b: float) -> float:
+    """Smallest angle between two azimuths in degrees, in [0, 180]."""
+    d = abs(a - b) % 360.0
+    return min(d, 360.0 - d)
+
+
+def keep_evenly_spaced(records: Sequence[ChipRecord], k: int) -> list[ChipRecord]:
+    """Per class, the `k` chips nearest to the azimuths ``i * 360 / k`` (each chip once), in record order.
+
+    Raises:
+        ValueError: If a class has fewer than `k` chips.
+    """
+    kept: set[int] = set()
+    for name in sorted({r.target_class for r in records}):
+        members = [i for i, r in enumerate(records) if r.target_class == name]
+        if len(members) < k:
+            raise ValueError(f"class {name} has {len(members)} chips, fewer than k={k}")
+        for i in range(k):
+            grid_deg = i * 360.0 / k
+            free = [j for j in members if j not in kept]
+            kept.add(min(free, key=lambda j: circular_distance_deg(records[j].azimuth_deg, grid_deg)))
+    return [records[i] for i in sorted(kept)]
+
+
+def keep_sector(records: Sequence[ChipRecord], sector_deg: float) -> list[ChipRecord]:
+    """The chips with azimuth in ``[0, sector_deg)``."""
+    return [r for r in records if r.azimuth_deg < sector_deg]
+
+
+def fill_offsets_deg(gap_deg: float, views_per_chip: int) -> list[float]:
+    """Azimuth changes that place `views_per_chip` views evenly in the gaps around a kept chip.
+
+    The views sit at ``j * gap / (views_per_chip + 1)`` for ``j = 1..views_per_chip`` after the chip, each
+    generated from the nearer of the two kept chips around it: offsets past half the gap are taken
+    backwards from the next chip, so ``|d_az| <= gap / 2``.
+    """
+    step = gap_deg / (views_per_chip + 1)
+    offsets = [j * step for j in range(1, views_per_chip + 1)]
+    return [o if o <= gap_deg / 2 else o - gap_deg for o in offsets]
+
+
+# ---------------------------------------------------------------------------------------------- chips
+def load_images(
+    records: Sequence[ChipRecord], class_names: list[str], scaling: DecibelScaling, size: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The chips as normalised dB centre crops and their labels. Shape: (N, 1, size, size), (N,)."""
+    dataset = ChipDataset(list(records), size=size, scaling=scaling, class_names=class_names)
+    items = [dataset[i] for i in range(len(dataset))]
+    images = torch.stack([item["image"] for item in items]).float()
+    labels = torch.tensor([item["label"] for item in items], dtype=torch.long)
+    return images, labels
+
+
+def random_shift(images: torch.Tensor, max_shift_px: int, generator: torch.Generator) -> torch.Tensor:
+    """Each image shifted by its own random offset in ``[-max_shift_px, max_shift_px]`` (reflected border)."""
+    if max_shift_px == 0:
+        return images
+    size = images.shape[-1]
+    padded = F.pad(images, (max_shift_px,) * 4, mode="reflect")
+    offsets = torch.randint(0, 2 * max_shift_px + 1, (len(images), 2), generator=generator)
+    return torch.stack([p[:, y : y + size, x : x + size] for p, (y, x) in zip(padded, offsets.tolist())])
+
+
+def train_classifier(
+    images: torch.Tensor,
+    labels: torch.Tensor,
+    *,
+    class_names: list[str],
+    scaling: DecibelScaling,
+    steps: int,
+    batch_size: int,
+    learning_rate: float,
+    weight_decay: float,
+    max_shift_px: int,
+    seed: int,
+) -> SARClassifier:
+    """The benchmark's classifier trained `steps` AdamW steps (cosine to 0) on random shifts of the chips.
+
+    Every arm trains for the same number of steps, so that an arm with more chips does not also get more
+    compute. The ResNet is the quickstart's evaluator (stages of one block, widths 16-128, no CIFAR stem).
+    """
+    torch.manual_seed(seed)
+    encoder_config = SAREncoderConfig(
+        image_size=images.shape[-1], in_channels=1, cifar_stem=False, depths=(1, 1, 1, 1),
+        hidden_sizes=(16, 32, 64, 128),
+    )  # fmt: skip
+    model = SARClassifier(encoder_config, class_names, scaling)
+    optimizer = torch.optim.AdamW(model.parameters(), lr=learning_rate, weight_decay=weight_decay)
+    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=steps)
+    generator = torch.Generator().manual_seed(seed)
+    model.train()
+    order = torch.randperm(len(images), generator=generator)
+    position = 0
+    for _ in range(steps):
+        if position + batch_size > len(order):
+            order, position = torch.randperm(len(images), generator=generator), 0
+        batch = order[position : position + batch_size]
+        position += batch_size
+        loss = F.cross_entropy(model(random_shift(images[batch], max_shift_px, generator)), labels[batch])
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        scheduler.step()
+    return model.eval()
+
+
+@torch.no_grad()
+def predict(model: SARClassifier, images: torch.Tensor, batch_size: int = 256) -> torch.Tensor:
+    """Predicted class indices. Shape: (N,)."""
+    model.eval()
+    starts = range(0, len(images), batch_size)
+    return torch.cat([model(images[i : i + batch_size]).argmax(dim=1) for i in starts])
+
+
+def accuracy(model: SARClassifier, images: torch.Tensor, labels: torch.Tensor) -> float:
+    """Share of correctly classified chips, in [0, 1]."""
+    return float((predict(model, images) == labels).float().mean())
+
+
+@torch.no_grad()
+def vae_round_trip(pipe: SARZero123Pipeline, images: torch.Tensor, batch_size: int = 64) -> torch.Tensor:
+    """Normalised dB images through the pipeline's VAE (latent mode, decoded), the views' best case."""
+    out = []
+    for i in range(0, len(images), batch_size):
+        signed = images[i : i + batch_size] * 2.0 - 1.0
+        latents = pipe.vae.encode(signed).latent_dist.mode()
+        out.append(signed_to_unit(pipe.vae.decode(latents).sample).clamp(0.0, 1.0))
+    return torch.cat(out)
+
+
+# ---------------------------------------------------------------------------------------- generation
+def write_generator_data(kept: Sequence[ChipRecord], folder: Path) -> Path:
+    """A dataset folder the generator trains on: the kept chips (17 deg, absolute paths) only.
+
+    The ``extended`` protocol also needs a 15 deg split; it gets a symbolic link to each kept chip listed at
+    15 deg, which fine-tuning never trains on (no validation): the generator sees the kept chips only.
+    """
+    folder.mkdir(parents=True, exist_ok=True)
+    links = folder / "links"
+    links.mkdir(exist_ok=True)
+    rows = list(kept)
+    for i, record in enumerate(kept):
+        link = links / f"{i:05d}{Path(record.path).suffix}"
+        if not link.is_symlink():
+            link.symlink_to(Path(record.path).resolve())
+        rows.append(
+            ChipRecord(**{**asdict(record), "path": link, "depression_deg": TEST_DEPRESSION_DEG})
+        )
+    index = folder / "index.csv"
+    header = "path,target_class,target_type,serial,depression_deg,azimuth_deg,height,width\n"
+    lines = [
+        f"{Path(r.path).absolute()},{r.target_class},{r.target_type},{r.serial},{r.depression_deg:g},"
+        f"{r.azimuth_deg:.4f},{r.height},{r.width}\n"
+        for r in rows
+    ]
+    tmp = index.with_suffix(".tmp")
+    tmp.write_text(header + "".join(lines))
+    os.replace(tmp, index)
+    return folder
+
+
+def timed(function: Any, *args: Any, **kwargs: Any) -> tuple[Any, dict[str, float]]:
+    """Calls `function` and returns its result with its wall and process CPU seconds."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    result = function(*args, **kwargs)
+    return result, {"wall_s": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu}
+
+
+def build_generator(
+    config: BenchmarkConfig,
+    trained_on: Sequence[ChipRecord],
+    sources: Sequence[ChipRecord],
+    folder: Path,
+    d_az: list[float],
+) -> tuple[Path, dict[str, Any]]:
+    """Fine-tunes the pipeline on `trained_on`, then generates `d_az` views of each of `sources`; both
+    resumable.
+
+    Returns the augmented dataset folder (views only) and the times of both steps.
+    """
+    timing_file = folder / "timing.json"
+    times = json.loads(timing_file.read_text()) if timing_file.is_file() else {}
+    data = write_generator_data(trained_on, folder / "data")
+    source_data = write_generator_data(sources, folder / "sources")
+    if "finetune" not in times:
+        _, times["finetune"] = timed(run_finetune, FinetuneConfig(
+            output_dir=str(folder / "finetune"), pretrained=config.pipeline, data=str(data),
+            protocol="extended", scaling="unit", pfm_weight=0.0, learning_rate=config.finetune_learning_rate,
+            train_batch_size=config.finetune_batch_size, max_train_steps=config.finetune_steps,
+            use_ema=False, snr_gamma=5.0, validation_steps=0, report_to=None,
+            checkpointing_steps=max(config.finetune_steps // 3, 1), checkpoints_total_limit=1,
+            resume_from_checkpoint="latest", seed=0,
+        ))  # fmt: skip
+        timing_file.write_text(json.dumps(times, indent=2))
+    views = folder / "views"
+    if "generate" not in times:
+        _, times["generate"] = timed(augment_dataset, AugmentConfig(
+            data=str(source_data), pipeline=str(folder / "finetune" / "pipeline"), out=str(views), d_az=d_az,
+            depressions_deg=[TRAIN_DEPRESSION_DEG], num_inference_steps=config.num_inference_steps,
+            guidance_scale=config.guidance_scale, scheduler="ddim", batch_size=16, seed=0,
+        ))  # fmt: skip
+        times["generate"]["views"] = len(load_index(views))
+        timing_file.write_text(json.dumps(times, indent=2))
+    return views, times
+
+
+def check_settings(config: BenchmarkConfig, out: Path) -> None:
+    """Records the settings in ``out/settings.json``, or refuses a resume whose settings differ there.
+
+    Raises:
+        ValueError: Naming each field (outside :data:`ARM_SELECTION_FIELDS`) that differs from the record.
+    """
+    settings = {k: v for k, v in asdict(config).items() if k not in ARM_SELECTION_FIELDS}
+    record = out / "settings.json"
+    if record.is_file():
+        recorded = json.loads(record.read_text())
+        changed = sorted(k for k in settings.keys() | recorded.keys() if settings.get(k) != recorded.get(k))
+        if changed:
+            details = ", ".join(f"{k}: {recorded.get(k)!r} -> {settings.get(k)!r}" for k in changed)
+            raise ValueError(f"out: {out} holds a benchmark with other settings ({details}); use another out")
+        return
+    out.mkdir(parents=True, exist_ok=True)
+    record.write_text(json.dumps(settings, indent=2))
+
+
+# ---------------------------------------------------------------------------------------------- arms
+class Benchmark:
+    """The chips in memory once, and the arms that train classifiers on subsets of them."""
+
+    def __init__(self, config: BenchmarkConfig) -> None:
+        self.config = config
+        self.out = Path(config.out)
+        check_settings(config, self.out)
+        records = load_index(config.data)
+        self.train_records = at_depression(records, TRAIN_DEPRESSION_DEG)
+        self.test_records = at_depression(records, TEST_DEPRESSION_DEG)
+        if not self.train_records or not self.test_records:
+            raise ValueError(f"data: needs chips at {TRAIN_DEPRESSION_DEG} and {TEST_DEPRESSION_DEG} deg")
+        self.class_names = sorted({r.target_class for r in records})
+        self.scaling = DecibelScaling.for_unit_magnitude()
+        self._cache: dict[str, tuple[torch.Tensor, torch.Tensor]] = {}
+        self.test_images, self.test_labels = self.images(self.test_records)
+
+    def images(self, records: Sequence[ChipRecord]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Normalised crops and labels of records, each chip read from disk once."""
+        missing = [r for r in records if str(r.path) not in self._cache]
+        if missing:
+            images, labels = load_images(missing, self.class_names, self.scaling, self.config.image_size)
+            for record, image, label in zip(missing, images, labels):
+                self._cache[str(record.path)] = (image, label)
+        pairs = [self._cache[str(r.path)] for r in records]
+        return torch.stack([p[0] for p in pairs]), torch.stack([p[1] for p in pairs])
+
+    def classifiers(self, records: Sequence[ChipRecord], arm_dir: Path) -> dict[str, Any]:
+        """Trains one classifier per seed on the records and scores each on every 15 deg chip."""
+        config = self.config
+        images, labels = self.images(records)
+        per_seed = []
+        for seed in config.seeds:
+            model, times = timed(
+                train_classifier, images, labels, class_names=self.class_names, scaling=self.scaling,
+                steps=config.classifier_steps, batch_size=config.classifier_batch_size,
+                learning_rate=config.classifier_learning_rate, weight_decay=config.classifier_weight_decay,
+                max_shift_px=config.max_shift_px, seed=seed,
+            )  # fmt: skip
+            test_accuracy = accuracy(model, self.test_images, self.test_labels)
+            per_seed.append({"seed": seed, "test_accuracy": test_accuracy, **times})
+            if seed == config.seeds[0]:
+                model.save_pretrained(arm_dir / "classifier_seed0")
+            logger.info("%s seed %d: %.4f", arm_dir.name, seed, per_seed[-1]["test_accuracy"])
+        accuracies = np.array([s["test_accuracy"] for s in per_seed])
+        return {
+            "n_train": len(records),
+            "n_test": len(self.test_records),
+            "test_accuracy_mean": float(accuracies.mean()),
+            "test_accuracy_std": float(accuracies.std(ddof=1)) if len(accuracies) > 1 else 0.0,
+            "seeds": per_seed,
+            "classifier_cpu_s": sum(s["cpu_s"] for s in per_seed),
+            "classifier_wall_s": sum(s["wall_s"] for s in per_seed),
+        }
+
+    def run_arm(self, name: str, build: Any) -> dict[str, Any]:
+        """Runs one arm into ``out/<name>`` unless its ``result.json`` exists; returns its result."""
+        arm_dir = self.out / name
+        result_file = arm_dir / RESULT_FILE
+        if result_file.is_file():
+            logger.info("%s finished; skipping", name)
+            return json.loads(result_file.read_text())
+        arm_dir.mkdir(parents=True, exist_ok=True)
+        logger.info("arm %s", name)
+        result = {"arm": name, **build(arm_dir)}
+        result["total_cpu_s"] = result["classifier_cpu_s"] + result.get("generator_cpu_s", 0.0)
+        result["total_wall_s"] = result["classifier_wall_s"] + result.get("generator_wall_s", 0.0)
+        tmp = result_file.with_suffix(".tmp")
+        tmp.write_text(json.dumps(result, indent=2))
+        os.replace(tmp, result_file)
+        return result
+
+    def real_arm(self, kept: Sequence[ChipRecord], description: str) -> Any:
+        return lambda arm_dir: {"description": description, **self.classifiers(kept, arm_dir)}
+
+    def generated_arm(
+        self, kept: Sequence[ChipRecord], d_az: list[float], generator_dir: Path, description: str,
+        generator_records: Sequence[ChipRecord] | None = None,
+    ) -> Any:  # fmt: skip
+        def build(arm_dir: Path) -> dict[str, Any]:
+            trained_on = kept if generator_records is None else generator_records
+            views_dir, times = build_generator(self.config, trained_on, kept, generator_dir, d_az)
+            views = load_index(views_dir)
+            result = self.classifiers(list(kept) + views, arm_dir)
+            result.update(
+                description=description, n_real=len(kept), n_generated=len(views), d_az_deg=d_az,
+                generator=str(generator_dir), generator_times=times,
+                generator_cpu_s=sum(t["cpu_s"] for t in times.values()),
+                generator_wall_s=sum(t["wall_s"] for t in times.values()),
+                view_quality=self.view_quality(views, generator_dir),
+            )
+            return result
+
+        return build
+
+    def view_quality(self, views: Sequence[ChipRecord], generator_dir: Path) -> dict[str, Any]:
+        """The ceiling classifier on the generated views, on VAE round trips of 15 deg chips and on those
+        chips."""
+        ceiling = load_evaluator(self.out / "all_chips" / "classifier_seed0")
+        view_images, view_labels = self.images(views)
+        sample = []
+        for name in self.class_names:
+            members = [r for r in self.test_records if r.target_class == name]
+            step = max(len(members) // self.config.quality_chips_per_class, 1)
+            sample += members[::step][: self.config.quality_chips_per_class]
+        real_images, real_labels = self.images(sample)
+        pipe = SARZero123Pipeline.from_pretrained(generator_dir / "finetune" / "pipeline")
+        round_trip = vae_round_trip(pipe, real_images)
+        per_class = {
+            name: float((predict(ceiling, view_images[view_labels == i]) == i).float().mean())
+            for i, name in enumerate(self.class_names)
+            if (view_labels == i).any()
+        }
+        return {
+            "classifier": "all_chips seed 0",
+            "generated_views_accuracy": accuracy(ceiling, view_images, view_labels),
+            "generated_views_accuracy_per_class": per_class,
+            "n_views": len(views),
+            "vae_round_trip_accuracy": accuracy(ceiling, round_trip, real_labels),
+            "real_accuracy_same_chips": accuracy(ceiling, real_images, real_labels),
+            "n_round_trip": len(sample),
+            "vae_round_trip_mae": float((round_trip - real_images).abs().mean()),
+            "normalised_db_mean_std": {
+                "generated": [float(view_images.mean()), float(view_images.std())],
+                "real_15deg": [float(real_images.mean()), float(real_images.std())],
+                "vae_round_trip": [float(round_trip.mean()), float(round_trip.std())],
+            },
+        }
+
+    def run(self) -> dict[str, Any]:
+        """Every arm of the configuration, ceiling first (the view-quality classifier)."""
+        config = self.config
+        results = [self.run_arm("all_chips", self.real_arm(self.train_records, "every 17 deg chip"))]
+        for k in config.ks:
+            kept = keep_evenly_spaced(self.train_records, k)
+            d_az = fill_offsets_deg(360.0 / k, config.views_per_chip)
+            results.append(self.run_arm(f"real_k{k}", self.real_arm(kept, f"{k} evenly spaced chips/class")))
+            results.append(self.run_arm(f"generated_k{k}", self.generated_arm(
+                kept, d_az, self.out / f"generator_k{k}",
+                f"{k} chips/class + {config.views_per_chip} views each",
+            )))  # fmt: skip
+        if config.sectors:
+            kept = keep_sector(self.train_records, config.sector_deg)
+            sectors = math.floor(360.0 / config.sector_deg)
+            d_az = [config.sector_deg * j for j in range(1, sectors)]
+            d_az = [d if d <= 180.0 else d - 360.0 for d in d_az]
+            sector = f"[0, {config.sector_deg:g}) deg"
+            results.append(self.run_arm("real_sector", self.real_arm(kept, sector)))
+            results.append(self.run_arm("generated_sector", self.generated_arm(
+                kept, d_az, self.out / "generator_sector", f"{sector} + rotated views",
+            )))  # fmt: skip
+        if config.unseen_class is not None:
+            k = config.unseen_k
+            kept = keep_evenly_spaced(self.train_records, k)
+            seen = [r for r in kept if r.target_class != config.unseen_class]
+            d_az = fill_offsets_deg(360.0 / k, config.views_per_chip)
+            # views of every class, from a generator that never saw the unseen one
+            results.append(self.run_arm(f"generated_k{k}_unseen_{config.unseen_class}", self.generated_arm(
+                kept, d_az, self.out / f"generator_k{k}_without_{config.unseen_class}",
+                f"{k} chips/class + views; generator trained without {config.unseen_class}",
+                generator_records=seen,
+            )))  # fmt: skip
+        summary = {
+            "benchmark": "augmentation_benefit (issue 26)",
+            "config": asdict(config),
+            "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}",
+            "platform": platform.platform(),
+            "arms": results,
+        }
+        (self.out / "results.json").write_text(json.dumps(summary, indent=2))
+        return summary
+
+
+def format_table(summary: dict[str, Any]) -> str:
+    """The arms as a Markdown table: accuracy (mean +- std over seeds, %), chips, times."""
+    lines = [
+        "| arm | real chips | generated views | 15 deg accuracy (%) | seeds | generator CPU (min) | "
+        "arm CPU (min) | arm wall (min) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+    ]
+    for arm in summary["arms"]:
+        generated = arm.get("n_generated", 0)
+        lines.append(
+            f"| {arm['arm']} | {arm['n_train'] - generated} | {generated} | "
+            f"{100 * arm['test_accuracy_mean']:.1f} +- {100 * arm['test_accuracy_std']:.1f} | "
+            f"{len(arm['seeds'])} | {arm.get('generator_cpu_s', 0.0) / 60:.1f} | "
+            f"{arm['total_cpu_s'] / 60:.1f} | {arm['total_wall_s'] / 60:.1f} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    defaults = BenchmarkConfig()
+    for name, value in asdict(defaults).items():
+        flag = f"--{name}"
+        if isinstance(value, bool):
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=value)
+        elif isinstance(value, list):
+            parser.add_argument(flag, nargs="+", type=int, default=value)
+        elif name == "unseen_class":
+            parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else s)
+        else:
+            parser.add_argument(flag, type=type(value), default=value)
+    parser.add_argument("--quick", action="store_true", help=f"the reduced run: {QUICK}")
+    args = vars(parser.parse_args(argv))
+    if args.pop("quick"):
+        args.update(QUICK)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
+    torch.set_num_threads(max(torch.get_num_threads(), 1))
+    summary = Benchmark(BenchmarkConfig(**args)).run()
+    print(format_table(summary))
+    return summary
+
+
+if __name__ == "__main__":
+    main()

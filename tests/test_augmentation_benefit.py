@@ -1,0 +1,108 @@
+"""Tests for ``benchmarks/augmentation_benefit.py`` on a tiny simulated dataset and the tiny pipeline."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from benchmarks.augmentation_benefit import (
+    BenchmarkConfig,
+    circular_distance_deg,
+    fill_offsets_deg,
+    keep_evenly_spaced,
+    keep_sector,
+    main,
+    random_shift,
+)
+from sar_zero123.data import SCALING_FILE, ChipRecord, DecibelScaling
+from sar_zero123.model.build import build_sar_zero123
+from sar_zero123.sim import simulate_dataset
+
+
+def record(target_class: str, azimuth_deg: float) -> ChipRecord:
+    return ChipRecord(
+        path=f"/x/{target_class}_{azimuth_deg}.npy", target_class=target_class, target_type="t", serial="s",
+        depression_deg=17.0, azimuth_deg=azimuth_deg, height=64, width=64,
+    )  # fmt: skip
+
+
+def test_keep_evenly_spaced_picks_the_chip_nearest_each_grid_azimuth():
+    # every 10 deg, two classes; K = 4 wants 0, 90, 180, 270: 359 is nearer to 0 than 10 is (wrap)
+    records = [record(c, a) for c in ("A", "B") for a in [359.0, *range(10, 359, 10)]]
+    kept = keep_evenly_spaced(records, 4)
+    assert sorted(r.azimuth_deg for r in kept if r.target_class == "A") == [90.0, 180.0, 270.0, 359.0]
+    assert len(kept) == 8
+    with pytest.raises(ValueError, match="fewer than k"):
+        keep_evenly_spaced(records[:3], 4)
+    assert [r.azimuth_deg for r in keep_sector(records[:12], 90.0)] == [10.0 * i for i in range(1, 9)]
+
+
+def test_fill_offsets_place_views_evenly_from_the_nearer_chip():
+    assert fill_offsets_deg(30.0, 3) == [7.5, 15.0, -7.5]
+    assert fill_offsets_deg(7.5, 1) == [3.75]
+    assert circular_distance_deg(350.0, 10.0) == 20.0
+
+
+def test_random_shift_moves_each_image_within_the_bound():
+    images = torch.arange(2 * 16 * 16, dtype=torch.float32).reshape(2, 1, 16, 16)
+    shifted = random_shift(images, 2, torch.Generator().manual_seed(0))
+    assert shifted.shape == images.shape
+    # the centre 12 x 12 of a shifted image is a window of the original, offset by at most 2 px
+    for original, moved in zip(images, shifted):
+        centre = moved[0, 2:14, 2:14]
+        windows = [original[0, dy : dy + 12, dx : dx + 12] for dy in range(5) for dx in range(5)]
+        found = [window for window in windows if torch.equal(window, centre)]
+        assert len(found) == 1
+
+
+def test_config_refuses_bad_fields():
+    with pytest.raises(ValueError, match="ks"):
+        BenchmarkConfig(ks=[1])
+    with pytest.raises(ValueError, match="views_per_chip"):
+        BenchmarkConfig(views_per_chip=0)
+
+
+def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
+    data = simulate_dataset(tmp_path / "data", classes=("TANK", "APC"), instances=1, azimuth_step_deg=45,
+                            depressions_deg=(15.0, 17.0), size=32)  # fmt: skip
+    torch.manual_seed(0)
+    pipe = build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True)
+    pipe.save_pretrained(tmp_path / "pipeline")
+    scaling = DecibelScaling.for_unit_magnitude().to_dict()
+    (tmp_path / "pipeline" / SCALING_FILE).write_text(json.dumps(scaling))
+    args = ["--data", str(data), "--out", str(tmp_path / "out"), "--pipeline", str(tmp_path / "pipeline"),
+            "--ks", "4", "--seeds", "0", "1", "--image_size", "32", "--finetune_steps", "2",
+            "--finetune_batch_size", "2", "--num_inference_steps", "2", "--classifier_steps", "3",
+            "--classifier_batch_size", "4", "--quality_chips_per_class", "2", "--views_per_chip", "1",
+            "--sector_deg", "180", "--unseen_class", "TANK", "--unseen_k", "4"]  # fmt: skip
+    summary = main(args)
+    arms = {arm["arm"]: arm for arm in summary["arms"]}
+    assert list(arms) == ["all_chips", "real_k4", "generated_k4", "real_sector", "generated_sector",
+                          "generated_k4_unseen_TANK"]  # fmt: skip
+    assert arms["all_chips"]["n_train"] == 16 and arms["all_chips"]["n_test"] == 16
+    assert arms["real_k4"]["n_train"] == 8
+    # one view per kept chip, at +45 deg (gap 90 deg)
+    assert arms["generated_k4"]["n_generated"] == 8 and arms["generated_k4"]["n_train"] == 16
+    assert arms["generated_k4"]["d_az_deg"] == [45.0]
+    assert arms["real_sector"]["n_train"] == 8 and arms["generated_sector"]["n_generated"] == 8
+    assert arms["generated_k4_unseen_TANK"]["n_generated"] == 8
+    for arm in arms.values():
+        assert len(arm["seeds"]) == 2 and 0.0 <= arm["test_accuracy_mean"] <= 1.0
+        assert arm["total_cpu_s"] >= arm["classifier_cpu_s"] > 0.0
+    quality = arms["generated_k4"]["view_quality"]
+    assert quality["n_views"] == 8 and quality["n_round_trip"] == 4
+    assert 0.0 <= quality["vae_round_trip_accuracy"] <= 1.0
+    # the generator of the unseen variant was trained on APC chips only
+    rows = (tmp_path / "out" / "generator_k4_without_TANK" / "data" / "index.csv").read_text().splitlines()
+    assert {row.split(",")[1] for row in rows[1:]} == {"APC"}
+    # a second run finds every arm finished and retrains nothing
+    stamps = {p: p.stat().st_mtime_ns for p in (tmp_path / "out").glob("*/result.json")}
+    again = main(args)
+    accuracies = [arm["test_accuracy_mean"] for arm in summary["arms"]]
+    assert [arm["test_accuracy_mean"] for arm in again["arms"]] == accuracies
+    assert {p: p.stat().st_mtime_ns for p in stamps} == stamps
+    # more K is a resume; other classifier settings are another benchmark
+    with pytest.raises(ValueError, match="classifier_steps: 3 -> 4"):
+        main([*args, "--classifier_steps", "4"])
