@@ -10,7 +10,7 @@ import PIL.Image
 import pytest
 import torch
 from dummies import get_dummy_components
-from test_data_mstar_raw import write_mstar
+from mstar_files import write_mstar
 
 import sar_zero123.pretrained as pretrained
 from sar_zero123.data import SCALING_FILE, DecibelScaling
