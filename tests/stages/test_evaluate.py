@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 import torch
+from chip_folders import TINY_ENCODER, write_chip_folder
 from dummies import get_dummy_components
-from test_evaluators import TINY_ENCODER, write_chip_folder
 
 from sar_zero123.config import save_config, write_json_atomic
 from sar_zero123.data import load_chip
