@@ -44,6 +44,7 @@ def open_stage_folder(
     restart: bool,
     may_differ: Iterable[str] = (),
     may_extend: Iterable[str] = (),
+    resume_hint: str = "--resume_from_checkpoint latest",
 ) -> RunFolder:
     """:func:`~sar_zero123.training.run_folder.open_run_folder` on every process of a launch; the main process
     writes.
@@ -61,6 +62,7 @@ def open_stage_folder(
         restart: Move an existing run aside first.
         may_differ: Fields that never change what the folder holds.
         may_extend: Fields that may change when continuing.
+        resume_hint: How the user continues a run of this stage, used in messages.
 
     Returns:
         The opened folder (the main process's view: on the others, the check's).
@@ -70,7 +72,7 @@ def open_stage_folder(
     """
     state = launch_state()
     options = dict(data=data, resume=resume, restart=restart, may_differ=tuple(may_differ),
-                   may_extend=tuple(may_extend))  # fmt: skip
+                   may_extend=tuple(may_extend), resume_hint=resume_hint)  # fmt: skip
     folder = None
     if state.num_processes > 1:
         folder = open_run_folder(path, stage, config, write=False, **options)

@@ -51,8 +51,8 @@ from sar_zero123.evaluation.evaluators import (
     load_evaluator,
 )
 from sar_zero123.evaluation.metrics import azimuth_error_deg, classification_accuracy
-from sar_zero123.stages._folders import withdrawn_if_setup_fails
-from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run, open_run_folder
+from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
+from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run
 from sar_zero123.training.run_state import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
 from sar_zero123.training.runs import start_run
 
@@ -357,7 +357,7 @@ def run_evaluators(config: TrainEvaluatorsConfig) -> Path:
         inputs["simclr_encoders"] = [
             model_identity(path, f"simclr_encoders[{i}]") for i, path in enumerate(config.simclr_encoders)
         ]
-    folder = open_run_folder(
+    folder = open_stage_folder(
         config.output_dir, "evaluators", config, data=inputs, resume=config.resume, restart=config.restart,
         may_differ=EVALUATORS_MAY_DIFFER, resume_hint="--resume",
     )  # fmt: skip
