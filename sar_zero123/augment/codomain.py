@@ -5,11 +5,13 @@ sample and an explicit ``generator``: the random monotonic map (Algorithm 1: :fu
 :func:`apply_lookup_table`, :func:`random_monotonic`), Rayleigh speckle (Eq. 17-18: :func:`sample_rayleigh`,
 :func:`speckle_magnitude`, :func:`rayleigh_speckle`) and additive Gaussian noise. The augmented magnitude
 is then mapped to normalised decibels by the dataset's ``DecibelScaling``
-(:func:`sar_zero123.augment.augment_batch`).
+(:func:`sar_zero123.augment.augment_batch`). :func:`readd_speckle` applies the speckle model to the smooth
+views a decoder returns, in normalised dB.
 """
 
 from __future__ import annotations
 
+import math
 from typing import Literal
 
 import torch
@@ -28,8 +30,10 @@ __all__ = [
     "SpeckleMode",
     "additive_gaussian",
     "apply_lookup_table",
+    "log_speckle_stats",
     "random_monotonic",
     "rayleigh_speckle",
+    "readd_speckle",
     "sample_monotonic_map",
     "sample_rayleigh",
     "speckle_magnitude",
@@ -310,3 +314,71 @@ def additive_gaussian(
     _check_nonnegative(std, "std")
     noise = _draw("randn", tuple(x.shape), generator, x.device, x.dtype)
     return (x + std * noise).clamp(0.0, 1.0)
+
+
+# ---------------------------------------------------------------------------------------------------
+# Speckle re-added to a smooth (decoded) view
+# ---------------------------------------------------------------------------------------------------
+
+
+def log_speckle_stats(looks: int) -> tuple[float, float]:
+    """Mean and standard deviation, in dB, of ``10 log10 g`` for L-look speckle ``g ~ Gamma(L, 1/L)``.
+
+    Closed forms: mean ``(10 / ln 10) (psi(L) - ln L)``, standard deviation ``(10 / ln 10) sqrt(psi_1(L))``
+    (digamma and trigamma): -2.51 dB and 5.57 dB for single-look speckle, whose amplitude is Rayleigh.
+
+    Raises:
+        ValueError: If ``looks`` is not an integer >= 1.
+    """
+    _check_looks(looks)
+    scale = 10.0 / math.log(10.0)
+    value = torch.tensor(float(looks), dtype=torch.float64)
+    mean = scale * (float(torch.special.digamma(value)) - math.log(looks))
+    std = scale * math.sqrt(float(torch.special.polygamma(1, value)))
+    return mean, std
+
+
+def readd_speckle(
+    x: torch.Tensor, db_range: float, looks: int = 1, generator: torch.Generator | None = None
+) -> torch.Tensor:
+    """Speckle re-added to smooth views in normalised dB: the co-domain speckle model of Eq. (17) applied to
+    the output of a decoder, which returns the speckle-free mean of what it was trained on.
+
+    A decoder trained with a pixel loss in normalised dB regresses to the local mean of the log image, so
+    its views lack the speckle every real chip carries and that a classifier trained on real chips reads.
+    Each pixel gets an independent L-look intensity factor ``g ~ Gamma(L, 1/L)`` (single look: ``g =
+    Exp(1)``, a Rayleigh amplitude, as Eq. 17); in dB it is added after removing its mean
+    (:func:`log_speckle_stats`), so the view keeps its mean log brightness and gains the spread of speckle:
+
+        x' = clip(x + (10 log10 g - E[10 log10 g]) / db_range, 0, 1)
+
+    Args:
+        x: Views in normalised dB, in [0, 1].
+        db_range: ``max_db - min_db`` of the views' ``DecibelScaling`` (60.0087 for unit magnitudes).
+        looks: Number of independent looks L averaged (>= 1; MSTAR chips are single look).
+        generator: Source of randomness.
+
+    Returns:
+        The speckled views in normalised dB, in [0, 1].
+
+    Shape:
+        ``(B, C, H, W)`` -> ``(B, C, H, W)``.
+
+    Raises:
+        ValueError: If ``x`` is not a finite rank-4 tensor in [0, 1], ``db_range <= 0`` or ``looks`` is not
+            an integer >= 1.
+    """
+    _check_images(x)
+    _check_positive(db_range, "db_range")
+    mean_db, _ = log_speckle_stats(looks)
+    shape = (looks, *x.shape)
+    # L-look intensity: the mean of L unit exponentials, each -ln U with U in (0, 1]
+    uniform = 1.0 - _draw("rand", shape, generator, x.device, torch.float32)
+    intensity = (-uniform.log()).mean(dim=0)
+    speckle_db = 10.0 * torch.log10(intensity.clamp_min(torch.finfo(torch.float32).tiny)) - mean_db
+    return (x + (speckle_db / db_range).to(x.dtype)).clamp(0.0, 1.0)
+
+
+def _check_looks(looks: int) -> None:
+    if isinstance(looks, bool) or not isinstance(looks, int) or looks < 1:
+        raise ValueError(f"`looks` must be an integer >= 1, got {looks!r}")

@@ -31,6 +31,7 @@ from sar_zero123.pretrained import resolve_pretrained
 __all__ = [
     "SAR_ZERO123_SIZES",
     "build_sar_zero123",
+    "check_same_latents",
     "check_vae_fits",
     "load_sar_zero123",
     "record_trained_pose_ranges",
@@ -371,14 +372,21 @@ def check_vae_fits(vae: AutoencoderKL, pipe: SARZero123Pipeline, name: str = "va
         )
 
 
-def replace_vae(pipe: SARZero123Pipeline, path: str | os.PathLike) -> SARZero123Pipeline:
+def replace_vae(
+    pipe: SARZero123Pipeline, path: str | os.PathLike, *, same_latents: bool = False
+) -> SARZero123Pipeline:
     """``pipe`` with the ``AutoencoderKL`` saved in ``path`` (``train/train_vae.py``) as its VAE.
+
+    With ``same_latents`` the new VAE must encode exactly as the old one (the same encoder weights and
+    latent scaling factor: a decoder fine-tuned alone, ``train_vae.py --pretrained ... --no-train_encoder``),
+    so that a trained UNet keeps the latents it was trained on and only the decoding changes.
 
     Raises:
         FileNotFoundError: If ``path`` holds no ``AutoencoderKL`` ``config.json`` (a ``train_vae.py`` run
             folder holds its VAE in the ``vae`` subfolder: the message says so) or no weights (naming
             the file expected).
-        ValueError: If the weights do not load or the VAE does not fit (:func:`check_vae_fits`).
+        ValueError: If the weights do not load, the VAE does not fit (:func:`check_vae_fits`), or, with
+            ``same_latents``, it encodes differently.
     """
     path = Path(path)
     config_file = path / "config.json"
@@ -396,8 +404,40 @@ def replace_vae(pipe: SARZero123Pipeline, path: str | os.PathLike) -> SARZero123
         )
     vae = load_component(AutoencoderKL, path, "vae")
     check_vae_fits(vae, pipe, name=f"vae: {str(path)!r}")
+    if same_latents:
+        check_same_latents(vae, pipe.vae, name=f"vae: {str(path)!r}")
     # `pipe.components`, not `from_pipe`: that casts every module to one dtype (float32 by default)
     return SARZero123Pipeline(**{**pipe.components, "vae": vae.eval()})
+
+
+def check_same_latents(vae: AutoencoderKL, reference: AutoencoderKL, name: str = "vae") -> None:
+    """Refuse a VAE that does not encode as ``reference``: other encoder weights or latent scaling factor.
+
+    Raises:
+        ValueError: Naming what differs and how to obtain a VAE that encodes the same.
+    """
+    encoders = {part: (getattr(vae, part), getattr(reference, part)) for part in ("encoder", "quant_conv")}
+    differing = [
+        part for part, (a, b) in encoders.items()
+        if (a is None) != (b is None) or (a is not None and not _same_state(a, b))
+    ]  # fmt: skip
+    if not math.isclose(vae.config.scaling_factor, reference.config.scaling_factor, rel_tol=1e-6):
+        differing.append(
+            f"scaling_factor ({vae.config.scaling_factor:.6g}, not {reference.config.scaling_factor:.6g})"
+        )
+    if differing:
+        raise ValueError(
+            f"{name} encodes differently from the pipeline's VAE ({', '.join(differing)} differ), so the "
+            "UNet would sample latents it was never trained on; give a VAE whose decoder alone was "
+            "fine-tuned from the pipeline's (train/train_vae.py --pretrained PIPELINE --no-train_encoder)"
+        )
+
+
+def _same_state(a: torch.nn.Module, b: torch.nn.Module) -> bool:
+    first, second = a.state_dict(), b.state_dict()
+    return first.keys() == second.keys() and all(
+        first[k].shape == second[k].shape and torch.equal(first[k].cpu(), second[k].cpu()) for k in first
+    )
 
 
 def record_trained_pose_ranges(pose_projection: PoseProjection, pairs: ViewPairDataset) -> tuple[list, list]:

@@ -31,6 +31,7 @@ from typing import Any
 
 import torch
 
+from sar_zero123.augment import readd_speckle
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.evaluation.evaluators import Evaluators, load_evaluators
 from sar_zero123.evaluation.protocol import (
@@ -59,6 +60,7 @@ from sar_zero123.evaluation.tables import (
     table3_markdown,
     table4_markdown,
 )
+from sar_zero123.model.build import replace_vae
 from sar_zero123.model.pipeline import MAX_GUIDANCE_SCALE, SARZero123Pipeline
 from sar_zero123.stages._folders import withdrawn_if_setup_fails
 from sar_zero123.stages.evaluators import model_identity
@@ -123,6 +125,12 @@ class EvaluateConfig:
     n: int = 1000  # generated samples in total (split evenly between seen and unseen; at most 100,000)
     num_inference_steps: int = 50  # denoising steps for Tables III/IV
     guidance_scale: float = 3.0  # classifier-free guidance weight
+    # an AutoencoderKL folder decoding for every pipeline instead of its own VAE; it must encode as theirs
+    # (a decoder fine-tuned alone: train/train_vae.py --pretrained PIPELINE --no-train_encoder)
+    vae: str | None = None
+    # also score every generated view and VAE round trip with speckle re-added (readd_speckle with this many
+    # looks; MSTAR chips are single look: 1), as rows "<row> + speckle"; None: not
+    speckle_looks: int | None = None
     steps: list[int] = field(default_factory=list)  # speed/error sweep: step counts (e.g. 10 20 50)
     schedulers: list[str] = field(default_factory=list)  # speed/error sweep: ddim, dpmsolver++, euler
     speed_n: int | None = None  # samples per speed/error point, from the seen pairs (None: all of them)
@@ -145,6 +153,11 @@ class EvaluateConfig:
         self._check_depressions()
         if self.resume and self.restart:
             raise ValueError("resume and restart: choose one (continue this run, or move it aside)")
+        looks = self.speckle_looks
+        if looks is not None and (isinstance(looks, bool) or not isinstance(looks, int) or looks < 1):
+            raise ValueError(f"speckle_looks must be an integer >= 1 or None, got {looks!r}")
+        if self.vae is not None and not Path(self.vae).is_dir():
+            raise FileNotFoundError(f"vae: expected an AutoencoderKL folder, got {self.vae}")
 
     def _check_pipelines(self) -> None:
         if not self.pipeline:
@@ -299,6 +312,8 @@ def run_evaluate(config: EvaluateConfig) -> Path:
         "evaluators": model_identity(config.evaluators, "evaluators"),
         "pipelines": [model_identity(path, f"pipeline[{i}]") for i, path in enumerate(config.pipeline)],
     }
+    if config.vae is not None:
+        inputs["vae"] = model_identity(config.vae, "vae")
     folder = open_run_folder(
         config.output_dir, "evaluate", config, data=inputs, resume=config.resume, restart=config.restart,
         may_differ=EVALUATE_MAY_DIFFER, resume_hint="--resume",
@@ -352,7 +367,10 @@ def _load_pipelines(
     pipes, lifted = {}, {}
     for name, path in zip(config.names, config.pipeline):
         check_pipeline_scaling(path, evaluators)
-        pipe = SARZero123Pipeline.from_pretrained(path).to(device)
+        pipe = SARZero123Pipeline.from_pretrained(path)
+        if config.vae is not None:
+            pipe = replace_vae(pipe, config.vae, same_latents=True)
+        pipe = pipe.to(device)
         pipe.set_progress_bar_config(disable=True)
         pipes[name] = pipe
         projection = pipe.pose_projection.config
@@ -399,8 +417,30 @@ def _score_references(
         for group, pairs in pair_sets.items():
             views = vae_round_trip(pipe, pairs.targets, config.eval_batch_size, device)
             results[row][group] = score(views, pairs, evaluators, **scoring)
+            _score_speckled(config, results, row, group, views, pairs, evaluators, device)
         logger.info("%s: %s", row, json.dumps(results[row]))
     return results
+
+
+def _score_speckled(
+    config: EvaluateConfig,
+    results: dict[str, dict[str, dict[str, float]]],
+    row: str,
+    group: str,
+    views: torch.Tensor,
+    pairs: PairSet,
+    evaluators: Evaluators,
+    device: torch.device,
+) -> None:
+    """With ``speckle_looks``, the row ``"<row> + speckle"``: ``views`` with speckle re-added, scored. Every
+    row draws the same speckle (one seed), so rows differ by their views alone."""
+    if config.speckle_looks is None:
+        return
+    scaling = evaluators.classifier.scaling
+    generator = torch.Generator().manual_seed(config.seed)
+    speckled = readd_speckle(views.cpu(), scaling.max_db - scaling.min_db, config.speckle_looks, generator)
+    scores = score(speckled, pairs, evaluators, **_scoring(config, device))
+    results.setdefault(f"{row} + speckle", {})[group] = scores
 
 
 def _score_pipelines(
@@ -429,6 +469,7 @@ def _score_pipelines(
             scores = score(images, pairs, evaluators, **_scoring(config, device))
             results[name][group] = {**scores, "seconds": seconds}
             logger.info("%s %s: %s", name, group, json.dumps(results[name][group]))
+            _score_speckled(config, results, name, group, images, pairs, evaluators, device)
     return generated
 
 

@@ -13,6 +13,7 @@ saved with ``save_pretrained`` into ``output_dir/vae`` and loads with ``Autoenco
 from __future__ import annotations
 
 import logging
+import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -26,7 +27,7 @@ from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from torch.utils.data import DataLoader
 from tqdm.auto import tqdm
 
-from sar_zero123.config import check_minimum, save_config, write_json_atomic
+from sar_zero123.config import check_minimum, read_json, save_config, write_json_atomic
 from sar_zero123.data import (
     SCALING_FILE,
     ChipDataset,
@@ -36,7 +37,10 @@ from sar_zero123.data import (
     signed_to_unit,
     unit_to_signed,
 )
+from sar_zero123.encoder import SAREncoder, resolve_encoder_dir
 from sar_zero123.model.conditioning import downsampling_factor, encode_condition_latents, vae_input
+from sar_zero123.model.loading import load_component
+from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run
 from sar_zero123.training.run_state import (
@@ -56,11 +60,13 @@ from sar_zero123.training.step import micro_batch_generator
 logger = logging.getLogger(__name__)
 
 __all__ = [
+    "FeatureLoss",
     "TrainVAEConfig",
     "VAEObjective",
     "build_vae",
     "evaluate_reconstruction",
     "latent_scaling_factor",
+    "load_pretrained_vae",
     "reconstruct",
     "run_vae",
 ]
@@ -94,6 +100,18 @@ class TrainVAEConfig:
     num_scaling_batches: int = 8  # training batches used to estimate the latent scaling factor
     report_to: str | None = "tensorboard"  # accelerate tracker; None disables logging
     seed: int = 0  # seed of initialisation, data order and posterior samples
+    # start from this VAE (an AutoencoderKL folder, a pipeline folder or a bundled pipeline name such as
+    # sar-zero123/sim-prior) instead of a new one; its architecture is used (block_out_channels,
+    # layers_per_block, latent_channels and norm_num_groups unused; metrics.json records the model's)
+    pretrained: str | None = None
+    # False: train the decoder alone. The encoder, hence the latents, and the latent scaling factor are kept,
+    # so a UNet trained on the pretrained VAE's latents still works with the result (how a prior's VAE is
+    # adapted to new chips); needs pretrained
+    train_encoder: bool = True
+    # weight of the feature loss: squared distance between the L2-normalised pooled features of the frozen
+    # SAR encoder (feature_encoder) of the reconstruction and of the chip, a perceptual loss for SAR; 0: none
+    feature_loss_weight: float = 0.0
+    feature_encoder: str | None = None  # SAREncoder folder (train/pretrain_simclr.py's encoder/)
 
     def __post_init__(self) -> None:
         self.block_out_channels = tuple(int(c) for c in self.block_out_channels)
@@ -129,10 +147,23 @@ class TrainVAEConfig:
         check_minimum(self, "checkpoints_total_limit", minimum=1, optional=True)
         if self.restart and self.resume_from_checkpoint is not None:
             raise ValueError("restart: starts over; it cannot be combined with resume_from_checkpoint")
+        if not self.train_encoder and self.pretrained is None:
+            raise ValueError("train_encoder: False trains the decoder of a pretrained VAE; give pretrained")
+        check_minimum(self, "feature_loss_weight", minimum=0)
+        if self.feature_loss_weight > 0 and self.feature_encoder is None:
+            raise ValueError("feature_encoder: a SAREncoder folder is required when feature_loss_weight > 0")
 
 
 def build_vae(config: TrainVAEConfig) -> AutoencoderKL:
-    """A randomly initialised 1-channel ``AutoencoderKL`` of the configured size."""
+    """A randomly initialised 1-channel ``AutoencoderKL`` of the configured size, or with ``pretrained`` that
+    VAE (:func:`load_pretrained_vae`), its encoder frozen when ``train_encoder`` is False."""
+    if config.pretrained is not None:
+        vae = load_pretrained_vae(config.pretrained)
+        if not config.train_encoder:
+            for part in (vae.encoder, vae.quant_conv):
+                if part is not None:
+                    part.requires_grad_(False)
+        return vae
     levels = len(config.block_out_channels)
     return AutoencoderKL(
         in_channels=1,
@@ -147,6 +178,52 @@ def build_vae(config: TrainVAEConfig) -> AutoencoderKL:
     )
 
 
+def load_pretrained_vae(name_or_path: str) -> AutoencoderKL:
+    """The ``AutoencoderKL`` of an AutoencoderKL folder, of a pipeline folder (its ``vae/``) or of a bundled
+    pipeline name (``sar-zero123/sim-prior``).
+
+    Raises:
+        FileNotFoundError: If the folder or its files are missing, naming what was expected.
+        ValueError: If the model does not load, or takes other than one input and one output channel.
+    """
+    folder = resolve_pretrained(name_or_path)
+    if (folder / "vae" / "config.json").is_file():
+        folder = folder / "vae"
+    vae = load_component(AutoencoderKL, folder, "pretrained")
+    if vae.config.in_channels != 1 or vae.config.out_channels != 1:
+        raise ValueError(
+            f"pretrained: {str(folder)!r} takes {vae.config.in_channels} and returns "
+            f"{vae.config.out_channels} channels; SAR chips need 1 and 1"
+        )
+    return vae
+
+
+class FeatureLoss(torch.nn.Module):
+    """Squared distance of L2-normalised pooled features of a frozen SAR encoder, per sample: a perceptual
+    loss for SAR chips, as LPIPS compares frozen VGG features for RGB images.
+
+    Args:
+        encoder: A ``SAREncoder`` (frozen here); its ``image_size`` must be the chips'.
+    """
+
+    def __init__(self, encoder: SAREncoder) -> None:
+        super().__init__()
+        self.encoder = encoder.eval().requires_grad_(False)
+
+    def train(self, mode: bool = True) -> FeatureLoss:
+        super().train(mode)
+        self.encoder.eval()  # frozen BatchNorm statistics, whatever mode the objective is in
+        return self
+
+    def forward(self, reconstruction: torch.Tensor, images: torch.Tensor) -> torch.Tensor:
+        """Per-sample loss of ``reconstruction`` against ``images``, both normalised dB in [0, 1] (in [0, 2]:
+        the distance of unit vectors). Shape: ``(B, 1, S, S), (B, 1, S, S) -> (B,)``."""
+        with torch.no_grad():
+            target = F.normalize(self.encoder(images).float(), dim=1)
+        features = F.normalize(self.encoder(reconstruction).float(), dim=1)
+        return (features - target).pow(2).sum(dim=1) / 2.0
+
+
 class VAEObjective(torch.nn.Module):
     """``forward`` = per-sample VAE losses, so that data-parallel wrappers see one forward call.
 
@@ -154,13 +231,24 @@ class VAEObjective(torch.nn.Module):
         vae: The autoencoder being trained (1 input channel).
         kl_weight: Weight of the KL term (per-sample sum over latent elements).
         reconstruction_loss: ``"l1"`` or ``"l2"`` on the [-1, 1] images.
+        feature_loss: A :class:`FeatureLoss` added to the total with ``feature_loss_weight``; None: none.
+        feature_loss_weight: Its weight (>= 0).
     """
 
-    def __init__(self, vae: AutoencoderKL, kl_weight: float, reconstruction_loss: str) -> None:
+    def __init__(
+        self,
+        vae: AutoencoderKL,
+        kl_weight: float,
+        reconstruction_loss: str,
+        feature_loss: FeatureLoss | None = None,
+        feature_loss_weight: float = 0.0,
+    ) -> None:
         super().__init__()
         self.vae = vae
         self.kl_weight = kl_weight
         self.loss_fn = F.l1_loss if reconstruction_loss == "l1" else F.mse_loss
+        self.feature_loss = feature_loss
+        self.feature_loss_weight = feature_loss_weight
 
     def forward(
         self, images: torch.Tensor, generator: torch.Generator | None = None
@@ -178,7 +266,11 @@ class VAEObjective(torch.nn.Module):
         posterior = self.vae.encode(pixels).latent_dist
         recon = self.vae.decode(posterior.sample(generator=generator)).sample
         reconstruction = self.loss_fn(recon.float(), pixels.float(), reduction="none").flatten(1).mean(dim=1)
-        return reconstruction + self.kl_weight * posterior.kl().float(), reconstruction
+        total = reconstruction + self.kl_weight * posterior.kl().float()
+        if self.feature_loss is not None and self.feature_loss_weight > 0:
+            decoded = signed_to_unit(recon.float())  # unclamped: the gradient reaches saturated pixels
+            total = total + self.feature_loss_weight * self.feature_loss(decoded, images.float())
+        return total, reconstruction
 
 
 @torch.no_grad()
@@ -254,8 +346,12 @@ def run_vae(config: TrainVAEConfig) -> Path:
     # 2. data, model, optimiser, checked before any step
     with withdrawn_if_setup_fails(folder):
         scaling, train_dataset, test_dataset = _load_chips(config, accelerator)
-        objective = VAEObjective(build_vae(config).train(), config.kl_weight, config.reconstruction_loss)
-        optimizer = torch.optim.AdamW(objective.parameters(), lr=config.learning_rate)
+        objective = VAEObjective(
+            build_vae(config).train(), config.kl_weight, config.reconstruction_loss,
+            _feature_loss(config), config.feature_loss_weight,
+        )  # fmt: skip
+        trained = [p for p in objective.parameters() if p.requires_grad]
+        optimizer = torch.optim.AdamW(trained, lr=config.learning_rate)
         train_loader = DataLoader(
             train_dataset, batch_size=config.train_batch_size, shuffle=True, drop_last=True
         )
@@ -276,6 +372,39 @@ def run_vae(config: TrainVAEConfig) -> Path:
     return output_dir
 
 
+def _feature_loss(config: TrainVAEConfig) -> FeatureLoss | None:
+    """The frozen SAR encoder's feature loss, checked against the chip size; None without a weight."""
+    if config.feature_loss_weight == 0:
+        return None
+    encoder = SAREncoder.from_pretrained(resolve_encoder_dir(config.feature_encoder, field="feature_encoder"))
+    if encoder.config.image_size != config.image_size:
+        raise ValueError(
+            f"feature_encoder: {config.feature_encoder!r} takes {encoder.config.image_size} px chips but the "
+            f"VAE trains on image_size={config.image_size}"
+        )
+    return FeatureLoss(encoder)
+
+
+def _check_pretrained_scaling(config: TrainVAEConfig, scaling: DecibelScaling) -> None:
+    """A pretrained VAE (or pipeline) that records its decibel scaling must have the data's."""
+    if config.pretrained is None:
+        return
+    folder = resolve_pretrained(config.pretrained)
+    for candidate in (folder / SCALING_FILE, folder / "vae" / SCALING_FILE):
+        if candidate.is_file():
+            expected = DecibelScaling.from_dict(read_json(candidate))
+            if not all(
+                math.isclose(getattr(expected, key), getattr(scaling, key), abs_tol=1e-6)
+                for key in ("min_db", "max_db")
+            ):
+                raise ValueError(
+                    f"pretrained: {config.pretrained!r} was trained on decibel scaling {expected.to_dict()} "
+                    f"but scaling={config.scaling!r} gives {scaling.to_dict()} on this data; choose the "
+                    "--scaling it was trained with"
+                )
+            return
+
+
 def _load_chips(
     config: TrainVAEConfig, accelerator: Accelerator
 ) -> tuple[DecibelScaling, ChipDataset, ChipDataset]:
@@ -284,6 +413,7 @@ def _load_chips(
     output_dir = Path(config.output_dir)
     splits = prepare_splits(config.data, config.protocol, output_dir / "data", seed=config.seed)
     scaling = DecibelScaling.from_choice(config.scaling, splits["train"])
+    _check_pretrained_scaling(config, scaling)
     train_dataset = ChipDataset(splits["train"], size=config.image_size, scaling=scaling)
     test_dataset = ChipDataset(splits.get("test") or splits["train"], size=config.image_size, scaling=scaling)
     check_global_batch(len(train_dataset), config.train_batch_size, accelerator.num_processes, what="chips")
@@ -341,10 +471,13 @@ def _export(
 ) -> None:
     """The latent scaling factor, test-split PSNR/SSIM and the saved model; on the main process."""
     output_dir = Path(config.output_dir)
-    scaling_factor = latent_scaling_factor(model, train_loader, config.num_scaling_batches)
-    model.register_to_config(scaling_factor=scaling_factor)
+    if config.train_encoder:  # a frozen encoder keeps its latents, hence their scaling factor
+        scaling_factor = latent_scaling_factor(model, train_loader, config.num_scaling_batches)
+        model.register_to_config(scaling_factor=scaling_factor)
     metrics = evaluate_reconstruction(model, test_dataset, config.num_eval_images, config.train_batch_size)
-    metrics.update(scaling_factor=model.config.scaling_factor, steps=global_step)
+    architecture = {key: model.config[key] for key in (
+        "block_out_channels", "layers_per_block", "latent_channels", "norm_num_groups")}  # fmt: skip
+    metrics.update(scaling_factor=model.config.scaling_factor, steps=global_step, architecture=architecture)
     check_finite_step(global_step, scaling_factor=model.config.scaling_factor)
     check_finite_state({"vae": model}, what=str(output_dir / "vae"))
     write_json_atomic(metrics, output_dir / "metrics.json")
