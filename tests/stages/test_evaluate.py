@@ -414,3 +414,47 @@ def test_evaluate_whose_setup_fails_leaves_no_record(tmp_path: Path) -> None:
     with pytest.warns(UserWarning, match="rank-deficient"):
         stage.run_evaluate(dataclasses.replace(config, resume=True))
     assert read_run_record(out)["finished"] and json.loads((out / "table3.json").read_text())["results"]
+
+
+def test_evaluate_scores_speckled_rows_and_decodes_with_a_same_latent_vae(tmp_path: Path) -> None:
+    """--speckle_looks adds '<row> + speckle' for the VAE round trip and every pipeline (scored on the same
+    views, speckle re-added); --vae decodes with a VAE that encodes as the pipeline's, and refuses one that
+    does not."""
+    data = write_chip_folder(tmp_path / "data", azimuths_deg=tuple(range(0, 360, 60)), size=32)
+    _evaluators(tmp_path / "evaluators")
+    pipe = SARZero123Pipeline(**get_dummy_components())
+    pipe.save_pretrained(tmp_path / "pipe")
+    decoder = type(pipe.vae).from_config(pipe.vae.config)
+    decoder.load_state_dict(pipe.vae.state_dict())
+    with torch.no_grad():
+        decoder.decoder.conv_out.bias.add_(0.5)  # another decoder, the same encoder
+    decoder.save_pretrained(tmp_path / "decoder")
+    base = [
+        "--pipeline", str(tmp_path / "pipe"), "--evaluators", str(tmp_path / "evaluators"),
+        "--data", str(data), "--protocol", "ood-B", "--n", "4", "--num-inference-steps", "1",
+        "--crop_size", "32", "--eval_batch_size", "2", "--num_figure_pairs", "0", "--device", "cpu",
+    ]  # fmt: skip
+    with pytest.warns(UserWarning, match="rank-deficient"):
+        evaluate.main([*base, "--speckle_looks", "1", "--output_dir", str(tmp_path / "speckled")])
+    table3 = json.loads((tmp_path / "speckled" / "table3.json").read_text())["results"]
+    speckled_rows = {f"{VAE_ROUND_TRIP} + speckle", "pipe + speckle"}
+    assert (
+        speckled_rows <= set(table3)
+        and "azimuth_gap_closed" not in table3[f"{VAE_ROUND_TRIP} + speckle"]["seen"]
+    )
+    assert "azimuth_gap_closed" in table3["pipe + speckle"]["seen"]
+    assert table3["pipe + speckle"]["seen"]["ms_ssim"] != table3["pipe"]["seen"]["ms_ssim"]
+    with pytest.warns(UserWarning, match="rank-deficient"):
+        evaluate.main([*base, "--vae", str(tmp_path / "decoder"), "--output_dir", str(tmp_path / "decoded")])
+    decoded = json.loads((tmp_path / "decoded" / "table3.json").read_text())["results"]
+    assert decoded[VAE_ROUND_TRIP]["seen"]["ms_ssim"] != table3[VAE_ROUND_TRIP]["seen"]["ms_ssim"]
+    assert read_run_record(tmp_path / "decoded")["data"]["vae"]["path"] == str(
+        (tmp_path / "decoder").resolve()
+    )
+    other = type(pipe.vae).from_config(pipe.vae.config)  # a new encoder: other latents
+    other.save_pretrained(tmp_path / "other")
+    with pytest.raises(ValueError, match="encodes differently from the pipeline's VAE"):
+        evaluate.main([*base, "--vae", str(tmp_path / "other"), "--output_dir", str(tmp_path / "refused")])
+    assert not (tmp_path / "refused" / "run.json").exists()
+    with pytest.raises(ValueError, match="speckle_looks must be an integer >= 1"):
+        EvaluateConfig(pipeline=["p"], speckle_looks=0)
