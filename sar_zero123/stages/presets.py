@@ -88,6 +88,14 @@ class Preset:
     # target depressions of a second Table III from 17 deg inputs (d_el = target - 17) on a simulated set
     # at 17 deg and these depressions, with a depression regressor among the evaluators; () skips it
     depression_targets_deg: tuple[float, ...] = ()
+    # with a prior: fine-tune its VAE's decoder alone (the encoder, hence the latents the prior's UNet knows,
+    # kept) this many steps on the training chips, with vae_feature_loss_weight times the feature loss through
+    # the SimCLR encoder, before the fine-tunes, which then decode with it; 0 keeps the prior's VAE
+    vae_decoder_steps: int = 0
+    vae_feature_loss_weight: float = 0.0
+    # the evaluation also scores every view and VAE round trip with speckle re-added (readd_speckle with this
+    # many looks: 1 for MSTAR), as rows "<row> + speckle"; None: not
+    eval_speckle_looks: int | None = None
 
     def __post_init__(self) -> None:
         # every field checked here, in the preset's own names, so that a bad --override fails before the
@@ -158,6 +166,18 @@ class Preset:
             )
         if self.snr_gamma is not None and self.snr_gamma <= 0:
             raise ValueError(f"snr_gamma must be > 0 or None, got {self.snr_gamma}")
+        steps = self.vae_decoder_steps
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
+            raise ValueError(f"vae_decoder_steps must be an integer >= 0, got {steps!r}")
+        if steps and self.prior is None:
+            raise ValueError(
+                "vae_decoder_steps: fine-tunes a prior's decoder; set prior, or train a VAE (vae_steps)"
+            )
+        if not self.vae_feature_loss_weight >= 0:
+            raise ValueError(f"vae_feature_loss_weight must be >= 0, got {self.vae_feature_loss_weight}")
+        looks = self.eval_speckle_looks
+        if looks is not None and (isinstance(looks, bool) or not isinstance(looks, int) or looks < 1):
+            raise ValueError(f"eval_speckle_looks must be an integer >= 1 or None, got {looks!r}")
         if any(width % self.vae_norm_groups for width in self.vae_widths):
             raise ValueError(
                 f"vae_norm_groups {self.vae_norm_groups} must divide each of vae_widths {self.vae_widths}"

@@ -91,6 +91,16 @@ def _training_stages(config: QuickstartConfig, preset: Preset, out: Path) -> lis
             num_eval_images=16,
         ), run_vae))  # fmt: skip
 
+    if preset.prior is not None and preset.vae_decoder_steps:  # the prior's decoder adapted to these chips
+        vae_dir = out / "vae_decoder" / "vae"
+        plans.append(StagePlan("vae decoder", _build(
+            "vae decoder", TrainVAEConfig, **common, output_dir=str(out / "vae_decoder"),
+            pretrained=preset.prior, train_encoder=False, feature_loss_weight=preset.vae_feature_loss_weight,
+            feature_encoder=str(simclr_dir / "encoder") if preset.vae_feature_loss_weight else None,
+            train_batch_size=preset.vae_batch_size, max_train_steps=preset.vae_decoder_steps,
+            learning_rate=1e-4, num_eval_images=16,
+        ), run_vae))  # fmt: skip
+
     def finetune(name: str, run_dir: Path, steps: int, weight: float, pretrained: str | None) -> StagePlan:
         values: dict[str, Any] = {
             **common, "output_dir": str(run_dir), "pfm_weight": weight, "pfm_fraction": preset.pfm_fraction,
@@ -104,7 +114,7 @@ def _training_stages(config: QuickstartConfig, preset: Preset, out: Path) -> lis
         }  # fmt: skip
         if preset.ema_decay is not None:
             values["ema_decay"] = preset.ema_decay
-        if preset.prior is None:
+        if preset.prior is None or preset.vae_decoder_steps:
             values["vae"] = str(vae_dir)
         if pretrained is None:
             values.update(size=preset.model_size, estimate_input_azimuth=preset.estimate_input_azimuth,
@@ -170,7 +180,7 @@ def plan_stages(config: QuickstartConfig) -> list[StagePlan]:
         "lambdas": list(config.lambdas), "evaluators": str(evaluator_dir),
         "protocol": _protocol(config, preset), "n": preset.eval_n, "num_inference_steps": preset.eval_steps,
         "guidance_scale": 3.0, "crop_size": min(64, preset.image_size),
-        "eval_batch_size": 8, "seed": config.seed, "resume": True,
+        "eval_batch_size": 8, "seed": config.seed, "resume": True, "speckle_looks": preset.eval_speckle_looks,
     }  # fmt: skip
     plans.append(StagePlan("evaluate", _build(
         "evaluate", EvaluateConfig, **evaluation, data=str(data), output_dir=str(out / "eval"),

@@ -38,6 +38,32 @@ def test_every_stage_config_is_built_before_any_work(tmp_path: Path) -> None:
     assert not out.exists()
 
 
+def test_a_prior_with_a_decoder_fine_tune_plans_the_decoder_before_the_fine_tunes(tmp_path: Path) -> None:
+    """vae_decoder_steps > 0 adds the "vae decoder" stage (the prior's decoder alone, the SimCLR encoder's
+    feature loss); every fine-tune decodes with it, and eval_speckle_looks reaches the evaluation."""
+    out = tmp_path / "run"
+    override = ["prior=sar-zero123/sim-prior", "vae_decoder_steps=3", "vae_feature_loss_weight=0.5",
+                "eval_speckle_looks=1", "image_size=64"]  # fmt: skip
+    plans = quickstart.plan_stages(
+        quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=override)
+    )
+    names = [plan.name for plan in plans]
+    assert names[names.index("simclr") + 1 : names.index("evaluators")] == [
+        "vae decoder", "finetune lambda=0", "finetune lambda=4"]  # fmt: skip
+    by_name = {plan.name: plan.config for plan in plans}
+    decoder = by_name["vae decoder"]
+    assert decoder.pretrained == "sar-zero123/sim-prior" and decoder.train_encoder is False
+    assert decoder.feature_loss_weight == 0.5 and decoder.feature_encoder == str(out / "simclr" / "encoder")
+    assert decoder.max_train_steps == 3
+    assert by_name["finetune lambda=4"].vae == str(out / "vae_decoder" / "vae")
+    assert by_name["evaluate"].speckle_looks == 1
+    with pytest.raises(ValueError, match="vae_decoder_steps: fine-tunes a prior's decoder"):
+        quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=["vae_decoder_steps=3"])
+    with pytest.raises(ValueError, match="eval_speckle_looks must be an integer >= 1"):
+        quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=["eval_speckle_looks=0"])
+    assert not out.exists()
+
+
 def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     out = tmp_path / "quickstart"
     with warnings.catch_warnings():
