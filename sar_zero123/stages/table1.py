@@ -144,13 +144,18 @@ class Table1Config:
 
 def format_markdown(rows: dict[str, dict[str, Any]], config: Table1Config) -> str:
     """Table I as Markdown: measured numbers next to the paper's."""
+    if config.encoders:  # probed as given: the SimCLR settings of this config were not used
+        trained = "encoders " + ", ".join(f"`{path}`" for path in config.encoders) + " (trained elsewhere)"
+    else:
+        trained = f"{config.epochs} SimCLR epochs" + (
+            f" capped at {config.max_train_steps} steps" if config.max_train_steps else ""
+        )
     lines = [
         f"Table I on `{config.data or 'built-in simulator'}` ({config.protocol} protocol), "
-        f"{config.image_size}x{config.image_size} px, {config.epochs} SimCLR epochs"
-        + (f" capped at {config.max_train_steps} steps" if config.max_train_steps else "")
-        + f", probes {config.probe_epochs} epochs. Paper: 500 epochs, 128x128.",
+        f"{config.image_size}x{config.image_size} px, {trained}, probes {config.probe_epochs} epochs "
+        "(classes: a linear probe; azimuth: an MLP). Paper: 500 epochs, 128x128.",
         "",
-        "| preset | MLP acc. % | MLP az. err. deg | 1-NN acc. % | 1-NN az. err. deg "
+        "| preset | linear acc. % | MLP az. err. deg | 1-NN acc. % | 1-NN az. err. deg "
         "| paper MLP acc. / az. | paper 1-NN acc. / az. |",
         "| --- | ---: | ---: | ---: | ---: | ---: | ---: |",
     ]

@@ -73,6 +73,10 @@ def test_table1_trains_probes_and_writes_tables_and_tsne(tmp_path):
         [*args, *TINY_MODEL, "--no-tsne", "--output_dir", str(tmp_path / "again"),
          "--encoders", str(out / "simclr-full"), str(out / "speckle+monotonic" / "encoder")]
     )  # fmt: skip
+    # the table says the encoders were given, not which SimCLR epochs this config would have trained
+    again_markdown = (tmp_path / "again" / "table1.md").read_text()
+    assert "(trained elsewhere)" in again_markdown and "SimCLR epochs" not in again_markdown
+    assert "| preset | linear acc. % |" in again_markdown
     for preset, row in result["rows"].items():
         assert again["rows"][preset]["knn_accuracy"] == row["knn_accuracy"]
         assert again["rows"][preset]["linear_accuracy"] == pytest.approx(row["linear_accuracy"])
