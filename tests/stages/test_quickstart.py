@@ -145,7 +145,7 @@ def test_quickstart_config_checks_data_and_protocol(tmp_path: Path) -> None:
         quickstart.QuickstartConfig(data=str(tmp_path), protocol="soc")
     with pytest.raises(ValueError, match="lambdas must be distinct values >= 0"):
         quickstart.QuickstartConfig(lambdas=[0.0, 0.0])
-    assert set(quickstart.PRESETS) == {"default", "scratch", "long", "mstar", "smoke"}
+    assert set(quickstart.PRESETS) == {"default", "scratch", "long", "mstar", "mstar-prior", "smoke"}
 
 
 def test_overrides_replace_preset_fields_with_typed_literals() -> None:
