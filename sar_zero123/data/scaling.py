@@ -182,6 +182,12 @@ class DecibelScaling:
         """JSON-serialisable bounds, e.g. ``{"min_db": -60.0, "max_db": 0.0087}``."""
         return {"min_db": float(self.min_db), "max_db": float(self.max_db)}
 
+    def isclose(self, other: DecibelScaling, abs_tol: float = 1e-6) -> bool:
+        """Whether ``other`` has the same bounds to ``abs_tol`` dB (a saved and a refitted scaling agree)."""
+        return math.isclose(self.min_db, other.min_db, abs_tol=abs_tol) and math.isclose(
+            self.max_db, other.max_db, abs_tol=abs_tol
+        )
+
     @classmethod
     def from_dict(cls, values: dict[str, Any]) -> DecibelScaling:
         """Rebuilds the scaling saved by :meth:`to_dict`.

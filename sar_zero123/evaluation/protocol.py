@@ -46,6 +46,7 @@ from sar_zero123.evaluation.evaluators import (
     score_views,
     standard_error,
 )
+from sar_zero123.model.build import same_weights
 from sar_zero123.model.conditioning import encode_condition_latents
 from sar_zero123.model.pipeline import SARZero123Pipeline
 
@@ -331,10 +332,7 @@ def check_pipeline_scaling(pipeline_dir: str | os.PathLike, evaluators: Evaluato
         return
     pipeline_scaling = DecibelScaling.from_dict(json.loads(path.read_text()))
     evaluator_scaling = evaluators.classifier.scaling
-    if not all(
-        math.isclose(getattr(pipeline_scaling, key), getattr(evaluator_scaling, key), abs_tol=1e-6)
-        for key in ("min_db", "max_db")
-    ):
+    if not pipeline_scaling.isclose(evaluator_scaling):
         raise ValueError(
             f"pipeline {pipeline_dir} expects decibel scaling {pipeline_scaling.to_dict()} but the "
             f"evaluators were trained with {evaluator_scaling.to_dict()}; train both with the same --scaling"
@@ -492,14 +490,6 @@ def d_el_counts(d_el_deg: torch.Tensor) -> dict[str, int]:
     """How many pairs ask for each depression change, keyed by the change in degrees (``"+13"``)."""
     values, counts = torch.unique(d_el_deg.double().round(decimals=3), return_counts=True)
     return {f"{value:+g}": int(count) for value, count in zip(values.tolist(), counts.tolist())}
-
-
-def same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:
-    """Whether two modules hold identical parameters (same names, shapes and values)."""
-    first, second = a.state_dict(), b.state_dict()
-    return first.keys() == second.keys() and all(
-        first[k].shape == second[k].shape and torch.equal(first[k].cpu(), second[k].cpu()) for k in first
-    )
 
 
 def device_name(device: torch.device) -> str:

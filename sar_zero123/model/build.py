@@ -36,6 +36,7 @@ __all__ = [
     "load_sar_zero123",
     "record_trained_pose_ranges",
     "replace_vae",
+    "same_weights",
 ]
 
 SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
@@ -419,7 +420,7 @@ def check_same_latents(vae: AutoencoderKL, reference: AutoencoderKL, name: str =
     encoders = {part: (getattr(vae, part), getattr(reference, part)) for part in ("encoder", "quant_conv")}
     differing = [
         part for part, (a, b) in encoders.items()
-        if (a is None) != (b is None) or (a is not None and not _same_state(a, b))
+        if (a is None) != (b is None) or (a is not None and not same_weights(a, b))
     ]  # fmt: skip
     if not math.isclose(vae.config.scaling_factor, reference.config.scaling_factor, rel_tol=1e-6):
         differing.append(
@@ -433,7 +434,8 @@ def check_same_latents(vae: AutoencoderKL, reference: AutoencoderKL, name: str =
         )
 
 
-def _same_state(a: torch.nn.Module, b: torch.nn.Module) -> bool:
+def same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:
+    """Whether two modules hold identical parameters (same names, shapes and values)."""
     first, second = a.state_dict(), b.state_dict()
     return first.keys() == second.keys() and all(
         first[k].shape == second[k].shape and torch.equal(first[k].cpu(), second[k].cpu()) for k in first

@@ -230,6 +230,19 @@ DEFAULT_PRESET = Preset(
     depression_targets_deg=(10.0, 30.0, 45.0),
 )
 
+# Real chips (`--data /path/to/mstar --protocol ood-T72` or `extended`): 64 px centre crops at the
+# native 0.2 m spacing, about 6,000 training chips, so fewer evaluator epochs and more base steps, and
+# the "small" model's VAE trained 600 x 16 (run time and results: docs/results/mstar_novel_views.md).
+# Simulator fields unused.
+_MSTAR = dataclasses.replace(
+    DEFAULT_PRESET, vae_widths=(32, 64, 128), vae_norm_groups=32, vae_steps=600, vae_batch_size=16,
+    base_steps=8000, finetune_steps=1000,
+    evaluator_epochs=20, eval_n=400, speed_steps=(5, 10, 20), speed_n=16,
+    prediction_type="epsilon", snr_gamma=None,  # as measured (mstar_novel_views.md)
+    prior=None,  # trained from scratch; "mstar-prior" starts from the bundled prior
+    depression_targets_deg=(),  # real chips: 15 and 17 deg only
+)
+
 PRESETS: dict[str, Preset] = {
     "default": DEFAULT_PRESET,
     # the default trained from scratch (VAE and a base model of base_steps, then the fine-tunes): the
@@ -243,28 +256,16 @@ PRESETS: dict[str, Preset] = {
         DEFAULT_PRESET, vae_steps=3000, base_steps=15000, finetune_steps=600, eval_n=256,
         speed_steps=(5, 10, 20, 50), speed_n=32, prior=None,
     ),
-    # Real chips (`--data /path/to/mstar --protocol ood-T72` or `extended`): 64 px centre crops at the
-    # native 0.2 m spacing, about 6,000 training chips, so fewer evaluator epochs and more base steps, and
-    # the "small" model's VAE trained 600 x 16 (run time and results: docs/results/mstar_novel_views.md).
-    # Simulator fields unused.
-    "mstar": dataclasses.replace(
-        DEFAULT_PRESET, vae_widths=(32, 64, 128), vae_norm_groups=32, vae_steps=600, vae_batch_size=16,
-        base_steps=8000, finetune_steps=1000,
-        evaluator_epochs=20, eval_n=400, speed_steps=(5, 10, 20), speed_n=16,
-        prediction_type="epsilon", snr_gamma=None,  # as measured (mstar_novel_views.md)
-        prior=None,  # the prior's dB scaling and chips are the simulator's
-        depression_targets_deg=(),  # real chips: 15 and 17 deg only
-    ),
+    "mstar": _MSTAR,
     # The paper's regime on real chips (`--data /path/to/mstar --protocol ood-T72`): both fine-tunes start
     # from the bundled multi-view prior (its VAE kept; MSTAR's 8-bit chips share its unit-magnitude dB
     # scaling), 8,000 steps each with the default's Min-SNR-5 (2,000 keep the class of 28 % of seen views,
     # 8,000 of 66 %); the SimCLR encoder that PFM matches is trained 4,000 steps x 128 chips; Table III on
-    # 400 seen + 400 unseen pairs (run time and results: docs/results/mstar_prior.md)
+    # 400 seen + 400 unseen pairs; the `mstar` values otherwise (run time and results:
+    # docs/results/mstar_prior.md)
     "mstar-prior": dataclasses.replace(
-        DEFAULT_PRESET, vae_widths=(32, 64, 128), vae_norm_groups=32, vae_steps=600, vae_batch_size=16,
-        base_steps=8000, evaluator_epochs=20, speed_steps=(5, 10, 20), speed_n=16, prediction_type="epsilon",
-        snr_gamma=5.0, prior=SIM_PRIOR, simclr_steps=4000, simclr_batch_size=128, finetune_steps=8000,
-        eval_n=800, depression_targets_deg=(),
+        _MSTAR, prior=SIM_PRIOR, snr_gamma=5.0, simclr_steps=4000, simclr_batch_size=128, finetune_steps=8000,
+        eval_n=800,
     ),
     "smoke": Preset(
         classes=("TANK", "APC", "TRUCK"),

@@ -13,7 +13,6 @@ saved with ``save_pretrained`` into ``output_dir/vae`` and loads with ``Autoenco
 from __future__ import annotations
 
 import logging
-import math
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
@@ -393,10 +392,7 @@ def _check_pretrained_scaling(config: TrainVAEConfig, scaling: DecibelScaling) -
     for candidate in (folder / SCALING_FILE, folder / "vae" / SCALING_FILE):
         if candidate.is_file():
             expected = DecibelScaling.from_dict(read_json(candidate))
-            if not all(
-                math.isclose(getattr(expected, key), getattr(scaling, key), abs_tol=1e-6)
-                for key in ("min_db", "max_db")
-            ):
+            if not expected.isclose(scaling):
                 raise ValueError(
                     f"pretrained: {config.pretrained!r} was trained on decibel scaling {expected.to_dict()} "
                     f"but scaling={config.scaling!r} gives {scaling.to_dict()} on this data; choose the "

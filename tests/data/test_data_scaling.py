@@ -106,3 +106,11 @@ def test_from_choice_names_the_three_bounds() -> None:
     assert SCALING_CHOICES == ("unit", "mstar_raw", "fit")
     with pytest.raises(ValueError, match="scaling must be one of"):
         DecibelScaling.from_choice("minmax")
+
+
+def test_isclose_compares_both_bounds_to_the_tolerance():
+    unit = DecibelScaling.for_unit_magnitude()
+    assert unit.isclose(DecibelScaling(min_db=-60.0 + 5e-7, max_db=unit.max_db))
+    assert not unit.isclose(DecibelScaling(min_db=-60.0 + 2e-6, max_db=unit.max_db))
+    assert not unit.isclose(DecibelScaling.for_mstar_raw())  # same min_db, max_db 24.4912
+    assert unit.isclose(DecibelScaling(min_db=-59.9, max_db=unit.max_db), abs_tol=0.2)

@@ -202,6 +202,11 @@ def test_decoder_fine_tune_keeps_the_encoder_latents_and_scaling_factor(script, 
     metrics = json.loads((out / "metrics.json").read_text())
     assert metrics["architecture"]["block_out_channels"] == [8, 8]
     assert metrics["scaling_factor"] == pytest.approx(before.config.scaling_factor)
+    # a VAE trained on other decibel bounds is refused before any step, naming both scalings
+    with pytest.raises(ValueError, match=r"was trained on decibel scaling .* but scaling='fit' gives"):
+        script.main([*data, "--output_dir", str(tmp_path / "fit"), "--max_train_steps", "1", *TINY,
+                     "--pretrained", str(base / "vae"), "--scaling", "fit"])  # fmt: skip
+    assert not (tmp_path / "fit" / "vae").exists()
     # a VAE trained with its encoder is refused where the latents must stay the same
     retrained = script.main([*data, "--output_dir", str(tmp_path / "both"), "--max_train_steps", "1",
                              "--checkpointing_steps", "1", *TINY, "--pretrained", str(base / "vae"),
