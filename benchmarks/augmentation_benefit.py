@@ -55,7 +55,7 @@ TRAIN_DEPRESSION_DEG = 17.0
 TEST_DEPRESSION_DEG = 15.0
 RESULT_FILE = "result.json"
 #: Fields that only add or drop arms: a resumed benchmark may change them; any other change is refused.
-ARM_SELECTION_FIELDS = ("data", "out", "ks", "sectors", "unseen_class", "unseen_k")
+ARM_SELECTION_FIELDS = ("data", "out", "ks", "sectors", "unseen_class", "unseen_k", "speckle_looks")
 #: The reduced configuration that fits about an hour on the 2-core CPU (docs/results/augmentation_benefit.md).
 QUICK = {"ks": [12, 48], "sectors": False, "unseen_class": None, "finetune_steps": 400}
 
@@ -86,6 +86,7 @@ class BenchmarkConfig:
     classifier_weight_decay: float = 5e-4  # AdamW weight decay
     max_shift_px: int = 4  # training augmentation: random shifts up to this many pixels
     quality_chips_per_class: int = 50  # 15 deg chips per class for the VAE round-trip bound
+    speckle_looks: int | None = None  # also arms whose views get L-look speckle re-added (None: no such arms)
 
     def __post_init__(self) -> None:
         if not self.ks or min(self.ks) < 2:
@@ -99,6 +100,8 @@ class BenchmarkConfig:
         for name in ("finetune_steps", "classifier_steps", "classifier_batch_size", "num_inference_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.speckle_looks is not None and self.speckle_looks < 1:
+            raise ValueError(f"speckle_looks must be None or >= 1, got {self.speckle_looks}")
 
 
 # ------------------------------------------------------------------------------------------ selection
@@ -281,11 +284,13 @@ def build_generator(
     sources: Sequence[ChipRecord],
     folder: Path,
     d_az: list[float],
+    speckle_looks: int | None = None,
 ) -> tuple[Path, dict[str, Any]]:
     """Fine-tunes the pipeline on `trained_on`, then generates `d_az` views of each of `sources`; both
-    resumable.
+    resumable. With `speckle_looks`, the views (in their own folder, from the same fine-tune) get L-look
+    speckle re-added (``AugmentConfig.speckle_looks``).
 
-    Returns the augmented dataset folder (views only) and the times of both steps.
+    Returns the augmented dataset folder (views only) and the times of the fine-tune and this generation.
     """
     timing_file = folder / "timing.json"
     times = json.loads(timing_file.read_text()) if timing_file.is_file() else {}
@@ -301,16 +306,18 @@ def build_generator(
             resume_from_checkpoint="latest", seed=0,
         ))  # fmt: skip
         timing_file.write_text(json.dumps(times, indent=2))
-    views = folder / "views"
-    if "generate" not in times:
-        _, times["generate"] = timed(augment_dataset, AugmentConfig(
+    suffix = "" if speckle_looks is None else f"_speckle{speckle_looks}"
+    views, key = folder / f"views{suffix}", f"generate{suffix}"
+    if key not in times:
+        _, times[key] = timed(augment_dataset, AugmentConfig(
             data=str(source_data), pipeline=str(folder / "finetune" / "pipeline"), out=str(views), d_az=d_az,
             depressions_deg=[TRAIN_DEPRESSION_DEG], num_inference_steps=config.num_inference_steps,
             guidance_scale=config.guidance_scale, scheduler="ddim", batch_size=16, seed=0,
+            speckle_looks=speckle_looks,
         ))  # fmt: skip
-        times["generate"]["views"] = len(load_index(views))
+        times[key]["views"] = len(load_index(views))
         timing_file.write_text(json.dumps(times, indent=2))
-    return views, times
+    return views, {"finetune": times["finetune"], key: times[key]}
 
 
 def check_settings(config: BenchmarkConfig, out: Path) -> None:
@@ -410,11 +417,11 @@ class Benchmark:
 
     def generated_arm(
         self, kept: Sequence[ChipRecord], d_az: list[float], generator_dir: Path, description: str,
-        generator_records: Sequence[ChipRecord] | None = None,
+        generator_records: Sequence[ChipRecord] | None = None, speckle_looks: int | None = None,
     ) -> Any:  # fmt: skip
         def build(arm_dir: Path) -> dict[str, Any]:
             trained_on = kept if generator_records is None else generator_records
-            views_dir, times = build_generator(self.config, trained_on, kept, generator_dir, d_az)
+            views_dir, times = build_generator(self.config, trained_on, kept, generator_dir, d_az, speckle_looks)
             views = load_index(views_dir)
             result = self.classifiers(list(kept) + views, arm_dir)
             result.update(
@@ -474,6 +481,13 @@ class Benchmark:
                 kept, d_az, self.out / f"generator_k{k}",
                 f"{k} chips/class + {config.views_per_chip} views each",
             )))  # fmt: skip
+            if config.speckle_looks is not None:  # the same views with speckle re-added
+                looks = config.speckle_looks
+                results.append(self.run_arm(f"generated_k{k}_speckle{looks}", self.generated_arm(
+                    kept, d_az, self.out / f"generator_k{k}",
+                    f"{k} chips/class + {config.views_per_chip} views each, {looks}-look speckle re-added",
+                    speckle_looks=looks,
+                )))  # fmt: skip
         if config.sectors:
             kept = keep_sector(self.train_records, config.sector_deg)
             sectors = math.floor(360.0 / config.sector_deg)
@@ -535,6 +549,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             parser.add_argument(flag, nargs="+", type=int, default=value)
         elif name == "unseen_class":
             parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else s)
+        elif name == "speckle_looks":
+            parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else int(s))
         else:
             parser.add_argument(flag, type=type(value), default=value)
     parser.add_argument("--quick", action="store_true", help=f"the reduced run: {QUICK}")

@@ -43,6 +43,7 @@ from diffusers import DDIMScheduler, DPMSolverMultistepScheduler, EulerDiscreteS
 from tqdm.auto import tqdm
 
 from sar_zero123.augment import rayleigh_speckle
+from sar_zero123.augment.codomain import readd_speckle
 from sar_zero123.config import (
     check_minimum,
     check_output_dir,
@@ -123,6 +124,7 @@ class AugmentConfig:
     seed: int = 0  # view (row, request) is sampled with view_generator(seed, row, request)
     speckle: bool = False  # re-add Rayleigh speckle (Eq. 17-18) to the generated magnitudes
     speckle_sigma: float = 10.0  # Rayleigh sigma of the speckle (with --speckle)
+    speckle_looks: int | None = None  # re-add L-look log speckle (readd_speckle) in dB, instead of --speckle
     scaling_file: str | None = None  # DecibelScaling JSON (default: <pipeline>/decibel_scaling.json or unit)
     device: str = "cpu"  # torch device
 
@@ -165,6 +167,12 @@ class AugmentConfig:
         check_minimum(self, "max_chips_per_class", minimum=1, optional=True)
         check_minimum(self, "seed", minimum=0)
         check_minimum(self, "speckle_sigma", minimum=0.0, strict=True)
+        check_minimum(self, "speckle_looks", minimum=1, optional=True)
+        if self.speckle and self.speckle_looks is not None:
+            raise ValueError(
+                f"speckle/speckle_looks: choose one speckle model, got speckle=True and "
+                f"speckle_looks={self.speckle_looks}"
+            )
         if not Path(self.data).is_dir():
             raise FileNotFoundError(f"data: dataset folder not found: {self.data!r}")
         if not resolve_pretrained(self.pipeline).is_dir():
@@ -497,7 +505,9 @@ def augment_dataset(config: AugmentConfig) -> Path:
                 if (out / view.path).is_file():  # written before a kill, from this same batch
                     continue
                 speckle = view_generator(config.seed, view.row_index, view.request_index, stream=1)
-                magnitude = _view_magnitude(image, scaling, speckle_sigma=speckle_sigma, generator=speckle)
+                magnitude = _view_magnitude(
+                    image, scaling, speckle_sigma=speckle_sigma, speckle_looks=config.speckle_looks, generator=speckle
+                )
                 buffer = io.BytesIO()
                 np.save(buffer, magnitude)
                 _write_atomic(out / view.path, buffer.getvalue())
@@ -556,10 +566,17 @@ def _view_magnitude(
     scaling: DecibelScaling,
     *,
     speckle_sigma: float | None = None,
+    speckle_looks: int | None = None,
     generator: torch.Generator | None = None,
 ) -> np.ndarray:
     """A generated view (normalised dB) as the float32 magnitude written to disk; with ``speckle_sigma``,
-    Rayleigh speckle (Eq. 17-18, :func:`~sar_zero123.augment.rayleigh_speckle`) is re-added to it."""
+    Rayleigh speckle (Eq. 17-18, :func:`~sar_zero123.augment.rayleigh_speckle`) is re-added to its
+    magnitude; with ``speckle_looks``, L-look log speckle with its dB mean removed
+    (:func:`~sar_zero123.augment.codomain.readd_speckle`) is added to it in normalised dB first."""
+    if speckle_looks is not None:
+        view = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None, None]  # (1, 1, S, S)
+        image = readd_speckle(view.clamp(0.0, 1.0), scaling.max_db - scaling.min_db, speckle_looks, generator)
+        image = image[0, 0].numpy()
     peak = float(scaling.denormalize(np.float64(1.0)))  # the largest magnitude the scaling represents
     magnitude = np.clip(scaling.denormalize(image.astype(np.float64)), 0.0, peak)
     if speckle_sigma is not None:

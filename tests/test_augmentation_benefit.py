@@ -62,6 +62,8 @@ def test_config_refuses_bad_fields():
         BenchmarkConfig(ks=[1])
     with pytest.raises(ValueError, match="views_per_chip"):
         BenchmarkConfig(views_per_chip=0)
+    with pytest.raises(ValueError, match="speckle_looks"):
+        BenchmarkConfig(speckle_looks=0)
 
 
 def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
@@ -106,3 +108,13 @@ def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
     # more K is a resume; other classifier settings are another benchmark
     with pytest.raises(ValueError, match="classifier_steps: 3 -> 4"):
         main([*args, "--classifier_steps", "4"])
+    # speckle re-adding is one more arm: the same fine-tune, its own views, speckled
+    finetuned = tmp_path / "out" / "generator_k4" / "finetune" / "pipeline"
+    stamp = max(p.stat().st_mtime_ns for p in finetuned.rglob("*"))
+    speckled = {arm["arm"]: arm for arm in main([*args, "--speckle_looks", "1"])["arms"]}
+    assert list(speckled)[:4] == ["all_chips", "real_k4", "generated_k4", "generated_k4_speckle1"]
+    assert speckled["generated_k4_speckle1"]["n_generated"] == 8
+    assert set(speckled["generated_k4_speckle1"]["generator_times"]) == {"finetune", "generate_speckle1"}
+    assert max(p.stat().st_mtime_ns for p in finetuned.rglob("*")) == stamp
+    quality = speckled["generated_k4_speckle1"]["view_quality"]["normalised_db_mean_std"]["generated"]
+    assert quality != arms["generated_k4"]["view_quality"]["normalised_db_mean_std"]["generated"]

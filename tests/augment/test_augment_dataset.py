@@ -8,6 +8,7 @@ import shutil
 
 import numpy as np
 import pytest
+import torch
 
 from sar_zero123.augment_dataset import (
     AUGMENT_FILE,
@@ -17,7 +18,9 @@ from sar_zero123.augment_dataset import (
     main,
     plan_views,
     select_records,
+    view_generator,
 )
+from sar_zero123.augment.codomain import readd_speckle
 from sar_zero123.data import SCALING_FILE, ChipRecord, DecibelScaling, load_index
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.sim import INDEX_COLUMNS, simulate_dataset
@@ -186,6 +189,28 @@ def test_speckle_changes_the_views(augmented, data_dir, pipeline_dir, tmp_path):
         assert speckled.max() == pytest.approx(1.0, abs=1e-6)  # per-view min-max back to [0, 1]
         assert np.abs(speckled - clean).mean() > 0.01
     assert json.loads((out / AUGMENT_FILE).read_text())["speckle"] is True
+
+
+def test_speckle_looks_adds_log_speckle_to_the_views(augmented, data_dir, pipeline_dir, tmp_path):
+    # reference: readd_speckle on the clean view in normalised dB, with the view's own speckle stream
+    selection = ["--classes", "APC", "--max_chips_per_class", "1"]
+    out = main(run_args(data_dir, pipeline_dir, tmp_path / "out", *selection, "--speckle_looks", "1"))
+    scaling = DecibelScaling.for_unit_magnitude()
+    paths = view_files(out)
+    assert len(paths) == 2
+    for path in paths:
+        row, request = (int(part[1:]) for part in path.stem.split("_")[-2:])
+        clean = torch.from_numpy(scaling.normalize(np.load(augmented / path).astype(np.float64)))[None, None]
+        expected = readd_speckle(clean.float(), scaling.max_db - scaling.min_db, 1,
+                                 view_generator(0, row, request, stream=1))[0, 0].numpy()
+        speckled = scaling.normalize(np.load(out / path).astype(np.float64))
+        np.testing.assert_allclose(speckled, expected, atol=2e-3)
+        assert np.abs(speckled - clean[0, 0].numpy()).mean() > 0.01
+    assert json.loads((out / AUGMENT_FILE).read_text())["speckle_looks"] == 1
+    with pytest.raises(ValueError, match=r"^speckle/speckle_looks: choose one"):
+        main(run_args(data_dir, pipeline_dir, tmp_path / "both", "--speckle", "--speckle_looks", "1"))
+    with pytest.raises(ValueError, match=r"speckle_looks"):
+        main(run_args(data_dir, pipeline_dir, tmp_path / "zero", "--speckle_looks", "0"))
 
 
 def test_plan_and_selection_by_hand():
