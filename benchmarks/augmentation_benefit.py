@@ -421,7 +421,9 @@ class Benchmark:
     ) -> Any:  # fmt: skip
         def build(arm_dir: Path) -> dict[str, Any]:
             trained_on = kept if generator_records is None else generator_records
-            views_dir, times = build_generator(self.config, trained_on, kept, generator_dir, d_az, speckle_looks)
+            views_dir, times = build_generator(
+                self.config, trained_on, kept, generator_dir, d_az, speckle_looks
+            )
             views = load_index(views_dir)
             result = self.classifiers(list(kept) + views, arm_dir)
             result.update(

@@ -506,7 +506,8 @@ def augment_dataset(config: AugmentConfig) -> Path:
                     continue
                 speckle = view_generator(config.seed, view.row_index, view.request_index, stream=1)
                 magnitude = _view_magnitude(
-                    image, scaling, speckle_sigma=speckle_sigma, speckle_looks=config.speckle_looks, generator=speckle
+                    image, scaling, speckle_sigma=speckle_sigma, speckle_looks=config.speckle_looks,
+                    generator=speckle,
                 )
                 buffer = io.BytesIO()
                 np.save(buffer, magnitude)

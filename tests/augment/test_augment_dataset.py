@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 import torch
 
+from sar_zero123.augment.codomain import readd_speckle
 from sar_zero123.augment_dataset import (
     AUGMENT_FILE,
     PROVENANCE_COLUMNS,
@@ -20,7 +21,6 @@ from sar_zero123.augment_dataset import (
     select_records,
     view_generator,
 )
-from sar_zero123.augment.codomain import readd_speckle
 from sar_zero123.data import SCALING_FILE, ChipRecord, DecibelScaling, load_index
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.sim import INDEX_COLUMNS, simulate_dataset
