@@ -30,7 +30,7 @@ from sar_zero123.augment import PRESETS
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, prepare_splits
 from sar_zero123.data.splits import check_protocol
-from sar_zero123.encoder import SAREncoder, resolve_encoder_dir
+from sar_zero123.encoder import SAREncoder, SAREncoderConfig, resolve_encoder_dir
 from sar_zero123.evaluation.probes import FeatureSet, extract_features, run_probes
 from sar_zero123.stages._folders import withdrawn_if_setup_fails
 from sar_zero123.stages.evaluators import model_identity
@@ -58,6 +58,8 @@ PAPER_TABLE1 = {
     "speckle+monotonic-as-run": (98.7, 9.8, 99.7, 3.1),  # the setting the paper's encoder was trained with
 }
 TSNE_PRESETS = ("simclr-full", "speckle+monotonic")
+#: The floor row: an untrained encoder of the same architecture, probed the same way.
+FLOOR_ROW = "random init (floor)"
 COLUMNS = ("linear_accuracy", "mlp_azimuth_error_deg", "knn_accuracy", "knn_azimuth_error_deg")
 #: Settings that never change what the folder holds: where it is, where data is cached, how it is read.
 TABLE1_MAY_DIFFER = ("resume", "restart", "output_dir", "work_dir", "num_workers")
@@ -87,6 +89,7 @@ class Table1Config:
     max_test_chips: int | None = None  # seeded random subset of test chips (quick runs); None = all
     probe_epochs: int = 100  # epochs of the linear and MLP probes
     tsne: bool = True  # draw the t-SNE figure when simclr-full and speckle+monotonic are both run
+    floor: bool = True  # also probe an untrained encoder of the first row's architecture (the floor)
     tsne_points: int = 1000  # test chips per t-SNE panel
     num_workers: int = 0  # DataLoader workers for reading chips
     seed: int = 0  # seeds splits, pretraining, probes and t-SNE
@@ -267,7 +270,31 @@ def _probe_rows(
         logger.info("%s: %s", preset, {k: round(v, 2) for k, v in probes.items()})
         if preset in TSNE_PRESETS:
             tsne_features[preset] = test_features
+        if config.floor and index == 0:
+            floor_config = encoder.config
+    if config.floor:
+        rows[FLOOR_ROW] = _floor_row(config, train_set, test_set, floor_config, device)
     return rows, tsne_features
+
+
+def _floor_row(
+    config: Table1Config,
+    train_set: ChipDataset,
+    test_set: ChipDataset,
+    architecture: SAREncoderConfig,
+    device: torch.device,
+) -> dict[str, Any]:
+    """The probes on an untrained encoder (seeded PyTorch initialisation) of ``architecture``: what the
+    probes read from the chips through random convolutional features, which SimCLR must beat."""
+    torch.manual_seed(config.seed)
+    encoder = SAREncoder(architecture).to(device).eval()
+    train_features = extract_features(encoder, train_set, num_workers=config.num_workers)
+    test_features = extract_features(encoder, test_set, num_workers=config.num_workers)
+    generator = torch.Generator().manual_seed(config.seed)
+    classes = len(train_set.class_names)
+    probes = run_probes(train_features, test_features, classes, config.probe_epochs, generator)
+    logger.info("%s: %s", FLOOR_ROW, {k: round(v, 2) for k, v in probes.items()})
+    return {**probes, "encoder": "untrained", "architecture": architecture.to_dict(), "pretrain": None}
 
 
 def run_table1(config: Table1Config) -> Path:

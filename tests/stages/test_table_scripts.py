@@ -58,15 +58,21 @@ def test_table1_trains_probes_and_writes_tables_and_tsne(tmp_path):
     args = ["--data", str(data), "--output_dir", str(out), "--image-size", "16", "--global_batch_size", "4"]
     args += ["--presets", "simclr-full", "speckle+monotonic", "--max_train_steps", "1", "--probe_epochs", "2"]
     result = table1.main([*args, *TINY_MODEL, "--tsne_points", "12"])
-    assert set(result["rows"]) == {"simclr-full", "speckle+monotonic"}
+    assert set(result["rows"]) == {"simclr-full", "speckle+monotonic", table1_stage.FLOOR_ROW}
     assert (result["train_chips"], result["test_chips"]) == (12, 12)
-    for row in result["rows"].values():
+    for name, row in result["rows"].items():
         assert 0.0 <= row["linear_accuracy"] <= 100.0 and 0.0 <= row["knn_accuracy"] <= 100.0
         assert 0.0 <= row["mlp_azimuth_error_deg"] <= 180.0 and 0.0 <= row["knn_azimuth_error_deg"] <= 180.0
-        assert row["pretrain"]["steps"] == 1 and math.isfinite(row["pretrain"]["final_loss"])
+        if name != table1_stage.FLOOR_ROW:
+            assert row["pretrain"]["steps"] == 1 and math.isfinite(row["pretrain"]["final_loss"])
+    # the floor: an untrained encoder of the first row's architecture, probed the same way
+    floor = result["rows"][table1_stage.FLOOR_ROW]
+    assert floor["pretrain"] is None and floor["encoder"] == "untrained"
+    assert floor["architecture"]["hidden_sizes"] == [8, 8, 8, 8] and floor["architecture"]["image_size"] == 16
     assert json.loads((out / "table1.json").read_text())["paper"]["speckle+monotonic"]["knn_accuracy"] == 99.7
     markdown = (out / "table1.md").read_text()
     assert "| speckle+monotonic |" in markdown and "98.7 / 9.8 | 99.7 / 3.1" in markdown
+    assert f"| {table1_stage.FLOOR_ROW} |" in markdown
     assert (out / "tsne.png").stat().st_size > 10_000
     # existing encoders are probed, not retrained: same numbers
     again = table1.main(
