@@ -73,6 +73,23 @@ class SARZero123PipelineOutput(BaseOutput):
     images: list[PIL.Image.Image] | np.ndarray | torch.Tensor
 
 
+def _denoising_steps(strength: float, num_inference_steps: int) -> int:
+    """Steps an image-to-image call runs: ``int(num_inference_steps * strength)``, as diffusers does.
+
+    Raises:
+        ValueError: If ``strength`` is not a real number in (0, 1], or leaves no step to run.
+    """
+    if isinstance(strength, bool) or not isinstance(strength, numbers.Real) or not 0.0 < strength <= 1.0:
+        raise ValueError(f"`strength` must be a real number in (0, 1], got {strength!r}")
+    steps = min(int(num_inference_steps * strength), int(num_inference_steps))
+    if steps < 1:
+        raise ValueError(
+            f"`strength` {strength} x `num_inference_steps` {num_inference_steps} leaves no denoising step; "
+            "raise either"
+        )
+    return steps
+
+
 class SARZero123Pipeline(DiffusionPipeline):
     """Novel-view synthesis of SAR chips with a zero-1-to-3 latent diffusion model.
 
@@ -418,6 +435,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         | MultiPipelineCallbacks
         | None = None,
         callback_on_step_end_tensor_inputs: Sequence[str] = ("latents",),
+        strength: float = 1.0,
     ) -> SARZero123PipelineOutput | tuple:
         """Generate views of each input chip at ``(d_az, d_el)`` relative to it.
 
@@ -442,6 +460,11 @@ class SARZero123Pipeline(DiffusionPipeline):
             callback_on_step_end: Called as ``f(pipe, step, timestep, callback_kwargs)`` after each step;
                 may return a dict replacing entries of ``callback_kwargs`` (``"latents"``).
             callback_on_step_end_tensor_inputs: Tensors passed in ``callback_kwargs``.
+            strength: In (0, 1]. Below 1, sampling starts from the input chip's own latent noised to the
+                ``int(num_inference_steps * strength)``-th last timestep, and runs only those steps
+                (SDEdit, as diffusers' image-to-image pipelines do): the view keeps more of the input,
+                which suits small pose changes. ``latents``, if given, is then the noise added. 1 (the
+                default) starts from pure noise.
 
         Returns:
             :class:`SARZero123PipelineOutput`, or ``(images,)`` when ``return_dict`` is False.
@@ -461,6 +484,7 @@ class SARZero123Pipeline(DiffusionPipeline):
             output_type,
             callback_on_step_end_tensor_inputs,
         )
+        denoising_steps = _denoising_steps(strength, num_inference_steps)
         images = self.preprocess_image(image)
         batch_size = images.shape[0]
         pose = _broadcast_pose(d_az, d_el, batch_size)  # (B, 1, 4)
@@ -502,6 +526,11 @@ class SARZero123Pipeline(DiffusionPipeline):
         # 3. timesteps
         self.scheduler.set_timesteps(int(num_inference_steps), device=device)
         timesteps = self.scheduler.timesteps
+        if denoising_steps < num_inference_steps:  # strength < 1: the last denoising_steps only
+            start = (int(num_inference_steps) - denoising_steps) * self.scheduler.order
+            timesteps = timesteps[start:]
+            if hasattr(self.scheduler, "set_begin_index"):
+                self.scheduler.set_begin_index(start)
 
         # 4. initial noise
         shape = (num_samples, self.vae.config.latent_channels, *condition_latents.shape[-2:])
@@ -513,7 +542,11 @@ class SARZero123Pipeline(DiffusionPipeline):
             if not torch.isfinite(latents).all():
                 raise ValueError("`latents` contains NaN or inf values")
             latents = latents.to(device=device, dtype=dtype)
-        latents = latents * self.scheduler.init_noise_sigma
+        if denoising_steps < num_inference_steps:  # the input's own latent, noised to the first timestep
+            start_latents = condition_latents[-num_samples:] * self.vae.config.scaling_factor
+            latents = self.scheduler.add_noise(start_latents, latents, timesteps[:1].repeat(num_samples))
+        else:
+            latents = latents * self.scheduler.init_noise_sigma
         step_kwargs = self._scheduler_step_kwargs(generator)
 
         # 5. denoising loop: one UNet call per step with [unconditional; conditional] stacked

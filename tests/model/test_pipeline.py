@@ -182,6 +182,61 @@ def test_ddim_guided_sampling_matches_the_original_zero123_equations(pipe):
     torch.testing.assert_close(output, expected, atol=1e-5, rtol=0)
 
 
+def test_strength_runs_the_last_steps_from_the_noised_input_latent(pipe):
+    """Naive reference: SDEdit on LDM DDIM (eta 0): the input's latent (posterior mode x scaling factor)
+    noised to the int(steps * strength)-th last timestep, then only those steps."""
+    steps, strength, scale = 5, 0.6, 3.0
+    images = dummy_images(batch_size=2)
+    noise = torch.randn(2, 4, 16, 16, generator=torch.Generator().manual_seed(9))
+    calls, handle = _record_unet_calls(pipe)
+    try:
+        output = run(pipe, images, d_az=[30.0, 120.0], latents=noise, generator=None,
+                     num_inference_steps=steps, guidance_scale=scale, strength=strength)  # fmt: skip
+    finally:
+        handle.remove()
+    assert len(calls) == 3  # int(5 * 0.6)
+    betas = torch.linspace(0.00085**0.5, 0.012**0.5, 1000, dtype=torch.float64) ** 2  # scaled_linear
+    alphas_cumprod = torch.cumprod(1 - betas, 0)
+    timesteps = torch.arange(0, 1000, 1000 // steps) + 1  # 1, 201, 401, 601, 801: start at 401
+    with torch.no_grad():
+        pose = torch.tensor([[[0.0, 0.5, 3**0.5 / 2, 0.0]], [[0.0, 3**0.5 / 2, -0.5, 0.0]]])
+        tokens, condition = pipe.encode_conditioning(images, pose)
+        a_start = alphas_cumprod[timesteps[2]].item()
+        x = a_start**0.5 * condition * pipe.vae.config.scaling_factor + (1 - a_start) ** 0.5 * noise
+        tokens = torch.cat([torch.zeros_like(tokens), tokens])
+        condition = torch.cat([torch.zeros_like(condition), condition])
+        for index in reversed(range(3)):
+            a_t = alphas_cumprod[timesteps[index]].item()
+            a_prev = alphas_cumprod[timesteps[index - 1] if index > 0 else 0].item()
+            model_input = torch.cat([torch.cat([x, x]), condition], dim=1)
+            eps_uncond, eps_cond = pipe.unet(model_input, timesteps[index], tokens).sample.chunk(2)
+            eps = eps_uncond + scale * (eps_cond - eps_uncond)
+            x0 = (x - (1 - a_t) ** 0.5 * eps) / a_t**0.5
+            x = a_prev**0.5 * x0 + (1 - a_prev) ** 0.5 * eps
+        expected = (pipe.vae.decode(x / pipe.vae.config.scaling_factor).sample / 2 + 0.5).clamp(0, 1)
+    torch.testing.assert_close(output, expected, atol=1e-5, rtol=0)
+
+
+def test_strength_one_is_sampling_from_noise_and_a_small_strength_keeps_the_input(pipe):
+    assert torch.equal(run(pipe, num_inference_steps=10, strength=1.0), run(pipe, num_inference_steps=10))
+    with torch.no_grad():
+        start = pipe.encode_conditioning(dummy_images(), torch.zeros(1, 1, 4))[1]
+    start = start * pipe.vae.config.scaling_factor
+    kept = run(pipe, num_inference_steps=10, strength=0.1, output_type="latent")  # one step from t = 1
+    full = run(pipe, num_inference_steps=10, output_type="latent")
+    assert (kept - start).abs().mean() < 0.05 * (full - start).abs().mean()
+
+
+@pytest.mark.parametrize(
+    ("strength", "match"),
+    [(0.0, r"\(0, 1\], got 0.0"), (1.5, r"\(0, 1\], got 1.5"), (float("nan"), "got nan"), (True, "got True"),
+     (0.2, r"`strength` 0.2 x `num_inference_steps` 2 leaves no denoising step")],
+)  # fmt: skip
+def test_bad_strength_is_refused(pipe, strength, match):
+    with pytest.raises(ValueError, match=match):
+        run(pipe, strength=strength)
+
+
 def test_guidance_changes_the_output(pipe):
     assert (run(pipe, guidance_scale=3.0) - run(pipe, guidance_scale=1.0)).abs().max() > 1e-4
 
