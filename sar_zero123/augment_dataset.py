@@ -33,7 +33,7 @@ import functools
 import io
 import os
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass, field
+from dataclasses import MISSING, dataclass, field, fields
 from pathlib import Path
 from typing import Any, Literal
 
@@ -119,6 +119,7 @@ class AugmentConfig:
     include_real: bool = False  # also list the selected real chips (generated 0, absolute paths)
     num_inference_steps: int = 20  # denoising steps
     guidance_scale: float = 3.0  # classifier-free guidance weight (<= 1 disables it)
+    strength: float = 1.0  # in (0, 1]: below 1, start from the chip's own latent noised (SDEdit)
     scheduler: Literal["ddim", "dpmsolver++", "euler"] = "ddim"  # sampler
     batch_size: int = 8  # views per pipeline call (a view changes with it by float rounding only)
     seed: int = 0  # view (row, request) is sampled with view_generator(seed, row, request)
@@ -163,6 +164,13 @@ class AugmentConfig:
             raise ValueError(
                 f"d_az/target_azimuths_deg x d_el: at most {MAX_REQUESTS_PER_CHIP} requests per chip, got "
                 f"{len(self.d_az or self.target_azimuths_deg)} x {len(self.d_el)} = {requests}"
+            )
+        if not (np.isfinite(self.strength) and 0.0 < self.strength <= 1.0):
+            raise ValueError(f"strength must lie in (0, 1], got {self.strength}")
+        if int(self.num_inference_steps * self.strength) < 1:
+            raise ValueError(
+                f"strength {self.strength} x num_inference_steps {self.num_inference_steps} leaves no "
+                "denoising step; raise either"
             )
         check_minimum(self, "max_chips_per_class", minimum=1, optional=True)
         check_minimum(self, "seed", minimum=0)
@@ -386,6 +394,9 @@ def _check_out_folder(out: Path, options: dict[str, Any]) -> bool:
     recorded = read_json(out / AUGMENT_FILE, what="the options the augmentation was made with")
     if not isinstance(recorded, dict):
         raise ValueError(f"{out / AUGMENT_FILE}: expected a JSON object of the augmentation's options")
+    # a folder written before an option existed was made with that option's default
+    defaults = {f.name: f.default for f in fields(AugmentConfig) if f.default is not MISSING}
+    recorded = {**{name: defaults[name] for name in options if name in defaults}, **recorded}
     differences = [
         f"{name}: {recorded.get(name)!r} there, {options.get(name)!r} now"
         for name in sorted(set(recorded) | set(options))
@@ -500,6 +511,7 @@ def augment_dataset(config: AugmentConfig) -> Path:
                 num_inference_steps=config.num_inference_steps,
                 guidance_scale=config.guidance_scale,
                 seed=config.seed,
+                strength=config.strength,
             )
             for view, image in zip(batch, images):
                 if (out / view.path).is_file():  # written before a kill, from this same batch
@@ -547,6 +559,7 @@ def _generate(
     num_inference_steps: int,
     guidance_scale: float,
     seed: int,
+    strength: float = 1.0,
 ) -> np.ndarray:
     """One pipeline call for a batch of views: ``(B, S, S)`` normalised dB from ``(B, S, S)`` chips."""
     takes_depression = getattr(pipe.pose_projection.config, "input_depression", False)
@@ -559,6 +572,7 @@ def _generate(
         guidance_scale=guidance_scale,
         generator=[view_generator(seed, view.row_index, view.request_index) for view in batch],
         output_type="np",
+        strength=strength,
     ).images[..., 0]
 
 

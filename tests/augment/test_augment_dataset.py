@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import shutil
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -22,7 +23,9 @@ from sar_zero123.augment_dataset import (
     view_generator,
 )
 from sar_zero123.data import SCALING_FILE, ChipRecord, DecibelScaling, load_index
+from sar_zero123.generate import GenerateConfig, load_input_chip
 from sar_zero123.model.build import build_sar_zero123
+from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.sim import INDEX_COLUMNS, simulate_dataset
 
 # 2 classes x 4 azimuths (0, 90, 180, 270) at 17 deg; d_el 2 keeps 19 deg inside the trained [10, 20]
@@ -140,6 +143,40 @@ def test_resume_generates_only_what_is_missing(augmented, data_dir, pipeline_dir
     assert (out / deleted).read_bytes() == (augmented / deleted).read_bytes()
     assert (out / "index.csv").read_bytes() == (augmented / "index.csv").read_bytes()
     assert not list(out.rglob(".*.tmp"))
+    # a folder written before strength and speckle_looks existed resumes with their defaults
+    options = json.loads((out / AUGMENT_FILE).read_text())
+    (out / AUGMENT_FILE).write_text(json.dumps({k: v for k, v in options.items()
+                                                if k not in ("strength", "speckle_looks")}))  # fmt: skip
+    (out / "index.csv").unlink()
+    main(run_args(data_dir, pipeline_dir, out, "--batch_size", "3"))
+    assert (out / "index.csv").read_bytes() == (augmented / "index.csv").read_bytes()
+    with pytest.raises(ValueError, match=r"other options \(strength: 1.0 there, 0.5 now\)"):
+        main(run_args(data_dir, pipeline_dir, out, "--batch_size", "3", "--strength", "0.5"))
+
+
+def test_strength_starts_from_the_chip_and_is_recorded(augmented, data_dir, pipeline_dir, tmp_path):
+    selection = ["--classes", "APC", "--max_chips_per_class", "1", "--num_inference_steps", "4"]
+    clean = main(run_args(data_dir, pipeline_dir, tmp_path / "clean", *selection))
+    kept = main(run_args(data_dir, pipeline_dir, tmp_path / "kept", *selection, "--strength", "0.25"))
+    assert json.loads((kept / AUGMENT_FILE).read_text())["strength"] == 0.25
+    # each view is the pipeline called with strength on its chip, with the view's own generator
+    pipe = SARZero123Pipeline.from_pretrained(pipeline_dir)
+    pipe.set_progress_bar_config(disable=True)
+    scaling = DecibelScaling.for_unit_magnitude()
+    for row in read_csv(kept / PROVENANCE_FILE):
+        chip_config = GenerateConfig(pipeline=str(pipeline_dir), image=str(data_dir / row["source_path"]))
+        chip = torch.from_numpy(load_input_chip(chip_config, pipe.default_image_size))[None, None]
+        row_index, request = (int(part[1:]) for part in Path(row["path"]).stem.split("_")[-2:])
+        expected = pipe(chip, d_az=float(row["d_az_deg"]), d_el=float(row["d_el_deg"]),
+                        input_depression_deg=17.0, num_inference_steps=4, strength=0.25,
+                        generator=view_generator(0, row_index, request), output_type="np").images[0, ..., 0]
+        view = scaling.normalize(np.load(kept / row["path"]).astype(np.float64))
+        np.testing.assert_allclose(view, expected, atol=1e-4)
+        assert np.abs(view - scaling.normalize(np.load(clean / row["path"]).astype(np.float64))).max() > 1e-3
+    with pytest.raises(ValueError, match=r"^strength must lie in \(0, 1\], got 0.0"):
+        main(run_args(data_dir, pipeline_dir, tmp_path / "zero", "--strength", "0"))
+    with pytest.raises(ValueError, match=r"^strength 0.1 x num_inference_steps 2 leaves no denoising step"):
+        main(run_args(data_dir, pipeline_dir, tmp_path / "few", "--strength", "0.1"))
 
 
 def test_refuses_a_folder_of_other_options_or_other_files(augmented, data_dir, pipeline_dir, tmp_path):
