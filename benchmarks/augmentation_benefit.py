@@ -55,7 +55,9 @@ TRAIN_DEPRESSION_DEG = 17.0
 TEST_DEPRESSION_DEG = 15.0
 RESULT_FILE = "result.json"
 #: Fields that only add or drop arms: a resumed benchmark may change them; any other change is refused.
-ARM_SELECTION_FIELDS = ("data", "out", "ks", "sectors", "unseen_class", "unseen_k", "speckle_looks")
+ARM_SELECTION_FIELDS = (
+    "data", "out", "ks", "sectors", "unseen_class", "unseen_k", "speckle_looks", "strength",
+)  # fmt: skip
 #: The reduced configuration that fits about an hour on the 2-core CPU (docs/results/augmentation_benefit.md).
 QUICK = {"ks": [12, 48], "sectors": False, "unseen_class": None, "finetune_steps": 400}
 
@@ -87,6 +89,7 @@ class BenchmarkConfig:
     max_shift_px: int = 4  # training augmentation: random shifts up to this many pixels
     quality_chips_per_class: int = 50  # 15 deg chips per class for the VAE round-trip bound
     speckle_looks: int | None = None  # also arms whose views get L-look speckle re-added (None: no such arms)
+    strength: float | None = None  # also arms whose views start from the kept chip's noised latent (SDEdit)
 
     def __post_init__(self) -> None:
         if not self.ks or min(self.ks) < 2:
@@ -102,6 +105,8 @@ class BenchmarkConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.speckle_looks is not None and self.speckle_looks < 1:
             raise ValueError(f"speckle_looks must be None or >= 1, got {self.speckle_looks}")
+        if self.strength is not None and not 0.0 < self.strength < 1.0:
+            raise ValueError(f"strength must be None or in (0, 1), got {self.strength}")
 
 
 # ------------------------------------------------------------------------------------------ selection
@@ -285,10 +290,11 @@ def build_generator(
     folder: Path,
     d_az: list[float],
     speckle_looks: int | None = None,
+    strength: float = 1.0,
 ) -> tuple[Path, dict[str, Any]]:
     """Fine-tunes the pipeline on `trained_on`, then generates `d_az` views of each of `sources`; both
-    resumable. With `speckle_looks`, the views (in their own folder, from the same fine-tune) get L-look
-    speckle re-added (``AugmentConfig.speckle_looks``).
+    resumable. With `speckle_looks` or `strength` < 1, the views (in their own folder, from the same
+    fine-tune) get L-look speckle re-added or start from the source's noised latent (``AugmentConfig``).
 
     Returns the augmented dataset folder (views only) and the times of the fine-tune and this generation.
     """
@@ -306,18 +312,25 @@ def build_generator(
             resume_from_checkpoint="latest", seed=0,
         ))  # fmt: skip
         timing_file.write_text(json.dumps(times, indent=2))
-    suffix = "" if speckle_looks is None else f"_speckle{speckle_looks}"
+    suffix = variant_suffix(speckle_looks, strength)
     views, key = folder / f"views{suffix}", f"generate{suffix}"
     if key not in times:
         _, times[key] = timed(augment_dataset, AugmentConfig(
             data=str(source_data), pipeline=str(folder / "finetune" / "pipeline"), out=str(views), d_az=d_az,
             depressions_deg=[TRAIN_DEPRESSION_DEG], num_inference_steps=config.num_inference_steps,
             guidance_scale=config.guidance_scale, scheduler="ddim", batch_size=16, seed=0,
-            speckle_looks=speckle_looks,
+            speckle_looks=speckle_looks, strength=strength,
         ))  # fmt: skip
         times[key]["views"] = len(load_index(views))
         timing_file.write_text(json.dumps(times, indent=2))
     return views, {"finetune": times["finetune"], key: times[key]}
+
+
+def variant_suffix(speckle_looks: int | None = None, strength: float = 1.0) -> str:
+    """``_speckle<L>`` and ``_strength<S>`` for views generated other than plainly; ``""`` for plain ones."""
+    return ("" if speckle_looks is None else f"_speckle{speckle_looks}") + (
+        "" if strength == 1.0 else f"_strength{strength:g}"
+    )
 
 
 def check_settings(config: BenchmarkConfig, out: Path) -> None:
@@ -418,11 +431,12 @@ class Benchmark:
     def generated_arm(
         self, kept: Sequence[ChipRecord], d_az: list[float], generator_dir: Path, description: str,
         generator_records: Sequence[ChipRecord] | None = None, speckle_looks: int | None = None,
+        strength: float = 1.0,
     ) -> Any:  # fmt: skip
         def build(arm_dir: Path) -> dict[str, Any]:
             trained_on = kept if generator_records is None else generator_records
             views_dir, times = build_generator(
-                self.config, trained_on, kept, generator_dir, d_az, speckle_looks
+                self.config, trained_on, kept, generator_dir, d_az, speckle_looks, strength
             )
             views = load_index(views_dir)
             result = self.classifiers(list(kept) + views, arm_dir)
@@ -483,12 +497,17 @@ class Benchmark:
                 kept, d_az, self.out / f"generator_k{k}",
                 f"{k} chips/class + {config.views_per_chip} views each",
             )))  # fmt: skip
-            if config.speckle_looks is not None:  # the same views with speckle re-added
-                looks = config.speckle_looks
-                results.append(self.run_arm(f"generated_k{k}_speckle{looks}", self.generated_arm(
+            variants = []  # views of the same generator, made otherwise
+            if config.speckle_looks is not None:
+                variants.append(({"speckle_looks": config.speckle_looks},
+                                 f"{config.speckle_looks}-look speckle re-added"))  # fmt: skip
+            if config.strength is not None:
+                words = f"started from the chip, strength {config.strength:g}"
+                variants.append(({"strength": config.strength}, words))
+            for options, words in variants:
+                results.append(self.run_arm(f"generated_k{k}{variant_suffix(**options)}", self.generated_arm(
                     kept, d_az, self.out / f"generator_k{k}",
-                    f"{k} chips/class + {config.views_per_chip} views each, {looks}-look speckle re-added",
-                    speckle_looks=looks,
+                    f"{k} chips/class + {config.views_per_chip} views each, {words}", **options,
                 )))  # fmt: skip
         if config.sectors:
             kept = keep_sector(self.train_records, config.sector_deg)
@@ -553,6 +572,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else s)
         elif name == "speckle_looks":
             parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else int(s))
+        elif name == "strength":
+            parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else float(s))
         else:
             parser.add_argument(flag, type=type(value), default=value)
     parser.add_argument("--quick", action="store_true", help=f"the reduced run: {QUICK}")

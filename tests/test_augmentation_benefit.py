@@ -64,6 +64,8 @@ def test_config_refuses_bad_fields():
         BenchmarkConfig(views_per_chip=0)
     with pytest.raises(ValueError, match="speckle_looks"):
         BenchmarkConfig(speckle_looks=0)
+    with pytest.raises(ValueError, match="strength"):
+        BenchmarkConfig(strength=1.0)
 
 
 def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
@@ -118,3 +120,10 @@ def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
     assert max(p.stat().st_mtime_ns for p in finetuned.rglob("*")) == stamp
     quality = speckled["generated_k4_speckle1"]["view_quality"]["normalised_db_mean_std"]["generated"]
     assert quality != arms["generated_k4"]["view_quality"]["normalised_db_mean_std"]["generated"]
+    # so is starting the views from the kept chips (SDEdit): recorded in the views' options
+    started = {arm["arm"]: arm for arm in main([*args, "--strength", "0.5", "--speckle_looks", "1"])["arms"]}
+    assert list(started)[2:5] == ["generated_k4", "generated_k4_speckle1", "generated_k4_strength0.5"]
+    views = tmp_path / "out" / "generator_k4" / "views_strength0.5"
+    options = json.loads((views / "augment.json").read_text())
+    assert options["strength"] == 0.5 and options["speckle_looks"] is None
+    assert max(p.stat().st_mtime_ns for p in finetuned.rglob("*")) == stamp
