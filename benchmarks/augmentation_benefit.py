@@ -17,6 +17,11 @@ of it are what a user gets for a new vehicle. For each generated arm, ``view_qua
 views: the ceiling classifier's accuracy on the generated views against their source's class, on the VAE
 round trip of real 15 deg chips (the generator's decoder bound) and on the same real chips.
 
+Variant arms, from the same fine-tuned generator per K: ``--speckle_looks L`` adds
+``generated_k{K}_speckle{L}`` (the views with L-look speckle re-added, ``augment_dataset --speckle_looks``),
+``--strength S`` adds ``generated_k{K}_strength{S}`` (the views started from the kept chip's own latent,
+SDEdit).
+
 Every arm writes into its own folder under ``--out`` and ends with ``result.json``; an arm whose
 ``result.json`` exists is skipped, a generator or an augmentation cut short resumes (run-folder rule), so
 a killed run is continued by the same command. ``--out``/``results.json`` gathers every finished arm.
