@@ -154,15 +154,39 @@ def _as_dict(config: Any) -> dict[str, Any]:
     return json.loads(json.dumps(dict(config)))
 
 
+def field_defaults(config: Any) -> dict[str, Any]:
+    """The defaults of a dataclass config's fields, as a record holds them (JSON types); ``{}`` otherwise."""
+    if not (dataclasses.is_dataclass(config) and not isinstance(config, type)):
+        return {}
+    defaults = {}
+    for item in dataclasses.fields(config):
+        if item.default is not dataclasses.MISSING:
+            value = item.default
+        elif item.default_factory is not dataclasses.MISSING:
+            value = item.default_factory()
+        else:
+            continue
+        try:
+            defaults[item.name] = json.loads(json.dumps(value))
+        except (TypeError, ValueError):
+            continue
+    return defaults
+
+
 def run_differences(
     record: Mapping[str, Any], stage: str, config: Mapping[str, Any], data: Mapping[str, Any],
-    ignore: Iterable[str] = (),
+    ignore: Iterable[str] = (), defaults: Mapping[str, Any] | None = None,
 ) -> list[str]:
-    """Every difference between a folder's record and a new run, as ``"field: folder X, this run Y"``."""
+    """Every difference between a folder's record and a new run, as ``"field: folder X, this run Y"``.
+
+    A field the record lacks counts as its value in ``defaults``: a folder written before the field existed
+    was made with the field's default.
+    """
     if record.get("stage") != stage:
         return [f"stage: folder {record.get('stage')!r}, this run {stage!r}"]
     ignored = set(ignore)
     written = record.get("config", {})
+    written = {**{k: v for k, v in (defaults or {}).items() if k not in written}, **written}
     differences = [
         f"{name}: folder {written.get(name, '<absent>')!r}, this run {config.get(name, '<absent>')!r}"
         for name in sorted(set(written) | set(config))
@@ -259,7 +283,9 @@ def open_run_folder(
             "version): choose an empty folder, or pass --restart to move its contents aside"
         )
     extendable = set(may_extend) if resume else set()
-    differences = run_differences(record, stage, values, identity, ignore=set(may_differ) | extendable)
+    differences = run_differences(
+        record, stage, values, identity, ignore=set(may_differ) | extendable, defaults=field_defaults(config)
+    )
     if differences:
         raise ValueError(
             f"{flag_hint}: {str(path)!r} holds a {record.get('stage')} run made with other settings; reusing "

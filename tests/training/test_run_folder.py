@@ -67,6 +67,18 @@ def test_other_settings_are_refused_naming_each_difference(tmp_path):
     assert _snapshot(folder) == before
 
 
+def test_a_field_the_record_lacks_counts_as_its_default(tmp_path):
+    # a folder written before `log_every` existed was made with its default: it resumes at the default
+    folder = tmp_path / "run"
+    open_run_folder(folder, "finetune", _Config())
+    record = json.loads((folder / RUN_RECORD).read_text())
+    del record["config"]["log_every"]
+    (folder / RUN_RECORD).write_text(json.dumps(record))
+    assert open_run_folder(folder, "finetune", _Config(), resume=True).status == "continued"
+    with pytest.raises(ValueError, match="log_every: folder 5, this run 7"):
+        open_run_folder(folder, "finetune", _Config(log_every=7), resume=True)
+
+
 def test_other_data_is_refused(tmp_path):
     data = tmp_path / "data"
     data.mkdir()
