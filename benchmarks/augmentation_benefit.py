@@ -62,6 +62,7 @@ RESULT_FILE = "result.json"
 #: Fields that only add or drop arms: a resumed benchmark may change them; any other change is refused.
 ARM_SELECTION_FIELDS = (
     "data", "out", "ks", "sectors", "unseen_class", "unseen_k", "speckle_looks", "strength",
+    "same_azimuth_control",
 )  # fmt: skip
 #: The reduced configuration that fits about an hour on the 2-core CPU (docs/results/augmentation_benefit.md).
 QUICK = {"ks": [12, 48], "sectors": False, "unseen_class": None, "finetune_steps": 400}
@@ -95,6 +96,7 @@ class BenchmarkConfig:
     quality_chips_per_class: int = 50  # 15 deg chips per class for the VAE round-trip bound
     speckle_looks: int | None = None  # also arms whose views get L-look speckle re-added (None: no such arms)
     strength: float | None = None  # also arms whose views start from the kept chip's noised latent (SDEdit)
+    same_azimuth_control: bool = False  # with strength: also its views at d_az = 0 (what the pose adds)
 
     def __post_init__(self) -> None:
         if not self.ks or min(self.ks) < 2:
@@ -317,7 +319,7 @@ def build_generator(
             resume_from_checkpoint="latest", seed=0,
         ))  # fmt: skip
         timing_file.write_text(json.dumps(times, indent=2))
-    suffix = variant_suffix(speckle_looks, strength)
+    suffix = variant_suffix(speckle_looks, strength, same_azimuth=all(d == 0.0 for d in d_az))
     views, key = folder / f"views{suffix}", f"generate{suffix}"
     if key not in times:
         _, times[key] = timed(augment_dataset, AugmentConfig(
@@ -331,10 +333,14 @@ def build_generator(
     return views, {"finetune": times["finetune"], key: times[key]}
 
 
-def variant_suffix(speckle_looks: int | None = None, strength: float = 1.0) -> str:
-    """``_speckle<L>`` and ``_strength<S>`` for views generated other than plainly; ``""`` for plain ones."""
-    return ("" if speckle_looks is None else f"_speckle{speckle_looks}") + (
-        "" if strength == 1.0 else f"_strength{strength:g}"
+def variant_suffix(
+    speckle_looks: int | None = None, strength: float = 1.0, same_azimuth: bool = False
+) -> str:
+    """``_speckle<L>``, ``_strength<S>`` and ``_d_az0`` for views generated other than plainly (``""``)."""
+    return (
+        ("" if speckle_looks is None else f"_speckle{speckle_looks}")
+        + ("" if strength == 1.0 else f"_strength{strength:g}")
+        + ("_d_az0" if same_azimuth else "")
     )
 
 
@@ -509,9 +515,14 @@ class Benchmark:
             if config.strength is not None:
                 words = f"started from the chip, strength {config.strength:g}"
                 variants.append(({"strength": config.strength}, words))
+            if config.strength is not None and config.same_azimuth_control:
+                words = f"started from the chip, strength {config.strength:g}, at the chip's own azimuth"
+                variants.append(({"strength": config.strength, "same_azimuth": True}, words))
             for options, words in variants:
-                results.append(self.run_arm(f"generated_k{k}{variant_suffix(**options)}", self.generated_arm(
-                    kept, d_az, self.out / f"generator_k{k}",
+                same_azimuth = options.pop("same_azimuth", False)
+                name = f"generated_k{k}{variant_suffix(**options, same_azimuth=same_azimuth)}"
+                results.append(self.run_arm(name, self.generated_arm(
+                    kept, [0.0] * len(d_az) if same_azimuth else d_az, self.out / f"generator_k{k}",
                     f"{k} chips/class + {config.views_per_chip} views each, {words}", **options,
                 )))  # fmt: skip
         if config.sectors:

@@ -121,8 +121,14 @@ def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
     quality = speckled["generated_k4_speckle1"]["view_quality"]["normalised_db_mean_std"]["generated"]
     assert quality != arms["generated_k4"]["view_quality"]["normalised_db_mean_std"]["generated"]
     # so is starting the views from the kept chips (SDEdit): recorded in the views' options
-    started = {arm["arm"]: arm for arm in main([*args, "--strength", "0.5", "--speckle_looks", "1"])["arms"]}
-    assert list(started)[2:5] == ["generated_k4", "generated_k4_speckle1", "generated_k4_strength0.5"]
+    started = {arm["arm"]: arm for arm in main([*args, "--strength", "0.5", "--speckle_looks", "1",
+                                                "--same_azimuth_control"])["arms"]}  # fmt: skip
+    assert list(started)[2:6] == ["generated_k4", "generated_k4_speckle1", "generated_k4_strength0.5",
+                                  "generated_k4_strength0.5_d_az0"]  # fmt: skip
+    # the control: the same start, at the kept chip's own azimuth
+    assert started["generated_k4_strength0.5_d_az0"]["d_az_deg"] == [0.0]
+    control = tmp_path / "out" / "generator_k4" / "views_strength0.5_d_az0" / "provenance.csv"
+    assert {row.split(",")[-5] for row in control.read_text().splitlines()[1:]} == {"0.0"}
     views = tmp_path / "out" / "generator_k4" / "views_strength0.5"
     options = json.loads((views / "augment.json").read_text())
     assert options["strength"] == 0.5 and options["speckle_looks"] is None
