@@ -154,23 +154,18 @@ def test_guidance_batches_unconditional_zeros_in_one_call(pipe, guidance_scale, 
             assert torch.equal(model_input[:2, :4], model_input[2:, :4])
 
 
-def test_ddim_guided_sampling_matches_the_original_zero123_equations(pipe):
-    """Naive reference: LDM DDIM (eta 0) with zero-1-to-3's batched CFG, written out step by step."""
-    steps, scale = 5, 3.0
-    images = dummy_images(batch_size=2)
-    noise = torch.randn(2, 4, 16, 16, generator=torch.Generator().manual_seed(9))
-    output = run(pipe, images, d_az=[30.0, 120.0], d_el=[0.0, 4.0], latents=noise, generator=None,
-                 num_inference_steps=steps, guidance_scale=scale)
+def _naive_guided_ddim(pipe, x, images, pose, steps, first_index, scale):
+    """LDM DDIM (eta 0) with zero-1-to-3's batched CFG, written out step by step from timestep index
+    ``first_index`` down to 0 of the ``steps``-step schedule (timesteps 1, 1 + 1000 / steps, ...), then
+    decoded to [0, 1]."""
     betas = torch.linspace(0.00085**0.5, 0.012**0.5, 1000, dtype=torch.float64) ** 2  # scaled_linear
     alphas_cumprod = torch.cumprod(1 - betas, 0)
-    timesteps = torch.arange(0, 1000, 1000 // steps) + 1  # LDM's DDIM timesteps: 1, 201, ..., 801
+    timesteps = torch.arange(0, 1000, 1000 // steps) + 1
     with torch.no_grad():
-        pose = torch.tensor([[[0.0, 0.5, 3**0.5 / 2, 0.0]], [[4 * torch.pi / 180, 3**0.5 / 2, -0.5, 0.0]]])
         tokens, condition = pipe.encode_conditioning(images, pose)
         tokens = torch.cat([torch.zeros_like(tokens), tokens])
         condition = torch.cat([torch.zeros_like(condition), condition])
-        x = noise
-        for index in reversed(range(steps)):
+        for index in reversed(range(first_index + 1)):
             a_t = alphas_cumprod[timesteps[index]].item()
             a_prev = alphas_cumprod[timesteps[index - 1] if index > 0 else 0].item()
             model_input = torch.cat([torch.cat([x, x]), condition], dim=1)
@@ -178,7 +173,18 @@ def test_ddim_guided_sampling_matches_the_original_zero123_equations(pipe):
             eps = eps_uncond + scale * (eps_cond - eps_uncond)
             x0 = (x - (1 - a_t) ** 0.5 * eps) / a_t**0.5
             x = a_prev**0.5 * x0 + (1 - a_prev) ** 0.5 * eps
-        expected = (pipe.vae.decode(x / pipe.vae.config.scaling_factor).sample / 2 + 0.5).clamp(0, 1)
+        return (pipe.vae.decode(x / pipe.vae.config.scaling_factor).sample / 2 + 0.5).clamp(0, 1)
+
+
+def test_ddim_guided_sampling_matches_the_original_zero123_equations(pipe):
+    """Naive reference: LDM DDIM (eta 0) with zero-1-to-3's batched CFG, written out step by step."""
+    steps, scale = 5, 3.0
+    images = dummy_images(batch_size=2)
+    noise = torch.randn(2, 4, 16, 16, generator=torch.Generator().manual_seed(9))
+    output = run(pipe, images, d_az=[30.0, 120.0], d_el=[0.0, 4.0], latents=noise, generator=None,
+                 num_inference_steps=steps, guidance_scale=scale)
+    pose = torch.tensor([[[0.0, 0.5, 3**0.5 / 2, 0.0]], [[4 * torch.pi / 180, 3**0.5 / 2, -0.5, 0.0]]])
+    expected = _naive_guided_ddim(pipe, noise, images, pose, steps, steps - 1, scale)  # 801, 601, ..., 1
     torch.testing.assert_close(output, expected, atol=1e-5, rtol=0)
 
 
@@ -195,25 +201,13 @@ def test_strength_runs_the_last_steps_from_the_noised_input_latent(pipe):
     finally:
         handle.remove()
     assert len(calls) == 3  # int(5 * 0.6)
+    pose = torch.tensor([[[0.0, 0.5, 3**0.5 / 2, 0.0]], [[0.0, 3**0.5 / 2, -0.5, 0.0]]])
     betas = torch.linspace(0.00085**0.5, 0.012**0.5, 1000, dtype=torch.float64) ** 2  # scaled_linear
-    alphas_cumprod = torch.cumprod(1 - betas, 0)
-    timesteps = torch.arange(0, 1000, 1000 // steps) + 1  # 1, 201, 401, 601, 801: start at 401
+    a_start = torch.cumprod(1 - betas, 0)[401].item()  # timesteps 1, 201, 401, 601, 801: start at 401
     with torch.no_grad():
-        pose = torch.tensor([[[0.0, 0.5, 3**0.5 / 2, 0.0]], [[0.0, 3**0.5 / 2, -0.5, 0.0]]])
-        tokens, condition = pipe.encode_conditioning(images, pose)
-        a_start = alphas_cumprod[timesteps[2]].item()
-        x = a_start**0.5 * condition * pipe.vae.config.scaling_factor + (1 - a_start) ** 0.5 * noise
-        tokens = torch.cat([torch.zeros_like(tokens), tokens])
-        condition = torch.cat([torch.zeros_like(condition), condition])
-        for index in reversed(range(3)):
-            a_t = alphas_cumprod[timesteps[index]].item()
-            a_prev = alphas_cumprod[timesteps[index - 1] if index > 0 else 0].item()
-            model_input = torch.cat([torch.cat([x, x]), condition], dim=1)
-            eps_uncond, eps_cond = pipe.unet(model_input, timesteps[index], tokens).sample.chunk(2)
-            eps = eps_uncond + scale * (eps_cond - eps_uncond)
-            x0 = (x - (1 - a_t) ** 0.5 * eps) / a_t**0.5
-            x = a_prev**0.5 * x0 + (1 - a_prev) ** 0.5 * eps
-        expected = (pipe.vae.decode(x / pipe.vae.config.scaling_factor).sample / 2 + 0.5).clamp(0, 1)
+        start = pipe.encode_conditioning(images, pose)[1] * pipe.vae.config.scaling_factor
+    x = a_start**0.5 * start + (1 - a_start) ** 0.5 * noise
+    expected = _naive_guided_ddim(pipe, x, images, pose, steps, 2, scale)
     torch.testing.assert_close(output, expected, atol=1e-5, rtol=0)
 
 
