@@ -27,7 +27,13 @@ from sar_zero123.stages.report import write_report
 from sar_zero123.stages.simclr import PretrainSimCLRConfig, run_simclr
 from sar_zero123.stages.simulate import SimulateConfig, run_simulate
 from sar_zero123.stages.vae import TrainVAEConfig, run_vae
-from sar_zero123.training.run_folder import finish_run, open_run_folder, read_run_record, run_differences
+from sar_zero123.training.run_folder import (
+    field_defaults,
+    finish_run,
+    open_run_folder,
+    read_run_record,
+    run_differences,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -212,7 +218,11 @@ def _run_stage(plan: StagePlan) -> bool:
             raise
         fields = config_to_dict(plan.config)
         ignored = (*EVALUATE_MAY_DIFFER, *_PIPELINE_FIELDS)
-        if run_differences(before, "evaluate", fields, before.get("data", {}), ignore=ignored):
+        differences = run_differences(
+            before, "evaluate", fields, before.get("data", {}), ignore=ignored,
+            defaults=field_defaults(plan.config),
+        )  # fmt: skip
+        if differences:
             raise
         logger.info("stage %s: other pipelines than its record; evaluating them all again", plan.name)
         plan.run(dataclasses.replace(plan.config, resume=False, restart=True))

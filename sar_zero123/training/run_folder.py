@@ -46,6 +46,7 @@ __all__ = [
     "StageTimer",
     "code_version",
     "data_identity",
+    "field_defaults",
     "finish_run",
     "open_run_folder",
     "read_run_record",
