@@ -546,6 +546,15 @@ class Benchmark:
                 f"{k} chips/class + views; generator trained without {config.unseen_class}",
                 generator_records=seen,
             )))  # fmt: skip
+            if config.strength is not None:  # the same generator's views started from the kept chips
+                suffix = variant_suffix(strength=config.strength)
+                name = f"generated_k{k}_unseen_{config.unseen_class}{suffix}"
+                words = f"started from the chip, strength {config.strength:g}"
+                results.append(self.run_arm(name, self.generated_arm(
+                    kept, d_az, self.out / f"generator_k{k}_without_{config.unseen_class}",
+                    f"{k} chips/class + views {words}; generator trained without {config.unseen_class}",
+                    generator_records=seen, strength=config.strength,
+                )))  # fmt: skip
         summary = {
             "benchmark": "augmentation_benefit (issue 26)",
             "config": asdict(config),
