@@ -33,7 +33,7 @@ import functools
 import io
 import os
 from collections.abc import Callable, Sequence
-from dataclasses import MISSING, dataclass, field, fields
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
@@ -63,6 +63,7 @@ from sar_zero123.model.pipeline import (
 )
 from sar_zero123.pretrained import SIM_PRIOR, is_bundled_name, resolve_pretrained
 from sar_zero123.sim.dataset import write_index_atomic
+from sar_zero123.training.run_folder import field_defaults
 
 __all__ = [
     "AUGMENT_FILE",
@@ -395,7 +396,7 @@ def _check_out_folder(out: Path, options: dict[str, Any]) -> bool:
     if not isinstance(recorded, dict):
         raise ValueError(f"{out / AUGMENT_FILE}: expected a JSON object of the augmentation's options")
     # a folder written before an option existed was made with that option's default
-    defaults = {f.name: f.default for f in fields(AugmentConfig) if f.default is not MISSING}
+    defaults = field_defaults(AugmentConfig)
     recorded = {**{name: defaults[name] for name in options if name in defaults}, **recorded}
     differences = [
         f"{name}: {recorded.get(name)!r} there, {options.get(name)!r} now"

@@ -156,8 +156,9 @@ def _as_dict(config: Any) -> dict[str, Any]:
 
 
 def field_defaults(config: Any) -> dict[str, Any]:
-    """The defaults of a dataclass config's fields, as a record holds them (JSON types); ``{}`` otherwise."""
-    if not (dataclasses.is_dataclass(config) and not isinstance(config, type)):
+    """The defaults of a dataclass config's fields (an instance or the class), as a record holds them (JSON
+    types); ``{}`` for anything else."""
+    if not dataclasses.is_dataclass(config):
         return {}
     defaults = {}
     for item in dataclasses.fields(config):
