@@ -20,7 +20,9 @@ round trip of real 15 deg chips (the generator's decoder bound) and on the same 
 Variant arms, from the same fine-tuned generator per K: ``--speckle_looks L`` adds
 ``generated_k{K}_speckle{L}`` (the views with L-look speckle re-added, ``augment_dataset --speckle_looks``),
 ``--strength S`` adds ``generated_k{K}_strength{S}`` (the views started from the kept chip's own latent,
-SDEdit).
+SDEdit) and ``--same_azimuth_control`` its control ``..._strength{S}_d_az0`` (the same start at the chip's
+own azimuth, what the requested pose adds). Every plain generated arm (per K, the sector's, the unseen
+class's) gets the selected variants.
 
 Every arm writes into its own folder under ``--out`` and ends with ``result.json``; an arm whose
 ``result.json`` exists is skipped, a generator or an augmentation cut short resumes (run-folder rule), so
@@ -496,6 +498,33 @@ class Benchmark:
             },
         }
 
+    def variant_arms(
+        self, name: str, kept: Sequence[ChipRecord], d_az: list[float], generator_dir: Path,
+        description: str, generator_records: Sequence[ChipRecord] | None = None,
+    ) -> list[dict[str, Any]]:  # fmt: skip
+        """The selected variants of the plain arm `name`: the same generator's views made otherwise.
+
+        ``speckle_looks`` re-adds speckle, ``strength`` starts each view from its kept chip's noised latent,
+        ``same_azimuth_control`` makes the strength views at ``d_az = 0`` (what the requested pose adds).
+        """
+        config = self.config
+        variants: list[tuple[dict[str, Any], bool, str]] = []
+        if config.speckle_looks is not None:
+            variants.append(({"speckle_looks": config.speckle_looks}, False,
+                             f"{config.speckle_looks}-look speckle re-added"))  # fmt: skip
+        if config.strength is not None:
+            words = f"started from the chip, strength {config.strength:g}"
+            variants.append(({"strength": config.strength}, False, words))
+            if config.same_azimuth_control:
+                variants.append(({"strength": config.strength}, True, f"{words}, at the chip's own azimuth"))
+        return [
+            self.run_arm(f"{name}{variant_suffix(**options, same_azimuth=same)}", self.generated_arm(
+                kept, [0.0] * len(d_az) if same else d_az, generator_dir, f"{description}, {words}",
+                generator_records=generator_records, **options,
+            ))  # fmt: skip
+            for options, same, words in variants
+        ]
+
     def run(self) -> dict[str, Any]:
         """Every arm of the configuration, ceiling first (the view-quality classifier)."""
         config = self.config
@@ -508,23 +537,10 @@ class Benchmark:
                 kept, d_az, self.out / f"generator_k{k}",
                 f"{k} chips/class + {config.views_per_chip} views each",
             )))  # fmt: skip
-            variants = []  # views of the same generator, made otherwise
-            if config.speckle_looks is not None:
-                variants.append(({"speckle_looks": config.speckle_looks},
-                                 f"{config.speckle_looks}-look speckle re-added"))  # fmt: skip
-            if config.strength is not None:
-                words = f"started from the chip, strength {config.strength:g}"
-                variants.append(({"strength": config.strength}, words))
-            if config.strength is not None and config.same_azimuth_control:
-                words = f"started from the chip, strength {config.strength:g}, at the chip's own azimuth"
-                variants.append(({"strength": config.strength, "same_azimuth": True}, words))
-            for options, words in variants:
-                same_azimuth = options.pop("same_azimuth", False)
-                name = f"generated_k{k}{variant_suffix(**options, same_azimuth=same_azimuth)}"
-                results.append(self.run_arm(name, self.generated_arm(
-                    kept, [0.0] * len(d_az) if same_azimuth else d_az, self.out / f"generator_k{k}",
-                    f"{k} chips/class + {config.views_per_chip} views each, {words}", **options,
-                )))  # fmt: skip
+            results += self.variant_arms(
+                f"generated_k{k}", kept, d_az, self.out / f"generator_k{k}",
+                f"{k} chips/class + {config.views_per_chip} views each",
+            )  # fmt: skip
         if config.sectors:
             kept = keep_sector(self.train_records, config.sector_deg)
             sectors = math.floor(360.0 / config.sector_deg)
@@ -535,6 +551,9 @@ class Benchmark:
             results.append(self.run_arm("generated_sector", self.generated_arm(
                 kept, d_az, self.out / "generator_sector", f"{sector} + rotated views",
             )))  # fmt: skip
+            results += self.variant_arms(
+                "generated_sector", kept, d_az, self.out / "generator_sector", f"{sector} + rotated views"
+            )
         if config.unseen_class is not None:
             k = config.unseen_k
             kept = keep_evenly_spaced(self.train_records, k)
@@ -546,15 +565,12 @@ class Benchmark:
                 f"{k} chips/class + views; generator trained without {config.unseen_class}",
                 generator_records=seen,
             )))  # fmt: skip
-            if config.strength is not None:  # the same generator's views started from the kept chips
-                suffix = variant_suffix(strength=config.strength)
-                name = f"generated_k{k}_unseen_{config.unseen_class}{suffix}"
-                words = f"started from the chip, strength {config.strength:g}"
-                results.append(self.run_arm(name, self.generated_arm(
-                    kept, d_az, self.out / f"generator_k{k}_without_{config.unseen_class}",
-                    f"{k} chips/class + views {words}; generator trained without {config.unseen_class}",
-                    generator_records=seen, strength=config.strength,
-                )))  # fmt: skip
+            results += self.variant_arms(
+                f"generated_k{k}_unseen_{config.unseen_class}", kept, d_az,
+                self.out / f"generator_k{k}_without_{config.unseen_class}",
+                f"{k} chips/class + views; generator trained without {config.unseen_class}",
+                generator_records=seen,
+            )  # fmt: skip
         summary = {
             "benchmark": "augmentation_benefit (issue 26)",
             "config": asdict(config),

@@ -128,6 +128,12 @@ def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
     # the control: the same start, at the kept chip's own azimuth
     assert started["generated_k4_strength0.5_d_az0"]["d_az_deg"] == [0.0]
     assert started["generated_k4_unseen_TANK_strength0.5"]["n_generated"] == 8
+    # every plain arm gets the same variants: the missing sector's and the unseen class's too
+    for plain in ("generated_sector", "generated_k4_unseen_TANK"):
+        for suffix in ("_speckle1", "_strength0.5", "_strength0.5_d_az0"):
+            assert started[plain + suffix]["generator"] == started[plain]["generator"]
+    assert started["generated_sector_strength0.5_d_az0"]["d_az_deg"] == [0.0]
+    assert started["generated_sector_strength0.5"]["d_az_deg"] == [180.0]
     control = tmp_path / "out" / "generator_k4" / "views_strength0.5_d_az0" / "provenance.csv"
     assert {row.split(",")[-5] for row in control.read_text().splitlines()[1:]} == {"0.0"}
     views = tmp_path / "out" / "generator_k4" / "views_strength0.5"
