@@ -39,6 +39,7 @@ import logging
 import math
 import os
 import platform
+import re
 import time
 from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field
@@ -576,24 +577,69 @@ class Benchmark:
             "config": asdict(config),
             "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}",
             "platform": platform.platform(),
-            "arms": results,
+            "arms": add_paired_gains(results),
         }
         (self.out / "results.json").write_text(json.dumps(summary, indent=2))
         return summary
 
 
+def real_baseline(arm: str) -> str | None:
+    """The real-only arm a generated arm adds views to: ``generated_k{K}...`` (the unseen-class variant too)
+    -> ``real_k{K}``, ``generated_sector...`` -> ``real_sector``; None for a real arm."""
+    match = re.match(r"generated_(k\d+|sector)", arm)
+    return None if match is None else f"real_{match.group(1)}"
+
+
+def paired_gain(arm: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any]:
+    """Accuracy of `arm` minus `baseline`, seed by seed: both arms train their classifiers with the same
+    seeds, so the difference removes the spread the seeds share. Per seed, mean and sample std (accuracy).
+
+    Raises:
+        ValueError: If the two arms share no seed.
+    """
+    base = {s["seed"]: s["test_accuracy"] for s in baseline["seeds"]}
+    diffs = [s["test_accuracy"] - base[s["seed"]] for s in arm["seeds"] if s["seed"] in base]
+    if not diffs:
+        raise ValueError(f"arms {arm['arm']} and {baseline['arm']} share no classifier seed")
+    values = np.asarray(diffs, dtype=np.float64)
+    return {
+        "against": baseline["arm"],
+        "per_seed": diffs,
+        "mean": float(values.mean()),
+        "std": float(values.std(ddof=1)) if len(values) > 1 else 0.0,
+    }
+
+
+def add_paired_gains(arms: list[dict[str, Any]]) -> list[dict[str, Any]]:
+    """Adds ``gain_over_real`` to each generated arm (against its :func:`real_baseline`) and, to each arm
+    whose same-azimuth control ran, ``gain_over_same_azimuth`` (what the requested pose adds); returns
+    `arms`."""
+    by_name = {arm["arm"]: arm for arm in arms}
+    for arm in arms:
+        baseline = real_baseline(arm["arm"])
+        if baseline in by_name:
+            arm["gain_over_real"] = paired_gain(arm, by_name[baseline])
+        control = by_name.get(arm["arm"] + "_d_az0")
+        if control is not None:
+            arm["gain_over_same_azimuth"] = paired_gain(arm, control)
+    return arms
+
+
 def format_table(summary: dict[str, Any]) -> str:
-    """The arms as a Markdown table: accuracy (mean +- std over seeds, %), chips, times."""
+    """The arms as a Markdown table: accuracy (mean +- std over seeds, %), the paired gain over real-only
+    (points), chips, times."""
     lines = [
-        "| arm | real chips | generated views | 15 deg accuracy (%) | seeds | generator CPU (min) | "
-        "arm CPU (min) | arm wall (min) |",
-        "| --- | --- | --- | --- | --- | --- | --- | --- |",
+        "| arm | real chips | generated views | 15 deg accuracy (%) | gain over real-only (points, paired) | "
+        "seeds | generator CPU (min) | arm CPU (min) | arm wall (min) |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for arm in summary["arms"]:
         generated = arm.get("n_generated", 0)
+        gain = arm.get("gain_over_real")
+        gain_text = "" if gain is None else f"{100 * gain['mean']:+.1f} +- {100 * gain['std']:.1f}"
         lines.append(
             f"| {arm['arm']} | {arm['n_train'] - generated} | {generated} | "
-            f"{100 * arm['test_accuracy_mean']:.1f} +- {100 * arm['test_accuracy_std']:.1f} | "
+            f"{100 * arm['test_accuracy_mean']:.1f} +- {100 * arm['test_accuracy_std']:.1f} | {gain_text} | "
             f"{len(arm['seeds'])} | {arm.get('generator_cpu_s', 0.0) / 60:.1f} | "
             f"{arm['total_cpu_s'] / 60:.1f} | {arm['total_wall_s'] / 60:.1f} |"
         )

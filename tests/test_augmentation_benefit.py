@@ -9,12 +9,15 @@ import torch
 
 from benchmarks.augmentation_benefit import (
     BenchmarkConfig,
+    add_paired_gains,
     circular_distance_deg,
     fill_offsets_deg,
     keep_evenly_spaced,
     keep_sector,
     main,
+    paired_gain,
     random_shift,
+    real_baseline,
 )
 from sar_zero123.data import SCALING_FILE, ChipRecord, DecibelScaling
 from sar_zero123.model.build import build_sar_zero123
@@ -92,6 +95,13 @@ def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
     assert arms["generated_k4"]["d_az_deg"] == [45.0]
     assert arms["real_sector"]["n_train"] == 8 and arms["generated_sector"]["n_generated"] == 8
     assert arms["generated_k4_unseen_TANK"]["n_generated"] == 8
+    # each generated arm carries its seed-by-seed gain over the real-only arm it adds views to
+    gain = arms["generated_k4"]["gain_over_real"]
+    assert gain["against"] == "real_k4" and len(gain["per_seed"]) == 2
+    difference = arms["generated_k4"]["test_accuracy_mean"] - arms["real_k4"]["test_accuracy_mean"]
+    assert gain["mean"] == pytest.approx(difference)
+    assert arms["generated_k4_unseen_TANK"]["gain_over_real"]["against"] == "real_k4"
+    assert arms["generated_sector"]["gain_over_real"]["against"] == "real_sector"
     for arm in arms.values():
         assert len(arm["seeds"]) == 2 and 0.0 <= arm["test_accuracy_mean"] <= 1.0
         assert arm["total_cpu_s"] >= arm["classifier_cpu_s"] > 0.0
@@ -134,9 +144,41 @@ def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
             assert started[plain + suffix]["generator"] == started[plain]["generator"]
     assert started["generated_sector_strength0.5_d_az0"]["d_az_deg"] == [0.0]
     assert started["generated_sector_strength0.5"]["d_az_deg"] == [180.0]
+    pose = started["generated_k4_strength0.5"]["gain_over_same_azimuth"]
+    assert pose["against"] == "generated_k4_strength0.5_d_az0"
     control = tmp_path / "out" / "generator_k4" / "views_strength0.5_d_az0" / "provenance.csv"
     assert {row.split(",")[-5] for row in control.read_text().splitlines()[1:]} == {"0.0"}
     views = tmp_path / "out" / "generator_k4" / "views_strength0.5"
     options = json.loads((views / "augment.json").read_text())
     assert options["strength"] == 0.5 and options["speckle_looks"] is None
     assert max(p.stat().st_mtime_ns for p in finetuned.rglob("*")) == stamp
+
+
+def arm(name: str, accuracies: list[float]) -> dict:
+    return {"arm": name, "seeds": [{"seed": i, "test_accuracy": a} for i, a in enumerate(accuracies)]}
+
+
+def test_real_baseline_names_the_arm_whose_chips_the_views_are_added_to():
+    assert real_baseline("generated_k12") == "real_k12"
+    assert real_baseline("generated_k12_strength0.5_d_az0") == "real_k12"
+    assert real_baseline("generated_k12_unseen_T72_strength0.5") == "real_k12"
+    assert real_baseline("generated_sector_speckle1") == "real_sector"
+    assert real_baseline("real_k12") is None and real_baseline("all_chips") is None
+
+
+def test_paired_gains_are_seed_by_seed_differences():
+    arms = add_paired_gains([
+        arm("real_k4", [0.5, 0.6, 0.4]), arm("generated_k4_strength0.5", [0.6, 0.6, 0.6]),
+        arm("generated_k4_strength0.5_d_az0", [0.5, 0.7, 0.6]),
+    ])  # fmt: skip
+    gain = arms[1]["gain_over_real"]
+    assert gain["against"] == "real_k4"
+    assert gain["per_seed"] == pytest.approx([0.1, 0.0, 0.2])
+    assert gain["mean"] == pytest.approx(0.1) and gain["std"] == pytest.approx(0.1)  # sample std
+    pose = arms[1]["gain_over_same_azimuth"]
+    assert pose["against"] == "generated_k4_strength0.5_d_az0"
+    assert pose["per_seed"] == pytest.approx([0.1, -0.1, 0.0]) and pose["mean"] == pytest.approx(0.0)
+    assert "gain_over_real" not in arms[0] and "gain_over_same_azimuth" not in arms[2]
+    with pytest.raises(ValueError, match="share no classifier seed"):
+        other_seed = {"arm": "real_k4", "seeds": [{"seed": 7, "test_accuracy": 0.1}]}
+        paired_gain(arm("generated_k4", [0.5]), other_seed)
