@@ -24,6 +24,10 @@ SDEdit) and ``--same_azimuth_control`` its control ``..._strength{S}_d_az0`` (th
 own azimuth, what the requested pose adds). Every plain generated arm (per K, the sector's, the unseen
 class's) gets the selected variants.
 
+Every arm trains its classifiers with the same seeds, so arms are compared seed by seed: each generated arm
+carries ``gain_over_real`` (against the real-only arm with the same kept chips) and each strength arm whose
+control ran ``gain_over_same_azimuth`` (:func:`add_paired_gains`).
+
 Every arm writes into its own folder under ``--out`` and ends with ``result.json``; an arm whose
 ``result.json`` exists is skipped, a generator or an augmentation cut short resumes (run-folder rule), so
 a killed run is continued by the same command. ``--out``/``results.json`` gathers every finished arm.
