@@ -20,13 +20,13 @@ round trip of real 15 deg chips (the generator's decoder bound) and on the same 
 Variant arms, from the same fine-tuned generator per K: ``--speckle_looks L`` adds
 ``generated_k{K}_speckle{L}`` (the views with L-look speckle re-added, ``augment_dataset --speckle_looks``),
 ``--strength S`` adds ``generated_k{K}_strength{S}`` (the views started from the kept chip's own latent,
-SDEdit) and ``--same_azimuth_control`` its control ``..._strength{S}_d_az0`` (the same start at the chip's
-own azimuth, what the requested pose adds). Every plain generated arm (per K, the sector's, the unseen
-class's) gets the selected variants.
+SDEdit); ``--same_azimuth_control`` adds the controls ``generated_k{K}_d_az0`` (and
+``..._strength{S}_d_az0``): the same views made at the chip's own azimuth, what the requested pose
+adds. Every plain generated arm (per K, the sector's, the unseen class's) gets the selected variants.
 
 Every arm trains its classifiers with the same seeds, so arms are compared seed by seed: each generated arm
-carries ``gain_over_real`` (against the real-only arm with the same kept chips) and each strength arm whose
-control ran ``gain_over_same_azimuth`` (:func:`add_paired_gains`).
+carries ``gain_over_real`` (against the real-only arm with the same kept chips) and each arm whose control
+ran ``gain_over_same_azimuth`` (:func:`add_paired_gains`).
 
 Every arm writes into its own folder under ``--out`` and ends with ``result.json``; an arm whose
 ``result.json`` exists is skipped, a generator or an augmentation cut short resumes (run-folder rule), so
@@ -103,7 +103,7 @@ class BenchmarkConfig:
     quality_chips_per_class: int = 50  # 15 deg chips per class for the VAE round-trip bound
     speckle_looks: int | None = None  # also arms whose views get L-look speckle re-added (None: no such arms)
     strength: float | None = None  # also arms whose views start from the kept chip's noised latent (SDEdit)
-    same_azimuth_control: bool = False  # with strength: also its views at d_az = 0 (what the pose adds)
+    same_azimuth_control: bool = False  # also the plain (and strength) views at d_az = 0: what the pose adds
 
     def __post_init__(self) -> None:
         if not self.ks or min(self.ks) < 2:
@@ -510,13 +510,16 @@ class Benchmark:
         """The selected variants of the plain arm `name`: the same generator's views made otherwise.
 
         ``speckle_looks`` re-adds speckle, ``strength`` starts each view from its kept chip's noised latent,
-        ``same_azimuth_control`` makes the strength views at ``d_az = 0`` (what the requested pose adds).
+        ``same_azimuth_control`` makes the plain views and the strength views again at ``d_az = 0`` (what the
+        requested pose adds).
         """
         config = self.config
         variants: list[tuple[dict[str, Any], bool, str]] = []
         if config.speckle_looks is not None:
             variants.append(({"speckle_looks": config.speckle_looks}, False,
                              f"{config.speckle_looks}-look speckle re-added"))  # fmt: skip
+        if config.same_azimuth_control:
+            variants.append(({}, True, "at the chip's own azimuth"))
         if config.strength is not None:
             words = f"started from the chip, strength {config.strength:g}"
             variants.append(({"strength": config.strength}, False, words))

@@ -133,16 +133,18 @@ def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
     # so is starting the views from the kept chips (SDEdit): recorded in the views' options
     started = {arm["arm"]: arm for arm in main([*args, "--strength", "0.5", "--speckle_looks", "1",
                                                 "--same_azimuth_control"])["arms"]}  # fmt: skip
-    assert list(started)[2:6] == ["generated_k4", "generated_k4_speckle1", "generated_k4_strength0.5",
-                                  "generated_k4_strength0.5_d_az0"]  # fmt: skip
+    assert list(started)[2:7] == ["generated_k4", "generated_k4_speckle1", "generated_k4_d_az0",
+                                  "generated_k4_strength0.5", "generated_k4_strength0.5_d_az0"]  # fmt: skip
     # the control: the same start, at the kept chip's own azimuth
     assert started["generated_k4_strength0.5_d_az0"]["d_az_deg"] == [0.0]
     assert started["generated_k4_unseen_TANK_strength0.5"]["n_generated"] == 8
     # every plain arm gets the same variants: the missing sector's and the unseen class's too
     for plain in ("generated_sector", "generated_k4_unseen_TANK"):
-        for suffix in ("_speckle1", "_strength0.5", "_strength0.5_d_az0"):
+        for suffix in ("_speckle1", "_d_az0", "_strength0.5", "_strength0.5_d_az0"):
             assert started[plain + suffix]["generator"] == started[plain]["generator"]
     assert started["generated_sector_strength0.5_d_az0"]["d_az_deg"] == [0.0]
+    assert started["generated_k4_d_az0"]["d_az_deg"] == [0.0]
+    assert started["generated_k4"]["gain_over_same_azimuth"]["against"] == "generated_k4_d_az0"
     assert started["generated_sector_strength0.5"]["d_az_deg"] == [180.0]
     pose = started["generated_k4_strength0.5"]["gain_over_same_azimuth"]
     assert pose["against"] == "generated_k4_strength0.5_d_az0"
