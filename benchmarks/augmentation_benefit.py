@@ -71,7 +71,7 @@ ARM_SELECTION_FIELDS = (
     "data", "out", "ks", "sectors", "unseen_class", "unseen_k", "speckle_looks", "strength",
     "same_azimuth_control",
 )  # fmt: skip
-#: The reduced configuration (about half an hour on the 2-core CPU): two K, no sector or unseen-class arms.
+#: The reduced configuration: two K, no sector or unseen-class arms (about 30 min on 2 CPU cores, estimated).
 QUICK = {"ks": [12, 48], "sectors": False, "unseen_class": None}
 
 
