@@ -56,10 +56,12 @@ import torch.nn.functional as F
 
 from sar_zero123 import SIM_PRIOR, SARZero123Pipeline
 from sar_zero123.augment_dataset import AugmentConfig, augment_dataset
+from sar_zero123.config import write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_index, signed_to_unit
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluation.evaluators import SARClassifier, load_evaluator
 from sar_zero123.stages import FinetuneConfig, run_finetune
+from sar_zero123.training.run_folder import field_defaults
 
 logger = logging.getLogger("augmentation_benefit")
 
@@ -325,7 +327,7 @@ def build_generator(
             checkpointing_steps=max(config.finetune_steps // 3, 1), checkpoints_total_limit=1,
             resume_from_checkpoint="latest", seed=0,
         ))  # fmt: skip
-        timing_file.write_text(json.dumps(times, indent=2))
+        write_json_atomic(times, timing_file)
     suffix = variant_suffix(speckle_looks, strength, same_azimuth=all(d == 0.0 for d in d_az))
     views, key = folder / f"views{suffix}", f"generate{suffix}"
     if key not in times:
@@ -336,7 +338,7 @@ def build_generator(
             speckle_looks=speckle_looks, strength=strength,
         ))  # fmt: skip
         times[key]["views"] = len(load_index(views))
-        timing_file.write_text(json.dumps(times, indent=2))
+        write_json_atomic(times, timing_file)
     return views, {"finetune": times["finetune"], key: times[key]}
 
 
@@ -360,14 +362,15 @@ def check_settings(config: BenchmarkConfig, out: Path) -> None:
     settings = {k: v for k, v in asdict(config).items() if k not in ARM_SELECTION_FIELDS}
     record = out / "settings.json"
     if record.is_file():
-        recorded = json.loads(record.read_text())
+        # a setting the record lacks was made with its default (a folder written before the setting existed)
+        defaults = {k: v for k, v in field_defaults(BenchmarkConfig).items() if k in settings}
+        recorded = {**defaults, **json.loads(record.read_text())}
         changed = sorted(k for k in settings.keys() | recorded.keys() if settings.get(k) != recorded.get(k))
         if changed:
             details = ", ".join(f"{k}: {recorded.get(k)!r} -> {settings.get(k)!r}" for k in changed)
             raise ValueError(f"out: {out} holds a benchmark with other settings ({details}); use another out")
         return
-    out.mkdir(parents=True, exist_ok=True)
-    record.write_text(json.dumps(settings, indent=2))
+    write_json_atomic(settings, record)
 
 
 # ---------------------------------------------------------------------------------------------- arms
@@ -438,9 +441,7 @@ class Benchmark:
         result = {"arm": name, **build(arm_dir)}
         result["total_cpu_s"] = result["classifier_cpu_s"] + result.get("generator_cpu_s", 0.0)
         result["total_wall_s"] = result["classifier_wall_s"] + result.get("generator_wall_s", 0.0)
-        tmp = result_file.with_suffix(".tmp")
-        tmp.write_text(json.dumps(result, indent=2))
-        os.replace(tmp, result_file)
+        write_json_atomic(result, result_file)
         return result
 
     def real_arm(self, kept: Sequence[ChipRecord], description: str) -> Any:
@@ -586,7 +587,7 @@ class Benchmark:
             "platform": platform.platform(),
             "arms": add_paired_gains(results),
         }
-        (self.out / "results.json").write_text(json.dumps(summary, indent=2))
+        write_json_atomic(summary, self.out / "results.json")
         return summary
 
 

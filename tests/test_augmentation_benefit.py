@@ -10,6 +10,7 @@ import torch
 from benchmarks.augmentation_benefit import (
     BenchmarkConfig,
     add_paired_gains,
+    check_settings,
     circular_distance_deg,
     fill_offsets_deg,
     keep_evenly_spaced,
@@ -184,3 +185,18 @@ def test_paired_gains_are_seed_by_seed_differences():
     with pytest.raises(ValueError, match="share no classifier seed"):
         other_seed = {"arm": "real_k4", "seeds": [{"seed": 7, "test_accuracy": 0.1}]}
         paired_gain(arm("generated_k4", [0.5]), other_seed)
+
+
+def test_check_settings_takes_a_missing_setting_as_its_default_and_names_a_changed_one(tmp_path):
+    config = BenchmarkConfig(data="d", out=str(tmp_path))
+    check_settings(config, tmp_path)
+    record = json.loads((tmp_path / "settings.json").read_text())
+    assert record["finetune_steps"] == 3000 and "ks" not in record  # arm selection is not recorded
+    # a folder written before a setting existed resumes when this run keeps that setting's default
+    del record["max_shift_px"]
+    (tmp_path / "settings.json").write_text(json.dumps(record))
+    check_settings(config, tmp_path)
+    with pytest.raises(ValueError, match=r"max_shift_px: 4 -> 2"):
+        check_settings(BenchmarkConfig(data="d", out=str(tmp_path), max_shift_px=2), tmp_path)
+    with pytest.raises(ValueError, match=r"finetune_steps: 3000 -> 1000"):
+        check_settings(BenchmarkConfig(data="d", out=str(tmp_path), finetune_steps=1000), tmp_path)
