@@ -17,7 +17,7 @@ from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
 from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
 
 from sar_zero123.data import ViewPairDataset
-from sar_zero123.model.conditioning import POSE_DIM, PoseProjection, downsampling_factor
+from sar_zero123.model.conditioning import POSE_DIM, PoseProjection, condition_channels, downsampling_factor
 from sar_zero123.model.loading import load_component
 from sar_zero123.model.orientation import AZIMUTH_DIM, AzimuthEstimator
 from sar_zero123.model.pipeline import SARZero123Pipeline
@@ -153,6 +153,30 @@ SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
             "projection_dim": 64,
         },
     },
+    # A GPU-sized prior for 64 px chips (11 M UNet parameters with the pose paths), with `small`'s latent
+    # shape (one trained VAE folder fits it too) and `compact`'s image encoder: too slow to train on a CPU.
+    "medium": {
+        "image_size": 64,
+        "vae": "small",
+        "unet": {
+            "block_out_channels": (64, 128, 192),
+            "layers_per_block": 1,
+            "down_block_types": ("DownBlock2D", "CrossAttnDownBlock2D", "CrossAttnDownBlock2D"),
+            "up_block_types": ("CrossAttnUpBlock2D", "CrossAttnUpBlock2D", "UpBlock2D"),
+            "cross_attention_dim": 128,
+            "attention_head_dim": 8,
+            "norm_num_groups": 32,
+        },
+        "image_encoder": {
+            "hidden_size": 128,
+            "intermediate_size": 512,
+            "num_hidden_layers": 2,
+            "num_attention_heads": 4,
+            "image_size": 64,
+            "patch_size": 8,
+            "projection_dim": 128,
+        },
+    },
     # Exactly the Objaverse zero-1-to-3 shapes: SD 1.x UNet with 8 input channels, SD VAE,
     # CLIP ViT-L/14 image tower (768-d embeddings), Linear(772, 768); 256 px -> 32x32x4 latents.
     "zero123": {
@@ -202,6 +226,7 @@ def build_sar_zero123(
     estimate_input_azimuth: bool = False,
     input_code_dim: int = 16,
     input_depression: bool = False,
+    spatial_pose: str | None = None,
 ) -> SARZero123Pipeline:
     """Build a randomly initialised :class:`SARZero123Pipeline` of a named size.
 
@@ -213,11 +238,12 @@ def build_sar_zero123(
     - ``"tiny"``: 32 px, for unit tests, well under 1 M parameters.
     - ``"small"``: 64 px SAR chips (64-128 px work) on a CPU; 1-channel VAE, 16x16x4 latents.
     - ``"compact"``, ``"micro"``: ``small``'s VAE with a narrower UNet and image encoder (faster on a CPU).
+    - ``"medium"``: ``small``'s VAE with a wider UNet than ``compact``'s, for priors trained on a GPU.
     - ``"zero123"``: exactly the Objaverse zero-1-to-3 shapes at 256 px (load real weights with
       :meth:`SARZero123Pipeline.from_zero123`).
 
     Args:
-        size: One of ``"tiny"``, ``"small"``, ``"compact"``, ``"micro"``, ``"zero123"``.
+        size: One of ``"tiny"``, ``"small"``, ``"compact"``, ``"micro"``, ``"medium"``, ``"zero123"``.
         image_size: Chip size in pixels; defaults to the size's own. Sets the VAE and UNet
             ``sample_size`` (the networks themselves are size-agnostic).
         seed: Initialisation seed.
@@ -230,6 +256,9 @@ def build_sar_zero123(
         input_code_dim: With ``estimate_input_azimuth``, the size of the estimator's input-view code.
         input_depression: The pose's fourth entry is the input chip's absolute depression (Stable Zero123's
             convention; :class:`~sar_zero123.model.conditioning.PoseProjection`).
+        spatial_pose: ``"rotated_input"``: the UNet also takes the input latent turned by the requested
+            azimuth change (:func:`~sar_zero123.model.conditioning.unet_condition_latents`; recorded in
+            the pose projection's config); ``None``: zero-1-to-3's input.
 
     Returns:
         The pipeline (float32, CPU) with a zero-1-to-3 DDIM scheduler.
@@ -265,14 +294,15 @@ def build_sar_zero123(
             **spec["unet"],
             **pose_embedding,
             sample_size=image_size // vae_factor,
-            in_channels=2 * latent_channels,
+            in_channels=latent_channels + condition_channels(spatial_pose, latent_channels),
             out_channels=latent_channels,
         )
         torch.manual_seed(seed)
         image_encoder = CLIPVisionModelWithProjection(clip_config)
         # nn.Linear draws its default init before PoseProjection overwrites it: keep that inside too.
         pose_projection = PoseProjection(
-            clip_config.projection_dim + POSE_DIM, cross_attention_dim, input_depression=input_depression
+            clip_config.projection_dim + POSE_DIM, cross_attention_dim, input_depression=input_depression,
+            spatial_pose=spatial_pose,
         )
         azimuth_estimator = None
         if estimate_input_azimuth:
@@ -306,6 +336,7 @@ def load_sar_zero123(
     prediction_type: Literal["epsilon", "v_prediction"] | None = None,
     vae: str | os.PathLike | None = None,
     input_depression: bool = False,
+    spatial_pose: str | None = None,
 ) -> SARZero123Pipeline:
     """The pipeline a run starts from: a saved or zero-1-to-3 checkpoint, or a new model of a named size.
 
@@ -315,7 +346,7 @@ def load_sar_zero123(
             zero-1-to-3 layout (:meth:`SARZero123Pipeline.from_zero123`), or ``None`` to
             :func:`build_sar_zero123`.
         size, image_size, seed, pose_in_time_embedding, estimate_input_azimuth, input_code_dim,
-            input_depression: For ``pretrained=None``, see
+            input_depression, spatial_pose: For ``pretrained=None``, see
             :func:`build_sar_zero123`.
         prediction_type: Replace the scheduler's prediction type (only meaningful for a new model: a
             checkpoint keeps the one it was trained with).
@@ -338,6 +369,7 @@ def load_sar_zero123(
             estimate_input_azimuth=estimate_input_azimuth,
             input_code_dim=input_code_dim,
             input_depression=input_depression,
+            spatial_pose=spatial_pose,
         )
     else:
         path = resolve_pretrained(pretrained)

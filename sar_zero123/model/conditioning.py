@@ -30,12 +30,16 @@ __all__ = [
     "CLIP_IMAGE_STD",
     "POSE_DIM",
     "PoseProjection",
+    "SPATIAL_POSE_MODES",
+    "condition_channels",
     "embed_pose",
     "encode_condition_latents",
     "pose_class_labels",
     "encode_image_embeddings",
     "encode_target_latents",
     "match_channels",
+    "rotate_condition_latents",
+    "unet_condition_latents",
 ]
 
 #: Size of the zero-1-to-3 relative-pose vector ``[d_el_rad, sin d_az, cos d_az, d_radius]``.
@@ -43,6 +47,12 @@ POSE_DIM = 4
 #: Per-channel statistics CLIP was trained with (OpenAI CLIP preprocessing).
 CLIP_IMAGE_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_IMAGE_STD = (0.26862954, 0.26130258, 0.27577711)
+#: What the UNet sees of the input view besides its latent: ``None`` (zero-1-to-3: the latent alone) or
+#: ``"rotated_input"`` (also the latent turned in the image plane by the requested azimuth change).
+SPATIAL_POSE_MODES = (None, "rotated_input")
+#: Turn of the image plane per degree of azimuth in the built-in simulator's convention (and the prior's):
+#: the input's footprint turned by ``-d_az`` lies over the target's (``rotate_condition_latents``).
+SIMULATOR_ROTATION_SIGN = -1
 
 
 def as_angle_tensor(value: float | torch.Tensor | list[float], name: str) -> torch.Tensor:
@@ -157,9 +167,17 @@ class PoseProjection(ModelMixin, ConfigMixin):
             ``None`` (unknown); the pipeline refuses requests outside it.
         trained_depression_deg: ``[min, max]`` of the absolute depressions (inputs and targets) it was
             trained on, or ``None``.
+        spatial_pose: What the UNet sees of the input view besides its latent (:data:`SPATIAL_POSE_MODES`,
+            :func:`unet_condition_latents`): ``None`` is zero-1-to-3 (every loaded zero-1-to-3 checkpoint
+            and every pipeline saved before the field existed); ``"rotated_input"`` also concatenates the
+            input latent turned in the image plane by ``rotation_sign * d_az``, a spatial hint of where the
+            target's footprint lies (the UNet then has ``3 * latent_channels`` input channels).
+        rotation_sign: ``+1`` or ``-1``: the image-plane turn per degree of ``d_az`` in the training
+            data's azimuth convention (``-1`` for the built-in simulator, :data:`SIMULATOR_ROTATION_SIGN`).
 
     Raises:
-        ValueError: If ``in_features <= 4``, ``out_features < 1`` or a range is not ``[min, max]``.
+        ValueError: If ``in_features <= 4``, ``out_features < 1``, a range is not ``[min, max]``,
+            ``spatial_pose`` is not one of :data:`SPATIAL_POSE_MODES` or ``rotation_sign`` not +-1.
     """
 
     @register_to_config
@@ -170,8 +188,14 @@ class PoseProjection(ModelMixin, ConfigMixin):
         input_depression: bool = False,
         trained_d_el_deg: list[float] | None = None,
         trained_depression_deg: list[float] | None = None,
+        spatial_pose: str | None = None,
+        rotation_sign: int = SIMULATOR_ROTATION_SIGN,
     ) -> None:
         super().__init__()
+        if spatial_pose not in SPATIAL_POSE_MODES:
+            raise ValueError(f"`spatial_pose` must be one of {SPATIAL_POSE_MODES}, got {spatial_pose!r}")
+        if rotation_sign not in (-1, 1):
+            raise ValueError(f"`rotation_sign` must be +1 or -1, got {rotation_sign!r}")
         for name, value in (("trained_d_el_deg", trained_d_el_deg), ("trained_depression_deg",
                                                                      trained_depression_deg)):
             if value is not None and (len(value) != 2 or not float(value[0]) <= float(value[1])):
@@ -397,3 +421,78 @@ def pose_class_labels(
     if target_features is None:
         return labels
     return torch.cat([labels, target_features.to(labels.dtype)], dim=-1)
+
+
+def condition_channels(spatial_pose: str | None, latent_channels: int) -> int:
+    """Channels of the UNet's condition input (:func:`unet_condition_latents`) for a spatial-pose mode.
+
+    Returns:
+        ``latent_channels`` for zero-1-to-3 (``None``), ``2 * latent_channels`` for ``"rotated_input"``.
+
+    Raises:
+        ValueError: If ``spatial_pose`` is not one of :data:`SPATIAL_POSE_MODES`.
+    """
+    if spatial_pose not in SPATIAL_POSE_MODES:
+        raise ValueError(f"`spatial_pose` must be one of {SPATIAL_POSE_MODES}, got {spatial_pose!r}")
+    return latent_channels * (1 if spatial_pose is None else 2)
+
+
+def rotate_condition_latents(latents: torch.Tensor, pose: torch.Tensor, rotation_sign: int) -> torch.Tensor:
+    """The input latent turned about the chip centre by ``rotation_sign * d_az`` (bilinear, reflected border).
+
+    A vehicle turned by ``d_az`` in azimuth turns its ground footprint by the same angle in the image plane
+    (range and cross-range are the chip's axes), while its shadow and layover stay tied to the range
+    direction: the turned latent shows where the target's body lies, and the UNet corrects the rest. The
+    angle is read from the pose's ``sin d_az`` and ``cos d_az`` (:func:`embed_pose`), so ``370 == 10``. The
+    turn maps output coordinates ``(x, y)`` (normalised, x right, y down) to the input's
+    ``(cos a x - sin a y, sin a x + cos a y)`` with ``a = rotation_sign * d_az`` (``F.affine_grid``).
+    Zeros turn to zeros, so the sampling null of classifier-free guidance stays null.
+
+    Args:
+        latents: Condition latents.
+        pose: Pose vectors from :func:`embed_pose`.
+        rotation_sign: ``+1`` or ``-1``, the data's convention (:class:`PoseProjection`).
+
+    Shape:
+        latents ``(B, C, h, w)``, pose ``(B, 1, 4)`` -> ``(B, C, h, w)``.
+
+    Raises:
+        ValueError: If the shapes do not match or ``rotation_sign`` is not +-1.
+    """
+    if rotation_sign not in (-1, 1):
+        raise ValueError(f"`rotation_sign` must be +1 or -1, got {rotation_sign!r}")
+    if latents.ndim != 4 or pose.shape != (latents.shape[0], 1, POSE_DIM):
+        raise ValueError(
+            f"`latents` must be (B, C, h, w) and `pose` (B, 1, {POSE_DIM}), got {tuple(latents.shape)} and "
+            f"{tuple(pose.shape)}"
+        )
+    sin = rotation_sign * pose[:, 0, 1].to(device=latents.device, dtype=torch.float32)
+    cos = pose[:, 0, 2].to(device=latents.device, dtype=torch.float32)
+    zero = torch.zeros_like(sin)
+    rows = [torch.stack([cos, -sin, zero], -1), torch.stack([sin, cos, zero], -1)]
+    matrix = torch.stack(rows, 1)  # (B, 2, 3)
+    grid = F.affine_grid(matrix, list(latents.shape), align_corners=False)
+    turned = F.grid_sample(latents.float(), grid, padding_mode="reflection", align_corners=False)
+    return turned.to(latents.dtype)
+
+
+def unet_condition_latents(
+    condition_latents: torch.Tensor, pose: torch.Tensor, pose_projection: torch.nn.Module
+) -> torch.Tensor:
+    """What the UNet concatenates to the noisy latent: the input latent, and with
+    ``pose_projection.config.spatial_pose == "rotated_input"`` the same latent turned by the requested azimuth
+    change (:func:`rotate_condition_latents`).
+
+    Args:
+        condition_latents: The (possibly dropped, i.e. zeroed) unscaled input latents.
+        pose: Pose vectors from :func:`embed_pose`, one per latent.
+        pose_projection: The model's :class:`PoseProjection` (possibly DDP-wrapped), which records the mode.
+
+    Shape:
+        ``(B, C, h, w)``, ``(B, 1, 4)`` -> ``(B, C | 2C, h, w)``.
+    """
+    config = getattr(pose_projection, "module", pose_projection).config
+    if getattr(config, "spatial_pose", None) is None:
+        return condition_latents
+    turned = rotate_condition_latents(condition_latents, pose, config.rotation_sign)
+    return torch.cat([condition_latents, turned], dim=1)

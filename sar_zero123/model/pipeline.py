@@ -34,12 +34,14 @@ from sar_zero123.model.conditioning import (
     POSE_DIM,
     PoseProjection,
     as_angle_tensor,
+    condition_channels,
     downsampling_factor,
     embed_pose,
     encode_condition_latents,
     encode_image_embeddings,
     match_channels,
     pose_class_labels,
+    unet_condition_latents,
 )
 from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
 from sar_zero123.model.orientation import AzimuthEstimator, target_view_features
@@ -96,7 +98,8 @@ class SARZero123Pipeline(DiffusionPipeline):
     Args:
         vae: Autoencoder; 1-channel (trained on SAR) or 3-channel (Stable Diffusion) input.
         image_encoder: CLIP vision tower whose ``image_embeds`` condition the UNet.
-        unet: Denoiser with ``in_channels = 2 * vae.config.latent_channels``.
+        unet: Denoiser with ``in_channels = 2 * vae.config.latent_channels`` (3 times with the pose
+            projection's ``spatial_pose="rotated_input"``).
         scheduler: Any diffusers scheduler (DDIM, DPM-Solver++, Euler, ...).
         pose_projection: Projection of ``[image_embeds, pose]`` to the cross-attention dimension.
         feature_extractor: Optional CLIP image processor; only its ``image_mean`` / ``image_std`` are
@@ -124,10 +127,13 @@ class SARZero123Pipeline(DiffusionPipeline):
     ) -> None:
         super().__init__()
         latent_channels = vae.config.latent_channels
-        if unet.config.in_channels != 2 * latent_channels:
+        spatial_pose = getattr(pose_projection.config, "spatial_pose", None)
+        expected = latent_channels + condition_channels(spatial_pose, latent_channels)
+        if unet.config.in_channels != expected:
             raise ValueError(
-                f"`unet.config.in_channels` must be 2 * vae latent channels = {2 * latent_channels} "
-                f"(noisy latent + condition latent), got {unet.config.in_channels}"
+                f"`unet.config.in_channels` must be {expected}: the vae's {latent_channels} latent channels "
+                f"(noisy latent) + {expected - latent_channels} condition channels (pose_projection "
+                f"spatial_pose={spatial_pose!r}), got {unet.config.in_channels}"
             )
         if pose_projection.config.in_features != image_encoder.config.projection_dim + POSE_DIM:
             raise ValueError(
@@ -522,6 +528,9 @@ class SARZero123Pipeline(DiffusionPipeline):
             condition_latents = torch.cat([torch.zeros_like(condition_latents), condition_latents])
             if class_labels is not None:
                 class_labels = torch.cat([class_labels, class_labels])
+        # the condition latent (zeros for the null), turned by the pose where the model takes it spatially
+        guided_pose = torch.cat([sample_pose] * 2) if do_classifier_free_guidance else sample_pose
+        unet_condition = unet_condition_latents(condition_latents, guided_pose, self.pose_projection)
 
         # 3. timesteps
         self.scheduler.set_timesteps(int(num_inference_steps), device=device)
@@ -555,7 +564,7 @@ class SARZero123Pipeline(DiffusionPipeline):
             for step_index, timestep in enumerate(timesteps):
                 model_input = torch.cat([latents] * 2) if do_classifier_free_guidance else latents
                 model_input = self.scheduler.scale_model_input(model_input, timestep)
-                model_input = torch.cat([model_input, condition_latents], dim=1)  # (N | 2N, 8, h, w)
+                model_input = torch.cat([model_input, unet_condition], dim=1)  # (N | 2N, 8 | 12, h, w)
                 noise_pred = self.unet(
                     model_input, timestep, encoder_hidden_states=tokens, class_labels=class_labels
                 ).sample

@@ -25,6 +25,7 @@ random draw of a micro-batch one of (seed, micro-batch index, process index) (``
 from __future__ import annotations
 
 import logging
+import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -40,6 +41,7 @@ from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import DecibelScaling, check_protocol, train_validation_pairs
 from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.model.build import load_sar_zero123, record_trained_pose_ranges
+from sar_zero123.model.conditioning import SPATIAL_POSE_MODES
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.training.finetuning import (
@@ -96,7 +98,8 @@ class FinetuneConfig:
 
     output_dir: str = "runs/finetune_pfm"  # run folder: checkpoints, logs, validation grids, final pipeline
     pretrained: str | None = None  # pipeline folder or zero-1-to-3 checkpoint; None: build `size`
-    size: Literal["tiny", "micro", "compact", "small", "zero123"] = "small"  # built when pretrained is None
+    # built when pretrained is None
+    size: Literal["tiny", "micro", "compact", "small", "medium", "zero123"] = "small"
     image_size: int | None = None  # chip side in pixels; None uses the model's own
     pose_in_time_embedding: bool = False  # built sizes: the pose also enters the UNet's timestep embedding
     # built sizes: an AzimuthEstimator reads the input's azimuth (and a code), turned by d_az it enters the
@@ -113,6 +116,9 @@ class FinetuneConfig:
     same_depression: bool = True  # pair only chips at one depression; False also across (d_el != 0)
     # built sizes: the pose's 4th entry is the input chip's absolute depression (Stable Zero123's convention)
     input_depression: bool = False
+    # built sizes: the UNet also takes the input latent turned by d_az in the image plane ("rotated_input",
+    # sar_zero123.model.conditioning.unet_condition_latents); None: zero-1-to-3's condition latent alone
+    spatial_pose: str | None = None
     pfm_weight: float = 4.0  # lambda of Eq. (21); 0 = plain zero-1-to-3 fine-tuning
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
     pfm_fraction: float = 1.0  # fraction of the eligible batch on which PFM is computed
@@ -126,6 +132,9 @@ class FinetuneConfig:
     train_batch_size: int = 4  # pairs per process per micro-batch
     gradient_accumulation_steps: int = 1  # micro-batches per optimisation step
     max_train_steps: int = 1000  # optimisation steps
+    # stop this session after this many minutes of training steps: checkpoint, export the pipeline at the step
+    # reached, leave the run unfinished (the same command with --resume_from_checkpoint latest continues)
+    max_train_minutes: float | None = None
     max_grad_norm: float = 1.0  # gradient clipping norm (all trained parameters together)
     mixed_precision: Literal["no", "fp16", "bf16"] = "no"  # frozen VAE/encoders are cast to this dtype
     gradient_checkpointing: bool = False  # checkpoint UNet activations
@@ -169,6 +178,14 @@ class FinetuneConfig:
         check_minimum(self, "image_size", minimum=8, optional=True)
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
+        check_minimum(self, "max_train_minutes", minimum=0, strict=True, optional=True)
+        if self.spatial_pose not in SPATIAL_POSE_MODES:
+            raise ValueError(f"spatial_pose must be one of {SPATIAL_POSE_MODES}, got {self.spatial_pose!r}")
+        if self.spatial_pose is not None and self.pretrained is not None:
+            raise ValueError(
+                "spatial_pose: only for a model built from scratch (--size); a pretrained pipeline keeps its "
+                "condition input (pose_projection.config.spatial_pose)"
+            )
         if self.input_depression and self.pretrained is not None:
             raise ValueError(
                 "input_depression: only for a model built from scratch (--size); a pretrained pipeline keeps "
@@ -283,7 +300,7 @@ def run_finetune(config: FinetuneConfig) -> Path:
     # 3. training, then the exported pipeline and the record
     global_step = _train(config, accelerator, inputs, trainer)
     outputs = _export(config, accelerator, inputs, trainer, global_step)
-    if accelerator.is_main_process:
+    if accelerator.is_main_process and global_step >= config.max_train_steps:  # else stopped by the clock
         finish_run(folder, outputs, seconds=timer.seconds, results={"final_step": global_step})
     accelerator.wait_for_everyone()
     # no reference to a data-parallel wrapper (or a graph through one) may outlive the process group
@@ -306,6 +323,7 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> _Inputs:
         prediction_type=config.prediction_type,
         vae=config.vae,
         input_depression=config.input_depression,
+        spatial_pose=config.spatial_pose,
     )
     image_size = training_image_size(pipe, config.image_size)
     encoder = None
@@ -422,6 +440,8 @@ def _train(config: FinetuneConfig, accelerator: Accelerator, inputs: _Inputs, tr
     batches = resumable_batches(
         accelerator, trainer.train_dataloader, first, stop, datasets=[trainer.train_dataset]
     )
+    minutes = config.max_train_minutes
+    deadline = None if minutes is None else time.monotonic() + 60.0 * minutes
     for batch_index, epoch, batch in batches:
         with accelerator.accumulate(*trainer.trained_modules):
             generator = micro_batch_generator(config.seed, batch_index, accelerator.process_index)
@@ -451,7 +471,9 @@ def _train(config: FinetuneConfig, accelerator: Accelerator, inputs: _Inputs, tr
         progress.set_postfix(loss=f"{logs['train/loss']:.4f}")
         accelerator.log(logs, step=global_step)
         check_finite_step(global_step, loss=logs["train/loss"])  # gathered: every process stops
-        if global_step % config.checkpointing_steps == 0 or global_step == config.max_train_steps:
+        out_of_time = deadline is not None and _all_out_of_time(accelerator, deadline)
+        last = global_step == config.max_train_steps or out_of_time
+        if global_step % config.checkpointing_steps == 0 or last:
             extra_state = {"epoch": epoch, "batch_index": batch_index + 1,
                            "train_image_encoder": config.train_image_encoder}  # fmt: skip
             save_checkpoint(accelerator, output_dir, global_step, config.checkpoints_total_limit,
@@ -473,8 +495,17 @@ def _train(config: FinetuneConfig, accelerator: Accelerator, inputs: _Inputs, tr
                     regressor=inputs.regressor,
                 )
             accelerator.wait_for_everyone()
+        if out_of_time:
+            logger.info("max_train_minutes reached at step %d of %d", global_step, config.max_train_steps)
+            break
     progress.close()
     return global_step
+
+
+def _all_out_of_time(accelerator: Accelerator, deadline: float) -> bool:
+    """Whether any process has passed ``deadline`` (every process then stops at the same step)."""
+    late = torch.tensor([float(time.monotonic() >= deadline)], device=accelerator.device)
+    return bool(accelerator.reduce(late, reduction="sum").item() > 0)
 
 
 def _export(

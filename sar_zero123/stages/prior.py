@@ -7,7 +7,8 @@ stopped):
 1. the corpus (:func:`sar_zero123.sim.corpus.write_prior_corpus`): ``num_vehicles`` procedural vehicles,
    each at ``views_per_vehicle`` random azimuths and depressions in ``depression_range_deg``; the named
    simulator classes are never in it (they are the prior's unseen test vehicles);
-2. a VAE sized for the chip (:func:`~sar_zero123.stages.vae.run_vae`) on the corpus, in ``vae/``;
+2. a VAE sized for the chip (:func:`~sar_zero123.stages.vae.run_vae`) on the corpus, in ``vae/`` (skipped when
+   ``vae`` names an existing one, such as the bundled prior's);
 3. the UNet with its pose path (:func:`~sar_zero123.stages.finetune.run_finetune`, lambda = 0), in
    ``base/``: pairs of two views of one vehicle across depressions, the pose carrying the input's
    absolute depression (Stable Zero123's fourth slot) and the SAR-sized estimated-azimuth path,
@@ -58,6 +59,9 @@ class PriorConfig:
     image_size: int = 64  # chip side in pixels
     corpus_workers: int = 2  # processes rendering the corpus
     model_size: str = "micro"  # build_sar_zero123 size of the UNet
+    # the UNet also takes the input latent turned by d_az ("rotated_input"; FinetuneConfig.spatial_pose)
+    spatial_pose: str | None = None
+    vae: str | None = None  # an AutoencoderKL folder to use (e.g. the bundled prior's vae/); None trains one
     vae_widths: list[int] = field(default_factory=lambda: [16, 32, 64])  # VAE block widths (16x16 latents)
     vae_norm_groups: int = 8  # GroupNorm groups of the VAE
     vae_steps: int = 3000  # VAE optimisation steps
@@ -96,6 +100,8 @@ class PriorConfig:
             raise ValueError(
                 f"model_size must be one of {sorted(SAR_ZERO123_SIZES)}, got {self.model_size!r}"
             )
+        if self.vae is not None and not (Path(self.vae) / "config.json").is_file():
+            raise FileNotFoundError(f"vae: expected an AutoencoderKL folder with config.json, got {self.vae}")
         if self.corpus is not None and not (Path(self.corpus) / "index.csv").is_file():
             raise FileNotFoundError(f"corpus: expected a corpus folder with index.csv, got {self.corpus}")
         # the two training stages' configs validate their own fields: refuse here, before the corpus
@@ -156,6 +162,7 @@ def prior_base_config(config: PriorConfig, vae: Path, corpus: Path | None = None
         size=config.model_size,
         estimate_input_azimuth=True,
         input_depression=config.input_depression,
+        spatial_pose=config.spatial_pose,
         same_depression=False,
         prediction_type=config.prediction_type,
         snr_gamma=config.snr_gamma,
@@ -204,8 +211,10 @@ def run_prior(config: PriorConfig) -> Path:
         _stage("corpus", (corpus / "index.csv").is_file(), timings, lambda: _write_corpus(config, corpus))
     # 2. VAE, then 3. the UNet and its pose path across depressions (each done once its record is finished)
     vae_config = prior_vae_config(config, corpus)
-    _stage("vae", _finished(vae_config.output_dir), timings, lambda: run_vae(vae_config))
-    base_config = prior_base_config(config, Path(vae_config.output_dir) / "vae", corpus)
+    vae = Path(config.vae) if config.vae is not None else Path(vae_config.output_dir) / "vae"
+    vae_done = config.vae is not None or _finished(vae_config.output_dir)
+    _stage("vae", vae_done, timings, lambda: run_vae(vae_config))
+    base_config = prior_base_config(config, vae, corpus)
     base_done = _finished(base_config.output_dir, min_steps=config.base_steps)  # more steps: resume, export
     _stage("base", base_done, timings, lambda: run_finetune(base_config))
     if state.is_main_process:

@@ -65,6 +65,7 @@ RESUME_MAY_DIFFER = (
     "save_pipeline",
     "evaluators",  # finetune_pfm: validation-only pose-following check
     "num_eval_images",
+    "max_train_minutes",  # finetune_pfm: where this session stops, not what a step computes
 )
 _HASH_CHUNK = 1 << 22
 _CHECKPOINT_RE = re.compile(rf"^{CHECKPOINT_PREFIX}(\d+)$")

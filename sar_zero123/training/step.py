@@ -31,7 +31,13 @@ from torch.utils.data import Dataset
 from transformers import CLIPVisionModelWithProjection
 
 from sar_zero123.data import ViewPairDataset, load_chip
-from sar_zero123.model.conditioning import embed_pose, encode_image_embeddings, pose_class_labels, vae_input
+from sar_zero123.model.conditioning import (
+    embed_pose,
+    encode_image_embeddings,
+    pose_class_labels,
+    unet_condition_latents,
+    vae_input,
+)
 from sar_zero123.model.orientation import azimuth_estimation_loss, target_view_features
 from sar_zero123.training.losses import (
     TRAINED_PREDICTION_TYPES,
@@ -323,7 +329,7 @@ def conditioning_sensitivity(
         if azimuth_estimator is not None:
             target_features = target_view_features(azimuth_estimator(condition), pose)
         return unet(
-            torch.cat([x_t, condition], dim=1),
+            torch.cat([x_t, unet_condition_latents(condition, pose, pose_projection)], dim=1),
             t,
             encoder_hidden_states=tokens,
             class_labels=pose_class_labels(unet, pose, target_features),
@@ -392,9 +398,11 @@ def compute_losses(
     """Per-sample losses of one micro-batch (zero-1-to-3 conditioning, CFG dropout, Eq. 21).
 
     The UNet sees ``[x_t, condition latent]`` (the unscaled VAE posterior mode of the input view; only the
-    target latent is scaled) and cross-attends to ``pose_projection([CLIP image embedding, pose])``; cached
-    encodings in ``batch`` (:class:`CachedViewPairs`) replace the VAE and a frozen ``image_encoder`` (an
-    :class:`ImageEmbedder`). ``loss_settings`` (:class:`~sar_zero123.training.losses.LossSettings`; ``None``:
+    target latent is scaled; with a spatial pose, also that latent turned by ``d_az``,
+    :func:`~sar_zero123.model.conditioning.unet_condition_latents`) and cross-attends to
+    ``pose_projection([CLIP image embedding, pose])``; cached encodings in ``batch``
+    (:class:`CachedViewPairs`) replace the VAE and a frozen ``image_encoder`` (an :class:`ImageEmbedder`).
+    ``loss_settings`` (:class:`~sar_zero123.training.losses.LossSettings`; ``None``:
     plain zero-1-to-3 without PFM) sets lambda of Eq. (21) and where PFM applies, the CFG dropout (skipped
     without ``apply_dropout``, as in validation), the timestep density (:func:`sample_timesteps`), the
     Min-SNR weighting of L_simple (:func:`min_snr_weights`) and the azimuth loss weight. An
@@ -437,7 +445,7 @@ def compute_losses(
     ).to(latents.device)  # fmt: skip
     x_t = noise_scheduler.add_noise(latents, noise, timesteps)
     model_output = unet(
-        torch.cat([x_t, condition_latents], dim=1),
+        torch.cat([x_t, unet_condition_latents(condition_latents, pose, pose_projection)], dim=1),
         timesteps,
         encoder_hidden_states=tokens,
         class_labels=pose_class_labels(unet, pose, target_features),

@@ -597,3 +597,27 @@ def test_gradient_accumulation_beyond_one_epoch_is_refused_with_its_bound(script
     with pytest.raises(ValueError, match=r"^gradient_accumulation_steps must be <= 12 for 48 training pairs"):
         check_global_batch(48, 4, 1, what="pairs", gradient_accumulation_steps=13)
     check_global_batch(48, 4, 1, what="pairs", gradient_accumulation_steps=12)  # one epoch per step
+
+
+def test_max_train_minutes_stops_exports_and_leaves_the_run_resumable(script, assets, tmp_path) -> None:
+    run = tmp_path / "run"
+    # the clock stops the run after its first step, long before 50 steps
+    script.main(one_step_args(assets, run, "--max_train_steps", "50", "--checkpointing_steps", "50",
+                              "--max_train_minutes", "1e-9", "--spatial_pose", "rotated_input"))  # fmt: skip
+    assert json.loads((run / "train_state.json").read_text())["global_step"] == 1
+    assert sorted(p.name for p in run.glob("checkpoint-*")) == ["checkpoint-1"]
+    assert json.loads((run / "run.json").read_text())["finished"] is False
+    pipe = SARZero123Pipeline.from_pretrained(run / "pipeline")  # the pipeline at the step reached
+    assert pipe.pose_projection.config.spatial_pose == "rotated_input" and pipe.unet.config.in_channels == 12
+    AcceleratorState._reset_state(True)
+    GradientState._reset_state()
+    # the same command with --resume_from_checkpoint latest continues (another minute-limited session)
+    script.main(one_step_args(assets, run, "--max_train_steps", "50", "--checkpointing_steps", "50",
+                              "--max_train_minutes", "1e-9", "--spatial_pose", "rotated_input",
+                              "--resume_from_checkpoint", "latest"))  # fmt: skip
+    assert json.loads((run / "train_state.json").read_text())["global_step"] == 2
+    with pytest.raises(ValueError, match="spatial_pose: only for a model built from scratch"):
+        script.main(one_step_args(assets, tmp_path / "other", "--pretrained", str(run / "pipeline"),
+                                  "--spatial_pose", "rotated_input"))  # fmt: skip
+    with pytest.raises(ValueError, match="max_train_minutes must be > 0"):
+        script.main(one_step_args(assets, tmp_path / "other", "--max_train_minutes", "0"))

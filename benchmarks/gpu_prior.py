@@ -1,0 +1,270 @@
+"""Train and score multi-view priors on one GPU inside a fixed time budget (issue 35's GPU recipe).
+
+    python benchmarks/gpu_prior.py --out OUT --work WORK --evaluators EVAL/evaluators \\
+        --arms global rotated_input --budget_minutes 8.5
+
+One process, three stages, every one a library call (the stages of ``sar_zero123.stages``):
+
+1. a fresh procedural corpus (:func:`~sar_zero123.sim.corpus.write_prior_corpus`) rendered by
+   ``--corpus_workers`` processes: more vehicles with fewer views each than the bundled prior's corpus;
+   and the evaluation chips of the eight named vehicles (never in any corpus), rendered as
+   ``docs/results/prior.md`` renders them, unless ``--eval_data`` names them;
+2. one prior per arm (:func:`~sar_zero123.stages.finetune.run_finetune` through
+   :func:`~sar_zero123.stages.prior.prior_base_config`): the same corpus, VAE (the bundled prior's, latents
+   cached once), size, batch and wall-clock budget (``max_train_minutes``); an arm differs only in its
+   condition input (``global``: zero-1-to-3's, as the bundled prior; ``rotated_input``: also the input
+   latent turned by ``d_az``, ``FinetuneConfig.spatial_pose``);
+3. Table III of every arm beside the bundled prior, the floor and the ceilings, on the same pairs
+   (:func:`~sar_zero123.stages.evaluate.run_evaluate`): azimuth requests 17 -> 17 deg (n = ``--n``) and
+   depression requests 17 -> 10/30/45 deg (n = 1.5 ``--n``).
+
+The training time per arm is what is left of ``--budget_minutes`` after the corpus, minus
+``--eval_reserve_minutes``, split evenly. ``OUT/results.json`` is rewritten after each stage (a run stopped
+early still reports what it finished), and each arm's pipeline comes back as ``OUT/<arm>.tar.part*`` with
+its UNet stored in float16 and without its ``vae/`` (the bundled prior's): ``cat OUT/<arm>.tar.part* | tar x``
+then copying ``sar_zero123/pretrained/sim_prior/vae`` into the folder restores it (the weights load into
+float32). On a machine without ``diffusers``, install its wheel first (docs/usage/gpus.md).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import logging
+import subprocess
+import sys
+import tarfile
+import time
+import traceback
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from sar_zero123 import SIM_PRIOR, resolve_pretrained
+from sar_zero123.config import write_json_atomic
+from sar_zero123.sim.corpus import write_prior_corpus
+from sar_zero123.stages.evaluate import EvaluateConfig, load_evaluation, run_evaluate
+from sar_zero123.stages.finetune import run_finetune
+from sar_zero123.stages.prior import PriorConfig, prior_base_config
+
+logger = logging.getLogger(__name__)
+
+#: The arms' condition inputs (FinetuneConfig.spatial_pose).
+ARMS = {"global": None, "rotated_input": "rotated_input"}
+#: The named vehicles' evaluation chips (docs/results/prior.md, section 5).
+EVAL_CLASSES = ("TANK", "APC", "TRUCK", "DOZER", "SPG", "RADAR", "AAGUN", "SCOUT")
+EVAL_DEPRESSIONS = ("10", "15", "17", "30", "45")
+PART_BYTES = 15 * 2**20  # under the 16 MiB a returned file may hold
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--out", required=True, help="results.json and the pipelines (tar parts)")
+    parser.add_argument("--work", required=True, help="corpus, run folders and evaluations")
+    parser.add_argument("--evaluators", required=True, help="train_evaluators.py folder (named vehicles)")
+    parser.add_argument("--eval_data", default=None, help="the named vehicles' chips; None renders them")
+    parser.add_argument("--arms", nargs="+", default=list(ARMS), choices=list(ARMS))
+    parser.add_argument("--budget_minutes", type=float, default=8.5, help="wall time of the whole script")
+    parser.add_argument("--eval_reserve_minutes", type=float, default=1.5, help="kept for the evaluations")
+    parser.add_argument("--setup_minutes", type=float, default=0.6, help="each arm's set-up and export")
+    parser.add_argument("--num_vehicles", type=int, default=6000, help="procedural vehicles in the corpus")
+    parser.add_argument("--views_per_vehicle", type=int, default=12, help="chips per vehicle")
+    parser.add_argument("--corpus_workers", type=int, default=16, help="processes rendering the corpus")
+    parser.add_argument("--size", default="medium", help="build_sar_zero123 size of every arm")
+    parser.add_argument("--train_batch_size", type=int, default=256, help="pairs per step")
+    parser.add_argument("--learning_rate", type=float, default=5e-4, help="AdamW, constant after warm-up")
+    parser.add_argument("--lr_warmup_steps", type=int, default=200, help="linear warm-up steps")
+    parser.add_argument("--max_train_steps", type=int, default=100000, help="cap (the clock stops first)")
+    parser.add_argument("--mixed_precision", default="bf16", choices=["no", "fp16", "bf16"])
+    parser.add_argument("--num_workers", type=int, default=4, help="DataLoader workers of each arm")
+    parser.add_argument("--n", type=int, default=256, help="azimuth pairs (depression pairs: 1.5 n)")
+    parser.add_argument("--eval_batch_size", type=int, default=128, help="pairs per sampling call")
+    parser.add_argument("--no_baseline", action="store_true", help="do not score the bundled prior beside")
+    parser.add_argument("--seed", type=int, default=0)
+    return parser.parse_args(argv)
+
+
+class Results:
+    """``results.json`` in ``out``, rewritten atomically after every change."""
+
+    def __init__(self, path: Path, settings: dict[str, Any]) -> None:
+        self.path = path
+        self.data: dict[str, Any] = {"settings": settings, "device": device_name(), "stages": {}}
+        self.write()
+
+    def stage(self, name: str, **facts: Any) -> None:
+        self.data["stages"].setdefault(name, {}).update(facts)
+        self.write()
+
+    def write(self) -> None:
+        write_json_atomic(self.data, self.path)
+
+
+def device_name() -> str:
+    if torch.cuda.is_available():
+        return f"{torch.cuda.get_device_name(0)}, torch {torch.__version__}"
+    return f"cpu, torch {torch.__version__}"
+
+
+def render_eval_data(folder: Path, seed: int) -> Path:
+    """The named vehicles at every 5 deg of azimuth, docs/results/prior.md's command (section 5)."""
+    if (folder / "index.csv").is_file():
+        return folder
+    command = [sys.executable, "-m", "sar_zero123.sim", "--out", str(folder), "--classes", *EVAL_CLASSES,
+               "--instances", "1", "--azimuth-step", "5", "--depressions", *EVAL_DEPRESSIONS, "--size", "64",
+               "--seed", str(seed)]  # fmt: skip
+    subprocess.run(command, check=True)
+    return folder
+
+
+def train_arm(args: argparse.Namespace, arm: str, corpus: Path, vae: Path, minutes: float) -> Path:
+    """One prior on ``corpus`` for ``minutes`` of training steps; returns its pipeline folder."""
+    prior = PriorConfig(
+        output_dir=str(Path(args.work) / arm),
+        corpus=str(corpus),
+        model_size=args.size,
+        spatial_pose=ARMS[arm],
+        vae=str(vae),
+        train_batch_size=args.train_batch_size,
+        base_steps=args.max_train_steps,
+        learning_rate=args.learning_rate,
+        mixed_precision=args.mixed_precision,
+        seed=args.seed,
+    )
+    config = dataclasses.replace(
+        prior_base_config(prior, vae, corpus),
+        max_train_minutes=minutes,
+        lr_scheduler="constant_with_warmup",
+        lr_warmup_steps=args.lr_warmup_steps,
+        checkpointing_steps=args.max_train_steps,
+        checkpoints_total_limit=1,
+        num_workers=args.num_workers,
+    )
+    run_finetune(config)
+    return Path(config.output_dir) / "pipeline"
+
+
+def evaluate(
+    args: argparse.Namespace, name: str, pipelines: dict[str, Path], data: Path, **pairs: Any
+) -> dict[str, Any]:
+    """Table III of ``pipelines`` on one pair set (the floor and the ceilings come with it)."""
+    config = EvaluateConfig(
+        pipeline=[str(path) for path in pipelines.values()],
+        pipeline_names=list(pipelines),
+        evaluators=args.evaluators,
+        data=str(data),
+        protocol="extended",
+        input_depression_deg=17.0,
+        num_inference_steps=20,
+        eval_batch_size=args.eval_batch_size,
+        output_dir=str(Path(args.work) / f"eval_{name}"),
+        seed=args.seed,
+        **pairs,
+    )
+    return load_evaluation(run_evaluate(config))["table3"]
+
+
+def pack(pipeline: Path, out: Path, arm: str) -> list[str]:
+    """The pipeline folder with its UNet in float16, as ``out/<arm>.tar.part00, 01, ...``."""
+    from diffusers import UNet2DConditionModel
+
+    unet = UNet2DConditionModel.from_pretrained(pipeline / "unet")
+    unet.to(torch.float16).save_pretrained(pipeline / "unet")
+    archive = out / f"{arm}.tar"
+    with tarfile.open(archive, "w") as tar:  # vae/ is the bundled prior's: restored from the package
+        tar.add(pipeline, arcname=f"{arm}_pipeline", filter=_without_vae)
+    payload = archive.read_bytes()
+    archive.unlink()
+    parts = []
+    for index, start in enumerate(range(0, len(payload), PART_BYTES)):
+        part = out / f"{arm}.tar.part{index:02d}"
+        part.write_bytes(payload[start : start + PART_BYTES])
+        parts.append(part.name)
+    return parts
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    args = parse_args(argv)
+    begin = time.monotonic()
+    out, work = Path(args.out), Path(args.work)
+    out.mkdir(parents=True, exist_ok=True)
+    work.mkdir(parents=True, exist_ok=True)
+    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
+    results = Results(out / "results.json", vars(args))
+    torch.backends.cuda.matmul.allow_tf32 = True
+    torch.backends.cudnn.allow_tf32 = True
+
+    # 1. corpus and evaluation chips
+    start = time.monotonic()
+    corpus = write_prior_corpus(
+        work / "corpus", num_vehicles=args.num_vehicles, views_per_vehicle=args.views_per_vehicle,
+        seed=args.seed, num_workers=args.corpus_workers, progress=False,
+    )  # fmt: skip
+    chips = args.num_vehicles * args.views_per_vehicle
+    results.stage("corpus", seconds=time.monotonic() - start, chips=chips)
+    start = time.monotonic()
+    data = Path(args.eval_data) if args.eval_data else render_eval_data(work / "eval_data", args.seed)
+    results.stage("eval_data", seconds=time.monotonic() - start, folder=str(data))
+
+    # 2. the arms, each with the same share of what is left
+    elapsed = (time.monotonic() - begin) / 60.0
+    per_arm = (args.budget_minutes - elapsed - args.eval_reserve_minutes) / len(args.arms)
+    per_arm -= args.setup_minutes  # each arm's set-up (chips read, latents cached) and export
+    if per_arm <= 0.2:
+        raise ValueError(f"budget_minutes {args.budget_minutes}: no training time is left after the corpus")
+    vae = resolve_pretrained(SIM_PRIOR) / "vae"
+    pipelines: dict[str, Path] = {}
+    for arm in args.arms:
+        start = time.monotonic()
+        try:
+            pipelines[arm] = train_arm(args, arm, corpus, vae, per_arm)
+        except Exception:  # one arm's failure must not cost the other arms' results
+            results.stage(f"train_{arm}", error=traceback.format_exc())
+            continue
+        state = json.loads((pipelines[arm].parent / "train_state.json").read_text())
+        steps = int(state["global_step"])
+        unet_parameters = sum(p.numel() for p in _load_unet(pipelines[arm]).parameters())
+        results.stage(f"train_{arm}", seconds=time.monotonic() - start, train_minutes=per_arm, steps=steps,
+                      pairs=steps * args.train_batch_size, pairs_per_second=steps * args.train_batch_size /
+                      (60 * per_arm), unet_parameters=unet_parameters)  # fmt: skip
+        try:  # the weights come back even if a later stage runs out of time
+            results.stage(f"train_{arm}", parts=pack(pipelines[arm], out, arm))
+        except Exception:
+            results.stage(f"train_{arm}", pack_error=traceback.format_exc())
+
+    # 3. Table III of every arm beside the bundled prior, same pairs
+    rows = dict(pipelines)
+    if not args.no_baseline:
+        rows = {"bundled prior": resolve_pretrained(SIM_PRIOR), **rows}
+    for name, pairs in (
+        ("azimuth", {"target_depressions_deg": [17.0], "n": args.n}),
+        # a corpus of uniform draws may miss the range's very ends by a fraction of a degree
+        ("depression", {"target_depressions_deg": [10.0, 30.0, 45.0], "same_depression": False,
+                        "n": args.n * 3 // 2, "outside_trained_range": True}),
+    ):  # fmt: skip
+        start = time.monotonic()
+        try:
+            table = evaluate(args, name, rows, data, **pairs)
+            results.stage(f"eval_{name}", seconds=time.monotonic() - start, table3=table)
+        except Exception:
+            results.stage(f"eval_{name}", error=traceback.format_exc())
+
+    results.stage("total", seconds=time.monotonic() - begin)
+    return results.data
+
+
+def _without_vae(member: tarfile.TarInfo) -> tarfile.TarInfo | None:
+    return None if "/vae" in member.name else member
+
+
+def _load_unet(pipeline: Path) -> torch.nn.Module:
+    from diffusers import UNet2DConditionModel
+
+    return UNet2DConditionModel.from_pretrained(pipeline / "unet")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,108 @@
+"""The spatial pose path: the input latent turned by the requested azimuth change (issue 35)."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+from sar_zero123.model.build import build_sar_zero123
+from sar_zero123.model.conditioning import (
+    PoseProjection,
+    condition_channels,
+    embed_pose,
+    rotate_condition_latents,
+    unet_condition_latents,
+)
+from sar_zero123.model.pipeline import SARZero123Pipeline
+
+
+def latents(batch: int = 2, channels: int = 4, side: int = 8) -> torch.Tensor:
+    return torch.randn(batch, channels, side, side, generator=torch.Generator().manual_seed(0))
+
+
+def test_a_turn_of_zero_is_the_identity_and_a_full_turn_is_too() -> None:
+    x = latents()
+    for d_az in (0.0, 360.0, -720.0):
+        turned = rotate_condition_latents(x, embed_pose([d_az] * 2, 0.0), rotation_sign=-1)
+        torch.testing.assert_close(turned, x, atol=1e-5, rtol=0)
+
+
+@pytest.mark.parametrize(("sign", "quarter_turns"), [(1, 1), (-1, -1)])
+def test_a_quarter_turn_is_rot90_in_the_documented_direction(sign: int, quarter_turns: int) -> None:
+    # output (x, y) reads the input at (cos a x - sin a y, sin a x + cos a y): a = 90 deg reads (-y, x)
+    x = latents()
+    turned = rotate_condition_latents(x, embed_pose([90.0, 90.0], 0.0), rotation_sign=sign)
+    torch.testing.assert_close(turned, torch.rot90(x, quarter_turns, dims=(2, 3)), atol=1e-5, rtol=0)
+    half = rotate_condition_latents(x, embed_pose([180.0, -180.0], 0.0), rotation_sign=sign)
+    torch.testing.assert_close(half, torch.rot90(x, 2, dims=(2, 3)), atol=1e-5, rtol=0)
+
+
+def test_each_sample_turns_by_its_own_angle_and_zeros_stay_zero() -> None:
+    x = latents()
+    turned = rotate_condition_latents(x, embed_pose([0.0, 90.0], 0.0), rotation_sign=1)
+    torch.testing.assert_close(turned[0], x[0], atol=1e-5, rtol=0)
+    torch.testing.assert_close(turned[1], torch.rot90(x[1], 1, dims=(1, 2)), atol=1e-5, rtol=0)
+    null = rotate_condition_latents(torch.zeros_like(x), embed_pose([37.0, 211.0], 0.0), rotation_sign=-1)
+    assert torch.equal(null, torch.zeros_like(x))  # the guidance null stays null
+    # only sin and cos of d_az enter: 370 and 10 give the same bytes
+    a = rotate_condition_latents(x[:1].repeat(2, 1, 1, 1), embed_pose([370.0, 10.0], 0.0), rotation_sign=-1)
+    assert torch.equal(a[0], a[1])
+
+
+def test_bad_arguments_are_refused_with_their_names() -> None:
+    with pytest.raises(ValueError, match="rotation_sign"):
+        rotate_condition_latents(latents(), embed_pose([0.0, 0.0], 0.0), rotation_sign=2)
+    with pytest.raises(ValueError, match=r"`pose` \(B, 1, 4\)"):
+        rotate_condition_latents(latents(), embed_pose([0.0], 0.0), rotation_sign=1)
+    with pytest.raises(ValueError, match="spatial_pose"):
+        PoseProjection(8, 4, spatial_pose="rays")
+    with pytest.raises(ValueError, match="rotation_sign"):
+        PoseProjection(8, 4, rotation_sign=0)
+    with pytest.raises(ValueError, match="spatial_pose"):
+        condition_channels("rays", 4)
+
+
+def test_condition_input_is_the_latent_alone_or_the_latent_and_its_turn() -> None:
+    x, pose = latents(), embed_pose([30.0, -60.0], 0.0)
+    assert unet_condition_latents(x, pose, PoseProjection(8, 4)) is x  # zero-1-to-3, untouched
+    projection = PoseProjection(8, 4, spatial_pose="rotated_input", rotation_sign=-1)
+    both = unet_condition_latents(x, pose, projection)
+    assert both.shape == (2, 8, 8, 8) and torch.equal(both[:, :4], x)
+    assert torch.equal(both[:, 4:], rotate_condition_latents(x, pose, -1))
+    assert condition_channels(None, 4) == 4 and condition_channels("rotated_input", 4) == 8
+
+
+def test_a_spatial_pipeline_feeds_the_turned_latent_and_round_trips(tmp_path) -> None:
+    pipe = build_sar_zero123("tiny", seed=0, spatial_pose="rotated_input")
+    assert pipe.unet.config.in_channels == 12 and pipe.pose_projection.config.spatial_pose == "rotated_input"
+    seen = []
+    pipe.unet.register_forward_pre_hook(lambda module, args: seen.append(args[0].clone()))
+    image = torch.rand(1, 1, 32, 32, generator=torch.Generator().manual_seed(1))
+    out = pipe(image, d_az=90.0, num_inference_steps=2, output_type="pt",
+               generator=torch.Generator().manual_seed(0)).images  # fmt: skip
+    assert out.shape == (1, 1, 32, 32) and torch.isfinite(out).all()
+    first = seen[0]  # (2, 12, 16, 16): [null; conditional] x [x_t, latent, turned latent]
+    assert first.shape == (2, 12, 16, 16) and torch.equal(first[0, 4:], torch.zeros_like(first[0, 4:]))
+    torch.testing.assert_close(first[1, 8:], torch.rot90(first[1, 4:8], -1, dims=(1, 2)), atol=1e-5, rtol=0)
+    pipe.save_pretrained(tmp_path / "pipe")
+    loaded = SARZero123Pipeline.from_pretrained(tmp_path / "pipe")
+    assert loaded.pose_projection.config.spatial_pose == "rotated_input"
+    assert loaded.pose_projection.config.rotation_sign == -1
+
+
+def test_a_pipeline_saved_before_the_field_existed_loads_as_zero123(tmp_path) -> None:
+    build_sar_zero123("tiny", seed=0).save_pretrained(tmp_path / "old")
+    config_file = tmp_path / "old" / "pose_projection" / "config.json"
+    config = json.loads(config_file.read_text())
+    config.pop("spatial_pose"), config.pop("rotation_sign")
+    config_file.write_text(json.dumps(config))
+    loaded = SARZero123Pipeline.from_pretrained(tmp_path / "old")
+    assert loaded.pose_projection.config.spatial_pose is None and loaded.unet.config.in_channels == 8
+
+
+def test_a_unet_whose_inputs_do_not_fit_the_mode_is_refused() -> None:
+    spatial, plain = build_sar_zero123("tiny", spatial_pose="rotated_input"), build_sar_zero123("tiny")
+    with pytest.raises(ValueError, match=r"in_channels` must be 12.*spatial_pose='rotated_input'.*got 8"):
+        SARZero123Pipeline(**{**spatial.components, "unet": plain.unet})
