@@ -68,7 +68,8 @@ def as_angle_tensor(value: float | torch.Tensor | list[float], name: str) -> tor
     Raises:
         ValueError: Naming ``name``, if the angles are more than 1-D, empty or not finite.
     """
-    tensor = torch.as_tensor(value, dtype=torch.float64)
+    # on the CPU: angles given as tensors on an accelerator (an evaluation's pair batch) meet CPU scalars here
+    tensor = torch.as_tensor(value, dtype=torch.float64).cpu()
     if tensor.ndim > 1:
         raise ValueError(
             f"`{name}` must be a scalar or a 1-D sequence of angles, got shape {tuple(tensor.shape)}"

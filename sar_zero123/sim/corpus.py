@@ -54,6 +54,14 @@ def corpus_views(
     return azimuth, np.round(depression, 4)
 
 
+def _one_thread_each() -> None:
+    """Keep each rendering process's BLAS and FFT work on one thread: N processes on N cores, not N x N
+    threads (each chip's spectrum is a complex matrix product, which BLAS would spread over every core)."""
+    from threadpoolctl import threadpool_limits
+
+    threadpool_limits(limits=1)
+
+
 def _write_vehicle(args: tuple) -> list[tuple[str, ...]]:
     """Render and save one vehicle's chips (skipping finished ones); returns its index rows."""
     out, vehicle, class_name, seed, views, depression_range, mstar_fraction, size, spread = args
@@ -185,7 +193,7 @@ def write_prior_corpus(
     if num_workers == 1:
         results = map(_write_vehicle, jobs)
     else:
-        executor = ProcessPoolExecutor(max_workers=int(num_workers))
+        executor = ProcessPoolExecutor(max_workers=int(num_workers), initializer=_one_thread_each)
         results = executor.map(_write_vehicle, jobs, chunksize=8)
     for done, vehicle_rows in enumerate(results, start=1):
         rows += vehicle_rows
