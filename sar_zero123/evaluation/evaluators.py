@@ -41,6 +41,7 @@ from sar_zero123.data import DecibelScaling
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
 from sar_zero123.evaluation.metrics import (
     CROP_SIZE,
+    axis_error_deg,
     azimuth_error_deg,
     classification_accuracy,
     frechet_distance,
@@ -513,7 +514,8 @@ def score_views(
         device: Device of the evaluator models.
 
     Returns:
-        `{"accuracy": %, "azimuth_error_deg", "sfd", "ms_ssim", "kuan_ssim", "ms_ssim_corrected",
+        `{"accuracy": %, "azimuth_error_deg", "axis_error_deg" (up to a front/back flip), "sfd", "ms_ssim",
+        "kuan_ssim", "ms_ssim_corrected",
         "kuan_ssim_corrected", "n",
         "azimuth_error_deg/<regressor>"..., "depression_error_deg" (see above)}` with the means over the
         samples, and `<metric>_se`, the standard error of each mean.
@@ -565,6 +567,7 @@ def score_views(
     per_sample = {
         "accuracy": 100.0 * (torch.cat(predictions["class"]) == labels.cpu()).double(),
         "azimuth_error_deg": azimuth_error_deg(predicted_azimuth_deg, target_azimuth_deg),
+        "axis_error_deg": axis_error_deg(predicted_azimuth_deg, target_azimuth_deg),
         **{name: torch.cat(values).double() for name, values in structural.items()},
     }
     if depression_regressor is not None:
@@ -575,6 +578,7 @@ def score_views(
     scores = {
         "accuracy": 100.0 * classification_accuracy(torch.cat(predictions["class"]), labels.cpu()),
         "azimuth_error_deg": per_sample["azimuth_error_deg"].mean().item(),
+        "axis_error_deg": per_sample["axis_error_deg"].mean().item(),
         "sfd": frechet_distance(torch.cat(generated_features), torch.cat(target_features)),
         **{name: per_sample[name].mean().item() for name in structural},
         "n": float(n),

@@ -96,6 +96,27 @@ def classification_accuracy(predictions: torch.Tensor, labels: torch.Tensor) -> 
     return (predictions.long() == labels.long()).double().mean().item()
 
 
+def axis_error_deg(
+    predicted_deg: torch.Tensor | float | Sequence[float], target_deg: torch.Tensor | float | Sequence[float]
+) -> torch.Tensor | float:
+    """Azimuth error up to a front/back flip, ``min(e, 180 - e)`` with ``e = azimuth_error_deg``, in [0, 90].
+
+    A view whose footprint turned to the requested heading but whose front and back are swapped has an
+    azimuth error near 180 deg and an axis error near 0. Beside the azimuth error it says whether a
+    generator turns the body at all. For a random orientation the expected axis error is 45 deg.
+
+    Args and Raises: as :func:`azimuth_error_deg`.
+
+    Returns:
+        Per-sample error in [0, 90] degrees (a plain ``float`` for plain numbers:
+        ``axis_error_deg(190.0, 0.0) == 10.0``).
+    """
+    error = azimuth_error_deg(predicted_deg, target_deg)
+    if isinstance(error, float):
+        return min(error, 180.0 - error)
+    return torch.minimum(error, 180.0 - error)
+
+
 def azimuth_error_deg(
     predicted_deg: torch.Tensor | float | Sequence[float], target_deg: torch.Tensor | float | Sequence[float]
 ) -> torch.Tensor | float:

@@ -39,6 +39,7 @@ __all__ = [
 METRICS = (
     "accuracy",
     "azimuth_error_deg",
+    "axis_error_deg",
     "sfd",
     "ms_ssim",
     "kuan_ssim",
@@ -48,6 +49,7 @@ METRICS = (
 METRIC_LABELS = {
     "accuracy": "Acc. (%) ↑",
     "azimuth_error_deg": "Az. err. (deg) ↓",
+    "axis_error_deg": "Axis err. (deg) ↓",
     "sfd": "SFD ↓",
     "ms_ssim": "MS-SSIM ↑",
     "kuan_ssim": "Kuan+SSIM ↑",
@@ -70,7 +72,7 @@ def _format(metric: str, value: float | None) -> str:
         return "-"
     if metric == "accuracy":
         return f"{value:.1f}"
-    if metric in ("azimuth_error_deg", "depression_error_deg"):
+    if metric in ("azimuth_error_deg", "axis_error_deg", "depression_error_deg"):
         return f"{value:.1f}"
     if metric in ("sfd", "closer_to_target_depression"):
         return f"{value:.2f}"

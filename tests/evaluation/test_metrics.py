@@ -13,6 +13,7 @@ from skimage.metrics import structural_similarity
 from sar_zero123.data import center_crop
 from sar_zero123.evaluation.metrics import (
     PAPER_MS_SSIM_BETAS,
+    axis_error_deg,
     azimuth_error_deg,
     classification_accuracy,
     frechet_distance,
@@ -52,6 +53,17 @@ def test_azimuth_error_is_circular_and_symmetric() -> None:
     expected = torch.tensor([20.0, 20.0, 0.0, 180.0, 5.0, 60.0, 179.0])
     torch.testing.assert_close(azimuth_error_deg(predicted, target), expected)
     torch.testing.assert_close(azimuth_error_deg(target, predicted), expected)
+
+
+def test_axis_error_forgives_a_front_back_flip_only() -> None:
+    predicted = torch.tensor([350.0, 190.0, 180.0, 90.0, 270.0, 135.0])
+    target = torch.tensor([10.0, 0.0, 0.0, 0.0, 0.0, 0.0])
+    expected = torch.tensor([20.0, 10.0, 0.0, 90.0, 90.0, 45.0])  # min(e, 180 - e)
+    torch.testing.assert_close(axis_error_deg(predicted, target), expected)
+    assert axis_error_deg(190.0, 0.0) == 10.0 and axis_error_deg(-100.0, 100.0) == 20.0
+    # a uniformly random orientation: 45 deg on average
+    uniform = torch.arange(0.0, 360.0, 0.5, dtype=torch.float64)
+    assert abs(axis_error_deg(uniform, torch.tensor(0.0, dtype=torch.float64)).mean().item() - 45.0) < 0.01
 
 
 # --- Frechet distance --------------------------------------------------------------------------------

@@ -145,7 +145,7 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path, monkeypatch, capl
         assert table3["lambda0"]["unseen"][key] == table3["lambda4"]["unseen"][key]
     markdown = (out / "table3.md").read_text()
     assert "paper: PFM (lambda=4)" in markdown
-    assert "| 89.0 | 23.5 | 1.84 | 0.6720 | 0.7374 | - | - |" in markdown
+    assert "| 89.0 | 23.5 | - | 1.84 | 0.6720 | 0.7374 | - | - |" in markdown  # the paper gives no axis error
     assert "MS-SSIM corr." in markdown
     assert "Az. err. (deg), scratch" in (out / "table4.md").read_text()
     for name in ("views.png", "lambda_sweep.png", "speed_error.png", "speed_error.md"):
@@ -298,7 +298,7 @@ def test_depression_gap_closed_and_columns_on_hand_made_numbers() -> None:
     assert header.endswith("| Dep. gap closed ↑ | n |")
     assert "| model | seen | " in markdown and "| 8.0 ± 1.0 | 0.62 | 50 % | 50 % | 75 % | 8 |" in markdown
     assert "| model | unseen | " in markdown and "| 3.0 ± 1.0 | - | 50 % | 50 % | no gap | 8 |" in markdown
-    assert "| 89.0 | 23.5 | 1.84 | 0.6720 | 0.7374 | - | - | - | - |" in markdown  # paper rows: no depression
+    assert "| 89.0 | 23.5 | - | 1.84 | 0.6720 | 0.7374 | - | - | - | - |" in markdown  # paper: no dep.
 
     # without a depression regressor (older evaluator folders) the table keeps its columns
     plain = {method: {g: row(50.0, 50.0, None) for g in ("seen",)} for method in (floor, round_trip, "model")}
