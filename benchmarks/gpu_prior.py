@@ -6,7 +6,8 @@
 One process, three stages, every one a library call (the stages of ``sar_zero123.stages``):
 
 1. a fresh procedural corpus (:func:`~sar_zero123.sim.corpus.write_prior_corpus`) rendered by
-   ``--corpus_workers`` processes: more vehicles with fewer views each than the bundled prior's corpus;
+   ``--corpus_workers`` processes: more vehicles with fewer views each than the bundled prior's corpus, as
+   many as ``--corpus_minutes`` allows at the rate a pilot measures;
    and the evaluation chips of the eight named vehicles (never in any corpus), rendered as
    ``docs/results/prior.md`` renders them, unless ``--eval_data`` names them;
 2. one prior per arm (:func:`~sar_zero123.stages.finetune.run_finetune` through
@@ -32,6 +33,7 @@ import argparse
 import dataclasses
 import json
 import logging
+import shutil
 import subprocess
 import sys
 import tarfile
@@ -72,6 +74,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--setup_minutes", type=float, default=0.6, help="each arm's set-up and export")
     parser.add_argument("--num_vehicles", type=int, default=6000, help="procedural vehicles in the corpus")
     parser.add_argument("--views_per_vehicle", type=int, default=12, help="chips per vehicle")
+    parser.add_argument("--corpus_minutes", type=float, default=1.0, help="most the corpus may take")
     parser.add_argument("--corpus_workers", type=int, default=16, help="processes rendering the corpus")
     parser.add_argument("--size", default="medium", help="build_sar_zero123 size of every arm")
     parser.add_argument("--train_batch_size", type=int, default=256, help="pairs per step")
@@ -118,6 +121,30 @@ def render_eval_data(folder: Path, seed: int) -> Path:
                "--seed", str(seed)]  # fmt: skip
     subprocess.run(command, check=True)
     return folder
+
+
+def corpus_vehicles(args: argparse.Namespace, work: Path) -> int:
+    """``--num_vehicles``, or fewer where the render rate of a pilot says they would overrun
+    ``--corpus_minutes``.
+
+    The pilot renders two vehicles per worker into a scratch folder (removed after). A corpus already in
+    ``work/corpus`` (a re-run) keeps the number it was written with.
+    """
+    options = work / "corpus" / "corpus.json"
+    if options.is_file():
+        return int(json.loads(options.read_text())["num_vehicles"])
+    pilot = work / "corpus_pilot"
+    shutil.rmtree(pilot, ignore_errors=True)
+    count = max(2 * args.corpus_workers, 4)
+    start = time.monotonic()
+    write_prior_corpus(pilot, num_vehicles=count, views_per_vehicle=args.views_per_vehicle,
+                       num_validation_vehicles=1, seed=args.seed, num_workers=args.corpus_workers,
+                       progress=False)  # fmt: skip
+    rate = count / (time.monotonic() - start)  # vehicles per second, pool start-up included
+    shutil.rmtree(pilot, ignore_errors=True)
+    affordable = int(0.9 * rate * 60.0 * args.corpus_minutes)
+    logger.info("corpus pilot: %.1f vehicles/s; %d fit %.1f min", rate, affordable, args.corpus_minutes)
+    return max(min(args.num_vehicles, affordable), 64)
 
 
 def train_arm(args: argparse.Namespace, arm: str, corpus: Path, vae: Path, minutes: float) -> Path:
@@ -197,14 +224,15 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     torch.backends.cuda.matmul.allow_tf32 = True
     torch.backends.cudnn.allow_tf32 = True
 
-    # 1. corpus and evaluation chips
+    # 1. corpus (as many vehicles as --corpus_minutes allows, at a pilot's rate) and evaluation chips
     start = time.monotonic()
+    num_vehicles = corpus_vehicles(args, work)
     corpus = write_prior_corpus(
-        work / "corpus", num_vehicles=args.num_vehicles, views_per_vehicle=args.views_per_vehicle,
+        work / "corpus", num_vehicles=num_vehicles, views_per_vehicle=args.views_per_vehicle,
         seed=args.seed, num_workers=args.corpus_workers, progress=False,
     )  # fmt: skip
-    chips = args.num_vehicles * args.views_per_vehicle
-    results.stage("corpus", seconds=time.monotonic() - start, chips=chips)
+    chips = num_vehicles * args.views_per_vehicle
+    results.stage("corpus", seconds=time.monotonic() - start, vehicles=num_vehicles, chips=chips)
     start = time.monotonic()
     data = Path(args.eval_data) if args.eval_data else render_eval_data(work / "eval_data", args.seed)
     results.stage("eval_data", seconds=time.monotonic() - start, folder=str(data))
