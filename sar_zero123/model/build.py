@@ -167,15 +167,7 @@ SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
             "attention_head_dim": 8,
             "norm_num_groups": 32,
         },
-        "image_encoder": {
-            "hidden_size": 128,
-            "intermediate_size": 512,
-            "num_hidden_layers": 2,
-            "num_attention_heads": 4,
-            "image_size": 64,
-            "patch_size": 8,
-            "projection_dim": 128,
-        },
+        "image_encoder": "compact",
     },
     # Exactly the Objaverse zero-1-to-3 shapes: SD 1.x UNet with 8 input channels, SD VAE,
     # CLIP ViT-L/14 image tower (768-d embeddings), Linear(772, 768); 256 px -> 32x32x4 latents.
@@ -214,8 +206,9 @@ SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
 }
 
 for _spec in SAR_ZERO123_SIZES.values():  # a size may share another size's VAE (then one VAE fits both)
-    if isinstance(_spec["vae"], str):
-        _spec["vae"] = SAR_ZERO123_SIZES[_spec["vae"]]["vae"]
+    for _part in ("vae", "image_encoder"):  # ... or its image encoder
+        if isinstance(_spec[_part], str):
+            _spec[_part] = SAR_ZERO123_SIZES[_spec[_part]][_part]
 
 
 def build_sar_zero123(
