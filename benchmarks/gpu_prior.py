@@ -77,8 +77,9 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--corpus_minutes", type=float, default=1.0, help="most the corpus may take")
     parser.add_argument("--corpus_workers", type=int, default=16, help="processes rendering the corpus")
     parser.add_argument("--size", default="medium", help="build_sar_zero123 size of every arm")
-    parser.add_argument("--train_batch_size", type=int, default=256, help="pairs per step")
-    parser.add_argument("--learning_rate", type=float, default=5e-4, help="AdamW, constant after warm-up")
+    # 256 pairs ran 11-12 steps/s on an H100 (docs/results/prior.md, section 6): more pairs per step
+    parser.add_argument("--train_batch_size", type=int, default=1024, help="pairs per step")
+    parser.add_argument("--learning_rate", type=float, default=8e-4, help="AdamW, constant after warm-up")
     parser.add_argument("--lr_warmup_steps", type=int, default=200, help="linear warm-up steps")
     parser.add_argument("--max_train_steps", type=int, default=100000, help="cap (the clock stops first)")
     parser.add_argument("--mixed_precision", default="bf16", choices=["no", "fp16", "bf16"])
