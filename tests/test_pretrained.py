@@ -57,9 +57,22 @@ def test_registered_name_resolves_to_the_package_folder(tmp_path, monkeypatch):
     assert is_bundled_name(SIM_PRIOR) and not is_bundled_name("sar-zero123/other")
 
 
-@pytest.mark.parametrize("path", ["runs/pfm/pipeline", "sar-zero123/other", "sim_prior", Path("a/b")])
+@pytest.mark.parametrize("path", ["runs/pfm/pipeline", "sim_prior", Path("a/b")])
 def test_anything_else_is_returned_as_a_path_unchanged(path):
     assert resolve_pretrained(path) == Path(path)
+
+
+def test_an_unknown_bundled_name_is_refused_listing_the_bundled_ones(tmp_path, monkeypatch):
+    message = (
+        r"'sar-zero123/nope': no bundled pipeline of that name and no such folder; "
+        r"bundled: \['sar-zero123/sim-prior'\]"
+    )
+    for load in (resolve_pretrained, SARZero123Pipeline.from_pretrained, load_sar_zero123):
+        with pytest.raises(FileNotFoundError, match=message):  # never a model-hub lookup
+            load("sar-zero123/nope")
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sar-zero123" / "nope").mkdir(parents=True)  # an existing folder of that name is a path
+    assert resolve_pretrained("sar-zero123/nope") == Path("sar-zero123/nope")
 
 
 def test_missing_weights_raise_naming_the_name(tmp_path, monkeypatch):

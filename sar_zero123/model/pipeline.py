@@ -46,7 +46,7 @@ from sar_zero123.model.conditioning import (
 from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
 from sar_zero123.model.orientation import AzimuthEstimator, target_view_features
 from sar_zero123.model.zero123_checkpoints import CLIPImageProcessor, load_zero123_components
-from sar_zero123.pretrained import is_bundled_name, resolve_pretrained
+from sar_zero123.pretrained import BUNDLED_NAMESPACE, is_bundled_name, resolve_pretrained
 
 __all__ = ["SARZero123Pipeline", "SARZero123PipelineOutput"]
 
@@ -200,15 +200,17 @@ class SARZero123Pipeline(DiffusionPipeline):
             The pipeline.
 
         Raises:
-            FileNotFoundError: For a registered name whose weights are missing from this install, or a
+            FileNotFoundError: For a registered name whose weights are missing from this install, an
+                unknown name under ``"sar-zero123/"`` (listing the bundled ones), or a
                 folder without ``model_index.json`` or missing a component's folder, config or weights;
                 the message names the component, the file expected and the folder.
             ValueError: For a folder whose JSON is invalid (naming the file), or a component whose files
                 do not load (a config that does not fit its weights, a truncated weight file), naming it.
         """
-        if isinstance(pretrained_model_name_or_path, str | os.PathLike) and is_bundled_name(
-            pretrained_model_name_or_path
-        ):
+        if isinstance(pretrained_model_name_or_path, str | os.PathLike) and (
+            is_bundled_name(pretrained_model_name_or_path)
+            or os.fspath(pretrained_model_name_or_path).startswith(BUNDLED_NAMESPACE)
+        ):  # a bundled name, or a refusal listing them (never a hub lookup of an unknown bundled name)
             pretrained_model_name_or_path = resolve_pretrained(pretrained_model_name_or_path)
         folder = pretrained_model_name_or_path
         if not (isinstance(folder, str | os.PathLike) and os.path.isdir(folder)):

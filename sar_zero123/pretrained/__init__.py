@@ -17,10 +17,20 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
-__all__ = ["BUNDLED_PIPELINES", "PRETRAINED_DIR", "SIM_PRIOR", "is_bundled_name", "resolve_pretrained"]
+__all__ = [
+    "BUNDLED_NAMESPACE",
+    "BUNDLED_PIPELINES",
+    "PRETRAINED_DIR",
+    "SIM_PRIOR",
+    "is_bundled_name",
+    "resolve_pretrained",
+]
 
 #: The multi-view SAR prior trained on procedural simulated vehicles only (model card: ``sim_prior.md``).
 SIM_PRIOR = "sar-zero123/sim-prior"
+#: The prefix of every bundled name: a name under it that is not registered (and no such path exists) is
+#: refused with the list of bundled names, rather than looked up on a model hub.
+BUNDLED_NAMESPACE = "sar-zero123/"
 #: Registered name -> folder under :data:`PRETRAINED_DIR`.
 BUNDLED_PIPELINES: dict[str, str] = {SIM_PRIOR: "sim_prior"}
 #: Where the bundled folders live (this package's own folder).
@@ -52,8 +62,15 @@ def resolve_pretrained(name_or_path: str | os.PathLike) -> Path:
 
     Raises:
         FileNotFoundError: For a registered name whose folder has no ``model_index.json`` (the weights
-            are missing from this install).
+            are missing from this install), or a name under :data:`BUNDLED_NAMESPACE` that is not
+            registered and no existing path (the message lists the bundled names).
     """
+    text = os.fspath(name_or_path)
+    if text.startswith(BUNDLED_NAMESPACE) and text not in BUNDLED_PIPELINES and not Path(text).exists():
+        bundled = sorted(BUNDLED_PIPELINES)
+        raise FileNotFoundError(
+            f"{text!r}: no bundled pipeline of that name and no such folder; bundled: {bundled}"
+        )
     if not is_bundled_name(name_or_path):
         return Path(name_or_path)
     name = os.fspath(name_or_path)

@@ -34,7 +34,7 @@ from typing import Any
 
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.model.build import SAR_ZERO123_SIZES
-from sar_zero123.sim.corpus import VALIDATION_CLASS, write_prior_corpus
+from sar_zero123.sim.corpus import CORPUS_OPTIONS_FILE, VALIDATION_CLASS, write_prior_corpus
 from sar_zero123.stages._folders import launch_state, open_stage_folder
 from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
 from sar_zero123.stages.vae import TrainVAEConfig, run_vae
@@ -104,6 +104,11 @@ class PriorConfig:
             raise FileNotFoundError(f"vae: expected an AutoencoderKL folder with config.json, got {self.vae}")
         if self.corpus is not None and not (Path(self.corpus) / "index.csv").is_file():
             raise FileNotFoundError(f"corpus: expected a corpus folder with index.csv, got {self.corpus}")
+        if self.corpus is not None and not (Path(self.corpus) / CORPUS_OPTIONS_FILE).is_file():
+            raise FileNotFoundError(
+                f"corpus: {self.corpus} is not a prior corpus (no {CORPUS_OPTIONS_FILE}, which "
+                "write_prior_corpus writes); leave --corpus out to write one into output_dir/corpus"
+            )
         # the two training stages' configs validate their own fields: refuse here, before the corpus
         out = Path(self.output_dir)
         try:

@@ -17,6 +17,7 @@ from sar_zero123.model.conditioning import embed_pose
 from sar_zero123.sim import TARGET_CLASSES, render_chip
 from sar_zero123.sim.corpus import VALIDATION_CLASS, corpus_views, write_prior_corpus
 from sar_zero123.sim.procedural import PROCEDURAL_CLASS, make_procedural_target, procedural_parts
+from sar_zero123.stages.prior import PriorConfig
 
 
 # ---------------------------------------------------------------------------- procedural vehicles
@@ -269,3 +270,14 @@ def test_pretrain_prior_smoke_writes_a_pipeline_that_takes_depression(tmp_path: 
         pretrain_prior.main([*longer, "--seed", "1"])
     with pytest.raises(ValueError, match="depression_range_deg"):
         pretrain_prior.PriorConfig(depression_range_deg=[50.0, 20.0])
+
+
+def test_a_folder_that_is_not_a_prior_corpus_or_a_vae_is_refused_before_any_work(tmp_path: Path):
+    images = tmp_path / "images"
+    images.mkdir()
+    (images / "index.csv").write_text("path,target_class\n")  # an image folder, not a corpus
+    with pytest.raises(FileNotFoundError, match=r"corpus: .*images is not a prior corpus \(no corpus.json"):
+        PriorConfig(output_dir=str(tmp_path / "prior"), corpus=str(images))
+    with pytest.raises(FileNotFoundError, match=r"vae: expected an AutoencoderKL folder with config.json"):
+        PriorConfig(output_dir=str(tmp_path / "prior"), vae=str(tmp_path / "nowhere"))
+    assert not (tmp_path / "prior").exists()
