@@ -200,6 +200,12 @@ def run_differences(
 
 
 def _move_aside(path: Path) -> Path:
+    if Path.cwd().resolve().is_relative_to(path.resolve()):  # `--output_dir .` or a parent of the cwd
+        raise ValueError(
+            f"restart: output_dir {str(path)!r} is the working directory or holds it, and cannot be moved "
+            "aside while a command works in it; run from another folder, or name another output_dir"
+        )
+    path = path.resolve()  # `run/..`-style paths get a real name for the moved-aside folder
     stamp = datetime.now(timezone.utc).strftime("%Y%m%dT%H%M%SZ")
     target = path.with_name(f"{path.name}.replaced-{stamp}")
     suffix = 1

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import re
 from dataclasses import dataclass
 
 import pytest
@@ -128,6 +129,18 @@ def test_restart_moves_the_old_run_aside(tmp_path):
     assert not (folder / "old.txt").exists()
     with pytest.raises(ValueError, match="resume and restart: choose one"):
         open_run_folder(folder, "vae", _Config(), resume=True, restart=True)
+
+
+def test_restart_of_the_working_directory_is_refused_before_moving_anything(tmp_path, monkeypatch):
+    folder = tmp_path / "run"
+    open_run_folder(folder, "vae", _Config())
+    monkeypatch.chdir(folder)
+    for name in (".", str(folder), ".."):
+        message = rf"restart: output_dir '{re.escape(name)}' is the working directory or holds it"
+        with pytest.raises(ValueError, match=message):
+            open_run_folder(name, "vae", _Config(seed=3), restart=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # nothing moved
+    assert read_run_record(folder)["config"]["seed"] == 0
 
 
 def test_resume_extends_only_what_may_extend_and_keeps_the_history(tmp_path):
