@@ -199,6 +199,29 @@ def run_differences(
     return differences
 
 
+#: Config fields that name where a stage writes, never what it reads.
+_OUTPUT_FIELDS = ("output_dir", "work_dir", "out")
+
+
+def _inputs_inside(folder: Path, identity: Mapping[str, Any], config: Mapping[str, Any]) -> list[str]:
+    """The inputs (data paths of ``identity``, config fields naming existing paths) inside ``folder``."""
+    root = folder.resolve()
+    named: list[tuple[str, Any]] = [
+        (f"data {key}", value.get("path")) for key, value in identity.items() if isinstance(value, Mapping)
+    ]
+    if "path" in identity:
+        named.append(("data", identity["path"]))
+    for key, value in config.items():
+        if key not in _OUTPUT_FIELDS:
+            named += [(key, item) for item in (value if isinstance(value, list | tuple) else [value])]
+    inside = []
+    for name, value in named:
+        if isinstance(value, str) and value and Path(value).exists():
+            if Path(value).resolve().is_relative_to(root):
+                inside.append(f"{name}: {value}")
+    return inside
+
+
 def _move_aside(path: Path) -> Path:
     if Path.cwd().resolve().is_relative_to(path.resolve()):  # `--output_dir .` or a parent of the cwd
         raise ValueError(
@@ -266,6 +289,12 @@ def open_run_folder(
         raise ValueError(f"{flag_hint}: {str(path)!r} is a file, not a folder")
     occupied = path.is_dir() and any(path.iterdir())
     if occupied and restart:
+        inside = _inputs_inside(path, identity, values)
+        if inside:
+            raise ValueError(
+                f"restart: {flag_hint} {str(path)!r} holds this run's inputs ({', '.join(inside)}); moving "
+                "it aside would move them too. Name another output folder, or move the inputs out first"
+            )
         if write:
             _move_aside(path)
         occupied = False

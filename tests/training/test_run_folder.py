@@ -131,6 +131,21 @@ def test_restart_moves_the_old_run_aside(tmp_path):
         open_run_folder(folder, "vae", _Config(), resume=True, restart=True)
 
 
+def test_restart_of_a_folder_holding_the_inputs_is_refused_before_moving_anything(tmp_path):
+    folder = tmp_path / "run"
+    open_run_folder(folder, "vae", _Config())
+    data = folder / "chips"  # the data a user then put in the run folder
+    data.mkdir()
+    (data / "index.csv").write_text("path\n")
+    message = r"restart: output_dir '.*run' holds this run's inputs \(data: .*chips\)"
+    with pytest.raises(ValueError, match=message):
+        open_run_folder(folder, "vae", _Config(seed=3), data=data, restart=True)
+    with pytest.raises(ValueError, match=r"holds this run's inputs \(pretrained: .*chips\)"):
+        open_run_folder(folder, "vae", {"seed": 3, "pretrained": str(data)}, restart=True)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["run"]  # nothing moved
+    open_run_folder(folder, "vae", {"seed": 3, "output_dir": str(folder)}, restart=True)  # outputs are fine
+
+
 def test_restart_of_the_working_directory_is_refused_before_moving_anything(tmp_path, monkeypatch):
     folder = tmp_path / "run"
     open_run_folder(folder, "vae", _Config())
