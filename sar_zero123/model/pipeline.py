@@ -283,6 +283,10 @@ class SARZero123Pipeline(DiffusionPipeline):
         if isinstance(image, torch.Tensor):
             if image.ndim != 4:
                 raise ValueError(f"`image` tensors must be (B, 1 | 3, H, W), got shape {tuple(image.shape)}")
+            if image.is_meta:
+                raise ValueError("`image` is a tensor on the meta device, which holds no values")
+            if image.is_complex():
+                raise ValueError("`image` must be real normalised dB values, got a complex tensor")
             batch = image.detach().to("cpu", torch.float32)
         else:
             items = list(image) if isinstance(image, list | tuple) else [image]

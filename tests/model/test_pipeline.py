@@ -284,6 +284,8 @@ def test_pil_numpy_and_rgb_inputs_match_tensor_input(pipe):
         ({"image": torch.rand(1, 32, 32)}, "`image` tensors must be"),
         ({"image": torch.rand(1, 2, 32, 32)}, "`image` must have 1 or 3 channels"),
         ({"image": torch.rand(0, 1, 32, 32)}, "`image` is an empty batch"),
+        ({"image": torch.empty(1, 1, 32, 32, device="meta")}, "`image` is a tensor on the meta device"),
+        ({"image": torch.rand(1, 1, 32, 32, dtype=torch.complex64)}, "`image` must be real"),
         ({"image": []}, "`image` is an empty list"),
         ({"image": np.zeros((2, 32, 32, 1, 1), np.float32)}, "`image` arrays must be"),
         ({"image": torch.rand(1, 1, 30, 30)}, "`image` height and width must be positive multiples of 4"),
