@@ -34,6 +34,7 @@ from typing import Any
 
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.model.build import SAR_ZERO123_SIZES
+from sar_zero123.model.conditioning import downsampling_factor
 from sar_zero123.sim.corpus import CORPUS_OPTIONS_FILE, VALIDATION_CLASS, write_prior_corpus
 from sar_zero123.stages._folders import launch_state, open_stage_folder
 from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
@@ -108,6 +109,26 @@ class PriorConfig:
             raise FileNotFoundError(
                 f"corpus: {self.corpus} is not a prior corpus (no {CORPUS_OPTIONS_FILE}, which "
                 "write_prior_corpus writes); leave --corpus out to write one into output_dir/corpus"
+            )
+        # the UNet needs the VAE's downsampling factor: a mismatch would be found only after the VAE stage
+        needed = downsampling_factor(SAR_ZERO123_SIZES[self.model_size]["vae"]["block_out_channels"])
+        widths = self.vae_widths
+        if self.vae is not None:
+            vae_config = json.loads((Path(self.vae) / "config.json").read_text())
+            widths = vae_config.get("block_out_channels", widths)
+        if downsampling_factor(widths) != needed:
+            source = f"the VAE in {self.vae}" if self.vae is not None else "vae_widths"
+            raise ValueError(
+                f"model_size {self.model_size!r} needs a VAE that downsamples by {needed} "
+                f"({needed.bit_length()} width levels), but {source} {list(widths)} downsamples by "
+                f"{downsampling_factor(widths)}"
+            )
+        # pairs of one epoch are at most the training vehicles' chips: a larger batch never fits
+        most_pairs = (self.num_vehicles - self.num_validation_vehicles) * self.views_per_vehicle
+        if self.train_batch_size > most_pairs:
+            raise ValueError(
+                f"train_batch_size {self.train_batch_size} exceeds the {most_pairs} training chips of the "
+                "corpus ((num_vehicles - num_validation_vehicles) x views_per_vehicle), hence its pairs per epoch"
             )
         # the two training stages' configs validate their own fields: refuse here, before the corpus
         out = Path(self.output_dir)

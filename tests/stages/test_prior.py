@@ -281,3 +281,13 @@ def test_a_folder_that_is_not_a_prior_corpus_or_a_vae_is_refused_before_any_work
     with pytest.raises(FileNotFoundError, match=r"vae: expected an AutoencoderKL folder with config.json"):
         PriorConfig(output_dir=str(tmp_path / "prior"), vae=str(tmp_path / "nowhere"))
     assert not (tmp_path / "prior").exists()
+
+
+def test_settings_a_later_stage_would_refuse_are_refused_before_the_corpus(tmp_path: Path):
+    message = r"model_size 'tiny' needs a VAE that downsamples by 2 \(2 width levels\), but vae_widths "
+    with pytest.raises(ValueError, match=message + r"\[16, 32, 64\] downsamples by 4"):
+        PriorConfig(output_dir=str(tmp_path / "prior"), model_size="tiny")
+    with pytest.raises(ValueError, match=r"train_batch_size 100000 exceeds the 16 training chips"):
+        PriorConfig(output_dir=str(tmp_path / "prior"), num_vehicles=6, views_per_vehicle=4,
+                    num_validation_vehicles=2, train_batch_size=100000)  # fmt: skip
+    assert not (tmp_path / "prior").exists()
