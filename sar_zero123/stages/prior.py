@@ -128,7 +128,8 @@ class PriorConfig:
         if self.train_batch_size > most_pairs:
             raise ValueError(
                 f"train_batch_size {self.train_batch_size} exceeds the {most_pairs} training chips of the "
-                "corpus ((num_vehicles - num_validation_vehicles) x views_per_vehicle), hence its pairs per epoch"
+                "corpus ((num_vehicles - num_validation_vehicles) x views_per_vehicle), hence its pairs per "
+                "epoch"
             )
         # the two training stages' configs validate their own fields: refuse here, before the corpus
         out = Path(self.output_dir)
