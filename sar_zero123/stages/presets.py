@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import ast
 import dataclasses
+import json
 import logging
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -20,7 +21,8 @@ from typing import Any, Literal
 from sar_zero123.data.splits import check_protocol
 from sar_zero123.evaluation.protocol import SCHEDULERS
 from sar_zero123.model.build import SAR_ZERO123_SIZES
-from sar_zero123.pretrained import SIM_PRIOR
+from sar_zero123.model.conditioning import downsampling_factor
+from sar_zero123.pretrained import SIM_PRIOR, resolve_pretrained
 from sar_zero123.sim import TARGET_CLASSES
 from sar_zero123.stages.evaluate import MAX_EVALUATION_PAIRS, MAX_SWEEP_STEP_COUNTS
 from sar_zero123.training.losses import TRAINED_PREDICTION_TYPES, check_prediction_type
@@ -96,6 +98,31 @@ class Preset:
     # the evaluation also scores every view and VAE round trip with speckle re-added (readd_speckle with this
     # many looks: 1 for MSTAR), as rows "<row> + speckle"; None: not
     eval_speckle_looks: int | None = None
+
+    def _check_image_size(self) -> None:
+        """The prior exists and the chips fit its VAE and UNet (or ``model_size``'s): checked before any
+        stage, since the fine-tunes would refuse them only after SimCLR and the VAE."""
+        if self.prior is not None:
+            folder = resolve_pretrained(self.prior)  # an unknown bundled name is refused there
+            if not (folder / "model_index.json").is_file():
+                raise FileNotFoundError(
+                    f"prior: {self.prior!r} is not a pipeline folder (no model_index.json)"
+                )
+            widths = [
+                json.loads((folder / part / "config.json").read_text())["block_out_channels"]
+                for part in ("vae", "unet")
+            ]
+            source = f"the prior {self.prior!r}"
+        else:
+            spec = SAR_ZERO123_SIZES[self.model_size]
+            widths = [spec["vae"]["block_out_channels"], spec["unet"]["block_out_channels"]]
+            source = f"model_size {self.model_size!r}"
+        multiple = downsampling_factor(widths[0]) * downsampling_factor(widths[1])
+        if self.image_size % multiple:
+            raise ValueError(
+                f"image_size must be a multiple of {multiple} for {source} (VAE x UNet downsampling), "
+                f"got {self.image_size}"
+            )
 
     def __post_init__(self) -> None:
         # every field checked here, in the preset's own names, so that a bad --override fails before the
@@ -175,6 +202,7 @@ class Preset:
             )
         if not self.vae_feature_loss_weight >= 0:
             raise ValueError(f"vae_feature_loss_weight must be >= 0, got {self.vae_feature_loss_weight}")
+        self._check_image_size()
         looks = self.eval_speckle_looks
         if looks is not None and (isinstance(looks, bool) or not isinstance(looks, int) or looks < 1):
             raise ValueError(f"eval_speckle_looks must be an integer >= 1 or None, got {looks!r}")

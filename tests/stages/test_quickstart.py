@@ -177,6 +177,17 @@ def test_overrides_replace_preset_fields_with_typed_literals() -> None:
         quickstart.QuickstartConfig(override=["base_steps=many"])
 
 
+def test_a_missing_prior_and_an_image_size_the_models_refuse_fail_before_any_stage() -> None:
+    preset = quickstart.PRESETS["default"]
+    message = r"image_size must be a multiple of 16 for the prior 'sar-zero123/sim-prior' \(VAE x UNet"
+    with pytest.raises(ValueError, match=message + r" downsampling\), got 30"):
+        quickstart.apply_overrides(preset, ["image_size=30"])
+    with pytest.raises(FileNotFoundError, match=r"prior: '/nonexistent' is not a pipeline folder"):
+        quickstart.apply_overrides(preset, ["prior='/nonexistent'"])
+    with pytest.raises(ValueError, match=r"multiple of 16 for model_size 'micro'"):
+        quickstart.apply_overrides(quickstart.PRESETS["scratch"], ["image_size=40"])
+
+
 def test_presets_vae_groups_divide_the_widths() -> None:
     with pytest.raises(ValueError, match=r"vae_norm_groups 12 must divide each of vae_widths \(16, 32, 64\)"):
         dataclasses.replace(quickstart.DEFAULT_PRESET, vae_norm_groups=12)
