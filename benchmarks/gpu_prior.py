@@ -1,7 +1,7 @@
 """Train and score multi-view priors on one GPU inside a fixed time budget (issue 35's GPU recipe).
 
     python benchmarks/gpu_prior.py --out OUT --work WORK --evaluators EVAL/evaluators \\
-        --arms global rotated_input --budget_minutes 8.5
+        --arms rotated_input rotated_input@micro global --budget_minutes 8.5
 
 One process, three stages, every one a library call (the stages of ``sar_zero123.stages``):
 
@@ -12,9 +12,10 @@ One process, three stages, every one a library call (the stages of ``sar_zero123
    ``docs/results/prior.md`` renders them, unless ``--eval_data`` names them;
 2. one prior per arm (:func:`~sar_zero123.stages.finetune.run_finetune` through
    :func:`~sar_zero123.stages.prior.prior_base_config`): the same corpus, VAE (the bundled prior's, latents
-   cached once), size, batch and wall-clock budget (``max_train_minutes``); an arm differs only in its
+   cached once), batch and wall-clock budget (``max_train_minutes``); an arm differs only in its
    condition input (``global``: zero-1-to-3's, as the bundled prior; ``rotated_input``: also the input
-   latent turned by ``d_az``, ``FinetuneConfig.spatial_pose``);
+   latent turned by ``d_az``, ``FinetuneConfig.spatial_pose``) and, when named ``<input>@<size>``, its size
+   (``--size`` otherwise; ``@micro`` is the quickstart's size, one that can ship in the package);
 3. Table III of every arm beside the bundled prior, the floor and the ceilings, on the same pairs
    (:func:`~sar_zero123.stages.evaluate.run_evaluate`): azimuth requests 17 -> 17 deg (n = ``--n``) and
    depression requests 17 -> 10/30/45 deg (n = 1.5 ``--n``).
@@ -47,6 +48,7 @@ import torch
 
 from sar_zero123 import SIM_PRIOR, resolve_pretrained
 from sar_zero123.config import write_json_atomic
+from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.sim.corpus import write_prior_corpus
 from sar_zero123.stages.evaluate import EvaluateConfig, load_evaluation, run_evaluate
 from sar_zero123.stages.finetune import run_finetune
@@ -54,8 +56,30 @@ from sar_zero123.stages.prior import PriorConfig, prior_base_config
 
 logger = logging.getLogger(__name__)
 
-#: The arms' condition inputs (FinetuneConfig.spatial_pose).
+#: The arms' condition inputs (FinetuneConfig.spatial_pose); ``<input>@<size>`` trains that input at another
+#: ``build_sar_zero123`` size than ``--size`` (``rotated_input@micro``: the quickstart's size, shippable).
 ARMS = {"global": None, "rotated_input": "rotated_input"}
+
+
+def arm_label(arm: str) -> str:
+    """The arm's name in files and folders (letters, digits, ``._-`` only: ``rotated_input-micro``)."""
+    return arm.replace("@", "-")
+
+
+def parse_arm(arm: str, default_size: str) -> tuple[str | None, str]:
+    """``(spatial_pose, size)`` of an arm such as ``global``, ``rotated_input`` or ``rotated_input@micro``.
+
+    Raises:
+        ValueError: Naming the arm, for an unknown condition input or size.
+    """
+    name, _, size = arm.partition("@")
+    size = size or default_size
+    if name not in ARMS or size not in SAR_ZERO123_SIZES:
+        raise ValueError(
+            f"arms: {arm!r} is not <input>[@<size>] with input one of {list(ARMS)} and size one of "
+            f"{sorted(SAR_ZERO123_SIZES)}"
+        )
+    return ARMS[name], size
 #: The named vehicles' evaluation chips (docs/results/prior.md, section 5).
 EVAL_CLASSES = ("TANK", "APC", "TRUCK", "DOZER", "SPG", "RADAR", "AAGUN", "SCOUT")
 EVAL_DEPRESSIONS = ("10", "15", "17", "30", "45")
@@ -68,7 +92,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--work", required=True, help="corpus, run folders and evaluations")
     parser.add_argument("--evaluators", required=True, help="train_evaluators.py folder (named vehicles)")
     parser.add_argument("--eval_data", default=None, help="the named vehicles' chips; None renders them")
-    parser.add_argument("--arms", nargs="+", default=list(ARMS), choices=list(ARMS))
+    parser.add_argument("--arms", nargs="+", default=["rotated_input", "rotated_input@micro"],
+                        help="global, rotated_input, each optionally @<size>")  # fmt: skip
     parser.add_argument("--budget_minutes", type=float, default=8.5, help="wall time of the whole script")
     parser.add_argument("--eval_reserve_minutes", type=float, default=1.5, help="kept for the evaluations")
     parser.add_argument("--setup_minutes", type=float, default=0.6, help="each arm's set-up and export")
@@ -150,11 +175,12 @@ def corpus_vehicles(args: argparse.Namespace, work: Path) -> int:
 
 def train_arm(args: argparse.Namespace, arm: str, corpus: Path, vae: Path, minutes: float) -> Path:
     """One prior on ``corpus`` for ``minutes`` of training steps; returns its pipeline folder."""
+    spatial_pose, size = parse_arm(arm, args.size)
     prior = PriorConfig(
-        output_dir=str(Path(args.work) / arm),
+        output_dir=str(Path(args.work) / arm_label(arm)),
         corpus=str(corpus),
-        model_size=args.size,
-        spatial_pose=ARMS[arm],
+        model_size=size,
+        spatial_pose=spatial_pose,
         vae=str(vae),
         train_batch_size=args.train_batch_size,
         base_steps=args.max_train_steps,
@@ -216,6 +242,8 @@ def pack(pipeline: Path, out: Path, arm: str) -> list[str]:
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = parse_args(argv)
+    for arm in args.arms:  # refused before any work
+        parse_arm(arm, args.size)
     begin = time.monotonic()
     out, work = Path(args.out), Path(args.work)
     out.mkdir(parents=True, exist_ok=True)
@@ -260,7 +288,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
                       pairs=steps * args.train_batch_size, pairs_per_second=steps * args.train_batch_size /
                       (60 * per_arm), unet_parameters=unet_parameters)  # fmt: skip
         try:  # the weights come back even if a later stage runs out of time
-            results.stage(f"train_{arm}", parts=pack(pipelines[arm], out, arm))
+            results.stage(f"train_{arm}", parts=pack(pipelines[arm], out, arm_label(arm)))
         except Exception:
             results.stage(f"train_{arm}", pack_error=traceback.format_exc())
 

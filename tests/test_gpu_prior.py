@@ -7,6 +7,7 @@ import json
 import tarfile
 from pathlib import Path
 
+import pytest
 import torch
 
 from benchmarks import gpu_prior
@@ -23,6 +24,15 @@ def test_corpus_vehicles_fit_the_budget_at_the_pilot_rate_and_a_written_corpus_k
     (tmp_path / "corpus").mkdir()
     (tmp_path / "corpus" / "corpus.json").write_text(json.dumps({"num_vehicles": 1234}))
     assert gpu_prior.corpus_vehicles(args, tmp_path) == 1234
+
+
+def test_arms_name_a_condition_input_and_optionally_a_size() -> None:
+    assert gpu_prior.parse_arm("global", "medium") == (None, "medium")
+    assert gpu_prior.parse_arm("rotated_input@micro", "medium") == ("rotated_input", "micro")
+    assert gpu_prior.arm_label("rotated_input@micro") == "rotated_input-micro"  # a name $OUT returns
+    for arm in ("rays", "rotated_input@huge"):
+        with pytest.raises(ValueError, match=rf"arms: '{arm}' is not <input>\[@<size>\]"):
+            gpu_prior.parse_arm(arm, "medium")
 
 
 def test_packed_parts_restore_the_pipeline_with_a_float16_unet_loading_as_float32(tmp_path):
