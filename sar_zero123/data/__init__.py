@@ -37,7 +37,7 @@ from .scaling import (
     check_magnitude,
 )
 from .splits import PROTOCOLS, check_protocol, ood_validation_intervals, prepare_splits, split_records
-from .view_pairs import ViewPairDataset, train_validation_pairs, wrap_azimuth_deg
+from .view_pairs import MixedPairs, ViewPairDataset, train_validation_pairs, wrap_azimuth_deg
 
 __all__ = [
     "INDEX_COLUMNS",
@@ -56,6 +56,7 @@ __all__ = [
     "SCALING_FILE",
     "MSTARChip",
     "SamplePair",
+    "MixedPairs",
     "ViewPairDataset",
     "center_crop",
     "center_crop_resize",

@@ -241,6 +241,57 @@ class ViewPairDataset(Dataset):
         return item
 
 
+class MixedPairs(Dataset):
+    """A task's training pairs with rehearsal pairs mixed in, so that a fine-tune keeps what its prior knows.
+
+    The mix holds every task pair plus ``round(len(task) * fraction / (1 - fraction))`` rehearsal slots, so
+    a shuffled batch draws a ``fraction`` share of rehearsal pairs on average. Each epoch maps the slots to
+    a fresh seeded permutation of the rehearsal pairs (:meth:`set_epoch`, which also redraws both datasets'
+    pairs), so the same seed gives the same data order and a resumed run sees the same pairs. Items keep
+    their dataset's keys, which must agree (two :class:`ViewPairDataset` s, cached or not).
+
+    Args:
+        task: The fine-tune's own pairs.
+        rehearsal: Pairs of the prior's data (e.g. its procedural corpus, across depressions).
+        fraction: Share of rehearsal pairs in [0, 1).
+        seed: Seed of the slot permutations.
+
+    Raises:
+        ValueError: If ``fraction`` is outside [0, 1) or either dataset is empty.
+    """
+
+    def __init__(self, task: Dataset, rehearsal: Dataset, fraction: float, seed: int = 0) -> None:
+        if not 0.0 <= fraction < 1.0:
+            raise ValueError(f"rehearsal fraction must lie in [0, 1), got {fraction}")
+        if len(task) == 0 or len(rehearsal) == 0:
+            raise ValueError(
+                f"task ({len(task)} pairs) and rehearsal ({len(rehearsal)} pairs) must be non-empty"
+            )
+        self.task, self.rehearsal, self.fraction, self.seed = task, rehearsal, fraction, seed
+        self.num_rehearsal = round(len(task) * fraction / (1.0 - fraction))
+        self._slots = self._permutation(0)
+
+    def _permutation(self, epoch: int) -> torch.Tensor:
+        state = np.random.SeedSequence([self.seed, epoch, 7]).generate_state(1)
+        generator = torch.Generator().manual_seed(int(state[0]))
+        return torch.randperm(len(self.rehearsal), generator=generator)
+
+    def set_epoch(self, epoch: int) -> None:
+        for dataset in (self.task, self.rehearsal):
+            if hasattr(dataset, "set_epoch"):
+                dataset.set_epoch(epoch)
+        self._slots = self._permutation(epoch)
+
+    def __len__(self) -> int:
+        return len(self.task) + self.num_rehearsal
+
+    def __getitem__(self, index: int) -> dict[str, Any]:
+        if index < len(self.task):
+            return self.task[index]
+        slot = (index - len(self.task)) % len(self.rehearsal)
+        return self.rehearsal[int(self._slots[slot])]
+
+
 def train_validation_pairs(
     data: str | os.PathLike | None,
     protocol: str,

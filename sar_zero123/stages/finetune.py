@@ -38,11 +38,12 @@ from torch.utils.data import DataLoader, Dataset
 from tqdm.auto import tqdm
 
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
-from sar_zero123.data import DecibelScaling, check_protocol, train_validation_pairs
+from sar_zero123.data import DecibelScaling, MixedPairs, check_protocol, train_validation_pairs
 from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.model.build import load_sar_zero123, record_trained_pose_ranges
 from sar_zero123.model.conditioning import SPATIAL_POSE_MODES
 from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.sim.corpus import CORPUS_OPTIONS_FILE, VALIDATION_CLASS
 from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.training.finetuning import (
     ema_models,
@@ -114,6 +115,10 @@ class FinetuneConfig:
     scaling: Literal["unit", "mstar_raw", "fit"] = "unit"  # dB bounds: unit magnitude, raw MSTAR, or fitted
     max_d_az_deg: float | None = None  # largest |d_az| of a training pair in degrees; None: any
     same_depression: bool = True  # pair only chips at one depression; False also across (d_el != 0)
+    # a prior corpus (write_prior_corpus, e.g. the prior's corpus/) whose pairs across depressions are mixed
+    # into training (rehearsal), so that the fine-tune keeps what the prior knows; None: the task's pairs only
+    rehearsal_data: str | None = None
+    rehearsal_fraction: float = 0.25  # with rehearsal_data: share of the training pairs drawn from it
     # built sizes: the pose's 4th entry is the input chip's absolute depression (Stable Zero123's convention)
     input_depression: bool = False
     # built sizes: the UNet also takes the input latent turned by d_az in the image plane ("rotated_input",
@@ -179,6 +184,14 @@ class FinetuneConfig:
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
         check_minimum(self, "max_train_minutes", minimum=0, strict=True, optional=True)
+        if not 0.0 <= self.rehearsal_fraction < 1.0:
+            raise ValueError(f"rehearsal_fraction must lie in [0, 1), got {self.rehearsal_fraction}")
+        rehearsal = self.rehearsal_data
+        if rehearsal is not None and not (Path(rehearsal) / CORPUS_OPTIONS_FILE).is_file():
+            raise FileNotFoundError(
+                f"rehearsal_data: expected a prior corpus folder (with {CORPUS_OPTIONS_FILE}, written by "
+                f"write_prior_corpus), got {self.rehearsal_data}"
+            )
         if self.spatial_pose not in SPATIAL_POSE_MODES:
             raise ValueError(f"spatial_pose must be one of {SPATIAL_POSE_MODES}, got {self.spatial_pose!r}")
         if self.spatial_pose is not None and self.pretrained is not None:
@@ -234,6 +247,7 @@ class _Inputs:
     validation_dataset: Dataset
     scaling: DecibelScaling
     regressor: torch.nn.Module | None
+    rehearsal_dataset: Dataset | None = None
 
 
 @dataclass
@@ -343,6 +357,13 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> _Inputs:
         same_depression=config.same_depression,
     )
     record_trained_pose_ranges(pipe.pose_projection, train_dataset)
+    rehearsal = None
+    if config.rehearsal_data is not None and config.rehearsal_fraction > 0:
+        rehearsal, _, _ = train_validation_pairs(
+            config.rehearsal_data, f"ood-{VALIDATION_CLASS}", output_dir / "rehearsal", image_size=image_size,
+            scaling="unit", seed=config.seed, same_depression=False,
+        )  # fmt: skip
+        record_trained_pose_ranges(pipe.pose_projection, rehearsal)  # the union: both kinds of pairs
     regressor = None  # validation's pose-following check
     if config.evaluators is not None and config.validation_steps:
         regressor = load_evaluators(config.evaluators).regressor
@@ -355,7 +376,9 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> _Inputs:
         save_config(config, output_dir)
         if encoder is not None and config.pfm_projection_dim is not None:
             encoder.save_projection(output_dir)
-    return _Inputs(pipe, image_size, encoder, train_dataset, validation_dataset, scaling, regressor)
+    return _Inputs(
+        pipe, image_size, encoder, train_dataset, validation_dataset, scaling, regressor, rehearsal
+    )
 
 
 def _prepare_training(
@@ -378,11 +401,16 @@ def _prepare_training(
         encoder = encoder.to(accelerator.device, dtype=weight_dtype)
     # a resume whose checkpoint already reached max_train_steps only exports: no step needs the cache
     resumed_step = 0 if resume_path is None else int(read_run_state(resume_path)["step"])
-    train_dataset = inputs.train_dataset
+    train_dataset, rehearsal = inputs.train_dataset, inputs.rehearsal_dataset
     if config.cache_latents and resumed_step < config.max_train_steps:  # the frozen parts never change
         frozen_tower = None if config.train_image_encoder else image_embedder.image_encoder
         cache = ChipLatentCache.encode(load_chip_images(train_dataset), vae, frozen_tower)
         train_dataset = CachedViewPairs(train_dataset, cache)
+        if rehearsal is not None:
+            rehearsal_cache = ChipLatentCache.encode(load_chip_images(rehearsal), vae, frozen_tower)
+            rehearsal = CachedViewPairs(rehearsal, rehearsal_cache)
+    if rehearsal is not None:
+        train_dataset = MixedPairs(train_dataset, rehearsal, config.rehearsal_fraction, seed=config.seed)
     noise_scheduler = DDPMScheduler.from_config(pipe.scheduler.config)
     ema_pairs = ema_models(accelerator, unet, trained_tower, decay=config.ema_decay) if config.use_ema else []
     # 2. optimiser (pose projection at pose_lr_multiplier x the learning rate), schedule, data

@@ -22,7 +22,7 @@ from accelerate.state import AcceleratorState, GradientState
 from diffusers import AutoencoderKL
 from safetensors.torch import load_file
 
-from sar_zero123.data import ChipRecord, write_index
+from sar_zero123.data import ChipRecord, load_index, write_index
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.orientation import AzimuthEstimator
@@ -621,3 +621,22 @@ def test_max_train_minutes_stops_exports_and_leaves_the_run_resumable(script, as
                                   "--spatial_pose", "rotated_input"))  # fmt: skip
     with pytest.raises(ValueError, match="max_train_minutes must be > 0"):
         script.main(one_step_args(assets, tmp_path / "other", "--max_train_minutes", "0"))
+
+
+def test_rehearsal_mixes_corpus_pairs_into_the_fine_tune_and_widens_its_ranges(script, assets, tmp_path):
+    from sar_zero123.sim.corpus import write_prior_corpus
+
+    corpus = write_prior_corpus(tmp_path / "corpus", num_vehicles=4, views_per_vehicle=4,
+                                num_validation_vehicles=1, size=32, progress=False)  # fmt: skip
+    run = tmp_path / "run"
+    script.main(one_step_args(assets, run, "--max_train_steps", "2", "--checkpointing_steps", "2",
+                              "--rehearsal_data", str(corpus), "--rehearsal_fraction", "0.5"))  # fmt: skip
+    projection = SARZero123Pipeline.from_pretrained(run / "pipeline").pose_projection.config
+    depressions = [r.depression_deg for r in load_index(corpus) if r.target_class != "PROCVAL"]
+    assert projection.trained_depression_deg[0] <= min(min(depressions), 15.0)  # the corpus's, beside 15/17
+    assert projection.trained_depression_deg[1] >= max(max(depressions), 17.0)
+    assert projection.trained_d_el_deg[1] > 2.0  # the task alone pairs only at one depression
+    with pytest.raises(FileNotFoundError, match="rehearsal_data: expected a prior corpus folder"):
+        script.main(one_step_args(assets, tmp_path / "other", "--rehearsal_data", str(assets["data"])))
+    with pytest.raises(ValueError, match=r"rehearsal_fraction must lie in \[0, 1\), got 1.0"):
+        script.main(one_step_args(assets, tmp_path / "other", "--rehearsal_fraction", "1"))
