@@ -15,20 +15,17 @@ import json
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 
 from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.evaluation.protocol import build_pair_sets, score
+from sar_zero123.model.conditioning import embed_pose, rotate_condition_latents
 
 
 def rotate(images: torch.Tensor, angle_deg: torch.Tensor) -> torch.Tensor:
-    """Rotates each `(1, S, S)` image by its angle about the chip centre. Shape: `(N, 1, S, S)`."""
-    theta = torch.deg2rad(angle_deg.float())
-    cos, sin, zero = torch.cos(theta), torch.sin(theta), torch.zeros_like(theta)
-    rows = [torch.stack([cos, -sin, zero], -1), torch.stack([sin, cos, zero], -1)]
-    matrix = torch.stack(rows, 1)  # (N, 2, 3)
-    grid = F.affine_grid(matrix, list(images.shape), align_corners=False)
-    return F.grid_sample(images, grid, padding_mode="reflection", align_corners=False).clamp(0.0, 1.0)
+    """Rotates each `(1, S, S)` image by its angle about the chip centre, as the spatial pose input turns
+    latents (`rotate_condition_latents`, sign +1). Shape: `(N, 1, S, S)`."""
+    pose = embed_pose(angle_deg.double(), 0.0)  # (N, 1, 4): only sin and cos of the angle are read
+    return rotate_condition_latents(images, pose, rotation_sign=1).clamp(0.0, 1.0)
 
 
 def main() -> None:
