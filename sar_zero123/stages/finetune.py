@@ -128,6 +128,8 @@ class FinetuneConfig:
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
     pfm_fraction: float = 1.0  # fraction of the eligible batch on which PFM is computed
     pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
+    # (balanced_pfm_weight; docs/results/pfm.md, section 6)
+    pfm_balance: str = "none"  # "none": Eq. 21's fixed lambda (paper); "adaptive": lambda x L_simple's pull
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
     learning_rate: float = 1e-4  # AdamW learning rate of the UNet
     pose_lr_multiplier: float = 10.0  # pose projection learning rate = this x learning_rate
@@ -221,6 +223,7 @@ class FinetuneConfig:
             pfm_min_snr=self.pfm_min_snr,
             pfm_fraction=self.pfm_fraction,
             pfm_crop_size=self.pfm_crop_size,
+            pfm_balance=self.pfm_balance,
             drop_image_prob=self.drop_image_prob,
             drop_both_prob=self.drop_both_prob,
             drop_latent_prob=self.drop_latent_prob,

@@ -25,7 +25,12 @@ from sar_zero123.model.conditioning import downsampling_factor
 from sar_zero123.pretrained import SIM_PRIOR, resolve_pretrained
 from sar_zero123.sim import TARGET_CLASSES
 from sar_zero123.stages.evaluate import MAX_EVALUATION_PAIRS, MAX_SWEEP_STEP_COUNTS
-from sar_zero123.training.losses import TRAINED_PREDICTION_TYPES, check_prediction_type
+from sar_zero123.training.losses import (
+    DEFAULT_PFM_MIN_SNR,
+    TRAINED_PREDICTION_TYPES,
+    LossSettings,
+    check_prediction_type,
+)
 
 __all__ = ["DEFAULT_PRESET", "MAX_EVAL_N", "PRESETS", "Preset", "QuickstartConfig", "apply_overrides"]
 
@@ -98,6 +103,11 @@ class Preset:
     # the evaluation also scores every view and VAE round trip with speckle re-added (readd_speckle with this
     # many looks: 1 for MSTAR), as rows "<row> + speckle"; None: not
     eval_speckle_looks: int | None = None
+    # how lambda scales PFM in the lambda > 0 fine-tunes (finetune_pfm.py's --pfm_balance: "none" is Eq. 21's
+    # fixed weight, "adaptive" makes PFM pull lambda times as hard as L_simple) and where PFM applies
+    # (--pfm_min_snr: PFM only where SNR(t) >= this)
+    pfm_balance: str = "none"
+    pfm_min_snr: float = DEFAULT_PFM_MIN_SNR
 
     def _check_image_size(self) -> None:
         """The prior exists and the chips fit its VAE and UNet (or ``model_size``'s): checked before any
@@ -153,6 +163,7 @@ class Preset:
             raise ValueError(f"azimuth_step_deg must lie in (0, 360], got {self.azimuth_step_deg}")
         if not 0.0 < self.pfm_fraction <= 1.0:
             raise ValueError(f"pfm_fraction must lie in (0, 1], got {self.pfm_fraction}")
+        LossSettings(pfm_balance=self.pfm_balance, pfm_min_snr=self.pfm_min_snr)  # validated there, once
         for name in ("finetune_learning_rate", "evaluator_learning_rate"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")

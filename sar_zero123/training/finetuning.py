@@ -177,7 +177,8 @@ def step_logs(
 
     Returns:
         ``train/loss``, ``train/loss_simple``, ``train/loss_pfm``, ``lr`` and ``train/loss_simple_<quarter>``
-        (:func:`~sar_zero123.training.step.timestep_bucket_losses`).
+        (:func:`~sar_zero123.training.step.timestep_bucket_losses`), and ``train/pfm_scale`` with an adaptive
+        PFM balance.
     """
     denoising = accelerator.gather(losses.denoising.detach())
     logs = {
@@ -186,6 +187,8 @@ def step_logs(
         "train/loss_pfm": accelerator.gather(losses.pfm.detach()).mean().item(),
         "lr": learning_rate,
     }
+    if losses.pfm_scale is not None:  # the same on every process only by chance: their mean
+        logs["train/pfm_scale"] = accelerator.gather(losses.pfm_scale.detach().reshape(1)).mean().item()
     if losses.azimuth is not None:
         logs["train/loss_azimuth"] = accelerator.gather(losses.azimuth.detach()).mean().item()
     buckets = timestep_bucket_losses(denoising, accelerator.gather(losses.timesteps), num_train_timesteps)

@@ -233,6 +233,13 @@ PAPER_PFM_PROJECTION_DIM = 10
 #: File name of the projection weights saved in a run folder.
 PFM_PROJECTION_FILE = "pfm_projection.safetensors"
 
+#: How lambda of Eq. (21) scales PFM: ``"none"`` is the paper's fixed weight; ``"adaptive"`` rescales PFM each
+#: step so that its gradient at the network output is lambda times L_simple's (:func:`balanced_pfm_weight`).
+PFM_BALANCES = ("none", "adaptive")
+
+#: Upper bound of the adaptive rescaling (VQGAN bounds its adaptive weight the same way).
+MAX_PFM_BALANCE = 1.0e4
+
 
 def random_feature_projection(in_features: int, out_features: int = PAPER_PFM_PROJECTION_DIM, *,
                               seed: int = 0) -> torch.Tensor:
@@ -509,6 +516,9 @@ class LossSettings:
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
     pfm_fraction: float = 1.0  # fraction in (0, 1] of the eligible samples on which PFM is computed
     pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
+    # "none": lambda weights PFM as in Eq. (21); "adaptive": PFM's gradient at the network output is lambda
+    # times L_simple's in every step (balanced_pfm_weight), whatever the encoder's feature scale and t
+    pfm_balance: Literal["none", "adaptive"] = "none"
     drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
     drop_both_prob: float = 0.05  # CFG dropout: projected token and condition latent (the sampling null)
     drop_latent_prob: float = 0.05  # CFG dropout: condition latent only
@@ -523,6 +533,8 @@ class LossSettings:
         if not 0 < self.pfm_fraction <= 1:
             raise ValueError(f"pfm_fraction must be in (0, 1], got {self.pfm_fraction}")
         check_minimum(self, "pfm_crop_size", minimum=1, optional=True)
+        if self.pfm_balance not in PFM_BALANCES:
+            raise ValueError(f"pfm_balance must be one of {PFM_BALANCES}, got {self.pfm_balance!r}")
         probs = (self.drop_image_prob, self.drop_both_prob, self.drop_latent_prob)
         if not (min(probs) >= 0 and sum(probs) <= 1):
             raise ValueError(
@@ -553,6 +565,8 @@ class LossOutput:
         azimuth: The input-azimuth estimation loss
             (:func:`~sar_zero123.model.orientation.azimuth_estimation_loss`) when the model has an azimuth
             estimator, already included in ``loss`` with its weight.
+        pfm_scale: With ``pfm_balance="adaptive"``, the step's :func:`balanced_pfm_weight` (a 0-d tensor;
+            ``loss`` is then ``denoising + pfm_weight * pfm_scale * pfm``).
     """
 
     loss: torch.Tensor
@@ -561,6 +575,7 @@ class LossOutput:
     pfm_mask: torch.Tensor
     timesteps: torch.Tensor | None = None
     azimuth: torch.Tensor | None = None
+    pfm_scale: torch.Tensor | None = None
 
 
 def total_loss(
@@ -579,6 +594,7 @@ def total_loss(
     crop_size: int | None = None,
     generator: torch.Generator | None = None,
     denoising_weights: torch.Tensor | None = None,
+    pfm_balance: str = "none",
 ) -> LossOutput:
     """L = L_simple + lambda * L_PFM, Eq. (21); ``pfm_weight = 0`` is plain zero-1-to-3 fine-tuning and
     skips every PFM computation (no decode, no encoder pass). The only place Eq. (21) is assembled.
@@ -599,6 +615,9 @@ def total_loss(
         generator: Draws the PFM subset when ``pfm_fraction < 1``.
         denoising_weights: Optional per-sample weights of L_simple (Min-SNR-gamma,
             :func:`~sar_zero123.training.step.min_snr_weights`), applied before the sum.
+        pfm_balance: ``"none"`` (Eq. 21 as written) or ``"adaptive"``: PFM is multiplied by
+            :func:`balanced_pfm_weight` of this batch, so ``pfm_weight`` is the ratio of PFM's gradient to
+            L_simple's at the network output (a departure from the paper, ``docs/results/pfm.md``).
 
     Returns:
         A :class:`LossOutput` of per-sample tensors (``denoising`` already weighted).
@@ -607,8 +626,11 @@ def total_loss(
         ``model_output``, ``target``, ``x_t``: ``(B, C, h, w)``; ``timesteps``: ``(B,)``; outputs ``(B,)``.
 
     Raises:
-        ValueError: If ``pfm_weight < 0``, ``pfm_fraction`` is outside (0, 1], or PFM inputs are missing.
+        ValueError: If ``pfm_weight < 0``, ``pfm_fraction`` is outside (0, 1], ``pfm_balance`` is unknown, or
+            PFM inputs are missing.
     """
+    if pfm_balance not in PFM_BALANCES:
+        raise ValueError(f"pfm_balance must be one of {PFM_BALANCES}, got {pfm_balance!r}")
     if not pfm_weight >= 0:
         raise ValueError(f"pfm_weight must be >= 0, got {pfm_weight}")
     if not 0 < pfm_fraction <= 1:
@@ -628,8 +650,82 @@ def total_loss(
             if keep < num_eligible:
                 order = torch.randperm(eligible.numel(), generator=generator, device="cpu")
                 eligible = eligible[order[:keep].to(eligible.device)]
-            x0_hat = estimate_x0(x_t[eligible], model_output[eligible], timesteps[eligible], scheduler)
-            values = pfm_loss(x0_hat, target_images[eligible], vae, encoder, crop_size=crop_size)
-            pfm = pfm.index_put((eligible,), values * (num_eligible / keep))
             mask[eligible] = True
+
+            def pfm_of(output: torch.Tensor) -> torch.Tensor:
+                x0_hat = estimate_x0(x_t[eligible], output[eligible], timesteps[eligible], scheduler)
+                values = pfm_loss(x0_hat, target_images[eligible], vae, encoder, crop_size=crop_size)
+                return torch.zeros_like(denoising).index_put((eligible,), values * (num_eligible / keep))
+
+            if pfm_balance == "none":
+                pfm = pfm_of(model_output)
+            else:
+                pfm, scale = _balanced_pfm(model_output, target, denoising_weights, pfm_of)
+                loss = denoising + pfm_weight * scale * pfm
+                return LossOutput(loss=loss, denoising=denoising, pfm=pfm, pfm_mask=mask, pfm_scale=scale)
     return LossOutput(loss=denoising + pfm_weight * pfm, denoising=denoising, pfm=pfm, pfm_mask=mask)
+
+
+def balanced_pfm_weight(
+    grad_simple: torch.Tensor, grad_pfm: torch.Tensor, *, max_weight: float = MAX_PFM_BALANCE
+) -> torch.Tensor:
+    """The adaptive PFM scale ``||grad L_simple|| / ||grad PFM||``, both taken at the network output.
+
+    Not in the paper: Eq. (21) weights PFM by a fixed lambda, so how hard PFM pulls depends on the encoder's
+    feature scale, the projection and the timestep (``docs/results/pfm.md``: at the bundled prior,
+    lambda = 4 gives PFM a gradient 5 times L_simple's below t = 500 and 700 times above t = 900). With this
+    scale, ``lambda * scale * PFM`` pulls the network output exactly lambda times as hard as L_simple in
+    every batch, as VQGAN's adaptive weight balances its perceptual and adversarial terms (Esser et al.,
+    2021, Eq. 7). The norms are taken at the network output rather than at a layer's weights: every PFM
+    gradient passes through the output, so one backward pass through the decoder and encoder serves both
+    the norm and the update.
+
+    Args:
+        grad_simple: Gradient of the batch-mean L_simple (as weighted in training) at the network output.
+        grad_pfm: Gradient of the batch-mean PFM at the network output.
+        max_weight: Upper bound of the scale.
+
+    Returns:
+        A detached float32 0-d tensor in ``[0, max_weight]``; 0 where PFM has no gradient.
+
+    Shape:
+        ``grad_simple``, ``grad_pfm``: ``(B, C, h, w)``; returns ``()``.
+
+    Raises:
+        ValueError: If the shapes differ or ``max_weight`` is not positive.
+    """
+    if grad_simple.shape != grad_pfm.shape:
+        raise ValueError(
+            f"grad_simple {tuple(grad_simple.shape)} and grad_pfm {tuple(grad_pfm.shape)} differ in shape"
+        )
+    if not max_weight > 0:
+        raise ValueError(f"max_weight must be > 0, got {max_weight}")
+    simple = torch.linalg.vector_norm(grad_simple.detach().float())
+    pfm = torch.linalg.vector_norm(grad_pfm.detach().float())
+    if not pfm > 0:
+        return torch.zeros((), device=grad_pfm.device)
+    return (simple / pfm).clamp(max=max_weight)
+
+
+def _balanced_pfm(model_output, target, denoising_weights, pfm_of) -> tuple[torch.Tensor, torch.Tensor]:
+    """PFM per sample with its gradient attached to ``model_output``, and :func:`balanced_pfm_weight`.
+
+    PFM and both gradients are computed once, on a detached copy of the output (so this also works under
+    ``torch.no_grad``, as in validation); PFM's gradient then reaches the network through a surrogate whose
+    value is PFM and whose gradient at ``model_output`` is PFM's (each sample's PFM depends on its own
+    output only: the frozen decoder and encoder run in eval mode).
+    """
+    with torch.enable_grad():
+        leaf = model_output.detach().requires_grad_(True)
+        pfm = pfm_of(leaf)
+        (grad_pfm,) = torch.autograd.grad(pfm.sum(), leaf)  # per sample: row b is d pfm_b / d output_b
+        simple = denoising_loss(leaf, target)
+        if denoising_weights is not None:
+            simple = simple * denoising_weights
+        (grad_simple,) = torch.autograd.grad(simple.sum(), leaf)
+    scale = balanced_pfm_weight(grad_simple, grad_pfm)
+    pfm = pfm.detach()
+    if model_output.requires_grad:
+        moved = model_output - model_output.detach()  # zero, with the graph of model_output
+        pfm = pfm + (moved * grad_pfm.to(model_output.dtype)).flatten(1).sum(1)
+    return pfm, scale

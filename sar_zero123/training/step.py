@@ -394,6 +394,7 @@ def compute_losses(
     loss_settings: LossSettings | None = None,
     apply_dropout: bool = True,
     azimuth_estimator: torch.nn.Module | None = None,
+    timesteps: torch.Tensor | None = None,
 ) -> LossOutput:
     """Per-sample losses of one micro-batch (zero-1-to-3 conditioning, CFG dropout, Eq. 21).
 
@@ -408,10 +409,12 @@ def compute_losses(
     Min-SNR weighting of L_simple (:func:`min_snr_weights`) and the azimuth loss weight. An
     ``azimuth_estimator`` (``sar_zero123.model.orientation``) reads the input's azimuth from its condition
     latent; turned by ``d_az`` it enters the UNet's timestep embedding, and ``azimuth_loss_weight`` times its
-    loss against ``batch["input_azimuth_deg"]`` joins the loss.
+    loss against ``batch["input_azimuth_deg"]`` joins the loss. ``timesteps`` (``(B,)`` integers) replaces
+    the sampled ones, for diagnostics at chosen noise levels (``benchmarks/pfm_balance.py``).
 
     Raises:
-        ValueError: If the model has an azimuth estimator and the batch has no ``input_azimuth_deg``.
+        ValueError: If the model has an azimuth estimator and the batch has no ``input_azimuth_deg``, or
+            ``timesteps`` does not hold one integer timestep per sample.
 
     Shape:
         ``batch["input"]``, ``batch["target"]``: ``(B, 1, S, S)``; outputs ``(B,)``.
@@ -439,10 +442,17 @@ def compute_losses(
         tokens = pose_projection(image_embeds, pose)  # (B, 1, C)
     # 3. forward diffusion and prediction
     noise = torch.randn(latents.shape, generator=generator).to(latents.device)
-    timesteps = sample_timesteps(
+    # drawn even when replaced, so that the generator's later draws do not depend on it
+    sampled = sample_timesteps(
         latents.shape[0], noise_scheduler.config.num_train_timesteps, sampling=settings.timestep_sampling,
         logit_mean=settings.timestep_logit_mean, logit_std=settings.timestep_logit_std, generator=generator,
-    ).to(latents.device)  # fmt: skip
+    )  # fmt: skip
+    if timesteps is None:
+        timesteps = sampled
+    elif timesteps.shape != sampled.shape or timesteps.is_floating_point() or timesteps.is_complex():
+        raise ValueError(f"timesteps: expected {tuple(sampled.shape)} integers, got {tuple(timesteps.shape)} "
+                         f"{timesteps.dtype}")
+    timesteps = timesteps.to(latents.device)
     x_t = noise_scheduler.add_noise(latents, noise, timesteps)
     model_output = unet(
         torch.cat([x_t, unet_condition_latents(condition_latents, pose, pose_projection)], dim=1),
@@ -460,6 +470,7 @@ def compute_losses(
         target_images=batch["target"].to(device=latents.device, dtype=vae.dtype), vae=vae, encoder=encoder,
         pfm_min_snr=settings.pfm_min_snr, pfm_fraction=settings.pfm_fraction,
         crop_size=settings.pfm_crop_size, generator=generator, denoising_weights=weights,
+        pfm_balance=settings.pfm_balance,
     )  # fmt: skip
     if azimuth_loss is not None:
         losses = dataclasses.replace(

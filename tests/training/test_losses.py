@@ -18,6 +18,7 @@ from sar_zero123.training.losses import (
     LossSettings,
     ProjectedFeatureEncoder,
     append_dims,
+    balanced_pfm_weight,
     check_pfm_crop_size,
     denoising_loss,
     denoising_target,
@@ -295,6 +296,7 @@ def test_total_loss_weights_l_simple_before_adding_lambda_pfm(vae, encoder) -> N
         ({"pfm_weight": float("nan")}, r"pfm_weight must be >= 0, got nan"),
         ({"pfm_fraction": 0.0}, r"pfm_fraction must be in \(0, 1\], got 0.0"),
         ({"pfm_crop_size": 0}, r"pfm_crop_size must be >= 1 or None, got 0"),
+        ({"pfm_balance": "vqgan"}, r"pfm_balance must be one of \('none', 'adaptive'\), got 'vqgan'"),
         ({"drop_image_prob": 0.6, "drop_both_prob": 0.6}, r"drop_image_prob, .* got \(0.6, 0.6, 0.05\)"),
         ({"timestep_sampling": "cosine"}, r"timestep_sampling must be 'uniform' or 'logit_normal'"),
         ({"timestep_sampling": "logit_normal", "timestep_logit_std": 0.0}, r"timestep_logit_std must be > 0"),
@@ -427,3 +429,92 @@ def test_projection_shrinks_pfm_by_three_times_feature_dim_on_average() -> None:
         weight = random_feature_projection(64, 10, seed=seed)
         ratios.append((F.linear(difference, weight) ** 2).mean() / (difference**2).sum())
     assert torch.stack(ratios).mean().item() == pytest.approx(1 / (3 * 64), rel=0.05)
+
+
+def test_balanced_pfm_weight_is_the_ratio_of_gradient_norms() -> None:
+    grad_simple = torch.full((2, 4, 2, 2), 0.5)  # norm 0.5 * sqrt(32)
+    grad_pfm = torch.zeros(2, 4, 2, 2)
+    grad_pfm[0, 0, 0, 0] = 4.0  # norm 4
+    expected = torch.tensor(0.5 * math.sqrt(32) / 4)
+    torch.testing.assert_close(balanced_pfm_weight(grad_simple, grad_pfm), expected)
+    assert balanced_pfm_weight(grad_simple, torch.zeros_like(grad_pfm)).item() == 0.0  # no PFM sample
+    assert balanced_pfm_weight(grad_simple, grad_pfm * 1e-9, max_weight=10.0).item() == 10.0
+    with pytest.raises(ValueError, match="differ"):
+        balanced_pfm_weight(grad_simple, grad_pfm[:1])
+    with pytest.raises(ValueError, match="max_weight"):
+        balanced_pfm_weight(grad_simple, grad_pfm, max_weight=0.0)
+
+
+def _adaptive_case(vae):
+    generator = torch.Generator().manual_seed(5)
+    x_t = torch.randn(3, 4, 16, 16, generator=generator)
+    output = torch.randn(3, 4, 16, 16, generator=generator)
+    target = torch.randn(3, 4, 16, 16, generator=generator)
+    images = torch.rand(3, 1, 32, 32, generator=generator)
+    return x_t, output, target, images
+
+
+def test_adaptive_balance_gives_pfm_lambda_times_the_pull_of_l_simple(vae, encoder) -> None:
+    scheduler = scheduler_for("scaled_linear", "v_prediction")
+    x_t, output, target, images = _adaptive_case(vae)
+    timesteps, weights = torch.tensor([10, 400, 950]), torch.tensor([0.5, 1.0, 0.1])
+    kwargs = dict(target_images=images, vae=vae, encoder=encoder, pfm_min_snr=0.0, denoising_weights=weights)
+    # reference: the two terms' gradients at the output from Eq. (21) as written
+    leaf = output.clone().requires_grad_(True)
+    plain = total_loss(leaf, target, x_t, timesteps, scheduler, pfm_weight=1.0, **kwargs)
+    (grad_simple,) = torch.autograd.grad(plain.denoising.mean(), leaf, retain_graph=True)
+    (grad_pfm,) = torch.autograd.grad(plain.pfm.mean(), leaf)
+    scale = grad_simple.norm() / grad_pfm.norm()
+    leaf = output.clone().requires_grad_(True)
+    out = total_loss(leaf, target, x_t, timesteps, scheduler, pfm_weight=2.0, pfm_balance="adaptive",
+                     **kwargs)  # fmt: skip
+    torch.testing.assert_close(out.pfm_scale, scale.detach())
+    torch.testing.assert_close(out.pfm, plain.pfm.detach())  # same values as Eq. (20)
+    torch.testing.assert_close(out.loss, plain.denoising.detach() + 2.0 * scale * plain.pfm.detach())
+    (grad,) = torch.autograd.grad(out.loss.mean(), leaf)
+    torch.testing.assert_close(grad, grad_simple + 2.0 * scale * grad_pfm)
+    torch.testing.assert_close((2.0 * scale * grad_pfm).norm(), 2.0 * grad_simple.norm())  # lambda x the pull
+
+
+def test_adaptive_balance_without_gradients_and_without_eligible_samples(vae, encoder) -> None:
+    scheduler = scheduler_for("scaled_linear")
+    x_t, output, target, images = _adaptive_case(vae)
+    kwargs = dict(pfm_weight=1.0, target_images=images, vae=vae, encoder=encoder, pfm_balance="adaptive")
+    timesteps = torch.tensor([10, 400, 950])
+    with_grad = total_loss(output.clone().requires_grad_(True), target, x_t, timesteps, scheduler, **kwargs)
+    with torch.no_grad():  # validation: same values, nothing attached
+        without = total_loss(output, target, x_t, timesteps, scheduler, **kwargs)
+    torch.testing.assert_close(without.loss, with_grad.loss.detach())
+    assert not without.loss.requires_grad
+    # no sample eligible: L_simple alone, no scale
+    none = total_loss(output, target, x_t, timesteps, scheduler, pfm_min_snr=1e6, **kwargs)
+    torch.testing.assert_close(none.loss, denoising_loss(output, target))
+    assert none.pfm_scale is None and not none.pfm_mask.any()
+    with pytest.raises(ValueError, match="pfm_balance"):
+        total_loss(output, target, x_t, timesteps, scheduler, **{**kwargs, "pfm_balance": "fixed"})
+
+
+@pytest.mark.parametrize("prediction_type", ["epsilon", "v_prediction"])
+def test_pfm_of_a_perfect_prediction_is_the_vae_round_trip_distance(vae, encoder, prediction_type) -> None:
+    """Eq. (19)-(20): predicting the true noise (or v) gives x0_hat = x0, so PFM is exactly the feature
+    distance between the decoded target latent and the target view (0 for a lossless VAE), at any t."""
+    scheduler = scheduler_for("scaled_linear", prediction_type)
+    generator = torch.Generator().manual_seed(6)
+    latents = torch.randn(3, 4, 16, 16, generator=generator)
+    noise = torch.randn(3, 4, 16, 16, generator=generator)
+    target_images = torch.rand(3, 1, 32, 32, generator=generator)
+    timesteps = torch.tensor([1, 500, 999])
+    x_t = scheduler.add_noise(latents, noise, timesteps)
+    perfect = denoising_target(latents, noise, timesteps, scheduler)
+    out = total_loss(perfect, perfect, x_t, timesteps, scheduler, pfm_weight=1.0, target_images=target_images,
+                     vae=vae, encoder=encoder, pfm_min_snr=0.0)
+    with torch.no_grad():
+        decoded = (vae.decode(latents / vae.config.scaling_factor).sample + 1) / 2
+        expected = (encoder(F.interpolate(decoded, size=16, mode="bilinear", antialias=True))
+                    - encoder(F.interpolate(target_images, size=16, mode="bilinear", antialias=True)))
+    assert out.denoising.abs().max() == 0
+    torch.testing.assert_close(out.pfm, expected.pow(2).sum(1), atol=2e-5, rtol=2e-3)
+    # and the target of PFM is the target view: matching the decoded latent itself gives zero
+    matched = total_loss(perfect, perfect, x_t, timesteps, scheduler, pfm_weight=1.0, target_images=decoded,
+                         vae=vae, encoder=encoder, pfm_min_snr=0.0)
+    torch.testing.assert_close(matched.pfm, torch.zeros(3), atol=2e-5, rtol=0)

@@ -27,7 +27,7 @@ def components():
     return get_dummy_components()
 
 
-def step_losses(batch, components, seed: int = 3, loss_settings: LossSettings | None = None):
+def step_losses(batch, components, seed: int = 3, loss_settings: LossSettings | None = None, **kwargs):
     return compute_losses(
         batch,
         unet=components["unet"],
@@ -38,6 +38,7 @@ def step_losses(batch, components, seed: int = 3, loss_settings: LossSettings | 
         noise_scheduler=DDPMScheduler.from_config(components["scheduler"].config),
         generator=torch.Generator().manual_seed(seed),
         loss_settings=loss_settings,
+        **kwargs,
     )
 
 
@@ -227,3 +228,18 @@ def test_min_snr_weighting_scales_l_simple_and_keeps_every_draw(components) -> N
     assert (weights < 1).any()  # gamma below SNR at some sampled t: the weighting changes the loss
     torch.testing.assert_close(weighted.denoising, plain.denoising * weights)
     torch.testing.assert_close(weighted.loss, weighted.denoising)  # lambda = 0: Eq. (21) is L_simple
+
+
+def test_chosen_timesteps_replace_the_draw_and_leave_the_other_draws_alone(components) -> None:
+    images = dummy_images(4, seed=5)
+    batch = {"input": images[:2], "target": images[2:], "d_az_deg": torch.tensor([30.0, -150.0]),
+             "d_el_deg": torch.tensor([0.0, 2.0])}  # fmt: skip
+    with torch.no_grad():
+        drawn = step_losses(batch, components)
+        same = step_losses(batch, components, timesteps=drawn.timesteps.clone())
+        other = step_losses(batch, components, timesteps=torch.tensor([5, 900]))
+    torch.testing.assert_close(same.loss, drawn.loss, rtol=0, atol=0)  # same noise, dropout and timesteps
+    assert other.timesteps.tolist() == [5, 900] and not torch.equal(other.loss, drawn.loss)
+    for bad in (torch.tensor([5.0, 900.0]), torch.tensor([5, 6, 7])):
+        with pytest.raises(ValueError, match="timesteps: expected \\(2,\\) integers"):
+            step_losses(batch, components, timesteps=bad)
