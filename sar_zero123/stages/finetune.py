@@ -24,6 +24,7 @@ random draw of a micro-batch one of (seed, micro-batch index, process index) (``
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass
@@ -131,6 +132,10 @@ class FinetuneConfig:
     # (balanced_pfm_weight; docs/results/pfm.md, section 6)
     pfm_balance: str = "none"  # "none": Eq. 21's fixed lambda (paper); "adaptive": lambda x L_simple's pull
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
+    # PFM only in the steps [pfm_start_step, pfm_stop_step) of the run (the others train L_simple alone):
+    # a warm-up without PFM, or PFM switched off late; the paper uses it in every step
+    pfm_start_step: int = 0
+    pfm_stop_step: int | None = None
     learning_rate: float = 1e-4  # AdamW learning rate of the UNet
     pose_lr_multiplier: float = 10.0  # pose projection learning rate = this x learning_rate
     adam_weight_decay: float = 1e-2  # AdamW weight decay
@@ -182,6 +187,10 @@ class FinetuneConfig:
                   "num_validation_images", "validation_inference_steps")  # fmt: skip
         check_minimum(self, *counts, minimum=1)
         check_minimum(self, "pfm_projection_dim", "checkpoints_total_limit", minimum=1, optional=True)
+        check_minimum(self, "pfm_start_step", minimum=0)
+        if self.pfm_stop_step is not None and not self.pfm_stop_step > self.pfm_start_step:
+            raise ValueError(f"pfm_stop_step must be > pfm_start_step ({self.pfm_start_step}) or None, got "
+                             f"{self.pfm_stop_step}")
         check_minimum(self, "image_size", minimum=8, optional=True)
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
@@ -233,6 +242,15 @@ class FinetuneConfig:
             snr_gamma=self.snr_gamma,
             azimuth_loss_weight=self.azimuth_loss_weight,
         )
+
+    def loss_settings_at(self, step: int) -> LossSettings:
+        """The loss settings of optimisation step ``step`` (0-based): without PFM outside
+        ``[pfm_start_step, pfm_stop_step)``."""
+        settings = self.loss_settings()
+        stop = self.pfm_stop_step
+        if self.pfm_start_step <= step and (stop is None or step < stop):
+            return settings
+        return dataclasses.replace(settings, pfm_weight=0.0)
 
     def extendable_fields(self) -> tuple[str, ...]:
         """Fields a resumed run may change: ``max_train_steps`` when the learning rate ignores the steps."""
@@ -476,6 +494,7 @@ def _train(config: FinetuneConfig, accelerator: Accelerator, inputs: _Inputs, tr
     for batch_index, epoch, batch in batches:
         with accelerator.accumulate(*trainer.trained_modules):
             generator = micro_batch_generator(config.seed, batch_index, accelerator.process_index)
+            trainer.loss_kwargs["loss_settings"] = config.loss_settings_at(global_step)
             losses = compute_losses(
                 batch,
                 unet=trainer.unet,

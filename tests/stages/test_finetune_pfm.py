@@ -640,3 +640,24 @@ def test_rehearsal_mixes_corpus_pairs_into_the_fine_tune_and_widens_its_ranges(s
         script.main(one_step_args(assets, tmp_path / "other", "--rehearsal_data", str(assets["data"])))
     with pytest.raises(ValueError, match=r"rehearsal_fraction must lie in \[0, 1\), got 1.0"):
         script.main(one_step_args(assets, tmp_path / "other", "--rehearsal_fraction", "1"))
+
+
+def test_pfm_window_turns_pfm_off_outside_its_steps(tmp_path) -> None:
+    from sar_zero123.stages.finetune import FinetuneConfig
+
+    encoder = str(tmp_path / "encoder")
+    config = FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder, pfm_weight=2.0,
+                            pfm_start_step=3, pfm_stop_step=5, pfm_balance="adaptive")  # fmt: skip
+    weights = [config.loss_settings_at(step).pfm_weight for step in range(7)]
+    assert weights == [0.0, 0.0, 0.0, 2.0, 2.0, 0.0, 0.0]
+    assert config.loss_settings_at(4) == config.loss_settings()  # inside the window: the run's settings
+    assert config.loss_settings_at(0).pfm_balance == "adaptive"  # only lambda changes outside it
+    always = FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder)
+    assert all(always.loss_settings_at(step).pfm_weight == 4.0 for step in (0, 10**6))
+    with pytest.raises(ValueError, match=r"pfm_stop_step must be > pfm_start_step \(3\) or None, got 3"):
+        FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder, pfm_start_step=3,
+                       pfm_stop_step=3)  # fmt: skip
+    with pytest.raises(ValueError, match="pfm_start_step"):
+        FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder, pfm_start_step=-1)
+    with pytest.raises(ValueError, match="pfm_balance"):
+        FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder, pfm_balance="auto")

@@ -27,6 +27,12 @@ def test_every_stage_config_is_built_before_any_work(tmp_path: Path) -> None:
     assert by_name["finetune lambda=4"].pfm_weight == 4.0
     assert by_name["finetune lambda=4"].pretrained == str(out / "base" / "pipeline")
     assert by_name["evaluate"].pipeline_names == ["lambda=0", "lambda=4"]
+    paper = by_name["finetune lambda=4"]
+    assert (paper.pfm_balance, paper.pfm_min_snr) == ("none", 0.004)
+    balanced = quickstart.plan_stages(quickstart.QuickstartConfig(
+        output_dir=str(out), preset="smoke", override=["pfm_balance=adaptive", "pfm_min_snr=2.0"]))
+    tuned = {plan.name: plan.config for plan in balanced}["finetune lambda=4"]
+    assert (tuned.pfm_balance, tuned.pfm_min_snr) == ("adaptive", 2.0)
     assert not out.exists()
     # refused in the preset's own field names, before any stage (the override is checked at parse time)
     for item, words in (("base_steps=0", "base_steps must be an integer >= 1, got 0"),
@@ -170,6 +176,8 @@ def test_overrides_replace_preset_fields_with_typed_literals() -> None:
         ("prediction_type=sample", "prediction_type must be 'epsilon' or 'v_prediction', got 'sample'"),
         ("timestep_sampling=beta", "timestep_sampling must be 'uniform' or 'logit_normal', got 'beta'"),
         ("snr_gamma=0", "snr_gamma must be > 0 or None, got 0"),
+        ("pfm_balance=auto", r"pfm_balance must be one of \('none', 'adaptive'\), got 'auto'"),
+        ("pfm_min_snr=-1.0", "pfm_min_snr must be >= 0"),
     ]:
         with pytest.raises(ValueError, match=message):
             quickstart.apply_overrides(quickstart.PRESETS["default"], [item])
