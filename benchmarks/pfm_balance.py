@@ -6,7 +6,8 @@ drawn uniformly in the band (CFG dropout off, PFM on every sample, PFM's project
 fine-tune uses them). Per batch it records L_simple (Min-SNR weighted as in training) and PFM, the norms
 of their gradients over the trained parameters (UNet and pose projection), the cosine between the two
 gradients, and ``lambda * ||grad PFM|| / ||grad L_simple||`` (the trained parameters include a model's azimuth
-estimator; its own loss is left out of both). A last row, ``train``, draws timesteps as
+estimator; its own loss is left out of both), and the same ratio and cosine on the pose projection alone
+(``pose_*``), which trains at ``pose_lr_multiplier`` times the UNet's learning rate. A last row, ``train``, draws timesteps as
 training does and applies the run's PFM fraction, so it also reports what gradient clipping at
 ``--max_grad_norm`` leaves of L_simple's gradient: ``||grad L_simple|| * min(1, c / ||grad L||)``.
 
@@ -103,6 +104,9 @@ def measure_model(label: str, path: str, args: argparse.Namespace, work: Path) -
                                          generator=torch.Generator().manual_seed(args.seed))  # fmt: skip
     trained = [m for m in (unet, pose_projection, pipe.azimuth_estimator) if m is not None]
     params = [p for module in trained for p in module.parameters() if p.requires_grad]
+    n_pose = sum(1 for p in pose_projection.parameters() if p.requires_grad)
+    first_pose = sum(1 for p in unet.parameters() if p.requires_grad)
+    pose = slice(first_pose, first_pose + n_pose)  # the pose projection's gradients in `params` order
     gamma = args.snr_gamma or None
     common = {"unet": unet, "pose_projection": pose_projection, "vae": vae, "image_encoder": embedder,
               "encoder": encoder, "noise_scheduler": DDPMScheduler.from_config(pipe.scheduler.config),
@@ -126,6 +130,7 @@ def measure_model(label: str, path: str, args: argparse.Namespace, work: Path) -
                 total = _norm(g_all)
                 simple = _norm(g_s)
                 records.append({
+                    "pose_simple": _norm(g_s[pose]), "pose_total": _norm(g_all[pose]),
                     "l_simple": float(losses.denoising.detach().mean()),
                     "pfm": float(losses.pfm.detach().mean()), "grad_total": total, "grad_simple": simple,
                     "cosine": _dot(g_s, g_all) / max(simple * total, 1e-30),
@@ -138,7 +143,10 @@ def measure_model(label: str, path: str, args: argparse.Namespace, work: Path) -
             g_s = _grads(losses.denoising.mean(), params, retain=True)
             g_p = _grads(losses.pfm.mean(), params, retain=False)
             simple, pfm = _norm(g_s), _norm(g_p)
+            pose_simple, pose_pfm = _norm(g_s[pose]), _norm(g_p[pose])
             records.append({
+                "pose_ratio": args.pfm_weight * pose_pfm / max(pose_simple, 1e-30),
+                "pose_cosine": _dot(g_s[pose], g_p[pose]) / max(pose_simple * pose_pfm, 1e-30),
                 "l_simple": float(losses.denoising.detach().mean()),
                 "pfm": float(losses.pfm.detach().mean()), "grad_simple": simple, "grad_pfm": pfm,
                 "cosine": _dot(g_s, g_p) / max(simple * pfm, 1e-30),
