@@ -7,9 +7,9 @@ fine-tune uses them). Per batch it records L_simple (Min-SNR weighted as in trai
 of their gradients over the trained parameters (UNet and pose projection), the cosine between the two
 gradients, and ``lambda * ||grad PFM|| / ||grad L_simple||`` (the trained parameters include a model's azimuth
 estimator; its own loss is left out of both), and the same ratio and cosine on the pose projection alone
-(``pose_*``), which trains at ``pose_lr_multiplier`` times the UNet's learning rate. A last row, ``train``, draws timesteps as
-training does and applies the run's PFM fraction, so it also reports what gradient clipping at
-``--max_grad_norm`` leaves of L_simple's gradient: ``||grad L_simple|| * min(1, c / ||grad L||)``.
+(``pose_*``), which trains at ``pose_lr_multiplier`` times the UNet's learning rate. A last row, ``train``,
+draws timesteps as training does and applies the run's PFM fraction, so it also reports what gradient
+clipping at ``--max_grad_norm`` leaves of L_simple's gradient: ``||grad L_simple|| * min(1, c / ||grad L||)``.
 
 Run on the quickstart's folder (its data, SimCLR encoder and fine-tunes), JSON to ``--out``:
 

@@ -20,7 +20,7 @@ from sar_zero123.data import ViewPairDataset
 from sar_zero123.model.conditioning import POSE_DIM, PoseProjection, condition_channels, downsampling_factor
 from sar_zero123.model.loading import load_component
 from sar_zero123.model.orientation import AZIMUTH_DIM, AzimuthEstimator
-from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.pipeline import SARZero123Pipeline, check_vae_image_size
 from sar_zero123.model.zero123_checkpoints import (
     SD_VAE_SCALING_FACTOR,
     ZERO123_SCHEDULER_CONFIG,
@@ -387,7 +387,8 @@ def check_vae_fits(vae: AutoencoderKL, pipe: SARZero123Pipeline, name: str = "va
         name: What the VAE is called in the message (a flag, a path).
 
     Raises:
-        ValueError: If the latent channels or the downsampling factor differ from ``pipe.vae``'s.
+        ValueError: If the latent channels or the downsampling factor differ from ``pipe.vae``'s, or the VAE
+            was built for another chip size (:func:`~sar_zero123.model.pipeline.check_vae_image_size`).
     """
     new_factor = downsampling_factor(vae.config.block_out_channels)
     old_factor = pipe.vae_scale_factor
@@ -396,6 +397,7 @@ def check_vae_fits(vae: AutoencoderKL, pipe: SARZero123Pipeline, name: str = "va
             f"{name} has {vae.config.latent_channels} latent channels and downsampling factor {new_factor}; "
             f"the UNet needs {pipe.vae.config.latent_channels} and {old_factor}"
         )
+    check_vae_image_size(vae, pipe.unet, name=name)
 
 
 def replace_vae(

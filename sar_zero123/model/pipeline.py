@@ -92,6 +92,30 @@ def _denoising_steps(strength: float, num_inference_steps: int) -> int:
     return steps
 
 
+def check_vae_image_size(vae: AutoencoderKL, unet: UNet2DConditionModel, name: str = "vae") -> None:
+    """Refuse a VAE built for another chip size than the UNet: ``vae.config.sample_size`` (pixels) must be
+    ``unet.config.sample_size`` (latent pixels) times the VAE's downsampling factor.
+
+    The networks would run at any size, but the pipeline's default image size, the training resolution and
+    the evaluation all follow these two records, so a VAE copied in from another model would silently
+    change the size every view is made at.
+
+    Raises:
+        ValueError: Naming both sizes, if they differ.
+    """
+    factor = downsampling_factor(vae.config.block_out_channels)
+    latent = unet.config.sample_size
+    latent = latent[0] if isinstance(latent, list | tuple) else latent
+    image = vae.config.sample_size
+    image = image[0] if isinstance(image, list | tuple) else image
+    if int(latent) * factor != int(image):
+        raise ValueError(
+            f"{name}: built for {image} px chips (vae.config.sample_size), but the unet works on "
+            f"{latent}x{latent} latents, i.e. {int(latent) * factor} px with this vae's downsampling factor "
+            f"{factor}: the vae comes from another model"
+        )
+
+
 class SARZero123Pipeline(DiffusionPipeline):
     """Novel-view synthesis of SAR chips with a zero-1-to-3 latent diffusion model.
 
@@ -135,6 +159,12 @@ class SARZero123Pipeline(DiffusionPipeline):
                 f"(noisy latent) + {expected - latent_channels} condition channels (pose_projection "
                 f"spatial_pose={spatial_pose!r}), got {unet.config.in_channels}"
             )
+        if unet.config.out_channels != latent_channels:
+            raise ValueError(
+                f"`unet.config.out_channels` must be the vae's {latent_channels} latent channels, got "
+                f"{unet.config.out_channels}: the unet and the vae come from different models"
+            )
+        check_vae_image_size(vae, unet)
         if pose_projection.config.in_features != image_encoder.config.projection_dim + POSE_DIM:
             raise ValueError(
                 f"`pose_projection.config.in_features` must be image_encoder projection_dim + {POSE_DIM} = "

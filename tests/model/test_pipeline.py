@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import PIL.Image
@@ -348,6 +349,31 @@ def test_mismatched_components_are_rejected():
     components["pose_projection"] = type(components["pose_projection"])(in_features=10, out_features=16)
     with pytest.raises(ValueError, match="pose_projection.config.in_features"):
         SARZero123Pipeline(**components)
+
+
+def test_a_vae_or_unet_from_another_model_is_refused_at_load(pipe, tmp_path):
+    """A VAE copied into a pipeline folder from another model: refused naming both sizes (issue 39)."""
+    from diffusers import AutoencoderKL, UNet2DConditionModel
+
+    pipe.save_pretrained(tmp_path / "ok")
+    vae = pipe.vae.config
+    bigger = AutoencoderKL(**{**dict(vae), "sample_size": 64})  # same nets, built for 64 px chips
+    shutil.copytree(tmp_path / "ok", tmp_path / "swapped")
+    shutil.rmtree(tmp_path / "swapped" / "vae")
+    bigger.save_pretrained(tmp_path / "swapped" / "vae")
+    with pytest.raises(ValueError, match=r"vae: built for 64 px chips .* 16x16 latents, i.e. 32 px"):
+        SARZero123Pipeline.from_pretrained(tmp_path / "swapped")
+    deeper = AutoencoderKL(**{**dict(vae), "block_out_channels": (*vae.block_out_channels, 32),
+                              "down_block_types": (*vae.down_block_types, "DownEncoderBlock2D"),
+                              "up_block_types": (*vae.up_block_types, "UpDecoderBlock2D")})  # fmt: skip
+    with pytest.raises(ValueError, match="downsampling factor 4"):
+        SARZero123Pipeline(**{**get_dummy_components(), "vae": deeper})
+    components = get_dummy_components()
+    unet = components["unet"]
+    components["unet"] = UNet2DConditionModel(**{**dict(unet.config), "out_channels": 3})
+    with pytest.raises(ValueError, match="unet.config.out_channels` must be the vae's 4 latent channels, got 3"):
+        SARZero123Pipeline(**components)
+    SARZero123Pipeline.from_pretrained(tmp_path / "ok")  # the untouched folder still loads
 
 
 # ------------------------------------------------------------------------------ save / load
