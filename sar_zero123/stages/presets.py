@@ -13,12 +13,13 @@ import ast
 import dataclasses
 import json
 import logging
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from sar_zero123.data.splits import check_protocol
+from sar_zero123.data.splits import OOD_INTERVAL_WIDTH_DEG, check_protocol, ood_validation_intervals
 from sar_zero123.evaluation.protocol import SCHEDULERS
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import downsampling_factor
@@ -382,10 +383,27 @@ class QuickstartConfig:
             raise FileNotFoundError(f"data: expected a chip folder, got {self.data}")
         if self.data is not None and self.protocol is None:
             raise ValueError("protocol: give 'extended' or 'ood-<CLASS>' with --data (e.g. ood-T72)")
-        apply_overrides(PRESETS[self.preset], self.override)  # a bad override fails before any stage
+        preset = apply_overrides(PRESETS[self.preset], self.override)  # a bad override fails before any stage
+        if self.data is None and (self.protocol is None or self.protocol.startswith("ood-")):
+            _check_simulated_validation_split(preset.azimuth_step_deg, self.seed)
         if self.protocol is not None and check_protocol(self.protocol) == "soc":
             # evaluate.py pairs seen/unseen views by `extended` or `ood-*`: fail here, not after training
             raise ValueError("protocol: the quickstart evaluates 'extended' or 'ood-<CLASS>', got 'soc'")
+
+
+def _check_simulated_validation_split(azimuth_step_deg: float, seed: int) -> None:
+    """Refuse a seed whose ``ood-*`` validation intervals hold none of the simulated azimuths (``k * step``):
+    the split would be empty and the run would fail after simulation and SimCLR."""
+    intervals = ood_validation_intervals(seed)
+    azimuths = [k * azimuth_step_deg for k in range(math.ceil(360.0 / azimuth_step_deg - 1e-9))]
+    if not any(start <= azimuth < end for azimuth in azimuths for start, end in intervals):
+        starts = ", ".join(f"{start:g}" for start, _ in intervals)
+        raise ValueError(
+            f"seed: the ood protocol's validation split holds the azimuths of {len(intervals)} "
+            f"{OOD_INTERVAL_WIDTH_DEG:g}-deg intervals drawn with --seed {seed} (starting at {starts} deg), "
+            f"and no simulated chip lies in them with azimuth_step_deg={azimuth_step_deg:g}: choose another "
+            f"--seed, or a finer grid (--override azimuth_step_deg={OOD_INTERVAL_WIDTH_DEG:g} always works)"
+        )
 
 
 def apply_overrides(preset: Preset, overrides: Sequence[str]) -> Preset:

@@ -371,7 +371,7 @@ def test_a_vae_or_unet_from_another_model_is_refused_at_load(pipe, tmp_path):
     components = get_dummy_components()
     unet = components["unet"]
     components["unet"] = UNet2DConditionModel(**{**dict(unet.config), "out_channels": 3})
-    with pytest.raises(ValueError, match="unet.config.out_channels` must be the vae's 4 latent channels, got 3"):
+    with pytest.raises(ValueError, match="out_channels` must be the vae's 4 latent channels, got 3"):
         SARZero123Pipeline(**components)
     SARZero123Pipeline.from_pretrained(tmp_path / "ok")  # the untouched folder still loads
 

@@ -240,3 +240,13 @@ def test_quickstart_smoke_on_a_given_folder_with_the_extended_protocol(
     assert (base / "pipeline" / "unet" / "diffusion_pytorch_model.safetensors").read_bytes() == weights
     timings = json.loads((out / "timings.json").read_text())
     assert {name for name, t in timings.items() if t["ran"]} == {"base model"}
+
+
+def test_a_seed_whose_validation_split_misses_the_simulated_grid_is_refused_first(tmp_path: Path) -> None:
+    """Issue 39: `--preset smoke --seed 1` failed after simulation and SimCLR with an empty 'val' split."""
+    out = tmp_path / "run"
+    with pytest.raises(ValueError, match=r"--seed 1 .* azimuth_step_deg=60: choose another --seed, or a fin"):
+        quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", seed=1)
+    assert not out.exists()
+    quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", seed=1, override=["azimuth_step_deg=3"])
+    quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", seed=1, protocol="extended")
