@@ -35,6 +35,7 @@ from diffusers import DDPMScheduler
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from sar_zero123.config import write_json_atomic  # noqa: E402
 from sar_zero123.data.view_pairs import train_validation_pairs  # noqa: E402
 from sar_zero123.model.build import load_sar_zero123  # noqa: E402
 from sar_zero123.training.finetuning import finetuning_modules, training_image_size  # noqa: E402
@@ -171,11 +172,10 @@ def main(argv=None) -> dict:
         for spec in args.model:
             label, path = spec.split("=", 1)
             rows.extend(measure_model(label, path, args, Path(work)))
-    result = {"args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+    result = {"args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
               "torch": torch.__version__, "seconds": time.perf_counter() - start, "rows": rows}  # fmt: skip
     if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(result, indent=1))
+        write_json_atomic(result, args.out)
     return result
 
 

@@ -23,6 +23,7 @@ import torch
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
+from sar_zero123.config import write_json_atomic  # noqa: E402
 from sar_zero123.data import ChipDataset, load_index, split_records  # noqa: E402
 from sar_zero123.encoder import SAREncoder  # noqa: E402
 from sar_zero123.evaluation.probes import FeatureSet, extract_features, run_probes  # noqa: E402
@@ -61,12 +62,11 @@ def main(argv=None) -> dict:
                             generator=torch.Generator().manual_seed(0))  # fmt: skip
         rows.append({"features": f"projected {args.projection_dim}-d", "seed": seed, **probes})
         print(json.dumps(rows[-1]), flush=True)
-    result = {"args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
+    result = {"args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
               "n_train": len(splits["train"]), "n_test": len(splits["test"]),
               "seconds": time.perf_counter() - start, "rows": rows}  # fmt: skip
     if args.out is not None:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(result, indent=1))
+        write_json_atomic(result, args.out)
     return result
 
 
