@@ -118,7 +118,7 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     # Another protocol, seed or preset value in the same folder is refused before any stage, each named:
     # its stages would be reused and the report would describe settings that did not make them.
     for flags, words in ((["--protocol", "ood-APC"], "protocol: folder None, this run 'ood-APC'"),
-                         (["--seed", "1"], "seed: folder 0, this run 1"),
+                         (["--seed", "3"], "seed: folder 0, this run 3"),
                          (["--override", "base_steps=5"], "preset.base_steps: folder 2, this run 5"),
                          ):  # fmt: skip
         with pytest.raises(ValueError, match=words):
