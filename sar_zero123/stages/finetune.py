@@ -129,13 +129,13 @@ class FinetuneConfig:
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
     pfm_fraction: float = 1.0  # fraction of the eligible batch on which PFM is computed
     pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
-    # (balanced_pfm_weight; docs/results/pfm.md, section 6)
+    # how lambda scales PFM (sar_zero123.training.losses.balanced_pfm_weight; docs/results/pfm.md, section 6)
     pfm_balance: str = "none"  # "none": Eq. 21's fixed lambda (paper); "adaptive": lambda x L_simple's pull
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
     # PFM only in the steps [pfm_start_step, pfm_stop_step) of the run (the others train L_simple alone):
     # a warm-up without PFM, or PFM switched off late; the paper uses it in every step
-    pfm_start_step: int = 0
-    pfm_stop_step: int | None = None
+    pfm_start_step: int = 0  # first optimisation step with PFM (0: from the start)
+    pfm_stop_step: int | None = None  # first step without PFM again (None: to the end)
     learning_rate: float = 1e-4  # AdamW learning rate of the UNet
     pose_lr_multiplier: float = 10.0  # pose projection learning rate = this x learning_rate
     adam_weight_decay: float = 1e-2  # AdamW weight decay
