@@ -24,6 +24,19 @@ SDEdit); ``--same_azimuth_control`` adds the controls ``generated_k{K}_d_az0`` (
 ``..._strength{S}_d_az0``): the same views made at the chip's own azimuth, what the requested pose
 adds. Every plain generated arm (per K, the sector's, the unseen class's) gets the selected variants.
 
+``--eoc1_data`` adds the depression transfer of MSTAR's EOC-1 (issue 37): train on the 17 deg chips of the
+objects whose chips that folder holds (2S1 b01, BRDM2 E-71, T72 A64, ZSU234 d08 in
+``../shared/data/mstar_eoc1``), test on that folder's chips (30 deg). Arms, each with every 17 deg chip of
+those serials and with ``eoc1_ks`` chips per class: ``eoc1_real_*`` (real 17 deg chips only),
+``eoc1_generated_*`` (+ one view per chip at ``d_el`` = test depression - 17 deg, from a generator fine-tuned
+on those 17 deg chips only, never on a test chip) and ``eoc1_generated_*_d_el0`` (+ the same number of views
+at ``d_el = 0``: the control), and ``eoc1_ceiling_cv`` (a classifier trained on the test chips themselves,
+cross-validated: seed i holds out fold i). A generator fine-tuned on one depression has never paired two, so
+these arms need ``--rehearsal_data`` (a prior corpus mixed into every generator's fine-tune,
+``FinetuneConfig.rehearsal_data``). Their ``view_quality`` scores the views with the ceiling's seed-0
+classifier (trained on test-depression chips), beside the views' 17 deg sources (the floor) and its held-out
+fold (the ceiling): views that moved towards the test depression score above their sources.
+
 Every arm trains its classifiers with the same seeds, so arms are compared seed by seed: each generated arm
 carries ``gain_over_real`` (against the real-only arm with the same kept chips) and each arm whose control
 ran ``gain_over_same_azimuth`` (:func:`add_paired_gains`).
@@ -33,6 +46,8 @@ Every arm writes into its own folder under ``--out`` and ends with ``result.json
 a killed run is continued by the same command. ``--out``/``results.json`` gathers every finished arm.
 
     python benchmarks/augmentation_benefit.py --data ../shared/data/mstar --out runs/aug26 [--quick]
+    python benchmarks/augmentation_benefit.py --data ../shared/data/mstar --out runs/eoc1 --ks --no-sectors \
+        --unseen_class none --eoc1_data ../shared/data/mstar_eoc1 --rehearsal_data runs/prior/corpus
 """
 
 from __future__ import annotations
@@ -71,7 +86,7 @@ RESULT_FILE = "result.json"
 #: Fields that only add or drop arms: a resumed benchmark may change them; any other change is refused.
 ARM_SELECTION_FIELDS = (
     "data", "out", "ks", "sectors", "unseen_class", "unseen_k", "speckle_looks", "strength",
-    "same_azimuth_control",
+    "same_azimuth_control", "eoc1_data", "eoc1_ks",
 )  # fmt: skip
 #: The reduced configuration: two K, no sector or unseen-class arms (about 30 min on 2 CPU cores, estimated).
 QUICK = {"ks": [12, 48], "sectors": False, "unseen_class": None}
@@ -106,10 +121,17 @@ class BenchmarkConfig:
     speckle_looks: int | None = None  # also arms whose views get L-look speckle re-added (None: no such arms)
     strength: float | None = None  # also arms whose views start from the kept chip's noised latent (SDEdit)
     same_azimuth_control: bool = False  # also the plain (and strength) views at d_az = 0: what the pose adds
+    # a prior corpus (write_prior_corpus, e.g. train/pretrain_prior.py's corpus/) mixed into every generator's
+    # fine-tune (FinetuneConfig.rehearsal_data); None: the kept chips only. The EOC-1 arms need it
+    rehearsal_data: str | None = None
+    rehearsal_fraction: float = 0.25  # share of each generator's training pairs drawn from rehearsal_data
+    eoc1_data: str | None = None  # folder of EOC-1's test chips (one depression): adds the EOC-1 arms
+    eoc1_ks: list[int] = field(default_factory=lambda: [24])  # EOC-1 arms with K chips/class, beside all
 
     def __post_init__(self) -> None:
-        if not self.ks or min(self.ks) < 2:
-            raise ValueError(f"ks must hold values >= 2, got {self.ks}")
+        for name in ("ks", "eoc1_ks"):
+            if any(k < 2 for k in getattr(self, name)):
+                raise ValueError(f"{name} must hold values >= 2, got {getattr(self, name)}")
         if not self.seeds:
             raise ValueError("seeds must not be empty")
         if self.views_per_chip < 1:
@@ -123,6 +145,14 @@ class BenchmarkConfig:
             raise ValueError(f"speckle_looks must be None or >= 1, got {self.speckle_looks}")
         if self.strength is not None and not 0.0 < self.strength < 1.0:
             raise ValueError(f"strength must be None or in (0, 1), got {self.strength}")
+        if not 0.0 <= self.rehearsal_fraction < 1.0:
+            raise ValueError(f"rehearsal_fraction must lie in [0, 1), got {self.rehearsal_fraction}")
+        if self.eoc1_data is not None and (self.rehearsal_data is None or self.rehearsal_fraction == 0.0):
+            raise ValueError(
+                "rehearsal_data: the EOC-1 arms ask for views at another depression, which a generator "
+                "fine-tuned on 17 deg chips alone never paired; give a prior corpus "
+                "(train/pretrain_prior.py's corpus/) and a rehearsal_fraction above 0"
+            )
 
 
 # ------------------------------------------------------------------------------------------ selection
@@ -307,10 +337,12 @@ def build_generator(
     d_az: list[float],
     speckle_looks: int | None = None,
     strength: float = 1.0,
+    d_el: float = 0.0,
 ) -> tuple[Path, dict[str, Any]]:
-    """Fine-tunes the pipeline on `trained_on`, then generates `d_az` views of each of `sources`; both
-    resumable. With `speckle_looks` or `strength` < 1, the views (in their own folder, from the same
-    fine-tune) get L-look speckle re-added or start from the source's noised latent (``AugmentConfig``).
+    """Fine-tunes the pipeline on `trained_on`, then generates `d_az` views (at depression change `d_el`)
+    of each of `sources`; both resumable. With `speckle_looks` or `strength` < 1, the views (in their own
+    folder, from the same fine-tune) get L-look speckle re-added or start from the source's noised latent
+    (``AugmentConfig``).
 
     Returns the augmented dataset folder (views only) and the times of the fine-tune and this generation.
     """
@@ -325,16 +357,18 @@ def build_generator(
             train_batch_size=config.finetune_batch_size, max_train_steps=config.finetune_steps,
             use_ema=False, snr_gamma=5.0, validation_steps=0, report_to=None,
             checkpointing_steps=max(config.finetune_steps // 3, 1), checkpoints_total_limit=1,
-            resume_from_checkpoint="latest", seed=0,
+            resume_from_checkpoint="latest", seed=0, rehearsal_data=config.rehearsal_data,
+            rehearsal_fraction=config.rehearsal_fraction,
         ))  # fmt: skip
         write_json_atomic(times, timing_file)
-    suffix = variant_suffix(speckle_looks, strength, same_azimuth=all(d == 0.0 for d in d_az))
+    suffix = variant_suffix(speckle_looks, strength, same_azimuth=all(d == 0.0 for d in d_az), d_el=d_el)
     views, key = folder / f"views{suffix}", f"generate{suffix}"
     if key not in times:
         _, times[key] = timed(augment_dataset, AugmentConfig(
             data=str(source_data), pipeline=str(folder / "finetune" / "pipeline"), out=str(views), d_az=d_az,
-            depressions_deg=[TRAIN_DEPRESSION_DEG], num_inference_steps=config.num_inference_steps,
-            guidance_scale=config.guidance_scale, scheduler="ddim", batch_size=16, seed=0,
+            d_el=[d_el], depressions_deg=[TRAIN_DEPRESSION_DEG],
+            num_inference_steps=config.num_inference_steps, guidance_scale=config.guidance_scale,
+            scheduler="ddim", batch_size=16, seed=0,
             speckle_looks=speckle_looks, strength=strength,
         ))  # fmt: skip
         times[key]["views"] = len(load_index(views))
@@ -343,13 +377,15 @@ def build_generator(
 
 
 def variant_suffix(
-    speckle_looks: int | None = None, strength: float = 1.0, same_azimuth: bool = False
+    speckle_looks: int | None = None, strength: float = 1.0, same_azimuth: bool = False, d_el: float = 0.0
 ) -> str:
-    """``_speckle<L>``, ``_strength<S>`` and ``_d_az0`` for views generated other than plainly (``""``)."""
+    """``_speckle<L>``, ``_strength<S>``, ``_d_az0`` and ``_d_el<D>`` for views generated other than plainly
+    (``""``)."""
     return (
         ("" if speckle_looks is None else f"_speckle{speckle_looks}")
         + ("" if strength == 1.0 else f"_strength{strength:g}")
         + ("_d_az0" if same_azimuth else "")
+        + ("" if d_el == 0.0 else f"_d_el{d_el:g}")
     )
 
 
@@ -450,17 +486,18 @@ class Benchmark:
     def generated_arm(
         self, kept: Sequence[ChipRecord], d_az: list[float], generator_dir: Path, description: str,
         generator_records: Sequence[ChipRecord] | None = None, speckle_looks: int | None = None,
-        strength: float = 1.0,
+        strength: float = 1.0, d_el: float = 0.0,
     ) -> Any:  # fmt: skip
         def build(arm_dir: Path) -> dict[str, Any]:
             trained_on = kept if generator_records is None else generator_records
             views_dir, times = build_generator(
-                self.config, trained_on, kept, generator_dir, d_az, speckle_looks, strength
+                self.config, trained_on, kept, generator_dir, d_az, speckle_looks, strength, d_el
             )
             views = load_index(views_dir)
             result = self.classifiers(list(kept) + views, arm_dir)
             result.update(
                 description=description, n_real=len(kept), n_generated=len(views), d_az_deg=d_az,
+                d_el_deg=d_el,
                 generator=str(generator_dir), generator_times=times,
                 generator_cpu_s=sum(t["cpu_s"] for t in times.values()),
                 generator_wall_s=sum(t["wall_s"] for t in times.values()),
@@ -580,8 +617,10 @@ class Benchmark:
                 f"{k} chips/class + views; generator trained without {config.unseen_class}",
                 generator_records=seen,
             )  # fmt: skip
+        if config.eoc1_data is not None:
+            results += DepressionTransfer(self, load_index(config.eoc1_data)).run_arms()
         summary = {
-            "benchmark": "augmentation_benefit (issue 26)",
+            "benchmark": "augmentation_benefit (issue 26, EOC-1: issue 37)",
             "config": asdict(config),
             "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}",
             "platform": platform.platform(),
@@ -591,11 +630,131 @@ class Benchmark:
         return summary
 
 
+def cv_folds(records: Sequence[ChipRecord], folds: int, seed: int = 0) -> list[int]:
+    """A fold index in ``[0, folds)`` per record: each class's records in a seeded random order, dealt
+    round-robin, so every fold holds each class in proportion.
+
+    Raises:
+        ValueError: If `folds` is below 2 or a class has fewer records than folds.
+    """
+    if folds < 2:
+        raise ValueError(f"folds must be >= 2, got {folds}")
+    assignment = [0] * len(records)
+    rng = np.random.default_rng(seed)
+    for name in sorted({r.target_class for r in records}):
+        members = [i for i, r in enumerate(records) if r.target_class == name]
+        if len(members) < folds:
+            raise ValueError(f"class {name} has {len(members)} chips, fewer than {folds} folds")
+        for position, j in enumerate(rng.permutation(len(members))):
+            assignment[members[j]] = position % folds
+    return assignment
+
+
+class DepressionTransfer(Benchmark):
+    """MSTAR EOC-1's arms: train at 17 deg on the objects of the test chips, test at their depression.
+
+    The training chips are the parent benchmark's 17 deg chips of the (class, serial) pairs the test chips
+    show; the classes are those of the test chips. Generated views change the depression by
+    ``d_el = test depression - 17 deg`` (the control: ``d_el = 0``), one per chip at ``d_az = 0``.
+    """
+
+    CEILING = "eoc1_ceiling_cv"
+
+    def __init__(self, parent: Benchmark, test_records: Sequence[ChipRecord]) -> None:
+        depressions = sorted({round(r.depression_deg, 2) for r in test_records})
+        if len(depressions) != 1:
+            raise ValueError(f"eoc1_data: expected chips at one depression, got {depressions}")
+        objects = {r.object_id for r in test_records}
+        self.config, self.out, self.scaling = parent.config, parent.out, parent.scaling
+        self.train_records = [r for r in parent.train_records if r.object_id in objects]
+        missing = objects - {r.object_id for r in self.train_records}
+        if missing:
+            raise ValueError(f"eoc1_data: data has no {TRAIN_DEPRESSION_DEG:g} deg chip of {sorted(missing)}")
+        self.test_records = list(test_records)
+        self.class_names = sorted({r.target_class for r in test_records})
+        self.d_el = depressions[0] - TRAIN_DEPRESSION_DEG
+        self.folds = cv_folds(self.test_records, max(len(self.config.seeds), 2))
+        self._cache = {}
+        self.test_images, self.test_labels = self.images(self.test_records)
+
+    def ceiling_arm(self) -> Any:
+        """Classifiers trained on the test chips themselves: seed i trains on every fold but i % folds and
+        is scored on that fold (cross-validation, the chips never scored by a classifier that saw them)."""
+
+        def build(arm_dir: Path) -> dict[str, Any]:
+            config, folds = self.config, max(self.folds) + 1
+            per_seed = []
+            for i, seed in enumerate(config.seeds):
+                train = [r for r, f in zip(self.test_records, self.folds) if f != i % folds]
+                held = [r for r, f in zip(self.test_records, self.folds) if f == i % folds]
+                images, labels = self.images(train)
+                model, times = timed(
+                    train_classifier, images, labels, class_names=self.class_names, scaling=self.scaling,
+                    steps=config.classifier_steps, batch_size=config.classifier_batch_size,
+                    learning_rate=config.classifier_learning_rate,
+                    weight_decay=config.classifier_weight_decay, max_shift_px=config.max_shift_px, seed=seed,
+                )  # fmt: skip
+                per_seed.append({"seed": seed, "fold": i % folds, "n_held_out": len(held),
+                                 "test_accuracy": accuracy(model, *self.images(held)), **times})  # fmt: skip
+                if i == 0:
+                    model.save_pretrained(arm_dir / "classifier_seed0")
+                logger.info("%s seed %d: %.4f", arm_dir.name, seed, per_seed[-1]["test_accuracy"])
+            accuracies = np.array([s["test_accuracy"] for s in per_seed])
+            return {
+                "description": f"{folds}-fold cross-validation on the test chips themselves (the ceiling)",
+                "n_train": len(self.test_records) - per_seed[0]["n_held_out"],
+                "n_test": len(self.test_records),
+                "test_accuracy_mean": float(accuracies.mean()),
+                "test_accuracy_std": float(accuracies.std(ddof=1)) if len(accuracies) > 1 else 0.0,
+                "seeds": per_seed,
+                "classifier_cpu_s": sum(s["cpu_s"] for s in per_seed),
+                "classifier_wall_s": sum(s["wall_s"] for s in per_seed),
+            }
+
+        return build
+
+    def view_quality(self, views: Sequence[ChipRecord], generator_dir: Path) -> dict[str, Any]:
+        """The ceiling's seed-0 classifier (trained on test-depression chips) on the views, on their
+        17 deg sources (the floor: the depression unchanged) and on its held-out fold (the ceiling)."""
+        ceiling = load_evaluator(self.out / self.CEILING / "classifier_seed0")
+        sources = at_depression(load_index(generator_dir / "sources"), TRAIN_DEPRESSION_DEG)
+        held = [r for r, f in zip(self.test_records, self.folds) if f == 0]
+        measured = {"generated": self.images(views), "source_17deg": self.images(sources),
+                    "held_out_test": self.images(held)}  # fmt: skip
+        return {
+            "classifier": f"{self.CEILING} seed 0 (on {TRAIN_DEPRESSION_DEG + self.d_el:g} deg chips)",
+            "n_views": len(views),
+            **{f"{name}_accuracy": accuracy(ceiling, *pair) for name, pair in measured.items()},
+            **{f"n_{name}": len(pair[1]) for name, pair in measured.items()},
+            "normalised_db_mean_std": {
+                name: [float(pair[0].mean()), float(pair[0].std())] for name, pair in measured.items()
+            },
+        }
+
+    def run_arms(self) -> list[dict[str, Any]]:
+        """The ceiling first (the views' judge), then per selection the real, generated and control arms."""
+        config = self.config
+        results = [self.run_arm(self.CEILING, self.ceiling_arm())]
+        selections = [("all", list(self.train_records), f"every {TRAIN_DEPRESSION_DEG:g} deg chip")]
+        selections += [(f"k{k}", keep_evenly_spaced(self.train_records, k), f"{k} evenly spaced chips/class")
+                       for k in config.eoc1_ks]  # fmt: skip
+        for name, kept, words in selections:
+            generator = self.out / f"eoc1_generator_{name}"
+            results.append(self.run_arm(f"eoc1_real_{name}", self.real_arm(kept, f"EOC-1: {words}")))
+            for d_el, suffix in ((self.d_el, ""), (0.0, "_d_el0")):
+                results.append(self.run_arm(f"eoc1_generated_{name}{suffix}", self.generated_arm(
+                    kept, [0.0], generator, f"EOC-1: {words} + one view each at d_el = {d_el:+g} deg",
+                    d_el=d_el,
+                )))  # fmt: skip
+        return results
+
+
 def real_baseline(arm: str) -> str | None:
     """The real-only arm a generated arm adds views to: ``generated_k{K}...`` (the unseen-class variant too)
-    -> ``real_k{K}``, ``generated_sector...`` -> ``real_sector``; None for a real arm."""
-    match = re.match(r"generated_(k\d+|sector)", arm)
-    return None if match is None else f"real_{match.group(1)}"
+    -> ``real_k{K}``, ``generated_sector...`` -> ``real_sector``, ``eoc1_generated_{all,k{K}}...`` ->
+    ``eoc1_real_{all,k{K}}``; None for a real arm."""
+    match = re.match(r"(eoc1_)?generated_(k\d+|sector|all)", arm)
+    return None if match is None else f"{match.group(1) or ''}real_{match.group(2)}"
 
 
 def paired_gain(arm: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any]:
@@ -620,8 +779,8 @@ def paired_gain(arm: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any]
 
 def add_paired_gains(arms: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Adds ``gain_over_real`` to each generated arm (against its :func:`real_baseline`) and, to each arm
-    whose same-azimuth control ran, ``gain_over_same_azimuth`` (what the requested pose adds); returns
-    `arms`."""
+    whose same-azimuth control ran, ``gain_over_same_azimuth`` (what the requested pose adds), whose
+    same-depression control (``..._d_el0``) ran, ``gain_over_same_depression``; returns `arms`."""
     by_name = {arm["arm"]: arm for arm in arms}
     for arm in arms:
         baseline = real_baseline(arm["arm"])
@@ -630,6 +789,9 @@ def add_paired_gains(arms: list[dict[str, Any]]) -> list[dict[str, Any]]:
         control = by_name.get(arm["arm"] + "_d_az0")
         if control is not None:
             arm["gain_over_same_azimuth"] = paired_gain(arm, control)
+        control = by_name.get(arm["arm"] + "_d_el0")
+        if control is not None:
+            arm["gain_over_same_depression"] = paired_gain(arm, control)
     return arms
 
 
@@ -661,8 +823,12 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
         flag = f"--{name}"
         if isinstance(value, bool):
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=value)
-        elif isinstance(value, list):
+        elif name == "seeds":
             parser.add_argument(flag, nargs="+", type=int, default=value)
+        elif isinstance(value, list):  # no value: no such arms
+            parser.add_argument(flag, nargs="*", type=int, default=value)
+        elif name in ("rehearsal_data", "eoc1_data"):
+            parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else s)
         elif name == "unseen_class":
             parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else s)
         elif name == "speckle_looks":

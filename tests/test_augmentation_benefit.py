@@ -12,6 +12,7 @@ from benchmarks.augmentation_benefit import (
     add_paired_gains,
     check_settings,
     circular_distance_deg,
+    cv_folds,
     fill_offsets_deg,
     keep_evenly_spaced,
     keep_sector,
@@ -20,7 +21,8 @@ from benchmarks.augmentation_benefit import (
     random_shift,
     real_baseline,
 )
-from sar_zero123.data import SCALING_FILE, ChipRecord, DecibelScaling
+from sar_zero123 import SARZero123Pipeline
+from sar_zero123.data import SCALING_FILE, ChipRecord, DecibelScaling, load_index
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.sim import simulate_dataset
 
@@ -70,6 +72,12 @@ def test_config_refuses_bad_fields():
         BenchmarkConfig(speckle_looks=0)
     with pytest.raises(ValueError, match="strength"):
         BenchmarkConfig(strength=1.0)
+    with pytest.raises(ValueError, match="eoc1_ks must hold values >= 2"):
+        BenchmarkConfig(eoc1_ks=[1])
+    with pytest.raises(ValueError, match="rehearsal_data: the EOC-1 arms ask for views at another"):
+        BenchmarkConfig(eoc1_data="eoc1")
+    with pytest.raises(ValueError, match="rehearsal_data"):
+        BenchmarkConfig(eoc1_data="eoc1", rehearsal_data="corpus", rehearsal_fraction=0.0)
 
 
 def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
@@ -163,6 +171,8 @@ def arm(name: str, accuracies: list[float]) -> dict:
 
 def test_real_baseline_names_the_arm_whose_chips_the_views_are_added_to():
     assert real_baseline("generated_k12") == "real_k12"
+    assert real_baseline("eoc1_generated_all_d_el0") == "eoc1_real_all"
+    assert real_baseline("eoc1_generated_k24") == "eoc1_real_k24" and real_baseline("eoc1_real_k24") is None
     assert real_baseline("generated_k12_strength0.5_d_az0") == "real_k12"
     assert real_baseline("generated_k12_unseen_T72_strength0.5") == "real_k12"
     assert real_baseline("generated_sector_speckle1") == "real_sector"
@@ -200,3 +210,68 @@ def test_check_settings_takes_a_missing_setting_as_its_default_and_names_a_chang
         check_settings(BenchmarkConfig(data="d", out=str(tmp_path), max_shift_px=2), tmp_path)
     with pytest.raises(ValueError, match=r"finetune_steps: 3000 -> 1000"):
         check_settings(BenchmarkConfig(data="d", out=str(tmp_path), finetune_steps=1000), tmp_path)
+
+
+def test_cv_folds_deal_each_class_evenly_and_need_two_folds():
+    records = [record(c, float(a)) for c in ("A", "B") for a in range(7)]
+    folds = cv_folds(records, 3, seed=1)
+    for name in ("A", "B"):
+        labels = [f for r, f in zip(records, folds) if r.target_class == name]
+        counts = sorted(labels.count(k) for k in range(3))
+        assert counts == [2, 2, 3]
+    assert folds == cv_folds(records, 3, seed=1) and folds != cv_folds(records, 3, seed=2)
+    with pytest.raises(ValueError, match="folds must be >= 2"):
+        cv_folds(records, 1)
+    with pytest.raises(ValueError, match="class A has 7 chips, fewer than 8 folds"):
+        cv_folds(records, 8)
+
+
+def test_eoc1_arms_train_at_17_deg_test_at_the_other_depression_and_pair_with_their_controls(tmp_path):
+    from sar_zero123.sim.corpus import write_prior_corpus
+
+    data = simulate_dataset(tmp_path / "data", classes=("TANK", "APC", "TRUCK"), instances=1,
+                            azimuth_step_deg=45, depressions_deg=(15.0, 17.0), size=32)  # fmt: skip
+    eoc1 = simulate_dataset(tmp_path / "eoc1", classes=("TANK", "APC"), instances=1, azimuth_step_deg=45,
+                            depressions_deg=(30.0,), size=32, seed=1)  # fmt: skip
+    corpus = write_prior_corpus(tmp_path / "corpus", num_vehicles=4, views_per_vehicle=4,
+                                num_validation_vehicles=1, size=32, progress=False)  # fmt: skip
+    torch.manual_seed(0)
+    pipe = build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True)
+    pipe.save_pretrained(tmp_path / "pipeline")
+    scaling = DecibelScaling.for_unit_magnitude().to_dict()
+    (tmp_path / "pipeline" / SCALING_FILE).write_text(json.dumps(scaling))
+    args = ["--data", str(data), "--out", str(tmp_path / "out"), "--pipeline", str(tmp_path / "pipeline"),
+            "--ks", "--no-sectors", "--unseen_class", "none", "--eoc1_data", str(eoc1), "--eoc1_ks", "4",
+            "--rehearsal_data", str(corpus), "--rehearsal_fraction", "0.5", "--seeds", "0", "1",
+            "--image_size", "32", "--finetune_steps", "2", "--finetune_batch_size", "2",
+            "--num_inference_steps", "2", "--classifier_steps", "2",
+            "--classifier_batch_size", "4"]  # fmt: skip
+    arms = {arm["arm"]: arm for arm in main(args)["arms"]}
+    assert list(arms) == ["all_chips", "eoc1_ceiling_cv", "eoc1_real_all", "eoc1_generated_all",
+                          "eoc1_generated_all_d_el0", "eoc1_real_k4", "eoc1_generated_k4",
+                          "eoc1_generated_k4_d_el0"]  # fmt: skip
+    # 17 deg chips of the two objects the 30 deg chips show (TRUCK left out); tested on every 30 deg chip
+    assert arms["eoc1_real_all"]["n_train"] == 16 and arms["eoc1_real_all"]["n_test"] == 16
+    assert arms["eoc1_real_k4"]["n_train"] == 8
+    # one view per chip: at d_el = 30 - 17 deg, and the control at d_el = 0
+    plain, control = arms["eoc1_generated_k4"], arms["eoc1_generated_k4_d_el0"]
+    assert (plain["d_el_deg"], control["d_el_deg"]) == (13.0, 0.0)
+    assert plain["n_generated"] == control["n_generated"] == 8 and plain["d_az_deg"] == [0.0]
+    assert plain["gain_over_real"]["against"] == "eoc1_real_k4"
+    assert plain["gain_over_same_depression"]["against"] == "eoc1_generated_k4_d_el0"
+    assert "gain_over_same_depression" not in control
+    views = load_index(tmp_path / "out" / "eoc1_generator_k4" / "views_d_az0_d_el13")
+    assert {r.depression_deg for r in views} == {30.0}
+    # the ceiling: two folds of the 30 deg chips, each scored by the classifier that did not see it
+    ceiling = arms["eoc1_ceiling_cv"]
+    assert [s["fold"] for s in ceiling["seeds"]] == [0, 1] and ceiling["n_test"] == 16
+    assert sum(s["n_held_out"] for s in ceiling["seeds"]) == 16
+    quality = plain["view_quality"]
+    assert (quality["n_generated"], quality["n_source_17deg"], quality["n_held_out_test"]) == (8, 8, 8)
+    assert 0.0 <= quality["generated_accuracy"] <= 1.0
+    # every generator rehearsed the corpus: its trained depressions reach 30 deg
+    generator = tmp_path / "out" / "eoc1_generator_all" / "finetune" / "pipeline"
+    finetuned = SARZero123Pipeline.from_pretrained(generator)
+    assert finetuned.pose_projection.config.trained_depression_deg[1] >= 30.0
+    with pytest.raises(ValueError, match=r"eoc1_data: expected chips at one depression"):
+        main([*args[:-2], "--classifier_batch_size", "4", "--eoc1_data", str(data)])

@@ -37,7 +37,13 @@ from .scaling import (
     check_magnitude,
 )
 from .splits import PROTOCOLS, check_protocol, ood_validation_intervals, prepare_splits, split_records
-from .view_pairs import MixedPairs, ViewPairDataset, train_validation_pairs, wrap_azimuth_deg
+from .view_pairs import (
+    MixedPairs,
+    ViewPairDataset,
+    subsample_objects,
+    train_validation_pairs,
+    wrap_azimuth_deg,
+)
 
 __all__ = [
     "INDEX_COLUMNS",
@@ -76,6 +82,7 @@ __all__ = [
     "split_records",
     "target_class_from_type",
     "to_decibels",
+    "subsample_objects",
     "train_validation_pairs",
     "unit_to_signed",
     "wrap_azimuth_deg",

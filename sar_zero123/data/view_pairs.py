@@ -28,7 +28,7 @@ from .index import ChipRecord
 from .scaling import DecibelScaling
 from .splits import _DEPRESSION_TOL_DEG, prepare_splits
 
-__all__ = ["ViewPairDataset", "wrap_azimuth_deg"]
+__all__ = ["ViewPairDataset", "subsample_objects", "wrap_azimuth_deg"]
 
 
 def wrap_azimuth_deg(angle_deg: float | np.ndarray) -> float | np.ndarray:
@@ -290,6 +290,30 @@ class MixedPairs(Dataset):
             return self.task[index]
         slot = (index - len(self.task)) % len(self.rehearsal)
         return self.rehearsal[int(self._slots[slot])]
+
+
+def subsample_objects(records: Sequence[ChipRecord], max_chips: int, seed: int = 0) -> list[ChipRecord]:
+    """Whole objects, drawn in a seeded random order while their chips fit in `max_chips`, in record order.
+
+    An object's chips are kept together so that its pairs survive; every record is kept when they all fit.
+
+    Raises:
+        ValueError: If `max_chips` is below 1.
+    """
+    if max_chips < 1:
+        raise ValueError(f"max_chips must be >= 1, got {max_chips}")
+    if len(records) <= max_chips:
+        return list(records)
+    members: dict[tuple[str, str], list[int]] = defaultdict(list)
+    for i, record in enumerate(records):
+        members[record.object_id].append(i)
+    objects = sorted(members)
+    kept: list[int] = []
+    for j in np.random.default_rng(seed).permutation(len(objects)):
+        chips = members[objects[j]]
+        if len(kept) + len(chips) <= max_chips:
+            kept += chips
+    return [records[i] for i in sorted(kept)]
 
 
 def train_validation_pairs(

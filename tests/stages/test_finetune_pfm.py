@@ -640,6 +640,8 @@ def test_rehearsal_mixes_corpus_pairs_into_the_fine_tune_and_widens_its_ranges(s
         script.main(one_step_args(assets, tmp_path / "other", "--rehearsal_data", str(assets["data"])))
     with pytest.raises(ValueError, match=r"rehearsal_fraction must lie in \[0, 1\), got 1.0"):
         script.main(one_step_args(assets, tmp_path / "other", "--rehearsal_fraction", "1"))
+    with pytest.raises(ValueError, match="rehearsal_max_chips must be None or >= 2, got 1"):
+        script.main(one_step_args(assets, tmp_path / "other", "--rehearsal_max_chips", "1"))
 
 
 def test_pfm_window_turns_pfm_off_outside_its_steps(tmp_path) -> None:
