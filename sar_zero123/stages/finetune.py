@@ -127,9 +127,8 @@ class FinetuneConfig:
     # into training (rehearsal), so that the fine-tune keeps what the prior knows; None: the task's pairs only
     rehearsal_data: str | None = None
     rehearsal_fraction: float = 0.25  # with rehearsal_data: share of the training pairs drawn from it
-    # with rehearsal_data: whole corpus vehicles drawn at random up to this many chips (each is encoded once
-    # before training: about 60 chips/s on 2 CPU cores); None: the whole corpus
-    rehearsal_max_chips: int | None = 4096
+    # each rehearsal chip is encoded once before training, about 60 chips/s on 2 CPU cores
+    rehearsal_max_chips: int | None = 4096  # rehearsal: whole vehicles up to this many chips; None: all
     # built sizes: the pose's 4th entry is the input chip's absolute depression (Stable Zero123's convention)
     input_depression: bool = False
     # built sizes: the UNet also takes the input latent turned by d_az in the image plane ("rotated_input",
