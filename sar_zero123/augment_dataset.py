@@ -15,8 +15,9 @@ output folder is a dataset every script reads (:func:`sar_zero123.data.load_inde
 * ``index.csv`` with the standard columns (:data:`sar_zero123.domain.INDEX_COLUMNS`), written last;
 * ``provenance.csv``: the same rows and columns plus :data:`PROVENANCE_COLUMNS`. They live in a file of
   their own because ``load_index`` refuses columns it does not know;
-* ``augment.json``: the options. A folder made with other options is refused, so that a re-run after a
-  kill resumes (views already on disk are kept) and never mixes two augmentations.
+* ``augment.json``: the options and the SHA-256 of the pipeline's files. A folder made with other options
+  or other weights is refused, so that a re-run after a kill resumes (views already on disk are kept) and
+  never mixes two augmentations or two models.
 
 Each view has its own random stream (:func:`view_generator`), so its noise does not depend on which
 other views share its batch. Its bytes still do, by float rounding: PyTorch's CPU convolutions and matrix
@@ -63,7 +64,7 @@ from sar_zero123.model.pipeline import (
 )
 from sar_zero123.pretrained import SIM_PRIOR, is_bundled_name, resolve_pretrained
 from sar_zero123.sim.dataset import write_index_atomic
-from sar_zero123.training.run_folder import field_defaults
+from sar_zero123.training.run_folder import content_identity, field_defaults
 
 __all__ = [
     "AUGMENT_FILE",
@@ -84,6 +85,8 @@ __all__ = [
 
 #: The options of an augmentation, in its output folder.
 AUGMENT_FILE = "augment.json"
+#: Key of ``augment.json`` holding the SHA-256 of the pipeline's files (:func:`content_identity`).
+PIPELINE_DIGEST = "pipeline_sha256"
 #: The index rows with their provenance (``load_index`` refuses unknown columns in ``index.csv``).
 PROVENANCE_FILE = "provenance.csv"
 #: Columns ``provenance.csv`` adds to :data:`~sar_zero123.domain.INDEX_COLUMNS`.
@@ -377,6 +380,11 @@ def _recorded_options(config: AugmentConfig) -> dict[str, Any]:
     if config.scaling_file is not None:
         options["scaling_file"] = str(Path(config.scaling_file).resolve())
     options.pop("out")
+    # the weights, not the folder name: a resume onto a replaced pipeline would mix two models' views
+    folder = resolve_pretrained(config.pipeline)  # refuses an unknown bundled name or a missing folder
+    if not folder.is_dir():
+        raise FileNotFoundError(f"pipeline: {config.pipeline!r} is neither a bundled name nor a folder")
+    options[PIPELINE_DIGEST] = content_identity(folder)
     return options
 
 
@@ -398,6 +406,15 @@ def _check_out_folder(out: Path, options: dict[str, Any]) -> bool:
     # a folder written before an option existed was made with that option's default
     defaults = field_defaults(AugmentConfig)
     recorded = {**{name: defaults[name] for name in options if name in defaults}, **recorded}
+    if PIPELINE_DIGEST not in recorded:  # written before the digest was recorded: the weights are unknown
+        recorded[PIPELINE_DIGEST] = options[PIPELINE_DIGEST]
+    elif recorded[PIPELINE_DIGEST] != options[PIPELINE_DIGEST]:
+        raise ValueError(
+            f"pipeline: {options['pipeline']!r} holds other weights than the ones the views in {str(out)!r} "
+            f"were made with (SHA-256 {str(recorded[PIPELINE_DIGEST])[:12]}... there, "
+            f"{options[PIPELINE_DIGEST][:12]}... now); resuming would mix two models' views. Use another out "
+            "folder, or the pipeline the folder was made with"
+        )
     differences = [
         f"{name}: {recorded.get(name)!r} there, {options.get(name)!r} now"
         for name in sorted(set(recorded) | set(options))

@@ -133,6 +133,27 @@ def data_identity(data: str | os.PathLike | None) -> dict[str, Any]:
     return {"path": str(root.resolve()), "files": count, "files_sha256": digest.hexdigest()}
 
 
+def content_identity(path: str | os.PathLike) -> str:
+    """SHA-256 over a folder's (or file's) relative file names and bytes: the weights themselves, so that a
+    model folder replaced in place (same names, other weights) is told apart whatever its files' times.
+
+    Raises:
+        FileNotFoundError: If ``path`` does not exist.
+    """
+    root = Path(path)
+    if not root.exists():
+        raise FileNotFoundError(f"{str(root)!r} does not exist")
+    files = sorted(p for p in root.rglob("*") if p.is_file()) if root.is_dir() else [root]
+    digest = hashlib.sha256()
+    for file in files:
+        digest.update((file.relative_to(root).as_posix() if root.is_dir() else file.name).encode() + b"\0")
+        with open(file, "rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(block)
+        digest.update(b"\0")
+    return digest.hexdigest()
+
+
 def read_run_record(folder: str | os.PathLike) -> dict[str, Any] | None:
     """The ``run.json`` of a folder, or ``None`` when it has none.
 

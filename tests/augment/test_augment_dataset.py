@@ -14,6 +14,7 @@ import torch
 from sar_zero123.augment.codomain import readd_speckle
 from sar_zero123.augment_dataset import (
     AUGMENT_FILE,
+    PIPELINE_DIGEST,
     PROVENANCE_COLUMNS,
     PROVENANCE_FILE,
     AugmentConfig,
@@ -27,6 +28,7 @@ from sar_zero123.generate import GenerateConfig, load_input_chip
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.sim import INDEX_COLUMNS, simulate_dataset
+from sar_zero123.training.run_folder import content_identity
 
 # 2 classes x 4 azimuths (0, 90, 180, 270) at 17 deg; d_el 2 keeps 19 deg inside the trained [10, 20]
 CHIPS = 8
@@ -191,6 +193,36 @@ def test_refuses_a_folder_of_other_options_or_other_files(augmented, data_dir, p
     (other / "notes.txt").write_text("x")
     with pytest.raises(ValueError, match=f"out: .*has no {AUGMENT_FILE}"):
         main(run_args(data_dir, pipeline_dir, other))
+
+
+def test_refuses_to_resume_onto_a_pipeline_whose_weights_changed(augmented, data_dir, pipeline_dir, tmp_path):
+    pipeline = tmp_path / "pipeline"
+    shutil.copytree(pipeline_dir, pipeline)
+    out = tmp_path / "out"
+    shutil.copytree(augmented, out)
+    record = json.loads((out / AUGMENT_FILE).read_text())
+    assert record[PIPELINE_DIGEST] == content_identity(pipeline_dir)  # the weights, recorded
+    record["pipeline"] = str(pipeline.resolve())
+    (out / AUGMENT_FILE).write_text(json.dumps(record))
+    args = run_args(data_dir, pipeline, out, "--batch_size", "3")
+    assert main(args) == out  # the same weights under another name: a resume
+    other = build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True)
+    with torch.no_grad():  # the same architecture and file names, other weights
+        other.unet.conv_in.weight.add_(0.1)
+    other.pose_projection.register_to_config(trained_d_el_deg=[-5.0, 5.0],
+                                             trained_depression_deg=[10.0, 20.0])  # fmt: skip
+    other.save_pretrained(pipeline)
+    with pytest.raises(ValueError, match=r"^pipeline: .* holds other weights than the ones the views in .*"
+                                         r"resuming would mix two models' views"):  # fmt: skip
+        main(args)
+    # a folder recorded before the digest existed resumes (its weights are unknown)
+    del record[PIPELINE_DIGEST]
+    (out / AUGMENT_FILE).write_text(json.dumps(record))
+    assert main(args) == out
+    with pytest.raises(FileNotFoundError, match="pipeline folder not found: '.*missing'"):
+        main(run_args(data_dir, tmp_path / "missing", tmp_path / "new"))
+    with pytest.raises(FileNotFoundError, match="'sar-zero123/nope': no bundled pipeline .* bundled: "):
+        main(run_args(data_dir, "sar-zero123/nope", tmp_path / "new"))
 
 
 @pytest.mark.parametrize(("d_el", "field"), [("6", "trained_d_el_deg"), ("4", "trained_depression_deg")])
