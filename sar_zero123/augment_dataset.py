@@ -65,6 +65,7 @@ from sar_zero123.model.pipeline import (
 from sar_zero123.pretrained import SIM_PRIOR, is_bundled_name, resolve_pretrained
 from sar_zero123.sim.dataset import write_index_atomic
 from sar_zero123.training.run_folder import content_identity, field_defaults
+from sar_zero123.training.writer_lock import is_lock_file, lock_output_folder, release_output_folder
 
 __all__ = [
     "AUGMENT_FILE",
@@ -396,7 +397,7 @@ def _check_out_folder(out: Path, options: dict[str, Any]) -> bool:
             other options (the differences listed).
     """
     check_output_dir(out, "out")
-    if not out.is_dir() or not any(out.iterdir()):
+    if not out.is_dir() or not any(not is_lock_file(p) for p in out.iterdir()):
         return False
     if not (out / AUGMENT_FILE).is_file():
         raise ValueError(f"out: {str(out)!r} is not empty and has no {AUGMENT_FILE}; choose an empty folder")
@@ -487,6 +488,8 @@ def augment_dataset(config: AugmentConfig) -> Path:
     # 1. the source chips, the views they get, and the output folder's state
     out = Path(config.out)
     options = _recorded_options(config)
+    check_output_dir(out, "out")
+    lock_output_folder(out, "out")  # one writer: a second augmentation into this folder is refused now
     resuming = _check_out_folder(out, options)
     records = load_index(config.data)
     selected = select_records(records, config.classes, config.depressions_deg, config.max_chips_per_class)
@@ -551,6 +554,7 @@ def augment_dataset(config: AugmentConfig) -> Path:
     csv.writer(text, lineterminator="\n").writerows([[*INDEX_COLUMNS, *PROVENANCE_COLUMNS], *rows])
     _write_atomic(out / PROVENANCE_FILE, text.getvalue().encode())
     write_index_atomic(out, [row[: len(INDEX_COLUMNS)] for row in rows])
+    release_output_folder(out)
     return out
 
 

@@ -14,7 +14,9 @@ rule before any work:
 * starting over is explicit (``restart=True``): the old folder is moved aside to
   ``<name>.replaced-<UTC time>``, never deleted;
 * a non-empty folder without a record is refused: it is not a run of this stage (or was written by a
-  version before the rule), and nothing in it should be mixed with a new run.
+  version before the rule), and nothing in it should be mixed with a new run;
+* one writer at a time: the folder's exclusive lock (:mod:`sar_zero123.training.writer_lock`) is taken
+  before anything else, and a second process is refused, naming the first.
 
 :func:`finish_run` marks the run finished once its last output exists, with the seconds the stage took;
 a stage is done only then. Reports read those records (:func:`read_run_record`), never an assumption.
@@ -37,6 +39,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from sar_zero123.config import config_to_dict, write_json_atomic
+from sar_zero123.training.writer_lock import is_lock_file, lock_output_folder, release_output_folder
 
 logger = logging.getLogger(__name__)
 
@@ -308,7 +311,9 @@ def open_run_folder(
     values = _as_dict(config)
     if path.exists() and not path.is_dir():
         raise ValueError(f"{flag_hint}: {str(path)!r} is a file, not a folder")
-    occupied = path.is_dir() and any(path.iterdir())
+    if write:  # one writer: a second process opening the folder now is refused, naming this one
+        lock_output_folder(path, flag_hint)
+    occupied = path.is_dir() and any(not is_lock_file(p) for p in path.iterdir())
     if occupied and restart:
         inside = _inputs_inside(path, identity, values)
         if inside:
@@ -379,6 +384,8 @@ def open_run_folder(
         finished = False
         if write:
             write_json_atomic(record, path / RUN_RECORD)
+    if finished and write:
+        release_output_folder(path)  # nothing is left to write: the stage returns what the folder holds
     return RunFolder(path, "finished" if finished else "continued", record)
 
 
@@ -423,6 +430,7 @@ def finish_run(
         record["results"] = {**record.get("results", {}), **dict(results)}
     if write:
         write_json_atomic(record, path / RUN_RECORD)
+        release_output_folder(path)  # the run is done: the next writer may open the folder
     return record
 
 
