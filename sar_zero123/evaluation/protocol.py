@@ -356,6 +356,7 @@ def generate_pair_targets(
     batch_size: int,
     device: torch.device,
     desc: str = "generating",
+    heading_guidance_scale: float = 0.0,
 ) -> tuple[torch.Tensor, float]:
     """Generates the target view of every pair (seeded per pair), in batches, timing the pipeline calls.
 
@@ -383,6 +384,7 @@ def generate_pair_targets(
             input_depression_deg=depression,
             num_inference_steps=num_inference_steps,
             guidance_scale=guidance_scale,
+            heading_guidance_scale=heading_guidance_scale,
             generator=generators,
             output_type="pt",
         ).images

@@ -48,7 +48,7 @@ from sar_zero123.model.orientation import AzimuthEstimator, target_view_features
 from sar_zero123.model.zero123_checkpoints import CLIPImageProcessor, load_zero123_components
 from sar_zero123.pretrained import BUNDLED_NAMESPACE, is_bundled_name, resolve_pretrained
 
-__all__ = ["SARZero123Pipeline", "SARZero123PipelineOutput"]
+__all__ = ["SARZero123Pipeline", "SARZero123PipelineOutput", "flipped_heading_pose"]
 
 ImageInput = PIL.Image.Image | np.ndarray | torch.Tensor | Sequence[PIL.Image.Image] | Sequence[np.ndarray]
 OUTPUT_TYPES = ("pil", "np", "pt", "latent")
@@ -478,6 +478,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         | None = None,
         callback_on_step_end_tensor_inputs: Sequence[str] = ("latents",),
         strength: float = 1.0,
+        heading_guidance_scale: float = 0.0,
     ) -> SARZero123PipelineOutput | tuple:
         """Generate views of each input chip at ``(d_az, d_el)`` relative to it.
 
@@ -507,6 +508,10 @@ class SARZero123Pipeline(DiffusionPipeline):
                 (SDEdit, as diffusers' image-to-image pipelines do): the view keeps more of the input,
                 which suits small pose changes. ``latents``, if given, is then the noise added. 1 (the
                 default) starts from pure noise.
+            heading_guidance_scale: Weight ``h >= 0`` of guidance away from the flipped heading: the
+                prediction gains ``h * (eps(d_az) - eps(d_az + 180))``, which pushes each view from the
+                same body axis with its front and back swapped (:func:`flipped_heading_pose`). One more
+                UNet evaluation per step; 0 (the default) leaves sampling unchanged.
 
         Returns:
             :class:`SARZero123PipelineOutput`, or ``(images,)`` when ``return_dict`` is False.
@@ -527,6 +532,11 @@ class SARZero123Pipeline(DiffusionPipeline):
             callback_on_step_end_tensor_inputs,
         )
         denoising_steps = _denoising_steps(strength, num_inference_steps)
+        if not 0.0 <= heading_guidance_scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
+            raise ValueError(
+                f"`heading_guidance_scale` must lie in [0, {MAX_GUIDANCE_SCALE:g}], got "
+                f"{heading_guidance_scale}"
+            )
         images = self.preprocess_image(image)
         batch_size = images.shape[0]
         pose = _broadcast_pose(d_az, d_el, batch_size)  # (B, 1, 4)
@@ -557,6 +567,19 @@ class SARZero123Pipeline(DiffusionPipeline):
         class_labels = pose_class_labels(self.unet, sample_pose, target_features)
         if class_labels is not None:
             class_labels = class_labels.to(dtype)
+        heading = heading_guidance_scale > 0.0
+        if heading:  # the same request with front and back swapped: tokens, labels and pose of its branch
+            flip_pose = flipped_heading_pose(pose)
+            flip_tokens = self.encode_conditioning(images.to(device), flip_pose)[0]
+            flip_tokens = flip_tokens.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
+            flip_features = None
+            if self.azimuth_estimator is not None:
+                flip_features = target_view_features(estimate, flip_pose)
+                flip_features = flip_features.repeat_interleave(num_images_per_prompt, dim=0)
+            flip_sample_pose = flip_pose.repeat_interleave(num_images_per_prompt, dim=0)
+            flip_labels = pose_class_labels(self.unet, flip_sample_pose, flip_features)
+            if flip_labels is not None:
+                flip_labels = flip_labels.to(dtype)
         if do_classifier_free_guidance:
             # zero-1-to-3's sampling null: zeros after the projection and for the condition latent; the
             # pose itself is never dropped
@@ -566,6 +589,13 @@ class SARZero123Pipeline(DiffusionPipeline):
                 class_labels = torch.cat([class_labels, class_labels])
         # the condition latent (zeros for the null), turned by the pose where the model takes it spatially
         guided_pose = torch.cat([sample_pose] * 2) if do_classifier_free_guidance else sample_pose
+        if heading:  # [null;] cond; flipped cond
+            tokens = torch.cat([tokens, flip_tokens])
+            condition_latents = torch.cat([condition_latents, condition_latents[-num_samples:]])
+            if class_labels is not None:
+                class_labels = torch.cat([class_labels, flip_labels])
+            guided_pose = torch.cat([guided_pose, flip_sample_pose])
+        branches = 1 + int(do_classifier_free_guidance) + int(heading)
         unet_condition = unet_condition_latents(condition_latents, guided_pose, self.pose_projection)
 
         # 3. timesteps
@@ -598,15 +628,21 @@ class SARZero123Pipeline(DiffusionPipeline):
         self._num_timesteps = len(timesteps)
         with self.progress_bar(total=len(timesteps)) as progress_bar:
             for step_index, timestep in enumerate(timesteps):
-                model_input = torch.cat([latents] * 2) if do_classifier_free_guidance else latents
+                model_input = torch.cat([latents] * branches) if branches > 1 else latents
                 model_input = self.scheduler.scale_model_input(model_input, timestep)
-                model_input = torch.cat([model_input, unet_condition], dim=1)  # (N | 2N, 8 | 12, h, w)
+                model_input = torch.cat([model_input, unet_condition], dim=1)  # (N..3N, 8 | 12, h, w)
                 noise_pred = self.unet(
                     model_input, timestep, encoder_hidden_states=tokens, class_labels=class_labels
                 ).sample
+                parts = list(noise_pred.chunk(branches))
+                noise_flip = parts.pop() if heading else None
                 if do_classifier_free_guidance:
-                    noise_uncond, noise_cond = noise_pred.chunk(2)
+                    noise_uncond, noise_cond = parts
                     noise_pred = noise_uncond + guidance_scale * (noise_cond - noise_uncond)
+                else:
+                    noise_cond = noise_pred = parts[0]
+                if heading:
+                    noise_pred = noise_pred + heading_guidance_scale * (noise_cond - noise_flip)
                 latents = self.scheduler.step(noise_pred, timestep, latents, **step_kwargs).prev_sample
                 latents = latents.to(dtype)
 
@@ -721,6 +757,17 @@ def _to_hwc_array(item: PIL.Image.Image | np.ndarray) -> np.ndarray:
     if array.size == 0:
         raise ValueError(f"`image` is empty, got shape {array.shape}")
     return array
+
+
+def flipped_heading_pose(pose: torch.Tensor) -> torch.Tensor:
+    """The same pose with the azimuth change turned by 180 deg: ``sin d_az`` and ``cos d_az`` negated.
+
+    Shape:
+        ``(B, 1, 4)`` (:func:`embed_pose`) -> the same.
+    """
+    flipped = pose.clone()
+    flipped[..., 1:3] = -flipped[..., 1:3]
+    return flipped
 
 
 def _broadcast_pose(

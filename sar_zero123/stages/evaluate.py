@@ -125,6 +125,7 @@ class EvaluateConfig:
     n: int = 1000  # generated samples in total (split evenly between seen and unseen; at most 100,000)
     num_inference_steps: int = 50  # denoising steps for Tables III/IV
     guidance_scale: float = 3.0  # classifier-free guidance weight
+    heading_guidance_scale: float = 0.0  # guidance away from the flipped heading (SARZero123Pipeline); 0: off
     # an AutoencoderKL folder decoding for every pipeline instead of its own VAE; it must encode as theirs
     # (a decoder fine-tuned alone: train/train_vae.py --pretrained PIPELINE --no-train_encoder)
     vae: str | None = None
@@ -175,6 +176,11 @@ class EvaluateConfig:
         if not math.isfinite(self.guidance_scale) or self.guidance_scale > MAX_GUIDANCE_SCALE:
             raise ValueError(
                 f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE}, got {self.guidance_scale}"
+            )
+        if not 0.0 <= self.heading_guidance_scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
+            raise ValueError(
+                f"heading_guidance_scale must lie in [0, {MAX_GUIDANCE_SCALE}], got "
+                f"{self.heading_guidance_scale}"
             )
 
     def _check_sizes(self) -> None:
@@ -461,6 +467,7 @@ def _score_pipelines(
                 pairs,
                 num_inference_steps=config.num_inference_steps,
                 guidance_scale=config.guidance_scale,
+                heading_guidance_scale=config.heading_guidance_scale,
                 batch_size=config.eval_batch_size,
                 device=device,
                 desc=f"{name} {group}",
@@ -497,6 +504,7 @@ def _write_tables(
         "device": str(device),
         "num_inference_steps": config.num_inference_steps,
         "guidance_scale": config.guidance_scale,
+        "heading_guidance_scale": config.heading_guidance_scale,
         "results": results,
         "paper": PAPER_TABLE3,
         "evaluator_test_metrics": evaluator_metrics,
@@ -540,6 +548,7 @@ def _speed_sweep(
                     pairs,
                     num_inference_steps=steps,
                     guidance_scale=config.guidance_scale,
+                    heading_guidance_scale=config.heading_guidance_scale,
                     batch_size=config.eval_batch_size,
                     device=device,
                     desc=f"{name} {scheduler} {steps} steps",

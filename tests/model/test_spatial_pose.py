@@ -15,7 +15,7 @@ from sar_zero123.model.conditioning import (
     rotate_condition_latents,
     unet_condition_latents,
 )
-from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.pipeline import SARZero123Pipeline, flipped_heading_pose
 
 
 def latents(batch: int = 2, channels: int = 4, side: int = 8) -> torch.Tensor:
@@ -106,3 +106,53 @@ def test_a_unet_whose_inputs_do_not_fit_the_mode_is_refused() -> None:
     spatial, plain = build_sar_zero123("tiny", spatial_pose="rotated_input"), build_sar_zero123("tiny")
     with pytest.raises(ValueError, match=r"in_channels` must be 12.*spatial_pose='rotated_input'.*got 8"):
         SARZero123Pipeline(**{**spatial.components, "unet": plain.unet})
+
+
+def test_heading_guidance_adds_the_pull_away_from_the_flipped_heading(monkeypatch) -> None:
+    pipe = build_sar_zero123("tiny", seed=0, spatial_pose="rotated_input")
+    image = torch.rand(2, 1, 32, 32, generator=torch.Generator().manual_seed(1))
+    d_az = [30.0, -100.0]
+    calls, steps = [], []
+
+    def record(module, args, kwargs, out):
+        calls.append((args, kwargs, out.sample))
+
+    pipe.unet.register_forward_hook(record, with_kwargs=True)
+    step = pipe.scheduler.step
+
+    def scheduler_step(noise, *args, **kwargs):
+        steps.append(noise)
+        return step(noise, *args, **kwargs)
+
+    monkeypatch.setattr(pipe.scheduler, "step", scheduler_step)
+
+    def sample(**options):
+        generators = [torch.Generator().manual_seed(k) for k in range(2)]
+        return pipe(image, d_az=d_az, num_inference_steps=2, output_type="pt", generator=generators,
+                    **options).images  # fmt: skip
+
+    out = sample(guidance_scale=2.5, heading_guidance_scale=4.0)
+    assert out.shape == (2, 1, 32, 32) and torch.isfinite(out).all()
+    (args, kwargs, noise_pred), noise = calls[0], steps[0]
+    assert args[0].shape == (6, 12, 16, 16)  # [null; conditional; flipped] x 2 samples
+    uncond, cond, flip = noise_pred.chunk(3)
+    torch.testing.assert_close(noise, uncond + 2.5 * (cond - uncond) + 4.0 * (cond - flip))
+    # the flipped branch: the same input latent, turned by d_az + 180, and the flipped pose's token
+    torch.testing.assert_close(args[0][4:6, 4:8], args[0][2:4, 4:8])
+    turned_back = torch.rot90(args[0][2:4, 8:], 2, dims=(2, 3))
+    torch.testing.assert_close(args[0][4:6, 8:], turned_back, atol=1e-5, rtol=0)
+    pose = embed_pose(d_az, [0.0, 0.0])
+    tokens, _ = pipe.encode_conditioning(image, flipped_heading_pose(pose))
+    torch.testing.assert_close(kwargs["encoder_hidden_states"][4:6], tokens)
+    torch.testing.assert_close(flipped_heading_pose(pose), embed_pose([210.0, 80.0], [0.0, 0.0]))
+    # weight 0 is the old sampler exactly; without CFG the flipped branch runs beside the conditional one
+    plain = sample(guidance_scale=2.5)
+    assert torch.equal(plain, sample(guidance_scale=2.5, heading_guidance_scale=0.0))
+    assert not torch.allclose(plain, out)
+    calls.clear()
+    sample(guidance_scale=1.0, heading_guidance_scale=1.0)
+    assert calls[0][0][0].shape == (4, 12, 16, 16)
+    with pytest.raises(ValueError, match=r"`heading_guidance_scale` must lie in \[0, 100\], got -1.0"):
+        pipe(image, d_az=30.0, heading_guidance_scale=-1.0)
+    with pytest.raises(ValueError, match="`heading_guidance_scale` must lie in"):
+        pipe(image, d_az=30.0, heading_guidance_scale=float("nan"))

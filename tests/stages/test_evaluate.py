@@ -212,6 +212,8 @@ def test_evaluate_bounds_what_a_user_can_size(tmp_path: Path) -> None:
         EvaluateConfig(pipeline=["a"], eval_batch_size=4096)
     with pytest.raises(ValueError, match="num_figure_pairs must be <= 32, got 5,000"):
         EvaluateConfig(pipeline=["a"], num_figure_pairs=5000)
+    with pytest.raises(ValueError, match=r"heading_guidance_scale must lie in \[0, 100.0\], got -2.0"):
+        EvaluateConfig(pipeline=["a"], heading_guidance_scale=-2.0)
     with pytest.raises(ValueError, match="steps: at most 16 step counts, got 17"):
         EvaluateConfig(pipeline=["a"], steps=list(range(1, 18)), schedulers=["ddim"])
     with pytest.raises(ValueError, match=r"steps: each value once, got \[5, 5\]"):
