@@ -20,6 +20,8 @@ what ``spatial_pose="rotated_input"`` shows the UNet, at the simulator's ``rotat
 ``VAE round trip`` of the truth (the ceiling, through the first pipeline's VAE), then each pipeline (at each
 ``--heading_guidance_scales`` weight of guidance away from the flipped heading). If the
 turned input scores high on ``heading`` and a model does not, the model loses the front that its hint held.
+With ``--evaluators DIR``, each row also gets the evaluators' azimuth regressor's error on its views, overall
+and split by whether the pixels got the heading right: whether the regressor reads what the pixels show.
 Writes JSON (means, standard errors, and ``heading`` per |d_az| band) and prints a table.
 """
 
@@ -40,6 +42,7 @@ from scipy.ndimage import gaussian_filter
 from sar_zero123 import SIM_PRIOR, SARZero123Pipeline, resolve_pretrained
 from sar_zero123.config import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling, signed_to_unit
+from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.model.conditioning import embed_pose, rotate_condition_latents
 from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip
 
@@ -109,6 +112,7 @@ def run(
     batch_size: int = 16,
     seed: int = 0,
     heading_guidance_scales: Sequence[float] = (0.0,),
+    evaluators: str | None = None,
 ) -> dict:
     """Every row's scores on the same pairs; see the module docstring."""
     first = SARZero123Pipeline.from_pretrained(pipelines[0])
@@ -128,6 +132,24 @@ def run(
     flip = np.stack([render(k, n, a + d + 180.0, 2) for k, (n, a, d) in enumerate(pairs)])
     at_input = np.stack([render(k, n, a, 3) for k, (n, a, _) in enumerate(pairs)])
     d_az = [d for _, _, d in pairs]
+    target_azimuth = np.array([(a + d) % 360.0 for _, a, d in pairs])
+    regressor = None if evaluators is None else load_evaluators(evaluators).regressor.eval()
+
+    def scored(views: np.ndarray) -> dict[str, float]:
+        per_pair = score(views, truth, flip, at_input)
+        summary = summarise(per_pair, d_az)
+        if regressor is not None:  # what the evaluators read from the same views
+            with torch.no_grad():
+                predicted = regressor.predict_azimuth_deg(torch.from_numpy(views)[:, None].float()).numpy()
+            error = np.abs((predicted - target_azimuth + 180.0) % 360.0 - 180.0)
+            right = np.asarray(per_pair["heading"], dtype=bool)
+            summary["regressor_azimuth_error_deg"] = float(error.mean())
+            summary["regressor_azimuth_error_deg_se"] = float(error.std(ddof=1) / np.sqrt(len(error)))
+            summary["regressor_axis_error_deg"] = float(np.minimum(error, 180.0 - error).mean())
+            for name, members in (("heading_right", right), ("heading_wrong", ~right)):
+                if members.any():
+                    summary[f"regressor_azimuth_error_deg_{name}"] = float(error[members].mean())
+        return summary
 
     @torch.no_grad()
     def round_trip(images: np.ndarray) -> np.ndarray:
@@ -142,7 +164,7 @@ def run(
     }
     results, seconds = {}, {}
     for name, make in rows.items():
-        results[name] = summarise(score(make(), truth, flip, at_input), d_az)
+        results[name] = scored(make())
     for path, heading in ((p, h) for p in pipelines for h in heading_guidance_scales):
         name = str(path) if heading == 0.0 else f"{path}, heading guidance {heading:g}"
         pipe = SARZero123Pipeline.from_pretrained(path)
@@ -160,7 +182,7 @@ def run(
                 output_type="np",
             ).images[..., 0])  # fmt: skip
         seconds[name] = time.perf_counter() - begin
-        results[name] = summarise(score(np.concatenate(views), truth, flip, at_input), d_az)
+        results[name] = scored(np.concatenate(views))
     return {
         "benchmark": "front_back (issue 35)",
         "pipelines": [str(p) for p in pipelines],
@@ -169,6 +191,7 @@ def run(
         "num_inference_steps": num_inference_steps,
         "guidance_scale": guidance_scale,
         "heading_guidance_scales": list(heading_guidance_scales),
+        "evaluators": evaluators,
         "seed": seed,
         "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}",
         "platform": platform.platform(),
@@ -180,15 +203,17 @@ def run(
 def format_table(record: dict) -> str:
     lines = [
         "| row | heading right | pose right | corr. with truth "
-        "| heading right at abs(d_az) <60 / 60-120 / 120+ |",
-        "| --- | --- | --- | --- | --- |",
+        "| heading right at abs(d_az) <60 / 60-120 / 120+ | regressor az. err. (deg): all / heading right |",
+        "| --- | --- | --- | --- | --- | --- |",
     ]
     for name, r in record["rows"].items():
         keys = [f"heading_abs_d_az_{lo:g}_{hi:g}" for lo, hi in BANDS_DEG]
         bands = " / ".join(f"{r.get(key, float('nan')):.2f}" for key in keys)
         lines.append(
             f"| {name} | {r['heading']:.2f} ± {r['heading_se']:.2f} | {r['pose']:.2f} ± {r['pose_se']:.2f} | "
-            f"{r['corr_truth']:.3f} ± {r['corr_truth_se']:.3f} | {bands} |"
+            f"{r['corr_truth']:.3f} ± {r['corr_truth_se']:.3f} | {bands} | "
+            f"{r.get('regressor_azimuth_error_deg', float('nan')):.1f} / "
+            f"{r.get('regressor_azimuth_error_deg_heading_right', float('nan')):.1f} |"
         )
     return "\n".join(lines)
 
@@ -204,6 +229,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--seed", type=int, default=0, help="pairs, clutter and sampling seed")
     parser.add_argument("--heading_guidance_scales", nargs="+", type=float, default=[0.0],
                         help="each pipeline at each weight of guidance away from the flipped heading")
+    parser.add_argument("--evaluators", default=None,
+                        help="evaluators folder: also the azimuth regressor's error on every row's views")
     parser.add_argument("--out", default="front_back.json", help="output JSON")
     args = parser.parse_args(argv)
     unknown = sorted(set(args.classes) - set(TARGET_CLASSES))
@@ -215,6 +242,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         args.pipeline or [SIM_PRIOR], classes=args.classes, pairs_per_class=args.pairs_per_class,
         num_inference_steps=args.num_inference_steps, guidance_scale=args.guidance_scale,
         batch_size=args.batch_size, seed=args.seed, heading_guidance_scales=args.heading_guidance_scales,
+        evaluators=args.evaluators,
     )  # fmt: skip
     write_json_atomic(record, Path(args.out))
     print(format_table(record))
