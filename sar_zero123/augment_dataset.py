@@ -124,6 +124,7 @@ class AugmentConfig:
     include_real: bool = False  # also list the selected real chips (generated 0, absolute paths)
     num_inference_steps: int = 20  # denoising steps
     guidance_scale: float = 3.0  # classifier-free guidance weight (<= 1 disables it)
+    heading_guidance_scale: float = 0.0  # guidance away from the flipped heading (d_az + 180); 0: off
     strength: float = 1.0  # in (0, 1]: below 1, start from the chip's own latent noised (SDEdit)
     scheduler: Literal["ddim", "dpmsolver++", "euler"] = "ddim"  # sampler
     batch_size: int = 8  # views per pipeline call (a view changes with it by float rounding only)
@@ -160,6 +161,11 @@ class AugmentConfig:
         if not (np.isfinite(self.guidance_scale) and self.guidance_scale <= MAX_GUIDANCE_SCALE):
             raise ValueError(
                 f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE:g}, got {self.guidance_scale}"
+            )
+        if not 0.0 <= self.heading_guidance_scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
+            raise ValueError(
+                f"heading_guidance_scale must lie in [0, {MAX_GUIDANCE_SCALE:g}], got "
+                f"{self.heading_guidance_scale}"
             )
         check_minimum(self, "num_inference_steps", "batch_size", minimum=1)
         if self.batch_size > MAX_BATCH_SIZE:
@@ -533,6 +539,7 @@ def augment_dataset(config: AugmentConfig) -> Path:
                 guidance_scale=config.guidance_scale,
                 seed=config.seed,
                 strength=config.strength,
+                heading_guidance_scale=config.heading_guidance_scale,
             )
             for view, image in zip(batch, images):
                 if (out / view.path).is_file():  # written before a kill, from this same batch
@@ -582,6 +589,7 @@ def _generate(
     guidance_scale: float,
     seed: int,
     strength: float = 1.0,
+    heading_guidance_scale: float = 0.0,
 ) -> np.ndarray:
     """One pipeline call for a batch of views: ``(B, S, S)`` normalised dB from ``(B, S, S)`` chips."""
     takes_depression = getattr(pipe.pose_projection.config, "input_depression", False)
@@ -595,6 +603,7 @@ def _generate(
         generator=[view_generator(seed, view.row_index, view.request_index) for view in batch],
         output_type="np",
         strength=strength,
+        heading_guidance_scale=heading_guidance_scale,
     ).images[..., 0]
 
 

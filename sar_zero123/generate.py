@@ -88,6 +88,7 @@ class GenerateConfig:
     output_dir: str = "generated_views"  # output folder
     num_inference_steps: int = 50  # denoising steps
     guidance_scale: float = 3.0  # classifier-free guidance weight (<= 1 disables it)
+    heading_guidance_scale: float = 0.0  # guidance away from the flipped heading (d_az + 180); 0: off
     seed: int = 0  # view i uses torch.Generator().manual_seed(seed + i)
     input_domain: Literal["magnitude", "normalized_db"] = "magnitude"  # what the chip file holds
     scaling_file: str | None = None  # DecibelScaling JSON (default: <pipeline>/decibel_scaling.json or unit)
@@ -119,6 +120,11 @@ class GenerateConfig:
         if not (np.isfinite(self.guidance_scale) and self.guidance_scale <= MAX_GUIDANCE_SCALE):
             raise ValueError(
                 f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE:g}, got {self.guidance_scale}"
+            )
+        if not 0.0 <= self.heading_guidance_scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
+            raise ValueError(
+                f"heading_guidance_scale must lie in [0, {MAX_GUIDANCE_SCALE:g}], got "
+                f"{self.heading_guidance_scale}"
             )
         if len(self.d_el) not in (1, len(self.d_az)):
             raise ValueError(f"d_el: give 1 value or one per d_az ({len(self.d_az)}), got {len(self.d_el)}")
@@ -225,6 +231,7 @@ def generate_views(
     guidance_scale: float,
     seed: int,
     input_depression_deg: float | None = None,
+    heading_guidance_scale: float = 0.0,
 ) -> np.ndarray:
     """All requested views of one chip in a single batched pipeline call (``train/evaluate.py``'s
     ``generate_pair_targets`` generates one view per view pair instead).
@@ -239,6 +246,7 @@ def generate_views(
         seed: View ``i`` is sampled with ``torch.Generator().manual_seed(seed + i)``.
         input_depression_deg: The chip's absolute depression in degrees, for a pipeline whose pose
             carries it (``pose_projection.config.input_depression``).
+        heading_guidance_scale: Weight of guidance away from the flipped heading (``SARZero123Pipeline``).
 
     Returns:
         Views in normalised dB, float32, shape ``(V, H, W)``.
@@ -254,6 +262,7 @@ def generate_views(
         input_depression_deg=input_depression_deg,
         num_inference_steps=num_inference_steps,
         guidance_scale=guidance_scale,
+        heading_guidance_scale=heading_guidance_scale,
         generator=generators,
         output_type="np",
     ).images
@@ -337,6 +346,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
         config.guidance_scale,
         config.seed,
         input_depression_deg=input_depression_deg,
+        heading_guidance_scale=config.heading_guidance_scale,
     )
 
     # 2. the folder opened for real (an old one moved aside with --restart), the views written, the record
