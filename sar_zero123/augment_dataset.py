@@ -41,7 +41,6 @@ from typing import Any, Literal
 import numpy as np
 import torch
 from diffusers import DDIMScheduler, DPMSolverMultistepScheduler, EulerDiscreteScheduler
-from tqdm.auto import tqdm
 
 from sar_zero123.augment import rayleigh_speckle
 from sar_zero123.augment.codomain import readd_speckle
@@ -63,6 +62,7 @@ from sar_zero123.model.pipeline import (
     SARZero123Pipeline,
 )
 from sar_zero123.pretrained import SIM_PRIOR, is_bundled_name, resolve_pretrained
+from sar_zero123.progress import progress_bar
 from sar_zero123.sim.dataset import write_index_atomic
 from sar_zero123.training.run_folder import content_identity, field_defaults
 from sar_zero123.training.writer_lock import is_lock_file, lock_output_folder, release_output_folder
@@ -528,7 +528,7 @@ def augment_dataset(config: AugmentConfig) -> Path:
     prepared_chip = _chip_loader(config.pipeline, config.scaling_file, size)
     scaling = _resolve_scaling(config.scaling_file, config.pipeline)
     speckle_sigma = config.speckle_sigma if config.speckle else None
-    with tqdm(total=sum(len(batch) for batch in pending), desc="augmenting", unit="view") as progress:
+    with progress_bar(total=sum(len(batch) for batch in pending), desc="augmenting", unit="view") as progress:
         for batch in pending:
             chips = np.stack([prepared_chip(view.record.path) for view in batch])  # (B, S, S)
             images = _generate(

@@ -33,7 +33,6 @@ import numpy as np
 import PIL.Image
 import torch
 from matplotlib.figure import Figure
-from tqdm.auto import tqdm
 
 from sar_zero123.config import parse_config, save_config
 from sar_zero123.data import (
@@ -49,6 +48,7 @@ from sar_zero123.data.mstar_raw import is_mstar_raw
 from sar_zero123.data.splits import TRAIN_DEPRESSION_DEG
 from sar_zero123.model.pipeline import MAX_ABS_D_EL_DEG, MAX_GUIDANCE_SCALE, SARZero123Pipeline
 from sar_zero123.pretrained import SIM_PRIOR, resolve_pretrained
+from sar_zero123.progress import progress_bar
 from sar_zero123.training.run_folder import RunFolder, StageTimer, data_identity, finish_run, open_run_folder
 
 __all__ = [
@@ -357,7 +357,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     titles, outputs = [], ["config.json", "input.png"]
     _save_png(chip, out / "input.png")
     for index, (view, d_az_deg, d_el_deg) in enumerate(
-        tqdm(list(zip(views, config.d_az, d_el)), desc="writing views", unit="view")
+        progress_bar(list(zip(views, config.d_az, d_el)), desc="writing views", unit="view")
     ):
         stem = f"view_{index:02d}_daz{d_az_deg:+07.2f}_del{d_el_deg:+06.2f}"
         _save_png(view, out / f"{stem}.png")

@@ -47,6 +47,7 @@ from sar_zero123.model.loading import check_pipeline_folder, find_failing_compon
 from sar_zero123.model.orientation import AzimuthEstimator, target_view_features
 from sar_zero123.model.zero123_checkpoints import CLIPImageProcessor, load_zero123_components
 from sar_zero123.pretrained import BUNDLED_NAMESPACE, is_bundled_name, resolve_pretrained
+from sar_zero123.progress import progress_bar as _progress_bar
 
 __all__ = ["SARZero123Pipeline", "SARZero123PipelineOutput", "flipped_heading_pose"]
 
@@ -409,6 +410,16 @@ class SARZero123Pipeline(DiffusionPipeline):
         )
 
     # ---------------------------------------------------------------------------------- sampling
+    def progress_bar(self, iterable: Any = None, total: int | None = None) -> Any:
+        """The denoising loop's bar (``set_progress_bar_config`` applies): a live bar on a terminal, a line
+        per interval in a log (:func:`sar_zero123.progress.progress_bar`)."""
+        config = dict(getattr(self, "_progress_bar_config", {}))
+        if iterable is not None:
+            return _progress_bar(iterable, **config)
+        if total is None:
+            raise ValueError("Either `total` or `iterable` has to be defined.")
+        return _progress_bar(total=total, **config)
+
     def encode_conditioning(
         self, images: torch.Tensor, pose: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:

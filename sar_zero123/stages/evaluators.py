@@ -32,7 +32,6 @@ import torch
 import torch.nn.functional as F
 from accelerate.utils import set_seed
 from torch.utils.data import DataLoader
-from tqdm.auto import tqdm
 
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_index, prepare_splits
@@ -51,6 +50,7 @@ from sar_zero123.evaluation.evaluators import (
     load_evaluator,
 )
 from sar_zero123.evaluation.metrics import azimuth_error_deg, classification_accuracy
+from sar_zero123.progress import progress_bar
 from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run
 from sar_zero123.training.run_state import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
@@ -290,7 +290,8 @@ def train_model(
         if frozen_encoder:
             unwrapped.encoder.eval()  # probes: frozen BatchNorm statistics of the SimCLR encoder
         total, count = 0.0, 0
-        for batch in tqdm(train_loader, desc=f"{stage_dir.name} epoch {epoch + 1}/{epochs}", leave=False):
+        description = f"{stage_dir.name} epoch {epoch + 1}/{epochs}"
+        for batch in progress_bar(train_loader, desc=description, leave=False):
             loss = training_loss(model, unwrapped, batch)
             optimizer.zero_grad(set_to_none=True)
             accelerator.backward(loss)

@@ -36,7 +36,6 @@ from accelerate import Accelerator
 from diffusers import DDPMScheduler
 from diffusers.optimization import get_scheduler
 from torch.utils.data import DataLoader, Dataset
-from tqdm.auto import tqdm
 
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import (
@@ -51,6 +50,7 @@ from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.model.build import load_sar_zero123, record_trained_pose_ranges
 from sar_zero123.model.conditioning import SPATIAL_POSE_MODES
 from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.progress import progress_bar
 from sar_zero123.sim.corpus import CORPUS_OPTIONS_FILE, VALIDATION_CLASS
 from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.training.finetuning import (
@@ -497,7 +497,7 @@ def _train(config: FinetuneConfig, accelerator: Accelerator, inputs: _Inputs, tr
     output_dir = Path(config.output_dir)
     global_step = trainer.global_step
     trainable = [parameter for module in trainer.trained_modules for parameter in module.parameters()]
-    progress = tqdm(total=config.max_train_steps, initial=global_step, desc="steps",
+    progress = progress_bar(total=config.max_train_steps, initial=global_step, desc="steps",
                     disable=not accelerator.is_local_main_process)  # fmt: skip
     noise_scheduler = trainer.loss_kwargs["noise_scheduler"]
     accumulation = config.gradient_accumulation_steps  # micro-batch i belongs to step i // accumulation

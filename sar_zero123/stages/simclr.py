@@ -37,12 +37,12 @@ import torch
 from accelerate import Accelerator
 from torch import nn
 from torch.utils.data import DataLoader
-from tqdm.auto import tqdm
 
 from sar_zero123.augment import PRESETS, AugmentationPreset, simclr_views
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE, ChipDataset, ChipRecord, DecibelScaling, prepare_splits
 from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig, nt_xent_loss
+from sar_zero123.progress import progress_bar
 from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run
 from sar_zero123.training.run_state import (
@@ -322,7 +322,7 @@ def _train(
     order, order_epoch = None, -1
     stats = _LoopStats(step, float("nan"), 0.0, 0.0, 0)
     model.train()
-    progress = tqdm(
+    progress = progress_bar(
         total=chips.max_steps, initial=step, desc="simclr", disable=not accelerator.is_local_main_process
     )
     while step < chips.max_steps:

@@ -22,13 +22,13 @@ from pathlib import Path
 import torch
 import torch.nn.functional as F
 from torch.utils.data import DataLoader
-from tqdm.auto import tqdm
 
 from sar_zero123.augment import PRESETS, augment_batch
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_sample
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluation.evaluators import EVALUATOR_CONFIG_NAME, SARClassifier, load_evaluator
+from sar_zero123.progress import progress_bar
 from sar_zero123.stages._folders import withdrawn_if_setup_fails
 from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run, open_run_folder
 from sar_zero123.training.runs import start_run
@@ -129,7 +129,7 @@ def train_row(
     order_generator = torch.Generator().manual_seed(config.seed)
     aug_generator = torch.Generator(device=device).manual_seed(config.seed)
     model.train()
-    for epoch in tqdm(range(config.epochs), desc=row, disable=not accelerator.is_local_main_process):
+    for epoch in progress_bar(range(config.epochs), desc=row, disable=not accelerator.is_local_main_process):
         order = torch.randperm(len(labels), generator=order_generator).to(device)
         for start in range(0, len(labels), config.train_batch_size):
             index = order[start : start + config.train_batch_size]

@@ -24,7 +24,6 @@ from accelerate import Accelerator
 from diffusers import AutoencoderKL
 from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from torch.utils.data import DataLoader
-from tqdm.auto import tqdm
 
 from sar_zero123.config import check_minimum, read_json, save_config, write_json_atomic
 from sar_zero123.data import (
@@ -40,6 +39,7 @@ from sar_zero123.encoder import SAREncoder, resolve_encoder_dir
 from sar_zero123.model.conditioning import downsampling_factor, encode_condition_latents, vae_input
 from sar_zero123.model.loading import load_component
 from sar_zero123.pretrained import resolve_pretrained
+from sar_zero123.progress import progress_bar
 from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run
 from sar_zero123.training.run_state import (
@@ -429,7 +429,7 @@ def _train(
     """Steps ``global_step`` to ``max_train_steps`` (posterior samples from a generator seeded per step and
     process: resumable); returns the last step."""
     output_dir = Path(config.output_dir)
-    progress = tqdm(
+    progress = progress_bar(
         total=config.max_train_steps,
         initial=global_step,
         desc="steps",

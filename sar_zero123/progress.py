@@ -1,0 +1,45 @@
+"""Progress bars that suit where they are written: a live bar on a terminal, one line per interval in a log.
+
+``tqdm`` redraws its bar with carriage returns. In a file (``nohup ... > log``) that is thousands of
+overwritten segments on one line, which neither ``tail`` nor ``grep`` reads. :func:`progress_bar` is ``tqdm``
+(same arguments) on a terminal; elsewhere it writes a plain line at most every
+:data:`LOG_INTERVAL_S` seconds, and the last state at the end. ``TQDM_DISABLE=1`` still silences both.
+"""
+
+from __future__ import annotations
+
+import sys
+from typing import Any, TextIO
+
+from tqdm.auto import tqdm
+
+__all__ = ["LOG_INTERVAL_S", "progress_bar"]
+
+#: Seconds between two progress lines in a non-interactive log.
+LOG_INTERVAL_S = 30.0
+
+
+class _Lines:
+    """A stream that turns tqdm's carriage-return redraws into whole lines."""
+
+    def __init__(self, stream: TextIO) -> None:
+        self.stream = stream
+
+    def write(self, text: str) -> None:
+        for line in text.replace("\r", "\n").split("\n"):
+            if line.strip():
+                self.stream.write(line.rstrip() + "\n")
+
+    def flush(self) -> None:
+        self.stream.flush()
+
+
+def progress_bar(*args: Any, **kwargs: Any) -> tqdm:
+    """``tqdm(*args, **kwargs)`` on a terminal; in a log, one line per :data:`LOG_INTERVAL_S` seconds."""
+    stream = kwargs.get("file") or sys.stderr
+    if not getattr(stream, "isatty", lambda: False)():
+        kwargs["file"] = _Lines(stream)
+        kwargs.setdefault("mininterval", LOG_INTERVAL_S)
+        kwargs.setdefault("maxinterval", LOG_INTERVAL_S * 10)
+        kwargs.setdefault("ascii", True)
+    return tqdm(*args, **kwargs)
