@@ -799,7 +799,7 @@ def format_table(summary: dict[str, Any]) -> str:
     """The arms as a Markdown table: accuracy (mean +- std over seeds, %), the paired gain over real-only
     (points), chips, times."""
     lines = [
-        "| arm | real chips | generated views | 15 deg accuracy (%) | gain over real-only (points, paired) | "
+        "| arm | real chips | generated views | test accuracy (%) | gain over real-only (points, paired) | "
         "seeds | generator CPU (min) | arm CPU (min) | arm wall (min) |",
         "| --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
