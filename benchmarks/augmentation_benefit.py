@@ -19,7 +19,9 @@ round trip of real 15 deg chips (the generator's decoder bound) and on the same 
 
 Variant arms, from the same fine-tuned generator per K: ``--speckle_looks L`` adds
 ``generated_k{K}_speckle{L}`` (the views with L-look speckle re-added, ``augment_dataset --speckle_looks``),
-``--strength S`` adds ``generated_k{K}_strength{S}`` (the views started from the kept chip's own latent,
+``--heading_guidance H`` adds ``generated_k{K}_heading{H}`` (the plain views sampled with heading guidance
+``H``, ``SARZero123Pipeline``'s pull away from the request turned by 180 deg); ``--strength S`` adds
+``generated_k{K}_strength{S}`` (the views started from the kept chip's own latent,
 SDEdit); ``--same_azimuth_control`` adds the controls ``generated_k{K}_d_az0`` (and
 ``..._strength{S}_d_az0``): the same views made at the chip's own azimuth, what the requested pose
 adds. Every plain generated arm (per K, the sector's, the unseen class's) gets the selected variants.
@@ -86,7 +88,7 @@ RESULT_FILE = "result.json"
 #: Fields that only add or drop arms: a resumed benchmark may change them; any other change is refused.
 ARM_SELECTION_FIELDS = (
     "data", "out", "ks", "sectors", "unseen_class", "unseen_k", "speckle_looks", "strength",
-    "same_azimuth_control", "eoc1_data", "eoc1_ks",
+    "same_azimuth_control", "eoc1_data", "eoc1_ks", "heading_guidance",
 )  # fmt: skip
 #: The reduced configuration: two K, no sector or unseen-class arms (about 30 min on 2 CPU cores, estimated).
 QUICK = {"ks": [12, 48], "sectors": False, "unseen_class": None}
@@ -121,6 +123,7 @@ class BenchmarkConfig:
     speckle_looks: int | None = None  # also arms whose views get L-look speckle re-added (None: no such arms)
     strength: float | None = None  # also arms whose views start from the kept chip's noised latent (SDEdit)
     same_azimuth_control: bool = False  # also the plain (and strength) views at d_az = 0: what the pose adds
+    heading_guidance: float | None = None  # also arms of the plain views at this heading guidance; None: no
     # a prior corpus (write_prior_corpus, e.g. train/pretrain_prior.py's corpus/) mixed into every generator's
     # fine-tune (FinetuneConfig.rehearsal_data); None: the kept chips only. The EOC-1 arms need it
     rehearsal_data: str | None = None
@@ -145,6 +148,8 @@ class BenchmarkConfig:
             raise ValueError(f"speckle_looks must be None or >= 1, got {self.speckle_looks}")
         if self.strength is not None and not 0.0 < self.strength < 1.0:
             raise ValueError(f"strength must be None or in (0, 1), got {self.strength}")
+        if self.heading_guidance is not None and not 0.0 < self.heading_guidance <= 100.0:
+            raise ValueError(f"heading_guidance must be None or in (0, 100], got {self.heading_guidance}")
         if not 0.0 <= self.rehearsal_fraction < 1.0:
             raise ValueError(f"rehearsal_fraction must lie in [0, 1), got {self.rehearsal_fraction}")
         if self.eoc1_data is not None and (self.rehearsal_data is None or self.rehearsal_fraction == 0.0):
@@ -338,6 +343,7 @@ def build_generator(
     speckle_looks: int | None = None,
     strength: float = 1.0,
     d_el: float = 0.0,
+    heading_guidance: float = 0.0,
 ) -> tuple[Path, dict[str, Any]]:
     """Fine-tunes the pipeline on `trained_on`, then generates `d_az` views (at depression change `d_el`)
     of each of `sources`; both resumable. With `speckle_looks` or `strength` < 1, the views (in their own
@@ -361,7 +367,8 @@ def build_generator(
             rehearsal_fraction=config.rehearsal_fraction,
         ))  # fmt: skip
         write_json_atomic(times, timing_file)
-    suffix = variant_suffix(speckle_looks, strength, same_azimuth=all(d == 0.0 for d in d_az), d_el=d_el)
+    suffix = variant_suffix(speckle_looks, strength, same_azimuth=all(d == 0.0 for d in d_az), d_el=d_el,
+                            heading_guidance=heading_guidance)  # fmt: skip
     views, key = folder / f"views{suffix}", f"generate{suffix}"
     if key not in times:
         _, times[key] = timed(augment_dataset, AugmentConfig(
@@ -369,7 +376,7 @@ def build_generator(
             d_el=[d_el], depressions_deg=[TRAIN_DEPRESSION_DEG],
             num_inference_steps=config.num_inference_steps, guidance_scale=config.guidance_scale,
             scheduler="ddim", batch_size=16, seed=0,
-            speckle_looks=speckle_looks, strength=strength,
+            speckle_looks=speckle_looks, strength=strength, heading_guidance_scale=heading_guidance,
         ))  # fmt: skip
         times[key]["views"] = len(load_index(views))
         write_json_atomic(times, timing_file)
@@ -377,13 +384,15 @@ def build_generator(
 
 
 def variant_suffix(
-    speckle_looks: int | None = None, strength: float = 1.0, same_azimuth: bool = False, d_el: float = 0.0
+    speckle_looks: int | None = None, strength: float = 1.0, same_azimuth: bool = False, d_el: float = 0.0,
+    heading_guidance: float = 0.0,
 ) -> str:
-    """``_speckle<L>``, ``_strength<S>``, ``_d_az0`` and ``_d_el<D>`` for views generated other than plainly
-    (``""``)."""
+    """``_speckle<L>``, ``_strength<S>``, ``_heading<H>``, ``_d_az0`` and ``_d_el<D>`` for views generated
+    other than plainly (``""``)."""
     return (
         ("" if speckle_looks is None else f"_speckle{speckle_looks}")
         + ("" if strength == 1.0 else f"_strength{strength:g}")
+        + ("" if heading_guidance == 0.0 else f"_heading{heading_guidance:g}")
         + ("_d_az0" if same_azimuth else "")
         + ("" if d_el == 0.0 else f"_d_el{d_el:g}")
     )
@@ -486,12 +495,13 @@ class Benchmark:
     def generated_arm(
         self, kept: Sequence[ChipRecord], d_az: list[float], generator_dir: Path, description: str,
         generator_records: Sequence[ChipRecord] | None = None, speckle_looks: int | None = None,
-        strength: float = 1.0, d_el: float = 0.0,
+        strength: float = 1.0, d_el: float = 0.0, heading_guidance: float = 0.0,
     ) -> Any:  # fmt: skip
         def build(arm_dir: Path) -> dict[str, Any]:
             trained_on = kept if generator_records is None else generator_records
             views_dir, times = build_generator(
-                self.config, trained_on, kept, generator_dir, d_az, speckle_looks, strength, d_el
+                self.config, trained_on, kept, generator_dir, d_az, speckle_looks, strength, d_el,
+                heading_guidance,
             )
             views = load_index(views_dir)
             result = self.classifiers(list(kept) + views, arm_dir)
@@ -549,7 +559,7 @@ class Benchmark:
 
         ``speckle_looks`` re-adds speckle, ``strength`` starts each view from its kept chip's noised latent,
         ``same_azimuth_control`` makes the plain views and the strength views again at ``d_az = 0`` (what the
-        requested pose adds).
+        requested pose adds), ``heading_guidance`` samples the plain views with that heading guidance.
         """
         config = self.config
         variants: list[tuple[dict[str, Any], bool, str]] = []
@@ -563,6 +573,9 @@ class Benchmark:
             variants.append(({"strength": config.strength}, False, words))
             if config.same_azimuth_control:
                 variants.append(({"strength": config.strength}, True, f"{words}, at the chip's own azimuth"))
+        if config.heading_guidance is not None:
+            words = f"heading guidance {config.heading_guidance:g}"
+            variants.append(({"heading_guidance": config.heading_guidance}, False, words))
         return [
             self.run_arm(f"{name}{variant_suffix(**options, same_azimuth=same)}", self.generated_arm(
                 kept, [0.0] * len(d_az) if same else d_az, generator_dir, f"{description}, {words}",
@@ -833,7 +846,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else s)
         elif name == "speckle_looks":
             parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else int(s))
-        elif name == "strength":
+        elif name in ("strength", "heading_guidance"):
             parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else float(s))
         else:
             parser.add_argument(flag, type=type(value), default=value)

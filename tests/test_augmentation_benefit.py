@@ -155,6 +155,12 @@ def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
     assert started["generated_k4_d_az0"]["d_az_deg"] == [0.0]
     assert started["generated_k4"]["gain_over_same_azimuth"]["against"] == "generated_k4_d_az0"
     assert started["generated_sector_strength0.5"]["d_az_deg"] == [180.0]
+    # heading guidance: the plain views again, sampled with the pull away from the flipped heading
+    guided = {arm["arm"]: arm for arm in main([*args, "--heading_guidance", "2"])["arms"]}
+    assert guided["generated_k4_heading2"]["generator"] == guided["generated_k4"]["generator"]
+    assert guided["generated_sector_heading2"]["gain_over_real"]["against"] == "real_sector"
+    heading = json.loads((tmp_path / "out" / "generator_k4" / "views_heading2" / "augment.json").read_text())
+    assert heading["heading_guidance_scale"] == 2.0
     pose = started["generated_k4_strength0.5"]["gain_over_same_azimuth"]
     assert pose["against"] == "generated_k4_strength0.5_d_az0"
     control = tmp_path / "out" / "generator_k4" / "views_strength0.5_d_az0" / "provenance.csv"
