@@ -327,6 +327,18 @@ def write_generator_data(kept: Sequence[ChipRecord], folder: Path) -> Path:
     return folder
 
 
+def seed_summary(per_seed: list[dict[str, Any]]) -> dict[str, Any]:
+    """An arm's classifiers: accuracy mean and sample std over seeds, the per-seed records, CPU and wall s."""
+    accuracies = np.array([s["test_accuracy"] for s in per_seed])
+    return {
+        "test_accuracy_mean": float(accuracies.mean()),
+        "test_accuracy_std": float(accuracies.std(ddof=1)) if len(accuracies) > 1 else 0.0,
+        "seeds": per_seed,
+        "classifier_cpu_s": sum(s["cpu_s"] for s in per_seed),
+        "classifier_wall_s": sum(s["wall_s"] for s in per_seed),
+    }
+
+
 def timed(function: Any, *args: Any, **kwargs: Any) -> tuple[Any, dict[str, float]]:
     """Calls `function` and returns its result with its wall and process CPU seconds."""
     wall, cpu = time.perf_counter(), time.process_time()
@@ -463,16 +475,7 @@ class Benchmark:
             if seed == config.seeds[0]:
                 model.save_pretrained(arm_dir / "classifier_seed0")
             logger.info("%s seed %d: %.4f", arm_dir.name, seed, per_seed[-1]["test_accuracy"])
-        accuracies = np.array([s["test_accuracy"] for s in per_seed])
-        return {
-            "n_train": len(records),
-            "n_test": len(self.test_records),
-            "test_accuracy_mean": float(accuracies.mean()),
-            "test_accuracy_std": float(accuracies.std(ddof=1)) if len(accuracies) > 1 else 0.0,
-            "seeds": per_seed,
-            "classifier_cpu_s": sum(s["cpu_s"] for s in per_seed),
-            "classifier_wall_s": sum(s["wall_s"] for s in per_seed),
-        }
+        return {"n_train": len(records), "n_test": len(self.test_records), **seed_summary(per_seed)}
 
     def run_arm(self, name: str, build: Any) -> dict[str, Any]:
         """Runs one arm into ``out/<name>`` unless its ``result.json`` exists; returns its result."""
@@ -712,16 +715,11 @@ class DepressionTransfer(Benchmark):
                 if i == 0:
                     model.save_pretrained(arm_dir / "classifier_seed0")
                 logger.info("%s seed %d: %.4f", arm_dir.name, seed, per_seed[-1]["test_accuracy"])
-            accuracies = np.array([s["test_accuracy"] for s in per_seed])
             return {
                 "description": f"{folds}-fold cross-validation on the test chips themselves (the ceiling)",
                 "n_train": len(self.test_records) - per_seed[0]["n_held_out"],
                 "n_test": len(self.test_records),
-                "test_accuracy_mean": float(accuracies.mean()),
-                "test_accuracy_std": float(accuracies.std(ddof=1)) if len(accuracies) > 1 else 0.0,
-                "seeds": per_seed,
-                "classifier_cpu_s": sum(s["cpu_s"] for s in per_seed),
-                "classifier_wall_s": sum(s["wall_s"] for s in per_seed),
+                **seed_summary(per_seed),
             }
 
         return build

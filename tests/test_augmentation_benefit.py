@@ -34,6 +34,16 @@ def record(target_class: str, azimuth_deg: float) -> ChipRecord:
     )  # fmt: skip
 
 
+def tiny_pipeline(tmp_path) -> str:
+    """The tiny random pipeline, saved with the unit-magnitude scaling, as every generator's start."""
+    torch.manual_seed(0)
+    pipe = build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True)
+    pipe.save_pretrained(tmp_path / "pipeline")
+    scaling = DecibelScaling.for_unit_magnitude().to_dict()
+    (tmp_path / "pipeline" / SCALING_FILE).write_text(json.dumps(scaling))
+    return str(tmp_path / "pipeline")
+
+
 def test_keep_evenly_spaced_picks_the_chip_nearest_each_grid_azimuth():
     # every 10 deg, two classes; K = 4 wants 0, 90, 180, 270: 359 is nearer to 0 than 10 is (wrap)
     records = [record(c, a) for c in ("A", "B") for a in [359.0, *range(10, 359, 10)]]
@@ -83,12 +93,7 @@ def test_config_refuses_bad_fields():
 def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
     data = simulate_dataset(tmp_path / "data", classes=("TANK", "APC"), instances=1, azimuth_step_deg=45,
                             depressions_deg=(15.0, 17.0), size=32)  # fmt: skip
-    torch.manual_seed(0)
-    pipe = build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True)
-    pipe.save_pretrained(tmp_path / "pipeline")
-    scaling = DecibelScaling.for_unit_magnitude().to_dict()
-    (tmp_path / "pipeline" / SCALING_FILE).write_text(json.dumps(scaling))
-    args = ["--data", str(data), "--out", str(tmp_path / "out"), "--pipeline", str(tmp_path / "pipeline"),
+    args = ["--data", str(data), "--out", str(tmp_path / "out"), "--pipeline", tiny_pipeline(tmp_path),
             "--ks", "4", "--seeds", "0", "1", "--image_size", "32", "--finetune_steps", "2",
             "--finetune_batch_size", "2", "--num_inference_steps", "2", "--classifier_steps", "3",
             "--classifier_batch_size", "4", "--quality_chips_per_class", "2", "--views_per_chip", "1",
@@ -241,12 +246,7 @@ def test_eoc1_arms_train_at_17_deg_test_at_the_other_depression_and_pair_with_th
                             depressions_deg=(30.0,), size=32, seed=1)  # fmt: skip
     corpus = write_prior_corpus(tmp_path / "corpus", num_vehicles=4, views_per_vehicle=4,
                                 num_validation_vehicles=1, size=32, progress=False)  # fmt: skip
-    torch.manual_seed(0)
-    pipe = build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True)
-    pipe.save_pretrained(tmp_path / "pipeline")
-    scaling = DecibelScaling.for_unit_magnitude().to_dict()
-    (tmp_path / "pipeline" / SCALING_FILE).write_text(json.dumps(scaling))
-    args = ["--data", str(data), "--out", str(tmp_path / "out"), "--pipeline", str(tmp_path / "pipeline"),
+    args = ["--data", str(data), "--out", str(tmp_path / "out"), "--pipeline", tiny_pipeline(tmp_path),
             "--ks", "--no-sectors", "--unseen_class", "none", "--eoc1_data", str(eoc1), "--eoc1_ks", "4",
             "--rehearsal_data", str(corpus), "--rehearsal_fraction", "0.5", "--seeds", "0", "1",
             "--image_size", "32", "--finetune_steps", "2", "--finetune_batch_size", "2",

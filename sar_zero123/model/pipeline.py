@@ -569,28 +569,26 @@ class SARZero123Pipeline(DiffusionPipeline):
         condition_latents = condition_latents.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
         # None unless the UNet embeds the pose; with an estimator, the target's estimated azimuth follows it
         pose = pose.to(device)
-        target_features = None
+        estimate = None
         if self.azimuth_estimator is not None:  # once per input image, like the encodings above
             estimate = self.azimuth_estimator(condition_latents[::num_images_per_prompt])
-            target_features = target_view_features(estimate, pose)
-            target_features = target_features.repeat_interleave(num_images_per_prompt, dim=0)
-        sample_pose = pose.repeat_interleave(num_images_per_prompt, dim=0)
-        class_labels = pose_class_labels(self.unet, sample_pose, target_features)
-        if class_labels is not None:
-            class_labels = class_labels.to(dtype)
+
+        def branch(branch_pose: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor | None]:
+            """One guidance branch's per-sample pose and the UNet's class labels for it."""
+            features = None if estimate is None else target_view_features(estimate, branch_pose)
+            if features is not None:
+                features = features.repeat_interleave(num_images_per_prompt, dim=0)
+            per_sample = branch_pose.repeat_interleave(num_images_per_prompt, dim=0)
+            labels = pose_class_labels(self.unet, per_sample, features)
+            return per_sample, None if labels is None else labels.to(dtype)
+
+        sample_pose, class_labels = branch(pose)
         heading = heading_guidance_scale > 0.0
         if heading:  # the same request with front and back swapped: tokens, labels and pose of its branch
             flip_pose = flipped_heading_pose(pose)
             flip_tokens = self.encode_conditioning(images.to(device), flip_pose)[0]
             flip_tokens = flip_tokens.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
-            flip_features = None
-            if self.azimuth_estimator is not None:
-                flip_features = target_view_features(estimate, flip_pose)
-                flip_features = flip_features.repeat_interleave(num_images_per_prompt, dim=0)
-            flip_sample_pose = flip_pose.repeat_interleave(num_images_per_prompt, dim=0)
-            flip_labels = pose_class_labels(self.unet, flip_sample_pose, flip_features)
-            if flip_labels is not None:
-                flip_labels = flip_labels.to(dtype)
+            flip_sample_pose, flip_labels = branch(flip_pose)
         if do_classifier_free_guidance:
             # zero-1-to-3's sampling null: zeros after the projection and for the condition latent; the
             # pose itself is never dropped
