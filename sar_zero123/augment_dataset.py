@@ -396,13 +396,13 @@ def _recorded_options(config: AugmentConfig) -> dict[str, Any]:
 
 
 def _check_out_folder(out: Path, options: dict[str, Any]) -> bool:
-    """Whether ``out`` holds this augmentation already (resume); refuses any other non-empty folder.
+    """Whether ``out`` (checked by ``check_output_dir``) holds this augmentation already (resume); refuses any
+    other non-empty folder.
 
     Raises:
         ValueError: naming ``out``, for a non-empty folder without :data:`AUGMENT_FILE`, or one made with
             other options (the differences listed).
     """
-    check_output_dir(out, "out")
     if not out.is_dir() or not any(not is_lock_file(p) for p in out.iterdir()):
         return False
     if not (out / AUGMENT_FILE).is_file():

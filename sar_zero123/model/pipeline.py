@@ -436,14 +436,17 @@ class SARZero123Pipeline(DiffusionPipeline):
             - images: ``(B, 1 | 3, H, W)``; pose: ``(B, 1, 4)``
             - tokens: ``(B, 1, cross_attention_dim)``; condition_latents: ``(B, 4, H / f, W / f)``
         """
+        image_embeds, condition_latents = self._encode_images(images)
+        return self.pose_projection(image_embeds, pose.to(image_embeds.device)), condition_latents
+
+    def _encode_images(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The pose-free part of :meth:`encode_conditioning`: CLIP embeddings and condition latents."""
         if self.feature_extractor is not None:
             mean, std = tuple(self.feature_extractor.image_mean), tuple(self.feature_extractor.image_std)
             image_embeds = encode_image_embeddings(self.image_encoder, images, image_mean=mean, image_std=std)
         else:
             image_embeds = encode_image_embeddings(self.image_encoder, images)
-        tokens = self.pose_projection(image_embeds, pose.to(image_embeds.device))
-        condition_latents = encode_condition_latents(self.vae, images)
-        return tokens, condition_latents
+        return image_embeds, encode_condition_latents(self.vae, images)
 
     def decode_latents(self, latents: torch.Tensor) -> torch.Tensor:
         """Decode scaled latents to single-channel images in the normalised dB domain.
@@ -562,7 +565,8 @@ class SARZero123Pipeline(DiffusionPipeline):
         do_classifier_free_guidance = guidance_scale > 1.0
 
         # 2. encode conditioning (once per input image, then repeated per sample)
-        tokens, condition_latents = self.encode_conditioning(images.to(device), pose.to(device))
+        image_embeds, condition_latents = self._encode_images(images.to(device))  # once for every branch
+        tokens = self.pose_projection(image_embeds, pose.to(image_embeds.device))
         # Read once: `ModelMixin.dtype` walks every parameter of the UNet on each access.
         dtype = self.unet.dtype
         tokens = tokens.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
@@ -586,7 +590,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         heading = heading_guidance_scale > 0.0
         if heading:  # the same request with front and back swapped: tokens, labels and pose of its branch
             flip_pose = flipped_heading_pose(pose)
-            flip_tokens = self.encode_conditioning(images.to(device), flip_pose)[0]
+            flip_tokens = self.pose_projection(image_embeds, flip_pose.to(image_embeds.device))
             flip_tokens = flip_tokens.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
             flip_sample_pose, flip_labels = branch(flip_pose)
         if do_classifier_free_guidance:
