@@ -34,12 +34,23 @@ class _Lines:
         self.stream.flush()
 
 
+class _LogBar(tqdm):
+    """A bar whose postfix and description wait for the next interval's line instead of forcing one."""
+
+    def set_postfix(self, ordered_dict: Any = None, refresh: bool = False, **kwargs: Any) -> None:
+        super().set_postfix(ordered_dict, refresh=False, **kwargs)
+
+    def set_description(self, desc: str | None = None, refresh: bool = False) -> None:
+        super().set_description(desc, refresh=False)
+
+
 def progress_bar(*args: Any, **kwargs: Any) -> tqdm:
     """``tqdm(*args, **kwargs)`` on a terminal; in a log, one line per :data:`LOG_INTERVAL_S` seconds."""
     stream = kwargs.get("file") or sys.stderr
-    if not getattr(stream, "isatty", lambda: False)():
-        kwargs["file"] = _Lines(stream)
-        kwargs.setdefault("mininterval", LOG_INTERVAL_S)
-        kwargs.setdefault("maxinterval", LOG_INTERVAL_S * 10)
-        kwargs.setdefault("ascii", True)
-    return tqdm(*args, **kwargs)
+    if getattr(stream, "isatty", lambda: False)():
+        return tqdm(*args, **kwargs)
+    kwargs["file"] = _Lines(stream)
+    kwargs.setdefault("mininterval", LOG_INTERVAL_S)
+    kwargs.setdefault("maxinterval", LOG_INTERVAL_S * 10)
+    kwargs.setdefault("ascii", True)
+    return _LogBar(*args, **kwargs)

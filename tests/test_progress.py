@@ -31,3 +31,13 @@ def test_a_closed_bar_that_does_not_stay_leaves_no_blank_lines():
     with progress_bar(total=3, desc="epoch", file=log, leave=False, mininterval=0) as bar:
         bar.update(3)
     assert all(line.strip() for line in log.getvalue().splitlines())
+
+
+def test_a_postfix_set_every_step_does_not_force_a_line_in_a_log():
+    log = io.StringIO()
+    with progress_bar(total=50, desc="steps", file=log, mininterval=3600) as bar:
+        for step in range(50):
+            bar.set_postfix(loss=f"{step:.4f}")
+            bar.update(1)
+    lines = log.getvalue().splitlines()
+    assert len(lines) == 2 and "50/50" in lines[-1] and "loss=49.0000" in lines[-1]  # the start and the end
