@@ -53,7 +53,7 @@ from sar_zero123.config import (
     write_json_atomic,
 )
 from sar_zero123.data import ChipRecord, DecibelScaling, load_index, load_magnitude, wrap_azimuth_deg
-from sar_zero123.domain import INDEX_COLUMNS
+from sar_zero123.domain import INDEX_COLUMNS, naming_write_errors
 from sar_zero123.generate import GenerateConfig, _resolve_scaling, load_input_chip
 from sar_zero123.model.pipeline import (
     MAX_ABS_D_AZ_DEG,
@@ -454,8 +454,14 @@ def _check_chip_sizes(records: Sequence[ChipRecord], size: int) -> None:
 def _write_atomic(path: Path, data: bytes) -> None:
     """Write ``data`` through a temporary file and ``os.replace``: a kill never leaves a partial file."""
     tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_bytes(data)
-    os.replace(tmp, path)
+    kept = "the views written so far are kept (--resume continues); the index is written last"
+    with naming_write_errors(path, kept):
+        try:
+            tmp.write_bytes(data)
+            os.replace(tmp, path)
+        except BaseException:
+            tmp.unlink(missing_ok=True)
+            raise
 
 
 def _index_row(

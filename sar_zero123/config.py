@@ -25,6 +25,8 @@ from typing import Any, TypeVar
 
 import yaml
 
+from sar_zero123.domain import naming_write_errors
+
 ConfigT = TypeVar("ConfigT")
 
 _COMMENT_RE = re.compile(r"^\s*(\w+)\s*:[^#]*#\s*(.+?)\s*$")
@@ -247,8 +249,17 @@ def config_to_dict(config: Any) -> dict[str, Any]:
 
 
 def write_json_atomic(data: Any, path: str | os.PathLike) -> Path:
-    """Write JSON to ``path`` through a temporary file and ``os.replace`` (never a partial file)."""
+    """Write JSON to ``path`` through a temporary file and ``os.replace`` (never a partial file).
+
+    Raises:
+        OSError: If the file cannot be written (naming it; the previous file is unchanged).
+    """
     path = Path(path)
+    with naming_write_errors(path, "the previous file, if any, is unchanged"):
+        return _write_json_atomic(data, path)
+
+
+def _write_json_atomic(data: Any, path: Path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp_name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:

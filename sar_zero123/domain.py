@@ -1,4 +1,5 @@
-"""The SAR domain's shared conventions: decibels, the signed and unit ranges, the centre crop, index.csv.
+"""The SAR domain's shared conventions: decibels, the signed and unit ranges, the centre crop, index.csv,
+and how a failed write is reported.
 
 Every wing meets these: the data layer reads chips into normalised dB, the simulator writes chips and
 their ``index.csv``, the encoder and the VAE take [-1, 1], the metrics and PFM score a centre crop. They
@@ -15,6 +16,8 @@ Conventions::
 from __future__ import annotations
 
 import sys
+from collections.abc import Iterator
+from contextlib import contextmanager
 from typing import TYPE_CHECKING, Any, TypeVar
 
 import numpy as np
@@ -30,6 +33,7 @@ __all__ = [
     "center_crop",
     "from_decibels",
     "is_tensor",
+    "naming_write_errors",
     "signed_to_unit",
     "to_decibels",
     "unit_to_signed",
@@ -132,3 +136,36 @@ def center_crop(image: Array, crop_size: int) -> Array:
     top = (height - crop_size) // 2
     left = (width - crop_size) // 2
     return image[..., top : top + crop_size, left : left + crop_size]
+
+
+@contextmanager
+def naming_write_errors(path: Any, kept: str) -> Iterator[None]:
+    """Around a write: a failed write (disk full, a file-size limit, a read-only folder) is raised as an
+    ``OSError`` that names ``path`` and says what was kept, instead of the bare error of the layer below
+    (``[Errno 28] No space left on device``, safetensors' ``I/O error``), which names neither. Nested, the
+    outermost names its ``path`` and ``kept`` and the innermost file in brackets.
+
+    Args:
+        path: The file or folder being written.
+        kept: What the failure left intact, for the message (e.g. "the previous index is unchanged").
+
+    Raises:
+        OSError: With the original ``errno`` (``None`` for safetensors) and the original error chained.
+    """
+    try:
+        yield
+    except Exception as error:
+        inner = getattr(error, "_write_failure", None)  # (file, reason) of an inner naming_write_errors
+        if inner is None and isinstance(error, OSError):
+            inner = (getattr(error, "filename", None), error.strerror or str(error))
+        elif inner is None and type(error).__name__ == "SafetensorError":  # not an OSError
+            inner = (None, str(error))
+        if inner is None:
+            raise
+        file, reason = inner
+        where = f" ({file})" if file is not None and str(file) != str(path) else ""
+        message = f"could not write {str(path)!r}{where}: {reason}; {kept}"
+        errno = getattr(error, "errno", None)
+        named = OSError(errno, message) if errno is not None else OSError(message)
+        named._write_failure = (file if file is not None else str(path), reason)  # type: ignore[attr-defined]
+        raise named from error

@@ -34,7 +34,7 @@ import PIL.Image
 import torch
 from matplotlib.figure import Figure
 
-from sar_zero123.config import parse_config, save_config
+from sar_zero123.config import naming_write_errors, parse_config, save_config
 from sar_zero123.data import (
     SCALING_FILE,
     DecibelScaling,
@@ -360,8 +360,9 @@ def main(argv: Sequence[str] | None = None) -> Path:
         progress_bar(list(zip(views, config.d_az, d_el)), desc="writing views", unit="view")
     ):
         stem = f"view_{index:02d}_daz{d_az_deg:+07.2f}_del{d_el_deg:+06.2f}"
-        _save_png(view, out / f"{stem}.png")
-        np.save(out / f"{stem}.npy", view.astype(np.float32))
+        with naming_write_errors(out / stem, "the run is not marked finished; free space and --restart"):
+            _save_png(view, out / f"{stem}.png")
+            np.save(out / f"{stem}.npy", view.astype(np.float32))
         titles.append(f"d_az {d_az_deg:g}, d_el {d_el_deg:g}")
         outputs += [f"{stem}.png", f"{stem}.npy"]
     _contact_sheet(chip, views, titles, out / "contact_sheet.png")

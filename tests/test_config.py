@@ -2,13 +2,22 @@
 
 from __future__ import annotations
 
+import errno
 import json
+import resource
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import pytest
 
-from sar_zero123.config import check_minimum, parse_config, read_config_file, save_config
+from sar_zero123.config import (
+    check_minimum,
+    naming_write_errors,
+    parse_config,
+    read_config_file,
+    save_config,
+    write_json_atomic,
+)
 
 
 @dataclass
@@ -105,3 +114,32 @@ def test_check_minimum_accepts_the_bound_and_optional_none() -> None:
     check_minimum(Ranges(limit=None), "limit", minimum=1, optional=True)
     with pytest.raises(ValueError, match="limit must be >= 1, got None"):
         check_minimum(Ranges(limit=None), "limit", minimum=1)
+
+
+def test_a_write_past_the_file_size_limit_names_the_file_and_keeps_the_previous(tmp_path: Path) -> None:
+    path = write_json_atomic({"old": 1}, tmp_path / "record.json")
+    soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
+    resource.setrlimit(resource.RLIMIT_FSIZE, (4096, hard))  # Python ignores SIGXFSZ: the write fails
+    try:
+        with pytest.raises(OSError, match=r"^\[Errno 27\] could not write '.*/record.json': File too large; "
+                                          r"the previous file, if any, is unchanged$"):
+            write_json_atomic({"new": "x" * 10_000}, path)
+    finally:
+        resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
+    assert json.loads(path.read_text()) == {"old": 1}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["record.json"]  # the temporary file removed
+
+
+def test_naming_write_errors_names_the_outer_path_and_the_inner_file_and_passes_other_errors() -> None:
+    with pytest.raises(OSError, match=r"^\[Errno 28\] could not write 'run' \(run/a.npy\): No space left on "
+                                      r"device; kept the rest$") as caught:  # fmt: skip
+        with naming_write_errors("run", "kept the rest"), naming_write_errors("run/a.npy", "inner"):
+            raise OSError(errno.ENOSPC, "No space left on device")
+    assert caught.value.errno == errno.ENOSPC and isinstance(caught.value.__cause__, OSError)
+    from safetensors import SafetensorError
+
+    with pytest.raises(OSError, match=r"^could not write 'w.safetensors': I/O error: File too large; none$"):
+        with naming_write_errors("w.safetensors", "none"):
+            raise SafetensorError("I/O error: File too large")
+    with pytest.raises(KeyError), naming_write_errors("x", "y"):  # not a write failure: unchanged
+        raise KeyError("z")

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from sar_zero123.domain import naming_write_errors
 from sar_zero123.sim.dataset import write_index_atomic
 from sar_zero123.sim.procedural import PROCEDURAL_CLASS, PROCEDURAL_SEED_KEY, make_procedural_target
 from sar_zero123.sim.render import CLUTTER_DB, render_chip
@@ -77,10 +78,16 @@ def _write_vehicle(args: tuple) -> list[tuple[str, ...]]:
             rng = np.random.default_rng([PROCEDURAL_SEED_KEY, int(seed), int(vehicle), 3, k])
             clutter_db = CLUTTER_DB + rng.uniform(-spread, spread)
             chip = render_chip(target, float(azimuth), float(depression), size, rng, clutter_db=clutter_db)
-            fd, tmp = tempfile.mkstemp(prefix=".chip-", suffix=".npy", dir=folder)
-            with os.fdopen(fd, "wb") as f:
-                np.save(f, chip.astype(np.float16))
-            os.replace(tmp, Path(out) / rel)
+            kept = "the chips written so far are kept (a re-run continues); the index is written last"
+            with naming_write_errors(Path(out) / rel, kept):
+                fd, tmp = tempfile.mkstemp(prefix=".chip-", suffix=".npy", dir=folder)
+                try:
+                    with os.fdopen(fd, "wb") as f:
+                        np.save(f, chip.astype(np.float16))
+                    os.replace(tmp, Path(out) / rel)
+                except BaseException:
+                    Path(tmp).unlink(missing_ok=True)
+                    raise
         rows.append(
             (rel.as_posix(), class_name, "procedural_sim", serial, f"{depression:.4f}", f"{azimuth:.4f}",
              str(size), str(size))

@@ -13,7 +13,7 @@ from typing import Literal
 
 import numpy as np
 
-from sar_zero123.domain import INDEX_COLUMNS, INDEX_FILENAME
+from sar_zero123.domain import INDEX_COLUMNS, INDEX_FILENAME, naming_write_errors
 from sar_zero123.sim.render import CALIBRATION_AMPLITUDE, CLUTTER_DB, render_chip
 from sar_zero123.sim.targets import TARGET_CLASSES, make_target
 
@@ -204,7 +204,9 @@ def simulate_dataset(
                     )
                     rel = Path("chips") / f"{_format_deg(depression)}deg" / class_name
                     rel = rel / f"{class_name}_{target.serial}_{k:04d}.npy"
-                    np.save(out / rel, chip)
+                    kept = "the index is written last: no reader sees this dataset"
+                    with naming_write_errors(out / rel, kept):
+                        np.save(out / rel, chip)
                     rows.append(
                         (
                             rel.as_posix(),
@@ -231,14 +233,15 @@ def write_index_atomic(out_dir: str | os.PathLike[str], rows: Sequence[Sequence[
         The index path.
     """
     index_path = Path(out_dir) / INDEX_FILENAME
-    fd, tmp = tempfile.mkstemp(prefix=".index-", suffix=".csv.tmp", dir=out_dir)
-    try:
-        with os.fdopen(fd, "w", newline="") as f:
-            writer = csv.writer(f, lineterminator="\n")
-            writer.writerow(INDEX_COLUMNS)
-            writer.writerows(rows)
-        os.replace(tmp, index_path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with naming_write_errors(index_path, "the previous index, if any, is unchanged"):
+        fd, tmp = tempfile.mkstemp(prefix=".index-", suffix=".csv.tmp", dir=out_dir)
+        try:
+            with os.fdopen(fd, "w", newline="") as f:
+                writer = csv.writer(f, lineterminator="\n")
+                writer.writerow(INDEX_COLUMNS)
+                writer.writerows(rows)
+            os.replace(tmp, index_path)
+        except BaseException:
+            Path(tmp).unlink(missing_ok=True)
+            raise
     return index_path

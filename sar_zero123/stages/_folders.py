@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import os
+import shutil
 from collections.abc import Iterable, Iterator, Mapping
 from contextlib import contextmanager
 from pathlib import Path
@@ -17,7 +18,7 @@ from typing import Any
 from accelerate import PartialState
 from accelerate.utils import parse_flag_from_env
 
-from sar_zero123.training.run_folder import RUN_RECORD, RunFolder, open_run_folder
+from sar_zero123.training.run_folder import RunFolder, open_run_folder
 
 logger = logging.getLogger(__name__)
 
@@ -85,13 +86,14 @@ def open_stage_folder(
 
 @contextmanager
 def withdrawn_if_setup_fails(folder: RunFolder) -> Iterator[None]:
-    """Around a stage's setup: a new run whose setup raises (a missing encoder, a protocol the data lacks)
-    leaves no record, so the corrected command starts it instead of being refused for differing from a run
-    that never began.
+    """Around a stage's setup: a new run whose setup raises (a missing encoder, a protocol the data lacks, a
+    batch the data cannot fill) leaves no record and nothing else it wrote there (the simulated data cache,
+    ``logs/``), so the corrected command starts it instead of being refused for differing from a run that
+    never began (issue 39 item 11).
 
-    Only the record of a folder opened empty (``status == "new"``) is withdrawn, and only when the setup
-    wrote nothing else there (empty folders it made, such as ``logs/``, are removed too). A setup that wrote
-    files keeps its record, so that nothing in the folder is mixed with another run's.
+    Only a folder opened empty (``status == "new"``) is withdrawn: it was empty (or absent) when opened and
+    its writer lock kept other processes out, so everything in it is this setup's. A continued run keeps
+    everything.
     """
     try:
         yield
@@ -102,10 +104,12 @@ def withdrawn_if_setup_fails(folder: RunFolder) -> Iterator[None]:
 
 
 def _withdraw(path: Path) -> None:
-    entries = list(path.rglob("*"))
-    if [p for p in entries if not p.is_dir()] != [path / RUN_RECORD]:
+    """Remove what a failed setup wrote into ``path`` (a folder opened empty), keeping the folder."""
+    if not path.is_dir():
         return
-    (path / RUN_RECORD).unlink()
-    for directory in sorted((p for p in entries if p.is_dir()), key=lambda p: len(p.parts), reverse=True):
-        directory.rmdir()
-    logger.info("%s: the run failed before it began; its record was withdrawn", path)
+    for entry in path.iterdir():
+        if entry.is_dir() and not entry.is_symlink():
+            shutil.rmtree(entry, ignore_errors=True)
+        else:
+            entry.unlink(missing_ok=True)
+    logger.info("%s: the run failed before it began; its record and setup files were withdrawn", path)

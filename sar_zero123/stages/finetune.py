@@ -76,6 +76,7 @@ from sar_zero123.training.run_state import (
     check_finite_step,
     check_resume_config,
     check_resume_state,
+    check_resume_steps,
     end_run,
     read_run_state,
     resolve_resume_checkpoint,
@@ -324,6 +325,7 @@ def run_finetune(config: FinetuneConfig) -> Path:
     check_resume_state(resume_path, "train_image_encoder", config.train_image_encoder, default=False)
     extendable = config.extendable_fields()
     check_resume_config(resume_path, config, may_differ=("guidance_scale", "restart", *extendable))
+    check_resume_steps(resume_path, config.max_train_steps)
     folder = open_stage_folder(
         output_dir, "finetune", config, data={"data": data_identity(config.data)},
         resume=config.resume_from_checkpoint is not None, restart=config.restart,

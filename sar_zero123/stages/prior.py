@@ -33,6 +33,7 @@ from pathlib import Path
 from typing import Any
 
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
+from sar_zero123.data import train_validation_pairs
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import downsampling_factor
 from sar_zero123.sim.corpus import CORPUS_OPTIONS_FILE, VALIDATION_CLASS, write_prior_corpus
@@ -43,7 +44,7 @@ from sar_zero123.training.run_folder import StageTimer, data_identity, finish_ru
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PriorConfig", "prior_base_config", "prior_vae_config", "run_prior"]
+__all__ = ["PriorConfig", "check_corpus_pairs", "prior_base_config", "prior_vae_config", "run_prior"]
 
 
 @dataclass
@@ -92,6 +93,11 @@ class PriorConfig:
             minimum=1,
         )
         check_minimum(self, "learning_rate", minimum=0, strict=True)
+        if self.num_validation_vehicles >= self.num_vehicles:
+            raise ValueError(
+                f"num_validation_vehicles must be below num_vehicles ({self.num_vehicles}): the others are "
+                f"the training vehicles, got {self.num_validation_vehicles}"
+            )
         depressions = self.depression_range_deg
         if len(depressions) != 2 or not 0 < depressions[0] < depressions[1] < 90:
             raise ValueError(
@@ -236,6 +242,8 @@ def run_prior(config: PriorConfig) -> Path:
     corpus = Path(config.corpus) if config.corpus is not None else out / "corpus"
     with state.main_process_first():  # the others then find its index and skip the stage
         _stage("corpus", (corpus / "index.csv").is_file(), timings, lambda: _write_corpus(config, corpus))
+    # the UNet's batch against the corpus's training pairs, before the VAE stage's minutes
+    check_corpus_pairs(config, corpus, num_processes=state.num_processes)
     # 2. VAE, then 3. the UNet and its pose path across depressions (each done once its record is finished)
     vae_config = prior_vae_config(config, corpus)
     vae = Path(config.vae) if config.vae is not None else Path(vae_config.output_dir) / "vae"
@@ -252,6 +260,32 @@ def run_prior(config: PriorConfig) -> Path:
     state.wait_for_everyone()
     print(f"prior pipeline: {pipeline}")
     return pipeline
+
+
+def check_corpus_pairs(config: PriorConfig, corpus: Path, num_processes: int = 1) -> int:
+    """The UNet stage's training pairs of ``corpus`` (its ``ood-PROCVAL`` training split: the training
+    vehicles' chips outside the validation azimuths), checked against one global batch before the VAE
+    stage; returns their number.
+
+    ``__post_init__`` bounds the batch by every training chip; the validation azimuths (12 intervals of 3
+    deg, about a tenth of the chips) are known only once the corpus's poses are.
+
+    Raises:
+        ValueError: If the pairs cannot fill one global batch, saying how to reuse the corpus written.
+    """
+    train, _, _ = train_validation_pairs(
+        corpus, f"ood-{VALIDATION_CLASS}", Path(config.output_dir) / "base", image_size=config.image_size,
+        seed=config.seed, same_depression=False,
+    )  # fmt: skip
+    global_batch = config.train_batch_size * num_processes
+    if len(train) < global_batch:
+        raise ValueError(
+            f"train_batch_size: the corpus {str(corpus)!r} gives {len(train)} training pairs (the training "
+            f"vehicles' chips outside the validation azimuths), fewer than a global batch of {global_batch}; "
+            f"use train_batch_size <= {len(train) // num_processes} or more vehicles or views. The corpus "
+            f"is kept: pass --corpus {corpus} with another --output_dir to train on it"
+        )
+    return len(train)
 
 
 def _write_corpus(config: PriorConfig, corpus: Path) -> None:

@@ -47,6 +47,7 @@ from sar_zero123.training.run_state import (
     check_finite_state,
     check_finite_step,
     check_resume_config,
+    check_resume_steps,
     end_run,
     resolve_resume_checkpoint,
     resumable_batches,
@@ -331,6 +332,7 @@ def run_vae(config: TrainVAEConfig) -> Path:
     # 1. the checkpoint to continue from (constant LR: max_train_steps may grow), then the run-folder rule
     resume_path = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
     check_resume_config(resume_path, config, may_differ=("max_train_steps", "restart"))
+    check_resume_steps(resume_path, config.max_train_steps)
     folder = open_stage_folder(
         output_dir, "vae", config, data={"data": data_identity(config.data)},
         resume=config.resume_from_checkpoint is not None, restart=config.restart,

@@ -25,7 +25,7 @@ from accelerate import Accelerator
 from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
 from diffusers.training_utils import EMAModel
 
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config import naming_write_errors, write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.model.conditioning import PoseProjection
 from sar_zero123.model.pipeline import SARZero123Pipeline
@@ -231,6 +231,8 @@ def export_finetuned(
             module.eval()
     check_finite_state(export.components, what=str(directory))
     export.to(torch.float32)
-    export.save_pretrained(directory)
-    write_json_atomic(scaling.to_dict(), directory / SCALING_FILE)
+    kept = "the checkpoints are kept and the run is not marked finished; free space and resume to export"
+    with naming_write_errors(directory, kept):
+        export.save_pretrained(directory)
+        write_json_atomic(scaling.to_dict(), directory / SCALING_FILE)
     return directory

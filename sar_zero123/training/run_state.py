@@ -40,7 +40,7 @@ from accelerate import Accelerator
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
-from sar_zero123.config import config_to_dict, write_json_atomic
+from sar_zero123.config import config_to_dict, naming_write_errors, write_json_atomic
 
 logger = logging.getLogger(__name__)
 
@@ -132,17 +132,31 @@ def save_checkpoint(
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
     accelerator.wait_for_everyone()
-    # 2. every process writes its part
-    accelerator.save_state(str(tmp))
-    accelerator.wait_for_everyone()
-    # 3. the main process seals the folder (state, then the manifest of every file, synced to disk) and
-    #    renames it in one step
+    # 2. every process writes its part; 3. the main process seals the folder (state, then the manifest
+    #    of every file, synced to disk) and renames it in one step. A failed write (disk full, a file-size
+    #    limit) removes the partial folder and names it; the earlier checkpoints are untouched.
+    earlier = [path.name for path in list_checkpoints(output_dir)]
+    kept = (
+        f"the partial checkpoint was removed and {', '.join(earlier)} kept; free space and resume with "
+        "--resume_from_checkpoint latest"
+        if earlier
+        else "the partial checkpoint was removed (no earlier checkpoint exists)"
+    )
+    try:
+        with naming_write_errors(tmp, kept):
+            accelerator.save_state(str(tmp))
+            accelerator.wait_for_everyone()
+            if accelerator.is_main_process:
+                write_json_atomic(state, tmp / STATE_FILE)
+                write_manifest(tmp)
+                if final.exists():
+                    shutil.rmtree(final)
+                os.replace(tmp, final)
+    except OSError:
+        if accelerator.is_main_process:
+            shutil.rmtree(tmp, ignore_errors=True)
+        raise
     if accelerator.is_main_process:
-        write_json_atomic(state, tmp / STATE_FILE)
-        write_manifest(tmp)
-        if final.exists():
-            shutil.rmtree(final)
-        os.replace(tmp, final)
         if total_limit is not None:
             for old in list_checkpoints(output_dir)[:-total_limit]:
                 shutil.rmtree(old, ignore_errors=True)
@@ -273,6 +287,31 @@ def read_run_state(path: str | os.PathLike) -> dict[str, Any]:
         raise FileNotFoundError(f"checkpoint {str(path)!r} has no {STATE_FILE}; it is incomplete")
     with state_file.open() as handle:
         return json.load(handle)
+
+
+def check_resume_steps(path: str | os.PathLike | None, max_train_steps: int, field: str = "max_train_steps"):
+    """Refuse to resume a checkpoint already past the run's last step, before the folder's record changes.
+
+    A resume with ``max_train_steps`` below the checkpoint's step would train nothing, export the later
+    checkpoint's weights and record the lower value, misdescribing the run.
+
+    Args:
+        path: The checkpoint to resume (:func:`resolve_resume_checkpoint`), or ``None`` (a fresh run).
+        max_train_steps: The run's last optimisation step.
+        field: The flag's name, for the message.
+
+    Raises:
+        ValueError: If the checkpoint's step exceeds ``max_train_steps`` (naming both).
+    """
+    if path is None:
+        return
+    step = int(read_run_state(path)["step"])
+    if max_train_steps < step:
+        raise ValueError(
+            f"{field}: {max_train_steps} is below the step of the checkpoint to resume ({str(path)!r}, step "
+            f"{step}); nothing would be trained and the record would understate the run. Resume with "
+            f"{field} >= {step}, or start a new run in another folder (or --restart) for a shorter one"
+        )
 
 
 def load_checkpoint(accelerator: Accelerator, path: str | os.PathLike) -> dict[str, Any]:

@@ -586,6 +586,10 @@ def test_resuming_a_constant_lr_run_with_more_steps_continues_it(script, assets,
     before = snapshot(run)
     script.main(one_step_args(assets, run, "--max_train_steps", "2", "--resume_from_checkpoint", "latest"))
     assert snapshot(run) == before
+    # resumed with fewer steps than the checkpoint's: refused before the record changes (issue 39)
+    with pytest.raises(ValueError, match=r"^max_train_steps: 1 is below the step of the checkpoint to resume"):
+        script.main(one_step_args(assets, run, "--max_train_steps", "1", "--resume_from_checkpoint", "latest"))
+    assert snapshot(run) == before
 
 
 def test_gradient_accumulation_beyond_one_epoch_is_refused_with_its_bound(script, assets, tmp_path) -> None:

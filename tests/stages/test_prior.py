@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import dataclasses
 import json
 import math
 from pathlib import Path
@@ -291,3 +292,23 @@ def test_settings_a_later_stage_would_refuse_are_refused_before_the_corpus(tmp_p
         PriorConfig(output_dir=str(tmp_path / "prior"), num_vehicles=6, views_per_vehicle=4,
                     num_validation_vehicles=2, train_batch_size=100000)  # fmt: skip
     assert not (tmp_path / "prior").exists()
+
+
+def test_a_batch_the_corpus_pairs_cannot_fill_is_refused_before_the_vae_keeping_the_corpus(tmp_path: Path):
+    with pytest.raises(ValueError, match=r"num_validation_vehicles must be below num_vehicles \(4\)"):
+        PriorConfig(output_dir=str(tmp_path / "prior"), num_vehicles=4, num_validation_vehicles=4)
+    # 4 training vehicles x 4 views = 16 chips pass the first bound; the validation azimuths take some
+    config = PriorConfig(
+        output_dir=str(tmp_path / "prior"), num_vehicles=8, views_per_vehicle=4, num_validation_vehicles=4,
+        model_size="tiny", vae_widths=[16, 32], train_batch_size=16, corpus_workers=1,
+    )  # fmt: skip
+    from sar_zero123.stages.prior import check_corpus_pairs, run_prior
+
+    refused = (r"train_batch_size: the corpus .*corpus' gives (\d+) training pairs .*fewer than a global "
+               r"batch of 16; use train_batch_size <= \1 .*The corpus is kept: pass --corpus ")
+    with pytest.raises(ValueError, match=refused):
+        run_prior(config)
+    out = tmp_path / "prior"
+    assert sorted(p.name for p in out.iterdir()) == ["config.json", "corpus", "run.json"]  # no VAE stage
+    pairs = check_corpus_pairs(dataclasses.replace(config, train_batch_size=4), out / "corpus")
+    assert 4 <= pairs < 16

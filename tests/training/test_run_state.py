@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import errno
 import re
 from pathlib import Path
 
@@ -16,6 +17,7 @@ from sar_zero123.training.run_state import (
     check_finite_step,
     check_resume_config,
     check_resume_state,
+    check_resume_steps,
     end_run,
     list_checkpoints,
     load_checkpoint,
@@ -291,3 +293,34 @@ def test_resume_step_is_zero_for_a_fresh_run_and_the_checkpoint_step_otherwise(t
     with caplog.at_level("INFO", logger="sar_zero123.training.run_state"):
         assert resume_step(accelerator, path) == 3
     assert "resumed from" in caplog.text and "at step 3" in caplog.text
+
+
+def test_resuming_a_checkpoint_past_max_train_steps_is_refused_naming_both(tmp_path: Path):
+    accelerator, model, optimizer = _setup()
+    path = save_checkpoint(accelerator, tmp_path, 3)
+    check_resume_steps(None, 1)  # a fresh run
+    check_resume_steps(path, 3)  # finished at the checkpoint (e.g. killed during the export): allowed
+    check_resume_steps(path, 5)
+    with pytest.raises(ValueError, match=r"^max_train_steps: 2 is below the step of the checkpoint to resume "
+                                         r"\('.*checkpoint-3', step 3\); nothing would be trained .*"
+                                         r"Resume with max_train_steps >= 3"):  # fmt: skip
+        check_resume_steps(path, 2)
+
+
+def test_a_checkpoint_that_cannot_be_written_is_removed_and_named_keeping_the_earlier(tmp_path, monkeypatch):
+    accelerator, model, optimizer = _setup()
+    save_checkpoint(accelerator, tmp_path, 1)
+
+    def full_disk(folder: str) -> None:
+        (Path(folder) / "model.safetensors").write_bytes(b"partial")
+        raise OSError(errno.ENOSPC, "No space left on device")
+
+    monkeypatch.setattr(accelerator, "save_state", full_disk)
+    named = (r"^\[Errno 28\] could not write '.*checkpoint-2.tmp': No space left on device; the partial "
+             r"checkpoint was removed and checkpoint-1 kept; free space and resume with "
+             r"--resume_from_checkpoint latest$")
+    with pytest.raises(OSError, match=named) as caught:
+        save_checkpoint(accelerator, tmp_path, 2)
+    assert caught.value.errno == errno.ENOSPC
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint-1"]
+    assert verify_checkpoint(tmp_path / "checkpoint-1") is None
