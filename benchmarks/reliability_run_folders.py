@@ -1,14 +1,17 @@
 """Run folders and the newer entry points: retry each bad input as a user would, on one source tree.
 
-    python benchmarks/reliability_run_folders.py <source tree> <output.json>
+    python benchmarks/reliability_run_folders.py <source tree> <output.json> [groups]
 
 ``<source tree>`` is a checkout of this repository (``.`` for this one; an older state:
 ``git archive <commit> | tar -x -C /tmp/before``). Every case runs the tree's own command line in a
 subprocess (``python train/...``, ``python -m sar_zero123...``) on tiny fabricated data in a temporary
 folder, and records the exit status, the last line of its error, whether any file of the folders it was
 pointed at changed, and case-specific facts (rows of an index, the report's total time, seconds before a
-refusal). Flags a tree does not know (``--resume``, ``--restart``) make that case fail with argparse's
-message, which is itself the outcome on that tree. About 5 minutes on 2 CPU cores. Results:
+refusal). ``groups`` (comma-separated: ``overwrite``, ``lying_report``, ``late_refusal``, ``unbounded_work``,
+``accepted_nonsense``, ``unclear_error``, ``issue39``) runs only those; ``RELIABILITY_THREADS`` sets each
+command's torch threads (default 2). Flags a tree does not know (``--resume``, ``--restart``) make that
+case fail with argparse's message, which is itself the outcome on that tree. About 5 minutes on 2 CPU
+cores (``issue39`` alone: about 4). Results:
 ``docs/results/reliability.md``.
 """
 
@@ -17,6 +20,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import resource
 import shutil
 import subprocess
 import sys
@@ -25,35 +29,57 @@ import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from PIL import Image
 
 ROOT = Path(sys.argv[1]).resolve() if len(sys.argv) > 1 else Path(".").resolve()
 OUTPUT = Path(sys.argv[2]) if len(sys.argv) > 2 else Path("reliability_run_folders.json")
+#: Groups to run (comma-separated third argument, e.g. ``issue39``); all by default.
+GROUPS = set(sys.argv[3].split(",")) if len(sys.argv) > 3 else None
+THREADS = os.environ.get("RELIABILITY_THREADS", "2")  # torch threads of each command
 TMP = Path(tempfile.mkdtemp(prefix="runfolders-"))
 RESULTS: dict[str, dict] = {}
 SMOKE = ["--preset", "smoke"]
 
 
-def run(args: Sequence[str], timeout: float = 300.0) -> dict:
-    """Runs ``python <args>`` in the tree; exit status, seconds and the last line of stderr."""
-    env = {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": "2"}
+def environment() -> dict[str, str]:
+    return {**os.environ, "PYTHONPATH": str(ROOT), "PYTHONWARNINGS": "ignore", "OMP_NUM_THREADS": THREADS}
+
+
+def run(
+    args: Sequence[str], timeout: float = 300.0, cwd: Path | None = None, max_file_bytes: int | None = None
+) -> dict:
+    """Runs ``python <args>`` in the tree (or in ``cwd``, the tree on ``PYTHONPATH``), each file it writes
+    limited to ``max_file_bytes`` when given; exit status, seconds and the last line of stderr."""
     begin = time.perf_counter()
+
+    def limit_files() -> None:  # in the child: a write beyond the limit fails with EFBIG
+        resource.setrlimit(
+            resource.RLIMIT_FSIZE, (max_file_bytes, resource.getrlimit(resource.RLIMIT_FSIZE)[1])
+        )
+
     try:
         done = subprocess.run(
-            [sys.executable, *args], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
-        )
+            [sys.executable, *args], cwd=cwd or ROOT, env=environment(), capture_output=True, text=True,
+            timeout=timeout, preexec_fn=limit_files if max_file_bytes is not None else None,
+        )  # fmt: skip
     except subprocess.TimeoutExpired:
         return {"rc": None, "seconds": timeout, "error": f"still running after {timeout:.0f} s (killed)"}
-    lines = [line for line in done.stderr.splitlines() if line.strip() and not line.startswith(" ")]
+    return outcome(done.returncode, done.stdout, done.stderr, time.perf_counter() - begin)
+
+
+def outcome(rc: int, stdout: str, stderr: str, seconds: float) -> dict:
+    """A finished command's exit status, last output line, seconds and last error line."""
+    lines = [line for line in stderr.splitlines() if line.strip() and not line.startswith(" ")]
     errors = [line for line in lines if "Error" in line.split(":")[0] or line.startswith("usage:")]
     last = errors[-1] if errors else ""
-    output = done.stdout.strip().splitlines()
+    output = stdout.strip().splitlines()
     return {
-        "rc": done.returncode,
+        "rc": rc,
         "stdout_last_line": (output[-1] if output else "").replace(str(TMP), "…")[:120],
-        "seconds": round(time.perf_counter() - begin, 1),
+        "seconds": round(seconds, 1),
         "error": last.replace(str(TMP), "…")[:300],
     }
 
@@ -73,9 +99,10 @@ def case(
     watch: Sequence[Path] = (),
     facts: Callable[[], dict] | None = None,
     timeout: float = 300.0,
+    **options: Any,
 ) -> None:
     before = snapshot(*watch)
-    result = run(args, timeout)
+    result = run(args, timeout, **options)
     if watch:
         result["files_changed"] = snapshot(*watch) != before
     if facts is not None:
@@ -323,16 +350,246 @@ def unclear_error_cases(folders: Folders) -> None:
     )
 
 
+def issue39_cases(folders: Folders) -> None:
+    """Issue 39: two writers, swapped parts, unclear errors and refusals that come after work was done."""
+    pipeline, data, chip = folders.pipeline, folders.data, next((folders.data / "chips").rglob("*.npy"))
+    # 1. a pipeline whose VAE is another model's (the bundled prior's: 64 px chips, the smoke model's 32)
+    swapped = TMP / "swapped"
+    shutil.copytree(pipeline, swapped)
+    shutil.rmtree(swapped / "vae")
+    shutil.copytree(ROOT / "sar_zero123" / "pretrained" / "sim_prior" / "vae", swapped / "vae")
+    case(
+        "1. evaluate a pipeline whose vae/ was copied from another pipeline",
+        [*folders.evaluate[:2], str(swapped), *folders.evaluate[3:], "--output_dir", str(TMP / "ev_swapped")],
+        facts=lambda: {"scored": (TMP / "ev_swapped" / "table3.json").is_file()},
+    )
+    # 2. augment_dataset killed before its index, resumed after the pipeline folder was replaced
+    weights = TMP / "aug_pipeline"
+    shutil.copytree(pipeline, weights)
+    augment = [
+        "-m",
+        "sar_zero123.augment_dataset",
+        "--data",
+        str(data),
+        "--pipeline",
+        str(weights),
+        "--out",
+        str(TMP / "aug"),
+        "--d_az",
+        "30",
+        "--max_chips_per_class",
+        "1",
+        "--num_inference_steps",
+        "2",
+    ]
+    run(augment)
+    for name in ("index.csv", "provenance.csv"):  # what a kill before the last writes leaves
+        (TMP / "aug" / name).unlink(missing_ok=True)
+    shutil.rmtree(weights)
+    shutil.copytree(folders.quick / "finetune_lambda4" / "pipeline", weights)
+    case(
+        "2. augment_dataset killed, resumed after its pipeline folder was replaced",
+        augment,
+        facts=lambda: {"index_written": (TMP / "aug" / "index.csv").is_file()},
+    )
+    # 3. two augment_dataset runs started together into one new --out
+    two = [*augment[:7], str(TMP / "aug_two"), *augment[8:]]
+    two[5] = str(pipeline)
+    begin = time.perf_counter()
+    processes = [
+        subprocess.Popen(
+            [sys.executable, *two],
+            cwd=ROOT,
+            env=environment(),
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for _ in range(2)
+    ]
+    results = [outcome(p.wait(), *p.communicate(), time.perf_counter() - begin) for p in processes]
+    name = "3. two augment_dataset runs started together into one new --out"
+    RESULTS[name] = {
+        "rc": [r["rc"] for r in results],
+        "error": " | ".join(r["error"] for r in results if r["error"]),
+        "seconds": max(r["seconds"] for r in results),
+    }
+    print(f"{name}\t{json.dumps(RESULTS[name])}", flush=True)
+    # 4. --restart of a folder that holds the run's --data
+    inside = TMP / "restart_inside"
+    shutil.copytree(data, inside / "data")
+    (inside / "note.txt").write_text("an earlier run\n")
+    case(
+        "4. finetune --restart with --output_dir a parent of --data",
+        [*finetune_args(inside / "data", inside), "--restart"],
+        facts=lambda: {"data_in_place": (inside / "data" / "index.csv").is_file()},
+    )
+    # 5. an unknown bundled name
+    case(
+        "5. generate --pipeline sar-zero123/nope",
+        generate_args(Path("sar-zero123/nope"), chip, ["30"], TMP / "gen_nope"),
+    )
+    # 6. the smoke quickstart at seeds 1 and 2
+    for seed in ("1", "2"):
+        out = TMP / f"smoke_seed{seed}"
+        case(
+            f"6. quickstart --preset smoke --seed {seed}",
+            ["train/quickstart.py", "--output_dir", str(out), *SMOKE, "--seed", seed],
+            facts=lambda out=out: {
+                "stages_written": sorted(p.name for p in out.iterdir()) if out.exists() else []
+            },
+            timeout=600,
+        )
+    # 7. --output_dir . --restart, run inside a finished run (never in the tree itself)
+    dot = TMP / "dot"
+    run(finetune_args(data, dot))
+    case(
+        "7. finetune --output_dir . --restart (run inside the folder)",
+        [str(ROOT / "train" / "finetune_pfm.py"), *finetune_args(data, Path("."))[1:], "--restart"],
+        cwd=dot,
+        facts=lambda: {"folder_in_place": (dot / "run.json").is_file()},
+    )
+    # 8. a --corpus folder that is not a prior corpus
+    case(
+        "8. pretrain_prior --corpus <a dataset that is not a prior corpus>",
+        [
+            "train/pretrain_prior.py",
+            "--output_dir",
+            str(TMP / "prior_nc"),
+            "--corpus",
+            str(data),
+            "--base_steps",
+            "2",
+            "--vae_steps",
+            "2",
+        ],
+        facts=lambda: {
+            "written": sorted(p.name for p in (TMP / "prior_nc").iterdir())
+            if (TMP / "prior_nc").exists()
+            else []
+        },
+    )
+    # 9. a meta tensor
+    case(
+        "9. pipe(torch.empty(1, 1, 32, 32, device='meta'), 30)",
+        [
+            "-c",
+            "import torch; from sar_zero123.model.pipeline import SARZero123Pipeline as P; "
+            f"p = P.from_pretrained({str(pipeline)!r}); p(torch.empty(1, 1, 32, 32, device='meta'), 30.0, "
+            "num_inference_steps=2)",
+        ],
+    )
+    # 10. settings a later stage refuses
+    for name, args in (
+        (
+            "quickstart --override image_size=30",
+            ["train/quickstart.py", *SMOKE, "--override", "image_size=30"],
+        ),
+        (
+            "quickstart --override prior=/nonexistent",
+            ["train/quickstart.py", *SMOKE, "--override", "prior=/nonexistent"],
+        ),
+        ("pretrain_prior --model_size tiny", ["train/pretrain_prior.py", "--model_size", "tiny"]),
+        ("pretrain_prior --image_size 30", ["train/pretrain_prior.py", "--image_size", "30"]),
+        (
+            "pretrain_prior --train_batch_size 100000",
+            ["train/pretrain_prior.py", "--train_batch_size", "100000"],
+        ),
+    ):
+        out = TMP / f"late10_{len(RESULTS)}"
+        small = (
+            [
+                "--num_vehicles",
+                "8",
+                "--views_per_vehicle",
+                "4",
+                "--num_validation_vehicles",
+                "2",
+                "--vae_steps",
+                "2",
+                "--base_steps",
+                "2",
+            ]
+            if "pretrain_prior" in name
+            else []
+        )
+        case(
+            f"10. {name}",
+            [*args, *small, "--output_dir", str(out)],
+            timeout=600,
+            facts=lambda out=out: {"written": sorted(p.name for p in out.iterdir()) if out.exists() else []},
+        )
+    # 11. a run refused at its start, then the corrected command
+    refused = TMP / "refused"
+    run([*finetune_args(data, refused), "--train_batch_size", "100000"])
+    case(
+        "11. finetune refused (--train_batch_size 100000), then the corrected command",
+        finetune_args(data, refused),
+        facts=lambda: {
+            "finished": json.loads((refused / "run.json").read_text()).get("finished")
+            if (refused / "run.json").is_file()
+            else None
+        },
+    )
+    prior = TMP / "prior11"
+    prior_args = [
+        "train/pretrain_prior.py",
+        "--output_dir",
+        str(prior),
+        "--num_vehicles",
+        "8",
+        "--views_per_vehicle",
+        "4",
+        "--num_validation_vehicles",
+        "4",
+        "--model_size",
+        "tiny",
+        "--vae_widths",
+        "16",
+        "32",
+        "--vae_steps",
+        "2",
+        "--base_steps",
+        "2",
+        "--corpus_workers",
+        "1",
+    ]
+    case(
+        "11. pretrain_prior whose batch (16) the corpus's training pairs cannot fill",
+        prior_args,
+        timeout=600,
+        facts=lambda: {"written": sorted(p.name for p in prior.iterdir())},
+    )
+    # minor: resumed with fewer steps than the checkpoint's; a file-size limit while writing a checkpoint
+    steps = TMP / "steps"
+    run([*finetune_args(data, steps), "--checkpointing_steps", "2"])
+    case(
+        "minor. finetune resumed with --max_train_steps 1 below its checkpoint-2",
+        [*finetune_args(data, steps), "--max_train_steps", "1", "--resume_from_checkpoint", "latest"],
+        [steps],
+        facts=lambda: {
+            "recorded_max_train_steps": json.loads((steps / "run.json").read_text())["config"][
+                "max_train_steps"
+            ]
+        },
+    )
+    case(
+        "minor. finetune writing its checkpoint past a 200 kB file-size limit",
+        [*finetune_args(data, TMP / "fsize"), "--checkpointing_steps", "1"],
+        max_file_bytes=200_000,
+        facts=lambda: {"left": sorted(p.name for p in (TMP / "fsize").iterdir())},
+    )
+
+
 def main() -> None:
     # 1. the finished smoke quickstart every case starts from
     folders = run_smoke_quickstart()
     # 2. the cases, group by group, in the order of the results
-    overwrite_cases(folders)
-    lying_report_cases(folders)
-    late_refusal_cases()
-    unbounded_work_cases(folders)
-    accepted_nonsense_cases(folders)
-    unclear_error_cases(folders)
+    groups = [overwrite_cases, lying_report_cases, late_refusal_cases, unbounded_work_cases,
+              accepted_nonsense_cases, unclear_error_cases, issue39_cases]  # fmt: skip
+    for group in groups:
+        if GROUPS is None or group.__name__.removesuffix("_cases") in GROUPS:
+            group(*([] if group is late_refusal_cases else [folders]))
     # 3. the results
     OUTPUT.write_text(json.dumps({"tree": str(ROOT), "results": RESULTS}, indent=2) + "\n")
     shutil.rmtree(TMP, ignore_errors=True)

@@ -15,6 +15,7 @@ the model config.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -31,6 +32,8 @@ __all__ = [
     "POSE_DIM",
     "PoseProjection",
     "SPATIAL_POSE_MODES",
+    "VAE_SIGNATURE_FIELDS",
+    "check_vae_signature",
     "condition_channels",
     "embed_pose",
     "encode_condition_latents",
@@ -40,6 +43,7 @@ __all__ = [
     "match_channels",
     "rotate_condition_latents",
     "unet_condition_latents",
+    "vae_signature",
 ]
 
 #: Size of the zero-1-to-3 relative-pose vector ``[d_el_rad, sin d_az, cos d_az, d_radius]``.
@@ -149,6 +153,44 @@ def embed_pose(
     return pose.to(torch.float32).unsqueeze(1)  # (B, 1, 4)
 
 
+#: The VAE config fields a trained model depends on (:func:`vae_signature`).
+VAE_SIGNATURE_FIELDS = ("sample_size", "block_out_channels", "latent_channels", "scaling_factor")
+
+
+def vae_signature(vae_config: Any) -> dict[str, Any]:
+    """The fields of a VAE config (an ``AutoencoderKL.config`` or a mapping) that a model trained on its
+    latents depends on, JSON-ready: the chip size, the block widths (the downsampling factor), the latent
+    channels and the latent scaling factor."""
+    get = vae_config.get if isinstance(vae_config, dict) else lambda name: getattr(vae_config, name, None)
+    signature = {}
+    for name in VAE_SIGNATURE_FIELDS:
+        value = get(name)
+        signature[name] = list(value) if isinstance(value, list | tuple) else value
+    return signature
+
+
+def check_vae_signature(vae_config: Any, trained_vae: dict[str, Any] | None, name: str = "vae") -> None:
+    """Refuse a VAE whose shape differs from the one a model was trained with (``trained_vae``, recorded
+    in its ``pose_projection`` config); ``None`` (not recorded) accepts any.
+
+    Raises:
+        ValueError: Naming every field that differs with both values.
+    """
+    if trained_vae is None:
+        return
+    actual = vae_signature(vae_config)
+    differences = [
+        f"{field} {actual[field]!r} (the model was trained with {trained_vae[field]!r})"
+        for field in VAE_SIGNATURE_FIELDS
+        if field in trained_vae and actual[field] != trained_vae[field]
+    ]
+    if differences:
+        raise ValueError(
+            f"{name}: " + "; ".join(differences) + ": the vae comes from another model than the unet "
+            "(pose_projection.config.trained_vae records the one it was trained with)"
+        )
+
+
 class PoseProjection(ModelMixin, ConfigMixin):
     """Linear map of ``[image_embedding, pose]`` to the UNet's cross-attention token (zero-1-to-3's
     ``cc_projection``).
@@ -175,6 +217,9 @@ class PoseProjection(ModelMixin, ConfigMixin):
             target's footprint lies (the UNet then has ``3 * latent_channels`` input channels).
         rotation_sign: ``+1`` or ``-1``: the image-plane turn per degree of ``d_az`` in the training
             data's azimuth convention (``-1`` for the built-in simulator, :data:`SIMULATOR_ROTATION_SIGN`).
+        trained_vae: The shape of the VAE the model was trained with (:func:`vae_signature`: chip size,
+            block widths, latent channels, scaling factor), or ``None`` (unknown: pipelines saved before
+            the field existed, zero-1-to-3 checkpoints); a pipeline refuses a VAE of another shape.
 
     Raises:
         ValueError: If ``in_features <= 4``, ``out_features < 1``, a range is not ``[min, max]``,
@@ -191,6 +236,7 @@ class PoseProjection(ModelMixin, ConfigMixin):
         trained_depression_deg: list[float] | None = None,
         spatial_pose: str | None = None,
         rotation_sign: int = SIMULATOR_ROTATION_SIGN,
+        trained_vae: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
         if spatial_pose not in SPATIAL_POSE_MODES:

@@ -34,6 +34,7 @@ from sar_zero123.model.conditioning import (
     POSE_DIM,
     PoseProjection,
     as_angle_tensor,
+    check_vae_signature,
     condition_channels,
     downsampling_factor,
     embed_pose,
@@ -166,6 +167,7 @@ class SARZero123Pipeline(DiffusionPipeline):
                 f"{unet.config.out_channels}: the unet and the vae come from different models"
             )
         check_vae_image_size(vae, unet)
+        check_vae_signature(vae.config, getattr(pose_projection.config, "trained_vae", None))
         if pose_projection.config.in_features != image_encoder.config.projection_dim + POSE_DIM:
             raise ValueError(
                 f"`pose_projection.config.in_features` must be image_encoder projection_dim + {POSE_DIM} = "

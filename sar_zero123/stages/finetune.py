@@ -48,7 +48,7 @@ from sar_zero123.data import (
 )
 from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.model.build import load_sar_zero123, record_trained_pose_ranges
-from sar_zero123.model.conditioning import SPATIAL_POSE_MODES
+from sar_zero123.model.conditioning import SPATIAL_POSE_MODES, vae_signature
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.progress import progress_bar
 from sar_zero123.sim.corpus import CORPUS_OPTIONS_FILE, VALIDATION_CLASS
@@ -391,6 +391,7 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> _Inputs:
         same_depression=config.same_depression,
     )
     record_trained_pose_ranges(pipe.pose_projection, train_dataset)
+    pipe.pose_projection.register_to_config(trained_vae=vae_signature(pipe.vae.config))  # refused if swapped
     rehearsal = None
     if config.rehearsal_data is not None and config.rehearsal_fraction > 0:
         rehearsal, _, _ = train_validation_pairs(

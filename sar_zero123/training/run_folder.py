@@ -231,17 +231,19 @@ def _inputs_inside(folder: Path, identity: Mapping[str, Any], config: Mapping[st
     """The inputs (data paths of ``identity``, config fields naming existing paths) inside ``folder``."""
     root = folder.resolve()
     named: list[tuple[str, Any]] = [
-        (f"data {key}", value.get("path")) for key, value in identity.items() if isinstance(value, Mapping)
+        (key, value.get("path")) for key, value in identity.items() if isinstance(value, Mapping)
     ]
     if "path" in identity:
         named.append(("data", identity["path"]))
     for key, value in config.items():
         if key not in _OUTPUT_FIELDS:
             named += [(key, item) for item in (value if isinstance(value, list | tuple) else [value])]
-    inside = []
+    inside, seen = [], set()
     for name, value in named:
         if isinstance(value, str) and value and Path(value).exists():
-            if Path(value).resolve().is_relative_to(root):
+            resolved = Path(value).resolve()
+            if resolved.is_relative_to(root) and resolved not in seen:  # each input once, by its path
+                seen.add(resolved)
                 inside.append(f"{name}: {value}")
     return inside
 

@@ -376,6 +376,33 @@ def test_a_vae_or_unet_from_another_model_is_refused_at_load(pipe, tmp_path):
     SARZero123Pipeline.from_pretrained(tmp_path / "ok")  # the untouched folder still loads
 
 
+def test_a_vae_of_another_shape_than_the_one_trained_with_is_refused_even_when_sizes_agree(pipe, tmp_path):
+    """The issue-39 case: another model's VAE that downsamples by 4 at 64 px gives the same 16x16 latents
+    as the 32 px VAE the UNet was trained with; the recorded training VAE refuses it (and names it)."""
+    from diffusers import AutoencoderKL
+
+    from sar_zero123.model.conditioning import vae_signature
+
+    trained = dict(pipe.vae.config)
+    pipe.pose_projection.register_to_config(trained_vae=vae_signature(pipe.vae.config))
+    pipe.save_pretrained(tmp_path / "ok")
+    other = AutoencoderKL(**{**trained, "sample_size": 64, "scaling_factor": 0.5,
+                             "block_out_channels": (*trained["block_out_channels"], 32),
+                             "down_block_types": (*trained["down_block_types"], "DownEncoderBlock2D"),
+                             "up_block_types": (*trained["up_block_types"], "UpDecoderBlock2D")})  # fmt: skip
+    shutil.copytree(tmp_path / "ok", tmp_path / "swapped")
+    shutil.rmtree(tmp_path / "swapped" / "vae")
+    other.save_pretrained(tmp_path / "swapped" / "vae")
+    with pytest.raises(ValueError, match=r"^vae: sample_size 64 \(the model was trained with 32\); "
+                                         r"block_out_channels \[16, 32, 32\] \(the model was trained with "
+                                         r"\[16, 32\]\); scaling_factor 0.5 \(the model was trained with "
+                                         r"0.18215\): the vae comes from another model"):  # fmt: skip
+        SARZero123Pipeline.from_pretrained(tmp_path / "swapped")
+    loaded = SARZero123Pipeline.from_pretrained(tmp_path / "ok")
+    assert loaded.pose_projection.config.trained_vae == vae_signature(pipe.vae.config)
+    pipe.pose_projection.register_to_config(trained_vae=None)  # the module-scoped fixture as it was
+
+
 # ------------------------------------------------------------------------------ save / load
 def test_save_pretrained_from_pretrained_round_trip(pipe, tmp_path):
     reference = run(pipe)

@@ -667,3 +667,12 @@ def test_pfm_window_turns_pfm_off_outside_its_steps(tmp_path) -> None:
         FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder, pfm_start_step=-1)
     with pytest.raises(ValueError, match="pfm_balance"):
         FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder, pfm_balance="auto")
+
+
+def test_the_exported_pipeline_records_the_vae_it_was_trained_with(finished_run) -> None:
+    from sar_zero123.model.conditioning import vae_signature
+
+    pose = json.loads((finished_run / "pipeline" / "pose_projection" / "config.json").read_text())
+    vae = json.loads((finished_run / "pipeline" / "vae" / "config.json").read_text())
+    assert pose["trained_vae"] == vae_signature(vae)
+    assert set(pose["trained_vae"]) == {"sample_size", "block_out_channels", "latent_channels", "scaling_factor"}
