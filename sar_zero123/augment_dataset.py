@@ -64,7 +64,7 @@ from sar_zero123.model.pipeline import (
 from sar_zero123.pretrained import SIM_PRIOR, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.sim.dataset import write_index_atomic
-from sar_zero123.training.run_folder import content_identity, field_defaults
+from sar_zero123.training.run_folder import content_identity, field_defaults, move_aside
 from sar_zero123.training.writer_lock import is_lock_file, lock_output_folder, release_output_folder
 
 __all__ = [
@@ -134,6 +134,8 @@ class AugmentConfig:
     speckle_looks: int | None = None  # re-add L-look log speckle (readd_speckle) in dB, instead of --speckle
     scaling_file: str | None = None  # DecibelScaling JSON (default: <pipeline>/decibel_scaling.json or unit)
     device: str = "cpu"  # torch device
+    resume: bool = True  # continue an out folder holding this augmentation (the default); --no-resume refuses
+    restart: bool = False  # move an existing out folder aside (never deleted) and start anew
 
     def __post_init__(self) -> None:
         if not self.data:
@@ -386,7 +388,8 @@ def _recorded_options(config: AugmentConfig) -> dict[str, Any]:
         options["pipeline"] = str(Path(config.pipeline).resolve())
     if config.scaling_file is not None:
         options["scaling_file"] = str(Path(config.scaling_file).resolve())
-    options.pop("out")
+    for name in ("out", "resume", "restart"):  # where and how it is written, not what
+        options.pop(name)
     # the weights, not the folder name: a resume onto a replaced pipeline would mix two models' views
     folder = resolve_pretrained(config.pipeline)  # refuses an unknown bundled name or a missing folder
     if not folder.is_dir():
@@ -502,7 +505,22 @@ def augment_dataset(config: AugmentConfig) -> Path:
     options = _recorded_options(config)
     check_output_dir(out, "out")
     lock_output_folder(out, "out")  # one writer: a second augmentation into this folder is refused now
+    if config.restart and out.is_dir() and any(not is_lock_file(p) for p in out.iterdir()):
+        paths = {name: options.get(name) for name in ("data", "pipeline", "scaling_file")}
+        root = out.resolve()
+        inside = [name for name, path in paths.items() if path and Path(path).resolve().is_relative_to(root)]
+        if inside:
+            raise ValueError(
+                f"restart: out {str(out)!r} holds this run's inputs ({', '.join(inside)}); moving it aside "
+                "would move them too. Name another out folder, or move the inputs out first"
+            )
+        move_aside(out)
     resuming = _check_out_folder(out, options)
+    if resuming and not config.resume:
+        raise ValueError(
+            f"out: {str(out)!r} already holds this augmentation; continue it (--resume, the default) or pass "
+            "--restart to move it aside"
+        )
     records = load_index(config.data)
     selected = select_records(records, config.classes, config.depressions_deg, config.max_chips_per_class)
     requests = len(config.d_az or config.target_azimuths_deg) * len(config.d_el)

@@ -16,10 +16,11 @@ import inspect
 import json
 import os
 import re
+import sys
 import tempfile
 import types
 import typing
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -135,14 +136,26 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
     return values
 
 
-def parse_config(cls: type[ConfigT], argv: Sequence[str] | None = None) -> ConfigT:
+def parse_config(
+    cls: type[ConfigT],
+    argv: Sequence[str] | None = None,
+    *,
+    prog: str | None = None,
+    aliases: Mapping[str, str] | None = None,
+) -> ConfigT:
     """Build a config dataclass from ``--config FILE`` and command-line flags.
 
-    Precedence: dataclass defaults < values in ``--config`` < flags.
+    Precedence: dataclass defaults < values in ``--config`` < flags. Every field is ``--field_name``
+    (``--field-name`` too). A config with ``resume_from_checkpoint`` and no ``resume`` field also takes
+    ``--resume``, the same as ``--resume_from_checkpoint latest``, so that every stage continues a run
+    with ``--resume``.
 
     Args:
         cls: a dataclass whose fields all have defaults.
         argv: the arguments (without the program name); ``None`` reads ``sys.argv``.
+        prog: the command's name in usage lines (``None``: the script's file name).
+        aliases: older flag names of fields (``{"--azimuth-step": "azimuth_step_deg"}``), still accepted
+            and not shown in ``--help``.
 
     Returns:
         An instance of ``cls`` (its ``__post_init__`` has validated it).
@@ -158,7 +171,7 @@ def parse_config(cls: type[ConfigT], argv: Sequence[str] | None = None) -> Confi
     hints = typing.get_type_hints(cls)
     comments = _field_comments(cls)
     summary = (cls.__doc__ or "").strip().splitlines()
-    parser = argparse.ArgumentParser(description=summary[0] if summary else None)
+    parser = argparse.ArgumentParser(prog=prog, description=summary[0] if summary else None)
     parser.add_argument(
         "--config", default=None, help="YAML or JSON file with field values (flags override it)"
     )
@@ -167,6 +180,19 @@ def parse_config(cls: type[ConfigT], argv: Sequence[str] | None = None) -> Confi
         default = field.default if field.default is not dataclasses.MISSING else field.default_factory()  # type: ignore[misc]
         help_text = f"{comments.get(field.name, '')} (default: {default!r})".strip()
         _add_field(parser, field, hints[field.name], help_text)
+    names = {field.name for field in fields}
+    if "resume_from_checkpoint" in names and "resume" not in names:
+        parser.add_argument(
+            "--resume", dest="resume_from_checkpoint", action="store_const", const="latest",
+            default=argparse.SUPPRESS,
+            help="continue the run in the output folder from its newest intact checkpoint (the same as "
+            "--resume_from_checkpoint latest)",
+        )  # fmt: skip
+    if aliases:
+        unknown_targets = sorted(set(aliases.values()) - names)
+        if unknown_targets:
+            raise TypeError(f"aliases name fields {unknown_targets} that {cls.__name__} does not have")
+        argv = _rename_flags(sys.argv[1:] if argv is None else argv, aliases)
     namespace = vars(parser.parse_args(argv))
     config_path = namespace.pop("config")
     values: dict[str, Any] = {}
@@ -186,6 +212,17 @@ def parse_config(cls: type[ConfigT], argv: Sequence[str] | None = None) -> Confi
         if hasattr(config, name) and getattr(config, name) is not None:
             check_output_dir(getattr(config, name), name)
     return config
+
+
+def _rename_flags(argv: Sequence[str], aliases: Mapping[str, str]) -> list[str]:
+    """``argv`` with each older flag (``--old`` or ``--old=value``) renamed to its field's flag."""
+    renamed = []
+    for token in argv:
+        flag, equals, value = token.partition("=")
+        if flag in aliases:
+            token = f"--{aliases[flag]}{equals}{value}"
+        renamed.append(token)
+    return renamed
 
 
 def check_minimum(

@@ -12,25 +12,18 @@ settings (or redoes an unfinished one), `--restart` moves the old run aside.
 
 from __future__ import annotations
 
-import logging
 from collections.abc import Sequence
 from typing import Any
 
-from sar_zero123.config import parse_config
+from sar_zero123 import cli
 from sar_zero123.evaluation.protocol import SCHEDULERS
-from sar_zero123.stages.evaluate import EvaluateConfig, load_evaluation, run_evaluate
 
 __all__ = ["SCHEDULERS", "main"]
 
 
-
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Runs the evaluation; returns `{"table3": ..., "speed_error": [...]}` as written to disk."""
-    config = parse_config(EvaluateConfig, argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-    folder = run_evaluate(config)
-    print((folder / "table3.md").read_text())
-    return load_evaluation(folder)
+    return cli.evaluate(argv)
 
 
 if __name__ == "__main__":

@@ -13,16 +13,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from sar_zero123.config import parse_config
-from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
+from sar_zero123 import cli
+from sar_zero123.stages.finetune import FinetuneConfig
 
 __all__ = ["FinetuneConfig", "main"]
 
 
-
 def main(argv: Sequence[str] | None = None) -> Path:
     """Run a fine-tune; returns the run folder."""
-    return run_finetune(parse_config(FinetuneConfig, argv))
+    return cli.finetune(argv)
 
 
 if __name__ == "__main__":

@@ -15,15 +15,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from sar_zero123.config import parse_config
-from sar_zero123.stages.prior import PriorConfig, run_prior
+from sar_zero123 import cli
+from sar_zero123.stages.prior import PriorConfig
 
 __all__ = ["PriorConfig", "main"]
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
     """Run (or resume) the three stages; returns the prior's pipeline folder."""
-    return run_prior(parse_config(PriorConfig, argv))
+    return cli.prior(argv)
 
 
 if __name__ == "__main__":

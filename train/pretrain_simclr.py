@@ -11,21 +11,18 @@ with ``--resume_from_checkpoint latest`` and started over only with ``--restart`
 
 from __future__ import annotations
 
-import json
 from collections.abc import Sequence
 from typing import Any
 
-from sar_zero123.config import parse_config
-from sar_zero123.stages.simclr import PretrainSimCLRConfig, run_simclr, select_chips
+from sar_zero123 import cli
+from sar_zero123.stages.simclr import PretrainSimCLRConfig, select_chips
 
 __all__ = ["PretrainSimCLRConfig", "main", "select_chips"]
 
 
-
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Runs SimCLR pretraining; returns the metrics written to `metrics.json`."""
-    output_dir = run_simclr(parse_config(PretrainSimCLRConfig, argv))
-    return json.loads((output_dir / "metrics.json").read_text())
+    return cli.simclr(argv)
 
 
 if __name__ == "__main__":

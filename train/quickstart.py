@@ -35,9 +35,9 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from sar_zero123.config import parse_config
+from sar_zero123 import cli
 from sar_zero123.stages.presets import DEFAULT_PRESET, PRESETS, Preset, QuickstartConfig, apply_overrides
-from sar_zero123.stages.quickstart import plan_stages, run_quickstart
+from sar_zero123.stages.quickstart import plan_stages
 
 __all__ = [
     "DEFAULT_PRESET", "PRESETS", "Preset", "QuickstartConfig", "apply_overrides", "main", "plan_stages",
@@ -46,12 +46,7 @@ __all__ = [
 
 def main(argv: Sequence[str] | None = None) -> Path:
     """Runs the whole chain; returns the path of `report.md`."""
-    import logging
-
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-    report = run_quickstart(parse_config(QuickstartConfig, argv))
-    print(f"report: {report}")
-    return report
+    return cli.quickstart(argv)
 
 
 if __name__ == "__main__":

@@ -10,22 +10,18 @@ continues an unfinished one with the same settings (or returns a finished one), 
 
 from __future__ import annotations
 
-import json
-import logging
 from collections.abc import Sequence
 from typing import Any
 
-from sar_zero123.config import parse_config
-from sar_zero123.stages.synth_to_real import SynthToRealConfig, run_synth_to_real
+from sar_zero123 import cli
+from sar_zero123.stages.synth_to_real import SynthToRealConfig
 
 __all__ = ["SynthToRealConfig", "main"]
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Builds Table II; returns the dict written to `table2.json`."""
-    config = parse_config(SynthToRealConfig, argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    return json.loads((run_synth_to_real(config) / "table2.json").read_text())
+    return cli.synth_to_real(argv)
 
 
 if __name__ == "__main__":

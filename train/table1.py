@@ -12,22 +12,18 @@ continues an unfinished one with the same settings (or returns a finished one), 
 
 from __future__ import annotations
 
-import json
-import logging
 from collections.abc import Sequence
 from typing import Any
 
-from sar_zero123.config import parse_config
-from sar_zero123.stages.table1 import Table1Config, format_markdown, plot_tsne, run_table1
+from sar_zero123 import cli
+from sar_zero123.stages.table1 import Table1Config, format_markdown, plot_tsne
 
 __all__ = ["Table1Config", "format_markdown", "main", "plot_tsne"]
 
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Builds Table I; returns the dict written to `table1.json`."""
-    config = parse_config(Table1Config, argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    return json.loads((run_table1(config) / "table1.json").read_text())
+    return cli.table1(argv)
 
 
 if __name__ == "__main__":

@@ -10,26 +10,13 @@ with the same settings (or returns a finished one), `--restart` moves the old ru
 
 from __future__ import annotations
 
-import json
-import logging
-
-from sar_zero123.config import parse_config
-from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, run_evaluators
+from sar_zero123 import cli
 
 
 def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     """Trains classifier, regressor, probes and depression regressor; returns `{name: test metrics}` as
     written to `metrics.json`."""
-    config = parse_config(TrainEvaluatorsConfig, argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
-    folder = run_evaluators(config)
-    results = json.loads((folder / "metrics.json").read_text())["models"]
-    for name, metrics in results.items():
-        summary = ", ".join(
-            f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in metrics.items()
-        )
-        print(f"{name}: {summary}")
-    return results
+    return cli.evaluators(argv)
 
 
 if __name__ == "__main__":

@@ -13,16 +13,15 @@ from __future__ import annotations
 from collections.abc import Sequence
 from pathlib import Path
 
-from sar_zero123.config import parse_config
-from sar_zero123.stages.vae import TrainVAEConfig, VAEObjective, build_vae, reconstruct, run_vae
+from sar_zero123 import cli
+from sar_zero123.stages.vae import TrainVAEConfig, VAEObjective, build_vae, reconstruct
 
 __all__ = ["TrainVAEConfig", "VAEObjective", "build_vae", "main", "reconstruct"]
 
 
-
 def main(argv: Sequence[str] | None = None) -> Path:
     """Train the VAE; returns the run folder (the model is in ``output_dir/vae``)."""
-    return run_vae(parse_config(TrainVAEConfig, argv))
+    return cli.vae(argv)
 
 
 if __name__ == "__main__":

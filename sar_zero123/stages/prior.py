@@ -77,6 +77,7 @@ class PriorConfig:
     checkpointing_steps: int = 1000  # resumable checkpoint interval of the VAE and UNet stages
     mixed_precision: str = "no"  # accelerate mixed precision of both training stages ("bf16" on GPUs)
     seed: int = 0  # seed of the corpus and of every stage
+    resume: bool = True  # continue a run in output_dir with these settings (default); --no-resume refuses it
     restart: bool = False  # move an existing run in output_dir aside (never deleted) and start over
 
     def __post_init__(self) -> None:
@@ -225,8 +226,9 @@ def run_prior(config: PriorConfig) -> Path:
     out = Path(config.output_dir)
     pipeline = out / "base" / "pipeline"
     folder = open_stage_folder(
-        out, "prior", config, data={"corpus": data_identity(config.corpus)}, resume=not config.restart,
-        restart=config.restart, may_differ=("output_dir", "restart", "corpus_workers", "checkpointing_steps"),
+        out, "prior", config, data={"corpus": data_identity(config.corpus)},
+        resume=config.resume and not config.restart, restart=config.restart, resume_hint="--resume",
+        may_differ=("output_dir", "resume", "restart", "corpus_workers", "checkpointing_steps"),
         may_extend=("base_steps",),
     )  # fmt: skip
     if folder.finished:

@@ -51,6 +51,7 @@ __all__ = [
     "data_identity",
     "field_defaults",
     "finish_run",
+    "move_aside",
     "open_run_folder",
     "read_run_record",
     "run_differences",
@@ -246,6 +247,15 @@ def _inputs_inside(folder: Path, identity: Mapping[str, Any], config: Mapping[st
                 seen.add(resolved)
                 inside.append(f"{name}: {value}")
     return inside
+
+
+def move_aside(path: Path) -> Path:
+    """Move the folder ``path`` aside to ``<name>.replaced-<UTC time>`` (never deleted); returns the new path.
+
+    Raises:
+        ValueError: If ``path`` is the working directory or holds it.
+    """
+    return _move_aside(path)
 
 
 def _move_aside(path: Path) -> Path:

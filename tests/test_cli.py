@@ -1,0 +1,76 @@
+"""One command-line convention: every entry point is a console script with its stage's config as flags."""
+
+from __future__ import annotations
+
+import dataclasses
+import re
+from pathlib import Path
+
+import pytest
+import tomllib
+
+from sar_zero123 import cli
+from sar_zero123.config import parse_config
+from sar_zero123.stages.finetune import FinetuneConfig
+from sar_zero123.stages.simclr import PretrainSimCLRConfig
+from sar_zero123.stages.simulate import SimulateConfig
+from sar_zero123.stages.vae import TrainVAEConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def test_every_command_is_a_console_script_calling_its_function():
+    scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
+    assert scripts == {command.script: f"sar_zero123.cli:{command.function}" for command in cli.COMMANDS}
+    for command in cli.COMMANDS:
+        assert callable(getattr(cli, command.function))
+        assert command.script == "sar-zero123-" + command.function.replace("_", "-")
+        also = command.also.split()[-1]
+        if also.startswith("train/"):  # the train/ script calls the same function
+            assert f"cli.{command.function}(argv)" in (ROOT / also).read_text()
+
+
+@pytest.mark.parametrize("command", cli.COMMANDS, ids=lambda command: command.script)
+def test_help_lists_every_field_of_the_config_with_underscores(command, capsys):
+    config = cli.config_class(command)
+    with pytest.raises(SystemExit) as done:
+        getattr(cli, command.function)(["--help"])
+    assert done.value.code == 0
+    text = capsys.readouterr().out
+    fields = [field.name for field in dataclasses.fields(config) if field.init]
+    missing = [name for name in fields if not re.search(rf"--{name}\b", text)]
+    assert not missing, f"{command.script} --help lacks {missing}"
+    # every command that writes a run folder continues it with --resume and starts over with --restart
+    assert re.search(r"--resume\b", text) and re.search(r"--restart\b", text)
+
+
+def test_the_readme_command_table_matches_the_commands():
+    readme = (ROOT / "README.md").read_text()
+    table = readme[readme.index("<!-- COMMANDS -->") : readme.index("<!-- /COMMANDS -->")]
+    rows = [line for line in table.splitlines() if line.startswith("| `sar-zero123")]
+    listed = [tuple(cell.strip().strip("`") for cell in row.strip("|").split("|")) for row in rows]
+    expected = [(c.script, c.also, c.stage, c.config.split(":")[1], c.summary) for c in cli.COMMANDS]
+    assert listed == expected
+
+
+def test_resume_is_the_latest_checkpoint_for_training_stages():
+    for config in (FinetuneConfig, TrainVAEConfig, PretrainSimCLRConfig):
+        extra = ["--pfm_weight", "0"] if config is FinetuneConfig else []
+        assert parse_config(config, ["--resume", *extra]).resume_from_checkpoint == "latest"
+        assert parse_config(config, extra).resume_from_checkpoint is None
+
+
+def test_simulate_takes_its_fields_with_underscores_dashes_and_its_older_flags(tmp_path, capsys):
+    from sar_zero123.sim.__main__ import OLDER_FLAGS
+    from sar_zero123.stages.simulate import run_simulate
+
+    new = ["--azimuth_step_deg", "120", "--depressions_deg", "17", "--azimuth-jitter-deg", "0"]
+    old = ["--azimuth-step", "120", "--depressions", "17", "--azimuth-jitter=0"]
+    configs = [
+        parse_config(SimulateConfig, [*flags, "--out", "x"], aliases=OLDER_FLAGS) for flags in (new, old)
+    ]
+    assert configs[0] == configs[1]
+    assert (configs[0].azimuth_step_deg, configs[0].depressions_deg) == (120.0, [17.0])
+    assert run_simulate is not None
+    with pytest.raises(TypeError, match=r"aliases name fields \['nope'\]"):
+        parse_config(SimulateConfig, [], aliases={"--x": "nope"})
