@@ -195,6 +195,25 @@ def test_refuses_a_folder_of_other_options_or_other_files(augmented, data_dir, p
         main(run_args(data_dir, pipeline_dir, other))
 
 
+def test_no_resume_refuses_and_restart_moves_the_folder_aside(augmented, data_dir, pipeline_dir, tmp_path):
+    out = tmp_path / "out"
+    shutil.copytree(augmented, out)
+    with pytest.raises(
+        ValueError, match=r"already holds this augmentation; continue it \(--resume, the default\)"
+    ):
+        main(run_args(data_dir, pipeline_dir, out, "--batch_size", "3", "--no-resume"))
+    assert main(run_args(data_dir, pipeline_dir, out, "--seed", "1", "--restart")) == out  # other options
+    (moved,) = tmp_path.glob("out.replaced-*")
+    assert (moved / "index.csv").read_bytes() == (augmented / "index.csv").read_bytes()
+    assert json.loads((out / AUGMENT_FILE).read_text())["seed"] == 1
+    inside = tmp_path / "inside"
+    shutil.copytree(augmented, inside)
+    shutil.copytree(data_dir, inside / "data")
+    with pytest.raises(ValueError, match=r"restart: out .* holds this run's inputs \(data\)"):
+        main(run_args(inside / "data", pipeline_dir, inside, "--restart"))
+    assert (inside / "data" / "index.csv").is_file()
+
+
 def test_refuses_to_resume_onto_a_pipeline_whose_weights_changed(augmented, data_dir, pipeline_dir, tmp_path):
     pipeline = tmp_path / "pipeline"
     shutil.copytree(pipeline_dir, pipeline)
