@@ -4,6 +4,7 @@ between wings, function-level imports included, and the simulator and the domain
 from __future__ import annotations
 
 import ast
+import re
 from pathlib import Path
 
 import sar_zero123
@@ -93,3 +94,63 @@ def test_simulator_and_domain_import_nothing_above_them():
         if module.startswith("sar_zero123.sim") and not module.endswith(".__main__"):
             outside = {t for t in targets if not t.startswith("sar_zero123.sim")}
             assert outside <= {"sar_zero123.domain"}, (module, outside)
+
+
+def documented_allowed_imports() -> dict[str, set[str]]:
+    """The "Allowed imports" table of docs/ARCHITECTURE.md: wing -> the wings it may import."""
+    text = (PACKAGE.parent / "docs" / "ARCHITECTURE.md").read_text()
+    section = text[text.index("## Allowed imports") :]
+    rows = [line for line in section.splitlines()[:40] if line.startswith("| `")]
+    names = {f"sar_zero123.{name}" for name in _wings_on_disk()}
+    allowed: dict[str, set[str]] = {}
+    for row in rows:
+        left, right = (cell.strip() for cell in row.strip("|").split("|")[:2])
+        wings = [f"sar_zero123.{name}" for name in re.findall(r"`([\w/]+)`", left) if "/" not in name]
+        if not wings:  # train/, benchmarks/: outside the package
+            continue
+        if right.startswith("nothing"):
+            targets: set[str] = set()
+        elif right.startswith("every wing"):
+            targets = set(names)
+        elif right.startswith("any wing above"):
+            excluded = {f"sar_zero123.{name}" for name in re.findall(r"`(\w+)`", right)}
+            targets = set().union(*allowed.values(), *([{w} for w in allowed])) - excluded
+        else:
+            targets = {f"sar_zero123.{name}" for name in re.findall(r"`([\w.]+)`", right)}
+            targets = {".".join(t.split(".")[:2]) for t in targets} & names
+        for name in wings:
+            allowed[name] = targets
+    return allowed
+
+
+def _wings_on_disk() -> set[str]:
+    modules = {path.stem for path in PACKAGE.glob("*.py") if path.stem != "__init__"}
+    return modules | {path.parent.name for path in PACKAGE.glob("*/__init__.py")}
+
+
+def test_every_wing_imports_only_what_the_architecture_table_allows():
+    allowed = documented_allowed_imports()
+    imported: dict[str, set[str]] = {}
+    for module, targets in import_graph().items():
+        if module == "sar_zero123":  # the package's own __init__ (lazy re-exports)
+            continue
+        if module.endswith(".__main__"):  # a command: it may import what its command needs
+            imported.setdefault("sar_zero123.cli", set()).update(wing(t) for t in targets)
+            continue
+        imported.setdefault(wing(module), set()).update(wing(t) for t in targets if wing(t) != wing(module))
+    undocumented = sorted(set(imported) - set(allowed))
+    assert not undocumented, f"wings missing from the table: {undocumented}"
+    breaches = {name: sorted(targets - allowed[name] - {"sar_zero123"}) for name, targets in imported.items()}
+    assert {name: bad for name, bad in breaches.items() if bad} == {}
+
+
+def test_nothing_imports_the_commands_and_benchmarks_never_import_train():
+    for module, targets in import_graph().items():
+        assert "sar_zero123.cli" not in targets or module == "sar_zero123.cli", module
+    for path in (PACKAGE.parent / "benchmarks").glob("*.py"):
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            if isinstance(node, ast.ImportFrom | ast.Import):
+                names = (
+                    [node.module or ""] if isinstance(node, ast.ImportFrom) else [a.name for a in node.names]
+                )
+                assert not any(n == "train" or n.startswith("train.") for n in names), path
