@@ -239,21 +239,9 @@ class FinetuneConfig:
 
     def loss_settings(self) -> LossSettings:
         """The settings of the training step's loss (validated by :class:`LossSettings`)."""
-        return LossSettings(
-            pfm_weight=self.pfm_weight,
-            pfm_min_snr=self.pfm_min_snr,
-            pfm_fraction=self.pfm_fraction,
-            pfm_crop_size=self.pfm_crop_size,
-            pfm_balance=self.pfm_balance,
-            drop_image_prob=self.drop_image_prob,
-            drop_both_prob=self.drop_both_prob,
-            drop_latent_prob=self.drop_latent_prob,
-            timestep_sampling=self.timestep_sampling,
-            timestep_logit_mean=self.timestep_logit_mean,
-            timestep_logit_std=self.timestep_logit_std,
-            snr_gamma=self.snr_gamma,
-            azimuth_loss_weight=self.azimuth_loss_weight,
-        )
+        # built from LossSettings' own field names: a setting added there is read here without a copy
+        names = [item.name for item in dataclasses.fields(LossSettings)]
+        return LossSettings(**{name: getattr(self, name) for name in names})
 
     def loss_settings_at(self, step: int) -> LossSettings:
         """The loss settings of optimisation step ``step`` (0-based): without PFM outside

@@ -518,3 +518,22 @@ def test_pfm_of_a_perfect_prediction_is_the_vae_round_trip_distance(vae, encoder
     matched = total_loss(perfect, perfect, x_t, timesteps, scheduler, pfm_weight=1.0, target_images=decoded,
                          vae=vae, encoder=encoder, pfm_min_snr=0.0)
     torch.testing.assert_close(matched.pfm, torch.zeros(3), atol=2e-5, rtol=0)
+
+
+def test_the_finetune_config_declares_every_loss_setting_and_passes_each_through() -> None:
+    """One name per setting: FinetuneConfig has a field for each LossSettings field, and loss_settings()
+    copies each by name (the defaults differ on purpose: the fine-tune's are the paper's, lambda = 4)."""
+    import dataclasses
+
+    from sar_zero123.stages.finetune import FinetuneConfig
+
+    names = [item.name for item in dataclasses.fields(LossSettings)]
+    config_fields = {item.name for item in dataclasses.fields(FinetuneConfig)}
+    assert set(names) <= config_fields
+    changed = {"pfm_weight": 0.5, "pfm_min_snr": 0.2, "pfm_fraction": 0.5, "pfm_crop_size": 16,
+               "pfm_balance": "adaptive", "drop_image_prob": 0.1, "drop_both_prob": 0.1,
+               "drop_latent_prob": 0.1, "timestep_sampling": "logit_normal", "timestep_logit_mean": 0.3,
+               "timestep_logit_std": 0.7, "snr_gamma": 2.0, "azimuth_loss_weight": 0.5}  # fmt: skip
+    assert set(changed) == set(names)
+    settings = FinetuneConfig(encoder="enc", **changed).loss_settings()
+    assert {name: getattr(settings, name) for name in names} == changed
