@@ -521,10 +521,14 @@ def issue39_cases(folders: Folders) -> None:
         )
     # 11. a run refused at its start, then the corrected command
     refused = TMP / "refused"
-    run([*finetune_args(data, refused), "--train_batch_size", "100000"])
+    builtin = [
+        arg for arg in finetune_args(data, refused) if arg not in ("--data", str(data))
+    ]  # the simulator
+    run([*builtin, "--train_batch_size", "100000"])
     case(
-        "11. finetune refused (--train_batch_size 100000), then the corrected command",
-        finetune_args(data, refused),
+        "11. finetune on the built-in simulator refused (batch 100000), then the corrected command",
+        builtin,
+        timeout=600,
         facts=lambda: {
             "finished": json.loads((refused / "run.json").read_text()).get("finished")
             if (refused / "run.json").is_file()
