@@ -77,8 +77,8 @@ from sar_zero123.config import write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_index, signed_to_unit
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluation.evaluators import SARClassifier, load_evaluator
+from sar_zero123.runs.folder import field_defaults
 from sar_zero123.stages import FinetuneConfig, run_finetune
-from sar_zero123.training.run_folder import field_defaults
 
 logger = logging.getLogger("augmentation_benefit")
 

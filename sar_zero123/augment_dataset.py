@@ -63,9 +63,9 @@ from sar_zero123.model.pipeline import (
 )
 from sar_zero123.pretrained import SIM_PRIOR, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar
+from sar_zero123.runs.folder import content_identity, field_defaults, move_aside
+from sar_zero123.runs.lock import is_lock_file, lock_output_folder, release_output_folder
 from sar_zero123.sim.dataset import write_index_atomic
-from sar_zero123.training.run_folder import content_identity, field_defaults, move_aside
-from sar_zero123.training.writer_lock import is_lock_file, lock_output_folder, release_output_folder
 
 __all__ = [
     "AUGMENT_FILE",

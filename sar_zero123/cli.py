@@ -9,7 +9,7 @@ for all of them:
   read by :func:`sar_zero123.config.parse_config`; ``--config FILE`` (YAML or JSON) sets fields first;
 * every command that writes a run folder continues it with ``--resume`` (training stages: the same as
   ``--resume_from_checkpoint latest``) and moves it aside with ``--restart``; any other use of a folder
-  holding a run is refused, naming each difference (:mod:`sar_zero123.training.run_folder`).
+  holding a run is refused, naming each difference (:mod:`sar_zero123.runs.folder`).
 
 :data:`COMMANDS` is the table the README's command table and a test are checked against.
 """

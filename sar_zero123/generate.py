@@ -8,7 +8,7 @@ Example::
 
 writes, for each requested view ``i``, ``view_{i}_daz{d_az}_del{d_el}.png`` (8-bit, normalised dB) and
 the float32 array ``.npy`` (H, W) in the normalised dB domain, plus ``input.png``, ``contact_sheet.png``
-and the resolved ``config.json``. The output folder follows :mod:`sar_zero123.training.run_folder`: one
+and the resolved ``config.json``. The output folder follows :mod:`sar_zero123.runs.folder`: one
 that holds views made with other settings or from another input file is refused before any work, naming
 each difference; ``--resume`` returns a finished folder with the same settings as it is (and redoes an
 unfinished one), ``--restart`` moves an old folder aside; a bad input chip is refused before anything is
@@ -49,7 +49,7 @@ from sar_zero123.data.splits import TRAIN_DEPRESSION_DEG
 from sar_zero123.model.pipeline import MAX_ABS_D_EL_DEG, MAX_GUIDANCE_SCALE, SARZero123Pipeline
 from sar_zero123.pretrained import SIM_PRIOR, resolve_pretrained
 from sar_zero123.progress import progress_bar
-from sar_zero123.training.run_folder import RunFolder, StageTimer, data_identity, finish_run, open_run_folder
+from sar_zero123.runs.folder import RunFolder, StageTimer, data_identity, finish_run, open_run_folder
 
 __all__ = [
     "DEFAULT_INPUT_DEPRESSION_DEG",

@@ -137,7 +137,7 @@ def run_two_process(tmp_path: Path, gloo_loopback: str | None) -> Callable[..., 
         if returncode != 0:
             outcome = f"timed out after {timeout:.0f} s" if returncode is None else f"exit code {returncode}"
             pytest.fail(f"two-process run failed ({outcome}):\n{output[-3000:]}")
-        # the teardown hazard sar_zero123.training.run_state.end_run guards against, even when the race did
+        # the teardown hazard sar_zero123.runs.checkpoints.end_run guards against, even when the race did
         # not fire
         assert "still referenced when the process group is destroyed" not in output, output[-3000:]
         return output

@@ -2,7 +2,7 @@
 
 ``train/*.py`` parse flags into these configs and call the stage; stages that drive others (the prior,
 the quickstart) build the configs directly. Every stage applies the run-folder rule
-(:mod:`sar_zero123.training.run_folder`) before any work. Names are imported on first use, so that a light
+(:mod:`sar_zero123.runs.folder`) before any work. Names are imported on first use, so that a light
 stage (the simulator) does not load the training stack.
 """
 

@@ -15,7 +15,7 @@ ceilings), ``table4.{json,md}`` (azimuth error under every evaluator backbone), 
 pipeline | target, Fig. 7/8), ``lambda_sweep.png`` (with ``lambdas``, Fig. 12), and with
 ``steps``/``schedulers``: ``speed_error.{json,md,png}`` (azimuth error and accuracy against images/s).
 
-The folder follows :mod:`sar_zero123.training.run_folder`: one holding other work (another stage, other
+The folder follows :mod:`sar_zero123.runs.folder`: one holding other work (another stage, other
 settings, other data, pipelines or evaluators changed since) is refused before any work; ``resume`` redoes an
 unfinished run with the same settings and returns a finished one as it is; ``restart`` moves an old run aside.
 """
@@ -62,15 +62,15 @@ from sar_zero123.evaluation.tables import (
 )
 from sar_zero123.model.build import replace_vae
 from sar_zero123.model.pipeline import MAX_GUIDANCE_SCALE, SARZero123Pipeline
-from sar_zero123.stages._folders import withdrawn_if_setup_fails
-from sar_zero123.stages.evaluators import model_identity
-from sar_zero123.training.run_folder import (
+from sar_zero123.runs.folder import (
     StageTimer,
     data_identity,
     finish_run,
     open_run_folder,
     read_run_record,
 )
+from sar_zero123.runs.stage import withdrawn_if_setup_fails
+from sar_zero123.stages.evaluators import model_identity
 
 logger = logging.getLogger(__name__)
 
@@ -307,7 +307,7 @@ def run_evaluate(config: EvaluateConfig) -> Path:
     With ``resume`` a finished run with the same settings is returned at once, without loading anything.
 
     Raises:
-        ValueError: From :func:`~sar_zero123.training.run_folder.open_run_folder`, for a folder holding
+        ValueError: From :func:`~sar_zero123.runs.folder.open_run_folder`, for a folder holding
             other work (nothing on disk is changed then); if the data cannot supply ``n`` distinct pairs.
         FileNotFoundError: If the data, the evaluators or a pipeline folder does not exist.
     """

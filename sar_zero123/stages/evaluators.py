@@ -13,7 +13,7 @@ only to score generated images. The depression regressor needs chips at many dep
 protocols' splits (17 and 15 deg) lack: it trains on every chip of ``depression_data`` except a seeded,
 held-out ``depression_test_fraction`` of them, which give its test error.
 
-The folder follows :mod:`sar_zero123.training.run_folder`: a folder holding other work is refused before any
+The folder follows :mod:`sar_zero123.runs.folder`: a folder holding other work is refused before any
 training, an unfinished run with the same settings is continued only with ``resume`` (each model already
 saved is kept, an interrupted one resumes from its epoch checkpoint), and ``restart`` moves an old run aside.
 """
@@ -51,10 +51,10 @@ from sar_zero123.evaluation.evaluators import (
 )
 from sar_zero123.evaluation.metrics import azimuth_error_deg, classification_accuracy
 from sar_zero123.progress import progress_bar
-from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
-from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run
-from sar_zero123.training.run_state import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
-from sar_zero123.training.runs import start_run
+from sar_zero123.runs.checkpoints import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
+from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
+from sar_zero123.runs.launch import start_run
+from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 
 logger = logging.getLogger(__name__)
 
@@ -174,7 +174,7 @@ class TrainEvaluatorsConfig:
 def model_identity(path: str | os.PathLike, name: str) -> dict[str, Any]:
     """What a model folder held when a stage read it: its files' names, sizes and modification times.
 
-    Recorded in a run folder beside :func:`~sar_zero123.training.run_folder.data_identity`, so that a model
+    Recorded in a run folder beside :func:`~sar_zero123.runs.folder.data_identity`, so that a model
     retrained in place (same folder name, new weights) is not taken for the one a finished run scored.
     Nothing is read but the file listing.
 
@@ -343,7 +343,7 @@ def run_evaluators(config: TrainEvaluatorsConfig) -> Path:
     ``config.output_dir``; returns the folder (a finished one, with ``resume``, at once).
 
     Raises:
-        ValueError: From :func:`~sar_zero123.training.run_folder.open_run_folder`, for a folder holding
+        ValueError: From :func:`~sar_zero123.runs.folder.open_run_folder`, for a folder holding
             other work (nothing on disk is changed then); if ``depression_data`` holds chips at fewer than
             two depressions (before any work).
         FileNotFoundError: If ``data``, ``depression_data`` or a SimCLR encoder folder does not exist.

@@ -14,7 +14,7 @@ named ``size`` models start from a *random* tower, whose embedding would stay a 
 the input chip; ``train_image_encoder`` trains it with the UNet (float32 master weights, same learning
 rate, in the EMA, the checkpoints and the exported pipeline).
 
-The run folder follows :mod:`sar_zero123.training.run_folder`: a folder holding a run is continued only with
+The run folder follows :mod:`sar_zero123.runs.folder`: a folder holding a run is continued only with
 ``resume_from_checkpoint`` (a constant-LR run may then be extended with more ``max_train_steps``),
 started over only with ``restart`` (the old run moved aside), and refused otherwise, before any work.
 Resuming reaches bitwise the weights of an uninterrupted run with no RNG state beyond the step: the
@@ -51,8 +51,23 @@ from sar_zero123.model.build import load_sar_zero123, record_trained_pose_ranges
 from sar_zero123.model.conditioning import SPATIAL_POSE_MODES, vae_signature
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.progress import progress_bar
+from sar_zero123.runs.checkpoints import (
+    RESUME_MAY_DIFFER,
+    check_finite_step,
+    check_resume_config,
+    check_resume_state,
+    check_resume_steps,
+    end_run,
+    read_run_state,
+    resolve_resume_checkpoint,
+    resumable_batches,
+    resume_step,
+    save_checkpoint,
+)
+from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
+from sar_zero123.runs.launch import check_global_batch, check_replicas_agree, start_run, tracker_hparams
+from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.sim.corpus import CORPUS_OPTIONS_FILE, VALIDATION_CLASS
-from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.training.finetuning import (
     ema_models,
     export_finetuned,
@@ -70,21 +85,6 @@ from sar_zero123.training.losses import (
     check_prediction_type,
     load_pfm_encoder,
 )
-from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run
-from sar_zero123.training.run_state import (
-    RESUME_MAY_DIFFER,
-    check_finite_step,
-    check_resume_config,
-    check_resume_state,
-    check_resume_steps,
-    end_run,
-    read_run_state,
-    resolve_resume_checkpoint,
-    resumable_batches,
-    resume_step,
-    save_checkpoint,
-)
-from sar_zero123.training.runs import check_global_batch, check_replicas_agree, start_run, tracker_hparams
 from sar_zero123.training.step import (
     CachedViewPairs,
     ChipLatentCache,
@@ -572,7 +572,7 @@ def _export(
 
     Returns:
         The outputs written, relative to the run folder (for
-        :func:`~sar_zero123.training.run_folder.finish_run`).
+        :func:`~sar_zero123.runs.folder.finish_run`).
     """
     output_dir = Path(config.output_dir)
     accelerator.wait_for_everyone()

@@ -16,7 +16,7 @@ stopped):
 
 The pipeline lands in ``output_dir/base/pipeline``; it records the d_el and depression ranges it was
 trained on, which it then enforces. The top folder follows the run-folder rule
-(:mod:`sar_zero123.training.run_folder`): a re-run with the same settings continues it, other settings are
+(:mod:`sar_zero123.runs.folder`): a re-run with the same settings continues it, other settings are
 refused naming each, ``restart`` moves it aside. A constant learning rate makes ``base_steps`` extendable: a
 re-run with more steps resumes the UNet from its last checkpoint and exports it again.
 """
@@ -36,11 +36,11 @@ from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import train_validation_pairs
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import downsampling_factor
+from sar_zero123.runs.folder import StageTimer, data_identity, finish_run, read_run_record
+from sar_zero123.runs.stage import launch_state, open_stage_folder
 from sar_zero123.sim.corpus import CORPUS_OPTIONS_FILE, VALIDATION_CLASS, write_prior_corpus
-from sar_zero123.stages._folders import launch_state, open_stage_folder
 from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
 from sar_zero123.stages.vae import TrainVAEConfig, run_vae
-from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run, read_run_record
 
 logger = logging.getLogger(__name__)
 

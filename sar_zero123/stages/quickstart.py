@@ -19,6 +19,13 @@ from typing import Any
 from sar_zero123.config import config_to_dict, save_config, write_json_atomic
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.pretrained import resolve_pretrained
+from sar_zero123.runs.folder import (
+    field_defaults,
+    finish_run,
+    open_run_folder,
+    read_run_record,
+    run_differences,
+)
 from sar_zero123.stages.evaluate import EVALUATE_MAY_DIFFER, EvaluateConfig, run_evaluate
 from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, run_evaluators
 from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
@@ -27,13 +34,6 @@ from sar_zero123.stages.report import write_report
 from sar_zero123.stages.simclr import PretrainSimCLRConfig, run_simclr
 from sar_zero123.stages.simulate import SimulateConfig, run_simulate
 from sar_zero123.stages.vae import TrainVAEConfig, run_vae
-from sar_zero123.training.run_folder import (
-    field_defaults,
-    finish_run,
-    open_run_folder,
-    read_run_record,
-    run_differences,
-)
 
 logger = logging.getLogger(__name__)
 

@@ -12,7 +12,7 @@ The train split's magnitudes are held in memory on the training device and augme
 ``<output_dir>/encoder`` (``SAREncoder.save_pretrained``), ``decibel_scaling.json`` (dB bounds),
 ``config.json``, ``metrics.json`` (final loss, throughput, share of step time spent augmenting),
 TensorBoard logs under ``<output_dir>/logs``, resumable ``checkpoint-<step>`` folders and ``run.json``
-(:mod:`sar_zero123.training.run_folder`). The cosine schedule depends on the step count, so a resumed run
+(:mod:`sar_zero123.runs.folder`). The cosine schedule depends on the step count, so a resumed run
 keeps it.
 
 Under multi-process launch each process holds global_batch_size / num_processes chips of every global batch.
@@ -43,9 +43,7 @@ from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE, ChipDataset, ChipRecord, DecibelScaling, prepare_splits
 from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig, nt_xent_loss
 from sar_zero123.progress import progress_bar
-from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
-from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run
-from sar_zero123.training.run_state import (
+from sar_zero123.runs.checkpoints import (
     RESUME_MAY_DIFFER,
     check_finite_state,
     check_finite_step,
@@ -55,7 +53,9 @@ from sar_zero123.training.run_state import (
     resume_step,
     save_checkpoint,
 )
-from sar_zero123.training.runs import start_run, tracker_hparams
+from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
+from sar_zero123.runs.launch import start_run, tracker_hparams
+from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 
 logger = logging.getLogger(__name__)
 

@@ -3,7 +3,7 @@
 ``python -m sar_zero123.sim --out DIR`` parses its flags into :class:`SimulateConfig` and calls
 :func:`run_simulate`. The stage refuses a folder that holds another dataset (``simulate_dataset`` alone
 would replace its index and leave the old chips unlisted), continues one only with ``resume`` and moves
-one aside only with ``restart`` (:mod:`sar_zero123.training.run_folder`).
+one aside only with ``restart`` (:mod:`sar_zero123.runs.folder`).
 """
 
 from __future__ import annotations
@@ -13,9 +13,9 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from sar_zero123.runs.folder import StageTimer, finish_run, open_run_folder
 from sar_zero123.sim.dataset import check_simulation_options, simulate_dataset
 from sar_zero123.sim.targets import TARGET_CLASSES
-from sar_zero123.training.run_folder import StageTimer, finish_run, open_run_folder
 
 logger = logging.getLogger(__name__)
 
@@ -65,7 +65,7 @@ def run_simulate(config: SimulateConfig) -> Path:
     """Simulate the dataset (and the sheets asked for) into ``config.out``; returns the folder.
 
     Raises:
-        ValueError: From :func:`~sar_zero123.training.run_folder.open_run_folder`, for a folder holding
+        ValueError: From :func:`~sar_zero123.runs.folder.open_run_folder`, for a folder holding
             other work.
     """
     timer = StageTimer()

@@ -7,7 +7,7 @@ SAMPLE's *synthetic* chips, augmented on the training device with the row's pres
 (:func:`~sar_zero123.augment.augment_batch`; row ``none`` = no augmentation), and is tested on the
 *measured* (real) twins. Writes ``table2.json``, ``table2.md`` and one ``<row>/classifier`` folder per row.
 
-The folder follows :mod:`sar_zero123.training.run_folder`: a folder holding other work is refused before
+The folder follows :mod:`sar_zero123.runs.folder`: a folder holding other work is refused before
 any work, naming each difference; an unfinished table with the same settings is continued only with
 ``resume`` (each row whose classifier was saved is kept) and a finished one is then returned at once;
 ``restart`` moves an old table aside.
@@ -29,9 +29,9 @@ from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_sampl
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluation.evaluators import EVALUATOR_CONFIG_NAME, SARClassifier, load_evaluator
 from sar_zero123.progress import progress_bar
-from sar_zero123.stages._folders import withdrawn_if_setup_fails
-from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run, open_run_folder
-from sar_zero123.training.runs import start_run
+from sar_zero123.runs.folder import StageTimer, data_identity, finish_run, open_run_folder
+from sar_zero123.runs.launch import start_run
+from sar_zero123.runs.stage import withdrawn_if_setup_fails
 
 logger = logging.getLogger(__name__)
 
@@ -170,7 +170,7 @@ def run_synth_to_real(config: SynthToRealConfig) -> Path:
 
     Raises:
         ValueError: Before any work, from :func:`~sar_zero123.data.load_sample` for a folder without
-            matching pairs, or from :func:`~sar_zero123.training.run_folder.open_run_folder` for a folder
+            matching pairs, or from :func:`~sar_zero123.runs.folder.open_run_folder` for a folder
             holding other work (each difference named; nothing on disk is changed).
         FileNotFoundError: Before any work, if ``sample`` lacks the folders of ``image_format``.
     """

@@ -9,7 +9,7 @@ classifier and 1-NN azimuth regressor (:mod:`sar_zero123.evaluation.probes`). It
 are run, ``tsne.png``: a t-SNE of the test features coloured by class and by azimuth, like the paper's
 Fig. 6.
 
-The folder follows :mod:`sar_zero123.training.run_folder`: a folder holding other work is refused before
+The folder follows :mod:`sar_zero123.runs.folder`: a folder holding other work is refused before
 any work, naming each difference; an unfinished table with the same settings is continued only with
 ``resume`` (each preset's SimCLR run, a run folder of its own, continues from its latest checkpoint or is
 taken as finished) and a finished one is then returned at once; ``restart`` moves an old table aside.
@@ -32,10 +32,10 @@ from sar_zero123.data import ChipDataset, prepare_splits
 from sar_zero123.data.splits import check_protocol
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig, resolve_encoder_dir
 from sar_zero123.evaluation.probes import FeatureSet, extract_features, run_probes
-from sar_zero123.stages._folders import withdrawn_if_setup_fails
+from sar_zero123.runs.folder import StageTimer, data_identity, finish_run, open_run_folder
+from sar_zero123.runs.stage import withdrawn_if_setup_fails
 from sar_zero123.stages.evaluators import model_identity
 from sar_zero123.stages.simclr import PretrainSimCLRConfig, run_simclr, select_chips
-from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run, open_run_folder
 
 logger = logging.getLogger(__name__)
 
@@ -301,7 +301,7 @@ def run_table1(config: Table1Config) -> Path:
     """Build Table I in ``config.output_dir``; returns the folder (a finished one, with ``resume``, at once).
 
     Raises:
-        ValueError: Before any work, from :func:`~sar_zero123.training.run_folder.open_run_folder`, for a
+        ValueError: Before any work, from :func:`~sar_zero123.runs.folder.open_run_folder`, for a
             folder holding other work (each difference named; nothing on disk is changed), or if an
             encoder takes another chip size than ``image_size``.
         FileNotFoundError: If ``data`` or an encoder folder does not exist.

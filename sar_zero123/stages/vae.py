@@ -40,9 +40,7 @@ from sar_zero123.model.conditioning import downsampling_factor, encode_condition
 from sar_zero123.model.loading import load_component
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.progress import progress_bar
-from sar_zero123.stages._folders import open_stage_folder, withdrawn_if_setup_fails
-from sar_zero123.training.run_folder import StageTimer, data_identity, finish_run
-from sar_zero123.training.run_state import (
+from sar_zero123.runs.checkpoints import (
     RESUME_MAY_DIFFER,
     check_finite_state,
     check_finite_step,
@@ -54,7 +52,9 @@ from sar_zero123.training.run_state import (
     resume_step,
     save_checkpoint,
 )
-from sar_zero123.training.runs import check_global_batch, start_run, tracker_hparams
+from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
+from sar_zero123.runs.launch import check_global_batch, start_run, tracker_hparams
+from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.training.step import micro_batch_generator
 
 logger = logging.getLogger(__name__)

@@ -29,8 +29,8 @@ from sar_zero123.config import naming_write_errors, write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.model.conditioning import PoseProjection
 from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.runs.checkpoints import check_finite_state
 from sar_zero123.training.losses import LossOutput
-from sar_zero123.training.run_state import check_finite_state
 from sar_zero123.training.step import ImageEmbedder, timestep_bucket_losses
 
 __all__ = [

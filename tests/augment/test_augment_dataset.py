@@ -27,8 +27,8 @@ from sar_zero123.data import SCALING_FILE, ChipRecord, DecibelScaling, load_inde
 from sar_zero123.generate import GenerateConfig, load_input_chip
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.runs.folder import content_identity
 from sar_zero123.sim import INDEX_COLUMNS, simulate_dataset
-from sar_zero123.training.run_folder import content_identity
 
 # 2 classes x 4 azimuths (0, 90, 180, 270) at 17 deg; d_el 2 keeps 19 deg inside the trained [10, 20]
 CHIPS = 8

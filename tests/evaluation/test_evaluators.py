@@ -25,9 +25,9 @@ from sar_zero123.evaluation.evaluators import (
     load_evaluator,
     load_evaluators,
 )
+from sar_zero123.runs.folder import read_run_record
 from sar_zero123.stages import evaluators as stage
 from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, hold_out, run_evaluators
-from sar_zero123.training.run_folder import read_run_record
 from train import train_evaluators
 
 

@@ -36,10 +36,10 @@ from sar_zero123.evaluation.protocol import (
 from sar_zero123.evaluation.tables import table3_markdown
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.runs.folder import data_identity, finish_run, open_run_folder, read_run_record
 from sar_zero123.stages import evaluate as stage
 from sar_zero123.stages.evaluate import EvaluateConfig, evaluation_pairs
 from sar_zero123.stages.evaluators import TrainEvaluatorsConfig
-from sar_zero123.training.run_folder import data_identity, finish_run, open_run_folder, read_run_record
 from train import evaluate
 
 

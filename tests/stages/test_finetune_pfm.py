@@ -27,8 +27,8 @@ from sar_zero123.encoder import SAREncoder, SAREncoderConfig
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.orientation import AzimuthEstimator
 from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.runs.launch import check_global_batch, weights_digest
 from sar_zero123.training.losses import LossSettings
-from sar_zero123.training.runs import check_global_batch, weights_digest
 from sar_zero123.training.step import ImageEmbedder, compute_losses, micro_batch_generator
 from train import finetune_pfm
 
@@ -273,7 +273,7 @@ def test_sigkill_then_resume_latest_is_bitwise_identical(script, assets, tmp_pat
     damaged = run / "checkpoint-4" / "model.safetensors"
     damaged.write_bytes(damaged.read_bytes()[:-100])
     # 4. resume from the newest complete and intact checkpoint, saying which one was skipped, and finish
-    with caplog.at_level(logging.WARNING, logger="sar_zero123.training.run_state"):
+    with caplog.at_level(logging.WARNING, logger="sar_zero123.runs.checkpoints"):
         script.main(tiny_args(assets, run, *steps, "--resume_from_checkpoint", "latest"))
     skipped = r"skipping .*checkpoint-4: .*model.safetensors' has \d+ bytes, manifest.json records"
     assert re.search(skipped, caplog.text)

@@ -1,11 +1,11 @@
-"""Tests for sar_zero123.training.runs (the distributed-launch guard, tracker hparams and replica digests are
+"""Tests for sar_zero123.runs.launch (the distributed-launch guard, tracker hparams and replica digests are
 exercised by the script tests; here the closed-form checks)."""
 
 from __future__ import annotations
 
 import pytest
 
-from sar_zero123.training.runs import check_global_batch
+from sar_zero123.runs.launch import check_global_batch
 
 
 def test_check_global_batch_needs_one_batch_per_process() -> None:

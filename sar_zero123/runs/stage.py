@@ -1,4 +1,4 @@
-"""The run-folder rule (:mod:`sar_zero123.training.run_folder`) for stages that may run as several processes.
+"""The run-folder rule (:mod:`sar_zero123.runs.folder`) for stages that may run as several processes.
 
 :func:`open_stage_folder` opens a stage's folder before any work under ``accelerate launch``: every process
 checks the folder as it is, so that all refuse together, then the main process writes the record.
@@ -18,7 +18,7 @@ from typing import Any
 from accelerate import PartialState
 from accelerate.utils import parse_flag_from_env
 
-from sar_zero123.training.run_folder import RunFolder, open_run_folder
+from sar_zero123.runs.folder import RunFolder, open_run_folder
 
 logger = logging.getLogger(__name__)
 
@@ -47,7 +47,7 @@ def open_stage_folder(
     may_extend: Iterable[str] = (),
     resume_hint: str = "--resume_from_checkpoint latest",
 ) -> RunFolder:
-    """:func:`~sar_zero123.training.run_folder.open_run_folder` on every process of a launch; the main process
+    """:func:`~sar_zero123.runs.folder.open_run_folder` on every process of a launch; the main process
     writes.
 
     With several processes, each first checks the folder as it is on disk (nothing written), so a refusal

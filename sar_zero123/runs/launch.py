@@ -7,7 +7,7 @@ would overwrite each other's checkpoints), sets up logging and seeds every RNG. 
 turns a config into the hyperparameters a tracker accepts, :func:`check_global_batch` refuses a split
 smaller than one global batch, and :func:`check_replicas_agree` compares the trained weights of
 data-parallel replicas at the end of a run. Saving, resuming and ending a run are in
-:mod:`sar_zero123.training.run_state`; per-step generators in
+:mod:`sar_zero123.runs.checkpoints`; per-step generators in
 :func:`sar_zero123.training.step.micro_batch_generator`.
 """
 

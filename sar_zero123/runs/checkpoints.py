@@ -546,7 +546,7 @@ def end_run(accelerator: Accelerator) -> int:
     if survivors:
         logger.warning(
             "%d DistributedDataParallel wrapper(s) still referenced when the process group is destroyed; "
-            "a gloo run may hang at exit (see sar_zero123.training.run_state.end_run)",
+            "a gloo run may hang at exit (see sar_zero123.runs.checkpoints.end_run)",
             survivors,
         )
     accelerator.end_training()

@@ -13,7 +13,7 @@ from accelerate import Accelerator
 from accelerate.state import AcceleratorState
 from accelerate.utils import DataLoaderConfiguration, set_seed
 
-from sar_zero123.training.run_state import (
+from sar_zero123.runs.checkpoints import (
     check_finite_step,
     check_resume_config,
     check_resume_state,
@@ -121,7 +121,7 @@ def test_latest_skips_a_damaged_newest_checkpoint_and_says_why(tmp_path: Path, c
     _three_checkpoints(tmp_path)
     assert verify_checkpoint(tmp_path / "checkpoint-3") is None
     damage(tmp_path / "checkpoint-3" / "model.safetensors")
-    with caplog.at_level("WARNING", logger="sar_zero123.training.run_state"):
+    with caplog.at_level("WARNING", logger="sar_zero123.runs.checkpoints"):
         assert resolve_resume_checkpoint(tmp_path, "latest").name == "checkpoint-2"
     assert re.search(rf"skipping .*checkpoint-3: .*{reason}", caplog.text)
     with pytest.raises(ValueError, match=reason):  # an explicit path is refused, not skipped
@@ -211,7 +211,7 @@ def test_resume_config_allows_output_settings_and_names_another_script(tmp_path:
     with pytest.raises(ValueError, match="written by a _Config run, not a _OtherConfig run"):
         check_resume_config(path, _OtherConfig())
     old = save_checkpoint(accelerator, tmp_path, 2)  # no stored config: accepted with a warning
-    with caplog.at_level("WARNING", logger="sar_zero123.training.run_state"):
+    with caplog.at_level("WARNING", logger="sar_zero123.runs.checkpoints"):
         check_resume_config(old, _Config(learning_rate=5.0))
     assert "stores no config" in caplog.text
 
@@ -290,7 +290,7 @@ def test_resume_step_is_zero_for_a_fresh_run_and_the_checkpoint_step_otherwise(t
     accelerator, model, optimizer = _setup()
     assert resume_step(accelerator, None) == 0
     path = save_checkpoint(accelerator, tmp_path, 3)
-    with caplog.at_level("INFO", logger="sar_zero123.training.run_state"):
+    with caplog.at_level("INFO", logger="sar_zero123.runs.checkpoints"):
         assert resume_step(accelerator, path) == 3
     assert "resumed from" in caplog.text and "at step 3" in caplog.text
 

@@ -9,7 +9,7 @@ start) into the lock file; a second writer is refused with a ``ValueError`` that
 
 The operating system drops the lock when the holder exits, however it exits (a kill included), so a
 crashed run never leaves a stale lock behind. A process may lock the same folder again (re-entrant);
-:func:`release_output_folder` releases it early (:func:`~sar_zero123.training.run_folder.finish_run`
+:func:`release_output_folder` releases it early (:func:`~sar_zero123.runs.folder.finish_run`
 does, once the run is finished). Hand-written because ``filelock``, the usual library, truncates the lock
 file when a contender opens it, which erases the holder's name that the refusal must give.
 """

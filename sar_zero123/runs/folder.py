@@ -15,7 +15,7 @@ rule before any work:
   ``<name>.replaced-<UTC time>``, never deleted;
 * a non-empty folder without a record is refused: it is not a run of this stage (or was written by a
   version before the rule), and nothing in it should be mixed with a new run;
-* one writer at a time: the folder's exclusive lock (:mod:`sar_zero123.training.writer_lock`) is taken
+* one writer at a time: the folder's exclusive lock (:mod:`sar_zero123.runs.lock`) is taken
   before anything else, and a second process is refused, naming the first.
 
 :func:`finish_run` marks the run finished once its last output exists, with the seconds the stage took;
@@ -39,7 +39,7 @@ from pathlib import Path
 from typing import Any, Literal
 
 from sar_zero123.config import config_to_dict, write_json_atomic
-from sar_zero123.training.writer_lock import is_lock_file, lock_output_folder, release_output_folder
+from sar_zero123.runs.lock import is_lock_file, lock_output_folder, release_output_folder
 
 logger = logging.getLogger(__name__)
 

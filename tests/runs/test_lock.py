@@ -9,8 +9,8 @@ import textwrap
 
 import pytest
 
-from sar_zero123.training.run_folder import finish_run, open_run_folder
-from sar_zero123.training.writer_lock import (
+from sar_zero123.runs.folder import finish_run, open_run_folder
+from sar_zero123.runs.lock import (
     is_lock_file,
     lock_output_folder,
     lock_path,
@@ -20,7 +20,7 @@ from sar_zero123.training.writer_lock import (
 HOLD = textwrap.dedent(
     """
     import sys, time
-    from sar_zero123.training.run_folder import open_run_folder
+    from sar_zero123.runs.folder import open_run_folder
     open_run_folder(sys.argv[1], "demo", {"seed": 0})
     print("held", flush=True)
     time.sleep(60)

@@ -9,14 +9,14 @@ from dataclasses import dataclass
 
 import pytest
 
-from sar_zero123.training.run_folder import (
+from sar_zero123.runs.folder import (
     RUN_RECORD,
     data_identity,
     finish_run,
     open_run_folder,
     read_run_record,
 )
-from sar_zero123.training.writer_lock import is_lock_file
+from sar_zero123.runs.lock import is_lock_file
 
 
 @dataclass
