@@ -26,7 +26,7 @@ from sar_zero123.augment import readd_speckle
 from sar_zero123.config import write_json_atomic
 from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.evaluation.protocol import INPUT_COPY, REAL_TARGET, build_pair_sets, score
-from sar_zero123.stages.vae import load_pretrained_vae, reconstruct
+from sar_zero123.model.vae import load_pretrained_vae, reconstruct
 
 COLUMNS = (("accuracy", "Acc. (%)", 1), ("azimuth_error_deg", "Az. err. (deg)", 1), ("sfd", "SFD", 2),
            ("ms_ssim", "MS-SSIM", 4), ("kuan_ssim", "Kuan+SSIM", 4))  # fmt: skip

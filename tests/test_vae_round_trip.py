@@ -6,7 +6,7 @@ import torch
 from diffusers import AutoencoderKL
 
 from benchmarks.vae_round_trip import markdown, round_trip
-from sar_zero123.stages.vae import reconstruct
+from sar_zero123.model.vae import reconstruct
 
 
 def test_round_trip_in_chunks_equals_one_reconstruction() -> None:

@@ -17,12 +17,9 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Literal
 
-import numpy as np
 import torch
-import torch.nn.functional as F
 from accelerate import Accelerator
 from diffusers import AutoencoderKL
-from skimage.metrics import peak_signal_noise_ratio, structural_similarity
 from torch.utils.data import DataLoader
 
 from sar_zero123.config import check_minimum, read_json, save_config, write_json_atomic
@@ -32,12 +29,11 @@ from sar_zero123.data import (
     DecibelScaling,
     check_protocol,
     prepare_splits,
-    signed_to_unit,
-    unit_to_signed,
 )
 from sar_zero123.encoder import SAREncoder, resolve_encoder_dir
-from sar_zero123.model.conditioning import downsampling_factor, encode_condition_latents, vae_input
-from sar_zero123.model.loading import load_component
+from sar_zero123.evaluation.reconstruction import evaluate_reconstruction
+from sar_zero123.model.conditioning import downsampling_factor
+from sar_zero123.model.vae import latent_scaling_factor, load_pretrained_vae, new_sar_vae, reconstruct
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.checkpoints import (
@@ -56,6 +52,7 @@ from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
 from sar_zero123.runs.launch import check_global_batch, start_run, tracker_hparams
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.training.step import micro_batch_generator
+from sar_zero123.training.vae import FeatureLoss, VAEObjective
 
 logger = logging.getLogger(__name__)
 
@@ -155,8 +152,9 @@ class TrainVAEConfig:
 
 
 def build_vae(config: TrainVAEConfig) -> AutoencoderKL:
-    """A randomly initialised 1-channel ``AutoencoderKL`` of the configured size, or with ``pretrained`` that
-    VAE (:func:`load_pretrained_vae`), its encoder frozen when ``train_encoder`` is False."""
+    """A randomly initialised 1-channel ``AutoencoderKL`` of the configured size
+    (:func:`~sar_zero123.model.vae.new_sar_vae`), or with ``pretrained`` that VAE
+    (:func:`~sar_zero123.model.vae.load_pretrained_vae`), its encoder frozen unless ``train_encoder``."""
     if config.pretrained is not None:
         vae = load_pretrained_vae(config.pretrained)
         if not config.train_encoder:
@@ -164,155 +162,11 @@ def build_vae(config: TrainVAEConfig) -> AutoencoderKL:
                 if part is not None:
                     part.requires_grad_(False)
         return vae
-    levels = len(config.block_out_channels)
-    return AutoencoderKL(
-        in_channels=1,
-        out_channels=1,
-        down_block_types=("DownEncoderBlock2D",) * levels,
-        up_block_types=("UpDecoderBlock2D",) * levels,
-        block_out_channels=config.block_out_channels,
-        layers_per_block=config.layers_per_block,
-        latent_channels=config.latent_channels,
+    return new_sar_vae(
+        image_size=config.image_size, block_out_channels=config.block_out_channels,
+        layers_per_block=config.layers_per_block, latent_channels=config.latent_channels,
         norm_num_groups=config.norm_num_groups,
-        sample_size=config.image_size,
-    )
-
-
-def load_pretrained_vae(name_or_path: str) -> AutoencoderKL:
-    """The ``AutoencoderKL`` of an AutoencoderKL folder, of a pipeline folder (its ``vae/``) or of a bundled
-    pipeline name (``sar-zero123/sim-prior``).
-
-    Raises:
-        FileNotFoundError: If the folder or its files are missing, naming what was expected.
-        ValueError: If the model does not load, or takes other than one input and one output channel.
-    """
-    folder = resolve_pretrained(name_or_path)
-    if (folder / "vae" / "config.json").is_file():
-        folder = folder / "vae"
-    vae = load_component(AutoencoderKL, folder, "pretrained")
-    if vae.config.in_channels != 1 or vae.config.out_channels != 1:
-        raise ValueError(
-            f"pretrained: {str(folder)!r} takes {vae.config.in_channels} and returns "
-            f"{vae.config.out_channels} channels; SAR chips need 1 and 1"
-        )
-    return vae
-
-
-class FeatureLoss(torch.nn.Module):
-    """Squared distance of L2-normalised pooled features of a frozen SAR encoder, per sample: a perceptual
-    loss for SAR chips, as LPIPS compares frozen VGG features for RGB images.
-
-    Args:
-        encoder: A ``SAREncoder`` (frozen here); its ``image_size`` must be the chips'.
-    """
-
-    def __init__(self, encoder: SAREncoder) -> None:
-        super().__init__()
-        self.encoder = encoder.eval().requires_grad_(False)
-
-    def train(self, mode: bool = True) -> FeatureLoss:
-        super().train(mode)
-        self.encoder.eval()  # frozen BatchNorm statistics, whatever mode the objective is in
-        return self
-
-    def forward(self, reconstruction: torch.Tensor, images: torch.Tensor) -> torch.Tensor:
-        """Per-sample loss of ``reconstruction`` against ``images``, both normalised dB in [0, 1] (in [0, 2]:
-        the distance of unit vectors). Shape: ``(B, 1, S, S), (B, 1, S, S) -> (B,)``."""
-        with torch.no_grad():
-            target = F.normalize(self.encoder(images).float(), dim=1)
-        features = F.normalize(self.encoder(reconstruction).float(), dim=1)
-        return (features - target).pow(2).sum(dim=1) / 2.0
-
-
-class VAEObjective(torch.nn.Module):
-    """``forward`` = per-sample VAE losses, so that data-parallel wrappers see one forward call.
-
-    Args:
-        vae: The autoencoder being trained (1 input channel).
-        kl_weight: Weight of the KL term (per-sample sum over latent elements).
-        reconstruction_loss: ``"l1"`` or ``"l2"`` on the [-1, 1] images.
-        feature_loss: A :class:`FeatureLoss` added to the total with ``feature_loss_weight``; None: none.
-        feature_loss_weight: Its weight (>= 0).
-    """
-
-    def __init__(
-        self,
-        vae: AutoencoderKL,
-        kl_weight: float,
-        reconstruction_loss: str,
-        feature_loss: FeatureLoss | None = None,
-        feature_loss_weight: float = 0.0,
-    ) -> None:
-        super().__init__()
-        self.vae = vae
-        self.kl_weight = kl_weight
-        self.loss_fn = F.l1_loss if reconstruction_loss == "l1" else F.mse_loss
-        self.feature_loss = feature_loss
-        self.feature_loss_weight = feature_loss_weight
-
-    def forward(
-        self, images: torch.Tensor, generator: torch.Generator | None = None
-    ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-sample ``(total, reconstruction)`` losses.
-
-        Args:
-            images: Chips, normalised dB in [0, 1].
-            generator: Draws the posterior sample.
-
-        Shape:
-            ``(B, 1, S, S) -> ((B,), (B,))``.
-        """
-        pixels = unit_to_signed(images)
-        posterior = self.vae.encode(pixels).latent_dist
-        recon = self.vae.decode(posterior.sample(generator=generator)).sample
-        reconstruction = self.loss_fn(recon.float(), pixels.float(), reduction="none").flatten(1).mean(dim=1)
-        total = reconstruction + self.kl_weight * posterior.kl().float()
-        if self.feature_loss is not None and self.feature_loss_weight > 0:
-            decoded = signed_to_unit(recon.float())  # unclamped: the gradient reaches saturated pixels
-            total = total + self.feature_loss_weight * self.feature_loss(decoded, images.float())
-        return total, reconstruction
-
-
-@torch.no_grad()
-def reconstruct(vae: AutoencoderKL, images: torch.Tensor) -> torch.Tensor:
-    """Posterior-mode reconstruction in normalised dB, clipped to [0, 1]. Shape: ``(B, 1, S, S)``."""
-    latents = encode_condition_latents(vae, images)
-    return signed_to_unit(vae.decode(latents).sample.float()).clamp(0.0, 1.0)
-
-
-@torch.no_grad()
-def evaluate_reconstruction(
-    vae: AutoencoderKL, dataset: ChipDataset, num_images: int, batch_size: int
-) -> dict[str, float]:
-    """Mean PSNR and SSIM (scikit-image, data range 1) of posterior-mode reconstructions.
-
-    Returns:
-        ``{"psnr_db", "ssim", "num_images"}``.
-    """
-    count = min(num_images, len(dataset))
-    loader = DataLoader(torch.utils.data.Subset(dataset, range(count)), batch_size=batch_size)
-    psnrs, ssims = [], []
-    for batch in loader:
-        images = batch["image"].to(vae.device)
-        recon = reconstruct(vae, images).cpu().numpy()[:, 0].astype(np.float64)
-        reference = batch["image"].numpy()[:, 0].astype(np.float64)
-        for a, b in zip(reference, recon):
-            psnrs.append(peak_signal_noise_ratio(a, b, data_range=1.0))
-            ssims.append(structural_similarity(a, b, data_range=1.0))
-    return {"psnr_db": float(np.mean(psnrs)), "ssim": float(np.mean(ssims)), "num_images": count}
-
-
-@torch.no_grad()
-def latent_scaling_factor(vae: AutoencoderKL, loader: DataLoader, num_batches: int) -> float:
-    """1 / std of posterior samples over training batches (the Stable Diffusion recipe)."""
-    generator = torch.Generator().manual_seed(0)
-    latents = []
-    for i, batch in enumerate(loader):
-        if i == num_batches:
-            break
-        posterior = vae.encode(vae_input(vae, batch["image"])).latent_dist
-        latents.append(posterior.sample(generator=generator).float().flatten())
-    return float(1.0 / torch.cat(latents).std())
+    )  # fmt: skip
 
 
 def run_vae(config: TrainVAEConfig) -> Path:

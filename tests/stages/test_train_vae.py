@@ -217,7 +217,7 @@ def test_decoder_fine_tune_keeps_the_encoder_latents_and_scaling_factor(script, 
 
 def test_feature_loss_is_zero_for_equal_images_and_bounded() -> None:
     from sar_zero123.encoder import SAREncoder, SAREncoderConfig
-    from sar_zero123.stages.vae import FeatureLoss
+    from sar_zero123.training.vae import FeatureLoss
 
     torch.manual_seed(0)
     loss = FeatureLoss(SAREncoder(SAREncoderConfig(image_size=16, depths=(1,), hidden_sizes=(8,),

@@ -1,0 +1,90 @@
+"""The VAE's training objective: reconstruction + KL (+ an optional feature loss in a frozen SAR encoder).
+
+Used by the VAE stage (:func:`sar_zero123.stages.vae.run_vae`); the model is :mod:`sar_zero123.model.vae`.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+from diffusers import AutoencoderKL
+
+from sar_zero123.domain import signed_to_unit, unit_to_signed
+from sar_zero123.encoder import SAREncoder
+
+__all__ = ["FeatureLoss", "VAEObjective"]
+
+
+class FeatureLoss(torch.nn.Module):
+    """Squared distance of L2-normalised pooled features of a frozen SAR encoder, per sample: a perceptual
+    loss for SAR chips, as LPIPS compares frozen VGG features for RGB images.
+
+    Args:
+        encoder: A ``SAREncoder`` (frozen here); its ``image_size`` must be the chips'.
+    """
+
+    def __init__(self, encoder: SAREncoder) -> None:
+        super().__init__()
+        self.encoder = encoder.eval().requires_grad_(False)
+
+    def train(self, mode: bool = True) -> FeatureLoss:
+        super().train(mode)
+        self.encoder.eval()  # frozen BatchNorm statistics, whatever mode the objective is in
+        return self
+
+    def forward(self, reconstruction: torch.Tensor, images: torch.Tensor) -> torch.Tensor:
+        """Per-sample loss of ``reconstruction`` against ``images``, both normalised dB in [0, 1] (in [0, 2]:
+        the distance of unit vectors). Shape: ``(B, 1, S, S), (B, 1, S, S) -> (B,)``."""
+        with torch.no_grad():
+            target = F.normalize(self.encoder(images).float(), dim=1)
+        features = F.normalize(self.encoder(reconstruction).float(), dim=1)
+        return (features - target).pow(2).sum(dim=1) / 2.0
+
+
+class VAEObjective(torch.nn.Module):
+    """``forward`` = per-sample VAE losses, so that data-parallel wrappers see one forward call.
+
+    Args:
+        vae: The autoencoder being trained (1 input channel).
+        kl_weight: Weight of the KL term (per-sample sum over latent elements).
+        reconstruction_loss: ``"l1"`` or ``"l2"`` on the [-1, 1] images.
+        feature_loss: A :class:`FeatureLoss` added to the total with ``feature_loss_weight``; None: none.
+        feature_loss_weight: Its weight (>= 0).
+    """
+
+    def __init__(
+        self,
+        vae: AutoencoderKL,
+        kl_weight: float,
+        reconstruction_loss: str,
+        feature_loss: FeatureLoss | None = None,
+        feature_loss_weight: float = 0.0,
+    ) -> None:
+        super().__init__()
+        self.vae = vae
+        self.kl_weight = kl_weight
+        self.loss_fn = F.l1_loss if reconstruction_loss == "l1" else F.mse_loss
+        self.feature_loss = feature_loss
+        self.feature_loss_weight = feature_loss_weight
+
+    def forward(
+        self, images: torch.Tensor, generator: torch.Generator | None = None
+    ) -> tuple[torch.Tensor, torch.Tensor]:
+        """Per-sample ``(total, reconstruction)`` losses.
+
+        Args:
+            images: Chips, normalised dB in [0, 1].
+            generator: Draws the posterior sample.
+
+        Shape:
+            ``(B, 1, S, S) -> ((B,), (B,))``.
+        """
+        pixels = unit_to_signed(images)
+        posterior = self.vae.encode(pixels).latent_dist
+        recon = self.vae.decode(posterior.sample(generator=generator)).sample
+        reconstruction = self.loss_fn(recon.float(), pixels.float(), reduction="none").flatten(1).mean(dim=1)
+        total = reconstruction + self.kl_weight * posterior.kl().float()
+        if self.feature_loss is not None and self.feature_loss_weight > 0:
+            decoded = signed_to_unit(recon.float())  # unclamped: the gradient reaches saturated pixels
+            total = total + self.feature_loss_weight * self.feature_loss(decoded, images.float())
+        return total, reconstruction
