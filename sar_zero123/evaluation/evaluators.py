@@ -35,6 +35,7 @@ import torch.nn.functional as F
 from safetensors.torch import save_file
 from scipy.ndimage import gaussian_filter
 from torch import nn
+from torch.utils.data import DataLoader
 
 from sar_zero123.config import read_json
 from sar_zero123.data import DecibelScaling
@@ -75,6 +76,7 @@ __all__ = [
     "resize_for_evaluator",
     "score_views",
     "standard_error",
+    "score_on_split",
 ]
 
 
@@ -718,4 +720,37 @@ def pose_following(
         "error_deg": error.tolist(),
         "mean_error_deg": error.mean().item(),
         "floor_deg": floor.mean().item(),
+    }
+
+
+@torch.no_grad()
+def score_on_split(
+    model: SARClassifier | AzimuthRegressor | DepressionRegressor, loader: DataLoader, device: torch.device
+) -> dict[str, float]:
+    """Test accuracy (classifier), mean/median circular azimuth error (azimuth regressor) or mean/median
+    absolute depression error (depression regressor) on a split."""
+    model.eval()
+    outputs, truths = [], []
+    for batch in loader:
+        images = batch["image"].to(device)
+        if isinstance(model, SARClassifier):
+            outputs.append(model(images).argmax(dim=1).cpu())
+            truths.append(batch["label"])
+        elif isinstance(model, DepressionRegressor):
+            outputs.append(model.predict_depression_deg(images).cpu())
+            truths.append(batch["depression_deg"].float())
+        else:
+            outputs.append(model.predict_azimuth_deg(images).cpu())
+            truths.append(batch["azimuth_deg"].float())
+    predictions, truth = torch.cat(outputs), torch.cat(truths)
+    if isinstance(model, SARClassifier):
+        return {"test_accuracy": classification_accuracy(predictions, truth), "n_test": len(predictions)}
+    if isinstance(model, DepressionRegressor):
+        name, errors = "depression", (predictions - truth).abs()
+    else:
+        name, errors = "azimuth", azimuth_error_deg(predictions, truth)
+    return {
+        f"test_{name}_error_deg": errors.mean().item(),
+        f"test_{name}_error_median_deg": errors.median().item(),
+        "n_test": len(predictions),
     }

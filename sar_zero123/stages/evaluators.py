@@ -21,40 +21,31 @@ saved is kept, an interrupted one resumes from its epoch checkpoint), and ``rest
 from __future__ import annotations
 
 import hashlib
-import json
 import logging
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import torch
-import torch.nn.functional as F
 from accelerate.utils import set_seed
-from torch.utils.data import DataLoader
 
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_index, prepare_splits
+from sar_zero123.data.selection import hold_out, subsample
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig, resolve_encoder_dir
 from sar_zero123.evaluation.evaluators import (
     CLASSIFIER_DIR,
     DEPRESSION_REGRESSOR_DIR,
-    EVALUATOR_CONFIG_NAME,
     PROBES_DIR,
     REGRESSOR_DIR,
     AzimuthRegressor,
     DepressionRegressor,
     SARClassifier,
-    azimuth_regression_loss,
-    depression_regression_loss,
-    load_evaluator,
+    score_on_split,
 )
-from sar_zero123.evaluation.metrics import azimuth_error_deg, classification_accuracy
-from sar_zero123.progress import progress_bar
-from sar_zero123.runs.checkpoints import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
-from sar_zero123.runs.launch import start_run
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
+from sar_zero123.training.evaluators import EvaluatorTraining, train_model, training_loss
 
 logger = logging.getLogger(__name__)
 
@@ -85,19 +76,6 @@ MAX_BATCH_SIZE = 4096
 EVALUATORS_MAY_DIFFER = (
     "resume", "restart", "resume_from_checkpoint", "num_workers", "output_dir", "work_dir",
 )  # fmt: skip
-
-
-@dataclass(frozen=True)
-class EvaluatorTraining:
-    """How every evaluator model trains (AdamW, cosine decay to 0, epoch checkpoints)."""
-
-    batch_size: int  # chips per process per step (also the scoring batch)
-    learning_rate: float  # AdamW peak learning rate
-    weight_decay: float  # AdamW weight decay
-    checkpointing_epochs: int  # save a resumable checkpoint every this many epochs
-    resume_from_checkpoint: str | None  # "latest", a checkpoint folder, or None
-    num_workers: int  # DataLoader worker processes
-    mixed_precision: str  # accelerate mixed precision: "no", "fp16" or "bf16"
 
 
 @dataclass
@@ -191,150 +169,6 @@ def model_identity(path: str | os.PathLike, name: str) -> dict[str, Any]:
         relative = file.relative_to(root).as_posix() if root.is_dir() else file.name
         digest.update(f"{relative}\0{stat.st_size}\0{stat.st_mtime_ns}\n".encode())
     return {"path": str(root.resolve()), "files": len(files), "files_sha256": digest.hexdigest()}
-
-
-# ------------------------------------------------------------------------------------- one model
-def _loader(dataset: ChipDataset, training: EvaluatorTraining, shuffle: bool, seed: int) -> DataLoader:
-    return DataLoader(
-        dataset,
-        batch_size=training.batch_size,
-        shuffle=shuffle,
-        num_workers=training.num_workers,
-        generator=torch.Generator().manual_seed(seed),
-        drop_last=False,
-    )
-
-
-def training_loss(
-    model: torch.nn.Module, evaluator: Evaluator, batch: dict[str, torch.Tensor]
-) -> torch.Tensor:
-    """Mean training loss of a batch: cross-entropy, circular azimuth or depression squared error.
-
-    `model` is what runs the forward pass (maybe a data-parallel wrapper), `evaluator` the bare model whose
-    kind picks the loss.
-    """
-    outputs = model(batch["image"])
-    if isinstance(evaluator, SARClassifier):
-        return F.cross_entropy(outputs, batch["label"].long())
-    if isinstance(evaluator, DepressionRegressor):
-        return depression_regression_loss(outputs, batch["depression_deg"].float()).mean()
-    return azimuth_regression_loss(outputs, batch["azimuth_deg"].float()).mean()
-
-
-@torch.no_grad()
-def score_on_split(model: Evaluator, loader: DataLoader, device: torch.device) -> dict[str, float]:
-    """Test accuracy (classifier), mean/median circular azimuth error (azimuth regressor) or mean/median
-    absolute depression error (depression regressor) on a split."""
-    model.eval()
-    outputs, truths = [], []
-    for batch in loader:
-        images = batch["image"].to(device)
-        if isinstance(model, SARClassifier):
-            outputs.append(model(images).argmax(dim=1).cpu())
-            truths.append(batch["label"])
-        elif isinstance(model, DepressionRegressor):
-            outputs.append(model.predict_depression_deg(images).cpu())
-            truths.append(batch["depression_deg"].float())
-        else:
-            outputs.append(model.predict_azimuth_deg(images).cpu())
-            truths.append(batch["azimuth_deg"].float())
-    predictions, truth = torch.cat(outputs), torch.cat(truths)
-    if isinstance(model, SARClassifier):
-        return {"test_accuracy": classification_accuracy(predictions, truth), "n_test": len(predictions)}
-    if isinstance(model, DepressionRegressor):
-        name, errors = "depression", (predictions - truth).abs()
-    else:
-        name, errors = "azimuth", azimuth_error_deg(predictions, truth)
-    return {
-        f"test_{name}_error_deg": errors.mean().item(),
-        f"test_{name}_error_median_deg": errors.median().item(),
-        "n_test": len(predictions),
-    }
-
-
-def train_model(
-    model: Evaluator,
-    train_set: ChipDataset,
-    test_set: ChipDataset,
-    stage_dir: Path,
-    *,
-    training: EvaluatorTraining,
-    epochs: int,
-    seed: int,
-) -> dict[str, float]:
-    """Trains one evaluator (its trainable parameters), saves it to `stage_dir` and returns test metrics.
-
-    A finished model (its `evaluator.json` exists) is loaded instead of retrained; an interrupted one
-    resumes from its latest epoch checkpoint (``training.resume_from_checkpoint``).
-    """
-    if (stage_dir / EVALUATOR_CONFIG_NAME).is_file():
-        logger.info("%s already trained; skipping", stage_dir)
-        return load_evaluator(stage_dir).metrics
-    # the loaders keep their own seeded generators: a model resumes at epoch boundaries only
-    accelerator = start_run(None, seed=seed, mixed_precision=training.mixed_precision, seedable_sampler=False)
-    parameters = [p for p in model.parameters() if p.requires_grad]
-    optimizer = torch.optim.AdamW(parameters, lr=training.learning_rate, weight_decay=training.weight_decay)
-    train_loader = _loader(train_set, training, shuffle=True, seed=seed)
-    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=epochs * len(train_loader))
-    model, optimizer, train_loader, scheduler = accelerator.prepare(model, optimizer, train_loader, scheduler)
-    checkpoint_dir = stage_dir / "checkpoints"
-    start_epoch = 0
-    resume = resolve_resume_checkpoint(checkpoint_dir, training.resume_from_checkpoint)
-    if resume is not None:
-        start_epoch = int(load_checkpoint(accelerator, resume)["epoch"])
-        logger.info("resumed %s at epoch %d", stage_dir.name, start_epoch)
-    unwrapped = accelerator.unwrap_model(model)
-    frozen_encoder = not any(p.requires_grad for p in unwrapped.encoder.parameters())
-    for epoch in range(start_epoch, epochs):
-        model.train()
-        if frozen_encoder:
-            unwrapped.encoder.eval()  # probes: frozen BatchNorm statistics of the SimCLR encoder
-        total, count = 0.0, 0
-        description = f"{stage_dir.name} epoch {epoch + 1}/{epochs}"
-        for batch in progress_bar(train_loader, desc=description, leave=False):
-            loss = training_loss(model, unwrapped, batch)
-            optimizer.zero_grad(set_to_none=True)
-            accelerator.backward(loss)
-            optimizer.step()
-            scheduler.step()
-            total += loss.item() * len(batch["image"])
-            count += len(batch["image"])
-        logger.info("%s epoch %d/%d: train loss %.4f", stage_dir.name, epoch + 1, epochs, total / count)
-        if (epoch + 1) % training.checkpointing_epochs == 0 and epoch + 1 < epochs:
-            save_checkpoint(
-                accelerator, checkpoint_dir, epoch + 1, total_limit=1, extra_state={"epoch": epoch + 1}
-            )
-    metrics = score_on_split(unwrapped, _loader(test_set, training, False, seed), accelerator.device)
-    metrics["n_train"] = len(train_set)
-    unwrapped.metrics = metrics
-    unwrapped.save_pretrained(stage_dir)
-    logger.info("%s: %s", stage_dir.name, json.dumps(metrics))
-    return metrics
-
-
-def subsample(records: list[ChipRecord], max_chips: int | None, seed: int) -> list[ChipRecord]:
-    """At most `max_chips` of the records (a seeded draw, in record order); all when `max_chips` is None."""
-    if max_chips is None or len(records) <= max_chips:
-        return records
-    keep = torch.randperm(len(records), generator=torch.Generator().manual_seed(seed))
-    return [records[i] for i in sorted(keep[:max_chips].tolist())]
-
-
-def hold_out(
-    records: list[ChipRecord], fraction: float, seed: int
-) -> tuple[list[ChipRecord], list[ChipRecord]]:
-    """Splits the records into `(train, test)` with `round(fraction * n)` (at least 1) seeded test chips.
-
-    Raises:
-        ValueError: If fewer than two records are given.
-    """
-    if len(records) < 2:
-        raise ValueError(f"a train/test split needs at least 2 chips, got {len(records)}")
-    count = min(max(1, round(fraction * len(records))), len(records) - 1)
-    order = torch.randperm(len(records), generator=torch.Generator().manual_seed(seed)).tolist()
-    test = set(order[:count])
-    train = [record for i, record in enumerate(records) if i not in test]
-    return train, [records[i] for i in sorted(test)]
 
 
 # ------------------------------------------------------------------------------------------ the stage

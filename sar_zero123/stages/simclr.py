@@ -32,7 +32,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import numpy as np
 import torch
 from accelerate import Accelerator
 from torch import nn
@@ -40,7 +39,8 @@ from torch.utils.data import DataLoader
 
 from sar_zero123.augment import PRESETS, AugmentationPreset, simclr_views
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
-from sar_zero123.data import SCALING_FILE, ChipDataset, ChipRecord, DecibelScaling, prepare_splits
+from sar_zero123.data import SCALING_FILE, ChipDataset, DecibelScaling, prepare_splits
+from sar_zero123.data.selection import select_chips
 from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig, nt_xent_loss
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.checkpoints import (
@@ -156,17 +156,6 @@ class PretrainSimCLRConfig:
             hidden_sizes=self.hidden_sizes,
             embedding_size=self.embedding_size,
         )
-
-
-def select_chips(records: list[ChipRecord], max_chips: int | None, seed: int) -> list[ChipRecord]:
-    """A seeded random subset of `max_chips` records in index order (all of them when None).
-
-    A random subset rather than the first N keeps every class present in quick runs.
-    """
-    if max_chips is None or max_chips >= len(records):
-        return list(records)
-    keep = np.random.default_rng(seed).choice(len(records), size=max_chips, replace=False)
-    return [records[i] for i in sorted(keep)]
 
 
 def load_train_magnitudes(config: PretrainSimCLRConfig, work_dir: Path) -> torch.Tensor:
