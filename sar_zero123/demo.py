@@ -1,0 +1,287 @@
+"""A local web page to look at novel views: ``python -m sar_zero123.demo`` (needs the ``[demo]`` extra).
+
+The user uploads a chip (PNG/JPEG/TIFF, ``.npy`` or an original MSTAR file) or picks a simulated vehicle,
+sets the azimuth and depression changes with sliders, and sees the generated view beside the input (and
+beside the simulator's truth for a simulated vehicle), plus a 360 deg turntable strip. The pipeline is a
+bundled prior (default ``sar-zero123/sim-prior-rotated``) or ``--pipeline DIR``.
+
+Safe by default: the server binds to 127.0.0.1 unless ``--host`` says otherwise, never opens a public share
+link unless ``--share`` is given, takes uploads up to :data:`MAX_UPLOAD_BYTES`, runs one generation at a
+time with at most :data:`MAX_QUEUED` requests waiting, and answers a malformed upload or an out-of-range
+request with a message on the page (``gradio.Error``), never a stack trace.
+
+The page is a thin shell over :class:`DemoModel`, whose methods (chip loading, one view, the turntable)
+are plain functions of numpy arrays, tested without a browser.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from sar_zero123.data import DecibelScaling, center_crop_resize, load_magnitude
+from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
+from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip
+
+__all__ = ["MAX_QUEUED", "MAX_UPLOAD_BYTES", "TURNTABLE_VIEWS", "DemoModel", "build_demo", "main"]
+
+#: Largest upload the page accepts (an MSTAR chip file is about 130 kB; a 128 px PNG a few kB).
+MAX_UPLOAD_BYTES = 5 * 1024 * 1024
+#: Requests that may wait for the one generation running; more are refused with a message.
+MAX_QUEUED = 8
+#: Views of the turntable strip (every 360 / TURNTABLE_VIEWS deg).
+TURNTABLE_VIEWS = 8
+
+
+@dataclass(frozen=True)
+class Chip:
+    """An input chip in the pipeline's normalised dB, with its depression and, when simulated, how to
+    render its truth at another pose."""
+
+    image: np.ndarray  # (S, S) float32 normalised dB in [0, 1]
+    depression_deg: float  # the chip's absolute depression
+    target_class: str | None = None  # simulated vehicle, or None for an upload
+    azimuth_deg: float | None = None  # its azimuth, for the truth
+    seed: int = 0  # the simulator's clutter and speckle seed
+
+
+class DemoModel:
+    """The pipeline and what the page asks of it.
+
+    Args:
+        pipeline: A bundled pipeline's name or a ``save_pretrained`` folder.
+        num_inference_steps: Denoising steps of every view.
+        guidance_scale: Classifier-free guidance weight.
+        heading_guidance_scale: Guidance away from the flipped heading (0: off).
+        device: Torch device.
+    """
+
+    def __init__(
+        self,
+        pipeline: str = SIM_PRIOR_ROTATED,
+        num_inference_steps: int = 20,
+        guidance_scale: float = 3.0,
+        heading_guidance_scale: float = 0.0,
+        device: str = "cpu",
+    ) -> None:
+        self.name = pipeline
+        self.pipe = SARZero123Pipeline.from_pretrained(pipeline).to(device)
+        self.pipe.set_progress_bar_config(disable=True)
+        self.size = self.pipe.default_image_size
+        scaling_file = resolve_pretrained(pipeline) / "decibel_scaling.json"
+        self.scaling = (
+            DecibelScaling.from_file(scaling_file)
+            if scaling_file.is_file()
+            else DecibelScaling.for_unit_magnitude()
+        )
+        self.num_inference_steps = num_inference_steps
+        self.guidance_scale = guidance_scale
+        self.heading_guidance_scale = heading_guidance_scale
+        config = self.pipe.pose_projection.config
+        self.needs_depression = bool(getattr(config, "input_depression", False))
+        self.trained_depression_deg = getattr(config, "trained_depression_deg", None) or [1.0, 89.0]
+        self.trained_d_el_deg = getattr(config, "trained_d_el_deg", None) or [-30.0, 30.0]
+
+    # ------------------------------------------------------------------------------------------ inputs
+    def uploaded_chip(self, path: str | Path, depression_deg: float) -> Chip:
+        """An uploaded chip file as the pipeline's input.
+
+        Raises:
+            ValueError: For a file that is too large, unreadable, not one 2-D channel, smaller than 16 px,
+                with negative or non-finite magnitudes, or mostly outside the pipeline's dB range.
+        """
+        path = Path(path)
+        if path.stat().st_size > MAX_UPLOAD_BYTES:
+            raise ValueError(
+                f"the file is {path.stat().st_size / 1e6:.1f} MB; chips up to "
+                f"{MAX_UPLOAD_BYTES / 1e6:.0f} MB are accepted"
+            )
+        magnitude = center_crop_resize(load_magnitude(path), size=self.size, name=f"upload {path.name!r}")
+        unclipped = self.scaling.normalize(magnitude, clip=False)
+        outside = float(np.mean((unclipped < -1e-4) | (unclipped > 1 + 1e-4)))
+        if outside > 0.5:
+            raise ValueError(
+                f"{outside:.0%} of the upload's pixels lie outside the pipeline's dB range "
+                f"[{self.scaling.min_db:g}, {self.scaling.max_db:g}] dB: is it a magnitude chip?"
+            )
+        return Chip(self.scaling.normalize(magnitude).astype(np.float32), float(depression_deg))
+
+    def simulated_chip(
+        self, target_class: str, azimuth_deg: float, depression_deg: float, seed: int = 0
+    ) -> Chip:
+        """A chip of a built-in simulated vehicle (:data:`~sar_zero123.sim.TARGET_CLASSES`)."""
+        if target_class not in TARGET_CLASSES:
+            raise ValueError(f"vehicle must be one of {sorted(TARGET_CLASSES)}, got {target_class!r}")
+        magnitude = self._render(target_class, azimuth_deg, depression_deg, seed)
+        return Chip(self.scaling.normalize(magnitude).astype(np.float32), float(depression_deg), target_class,
+                    float(azimuth_deg), seed)  # fmt: skip
+
+    def truth(self, chip: Chip, d_az: float, d_el: float) -> np.ndarray | None:
+        """The simulator's view at the requested pose (normalised dB), or None for an upload."""
+        if chip.target_class is None or chip.azimuth_deg is None:
+            return None
+        azimuth = (chip.azimuth_deg + d_az) % 360.0
+        magnitude = self._render(chip.target_class, azimuth, chip.depression_deg + d_el, chip.seed)
+        return self.scaling.normalize(magnitude).astype(np.float32)
+
+    def _render(self, target_class: str, azimuth_deg: float, depression_deg: float, seed: int) -> np.ndarray:
+        target = make_target(target_class)
+        return render_chip(target, azimuth_deg=float(azimuth_deg), depression_deg=float(depression_deg),
+                           size=self.size, generator=np.random.default_rng(seed))  # fmt: skip
+
+    # ------------------------------------------------------------------------------------------ views
+    def check_request(self, chip: Chip, d_el: float) -> None:
+        """Refuse a depression change outside what the pipeline was trained on, in the page's words."""
+        low, high = self.trained_d_el_deg
+        target = chip.depression_deg + d_el
+        if not low - 1e-6 <= d_el <= high + 1e-6:
+            raise ValueError(
+                f"depression change {d_el:g} deg: this pipeline was trained on [{low:g}, {high:g}]"
+            )
+        low, high = self.trained_depression_deg
+        if not low - 1e-6 <= target <= high + 1e-6 or not low - 1e-6 <= chip.depression_deg <= high + 1e-6:
+            raise ValueError(
+                f"depressions {chip.depression_deg:g} -> {target:g} deg: this pipeline was trained on "
+                f"[{low:g}, {high:g}] deg"
+            )
+
+    def views(self, chip: Chip, d_az: Sequence[float], d_el: float, seed: int = 0) -> np.ndarray:
+        """Generated views at each ``d_az`` (one batched call), ``(N, S, S)`` normalised dB in [0, 1]."""
+        self.check_request(chip, d_el)
+        import torch
+
+        image = torch.from_numpy(chip.image)[None, None].repeat(len(d_az), 1, 1, 1)
+        generator = [torch.Generator().manual_seed(seed + i) for i in range(len(d_az))]
+        output = self.pipe(
+            image, d_az=[float(a) for a in d_az], d_el=[float(d_el)] * len(d_az),
+            input_depression_deg=chip.depression_deg if self.needs_depression else None,
+            num_inference_steps=self.num_inference_steps, guidance_scale=self.guidance_scale,
+            heading_guidance_scale=self.heading_guidance_scale, generator=generator, output_type="np",
+        )  # fmt: skip
+        return np.clip(output.images[..., 0], 0.0, 1.0).astype(np.float32)
+
+    def turntable(self, chip: Chip, d_el: float, seed: int = 0) -> np.ndarray:
+        """The input turned by every ``360 / TURNTABLE_VIEWS`` deg, side by side: ``(S, N * S)``."""
+        steps = [360.0 * k / TURNTABLE_VIEWS for k in range(TURNTABLE_VIEWS)]
+        return np.concatenate(list(self.views(chip, steps, d_el, seed)), axis=1)
+
+
+def to_uint8(image: np.ndarray, scale: int = 4) -> np.ndarray:
+    """Normalised dB in [0, 1] as an 8-bit image, each pixel ``scale`` x ``scale`` (64 px chips are small)."""
+    pixels = (np.clip(image, 0.0, 1.0) * 255.0).round().astype(np.uint8)
+    return np.kron(pixels, np.ones((scale, scale), dtype=np.uint8))
+
+
+def build_demo(model: DemoModel) -> Any:
+    """The page (a ``gradio.Blocks``) over ``model``; ``.launch()`` serves it."""
+    import gradio as gr
+
+    low, high = model.trained_d_el_deg
+    depression_low, depression_high = model.trained_depression_deg
+    default_depression = min(max(17.0, depression_low), depression_high)
+
+    def chip_of(source: str, upload: str | None, vehicle: str, azimuth: float, depression: float) -> Chip:
+        try:
+            if source == "upload":
+                if upload is None:
+                    raise ValueError(
+                        "upload a chip file first (PNG, .npy or an MSTAR file), or pick a vehicle"
+                    )
+                return model.uploaded_chip(upload, depression)
+            return model.simulated_chip(vehicle, azimuth, depression)
+        except (ValueError, FileNotFoundError, OSError) as error:
+            raise gr.Error(str(error)) from None
+
+    def generate(source, upload, vehicle, azimuth, depression, d_az, d_el, seed):
+        chip = chip_of(source, upload, vehicle, azimuth, depression)
+        try:
+            view = model.views(chip, [d_az], d_el, int(seed))[0]
+        except ValueError as error:
+            raise gr.Error(str(error)) from None
+        truth = model.truth(chip, d_az, d_el)
+        return to_uint8(chip.image), to_uint8(view), None if truth is None else to_uint8(truth)
+
+    def turntable(source, upload, vehicle, azimuth, depression, d_el, seed):
+        chip = chip_of(source, upload, vehicle, azimuth, depression)
+        try:
+            return to_uint8(model.turntable(chip, d_el, int(seed)), scale=2)
+        except ValueError as error:
+            raise gr.Error(str(error)) from None
+
+    with gr.Blocks(title="sar_zero123: novel SAR views") as demo:
+        gr.Markdown(
+            f"## Novel views of a SAR chip\nPipeline `{model.name}`, {model.num_inference_steps} denoising "
+            "steps. Pick a simulated vehicle or upload a chip, set the azimuth and depression changes, "
+            "and generate."
+        )
+        with gr.Row():
+            with gr.Column():
+                source = gr.Radio(["simulated vehicle", "upload"], value="simulated vehicle", label="input")
+                vehicle = gr.Dropdown(sorted(TARGET_CLASSES), value="TANK", label="simulated vehicle")
+                azimuth = gr.Slider(0, 359, value=30, step=1, label="its azimuth (deg)")
+                upload = gr.File(label="chip file (PNG, .npy, MSTAR)", type="filepath")
+                depression = gr.Slider(depression_low, depression_high, value=default_depression, step=0.5,
+                                       label="input depression (deg)")  # fmt: skip
+                d_az = gr.Slider(-180, 180, value=60, step=1, label="azimuth change d_az (deg)")
+                d_el = gr.Slider(low, high, value=0.0, step=0.5, label="depression change d_el (deg)")
+                seed = gr.Number(0, precision=0, label="seed")
+                with gr.Row():
+                    go = gr.Button("Generate", variant="primary", elem_id="generate")
+                    spin = gr.Button("Turntable (360 deg)", elem_id="turntable")
+            with gr.Column():
+                with gr.Row():
+                    shown_input = gr.Image(label="input", elem_id="input_image")
+                    shown_view = gr.Image(label="generated view", elem_id="view_image")
+                    shown_truth = gr.Image(label="simulator truth", elem_id="truth_image")
+                strip = gr.Image(label="turntable", elem_id="turntable_image")
+        inputs = [source, upload, vehicle, azimuth, depression]
+        go.click(generate, [*inputs, d_az, d_el, seed], [shown_input, shown_view, shown_truth])
+        spin.click(turntable, [*inputs, d_el, seed], [strip])
+    demo.queue(default_concurrency_limit=1, max_size=MAX_QUEUED)
+    return demo
+
+
+def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
+    parser = argparse.ArgumentParser(prog="python -m sar_zero123.demo", description=__doc__.splitlines()[0])
+    parser.add_argument("--pipeline", default=SIM_PRIOR_ROTATED, help="bundled name or pipeline folder")
+    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default: this machine only)")
+    parser.add_argument("--port", type=int, default=7860, help="port (default 7860)")
+    parser.add_argument("--share", action="store_true", help="also open a public gradio.live link")
+    parser.add_argument("--num_inference_steps", "--num-inference-steps", type=int, default=20)
+    parser.add_argument("--guidance_scale", "--guidance-scale", type=float, default=3.0)
+    parser.add_argument("--heading_guidance_scale", "--heading-guidance-scale", type=float, default=0.0)
+    parser.add_argument("--device", default="cpu")
+    args = parser.parse_args(argv)
+    if not 1 <= args.num_inference_steps <= 1000:
+        parser.error(f"--num_inference_steps must lie in [1, 1000], got {args.num_inference_steps}")
+    if not 0 < args.port < 65536:
+        parser.error(f"--port must lie in [1, 65535], got {args.port}")
+    if not (math.isfinite(args.guidance_scale) and math.isfinite(args.heading_guidance_scale)):
+        parser.error("--guidance_scale and --heading_guidance_scale must be finite")
+    return args
+
+
+def main(argv: Sequence[str] | None = None) -> None:
+    """Serve the page until interrupted."""
+    try:
+        import gradio  # noqa: F401
+    except ImportError:
+        raise SystemExit("the demo needs gradio: pip install -e '.[demo]'") from None
+    args = parse_args(argv)
+    model = DemoModel(args.pipeline, args.num_inference_steps, args.guidance_scale,
+                      args.heading_guidance_scale, args.device)  # fmt: skip
+    build_demo(model).launch(
+        server_name=args.host, server_port=args.port, share=args.share, max_file_size=MAX_UPLOAD_BYTES,
+        show_api=False,
+    )  # fmt: skip
+
+
+if __name__ == "__main__":
+    main()

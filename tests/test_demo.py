@@ -1,0 +1,124 @@
+"""The demo page (issue 38 item 5): the model behind it without a browser, then the page in headless
+Chromium as a user would drive it (skipped without the [demo] extra, playwright or a chromium binary)."""
+
+from __future__ import annotations
+
+import base64
+import io
+import os
+import shutil
+import socket
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from sar_zero123.demo import MAX_UPLOAD_BYTES, TURNTABLE_VIEWS, DemoModel, to_uint8
+from sar_zero123.sim import make_target, render_chip
+
+
+@pytest.fixture(scope="module")
+def model() -> DemoModel:
+    return DemoModel(num_inference_steps=2)
+
+
+def test_a_simulated_vehicle_its_views_and_its_truth(model):
+    chip = model.simulated_chip("TANK", 30.0, 17.0)
+    expected = render_chip(make_target("TANK"), azimuth_deg=90.0, depression_deg=27.0, size=64,
+                           generator=np.random.default_rng(0))  # fmt: skip
+    np.testing.assert_allclose(model.truth(chip, 60.0, 10.0), model.scaling.normalize(expected), atol=1e-6)
+    views = model.views(chip, [60.0, -30.0], 10.0, seed=3)
+    assert views.shape == (2, 64, 64) and 0.0 <= views.min() and views.max() <= 1.0
+    # seeded per view: alone it is the same view, up to the float rounding of another batch size
+    np.testing.assert_allclose(views[:1], model.views(chip, [60.0], 10.0, seed=3), atol=2e-3)
+    strip = model.turntable(chip, 0.0)
+    assert strip.shape == (64, 64 * TURNTABLE_VIEWS)
+    assert to_uint8(strip[:, :64]).shape == (256, 256)
+
+
+def test_bad_uploads_and_requests_are_refused_with_a_message(model, tmp_path):
+    broken = tmp_path / "chip.png"
+    broken.write_bytes(b"not an image")
+    with pytest.raises(ValueError, match="cannot read the .png image"):
+        model.uploaded_chip(broken, 17.0)
+    big = tmp_path / "big.npy"
+    big.write_bytes(b"\0" * (MAX_UPLOAD_BYTES + 1))
+    with pytest.raises(ValueError, match=r"the file is 5.2 MB; chips up to 5 MB are accepted"):
+        model.uploaded_chip(big, 17.0)
+    bright = tmp_path / "bright.npy"
+    np.save(bright, np.full((64, 64), 500.0, dtype=np.float32))
+    with pytest.raises(ValueError, match=r"100% of the upload's pixels lie outside the pipeline's dB range"):
+        model.uploaded_chip(bright, 17.0)
+    chip = model.uploaded_chip(_chip_file(tmp_path), 17.0)
+    assert chip.image.shape == (64, 64) and model.truth(chip, 30.0, 0.0) is None
+    with pytest.raises(
+        ValueError, match=r"depressions 17 -> 62 deg: this pipeline was trained on \[10, 60\]"
+    ):
+        model.views(chip, [30.0], 45.0)
+    with pytest.raises(
+        ValueError, match=r"depression change 60 deg: this pipeline was trained on \[-50, 50\]"
+    ):
+        model.views(chip, [30.0], 60.0)
+    with pytest.raises(ValueError, match=r"vehicle must be one of"):
+        model.simulated_chip("BOAT", 0.0, 17.0)
+
+
+def _chip_file(folder):
+    path = folder / "tank.npy"
+    np.save(path, render_chip(make_target("TANK"), azimuth_deg=10.0, depression_deg=17.0, size=64,
+                              generator=np.random.default_rng(1)))  # fmt: skip
+    return path
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def _image_of(page, selector: str) -> np.ndarray:
+    source = page.locator(f"{selector} img").first.get_attribute("src")
+    if source.startswith("data:"):
+        data = base64.b64decode(source.split(",", 1)[1])
+    else:
+        data = page.request.get(source).body()
+    return np.asarray(Image.open(io.BytesIO(data)).convert("L"))
+
+
+def test_the_page_in_a_browser_generates_a_view_and_explains_a_bad_upload(model, tmp_path):
+    pytest.importorskip("gradio")
+    playwright = pytest.importorskip("playwright.sync_api")
+    chromium = shutil.which("chromium") or shutil.which("chromium-browser")
+    if chromium is None:
+        pytest.skip("no chromium binary (Debian: apt install chromium)")
+    from sar_zero123.demo import build_demo
+
+    demo = build_demo(model)
+    port = _free_port()
+    demo.launch(server_name="127.0.0.1", server_port=port, prevent_thread_lock=True, share=False,
+                max_file_size=MAX_UPLOAD_BYTES, show_api=False, quiet=True)  # fmt: skip
+    try:
+        assert demo.share is False and demo.server_name == "127.0.0.1"
+        with playwright.sync_playwright() as driver:
+            browser = driver.chromium.launch(executable_path=chromium, args=["--no-sandbox"])
+            page = browser.new_page(viewport={"width": 1400, "height": 1000})
+            page.goto(f"http://127.0.0.1:{port}/")
+            page.click("#generate")
+            page.wait_for_selector("#view_image img", timeout=60_000)
+            page.wait_for_selector("#truth_image img", timeout=60_000)
+            view = _image_of(page, "#view_image")
+            assert view.shape == (256, 256) and view.std() > 5  # a 64 px view shown at 4x, not blank
+            assert _image_of(page, "#truth_image").shape == (256, 256)
+            if os.environ.get("SAR_ZERO123_DEMO_SCREENSHOT"):
+                page.screenshot(path=os.environ["SAR_ZERO123_DEMO_SCREENSHOT"], full_page=True)
+            # a malformed upload: a message on the page, not a stack trace
+            broken = tmp_path / "chip.png"
+            broken.write_bytes(b"not an image")
+            page.get_by_role("radio", name="upload").check()
+            page.locator("input[type=file]").set_input_files(str(broken))
+            page.wait_for_timeout(1000)
+            page.click("#generate")
+            page.get_by_text("cannot read the .png image").first.wait_for(timeout=30_000)
+            browser.close()
+    finally:
+        demo.close()
