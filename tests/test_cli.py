@@ -7,7 +7,6 @@ import re
 from pathlib import Path
 
 import pytest
-import tomllib
 
 from sar_zero123 import cli
 from sar_zero123.config import parse_config
@@ -20,6 +19,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def test_every_command_is_a_console_script_calling_its_function():
+    tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
     assert scripts == {command.script: f"sar_zero123.cli:{command.function}" for command in cli.COMMANDS}
     for command in cli.COMMANDS:
