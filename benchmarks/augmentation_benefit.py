@@ -88,8 +88,11 @@ RESULT_FILE = "result.json"
 #: Fields that only add or drop arms: a resumed benchmark may change them; any other change is refused.
 ARM_SELECTION_FIELDS = (
     "data", "out", "ks", "sectors", "unseen_class", "unseen_k", "speckle_looks", "strength",
-    "same_azimuth_control", "eoc1_data", "eoc1_ks", "heading_guidance",
+    "same_azimuth_control", "eoc1_data", "eoc1_ks", "heading_guidance", "view_filters",
+    "validation_chips_per_class",
 )  # fmt: skip
+#: Ways of keeping fewer generated views (BenchmarkConfig.view_filters).
+VIEW_FILTERS = ("confident", "ratio1")
 #: The reduced configuration: two K, no sector or unseen-class arms (about 30 min on 2 CPU cores, estimated).
 QUICK = {"ks": [12, 48], "sectors": False, "unseen_class": None}
 
@@ -124,6 +127,10 @@ class BenchmarkConfig:
     strength: float | None = None  # also arms whose views start from the kept chip's noised latent (SDEdit)
     same_azimuth_control: bool = False  # also the plain (and strength) views at d_az = 0: what the pose adds
     heading_guidance: float | None = None  # also arms of the plain views at this heading guidance; None: no
+    # also arms of the plain views filtered (VIEW_FILTERS): "confident" keeps the views the real-only
+    # classifier of the same chips reads as their class, "ratio1" one view per kept chip (of views_per_chip)
+    view_filters: list[str] = field(default_factory=list)
+    validation_chips_per_class: int = 50  # 17 deg chips left out of an arm's K, for its validation accuracy
     # a prior corpus (write_prior_corpus, e.g. train/pretrain_prior.py's corpus/) mixed into every generator's
     # fine-tune (FinetuneConfig.rehearsal_data); None: the kept chips only. The EOC-1 arms need it
     rehearsal_data: str | None = None
@@ -150,6 +157,9 @@ class BenchmarkConfig:
             raise ValueError(f"strength must be None or in (0, 1), got {self.strength}")
         if self.heading_guidance is not None and not 0.0 < self.heading_guidance <= 100.0:
             raise ValueError(f"heading_guidance must be None or in (0, 100], got {self.heading_guidance}")
+        unknown = sorted(set(self.view_filters) - set(VIEW_FILTERS))
+        if unknown:
+            raise ValueError(f"view_filters must be among {VIEW_FILTERS}, got {unknown}")
         if not 0.0 <= self.rehearsal_fraction < 1.0:
             raise ValueError(f"rehearsal_fraction must lie in [0, 1), got {self.rehearsal_fraction}")
         if self.eoc1_data is not None and (self.rehearsal_data is None or self.rehearsal_fraction == 0.0):
@@ -397,12 +407,13 @@ def build_generator(
 
 def variant_suffix(
     speckle_looks: int | None = None, strength: float = 1.0, same_azimuth: bool = False, d_el: float = 0.0,
-    heading_guidance: float = 0.0,
+    heading_guidance: float = 0.0, view_filter: str | None = None, filter_classifier: Path | None = None,
 ) -> str:
-    """``_speckle<L>``, ``_strength<S>``, ``_heading<H>``, ``_d_az0`` and ``_d_el<D>`` for views generated
-    other than plainly (``""``)."""
+    """``_speckle<L>``, ``_strength<S>``, ``_heading<H>``, ``_d_az0``, ``_d_el<D>`` and ``_<filter>`` for
+    views generated or kept other than plainly (``""``)."""
     return (
-        ("" if speckle_looks is None else f"_speckle{speckle_looks}")
+        ("" if view_filter is None else f"_{view_filter}")
+        + ("" if speckle_looks is None else f"_speckle{speckle_looks}")
         + ("" if strength == 1.0 else f"_strength{strength:g}")
         + ("" if heading_guidance == 0.0 else f"_heading{heading_guidance:g}")
         + ("_d_az0" if same_azimuth else "")
@@ -499,6 +510,7 @@ class Benchmark:
         self, kept: Sequence[ChipRecord], d_az: list[float], generator_dir: Path, description: str,
         generator_records: Sequence[ChipRecord] | None = None, speckle_looks: int | None = None,
         strength: float = 1.0, d_el: float = 0.0, heading_guidance: float = 0.0,
+        view_filter: str | None = None, filter_classifier: Path | None = None,
     ) -> Any:  # fmt: skip
         def build(arm_dir: Path) -> dict[str, Any]:
             trained_on = kept if generator_records is None else generator_records
@@ -506,8 +518,11 @@ class Benchmark:
                 self.config, trained_on, kept, generator_dir, d_az, speckle_looks, strength, d_el,
                 heading_guidance,
             )
-            views = load_index(views_dir)
+            generated = load_index(views_dir)
+            views = self.filter_views(generated, view_filter, filter_classifier)
             result = self.classifiers(list(kept) + views, arm_dir)
+            if view_filter is not None:
+                result.update(view_filter=view_filter, n_generated_before_filter=len(generated))
             result.update(
                 description=description, n_real=len(kept), n_generated=len(views), d_az_deg=d_az,
                 d_el_deg=d_el,
@@ -519,6 +534,45 @@ class Benchmark:
             return result
 
         return build
+
+    def filter_views(
+        self, views: list[ChipRecord], view_filter: str | None, classifier_dir: Path | None
+    ) -> list[ChipRecord]:
+        """The generated views an arm keeps: all (None); those a classifier trained on the real chips of
+        the same arm reads as their class ("confident"); or one per kept chip ("ratio1": the view whose
+        ``(row + request) % views_per_chip == 0``, so the kept offsets rotate across chips)."""
+        if view_filter is None:
+            return views
+        if view_filter == "ratio1":
+            def index(view: ChipRecord) -> tuple[int, int]:  # ..._r<row>_q<request>.npy
+                row, request = Path(view.path).stem.split("_")[-2:]
+                return int(row[1:]), int(request[1:])
+
+            return [v for v in views if sum(index(v)) % self.config.views_per_chip == 0]
+        if view_filter == "confident":
+            if classifier_dir is None:
+                raise ValueError("view_filter 'confident' needs the real-only arm's classifier")
+            images, labels = self.images(views)
+            keep = (predict(load_evaluator(classifier_dir), images) == labels).tolist()
+            return [v for v, k in zip(views, keep) if k]
+        raise ValueError(f"view_filter must be None or one of {VIEW_FILTERS}, got {view_filter!r}")
+
+    def validation_accuracy(self, arm: dict[str, Any]) -> float | None:
+        """Seed 0's classifier of a K arm on 17 deg chips left out of that arm's K
+        (``validation_chips_per_class`` per class, evenly spaced): a validation split of the training
+        depression, never a test chip; None for other arms or an arm without a saved classifier."""
+        match = re.match(r"(real|generated)_k(\d+)", arm["arm"])
+        classifier = self.out / arm["arm"] / "classifier_seed0"
+        if match is None or not (classifier / "evaluator.json").is_file():
+            return None
+        kept = {str(r.path) for r in keep_evenly_spaced(self.train_records, int(match.group(2)))}
+        pool = []
+        for name in self.class_names:
+            members = [r for r in self.train_records if r.target_class == name and str(r.path) not in kept]
+            step = max(len(members) // self.config.validation_chips_per_class, 1)
+            pool += members[::step][: self.config.validation_chips_per_class]
+        images, labels = self.images(pool)
+        return accuracy(load_evaluator(classifier), images, labels)
 
     def view_quality(self, views: Sequence[ChipRecord], generator_dir: Path) -> dict[str, Any]:
         """The ceiling classifier on the generated views, on VAE round trips of 15 deg chips and on those
@@ -579,6 +633,12 @@ class Benchmark:
         if config.heading_guidance is not None:
             words = f"heading guidance {config.heading_guidance:g}"
             variants.append(({"heading_guidance": config.heading_guidance}, False, words))
+        baseline = real_baseline(name)
+        for view_filter in config.view_filters:
+            words = {"confident": "only the views the real-only classifier reads as their class",
+                     "ratio1": "one view per kept chip"}[view_filter]  # fmt: skip
+            classifier = None if baseline is None else self.out / baseline / "classifier_seed0"
+            variants.append(({"view_filter": view_filter, "filter_classifier": classifier}, False, words))
         return [
             self.run_arm(f"{name}{variant_suffix(**options, same_azimuth=same)}", self.generated_arm(
                 kept, [0.0] * len(d_az) if same else d_az, generator_dir, f"{description}, {words}",
@@ -635,6 +695,10 @@ class Benchmark:
             )  # fmt: skip
         if config.eoc1_data is not None:
             results += DepressionTransfer(self, load_index(config.eoc1_data)).run_arms()
+        for arm in results:
+            value = self.validation_accuracy(arm)
+            if value is not None:
+                arm["validation_accuracy_seed0"] = value
         summary = {
             "benchmark": "augmentation_benefit (issue 26, EOC-1: issue 37)",
             "config": asdict(config),
@@ -836,6 +900,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=value)
         elif name == "seeds":
             parser.add_argument(flag, nargs="+", type=int, default=value)
+        elif name == "view_filters":
+            parser.add_argument(flag, nargs="*", choices=VIEW_FILTERS, default=value)
         elif isinstance(value, list):  # no value: no such arms
             parser.add_argument(flag, nargs="*", type=int, default=value)
         elif name in ("rehearsal_data", "eoc1_data"):

@@ -164,6 +164,16 @@ def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
     guided = {arm["arm"]: arm for arm in main([*args, "--heading_guidance", "2"])["arms"]}
     assert guided["generated_k4_heading2"]["generator"] == guided["generated_k4"]["generator"]
     assert guided["generated_sector_heading2"]["gain_over_real"]["against"] == "real_sector"
+    # filtered views: the same views, fewer of them; validation accuracy on 17 deg chips outside the K
+    filtered = {arm["arm"]: arm for arm in main([*args, "--view_filters", "confident", "ratio1"])["arms"]}
+    confident = filtered["generated_k4_confident"]
+    assert confident["view_filter"] == "confident" and confident["n_generated_before_filter"] == 8
+    assert confident["n_generated"] <= 8 and confident["gain_over_real"]["against"] == "real_k4"
+    assert filtered["generated_k4_ratio1"]["n_generated"] == 8  # views_per_chip 1: every view kept
+    assert filtered["generated_k4_ratio1"]["generator"] == filtered["generated_k4"]["generator"]
+    for name in ("real_k4", "generated_k4", "generated_k4_confident"):
+        assert 0.0 <= filtered[name]["validation_accuracy_seed0"] <= 1.0
+    assert "validation_accuracy_seed0" not in filtered["real_sector"]
     heading = json.loads((tmp_path / "out" / "generator_k4" / "views_heading2" / "augment.json").read_text())
     assert heading["heading_guidance_scale"] == 2.0
     pose = started["generated_k4_strength0.5"]["gain_over_same_azimuth"]
