@@ -27,7 +27,6 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -37,25 +36,23 @@ from accelerate import Accelerator
 from torch import nn
 from torch.utils.data import DataLoader
 
-from sar_zero123.augment import PRESETS, AugmentationPreset, simclr_views
+from sar_zero123.augment import PRESETS, AugmentationPreset
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE, ChipDataset, DecibelScaling, prepare_splits
 from sar_zero123.data.selection import select_chips
-from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig, nt_xent_loss
-from sar_zero123.progress import progress_bar
+from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig
 from sar_zero123.runs.checkpoints import (
     RESUME_MAY_DIFFER,
     check_finite_state,
-    check_finite_step,
     check_resume_config,
     end_run,
     resolve_resume_checkpoint,
     resume_step,
-    save_checkpoint,
 )
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
 from sar_zero123.runs.launch import start_run, tracker_hparams
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
+from sar_zero123.training.simclr import SimCLRChips, SimCLRLoopStats, train_simclr_steps
 
 logger = logging.getLogger(__name__)
 
@@ -179,27 +176,6 @@ def load_train_magnitudes(config: PretrainSimCLRConfig, work_dir: Path) -> torch
     return magnitude
 
 
-@dataclass
-class _Chips:
-    """The train magnitudes on the device, their dB scaling and the run's length in steps."""
-
-    magnitude: torch.Tensor
-    scaling: DecibelScaling
-    steps_per_epoch: int
-    max_steps: int
-
-
-@dataclass
-class _LoopStats:
-    """What the training loop measured: the last step and loss, and the time spent augmenting."""
-
-    step: int
-    loss: float
-    augment_seconds: float
-    step_seconds: float
-    timed_images: int
-
-
 def run_simclr(config: PretrainSimCLRConfig) -> Path:
     """Pretrain (or continue) the SAR encoder in ``config.output_dir``; returns the run folder.
 
@@ -247,7 +223,7 @@ def run_simclr(config: PretrainSimCLRConfig) -> Path:
         accelerator.init_trackers("simclr", config=tracker_hparams(config))
         start_step = resume_step(accelerator, resume)
     # 3. training, then the encoder, the figures and the record
-    stats = _train(config, accelerator, model, optimizer, scheduler, chips, start_step)
+    stats = train_simclr_steps(config, accelerator, model, optimizer, scheduler, chips, start_step)
     accelerator.wait_for_everyone()
     metrics = _metrics(config, accelerator, chips, stats, start_step)
     if accelerator.is_main_process:
@@ -264,7 +240,7 @@ def run_simclr(config: PretrainSimCLRConfig) -> Path:
     return output_dir
 
 
-def _load_chips(config: PretrainSimCLRConfig, accelerator: Accelerator) -> _Chips:
+def _load_chips(config: PretrainSimCLRConfig, accelerator: Accelerator) -> SimCLRChips:
     """The train magnitudes on the device, checked against the global batch; writes ``config.json`` and
     ``decibel_scaling.json``."""
     output_dir = Path(config.output_dir)
@@ -289,90 +265,15 @@ def _load_chips(config: PretrainSimCLRConfig, accelerator: Accelerator) -> _Chip
     max_steps = config.epochs * steps_per_epoch
     if config.max_train_steps is not None:
         max_steps = min(max_steps, config.max_train_steps)
-    return _Chips(magnitude, scaling, steps_per_epoch, max_steps)
-
-
-def _train(
-    config: PretrainSimCLRConfig,
-    accelerator: Accelerator,
-    model: nn.Module,
-    optimizer: torch.optim.Optimizer,
-    scheduler: torch.optim.lr_scheduler.LRScheduler,
-    chips: _Chips,
-    step: int,
-) -> _LoopStats:
-    """Steps ``step`` to ``chips.max_steps``. Each step's batch and augmentation draw depend only on
-    (seed, step), so a resumed run continues the same sequence without storing generator states."""
-    augmentation = config.augmentation()
-    local_batch = config.global_batch_size // accelerator.num_processes
-    rank = accelerator.process_index
-    aug_generator = torch.Generator(device=accelerator.device)
-    order_generator = torch.Generator()
-    order, order_epoch = None, -1
-    stats = _LoopStats(step, float("nan"), 0.0, 0.0, 0)
-    model.train()
-    progress = progress_bar(
-        total=chips.max_steps, initial=step, desc="simclr", disable=not accelerator.is_local_main_process
-    )
-    while step < chips.max_steps:
-        epoch, position = divmod(step, chips.steps_per_epoch)
-        if epoch != order_epoch:
-            order_generator.manual_seed(config.seed * 1_000_003 + epoch)
-            order, order_epoch = torch.randperm(chips.magnitude.shape[0], generator=order_generator), epoch
-        start = position * config.global_batch_size + rank * local_batch
-        index = order[start : start + local_batch].to(accelerator.device)
-        step_start = time.perf_counter()
-        aug_generator.manual_seed((config.seed * 1_000_003 + step) * 64 + rank)
-        chip_batch = chips.magnitude[index]
-        view1, view2 = simclr_views(chip_batch, augmentation, chips.scaling, generator=aug_generator)
-        views = torch.cat([view1, view2])  # (2B, 1, S, S): one pass, BatchNorm sees both views
-        if config.channels_last:
-            views = views.contiguous(memory_format=torch.channels_last)
-        _synchronize(accelerator.device)
-        augmented = time.perf_counter()
-        z1, z2 = model(views).chunk(2)
-        loss = nt_xent_loss(
-            z1, z2, temperature=config.temperature, gather_distributed=config.gather_negatives
-        ).mean()
-        optimizer.zero_grad(set_to_none=True)
-        accelerator.backward(loss)
-        optimizer.step()
-        scheduler.step()
-        # the mean over processes (also synchronises, so the step time below is complete)
-        stats.loss = accelerator.reduce(loss.detach(), reduction="mean").item()
-        check_finite_step(step + 1, loss=stats.loss)  # reduced: every process stops together
-        finished = time.perf_counter()
-        if step > 0 or chips.max_steps == 1:  # the first step pays one-off warm-up costs
-            stats.augment_seconds += augmented - step_start
-            stats.step_seconds += finished - step_start
-            stats.timed_images += config.global_batch_size
-        step += 1
-        progress.update(1)
-        progress.set_postfix(loss=f"{stats.loss:.4f}")
-        if step % config.logging_steps == 0 or step == chips.max_steps:
-            accelerator.log({"train/loss": stats.loss, "train/lr": scheduler.get_last_lr()[0],
-                             **_throughput(stats)}, step=step)  # fmt: skip
-        if step % config.checkpointing_steps == 0 and step < chips.max_steps:
-            save_checkpoint(
-                accelerator, Path(config.output_dir), step, config.checkpoints_total_limit, {"epoch": epoch},
-                config=config,
-            )  # fmt: skip
-    progress.close()
-    stats.step = step
-    return stats
-
-
-def _throughput(stats: _LoopStats) -> dict[str, float]:
-    """Images per second and the share of step time spent augmenting (0 before any timed step)."""
-    seconds = stats.step_seconds
-    return {
-        "train/images_per_second": stats.timed_images / seconds if seconds > 0 else 0.0,
-        "train/augment_fraction": stats.augment_seconds / seconds if seconds > 0 else 0.0,
-    }
+    return SimCLRChips(magnitude, scaling, steps_per_epoch, max_steps)
 
 
 def _metrics(
-    config: PretrainSimCLRConfig, accelerator: Accelerator, chips: _Chips, stats: _LoopStats, start_step: int
+    config: PretrainSimCLRConfig,
+    accelerator: Accelerator,
+    chips: SimCLRChips,
+    stats: SimCLRLoopStats,
+    start_step: int,
 ) -> dict[str, Any]:
     """The figures of ``metrics.json``: final loss, steps, throughput and the collapse loss log(2N - 1)."""
     gathered = config.gather_negatives and accelerator.num_processes > 1
@@ -391,9 +292,3 @@ def _metrics(
         "num_processes": accelerator.num_processes,
         "collapse_loss": math.log(2 * negatives_batch - 1),
     }
-
-
-def _synchronize(device: torch.device) -> None:
-    """Waits for queued device work so the augmentation time is measured, not just its launch."""
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)

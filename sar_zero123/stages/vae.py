@@ -35,7 +35,6 @@ from sar_zero123.evaluation.reconstruction import evaluate_reconstruction
 from sar_zero123.model.conditioning import downsampling_factor
 from sar_zero123.model.vae import latent_scaling_factor, load_pretrained_vae, new_sar_vae, reconstruct
 from sar_zero123.pretrained import resolve_pretrained
-from sar_zero123.progress import progress_bar
 from sar_zero123.runs.checkpoints import (
     RESUME_MAY_DIFFER,
     check_finite_state,
@@ -44,15 +43,12 @@ from sar_zero123.runs.checkpoints import (
     check_resume_steps,
     end_run,
     resolve_resume_checkpoint,
-    resumable_batches,
     resume_step,
-    save_checkpoint,
 )
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
 from sar_zero123.runs.launch import check_global_batch, start_run, tracker_hparams
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
-from sar_zero123.training.step import micro_batch_generator
-from sar_zero123.training.vae import FeatureLoss, VAEObjective
+from sar_zero123.training.vae import FeatureLoss, VAEObjective, train_vae_steps
 
 logger = logging.getLogger(__name__)
 
@@ -214,7 +210,7 @@ def run_vae(config: TrainVAEConfig) -> Path:
         global_step = resume_step(accelerator, resume_path)
         accelerator.init_trackers("train_vae", config=tracker_hparams(config))
     # 3. training, then the model and the record
-    global_step = _train(config, accelerator, objective, optimizer, train_loader, global_step)
+    global_step = train_vae_steps(config, accelerator, objective, optimizer, train_loader, global_step)
     accelerator.wait_for_everyone()
     if accelerator.is_main_process:
         model = accelerator.unwrap_model(objective).vae.eval()
@@ -272,44 +268,6 @@ def _load_chips(
     if accelerator.is_main_process:
         save_config(config, output_dir)
     return scaling, train_dataset, test_dataset
-
-
-def _train(
-    config: TrainVAEConfig,
-    accelerator: Accelerator,
-    objective: torch.nn.Module,
-    optimizer: torch.optim.Optimizer,
-    train_loader: DataLoader,
-    global_step: int,
-) -> int:
-    """Steps ``global_step`` to ``max_train_steps`` (posterior samples from a generator seeded per step and
-    process: resumable); returns the last step."""
-    output_dir = Path(config.output_dir)
-    progress = progress_bar(
-        total=config.max_train_steps,
-        initial=global_step,
-        desc="steps",
-        disable=not accelerator.is_local_main_process,
-    )
-    for step, _, batch in resumable_batches(accelerator, train_loader, global_step, config.max_train_steps):
-        generator = micro_batch_generator(config.seed, step, accelerator.process_index)
-        total, reconstruction = objective(batch["image"], generator=generator)
-        accelerator.backward(total.mean())
-        accelerator.clip_grad_norm_(objective.parameters(), config.max_grad_norm)
-        optimizer.step()
-        optimizer.zero_grad(set_to_none=True)
-        global_step = step + 1
-        progress.update(1)
-        loss = accelerator.gather(reconstruction.detach()).mean().item()
-        progress.set_postfix(reconstruction=f"{loss:.4f}")
-        accelerator.log({"train/reconstruction": loss}, step=global_step)
-        check_finite_step(global_step, loss=accelerator.gather(total.detach()).mean())
-        if global_step % config.checkpointing_steps == 0 or global_step == config.max_train_steps:
-            save_checkpoint(
-                accelerator, output_dir, global_step, config.checkpoints_total_limit, config=config
-            )
-    progress.close()
-    return global_step
 
 
 def _export(

@@ -1,18 +1,27 @@
-"""The VAE's training objective: reconstruction + KL (+ an optional feature loss in a frozen SAR encoder).
+"""The VAE's training objective (reconstruction + KL, plus an optional feature loss in a frozen SAR encoder)
+and its training loop.
 
 Used by the VAE stage (:func:`sar_zero123.stages.vae.run_vae`); the model is :mod:`sar_zero123.model.vae`.
 """
 
 from __future__ import annotations
 
+from pathlib import Path
+from typing import Any
+
 import torch
 import torch.nn.functional as F
+from accelerate import Accelerator
 from diffusers import AutoencoderKL
+from torch.utils.data import DataLoader
 
 from sar_zero123.domain import signed_to_unit, unit_to_signed
 from sar_zero123.encoder import SAREncoder
+from sar_zero123.progress import progress_bar
+from sar_zero123.runs.checkpoints import check_finite_step, resumable_batches, save_checkpoint
+from sar_zero123.training.step import micro_batch_generator
 
-__all__ = ["FeatureLoss", "VAEObjective"]
+__all__ = ["FeatureLoss", "VAEObjective", "train_vae_steps"]
 
 
 class FeatureLoss(torch.nn.Module):
@@ -88,3 +97,42 @@ class VAEObjective(torch.nn.Module):
             decoded = signed_to_unit(recon.float())  # unclamped: the gradient reaches saturated pixels
             total = total + self.feature_loss_weight * self.feature_loss(decoded, images.float())
         return total, reconstruction
+
+
+def train_vae_steps(
+    config: Any,
+    accelerator: Accelerator,
+    objective: torch.nn.Module,
+    optimizer: torch.optim.Optimizer,
+    train_loader: DataLoader,
+    global_step: int,
+) -> int:
+    """Steps ``global_step`` to ``config.max_train_steps`` (``config``: a ``TrainVAEConfig``; posterior
+    samples from a generator seeded per step and process: resumable), checkpointing every
+    ``config.checkpointing_steps``; returns the last step."""
+    output_dir = Path(config.output_dir)
+    progress = progress_bar(
+        total=config.max_train_steps,
+        initial=global_step,
+        desc="steps",
+        disable=not accelerator.is_local_main_process,
+    )
+    for step, _, batch in resumable_batches(accelerator, train_loader, global_step, config.max_train_steps):
+        generator = micro_batch_generator(config.seed, step, accelerator.process_index)
+        total, reconstruction = objective(batch["image"], generator=generator)
+        accelerator.backward(total.mean())
+        accelerator.clip_grad_norm_(objective.parameters(), config.max_grad_norm)
+        optimizer.step()
+        optimizer.zero_grad(set_to_none=True)
+        global_step = step + 1
+        progress.update(1)
+        loss = accelerator.gather(reconstruction.detach()).mean().item()
+        progress.set_postfix(reconstruction=f"{loss:.4f}")
+        accelerator.log({"train/reconstruction": loss}, step=global_step)
+        check_finite_step(global_step, loss=accelerator.gather(total.detach()).mean())
+        if global_step % config.checkpointing_steps == 0 or global_step == config.max_train_steps:
+            save_checkpoint(
+                accelerator, output_dir, global_step, config.checkpoints_total_limit, config=config
+            )
+    progress.close()
+    return global_step

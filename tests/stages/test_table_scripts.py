@@ -196,7 +196,7 @@ def test_table1_resumed_keeps_each_finished_simclr_run(tmp_path, monkeypatch):
     with pytest.raises(ValueError, match=r"already holds an? unfinished table1 run .*\(--resume\)"):
         table1.main(args)
     # --resume: the SimCLR run is taken as finished (its training loop is never entered), the probes run
-    monkeypatch.setattr(simclr_stage, "_train", no_work)
+    monkeypatch.setattr(simclr_stage, "train_simclr_steps", no_work)
     result = table1.main([*args, "--resume"])
     assert result["rows"]["simclr-full"]["pretrain"]["steps"] == 1
     assert json.loads((out / "run.json").read_text())["finished"] is True
