@@ -26,20 +26,17 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any, Literal
+from typing import Literal
 
-import torch
 from accelerate import Accelerator
 from diffusers import DDPMScheduler
 from diffusers.optimization import get_scheduler
-from torch.utils.data import DataLoader, Dataset
+from torch.utils.data import DataLoader
 
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import (
-    DecibelScaling,
     MixedPairs,
     ViewPairDataset,
     check_protocol,
@@ -49,32 +46,29 @@ from sar_zero123.data import (
 from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.model.build import load_sar_zero123, record_trained_pose_ranges
 from sar_zero123.model.conditioning import SPATIAL_POSE_MODES, vae_signature
-from sar_zero123.model.pipeline import SARZero123Pipeline
-from sar_zero123.progress import progress_bar
 from sar_zero123.runs.checkpoints import (
     RESUME_MAY_DIFFER,
-    check_finite_step,
     check_resume_config,
     check_resume_state,
     check_resume_steps,
     end_run,
     read_run_state,
     resolve_resume_checkpoint,
-    resumable_batches,
     resume_step,
-    save_checkpoint,
 )
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
 from sar_zero123.runs.launch import check_global_batch, check_replicas_agree, start_run, tracker_hparams
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.sim.corpus import CORPUS_OPTIONS_FILE, VALIDATION_CLASS
 from sar_zero123.training.finetuning import (
+    FinetuneInputs,
+    FinetuneTrainer,
     ema_models,
     export_finetuned,
     finetuning_modules,
     finetuning_optimizer,
     mixed_precision_dtype,
-    step_logs,
+    train_finetune_steps,
     training_image_size,
 )
 from sar_zero123.training.losses import (
@@ -88,11 +82,8 @@ from sar_zero123.training.losses import (
 from sar_zero123.training.step import (
     CachedViewPairs,
     ChipLatentCache,
-    compute_losses,
     load_chip_images,
-    micro_batch_generator,
 )
-from sar_zero123.training.validation import run_validation
 
 logger = logging.getLogger(__name__)
 
@@ -257,40 +248,6 @@ class FinetuneConfig:
         return ("max_train_steps",) if self.lr_scheduler in CONSTANT_LR_SCHEDULERS else ()
 
 
-@dataclass
-class _Inputs:
-    """What a fine-tune reads: the model it starts from, the PFM encoder, the data, a pose regressor."""
-
-    pipe: SARZero123Pipeline
-    image_size: int
-    encoder: torch.nn.Module | None
-    train_dataset: Dataset
-    validation_dataset: Dataset
-    scaling: DecibelScaling
-    regressor: torch.nn.Module | None
-    rehearsal_dataset: Dataset | None = None
-
-
-@dataclass
-class _Trainer:
-    """The prepared training state of a fine-tune (data-parallel wrappers where accelerate made them)."""
-
-    trained_modules: list[torch.nn.Module]
-    unet: torch.nn.Module
-    pose_projection: torch.nn.Module
-    image_encoder: torch.nn.Module
-    azimuth_estimator: torch.nn.Module | None
-    image_embedder: torch.nn.Module
-    ema_pairs: list
-    optimizer: Any
-    lr_scheduler: Any
-    train_dataloader: DataLoader
-    train_dataset: Dataset
-    validation_batch: dict
-    loss_kwargs: dict[str, Any]
-    global_step: int
-
-
 def run_finetune(config: FinetuneConfig) -> Path:
     """Fine-tune (or continue, or extend) a run in ``config.output_dir``; returns the run folder.
 
@@ -334,7 +291,7 @@ def run_finetune(config: FinetuneConfig) -> Path:
         inputs = _load_inputs(config, accelerator)
         trainer = _prepare_training(config, accelerator, inputs, resume_path)
     # 3. training, then the exported pipeline and the record
-    global_step = _train(config, accelerator, inputs, trainer)
+    global_step = train_finetune_steps(config, accelerator, inputs, trainer)
     outputs = _export(config, accelerator, inputs, trainer, global_step)
     if accelerator.is_main_process and global_step >= config.max_train_steps:  # else stopped by the clock
         finish_run(folder, outputs, seconds=timer.seconds, results={"final_step": global_step})
@@ -345,7 +302,7 @@ def run_finetune(config: FinetuneConfig) -> Path:
     return output_dir
 
 
-def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> _Inputs:
+def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneInputs:
     """The model, the PFM encoder and the data, checked against each other; writes ``config.json``."""
     output_dir = Path(config.output_dir)
     pipe = load_sar_zero123(
@@ -404,14 +361,14 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> _Inputs:
         save_config(config, output_dir)
         if encoder is not None and config.pfm_projection_dim is not None:
             encoder.save_projection(output_dir)
-    return _Inputs(
+    return FinetuneInputs(
         pipe, image_size, encoder, train_dataset, validation_dataset, scaling, regressor, rehearsal
     )
 
 
 def _prepare_training(
-    config: FinetuneConfig, accelerator: Accelerator, inputs: _Inputs, resume_path: Path | None
-) -> _Trainer:
+    config: FinetuneConfig, accelerator: Accelerator, inputs: FinetuneInputs, resume_path: Path | None
+) -> FinetuneTrainer:
     """Modules in their dtypes, EMA copies, the optimiser, the schedule and the data, prepared and resumed."""
     # 1. frozen parts in the weight dtype, trainable parts in float32 (pipe's own modules), EMA copies
     pipe = inputs.pipe
@@ -477,96 +434,18 @@ def _prepare_training(
     accelerator.init_trackers("finetune_pfm", config=tracker_hparams(config))
     loss_kwargs = {"vae": vae, "encoder": encoder, "noise_scheduler": noise_scheduler,
                    "loss_settings": config.loss_settings()}  # fmt: skip
-    return _Trainer(
+    return FinetuneTrainer(
         trained_modules, unet, pose_projection, image_encoder, azimuth_estimator, image_embedder, ema_pairs,
         optimizer, lr_scheduler, train_dataloader, train_dataset, validation_batch, loss_kwargs, global_step,
     )  # fmt: skip
 
 
-def _train(config: FinetuneConfig, accelerator: Accelerator, inputs: _Inputs, trainer: _Trainer) -> int:
-    """The training loop from ``trainer.global_step`` to ``max_train_steps``; returns the last step."""
-    output_dir = Path(config.output_dir)
-    global_step = trainer.global_step
-    trainable = [parameter for module in trainer.trained_modules for parameter in module.parameters()]
-    progress = progress_bar(total=config.max_train_steps, initial=global_step, desc="steps",
-                    disable=not accelerator.is_local_main_process)  # fmt: skip
-    noise_scheduler = trainer.loss_kwargs["noise_scheduler"]
-    accumulation = config.gradient_accumulation_steps  # micro-batch i belongs to step i // accumulation
-    first, stop = global_step * accumulation, config.max_train_steps * accumulation
-    batches = resumable_batches(
-        accelerator, trainer.train_dataloader, first, stop, datasets=[trainer.train_dataset]
-    )
-    minutes = config.max_train_minutes
-    deadline = None if minutes is None else time.monotonic() + 60.0 * minutes
-    for batch_index, epoch, batch in batches:
-        with accelerator.accumulate(*trainer.trained_modules):
-            generator = micro_batch_generator(config.seed, batch_index, accelerator.process_index)
-            trainer.loss_kwargs["loss_settings"] = config.loss_settings_at(global_step)
-            losses = compute_losses(
-                batch,
-                unet=trainer.unet,
-                pose_projection=trainer.pose_projection,
-                image_encoder=trainer.image_encoder,
-                azimuth_estimator=trainer.azimuth_estimator,
-                generator=generator,
-                **trainer.loss_kwargs,
-            )
-            accelerator.backward(losses.loss.mean())
-            if accelerator.sync_gradients:
-                accelerator.clip_grad_norm_(trainable, config.max_grad_norm)
-            trainer.optimizer.step()
-            trainer.lr_scheduler.step()
-            trainer.optimizer.zero_grad(set_to_none=True)
-        if not accelerator.sync_gradients:
-            continue
-        global_step += 1
-        for ema, module in trainer.ema_pairs:
-            ema.step(module.parameters())
-        progress.update(1)
-        learning_rate = trainer.lr_scheduler.get_last_lr()[0]
-        logs = step_logs(accelerator, losses, learning_rate, noise_scheduler.config.num_train_timesteps)
-        progress.set_postfix(loss=f"{logs['train/loss']:.4f}")
-        accelerator.log(logs, step=global_step)
-        check_finite_step(global_step, loss=logs["train/loss"])  # gathered: every process stops
-        out_of_time = deadline is not None and _all_out_of_time(accelerator, deadline)
-        last = global_step == config.max_train_steps or out_of_time
-        if global_step % config.checkpointing_steps == 0 or last:
-            extra_state = {"epoch": epoch, "batch_index": batch_index + 1,
-                           "train_image_encoder": config.train_image_encoder}  # fmt: skip
-            save_checkpoint(accelerator, output_dir, global_step, config.checkpoints_total_limit,
-                            extra_state=extra_state, config=config)  # fmt: skip
-        if config.validation_steps and global_step % config.validation_steps == 0:
-            if accelerator.is_main_process:
-                run_validation(
-                    accelerator,
-                    output_dir / "validation",
-                    global_step,
-                    trainer.validation_batch,
-                    ema_pairs=trainer.ema_pairs,
-                    pipe=inputs.pipe,
-                    image_embedder=trainer.image_embedder,
-                    loss_kwargs=trainer.loss_kwargs,
-                    seed=config.seed,
-                    num_inference_steps=config.validation_inference_steps,
-                    guidance_scale=config.guidance_scale,
-                    regressor=inputs.regressor,
-                )
-            accelerator.wait_for_everyone()
-        if out_of_time:
-            logger.info("max_train_minutes reached at step %d of %d", global_step, config.max_train_steps)
-            break
-    progress.close()
-    return global_step
-
-
-def _all_out_of_time(accelerator: Accelerator, deadline: float) -> bool:
-    """Whether any process has passed ``deadline`` (every process then stops at the same step)."""
-    late = torch.tensor([float(time.monotonic() >= deadline)], device=accelerator.device)
-    return bool(accelerator.reduce(late, reduction="sum").item() > 0)
-
-
 def _export(
-    config: FinetuneConfig, accelerator: Accelerator, inputs: _Inputs, trainer: _Trainer, global_step: int
+    config: FinetuneConfig,
+    accelerator: Accelerator,
+    inputs: FinetuneInputs,
+    trainer: FinetuneTrainer,
+    global_step: int,
 ) -> list[str]:
     """Replica check, then the complete pipeline (EMA weights in the UNet and a trained tower).
 

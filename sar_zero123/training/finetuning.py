@@ -16,30 +16,53 @@ arguments:
 
 from __future__ import annotations
 
+import logging
 import os
+import time
 from collections.abc import Sequence
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import torch
 from accelerate import Accelerator
 from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
 from diffusers.training_utils import EMAModel
+from torch.utils.data import DataLoader, Dataset
 
 from sar_zero123.config import naming_write_errors, write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.model.conditioning import PoseProjection
 from sar_zero123.model.pipeline import SARZero123Pipeline
-from sar_zero123.runs.checkpoints import check_finite_state
+from sar_zero123.progress import progress_bar
+from sar_zero123.runs.checkpoints import (
+    check_finite_state,
+    check_finite_step,
+    resumable_batches,
+    save_checkpoint,
+)
 from sar_zero123.training.losses import LossOutput
-from sar_zero123.training.step import ImageEmbedder, timestep_bucket_losses
+from sar_zero123.training.step import (
+    ImageEmbedder,
+    compute_losses,
+    micro_batch_generator,
+    timestep_bucket_losses,
+)
+from sar_zero123.training.validation import run_validation
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
+    "FinetuneInputs",
+    "FinetuneTrainer",
+    "all_out_of_time",
     "ema_models",
     "export_finetuned",
     "finetuning_modules",
     "finetuning_optimizer",
     "mixed_precision_dtype",
     "step_logs",
+    "train_finetune_steps",
     "training_image_size",
 ]
 
@@ -236,3 +259,123 @@ def export_finetuned(
         export.save_pretrained(directory)
         write_json_atomic(scaling.to_dict(), directory / SCALING_FILE)
     return directory
+
+
+@dataclass
+class FinetuneInputs:
+    """What a fine-tune reads: the model it starts from, the PFM encoder, the data, a pose regressor."""
+
+    pipe: SARZero123Pipeline
+    image_size: int
+    encoder: torch.nn.Module | None
+    train_dataset: Dataset
+    validation_dataset: Dataset
+    scaling: DecibelScaling
+    regressor: torch.nn.Module | None
+    rehearsal_dataset: Dataset | None = None
+
+
+@dataclass
+class FinetuneTrainer:
+    """The prepared training state of a fine-tune (data-parallel wrappers where accelerate made them)."""
+
+    trained_modules: list[torch.nn.Module]
+    unet: torch.nn.Module
+    pose_projection: torch.nn.Module
+    image_encoder: torch.nn.Module
+    azimuth_estimator: torch.nn.Module | None
+    image_embedder: torch.nn.Module
+    ema_pairs: list
+    optimizer: Any
+    lr_scheduler: Any
+    train_dataloader: DataLoader
+    train_dataset: Dataset
+    validation_batch: dict
+    loss_kwargs: dict[str, Any]
+    global_step: int
+
+
+def train_finetune_steps(
+    config: Any, accelerator: Accelerator, inputs: FinetuneInputs, trainer: FinetuneTrainer
+) -> int:
+    """The fine-tune's training loop from ``trainer.global_step`` to ``config.max_train_steps`` (``config``: a
+    ``FinetuneConfig``; its loss settings per step, checkpoints, validation and ``max_train_minutes``);
+    returns the last step."""
+    output_dir = Path(config.output_dir)
+    global_step = trainer.global_step
+    trainable = [parameter for module in trainer.trained_modules for parameter in module.parameters()]
+    progress = progress_bar(total=config.max_train_steps, initial=global_step, desc="steps",
+                    disable=not accelerator.is_local_main_process)  # fmt: skip
+    noise_scheduler = trainer.loss_kwargs["noise_scheduler"]
+    accumulation = config.gradient_accumulation_steps  # micro-batch i belongs to step i // accumulation
+    first, stop = global_step * accumulation, config.max_train_steps * accumulation
+    batches = resumable_batches(
+        accelerator, trainer.train_dataloader, first, stop, datasets=[trainer.train_dataset]
+    )
+    minutes = config.max_train_minutes
+    deadline = None if minutes is None else time.monotonic() + 60.0 * minutes
+    for batch_index, epoch, batch in batches:
+        with accelerator.accumulate(*trainer.trained_modules):
+            generator = micro_batch_generator(config.seed, batch_index, accelerator.process_index)
+            trainer.loss_kwargs["loss_settings"] = config.loss_settings_at(global_step)
+            losses = compute_losses(
+                batch,
+                unet=trainer.unet,
+                pose_projection=trainer.pose_projection,
+                image_encoder=trainer.image_encoder,
+                azimuth_estimator=trainer.azimuth_estimator,
+                generator=generator,
+                **trainer.loss_kwargs,
+            )
+            accelerator.backward(losses.loss.mean())
+            if accelerator.sync_gradients:
+                accelerator.clip_grad_norm_(trainable, config.max_grad_norm)
+            trainer.optimizer.step()
+            trainer.lr_scheduler.step()
+            trainer.optimizer.zero_grad(set_to_none=True)
+        if not accelerator.sync_gradients:
+            continue
+        global_step += 1
+        for ema, module in trainer.ema_pairs:
+            ema.step(module.parameters())
+        progress.update(1)
+        learning_rate = trainer.lr_scheduler.get_last_lr()[0]
+        logs = step_logs(accelerator, losses, learning_rate, noise_scheduler.config.num_train_timesteps)
+        progress.set_postfix(loss=f"{logs['train/loss']:.4f}")
+        accelerator.log(logs, step=global_step)
+        check_finite_step(global_step, loss=logs["train/loss"])  # gathered: every process stops
+        out_of_time = deadline is not None and all_out_of_time(accelerator, deadline)
+        last = global_step == config.max_train_steps or out_of_time
+        if global_step % config.checkpointing_steps == 0 or last:
+            extra_state = {"epoch": epoch, "batch_index": batch_index + 1,
+                           "train_image_encoder": config.train_image_encoder}  # fmt: skip
+            save_checkpoint(accelerator, output_dir, global_step, config.checkpoints_total_limit,
+                            extra_state=extra_state, config=config)  # fmt: skip
+        if config.validation_steps and global_step % config.validation_steps == 0:
+            if accelerator.is_main_process:
+                run_validation(
+                    accelerator,
+                    output_dir / "validation",
+                    global_step,
+                    trainer.validation_batch,
+                    ema_pairs=trainer.ema_pairs,
+                    pipe=inputs.pipe,
+                    image_embedder=trainer.image_embedder,
+                    loss_kwargs=trainer.loss_kwargs,
+                    seed=config.seed,
+                    num_inference_steps=config.validation_inference_steps,
+                    guidance_scale=config.guidance_scale,
+                    regressor=inputs.regressor,
+                )
+            accelerator.wait_for_everyone()
+        if out_of_time:
+            logger.info("max_train_minutes reached at step %d of %d", global_step, config.max_train_steps)
+            break
+    progress.close()
+    return global_step
+
+
+def all_out_of_time(accelerator: Accelerator, deadline: float) -> bool:
+    """Whether any process has passed ``deadline`` (every process then stops at the same step)."""
+    late = torch.tensor([float(time.monotonic() >= deadline)], device=accelerator.device)
+    return bool(accelerator.reduce(late, reduction="sum").item() > 0)
