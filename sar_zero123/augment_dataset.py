@@ -49,7 +49,6 @@ from sar_zero123.config import (
     check_output_dir,
     config_to_dict,
     parse_config,
-    read_json,
     write_json_atomic,
 )
 from sar_zero123.data import ChipRecord, DecibelScaling, load_index, load_magnitude, wrap_azimuth_deg
@@ -63,7 +62,7 @@ from sar_zero123.model.pipeline import (
 )
 from sar_zero123.pretrained import SIM_PRIOR, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar
-from sar_zero123.runs.folder import content_identity, field_defaults, move_aside
+from sar_zero123.runs.folder import check_options_folder, content_identity, field_defaults, move_aside
 from sar_zero123.runs.lock import is_lock_file, lock_output_folder, release_output_folder
 from sar_zero123.sim.dataset import write_index_atomic
 
@@ -399,43 +398,26 @@ def _recorded_options(config: AugmentConfig) -> dict[str, Any]:
 
 
 def _check_out_folder(out: Path, options: dict[str, Any]) -> bool:
-    """Whether ``out`` (checked by ``check_output_dir``) holds this augmentation already (resume); refuses any
-    other non-empty folder.
+    """Whether ``out`` holds this augmentation already (resume); refuses any other non-empty folder
+    (:func:`~sar_zero123.runs.folder.check_options_folder`, the rule for folders whose record is an options
+    file), and a resume onto a pipeline whose weights changed.
 
     Raises:
-        ValueError: naming ``out``, for a non-empty folder without :data:`AUGMENT_FILE`, or one made with
-            other options (the differences listed).
+        ValueError: naming ``out``, for a non-empty folder without :data:`AUGMENT_FILE`, one made with
+            other options (the differences listed), or with other pipeline weights (both digests named).
     """
-    if not out.is_dir() or not any(not is_lock_file(p) for p in out.iterdir()):
-        return False
-    if not (out / AUGMENT_FILE).is_file():
-        raise ValueError(f"out: {str(out)!r} is not empty and has no {AUGMENT_FILE}; choose an empty folder")
-    recorded = read_json(out / AUGMENT_FILE, what="the options the augmentation was made with")
-    if not isinstance(recorded, dict):
-        raise ValueError(f"{out / AUGMENT_FILE}: expected a JSON object of the augmentation's options")
-    # a folder written before an option existed was made with that option's default
-    defaults = field_defaults(AugmentConfig)
-    recorded = {**{name: defaults[name] for name in options if name in defaults}, **recorded}
-    if PIPELINE_DIGEST not in recorded:  # written before the digest was recorded: the weights are unknown
-        recorded[PIPELINE_DIGEST] = options[PIPELINE_DIGEST]
-    elif recorded[PIPELINE_DIGEST] != options[PIPELINE_DIGEST]:
-        raise ValueError(
+
+    def other_weights(recorded: Any, current: Any) -> str:
+        return (
             f"pipeline: {options['pipeline']!r} holds other weights than the ones the views in {str(out)!r} "
-            f"were made with (SHA-256 {str(recorded[PIPELINE_DIGEST])[:12]}... there, "
-            f"{options[PIPELINE_DIGEST][:12]}... now); resuming would mix two models' views. Use another out "
-            "folder, or the pipeline the folder was made with"
+            f"were made with (SHA-256 {str(recorded)[:12]}... there, {str(current)[:12]}... now); resuming "
+            "would mix two models' views. Use another out folder, or the pipeline the folder was made with"
         )
-    differences = [
-        f"{name}: {recorded.get(name)!r} there, {options.get(name)!r} now"
-        for name in sorted(set(recorded) | set(options))
-        if recorded.get(name) != options.get(name)
-    ]
-    if differences:
-        raise ValueError(
-            f"out: {str(out)!r} holds an augmentation made with other options ({'; '.join(differences)}); "
-            "use another folder or the same options"
-        )
-    return True
+
+    return check_options_folder(
+        out, options, record=AUGMENT_FILE, what="augmentation", defaults=field_defaults(AugmentConfig),
+        identity_field=PIPELINE_DIGEST, identity_message=other_weights,
+    )  # fmt: skip
 
 
 def _check_chip_sizes(records: Sequence[ChipRecord], size: int) -> None:

@@ -32,13 +32,13 @@ import logging
 import os
 import shutil
 import time
-from collections.abc import Iterable, Mapping
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass
 from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Literal
 
-from sar_zero123.config import config_to_dict, write_json_atomic
+from sar_zero123.config import config_to_dict, read_json, write_json_atomic
 from sar_zero123.runs.lock import is_lock_file, lock_output_folder, release_output_folder
 
 logger = logging.getLogger(__name__)
@@ -47,6 +47,7 @@ __all__ = [
     "RUN_RECORD",
     "RunFolder",
     "StageTimer",
+    "check_options_folder",
     "code_version",
     "data_identity",
     "field_defaults",
@@ -399,6 +400,66 @@ def open_run_folder(
     if finished and write:
         release_output_folder(path)  # nothing is left to write: the stage returns what the folder holds
     return RunFolder(path, "finished" if finished else "continued", record)
+
+
+def check_options_folder(
+    out: Path,
+    options: Mapping[str, Any],
+    *,
+    record: str,
+    what: str,
+    defaults: Mapping[str, Any],
+    identity_field: str | None = None,
+    identity_message: Callable[[Any, Any], str] | None = None,
+    flag_hint: str = "out",
+) -> bool:
+    """The rule for a folder whose record is the options file ``record`` (``augment.json``) rather than
+    ``run.json``: whether ``out`` holds this run already (a resume), refusing any other non-empty folder.
+
+    Args:
+        out: The output folder.
+        options: The options that decide the output, as the record holds them.
+        record: The options file's name inside ``out``.
+        what: The run's name in messages (``"augmentation"``).
+        defaults: Field defaults: a record written before an option existed was made with its default.
+        identity_field: An option identifying an input's content (a weights digest), compared first; a record
+            without it is taken to match (written before the digest was recorded).
+        identity_message: The message for a differing ``identity_field``, given (recorded, current).
+        flag_hint: The user's name for ``out``.
+
+    Raises:
+        ValueError: For a non-empty folder without ``record``, a record that is not a JSON object, a
+            differing ``identity_field``, or other options (each difference named).
+    """
+    if not out.is_dir() or not any(not is_lock_file(p) for p in out.iterdir()):
+        return False
+    if not (out / record).is_file():
+        raise ValueError(f"{flag_hint}: {str(out)!r} is not empty and has no {record}; choose an empty folder")
+    recorded = read_json(out / record, what=f"the options the {what} was made with")
+    if not isinstance(recorded, dict):
+        raise ValueError(f"{out / record}: expected a JSON object of the {what}'s options")
+    recorded = {**{name: defaults[name] for name in options if name in defaults}, **recorded}
+    if identity_field is not None:
+        if identity_field not in recorded:
+            recorded[identity_field] = options[identity_field]
+        elif recorded[identity_field] != options[identity_field]:
+            raise ValueError(
+                identity_message(recorded[identity_field], options[identity_field])
+                if identity_message is not None
+                else f"{identity_field}: {recorded[identity_field]!r} there, {options[identity_field]!r} now"
+            )
+    differences = [
+        f"{name}: {recorded.get(name)!r} there, {options.get(name)!r} now"
+        for name in sorted(set(recorded) | set(options))
+        if recorded.get(name) != options.get(name)
+    ]
+    if differences:
+        article = "an" if what[:1] in "aeiou" else "a"
+        raise ValueError(
+            f"{flag_hint}: {str(out)!r} holds {article} {what} made with other options "
+            f"({'; '.join(differences)}); use another folder or the same options"
+        )
+    return True
 
 
 def finish_run(

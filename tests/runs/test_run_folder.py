@@ -215,3 +215,26 @@ def test_a_finished_record_whose_outputs_are_gone_is_unfinished(tmp_path):
     assert read_run_record(folder)["finished"] is False
     with pytest.raises(ValueError, match=r"unfinished finetune run.*\(--resume\)"):
         open_run_folder(folder, "finetune", _Config(), resume_hint="--resume")
+
+
+def test_an_options_folder_resumes_its_own_options_and_refuses_others(tmp_path):
+    from sar_zero123.config import write_json_atomic
+    from sar_zero123.runs.folder import check_options_folder
+
+    out = tmp_path / "out"
+    options = {"seed": 0, "weights": "abc", "new_option": 1}
+    rule = dict(record="opts.json", what="export", defaults={"new_option": 1}, identity_field="weights")
+    assert check_options_folder(out, options, **rule) is False  # absent: a new run
+    out.mkdir()
+    (out / "notes.txt").write_text("x")
+    with pytest.raises(ValueError, match=r"out: .* is not empty and has no opts.json"):
+        check_options_folder(out, options, **rule)
+    (out / "notes.txt").unlink()
+    write_json_atomic({"seed": 0}, out / "opts.json")  # before weights and new_option were recorded
+    assert check_options_folder(out, options, **rule) is True
+    write_json_atomic({"seed": 0, "weights": "def"}, out / "opts.json")
+    with pytest.raises(ValueError, match=r"^weights: 'def' there, 'abc' now$"):
+        check_options_folder(out, options, **rule)
+    write_json_atomic({"seed": 1, "weights": "abc"}, out / "opts.json")
+    with pytest.raises(ValueError, match=r"holds an export made with other options \(seed: 1 there, 0 now\)"):
+        check_options_folder(out, options, **rule)
