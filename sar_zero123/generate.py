@@ -49,7 +49,8 @@ from sar_zero123.data.splits import TRAIN_DEPRESSION_DEG
 from sar_zero123.model.pipeline import MAX_ABS_D_EL_DEG, MAX_GUIDANCE_SCALE, SARZero123Pipeline
 from sar_zero123.pretrained import SIM_PRIOR, resolve_pretrained
 from sar_zero123.progress import progress_bar
-from sar_zero123.runs.folder import RunFolder, StageTimer, data_identity, finish_run, open_run_folder
+from sar_zero123.runs.folder import RunFolder, StageTimer, data_identity, finish_run
+from sar_zero123.runs.stage import open_stage_folder
 
 __all__ = [
     "DEFAULT_INPUT_DEPRESSION_DEG",
@@ -296,7 +297,7 @@ def _open_output_dir(config: GenerateConfig, write: bool) -> RunFolder:
     """
     if not Path(config.image).is_file():
         raise FileNotFoundError(f"image: {config.image!r} is not a file")
-    return open_run_folder(
+    return open_stage_folder(
         config.output_dir, "generate", config, data={"image": data_identity(config.image)},
         resume=config.resume, restart=config.restart, may_differ=GENERATE_MAY_DIFFER, write=write,
         resume_hint="--resume",

@@ -40,15 +40,17 @@ def open_stage_folder(
     stage: str,
     config: Any,
     *,
-    data: Mapping[str, Any],
+    data: str | os.PathLike | None | Mapping[str, Any],
     resume: bool,
     restart: bool,
     may_differ: Iterable[str] = (),
     may_extend: Iterable[str] = (),
     resume_hint: str = "--resume_from_checkpoint latest",
+    flag_hint: str = "output_dir",
+    write: bool = True,
 ) -> RunFolder:
-    """:func:`~sar_zero123.runs.folder.open_run_folder` on every process of a launch; the main process
-    writes.
+    """The prologue of every stage and command: :func:`~sar_zero123.runs.folder.open_run_folder` on every
+    process of a launch (one process outside ``accelerate launch``); the main process writes.
 
     With several processes, each first checks the folder as it is on disk (nothing written), so a refusal
     stops every process before any waits in a collective; then the main process opens it for real (writing
@@ -58,12 +60,16 @@ def open_stage_folder(
         path: The stage's output folder.
         stage: The stage's name, recorded and compared.
         config: The stage's config dataclass.
-        data: The identity of each data input (``{"data": data_identity(config.data)}``).
+        data: The identity of each data input (``{"data": data_identity(config.data)}``), or the data
+            folder itself (``None``: the built-in simulator).
         resume: Continue a folder with the same record.
         restart: Move an existing run aside first.
         may_differ: Fields that never change what the folder holds.
         may_extend: Fields that may change when continuing.
         resume_hint: How the user continues a run of this stage, used in messages.
+        flag_hint: The user's name for ``path`` (``"out"``), used in messages.
+        write: ``False`` checks the folder on every process and writes nothing (a command that opens it
+            for real only once its inputs are ready).
 
     Returns:
         The opened folder (the main process's view: on the others, the check's).
@@ -71,9 +77,11 @@ def open_stage_folder(
     Raises:
         ValueError: From ``open_run_folder``, naming the folder and each difference.
     """
-    state = launch_state()
     options = dict(data=data, resume=resume, restart=restart, may_differ=tuple(may_differ),
-                   may_extend=tuple(may_extend), resume_hint=resume_hint)  # fmt: skip
+                   may_extend=tuple(may_extend), resume_hint=resume_hint, flag_hint=flag_hint)  # fmt: skip
+    if not write:
+        return open_run_folder(path, stage, config, write=False, **options)
+    state = launch_state()
     folder = None
     if state.num_processes > 1:
         folder = open_run_folder(path, stage, config, write=False, **options)

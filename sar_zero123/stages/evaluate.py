@@ -66,10 +66,9 @@ from sar_zero123.runs.folder import (
     StageTimer,
     data_identity,
     finish_run,
-    open_run_folder,
     read_run_record,
 )
-from sar_zero123.runs.stage import withdrawn_if_setup_fails
+from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.stages.evaluators import model_identity
 
 logger = logging.getLogger(__name__)
@@ -320,7 +319,7 @@ def run_evaluate(config: EvaluateConfig) -> Path:
     }
     if config.vae is not None:
         inputs["vae"] = model_identity(config.vae, "vae")
-    folder = open_run_folder(
+    folder = open_stage_folder(
         config.output_dir, "evaluate", config, data=inputs, resume=config.resume, restart=config.restart,
         may_differ=EVALUATE_MAY_DIFFER, resume_hint="--resume",
     )  # fmt: skip

@@ -22,10 +22,10 @@ from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.folder import (
     field_defaults,
     finish_run,
-    open_run_folder,
     read_run_record,
     run_differences,
 )
+from sar_zero123.runs.stage import open_stage_folder
 from sar_zero123.stages.evaluate import EVALUATE_MAY_DIFFER, EvaluateConfig, run_evaluate
 from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, run_evaluators
 from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
@@ -243,7 +243,7 @@ def run_quickstart(config: QuickstartConfig) -> Path:
     out = Path(config.output_dir)
     # the preset's values one by one, so that a refusal names the field that differs
     record = {**config_to_dict(config), **{f"preset.{k}": v for k, v in dataclasses.asdict(preset).items()}}
-    folder = open_run_folder(
+    folder = open_stage_folder(
         out, "quickstart", record, data=None if config.data is None else config.data, resume=config.resume,
         restart=config.restart, may_differ=("output_dir", "resume", "restart", "override"),
         may_extend=("lambdas",), resume_hint="--resume",

@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
-from sar_zero123.runs.folder import StageTimer, finish_run, open_run_folder
+from sar_zero123.runs.folder import StageTimer, finish_run
+from sar_zero123.runs.stage import open_stage_folder
 from sar_zero123.sim.dataset import check_simulation_options, simulate_dataset
 from sar_zero123.sim.targets import TARGET_CLASSES
 
@@ -69,7 +70,7 @@ def run_simulate(config: SimulateConfig) -> Path:
             other work.
     """
     timer = StageTimer()
-    folder = open_run_folder(
+    folder = open_stage_folder(
         config.out, "simulate", config, data=None, resume=config.resume, restart=config.restart,
         may_differ=("resume", "restart"), flag_hint="out", resume_hint="--resume",
     )  # fmt: skip

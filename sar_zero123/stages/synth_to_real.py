@@ -29,9 +29,9 @@ from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_sampl
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluation.evaluators import EVALUATOR_CONFIG_NAME, SARClassifier, load_evaluator
 from sar_zero123.progress import progress_bar
-from sar_zero123.runs.folder import StageTimer, data_identity, finish_run, open_run_folder
+from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
 from sar_zero123.runs.launch import start_run
-from sar_zero123.runs.stage import withdrawn_if_setup_fails
+from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 
 logger = logging.getLogger(__name__)
 
@@ -179,7 +179,7 @@ def run_synth_to_real(config: SynthToRealConfig) -> Path:
     # rule, before any work; the SAMPLE folder is identified by its file names and sizes
     pairs = load_sample(config.sample, image_format=config.image_format)
     class_names = sorted({pair.real.target_class for pair in pairs})
-    folder = open_run_folder(
+    folder = open_stage_folder(
         config.output_dir, "synth_to_real", config, data={"sample": data_identity(config.sample)},
         resume=config.resume, restart=config.restart, may_differ=SYNTH_TO_REAL_MAY_DIFFER,
         resume_hint="--resume",

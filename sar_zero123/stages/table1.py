@@ -32,8 +32,8 @@ from sar_zero123.data import ChipDataset, prepare_splits
 from sar_zero123.data.splits import check_protocol
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig, resolve_encoder_dir
 from sar_zero123.evaluation.probes import FeatureSet, extract_features, run_probes
-from sar_zero123.runs.folder import StageTimer, data_identity, finish_run, open_run_folder
-from sar_zero123.runs.stage import withdrawn_if_setup_fails
+from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
+from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.stages.evaluators import model_identity
 from sar_zero123.stages.simclr import PretrainSimCLRConfig, run_simclr, select_chips
 
@@ -312,7 +312,7 @@ def run_table1(config: Table1Config) -> Path:
     inputs: dict[str, Any] = {"data": data_identity(config.data)}
     if encoders:
         inputs["encoders"] = [model_identity(path, f"encoders[{i}]") for i, path in enumerate(encoders)]
-    folder = open_run_folder(
+    folder = open_stage_folder(
         config.output_dir, "table1", config, data=inputs, resume=config.resume, restart=config.restart,
         may_differ=TABLE1_MAY_DIFFER, resume_hint="--resume",
     )  # fmt: skip
