@@ -154,3 +154,22 @@ def test_nothing_imports_the_commands_and_benchmarks_never_import_train():
                     [node.module or ""] if isinstance(node, ast.ImportFrom) else [a.name for a in node.names]
                 )
                 assert not any(n == "train" or n.startswith("train.") for n in names), path
+
+
+def test_stage_modules_only_assemble_no_model_loss_or_training_loop():
+    """docs/ARCHITECTURE.md: a stage module holds its config, its run function and setup helpers; models,
+    losses and training loops live in model/, training/ and evaluation/."""
+    for path in sorted((PACKAGE / "stages").glob("*.py")):
+        tree = ast.parse(path.read_text(), str(path))
+        for node in ast.walk(tree):
+            if isinstance(node, ast.ClassDef):
+                bases = {ast.unparse(base) for base in node.bases}
+                assert not bases & {"nn.Module", "torch.nn.Module", "ModelMixin"}, (path.name, node.name)
+            if isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute):
+                assert node.func.attr not in ("backward", "step") or ast.unparse(node.func.value) not in (
+                    "accelerator",
+                    "loss",
+                    "optimizer",
+                    "scheduler",
+                    "lr_scheduler",
+                ), (path.name, ast.unparse(node))

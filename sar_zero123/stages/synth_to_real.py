@@ -20,18 +20,15 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
-import torch.nn.functional as F
 from torch.utils.data import DataLoader
 
-from sar_zero123.augment import PRESETS, augment_batch
+from sar_zero123.augment import PRESETS
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_sample
-from sar_zero123.encoder import SAREncoderConfig
-from sar_zero123.evaluation.evaluators import EVALUATOR_CONFIG_NAME, SARClassifier, load_evaluator
-from sar_zero123.progress import progress_bar
+from sar_zero123.evaluation.evaluators import EVALUATOR_CONFIG_NAME, load_evaluator
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
-from sar_zero123.runs.launch import start_run
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
+from sar_zero123.training.synth_to_real import NO_AUGMENTATION, train_row
 
 logger = logging.getLogger(__name__)
 
@@ -44,7 +41,6 @@ __all__ = [
     "train_row",
 ]
 
-NO_AUGMENTATION = "none"
 #: Settings that never change what the folder holds: where it is, how the chips are read, how to continue.
 SYNTH_TO_REAL_MAY_DIFFER = ("resume", "restart", "output_dir", "num_workers")
 
@@ -99,57 +95,6 @@ def load_chips(
     dataset = ChipDataset(records, size=image_size, return_magnitude=True, class_names=class_names)
     batches = list(DataLoader(dataset, batch_size=256, num_workers=num_workers))
     return torch.cat([b["magnitude"] for b in batches]), torch.cat([b["label"] for b in batches]).long()
-
-
-def train_row(
-    row: str,
-    synth: tuple[torch.Tensor, torch.Tensor],
-    real: tuple[torch.Tensor, torch.Tensor],
-    class_names: list[str],
-    scaling: DecibelScaling,
-    config: SynthToRealConfig,
-) -> tuple[SARClassifier, dict[str, float]]:
-    """Trains one classifier on augmented synthetic chips; returns it and its real-chip accuracy."""
-    accelerator = start_run(None, seed=config.seed, mixed_precision=config.mixed_precision)
-    device = accelerator.device
-    encoder_config = SAREncoderConfig(
-        image_size=config.image_size,
-        cifar_stem=config.cifar_stem,
-        hidden_sizes=config.hidden_sizes,
-        embedding_size=config.embedding_size,
-    )
-    model = SARClassifier(encoder_config, class_names, scaling)
-    optimizer = torch.optim.AdamW(
-        model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
-    )
-    magnitude, labels = synth[0].to(device), synth[1].to(device)
-    steps_per_epoch = -(-len(labels) // config.train_batch_size)
-    scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=config.epochs * steps_per_epoch)
-    model, optimizer = accelerator.prepare(model, optimizer)
-    order_generator = torch.Generator().manual_seed(config.seed)
-    aug_generator = torch.Generator(device=device).manual_seed(config.seed)
-    model.train()
-    for epoch in progress_bar(range(config.epochs), desc=row, disable=not accelerator.is_local_main_process):
-        order = torch.randperm(len(labels), generator=order_generator).to(device)
-        for start in range(0, len(labels), config.train_batch_size):
-            index = order[start : start + config.train_batch_size]
-            if row == NO_AUGMENTATION:
-                images = scaling.normalize(magnitude[index])
-            else:
-                images = augment_batch(magnitude[index], row, scaling, generator=aug_generator)
-            loss = F.cross_entropy(model(images), labels[index])
-            optimizer.zero_grad(set_to_none=True)
-            accelerator.backward(loss)
-            optimizer.step()
-            scheduler.step()
-        logger.info("%s epoch %d: last loss %.4f", row, epoch + 1, loss.item())
-    model = accelerator.unwrap_model(model).eval()
-    predictions = []
-    with torch.no_grad():
-        for chunk in real[0].split(256):
-            predictions.append(model(scaling.normalize(chunk.to(device))).argmax(dim=1).cpu())
-    accuracy = 100.0 * (torch.cat(predictions) == real[1]).double().mean().item()
-    return model, {"real_accuracy": accuracy, "final_train_loss": loss.item()}
 
 
 def _format_markdown(rows: dict[str, dict[str, float]], config: SynthToRealConfig, pairs: int) -> str:
