@@ -1,4 +1,5 @@
-"""A local web page to look at novel views: ``python -m sar_zero123.demo`` (needs the ``[demo]`` extra).
+"""A local web page to look at novel views: ``python -m sar_zero123.demo`` or ``sar-zero123-demo`` (needs the
+``[demo]`` extra).
 
 The user uploads a chip (PNG/JPEG/TIFF, ``.npy`` or an original MSTAR file) or picks a simulated vehicle,
 sets the azimuth and depression changes with sliders, and sees the generated view beside the input (and

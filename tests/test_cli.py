@@ -21,7 +21,8 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_every_command_is_a_console_script_calling_its_function():
     tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
-    assert scripts == {command.script: f"sar_zero123.cli:{command.function}" for command in cli.COMMANDS}
+    expected = {command.script: f"sar_zero123.cli:{command.function}" for command in cli.COMMANDS}
+    assert scripts == {**expected, "sar-zero123-demo": "sar_zero123.demo:main"}  # the demo: no stage
     for command in cli.COMMANDS:
         assert callable(getattr(cli, command.function))
         assert command.script == "sar-zero123-" + command.function.replace("_", "-")
