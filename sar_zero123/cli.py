@@ -100,7 +100,7 @@ def simulate(argv: Sequence[str] | None = None) -> int:
     """``sar-zero123-simulate``: simulates a dataset folder; returns the exit status."""
     from sar_zero123.sim.__main__ import main
 
-    return main(argv)
+    return main(argv, prog="sar-zero123-simulate")
 
 
 def simclr(argv: Sequence[str] | None = None) -> dict[str, Any]:

@@ -21,14 +21,14 @@ OLDER_FLAGS = {
 }
 
 
-def main(argv: Sequence[str] | None = None) -> int:
-    """Run the command; returns the exit status."""
+def main(argv: Sequence[str] | None = None, prog: str = "python -m sar_zero123.sim") -> int:
+    """Run the command (``prog`` names it in usage lines); returns the exit status."""
     # imported here: the simulator package itself imports nothing from the run plumbing
     from sar_zero123.config import parse_config
     from sar_zero123.stages.simulate import SimulateConfig, run_simulate
 
     start = time.perf_counter()
-    config = parse_config(SimulateConfig, argv, prog="python -m sar_zero123.sim", aliases=OLDER_FLAGS)
+    config = parse_config(SimulateConfig, argv, prog=prog, aliases=OLDER_FLAGS)
     out = run_simulate(config)
     with open(out / "index.csv") as f:
         n_chips = sum(1 for _ in f) - 1
