@@ -25,8 +25,11 @@ from pathlib import Path
 from typing import Any
 
 import numpy as np
+import torch
 
-from sar_zero123.data import DecibelScaling, center_crop_resize, load_magnitude
+from sar_zero123.augment_dataset import check_trained_ranges
+from sar_zero123.data import DecibelScaling
+from sar_zero123.generate import GenerateConfig, load_input_chip
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip
@@ -95,8 +98,9 @@ class DemoModel:
         """An uploaded chip file as the pipeline's input.
 
         Raises:
-            ValueError: For a file that is too large, unreadable, not one 2-D channel, smaller than 16 px,
-                with negative or non-finite magnitudes, or mostly outside the pipeline's dB range.
+            ValueError: For a file that is too large, or that ``sar-zero123-generate`` would refuse
+                (:func:`~sar_zero123.generate.load_input_chip`: unreadable, not one 2-D channel, smaller
+                than 16 px, negative or non-finite magnitudes, mostly outside the pipeline's dB range).
         """
         path = Path(path)
         if path.stat().st_size > MAX_UPLOAD_BYTES:
@@ -104,15 +108,8 @@ class DemoModel:
                 f"the file is {path.stat().st_size / 1e6:.1f} MB; chips up to "
                 f"{MAX_UPLOAD_BYTES / 1e6:.0f} MB are accepted"
             )
-        magnitude = center_crop_resize(load_magnitude(path), size=self.size, name=f"upload {path.name!r}")
-        unclipped = self.scaling.normalize(magnitude, clip=False)
-        outside = float(np.mean((unclipped < -1e-4) | (unclipped > 1 + 1e-4)))
-        if outside > 0.5:
-            raise ValueError(
-                f"{outside:.0%} of the upload's pixels lie outside the pipeline's dB range "
-                f"[{self.scaling.min_db:g}, {self.scaling.max_db:g}] dB: is it a magnitude chip?"
-            )
-        return Chip(self.scaling.normalize(magnitude).astype(np.float32), float(depression_deg))
+        chip = load_input_chip(GenerateConfig(pipeline=self.name, image=str(path)), self.size)
+        return Chip(chip, float(depression_deg))
 
     def simulated_chip(
         self, target_class: str, azimuth_deg: float, depression_deg: float, seed: int = 0
@@ -139,25 +136,12 @@ class DemoModel:
 
     # ------------------------------------------------------------------------------------------ views
     def check_request(self, chip: Chip, d_el: float) -> None:
-        """Refuse a depression change outside what the pipeline was trained on, in the page's words."""
-        low, high = self.trained_d_el_deg
-        target = chip.depression_deg + d_el
-        if not low - 1e-6 <= d_el <= high + 1e-6:
-            raise ValueError(
-                f"depression change {d_el:g} deg: this pipeline was trained on [{low:g}, {high:g}]"
-            )
-        low, high = self.trained_depression_deg
-        if not low - 1e-6 <= target <= high + 1e-6 or not low - 1e-6 <= chip.depression_deg <= high + 1e-6:
-            raise ValueError(
-                f"depressions {chip.depression_deg:g} -> {target:g} deg: this pipeline was trained on "
-                f"[{low:g}, {high:g}] deg"
-            )
+        """Refuse a request outside the pipeline's trained ranges (the check ``augment_dataset`` makes)."""
+        check_trained_ranges(self.pipe.pose_projection.config, [d_el], [chip.depression_deg])
 
     def views(self, chip: Chip, d_az: Sequence[float], d_el: float, seed: int = 0) -> np.ndarray:
         """Generated views at each ``d_az`` (one batched call), ``(N, S, S)`` normalised dB in [0, 1]."""
         self.check_request(chip, d_el)
-        import torch
-
         image = torch.from_numpy(chip.image)[None, None].repeat(len(d_az), 1, 1, 1)
         generator = [torch.Generator().manual_seed(seed + i) for i in range(len(d_az))]
         output = self.pipe(

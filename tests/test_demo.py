@@ -31,8 +31,10 @@ def test_a_simulated_vehicle_its_views_and_its_truth(model):
     assert views.shape == (2, 64, 64) and 0.0 <= views.min() and views.max() <= 1.0
     # seeded per view: alone it is the same view, up to the float rounding of another batch size
     np.testing.assert_allclose(views[:1], model.views(chip, [60.0], 10.0, seed=3), atol=2e-3)
-    strip = model.turntable(chip, 0.0)
+    strip = model.turntable(chip, 0.0, seed=3)
     assert strip.shape == (64, 64 * TURNTABLE_VIEWS)
+    # tile k is the view turned by k * 360 / TURNTABLE_VIEWS deg, with that view's own generator
+    np.testing.assert_allclose(strip[:, 64:128], model.views(chip, [0.0, 45.0], 0.0, seed=3)[1], atol=2e-3)
     assert to_uint8(strip[:, :64]).shape == (256, 256)
 
 
@@ -47,16 +49,18 @@ def test_bad_uploads_and_requests_are_refused_with_a_message(model, tmp_path):
         model.uploaded_chip(big, 17.0)
     bright = tmp_path / "bright.npy"
     np.save(bright, np.full((64, 64), 500.0, dtype=np.float32))
-    with pytest.raises(ValueError, match=r"100% of the upload's pixels lie outside the pipeline's dB range"):
+    with pytest.raises(ValueError, match=r"100.0% of the pixels lie outside the scaling's dB range"):
         model.uploaded_chip(bright, 17.0)
-    chip = model.uploaded_chip(_chip_file(tmp_path), 17.0)
+    path = _chip_file(tmp_path)
+    chip = model.uploaded_chip(path, 17.0)
     assert chip.image.shape == (64, 64) and model.truth(chip, 30.0, 0.0) is None
+    np.testing.assert_allclose(chip.image, model.scaling.normalize(np.load(path)), atol=1e-6)
     with pytest.raises(
-        ValueError, match=r"depressions 17 -> 62 deg: this pipeline was trained on \[10, 60\]"
+        ValueError, match=r"target depressions \(input \+ d_el\) \[62.0\] deg lie outside .* \[10, 60\]"
     ):
         model.views(chip, [30.0], 45.0)
     with pytest.raises(
-        ValueError, match=r"depression change 60 deg: this pipeline was trained on \[-50, 50\]"
+        ValueError, match=r"d_el: \[60.0\] deg lie outside the range the pipeline was trained on, \[-50, 50\]"
     ):
         model.views(chip, [30.0], 60.0)
     with pytest.raises(ValueError, match=r"vehicle must be one of"):

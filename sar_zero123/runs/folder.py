@@ -434,7 +434,9 @@ def check_options_folder(
     if not out.is_dir() or not any(not is_lock_file(p) for p in out.iterdir()):
         return False
     if not (out / record).is_file():
-        raise ValueError(f"{flag_hint}: {str(out)!r} is not empty and has no {record}; choose an empty folder")
+        raise ValueError(
+            f"{flag_hint}: {str(out)!r} is not empty and has no {record}; choose an empty folder"
+        )
     recorded = read_json(out / record, what=f"the options the {what} was made with")
     if not isinstance(recorded, dict):
         raise ValueError(f"{out / record}: expected a JSON object of the {what}'s options")

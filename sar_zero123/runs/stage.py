@@ -1,7 +1,8 @@
-"""The run-folder rule (:mod:`sar_zero123.runs.folder`) for stages that may run as several processes.
+"""The run-folder rule (:mod:`sar_zero123.runs.folder`) as every stage and command applies it, on one
+process or under ``accelerate launch``.
 
-:func:`open_stage_folder` opens a stage's folder before any work under ``accelerate launch``: every process
-checks the folder as it is, so that all refuse together, then the main process writes the record.
+:func:`open_stage_folder` opens a stage's folder before any work: with several processes every one checks
+the folder as it is, so that all refuse together, then the main process writes the record.
 :func:`withdrawn_if_setup_fails` keeps a run that never began from blocking its corrected command.
 """
 

@@ -7,8 +7,8 @@ from pathlib import Path
 
 import pytest
 
-from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.runs.folder import RUN_RECORD, finish_run, release_output_folder
+from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 
 
 def _open(path: Path, batch: int, resume: bool = False):
