@@ -16,7 +16,7 @@ One process, three stages, every one a library call (the stages of ``sar_zero123
    condition input (``global``: zero-1-to-3's, as the bundled prior; ``rotated_input``: also the input
    latent turned by ``d_az``, ``FinetuneConfig.spatial_pose``) and, when named ``<input>@<size>``, its size
    (``--size`` otherwise; ``@micro`` is the quickstart's size, one that can ship in the package);
-3. Table III of every arm beside the bundled prior, the floor and the ceilings, on the same pairs
+3. Table III of every arm beside the bundled priors (``--baselines``), the floor and the ceilings, on the same pairs
    (:func:`~sar_zero123.stages.evaluate.run_evaluate`): azimuth requests 17 -> 17 deg (n = ``--n``) and
    depression requests 17 -> 10/30/45 deg (n = 1.5 ``--n``).
 
@@ -46,7 +46,7 @@ from typing import Any
 
 import torch
 
-from sar_zero123 import SIM_PRIOR, resolve_pretrained
+from sar_zero123 import SIM_PRIOR, SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.config import write_json_atomic
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.sim.corpus import write_prior_corpus
@@ -111,7 +111,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--num_workers", type=int, default=4, help="DataLoader workers of each arm")
     parser.add_argument("--n", type=int, default=256, help="azimuth pairs (depression pairs: 1.5 n)")
     parser.add_argument("--eval_batch_size", type=int, default=128, help="pairs per sampling call")
-    parser.add_argument("--no_baseline", action="store_true", help="do not score the bundled prior beside")
+    parser.add_argument("--baselines", nargs="*", default=[SIM_PRIOR, SIM_PRIOR_ROTATED],
+                        help="bundled priors (names or folders) scored beside the arms; none: only the arms")
     parser.add_argument("--seed", type=int, default=0)
     return parser.parse_args(argv)
 
@@ -293,9 +294,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             results.stage(f"train_{arm}", pack_error=traceback.format_exc())
 
     # 3. Table III of every arm beside the bundled prior, same pairs
-    rows = dict(pipelines)
-    if not args.no_baseline:
-        rows = {"bundled prior": resolve_pretrained(SIM_PRIOR), **rows}
+    rows = {Path(name).name: resolve_pretrained(name) for name in args.baselines} | pipelines
     for name, pairs in (
         ("azimuth", {"target_depressions_deg": [17.0], "n": args.n}),
         # a corpus of uniform draws may miss the range's very ends by a fraction of a degree
