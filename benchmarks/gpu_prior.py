@@ -16,9 +16,9 @@ One process, three stages, every one a library call (the stages of ``sar_zero123
    condition input (``global``: zero-1-to-3's, as the bundled prior; ``rotated_input``: also the input
    latent turned by ``d_az``, ``FinetuneConfig.spatial_pose``) and, when named ``<input>@<size>``, its size
    (``--size`` otherwise; ``@micro`` is the quickstart's size, one that can ship in the package);
-3. Table III of every arm beside the bundled priors (``--baselines``), the floor and the ceilings, on the same pairs
-   (:func:`~sar_zero123.stages.evaluate.run_evaluate`): azimuth requests 17 -> 17 deg (n = ``--n``) and
-   depression requests 17 -> 10/30/45 deg (n = 1.5 ``--n``).
+3. Table III of every arm beside the bundled priors (``--baselines``), the floor and the ceilings, on the
+   same pairs (:func:`~sar_zero123.stages.evaluate.run_evaluate`): azimuth requests 17 -> 17 deg
+   (n = ``--n``) and depression requests 17 -> 10/30/45 deg (n = 1.5 ``--n``).
 
 The training time per arm is what is left of ``--budget_minutes`` after the corpus, minus
 ``--eval_reserve_minutes``, split evenly. ``OUT/results.json`` is rewritten after each stage (a run stopped
@@ -80,6 +80,8 @@ def parse_arm(arm: str, default_size: str) -> tuple[str | None, str]:
             f"{sorted(SAR_ZERO123_SIZES)}"
         )
     return ARMS[name], size
+
+
 #: The named vehicles' evaluation chips (docs/results/prior.md, section 5).
 EVAL_CLASSES = ("TANK", "APC", "TRUCK", "DOZER", "SPG", "RADAR", "AAGUN", "SCOUT")
 EVAL_DEPRESSIONS = ("10", "15", "17", "30", "45")
@@ -111,8 +113,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--num_workers", type=int, default=4, help="DataLoader workers of each arm")
     parser.add_argument("--n", type=int, default=256, help="azimuth pairs (depression pairs: 1.5 n)")
     parser.add_argument("--eval_batch_size", type=int, default=128, help="pairs per sampling call")
-    parser.add_argument("--baselines", nargs="*", default=[SIM_PRIOR, SIM_PRIOR_ROTATED],
-                        help="bundled priors (names or folders) scored beside the arms; none: only the arms")
+    parser.add_argument(
+        "--baselines",
+        nargs="*",
+        default=[SIM_PRIOR, SIM_PRIOR_ROTATED],
+        help="bundled priors (names or folders) scored beside the arms; none: only the arms",
+    )
     parser.add_argument("--seed", type=int, default=0)
     return parser.parse_args(argv)
 
