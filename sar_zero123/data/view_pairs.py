@@ -200,6 +200,35 @@ class ViewPairDataset(Dataset):
         }
 
     @functools.cached_property
+    def _record_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Every record's azimuth, depression (float64) and label (int64), for :meth:`pair_fields_batch`."""
+        azimuths = np.array([record.azimuth_deg for record in self.records], dtype=np.float64)
+        depressions = np.array([record.depression_deg for record in self.records], dtype=np.float64)
+        labels = np.array([self._label[record.target_class] for record in self.records], dtype=np.int64)
+        return azimuths, depressions, labels
+
+    def pair_fields_batch(self, indices: Sequence[int]) -> dict[str, torch.Tensor]:
+        """:meth:`pair_fields` of several items at once, as ``default_collate`` would stack them (float64
+        angles, int64 labels): the same values, without a Python dictionary per pair.
+
+        Shape:
+            every value ``(len(indices),)``.
+        """
+        pairs = self.pairs[np.asarray(indices, dtype=np.int64)]
+        azimuths, depressions, labels = self._record_arrays
+        source, target = pairs[:, 0], pairs[:, 1]
+        fields = {
+            "d_az_deg": np.atleast_1d(wrap_azimuth_deg(azimuths[target] - azimuths[source])),
+            "d_el_deg": depressions[target] - depressions[source],
+            "label": labels[source],
+            "input_azimuth_deg": azimuths[source],
+            "target_azimuth_deg": azimuths[target],
+            "input_depression_deg": depressions[source],
+            "target_depression_deg": depressions[target],
+        }
+        return {name: torch.from_numpy(np.ascontiguousarray(value)) for name, value in fields.items()}
+
+    @functools.cached_property
     def _object_members(self) -> dict[tuple[str, str], list[int]]:
         """Record indices of each object's chips, at every depression."""
         members: dict[tuple[str, str], list[int]] = defaultdict(list)

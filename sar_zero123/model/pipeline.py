@@ -701,7 +701,8 @@ class SARZero123Pipeline(DiffusionPipeline):
         """
         config = self.pose_projection.config
         batch_size = pose.shape[0]
-        d_el_values = torch.as_tensor(d_el, dtype=torch.float64).reshape(-1).expand(batch_size)
+        # on the CPU, as as_angle_tensor's angles: an evaluation's pair batch arrives on the accelerator
+        d_el_values = torch.as_tensor(d_el, dtype=torch.float64).cpu().reshape(-1).expand(batch_size)
         depression = None
         if input_depression_deg is not None:
             _check_real_angles(input_depression_deg, "input_depression_deg")

@@ -82,6 +82,7 @@ from sar_zero123.training.losses import (
 from sar_zero123.training.step import (
     CachedViewPairs,
     ChipLatentCache,
+    collate_pairs,
     load_chip_images,
 )
 
@@ -176,6 +177,9 @@ class FinetuneConfig:
     save_pipeline: bool = True  # save_pretrained the final SARZero123Pipeline into output_dir/pipeline
     evaluators: str | None = None  # train_evaluators.py folder: validation also checks pose following
     cache_latents: bool = True  # encode every training chip once with the frozen VAE (and frozen CLIP tower)
+    # keep that cache on the training device and draw batches there, in the main process (num_workers
+    # unused): for a GPU whose memory holds the corpus, where worker start-up each epoch bounds the steps/s
+    cache_on_device: bool = False
 
     def __post_init__(self) -> None:
         self.loss_settings()  # the loss fields are validated there, once
@@ -190,8 +194,10 @@ class FinetuneConfig:
         check_minimum(self, "pfm_projection_dim", "checkpoints_total_limit", minimum=1, optional=True)
         check_minimum(self, "pfm_start_step", minimum=0)
         if self.pfm_stop_step is not None and not self.pfm_stop_step > self.pfm_start_step:
-            raise ValueError(f"pfm_stop_step must be > pfm_start_step ({self.pfm_start_step}) or None, got "
-                             f"{self.pfm_stop_step}")
+            raise ValueError(
+                f"pfm_stop_step must be > pfm_start_step ({self.pfm_start_step}) or None, got "
+                f"{self.pfm_stop_step}"
+            )
         check_minimum(self, "image_size", minimum=8, optional=True)
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
@@ -389,11 +395,12 @@ def _prepare_training(
     train_dataset, rehearsal = inputs.train_dataset, inputs.rehearsal_dataset
     if config.cache_latents and resumed_step < config.max_train_steps:  # the frozen parts never change
         frozen_tower = None if config.train_image_encoder else image_embedder.image_encoder
-        cache = ChipLatentCache.encode(load_chip_images(train_dataset), vae, frozen_tower)
+        cache_device = accelerator.device if config.cache_on_device else "cpu"
+        cache = ChipLatentCache.encode(load_chip_images(train_dataset), vae, frozen_tower).to(cache_device)
         train_dataset = CachedViewPairs(train_dataset, cache)
         if rehearsal is not None:
             rehearsal_cache = ChipLatentCache.encode(load_chip_images(rehearsal), vae, frozen_tower)
-            rehearsal = CachedViewPairs(rehearsal, rehearsal_cache)
+            rehearsal = CachedViewPairs(rehearsal, rehearsal_cache.to(cache_device))
     if rehearsal is not None:
         train_dataset = MixedPairs(train_dataset, rehearsal, config.rehearsal_fraction, seed=config.seed)
     noise_scheduler = DDPMScheduler.from_config(pipe.scheduler.config)
@@ -414,9 +421,10 @@ def _prepare_training(
         num_warmup_steps=config.lr_warmup_steps * accelerator.num_processes,
         num_training_steps=config.max_train_steps * accelerator.num_processes,
     )
-    train_dataloader = DataLoader(
-        train_dataset, config.train_batch_size, shuffle=True, drop_last=True, num_workers=config.num_workers
-    )
+    train_dataloader = DataLoader(  # cached pairs arrive stacked (CachedViewPairs.__getitems__)
+        train_dataset, config.train_batch_size, shuffle=True, drop_last=True, collate_fn=collate_pairs,
+        num_workers=0 if config.cache_latents and config.cache_on_device else config.num_workers,
+    )  # fmt: skip
     unet, pose_projection, optimizer, train_dataloader, lr_scheduler = accelerator.prepare(
         unet, pose_projection, optimizer, train_dataloader, lr_scheduler
     )

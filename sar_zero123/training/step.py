@@ -27,7 +27,7 @@ import numpy as np
 import torch
 from diffusers import AutoencoderKL, DDPMScheduler
 from diffusers.training_utils import compute_density_for_timestep_sampling, compute_snr
-from torch.utils.data import Dataset
+from torch.utils.data import Dataset, default_collate
 from transformers import CLIPVisionModelWithProjection
 
 from sar_zero123.data import ViewPairDataset, load_chip
@@ -50,6 +50,7 @@ from sar_zero123.training.losses import (
 
 __all__ = [
     "CachedViewPairs",
+    "collate_pairs",
     "ChipLatentCache",
     "ImageEmbedder",
     "cfg_dropout_masks",
@@ -142,6 +143,12 @@ class ChipLatentCache:
     image_embeds: torch.Tensor | None
     scaling_factor: float
 
+    def to(self, device: torch.device | str) -> ChipLatentCache:
+        """The same encodings on ``device`` (a GPU-resident cache: batches are drawn without copies)."""
+        moved = {name: getattr(self, name).to(device) for name in ("images", "latent_mean", "latent_logvar")}
+        embeds = None if self.image_embeds is None else self.image_embeds.to(device)
+        return dataclasses.replace(self, **moved, image_embeds=embeds)
+
     @classmethod
     @torch.no_grad()
     def encode(
@@ -230,6 +237,36 @@ class CachedViewPairs(Dataset):
         if cache.image_embeds is not None:
             item["input_image_embeds"] = cache.image_embeds[source]
         return item
+
+    def __getitems__(self, indices: list[int]) -> dict:
+        """A whole batch at once (the DataLoader's batched fetch; :func:`collate_pairs` passes it on).
+
+        The same values, dtypes and shapes as ``default_collate`` of the items, with one indexing per key
+        instead of a dictionary per pair: per-pair Python work bounded a GPU run's throughput at about
+        5,300 pairs/s whatever the UNet's size.
+        """
+        pairs = torch.from_numpy(self.pairs.pairs[np.asarray(indices, dtype=np.int64)])
+        cache = self.cache
+        source, target = pairs.to(cache.images.device).unbind(1)  # a GPU-resident cache is indexed there
+        batch = {
+            "input": cache.images[source],
+            "target": cache.images[target],
+            **self.pairs.pair_fields_batch(indices),
+            "input_latent_mean": cache.latent_mean[source],
+            "target_latent_mean": cache.latent_mean[target],
+            "target_latent_logvar": cache.latent_logvar[target],
+        }
+        if cache.image_embeds is not None:
+            batch["input_image_embeds"] = cache.image_embeds[source]
+        return batch
+
+
+def collate_pairs(batch: list[dict] | dict) -> dict:
+    """``default_collate`` for a list of pair items; a batch a dataset's ``__getitems__`` already stacked
+    (:meth:`CachedViewPairs.__getitems__`) passes through unchanged."""
+    if isinstance(batch, dict):
+        return batch
+    return default_collate(batch)
 
 
 # ------------------------------------------------------------------------------------------ the step
@@ -450,8 +487,10 @@ def compute_losses(
     if timesteps is None:
         timesteps = sampled
     elif timesteps.shape != sampled.shape or timesteps.is_floating_point() or timesteps.is_complex():
-        raise ValueError(f"timesteps: expected {tuple(sampled.shape)} integers, got {tuple(timesteps.shape)} "
-                         f"{timesteps.dtype}")
+        raise ValueError(
+            f"timesteps: expected {tuple(sampled.shape)} integers, got {tuple(timesteps.shape)} "
+            f"{timesteps.dtype}"
+        )
     timesteps = timesteps.to(latents.device)
     x_t = noise_scheduler.add_noise(latents, noise, timesteps)
     model_output = unet(

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 import torch
 from diffusers import DDPMScheduler
+from torch.utils.data import DataLoader, default_collate
 
 from sar_zero123.data import ChipRecord, ViewPairDataset
 from sar_zero123.training.losses import LossSettings
@@ -13,6 +14,7 @@ from sar_zero123.training.step import (
     CachedViewPairs,
     ChipLatentCache,
     ImageEmbedder,
+    collate_pairs,
     compute_losses,
     conditioning_sensitivity,
     load_chip_images,
@@ -92,6 +94,31 @@ def test_cached_view_pairs_serve_the_wrapped_pairs(tmp_path) -> None:
     assert pairs.epoch == 4
     with pytest.raises(ValueError, match="cache holds 2 chips"):
         CachedViewPairs(pairs, ChipLatentCache(images[:2], images[:2], images[:2], None, 1.0))
+
+
+def test_cached_view_pairs_fetch_a_batch_as_default_collate_stacks_its_items(tmp_path) -> None:
+    rng = np.random.default_rng(2)
+    records = []
+    for k in range(12):  # two objects at two depressions, azimuths across the wrap
+        path = tmp_path / f"chip{k}.npy"
+        np.save(path, rng.random((16, 16), dtype=np.float32))
+        obj, depression, azimuth = k % 2, (15.0, 17.0)[(k // 2) % 2], (355.0, 5.0, 180.0)[k // 4]
+        records.append(ChipRecord(str(path), "AB"[obj], f"s{obj}", depression, azimuth))
+    pairs = ViewPairDataset(records, size=16, seed=3, same_depression=False, pairs_per_chip=3)
+    images = load_chip_images(pairs)
+    embeds = torch.randn(12, 1, 8)
+    cache = ChipLatentCache(images, torch.randn(12, 4, 2, 2), torch.randn(12, 4, 2, 2), embeds, 1.0)
+    cached = CachedViewPairs(pairs, cache)
+    indices = [5, 0, 17, 3, 3, 30]
+    batch, reference = cached.__getitems__(indices), default_collate([cached[i] for i in indices])
+    assert sorted(batch) == sorted(reference)
+    for key, value in reference.items():
+        assert batch[key].dtype == value.dtype and torch.equal(batch[key], value), key
+    assert sorted(set(batch["d_az_deg"].abs().tolist())) == [10.0, 175.0]  # 355 -> 5 deg wraps to +-10
+    assert collate_pairs(batch) is batch  # a stacked batch passes through
+    loaded = next(iter(DataLoader(cached, batch_size=6, shuffle=False, collate_fn=collate_pairs)))
+    for key, value in default_collate([cached[i] for i in range(6)]).items():
+        assert torch.equal(loaded[key], value), key
 
 
 def test_chip_latent_cache_rejects_bad_images(components) -> None:
