@@ -408,6 +408,17 @@ def test_frozen_image_encoder_is_bitwise_unchanged(script, assets, tmp_path) -> 
     assert not (out / "checkpoint-2" / "custom_checkpoint_1.pkl").exists()
 
 
+def test_a_cache_on_the_training_device_trains_the_same_weights(script, assets, tmp_path) -> None:
+    args = ("--max_train_steps", "2", "--checkpointing_steps", "2", "--validation_steps", "0")
+    runs = []
+    for name, extra in (("host", ()), ("device", ("--cache_on_device", "--num_workers", "2"))):
+        runs.append(script.main(tiny_args(assets, tmp_path / name, *args, *extra)))
+        AcceleratorState._reset_state(True)
+        GradientState._reset_state()
+    host, device = (SARZero123Pipeline.from_pretrained(out / "pipeline").unet.state_dict() for out in runs)
+    assert all(torch.equal(host[k], device[k]) for k in host)
+
+
 def test_train_image_encoder_resume_restores_the_tower_bitwise(script, assets, tower_run, tmp_path) -> None:
     # the tower of checkpoint-1 is already trained, so a resume that dropped it would diverge at step 2
     step1, _ = read_tower_state(tower_run / "checkpoint-1")
