@@ -85,7 +85,9 @@ def time_variant(size: str, variant: str, batch_size: int, steps: int, warmup: i
                 encoder=None,
                 noise_scheduler=scheduler,
                 generator=torch.Generator().manual_seed(step),
-                loss_settings=LossSettings(drop_image_prob=0.0, drop_both_prob=0.0, drop_latent_prob=0.0),
+                loss_settings=LossSettings(
+                    pfm_weight=0.0, drop_image_prob=0.0, drop_both_prob=0.0, drop_latent_prob=0.0
+                ),
             )
         losses.loss.float().mean().backward()
         optimizer.step()

@@ -67,7 +67,8 @@ def training_step(args: argparse.Namespace) -> tuple[Any, Any, torch.optim.Optim
     kwargs = {"unet": unet, "pose_projection": pipe.pose_projection, "vae": pipe.vae,
               "image_encoder": ImageEmbedder(pipe.image_encoder), "encoder": None,
               "noise_scheduler": DDPMScheduler.from_config(pipe.scheduler.config),
-              "loss_settings": LossSettings(), "azimuth_estimator": pipe.azimuth_estimator}  # fmt: skip
+              "loss_settings": LossSettings(pfm_weight=0.0),  # a prior's loss: lambda = 0
+              "azimuth_estimator": pipe.azimuth_estimator}  # fmt: skip
     step_index = iter(range(10**9))
 
     def forward_backward() -> None:

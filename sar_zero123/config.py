@@ -34,16 +34,20 @@ _COMMENT_RE = re.compile(r"^\s*(\w+)\s*:[^#]*#\s*(.+?)\s*$")
 
 
 def _field_comments(cls: type) -> dict[str, str]:
-    """Trailing ``# comment`` of each field line in the class source (empty if unavailable)."""
-    try:
-        source = inspect.getsource(cls)
-    except (OSError, TypeError):
-        return {}
-    comments = {}
-    for line in source.splitlines():
-        match = _COMMENT_RE.match(line)
-        if match:
-            comments[match.group(1)] = match.group(2)
+    """Trailing ``# comment`` of each field line in the source of the class and of the dataclasses it
+    inherits fields from (a subclass's line wins; empty where the source is unavailable)."""
+    comments: dict[str, str] = {}
+    for klass in reversed(cls.__mro__):
+        if not dataclasses.is_dataclass(klass):
+            continue
+        try:
+            source = inspect.getsource(klass)
+        except (OSError, TypeError):
+            continue
+        for line in source.splitlines():
+            match = _COMMENT_RE.match(line)
+            if match:
+                comments[match.group(1)] = match.group(2)
     return comments
 
 
@@ -175,7 +179,9 @@ def parse_config(
     parser.add_argument(
         "--config", default=None, help="YAML or JSON file with field values (flags override it)"
     )
-    fields = [f for f in dataclasses.fields(cls) if f.init]
+    # the command's own fields first, then those it inherits (FinetuneConfig's loss fields)
+    own = cls.__dict__.get("__annotations__", {})
+    fields = sorted((f for f in dataclasses.fields(cls) if f.init), key=lambda f: f.name not in own)
     for field in fields:
         default = field.default if field.default is not dataclasses.MISSING else field.default_factory()  # type: ignore[misc]
         help_text = f"{comments.get(field.name, '')} (default: {default!r})".strip()

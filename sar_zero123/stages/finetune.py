@@ -72,7 +72,6 @@ from sar_zero123.training.finetuning import (
     training_image_size,
 )
 from sar_zero123.training.losses import (
-    DEFAULT_PFM_MIN_SNR,
     TRAINED_PREDICTION_TYPES,
     LossSettings,
     check_pfm_crop_size,
@@ -95,8 +94,12 @@ CONSTANT_LR_SCHEDULERS = ("constant", "constant_with_warmup")
 
 
 @dataclass
-class FinetuneConfig:
-    """Fine-tune a SAR zero-1-to-3 model with Projected Feature Matching."""
+class FinetuneConfig(LossSettings):
+    """Fine-tune a SAR zero-1-to-3 model with Projected Feature Matching.
+
+    The loss fields (``pfm_weight``, the CFG dropout, the timestep density, ...) are
+    :class:`~sar_zero123.training.losses.LossSettings`'s, inherited: declared, defaulted and validated there.
+    """
 
     output_dir: str = "runs/finetune_pfm"  # run folder: checkpoints, logs, validation grids, final pipeline
     pretrained: str | None = None  # pipeline folder or zero-1-to-3 checkpoint; None: build `size`
@@ -108,7 +111,6 @@ class FinetuneConfig:
     # UNet's timestep embedding (sar_zero123.model.orientation)
     estimate_input_azimuth: bool = False
     input_code_dim: int = 16  # with estimate_input_azimuth: size of the estimator's code of the input view
-    azimuth_loss_weight: float = 1.0  # weight of the estimator's loss on the input chip's known azimuth
     vae: str | None = None  # AutoencoderKL folder (train/train_vae.py) replacing the pipeline's VAE
     encoder: str | None = None  # frozen SAREncoder folder; required when pfm_weight > 0
     data: str | None = None  # dataset folder with index.csv; None simulates the built-in dataset
@@ -127,12 +129,6 @@ class FinetuneConfig:
     # built sizes: the UNet also takes the input latent turned by d_az in the image plane ("rotated_input",
     # sar_zero123.model.conditioning.unet_condition_latents); None: zero-1-to-3's condition latent alone
     spatial_pose: str | None = None
-    pfm_weight: float = 4.0  # lambda of Eq. (21); 0 = plain zero-1-to-3 fine-tuning
-    pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
-    pfm_fraction: float = 1.0  # fraction of the eligible batch on which PFM is computed
-    pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
-    # how lambda scales PFM (sar_zero123.training.losses.balanced_pfm_weight; docs/results/pfm.md, section 6)
-    pfm_balance: str = "none"  # "none": Eq. 21's fixed lambda (paper); "adaptive": lambda x L_simple's pull
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
     # PFM only in the steps [pfm_start_step, pfm_stop_step) of the run (the others train L_simple alone):
     # a warm-up without PFM, or PFM switched off late; the paper uses it in every step
@@ -155,13 +151,6 @@ class FinetuneConfig:
     train_image_encoder: bool = False  # train the CLIP image tower too: use it when training from scratch
     use_ema: bool = True  # EMA of the UNet (+ trained image tower): in checkpoints, validation, export
     ema_decay: float = 0.9999  # EMA decay
-    drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
-    drop_both_prob: float = 0.05  # CFG dropout: projected token and condition latent (the sampling null)
-    drop_latent_prob: float = 0.05  # CFG dropout: condition latent only
-    timestep_sampling: Literal["uniform", "logit_normal"] = "uniform"  # training t density (uniform: paper)
-    timestep_logit_mean: float = 0.0  # logit_normal: mean of logit(t / T); > 0 favours high noise
-    timestep_logit_std: float = 1.0  # logit_normal: standard deviation of logit(t / T)
-    snr_gamma: float | None = None  # Min-SNR-gamma weighting of L_simple (e.g. 5); None: the paper's L_simple
     prediction_type: Literal["epsilon", "v_prediction"] | None = None  # built sizes only (None: epsilon)
     checkpointing_steps: int = 500  # save a resumable checkpoint every this many steps
     checkpoints_total_limit: int | None = None  # keep at most this many checkpoints
@@ -182,7 +171,7 @@ class FinetuneConfig:
     cache_on_device: bool = False
 
     def __post_init__(self) -> None:
-        self.loss_settings()  # the loss fields are validated there, once
+        super().__post_init__()  # the loss fields, validated where they are declared
         if self.pfm_weight > 0 and self.encoder is None:
             raise ValueError("encoder: a frozen SAREncoder folder is required when pfm_weight > 0")
         check_protocol(self.protocol)

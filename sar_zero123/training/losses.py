@@ -499,34 +499,37 @@ def pfm_timestep_mask(timesteps: torch.Tensor, scheduler,
     return signal_to_noise_ratio(scheduler, timesteps) >= min_snr
 
 
-@dataclass(frozen=True)
+@dataclass
 class LossSettings:
-    """Everything that shapes the loss of a training step, as one object: built once from a stage's config
-    (``FinetuneConfig.loss_settings``) and passed whole to :func:`~sar_zero123.training.step.compute_losses`.
+    """Everything that shapes the loss of a training step, declared once: the fine-tune's config is a
+    ``LossSettings`` (``FinetuneConfig`` inherits these fields, their flags and defaults), and
+    ``FinetuneConfig.loss_settings`` copies them into the plain ``LossSettings`` passed whole to
+    :func:`~sar_zero123.training.step.compute_losses`.
 
     Covers lambda of Eq. (21) and where PFM applies, zero-1-to-3's CFG dropout, the timestep density, the
     Min-SNR weighting of L_simple and the weight of the azimuth estimator's loss. Each value is validated
     here, once; the field names are the config's (and the command line's), so errors name the user's flag.
+    The defaults are the paper's (lambda = 4); ``LossSettings(pfm_weight=0.0)`` is zero-1-to-3's loss.
 
     Raises:
         ValueError: Naming the first field out of range.
     """
 
-    pfm_weight: float = 0.0  # lambda of Eq. (21); 0 = plain zero-1-to-3 fine-tuning (no PFM computed)
+    pfm_weight: float = 4.0  # lambda of Eq. (21) (paper: 4); 0 = plain zero-1-to-3 fine-tuning (no PFM)
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
     pfm_fraction: float = 1.0  # fraction in (0, 1] of the eligible samples on which PFM is computed
     pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
-    # "none": lambda weights PFM as in Eq. (21); "adaptive": PFM's gradient at the network output is lambda
-    # times L_simple's in every step (balanced_pfm_weight), whatever the encoder's feature scale and t
-    pfm_balance: Literal["none", "adaptive"] = "none"
+    # how lambda scales PFM (balanced_pfm_weight; docs/results/pfm.md, section 6): "none" weights PFM as in
+    # Eq. (21); "adaptive": PFM's gradient at the network output is lambda times L_simple's in every step
+    pfm_balance: Literal["none", "adaptive"] = "none"  # "none": Eq. 21's fixed lambda; "adaptive": balanced
     drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
     drop_both_prob: float = 0.05  # CFG dropout: projected token and condition latent (the sampling null)
     drop_latent_prob: float = 0.05  # CFG dropout: condition latent only
     timestep_sampling: Literal["uniform", "logit_normal"] = "uniform"  # training t density (uniform: paper)
     timestep_logit_mean: float = 0.0  # logit_normal: mean of logit(t / T); > 0 favours high noise
     timestep_logit_std: float = 1.0  # logit_normal: standard deviation of logit(t / T)
-    snr_gamma: float | None = None  # Min-SNR-gamma weighting of L_simple; None: the paper's L_simple
-    azimuth_loss_weight: float = 1.0  # weight of an azimuth estimator's loss (models that have one)
+    snr_gamma: float | None = None  # Min-SNR-gamma weighting of L_simple (e.g. 5); None: the paper's L_simple
+    azimuth_loss_weight: float = 1.0  # weight of an azimuth estimator's loss on the input's known azimuth
 
     def __post_init__(self) -> None:
         check_minimum(self, "pfm_weight", "pfm_min_snr", "azimuth_loss_weight", minimum=0)

@@ -456,7 +456,7 @@ def compute_losses(
     Shape:
         ``batch["input"]``, ``batch["target"]``: ``(B, 1, S, S)``; outputs ``(B,)``.
     """
-    settings = loss_settings if loss_settings is not None else LossSettings()
+    settings = loss_settings if loss_settings is not None else LossSettings(pfm_weight=0.0)
     # 1. frozen encodings (a fresh posterior sample of the target latent)
     latents, condition_latents, image_embeds, pose = encode_batch(
         batch, vae=vae, image_encoder=image_encoder, generator=generator,

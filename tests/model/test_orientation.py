@@ -185,7 +185,7 @@ def _losses(pipe: SARZero123Pipeline, batch: dict, weight: float):
         noise_scheduler=DDPMScheduler.from_config(pipe.scheduler.config),
         generator=torch.Generator().manual_seed(3),
         azimuth_estimator=pipe.azimuth_estimator,
-        loss_settings=LossSettings(azimuth_loss_weight=weight),
+        loss_settings=LossSettings(pfm_weight=0.0, azimuth_loss_weight=weight),
     )
 
 

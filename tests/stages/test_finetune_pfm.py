@@ -167,7 +167,9 @@ def test_cfg_dropout_both_matches_sampling_null() -> None:
         encoder=None,
         noise_scheduler=DDPMScheduler.from_config(components["scheduler"].config),
         generator=torch.Generator().manual_seed(0),
-        loss_settings=LossSettings(drop_image_prob=0.0, drop_both_prob=1.0, drop_latent_prob=0.0),
+        loss_settings=LossSettings(
+            pfm_weight=0.0, drop_image_prob=0.0, drop_both_prob=1.0, drop_latent_prob=0.0
+        ),
     )
     handle.remove()
     assert losses.loss.shape == (2,)

@@ -29,8 +29,11 @@ def test_every_stage_config_is_built_before_any_work(tmp_path: Path) -> None:
     assert by_name["evaluate"].pipeline_names == ["lambda=0", "lambda=4"]
     paper = by_name["finetune lambda=4"]
     assert (paper.pfm_balance, paper.pfm_min_snr) == ("none", 0.004)
-    balanced = quickstart.plan_stages(quickstart.QuickstartConfig(
-        output_dir=str(out), preset="smoke", override=["pfm_balance=adaptive", "pfm_min_snr=2.0"]))
+    balanced = quickstart.plan_stages(
+        quickstart.QuickstartConfig(
+            output_dir=str(out), preset="smoke", override=["pfm_balance=adaptive", "pfm_min_snr=2.0"]
+        )
+    )
     tuned = {plan.name: plan.config for plan in balanced}["finetune lambda=4"]
     assert (tuned.pfm_balance, tuned.pfm_min_snr) == ("adaptive", 2.0)
     assert not out.exists()

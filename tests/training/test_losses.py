@@ -35,8 +35,9 @@ SCHEDULES = {
     "scaled_linear": dict(beta_schedule="scaled_linear", beta_start=0.00085, beta_end=0.012),
     "linear": dict(beta_schedule="linear"),
     "squaredcos_cap_v2": dict(beta_schedule="squaredcos_cap_v2"),
-    "zero_snr": dict(beta_schedule="scaled_linear", beta_start=0.00085, beta_end=0.012,
-                     rescale_betas_zero_snr=True),
+    "zero_snr": dict(
+        beta_schedule="scaled_linear", beta_start=0.00085, beta_end=0.012, rescale_betas_zero_snr=True
+    ),
 }
 HARD_TIMESTEPS = torch.tensor([0, 1, 500, 999])
 
@@ -62,9 +63,16 @@ def frozen(module: nn.Module) -> nn.Module:
 @pytest.fixture(scope="module")
 def vae() -> AutoencoderKL:
     torch.manual_seed(0)
-    model = AutoencoderKL(in_channels=1, out_channels=1, down_block_types=("DownEncoderBlock2D",) * 2,
-                          up_block_types=("UpDecoderBlock2D",) * 2, block_out_channels=(8, 8),
-                          latent_channels=4, norm_num_groups=4, sample_size=16)
+    model = AutoencoderKL(
+        in_channels=1,
+        out_channels=1,
+        down_block_types=("DownEncoderBlock2D",) * 2,
+        up_block_types=("UpDecoderBlock2D",) * 2,
+        block_out_channels=(8, 8),
+        latent_channels=4,
+        norm_num_groups=4,
+        sample_size=16,
+    )
     return frozen(model)
 
 
@@ -169,10 +177,10 @@ def reference_pfm(x0_hat, target_images, vae, encoder) -> torch.Tensor:
     """Naive Eq. (20): decode, to [0, 1], resize, encode, squared L2 (one sample at a time)."""
     values = []
     for i in range(x0_hat.shape[0]):
-        decoded = vae.decode(x0_hat[i:i + 1] / vae.config.scaling_factor).sample
+        decoded = vae.decode(x0_hat[i : i + 1] / vae.config.scaling_factor).sample
         size = encoder.config.image_size
         a = F.interpolate((decoded + 1) / 2, size=(size, size), mode="bilinear", antialias=True)
-        b = F.interpolate(target_images[i:i + 1], size=(size, size), mode="bilinear", antialias=True)
+        b = F.interpolate(target_images[i : i + 1], size=(size, size), mode="bilinear", antialias=True)
         values.append(((encoder(a) - encoder(b)) ** 2).sum())
     return torch.stack(values)
 
@@ -266,8 +274,16 @@ def test_total_loss_fraction_and_mask(vae, encoder) -> None:
     x0 = estimate_x0(x_t[:3], output[:3], timesteps[:3], scheduler)
     torch.testing.assert_close(full.pfm[:3], pfm_loss(x0, images[:3], vae, encoder))
     torch.testing.assert_close(full.loss, 4.0 * full.pfm)
-    half = total_loss(output, output, x_t, timesteps, scheduler, pfm_fraction=0.5,
-                      generator=torch.Generator().manual_seed(0), **kwargs)
+    half = total_loss(
+        output,
+        output,
+        x_t,
+        timesteps,
+        scheduler,
+        pfm_fraction=0.5,
+        generator=torch.Generator().manual_seed(0),
+        **kwargs,
+    )
     assert int(half.pfm_mask.sum()) == 2  # ceil(0.5 * 3 eligible)
     picked = half.pfm_mask.nonzero().flatten()
     torch.testing.assert_close(half.pfm[picked], full.pfm[picked] * 1.5)  # unbiased: 3 eligible / 2 kept
@@ -309,13 +325,11 @@ def test_loss_settings_refuse_each_bad_value_by_its_field_name(values, message) 
         LossSettings(**values)
 
 
-def test_loss_settings_are_frozen_and_default_to_plain_zero123() -> None:
+def test_loss_settings_default_to_the_papers_loss() -> None:
     settings = LossSettings()
-    assert settings.pfm_weight == 0.0 and settings.snr_gamma is None
+    assert settings.pfm_weight == 4.0 and settings.snr_gamma is None  # Eq. 21 with the paper's lambda
     assert settings.pfm_min_snr == DEFAULT_PFM_MIN_SNR
     assert LossSettings(timestep_logit_std=0.0).timestep_logit_std == 0.0  # only read by logit_normal
-    with pytest.raises(AttributeError):
-        settings.pfm_weight = 4.0
 
 
 class TinyDenoiser(nn.Module):
@@ -336,8 +350,9 @@ FP16_ON_GPU = pytest.param(
 @pytest.mark.parametrize("prediction_type", ["epsilon", "v_prediction"])
 @pytest.mark.parametrize("schedule", list(SCHEDULES))
 @pytest.mark.parametrize("min_snr", [0.0, 0.05])
-def test_loss_and_grads_finite_at_hard_timesteps(vae, encoder, schedule, prediction_type, dtype,
-                                                 min_snr) -> None:
+def test_loss_and_grads_finite_at_hard_timesteps(
+    vae, encoder, schedule, prediction_type, dtype, min_snr
+) -> None:
     torch.manual_seed(0)
     device = "cuda" if dtype == torch.float16 else "cpu"
     scheduler = scheduler_for(schedule, prediction_type)
@@ -351,8 +366,18 @@ def test_loss_and_grads_finite_at_hard_timesteps(vae, encoder, schedule, predict
         x_t = scheduler.add_noise(latents, noise, timesteps).to(dtype)
         output = model(x_t)
         target = denoising_target(latents, noise, timesteps, scheduler).to(dtype)
-        out = total_loss(output, target, x_t, timesteps, scheduler, pfm_weight=4.0,
-                         target_images=images.to(dtype), vae=vae_d, encoder=encoder_d, pfm_min_snr=min_snr)
+        out = total_loss(
+            output,
+            target,
+            x_t,
+            timesteps,
+            scheduler,
+            pfm_weight=4.0,
+            target_images=images.to(dtype),
+            vae=vae_d,
+            encoder=encoder_d,
+            pfm_min_snr=min_snr,
+        )
         out.loss.mean().backward()
     finally:
         vae.to("cpu", torch.float32), encoder.to("cpu", torch.float32)
@@ -367,8 +392,9 @@ def test_pfm_loss_with_sar_encoder(vae) -> None:
     from sar_zero123.encoder import SAREncoder, SAREncoderConfig
 
     torch.manual_seed(0)
-    sar_encoder = frozen(SAREncoder(SAREncoderConfig(image_size=16, depths=(1,), hidden_sizes=(8,),
-                                                     embedding_size=8)))
+    sar_encoder = frozen(
+        SAREncoder(SAREncoderConfig(image_size=16, depths=(1,), hidden_sizes=(8,), embedding_size=8))
+    )
     x0_hat = torch.randn(2, 4, 16, 16, requires_grad=True)
     target = torch.rand(2, 1, 32, 32)
     loss = pfm_loss(x0_hat, target, vae, sar_encoder, crop_size=16)
@@ -408,9 +434,9 @@ def test_projected_pfm_equals_authors_mse_of_fc_outputs(vae, encoder, tmp_path) 
     reference = []
     for i in range(3):
         with torch.no_grad():
-            decoded = vae.decode(x0_hat[i:i + 1] / vae.config.scaling_factor).sample
+            decoded = vae.decode(x0_hat[i : i + 1] / vae.config.scaling_factor).sample
         a = F.interpolate((decoded + 1) / 2, size=(size, size), mode="bilinear", antialias=True)
-        b = F.interpolate(target[i:i + 1], size=(size, size), mode="bilinear", antialias=True)
+        b = F.interpolate(target[i : i + 1], size=(size, size), mode="bilinear", antialias=True)
         reference.append(F.mse_loss(fc(encoder(a)), fc(encoder(b))))
     torch.testing.assert_close(loss, torch.stack(reference).detach(), atol=1e-7, rtol=1e-5)
     loss.sum().backward()
@@ -506,34 +532,66 @@ def test_pfm_of_a_perfect_prediction_is_the_vae_round_trip_distance(vae, encoder
     timesteps = torch.tensor([1, 500, 999])
     x_t = scheduler.add_noise(latents, noise, timesteps)
     perfect = denoising_target(latents, noise, timesteps, scheduler)
-    out = total_loss(perfect, perfect, x_t, timesteps, scheduler, pfm_weight=1.0, target_images=target_images,
-                     vae=vae, encoder=encoder, pfm_min_snr=0.0)
+    out = total_loss(
+        perfect,
+        perfect,
+        x_t,
+        timesteps,
+        scheduler,
+        pfm_weight=1.0,
+        target_images=target_images,
+        vae=vae,
+        encoder=encoder,
+        pfm_min_snr=0.0,
+    )
     with torch.no_grad():
         decoded = (vae.decode(latents / vae.config.scaling_factor).sample + 1) / 2
-        expected = (encoder(F.interpolate(decoded, size=16, mode="bilinear", antialias=True))
-                    - encoder(F.interpolate(target_images, size=16, mode="bilinear", antialias=True)))
+        expected = encoder(F.interpolate(decoded, size=16, mode="bilinear", antialias=True)) - encoder(
+            F.interpolate(target_images, size=16, mode="bilinear", antialias=True)
+        )
     assert out.denoising.abs().max() == 0
     torch.testing.assert_close(out.pfm, expected.pow(2).sum(1), atol=2e-5, rtol=2e-3)
     # and the target of PFM is the target view: matching the decoded latent itself gives zero
-    matched = total_loss(perfect, perfect, x_t, timesteps, scheduler, pfm_weight=1.0, target_images=decoded,
-                         vae=vae, encoder=encoder, pfm_min_snr=0.0)
+    matched = total_loss(
+        perfect,
+        perfect,
+        x_t,
+        timesteps,
+        scheduler,
+        pfm_weight=1.0,
+        target_images=decoded,
+        vae=vae,
+        encoder=encoder,
+        pfm_min_snr=0.0,
+    )
     torch.testing.assert_close(matched.pfm, torch.zeros(3), atol=2e-5, rtol=0)
 
 
-def test_the_finetune_config_declares_every_loss_setting_and_passes_each_through() -> None:
-    """One name per setting: FinetuneConfig has a field for each LossSettings field, and loss_settings()
-    copies each by name (the defaults differ on purpose: the fine-tune's are the paper's, lambda = 4)."""
+def test_the_finetune_config_inherits_every_loss_setting_once_and_passes_each_through() -> None:
+    """One declaration per setting: FinetuneConfig is a LossSettings (its loss fields, defaults, help and
+    validation are LossSettings'), declares none of them again, and loss_settings() copies each by name."""
     import dataclasses
 
+    from sar_zero123.config import parse_config
     from sar_zero123.stages.finetune import FinetuneConfig
 
     names = [item.name for item in dataclasses.fields(LossSettings)]
-    config_fields = {item.name for item in dataclasses.fields(FinetuneConfig)}
-    assert set(names) <= config_fields
+    assert issubclass(FinetuneConfig, LossSettings)
+    assert not set(names) & set(FinetuneConfig.__dict__["__annotations__"])  # not declared a second time
+    assert {name: getattr(FinetuneConfig(encoder="e"), name) for name in names} == dataclasses.asdict(
+        LossSettings()
+    )
     changed = {"pfm_weight": 0.5, "pfm_min_snr": 0.2, "pfm_fraction": 0.5, "pfm_crop_size": 16,
                "pfm_balance": "adaptive", "drop_image_prob": 0.1, "drop_both_prob": 0.1,
                "drop_latent_prob": 0.1, "timestep_sampling": "logit_normal", "timestep_logit_mean": 0.3,
                "timestep_logit_std": 0.7, "snr_gamma": 2.0, "azimuth_loss_weight": 0.5}  # fmt: skip
     assert set(changed) == set(names)
-    settings = FinetuneConfig(encoder="enc", **changed).loss_settings()
-    assert {name: getattr(settings, name) for name in names} == changed
+    config = FinetuneConfig(encoder="enc", **changed)
+    settings = config.loss_settings()
+    assert type(settings) is LossSettings and dataclasses.asdict(settings) == changed
+    settings.pfm_weight = 9.0  # a copy: the step's settings never write back into the run's config
+    assert config.pfm_weight == 0.5
+    with pytest.raises(ValueError, match="pfm_fraction must be in"):  # validated where declared
+        FinetuneConfig(encoder="enc", pfm_fraction=0.0)
+    parsed = parse_config(FinetuneConfig, ["--encoder", "e", "--pfm_balance", "adaptive", "--snr_gamma", "5"])
+    assert parsed.pfm_balance == "adaptive" and parsed.snr_gamma == 5.0

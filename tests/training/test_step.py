@@ -67,6 +67,15 @@ def test_cached_encodings_give_the_losses_of_encoding_every_step(components) -> 
     assert torch.equal(fast.timesteps, reference.timesteps)
 
 
+def test_a_step_without_loss_settings_is_plain_zero123(components) -> None:
+    batch = {"input": dummy_images(2, seed=1), "target": dummy_images(2, seed=2),
+             "d_az_deg": torch.tensor([30.0, -90.0]), "d_el_deg": torch.zeros(2)}  # fmt: skip
+    with torch.no_grad():
+        default = step_losses(batch, components)
+        plain = step_losses(batch, components, loss_settings=LossSettings(pfm_weight=0.0))
+    assert torch.equal(default.loss, plain.loss) and torch.equal(default.pfm, torch.zeros(2))
+
+
 def test_cached_view_pairs_serve_the_wrapped_pairs(tmp_path) -> None:
     rng = np.random.default_rng(0)
     records = []
@@ -248,7 +257,7 @@ def test_min_snr_weighting_scales_l_simple_and_keeps_every_draw(components) -> N
     }
     with torch.no_grad():
         plain = step_losses(batch, components)
-        weighted = step_losses(batch, components, loss_settings=LossSettings(snr_gamma=0.5))
+        weighted = step_losses(batch, components, loss_settings=LossSettings(pfm_weight=0.0, snr_gamma=0.5))
     assert torch.equal(weighted.timesteps, plain.timesteps)  # the same draws: only the weighting differs
     scheduler = DDPMScheduler.from_config(components["scheduler"].config)
     weights = min_snr_weights(scheduler, plain.timesteps, 0.5)
