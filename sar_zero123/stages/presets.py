@@ -23,7 +23,7 @@ from sar_zero123.data.splits import OOD_INTERVAL_WIDTH_DEG, check_protocol, ood_
 from sar_zero123.evaluation.protocol import SCHEDULERS
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import downsampling_factor
-from sar_zero123.pretrained import SIM_PRIOR, resolve_pretrained
+from sar_zero123.pretrained import SIM_PRIOR, SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.sim import TARGET_CLASSES
 from sar_zero123.stages.evaluate import MAX_EVALUATION_PAIRS, MAX_SWEEP_STEP_COUNTS
 from sar_zero123.training.losses import (
@@ -265,8 +265,10 @@ DEFAULT_PRESET = Preset(
     speed_steps=(5, 20),
     speed_n=4,
     schedulers=("ddim", "dpmsolver++", "euler"),
-    # the paper's regime: both fine-tunes start from the bundled multi-view prior (its VAE kept)
-    prior=SIM_PRIOR,
+    # the paper's regime: both fine-tunes start from a bundled multi-view prior (its VAE kept), the one that
+    # also sees the input turned by d_az: from it the held-out TANK closes 63 % of its azimuth gap against
+    # 48 % and the seen vehicles keep their class in 77 % of views against 66 % (prior.md, section 6)
+    prior=SIM_PRIOR_ROTATED,
     depression_targets_deg=(10.0, 30.0, 45.0),
 )
 

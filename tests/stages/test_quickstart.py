@@ -190,7 +190,7 @@ def test_overrides_replace_preset_fields_with_typed_literals() -> None:
 
 def test_a_missing_prior_and_an_image_size_the_models_refuse_fail_before_any_stage() -> None:
     preset = quickstart.PRESETS["default"]
-    message = r"image_size must be a multiple of 16 for the prior 'sar-zero123/sim-prior' \(VAE x UNet"
+    message = r"image_size must be a multiple of 16 for the prior 'sar-zero123/sim-prior-rotated' \(VAE x UNet"
     with pytest.raises(ValueError, match=message + r" downsampling\), got 30"):
         quickstart.apply_overrides(preset, ["image_size=30"])
     with pytest.raises(FileNotFoundError, match=r"prior: '/nonexistent' is not a pipeline folder"):
