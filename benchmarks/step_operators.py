@@ -6,8 +6,9 @@
 On a GPU every operator is at least one kernel launch, a few microseconds of host time whatever the batch:
 a step that launches thousands of operators is bound by the host when the model is small. The script
 counts the ``aten::`` operator calls of one forward and backward (:func:`~sar_zero123.training.step.
-compute_losses` on a batch of cached encodings, as a prior's training step runs it) and of one AdamW step
-(``foreach`` where torch picks it: on CUDA), with ``torch.profiler``, then times ``--steps`` whole steps.
+compute_losses` on a batch of cached encodings, as a prior's training step runs it) and of one step of the
+fine-tune's optimiser (:func:`~sar_zero123.training.finetuning.finetuning_optimizer`), with
+``torch.profiler``, then times ``--steps`` whole steps.
 ``--compile`` times the same step with the UNet compiled (``torch.compile``, inductor), the first step
 (the compilation) apart. It writes the counts and times as JSON.
 """
@@ -26,6 +27,7 @@ from torch.profiler import ProfilerActivity, profile
 from sar_zero123 import resolve_pretrained
 from sar_zero123.config import write_json_atomic
 from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.training.finetuning import finetuning_optimizer
 from sar_zero123.training.losses import LossSettings
 from sar_zero123.training.step import ChipLatentCache, ImageEmbedder, compute_losses, micro_batch_generator
 
@@ -38,6 +40,11 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--bf16", action="store_true", help="autocast the step to bfloat16 (a GPU run's)")
     parser.add_argument("--compile", default=None, choices=["default", "reduce-overhead", "max-autotune"])
+    parser.add_argument(
+        "--loop_optimizer",
+        action="store_true",
+        help="torch's default for-loop AdamW instead of the fine-tune's fused one",
+    )
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="JSON file of the counts and times")
     return parser.parse_args(argv)
@@ -60,10 +67,12 @@ def training_step(args: argparse.Namespace) -> tuple[Any, Any, torch.optim.Optim
         "target_latent_logvar": cache.latent_logvar, "input_image_embeds": cache.image_embeds,
     }  # fmt: skip
     unet = torch.compile(pipe.unet, mode=args.compile) if args.compile else pipe.unet
-    trained = [*pipe.unet.parameters(), *pipe.pose_projection.parameters()]
-    if pipe.azimuth_estimator is not None:
-        trained += list(pipe.azimuth_estimator.parameters())
-    optimizer = torch.optim.AdamW(trained, lr=1e-4)
+    optimizer = finetuning_optimizer(
+        pipe.unet, pipe.pose_projection, azimuth_estimator=pipe.azimuth_estimator, learning_rate=1e-4
+    )  # the fine-tune's and the prior's optimiser
+    if args.loop_optimizer:
+        for group in optimizer.param_groups:
+            group.update(fused=False, foreach=False)
     kwargs = {"unet": unet, "pose_projection": pipe.pose_projection, "vae": pipe.vae,
               "image_encoder": ImageEmbedder(pipe.image_encoder), "encoder": None,
               "noise_scheduler": DDPMScheduler.from_config(pipe.scheduler.config),
