@@ -321,7 +321,9 @@ def write_generator_data(kept: Sequence[ChipRecord], folder: Path) -> Path:
         link = links / f"{i:05d}{Path(record.path).suffix}"
         if not link.is_symlink():
             link.symlink_to(Path(record.path).resolve())
-        rows.append(ChipRecord(**{**asdict(record), "path": link, "depression_deg": TEST_DEPRESSION_DEG}))
+        rows.append(
+            ChipRecord(**{**asdict(record), "path": link, "depression_deg": TEST_DEPRESSION_DEG})
+        )
     index = folder / "index.csv"
     header = "path,target_class,target_type,serial,depression_deg,azimuth_deg,height,width\n"
     lines = [
@@ -404,13 +406,8 @@ def build_generator(
 
 
 def variant_suffix(
-    speckle_looks: int | None = None,
-    strength: float = 1.0,
-    same_azimuth: bool = False,
-    d_el: float = 0.0,
-    heading_guidance: float = 0.0,
-    view_filter: str | None = None,
-    filter_classifier: Path | None = None,
+    speckle_looks: int | None = None, strength: float = 1.0, same_azimuth: bool = False, d_el: float = 0.0,
+    heading_guidance: float = 0.0, view_filter: str | None = None, filter_classifier: Path | None = None,
 ) -> str:
     """``_speckle<L>``, ``_strength<S>``, ``_heading<H>``, ``_d_az0``, ``_d_el<D>`` and ``_<filter>`` for
     views generated or kept other than plainly (``""``)."""
@@ -518,14 +515,7 @@ class Benchmark:
         def build(arm_dir: Path) -> dict[str, Any]:
             trained_on = kept if generator_records is None else generator_records
             views_dir, times = build_generator(
-                self.config,
-                trained_on,
-                kept,
-                generator_dir,
-                d_az,
-                speckle_looks,
-                strength,
-                d_el,
+                self.config, trained_on, kept, generator_dir, d_az, speckle_looks, strength, d_el,
                 heading_guidance,
             )
             generated = load_index(views_dir)
@@ -534,13 +524,9 @@ class Benchmark:
             if view_filter is not None:
                 result.update(view_filter=view_filter, n_generated_before_filter=len(generated))
             result.update(
-                description=description,
-                n_real=len(kept),
-                n_generated=len(views),
-                d_az_deg=d_az,
+                description=description, n_real=len(kept), n_generated=len(views), d_az_deg=d_az,
                 d_el_deg=d_el,
-                generator=str(generator_dir),
-                generator_times=times,
+                generator=str(generator_dir), generator_times=times,
                 generator_cpu_s=sum(t["cpu_s"] for t in times.values()),
                 generator_wall_s=sum(t["wall_s"] for t in times.values()),
                 view_quality=self.view_quality(views, generator_dir),
@@ -558,7 +544,6 @@ class Benchmark:
         if view_filter is None:
             return views
         if view_filter == "ratio1":
-
             def index(view: ChipRecord) -> tuple[int, int]:  # ..._r<row>_q<request>.npy
                 row, request = Path(view.path).stem.split("_")[-2:]
                 return int(row[1:]), int(request[1:])
@@ -655,17 +640,10 @@ class Benchmark:
             classifier = None if baseline is None else self.out / baseline / "classifier_seed0"
             variants.append(({"view_filter": view_filter, "filter_classifier": classifier}, False, words))
         return [
-            self.run_arm(
-                f"{name}{variant_suffix(**options, same_azimuth=same)}",
-                self.generated_arm(
-                    kept,
-                    [0.0] * len(d_az) if same else d_az,
-                    generator_dir,
-                    f"{description}, {words}",
-                    generator_records=generator_records,
-                    **options,
-                ),
-            )  # fmt: skip
+            self.run_arm(f"{name}{variant_suffix(**options, same_azimuth=same)}", self.generated_arm(
+                kept, [0.0] * len(d_az) if same else d_az, generator_dir, f"{description}, {words}",
+                generator_records=generator_records, **options,
+            ))  # fmt: skip
             for options, same, words in variants
         ]
 

@@ -227,18 +227,10 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--guidance_scale", type=float, default=3.0, help="classifier-free guidance")
     parser.add_argument("--batch_size", type=int, default=16, help="views per pipeline call")
     parser.add_argument("--seed", type=int, default=0, help="pairs, clutter and sampling seed")
-    parser.add_argument(
-        "--heading_guidance_scales",
-        nargs="+",
-        type=float,
-        default=[0.0],
-        help="each pipeline at each weight of guidance away from the flipped heading",
-    )
-    parser.add_argument(
-        "--evaluators",
-        default=None,
-        help="evaluators folder: also the azimuth regressor's error on every row's views",
-    )
+    parser.add_argument("--heading_guidance_scales", nargs="+", type=float, default=[0.0],
+                        help="each pipeline at each weight of guidance away from the flipped heading")
+    parser.add_argument("--evaluators", default=None,
+                        help="evaluators folder: also the azimuth regressor's error on every row's views")
     parser.add_argument("--out", default="front_back.json", help="output JSON")
     args = parser.parse_args(argv)
     unknown = sorted(set(args.classes) - set(TARGET_CLASSES))

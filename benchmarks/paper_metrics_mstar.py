@@ -48,12 +48,8 @@ def main(argv: list[str] | None = None) -> dict:
     names = list(scores)
     summary = {name: {"mean": float(v.mean()), "std": float(v.std())} for name, v in scores.items()}
     comparisons = {}
-    for paper, corrected in (
-        (names[0], names[2]),
-        (names[3], names[5]),
-        (names[0], names[1]),
-        (names[3], names[4]),
-    ):
+    for paper, corrected in ((names[0], names[2]), (names[3], names[5]), (names[0], names[1]),
+                             (names[3], names[4])):
         difference = (scores[corrected] - scores[paper]).numpy()
         comparisons[f"{corrected} - {paper}"] = {
             "mean": float(difference.mean()),

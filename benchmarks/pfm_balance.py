@@ -51,22 +51,16 @@ from sar_zero123.training.step import (  # noqa: E402
 
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument(
-        "--model",
-        action="append",
-        required=True,
-        metavar="LABEL=PATH",
-        help="a pipeline folder or bundled name, labelled (repeatable)",
-    )
+    parser.add_argument("--model", action="append", required=True, metavar="LABEL=PATH",
+                        help="a pipeline folder or bundled name, labelled (repeatable)")
     parser.add_argument("--data", default=None, help="dataset folder (default: the built-in simulator)")
     parser.add_argument("--protocol", default="ood-TANK")
     parser.add_argument("--encoder", required=True, help="the frozen SimCLR encoder folder PFM matches")
     parser.add_argument("--pfm_projection_dim", type=int, default=10, help="0: the 512-d features")
     parser.add_argument("--pfm_weight", type=float, default=4.0, help="lambda of Eq. (21)")
     parser.add_argument("--pfm_fraction", type=float, default=0.25, help="the run's fraction (train row)")
-    parser.add_argument(
-        "--pfm_min_snr", type=float, default=DEFAULT_PFM_MIN_SNR, help="the run's (train row)"
-    )
+    parser.add_argument("--pfm_min_snr", type=float, default=DEFAULT_PFM_MIN_SNR,
+                        help="the run's (train row)")
     parser.add_argument("--snr_gamma", type=float, default=5.0, help="Min-SNR gamma of L_simple; 0: none")
     parser.add_argument("--max_grad_norm", type=float, default=1.0)
     parser.add_argument("--bands", type=int, nargs="+", default=[0, 100, 300, 500, 700, 900, 1000])
@@ -115,15 +109,9 @@ def measure_model(label: str, path: str, args: argparse.Namespace, work: Path) -
     first_pose = sum(1 for p in unet.parameters() if p.requires_grad)
     pose = slice(first_pose, first_pose + n_pose)  # the pose projection's gradients in `params` order
     gamma = args.snr_gamma or None
-    common = {
-        "unet": unet,
-        "pose_projection": pose_projection,
-        "vae": vae,
-        "image_encoder": embedder,
-        "encoder": encoder,
-        "noise_scheduler": DDPMScheduler.from_config(pipe.scheduler.config),
-        "azimuth_estimator": pipe.azimuth_estimator,
-    }
+    common = {"unet": unet, "pose_projection": pose_projection, "vae": vae, "image_encoder": embedder,
+              "encoder": encoder, "noise_scheduler": DDPMScheduler.from_config(pipe.scheduler.config),
+              "azimuth_estimator": pipe.azimuth_estimator}
     probe = LossSettings(pfm_weight=1.0, pfm_min_snr=0.0, pfm_fraction=1.0, snr_gamma=gamma)
     train = LossSettings(pfm_weight=args.pfm_weight, pfm_min_snr=args.pfm_min_snr,
                          pfm_fraction=args.pfm_fraction, snr_gamma=gamma)  # fmt: skip

@@ -53,13 +53,8 @@ def main(argv=None) -> dict:
     size = encoder.config.image_size
     train, test = (extract_features(encoder, ChipDataset(splits[name], size=size))
                    for name in ("train", "test"))  # fmt: skip
-    rows = [
-        {
-            "features": f"{train.features.shape[1]}-d",
-            "seed": None,
-            **run_probes(train, test, epochs=args.epochs, generator=torch.Generator().manual_seed(0)),
-        }
-    ]
+    rows = [{"features": f"{train.features.shape[1]}-d", "seed": None,
+             **run_probes(train, test, epochs=args.epochs, generator=torch.Generator().manual_seed(0))}]
     print(json.dumps(rows[-1]), flush=True)
     for seed in args.seeds:
         weight = random_feature_projection(train.features.shape[1], args.projection_dim, seed=seed)

@@ -183,20 +183,12 @@ def benchmark_size(config: BenchmarkConfig, size: str) -> dict:
 
     # 1. reference loop and the pipeline on the same weights and noise, both fp32
     if config.reference:
-
         def reference_call() -> torch.Tensor:
             return reference_zero123_sample(pipe, images, 30.0, 0.0, noise, 50, config.guidance_scale)
 
         def pipeline_call() -> torch.Tensor:
-            return pipe(
-                images,
-                30.0,
-                0.0,
-                num_inference_steps=50,
-                guidance_scale=config.guidance_scale,
-                latents=noise,
-                output_type="pt",
-            ).images
+            return pipe(images, 30.0, 0.0, num_inference_steps=50, guidance_scale=config.guidance_scale,
+                        latents=noise, output_type="pt").images
 
         timings = _time_calls([reference_call, pipeline_call], device, config.repeats)
         (reference_seconds, reference_memory), (pipeline_seconds, _) = timings
@@ -216,34 +208,18 @@ def benchmark_size(config: BenchmarkConfig, size: str) -> dict:
         scheduler_class, options = SCHEDULERS[scheduler_name]
         pipe.scheduler = scheduler_class.from_config(pipe.scheduler.config, **options)
         for steps in config.steps:
-
             def call(steps: int = steps) -> None:
-                pipe(
-                    images,
-                    30.0,
-                    0.0,
-                    num_inference_steps=steps,
-                    guidance_scale=config.guidance_scale,
-                    generator=torch.Generator().manual_seed(config.seed),
-                    output_type="pt",
-                )
+                pipe(images, 30.0, 0.0, num_inference_steps=steps, guidance_scale=config.guidance_scale,
+                     generator=torch.Generator().manual_seed(config.seed), output_type="pt")
 
             [(seconds, memory)] = _time_calls([call], device, config.repeats)
-            run = {
-                "scheduler": scheduler_name,
-                "num_inference_steps": steps,
-                "seconds_per_call": seconds,
-                "images_per_second": config.batch_size / seconds,
-                "peak_memory_mib": memory,
-            }
+            run = {"scheduler": scheduler_name, "num_inference_steps": steps, "seconds_per_call": seconds,
+                   "images_per_second": config.batch_size / seconds, "peak_memory_mib": memory}
             if config.reference and scheduler_name == "ddim" and steps == 50 and dtype != torch.float32:
                 run["speedup_vs_reference"] = result["reference_fp32_ddim50"]["seconds_per_call"] / seconds
             result["runs"].append(run)
-            print(
-                f"{size:8s} {scheduler_name:12s} {steps:3d} steps: {run['images_per_second']:.3f} img/s, "
-                f"peak {memory:.0f} MiB",
-                flush=True,
-            )
+            print(f"{size:8s} {scheduler_name:12s} {steps:3d} steps: {run['images_per_second']:.3f} img/s, "
+                  f"peak {memory:.0f} MiB", flush=True)
     return result
 
 

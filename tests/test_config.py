@@ -42,22 +42,8 @@ def test_defaults_and_flags():
     assert config == DemoConfig()
     config = parse_config(
         DemoConfig,
-        [
-            "--learning-rate",
-            "0.5",
-            "--max_steps",
-            "3",
-            "--no-use_ema",
-            "--presets",
-            "a",
-            "b",
-            "c",
-            "--steps",
-            "10",
-            "20",
-            "--data",
-            "none",
-        ],
+        ["--learning-rate", "0.5", "--max_steps", "3", "--no-use_ema", "--presets", "a", "b", "c",
+         "--steps", "10", "20", "--data", "none"],
     )
     assert config.learning_rate == 0.5 and config.max_steps == 3 and config.use_ema is False
     assert config.presets == ("a", "b", "c") and config.steps == [10, 20] and config.data is None
@@ -135,11 +121,8 @@ def test_a_write_past_the_file_size_limit_names_the_file_and_keeps_the_previous(
     soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
     resource.setrlimit(resource.RLIMIT_FSIZE, (4096, hard))  # Python ignores SIGXFSZ: the write fails
     try:
-        with pytest.raises(
-            OSError,
-            match=r"^\[Errno 27\] could not write '.*/record.json': File too large; "
-            r"the previous file, if any, is unchanged$",
-        ):
+        with pytest.raises(OSError, match=r"^\[Errno 27\] could not write '.*/record.json': File too large; "
+                                          r"the previous file, if any, is unchanged$"):
             write_json_atomic({"new": "x" * 10_000}, path)
     finally:
         resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))

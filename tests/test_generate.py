@@ -44,24 +44,8 @@ def chip_png(tmp_path_factory):
 
 def test_main_writes_one_png_and_npy_per_view_and_a_contact_sheet(pipeline_dir, chip_png, tmp_path):
     out = tmp_path / "views"
-    argv = [
-        "--pipeline",
-        str(pipeline_dir),
-        "--image",
-        str(chip_png),
-        "--d-az",
-        "30",
-        "60",
-        "90",
-        "--d-el",
-        "0",
-        "--output_dir",
-        str(out),
-        "--num-inference-steps",
-        "2",
-        "--seed",
-        "4",
-    ]
+    argv = ["--pipeline", str(pipeline_dir), "--image", str(chip_png), "--d-az", "30", "60", "90",
+            "--d-el", "0", "--output_dir", str(out), "--num-inference-steps", "2", "--seed", "4"]
     assert main(argv) == out
     arrays = sorted(out.glob("view_*.npy"))
     pngs = sorted(out.glob("view_*.png"))
@@ -85,14 +69,8 @@ def test_main_writes_one_png_and_npy_per_view_and_a_contact_sheet(pipeline_dir, 
     chip = load_input_chip(config, 32)
     pipe = SARZero123Pipeline.from_pretrained(pipeline_dir)
     pipe.set_progress_bar_config(disable=True)
-    expected = pipe(
-        torch.from_numpy(chip)[None, None],
-        d_az=60.0,
-        d_el=0.0,
-        num_inference_steps=2,
-        generator=torch.Generator().manual_seed(5),
-        output_type="np",
-    ).images[0, ..., 0]
+    expected = pipe(torch.from_numpy(chip)[None, None], d_az=60.0, d_el=0.0, num_inference_steps=2,
+                    generator=torch.Generator().manual_seed(5), output_type="np").images[0, ..., 0]
     np.testing.assert_allclose(np.load(arrays[1]), expected, atol=1e-5)
 
 
@@ -200,9 +178,8 @@ def _run(tmp_path, name, *argv):
     return out, {p.name: np.load(p) for p in sorted(out.glob("view_*.npy"))}
 
 
-def test_default_pipeline_is_the_bundled_prior_with_17_deg_and_a_note(
-    registry_dir, chip_png, tmp_path, monkeypatch, capsys
-):
+def test_default_pipeline_is_the_bundled_prior_with_17_deg_and_a_note(registry_dir, chip_png, tmp_path,
+                                                                      monkeypatch, capsys):
     assert GenerateConfig(image="chip.png").pipeline == SIM_PRIOR
     monkeypatch.setattr(pretrained, "PRETRAINED_DIR", registry_dir)
     _, default = _run(tmp_path, "default", "--image", str(chip_png), "--d-az", "30", "--d-el", "10")
@@ -258,9 +235,8 @@ def test_depression_recorded_in_the_chip_file_is_used(registry_dir, tmp_path, ca
                                   given["view_00_daz+030.00_del+00.00.npy"])  # fmt: skip
 
 
-def test_input_depression_is_ignored_with_a_note_by_a_pipeline_without_it(
-    pipeline_dir, chip_png, tmp_path, capsys
-):
+def test_input_depression_is_ignored_with_a_note_by_a_pipeline_without_it(pipeline_dir, chip_png, tmp_path,
+                                                                            capsys):
     argv = ["--pipeline", str(pipeline_dir), "--image", str(chip_png), "--d-az", "30"]
     _, plain = _run(tmp_path, "plain", *argv)
     assert capsys.readouterr().out == ""
@@ -302,7 +278,6 @@ def test_output_dir_refuses_other_settings_returns_with_resume_and_moves_aside_w
     with pytest.raises(ValueError, match=same):
         main(argv)
     assert _snapshot(out) == before
-
     # --resume: the finished folder as it is; the pipeline is not even loaded
     def no_work(*args, **kwargs):
         raise AssertionError("a finished folder continued with --resume must not be worked on")

@@ -244,10 +244,7 @@ def test_presets_are_the_table1_rows() -> None:
     }
     as_run = PRESETS["speckle+monotonic-as-run"]
     assert (as_run.speckle_sigma, as_run.speckle_mode, as_run.speckle_q, as_run.monotonic_q) == (
-        10.0,
-        "level",
-        4096,
-        4096,
+        10.0, "level", 4096, 4096
     )
     assert (as_run.codomain_p, as_run.monotonic_gamma, as_run.crop_scale) == (0.95, 0.0, None)
     chosen = PRESETS["speckle+monotonic"]
@@ -294,9 +291,8 @@ def test_augment_batch_composes_stages_in_order(mode: str) -> None:
 def test_codomain_p_leaves_a_fraction_of_chips_unaugmented() -> None:
     scaling = UnitDecibelScaling()
     magnitude = sar_like(1, 16).repeat(400, 1, 1, 1)
-    preset = AugmentationPreset(
-        speckle_sigma=10.0, speckle_mode="level", speckle_q=64, monotonic_q=64, codomain_p=0.75
-    )
+    preset = AugmentationPreset(speckle_sigma=10.0, speckle_mode="level", speckle_q=64, monotonic_q=64,
+                                codomain_p=0.75)
     out = augment_batch(magnitude, preset, scaling, generator=gen(5))
     # Same stream by hand: speckle, monotonic, then one uniform per chip decides.
     stream = gen(5)

@@ -119,7 +119,6 @@ def test_paper_ms_ssim_reproduces_authors_pipeline() -> None:
     tm = pytest.importorskip("torchmetrics.functional.image")
     x, y = _speckled_pair(batch=2, size=128)
     ours = paper_ms_ssim(x, y)
-
     # Reference: bilinear resize to 256, 8-bit truncation, centre 64 crop, torchmetrics on pixel / 255.
     def authors(images: torch.Tensor) -> torch.Tensor:
         up = torch.nn.functional.interpolate(
@@ -128,12 +127,7 @@ def test_paper_ms_ssim_reproduces_authors_pipeline() -> None:
         return (torch.floor(up.clamp(0, 1) * 255) / 255)[..., 96:160, 96:160].float()
 
     reference = tm.multiscale_structural_similarity_index_measure(
-        authors(x),
-        authors(y),
-        data_range=1.0,
-        kernel_size=7,
-        sigma=1.0,
-        betas=PAPER_MS_SSIM_BETAS,
+        authors(x), authors(y), data_range=1.0, kernel_size=7, sigma=1.0, betas=PAPER_MS_SSIM_BETAS,
         reduction="none",
     )
     torch.testing.assert_close(ours, reference.double(), atol=1e-5, rtol=0)

@@ -185,9 +185,7 @@ def test_image_embeddings_resize_like_zero123(components, input_size):
     reference = torch.from_numpy(resized).float()[None, None]
     torch.testing.assert_close(
         torch.nn.functional.interpolate(images, size=(size, size), mode="bicubic", align_corners=True),
-        reference,
-        atol=1e-5,
-        rtol=0,  # float32 resize against the float64 definition
+        reference, atol=1e-5, rtol=0,  # float32 resize against the float64 definition
     )
     mean = torch.tensor(CLIP_IMAGE_MEAN).view(1, 3, 1, 1)
     std = torch.tensor(CLIP_IMAGE_STD).view(1, 3, 1, 1)

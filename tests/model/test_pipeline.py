@@ -182,16 +182,8 @@ def test_ddim_guided_sampling_matches_the_original_zero123_equations(pipe):
     steps, scale = 5, 3.0
     images = dummy_images(batch_size=2)
     noise = torch.randn(2, 4, 16, 16, generator=torch.Generator().manual_seed(9))
-    output = run(
-        pipe,
-        images,
-        d_az=[30.0, 120.0],
-        d_el=[0.0, 4.0],
-        latents=noise,
-        generator=None,
-        num_inference_steps=steps,
-        guidance_scale=scale,
-    )
+    output = run(pipe, images, d_az=[30.0, 120.0], d_el=[0.0, 4.0], latents=noise, generator=None,
+                 num_inference_steps=steps, guidance_scale=scale)
     pose = torch.tensor([[[0.0, 0.5, 3**0.5 / 2, 0.0]], [[4 * torch.pi / 180, 3**0.5 / 2, -0.5, 0.0]]])
     expected = _naive_guided_ddim(pipe, noise, images, pose, steps, steps - 1, scale)  # 801, 601, ..., 1
     torch.testing.assert_close(output, expected, atol=1e-5, rtol=0)

@@ -129,13 +129,8 @@ def clip_to_openai(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tenso
         "ln_post.bias": state_dict["vision_model.post_layernorm.bias"],
         "proj": state_dict["visual_projection.weight"].t(),
     }
-    names = {
-        "self_attn.out_proj": "attn.out_proj",
-        "layer_norm1": "ln_1",
-        "layer_norm2": "ln_2",
-        "mlp.fc1": "mlp.c_fc",
-        "mlp.fc2": "mlp.c_proj",
-    }
+    names = {"self_attn.out_proj": "attn.out_proj", "layer_norm1": "ln_1", "layer_norm2": "ln_2",
+             "mlp.fc1": "mlp.c_fc", "mlp.fc2": "mlp.c_proj"}
     layers = {int(k.split(".")[3]) for k in state_dict if k.startswith("vision_model.encoder.layers.")}
     for layer in layers:
         hf, openai = f"vision_model.encoder.layers.{layer}.", f"transformer.resblocks.{layer}."
@@ -171,14 +166,8 @@ def sample(pipe: SARZero123Pipeline) -> torch.Tensor:
     pipe.set_progress_bar_config(disable=True)
     generator = torch.Generator().manual_seed(0)
     images = dummy_images(batch_size=2)
-    return pipe(
-        images,
-        d_az=[30.0, 200.0],
-        d_el=[0.0, 5.0],
-        num_inference_steps=2,
-        generator=generator,
-        output_type="pt",
-    ).images
+    return pipe(images, d_az=[30.0, 200.0], d_el=[0.0, 5.0], num_inference_steps=2, generator=generator,
+                output_type="pt").images
 
 
 @pytest.fixture(scope="module")
@@ -203,10 +192,8 @@ def _write_diffusers_folder(pipe: SARZero123Pipeline, root, projection_folder: s
         pipeline_class = "Zero1to3StableDiffusionPipeline"
     else:  # threestudio: sizes in the config, safetensors weights named proj.*
         config = {"_class_name": "CLIPCameraProjection", "embedding_dim": 16, "additional_embeddings": 4}
-        save_file(
-            {"proj.weight": weight.contiguous(), "proj.bias": bias.contiguous()},
-            folder / "diffusion_pytorch_model.safetensors",
-        )
+        save_file({"proj.weight": weight.contiguous(), "proj.bias": bias.contiguous()},
+                  folder / "diffusion_pytorch_model.safetensors")
         pipeline_class = "Zero123Pipeline"
     (folder / "config.json").write_text(json.dumps(config))
     model_index = {
@@ -312,9 +299,8 @@ def test_ldm_checkpoint_loads_ema_weights(source, perturbed, reference, encoder_
 def test_ldm_checkpoint_non_ema_weights(source, perturbed, reference, encoder_dir, tmp_path):
     path = tmp_path / "model.ckpt"
     torch.save({"state_dict": _ldm_state_dict(perturbed, ema_pipe=source)}, path)
-    loaded = load_zero123(
-        path, use_ema=False, image_encoder_path=encoder_dir, unet_config=TINY_UNET, vae_config=TINY_VAE
-    )
+    loaded = load_zero123(path, use_ema=False, image_encoder_path=encoder_dir, unet_config=TINY_UNET,
+                          vae_config=TINY_VAE)
     assert torch.equal(sample(loaded), sample(perturbed))
     torch.save(_ldm_state_dict(source), path)  # a bare state dict without model_ema.*
     loaded = load_zero123(path, image_encoder_path=encoder_dir, unet_config=TINY_UNET, vae_config=TINY_VAE)
@@ -324,9 +310,8 @@ def test_ldm_checkpoint_non_ema_weights(source, perturbed, reference, encoder_di
 def test_ldm_checkpoint_with_its_own_openai_clip_tower(source, reference, tmp_path):
     path = tmp_path / "105000.ckpt"
     torch.save({"state_dict": _ldm_state_dict(source)}, path)
-    loaded = load_zero123(
-        path, unet_config=TINY_UNET, vae_config=TINY_VAE, image_encoder_config={"num_attention_heads": 4}
-    )
+    loaded = load_zero123(path, unet_config=TINY_UNET, vae_config=TINY_VAE,
+                          image_encoder_config={"num_attention_heads": 4})
     assert loaded.image_encoder.config.image_size == 32 and loaded.image_encoder.config.projection_dim == 16
     assert torch.equal(sample(loaded), reference)
 
@@ -354,10 +339,8 @@ def test_missing_component_folder(source, tmp_path):
 
 def test_projection_with_wrong_shape_is_rejected(source, tmp_path):
     _write_diffusers_folder(source, tmp_path, "clip_camera_projection")
-    save_file(
-        {"proj.weight": torch.zeros(16, 24), "proj.bias": torch.zeros(16)},
-        str(tmp_path / "clip_camera_projection" / "diffusion_pytorch_model.safetensors"),
-    )
+    save_file({"proj.weight": torch.zeros(16, 24), "proj.bias": torch.zeros(16)},
+              str(tmp_path / "clip_camera_projection" / "diffusion_pytorch_model.safetensors"))
     with pytest.raises(ValueError, match="embedding_dim=16"):
         load_zero123(tmp_path)
 

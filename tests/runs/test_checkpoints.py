@@ -316,11 +316,9 @@ def test_a_checkpoint_that_cannot_be_written_is_removed_and_named_keeping_the_ea
         raise OSError(errno.ENOSPC, "No space left on device")
 
     monkeypatch.setattr(accelerator, "save_state", full_disk)
-    named = (
-        r"^\[Errno 28\] could not write '.*checkpoint-2.tmp': No space left on device; the partial "
-        r"checkpoint was removed and checkpoint-1 kept; free space and resume with "
-        r"--resume_from_checkpoint latest$"
-    )
+    named = (r"^\[Errno 28\] could not write '.*checkpoint-2.tmp': No space left on device; the partial "
+             r"checkpoint was removed and checkpoint-1 kept; free space and resume with "
+             r"--resume_from_checkpoint latest$")
     with pytest.raises(OSError, match=named) as caught:
         save_checkpoint(accelerator, tmp_path, 2)
     assert caught.value.errno == errno.ENOSPC

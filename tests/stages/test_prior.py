@@ -304,10 +304,8 @@ def test_a_batch_the_corpus_pairs_cannot_fill_is_refused_before_the_vae_keeping_
     )  # fmt: skip
     from sar_zero123.stages.prior import check_corpus_pairs, run_prior
 
-    refused = (
-        r"train_batch_size: the corpus .*corpus' gives (\d+) training pairs .*fewer than a global "
-        r"batch of 16; use train_batch_size <= \1 .*The corpus is kept: pass --corpus "
-    )
+    refused = (r"train_batch_size: the corpus .*corpus' gives (\d+) training pairs .*fewer than a global "
+               r"batch of 16; use train_batch_size <= \1 .*The corpus is kept: pass --corpus ")
     with pytest.raises(ValueError, match=refused):
         run_prior(config)
     out = tmp_path / "prior"

@@ -91,12 +91,8 @@ def test_table1_trains_probes_and_writes_tables_and_tsne(tmp_path):
 def test_table1_reports_both_speckle_presets_beside_the_paper_row():
     script = table1
     assert {"speckle+monotonic", "speckle+monotonic-as-run"} <= set(script.Table1Config().presets)
-    row = {
-        "linear_accuracy": 90.0,
-        "mlp_azimuth_error_deg": 12.5,
-        "knn_accuracy": 95.0,
-        "knn_azimuth_error_deg": 4.0,
-    }
+    row = {"linear_accuracy": 90.0, "mlp_azimuth_error_deg": 12.5, "knn_accuracy": 95.0,
+           "knn_azimuth_error_deg": 4.0}
     rows = {"speckle+monotonic": row, "speckle+monotonic-as-run": {**row, "knn_accuracy": 96.0}}
     markdown = script.format_markdown(rows, script.Table1Config())
     assert "| speckle+monotonic | 90.0 | 12.5 | 95.0 | 4.0 | 98.7 / 9.8 | 99.7 / 3.1 |" in markdown

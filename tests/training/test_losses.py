@@ -35,9 +35,8 @@ SCHEDULES = {
     "scaled_linear": dict(beta_schedule="scaled_linear", beta_start=0.00085, beta_end=0.012),
     "linear": dict(beta_schedule="linear"),
     "squaredcos_cap_v2": dict(beta_schedule="squaredcos_cap_v2"),
-    "zero_snr": dict(
-        beta_schedule="scaled_linear", beta_start=0.00085, beta_end=0.012, rescale_betas_zero_snr=True
-    ),
+    "zero_snr": dict(beta_schedule="scaled_linear", beta_start=0.00085, beta_end=0.012,
+                     rescale_betas_zero_snr=True),
 }
 HARD_TIMESTEPS = torch.tensor([0, 1, 500, 999])
 
@@ -63,16 +62,9 @@ def frozen(module: nn.Module) -> nn.Module:
 @pytest.fixture(scope="module")
 def vae() -> AutoencoderKL:
     torch.manual_seed(0)
-    model = AutoencoderKL(
-        in_channels=1,
-        out_channels=1,
-        down_block_types=("DownEncoderBlock2D",) * 2,
-        up_block_types=("UpDecoderBlock2D",) * 2,
-        block_out_channels=(8, 8),
-        latent_channels=4,
-        norm_num_groups=4,
-        sample_size=16,
-    )
+    model = AutoencoderKL(in_channels=1, out_channels=1, down_block_types=("DownEncoderBlock2D",) * 2,
+                          up_block_types=("UpDecoderBlock2D",) * 2, block_out_channels=(8, 8),
+                          latent_channels=4, norm_num_groups=4, sample_size=16)
     return frozen(model)
 
 
@@ -177,10 +169,10 @@ def reference_pfm(x0_hat, target_images, vae, encoder) -> torch.Tensor:
     """Naive Eq. (20): decode, to [0, 1], resize, encode, squared L2 (one sample at a time)."""
     values = []
     for i in range(x0_hat.shape[0]):
-        decoded = vae.decode(x0_hat[i : i + 1] / vae.config.scaling_factor).sample
+        decoded = vae.decode(x0_hat[i:i + 1] / vae.config.scaling_factor).sample
         size = encoder.config.image_size
         a = F.interpolate((decoded + 1) / 2, size=(size, size), mode="bilinear", antialias=True)
-        b = F.interpolate(target_images[i : i + 1], size=(size, size), mode="bilinear", antialias=True)
+        b = F.interpolate(target_images[i:i + 1], size=(size, size), mode="bilinear", antialias=True)
         values.append(((encoder(a) - encoder(b)) ** 2).sum())
     return torch.stack(values)
 
@@ -274,16 +266,8 @@ def test_total_loss_fraction_and_mask(vae, encoder) -> None:
     x0 = estimate_x0(x_t[:3], output[:3], timesteps[:3], scheduler)
     torch.testing.assert_close(full.pfm[:3], pfm_loss(x0, images[:3], vae, encoder))
     torch.testing.assert_close(full.loss, 4.0 * full.pfm)
-    half = total_loss(
-        output,
-        output,
-        x_t,
-        timesteps,
-        scheduler,
-        pfm_fraction=0.5,
-        generator=torch.Generator().manual_seed(0),
-        **kwargs,
-    )
+    half = total_loss(output, output, x_t, timesteps, scheduler, pfm_fraction=0.5,
+                      generator=torch.Generator().manual_seed(0), **kwargs)
     assert int(half.pfm_mask.sum()) == 2  # ceil(0.5 * 3 eligible)
     picked = half.pfm_mask.nonzero().flatten()
     torch.testing.assert_close(half.pfm[picked], full.pfm[picked] * 1.5)  # unbiased: 3 eligible / 2 kept
@@ -392,9 +376,8 @@ def test_pfm_loss_with_sar_encoder(vae) -> None:
     from sar_zero123.encoder import SAREncoder, SAREncoderConfig
 
     torch.manual_seed(0)
-    sar_encoder = frozen(
-        SAREncoder(SAREncoderConfig(image_size=16, depths=(1,), hidden_sizes=(8,), embedding_size=8))
-    )
+    sar_encoder = frozen(SAREncoder(SAREncoderConfig(image_size=16, depths=(1,), hidden_sizes=(8,),
+                                                     embedding_size=8)))
     x0_hat = torch.randn(2, 4, 16, 16, requires_grad=True)
     target = torch.rand(2, 1, 32, 32)
     loss = pfm_loss(x0_hat, target, vae, sar_encoder, crop_size=16)
@@ -434,9 +417,9 @@ def test_projected_pfm_equals_authors_mse_of_fc_outputs(vae, encoder, tmp_path) 
     reference = []
     for i in range(3):
         with torch.no_grad():
-            decoded = vae.decode(x0_hat[i : i + 1] / vae.config.scaling_factor).sample
+            decoded = vae.decode(x0_hat[i:i + 1] / vae.config.scaling_factor).sample
         a = F.interpolate((decoded + 1) / 2, size=(size, size), mode="bilinear", antialias=True)
-        b = F.interpolate(target[i : i + 1], size=(size, size), mode="bilinear", antialias=True)
+        b = F.interpolate(target[i:i + 1], size=(size, size), mode="bilinear", antialias=True)
         reference.append(F.mse_loss(fc(encoder(a)), fc(encoder(b))))
     torch.testing.assert_close(loss, torch.stack(reference).detach(), atol=1e-7, rtol=1e-5)
     loss.sum().backward()
@@ -532,38 +515,17 @@ def test_pfm_of_a_perfect_prediction_is_the_vae_round_trip_distance(vae, encoder
     timesteps = torch.tensor([1, 500, 999])
     x_t = scheduler.add_noise(latents, noise, timesteps)
     perfect = denoising_target(latents, noise, timesteps, scheduler)
-    out = total_loss(
-        perfect,
-        perfect,
-        x_t,
-        timesteps,
-        scheduler,
-        pfm_weight=1.0,
-        target_images=target_images,
-        vae=vae,
-        encoder=encoder,
-        pfm_min_snr=0.0,
-    )
+    out = total_loss(perfect, perfect, x_t, timesteps, scheduler, pfm_weight=1.0, target_images=target_images,
+                     vae=vae, encoder=encoder, pfm_min_snr=0.0)
     with torch.no_grad():
         decoded = (vae.decode(latents / vae.config.scaling_factor).sample + 1) / 2
-        expected = encoder(F.interpolate(decoded, size=16, mode="bilinear", antialias=True)) - encoder(
-            F.interpolate(target_images, size=16, mode="bilinear", antialias=True)
-        )
+        expected = (encoder(F.interpolate(decoded, size=16, mode="bilinear", antialias=True))
+                    - encoder(F.interpolate(target_images, size=16, mode="bilinear", antialias=True)))
     assert out.denoising.abs().max() == 0
     torch.testing.assert_close(out.pfm, expected.pow(2).sum(1), atol=2e-5, rtol=2e-3)
     # and the target of PFM is the target view: matching the decoded latent itself gives zero
-    matched = total_loss(
-        perfect,
-        perfect,
-        x_t,
-        timesteps,
-        scheduler,
-        pfm_weight=1.0,
-        target_images=decoded,
-        vae=vae,
-        encoder=encoder,
-        pfm_min_snr=0.0,
-    )
+    matched = total_loss(perfect, perfect, x_t, timesteps, scheduler, pfm_weight=1.0, target_images=decoded,
+                         vae=vae, encoder=encoder, pfm_min_snr=0.0)
     torch.testing.assert_close(matched.pfm, torch.zeros(3), atol=2e-5, rtol=0)
 
 
