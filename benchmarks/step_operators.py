@@ -16,6 +16,7 @@ fine-tune's optimiser (:func:`~sar_zero123.training.finetuning.finetuning_optimi
 from __future__ import annotations
 
 import argparse
+import itertools
 import time
 from collections.abc import Sequence
 from typing import Any
@@ -78,7 +79,7 @@ def training_step(args: argparse.Namespace) -> tuple[Any, Any, torch.optim.Optim
               "noise_scheduler": DDPMScheduler.from_config(pipe.scheduler.config),
               "loss_settings": LossSettings(pfm_weight=0.0),  # a prior's loss: lambda = 0
               "azimuth_estimator": pipe.azimuth_estimator}  # fmt: skip
-    step_index = iter(range(10**9))
+    step_index = itertools.count()
 
     def forward_backward() -> None:
         with torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.bf16):

@@ -188,16 +188,7 @@ class ViewPairDataset(Dataset):
 
     def pair_fields(self, index: int) -> dict[str, Any]:
         """Everything of item ``index`` except the images: the relative pose, the label and both poses."""
-        source, target = (self.records[i] for i in self.pairs[index])
-        return {
-            "d_az_deg": wrap_azimuth_deg(target.azimuth_deg - source.azimuth_deg),
-            "d_el_deg": float(target.depression_deg - source.depression_deg),
-            "label": self._label[source.target_class],
-            "input_azimuth_deg": float(source.azimuth_deg),
-            "target_azimuth_deg": float(target.azimuth_deg),
-            "input_depression_deg": float(source.depression_deg),
-            "target_depression_deg": float(target.depression_deg),
-        }
+        return {name: value.item() for name, value in self.pair_fields_batch([index]).items()}
 
     @functools.cached_property
     def _record_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

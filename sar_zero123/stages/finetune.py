@@ -174,6 +174,8 @@ class FinetuneConfig(LossSettings):
         super().__post_init__()  # the loss fields, validated where they are declared
         if self.pfm_weight > 0 and self.encoder is None:
             raise ValueError("encoder: a frozen SAREncoder folder is required when pfm_weight > 0")
+        if self.cache_on_device and not self.cache_latents:
+            raise ValueError("cache_on_device: keeps the cached encodings on the device; needs cache_latents")
         check_protocol(self.protocol)
         check_minimum(self, "learning_rate", "pose_lr_multiplier", "max_grad_norm", minimum=0, strict=True)
         check_minimum(self, "lr_warmup_steps", "validation_steps", "num_workers", minimum=0)

@@ -419,6 +419,10 @@ def test_a_cache_on_the_training_device_trains_the_same_weights(script, assets, 
         GradientState._reset_state()
     host, device = (SARZero123Pipeline.from_pretrained(out / "pipeline").unet.state_dict() for out in runs)
     assert all(torch.equal(host[k], device[k]) for k in host)
+    from sar_zero123.stages.finetune import FinetuneConfig
+
+    with pytest.raises(ValueError, match="cache_on_device: .* needs cache_latents"):
+        FinetuneConfig(pfm_weight=0.0, cache_on_device=True, cache_latents=False)
 
 
 def test_train_image_encoder_resume_restores_the_tower_bitwise(script, assets, tower_run, tmp_path) -> None:
