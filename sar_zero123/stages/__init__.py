@@ -25,6 +25,8 @@ _EXPORTS = {
     "run_evaluators": "evaluators",
     "EvaluateConfig": "evaluate",
     "run_evaluate": "evaluate",
+    "CorpusConfig": "corpus",
+    "run_corpus": "corpus",
     "SimulateConfig": "simulate",
     "run_simulate": "simulate",
     "Table1Config": "table1",

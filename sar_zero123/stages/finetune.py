@@ -197,12 +197,6 @@ class FinetuneConfig(LossSettings):
             raise ValueError(f"rehearsal_fraction must lie in [0, 1), got {self.rehearsal_fraction}")
         if self.rehearsal_max_chips is not None and self.rehearsal_max_chips < 2:
             raise ValueError(f"rehearsal_max_chips must be None or >= 2, got {self.rehearsal_max_chips}")
-        rehearsal = self.rehearsal_data
-        if rehearsal is not None and not (Path(rehearsal) / CORPUS_OPTIONS_FILE).is_file():
-            raise FileNotFoundError(
-                f"rehearsal_data: expected a prior corpus folder (with {CORPUS_OPTIONS_FILE}, written by "
-                f"write_prior_corpus), got {self.rehearsal_data}"
-            )
         if self.spatial_pose not in SPATIAL_POSE_MODES:
             raise ValueError(f"spatial_pose must be one of {SPATIAL_POSE_MODES}, got {self.spatial_pose!r}")
         if self.spatial_pose is not None and self.pretrained is not None:
@@ -256,11 +250,18 @@ def run_finetune(config: FinetuneConfig) -> Path:
         ValueError: Before any work, for a folder holding another run, a finished or unfinished run of these
             settings without ``resume_from_checkpoint`` or ``restart``, a checkpoint written with other
             settings, or a data split smaller than one optimisation step.
-        FileNotFoundError: For a missing model, encoder, VAE or data folder.
+        FileNotFoundError: For a missing model, encoder, VAE, data or rehearsal corpus folder.
         FloatingPointError: If training diverges (nothing non-finite is saved or exported).
     """
     timer = StageTimer()
     output_dir = Path(config.output_dir)
+    # checked here, not in the config: a quickstart plans its fine-tunes before its corpus stage writes it
+    rehearsal = config.rehearsal_data
+    if rehearsal is not None and not (Path(rehearsal) / CORPUS_OPTIONS_FILE).is_file():
+        raise FileNotFoundError(
+            f"rehearsal_data: expected a prior corpus folder (with {CORPUS_OPTIONS_FILE}, written by "
+            f"write_prior_corpus), got {config.rehearsal_data}"
+        )
     # 1. the checkpoint to continue from, compared with this run (reads only), then the run-folder rule
     resume_path = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
     # the checkpoint's module list must match this run's

@@ -26,6 +26,7 @@ from sar_zero123.runs.folder import (
     run_differences,
 )
 from sar_zero123.runs.stage import open_stage_folder
+from sar_zero123.stages.corpus import CorpusConfig, run_corpus
 from sar_zero123.stages.evaluate import EVALUATE_MAY_DIFFER, EvaluateConfig, run_evaluate
 from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, run_evaluators
 from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
@@ -72,7 +73,7 @@ def _protocol(config: QuickstartConfig, preset: Preset) -> str:
 
 
 def _training_stages(config: QuickstartConfig, preset: Preset, out: Path) -> list[StagePlan]:
-    """SimCLR, the VAE and base model when there is no prior, and one fine-tune per lambda."""
+    """SimCLR; the VAE and base model without a prior; the rehearsal corpus; one fine-tune per lambda."""
     data = str(out / "data" if config.data is None else Path(config.data))
     protocol = _protocol(config, preset)
     common = {"data": data, "seed": config.seed, "image_size": preset.image_size, "protocol": protocol,
@@ -107,6 +108,14 @@ def _training_stages(config: QuickstartConfig, preset: Preset, out: Path) -> lis
             learning_rate=1e-4, num_eval_images=16,
         ), run_vae))  # fmt: skip
 
+    rehearsal_dir = out / "rehearsal"
+    if preset.rehearsal_vehicles:
+        plans.append(StagePlan("rehearsal corpus", _build(
+            "rehearsal corpus", CorpusConfig, output_dir=str(rehearsal_dir),
+            num_vehicles=preset.rehearsal_vehicles, num_validation_vehicles=1, image_size=preset.image_size,
+            seed=config.seed,
+        ), run_corpus))  # fmt: skip
+
     def finetune(name: str, run_dir: Path, steps: int, weight: float, pretrained: str | None) -> StagePlan:
         values: dict[str, Any] = {
             **common, "output_dir": str(run_dir), "pfm_weight": weight, "pfm_fraction": preset.pfm_fraction,
@@ -121,6 +130,9 @@ def _training_stages(config: QuickstartConfig, preset: Preset, out: Path) -> lis
         }  # fmt: skip
         if preset.ema_decay is not None:
             values["ema_decay"] = preset.ema_decay
+        if preset.rehearsal_vehicles and pretrained is not None:  # the whole rendered corpus, no subsample
+            values.update(rehearsal_data=str(rehearsal_dir / "corpus"), rehearsal_max_chips=None,
+                          rehearsal_fraction=preset.rehearsal_fraction)  # fmt: skip
         if preset.prior is None or preset.vae_decoder_steps:
             values["vae"] = str(vae_dir)
         if pretrained is None:

@@ -70,6 +70,53 @@ def test_a_prior_with_a_decoder_fine_tune_plans_the_decoder_before_the_fine_tune
     assert not out.exists()
 
 
+def test_rehearsal_vehicles_plan_a_corpus_stage_that_every_fine_tune_rehearses(tmp_path: Path) -> None:
+    """rehearsal_vehicles > 0 (with a prior) renders a corpus before the fine-tunes, each of which mixes
+    its whole training split into rehearsal_fraction of every batch; the corpus stage runs resumably."""
+    out = tmp_path / "run"
+    override = ["prior=sar-zero123/sim-prior", "image_size=64", "rehearsal_vehicles=3",
+                "rehearsal_fraction=0.5"]  # fmt: skip
+    plans = quickstart.plan_stages(
+        quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=override)
+    )
+    names = [plan.name for plan in plans]
+    assert names[names.index("simclr") + 1 : names.index("evaluators")] == [
+        "rehearsal corpus", "finetune lambda=0", "finetune lambda=4"]  # fmt: skip
+    by_name = {plan.name: plan.config for plan in plans}
+    corpus = by_name["rehearsal corpus"]
+    assert (corpus.num_vehicles, corpus.num_validation_vehicles, corpus.image_size) == (3, 1, 64)
+    for name in ("finetune lambda=0", "finetune lambda=4"):
+        finetune = by_name[name]
+        assert finetune.rehearsal_data == str(out / "rehearsal" / "corpus")
+        assert (finetune.rehearsal_fraction, finetune.rehearsal_max_chips) == (0.5, None)
+    assert not out.exists()  # planned before the corpus exists: the fine-tune checks it when it runs
+    refusals = (("rehearsal_vehicles=1", r"rehearsal_vehicles must be 0 \(no rehearsal\) or an"),
+                ("rehearsal_fraction=1.0", r"rehearsal_fraction must lie in \(0, 1\), got 1.0"))  # fmt: skip
+    for item, words in refusals:
+        with pytest.raises(ValueError, match=words):
+            prior = ["prior=sar-zero123/sim-prior", "image_size=64"]
+            quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=[*prior, item])
+    with pytest.raises(ValueError, match="rehearsal_vehicles: rehearses a prior's corpus"):
+        quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=["rehearsal_vehicles=3"])
+    # the stage: the corpus lands in output_dir/corpus; the same command again finds it finished
+    from sar_zero123.data import load_index
+    from sar_zero123.stages import CorpusConfig, run_corpus
+
+    small = CorpusConfig(output_dir=str(tmp_path / "corpus"), num_vehicles=3, views_per_vehicle=2,
+                         num_validation_vehicles=1, image_size=16, num_workers=1)  # fmt: skip
+    folder = run_corpus(small)
+    assert folder == tmp_path / "corpus" / "corpus"
+    records = load_index(folder)
+    assert len(records) == 6 and sorted({r.target_class for r in records}) == ["PROCEDURAL", "PROCVAL"]
+    before = {p: p.stat().st_mtime_ns for p in (tmp_path / "corpus").rglob("*") if p.is_file()}
+    assert run_corpus(small) == folder
+    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "corpus").rglob("*") if p.is_file()} == before
+    with pytest.raises(ValueError, match="views_per_vehicle: folder 2, this run 3"):
+        run_corpus(dataclasses.replace(small, views_per_vehicle=3))
+    with pytest.raises(ValueError, match="num_validation_vehicles must be below num_vehicles"):
+        CorpusConfig(num_vehicles=3, num_validation_vehicles=3)
+
+
 def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     out = tmp_path / "quickstart"
     with warnings.catch_warnings():

@@ -1,0 +1,164 @@
+"""A fine-tuned pipeline's weights interpolated with those of the pipeline it started from (WiSE-FT).
+
+Example::
+
+    python -m sar_zero123.interpolate --start sar-zero123/sim-prior-rotated \\
+        --finetuned runs/mstar/finetune_lambda0/pipeline --alpha 0.5 --output_dir runs/mstar/wise0.5
+
+writes a pipeline folder whose trained weights are ``(1 - alpha) * start + alpha * finetuned``, tensor by
+tensor, and whose every other file (configs, scheduler, scaling) is the fine-tuned pipeline's. ``alpha = 1``
+is the fine-tune, ``alpha = 0`` the start's weights. Wortsman et al. ("Robust fine-tuning of zero-shot
+models", CVPR 2022) interpolate a fine-tuned model with the pretrained one it started from and keep most
+of the fine-tune's accuracy on its own data with much of the pretrained model's accuracy under
+distribution shift. Here the start is the multi-view prior, which turns vehicles it has never seen, and
+the fine-tune knows the task's vehicles; where the two meet is measured in docs/results/mstar_prior.md.
+
+The two pipelines must have one architecture: every component folder with weights in the fine-tune is
+also in the start, with the same config (``_``-prefixed bookkeeping keys aside), tensor names, shapes
+and dtypes; anything else is refused by name before anything is written. Integer tensors (counters,
+recorded ranges) are taken from the fine-tune. The output folder is written under a temporary name and
+renamed into place: an interrupted call leaves no half-mixed pipeline.
+
+Hand-written because no library mixes two diffusers pipeline folders file by file; the tensors are read
+and written with ``safetensors``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import tempfile
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import torch
+from safetensors.torch import load_file, save_file
+
+from sar_zero123.config import parse_config, save_config
+from sar_zero123.pretrained import resolve_pretrained
+
+__all__ = ["InterpolateConfig", "interpolate_pipelines", "interpolate_state", "main"]
+
+_WEIGHTS_SUFFIX = ".safetensors"
+
+
+@dataclass
+class InterpolateConfig:
+    """Mix a fine-tuned pipeline with the pipeline it was fine-tuned from."""
+
+    start: str = ""  # the pipeline the fine-tune started from (a folder or a bundled name)
+    finetuned: str = ""  # the fine-tuned pipeline folder (its model_index.json beside its components)
+    alpha: float = 0.5  # weight of the fine-tune: 1 is the fine-tune, 0 the start's weights
+    output_dir: str = ""  # the new pipeline folder (must not exist)
+
+    def __post_init__(self) -> None:
+        for name in ("start", "finetuned", "output_dir"):
+            if not getattr(self, name):
+                raise ValueError(f"{name}: expected a path, got an empty value")
+        if not 0.0 <= self.alpha <= 1.0:
+            raise ValueError(f"alpha must lie in [0, 1] (1: the fine-tune), got {self.alpha}")
+
+
+def interpolate_state(
+    start: dict[str, torch.Tensor], finetuned: dict[str, torch.Tensor], alpha: float, name: str = "weights"
+) -> dict[str, torch.Tensor]:
+    """``(1 - alpha) * start + alpha * finetuned`` for every floating tensor (computed in float32, stored in
+    the fine-tune's dtype); other tensors are the fine-tune's.
+
+    Raises:
+        ValueError: Naming ``name`` and the first tensor the two lack in common or differ in shape or dtype.
+    """
+    missing = sorted(set(start) ^ set(finetuned))
+    if missing:
+        raise ValueError(f"{name}: the two pipelines do not hold the same tensors (e.g. {missing[0]!r})")
+    mixed = {}
+    for key, tuned in finetuned.items():
+        base = start[key]
+        if base.shape != tuned.shape or base.dtype != tuned.dtype:
+            raise ValueError(
+                f"{name}: tensor {key!r} is {tuple(base.shape)} {base.dtype} in the start and "
+                f"{tuple(tuned.shape)} {tuned.dtype} in the fine-tune"
+            )
+        if tuned.is_floating_point():
+            value = torch.lerp(base.float(), tuned.float(), float(alpha)).to(tuned.dtype)
+        else:
+            value = tuned.clone()
+        mixed[key] = value.contiguous()
+    return mixed
+
+
+def _architecture(config_file: Path) -> dict:
+    """A component's config without the bookkeeping keys diffusers and transformers add (``_name_or_path``,
+    ``_diffusers_version``...)."""
+    return {k: v for k, v in json.loads(config_file.read_text()).items() if not k.startswith("_")}
+
+
+def interpolate_pipelines(
+    start: str | os.PathLike, finetuned: str | os.PathLike, alpha: float, output_dir: str | os.PathLike
+) -> Path:
+    """Write the pipeline ``(1 - alpha) * start + alpha * finetuned`` into ``output_dir``; returns it.
+
+    Raises:
+        FileNotFoundError: If either pipeline folder lacks ``model_index.json``.
+        ValueError: For an ``alpha`` outside [0, 1], an existing ``output_dir``, or two pipelines of different
+            architectures (naming the component and what differs).
+    """
+    start_dir, tuned_dir, out = resolve_pretrained(start), Path(finetuned), Path(output_dir)
+    for field_name, folder in (("start", start_dir), ("finetuned", tuned_dir)):
+        if not (folder / "model_index.json").is_file():
+            raise FileNotFoundError(
+                f"{field_name}: expected a pipeline folder with model_index.json, got {folder}"
+            )
+    if not 0.0 <= alpha <= 1.0:
+        raise ValueError(f"alpha must lie in [0, 1] (1: the fine-tune), got {alpha}")
+    if out.exists():
+        raise ValueError(f"output_dir: {str(out)!r} exists; give a new folder")
+    # 1. every weight file of the fine-tune, checked against the start before anything is written
+    plan: list[tuple[Path, Path]] = []
+    for weights in sorted(tuned_dir.rglob(f"*{_WEIGHTS_SUFFIX}")):
+        relative = weights.relative_to(tuned_dir)
+        component = relative.parts[0] if len(relative.parts) > 1 else "the pipeline folder"
+        other = start_dir / relative
+        if not other.is_file():
+            raise ValueError(
+                f"{component}: the start has no {relative} (not the pipeline the fine-tune began from?)"
+            )
+        configs = [folder / relative.parent / "config.json" for folder in (start_dir, tuned_dir)]
+        if all(c.is_file() for c in configs) and _architecture(configs[0]) != _architecture(configs[1]):
+            changed = sorted(
+                k for k in _architecture(configs[0]).keys() | _architecture(configs[1]).keys()
+                if _architecture(configs[0]).get(k) != _architecture(configs[1]).get(k)
+            )  # fmt: skip
+            raise ValueError(f"{component}: the two pipelines' configs differ in {changed}")
+        plan.append((relative, other))
+    if not plan:
+        raise ValueError(f"finetuned: {tuned_dir} holds no {_WEIGHTS_SUFFIX} weights")
+    # 2. the fine-tune's folder copied under a temporary name, its weights replaced, then renamed into place
+    out.parent.mkdir(parents=True, exist_ok=True)
+    scratch = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    try:
+        staged = scratch / "pipeline"
+        shutil.copytree(tuned_dir, staged)
+        for relative, other in plan:
+            component = relative.parts[0] if len(relative.parts) > 1 else "the pipeline folder"
+            mixed = interpolate_state(load_file(other), load_file(tuned_dir / relative), alpha, component)
+            save_file(mixed, staged / relative, metadata={"format": "pt"})
+        os.replace(staged, out)
+    finally:
+        shutil.rmtree(scratch, ignore_errors=True)
+    return out
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    """``python -m sar_zero123.interpolate``: the flags are :class:`InterpolateConfig`'s fields."""
+    config = parse_config(InterpolateConfig, argv, prog="python -m sar_zero123.interpolate")
+    out = interpolate_pipelines(config.start, config.finetuned, config.alpha, config.output_dir)
+    save_config(config, out, name="interpolate_config.json")
+    print(f"{out}: alpha = {config.alpha:g} of {config.finetuned}, {1 - config.alpha:g} of {config.start}")
+    return out
+
+
+if __name__ == "__main__":
+    main()

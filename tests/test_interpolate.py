@@ -1,0 +1,77 @@
+"""Weight interpolation of a fine-tuned pipeline with its start (WiSE-FT): closed forms and refusals."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+import torch
+from safetensors.torch import load_file, save_file
+
+from sar_zero123.interpolate import interpolate_pipelines, interpolate_state, main
+
+
+def _pipeline(folder: Path, unet: dict[str, torch.Tensor], width: int = 4) -> Path:
+    """A pipeline folder as interpolate_pipelines reads it: model_index.json, configs and weights."""
+    (folder / "unet").mkdir(parents=True)
+    (folder / "scheduler").mkdir()
+    (folder / "model_index.json").write_text(json.dumps({"_class_name": "SARZero123Pipeline"}))
+    (folder / "unet" / "config.json").write_text(json.dumps({"width": width, "_name_or_path": str(folder)}))
+    (folder / "scheduler" / "scheduler_config.json").write_text(json.dumps({"source": folder.name}))
+    save_file(unet, folder / "unet" / "diffusion_pytorch_model.safetensors")
+    return folder
+
+
+def test_interpolated_weights_are_the_convex_mix_and_the_rest_is_the_fine_tune(tmp_path: Path) -> None:
+    half = torch.float16
+    start_weights = {"w": torch.zeros(2, 3), "h": torch.full((2,), 2.0, dtype=half), "n": torch.tensor([1])}
+    tuned_weights = {"w": torch.ones(2, 3), "h": torch.full((2,), 4.0, dtype=half), "n": torch.tensor([7])}
+    start = _pipeline(tmp_path / "start", start_weights)
+    tuned = _pipeline(tmp_path / "tuned", tuned_weights)
+    out = interpolate_pipelines(start, tuned, 0.25, tmp_path / "mix")
+    mixed = load_file(out / "unet" / "diffusion_pytorch_model.safetensors")
+    assert torch.equal(mixed["w"], torch.full((2, 3), 0.25))
+    assert mixed["h"].dtype == torch.float16 and torch.equal(
+        mixed["h"], torch.full((2,), 2.5, dtype=torch.float16)
+    )
+    assert torch.equal(mixed["n"], torch.tensor([7]))  # integers: the fine-tune's
+    # every other file is the fine-tune's; nothing else is left beside the output
+    assert json.loads((out / "scheduler" / "scheduler_config.json").read_text()) == {"source": "tuned"}
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["mix", "start", "tuned"]
+    # the endpoints: alpha = 1 is the fine-tune, alpha = 0 the start (as floats)
+    ends = {a: load_file(interpolate_pipelines(start, tuned, a, tmp_path / f"a{a}") / "unet" /
+                         "diffusion_pytorch_model.safetensors") for a in (0.0, 1.0)}  # fmt: skip
+    assert torch.equal(ends[1.0]["w"], torch.ones(2, 3)) and torch.equal(ends[0.0]["w"], torch.zeros(2, 3))
+    # the command line writes its settings beside the weights
+    cli_out = main(["--start", str(start), "--finetuned", str(tuned), "--alpha", "0.5",
+                    "--output_dir", str(tmp_path / "cli")])  # fmt: skip
+    assert json.loads((cli_out / "interpolate_config.json").read_text())["alpha"] == 0.5
+
+
+def test_interpolate_state_matches_a_float64_reference() -> None:
+    generator = torch.Generator().manual_seed(0)
+    a, b = torch.randn(5, 7, generator=generator), torch.randn(5, 7, generator=generator)
+    mixed = interpolate_state({"x": a}, {"x": b}, 0.3)["x"]
+    torch.testing.assert_close(mixed, (0.7 * a.double() + 0.3 * b.double()).float())
+
+
+def test_pipelines_of_other_architectures_are_refused_before_anything_is_written(tmp_path: Path) -> None:
+    start = _pipeline(tmp_path / "start", {"w": torch.zeros(2, 3)})
+    with pytest.raises(
+        ValueError, match=r"unet: tensor 'w' is \(2, 3\) torch.float32 in the start and \(3, 2\)"
+    ):
+        interpolate_pipelines(start, _pipeline(tmp_path / "t1", {"w": torch.ones(3, 2)}), 0.5, tmp_path / "o")
+    with pytest.raises(ValueError, match="unet: the two pipelines do not hold the same tensors"):
+        interpolate_pipelines(start, _pipeline(tmp_path / "t2", {"v": torch.ones(2, 3)}), 0.5, tmp_path / "o")
+    with pytest.raises(ValueError, match=r"unet: the two pipelines' configs differ in \['width'\]"):
+        interpolate_pipelines(start, _pipeline(tmp_path / "t3", {"w": torch.ones(2, 3)}, width=8), 0.5,
+                              tmp_path / "o")  # fmt: skip
+    assert not (tmp_path / "o").exists() and not list(tmp_path.glob(".o.*"))
+    tuned = _pipeline(tmp_path / "t4", {"w": torch.ones(2, 3)})
+    with pytest.raises(ValueError, match=r"alpha must lie in \[0, 1\]"):
+        interpolate_pipelines(start, tuned, 1.5, tmp_path / "o")
+    with pytest.raises(ValueError, match="output_dir: .* exists"):
+        interpolate_pipelines(start, tuned, 0.5, tmp_path / "t4")
+    with pytest.raises(FileNotFoundError, match="start: expected a pipeline folder with model_index.json"):
+        interpolate_pipelines(tmp_path / "nowhere", tuned, 0.5, tmp_path / "o")
