@@ -75,6 +75,9 @@ COMMANDS: tuple[Command, ...] = (
     Command("sar-zero123-augment", "python -m sar_zero123.augment_dataset", "augment",
             "sar_zero123.augment_dataset:AugmentConfig", "augment",
             "a dataset plus generated views of its chips"),
+    Command("sar-zero123-interpolate", "python -m sar_zero123.interpolate", "interpolate",
+            "sar_zero123.interpolate:InterpolateConfig", "interpolate",
+            "a fine-tuned pipeline's weights mixed with its prior's (WiSE-FT)"),
 )  # fmt: skip
 
 
@@ -197,5 +200,12 @@ def generate(argv: Sequence[str] | None = None) -> Path:
 def augment(argv: Sequence[str] | None = None) -> Path:
     """``sar-zero123-augment``: a dataset plus generated views; returns the output folder."""
     from sar_zero123.augment_dataset import main
+
+    return main(argv)
+
+
+def interpolate(argv: Sequence[str] | None = None) -> Path:
+    """``sar-zero123-interpolate``: a fine-tune's weights mixed with its prior's; returns the pipeline."""
+    from sar_zero123.interpolate import main
 
     return main(argv)

@@ -3,21 +3,23 @@
 Example::
 
     python -m sar_zero123.interpolate --start sar-zero123/sim-prior-rotated \\
-        --finetuned runs/mstar/finetune_lambda0/pipeline --alpha 0.5 --output_dir runs/mstar/wise0.5
+        --finetuned runs/mstar/finetune_lambda0/pipeline --alpha 0.85 --output_dir runs/mstar/wise0.85
 
-writes a pipeline folder whose trained weights are ``(1 - alpha) * start + alpha * finetuned``, tensor by
-tensor, and whose every other file (configs, scheduler, scaling) is the fine-tuned pipeline's. ``alpha = 1``
-is the fine-tune, ``alpha = 0`` the start's weights. Wortsman et al. ("Robust fine-tuning of zero-shot
-models", CVPR 2022) interpolate a fine-tuned model with the pretrained one it started from and keep most
-of the fine-tune's accuracy on its own data with much of the pretrained model's accuracy under
-distribution shift. Here the start is the multi-view prior, which turns vehicles it has never seen, and
-the fine-tune knows the task's vehicles; where the two meet is measured in docs/results/mstar_prior.md.
+writes ``output_dir/pipeline``, a pipeline whose trained weights are ``(1 - alpha) * start + alpha *
+finetuned``, tensor by tensor, and whose every other file (configs, scheduler, scaling) is the fine-tuned
+pipeline's. ``alpha = 1`` is the fine-tune, ``alpha = 0`` the start's weights. Wortsman et al. ("Robust
+fine-tuning of zero-shot models", CVPR 2022) interpolate a fine-tuned model with the pretrained one it
+started from and keep most of the fine-tune's accuracy on its own data with much of the pretrained
+model's accuracy under distribution shift. Here the start is the multi-view prior, which turns vehicles it
+has never seen, and the fine-tune knows the task's vehicles; where the two meet on real MSTAR is measured in
+docs/results/mstar_prior.md, section 4d.
 
 The two pipelines must have one architecture: every component folder with weights in the fine-tune is
 also in the start, with the same config (``_``-prefixed bookkeeping keys aside), tensor names, shapes
-and dtypes; anything else is refused by name before anything is written. Integer tensors (counters,
-recorded ranges) are taken from the fine-tune. The output folder is written under a temporary name and
-renamed into place: an interrupted call leaves no half-mixed pipeline.
+and dtypes; anything else is refused by name before anything is written. Integer tensors (counters) are
+taken from the fine-tune. The pipeline is written under a temporary name and renamed into place, so an
+interrupted call leaves no half-mixed pipeline; ``output_dir`` follows the run-folder rule
+(:mod:`sar_zero123.runs.folder`), its record naming both pipelines by their weights' SHA-256.
 
 Hand-written because no library mixes two diffusers pipeline folders file by file; the tensors are read
 and written with ``safetensors``.
@@ -36,10 +38,12 @@ from pathlib import Path
 import torch
 from safetensors.torch import load_file, save_file
 
-from sar_zero123.config import parse_config, save_config
+from sar_zero123.config import parse_config
 from sar_zero123.pretrained import resolve_pretrained
+from sar_zero123.runs.folder import StageTimer, content_identity, finish_run
+from sar_zero123.runs.stage import open_stage_folder
 
-__all__ = ["InterpolateConfig", "interpolate_pipelines", "interpolate_state", "main"]
+__all__ = ["InterpolateConfig", "interpolate_pipelines", "interpolate_state", "main", "run_interpolate"]
 
 _WEIGHTS_SUFFIX = ".safetensors"
 
@@ -51,7 +55,9 @@ class InterpolateConfig:
     start: str = ""  # the pipeline the fine-tune started from (a folder or a bundled name)
     finetuned: str = ""  # the fine-tuned pipeline folder (its model_index.json beside its components)
     alpha: float = 0.5  # weight of the fine-tune: 1 is the fine-tune, 0 the start's weights
-    output_dir: str = ""  # the new pipeline folder (must not exist)
+    output_dir: str = ""  # run folder: its record and pipeline/, the mixed pipeline
+    resume: bool = False  # return a finished folder with these settings as it is (finish an unfinished one)
+    restart: bool = False  # move an existing folder at output_dir aside (never deleted) and mix anew
 
     def __post_init__(self) -> None:
         for name in ("start", "finetuned", "output_dir"):
@@ -151,11 +157,38 @@ def interpolate_pipelines(
     return out
 
 
+def run_interpolate(config: InterpolateConfig) -> Path:
+    """Mix the two pipelines into ``config.output_dir``/pipeline under the run-folder rule; returns it.
+
+    Raises:
+        FileNotFoundError: If either pipeline folder lacks ``model_index.json``.
+        ValueError: For a folder holding other work, or two pipelines of different architectures.
+    """
+    timer = StageTimer()
+    start_dir, tuned_dir = resolve_pretrained(config.start), Path(config.finetuned)
+    for field_name, folder in (("start", start_dir), ("finetuned", tuned_dir)):
+        if not (folder / "model_index.json").is_file():
+            raise FileNotFoundError(
+                f"{field_name}: expected a pipeline folder with model_index.json, got {folder}"
+            )
+    data = {"start": content_identity(start_dir), "finetuned": content_identity(tuned_dir)}
+    folder = open_stage_folder(
+        config.output_dir, "interpolate", config, data=data, resume=config.resume, restart=config.restart,
+        may_differ=("resume", "restart"), resume_hint="--resume",
+    )  # fmt: skip
+    pipeline = folder.path / "pipeline"
+    if folder.finished:
+        return pipeline
+    if not (pipeline / "model_index.json").is_file():  # renamed into place whole, or absent
+        interpolate_pipelines(start_dir, tuned_dir, config.alpha, pipeline)
+    finish_run(folder, ["pipeline/model_index.json"], seconds=timer.seconds, results={"alpha": config.alpha})
+    return pipeline
+
+
 def main(argv: Sequence[str] | None = None) -> Path:
     """``python -m sar_zero123.interpolate``: the flags are :class:`InterpolateConfig`'s fields."""
     config = parse_config(InterpolateConfig, argv, prog="python -m sar_zero123.interpolate")
-    out = interpolate_pipelines(config.start, config.finetuned, config.alpha, config.output_dir)
-    save_config(config, out, name="interpolate_config.json")
+    out = run_interpolate(config)
     print(f"{out}: alpha = {config.alpha:g} of {config.finetuned}, {1 - config.alpha:g} of {config.start}")
     return out
 

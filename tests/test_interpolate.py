@@ -43,10 +43,26 @@ def test_interpolated_weights_are_the_convex_mix_and_the_rest_is_the_fine_tune(t
     ends = {a: load_file(interpolate_pipelines(start, tuned, a, tmp_path / f"a{a}") / "unet" /
                          "diffusion_pytorch_model.safetensors") for a in (0.0, 1.0)}  # fmt: skip
     assert torch.equal(ends[1.0]["w"], torch.ones(2, 3)) and torch.equal(ends[0.0]["w"], torch.zeros(2, 3))
-    # the command line writes its settings beside the weights
-    cli_out = main(["--start", str(start), "--finetuned", str(tuned), "--alpha", "0.5",
-                    "--output_dir", str(tmp_path / "cli")])  # fmt: skip
-    assert json.loads((cli_out / "interpolate_config.json").read_text())["alpha"] == 0.5
+    # the command: output_dir/pipeline under the run-folder rule (the same command again is refused,
+    # --resume returns the finished folder untouched)
+    flags = [
+        "--start",
+        str(start),
+        "--finetuned",
+        str(tuned),
+        "--alpha",
+        "0.5",
+        "--output_dir",
+        str(tmp_path / "cli"),
+    ]
+    assert main(flags) == tmp_path / "cli" / "pipeline"
+    record = json.loads((tmp_path / "cli" / "run.json").read_text())
+    assert record["finished"] and record["stage"] == "interpolate" and record["config"]["alpha"] == 0.5
+    before = {p: p.stat().st_mtime_ns for p in (tmp_path / "cli").rglob("*") if p.is_file()}
+    with pytest.raises(ValueError, match="already holds a finished interpolate run"):
+        main(flags)
+    assert main([*flags, "--resume"]) == tmp_path / "cli" / "pipeline"
+    assert {p: p.stat().st_mtime_ns for p in (tmp_path / "cli").rglob("*") if p.is_file()} == before
 
 
 def test_interpolate_state_matches_a_float64_reference() -> None:
