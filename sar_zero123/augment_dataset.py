@@ -60,7 +60,7 @@ from sar_zero123.model.pipeline import (
     MAX_GUIDANCE_SCALE,
     SARZero123Pipeline,
 )
-from sar_zero123.pretrained import SIM_PRIOR, is_bundled_name, resolve_pretrained
+from sar_zero123.pretrained import SIM_PRIOR_ROTATED, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import check_options_folder, content_identity, field_defaults, move_aside
 from sar_zero123.runs.lock import is_lock_file, lock_output_folder, release_output_folder
@@ -112,7 +112,7 @@ class AugmentConfig:
     """Add novel views from a SARZero123Pipeline to a dataset of labelled chips."""
 
     data: str = ""  # dataset folder: index.csv, or a tree of original MSTAR files
-    pipeline: str = SIM_PRIOR  # SARZero123Pipeline.save_pretrained folder, or a bundled one's name
+    pipeline: str = SIM_PRIOR_ROTATED  # SARZero123Pipeline.save_pretrained folder, or a bundled one's name
     out: str = ""  # output dataset folder (a re-run with the same options resumes it)
     d_az: list[float] = field(default_factory=list)  # azimuth changes in degrees (or target_azimuths_deg)
     target_azimuths_deg: list[float] = field(default_factory=list)  # absolute azimuths (deg), instead of d_az

@@ -16,7 +16,8 @@ written. The chip is read with :func:`sar_zero123.data.load_magnitude`
 (8-bit images as pixel/255), centre-cropped/resized to the pipeline's size and mapped to normalised dB
 with the pipeline folder's ``decibel_scaling.json`` (``DecibelScaling.to_dict``) when present, else
 ``--scaling_file`` or the unit-magnitude default. ``--pipeline`` defaults to the multi-view SAR prior
-bundled with the package (:data:`sar_zero123.pretrained.SIM_PRIOR`). A pipeline whose pose carries the
+bundled with the package that also sees the input turned by ``d_az``
+(:data:`sar_zero123.pretrained.SIM_PRIOR_ROTATED`). A pipeline whose pose carries the
 input chip's absolute depression gets ``--input_depression``, else the depression the chip file records
 (:func:`chip_depression_deg`), else :data:`DEFAULT_INPUT_DEPRESSION_DEG` with a printed note.
 """
@@ -47,7 +48,7 @@ from sar_zero123.data import (
 from sar_zero123.data.mstar_raw import is_mstar_raw
 from sar_zero123.data.splits import TRAIN_DEPRESSION_DEG
 from sar_zero123.model.pipeline import MAX_ABS_D_EL_DEG, MAX_GUIDANCE_SCALE, SARZero123Pipeline
-from sar_zero123.pretrained import SIM_PRIOR, resolve_pretrained
+from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import RunFolder, StageTimer, data_identity, finish_run
 from sar_zero123.runs.stage import open_stage_folder
@@ -82,7 +83,7 @@ GENERATE_MAY_DIFFER = ("output_dir", "resume", "restart")
 class GenerateConfig:
     """Generate novel views of one SAR chip with a saved SARZero123Pipeline."""
 
-    pipeline: str = SIM_PRIOR  # SARZero123Pipeline.save_pretrained folder, or a bundled one's name
+    pipeline: str = SIM_PRIOR_ROTATED  # SARZero123Pipeline.save_pretrained folder, or a bundled one's name
     image: str = ""  # input chip (PNG/JPEG/TIFF, .npy, .mat or raw MSTAR file)
     d_az: list[float] = field(default_factory=lambda: [30.0, 60.0, 90.0])  # azimuth deltas in degrees
     d_el: list[float] = field(default_factory=lambda: [0.0])  # depression deltas in degrees (1 or 1 per d_az)

@@ -24,7 +24,7 @@ from sar_zero123.generate import (
 )
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.pipeline import SARZero123Pipeline
-from sar_zero123.pretrained import SIM_PRIOR
+from sar_zero123.pretrained import SIM_PRIOR_ROTATED
 
 
 @pytest.fixture(scope="module")
@@ -180,7 +180,7 @@ def _run(tmp_path, name, *argv):
 
 def test_default_pipeline_is_the_bundled_prior_with_17_deg_and_a_note(registry_dir, chip_png, tmp_path,
                                                                       monkeypatch, capsys):
-    assert GenerateConfig(image="chip.png").pipeline == SIM_PRIOR
+    assert GenerateConfig(image="chip.png").pipeline == SIM_PRIOR_ROTATED
     monkeypatch.setattr(pretrained, "PRETRAINED_DIR", registry_dir)
     _, default = _run(tmp_path, "default", "--image", str(chip_png), "--d-az", "30", "--d-el", "10")
     note = f"note: {str(chip_png)!r} records no depression angle; assuming the input chip was taken at 17 deg"
