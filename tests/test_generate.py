@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import shutil
 
 import numpy as np
 import PIL.Image
@@ -162,13 +163,15 @@ def test_nan_pipeline_writes_no_views_and_out_that_is_a_file_is_refused(chip_png
 
 @pytest.fixture(scope="module")
 def registry_dir(tmp_path_factory):
-    """A registry folder whose ``sim_prior`` is a tiny pipeline whose pose takes the input's depression."""
+    """A registry folder whose ``sim_prior`` is a tiny pipeline whose pose takes the input's depression, and
+    whose ``sim_prior_rotated`` (the command's default) is a copy of it."""
     registry = tmp_path_factory.mktemp("registry")
     build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True).save_pretrained(
         registry / "sim_prior"
     )
     scaling = DecibelScaling(min_db=-60.0, max_db=6.0)  # not the unit default: shows which file is read
     (registry / "sim_prior" / SCALING_FILE).write_text(json.dumps(scaling.to_dict()))
+    shutil.copytree(registry / "sim_prior", registry / pretrained.BUNDLED_PIPELINES[SIM_PRIOR_ROTATED])
     return registry
 
 
@@ -186,7 +189,7 @@ def test_default_pipeline_is_the_bundled_prior_with_17_deg_and_a_note(registry_d
     note = f"note: {str(chip_png)!r} records no depression angle; assuming the input chip was taken at 17 deg"
     assert note in capsys.readouterr().out
     assert list(default) == ["view_00_daz+030.00_del+10.00.npy"]
-    folder = str(registry_dir / "sim_prior")
+    folder = str(registry_dir / pretrained.BUNDLED_PIPELINES[SIM_PRIOR_ROTATED])
     argv = ["--pipeline", folder, "--image", str(chip_png), "--d-az", "30", "--d-el", "10"]
     _, explicit = _run(tmp_path, "explicit", *argv, "--input_depression", "17")
     assert "note" not in capsys.readouterr().out
