@@ -16,7 +16,7 @@ docs/results/mstar_prior.md, section 4d.
 
 The two pipelines must have one architecture: every component folder with weights in the fine-tune is
 also in the start, with the same config (``_``-prefixed bookkeeping keys aside), tensor names, shapes
-and dtypes; anything else is refused by name before anything is written. Integer tensors (counters) are
+and dtypes; anything else is refused by name and leaves nothing behind. Integer tensors (counters) are
 taken from the fine-tune. The pipeline is written under a temporary name and renamed into place, so an
 interrupted call leaves no half-mixed pipeline; ``output_dir`` follows the run-folder rule
 (:mod:`sar_zero123.runs.folder`), its record naming both pipelines by their weights' SHA-256.
@@ -121,7 +121,7 @@ def interpolate_pipelines(
         raise ValueError(f"alpha must lie in [0, 1] (1: the fine-tune), got {alpha}")
     if out.exists():
         raise ValueError(f"output_dir: {str(out)!r} exists; give a new folder")
-    # 1. every weight file of the fine-tune, checked against the start before anything is written
+    # 1. every weight file of the fine-tune: its file and config checked against the start (tensors: step 2)
     plan: list[tuple[Path, Path]] = []
     for weights in sorted(tuned_dir.rglob(f"*{_WEIGHTS_SUFFIX}")):
         relative = weights.relative_to(tuned_dir)
