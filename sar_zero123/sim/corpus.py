@@ -29,7 +29,14 @@ from sar_zero123.sim.dataset import write_index_atomic
 from sar_zero123.sim.procedural import PROCEDURAL_CLASS, PROCEDURAL_SEED_KEY, make_procedural_target
 from sar_zero123.sim.render import CLUTTER_DB, render_chip
 
-__all__ = ["CORPUS_OPTIONS_FILE", "VALIDATION_CLASS", "corpus_views", "write_prior_corpus"]
+__all__ = [
+    "CORPUS_OPTIONS_FILE",
+    "DEFAULT_CLUTTER_DB_SPREAD",
+    "VALIDATION_CLASS",
+    "check_corpus_options",
+    "corpus_views",
+    "write_prior_corpus",
+]
 
 #: Class of the held-out validation vehicles (``--protocol ood-PROCVAL``).
 VALIDATION_CLASS = "PROCVAL"
@@ -37,6 +44,8 @@ VALIDATION_CLASS = "PROCVAL"
 CORPUS_OPTIONS_FILE = "corpus.json"
 _MSTAR_DEPRESSIONS_DEG = (15.0, 17.0)
 _MAX_CORPUS_CHIPS = 400_000
+#: Per-chip clutter level spread (+- dB) of a corpus, as in ``simulate_dataset``.
+DEFAULT_CLUTTER_DB_SPREAD = 3.0
 
 
 def corpus_views(
@@ -95,47 +104,23 @@ def _write_vehicle(args: tuple) -> list[tuple[str, ...]]:
     return rows
 
 
-def write_prior_corpus(
-    out_dir: str | os.PathLike[str],
+def check_corpus_options(
     *,
-    num_vehicles: int = 2000,
-    views_per_vehicle: int = 24,
-    num_validation_vehicles: int = 32,
-    depression_range_deg: tuple[float, float] = (10.0, 60.0),
-    mstar_fraction: float = 0.25,
-    size: int = 64,
-    seed: int = 0,
-    clutter_db_spread: float = 3.0,
-    num_workers: int = 1,
-    progress: bool = True,
-) -> Path:
-    """Render the prior's corpus into ``out_dir`` (or finish an interrupted one); see the module docstring.
-
-    Vehicles are the procedural seeds ``0 .. num_vehicles - 1``; the last ``num_validation_vehicles`` of
-    them are :data:`VALIDATION_CLASS`. The named classes of :data:`~sar_zero123.sim.TARGET_CLASSES` are
-    never in the corpus.
-
-    Args:
-        out_dir: Output folder (created).
-        num_vehicles: Procedural vehicles, validation ones included.
-        views_per_vehicle: Chips per vehicle.
-        num_validation_vehicles: Vehicles held out as the validation class.
-        depression_range_deg: ``(low, high)`` of the uniform depression draw, within (0, 90).
-        mstar_fraction: Share of the views put at 15 or 17 deg instead (MSTAR's depressions).
-        size: Chip side in pixels (64 at the simulator's 0.2 m spacing covers 12.9 m).
-        seed: Corpus seed (views, clutter, noise); the vehicles depend only on their own seed.
-        clutter_db_spread: Per-chip clutter level spread (+- dB), as in ``simulate_dataset``.
-        num_workers: Processes rendering vehicles in parallel.
-        progress: Print a line every 100 vehicles.
-
-    Returns:
-        ``out_dir`` as a :class:`~pathlib.Path` (read it with ``sar_zero123.data.load_index``).
+    num_vehicles: int,
+    views_per_vehicle: int,
+    num_validation_vehicles: int,
+    depression_range_deg: tuple[float, float],
+    mstar_fraction: float,
+    size: int,
+    seed: int,
+    clutter_db_spread: float,
+    num_workers: int,
+) -> dict:
+    """The options of :func:`write_prior_corpus` checked, as its ``corpus.json`` records them.
 
     Raises:
-        ValueError: For an out-of-range option, a corpus over 400,000 chips, or a folder holding a corpus
-            written with other options (naming each difference).
+        ValueError: Naming the first option out of range.
     """
-    # 1. check inputs and the folder's record
     if int(num_vehicles) != num_vehicles or num_vehicles < 2:
         raise ValueError(f"num_vehicles: expected an integer >= 2, got {num_vehicles!r}")
     if int(views_per_vehicle) != views_per_vehicle or views_per_vehicle < 2:
@@ -169,6 +154,57 @@ def write_prior_corpus(
         "clutter_db_spread": float(clutter_db_spread),
         "format": "float16 magnitude .npy",
     }
+    return options
+
+
+def write_prior_corpus(
+    out_dir: str | os.PathLike[str],
+    *,
+    num_vehicles: int = 2000,
+    views_per_vehicle: int = 24,
+    num_validation_vehicles: int = 32,
+    depression_range_deg: tuple[float, float] = (10.0, 60.0),
+    mstar_fraction: float = 0.25,
+    size: int = 64,
+    seed: int = 0,
+    clutter_db_spread: float = DEFAULT_CLUTTER_DB_SPREAD,
+    num_workers: int = 1,
+    progress: bool = True,
+) -> Path:
+    """Render the prior's corpus into ``out_dir`` (or finish an interrupted one); see the module docstring.
+
+    Vehicles are the procedural seeds ``0 .. num_vehicles - 1``; the last ``num_validation_vehicles`` of
+    them are :data:`VALIDATION_CLASS`. The named classes of :data:`~sar_zero123.sim.TARGET_CLASSES` are
+    never in the corpus.
+
+    Args:
+        out_dir: Output folder (created).
+        num_vehicles: Procedural vehicles, validation ones included.
+        views_per_vehicle: Chips per vehicle.
+        num_validation_vehicles: Vehicles held out as the validation class.
+        depression_range_deg: ``(low, high)`` of the uniform depression draw, within (0, 90).
+        mstar_fraction: Share of the views put at 15 or 17 deg instead (MSTAR's depressions).
+        size: Chip side in pixels (64 at the simulator's 0.2 m spacing covers 12.9 m).
+        seed: Corpus seed (views, clutter, noise); the vehicles depend only on their own seed.
+        clutter_db_spread: Per-chip clutter level spread (+- dB), as in ``simulate_dataset``.
+        num_workers: Processes rendering vehicles in parallel.
+        progress: Print a line every 100 vehicles.
+
+    Returns:
+        ``out_dir`` as a :class:`~pathlib.Path` (read it with ``sar_zero123.data.load_index``).
+
+    Raises:
+        ValueError: For an out-of-range option, a corpus over 400,000 chips, or a folder holding a corpus
+            written with other options (naming each difference).
+    """
+    # 1. check inputs and the folder's record
+    options = check_corpus_options(
+        num_vehicles=num_vehicles, views_per_vehicle=views_per_vehicle,
+        num_validation_vehicles=num_validation_vehicles, depression_range_deg=depression_range_deg,
+        mstar_fraction=mstar_fraction, size=size, seed=seed, clutter_db_spread=clutter_db_spread,
+        num_workers=num_workers,
+    )  # fmt: skip
+    low, high = options["depression_range_deg"]
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     options_path = out / CORPUS_OPTIONS_FILE

@@ -14,14 +14,16 @@ import logging
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from sar_zero123.config import check_minimum
 from sar_zero123.runs.folder import StageTimer, finish_run
 from sar_zero123.runs.stage import open_stage_folder
-from sar_zero123.sim.corpus import write_prior_corpus
+from sar_zero123.sim.corpus import DEFAULT_CLUTTER_DB_SPREAD, check_corpus_options, write_prior_corpus
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["CorpusConfig", "run_corpus"]
+__all__ = ["CORPUS_FOLDER", "CorpusConfig", "run_corpus"]
+
+#: Where in the stage folder the corpus lands (its record beside it).
+CORPUS_FOLDER = "corpus"
 
 
 @dataclass
@@ -34,27 +36,25 @@ class CorpusConfig:
     num_validation_vehicles: int = 32  # vehicles held out as class PROCVAL (never rehearsed)
     depression_range_deg: list[float] = field(default_factory=lambda: [10.0, 60.0])  # uniform depressions
     mstar_fraction: float = 0.25  # share of views at MSTAR's 15/17 deg instead
-    image_size: int = 64  # chip side in pixels
+    size: int = 64  # chip side in pixels
     seed: int = 0  # corpus seed (views, clutter, noise); a vehicle depends on its own seed only
     num_workers: int = 2  # processes rendering vehicles
     resume: bool = True  # finish an interrupted corpus with these settings (its finished chips are kept)
     restart: bool = False  # move an existing folder at output_dir aside (never deleted) and render anew
 
     def __post_init__(self) -> None:
-        check_minimum(self, "num_vehicles", "views_per_vehicle", minimum=2)
-        check_minimum(self, "num_validation_vehicles", "num_workers", minimum=1)
-        check_minimum(self, "image_size", minimum=16)
-        if self.num_validation_vehicles >= self.num_vehicles:
-            raise ValueError(
-                f"num_validation_vehicles must be below num_vehicles ({self.num_vehicles}): the others are "
-                f"the rehearsed vehicles, got {self.num_validation_vehicles}"
-            )
         self.depression_range_deg = [float(d) for d in self.depression_range_deg]
-        low_high = self.depression_range_deg
-        if len(low_high) != 2 or not 0 < low_high[0] < low_high[1] < 90:
-            raise ValueError(f"depression_range_deg must be two values 0 < low < high < 90, got {low_high}")
-        if not 0.0 <= self.mstar_fraction <= 1.0:
-            raise ValueError(f"mstar_fraction must lie in [0, 1], got {self.mstar_fraction}")
+        if len(self.depression_range_deg) != 2:
+            raise ValueError(f"depression_range_deg: expected (low, high), got {self.depression_range_deg}")
+        check_corpus_options(**self._options())  # the checks write_prior_corpus makes, before any stage runs
+
+    def _options(self) -> dict:
+        """write_prior_corpus's keyword arguments."""
+        low, high = self.depression_range_deg
+        return {"num_vehicles": self.num_vehicles, "views_per_vehicle": self.views_per_vehicle,
+                "num_validation_vehicles": self.num_validation_vehicles, "depression_range_deg": (low, high),
+                "mstar_fraction": self.mstar_fraction, "size": self.size, "seed": self.seed,
+                "clutter_db_spread": DEFAULT_CLUTTER_DB_SPREAD, "num_workers": self.num_workers}  # fmt: skip
 
 
 def run_corpus(config: CorpusConfig) -> Path:
@@ -69,23 +69,12 @@ def run_corpus(config: CorpusConfig) -> Path:
         config.output_dir, "corpus", config, data=None, resume=config.resume, restart=config.restart,
         may_differ=("resume", "restart", "num_workers"), resume_hint="--resume",
     )  # fmt: skip
-    corpus = folder.path / "corpus"
+    corpus = folder.path / CORPUS_FOLDER
     if folder.finished:
         logger.info("%s already holds this corpus", corpus)
         return corpus
-    out = write_prior_corpus(
-        corpus,
-        num_vehicles=config.num_vehicles,
-        views_per_vehicle=config.views_per_vehicle,
-        num_validation_vehicles=config.num_validation_vehicles,
-        depression_range_deg=(config.depression_range_deg[0], config.depression_range_deg[1]),
-        mstar_fraction=config.mstar_fraction,
-        size=config.image_size,
-        seed=config.seed,
-        num_workers=config.num_workers,
-        progress=False,
-    )
+    out = write_prior_corpus(corpus, **config._options(), progress=False)
     with open(out / "index.csv") as handle:
         chips = sum(1 for _ in handle) - 1
-    finish_run(folder, ["corpus/index.csv"], seconds=timer.seconds, results={"chips": chips})
+    finish_run(folder, [f"{CORPUS_FOLDER}/index.csv"], seconds=timer.seconds, results={"chips": chips})
     return out

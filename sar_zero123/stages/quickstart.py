@@ -26,7 +26,7 @@ from sar_zero123.runs.folder import (
     run_differences,
 )
 from sar_zero123.runs.stage import open_stage_folder
-from sar_zero123.stages.corpus import CorpusConfig, run_corpus
+from sar_zero123.stages.corpus import CORPUS_FOLDER, CorpusConfig, run_corpus
 from sar_zero123.stages.evaluate import EVALUATE_MAY_DIFFER, EvaluateConfig, run_evaluate
 from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, run_evaluators
 from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
@@ -112,7 +112,7 @@ def _training_stages(config: QuickstartConfig, preset: Preset, out: Path) -> lis
     if preset.rehearsal_vehicles:
         plans.append(StagePlan("rehearsal corpus", _build(
             "rehearsal corpus", CorpusConfig, output_dir=str(rehearsal_dir),
-            num_vehicles=preset.rehearsal_vehicles, num_validation_vehicles=1, image_size=preset.image_size,
+            num_vehicles=preset.rehearsal_vehicles, num_validation_vehicles=1, size=preset.image_size,
             seed=config.seed,
         ), run_corpus))  # fmt: skip
 
@@ -130,8 +130,8 @@ def _training_stages(config: QuickstartConfig, preset: Preset, out: Path) -> lis
         }  # fmt: skip
         if preset.ema_decay is not None:
             values["ema_decay"] = preset.ema_decay
-        if preset.rehearsal_vehicles and pretrained is not None:  # the whole rendered corpus, no subsample
-            values.update(rehearsal_data=str(rehearsal_dir / "corpus"), rehearsal_max_chips=None,
+        if preset.rehearsal_vehicles:  # (a prior's fine-tunes) the whole rendered corpus, no subsample
+            values.update(rehearsal_data=str(rehearsal_dir / CORPUS_FOLDER), rehearsal_max_chips=None,
                           rehearsal_fraction=preset.rehearsal_fraction)  # fmt: skip
         if preset.prior is None or preset.vae_decoder_steps:
             values["vae"] = str(vae_dir)

@@ -84,7 +84,7 @@ def test_rehearsal_vehicles_plan_a_corpus_stage_that_every_fine_tune_rehearses(t
         "rehearsal corpus", "finetune lambda=0", "finetune lambda=4"]  # fmt: skip
     by_name = {plan.name: plan.config for plan in plans}
     corpus = by_name["rehearsal corpus"]
-    assert (corpus.num_vehicles, corpus.num_validation_vehicles, corpus.image_size) == (3, 1, 64)
+    assert (corpus.num_vehicles, corpus.num_validation_vehicles, corpus.size) == (3, 1, 64)
     for name in ("finetune lambda=0", "finetune lambda=4"):
         finetune = by_name[name]
         assert finetune.rehearsal_data == str(out / "rehearsal" / "corpus")
@@ -103,7 +103,7 @@ def test_rehearsal_vehicles_plan_a_corpus_stage_that_every_fine_tune_rehearses(t
     from sar_zero123.stages import CorpusConfig, run_corpus
 
     small = CorpusConfig(output_dir=str(tmp_path / "corpus"), num_vehicles=3, views_per_vehicle=2,
-                         num_validation_vehicles=1, image_size=16, num_workers=1)  # fmt: skip
+                         num_validation_vehicles=1, size=16, num_workers=1)  # fmt: skip
     folder = run_corpus(small)
     assert folder == tmp_path / "corpus" / "corpus"
     records = load_index(folder)
@@ -113,8 +113,10 @@ def test_rehearsal_vehicles_plan_a_corpus_stage_that_every_fine_tune_rehearses(t
     assert {p: p.stat().st_mtime_ns for p in (tmp_path / "corpus").rglob("*") if p.is_file()} == before
     with pytest.raises(ValueError, match="views_per_vehicle: folder 2, this run 3"):
         run_corpus(dataclasses.replace(small, views_per_vehicle=3))
-    with pytest.raises(ValueError, match="num_validation_vehicles must be below num_vehicles"):
+    with pytest.raises(ValueError, match=r"num_validation_vehicles: expected 1 .. num_vehicles - 1, got 3"):
         CorpusConfig(num_vehicles=3, num_validation_vehicles=3)
+    with pytest.raises(ValueError, match=r"size: expected an integer >= 16, got 8"):
+        CorpusConfig(size=8)
 
 
 def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
