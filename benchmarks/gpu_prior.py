@@ -310,6 +310,10 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     vae = resolve_pretrained(SIM_PRIOR) / "vae"
     if args.compile:  # accelerate's own switch: every Accelerator made from here on compiles what it prepares
         os.environ.update(ACCELERATE_DYNAMO_BACKEND="inductor", ACCELERATE_DYNAMO_MODE=args.compile)
+        # Static shapes. With mixed precision, accelerate wraps every prepared module's forward in one shared
+        # function, so dynamo meets the pose projection and the UNet in the same frame; its automatic dynamic
+        # shapes then recompiled the UNet symbolically for minutes and crashed (one H100, 2026-11-27).
+        os.environ["ACCELERATE_DYNAMO_USE_DYNAMIC"] = "False"
     pipelines: dict[str, Path] = {}
     for arm in args.arms:
         start = time.monotonic()

@@ -153,6 +153,9 @@ class FinetuneConfig(LossSettings):
     ema_decay: float = 0.9999  # EMA decay
     prediction_type: Literal["epsilon", "v_prediction"] | None = None  # built sizes only (None: epsilon)
     checkpointing_steps: int = 500  # save a resumable checkpoint every this many steps
+    # gather, log and check for finite values the step's losses every this many steps and at every checkpoint
+    # (each a host-device synchronisation: on a GPU it stalls the queue of kernels)
+    logging_steps: int = 10
     checkpoints_total_limit: int | None = None  # keep at most this many checkpoints
     resume_from_checkpoint: str | None = None  # 'latest' or a checkpoint folder
     restart: bool = False  # move an existing run in output_dir aside (never deleted) and start over
@@ -180,7 +183,7 @@ class FinetuneConfig(LossSettings):
         check_minimum(self, "learning_rate", "pose_lr_multiplier", "max_grad_norm", minimum=0, strict=True)
         check_minimum(self, "lr_warmup_steps", "validation_steps", "num_workers", minimum=0)
         counts = ("train_batch_size", "gradient_accumulation_steps", "max_train_steps", "checkpointing_steps",
-                  "num_validation_images", "validation_inference_steps")  # fmt: skip
+                  "logging_steps", "num_validation_images", "validation_inference_steps")  # fmt: skip
         check_minimum(self, *counts, minimum=1)
         check_minimum(self, "pfm_projection_dim", "checkpoints_total_limit", minimum=1, optional=True)
         check_minimum(self, "pfm_start_step", minimum=0)

@@ -303,9 +303,9 @@ class FinetuneTrainer:
 def train_finetune_steps(
     config: Any, accelerator: Accelerator, inputs: FinetuneInputs, trainer: FinetuneTrainer
 ) -> int:
-    """The fine-tune's training loop from ``trainer.global_step`` to ``config.max_train_steps`` (``config``: a
-    ``FinetuneConfig``; its loss settings per step, checkpoints, validation and ``max_train_minutes``);
-    returns the last step."""
+    """The fine-tune's training loop from ``trainer.global_step`` to ``config.max_train_steps``; returns the
+    last step (``config``: a ``FinetuneConfig``; its loss settings per step, checkpoints, ``logging_steps``,
+    validation and ``max_train_minutes``)."""
     output_dir = Path(config.output_dir)
     global_step = trainer.global_step
     trainable = [parameter for module in trainer.trained_modules for parameter in module.parameters()]
@@ -344,14 +344,18 @@ def train_finetune_steps(
         for ema, module in trainer.ema_pairs:
             ema.step(module.parameters())
         progress.update(1)
-        learning_rate = trainer.lr_scheduler.get_last_lr()[0]
-        logs = step_logs(accelerator, losses, learning_rate, noise_scheduler.config.num_train_timesteps)
-        progress.set_postfix(loss=f"{logs['train/loss']:.4f}")
-        accelerator.log(logs, step=global_step)
-        check_finite_step(global_step, loss=logs["train/loss"])  # gathered: every process stops
         out_of_time = deadline is not None and all_out_of_time(accelerator, deadline)
         last = global_step == config.max_train_steps or out_of_time
-        if global_step % config.checkpointing_steps == 0 or last:
+        checkpoint = global_step % config.checkpointing_steps == 0 or last
+        # the scalars reach the host (a synchronisation that stalls a GPU's queue) every logging_steps, and
+        # before every checkpoint: no non-finite weights are saved
+        if global_step % config.logging_steps == 0 or checkpoint:
+            learning_rate = trainer.lr_scheduler.get_last_lr()[0]
+            logs = step_logs(accelerator, losses, learning_rate, noise_scheduler.config.num_train_timesteps)
+            progress.set_postfix(loss=f"{logs['train/loss']:.4f}")
+            accelerator.log(logs, step=global_step)
+            check_finite_step(global_step, loss=logs["train/loss"])  # gathered: every process stops
+        if checkpoint:
             extra_state = {"epoch": epoch, "batch_index": batch_index + 1,
                            "train_image_encoder": config.train_image_encoder}  # fmt: skip
             save_checkpoint(accelerator, output_dir, global_step, config.checkpoints_total_limit,
@@ -381,6 +385,12 @@ def train_finetune_steps(
 
 
 def all_out_of_time(accelerator: Accelerator, deadline: float) -> bool:
-    """Whether any process has passed ``deadline`` (every process then stops at the same step)."""
+    """Whether any process has passed ``deadline`` (every process then stops at the same step).
+
+    One process reads its clock alone; several agree through a reduction (a synchronisation with the device,
+    which their gradient all-reduce makes anyway).
+    """
+    if accelerator.num_processes == 1:
+        return time.monotonic() >= deadline
     late = torch.tensor([float(time.monotonic() >= deadline)], device=accelerator.device)
     return bool(accelerator.reduce(late, reduction="sum").item() > 0)

@@ -487,6 +487,21 @@ def test_diverging_run_stops_before_saving_or_exporting_nan_weights(script, asse
         assert all(torch.isfinite(w).all() for w in read_weights(checkpoint).values()), checkpoint
 
 
+def test_losses_reach_the_host_every_logging_steps_and_at_each_checkpoint(
+    script, assets, tmp_path, monkeypatch
+) -> None:
+    from sar_zero123.training import finetuning
+
+    steps = []  # the steps whose losses were gathered and checked
+    monkeypatch.setattr(finetuning, "check_finite_step", lambda step, **values: steps.append(step))
+    argv = tiny_args(assets, tmp_path / "run", "--max_train_steps", "7", "--checkpointing_steps", "5",
+                     "--logging_steps", "3", "--validation_steps", "0", "--pfm_weight", "0")  # fmt: skip
+    script.main(argv)
+    assert steps == [3, 5, 6, 7]  # every third step, the checkpoint at 5 and the last step
+    with pytest.raises(ValueError, match="logging_steps must be >= 1"):
+        script.main(tiny_args(assets, tmp_path / "other", "--logging_steps", "0"))
+
+
 @pytest.mark.parametrize(
     ("changed", "listed"),
     [

@@ -1,0 +1,53 @@
+#!/usr/bin/env bash
+# One GPU call of at most ten minutes for issue 35 (docs/usage/gpus.md), run from the repository root:
+#
+#     OUT=out LIMIT=540 bash benchmarks/gpu_session.sh [WHEELS [EVALUATORS]]
+#
+# 1. installs the wheels the machine lacks (diffusers, importlib_metadata) from WHEELS (default .whl);
+# 2. times one training step of the shippable `micro` prior, eager and compiled (benchmarks/step_operators.py
+#    at 1,024 pairs, bf16), each under a time limit: the compiled probe also fills inductor's cache;
+# 3. trains the `rotated_input@micro` prior with benchmarks/gpu_prior.py in what is left of LIMIT seconds,
+#    compiled (reduce-overhead) if the probe compiled; if that arm fails, once more uncompiled in what is left.
+# Everything lands in OUT: the step timings, gpu_prior's results.json and the pipeline's tar parts, one log.
+set -u
+OUT=${OUT:?OUT must name the output folder}
+LIMIT=${LIMIT:-540}
+WHEELS=${1:-.whl}
+EVALUATORS=${2:-.gpu/evaluators}
+T0=$(date +%s)
+left() { echo $((LIMIT - ($(date +%s) - T0))); }
+minutes() { awk -v s="$1" 'BEGIN { printf "%.2f", (s > 0 ? s : 0) / 60 }'; }
+
+mkdir -p "$OUT"
+if ! python3 -c "import diffusers" 2>/dev/null; then
+    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
+        "$WHEELS"/*.whl || exit 1
+    export PYTHONPATH=/tmp/site:${PYTHONPATH:-}
+fi
+export PYTHONPATH=$PWD:${PYTHONPATH:-} TQDM_DISABLE=1 PYTHONUNBUFFERED=1
+LOG=$OUT/session.log  # one log: what comes back from the machine is at most eight files
+nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv >"$LOG" 2>&1
+
+timeout 45 python3 benchmarks/step_operators.py --batch_size 1024 --bf16 --steps 10 --out "$OUT/ops.json" \
+    >>"$LOG" 2>&1
+echo "eager probe rc=$? at $(( $(date +%s) - T0 )) s" | tee -a "$LOG"
+MODE=()
+if timeout 150 python3 benchmarks/step_operators.py --batch_size 1024 --bf16 --steps 20 \
+    --compile reduce-overhead --out "$OUT/ops_compiled.json" >>"$LOG" 2>&1; then
+    MODE=(--compile reduce-overhead)
+fi
+echo "compiled probe done at $(( $(date +%s) - T0 )) s: ${MODE[*]:-eager}" | tee -a "$LOG"
+
+ARM=rotated_input@micro
+COMMON=(--evaluators "$EVALUATORS" --arms "$ARM" --num_vehicles 20000 --corpus_minutes 0.4
+    --eval_reserve_minutes 0.8 --setup_minutes 0.8)
+python3 benchmarks/gpu_prior.py --out "$OUT" --work /tmp/work "${COMMON[@]}" "${MODE[@]}" \
+    --budget_minutes "$(minutes $(($(left) - 20)))" >>"$LOG" 2>&1
+echo "gpu_prior rc=$? at $(( $(date +%s) - T0 )) s" | tee -a "$LOG"
+if [ ! -e "$OUT/rotated_input-micro.tar.part00" ] && [ "$(left)" -gt 200 ]; then
+    mkdir -p "$OUT/eager"
+    python3 benchmarks/gpu_prior.py --out "$OUT/eager" --work /tmp/work_eager "${COMMON[@]}" \
+        --budget_minutes "$(minutes $(($(left) - 20)))" >>"$LOG" 2>&1
+    echo "eager gpu_prior rc=$? at $(( $(date +%s) - T0 )) s" | tee -a "$LOG"
+fi
+grep -v "^USDT\|profiler_st" "$LOG" | tail -n 60
