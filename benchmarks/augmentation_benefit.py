@@ -33,11 +33,15 @@ those serials and with ``eoc1_ks`` chips per class: ``eoc1_real_*`` (real 17 deg
 ``eoc1_generated_*`` (+ one view per chip at ``d_el`` = test depression - 17 deg, from a generator fine-tuned
 on those 17 deg chips only, never on a test chip) and ``eoc1_generated_*_d_el0`` (+ the same number of views
 at ``d_el = 0``: the control), and ``eoc1_ceiling_cv`` (a classifier trained on the test chips themselves,
-cross-validated: seed i holds out fold i). A generator fine-tuned on one depression has never paired two, so
-these arms need ``--rehearsal_data`` (a prior corpus mixed into every generator's fine-tune,
-``FinetuneConfig.rehearsal_data``). Their ``view_quality`` scores the views with the ceiling's seed-0
-classifier (trained on test-depression chips), beside the views' 17 deg sources (the floor) and its held-out
-fold (the ceiling): views that moved towards the test depression score above their sources.
+cross-validated: seed i holds out fold i). ``--strength S`` adds ``eoc1_generated_*_strength{S}`` (the views
+started from the chip's noised latent) and ``--eoc1_views_per_chip N`` (N > 1) ``eoc1_generated_*_views{N}``
+(N views per chip at ``d_az = 0`` and offsets spread evenly in the gap to its neighbours), each with its
+``_d_el0`` control; ``--no-eoc1_all`` drops the arms with every chip. A generator fine-tuned on one
+depression has never paired two, so these arms need ``--rehearsal_data`` (a prior corpus mixed into every
+generator's fine-tune, ``FinetuneConfig.rehearsal_data``). Their ``view_quality`` scores the views with
+the ceiling's seed-0 classifier (trained on test-depression chips), beside the views' 17 deg sources (the
+floor) and its held-out fold (the ceiling): views that moved towards the test depression score above their
+sources.
 
 Every arm trains its classifiers with the same seeds, so arms are compared seed by seed: each generated arm
 carries ``gain_over_real`` (against the real-only arm with the same kept chips) and each arm whose control
@@ -45,7 +49,8 @@ ran ``gain_over_same_azimuth`` (:func:`add_paired_gains`).
 
 Every arm writes into its own folder under ``--out`` and ends with ``result.json``; an arm whose
 ``result.json`` exists is skipped, a generator or an augmentation cut short resumes (run-folder rule), so
-a killed run is continued by the same command. ``--out``/``results.json`` gathers every finished arm.
+a killed run is continued by the same command. ``--out``/``results.json`` gathers every finished arm
+of the folder, this invocation's first, then those of earlier invocations.
 
     python benchmarks/augmentation_benefit.py --data ../shared/data/mstar --out runs/aug26 [--quick]
     python benchmarks/augmentation_benefit.py --data ../shared/data/mstar --out runs/eoc1 --ks --no-sectors \
@@ -88,8 +93,8 @@ RESULT_FILE = "result.json"
 #: Fields that only add or drop arms: a resumed benchmark may change them; any other change is refused.
 ARM_SELECTION_FIELDS = (
     "data", "out", "ks", "sectors", "unseen_class", "unseen_k", "speckle_looks", "strength",
-    "same_azimuth_control", "eoc1_data", "eoc1_ks", "heading_guidance", "view_filters",
-    "validation_chips_per_class",
+    "same_azimuth_control", "eoc1_data", "eoc1_ks", "eoc1_all", "eoc1_views_per_chip", "heading_guidance",
+    "view_filters", "validation_chips_per_class",
 )  # fmt: skip
 #: Ways of keeping fewer generated views (BenchmarkConfig.view_filters).
 VIEW_FILTERS = ("confident", "ratio1")
@@ -140,6 +145,10 @@ class BenchmarkConfig:
     rehearsal_fraction: float = 0.25  # share of each generator's training pairs drawn from rehearsal_data
     eoc1_data: str | None = None  # folder of EOC-1's test chips (one depression): adds the EOC-1 arms
     eoc1_ks: list[int] = field(default_factory=lambda: [24])  # EOC-1 arms with K chips/class, beside all
+    eoc1_all: bool = True  # also the EOC-1 arms with every 17 deg chip of the four serials
+    # views per kept chip in the EOC-1 arms: 1 (at d_az = 0) or N > 1, which adds the arms ..._views{N} (at
+    # d_az = 0 and N - 1 offsets spread evenly in the azimuth gap to the chip's neighbours)
+    eoc1_views_per_chip: int = 1
 
     def __post_init__(self) -> None:
         for name in ("ks", "eoc1_ks"):
@@ -147,8 +156,9 @@ class BenchmarkConfig:
                 raise ValueError(f"{name} must hold values >= 2, got {getattr(self, name)}")
         if not self.seeds:
             raise ValueError("seeds must not be empty")
-        if self.views_per_chip < 1:
-            raise ValueError(f"views_per_chip must be >= 1, got {self.views_per_chip}")
+        for name in ("views_per_chip", "eoc1_views_per_chip"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if not 0.0 < self.sector_deg < 360.0:
             raise ValueError(f"sector_deg must lie in (0, 360), got {self.sector_deg}")
         for name in ("finetune_steps", "classifier_steps", "classifier_batch_size", "num_inference_steps"):
@@ -369,11 +379,13 @@ def build_generator(
     strength: float = 1.0,
     d_el: float = 0.0,
     heading_guidance: float = 0.0,
+    views_tag: str = "",
 ) -> tuple[Path, dict[str, Any]]:
     """Fine-tunes the pipeline on `trained_on`, then generates `d_az` views (at depression change `d_el`)
     of each of `sources`; both resumable. With `speckle_looks` or `strength` < 1, the views (in their own
     folder, from the same fine-tune) get L-look speckle re-added or start from the source's noised latent
-    (``AugmentConfig``).
+    (``AugmentConfig``). `views_tag` (e.g. ``"_views3"``) names views whose `d_az` list differs from the
+    folder's usual one, so that two lists never share a views folder.
 
     Returns the augmented dataset folder (views only) and the times of the fine-tune and this generation.
     """
@@ -393,7 +405,7 @@ def build_generator(
         ))  # fmt: skip
         write_json_atomic(times, timing_file)
     suffix = variant_suffix(speckle_looks, strength, same_azimuth=all(d == 0.0 for d in d_az), d_el=d_el,
-                            heading_guidance=heading_guidance)  # fmt: skip
+                            heading_guidance=heading_guidance) + views_tag  # fmt: skip
     views, key = folder / f"views{suffix}", f"generate{suffix}"
     if key not in times:
         _, times[key] = timed(augment_dataset, AugmentConfig(
@@ -513,13 +525,13 @@ class Benchmark:
         self, kept: Sequence[ChipRecord], d_az: list[float], generator_dir: Path, description: str,
         generator_records: Sequence[ChipRecord] | None = None, speckle_looks: int | None = None,
         strength: float = 1.0, d_el: float = 0.0, heading_guidance: float = 0.0,
-        view_filter: str | None = None, filter_classifier: Path | None = None,
+        view_filter: str | None = None, filter_classifier: Path | None = None, views_tag: str = "",
     ) -> Any:  # fmt: skip
         def build(arm_dir: Path) -> dict[str, Any]:
             trained_on = kept if generator_records is None else generator_records
             views_dir, times = build_generator(
                 self.config, trained_on, kept, generator_dir, d_az, speckle_looks, strength, d_el,
-                heading_guidance,
+                heading_guidance, views_tag,
             )
             generated = load_index(views_dir)
             views = self.filter_views(generated, view_filter, filter_classifier)
@@ -698,6 +710,7 @@ class Benchmark:
             )  # fmt: skip
         if config.eoc1_data is not None:
             results += DepressionTransfer(self, load_index(config.eoc1_data)).run_arms()
+        results += self.earlier_arms({arm["arm"] for arm in results})
         for arm in results:
             value = self.validation_accuracy(arm)
             if value is not None:
@@ -711,6 +724,12 @@ class Benchmark:
         }
         write_json_atomic(summary, self.out / "results.json")
         return summary
+
+    def earlier_arms(self, names: set[str]) -> list[dict[str, Any]]:
+        """The finished arms of this folder that this invocation did not select (earlier invocations'),
+        in name order, so that ``results.json`` holds every arm of the folder."""
+        found = sorted(path for path in self.out.glob(f"*/{RESULT_FILE}") if path.parent.name not in names)
+        return [json.loads(path.read_text()) for path in found]
 
 
 def cv_folds(records: Sequence[ChipRecord], folds: int, seed: int = 0) -> list[int]:
@@ -816,15 +835,39 @@ class DepressionTransfer(Benchmark):
         selections = [("all", list(self.train_records), f"every {TRAIN_DEPRESSION_DEG:g} deg chip")]
         selections += [(f"k{k}", keep_evenly_spaced(self.train_records, k), f"{k} evenly spaced chips/class")
                        for k in config.eoc1_ks]  # fmt: skip
+        if not config.eoc1_all:
+            selections = selections[1:]
         for name, kept, words in selections:
             generator = self.out / f"eoc1_generator_{name}"
             results.append(self.run_arm(f"eoc1_real_{name}", self.real_arm(kept, f"EOC-1: {words}")))
-            for d_el, suffix in ((self.d_el, ""), (0.0, "_d_el0")):
-                results.append(self.run_arm(f"eoc1_generated_{name}{suffix}", self.generated_arm(
-                    kept, [0.0], generator, f"EOC-1: {words} + one view each at d_el = {d_el:+g} deg",
-                    d_el=d_el,
-                )))  # fmt: skip
+            for tag, d_az, strength in self.view_variants(kept):
+                for d_el, suffix in ((self.d_el, ""), (0.0, "_d_el0")):
+                    views = "one view" if len(d_az) == 1 else f"{len(d_az)} views (d_az {d_az})"
+                    started = "" if strength == 1.0 else f", started from the chip (strength {strength:g})"
+                    words_all = f"EOC-1: {words} + {views} each at d_el = {d_el:+g} deg{started}"
+                    results.append(self.run_arm(f"eoc1_generated_{name}{tag}{suffix}", self.generated_arm(
+                        kept, d_az, generator, words_all,
+                        d_el=d_el, strength=strength, views_tag=tag.split("_strength")[0],
+                    )))  # fmt: skip
         return results
+
+    def view_variants(self, kept: Sequence[ChipRecord]) -> list[tuple[str, list[float], float]]:
+        """The EOC-1 views an arm adds, as (arm-name tag, d_az list, strength): one view per chip at
+        ``d_az = 0``, plainly and (``strength``) started from the chip; with ``eoc1_views_per_chip`` N > 1
+        the same with N views per chip, at ``d_az = 0`` and ``fill_offsets_deg`` of the kept chips' mean
+        azimuth gap per class."""
+        config = self.config
+        strengths = [1.0] + ([] if config.strength is None else [config.strength])
+        counts = [1] + ([] if config.eoc1_views_per_chip == 1 else [config.eoc1_views_per_chip])
+        per_class = len(kept) / len({r.target_class for r in kept})
+        variants = []
+        for count in counts:
+            d_az = [0.0] + fill_offsets_deg(360.0 / per_class, count - 1) if count > 1 else [0.0]
+            for strength in strengths:
+                tag = "" if count == 1 else f"_views{count}"
+                tag += "" if strength == 1.0 else f"_strength{strength:g}"
+                variants.append((tag, d_az, strength))
+        return variants
 
 
 def real_baseline(arm: str) -> str | None:

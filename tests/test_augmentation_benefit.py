@@ -291,3 +291,23 @@ def test_eoc1_arms_train_at_17_deg_test_at_the_other_depression_and_pair_with_th
     assert finetuned.pose_projection.config.trained_depression_deg[1] >= 30.0
     with pytest.raises(ValueError, match=r"eoc1_data: expected chips at one depression"):
         main([*args[:-2], "--classifier_batch_size", "4", "--eoc1_data", str(data)])
+    # added to the same folder: views started from the chip and three views per chip, K arms only
+    added = main([*args, "--no-eoc1_all", "--strength", "0.5", "--eoc1_views_per_chip", "3"])["arms"]
+    new = ["eoc1_generated_k4_strength0.5", "eoc1_generated_k4_strength0.5_d_el0", "eoc1_generated_k4_views3",
+           "eoc1_generated_k4_views3_d_el0", "eoc1_generated_k4_views3_strength0.5",
+           "eoc1_generated_k4_views3_strength0.5_d_el0"]  # fmt: skip
+    names = [arm["arm"] for arm in added]
+    # this invocation's arms first (the finished ones read back), then the earlier ones: every arm once
+    assert names[:4] == ["all_chips", "eoc1_ceiling_cv", "eoc1_real_k4", "eoc1_generated_k4"]
+    assert sorted(names) == sorted([*arms, *new])
+    arms = {arm["arm"]: arm for arm in added}
+    three = arms["eoc1_generated_k4_views3"]
+    assert three["d_az_deg"] == [0.0, 30.0, -30.0] and three["n_generated"] == 24  # K = 4: 90 deg gaps
+    assert arms["eoc1_generated_k4_views3_d_el0"]["d_az_deg"] == [0.0, 30.0, -30.0]
+    assert three["gain_over_same_depression"]["against"] == "eoc1_generated_k4_views3_d_el0"
+    assert three["gain_over_real"]["against"] == "eoc1_real_k4"
+    started = arms["eoc1_generated_k4_views3_strength0.5"]
+    assert started["gain_over_same_depression"]["against"] == "eoc1_generated_k4_views3_strength0.5_d_el0"
+    out = tmp_path / "out" / "eoc1_generator_k4"
+    assert len(load_index(out / "views_d_el13_views3")) == 24 and len(load_index(out / "views_views3")) == 24
+    assert {r.depression_deg for r in load_index(out / "views_strength0.5_d_az0_d_el13")} == {30.0}
