@@ -136,8 +136,32 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         "`accelerate launch --dynamo_backend inductor --dynamo_mode MODE` does; a step of the "
         "micro UNet launches about 8,000 operators, which bound the steps/s on a GPU",
     )
+    parser.add_argument(
+        "--init",
+        default=None,
+        help="start every arm from this pipeline's weights (a bundled name or a folder, e.g. "
+        "sar-zero123/sim-prior-rotated) instead of from scratch; its condition input must be the arm's",
+    )
     parser.add_argument("--seed", type=int, default=0)
     return parser.parse_args(argv)
+
+
+def init_pipeline(init: str | None, spatial_pose: str | None, arm: str) -> Path | None:
+    """The folder an arm starts from (``--init``), or None (from scratch).
+
+    Raises:
+        ValueError: Naming the arm, when the pipeline's condition input is not the arm's.
+    """
+    if init is None or init.lower() == "none":
+        return None
+    folder = resolve_pretrained(init)
+    found = json.loads((folder / "pose_projection" / "config.json").read_text()).get("spatial_pose")
+    if found != spatial_pose:
+        raise ValueError(
+            f"init: {init} takes the condition input {found or 'global'!r}, arm {arm!r} needs "
+            f"{spatial_pose or 'global'!r}"
+        )
+    return folder
 
 
 class Results:
@@ -208,7 +232,8 @@ def corpus_vehicles(args: argparse.Namespace, work: Path) -> int:
 
 
 def train_arm(args: argparse.Namespace, arm: str, corpus: Path, vae: Path, minutes: float) -> Path:
-    """One prior on ``corpus`` for ``minutes`` of training steps; returns its pipeline folder."""
+    """One prior on ``corpus`` for ``minutes`` of training steps (from ``--init``'s weights when given);
+    returns its pipeline folder."""
     spatial_pose, size = parse_arm(arm, args.size)
     prior = PriorConfig(
         output_dir=str(Path(args.work) / arm_label(arm)),
@@ -222,8 +247,14 @@ def train_arm(args: argparse.Namespace, arm: str, corpus: Path, vae: Path, minut
         mixed_precision=args.mixed_precision,
         seed=args.seed,
     )
+    config = prior_base_config(prior, vae, corpus)
+    start = init_pipeline(args.init, spatial_pose, arm)
+    if start is not None:  # the pipeline keeps its own condition input, size and prediction type
+        config = dataclasses.replace(
+            config, pretrained=str(start), spatial_pose=None, input_depression=False, prediction_type=None
+        )
     config = dataclasses.replace(
-        prior_base_config(prior, vae, corpus),
+        config,
         max_train_minutes=minutes,
         lr_scheduler="constant_with_warmup",
         lr_warmup_steps=args.lr_warmup_steps,

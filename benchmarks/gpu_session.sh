@@ -1,18 +1,25 @@
 #!/usr/bin/env bash
 # One GPU call of at most ten minutes for issue 35 (docs/usage/gpus.md), run from the repository root:
 #
-#     OUT=out LIMIT=540 [PROBE=1] bash benchmarks/gpu_session.sh [WHEELS [EVALUATORS]]
+#     OUT=out LIMIT=540 [BATCH=256] [INIT=sar-zero123/sim-prior-rotated] [PROBE=1] \
+#         bash benchmarks/gpu_session.sh [WHEELS [EVALUATORS]]
 #
 # 1. installs the wheels the machine lacks (diffusers, importlib_metadata) from WHEELS (default .whl);
 # 2. with PROBE=1, times one training step of the shippable `micro` prior, eager and compiled
-#    (benchmarks/step_operators.py at 1,024 pairs, bf16), each under a time limit (about two minutes; measured
-#    on one H100 on 2026-11-27: docs/results/prior.md, section 6); without it, compiles without probing;
-# 3. trains the `rotated_input@micro` prior with benchmarks/gpu_prior.py in what is left of LIMIT seconds,
-#    compiled (reduce-overhead) unless the probe failed; if that arm fails, once more uncompiled in what is left.
+#    (benchmarks/step_operators.py at BATCH pairs, bf16), each under a time limit (about two minutes; measured
+#    on one H100 on 2026-11-27 at 1,024 pairs: docs/results/prior.md, section 6); without it, compiles
+#    without probing;
+# 3. trains the `rotated_input@micro` prior with benchmarks/gpu_prior.py in what is left of LIMIT seconds at
+#    BATCH pairs per step (default 256: a prior's optimiser steps, more than its pairs, decide how well it
+#    fine-tunes; docs/results/prior.md, section 6, "Steps or pairs"), starting from INIT's weights (default:
+#    the bundled CPU prior, 25,000 steps already; INIT=none trains from scratch), compiled (reduce-overhead)
+#    unless the probe failed; if that arm fails, once more uncompiled in what is left.
 # Everything lands in OUT: the step timings, gpu_prior's results.json and the pipeline's tar parts, one log.
 set -u
 OUT=${OUT:?OUT must name the output folder}
 LIMIT=${LIMIT:-540}
+BATCH=${BATCH:-256}
+INIT=${INIT:-sar-zero123/sim-prior-rotated}
 WHEELS=${1:-.whl}
 EVALUATORS=${2:-.gpu/evaluators}
 T0=$(date +%s)
@@ -31,17 +38,17 @@ nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv >"$LOG" 2>&
 
 MODE=(--compile reduce-overhead)
 if [ "${PROBE:-0}" = 1 ]; then
-    timeout 45 python3 benchmarks/step_operators.py --batch_size 1024 --bf16 --steps 10 --out "$OUT/ops.json" \
+    timeout 45 python3 benchmarks/step_operators.py --batch_size "$BATCH" --bf16 --steps 10 --out "$OUT/ops.json" \
         >>"$LOG" 2>&1
     echo "eager probe rc=$? at $(( $(date +%s) - T0 )) s" | tee -a "$LOG"
-    timeout 150 python3 benchmarks/step_operators.py --batch_size 1024 --bf16 --steps 20 \
+    timeout 150 python3 benchmarks/step_operators.py --batch_size "$BATCH" --bf16 --steps 20 \
         --compile reduce-overhead --out "$OUT/ops_compiled.json" >>"$LOG" 2>&1 || MODE=()
     echo "compiled probe done at $(( $(date +%s) - T0 )) s: ${MODE[*]:-eager}" | tee -a "$LOG"
 fi
 
 ARM=rotated_input@micro
-COMMON=(--evaluators "$EVALUATORS" --arms "$ARM" --num_vehicles 20000 --corpus_minutes 0.4
-    --eval_reserve_minutes 0.8 --setup_minutes 0.8)
+COMMON=(--evaluators "$EVALUATORS" --arms "$ARM" --train_batch_size "$BATCH" --init "$INIT" --num_vehicles 20000
+    --corpus_minutes 0.4 --eval_reserve_minutes 0.8 --setup_minutes 0.8)
 python3 benchmarks/gpu_prior.py --out "$OUT" --work /tmp/work "${COMMON[@]}" "${MODE[@]}" \
     --budget_minutes "$(minutes $(($(left) - 20)))" >>"$LOG" 2>&1
 echo "gpu_prior rc=$? at $(( $(date +%s) - T0 )) s" | tee -a "$LOG"

@@ -55,3 +55,28 @@ def test_packed_parts_restore_the_pipeline_with_a_float16_unet_loading_as_float3
     for name, value in pipe.unet.state_dict().items():
         torch.testing.assert_close(loaded.unet.state_dict()[name], value.half().float())
     assert Path(restored / "unet").is_dir()
+
+
+def test_an_arm_starts_from_the_init_pipeline_and_refuses_another_condition_input(tmp_path):
+    from sar_zero123.sim.corpus import write_prior_corpus
+
+    start = tmp_path / "start"
+    pipe = build_sar_zero123("tiny", seed=3, spatial_pose="rotated_input", input_depression=True)
+    pipe.save_pretrained(start)
+    corpus = write_prior_corpus(tmp_path / "corpus", num_vehicles=3, views_per_vehicle=3,
+                                num_validation_vehicles=1, size=32, progress=False)  # fmt: skip
+    args = gpu_prior.parse_args(["--out", "o", "--work", str(tmp_path / "work"), "--evaluators", "e",
+                                 "--init", str(start), "--train_batch_size", "2", "--max_train_steps", "1",
+                                 "--learning_rate", "1e-30", "--lr_warmup_steps", "0", "--mixed_precision",
+                                 "no", "--no-cache_on_device", "--num_workers", "0"])  # fmt: skip
+    pipeline = gpu_prior.train_arm(args, "rotated_input@tiny", corpus, start / "vae", minutes=5.0)
+    trained = SARZero123Pipeline.from_pretrained(pipeline)
+    initial = SARZero123Pipeline.from_pretrained(start)
+    # a step at a vanishing learning rate leaves the init's weights: the arm started from them, at their size
+    before = initial.unet.state_dict()
+    for name, value in trained.unet.state_dict().items():
+        torch.testing.assert_close(value, before[name], msg=name)
+    assert trained.pose_projection.config.spatial_pose == "rotated_input"
+    with pytest.raises(ValueError, match=r"takes the condition input 'rotated_input', arm 'global@tiny'"):
+        gpu_prior.train_arm(args, "global@tiny", corpus, start / "vae", minutes=5.0)
+    assert gpu_prior.init_pipeline("none", None, "global") is None
