@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 import errno
+import json
 import re
 from pathlib import Path
 
@@ -324,3 +325,15 @@ def test_a_checkpoint_that_cannot_be_written_is_removed_and_named_keeping_the_ea
     assert caught.value.errno == errno.ENOSPC
     assert sorted(p.name for p in tmp_path.iterdir()) == ["checkpoint-1"]
     assert verify_checkpoint(tmp_path / "checkpoint-1") is None
+
+
+def test_a_field_added_since_the_checkpoint_counts_as_its_default(tmp_path: Path):
+    accelerator, model, optimizer = _setup()
+    path = save_checkpoint(accelerator, tmp_path, 1, config=_OtherConfig())  # before the other fields existed
+    state_file = Path(path) / "run_state.json"
+    state = json.loads(state_file.read_text())
+    state["config_class"] = "_Config"  # the same script, an older version of its config
+    state_file.write_text(json.dumps(state))
+    check_resume_config(path, _Config())  # every new field at its default: the old run's behaviour
+    with pytest.raises(ValueError, match=r"image_size: checkpoint None, this run 64"):
+        check_resume_config(path, _Config(image_size=64))
