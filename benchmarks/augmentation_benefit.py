@@ -840,19 +840,19 @@ class DepressionTransfer(Benchmark):
         for name, kept, words in selections:
             generator = self.out / f"eoc1_generator_{name}"
             results.append(self.run_arm(f"eoc1_real_{name}", self.real_arm(kept, f"EOC-1: {words}")))
-            for tag, d_az, strength in self.view_variants(kept):
+            for views_tag, d_az, strength in self.view_variants(kept):
+                arm = f"eoc1_generated_{name}{views_tag}{variant_suffix(strength=strength)}"
                 for d_el, suffix in ((self.d_el, ""), (0.0, "_d_el0")):
                     views = "one view" if len(d_az) == 1 else f"{len(d_az)} views (d_az {d_az})"
                     started = "" if strength == 1.0 else f", started from the chip (strength {strength:g})"
                     words_all = f"EOC-1: {words} + {views} each at d_el = {d_el:+g} deg{started}"
-                    results.append(self.run_arm(f"eoc1_generated_{name}{tag}{suffix}", self.generated_arm(
-                        kept, d_az, generator, words_all,
-                        d_el=d_el, strength=strength, views_tag=tag.split("_strength")[0],
+                    results.append(self.run_arm(arm + suffix, self.generated_arm(
+                        kept, d_az, generator, words_all, d_el=d_el, strength=strength, views_tag=views_tag,
                     )))  # fmt: skip
         return results
 
     def view_variants(self, kept: Sequence[ChipRecord]) -> list[tuple[str, list[float], float]]:
-        """The EOC-1 views an arm adds, as (arm-name tag, d_az list, strength): one view per chip at
+        """The EOC-1 views an arm adds, as (views tag, d_az list, strength): one view per chip at
         ``d_az = 0``, plainly and (``strength``) started from the chip; with ``eoc1_views_per_chip`` N > 1
         the same with N views per chip, at ``d_az = 0`` and ``fill_offsets_deg`` of the kept chips' mean
         azimuth gap per class."""
@@ -863,10 +863,7 @@ class DepressionTransfer(Benchmark):
         variants = []
         for count in counts:
             d_az = [0.0] + fill_offsets_deg(360.0 / per_class, count - 1) if count > 1 else [0.0]
-            for strength in strengths:
-                tag = "" if count == 1 else f"_views{count}"
-                tag += "" if strength == 1.0 else f"_strength{strength:g}"
-                variants.append((tag, d_az, strength))
+            variants += [("" if count == 1 else f"_views{count}", d_az, strength) for strength in strengths]
         return variants
 
 

@@ -276,20 +276,19 @@ def check_output_dir(path: str | os.PathLike, field: str = "output_dir") -> Path
     return path
 
 
-def json_value(value: Any) -> Any:
-    """A config value as a config's JSON holds it (paths become strings, tuples lists, recursively)."""
-    if isinstance(value, Path):
-        return str(value)
-    if isinstance(value, (list, tuple)):
-        return [json_value(v) for v in value]
-    if isinstance(value, dict):
-        return {k: json_value(v) for k, v in value.items()}
-    return value
-
-
 def config_to_dict(config: Any) -> dict[str, Any]:
     """A JSON-serialisable dict of a config dataclass (paths become strings, tuples lists)."""
-    return {f.name: json_value(getattr(config, f.name)) for f in dataclasses.fields(config)}
+
+    def convert(value: Any) -> Any:
+        if isinstance(value, Path):
+            return str(value)
+        if isinstance(value, (list, tuple)):
+            return [convert(v) for v in value]
+        if isinstance(value, dict):
+            return {k: convert(v) for k, v in value.items()}
+        return value
+
+    return {f.name: convert(getattr(config, f.name)) for f in dataclasses.fields(config)}
 
 
 def write_json_atomic(data: Any, path: str | os.PathLike) -> Path:

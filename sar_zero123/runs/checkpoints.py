@@ -23,7 +23,6 @@ Multi-node runs need ``output_dir`` on a file system shared by all nodes, as acc
 
 from __future__ import annotations
 
-import dataclasses
 import gc
 import hashlib
 import json
@@ -41,7 +40,8 @@ from accelerate import Accelerator
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
-from sar_zero123.config import config_to_dict, json_value, naming_write_errors, write_json_atomic
+from sar_zero123.config import config_to_dict, naming_write_errors, write_json_atomic
+from sar_zero123.runs.folder import field_defaults
 
 logger = logging.getLogger(__name__)
 
@@ -392,7 +392,7 @@ def check_resume_config(
     allowed = set(RESUME_MAY_DIFFER) | set(may_differ)
     current = config_to_dict(config)
     written = {(renamed or {}).get(name, name): value for name, value in state["config"].items()}
-    defaults = _field_defaults(config)
+    defaults = field_defaults(config)
     written.update({name: defaults[name] for name in set(current) - set(written) if name in defaults})
     differences = [
         f"{name}: checkpoint {written.get(name, '<absent>')!r}, this run {current.get(name, '<absent>')!r}"
@@ -405,19 +405,6 @@ def check_resume_config(
             f"resume with the checkpoint's values or start a new output_dir. Differences: "
             + "; ".join(differences)
         )
-
-
-def _field_defaults(config: Any) -> dict[str, Any]:
-    """The defaults of a config dataclass's fields that have one, as :func:`config_to_dict` writes them."""
-    if not dataclasses.is_dataclass(config):
-        return {}
-    values = {}
-    for field in dataclasses.fields(config):
-        if field.default is not dataclasses.MISSING:
-            values[field.name] = json_value(field.default)
-        elif field.default_factory is not dataclasses.MISSING:
-            values[field.name] = json_value(field.default_factory())
-    return values
 
 
 def check_resume_state(path: str | os.PathLike | None, name: str, value: Any, default: Any = None) -> None:
