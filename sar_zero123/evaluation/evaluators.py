@@ -519,8 +519,10 @@ def score_views(
         `{"accuracy": %, "azimuth_error_deg", "axis_error_deg" (up to a front/back flip), "sfd", "ms_ssim",
         "kuan_ssim", "ms_ssim_corrected",
         "kuan_ssim_corrected", "n",
-        "azimuth_error_deg/<regressor>"..., "depression_error_deg" (see above)}` with the means over the
-        samples, and `<metric>_se`, the standard error of each mean.
+        "azimuth_error_deg/<regressor>"..., "depression_error_deg" (see above),
+        "predicted/<class>"...}` with the means over the samples, and `<metric>_se`, the standard error of
+        each mean. `predicted/<class>` is the share of views (%) the classifier gives each of its classes,
+        so that a view that loses its class shows where it went.
 
     Shape:
         generated, targets `(N, 1, H, W)`; labels, target_azimuth_deg, target_depression_deg `(N,)`.
@@ -587,6 +589,9 @@ def score_views(
     }
     if depression_regressor is not None:
         scores["depression_error_deg"] = per_sample["depression_error_deg"].mean().item()
+    predicted_classes = torch.bincount(torch.cat(predictions["class"]), minlength=len(evaluators.class_names))
+    for name, count in zip(evaluators.class_names, predicted_classes.tolist()):
+        scores[f"predicted/{name}"] = 100.0 * count / n
     # SFD has no per-sample terms, hence no standard error
     for name, values in per_sample.items():
         scores[f"{name}_se"] = standard_error(values)

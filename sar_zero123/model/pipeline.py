@@ -32,6 +32,7 @@ from transformers import CLIPVisionModelWithProjection
 from sar_zero123.domain import signed_to_unit
 from sar_zero123.model.conditioning import (
     POSE_DIM,
+    SIMULATOR_ROTATION_SIGN,
     PoseProjection,
     as_angle_tensor,
     check_vae_signature,
@@ -42,6 +43,7 @@ from sar_zero123.model.conditioning import (
     encode_image_embeddings,
     match_channels,
     pose_class_labels,
+    rotate_condition_latents,
     unet_condition_latents,
 )
 from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
@@ -56,6 +58,8 @@ ImageInput = PIL.Image.Image | np.ndarray | torch.Tensor | Sequence[PIL.Image.Im
 OUTPUT_TYPES = ("pil", "np", "pt", "latent")
 #: Larger guidance scales overflow the guided noise estimate (NaN images); zero-1-to-3 samples with 3.
 MAX_GUIDANCE_SCALE = 100.0
+#: What an image-to-image call (``strength < 1``) starts from (:meth:`SARZero123Pipeline.__call__`).
+START_FROM = ("input", "turned_input")
 #: A depression delta is the difference of two depression angles in [0, 90] degrees.
 MAX_ABS_D_EL_DEG = 90.0
 #: Azimuth deltas beyond this many degrees (~2,800 turns) are almost surely a unit error, and float64
@@ -495,6 +499,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         callback_on_step_end_tensor_inputs: Sequence[str] = ("latents",),
         strength: float = 1.0,
         heading_guidance_scale: float = 0.0,
+        start_from: Literal["input", "turned_input"] = "input",
     ) -> SARZero123PipelineOutput | tuple:
         """Generate views of each input chip at ``(d_az, d_el)`` relative to it.
 
@@ -528,6 +533,13 @@ class SARZero123Pipeline(DiffusionPipeline):
                 prediction gains ``h * (eps(d_az) - eps(d_az + 180))``, which pushes each view from the
                 same body axis with its front and back swapped (:func:`flipped_heading_pose`). One more
                 UNet evaluation per step; 0 (the default) leaves sampling unchanged.
+            start_from: Which latent a call with ``strength < 1`` noises and starts from: ``"input"`` (the
+                default), the input chip's latent as it is, or ``"turned_input"``, the same latent turned in
+                the image plane by the requested azimuth change (:func:`rotate_condition_latents`, with the
+                pose projection's ``rotation_sign``): a first draft of the target view whose footprint lies
+                where the target's does, for the last denoising steps to correct (shadow and layover stay tied
+                to the range direction). Ignored at ``strength == 1``. Measured not to help on the quickstart
+                (docs/results/prior.md, "Where the held-out vehicle's class goes").
 
         Returns:
             :class:`SARZero123PipelineOutput`, or ``(images,)`` when ``return_dict`` is False.
@@ -548,6 +560,8 @@ class SARZero123Pipeline(DiffusionPipeline):
             callback_on_step_end_tensor_inputs,
         )
         denoising_steps = _denoising_steps(strength, num_inference_steps)
+        if start_from not in START_FROM:
+            raise ValueError(f"`start_from` must be one of {START_FROM}, got {start_from!r}")
         if not 0.0 <= heading_guidance_scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
             raise ValueError(
                 f"`heading_guidance_scale` must lie in [0, {MAX_GUIDANCE_SCALE:g}], got "
@@ -633,7 +647,11 @@ class SARZero123Pipeline(DiffusionPipeline):
                 raise ValueError("`latents` contains NaN or inf values")
             latents = latents.to(device=device, dtype=dtype)
         if denoising_steps < num_inference_steps:  # the input's own latent, noised to the first timestep
-            start_latents = condition_latents[-num_samples:] * self.vae.config.scaling_factor
+            start_latents = condition_latents[-num_samples:]
+            if start_from == "turned_input":
+                rotation_sign = getattr(self.pose_projection.config, "rotation_sign", SIMULATOR_ROTATION_SIGN)
+                start_latents = rotate_condition_latents(start_latents, sample_pose, rotation_sign)
+            start_latents = start_latents * self.vae.config.scaling_factor
             latents = self.scheduler.add_noise(start_latents, latents, timesteps[:1].repeat(num_samples))
         else:
             latents = latents * self.scheduler.init_noise_sigma

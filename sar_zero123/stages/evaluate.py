@@ -61,7 +61,7 @@ from sar_zero123.evaluation.tables import (
     table4_markdown,
 )
 from sar_zero123.model.build import replace_vae
-from sar_zero123.model.pipeline import MAX_GUIDANCE_SCALE, SARZero123Pipeline
+from sar_zero123.model.pipeline import MAX_GUIDANCE_SCALE, START_FROM, SARZero123Pipeline
 from sar_zero123.runs.folder import (
     StageTimer,
     data_identity,
@@ -125,6 +125,10 @@ class EvaluateConfig:
     num_inference_steps: int = 50  # denoising steps for Tables III/IV
     guidance_scale: float = 3.0  # classifier-free guidance weight
     heading_guidance_scale: float = 0.0  # guidance away from the flipped heading (SARZero123Pipeline); 0: off
+    # in (0, 1]: below 1, sampling starts from a latent of the input noised to this fraction of the steps
+    # (SDEdit); start_from names which: "input" as it is, or "turned_input" turned by the requested d_az
+    strength: float = 1.0
+    start_from: str = "input"
     # an AutoencoderKL folder decoding for every pipeline instead of its own VAE; it must encode as theirs
     # (a decoder fine-tuned alone: train/train_vae.py --pretrained PIPELINE --no-train_encoder)
     vae: str | None = None
@@ -149,6 +153,7 @@ class EvaluateConfig:
     def __post_init__(self) -> None:
         self._check_pipelines()
         self._check_sizes()
+        self._check_start()
         self._check_sweep()
         self._check_depressions()
         if self.resume and self.restart:
@@ -181,6 +186,19 @@ class EvaluateConfig:
                 f"heading_guidance_scale must lie in [0, {MAX_GUIDANCE_SCALE}], got "
                 f"{self.heading_guidance_scale}"
             )
+
+    def _check_start(self) -> None:
+        """``strength`` and ``start_from``, after the step count is known to be valid."""
+        strength = self.strength
+        if isinstance(strength, bool) or not (math.isfinite(strength) and 0.0 < strength <= 1.0):
+            raise ValueError(f"strength must lie in (0, 1], got {self.strength!r}")
+        if int(self.num_inference_steps * self.strength) < 1:
+            raise ValueError(
+                f"strength {self.strength} x num_inference_steps {self.num_inference_steps} leaves no "
+                "denoising step; raise either"
+            )
+        if self.start_from not in START_FROM:
+            raise ValueError(f"start_from must be one of {START_FROM}, got {self.start_from!r}")
 
     def _check_sizes(self) -> None:
         check_minimum(self, "n", "num_inference_steps", "eval_batch_size", "crop_size", minimum=1)
@@ -467,6 +485,8 @@ def _score_pipelines(
                 num_inference_steps=config.num_inference_steps,
                 guidance_scale=config.guidance_scale,
                 heading_guidance_scale=config.heading_guidance_scale,
+                strength=config.strength,
+                start_from=config.start_from,
                 batch_size=config.eval_batch_size,
                 device=device,
                 desc=f"{name} {group}",
@@ -504,6 +524,8 @@ def _write_tables(
         "num_inference_steps": config.num_inference_steps,
         "guidance_scale": config.guidance_scale,
         "heading_guidance_scale": config.heading_guidance_scale,
+        "strength": config.strength,
+        "start_from": config.start_from,
         "results": results,
         "paper": PAPER_TABLE3,
         "evaluator_test_metrics": evaluator_metrics,
@@ -548,6 +570,8 @@ def _speed_sweep(
                     num_inference_steps=steps,
                     guidance_scale=config.guidance_scale,
                     heading_guidance_scale=config.heading_guidance_scale,
+                    strength=config.strength,
+                    start_from=config.start_from,
                     batch_size=config.eval_batch_size,
                     device=device,
                     desc=f"{name} {scheduler} {steps} steps",

@@ -19,7 +19,7 @@ from diffusers import (
 from dummies import DUMMY_IMAGE_SIZE, dummy_images, get_dummy_components
 
 from sar_zero123.model.build import build_sar_zero123
-from sar_zero123.model.conditioning import PoseProjection
+from sar_zero123.model.conditioning import PoseProjection, rotate_condition_latents
 from sar_zero123.model.pipeline import SARZero123Pipeline, SARZero123PipelineOutput
 
 STEPS = 2
@@ -189,16 +189,19 @@ def test_ddim_guided_sampling_matches_the_original_zero123_equations(pipe):
     torch.testing.assert_close(output, expected, atol=1e-5, rtol=0)
 
 
-def test_strength_runs_the_last_steps_from_the_noised_input_latent(pipe):
-    """Naive reference: SDEdit on LDM DDIM (eta 0): the input's latent (posterior mode x scaling factor)
-    noised to the int(steps * strength)-th last timestep, then only those steps."""
+@pytest.mark.parametrize("start_from", ["input", "turned_input"])
+def test_strength_runs_the_last_steps_from_the_noised_input_latent(pipe, start_from):
+    """Naive reference: SDEdit on LDM DDIM (eta 0): the input's latent (posterior mode x scaling factor),
+    with "turned_input" turned in the image plane by the requested d_az first, noised to the
+    int(steps * strength)-th last timestep, then only those steps."""
     steps, strength, scale = 5, 0.6, 3.0
     images = dummy_images(batch_size=2)
     noise = torch.randn(2, 4, 16, 16, generator=torch.Generator().manual_seed(9))
     calls, handle = _record_unet_calls(pipe)
     try:
         output = run(pipe, images, d_az=[30.0, 120.0], latents=noise, generator=None,
-                     num_inference_steps=steps, guidance_scale=scale, strength=strength)  # fmt: skip
+                     num_inference_steps=steps, guidance_scale=scale, strength=strength,
+                     start_from=start_from)  # fmt: skip
     finally:
         handle.remove()
     assert len(calls) == 3  # int(5 * 0.6)
@@ -206,7 +209,10 @@ def test_strength_runs_the_last_steps_from_the_noised_input_latent(pipe):
     betas = torch.linspace(0.00085**0.5, 0.012**0.5, 1000, dtype=torch.float64) ** 2  # scaled_linear
     a_start = torch.cumprod(1 - betas, 0)[401].item()  # timesteps 1, 201, 401, 601, 801: start at 401
     with torch.no_grad():
-        start = pipe.encode_conditioning(images, pose)[1] * pipe.vae.config.scaling_factor
+        start = pipe.encode_conditioning(images, pose)[1]
+    if start_from == "turned_input":
+        start = rotate_condition_latents(start, pose, pipe.pose_projection.config.rotation_sign)
+    start = start * pipe.vae.config.scaling_factor
     x = a_start**0.5 * start + (1 - a_start) ** 0.5 * noise
     expected = _naive_guided_ddim(pipe, x, images, pose, steps, 2, scale)
     torch.testing.assert_close(output, expected, atol=1e-5, rtol=0)
@@ -230,6 +236,13 @@ def test_strength_one_is_sampling_from_noise_and_a_small_strength_keeps_the_inpu
 def test_bad_strength_is_refused(pipe, strength, match):
     with pytest.raises(ValueError, match=match):
         run(pipe, strength=strength)
+
+
+def test_a_turned_start_at_no_turn_is_the_input_start_and_a_bad_start_is_refused(pipe):
+    kwargs = {"d_az": 0.0, "num_inference_steps": 4, "strength": 0.5, "output_type": "latent"}
+    torch.testing.assert_close(run(pipe, start_from="turned_input", **kwargs), run(pipe, **kwargs))
+    with pytest.raises(ValueError, match=r"`start_from` must be one of .*, got 'noise'"):
+        run(pipe, start_from="noise")
 
 
 def test_guidance_changes_the_output(pipe):

@@ -75,6 +75,10 @@ def test_score_views_identical_images(tmp_path: Path) -> None:
     assert scores["azimuth_error_deg"] == pytest.approx(0.0, abs=1e-3)
     assert scores["accuracy"] == pytest.approx(100.0 * (predicted_class == labels).double().mean().item())
     assert scores["n"] == 6 and scores["azimuth_error_deg/scratch"] == scores["azimuth_error_deg"]
+    # where the views went: the share of each predicted class, summing to 100
+    shares = [scores[f"predicted/{name}"] for name in evaluators.class_names]
+    counts = torch.bincount(predicted_class, minlength=len(shares))
+    assert shares == pytest.approx((100.0 * counts / 6).tolist()) and sum(shares) == pytest.approx(100.0)
     # Paper-comparable (8-bit, 256 px, authors' windows) and corrected values differ on unlike views.
     others = torch.rand(6, 1, 32, 32, generator=generator)
     with pytest.warns(UserWarning, match="rank-deficient"):
@@ -214,6 +218,12 @@ def test_evaluate_bounds_what_a_user_can_size(tmp_path: Path) -> None:
         EvaluateConfig(pipeline=["a"], num_figure_pairs=5000)
     with pytest.raises(ValueError, match=r"heading_guidance_scale must lie in \[0, 100.0\], got -2.0"):
         EvaluateConfig(pipeline=["a"], heading_guidance_scale=-2.0)
+    with pytest.raises(ValueError, match=r"strength must lie in \(0, 1\], got 1.5"):
+        EvaluateConfig(pipeline=["a"], strength=1.5)
+    with pytest.raises(ValueError, match="strength 0.01 x num_inference_steps 50 leaves no denoising step"):
+        EvaluateConfig(pipeline=["a"], strength=0.01)
+    with pytest.raises(ValueError, match=r"start_from must be one of .*turned_input.*, got 'noise'"):
+        EvaluateConfig(pipeline=["a"], start_from="noise")
     with pytest.raises(ValueError, match="steps: at most 16 step counts, got 17"):
         EvaluateConfig(pipeline=["a"], steps=list(range(1, 18)), schedulers=["ddim"])
     with pytest.raises(ValueError, match=r"steps: each value once, got \[5, 5\]"):
