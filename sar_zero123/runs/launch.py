@@ -16,6 +16,7 @@ from __future__ import annotations
 import hashlib
 import logging
 import os
+import time
 from pathlib import Path
 from typing import Any
 
@@ -31,6 +32,7 @@ from accelerate.utils import (
 from sar_zero123.config import config_to_dict
 
 __all__ = [
+    "all_out_of_time",
     "check_distributed_launch",
     "check_global_batch",
     "check_replicas_agree",
@@ -197,3 +199,15 @@ def check_replicas_agree(accelerator: Accelerator, modules: list[torch.nn.Module
     if len(set(digests)) != 1:
         raise RuntimeError(f"data-parallel replicas diverged: weight digests {digests}")
     return digests
+
+
+def all_out_of_time(accelerator: Accelerator, deadline: float) -> bool:
+    """Whether any process has passed ``deadline`` (every process then stops at the same step).
+
+    One process reads its clock alone; several agree through a reduction (a synchronisation with the device,
+    which their gradient all-reduce makes anyway).
+    """
+    if accelerator.num_processes == 1:
+        return time.monotonic() >= deadline
+    late = torch.tensor([float(time.monotonic() >= deadline)], device=accelerator.device)
+    return bool(accelerator.reduce(late, reduction="sum").item() > 0)

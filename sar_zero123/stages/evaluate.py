@@ -30,6 +30,7 @@ from pathlib import Path
 from typing import Any
 
 import torch
+from scipy.ndimage import gaussian_filter
 
 from sar_zero123.augment import readd_speckle
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
@@ -99,6 +100,8 @@ MAX_FIGURE_PAIRS = 32
 MAX_EVAL_BATCH_SIZE = 1_024
 #: Largest chip side (pipeline input, scoring sizes), in pixels.
 MAX_IMAGE_SIZE = 1_024
+#: Blurred-target reference rows at most, and their largest blur (pixels).
+MAX_BLURRED_TARGETS, MAX_BLUR_SIGMA_PX = 8, 64.0
 #: Settings that never change what the folder holds: the device, where data is cached, how to reuse it.
 EVALUATE_MAY_DIFFER = ("resume", "restart", "device", "output_dir", "work_dir")
 
@@ -135,6 +138,9 @@ class EvaluateConfig:
     # also score every generated view and VAE round trip with speckle re-added (readd_speckle with this many
     # looks; MSTAR chips are single look: 1), as rows "<row> + speckle"; None: not
     speckle_looks: int | None = None
+    # also score the real targets blurred by a Gaussian of each of these standard deviations (pixels), as
+    # rows "real target blurred <s> px": how much detail the evaluators need to read class and pose
+    blurred_target_sigmas_px: list[float] = field(default_factory=list)
     steps: list[int] = field(default_factory=list)  # speed/error sweep: step counts (e.g. 10 20 50)
     schedulers: list[str] = field(default_factory=list)  # speed/error sweep: ddim, dpmsolver++, euler
     speed_n: int | None = None  # samples per speed/error point, from the seen pairs (None: all of them)
@@ -161,6 +167,13 @@ class EvaluateConfig:
         looks = self.speckle_looks
         if looks is not None and (isinstance(looks, bool) or not isinstance(looks, int) or looks < 1):
             raise ValueError(f"speckle_looks must be an integer >= 1 or None, got {looks!r}")
+        sigmas = self.blurred_target_sigmas_px
+        if len(sigmas) > MAX_BLURRED_TARGETS or len(set(sigmas)) != len(sigmas):
+            raise ValueError(
+                f"blurred_target_sigmas_px: at most {MAX_BLURRED_TARGETS} distinct values, got {sigmas}"
+            )
+        if any(isinstance(s, bool) or not (math.isfinite(s) and 0 < s <= MAX_BLUR_SIGMA_PX) for s in sigmas):
+            raise ValueError(f"blurred_target_sigmas_px must lie in (0, {MAX_BLUR_SIGMA_PX:g}], got {sigmas}")
         if self.vae is not None and not Path(self.vae).is_dir():
             raise FileNotFoundError(f"vae: expected an AutoencoderKL folder, got {self.vae}")
 
@@ -431,6 +444,11 @@ def _score_references(
         INPUT_COPY: {group: score(p.inputs, p, evaluators, **scoring) for group, p in pair_sets.items()},
         REAL_TARGET: {group: score(p.targets, p, evaluators, **scoring) for group, p in pair_sets.items()},
     }
+    for sigma in config.blurred_target_sigmas_px:
+        results[blurred_target_row(sigma)] = {
+            group: score(blurred(pairs.targets, sigma), pairs, evaluators, **scoring)
+            for group, pairs in pair_sets.items()
+        }
     first_vae = next(iter(pipes.values())).vae
     for index, (name, pipe) in enumerate(pipes.items()):
         if index > 0 and same_weights(pipe.vae, first_vae):
@@ -443,6 +461,19 @@ def _score_references(
             _score_speckled(config, results, row, group, views, pairs, evaluators, device)
         logger.info("%s: %s", row, json.dumps(results[row]))
     return results
+
+
+def blurred_target_row(sigma_px: float) -> str:
+    """The row of the real targets blurred by ``sigma_px`` (``EvaluateConfig.blurred_target_sigmas_px``)."""
+    return f"real target blurred {sigma_px:g} px"
+
+
+def blurred(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
+    """Views ``(N, 1, H, W)`` blurred in the image plane by a Gaussian of ``sigma_px`` pixels (scipy's
+    ``gaussian_filter``, reflected border: the blur of
+    :func:`~sar_zero123.evaluation.evaluators.closer_to_target_depression`)."""
+    array = gaussian_filter(images.double().cpu().numpy(), sigma=(0.0, 0.0, sigma_px, sigma_px))
+    return torch.from_numpy(array).to(images.dtype).clamp(0.0, 1.0)
 
 
 def _score_speckled(

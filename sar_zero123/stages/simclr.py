@@ -89,6 +89,9 @@ class PretrainSimCLRConfig:
     global_batch_size: int = 256  # chips per step over all processes, split evenly (two views each)
     epochs: int = 500  # passes over the train split
     max_train_steps: int | None = None  # stop after this many steps (overrides epochs when smaller)
+    # stop at the first step after this many minutes of training (None: no limit); the cosine schedule is
+    # still the steps', so a run stopped by the clock ends before its learning rate reaches 0
+    max_train_minutes: float | None = None
     learning_rate: float = 0.06  # SGD peak learning rate (cosine annealing to 0)
     momentum: float = 0.9  # SGD momentum
     weight_decay: float = 5e-4  # SGD weight decay
@@ -114,6 +117,7 @@ class PretrainSimCLRConfig:
         optional_counts = ("max_train_steps", "max_train_chips", "checkpoints_total_limit")
         check_minimum(self, *optional_counts, minimum=1, optional=True)
         check_minimum(self, "learning_rate", "temperature", minimum=0, strict=True)
+        check_minimum(self, "max_train_minutes", minimum=0, strict=True, optional=True)
         check_minimum(self, "weight_decay", minimum=0)
         if not 0 <= self.momentum < 1:
             raise ValueError(f"momentum must lie in [0, 1), got {self.momentum}")

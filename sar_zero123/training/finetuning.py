@@ -41,6 +41,7 @@ from sar_zero123.runs.checkpoints import (
     resumable_batches,
     save_checkpoint,
 )
+from sar_zero123.runs.launch import all_out_of_time
 from sar_zero123.training.losses import LossOutput
 from sar_zero123.training.step import (
     ImageEmbedder,
@@ -55,7 +56,6 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "FinetuneInputs",
     "FinetuneTrainer",
-    "all_out_of_time",
     "ema_models",
     "export_finetuned",
     "finetuning_modules",
@@ -382,15 +382,3 @@ def train_finetune_steps(
             break
     progress.close()
     return global_step
-
-
-def all_out_of_time(accelerator: Accelerator, deadline: float) -> bool:
-    """Whether any process has passed ``deadline`` (every process then stops at the same step).
-
-    One process reads its clock alone; several agree through a reduction (a synchronisation with the device,
-    which their gradient all-reduce makes anyway).
-    """
-    if accelerator.num_processes == 1:
-        return time.monotonic() >= deadline
-    late = torch.tensor([float(time.monotonic() >= deadline)], device=accelerator.device)
-    return bool(accelerator.reduce(late, reduction="sum").item() > 0)

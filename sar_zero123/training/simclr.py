@@ -5,6 +5,7 @@ Used by the SimCLR stage (:func:`sar_zero123.stages.simclr.run_simclr`), which p
 
 from __future__ import annotations
 
+import logging
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -19,6 +20,9 @@ from sar_zero123.data import DecibelScaling
 from sar_zero123.encoder import nt_xent_loss
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.checkpoints import check_finite_step, save_checkpoint
+from sar_zero123.runs.launch import all_out_of_time
+
+logger = logging.getLogger(__name__)
 
 __all__ = ["SimCLRChips", "SimCLRLoopStats", "simclr_throughput", "train_simclr_steps"]
 
@@ -56,7 +60,8 @@ def train_simclr_steps(
     """Steps ``step`` to ``chips.max_steps`` with ``config``'s (a ``PretrainSimCLRConfig``) seed, batch,
     augmentation, temperature, logging and checkpoint settings. Each step's batch and augmentation draw
     depend only on (seed, step), so a resumed run continues the same sequence without storing generator
-    states."""
+    states. With ``config.max_train_minutes`` every process stops at the first step past that many minutes
+    (the step count reached is ``stats.step``)."""
     augmentation = config.augmentation()
     local_batch = config.global_batch_size // accelerator.num_processes
     rank = accelerator.process_index
@@ -64,6 +69,8 @@ def train_simclr_steps(
     order_generator = torch.Generator()
     order, order_epoch = None, -1
     stats = SimCLRLoopStats(step, float("nan"), 0.0, 0.0, 0)
+    minutes = getattr(config, "max_train_minutes", None)
+    deadline = None if minutes is None else time.monotonic() + 60.0 * minutes
     model.train()
     progress = progress_bar(
         total=chips.max_steps, initial=step, desc="simclr", disable=not accelerator.is_local_main_process
@@ -111,6 +118,9 @@ def train_simclr_steps(
                 accelerator, Path(config.output_dir), step, config.checkpoints_total_limit, {"epoch": epoch},
                 config=config,
             )  # fmt: skip
+        if deadline is not None and all_out_of_time(accelerator, deadline):
+            logger.info("max_train_minutes reached at step %d of %d", step, chips.max_steps)
+            break
     progress.close()
     stats.step = step
     return stats

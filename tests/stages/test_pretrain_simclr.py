@@ -67,6 +67,15 @@ def test_two_steps_write_encoder_metrics_and_logs(chip_folder, tmp_path):
     assert encoder(torch.rand(2, 1, 16, 16)).shape == (2, 8)
 
 
+def test_max_train_minutes_stops_after_the_first_step_past_it_and_saves_the_encoder(chip_folder, tmp_path):
+    out = tmp_path / "run"
+    argv = ["--data", str(chip_folder), "--output_dir", str(out), "--max_train_steps", "50", *TINY_ARGS]
+    metrics = pretrain_simclr.main([*argv, "--max_train_minutes", "1e-9"])
+    assert metrics["steps"] == 1 and (out / "encoder" / "model.safetensors").is_file()
+    with pytest.raises(ValueError, match="max_train_minutes must be > 0"):
+        pretrain_simclr.main([*argv[:3], str(tmp_path / "other"), *argv[4:], "--max_train_minutes", "0"])
+
+
 def test_resume_from_latest_reproduces_an_uninterrupted_run(chip_folder, tmp_path):
     script = pretrain_simclr
     common = ["--data", str(chip_folder), "--report_to", "none", "--preset", "simclr-full", *TINY_ARGS]
