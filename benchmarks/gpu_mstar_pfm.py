@@ -59,17 +59,30 @@ logger = logging.getLogger("gpu_mstar_pfm")
 UNBOUNDED_STEPS = 10_000_000
 
 
-def write_crops(data: str | Path, out: str | Path, image_size: int = 64) -> Path:
-    """Each chip of ``data`` as the ``image_size`` px centre crop the stages read, an 8-bit PNG in ``out``.
+def write_crops(data: str | Path, out: str | Path, image_size: int = 64, every: int = 1) -> Path:
+    """Each chip of ``data`` as the ``image_size`` px centre crop the stages read, an 8-bit PNG in ``out``;
+    with ``every`` > 1 only every ``every``-th chip of each class, serial and depression in azimuth order
+    (a sparser azimuth grid, for a call whose working tree would not fit otherwise).
 
     Raises:
         FileNotFoundError: If ``data`` has no chip index.
-        ValueError: If ``out`` already holds files, or a chip is not 8-bit (its crop would not be exact).
+        ValueError: If ``out`` already holds files, ``every`` < 1, or a chip is not 8-bit (its crop would
+            not be exact).
     """
     out = Path(out)
     if out.exists() and any(out.iterdir()):
         raise ValueError(f"out: {out} already holds files; give an empty or new folder")
+    if every < 1:
+        raise ValueError(f"every must be >= 1, got {every}")
     records = load_index(data)
+    if every > 1:
+        groups: dict[tuple, list] = {}
+        for record in records:
+            groups.setdefault((record.target_class, record.serial, record.depression_deg), []).append(record)
+        kept = set()
+        for group in groups.values():
+            kept.update(id(record) for record in sorted(group, key=lambda r: r.azimuth_deg)[::every])
+        records = [record for record in records if id(record) in kept]
     (out / "chips").mkdir(parents=True, exist_ok=True)
     cropped = []
     for number, record in enumerate(records):
@@ -165,6 +178,7 @@ def build_parser() -> argparse.ArgumentParser:
     crops.add_argument("--data", required=True, help="chip folder with index.csv (e.g. ../shared/data/mstar)")
     crops.add_argument("--out", required=True, help="new, git-ignored folder")
     crops.add_argument("--image_size", type=int, default=64)
+    crops.add_argument("--every", type=int, default=1, help="keep every K-th chip in azimuth (default: all)")
     call = commands.add_parser("run", help="the quickstart's stages under one time budget")
     call.add_argument("--data", required=True, help="chip folder (the crops above)")
     call.add_argument("--out", required=True, help="results.json and table3.md")
@@ -186,7 +200,7 @@ def main(argv: list[str] | None = None) -> None:
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(name)s %(message)s")
     if args.command == "crops":
-        print(write_crops(args.data, args.out, args.image_size))
+        print(write_crops(args.data, args.out, args.image_size, args.every))
         return
     for name in ("budget_minutes", "simclr_minutes", "eval_reserve_minutes"):
         if not getattr(args, name) > 0:

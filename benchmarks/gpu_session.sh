@@ -27,12 +27,7 @@ left() { echo $((LIMIT - ($(date +%s) - T0))); }
 minutes() { awk -v s="$1" 'BEGIN { printf "%.2f", (s > 0 ? s : 0) / 60 }'; }
 
 mkdir -p "$OUT"
-if ! python3 -c "import diffusers" 2>/dev/null; then
-    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site \
-        "$WHEELS"/*.whl || exit 1
-    export PYTHONPATH=/tmp/site:${PYTHONPATH:-}
-fi
-export PYTHONPATH=$PWD:${PYTHONPATH:-} TQDM_DISABLE=1 PYTHONUNBUFFERED=1
+source benchmarks/gpu_wheels.sh "$WHEELS" || exit 1
 LOG=$OUT/session.log  # one log: what comes back from the machine is at most eight files
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv >"$LOG" 2>&1
 

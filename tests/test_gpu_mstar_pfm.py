@@ -43,6 +43,11 @@ def test_crops_are_the_pixels_the_stages_read_and_keep_every_record(tmp_path):
         np.testing.assert_array_equal(load_chip(new.path, 16), load_chip(old.path, 16))  # exact
     with pytest.raises(ValueError, match="already holds files"):
         gpu_mstar_pfm.write_crops(source, tmp_path / "crops", image_size=16)
+    # every other chip of each class, serial and depression in azimuth order (serial s0: 7.5 and 247.5 deg)
+    sparse = load_index(gpu_mstar_pfm.write_crops(source, tmp_path / "sparse", image_size=16, every=2).parent)
+    assert sorted((r.target_class, r.serial, r.depression_deg, r.azimuth_deg) for r in sparse) == sorted(
+        (c, s, d, a) for c in "AB" for d in (15.0, 17.0) for s, a in (("s0", 7.5), ("s1", 127.5))
+    )
 
 
 def test_the_call_runs_the_quickstart_stages_with_its_budget_in_its_order(tmp_path):
