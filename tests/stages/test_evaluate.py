@@ -447,8 +447,13 @@ def test_evaluate_scores_speckled_rows_and_decodes_with_a_same_latent_vae(tmp_pa
         "--crop_size", "32", "--eval_batch_size", "2", "--num_figure_pairs", "0", "--device", "cpu",
     ]  # fmt: skip
     with pytest.warns(UserWarning, match="rank-deficient"):
-        evaluate.main([*base, "--speckle_looks", "1", "--output_dir", str(tmp_path / "speckled")])
+        evaluate.main([*base, "--speckle_looks", "1", "--blurred_target_sigmas_px", "1.5",
+                       "--output_dir", str(tmp_path / "speckled")])  # fmt: skip
     table3 = json.loads((tmp_path / "speckled" / "table3.json").read_text())["results"]
+    # the blurred targets: a reference row below the real target, scored as a model is (its gap closed too)
+    blurred_row = table3[stage.blurred_target_row(1.5)]["seen"]
+    assert blurred_row["ms_ssim"] < table3[REAL_TARGET]["seen"]["ms_ssim"]
+    assert "azimuth_gap_closed" in blurred_row
     speckled_rows = {f"{VAE_ROUND_TRIP} + speckle", "pipe + speckle"}
     assert (
         speckled_rows <= set(table3)
@@ -470,3 +475,17 @@ def test_evaluate_scores_speckled_rows_and_decodes_with_a_same_latent_vae(tmp_pa
     assert not (tmp_path / "refused" / "run.json").exists()
     with pytest.raises(ValueError, match="speckle_looks must be an integer >= 1"):
         EvaluateConfig(pipeline=["p"], speckle_looks=0)
+
+
+def test_blurred_targets_are_gaussian_filtered_in_the_image_plane_and_bounded() -> None:
+    from scipy.ndimage import gaussian_filter
+
+    images = torch.rand(3, 1, 12, 12, generator=torch.Generator().manual_seed(0))
+    expected = gaussian_filter(images.double().numpy(), sigma=(0, 0, 2.0, 2.0))
+    torch.testing.assert_close(stage.blurred(images, 2.0), torch.from_numpy(expected).float())
+    constant = torch.full((1, 1, 8, 8), 0.25)
+    torch.testing.assert_close(stage.blurred(constant, 3.0), constant)  # a flat view stays flat
+    assert stage.blurred_target_row(1.5) == "real target blurred 1.5 px"
+    for sigmas, match in (([0.0], r"must lie in \(0, 64\]"), ([1.0, 1.0], "at most 8 distinct values")):
+        with pytest.raises(ValueError, match=match):
+            EvaluateConfig(pipeline=["p"], blurred_target_sigmas_px=sigmas)
