@@ -642,10 +642,15 @@ def closer_to_target_depression(
         )
     if sigma_px < 0:
         raise ValueError(f"sigma_px must be >= 0, got {sigma_px}")
-    blurred = [gaussian_filter(v, sigma=(0.0, 0.0, sigma_px, sigma_px)) for v in views]
-    generated_blurred, target_blurred, input_depression_blurred = blurred
+    generated_blurred, target_blurred, input_depression_blurred = (blur_views(v, sigma_px) for v in views)
     to_target = _pearson(generated_blurred, target_blurred)
     return torch.from_numpy(to_target > _pearson(generated_blurred, input_depression_blurred))
+
+
+def blur_views(views: np.ndarray, sigma_px: float) -> np.ndarray:
+    """Views `(N, C, H, W)` blurred in the image plane by a Gaussian of `sigma_px` pixels (scipy's
+    `gaussian_filter`, reflected border); channels and views are not mixed."""
+    return gaussian_filter(views, sigma=(0.0, 0.0, sigma_px, sigma_px))
 
 
 def _pearson(a: np.ndarray, b: np.ndarray) -> np.ndarray:

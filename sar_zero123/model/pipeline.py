@@ -32,7 +32,6 @@ from transformers import CLIPVisionModelWithProjection
 from sar_zero123.domain import signed_to_unit
 from sar_zero123.model.conditioning import (
     POSE_DIM,
-    SIMULATOR_ROTATION_SIGN,
     PoseProjection,
     as_angle_tensor,
     check_vae_signature,
@@ -649,7 +648,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         if denoising_steps < num_inference_steps:  # the input's own latent, noised to the first timestep
             start_latents = condition_latents[-num_samples:]
             if start_from == "turned_input":
-                rotation_sign = getattr(self.pose_projection.config, "rotation_sign", SIMULATOR_ROTATION_SIGN)
+                rotation_sign = self.pose_projection.config.rotation_sign
                 start_latents = rotate_condition_latents(start_latents, sample_pose, rotation_sign)
             start_latents = start_latents * self.vae.config.scaling_factor
             latents = self.scheduler.add_noise(start_latents, latents, timesteps[:1].repeat(num_samples))

@@ -30,11 +30,10 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from scipy.ndimage import gaussian_filter
 
 from sar_zero123.augment import readd_speckle
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
-from sar_zero123.evaluation.evaluators import Evaluators, load_evaluators
+from sar_zero123.evaluation.evaluators import Evaluators, blur_views, load_evaluators
 from sar_zero123.evaluation.protocol import (
     INPUT_COPY,
     PAPER_TABLE3,
@@ -469,10 +468,9 @@ def blurred_target_row(sigma_px: float) -> str:
 
 
 def blurred(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
-    """Views ``(N, 1, H, W)`` blurred in the image plane by a Gaussian of ``sigma_px`` pixels (scipy's
-    ``gaussian_filter``, reflected border: the blur of
-    :func:`~sar_zero123.evaluation.evaluators.closer_to_target_depression`)."""
-    array = gaussian_filter(images.double().cpu().numpy(), sigma=(0.0, 0.0, sigma_px, sigma_px))
+    """Views ``(N, 1, H, W)`` in [0, 1] blurred by :func:`~sar_zero123.evaluation.evaluators.blur_views` (the
+    blur of :func:`~sar_zero123.evaluation.evaluators.closer_to_target_depression`), in float64."""
+    array = blur_views(images.double().cpu().numpy(), sigma_px)
     return torch.from_numpy(array).to(images.dtype).clamp(0.0, 1.0)
 
 
