@@ -117,6 +117,9 @@ def _with_budget(plan: StagePlan, args: argparse.Namespace, minutes: float | Non
     if isinstance(config, PretrainSimCLRConfig):
         config = dataclasses.replace(config, max_train_minutes=args.simclr_minutes)
     elif isinstance(config, FinetuneConfig):
+        if config.lr_scheduler not in ("constant", "constant_with_warmup"):  # set over UNBOUNDED_STEPS
+            raise ValueError(f"stage {plan.name}: lr_scheduler {config.lr_scheduler!r} would decay over "
+                             f"{UNBOUNDED_STEPS:,} steps; a fine-tune bounded by minutes takes 'constant'")
         config = dataclasses.replace(config, max_train_minutes=minutes, max_train_steps=UNBOUNDED_STEPS,
                                      checkpointing_steps=UNBOUNDED_STEPS, cache_on_device=True)  # fmt: skip
     elif isinstance(config, EvaluateConfig):
