@@ -155,6 +155,32 @@ class SAREncoder(nn.Module):
         Raises:
             ValueError: If `x` has the wrong rank, channel count or spatial size, or is not floating.
         """
+        x = self._checked_input(x)
+        # Zero-centre the [0, 1] normalised dB so the stem sees a symmetric input range.
+        hidden = self.resnet(unit_to_signed(x), return_dict=True).pooler_output  # (B, D, 1, 1)
+        return hidden.flatten(1)  # (B, D)
+
+    def stage_features(self, x: torch.Tensor) -> list[torch.Tensor]:
+        """The feature maps at the end of each ResNet stage, before pooling (for LPIPS-style distances).
+
+        Args:
+            x: Chips in normalised decibels, as for :meth:`forward`.
+
+        Returns:
+            One map per stage, ``hidden_sizes[i]`` channels each; the last one pooled is :meth:`forward`.
+
+        Shape:
+            x: (B, C, image_size, image_size); output ``i``: (B, hidden_sizes[i], H_i, W_i).
+
+        Raises:
+            ValueError: As :meth:`forward`.
+        """
+        x = self._checked_input(x)
+        output = self.resnet(unit_to_signed(x), output_hidden_states=True, return_dict=True)
+        return list(output.hidden_states[1:])  # hidden_states[0] is the stem's output
+
+    def _checked_input(self, x: torch.Tensor) -> torch.Tensor:
+        """``x`` validated and expanded to ``in_channels`` (see :meth:`forward`)."""
         if x.ndim != 4:
             raise ValueError(f"x must have shape (B, C, H, W), got rank {x.ndim} shape {tuple(x.shape)}")
         if not torch.is_floating_point(x):
@@ -167,9 +193,7 @@ class SAREncoder(nn.Module):
             raise ValueError(f"x must be {size}x{size} (image_size), got {tuple(x.shape[-2:])}")
         if channels != self.config.in_channels:
             x = x.expand(-1, self.config.in_channels, -1, -1)  # (B, 3, H, W)
-        # Zero-centre the [0, 1] normalised dB so the stem sees a symmetric input range.
-        hidden = self.resnet(unit_to_signed(x), return_dict=True).pooler_output  # (B, D, 1, 1)
-        return hidden.flatten(1)  # (B, D)
+        return x
 
     def save_pretrained(self, save_directory: str | Path) -> Path:
         """Writes `config.json` and `model.safetensors` into `save_directory`.

@@ -72,8 +72,10 @@ from sar_zero123.training.finetuning import (
     training_image_size,
 )
 from sar_zero123.training.losses import (
+    PFM_FEATURES,
     TRAINED_PREDICTION_TYPES,
     LossSettings,
+    PfmFeatures,
     check_pfm_crop_size,
     check_prediction_type,
     load_pfm_encoder,
@@ -130,6 +132,8 @@ class FinetuneConfig(LossSettings):
     # sar_zero123.model.conditioning.unet_condition_latents); None: zero-1-to-3's condition latent alone
     spatial_pose: str | None = None
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
+    # "normalized" and "stages" are departures from the paper (docs/results/pfm.md, section 10)
+    pfm_features: PfmFeatures = "pooled"  # PFM's features: Eq. 20's pooled, unit length or all stages (LPIPS)
     # PFM only in the steps [pfm_start_step, pfm_stop_step) of the run (the others train L_simple alone):
     # a warm-up without PFM, or PFM switched off late; the paper uses it in every step
     pfm_start_step: int = 0  # first optimisation step with PFM (0: from the start)
@@ -186,6 +190,13 @@ class FinetuneConfig(LossSettings):
                   "logging_steps", "num_validation_images", "validation_inference_steps")  # fmt: skip
         check_minimum(self, *counts, minimum=1)
         check_minimum(self, "pfm_projection_dim", "checkpoints_total_limit", minimum=1, optional=True)
+        if self.pfm_features not in PFM_FEATURES:
+            raise ValueError(f"pfm_features must be one of {PFM_FEATURES}, got {self.pfm_features!r}")
+        if self.pfm_projection_dim is not None and self.pfm_features != "pooled":
+            raise ValueError(
+                f"pfm_projection_dim: the random projection applies to pooled features only, got "
+                f"pfm_features={self.pfm_features!r}; set pfm_projection_dim to null"
+            )
         check_minimum(self, "pfm_start_step", minimum=0)
         if self.pfm_stop_step is not None and not self.pfm_stop_step > self.pfm_start_step:
             raise ValueError(
@@ -323,7 +334,8 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneIn
     encoder = None
     if config.pfm_weight > 0:
         encoder = load_pfm_encoder(
-            config.encoder, image_size=image_size, projection_dim=config.pfm_projection_dim, seed=config.seed
+            config.encoder, image_size=image_size, projection_dim=config.pfm_projection_dim, seed=config.seed,
+            features=config.pfm_features,
         )
     train_dataset, validation_dataset, scaling = train_validation_pairs(
         config.data,

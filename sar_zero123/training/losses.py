@@ -25,7 +25,7 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 import torch.nn.functional as F
@@ -311,6 +311,82 @@ class ProjectedFeatureEncoder(nn.Module):
                   str(Path(directory) / PFM_PROJECTION_FILE))
 
 
+#: What PFM's encoder returns (``FinetuneConfig.pfm_features``): "pooled", Eq. (20)'s pooled feature;
+#: "normalized", that feature on the unit sphere; "stages", every stage's map, LPIPS-style.
+PfmFeatures = Literal["pooled", "normalized", "stages"]
+PFM_FEATURES: tuple[str, ...] = get_args(PfmFeatures)
+
+#: Added under the square root of the channel norms of :class:`StageFeatureEncoder` (LPIPS uses 1e-10):
+#: keeps the normalisation and its gradient finite where a ReLU map is zero at a position.
+_NORM_EPS = 1.0e-10
+
+
+class NormalizedFeatureEncoder(nn.Module):
+    """A frozen SAR encoder whose pooled feature is divided by its L2 norm (a departure from Eq. 20).
+
+    SimCLR's loss compares features by their cosine only (NT-Xent on normalised projections), so the
+    length of ``f(x)`` is not something the encoder was trained to make meaningful. With unit features
+    ``||u - v||^2 = 2 - 2 cos(u, v)``: PFM then matches the direction of the target's feature alone.
+
+    Args:
+        encoder: The frozen SAR encoder (``forward((B, 1, S, S)) -> (B, D)``).
+    """
+
+    def __init__(self, encoder: nn.Module) -> None:
+        super().__init__()
+        self.encoder = encoder
+        self.config = encoder.config
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        features = self.encoder(images).float()
+        return features / torch.sqrt(features.pow(2).sum(dim=1, keepdim=True) + _NORM_EPS)
+
+
+class StageFeatureEncoder(nn.Module):
+    """Every stage's feature map, LPIPS-style (Zhang et al., 2018, Eq. 1 with unit weights): a departure
+    from Eq. 20, which matches only the last stage, pooled.
+
+    Each stage's map is normalised to unit length along its channels at every position and divided by
+    ``sqrt(H_i W_i)``, and the stages are concatenated, so that the squared distance :func:`pfm_loss` takes
+    of two outputs is ``sum_i mean_(h, w) ||u_i(h, w) - v_i(h, w)||^2``: LPIPS without its learned channel
+    weights (which need human judgements no SAR data set has). Unlike the pooled feature, the maps keep
+    *where* the features are, so the distance sees a turned footprint even where a pooled feature would
+    not.
+
+    Args:
+        encoder: A frozen :class:`~sar_zero123.encoder.SAREncoder` (``stage_features``).
+    """
+
+    def __init__(self, encoder: nn.Module) -> None:
+        super().__init__()
+        if not hasattr(encoder, "stage_features"):
+            raise ValueError("pfm_features='stages' needs a SAREncoder (it reads stage_features)")
+        self.encoder = encoder
+        self.config = encoder.config
+
+    def forward(self, images: torch.Tensor) -> torch.Tensor:
+        parts = []
+        for hidden in self.encoder.stage_features(images):
+            hidden = hidden.float()
+            unit = hidden / torch.sqrt(hidden.pow(2).sum(dim=1, keepdim=True) + _NORM_EPS)
+            parts.append(unit.flatten(1) / math.sqrt(hidden.shape[-2] * hidden.shape[-1]))
+        return torch.cat(parts, dim=1)
+
+
+def pfm_feature_encoder(encoder: nn.Module, features: str) -> nn.Module:
+    """``encoder`` returning the features named by ``features`` (one of :data:`PFM_FEATURES`), frozen.
+
+    Raises:
+        ValueError: For an unknown name.
+    """
+    if features not in PFM_FEATURES:
+        raise ValueError(f"pfm_features must be one of {PFM_FEATURES}, got {features!r}")
+    if features == "pooled":
+        return encoder
+    wrapper = NormalizedFeatureEncoder if features == "normalized" else StageFeatureEncoder
+    return wrapper(encoder).eval().requires_grad_(False)
+
+
 def project_encoder_features(encoder: nn.Module, projection_dim: int | None, *, seed: int = 0) -> nn.Module:
     """``encoder`` unchanged when ``projection_dim`` is None, else wrapped in a seeded
     :class:`ProjectedFeatureEncoder` (the paper-comparable PFM with ``projection_dim = 10``)."""
@@ -321,21 +397,30 @@ def project_encoder_features(encoder: nn.Module, projection_dim: int | None, *, 
 
 
 def load_pfm_encoder(
-    path: str | Path, *, image_size: int, projection_dim: int | None = None, seed: int = 0
+    path: str | Path, *, image_size: int, projection_dim: int | None = None, seed: int = 0,
+    features: str = "pooled",
 ) -> nn.Module:
     """The frozen SAR encoder ``f`` of Eq. (20), checked against the training resolution; with
-    ``projection_dim`` followed by the seeded random projection (:func:`project_encoder_features`).
+    ``projection_dim`` followed by the seeded random projection (:func:`project_encoder_features`), with
+    ``features`` other than ``"pooled"`` returning those features (:func:`pfm_feature_encoder`).
 
     Args:
         path: A ``SAREncoder.save_pretrained`` folder (``train/pretrain_simclr.py``'s ``encoder/``).
         image_size: The chip side the diffusion model trains on.
         projection_dim: ``None`` (full features) or ``k`` (the paper-comparable projection).
         seed: Seed of the projection.
+        features: One of :data:`PFM_FEATURES`; only ``"pooled"`` takes a projection.
 
     Raises:
         FileNotFoundError: If the folder or its files are missing.
-        ValueError: If the encoder was trained at another resolution.
+        ValueError: If the encoder was trained at another resolution, or a projection is asked of other
+            than pooled features.
     """
+    if features not in PFM_FEATURES:
+        raise ValueError(f"pfm_features must be one of {PFM_FEATURES}, got {features!r}")
+    if projection_dim is not None and features != "pooled":
+        raise ValueError(f"pfm_projection_dim: the random projection applies to pooled features only, "
+                         f"got pfm_features={features!r}; set pfm_projection_dim to null")
     encoder = SAREncoder.from_pretrained(path)
     if encoder.config.image_size != image_size:
         raise ValueError(
@@ -344,7 +429,7 @@ def load_pfm_encoder(
             f"{encoder.config.image_size}"
         )
     encoder = encoder.eval().requires_grad_(False)
-    return project_encoder_features(encoder, projection_dim, seed=seed)
+    return pfm_feature_encoder(project_encoder_features(encoder, projection_dim, seed=seed), features)
 
 
 def _require_frozen(module: nn.Module, name: str) -> None:
@@ -524,6 +609,36 @@ def pfm_timestep_mask(timesteps: torch.Tensor, scheduler,
     return signal_to_noise_ratio(scheduler, timesteps) >= min_snr
 
 
+def pfm_snr_weights(timesteps: torch.Tensor, scheduler, gamma: float) -> torch.Tensor:
+    """Per-sample weights ``min(SNR(t), gamma) / gamma`` of PFM: Min-SNR-gamma for a loss on x0, scaled to 1.
+
+    Not in the paper (Eq. 21 weights PFM alike at every t). PFM is a distance between functions of the
+    target and of the one-step estimate x0_hat, whose error for a given noise-prediction error grows as
+    ``1 / SNR(t)``: unweighted, the noisiest timesteps, where x0_hat is a blur, give PFM most of its
+    gradient (docs/results/pfm.md, section 6: 8-700 times L_simple's above t = 300). Min-SNR-gamma (Hang
+    et al., 2023) weights an x0-space loss by ``min(SNR, gamma)``; divided by ``gamma`` the weight is 1
+    wherever ``SNR(t) >= gamma`` and falls in proportion to the SNR above, a smooth form of
+    :func:`pfm_timestep_mask`'s hard threshold.
+
+    Args:
+        timesteps: Integer timesteps.
+        scheduler: A diffusers noise scheduler.
+        gamma: ``> 0``; the SNR from which PFM has its full weight (5 as Min-SNR-5 of L_simple).
+
+    Returns:
+        Float32 weights in ``[0, 1]``.
+
+    Shape:
+        ``(B,) -> (B,)``.
+
+    Raises:
+        ValueError: If ``gamma`` is not positive and finite.
+    """
+    if not (gamma > 0 and math.isfinite(gamma)):
+        raise ValueError(f"pfm_snr_gamma must be a positive finite number, got {gamma}")
+    return signal_to_noise_ratio(scheduler, timesteps).clamp(max=gamma) / gamma
+
+
 @dataclass
 class LossSettings:
     """Everything that shapes the loss of a training step, declared once: the fine-tune's config is a
@@ -550,6 +665,8 @@ class LossSettings:
     # a random monotonic map (Algorithm 1) with this many levels, one per sample and step, applied to both
     # images before PFM's encoder (after E-LPIPS; a departure from Eq. 20); 0 = off, the paper's PFM
     pfm_monotonic_q: int = 0
+    # pfm_snr_weights, a departure from Eq. 21 (None: the paper's equal weight at every t)
+    pfm_snr_gamma: float | None = None  # PFM per sample times min(SNR(t), gamma) / gamma; None: equal weight
     drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
     drop_both_prob: float = 0.05  # CFG dropout: projected token and condition latent (the sampling null)
     drop_latent_prob: float = 0.05  # CFG dropout: condition latent only
@@ -566,6 +683,7 @@ class LossSettings:
         check_minimum(self, "pfm_crop_size", minimum=1, optional=True)
         if self.pfm_balance not in PFM_BALANCES:
             raise ValueError(f"pfm_balance must be one of {PFM_BALANCES}, got {self.pfm_balance!r}")
+        check_minimum(self, "pfm_snr_gamma", minimum=0, strict=True, optional=True)
         if self.pfm_monotonic_q == 1 or self.pfm_monotonic_q < 0:
             raise ValueError(f"pfm_monotonic_q must be 0 (off) or >= 2 levels, got {self.pfm_monotonic_q}")
         probs = (self.drop_image_prob, self.drop_both_prob, self.drop_latent_prob)
@@ -629,6 +747,7 @@ def total_loss(
     denoising_weights: torch.Tensor | None = None,
     pfm_balance: str = "none",
     pfm_monotonic_q: int = 0,
+    pfm_snr_gamma: float | None = None,
 ) -> LossOutput:
     """L = L_simple + lambda * L_PFM, Eq. (21); ``pfm_weight = 0`` is plain zero-1-to-3 fine-tuning and
     skips every PFM computation (no decode, no encoder pass). The only place Eq. (21) is assembled.
@@ -654,6 +773,8 @@ def total_loss(
             L_simple's at the network output (a departure from the paper, ``docs/results/pfm.md``).
         pfm_monotonic_q: ``Q >= 2``: one random monotonic map with Q levels per PFM sample, drawn once per
             call from ``generator`` and applied to both images before the encoder (:func:`pfm_loss`); 0: off.
+        pfm_snr_gamma: ``gamma > 0``: each sample's PFM times :func:`pfm_snr_weights` (before the
+            balance, so the adaptive scale sees the weighted term); None: Eq. 21's equal weight.
 
     Returns:
         A :class:`LossOutput` of per-sample tensors (``denoising`` already weighted).
@@ -687,6 +808,9 @@ def total_loss(
                 order = torch.randperm(eligible.numel(), generator=generator, device="cpu")
                 eligible = eligible[order[:keep].to(eligible.device)]
             mask[eligible] = True
+            snr_weights = None
+            if pfm_snr_gamma is not None:
+                snr_weights = pfm_snr_weights(timesteps[eligible], scheduler, pfm_snr_gamma)
             tables = None  # drawn once: the balanced form evaluates pfm_of on the same maps
             if pfm_monotonic_q:
                 tables = sample_monotonic_map(keep, pfm_monotonic_q, generator=generator)
@@ -695,6 +819,8 @@ def total_loss(
                 x0_hat = estimate_x0(x_t[eligible], output[eligible], timesteps[eligible], scheduler)
                 values = pfm_loss(x0_hat, target_images[eligible], vae, encoder, crop_size=crop_size,
                                   codomain_tables=tables)  # fmt: skip
+                if snr_weights is not None:
+                    values = values * snr_weights
                 return torch.zeros_like(denoising).index_put((eligible,), values * (num_eligible / keep))
 
             if pfm_balance == "none":
