@@ -684,6 +684,8 @@ class LossSettings:
         if self.pfm_balance not in PFM_BALANCES:
             raise ValueError(f"pfm_balance must be one of {PFM_BALANCES}, got {self.pfm_balance!r}")
         check_minimum(self, "pfm_snr_gamma", minimum=0, strict=True, optional=True)
+        if self.pfm_snr_gamma is not None and not math.isfinite(self.pfm_snr_gamma):
+            raise ValueError(f"pfm_snr_gamma must be finite or None, got {self.pfm_snr_gamma}")
         if self.pfm_monotonic_q == 1 or self.pfm_monotonic_q < 0:
             raise ValueError(f"pfm_monotonic_q must be 0 (off) or >= 2 levels, got {self.pfm_monotonic_q}")
         probs = (self.drop_image_prob, self.drop_both_prob, self.drop_latent_prob)
