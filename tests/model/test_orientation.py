@@ -158,9 +158,10 @@ def test_pipeline_with_estimator_round_trips_and_turns_with_the_pose(
     loaded = SARZero123Pipeline.from_pretrained(tmp_path)
     loaded.set_progress_bar_config(disable=True)
     assert isinstance(loaded.azimuth_estimator, AzimuthEstimator)
-    assert torch.equal(run(loaded, 30.0), reference)
+    # the same weights, to float rounding: a reloaded module may take other CPU kernels (6e-7 on AMD EPYC)
+    torch.testing.assert_close(run(loaded, 30.0), reference, rtol=0, atol=1e-5)
     # the turned azimuth reaches the UNet: same seed, other pose, other output
-    assert not torch.equal(run(pipe, 210.0), reference)
+    assert (run(pipe, 210.0) - reference).abs().max() > 1e-3
 
 
 def _batch() -> dict:
