@@ -104,40 +104,40 @@ def main(argv=None) -> dict:
             train.features.shape[1], args.projection_dim, seed=args.seed
         )
     evaluators = load_evaluators(args.evaluators, device=device)
-    image_size = SARZero123Pipeline.from_pretrained(args.pipeline[0]).default_image_size  # the pairs' size
+    first = SARZero123Pipeline.from_pretrained(args.pipeline[0])  # its chip size is the pairs'
     pairs = build_pair_sets(
-        evaluators, data=args.data, protocol=args.protocol, n=args.n, seed=args.seed, image_size=image_size,
-        work_dir=args.out.parent, evaluators_name=args.evaluators,
+        evaluators, data=args.data, protocol=args.protocol, n=args.n, seed=args.seed,
+        image_size=first.default_image_size, work_dir=args.out.parent, evaluators_name=args.evaluators,
     )  # fmt: skip
-    chips = [encode(encoder, images, pair_set.labels, pair_set.target_azimuth_deg)
-             for pair_set in pairs.values() for images in (pair_set.inputs, pair_set.targets)]  # fmt: skip
+    # the floor and the ceiling: the pairs' own chips, encoded once (also to leave them out of the probes)
+    chips = {(name, group): encode(encoder, images, pair_set.labels, pair_set.target_azimuth_deg)
+             for group, pair_set in pairs.items()
+             for name, images in (("input copy (floor)", pair_set.inputs),
+                                  ("real target (ceiling)", pair_set.targets))}  # fmt: skip
     excluded = len(train.labels)
-    train = without_chips(train, *chips)
+    train = without_chips(train, *chips.values())
     excluded -= len(train.labels)
     rows = []
-    sources: list[tuple[str, str | None]] = [("input copy (floor)", None), ("real target (ceiling)", None)]
-    sources += list(zip(args.pipeline_names, args.pipeline, strict=True))
-    for name, path in sources:
-        pipe = None
-        if path is not None:
-            pipe = SARZero123Pipeline.from_pretrained(path)
-            pipe.set_progress_bar_config(disable=True)
+
+    def add_rows(name: str, group: str, test: FeatureSet) -> None:
+        for features, weight in weights.items():
+            row = {"model": name, "group": group, "features": features, "n": len(test.labels),
+                   **readouts(train, test, weight, args.epochs)}  # fmt: skip
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+
+    for name in dict.fromkeys(name for name, _ in chips):  # floor, then ceiling; each group in order
+        for group in pairs:
+            add_rows(name, group, chips[name, group])
+    for index, (name, path) in enumerate(zip(args.pipeline_names, args.pipeline, strict=True)):
+        pipe = first if index == 0 else SARZero123Pipeline.from_pretrained(path)
+        pipe.set_progress_bar_config(disable=True)
         for group, pair_set in pairs.items():
-            if name.startswith("input copy"):
-                images = pair_set.inputs
-            elif name.startswith("real target"):
-                images = pair_set.targets
-            else:
-                images, _ = generate_pair_targets(
-                    pipe, pair_set, num_inference_steps=args.num_inference_steps,
-                    guidance_scale=args.guidance_scale, batch_size=16, device=device,
-                )  # fmt: skip
-            test = encode(encoder, images, pair_set.labels, pair_set.target_azimuth_deg)
-            for features, weight in weights.items():
-                row = {"model": name, "group": group, "features": features, "n": len(pair_set),
-                       **readouts(train, test, weight, args.epochs)}  # fmt: skip
-                rows.append(row)
-                print(json.dumps(row), flush=True)
+            images, _ = generate_pair_targets(
+                pipe, pair_set, num_inference_steps=args.num_inference_steps,
+                guidance_scale=args.guidance_scale, batch_size=16, device=device,
+            )  # fmt: skip
+            add_rows(name, group, encode(encoder, images, pair_set.labels, pair_set.target_azimuth_deg))
     result = {"args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},
               "n_train": len(train.labels), "n_excluded": excluded, "seconds": time.perf_counter() - start,
               "rows": rows}  # fmt: skip

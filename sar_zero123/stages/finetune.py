@@ -72,11 +72,11 @@ from sar_zero123.training.finetuning import (
     training_image_size,
 )
 from sar_zero123.training.losses import (
-    PFM_FEATURES,
     TRAINED_PREDICTION_TYPES,
     LossSettings,
     PfmFeatures,
     check_pfm_crop_size,
+    check_pfm_features,
     check_prediction_type,
     load_pfm_encoder,
 )
@@ -190,13 +190,7 @@ class FinetuneConfig(LossSettings):
                   "logging_steps", "num_validation_images", "validation_inference_steps")  # fmt: skip
         check_minimum(self, *counts, minimum=1)
         check_minimum(self, "pfm_projection_dim", "checkpoints_total_limit", minimum=1, optional=True)
-        if self.pfm_features not in PFM_FEATURES:
-            raise ValueError(f"pfm_features must be one of {PFM_FEATURES}, got {self.pfm_features!r}")
-        if self.pfm_projection_dim is not None and self.pfm_features != "pooled":
-            raise ValueError(
-                f"pfm_projection_dim: the random projection applies to pooled features only, got "
-                f"pfm_features={self.pfm_features!r}; set pfm_projection_dim to null"
-            )
+        check_pfm_features(self.pfm_features, self.pfm_projection_dim)
         check_minimum(self, "pfm_start_step", minimum=0)
         if self.pfm_stop_step is not None and not self.pfm_stop_step > self.pfm_start_step:
             raise ValueError(

@@ -321,6 +321,25 @@ PFM_FEATURES: tuple[str, ...] = get_args(PfmFeatures)
 _NORM_EPS = 1.0e-10
 
 
+def check_pfm_features(features: str, projection_dim: int | None = None) -> None:
+    """Refuse an unknown ``pfm_features`` name, or the random projection of other than pooled features.
+
+    Raises:
+        ValueError: Naming the field (``pfm_features`` or ``pfm_projection_dim``) and what is expected.
+    """
+    if features not in PFM_FEATURES:
+        raise ValueError(f"pfm_features must be one of {PFM_FEATURES}, got {features!r}")
+    if projection_dim is not None and features != "pooled":
+        raise ValueError(f"pfm_projection_dim: the random projection applies to pooled features only, "
+                         f"got pfm_features={features!r}; set pfm_projection_dim to null")
+
+
+def _unit_along_channels(features: torch.Tensor) -> torch.Tensor:
+    """``features`` (float32) divided by their L2 norm along dim 1, finite where that norm is 0."""
+    features = features.float()
+    return features / torch.sqrt(features.pow(2).sum(dim=1, keepdim=True) + _NORM_EPS)
+
+
 class NormalizedFeatureEncoder(nn.Module):
     """A frozen SAR encoder whose pooled feature is divided by its L2 norm (a departure from Eq. 20).
 
@@ -338,8 +357,7 @@ class NormalizedFeatureEncoder(nn.Module):
         self.config = encoder.config
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        features = self.encoder(images).float()
-        return features / torch.sqrt(features.pow(2).sum(dim=1, keepdim=True) + _NORM_EPS)
+        return _unit_along_channels(self.encoder(images))
 
 
 class StageFeatureEncoder(nn.Module):
@@ -367,8 +385,7 @@ class StageFeatureEncoder(nn.Module):
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         parts = []
         for hidden in self.encoder.stage_features(images):
-            hidden = hidden.float()
-            unit = hidden / torch.sqrt(hidden.pow(2).sum(dim=1, keepdim=True) + _NORM_EPS)
+            unit = _unit_along_channels(hidden)
             parts.append(unit.flatten(1) / math.sqrt(hidden.shape[-2] * hidden.shape[-1]))
         return torch.cat(parts, dim=1)
 
@@ -379,8 +396,7 @@ def pfm_feature_encoder(encoder: nn.Module, features: str) -> nn.Module:
     Raises:
         ValueError: For an unknown name.
     """
-    if features not in PFM_FEATURES:
-        raise ValueError(f"pfm_features must be one of {PFM_FEATURES}, got {features!r}")
+    check_pfm_features(features)
     if features == "pooled":
         return encoder
     wrapper = NormalizedFeatureEncoder if features == "normalized" else StageFeatureEncoder
@@ -416,11 +432,7 @@ def load_pfm_encoder(
         ValueError: If the encoder was trained at another resolution, or a projection is asked of other
             than pooled features.
     """
-    if features not in PFM_FEATURES:
-        raise ValueError(f"pfm_features must be one of {PFM_FEATURES}, got {features!r}")
-    if projection_dim is not None and features != "pooled":
-        raise ValueError(f"pfm_projection_dim: the random projection applies to pooled features only, "
-                         f"got pfm_features={features!r}; set pfm_projection_dim to null")
+    check_pfm_features(features, projection_dim)
     encoder = SAREncoder.from_pretrained(path)
     if encoder.config.image_size != image_size:
         raise ValueError(

@@ -14,6 +14,7 @@ from torch import nn
 from sar_zero123.augment.codomain import apply_lookup_table, sample_monotonic_map
 from sar_zero123.training.losses import (
     DEFAULT_PFM_MIN_SNR,
+    MAX_PFM_BALANCE,
     MIN_ALPHA_CUMPROD,
     PFM_FEATURES,
     PFM_PROJECTION_FILE,
@@ -640,7 +641,8 @@ def test_total_loss_weights_each_pfm_sample_by_its_snr_weight(vae, encoder, bala
     generator = torch.Generator().manual_seed(5)
     x_t = torch.randn(3, 4, 16, 16, generator=generator)
     output = torch.randn(3, 4, 16, 16, generator=generator)
-    target, images = torch.zeros(3, 4, 16, 16), torch.rand(3, 1, 32, 32, generator=generator)
+    target = output + 0.01 * torch.randn(3, 4, 16, 16, generator=generator)  # L_simple's pull below the cap
+    images = torch.rand(3, 1, 32, 32, generator=generator)
     timesteps = torch.tensor([10, 300, 900])
     kwargs = dict(pfm_weight=2.0, target_images=images, vae=vae, encoder=encoder, pfm_min_snr=0.0,
                   pfm_balance=balance)
@@ -651,7 +653,16 @@ def test_total_loss_weights_each_pfm_sample_by_its_snr_weight(vae, encoder, bala
     torch.testing.assert_close(weighted.denoising, plain.denoising)
     if balance == "none":
         torch.testing.assert_close(weighted.loss, weighted.denoising + 2.0 * plain.pfm * weights)
-    else:  # the balance sees the weighted term: lambda * scale * PFM still pulls 2 x L_simple
+    else:  # the balance sees the weighted term: its scale is ||grad L_simple|| / ||grad of the weighted PFM||
+        leaf = output.clone().requires_grad_(True)
+        reference = total_loss(leaf, target, x_t, timesteps, scheduler, pfm_weight=1.0, target_images=images,
+                               vae=vae, encoder=encoder, pfm_min_snr=0.0, pfm_snr_gamma=5.0)  # fmt: skip
+        (grad_simple,) = torch.autograd.grad(reference.denoising.sum(), leaf, retain_graph=True)
+        (grad_pfm,) = torch.autograd.grad(reference.pfm.sum(), leaf)
+        expected = (grad_simple.norm() / grad_pfm.norm()).detach()
+        assert expected < MAX_PFM_BALANCE
+        torch.testing.assert_close(weighted.pfm_scale, expected)
+        torch.testing.assert_close(weighted.loss, weighted.denoising + 2.0 * expected * weighted.pfm)
         assert not torch.allclose(weighted.pfm_scale, plain.pfm_scale)
 
 
