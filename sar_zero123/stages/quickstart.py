@@ -198,7 +198,8 @@ def plan_stages(config: QuickstartConfig) -> list[StagePlan]:
         "pipeline": list(pipelines.values()), "pipeline_names": list(pipelines),
         "lambdas": list(config.lambdas), "evaluators": str(evaluator_dir),
         "protocol": _protocol(config, preset), "n": preset.eval_n, "num_inference_steps": preset.eval_steps,
-        "guidance_scale": 3.0, "crop_size": min(64, preset.image_size),
+        "guidance_scale": 3.0, "heading_guidance_scale": preset.eval_heading_guidance_scale,
+        "strength": preset.eval_strength, "crop_size": min(64, preset.image_size),
         "eval_batch_size": 8, "seed": config.seed, "resume": True, "speckle_looks": preset.eval_speckle_looks,
     }  # fmt: skip
     plans.append(StagePlan("evaluate", _build(

@@ -33,12 +33,19 @@ def test_every_stage_config_is_built_before_any_work(tmp_path: Path) -> None:
         output_dir=str(out), preset="smoke", override=["pfm_balance=adaptive", "pfm_min_snr=2.0"]))
     tuned = {plan.name: plan.config for plan in balanced}["finetune lambda=4"]
     assert (tuned.pfm_balance, tuned.pfm_min_snr) == ("adaptive", 2.0)
+    for stage in ("evaluate", "evaluate depressions"):  # the preset's sampler, in both evaluations
+        assert (by_name[stage].heading_guidance_scale, by_name[stage].strength) == (1.5, 0.5)
     assert not out.exists()
     # refused in the preset's own field names, before any stage (the override is checked at parse time)
     for item, words in (("base_steps=0", "base_steps must be an integer >= 1, got 0"),
                         ("eval_n=0", "eval_n must be >= 4"), ("model_size=huge", "model_size must be one of"),
                         ("classes=()", "classes must name at least two distinct classes"),
-                        ("speed_n=100", "speed_n must be <= eval_n // 2 = 2")):  # fmt: skip
+                        ("speed_n=100", "speed_n must be <= eval_n // 2 = 2"),
+                        ("eval_strength=0", "eval_strength must lie in \\(0, 1\\]"),
+                        ("eval_strength=0.4", "eval_strength 0.4 leaves no denoising step of eval_steps / "
+                                              "speed_steps \\[2, 2\\]"),
+                        ("eval_heading_guidance_scale=-1",
+                         "eval_heading_guidance_scale must lie in")):  # fmt: skip
         with pytest.raises(ValueError, match=words):
             quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=[item])
     assert not out.exists()
@@ -127,6 +134,12 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     text = report.read_text()
     # with a depression regressor among the evaluators Table III has a Dep. err. column and its gap closed
     paper_row = "| paper: PFM (lambda=4) | seen | 89.0 | 23.5 | - | 1.84 | 0.6720 | 0.7374 | - | - | - |"
+    # the preset's sampler reaches both evaluations and the report names it
+    sampler = "2 DDIM steps, guidance 3.0, heading guidance 1.5, from the input at strength 0.5"
+    assert f"## Table III ({sampler})" in text
+    for folder in ("eval", "eval_depression"):
+        sampled = json.loads((out / folder / "table3.json").read_text())
+        assert (sampled["heading_guidance_scale"], sampled["strength"]) == (1.5, 0.5)
     assert paper_row + "  |  |  |  |" in text
     # the depression table: 17 deg inputs asked for 30 deg; the from-scratch smoke model never saw d_el != 0
     assert "## Depression changes (17 deg inputs, targets at 30 deg)" in text
