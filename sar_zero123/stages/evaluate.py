@@ -82,6 +82,7 @@ __all__ = [
     "MAX_INFERENCE_STEPS",
     "MAX_SWEEP_STEP_COUNTS",
     "EvaluateConfig",
+    "check_sampler_start",
     "evaluation_pairs",
     "load_evaluation",
     "run_evaluate",
@@ -103,6 +104,27 @@ MAX_IMAGE_SIZE = 1_024
 MAX_BLURRED_TARGETS, MAX_BLUR_SIGMA_PX = 8, 64.0
 #: Settings that never change what the folder holds: the device, where data is cached, how to reuse it.
 EVALUATE_MAY_DIFFER = ("resume", "restart", "device", "output_dir", "work_dir")
+
+
+def check_sampler_start(
+    strength: float, heading_guidance_scale: float, steps: dict[str, int], prefix: str = ""
+) -> None:
+    """Refuse a sampler the evaluation cannot run: ``heading_guidance_scale`` outside [0,
+    ``MAX_GUIDANCE_SCALE``], ``strength`` outside (0, 1], or a ``strength`` that leaves no denoising step of
+    one of the ``steps`` (name: step count); every message names the field as ``prefix`` + its name (the
+    quickstart preset's ``eval_`` fields)."""
+    if not 0.0 <= heading_guidance_scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
+        raise ValueError(
+            f"{prefix}heading_guidance_scale must lie in [0, {MAX_GUIDANCE_SCALE}], got "
+            f"{heading_guidance_scale}"
+        )
+    if isinstance(strength, bool) or not (math.isfinite(strength) and 0.0 < strength <= 1.0):
+        raise ValueError(f"{prefix}strength must lie in (0, 1], got {strength!r}")
+    for name, count in steps.items():
+        if int(count * strength) < 1:
+            raise ValueError(
+                f"{prefix}strength {strength} x {name} {count} leaves no denoising step; raise either"
+            )
 
 
 @dataclass
@@ -158,8 +180,8 @@ class EvaluateConfig:
     def __post_init__(self) -> None:
         self._check_pipelines()
         self._check_sizes()
-        self._check_start()
         self._check_sweep()
+        self._check_start()
         self._check_depressions()
         if self.resume and self.restart:
             raise ValueError("resume and restart: choose one (continue this run, or move it aside)")
@@ -193,22 +215,14 @@ class EvaluateConfig:
             raise ValueError(
                 f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE}, got {self.guidance_scale}"
             )
-        if not 0.0 <= self.heading_guidance_scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
-            raise ValueError(
-                f"heading_guidance_scale must lie in [0, {MAX_GUIDANCE_SCALE}], got "
-                f"{self.heading_guidance_scale}"
-            )
 
     def _check_start(self) -> None:
-        """``strength`` and ``start_from``, after the step count is known to be valid."""
-        strength = self.strength
-        if isinstance(strength, bool) or not (math.isfinite(strength) and 0.0 < strength <= 1.0):
-            raise ValueError(f"strength must lie in (0, 1], got {self.strength!r}")
-        if int(self.num_inference_steps * self.strength) < 1:
-            raise ValueError(
-                f"strength {self.strength} x num_inference_steps {self.num_inference_steps} leaves no "
-                "denoising step; raise either"
-            )
+        """``strength`` (for Table III's and the sweep's step counts) and ``start_from``, after the step
+        counts are known to be valid."""
+        steps = {"num_inference_steps": self.num_inference_steps}
+        if self.steps:
+            steps["steps"] = min(self.steps)
+        check_sampler_start(self.strength, self.heading_guidance_scale, steps)
         if self.start_from not in START_FROM:
             raise ValueError(f"start_from must be one of {START_FROM}, got {self.start_from!r}")
 

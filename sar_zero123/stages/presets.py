@@ -23,10 +23,9 @@ from sar_zero123.data.splits import OOD_INTERVAL_WIDTH_DEG, check_protocol, ood_
 from sar_zero123.evaluation.protocol import SCHEDULERS
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import downsampling_factor
-from sar_zero123.model.pipeline import MAX_GUIDANCE_SCALE
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.sim import TARGET_CLASSES
-from sar_zero123.stages.evaluate import MAX_EVALUATION_PAIRS, MAX_SWEEP_STEP_COUNTS
+from sar_zero123.stages.evaluate import MAX_EVALUATION_PAIRS, MAX_SWEEP_STEP_COUNTS, check_sampler_start
 from sar_zero123.training.losses import (
     DEFAULT_PFM_MIN_SNR,
     TRAINED_PREDICTION_TYPES,
@@ -236,19 +235,9 @@ class Preset:
             raise ValueError("rehearsal_vehicles: rehearses a prior's corpus in its fine-tunes; set prior")
         if not 0.0 < self.rehearsal_fraction < 1.0:
             raise ValueError(f"rehearsal_fraction must lie in (0, 1), got {self.rehearsal_fraction}")
-        if not 0.0 <= self.eval_heading_guidance_scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
-            raise ValueError(
-                f"eval_heading_guidance_scale must lie in [0, {MAX_GUIDANCE_SCALE}], got "
-                f"{self.eval_heading_guidance_scale}"
-            )
-        strength = self.eval_strength
-        if isinstance(strength, bool) or not (math.isfinite(strength) and 0.0 < strength <= 1.0):
-            raise ValueError(f"eval_strength must lie in (0, 1], got {strength!r}")
-        too_few = [steps for steps in (self.eval_steps, *self.speed_steps) if int(steps * strength) < 1]
-        if too_few:
-            raise ValueError(
-                f"eval_strength {strength} leaves no denoising step of eval_steps / speed_steps {too_few}"
-            )
+        check_sampler_start(self.eval_strength, self.eval_heading_guidance_scale,
+                            {"eval_steps": self.eval_steps, "speed_steps": min(self.speed_steps)},
+                            prefix="eval_")  # fmt: skip
         looks = self.eval_speckle_looks
         if looks is not None and (isinstance(looks, bool) or not isinstance(looks, int) or looks < 1):
             raise ValueError(f"eval_speckle_looks must be an integer >= 1 or None, got {looks!r}")

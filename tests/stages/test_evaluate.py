@@ -222,6 +222,9 @@ def test_evaluate_bounds_what_a_user_can_size(tmp_path: Path) -> None:
         EvaluateConfig(pipeline=["a"], strength=1.5)
     with pytest.raises(ValueError, match="strength 0.01 x num_inference_steps 50 leaves no denoising step"):
         EvaluateConfig(pipeline=["a"], strength=0.01)
+    # the speed/error sweep's step counts too, before any pipeline is loaded
+    with pytest.raises(ValueError, match="strength 0.5 x steps 1 leaves no denoising step"):
+        EvaluateConfig(pipeline=["a"], strength=0.5, steps=[1, 20], schedulers=["ddim"])
     with pytest.raises(ValueError, match=r"start_from must be one of .*turned_input.*, got 'noise'"):
         EvaluateConfig(pipeline=["a"], start_from="noise")
     with pytest.raises(ValueError, match="steps: at most 16 step counts, got 17"):
