@@ -59,6 +59,7 @@ from sar_zero123.model.pipeline import (
     MAX_ABS_D_EL_DEG,
     MAX_GUIDANCE_SCALE,
     SARZero123Pipeline,
+    check_sampler_start,
 )
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar
@@ -163,11 +164,6 @@ class AugmentConfig:
             raise ValueError(
                 f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE:g}, got {self.guidance_scale}"
             )
-        if not 0.0 <= self.heading_guidance_scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
-            raise ValueError(
-                f"heading_guidance_scale must lie in [0, {MAX_GUIDANCE_SCALE:g}], got "
-                f"{self.heading_guidance_scale}"
-            )
         check_minimum(self, "num_inference_steps", "batch_size", minimum=1)
         if self.batch_size > MAX_BATCH_SIZE:
             raise ValueError(f"batch_size must be <= {MAX_BATCH_SIZE} views per call, got {self.batch_size}")
@@ -177,13 +173,9 @@ class AugmentConfig:
                 f"d_az/target_azimuths_deg x d_el: at most {MAX_REQUESTS_PER_CHIP} requests per chip, got "
                 f"{len(self.d_az or self.target_azimuths_deg)} x {len(self.d_el)} = {requests}"
             )
-        if not (np.isfinite(self.strength) and 0.0 < self.strength <= 1.0):
-            raise ValueError(f"strength must lie in (0, 1], got {self.strength}")
-        if int(self.num_inference_steps * self.strength) < 1:
-            raise ValueError(
-                f"strength {self.strength} x num_inference_steps {self.num_inference_steps} leaves no "
-                "denoising step; raise either"
-            )
+        check_sampler_start(
+            self.strength, self.heading_guidance_scale, {"num_inference_steps": self.num_inference_steps}
+        )
         check_minimum(self, "max_chips_per_class", minimum=1, optional=True)
         check_minimum(self, "seed", minimum=0)
         check_minimum(self, "speckle_sigma", minimum=0.0, strict=True)

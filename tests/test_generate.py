@@ -75,6 +75,27 @@ def test_main_writes_one_png_and_npy_per_view_and_a_contact_sheet(pipeline_dir, 
     np.testing.assert_allclose(np.load(arrays[1]), expected, atol=1e-5)
 
 
+def test_strength_and_heading_guidance_reach_the_pipeline(pipeline_dir, chip_png, tmp_path):
+    out = tmp_path / "views"
+    argv = ["--pipeline", str(pipeline_dir), "--image", str(chip_png), "--d-az", "30", "120", "--d-el", "0",
+            "--output_dir", str(out), "--num-inference-steps", "4", "--seed", "2", "--strength", "0.5",
+            "--heading_guidance_scale", "1.5"]  # fmt: skip
+    main(argv)
+    assert json.loads((out / "config.json").read_text())["strength"] == 0.5
+    config = GenerateConfig(pipeline=str(pipeline_dir), image=str(chip_png))
+    chip = load_input_chip(config, 32)
+    pipe = SARZero123Pipeline.from_pretrained(pipeline_dir)
+    pipe.set_progress_bar_config(disable=True)
+    for index, d_az in enumerate([30.0, 120.0]):
+        generator = torch.Generator().manual_seed(2 + index)
+        expected = pipe(torch.from_numpy(chip)[None, None], d_az=d_az, d_el=0.0, num_inference_steps=4,
+                        strength=0.5, heading_guidance_scale=1.5, generator=generator,
+                        output_type="np").images[0, ..., 0]  # fmt: skip
+        np.testing.assert_allclose(np.load(sorted(out.glob("view_*.npy"))[index]), expected, atol=1e-5)
+    from_noise = generate_views(pipe, chip, [30.0], [0.0], 4, 3.0, 2, heading_guidance_scale=1.5)
+    assert np.abs(from_noise[0] - np.load(sorted(out.glob("view_*.npy"))[0])).max() > 1e-3
+
+
 def test_input_chip_uses_the_pipeline_scaling_file(pipeline_dir, chip_png, tmp_path):
     magnitude = np.asarray(PIL.Image.open(chip_png), np.float32)[4:36, 4:36] / 255.0  # centre 32 px
     config = GenerateConfig(pipeline=str(pipeline_dir), image=str(chip_png))
@@ -112,6 +133,10 @@ def test_config_rejects_bad_values(fields, match):
         ({"guidance_scale": 1e30}, r"guidance_scale must be finite and <= 100"),
         ({"guidance_scale": float("inf")}, r"guidance_scale must be finite"),
         ({"heading_guidance_scale": -1.0}, r"heading_guidance_scale must lie in \[0, 100\], got -1.0"),
+        ({"strength": 0.0}, r"^strength must lie in \(0, 1\], got 0.0"),
+        ({"strength": float("nan")}, r"^strength must lie in \(0, 1\], got nan"),
+        ({"strength": 0.2, "num_inference_steps": 4},
+         r"^strength 0.2 x num_inference_steps 4 leaves no denoising step"),
     ],
 )
 def test_config_rejects_impossible_poses_and_guidance(fields, match):

@@ -10,10 +10,11 @@ unconditional branches in one batched UNet call.
 from __future__ import annotations
 
 import inspect
+import math
 import numbers
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -51,7 +52,7 @@ from sar_zero123.model.zero123_checkpoints import CLIPImageProcessor, load_zero1
 from sar_zero123.pretrained import BUNDLED_NAMESPACE, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar as _progress_bar
 
-__all__ = ["SARZero123Pipeline", "SARZero123PipelineOutput", "flipped_heading_pose"]
+__all__ = ["SARZero123Pipeline", "SARZero123PipelineOutput", "check_sampler_start", "flipped_heading_pose"]
 
 ImageInput = PIL.Image.Image | np.ndarray | torch.Tensor | Sequence[PIL.Image.Image] | Sequence[np.ndarray]
 OUTPUT_TYPES = ("pil", "np", "pt", "latent")
@@ -78,6 +79,33 @@ class SARZero123PipelineOutput(BaseOutput):
     """
 
     images: list[PIL.Image.Image] | np.ndarray | torch.Tensor
+
+
+def check_sampler_start(
+    strength: float, heading_guidance_scale: float, steps: Mapping[str, int], prefix: str = ""
+) -> None:
+    """Refuse, at a config's boundary, a sampler the pipeline cannot run: ``heading_guidance_scale`` outside
+    [0, ``MAX_GUIDANCE_SCALE``], ``strength`` outside (0, 1], or a ``strength`` that leaves no denoising step
+    of one of the ``steps`` (field name: step count). Every message names the field as ``prefix`` + its name
+    (the quickstart preset's ``eval_`` fields).
+
+    Raises:
+        ValueError: On any of the above.
+    """
+    if not 0.0 <= heading_guidance_scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
+        raise ValueError(
+            f"{prefix}heading_guidance_scale must lie in [0, {MAX_GUIDANCE_SCALE:g}], got "
+            f"{heading_guidance_scale}"
+        )
+    if isinstance(strength, bool) or not (
+        isinstance(strength, numbers.Real) and math.isfinite(strength) and 0.0 < strength <= 1.0
+    ):
+        raise ValueError(f"{prefix}strength must lie in (0, 1], got {strength!r}")
+    for name, count in steps.items():
+        if int(count * strength) < 1:
+            raise ValueError(
+                f"{prefix}strength {strength} x {name} {count} leaves no denoising step; raise either"
+            )
 
 
 def _denoising_steps(strength: float, num_inference_steps: int) -> int:

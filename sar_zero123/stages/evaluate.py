@@ -61,7 +61,12 @@ from sar_zero123.evaluation.tables import (
     table4_markdown,
 )
 from sar_zero123.model.build import replace_vae
-from sar_zero123.model.pipeline import MAX_GUIDANCE_SCALE, START_FROM, SARZero123Pipeline
+from sar_zero123.model.pipeline import (
+    MAX_GUIDANCE_SCALE,
+    START_FROM,
+    SARZero123Pipeline,
+    check_sampler_start,
+)
 from sar_zero123.runs.folder import (
     StageTimer,
     data_identity,
@@ -82,7 +87,6 @@ __all__ = [
     "MAX_INFERENCE_STEPS",
     "MAX_SWEEP_STEP_COUNTS",
     "EvaluateConfig",
-    "check_sampler_start",
     "evaluation_pairs",
     "load_evaluation",
     "run_evaluate",
@@ -104,27 +108,6 @@ MAX_IMAGE_SIZE = 1_024
 MAX_BLURRED_TARGETS, MAX_BLUR_SIGMA_PX = 8, 64.0
 #: Settings that never change what the folder holds: the device, where data is cached, how to reuse it.
 EVALUATE_MAY_DIFFER = ("resume", "restart", "device", "output_dir", "work_dir")
-
-
-def check_sampler_start(
-    strength: float, heading_guidance_scale: float, steps: dict[str, int], prefix: str = ""
-) -> None:
-    """Refuse a sampler the evaluation cannot run: ``heading_guidance_scale`` outside [0,
-    ``MAX_GUIDANCE_SCALE``], ``strength`` outside (0, 1], or a ``strength`` that leaves no denoising step of
-    one of the ``steps`` (name: step count); every message names the field as ``prefix`` + its name (the
-    quickstart preset's ``eval_`` fields)."""
-    if not 0.0 <= heading_guidance_scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
-        raise ValueError(
-            f"{prefix}heading_guidance_scale must lie in [0, {MAX_GUIDANCE_SCALE}], got "
-            f"{heading_guidance_scale}"
-        )
-    if isinstance(strength, bool) or not (math.isfinite(strength) and 0.0 < strength <= 1.0):
-        raise ValueError(f"{prefix}strength must lie in (0, 1], got {strength!r}")
-    for name, count in steps.items():
-        if int(count * strength) < 1:
-            raise ValueError(
-                f"{prefix}strength {strength} x {name} {count} leaves no denoising step; raise either"
-            )
 
 
 @dataclass

@@ -23,9 +23,10 @@ from sar_zero123.data.splits import OOD_INTERVAL_WIDTH_DEG, check_protocol, ood_
 from sar_zero123.evaluation.protocol import SCHEDULERS
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import downsampling_factor
+from sar_zero123.model.pipeline import check_sampler_start
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.sim import TARGET_CLASSES
-from sar_zero123.stages.evaluate import MAX_EVALUATION_PAIRS, MAX_SWEEP_STEP_COUNTS, check_sampler_start
+from sar_zero123.stages.evaluate import MAX_EVALUATION_PAIRS, MAX_SWEEP_STEP_COUNTS
 from sar_zero123.training.losses import (
     DEFAULT_PFM_MIN_SNR,
     TRAINED_PREDICTION_TYPES,

@@ -216,7 +216,7 @@ def test_evaluate_bounds_what_a_user_can_size(tmp_path: Path) -> None:
         EvaluateConfig(pipeline=["a"], eval_batch_size=4096)
     with pytest.raises(ValueError, match="num_figure_pairs must be <= 32, got 5,000"):
         EvaluateConfig(pipeline=["a"], num_figure_pairs=5000)
-    with pytest.raises(ValueError, match=r"heading_guidance_scale must lie in \[0, 100.0\], got -2.0"):
+    with pytest.raises(ValueError, match=r"heading_guidance_scale must lie in \[0, 100\], got -2.0"):
         EvaluateConfig(pipeline=["a"], heading_guidance_scale=-2.0)
     with pytest.raises(ValueError, match=r"strength must lie in \(0, 1\], got 1.5"):
         EvaluateConfig(pipeline=["a"], strength=1.5)
