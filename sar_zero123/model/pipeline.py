@@ -97,6 +97,11 @@ def check_sampler_start(
             f"{prefix}heading_guidance_scale must lie in [0, {MAX_GUIDANCE_SCALE:g}], got "
             f"{heading_guidance_scale}"
         )
+    _check_strength(strength, steps, prefix)
+
+
+def _check_strength(strength: float, steps: Mapping[str, int], prefix: str = "") -> None:
+    """``strength`` in (0, 1] leaving at least one denoising step of each of ``steps`` (name: step count)."""
     if isinstance(strength, bool) or not (
         isinstance(strength, numbers.Real) and math.isfinite(strength) and 0.0 < strength <= 1.0
     ):
@@ -114,15 +119,8 @@ def _denoising_steps(strength: float, num_inference_steps: int) -> int:
     Raises:
         ValueError: If ``strength`` is not a real number in (0, 1], or leaves no step to run.
     """
-    if isinstance(strength, bool) or not isinstance(strength, numbers.Real) or not 0.0 < strength <= 1.0:
-        raise ValueError(f"`strength` must be a real number in (0, 1], got {strength!r}")
-    steps = min(int(num_inference_steps * strength), int(num_inference_steps))
-    if steps < 1:
-        raise ValueError(
-            f"`strength` {strength} x `num_inference_steps` {num_inference_steps} leaves no denoising step; "
-            "raise either"
-        )
-    return steps
+    _check_strength(strength, {"num_inference_steps": num_inference_steps})
+    return min(int(num_inference_steps * strength), int(num_inference_steps))
 
 
 def check_vae_image_size(vae: AutoencoderKL, unet: UNet2DConditionModel, name: str = "vae") -> None:
