@@ -71,6 +71,7 @@ from sar_zero123.training.finetuning import (
     train_finetune_steps,
     training_image_size,
 )
+from sar_zero123.training.lora import LORA_MODULE_SETS, LoraModules
 from sar_zero123.training.losses import (
     TRAINED_PREDICTION_TYPES,
     LossSettings,
@@ -138,7 +139,12 @@ class FinetuneConfig(LossSettings):
     # a warm-up without PFM, or PFM switched off late; the paper uses it in every step
     pfm_start_step: int = 0  # first optimisation step with PFM (0: from the start)
     pfm_stop_step: int | None = None  # first step without PFM again (None: to the end)
-    learning_rate: float = 1e-4  # AdamW learning rate of the UNet
+    # train only rank-r LoRA factors beside the frozen UNet weights (sar_zero123.training.lora), merged into a
+    # plain UNet at export; None: every UNet weight trains (zero-1-to-3). The pose projection trains whole
+    lora_rank: int | None = None
+    lora_alpha: float | None = None  # with lora_rank: the update's scale is lora_alpha / lora_rank; None: 1
+    lora_modules: LoraModules = "all"  # with lora_rank: "all" Linear and Conv2d layers, or "attention" only
+    learning_rate: float = 1e-4  # AdamW learning rate of the UNet (of its LoRA factors with lora_rank)
     pose_lr_multiplier: float = 10.0  # pose projection learning rate = this x learning_rate
     adam_weight_decay: float = 1e-2  # AdamW weight decay
     lr_scheduler: str = "constant"  # diffusers scheduler name (constant, constant_with_warmup, cosine, ...)
@@ -203,6 +209,10 @@ class FinetuneConfig(LossSettings):
         check_minimum(self, "max_train_minutes", minimum=0, strict=True, optional=True)
         if not 0.0 <= self.rehearsal_fraction < 1.0:
             raise ValueError(f"rehearsal_fraction must lie in [0, 1), got {self.rehearsal_fraction}")
+        check_minimum(self, "lora_rank", minimum=1, optional=True)
+        check_minimum(self, "lora_alpha", minimum=0, strict=True, optional=True)
+        if self.lora_modules not in LORA_MODULE_SETS:
+            raise ValueError(f"lora_modules must be one of {LORA_MODULE_SETS}, got {self.lora_modules!r}")
         if self.rehearsal_max_chips is not None and self.rehearsal_max_chips < 2:
             raise ValueError(f"rehearsal_max_chips must be None or >= 2, got {self.rehearsal_max_chips}")
         if self.spatial_pose not in SPATIAL_POSE_MODES:
@@ -386,6 +396,9 @@ def _prepare_training(
         weight_dtype=weight_dtype,
         train_image_encoder=config.train_image_encoder,
         gradient_checkpointing=config.gradient_checkpointing,
+        lora_rank=config.lora_rank,
+        lora_alpha=config.lora_alpha,
+        lora_modules=config.lora_modules,
     )
     trained_tower = image_embedder if config.train_image_encoder else None
     encoder = inputs.encoder

@@ -710,3 +710,41 @@ def test_the_exported_pipeline_records_the_vae_it_was_trained_with(finished_run)
     assert pose["trained_vae"] == vae_signature(vae)
     assert set(pose["trained_vae"]) == {"sample_size", "block_out_channels", "latent_channels",
                                         "scaling_factor"}  # fmt: skip
+
+
+def test_a_lora_fine_tune_exports_a_plain_unet_whose_change_is_low_rank(script, assets, tmp_path) -> None:
+    args = ("--max_train_steps", "2", "--checkpointing_steps", "1", "--validation_steps", "0", "--no-use_ema",
+            "--pfm_weight", "0", "--learning_rate", "1e-2", "--lora_rank", "2",
+            "--lora_modules", "attention")  # fmt: skip
+    run = script.main(tiny_args(assets, tmp_path / "lora", *args))
+    assert json.loads((run / "config.json").read_text())["lora_rank"] == 2
+    assert any("lora_A" in key for key in load_file(run / "checkpoint-2" / "model.safetensors"))
+    exported = SARZero123Pipeline.from_pretrained(run / "pipeline").unet.state_dict()
+    initial = build_sar_zero123("tiny", image_size=32, seed=3).unet.state_dict()
+    assert exported.keys() == initial.keys()  # a plain UNet: no factor, no base_layer key
+    changed = [key for key in initial if not torch.equal(initial[key], exported[key])]
+    projections = ("to_q.weight", "to_k.weight", "to_v.weight", "to_out.0.weight")
+    assert changed and all(key.endswith(projections) for key in changed)  # only the attention projections
+    for key in changed:  # rank 2 up to float32 rounding of W + B A
+        assert torch.linalg.matrix_rank(exported[key] - initial[key], rtol=1e-3) <= 2
+    # two steps straight equal one step, then a resume to two (the factors are in the checkpoint)
+    AcceleratorState._reset_state(True)
+    GradientState._reset_state()
+    split = tmp_path / "split"
+    script.main(tiny_args(assets, split, "--max_train_steps", "1", *args[2:]))
+    AcceleratorState._reset_state(True)
+    GradientState._reset_state()
+    script.main(tiny_args(assets, split, *args, "--resume_from_checkpoint", "latest"))
+    resumed = SARZero123Pipeline.from_pretrained(split / "pipeline").unet.state_dict()
+    assert all(torch.equal(exported[key], resumed[key]) for key in exported)
+
+
+def test_lora_settings_are_checked_at_the_boundary() -> None:
+    from sar_zero123.stages.finetune import FinetuneConfig
+
+    with pytest.raises(ValueError, match="lora_rank must be >= 1 or None, got 0"):
+        FinetuneConfig(pfm_weight=0.0, lora_rank=0)
+    with pytest.raises(ValueError, match="lora_alpha must be > 0 or None, got -1"):
+        FinetuneConfig(pfm_weight=0.0, lora_rank=4, lora_alpha=-1)
+    with pytest.raises(ValueError, match="lora_modules must be one of .*got 'mlp'"):
+        FinetuneConfig(pfm_weight=0.0, lora_rank=4, lora_modules="mlp")
