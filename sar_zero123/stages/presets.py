@@ -116,6 +116,10 @@ class Preset:
     # depression requests (docs/results/prior.md, section 6, "Rehearsal"); 0: the task's pairs only
     rehearsal_vehicles: int = 0
     rehearsal_fraction: float = 0.25
+    # the fine-tunes train rank-r LoRA factors beside the frozen UNet (finetune_pfm.py's --lora_rank, merged
+    # at export) instead of every UNet weight: they keep more of the prior (docs/results/prior.md, section 6,
+    # "LoRA fine-tunes"); None: every weight trains
+    finetune_lora_rank: int | None = None
     # how both evaluations sample (train/evaluate.py's --heading_guidance_scale and --strength): guidance
     # away from the flipped heading (0: off), and in (0, 1] the share of the steps sampled from the input's
     # noised latent (1: from noise)
@@ -157,6 +161,9 @@ class Preset:
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
                 raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
+        rank = self.finetune_lora_rank
+        if rank is not None and (isinstance(rank, bool) or not isinstance(rank, int) or rank < 1):
+            raise ValueError(f"finetune_lora_rank must be None or an integer >= 1, got {rank!r}")
         if self.eval_n < 4:
             raise ValueError(f"eval_n must be >= 4 (two seen and two unseen pairs), got {self.eval_n}")
         if self.eval_n > MAX_EVAL_N:

@@ -126,7 +126,7 @@ def _training_stages(config: QuickstartConfig, preset: Preset, out: Path) -> lis
             "timestep_sampling": preset.timestep_sampling, "timestep_logit_mean": preset.timestep_logit_mean,
             "validation_steps": 0, "snr_gamma": preset.snr_gamma,
             "pfm_projection_dim": preset.pfm_projection_dim, "pfm_balance": preset.pfm_balance,
-            "pfm_min_snr": preset.pfm_min_snr,
+            "pfm_min_snr": preset.pfm_min_snr, "lora_rank": preset.finetune_lora_rank,
         }  # fmt: skip
         if preset.ema_decay is not None:
             values["ema_decay"] = preset.ema_decay

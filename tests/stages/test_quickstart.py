@@ -76,6 +76,20 @@ def test_a_prior_with_a_decoder_fine_tune_plans_the_decoder_before_the_fine_tune
     assert not out.exists()
 
 
+def test_finetune_lora_rank_reaches_every_fine_tune_and_is_checked(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    for override, rank in (([], None), (["finetune_lora_rank=8"], 8), (["finetune_lora_rank=None"], None)):
+        plans = quickstart.plan_stages(
+            quickstart.QuickstartConfig(output_dir=str(out), preset="default", override=override)
+        )
+        ranks = {plan.name: plan.config.lora_rank for plan in plans if plan.name.startswith("finetune")}
+        assert ranks == {"finetune lambda=0": rank, "finetune lambda=4": rank}
+    for item in ("finetune_lora_rank=0", "finetune_lora_rank=True"):
+        with pytest.raises(ValueError, match="finetune_lora_rank must be None or an integer >= 1"):
+            quickstart.QuickstartConfig(output_dir=str(out), override=[item])
+    assert not out.exists()
+
+
 def test_rehearsal_vehicles_plan_a_corpus_stage_that_every_fine_tune_rehearses(tmp_path: Path) -> None:
     """rehearsal_vehicles > 0 (with a prior) renders a corpus before the fine-tunes, each of which mixes
     its whole training split into rehearsal_fraction of every batch; the corpus stage runs resumably."""
