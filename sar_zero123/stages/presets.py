@@ -117,8 +117,9 @@ class Preset:
     rehearsal_vehicles: int = 0
     rehearsal_fraction: float = 0.25
     # the fine-tunes train rank-r LoRA factors beside the frozen UNet (finetune_pfm.py's --lora_rank, merged
-    # at export) instead of every UNet weight: they keep more of the prior (docs/results/prior.md, section 6,
-    # "LoRA fine-tunes"); None: every weight trains
+    # at export) instead of every UNet weight; None: every weight trains. Measured (docs/results/prior.md,
+    # section 6, "LoRA fine-tunes and the learning rate"): it keeps depression requests as a lower learning
+    # rate does, no better
     finetune_lora_rank: int | None = None
     # how both evaluations sample (train/evaluate.py's --heading_guidance_scale and --strength): guidance
     # away from the flipped heading (0: off), and in (0, 1] the share of the steps sampled from the input's
