@@ -71,7 +71,7 @@ from sar_zero123.training.finetuning import (
     train_finetune_steps,
     training_image_size,
 )
-from sar_zero123.training.lora import LORA_MODULE_SETS, LoraModules
+from sar_zero123.training.lora import LoraModules, check_lora_settings
 from sar_zero123.training.losses import (
     TRAINED_PREDICTION_TYPES,
     LossSettings,
@@ -209,10 +209,7 @@ class FinetuneConfig(LossSettings):
         check_minimum(self, "max_train_minutes", minimum=0, strict=True, optional=True)
         if not 0.0 <= self.rehearsal_fraction < 1.0:
             raise ValueError(f"rehearsal_fraction must lie in [0, 1), got {self.rehearsal_fraction}")
-        check_minimum(self, "lora_rank", minimum=1, optional=True)
-        check_minimum(self, "lora_alpha", minimum=0, strict=True, optional=True)
-        if self.lora_modules not in LORA_MODULE_SETS:
-            raise ValueError(f"lora_modules must be one of {LORA_MODULE_SETS}, got {self.lora_modules!r}")
+        check_lora_settings(self.lora_rank, self.lora_alpha, self.lora_modules)
         if self.rehearsal_max_chips is not None and self.rehearsal_max_chips < 2:
             raise ValueError(f"rehearsal_max_chips must be None or >= 2, got {self.rehearsal_max_chips}")
         if self.spatial_pose not in SPATIAL_POSE_MODES:

@@ -14,18 +14,36 @@ shortcut skips the convolutions, which hold most of a small SAR UNet's weights.
 from __future__ import annotations
 
 import copy
-from typing import Literal
+from typing import Literal, get_args
 
 import torch
 from diffusers import UNet2DConditionModel
 
-__all__ = ["LORA_MODULE_SETS", "LoraModules", "add_lora", "has_lora", "lora_target_modules", "merged_unet"]
+__all__ = [
+    "LORA_MODULE_SETS", "LoraModules", "add_lora", "check_lora_settings", "has_lora", "lora_target_modules",
+    "merged_unet",
+]  # fmt: skip
 
 LoraModules = Literal["attention", "all"]
 #: ``attention``: the query, key, value and output projections of every attention layer (diffusers'
 #: text-to-image LoRA recipe); ``all``: every ``Linear`` and ``Conv2d`` of the UNet.
-LORA_MODULE_SETS: tuple[str, ...] = ("attention", "all")
+LORA_MODULE_SETS: tuple[str, ...] = get_args(LoraModules)
 _ATTENTION_PROJECTIONS = ("to_q", "to_k", "to_v", "to_out.0")
+
+
+def check_lora_settings(rank: int | None, alpha: float | None = None, modules: str = "all") -> None:
+    """Refuse a LoRA rank below 1, a scale numerator ``alpha <= 0`` or an unknown layer set (``None`` rank:
+    no LoRA). The one check of the fine-tune's config and :func:`add_lora`.
+
+    Raises:
+        ValueError: Naming the field (``lora_rank``, ``lora_alpha``, ``lora_modules``) and what it takes.
+    """
+    if rank is not None and (isinstance(rank, bool) or not rank >= 1):
+        raise ValueError(f"lora_rank must be >= 1 or None, got {rank}")
+    if alpha is not None and not alpha > 0:
+        raise ValueError(f"lora_alpha must be > 0 or None, got {alpha}")
+    if modules not in LORA_MODULE_SETS:
+        raise ValueError(f"lora_modules must be one of {LORA_MODULE_SETS}, got {modules!r}")
 
 
 def lora_target_modules(unet: torch.nn.Module, modules: LoraModules = "all") -> list[str]:
@@ -34,8 +52,7 @@ def lora_target_modules(unet: torch.nn.Module, modules: LoraModules = "all") -> 
     Raises:
         ValueError: If ``modules`` is not one of :data:`LORA_MODULE_SETS`.
     """
-    if modules not in LORA_MODULE_SETS:
-        raise ValueError(f"lora_modules must be one of {LORA_MODULE_SETS}, got {modules!r}")
+    check_lora_settings(None, modules=modules)
     names = []
     for name, module in unet.named_modules():
         if not isinstance(module, torch.nn.Linear | torch.nn.Conv2d):
@@ -61,15 +78,12 @@ def add_lora(
         UNet's output is unchanged until the first step.
 
     Raises:
-        ValueError: For ``rank < 1``, ``alpha <= 0``, a UNet that already has LoRA factors, or an unknown
-            ``modules``.
+        ValueError: For a setting :func:`check_lora_settings` refuses, or a UNet that already has LoRA
+            factors.
     """
     from peft import LoraConfig  # imported here: only LoRA fine-tunes need peft
 
-    if rank < 1:
-        raise ValueError(f"lora_rank must be >= 1, got {rank}")
-    if alpha is not None and not alpha > 0:
-        raise ValueError(f"lora_alpha must be > 0 or None, got {alpha}")
+    check_lora_settings(rank, alpha, modules)
     if has_lora(unet):
         raise ValueError("unet: already has LoRA factors; merge them (merged_unet) before adding new ones")
     targets = lora_target_modules(unet, modules)

@@ -87,7 +87,7 @@ def test_merged_unet_is_the_closed_form_w_plus_scaled_b_a(unet) -> None:
 
 
 def test_add_lora_refuses_bad_settings_and_a_second_adapter(unet) -> None:
-    with pytest.raises(ValueError, match="lora_rank must be >= 1, got 0"):
+    with pytest.raises(ValueError, match="lora_rank must be >= 1 or None, got 0"):
         add_lora(unet, rank=0)
     with pytest.raises(ValueError, match="lora_alpha must be > 0 or None, got 0"):
         add_lora(unet, rank=2, alpha=0)
