@@ -125,6 +125,7 @@ class AugmentConfig:
     num_inference_steps: int = 20  # denoising steps
     guidance_scale: float = 3.0  # classifier-free guidance weight (<= 1 disables it)
     heading_guidance_scale: float = 0.0  # guidance away from the flipped heading (d_az + 180); 0: off
+    depression_guidance_scale: float = 0.0  # guidance away from the input's depression (d_el = 0); 0: off
     strength: float = 1.0  # in (0, 1]: below 1, start from the chip's own latent noised (SDEdit)
     scheduler: Literal["ddim", "dpmsolver++", "euler"] = "ddim"  # sampler
     batch_size: int = 8  # views per pipeline call (a view changes with it by float rounding only)
@@ -174,8 +175,9 @@ class AugmentConfig:
                 f"{len(self.d_az or self.target_azimuths_deg)} x {len(self.d_el)} = {requests}"
             )
         check_sampler_start(
-            self.strength, self.heading_guidance_scale, {"num_inference_steps": self.num_inference_steps}
-        )
+            self.strength, self.heading_guidance_scale, {"num_inference_steps": self.num_inference_steps},
+            depression_guidance_scale=self.depression_guidance_scale,
+        )  # fmt: skip
         check_minimum(self, "max_chips_per_class", minimum=1, optional=True)
         check_minimum(self, "seed", minimum=0)
         check_minimum(self, "speckle_sigma", minimum=0.0, strict=True)
@@ -538,6 +540,7 @@ def augment_dataset(config: AugmentConfig) -> Path:
                 seed=config.seed,
                 strength=config.strength,
                 heading_guidance_scale=config.heading_guidance_scale,
+                depression_guidance_scale=config.depression_guidance_scale,
             )
             for view, image in zip(batch, images):
                 if (out / view.path).is_file():  # written before a kill, from this same batch
@@ -588,6 +591,7 @@ def _generate(
     seed: int,
     strength: float = 1.0,
     heading_guidance_scale: float = 0.0,
+    depression_guidance_scale: float = 0.0,
 ) -> np.ndarray:
     """One pipeline call for a batch of views: ``(B, S, S)`` normalised dB from ``(B, S, S)`` chips."""
     takes_depression = getattr(pipe.pose_projection.config, "input_depression", False)
@@ -602,6 +606,7 @@ def _generate(
         output_type="np",
         strength=strength,
         heading_guidance_scale=heading_guidance_scale,
+        depression_guidance_scale=depression_guidance_scale,
     ).images[..., 0]
 
 

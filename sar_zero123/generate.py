@@ -96,6 +96,7 @@ class GenerateConfig:
     num_inference_steps: int = 50  # denoising steps
     guidance_scale: float = 3.0  # classifier-free guidance weight (<= 1 disables it)
     heading_guidance_scale: float = 0.0  # guidance away from the flipped heading (d_az + 180); 0: off
+    depression_guidance_scale: float = 0.0  # guidance away from the input's depression (d_el = 0); 0: off
     # in (0, 1]: below 1, sampling starts from the chip's own latent noised to this share of the steps
     # (SDEdit); 0.8 with heading guidance 1.5 is the quickstart's measured sampler for fine-tuned models
     strength: float = 1.0
@@ -136,8 +137,9 @@ class GenerateConfig:
         if self.num_inference_steps < 1:
             raise ValueError(f"num_inference_steps must be >= 1, got {self.num_inference_steps}")
         check_sampler_start(
-            self.strength, self.heading_guidance_scale, {"num_inference_steps": self.num_inference_steps}
-        )
+            self.strength, self.heading_guidance_scale, {"num_inference_steps": self.num_inference_steps},
+            depression_guidance_scale=self.depression_guidance_scale,
+        )  # fmt: skip
         if self.image_size is not None and not 1 <= self.image_size <= MAX_IMAGE_SIZE:
             raise ValueError(f"image_size must lie in [1, {MAX_IMAGE_SIZE}] pixels, got {self.image_size}")
         if self.input_depression is not None and not 0.0 < self.input_depression < 90.0:
@@ -241,6 +243,7 @@ def generate_views(
     input_depression_deg: float | None = None,
     heading_guidance_scale: float = 0.0,
     strength: float = 1.0,
+    depression_guidance_scale: float = 0.0,
 ) -> np.ndarray:
     """All requested views of one chip in a single batched pipeline call (``train/evaluate.py``'s
     ``generate_pair_targets`` generates one view per view pair instead).
@@ -257,6 +260,8 @@ def generate_views(
             carries it (``pose_projection.config.input_depression``).
         heading_guidance_scale: Weight of guidance away from the flipped heading (``SARZero123Pipeline``).
         strength: Share of the steps run from the chip's own noised latent (1: from noise).
+        depression_guidance_scale: Weight of guidance away from the input's depression
+            (``SARZero123Pipeline``).
 
     Returns:
         Views in normalised dB, float32, shape ``(V, H, W)``.
@@ -273,6 +278,7 @@ def generate_views(
         num_inference_steps=num_inference_steps,
         guidance_scale=guidance_scale,
         heading_guidance_scale=heading_guidance_scale,
+        depression_guidance_scale=depression_guidance_scale,
         strength=strength,
         generator=generators,
         output_type="np",
@@ -359,6 +365,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
         input_depression_deg=input_depression_deg,
         heading_guidance_scale=config.heading_guidance_scale,
         strength=config.strength,
+        depression_guidance_scale=config.depression_guidance_scale,
     )
 
     # 2. the folder opened for real (an old one moved aside with --restart), the views written, the record

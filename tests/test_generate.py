@@ -96,6 +96,19 @@ def test_strength_and_heading_guidance_reach_the_pipeline(pipeline_dir, chip_png
     assert np.abs(from_noise[0] - np.load(sorted(out.glob("view_*.npy"))[0])).max() > 1e-3
 
 
+def test_depression_guidance_reaches_the_pipeline(pipeline_dir, chip_png, tmp_path):
+    out = tmp_path / "views"
+    main(["--pipeline", str(pipeline_dir), "--image", str(chip_png), "--d-az", "30", "--d-el", "-5",
+          "--output_dir", str(out), "--num-inference-steps", "3", "--seed", "1",
+          "--depression_guidance_scale", "2"])  # fmt: skip
+    assert json.loads((out / "config.json").read_text())["depression_guidance_scale"] == 2.0
+    pipe = SARZero123Pipeline.from_pretrained(pipeline_dir)
+    pipe.set_progress_bar_config(disable=True)
+    chip = load_input_chip(GenerateConfig(pipeline=str(pipeline_dir), image=str(chip_png)), 32)
+    expected = generate_views(pipe, chip, [30.0], [-5.0], 3, 3.0, 1, depression_guidance_scale=2.0)
+    np.testing.assert_allclose(np.load(sorted(out.glob("view_*.npy"))[0]), expected[0], atol=1e-5)
+
+
 def test_input_chip_uses_the_pipeline_scaling_file(pipeline_dir, chip_png, tmp_path):
     magnitude = np.asarray(PIL.Image.open(chip_png), np.float32)[4:36, 4:36] / 255.0  # centre 32 px
     config = GenerateConfig(pipeline=str(pipeline_dir), image=str(chip_png))
@@ -133,6 +146,7 @@ def test_config_rejects_bad_values(fields, match):
         ({"guidance_scale": 1e30}, r"guidance_scale must be finite and <= 100"),
         ({"guidance_scale": float("inf")}, r"guidance_scale must be finite"),
         ({"heading_guidance_scale": -1.0}, r"heading_guidance_scale must lie in \[0, 100\], got -1.0"),
+        ({"depression_guidance_scale": 101.0}, r"depression_guidance_scale must lie in \[0, 100\]"),
         ({"strength": 0.0}, r"^strength must lie in \(0, 1\], got 0.0"),
         ({"strength": float("nan")}, r"^strength must lie in \(0, 1\], got nan"),
         ({"strength": 0.2, "num_inference_steps": 4},

@@ -359,13 +359,15 @@ def generate_pair_targets(
     heading_guidance_scale: float = 0.0,
     strength: float = 1.0,
     start_from: str = "input",
+    depression_guidance_scale: float = 0.0,
 ) -> tuple[torch.Tensor, float]:
     """Generates the target view of every pair (seeded per pair), in batches, timing the pipeline calls.
 
     Not :func:`sar_zero123.generate.generate_views`, which generates several views of one chip. A pipeline
     whose pose carries the input's absolute depression (``pose_projection.config.input_depression``) gets
     each pair's input depression. Each batch logs a progress line (``desc``), outside the timed calls.
-    ``strength`` and ``start_from`` are the pipeline's (image-to-image sampling; 1 starts from noise).
+    ``strength`` and ``start_from`` are the pipeline's (image-to-image sampling; 1 starts from noise), as are
+    the two contrast guidances (``heading_guidance_scale``, ``depression_guidance_scale``).
 
     Returns:
         ``(images (N, 1, S, S) on CPU, seconds spent in the pipeline)``.
@@ -388,6 +390,7 @@ def generate_pair_targets(
             num_inference_steps=num_inference_steps,
             guidance_scale=guidance_scale,
             heading_guidance_scale=heading_guidance_scale,
+            depression_guidance_scale=depression_guidance_scale,
             strength=strength,
             start_from=start_from,
             generator=generators,

@@ -52,7 +52,13 @@ from sar_zero123.model.zero123_checkpoints import CLIPImageProcessor, load_zero1
 from sar_zero123.pretrained import BUNDLED_NAMESPACE, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar as _progress_bar
 
-__all__ = ["SARZero123Pipeline", "SARZero123PipelineOutput", "check_sampler_start", "flipped_heading_pose"]
+__all__ = [
+    "SARZero123Pipeline",
+    "SARZero123PipelineOutput",
+    "check_sampler_start",
+    "flipped_heading_pose",
+    "same_depression_pose",
+]
 
 ImageInput = PIL.Image.Image | np.ndarray | torch.Tensor | Sequence[PIL.Image.Image] | Sequence[np.ndarray]
 OUTPUT_TYPES = ("pil", "np", "pt", "latent")
@@ -82,21 +88,26 @@ class SARZero123PipelineOutput(BaseOutput):
 
 
 def check_sampler_start(
-    strength: float, heading_guidance_scale: float, steps: Mapping[str, int], prefix: str = ""
+    strength: float,
+    heading_guidance_scale: float,
+    steps: Mapping[str, int],
+    prefix: str = "",
+    depression_guidance_scale: float = 0.0,
 ) -> None:
-    """Refuse, at a config's boundary, a sampler the pipeline cannot run: ``heading_guidance_scale`` outside
-    [0, ``MAX_GUIDANCE_SCALE``], ``strength`` outside (0, 1], or a ``strength`` that leaves no denoising step
-    of one of the ``steps`` (field name: step count). Every message names the field as ``prefix`` + its name
-    (the quickstart preset's ``eval_`` fields).
+    """Refuse, at a config's boundary, a sampler the pipeline cannot run: ``heading_guidance_scale`` or
+    ``depression_guidance_scale`` outside [0, ``MAX_GUIDANCE_SCALE``], ``strength`` outside (0, 1], or a
+    ``strength`` that leaves no denoising step of one of the ``steps`` (field name: step count). Every
+    message names the field as ``prefix`` + its name (the quickstart preset's ``eval_`` fields).
 
     Raises:
         ValueError: On any of the above.
     """
-    if not 0.0 <= heading_guidance_scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
-        raise ValueError(
-            f"{prefix}heading_guidance_scale must lie in [0, {MAX_GUIDANCE_SCALE:g}], got "
-            f"{heading_guidance_scale}"
-        )
+    for name, scale in (
+        ("heading_guidance_scale", heading_guidance_scale),
+        ("depression_guidance_scale", depression_guidance_scale),
+    ):
+        if isinstance(scale, bool) or not 0.0 <= scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
+            raise ValueError(f"{prefix}{name} must lie in [0, {MAX_GUIDANCE_SCALE:g}], got {scale}")
     _check_strength(strength, steps, prefix)
 
 
@@ -525,6 +536,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         strength: float = 1.0,
         heading_guidance_scale: float = 0.0,
         start_from: Literal["input", "turned_input"] = "input",
+        depression_guidance_scale: float = 0.0,
     ) -> SARZero123PipelineOutput | tuple:
         """Generate views of each input chip at ``(d_az, d_el)`` relative to it.
 
@@ -565,6 +577,12 @@ class SARZero123Pipeline(DiffusionPipeline):
                 where the target's does, for the last denoising steps to correct (shadow and layover stay tied
                 to the range direction). Ignored at ``strength == 1``. Measured not to help on the quickstart
                 (docs/results/prior.md, "Where the held-out vehicle's class goes").
+            depression_guidance_scale: Weight ``g >= 0`` of guidance away from the input's depression: the
+                prediction gains ``g * (eps(d_az, d_el) - eps(d_az, 0))``, which pushes each view from the
+                same request at the input's own depression (:func:`same_depression_pose`), the view a model
+                that ignores ``d_el`` returns. Requests with ``d_el == 0`` are unchanged (both branches are
+                the same; a call whose every ``d_el`` is 0 runs no extra branch). Otherwise one more UNet
+                evaluation per step; 0 (the default) leaves sampling unchanged.
 
         Returns:
             :class:`SARZero123PipelineOutput`, or ``(images,)`` when ``return_dict`` is False.
@@ -587,11 +605,12 @@ class SARZero123Pipeline(DiffusionPipeline):
         denoising_steps = _denoising_steps(strength, num_inference_steps)
         if start_from not in START_FROM:
             raise ValueError(f"`start_from` must be one of {START_FROM}, got {start_from!r}")
-        if not 0.0 <= heading_guidance_scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
-            raise ValueError(
-                f"`heading_guidance_scale` must lie in [0, {MAX_GUIDANCE_SCALE:g}], got "
-                f"{heading_guidance_scale}"
-            )
+        for name, scale in (
+            ("heading_guidance_scale", heading_guidance_scale),
+            ("depression_guidance_scale", depression_guidance_scale),
+        ):
+            if not 0.0 <= scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
+                raise ValueError(f"`{name}` must lie in [0, {MAX_GUIDANCE_SCALE:g}], got {scale}")
         images = self.preprocess_image(image)
         batch_size = images.shape[0]
         pose = _broadcast_pose(d_az, d_el, batch_size)  # (B, 1, 4)
@@ -628,12 +647,16 @@ class SARZero123Pipeline(DiffusionPipeline):
             return per_sample, None if labels is None else labels.to(dtype)
 
         sample_pose, class_labels = branch(pose)
-        heading = heading_guidance_scale > 0.0
-        if heading:  # the same request with front and back swapped: tokens, labels and pose of its branch
-            flip_pose = flipped_heading_pose(pose)
-            flip_tokens = self.pose_projection(image_embeds, flip_pose.to(image_embeds.device))
-            flip_tokens = flip_tokens.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
-            flip_sample_pose, flip_labels = branch(flip_pose)
+        # contrast branches: the same request with one part changed, each guided away from with its weight;
+        # one equal to the request itself (every d_el == 0 for the depression) adds exactly 0 and is skipped
+        contrasts = [
+            (scale, contrast_pose)
+            for scale, contrast_pose in (
+                (heading_guidance_scale, flipped_heading_pose(pose)),
+                (depression_guidance_scale, same_depression_pose(pose)),
+            )
+            if scale > 0.0 and not torch.equal(contrast_pose, pose)
+        ]
         if do_classifier_free_guidance:
             # zero-1-to-3's sampling null: zeros after the projection and for the condition latent; the
             # pose itself is never dropped
@@ -643,13 +666,16 @@ class SARZero123Pipeline(DiffusionPipeline):
                 class_labels = torch.cat([class_labels, class_labels])
         # the condition latent (zeros for the null), turned by the pose where the model takes it spatially
         guided_pose = torch.cat([sample_pose] * 2) if do_classifier_free_guidance else sample_pose
-        if heading:  # [null;] cond; flipped cond
-            tokens = torch.cat([tokens, flip_tokens])
+        for _, contrast_pose in contrasts:  # [null;] cond; then one block per contrast branch
+            contrast_tokens = self.pose_projection(image_embeds, contrast_pose.to(image_embeds.device))
+            contrast_tokens = contrast_tokens.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
+            contrast_sample_pose, contrast_labels = branch(contrast_pose)
+            tokens = torch.cat([tokens, contrast_tokens])
             condition_latents = torch.cat([condition_latents, condition_latents[-num_samples:]])
             if class_labels is not None:
-                class_labels = torch.cat([class_labels, flip_labels])
-            guided_pose = torch.cat([guided_pose, flip_sample_pose])
-        branches = 1 + int(do_classifier_free_guidance) + int(heading)
+                class_labels = torch.cat([class_labels, contrast_labels])
+            guided_pose = torch.cat([guided_pose, contrast_sample_pose])
+        branches = 1 + int(do_classifier_free_guidance) + len(contrasts)
         unet_condition = unet_condition_latents(condition_latents, guided_pose, self.pose_projection)
 
         # 3. timesteps
@@ -693,14 +719,15 @@ class SARZero123Pipeline(DiffusionPipeline):
                     model_input, timestep, encoder_hidden_states=tokens, class_labels=class_labels
                 ).sample
                 parts = list(noise_pred.chunk(branches))
-                noise_flip = parts.pop() if heading else None
+                noise_contrasts = parts[len(parts) - len(contrasts) :]
+                parts = parts[: len(parts) - len(contrasts)]
                 if do_classifier_free_guidance:
                     noise_uncond, noise_cond = parts
                     noise_pred = noise_uncond + guidance_scale * (noise_cond - noise_uncond)
                 else:
                     noise_cond = noise_pred = parts[0]
-                if heading:
-                    noise_pred = noise_pred + heading_guidance_scale * (noise_cond - noise_flip)
+                for (scale, _), noise_contrast in zip(contrasts, noise_contrasts, strict=True):
+                    noise_pred = noise_pred + scale * (noise_cond - noise_contrast)
                 latents = self.scheduler.step(noise_pred, timestep, latents, **step_kwargs).prev_sample
                 latents = latents.to(dtype)
 
@@ -827,6 +854,17 @@ def flipped_heading_pose(pose: torch.Tensor) -> torch.Tensor:
     flipped = pose.clone()
     flipped[..., 1:3] = -flipped[..., 1:3]
     return flipped
+
+
+def same_depression_pose(pose: torch.Tensor) -> torch.Tensor:
+    """The same pose at the input's own depression: the depression change ``d_el`` (first entry) set to 0.
+
+    Shape:
+        ``(B, 1, 4)`` (:func:`embed_pose`) -> the same.
+    """
+    same = pose.clone()
+    same[..., 0] = 0.0
+    return same
 
 
 def _broadcast_pose(

@@ -132,6 +132,7 @@ class EvaluateConfig:
     num_inference_steps: int = 50  # denoising steps for Tables III/IV
     guidance_scale: float = 3.0  # classifier-free guidance weight
     heading_guidance_scale: float = 0.0  # guidance away from the flipped heading (SARZero123Pipeline); 0: off
+    depression_guidance_scale: float = 0.0  # guidance away from the input's depression (SARZero123Pipeline)
     # in (0, 1]: below 1, sampling starts from a latent of the input noised to this fraction of the steps
     # (SDEdit); start_from names which: "input" as it is, or "turned_input" turned by the requested d_az
     strength: float = 1.0
@@ -205,7 +206,10 @@ class EvaluateConfig:
         steps = {"num_inference_steps": self.num_inference_steps}
         if self.steps:
             steps["steps"] = min(self.steps)
-        check_sampler_start(self.strength, self.heading_guidance_scale, steps)
+        check_sampler_start(
+            self.strength, self.heading_guidance_scale, steps,
+            depression_guidance_scale=self.depression_guidance_scale,
+        )  # fmt: skip
         if self.start_from not in START_FROM:
             raise ValueError(f"start_from must be one of {START_FROM}, got {self.start_from!r}")
 
@@ -511,6 +515,7 @@ def _score_pipelines(
                 num_inference_steps=config.num_inference_steps,
                 guidance_scale=config.guidance_scale,
                 heading_guidance_scale=config.heading_guidance_scale,
+                depression_guidance_scale=config.depression_guidance_scale,
                 strength=config.strength,
                 start_from=config.start_from,
                 batch_size=config.eval_batch_size,
@@ -550,6 +555,7 @@ def _write_tables(
         "num_inference_steps": config.num_inference_steps,
         "guidance_scale": config.guidance_scale,
         "heading_guidance_scale": config.heading_guidance_scale,
+        "depression_guidance_scale": config.depression_guidance_scale,
         "strength": config.strength,
         "start_from": config.start_from,
         "results": results,
@@ -596,6 +602,7 @@ def _speed_sweep(
                     num_inference_steps=steps,
                     guidance_scale=config.guidance_scale,
                     heading_guidance_scale=config.heading_guidance_scale,
+                    depression_guidance_scale=config.depression_guidance_scale,
                     strength=config.strength,
                     start_from=config.start_from,
                     batch_size=config.eval_batch_size,

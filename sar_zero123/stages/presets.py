@@ -126,6 +126,9 @@ class Preset:
     # noised latent (1: from noise)
     eval_heading_guidance_scale: float = 0.0
     eval_strength: float = 1.0
+    # guidance away from the input's depression (train/evaluate.py's --depression_guidance_scale; 0: off):
+    # changes only requests with d_el != 0, the depression evaluation's
+    eval_depression_guidance_scale: float = 0.0
 
     def _check_image_size(self) -> None:
         """The prior exists and the chips fit its VAE and UNet (or ``model_size``'s): checked before any
@@ -246,7 +249,8 @@ class Preset:
             raise ValueError(f"rehearsal_fraction must lie in (0, 1), got {self.rehearsal_fraction}")
         check_sampler_start(self.eval_strength, self.eval_heading_guidance_scale,
                             {"eval_steps": self.eval_steps, "speed_steps": min(self.speed_steps)},
-                            prefix="eval_")  # fmt: skip
+                            prefix="eval_",
+                            depression_guidance_scale=self.eval_depression_guidance_scale)  # fmt: skip
         looks = self.eval_speckle_looks
         if looks is not None and (isinstance(looks, bool) or not isinstance(looks, int) or looks < 1):
             raise ValueError(f"eval_speckle_looks must be an integer >= 1 or None, got {looks!r}")

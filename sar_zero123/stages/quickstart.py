@@ -199,6 +199,7 @@ def plan_stages(config: QuickstartConfig) -> list[StagePlan]:
         "lambdas": list(config.lambdas), "evaluators": str(evaluator_dir),
         "protocol": _protocol(config, preset), "n": preset.eval_n, "num_inference_steps": preset.eval_steps,
         "guidance_scale": 3.0, "heading_guidance_scale": preset.eval_heading_guidance_scale,
+        "depression_guidance_scale": preset.eval_depression_guidance_scale,
         "strength": preset.eval_strength, "crop_size": min(64, preset.image_size),
         "eval_batch_size": 8, "seed": config.seed, "resume": True, "speckle_looks": preset.eval_speckle_looks,
     }  # fmt: skip

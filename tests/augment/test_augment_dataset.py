@@ -145,10 +145,10 @@ def test_resume_generates_only_what_is_missing(augmented, data_dir, pipeline_dir
     assert (out / deleted).read_bytes() == (augmented / deleted).read_bytes()
     assert (out / "index.csv").read_bytes() == (augmented / "index.csv").read_bytes()
     assert not list(out.rglob(".*.tmp"))
-    # a folder written before strength and speckle_looks existed resumes with their defaults
+    # a folder written before strength, speckle_looks and depression guidance resumes with their defaults
     options = json.loads((out / AUGMENT_FILE).read_text())
-    (out / AUGMENT_FILE).write_text(json.dumps({k: v for k, v in options.items()
-                                                if k not in ("strength", "speckle_looks")}))  # fmt: skip
+    added = ("strength", "speckle_looks", "depression_guidance_scale")
+    (out / AUGMENT_FILE).write_text(json.dumps({k: v for k, v in options.items() if k not in added}))
     (out / "index.csv").unlink()
     main(run_args(data_dir, pipeline_dir, out, "--batch_size", "3"))
     assert (out / "index.csv").read_bytes() == (augmented / "index.csv").read_bytes()
@@ -179,6 +179,8 @@ def test_strength_starts_from_the_chip_and_is_recorded(augmented, data_dir, pipe
         main(run_args(data_dir, pipeline_dir, tmp_path / "zero", "--strength", "0"))
     with pytest.raises(ValueError, match=r"^strength 0.1 x num_inference_steps 2 leaves no denoising step"):
         main(run_args(data_dir, pipeline_dir, tmp_path / "few", "--strength", "0.1"))
+    with pytest.raises(ValueError, match=r"^depression_guidance_scale must lie in \[0, 100\], got -1.0"):
+        main(run_args(data_dir, pipeline_dir, tmp_path / "bad", "--depression_guidance_scale", "-1"))
 
 
 def test_refuses_a_folder_of_other_options_or_other_files(augmented, data_dir, pipeline_dir, tmp_path):

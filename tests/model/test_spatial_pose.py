@@ -15,7 +15,12 @@ from sar_zero123.model.conditioning import (
     rotate_condition_latents,
     unet_condition_latents,
 )
-from sar_zero123.model.pipeline import SARZero123Pipeline, flipped_heading_pose
+from sar_zero123.model.pipeline import (
+    SARZero123Pipeline,
+    check_sampler_start,
+    flipped_heading_pose,
+    same_depression_pose,
+)
 
 
 def latents(batch: int = 2, channels: int = 4, side: int = 8) -> torch.Tensor:
@@ -156,3 +161,54 @@ def test_heading_guidance_adds_the_pull_away_from_the_flipped_heading(monkeypatc
         pipe(image, d_az=30.0, heading_guidance_scale=-1.0)
     with pytest.raises(ValueError, match="`heading_guidance_scale` must lie in"):
         pipe(image, d_az=30.0, heading_guidance_scale=float("nan"))
+
+
+def test_depression_guidance_adds_the_pull_away_from_the_input_depression(monkeypatch) -> None:
+    pipe = build_sar_zero123("tiny", seed=0, spatial_pose="rotated_input", input_depression=True)
+    with torch.no_grad():  # a trained projection reads the pose; a fresh one starts at zero on it
+        pipe.pose_projection.projection.weight[:, -4:].normal_(generator=torch.Generator().manual_seed(2))
+    image = torch.rand(2, 1, 32, 32, generator=torch.Generator().manual_seed(1))
+    d_az, d_el, depression = [30.0, -100.0], [13.0, -7.0], [17.0, 17.0]
+    calls, steps = [], []
+    pipe.unet.register_forward_hook(lambda m, a, k, out: calls.append((a, k, out.sample)), with_kwargs=True)
+    step = pipe.scheduler.step
+
+    def scheduler_step(noise, *args, **kwargs):
+        steps.append(noise)
+        return step(noise, *args, **kwargs)
+
+    monkeypatch.setattr(pipe.scheduler, "step", scheduler_step)
+
+    def sample(elevation=d_el, **options):
+        generators = [torch.Generator().manual_seed(k) for k in range(2)]
+        return pipe(image, d_az=d_az, d_el=elevation, input_depression_deg=depression, num_inference_steps=2,
+                    output_type="pt", generator=generators, **options).images  # fmt: skip
+
+    out = sample(guidance_scale=2.5, heading_guidance_scale=4.0, depression_guidance_scale=2.0)
+    assert out.shape == (2, 1, 32, 32) and torch.isfinite(out).all()
+    (args, kwargs, noise_pred), noise = calls[0], steps[0]
+    assert args[0].shape == (8, 12, 16, 16)  # [null; conditional; flipped; input depression] x 2 samples
+    uncond, cond, flip, same = noise_pred.chunk(4)
+    expected = uncond + 2.5 * (cond - uncond) + 4.0 * (cond - flip) + 2.0 * (cond - same)
+    torch.testing.assert_close(noise, expected)
+    # the contrast branch: the same input latent, turned by the same d_az, with the pose at d_el = 0
+    torch.testing.assert_close(args[0][6:8, 4:], args[0][2:4, 4:])
+    pose = embed_pose(d_az, d_el, depression)
+    assert torch.equal(same_depression_pose(pose), embed_pose(d_az, [0.0, 0.0], depression))
+    tokens, _ = pipe.encode_conditioning(image, same_depression_pose(pose))
+    torch.testing.assert_close(kwargs["encoder_hidden_states"][6:8], tokens)
+    # weight 0 is the old sampler exactly; a request at the input's depression is unchanged by any weight
+    plain = sample(guidance_scale=2.5)
+    assert torch.equal(plain, sample(guidance_scale=2.5, depression_guidance_scale=0.0))
+    assert not torch.allclose(plain, sample(guidance_scale=2.5, depression_guidance_scale=2.0))
+    level = sample([0.0, 0.0], guidance_scale=2.5)
+    calls.clear()
+    assert torch.equal(sample([0.0, 0.0], guidance_scale=2.5, depression_guidance_scale=5.0), level)
+    assert calls[0][0][0].shape == (4, 12, 16, 16)  # no third branch: it would add exactly 0
+    mixed = sample([0.0, -7.0], guidance_scale=2.5, depression_guidance_scale=5.0)
+    torch.testing.assert_close(mixed[0], level[0], atol=1e-5, rtol=0)  # the d_el = 0 request unchanged
+    assert not torch.allclose(mixed[1], level[1])
+    with pytest.raises(ValueError, match=r"`depression_guidance_scale` must lie in \[0, 100\], got -1.0"):
+        sample(depression_guidance_scale=-1.0)
+    with pytest.raises(ValueError, match=r"eval_depression_guidance_scale must lie in \[0, 100\], got nan"):
+        check_sampler_start(1.0, 0.0, {"steps": 20}, "eval_", depression_guidance_scale=float("nan"))

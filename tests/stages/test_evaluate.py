@@ -218,6 +218,8 @@ def test_evaluate_bounds_what_a_user_can_size(tmp_path: Path) -> None:
         EvaluateConfig(pipeline=["a"], num_figure_pairs=5000)
     with pytest.raises(ValueError, match=r"heading_guidance_scale must lie in \[0, 100\], got -2.0"):
         EvaluateConfig(pipeline=["a"], heading_guidance_scale=-2.0)
+    with pytest.raises(ValueError, match=r"depression_guidance_scale must lie in \[0, 100\], got inf"):
+        EvaluateConfig(pipeline=["a"], depression_guidance_scale=float("inf"))
     with pytest.raises(ValueError, match=r"strength must lie in \(0, 1\], got 1.5"):
         EvaluateConfig(pipeline=["a"], strength=1.5)
     with pytest.raises(ValueError, match="strength 0.01 x num_inference_steps 50 leaves no denoising step"):

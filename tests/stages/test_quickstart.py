@@ -35,6 +35,11 @@ def test_every_stage_config_is_built_before_any_work(tmp_path: Path) -> None:
     assert (tuned.pfm_balance, tuned.pfm_min_snr) == ("adaptive", 2.0)
     for stage in ("evaluate", "evaluate depressions"):  # the preset's sampler, in both evaluations
         assert (by_name[stage].heading_guidance_scale, by_name[stage].strength) == (1.5, 0.5)
+    guided = quickstart.plan_stages(quickstart.QuickstartConfig(
+        output_dir=str(out), preset="smoke", override=["eval_depression_guidance_scale=3"]))
+    for plan in guided:
+        if plan.name.startswith("evaluate"):
+            assert plan.config.depression_guidance_scale == 3.0
     assert not out.exists()
     # refused in the preset's own field names, before any stage (the override is checked at parse time)
     for item, words in (("base_steps=0", "base_steps must be an integer >= 1, got 0"),
@@ -44,7 +49,9 @@ def test_every_stage_config_is_built_before_any_work(tmp_path: Path) -> None:
                         ("eval_strength=0", "eval_strength must lie in \\(0, 1\\]"),
                         ("eval_strength=0.4", "eval_strength 0.4 x eval_steps 2 leaves no denoising step"),
                         ("eval_heading_guidance_scale=-1",
-                         "eval_heading_guidance_scale must lie in")):  # fmt: skip
+                         "eval_heading_guidance_scale must lie in"),
+                        ("eval_depression_guidance_scale=nan",
+                         "eval_depression_guidance_scale must lie in")):  # fmt: skip
         with pytest.raises(ValueError, match=words):
             quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=[item])
     assert not out.exists()
