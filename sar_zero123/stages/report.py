@@ -126,7 +126,7 @@ def _table_lines(eval_dir: Path, table3: dict[str, Any]) -> list[str]:
     if heading:
         sampler += f", heading guidance {heading}"
     depression = table3.get("depression_guidance_scale") or 0.0
-    if depression:
+    if depression and not table3.get("same_depression", True):  # it changes only depression requests
         sampler += f", depression guidance {depression}"
     strength = table3.get("strength", 1.0)
     if strength < 1.0:
@@ -169,7 +169,15 @@ def _depression_lines(depression_dir: Path, depression_targets_deg: tuple[float,
     if not (depression_dir / "table3.md").is_file():
         return []
     targets = ", ".join(f"{d:g}" for d in depression_targets_deg)
-    lifted = json.loads((depression_dir / "table3.json").read_text()).get("outside_trained_range", {})
+    depression_table3 = json.loads((depression_dir / "table3.json").read_text())
+    lifted = depression_table3.get("outside_trained_range", {})
+    guidance = depression_table3.get("depression_guidance_scale") or 0.0
+    guided = (
+        f"Sampled as Table III, with depression guidance {guidance:g} (each step pushed away from the same "
+        "request at the input's depression). "
+        if guidance
+        else ""
+    )
     outside = [
         name
         for name, ranges in lifted.items()
@@ -192,7 +200,7 @@ def _depression_lines(depression_dir: Path, depression_targets_deg: tuple[float,
         f"views of the same vehicles at {targets} deg. `Dep. err.` is the depression regressor's error "
         "on the generated view against the requested depression; `Closer to target dep.` the share of "
         "pairs whose blurred view correlates better with the true view at the requested depression than "
-        "with the true view at the input's depression (same target azimuth). " + warning,
+        "with the true view at the input's depression (same target azimuth). " + guided + warning,
         "",
         (depression_dir / "table3.md").read_text(),
         "![depression views](eval_depression/views.png)",

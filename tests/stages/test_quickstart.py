@@ -15,6 +15,12 @@ from sar_zero123.sim import simulate_dataset
 from train import quickstart
 
 
+def depression_sampled_with(out):
+    """The depression guidance recorded by the azimuth and the depression evaluation."""
+    return tuple(json.loads((out / f / "table3.json").read_text())["depression_guidance_scale"]
+                 for f in ("eval", "eval_depression"))  # fmt: skip
+
+
 def test_every_stage_config_is_built_before_any_work(tmp_path: Path) -> None:
     """plan_stages builds each stage's typed config; a setting a stage refuses fails before any folder."""
     out = tmp_path / "run"
@@ -50,7 +56,7 @@ def test_every_stage_config_is_built_before_any_work(tmp_path: Path) -> None:
                         ("eval_strength=0.4", "eval_strength 0.4 x eval_steps 2 leaves no denoising step"),
                         ("eval_heading_guidance_scale=-1",
                          "eval_heading_guidance_scale must lie in"),
-                        ("eval_depression_guidance_scale=nan",
+                        ("eval_depression_guidance_scale=101",
                          "eval_depression_guidance_scale must lie in")):  # fmt: skip
         with pytest.raises(ValueError, match=words):
             quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=[item])
@@ -164,6 +170,8 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     # the depression table: 17 deg inputs asked for 30 deg; the from-scratch smoke model never saw d_el != 0
     assert "## Depression changes (17 deg inputs, targets at 30 deg)" in text
     assert "| Closer to target dep. ↑ |" in text and "never trained on these depression changes" in text
+    assert "Sampled as Table III, with depression guidance 2 (each step pushed away" in text
+    assert depression_sampled_with(out) == (2.0, 2.0)  # only the depression table names it; both record it
     depression = json.loads((out / "eval_depression" / "table3.json").read_text())
     assert depression["pairs_per_d_el_deg"]["seen"] == {"+13": 2}
     assert depression["outside_trained_range"]["lambda=0"]["trained_d_el_deg"] == [0.0, 0.0]
