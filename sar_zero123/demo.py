@@ -65,6 +65,8 @@ class DemoModel:
         guidance_scale: Classifier-free guidance weight.
         heading_guidance_scale: Guidance away from the flipped heading (0: off).
         device: Torch device.
+        depression_guidance_scale: Guidance away from the input's depression (0: off; requests with
+            ``d_el == 0`` are unchanged).
     """
 
     def __init__(
@@ -74,6 +76,7 @@ class DemoModel:
         guidance_scale: float = 3.0,
         heading_guidance_scale: float = 0.0,
         device: str = "cpu",
+        depression_guidance_scale: float = 0.0,
     ) -> None:
         self.name = pipeline
         self.pipe = SARZero123Pipeline.from_pretrained(pipeline).to(device)
@@ -88,6 +91,7 @@ class DemoModel:
         self.num_inference_steps = num_inference_steps
         self.guidance_scale = guidance_scale
         self.heading_guidance_scale = heading_guidance_scale
+        self.depression_guidance_scale = depression_guidance_scale
         config = self.pipe.pose_projection.config
         self.needs_depression = bool(getattr(config, "input_depression", False))
         self.trained_depression_deg = getattr(config, "trained_depression_deg", None) or [1.0, 89.0]
@@ -148,7 +152,8 @@ class DemoModel:
             image, d_az=[float(a) for a in d_az], d_el=[float(d_el)] * len(d_az),
             input_depression_deg=chip.depression_deg if self.needs_depression else None,
             num_inference_steps=self.num_inference_steps, guidance_scale=self.guidance_scale,
-            heading_guidance_scale=self.heading_guidance_scale, generator=generator, output_type="np",
+            heading_guidance_scale=self.heading_guidance_scale,
+            depression_guidance_scale=self.depression_guidance_scale, generator=generator, output_type="np",
         )  # fmt: skip
         return np.clip(output.images[..., 0], 0.0, 1.0).astype(np.float32)
 
@@ -242,14 +247,18 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--num_inference_steps", "--num-inference-steps", type=int, default=20)
     parser.add_argument("--guidance_scale", "--guidance-scale", type=float, default=3.0)
     parser.add_argument("--heading_guidance_scale", "--heading-guidance-scale", type=float, default=0.0)
+    parser.add_argument("--depression_guidance_scale", "--depression-guidance-scale", type=float, default=0.0)
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     if not 1 <= args.num_inference_steps <= 1000:
         parser.error(f"--num_inference_steps must lie in [1, 1000], got {args.num_inference_steps}")
     if not 0 < args.port < 65536:
         parser.error(f"--port must lie in [1, 65535], got {args.port}")
-    if not (math.isfinite(args.guidance_scale) and math.isfinite(args.heading_guidance_scale)):
-        parser.error("--guidance_scale and --heading_guidance_scale must be finite")
+    scales = (args.guidance_scale, args.heading_guidance_scale, args.depression_guidance_scale)
+    if not all(math.isfinite(scale) for scale in scales):
+        parser.error(
+            "--guidance_scale, --heading_guidance_scale and --depression_guidance_scale must be finite"
+        )
     return args
 
 
@@ -261,7 +270,7 @@ def main(argv: Sequence[str] | None = None) -> None:
         raise SystemExit("the demo needs gradio: pip install -e '.[demo]'") from None
     args = parse_args(argv)
     model = DemoModel(args.pipeline, args.num_inference_steps, args.guidance_scale,
-                      args.heading_guidance_scale, args.device)  # fmt: skip
+                      args.heading_guidance_scale, args.device, args.depression_guidance_scale)  # fmt: skip
     build_demo(model).launch(
         server_name=args.host, server_port=args.port, share=args.share, max_file_size=MAX_UPLOAD_BYTES,
         show_api=False,

@@ -36,6 +36,14 @@ def test_a_simulated_vehicle_its_views_and_its_truth(model):
     # tile k is the view turned by k * 360 / TURNTABLE_VIEWS deg, with that view's own generator
     np.testing.assert_allclose(strip[:, 64:128], model.views(chip, [0.0, 45.0], 0.0, seed=3)[1], atol=2e-3)
     assert to_uint8(strip[:, :64]).shape == (256, 256)
+    # depression guidance reaches the pipeline: a depression request moves, a level one does not
+    model.depression_guidance_scale = 3.0
+    try:
+        level = model.views(chip, [0.0, 45.0], 0.0, seed=3)[1]
+        np.testing.assert_allclose(level, strip[:, 64:128], atol=2e-3)
+        assert np.abs(model.views(chip, [60.0, -30.0], 10.0, seed=3) - views).max() > 1e-3
+    finally:
+        model.depression_guidance_scale = 0.0
 
 
 def test_bad_uploads_and_requests_are_refused_with_a_message(model, tmp_path):
