@@ -33,7 +33,9 @@ those serials and with ``eoc1_ks`` chips per class: ``eoc1_real_*`` (real 17 deg
 ``eoc1_generated_*`` (+ one view per chip at ``d_el`` = test depression - 17 deg, from a generator fine-tuned
 on those 17 deg chips only, never on a test chip) and ``eoc1_generated_*_d_el0`` (+ the same number of views
 at ``d_el = 0``: the control), and ``eoc1_ceiling_cv`` (a classifier trained on the test chips themselves,
-cross-validated: seed i holds out fold i). ``--strength S`` adds ``eoc1_generated_*_strength{S}`` (the views
+cross-validated: seed i holds out fold i). ``--depression_guidance G`` adds
+``eoc1_generated_*_depression{G}`` (the d_el views sampled with depression guidance G; their control is
+the plain ``_d_el0``). ``--strength S`` adds ``eoc1_generated_*_strength{S}`` (the views
 started from the chip's noised latent) and ``--eoc1_views_per_chip N`` (N > 1) ``eoc1_generated_*_views{N}``
 (N views per chip at ``d_az = 0`` and offsets spread evenly in the gap to its neighbours), each with its
 ``_d_el0`` control; ``--no-eoc1_all`` drops the arms with every chip. A generator fine-tuned on one
@@ -94,7 +96,7 @@ RESULT_FILE = "result.json"
 ARM_SELECTION_FIELDS = (
     "data", "out", "ks", "sectors", "unseen_class", "unseen_k", "speckle_looks", "strength",
     "same_azimuth_control", "eoc1_data", "eoc1_ks", "eoc1_all", "eoc1_views_per_chip", "heading_guidance",
-    "view_filters", "validation_chips_per_class",
+    "view_filters", "validation_chips_per_class", "depression_guidance",
 )  # fmt: skip
 #: Ways of keeping fewer generated views (BenchmarkConfig.view_filters).
 VIEW_FILTERS = ("confident", "ratio1")
@@ -149,6 +151,10 @@ class BenchmarkConfig:
     # views per kept chip in the EOC-1 arms: 1 (at d_az = 0) or N > 1, which adds the arms ..._views{N} (at
     # d_az = 0 and N - 1 offsets spread evenly in the azimuth gap to the chip's neighbours)
     eoc1_views_per_chip: int = 1
+    # also EOC-1 arms whose depression views are sampled with this depression guidance (SARZero123Pipeline's
+    # pull away from the same request at the chip's own depression), ..._depression{G}; their d_el = 0
+    # control is the plain one (the guidance leaves d_el = 0 requests unchanged). None: no such arms
+    depression_guidance: float | None = None
 
     def __post_init__(self) -> None:
         for name in ("ks", "eoc1_ks"):
@@ -168,8 +174,10 @@ class BenchmarkConfig:
             raise ValueError(f"speckle_looks must be None or >= 1, got {self.speckle_looks}")
         if self.strength is not None and not 0.0 < self.strength < 1.0:
             raise ValueError(f"strength must be None or in (0, 1), got {self.strength}")
-        if self.heading_guidance is not None and not 0.0 < self.heading_guidance <= 100.0:
-            raise ValueError(f"heading_guidance must be None or in (0, 100], got {self.heading_guidance}")
+        for name in ("heading_guidance", "depression_guidance"):
+            value = getattr(self, name)
+            if value is not None and not 0.0 < value <= 100.0:
+                raise ValueError(f"{name} must be None or in (0, 100], got {value}")
         unknown = sorted(set(self.view_filters) - set(VIEW_FILTERS))
         if unknown:
             raise ValueError(f"view_filters must be among {VIEW_FILTERS}, got {unknown}")
@@ -380,6 +388,7 @@ def build_generator(
     d_el: float = 0.0,
     heading_guidance: float = 0.0,
     views_tag: str = "",
+    depression_guidance: float = 0.0,
 ) -> tuple[Path, dict[str, Any]]:
     """Fine-tunes the pipeline on `trained_on`, then generates `d_az` views (at depression change `d_el`)
     of each of `sources`; both resumable. With `speckle_looks` or `strength` < 1, the views (in their own
@@ -405,7 +414,8 @@ def build_generator(
         ))  # fmt: skip
         write_json_atomic(times, timing_file)
     suffix = variant_suffix(speckle_looks, strength, same_azimuth=all(d == 0.0 for d in d_az), d_el=d_el,
-                            heading_guidance=heading_guidance) + views_tag  # fmt: skip
+                            heading_guidance=heading_guidance,
+                            depression_guidance=depression_guidance) + views_tag  # fmt: skip
     views, key = folder / f"views{suffix}", f"generate{suffix}"
     if key not in times:
         _, times[key] = timed(augment_dataset, AugmentConfig(
@@ -414,6 +424,7 @@ def build_generator(
             num_inference_steps=config.num_inference_steps, guidance_scale=config.guidance_scale,
             scheduler="ddim", batch_size=16, seed=0,
             speckle_looks=speckle_looks, strength=strength, heading_guidance_scale=heading_guidance,
+            depression_guidance_scale=depression_guidance,
         ))  # fmt: skip
         times[key]["views"] = len(load_index(views))
         write_json_atomic(times, timing_file)
@@ -423,14 +434,16 @@ def build_generator(
 def variant_suffix(
     speckle_looks: int | None = None, strength: float = 1.0, same_azimuth: bool = False, d_el: float = 0.0,
     heading_guidance: float = 0.0, view_filter: str | None = None, filter_classifier: Path | None = None,
+    depression_guidance: float = 0.0,
 ) -> str:
-    """``_speckle<L>``, ``_strength<S>``, ``_heading<H>``, ``_d_az0``, ``_d_el<D>`` and ``_<filter>`` for
-    views generated or kept other than plainly (``""``)."""
+    """``_speckle<L>``, ``_strength<S>``, ``_heading<H>``, ``_depression<G>``, ``_d_az0``, ``_d_el<D>`` and
+    ``_<filter>`` for views generated or kept other than plainly (``""``)."""
     return (
         ("" if view_filter is None else f"_{view_filter}")
         + ("" if speckle_looks is None else f"_speckle{speckle_looks}")
         + ("" if strength == 1.0 else f"_strength{strength:g}")
         + ("" if heading_guidance == 0.0 else f"_heading{heading_guidance:g}")
+        + ("" if depression_guidance == 0.0 else f"_depression{depression_guidance:g}")
         + ("_d_az0" if same_azimuth else "")
         + ("" if d_el == 0.0 else f"_d_el{d_el:g}")
     )
@@ -526,12 +539,13 @@ class Benchmark:
         generator_records: Sequence[ChipRecord] | None = None, speckle_looks: int | None = None,
         strength: float = 1.0, d_el: float = 0.0, heading_guidance: float = 0.0,
         view_filter: str | None = None, filter_classifier: Path | None = None, views_tag: str = "",
+        depression_guidance: float = 0.0,
     ) -> Any:  # fmt: skip
         def build(arm_dir: Path) -> dict[str, Any]:
             trained_on = kept if generator_records is None else generator_records
             views_dir, times = build_generator(
                 self.config, trained_on, kept, generator_dir, d_az, speckle_looks, strength, d_el,
-                heading_guidance, views_tag,
+                heading_guidance, views_tag, depression_guidance,
             )
             generated = load_index(views_dir)
             views = self.filter_views(generated, view_filter, filter_classifier)
@@ -842,12 +856,19 @@ class DepressionTransfer(Benchmark):
             results.append(self.run_arm(f"eoc1_real_{name}", self.real_arm(kept, f"EOC-1: {words}")))
             for views_tag, d_az, strength in self.view_variants(kept):
                 arm = f"eoc1_generated_{name}{views_tag}{variant_suffix(strength=strength)}"
-                for d_el, suffix in ((self.d_el, ""), (0.0, "_d_el0")):
-                    views = "one view" if len(d_az) == 1 else f"{len(d_az)} views (d_az {d_az})"
-                    started = "" if strength == 1.0 else f", started from the chip (strength {strength:g})"
-                    words_all = f"EOC-1: {words} + {views} each at d_el = {d_el:+g} deg{started}"
+                views = "one view" if len(d_az) == 1 else f"{len(d_az)} views (d_az {d_az})"
+                started = "" if strength == 1.0 else f", started from the chip (strength {strength:g})"
+                # a guided arm's control is the plain _d_el0 arm: the guidance leaves d_el = 0 views unchanged
+                guidances = [] if config.depression_guidance is None else [config.depression_guidance]
+                for d_el, suffix, guidance in (
+                    (self.d_el, "", 0.0), (0.0, "_d_el0", 0.0),
+                    *((self.d_el, variant_suffix(depression_guidance=g), g) for g in guidances),
+                ):
+                    guided = "" if guidance == 0.0 else f", depression guidance {guidance:g}"
+                    words_all = f"EOC-1: {words} + {views} each at d_el = {d_el:+g} deg{started}{guided}"
                     results.append(self.run_arm(arm + suffix, self.generated_arm(
                         kept, d_az, generator, words_all, d_el=d_el, strength=strength, views_tag=views_tag,
+                        depression_guidance=guidance,
                     )))  # fmt: skip
         return results
 
@@ -898,7 +919,8 @@ def paired_gain(arm: dict[str, Any], baseline: dict[str, Any]) -> dict[str, Any]
 def add_paired_gains(arms: list[dict[str, Any]]) -> list[dict[str, Any]]:
     """Adds ``gain_over_real`` to each generated arm (against its :func:`real_baseline`) and, to each arm
     whose same-azimuth control ran, ``gain_over_same_azimuth`` (what the requested pose adds), whose
-    same-depression control (``..._d_el0``) ran, ``gain_over_same_depression``; returns `arms`."""
+    same-depression control (``..._d_el0``; for a ``..._depression{G}`` arm the unguided arm's) ran,
+    ``gain_over_same_depression``; returns `arms`."""
     by_name = {arm["arm"]: arm for arm in arms}
     for arm in arms:
         baseline = real_baseline(arm["arm"])
@@ -907,7 +929,9 @@ def add_paired_gains(arms: list[dict[str, Any]]) -> list[dict[str, Any]]:
         control = by_name.get(arm["arm"] + "_d_az0")
         if control is not None:
             arm["gain_over_same_azimuth"] = paired_gain(arm, control)
-        control = by_name.get(arm["arm"] + "_d_el0")
+        # a depression-guided arm's control is the unguided one's (the guidance leaves d_el = 0 views as
+        # they are)
+        control = by_name.get(re.sub(r"_depression[0-9.e+-]+$", "", arm["arm"]) + "_d_el0")
         if control is not None:
             arm["gain_over_same_depression"] = paired_gain(arm, control)
     return arms
@@ -953,7 +977,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else s)
         elif name == "speckle_looks":
             parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else int(s))
-        elif name in ("strength", "heading_guidance"):
+        elif name in ("strength", "heading_guidance", "depression_guidance"):
             parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else float(s))
         else:
             parser.add_argument(flag, type=type(value), default=value)

@@ -311,3 +311,13 @@ def test_eoc1_arms_train_at_17_deg_test_at_the_other_depression_and_pair_with_th
     out = tmp_path / "out" / "eoc1_generator_k4"
     assert len(load_index(out / "views_d_el13_views3")) == 24 and len(load_index(out / "views_views3")) == 24
     assert {r.depression_deg for r in load_index(out / "views_strength0.5_d_az0_d_el13")} == {30.0}
+    # depression guidance: one more arm per view variant, paired with the plain control (the guidance leaves
+    # d_el = 0 views unchanged), its views from the same generator with the guidance recorded
+    guided = {arm["arm"]: arm for arm in main([*args, "--no-eoc1_all", "--depression_guidance", "2"])["arms"]}
+    arm = guided["eoc1_generated_k4_depression2"]
+    assert (arm["d_el_deg"], arm["n_generated"]) == (13.0, 8)
+    assert arm["description"].endswith("at d_el = +13 deg, depression guidance 2")
+    assert arm["gain_over_same_depression"]["against"] == "eoc1_generated_k4_d_el0"
+    assert "eoc1_generated_k4_depression2_d_el0" not in guided
+    record = json.loads((out / "views_depression2_d_az0_d_el13" / "augment.json").read_text())
+    assert record["depression_guidance_scale"] == 2.0 and record["d_el"] == [13.0]
