@@ -17,7 +17,7 @@ from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import POSE_DIM, PoseProjection
 from sar_zero123.model.zero123_checkpoints import ZERO123_SCHEDULER_CONFIG
 
-__all__ = ["DUMMY_IMAGE_SIZE", "dummy_images", "get_dummy_components"]
+__all__ = ["DUMMY_IMAGE_SIZE", "dummy_images", "get_dummy_components", "read_the_pose"]
 
 DUMMY_IMAGE_SIZE = 32
 
@@ -64,3 +64,12 @@ def dummy_images(batch_size: int = 1, channels: int = 1, seed: int = 0) -> torch
     generator = torch.Generator().manual_seed(seed)
     images = torch.rand(batch_size, 1, DUMMY_IMAGE_SIZE, DUMMY_IMAGE_SIZE, generator=generator)
     return images.expand(-1, channels, -1, -1).contiguous()
+
+
+def read_the_pose(pose_projection: PoseProjection, seed: int = 2) -> PoseProjection:
+    """``pose_projection`` with random weights on its pose inputs, in place: a fresh one starts at zero
+    there and ignores the pose, as a trained one does not (so that a change of pose can show in a test)."""
+    generator = torch.Generator().manual_seed(seed)
+    with torch.no_grad():
+        pose_projection.projection.weight[:, -POSE_DIM:].normal_(generator=generator)
+    return pose_projection

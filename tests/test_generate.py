@@ -10,7 +10,7 @@ import numpy as np
 import PIL.Image
 import pytest
 import torch
-from dummies import get_dummy_components
+from dummies import get_dummy_components, read_the_pose
 from mstar_files import write_mstar
 
 import sar_zero123.pretrained as pretrained
@@ -96,17 +96,23 @@ def test_strength_and_heading_guidance_reach_the_pipeline(pipeline_dir, chip_png
     assert np.abs(from_noise[0] - np.load(sorted(out.glob("view_*.npy"))[0])).max() > 1e-3
 
 
-def test_depression_guidance_reaches_the_pipeline(pipeline_dir, chip_png, tmp_path):
+def test_depression_guidance_reaches_the_pipeline(chip_png, tmp_path):
+    components = get_dummy_components()
+    read_the_pose(components["pose_projection"])  # the dummy one ignores d_el, and so any guidance on it
+    pipe = SARZero123Pipeline(**components)
+    pipe.save_pretrained(tmp_path / "pipeline")
+    pipe.set_progress_bar_config(disable=True)
     out = tmp_path / "views"
-    main(["--pipeline", str(pipeline_dir), "--image", str(chip_png), "--d-az", "30", "--d-el", "-5",
+    main(["--pipeline", str(tmp_path / "pipeline"), "--image", str(chip_png), "--d-az", "30", "--d-el", "-5",
           "--output_dir", str(out), "--num-inference-steps", "3", "--seed", "1",
           "--depression_guidance_scale", "2"])  # fmt: skip
     assert json.loads((out / "config.json").read_text())["depression_guidance_scale"] == 2.0
-    pipe = SARZero123Pipeline.from_pretrained(pipeline_dir)
-    pipe.set_progress_bar_config(disable=True)
-    chip = load_input_chip(GenerateConfig(pipeline=str(pipeline_dir), image=str(chip_png)), 32)
+    chip = load_input_chip(GenerateConfig(pipeline=str(tmp_path / "pipeline"), image=str(chip_png)), 32)
     expected = generate_views(pipe, chip, [30.0], [-5.0], 3, 3.0, 1, depression_guidance_scale=2.0)
-    np.testing.assert_allclose(np.load(sorted(out.glob("view_*.npy"))[0]), expected[0], atol=1e-5)
+    written = np.load(sorted(out.glob("view_*.npy"))[0])
+    np.testing.assert_allclose(written, expected[0], atol=1e-5)
+    unguided = generate_views(pipe, chip, [30.0], [-5.0], 3, 3.0, 1)
+    assert np.abs(written - unguided[0]).max() > 1e-3
 
 
 def test_input_chip_uses_the_pipeline_scaling_file(pipeline_dir, chip_png, tmp_path):

@@ -102,13 +102,21 @@ def check_sampler_start(
     Raises:
         ValueError: On any of the above.
     """
-    for name, scale in (
-        ("heading_guidance_scale", heading_guidance_scale),
-        ("depression_guidance_scale", depression_guidance_scale),
-    ):
-        if isinstance(scale, bool) or not 0.0 <= scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
-            raise ValueError(f"{prefix}{name} must lie in [0, {MAX_GUIDANCE_SCALE:g}], got {scale}")
+    _check_contrast_scales(heading_guidance_scale, depression_guidance_scale, prefix + "{}")
     _check_strength(strength, steps, prefix)
+
+
+def _check_contrast_scales(heading: float, depression: float, name_format: str) -> None:
+    """Both contrast guidance weights in [0, ``MAX_GUIDANCE_SCALE``]; the message names each field as
+    ``name_format.format(name)``.
+
+    Raises:
+        ValueError: For a bool, NaN or a weight outside the range.
+    """
+    for name, scale in (("heading_guidance_scale", heading), ("depression_guidance_scale", depression)):
+        if isinstance(scale, bool) or not 0.0 <= scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
+            field = name_format.format(name)
+            raise ValueError(f"{field} must lie in [0, {MAX_GUIDANCE_SCALE:g}], got {scale}")
 
 
 def _check_strength(strength: float, steps: Mapping[str, int], prefix: str = "") -> None:
@@ -605,12 +613,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         denoising_steps = _denoising_steps(strength, num_inference_steps)
         if start_from not in START_FROM:
             raise ValueError(f"`start_from` must be one of {START_FROM}, got {start_from!r}")
-        for name, scale in (
-            ("heading_guidance_scale", heading_guidance_scale),
-            ("depression_guidance_scale", depression_guidance_scale),
-        ):
-            if not 0.0 <= scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
-                raise ValueError(f"`{name}` must lie in [0, {MAX_GUIDANCE_SCALE:g}], got {scale}")
+        _check_contrast_scales(heading_guidance_scale, depression_guidance_scale, "`{}`")
         images = self.preprocess_image(image)
         batch_size = images.shape[0]
         pose = _broadcast_pose(d_az, d_el, batch_size)  # (B, 1, 4)

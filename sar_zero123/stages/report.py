@@ -125,9 +125,6 @@ def _table_lines(eval_dir: Path, table3: dict[str, Any]) -> list[str]:
     heading = table3.get("heading_guidance_scale") or 0.0
     if heading:
         sampler += f", heading guidance {heading}"
-    depression = table3.get("depression_guidance_scale") or 0.0
-    if depression and not table3.get("same_depression", True):  # it changes only depression requests
-        sampler += f", depression guidance {depression}"
     strength = table3.get("strength", 1.0)
     if strength < 1.0:
         sampler += f", from the {table3.get('start_from', 'input').replace('_', ' ')} at strength {strength}"

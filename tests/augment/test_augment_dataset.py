@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from dummies import read_the_pose
 
 from sar_zero123.augment.codomain import readd_speckle
 from sar_zero123.augment_dataset import (
@@ -179,8 +180,6 @@ def test_strength_starts_from_the_chip_and_is_recorded(augmented, data_dir, pipe
         main(run_args(data_dir, pipeline_dir, tmp_path / "zero", "--strength", "0"))
     with pytest.raises(ValueError, match=r"^strength 0.1 x num_inference_steps 2 leaves no denoising step"):
         main(run_args(data_dir, pipeline_dir, tmp_path / "few", "--strength", "0.1"))
-    with pytest.raises(ValueError, match=r"^depression_guidance_scale must lie in \[0, 100\], got -1.0"):
-        main(run_args(data_dir, pipeline_dir, tmp_path / "bad", "--depression_guidance_scale", "-1"))
 
 
 def test_refuses_a_folder_of_other_options_or_other_files(augmented, data_dir, pipeline_dir, tmp_path):
@@ -329,3 +328,32 @@ def test_config_refuses_bad_values(data_dir, pipeline_dir):
         AugmentConfig(**base, d_az=[30.0], batch_size=0)
     with pytest.raises(FileNotFoundError, match="^data: "):
         AugmentConfig(**{**base, "data": str(data_dir / "missing")}, d_az=[30.0])
+
+
+def test_depression_guidance_reaches_each_view_and_is_recorded(data_dir, tmp_path):
+    folder = tmp_path / "pipeline"
+    pipe = build_sar_zero123("tiny", input_depression=True)
+    read_the_pose(pipe.pose_projection)  # a fresh projection ignores d_el, and so any guidance on it
+    pipe.pose_projection.register_to_config(trained_d_el_deg=[-5.0, 5.0], trained_depression_deg=[10.0, 20.0])
+    pipe.save_pretrained(folder)
+    (folder / SCALING_FILE).write_text(json.dumps(DecibelScaling.for_unit_magnitude().to_dict()))
+    pipe.set_progress_bar_config(disable=True)
+    options = ["--classes", "APC", "--max_chips_per_class", "1", "--depression_guidance_scale", "2"]
+    out = main(run_args(data_dir, folder, tmp_path / "guided", *options))
+    assert json.loads((out / AUGMENT_FILE).read_text())["depression_guidance_scale"] == 2.0
+    scaling = DecibelScaling.for_unit_magnitude()
+    for row in read_csv(out / PROVENANCE_FILE):
+        chip_config = GenerateConfig(pipeline=str(folder), image=str(data_dir / row["source_path"]))
+        chip = torch.from_numpy(load_input_chip(chip_config, pipe.default_image_size))[None, None]
+        row_index, request = (int(part[1:]) for part in Path(row["path"]).stem.split("_")[-2:])
+        written = scaling.normalize(np.load(out / row["path"]).astype(np.float64))
+        for guidance in (2.0, 0.0):  # the guided view is the one written; the unguided one differs
+            expected = pipe(
+                chip, d_az=float(row["d_az_deg"]), d_el=float(row["d_el_deg"]), input_depression_deg=17.0,
+                num_inference_steps=2, depression_guidance_scale=guidance,
+                generator=view_generator(0, row_index, request), output_type="np",
+            ).images[0, ..., 0]
+            distance = np.abs(written - expected).max()
+            assert distance < 1e-4 if guidance else distance > 1e-3
+    with pytest.raises(ValueError, match=r"^depression_guidance_scale must lie in \[0, 100\], got -1.0"):
+        main(run_args(data_dir, folder, tmp_path / "bad", "--depression_guidance_scale", "-1"))

@@ -6,6 +6,7 @@ import json
 
 import pytest
 import torch
+from dummies import read_the_pose
 
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.conditioning import (
@@ -165,8 +166,7 @@ def test_heading_guidance_adds_the_pull_away_from_the_flipped_heading(monkeypatc
 
 def test_depression_guidance_adds_the_pull_away_from_the_input_depression(monkeypatch) -> None:
     pipe = build_sar_zero123("tiny", seed=0, spatial_pose="rotated_input", input_depression=True)
-    with torch.no_grad():  # a trained projection reads the pose; a fresh one starts at zero on it
-        pipe.pose_projection.projection.weight[:, -4:].normal_(generator=torch.Generator().manual_seed(2))
+    read_the_pose(pipe.pose_projection)
     image = torch.rand(2, 1, 32, 32, generator=torch.Generator().manual_seed(1))
     d_az, d_el, depression = [30.0, -100.0], [13.0, -7.0], [17.0, 17.0]
     calls, steps = [], []
