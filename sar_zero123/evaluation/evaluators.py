@@ -483,6 +483,7 @@ def score_views(
     evaluators: Evaluators,
     *,
     target_depression_deg: torch.Tensor | None = None,
+    input_depression_deg: torch.Tensor | None = None,
     crop_size: int | None = CROP_SIZE,
     paper_scoring_size: int | None = PAPER_SCORING_SIZE,
     batch_size: int = 64,
@@ -498,7 +499,11 @@ def score_views(
     to `paper_scoring_size`); `ms_ssim_corrected` and `kuan_ssim_corrected` are the corrected variants
     (`sar_zero123.evaluation.metrics`) at the generated resolution. Depression error (with
     `target_depression_deg` and a depression regressor among the evaluators): |predicted - true depression of
-    the target view|.
+    the target view|. Depression overshoot (with `input_depression_deg` too, over the pairs whose target
+    depression differs from the input's): the predicted minus the true target depression, signed along the
+    request, `(predicted - target) * sign(target - input)`. Above 0 the view went past the requested
+    depression, below 0 it stopped short of it (at `-|target - input|` it stayed at the input's depression),
+    which the unsigned error cannot tell apart.
 
     Args:
         generated: Generated views in [0, 1].
@@ -508,6 +513,8 @@ def score_views(
         evaluators: The evaluator set (classifier, regressor, probes, optional depression regressor).
         target_depression_deg: True depression of each target view in degrees; gives
             `depression_error_deg` when the evaluators have a depression regressor.
+        input_depression_deg: Depression of each input view in degrees; with `target_depression_deg`
+            gives `depression_overshoot_deg` (see above) and its `_n`, the pairs it counts.
         crop_size: Centre crop for MS-SSIM and Kuan+SSIM (64 in the paper; `None` only for the corrected
             variants, the paper-comparable ones then use 64).
         paper_scoring_size: Side the views are resized to before the paper-comparable crop (256, the
@@ -519,7 +526,7 @@ def score_views(
         `{"accuracy": %, "azimuth_error_deg", "axis_error_deg" (up to a front/back flip), "sfd", "ms_ssim",
         "kuan_ssim", "ms_ssim_corrected",
         "kuan_ssim_corrected", "n",
-        "azimuth_error_deg/<regressor>"..., "depression_error_deg" (see above),
+        "azimuth_error_deg/<regressor>"..., "depression_error_deg", "depression_overshoot_deg" (see above),
         "predicted/<class>"...}` with the means over the samples, and `<metric>_se`, the standard error of
         each mean. `predicted/<class>` is the share of views (%) the classifier gives each of its classes,
         so that a view that loses its class shows where it went.
@@ -539,6 +546,13 @@ def score_views(
     if target_depression_deg is not None and target_depression_deg.shape != (n,):
         raise ValueError(
             f"target_depression_deg {tuple(target_depression_deg.shape)} must be ({n},) to match generated"
+        )
+    if input_depression_deg is not None and (
+        target_depression_deg is None or input_depression_deg.shape != (n,)
+    ):
+        raise ValueError(
+            f"input_depression_deg needs target_depression_deg and the shape ({n},), got "
+            f"{tuple(input_depression_deg.shape)}"
         )
     depression_regressor = evaluators.depression_regressor if target_depression_deg is not None else None
     # Image metrics first: they validate sizes and ranges of both sets.
@@ -589,6 +603,15 @@ def score_views(
     }
     if depression_regressor is not None:
         scores["depression_error_deg"] = per_sample["depression_error_deg"].mean().item()
+        if input_depression_deg is not None:
+            change = target_depression_deg.double().cpu() - input_depression_deg.double().cpu()
+            moved = change != 0
+            if moved.any():
+                overshoot = (predicted_depression_deg - target_depression_deg.double().cpu())[moved]
+                overshoot = overshoot * torch.sign(change[moved])
+                scores["depression_overshoot_deg"] = overshoot.mean().item()
+                scores["depression_overshoot_deg_se"] = standard_error(overshoot)
+                scores["depression_overshoot_deg_n"] = float(overshoot.numel())
     predicted_classes = torch.bincount(torch.cat(predictions["class"]), minlength=len(evaluators.class_names))
     for name, count in zip(evaluators.class_names, predicted_classes.tolist()):
         scores[f"predicted/{name}"] = 100.0 * count / n

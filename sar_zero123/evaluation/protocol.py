@@ -448,6 +448,7 @@ def score(
         pairs.target_azimuth_deg,
         evaluators,
         target_depression_deg=pairs.target_depression_deg,
+        input_depression_deg=pairs.input_depression_deg,
         crop_size=crop_size,
         paper_scoring_size=paper_scoring_size,
         batch_size=batch_size,

@@ -56,10 +56,11 @@ METRIC_LABELS = {
     "ms_ssim_corrected": "MS-SSIM corr. ↑",
     "kuan_ssim_corrected": "Kuan+SSIM corr. ↑",
     "depression_error_deg": "Dep. err. (deg) ↓",
+    "depression_overshoot_deg": "Dep. overshoot (deg)",
     "closer_to_target_depression": "Closer to target dep. ↑",
 }
 # columns only pairs with a depression change (and a depression regressor, for the error) give
-DEPRESSION_METRICS = ("depression_error_deg", "closer_to_target_depression")
+DEPRESSION_METRICS = ("depression_error_deg", "depression_overshoot_deg", "closer_to_target_depression")
 GAP_LABELS = {
     "azimuth_gap_closed": "Az. gap closed ↑",
     "accuracy_gap_closed": "Acc. gap closed ↑",
@@ -72,7 +73,7 @@ def _format(metric: str, value: float | None) -> str:
         return "-"
     if metric == "accuracy":
         return f"{value:.1f}"
-    if metric in ("azimuth_error_deg", "axis_error_deg", "depression_error_deg"):
+    if metric in ("azimuth_error_deg", "axis_error_deg", "depression_error_deg", "depression_overshoot_deg"):
         return f"{value:.1f}"
     if metric in ("sfd", "closer_to_target_depression"):
         return f"{value:.2f}"
@@ -133,6 +134,12 @@ def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_pap
     if "depression_error_deg" in present:
         lines.append(
             "Dep. err.: |depression regressor's prediction on the view - the target's true depression|."
+        )
+    if "depression_overshoot_deg" in present:
+        lines.append(
+            "Dep. overshoot: the same difference signed along the request, (prediction - target) x "
+            "sign(target - input depression), over the pairs with d_el != 0: > 0 past the requested "
+            "depression, < 0 short of it (-|d_el| stays at the input's)."
         )
     if "closer_to_target_depression" in present:
         lines.append(

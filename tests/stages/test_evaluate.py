@@ -91,6 +91,35 @@ def test_score_views_identical_images(tmp_path: Path) -> None:
         score_views(targets + 1.0, targets, labels, predicted_deg, evaluators, crop_size=32)
 
 
+def test_score_views_depression_overshoot_closed_form(tmp_path: Path) -> None:
+    evaluators = _evaluators(tmp_path, image_size=32, depression=True)
+    targets = torch.rand(6, 1, 32, 32, generator=torch.Generator().manual_seed(1))
+    labels = torch.tensor([0, 1, 0, 1, 0, 1])
+    with torch.no_grad():
+        azimuth = evaluators.regressor.predict_azimuth_deg(targets).double()
+        predicted = evaluators.depression_regressor.predict_depression_deg(targets).double()
+    # requests up, down and none: a view's overshoot is its offset from the target, signed along the request
+    inputs = torch.tensor([17.0, 17.0, 40.0, 40.0, 20.0, 20.0], dtype=torch.float64)
+    goals = predicted + torch.tensor([-2.0, 3.0, -1.0, 4.0, 0.0, 0.0], dtype=torch.float64)
+    goals[4:] = inputs[4:]  # no depression change: not counted
+    kwargs = {"target_depression_deg": goals, "crop_size": 32, "batch_size": 4}
+    views = (targets, targets, labels, azimuth, evaluators)
+    with pytest.warns(UserWarning):
+        scores = score_views(*views, input_depression_deg=inputs, **kwargs)
+    along = torch.sign(goals - inputs)[:4]
+    expected = ((predicted - goals)[:4] * along).tolist()
+    assert scores["depression_overshoot_deg_n"] == 4
+    assert scores["depression_overshoot_deg"] == pytest.approx(sum(expected) / 4, rel=1e-6)
+    se = torch.tensor(expected).std().item() / 2
+    assert scores["depression_overshoot_deg_se"] == pytest.approx(se, rel=1e-5)
+    error = (predicted - goals).abs().mean().item()
+    assert scores["depression_error_deg"] == pytest.approx(error, rel=1e-6)
+    with pytest.warns(UserWarning):  # without the input's depression: the unsigned error only
+        assert "depression_overshoot_deg" not in score_views(*views, **kwargs)
+    with pytest.raises(ValueError, match="input_depression_deg"):
+        score_views(*views, input_depression_deg=inputs[:3], **kwargs)
+
+
 def _snapshot(folder: Path) -> dict[str, tuple[bytes, int]]:
     """Every file under `folder` with its bytes and modification time."""
     files = sorted(p for p in folder.rglob("*") if p.is_file())
@@ -380,6 +409,11 @@ def test_evaluate_depression_protocol_passes_input_depression(tmp_path: Path, mo
             predicted = evaluators.depression_regressor.predict_depression_deg(pairs.targets).double()
         expected = (predicted - pairs.target_depression_deg.double()).abs().mean().item()
         assert table3[target][group]["depression_error_deg"] == pytest.approx(expected, rel=1e-6)
+        # signed along the request: past the target > 0, short of it < 0; |overshoot| averages to the error
+        along = torch.sign(pairs.target_depression_deg.double() - 17.0)
+        expected = ((predicted - pairs.target_depression_deg.double()) * along).mean().item()
+        assert table3[target][group]["depression_overshoot_deg"] == pytest.approx(expected, rel=1e-6)
+        assert table3[target][group]["depression_overshoot_deg_n"] == 3
         # the true target is always closer to itself than to the view at the input's depression
         assert table3[target][group]["closer_to_target_depression"] == 1.0
         assert table3[target][group]["closer_to_target_depression_n"] == 3
@@ -394,7 +428,7 @@ def test_evaluate_depression_protocol_passes_input_depression(tmp_path: Path, mo
         assert values["depression_gap_closed"] == pytest.approx(expected_gap, nan_ok=True)
     markdown = (out / "table3.md").read_text()
     assert "Dep. err. (deg) ↓" in markdown and "Closer to target dep. ↑" in markdown
-    assert "Dep. gap closed ↑" in markdown
+    assert "Dep. gap closed ↑" in markdown and "Dep. overshoot (deg)" in markdown
 
 
 def test_evaluate_rejects_bad_depression_requests() -> None:
