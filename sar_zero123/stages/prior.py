@@ -44,7 +44,15 @@ from sar_zero123.stages.vae import TrainVAEConfig, run_vae
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["PriorConfig", "check_corpus_pairs", "prior_base_config", "prior_vae_config", "run_prior"]
+__all__ = [
+    "PriorConfig",
+    "check_corpus_pairs",
+    "init_folder",
+    "prior_base_config",
+    "prior_vae_config",
+    "prior_vae_folder",
+    "run_prior",
+]
 
 
 @dataclass
@@ -64,6 +72,10 @@ class PriorConfig:
     # the UNet also takes the input latent turned by d_az ("rotated_input"; FinetuneConfig.spatial_pose)
     spatial_pose: str | None = None
     vae: str | None = None  # an AutoencoderKL folder to use (e.g. the bundled prior's vae/); None trains one
+    # a prior (bundled name or pipeline folder) the UNet stage continues from, with that pipeline's own VAE,
+    # pose input, size, prediction type and depression input (model_size, spatial_pose, input_depression
+    # and prediction_type are then unused): a warm start on a new corpus; None trains from scratch
+    init: str | None = None
     vae_widths: list[int] = field(default_factory=lambda: [16, 32, 64])  # VAE block widths (16x16 latents)
     vae_norm_groups: int = 8  # GroupNorm groups of the VAE
     vae_steps: int = 3000  # VAE optimisation steps
@@ -108,6 +120,17 @@ class PriorConfig:
             raise ValueError(
                 f"model_size must be one of {sorted(SAR_ZERO123_SIZES)}, got {self.model_size!r}"
             )
+        if self.init is not None:
+            if self.vae is not None:
+                raise ValueError(
+                    f"vae: a warm start (init {self.init}) keeps that pipeline's own VAE; leave vae out, got "
+                    f"{self.vae}"
+                )
+            if not (init_folder(self) / "model_index.json").is_file():
+                raise FileNotFoundError(
+                    f"init: expected a bundled prior's name or a pipeline folder with model_index.json, got "
+                    f"{self.init}"
+                )
         if self.vae is not None and not (Path(self.vae) / "config.json").is_file():
             raise FileNotFoundError(f"vae: expected an AutoencoderKL folder with config.json, got {self.vae}")
         if self.corpus is not None and not (Path(self.corpus) / "index.csv").is_file():
@@ -120,7 +143,9 @@ class PriorConfig:
         # the UNet needs the VAE's downsampling factor: a mismatch would be found only after the VAE stage
         needed = downsampling_factor(SAR_ZERO123_SIZES[self.model_size]["vae"]["block_out_channels"])
         widths = self.vae_widths
-        if self.vae is not None:
+        if self.init is not None:  # the pipeline's UNet and VAE already agree
+            widths = SAR_ZERO123_SIZES[self.model_size]["vae"]["block_out_channels"]
+        elif self.vae is not None:
             vae_config = json.loads((Path(self.vae) / "config.json").read_text())
             widths = vae_config.get("block_out_channels", widths)
         if downsampling_factor(widths) != needed:
@@ -147,7 +172,7 @@ class PriorConfig:
                 f"the VAE stage (image_size, vae_*, model_size) refuses these settings: {error}"
             ) from None
         try:
-            prior_base_config(self, out / "vae" / "vae")
+            prior_base_config(self, prior_vae_folder(self))
         except ValueError as error:
             raise ValueError(
                 "the UNet stage (image_size, model_size, base_steps, train_batch_size, learning_rate, "
@@ -187,18 +212,42 @@ def prior_vae_config(config: PriorConfig, corpus: Path) -> TrainVAEConfig:
     )
 
 
+def init_folder(config: PriorConfig) -> Path:
+    """The pipeline folder a warm start (``config.init``) continues from."""
+    from sar_zero123.pretrained import resolve_pretrained
+
+    return resolve_pretrained(config.init)
+
+
+def prior_vae_folder(config: PriorConfig) -> Path:
+    """The VAE the UNet stage uses: the warm start's own, the given one, or the VAE stage's."""
+    if config.init is not None:
+        return init_folder(config) / "vae"
+    if config.vae is not None:
+        return Path(config.vae)
+    return Path(config.output_dir) / "vae" / "vae"
+
+
 def prior_base_config(config: PriorConfig, vae: Path, corpus: Path | None = None) -> FinetuneConfig:
-    """The UNet stage of the prior: lambda = 0 from scratch, across depressions, with the VAE at ``vae``."""
+    """The UNet stage of the prior: lambda = 0 across depressions, with the VAE at ``vae``; from scratch, or
+    from ``config.init``'s UNet, pose path and settings (a warm start)."""
+    if config.init is not None:
+        warm = {"pretrained": str(init_folder(config)), "spatial_pose": None, "input_depression": False}
+        warm["prediction_type"] = None
+    else:
+        warm = {
+            "spatial_pose": config.spatial_pose,
+            "input_depression": config.input_depression,
+            "prediction_type": config.prediction_type,
+        }
     return FinetuneConfig(
         **_stage_settings(config),
         output_dir=str(Path(config.output_dir) / "base"),
         data=None if corpus is None else str(corpus),
         size=config.model_size,
         estimate_input_azimuth=True,
-        input_depression=config.input_depression,
-        spatial_pose=config.spatial_pose,
+        **warm,
         same_depression=False,
-        prediction_type=config.prediction_type,
         snr_gamma=config.snr_gamma,
         pfm_weight=0.0,
         vae=str(vae),
@@ -248,8 +297,8 @@ def run_prior(config: PriorConfig) -> Path:
     check_corpus_pairs(config, corpus, num_processes=state.num_processes)
     # 2. VAE, then 3. the UNet and its pose path across depressions (each done once its record is finished)
     vae_config = prior_vae_config(config, corpus)
-    vae = Path(config.vae) if config.vae is not None else Path(vae_config.output_dir) / "vae"
-    vae_done = config.vae is not None or _finished(vae_config.output_dir)
+    vae = prior_vae_folder(config)
+    vae_done = config.vae is not None or config.init is not None or _finished(vae_config.output_dir)
     _stage("vae", vae_done, timings, lambda: run_vae(vae_config))
     base_config = prior_base_config(config, vae, corpus)
     base_done = _finished(base_config.output_dir, min_steps=config.base_steps)  # more steps: resume, export

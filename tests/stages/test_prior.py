@@ -11,6 +11,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from safetensors.torch import load_file
 
 from sar_zero123.data import ViewPairDataset, load_index, split_records
 from sar_zero123.model.build import build_sar_zero123, record_trained_pose_ranges
@@ -271,6 +272,29 @@ def test_pretrain_prior_smoke_writes_a_pipeline_that_takes_depression(tmp_path: 
         pretrain_prior.main([*longer, "--seed", "1"])
     with pytest.raises(ValueError, match="depression_range_deg"):
         pretrain_prior.PriorConfig(depression_range_deg=[50.0, 20.0])
+
+    # a warm start: the UNet stage continues this prior on another corpus, with its VAE and its settings
+    warm_argv = [*argv, "--seed", "1", "--init", str(pipeline), "--model_size", "micro"]
+    warm_argv[warm_argv.index("--output_dir") + 1] = str(tmp_path / "warm")
+    warm = pretrain_prior.main(warm_argv)
+    base = json.loads((tmp_path / "warm" / "base" / "config.json").read_text())
+    assert (base["pretrained"], base["vae"]) == (str(pipeline), str(pipeline / "vae"))
+    assert (base["spatial_pose"], base["input_depression"], base["prediction_type"]) == (None, False, None)
+    assert not (tmp_path / "warm" / "vae").exists()  # no VAE stage
+    for part in ("vae", "unet"):  # the same models, whatever path they were loaded from
+        configs = [json.loads((p / part / "config.json").read_text()) for p in (pipeline, warm)]
+        assert [{k: v for k, v in c.items() if k != "_name_or_path"} for c in configs][0] == {
+            k: v for k, v in configs[1].items() if k != "_name_or_path"
+        }
+    assert (warm / "vae" / "diffusion_pytorch_model.safetensors").read_bytes() == (
+        pipeline / "vae" / "diffusion_pytorch_model.safetensors"
+    ).read_bytes()
+    unet = [load_file(p / "unet" / "diffusion_pytorch_model.safetensors") for p in (pipeline, warm)]
+    assert unet[0].keys() == unet[1].keys() and any(not torch.equal(unet[0][k], unet[1][k]) for k in unet[0])
+    with pytest.raises(ValueError, match="vae: a warm start"):
+        pretrain_prior.PriorConfig(init=str(pipeline), vae=str(pipeline / "vae"))
+    with pytest.raises(FileNotFoundError, match="init: expected"):
+        pretrain_prior.PriorConfig(init=str(tmp_path / "nowhere"))
 
 
 def test_a_folder_that_is_not_a_prior_corpus_or_a_vae_is_refused_before_any_work(tmp_path: Path):
