@@ -72,10 +72,8 @@ class PriorConfig:
     # the UNet also takes the input latent turned by d_az ("rotated_input"; FinetuneConfig.spatial_pose)
     spatial_pose: str | None = None
     vae: str | None = None  # an AutoencoderKL folder to use (e.g. the bundled prior's vae/); None trains one
-    # a prior (bundled name or pipeline folder) the UNet stage continues from, with that pipeline's own VAE,
-    # pose input, size, prediction type and depression input (model_size, spatial_pose, input_depression
-    # and prediction_type are then unused): a warm start on a new corpus; None trains from scratch
-    init: str | None = None
+    # with init, model_size, spatial_pose, input_depression and prediction_type are that pipeline's own
+    init: str | None = None  # a prior (name or folder) to continue with its own VAE (warm start)
     vae_widths: list[int] = field(default_factory=lambda: [16, 32, 64])  # VAE block widths (16x16 latents)
     vae_norm_groups: int = 8  # GroupNorm groups of the VAE
     vae_steps: int = 3000  # VAE optimisation steps
