@@ -229,22 +229,20 @@ def prior_vae_folder(config: PriorConfig) -> Path:
 def prior_base_config(config: PriorConfig, vae: Path, corpus: Path | None = None) -> FinetuneConfig:
     """The UNet stage of the prior: lambda = 0 across depressions, with the VAE at ``vae``; from scratch, or
     from ``config.init``'s UNet, pose path and settings (a warm start)."""
+    pose = {  # a warm start keeps its pipeline's own pose input, depression input and prediction type
+        "spatial_pose": config.spatial_pose,
+        "input_depression": config.input_depression,
+        "prediction_type": config.prediction_type,
+    }
     if config.init is not None:
-        warm = {"pretrained": str(init_folder(config)), "spatial_pose": None, "input_depression": False}
-        warm["prediction_type"] = None
-    else:
-        warm = {
-            "spatial_pose": config.spatial_pose,
-            "input_depression": config.input_depression,
-            "prediction_type": config.prediction_type,
-        }
+        pose = {**dict.fromkeys(pose), "input_depression": False, "pretrained": str(init_folder(config))}
     return FinetuneConfig(
         **_stage_settings(config),
         output_dir=str(Path(config.output_dir) / "base"),
         data=None if corpus is None else str(corpus),
         size=config.model_size,
         estimate_input_azimuth=True,
-        **warm,
+        **pose,
         same_depression=False,
         snr_gamma=config.snr_gamma,
         pfm_weight=0.0,
