@@ -31,11 +31,15 @@ from sar_zero123.domain import naming_write_errors
 ConfigT = TypeVar("ConfigT")
 
 _COMMENT_RE = re.compile(r"^\s*(\w+)\s*:[^#]*#\s*(.+?)\s*$")
+_FIELD_RE = re.compile(r"^(\s*)(\w+)\s*:")
+_BLOCK_RE = re.compile(r"^\s*#\s?(.*?)\s*$")
 
 
 def _field_comments(cls: type) -> dict[str, str]:
-    """Trailing ``# comment`` of each field line in the source of the class and of the dataclasses it
-    inherits fields from (a subclass's line wins; empty where the source is unavailable)."""
+    """Help text of each field: the trailing ``# comment`` of its line or, where it has none, the block of
+    ``#`` lines right above it (joined), from the source of the class and of the dataclasses it inherits
+    fields from (a subclass's line wins; empty where the source is unavailable). Only lines at the class
+    body's own indentation count, so annotated names inside methods never lend their comments."""
     comments: dict[str, str] = {}
     for klass in reversed(cls.__mro__):
         if not dataclasses.is_dataclass(klass):
@@ -44,10 +48,28 @@ def _field_comments(cls: type) -> dict[str, str]:
             source = inspect.getsource(klass)
         except (OSError, TypeError):
             continue
+        body_indent: str | None = None
+        block: list[str] = []
         for line in source.splitlines():
-            match = _COMMENT_RE.match(line)
-            if match:
-                comments[match.group(1)] = match.group(2)
+            if not line.strip() or line.lstrip().startswith(("@", "class ")) and body_indent is None:
+                block = []
+                continue
+            indent = line[: len(line) - len(line.lstrip())]
+            if body_indent is None:
+                body_indent = indent
+            if indent != body_indent:
+                block = []
+                continue
+            comment = _BLOCK_RE.match(line)
+            if comment:
+                block.append(comment.group(1))
+                continue
+            trailing, field_line = _COMMENT_RE.match(line), _FIELD_RE.match(line)
+            if trailing:
+                comments[trailing.group(1)] = trailing.group(2)
+            elif field_line and block:
+                comments[field_line.group(2)] = " ".join(block)
+            block = []
     return comments
 
 

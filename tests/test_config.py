@@ -11,6 +11,7 @@ from pathlib import Path
 import pytest
 
 from sar_zero123.config import (
+    _field_comments,
     check_minimum,
     naming_write_errors,
     parse_config,
@@ -35,6 +36,30 @@ class DemoConfig:
     def __post_init__(self):
         if self.learning_rate <= 0:
             raise ValueError(f"learning_rate must be > 0, got {self.learning_rate}")
+
+
+@dataclass
+class CommentedConfig(DemoConfig):
+    """Help from a block of comment lines above a field."""
+
+    # first line of the block,
+    # second line
+    blocked: float = 1.0
+    plain: int = 0
+    learning_rate: float = 1e-3  # the subclass's own words win
+
+    def helper(self) -> None:
+        # a method's comment
+        plain: int = 1
+        del plain
+
+
+def test_field_help_from_trailing_comments_and_comment_blocks():
+    comments = _field_comments(CommentedConfig)
+    assert comments["blocked"] == "first line of the block, second line"
+    assert "plain" not in comments  # the block above belongs to the field before it, not to this one
+    assert comments["learning_rate"] == "the subclass's own words win"
+    assert comments["output_dir"] == "where outputs go"  # inherited
 
 
 def test_defaults_and_flags():

@@ -134,9 +134,9 @@ class EvaluateConfig:
     heading_guidance_scale: float = 0.0  # guidance away from the flipped heading (SARZero123Pipeline); 0: off
     depression_guidance_scale: float = 0.0  # guidance away from the input's depression (SARZero123Pipeline)
     # in (0, 1]: below 1, sampling starts from a latent of the input noised to this fraction of the steps
-    # (SDEdit); start_from names which: "input" as it is, or "turned_input" turned by the requested d_az
+    # (SDEdit); 1: from noise
     strength: float = 1.0
-    start_from: str = "input"
+    start_from: str = "input"  # the latent strength < 1 starts from: "input", or "turned_input" (by d_az)
     # an AutoencoderKL folder decoding for every pipeline instead of its own VAE; it must encode as theirs
     # (a decoder fine-tuned alone: train/train_vae.py --pretrained PIPELINE --no-train_encoder)
     vae: str | None = None
