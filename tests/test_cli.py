@@ -42,7 +42,7 @@ def test_help_lists_every_field_of_the_config_with_underscores(command, capsys):
     missing = [name for name in fields if not re.search(rf"--{name}\b", text)]
     assert not missing, f"{command.script} --help lacks {missing}"
     undocumented = [name for name in fields if name not in _field_comments(config)]
-    assert not undocumented, f"{command.script}: no help text (a comment on or above the field) for {undocumented}"
+    assert not undocumented, f"{command.script}: no help (a comment on or above the field): {undocumented}"
     # every command that writes a run folder continues it with --resume and starts over with --restart
     assert re.search(r"--resume\b", text) and re.search(r"--restart\b", text)
 
