@@ -80,7 +80,7 @@ import torch.nn.functional as F
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline
 from sar_zero123.augment_dataset import AugmentConfig, augment_dataset
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config import field_comments, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_index, signed_to_unit
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluation.evaluators import SARClassifier, load_evaluator
@@ -961,26 +961,25 @@ def format_table(summary: dict[str, Any]) -> str:
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     defaults = BenchmarkConfig()
+    comments = field_comments(BenchmarkConfig)  # each field's comment in the source, as its help
     for name, value in asdict(defaults).items():
-        flag = f"--{name}"
+        flag, words = f"--{name}", {"default": value, "help": comments.get(name)}
         if isinstance(value, bool):
-            parser.add_argument(flag, action=argparse.BooleanOptionalAction, default=value)
+            parser.add_argument(flag, action=argparse.BooleanOptionalAction, **words)
         elif name == "seeds":
-            parser.add_argument(flag, nargs="+", type=int, default=value)
+            parser.add_argument(flag, nargs="+", type=int, **words)
         elif name == "view_filters":
-            parser.add_argument(flag, nargs="*", choices=VIEW_FILTERS, default=value)
+            parser.add_argument(flag, nargs="*", choices=VIEW_FILTERS, **words)
         elif isinstance(value, list):  # no value: no such arms
-            parser.add_argument(flag, nargs="*", type=int, default=value)
-        elif name in ("rehearsal_data", "eoc1_data"):
-            parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else s)
-        elif name == "unseen_class":
-            parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else s)
+            parser.add_argument(flag, nargs="*", type=int, **words)
+        elif name in ("rehearsal_data", "eoc1_data", "unseen_class"):
+            parser.add_argument(flag, type=lambda s: None if s.lower() == "none" else s, **words)
         elif name == "speckle_looks":
-            parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else int(s))
+            parser.add_argument(flag, type=lambda s: None if s.lower() == "none" else int(s), **words)
         elif name in ("strength", "heading_guidance", "depression_guidance"):
-            parser.add_argument(flag, default=value, type=lambda s: None if s.lower() == "none" else float(s))
+            parser.add_argument(flag, type=lambda s: None if s.lower() == "none" else float(s), **words)
         else:
-            parser.add_argument(flag, type=type(value), default=value)
+            parser.add_argument(flag, type=type(value), **words)
     parser.add_argument("--quick", action="store_true", help=f"the reduced run: {QUICK}")
     args = vars(parser.parse_args(argv))
     if args.pop("quick"):

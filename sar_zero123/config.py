@@ -35,7 +35,7 @@ _FIELD_RE = re.compile(r"^(\s*)(\w+)\s*:")
 _BLOCK_RE = re.compile(r"^\s*#\s?(.*?)\s*$")
 
 
-def _field_comments(cls: type) -> dict[str, str]:
+def field_comments(cls: type) -> dict[str, str]:
     """Help text of each field: the trailing ``# comment`` of its line or, where it has none, the block of
     ``#`` lines right above it (joined), from the source of the class and of the dataclasses it inherits
     fields from (a subclass's line wins; empty where the source is unavailable). Only lines at the class
@@ -195,7 +195,7 @@ def parse_config(
     if not dataclasses.is_dataclass(cls):
         raise TypeError(f"{cls!r} is not a dataclass")
     hints = typing.get_type_hints(cls)
-    comments = _field_comments(cls)
+    comments = field_comments(cls)
     summary = (cls.__doc__ or "").strip().splitlines()
     parser = argparse.ArgumentParser(prog=prog, description=summary[0] if summary else None)
     parser.add_argument(

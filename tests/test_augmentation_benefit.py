@@ -22,6 +22,7 @@ from benchmarks.augmentation_benefit import (
     real_baseline,
 )
 from sar_zero123 import SARZero123Pipeline
+from sar_zero123.config import field_comments
 from sar_zero123.data import SCALING_FILE, ChipRecord, DecibelScaling, load_index
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.sim import simulate_dataset
@@ -321,3 +322,13 @@ def test_eoc1_arms_train_at_17_deg_test_at_the_other_depression_and_pair_with_th
     assert "eoc1_generated_k4_depression2_d_el0" not in guided
     record = json.loads((out / "views_depression2_d_az0_d_el13" / "augment.json").read_text())
     assert record["depression_guidance_scale"] == 2.0 and record["d_el"] == [13.0]
+
+
+def test_help_gives_every_field_its_comment(capsys):
+    with pytest.raises(SystemExit) as done:
+        main(["--help"])
+    assert done.value.code == 0
+    text = " ".join(capsys.readouterr().out.split())
+    comments = field_comments(BenchmarkConfig)
+    assert set(comments) == set(BenchmarkConfig.__dataclass_fields__)  # every field has words
+    assert "classifier seeds per arm" in text and "kept 17 deg chips per class" in text

@@ -9,7 +9,7 @@ from pathlib import Path
 import pytest
 
 from sar_zero123 import cli
-from sar_zero123.config import _field_comments, parse_config
+from sar_zero123.config import field_comments, parse_config
 from sar_zero123.stages.finetune import FinetuneConfig
 from sar_zero123.stages.simclr import PretrainSimCLRConfig
 from sar_zero123.stages.simulate import SimulateConfig
@@ -41,7 +41,7 @@ def test_help_lists_every_field_of_the_config_with_underscores(command, capsys):
     fields = [field.name for field in dataclasses.fields(config) if field.init]
     missing = [name for name in fields if not re.search(rf"--{name}\b", text)]
     assert not missing, f"{command.script} --help lacks {missing}"
-    undocumented = [name for name in fields if name not in _field_comments(config)]
+    undocumented = [name for name in fields if name not in field_comments(config)]
     assert not undocumented, f"{command.script}: no help (a comment on or above the field): {undocumented}"
     # every command that writes a run folder continues it with --resume and starts over with --restart
     assert re.search(r"--resume\b", text) and re.search(r"--restart\b", text)

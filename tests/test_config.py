@@ -11,8 +11,8 @@ from pathlib import Path
 import pytest
 
 from sar_zero123.config import (
-    _field_comments,
     check_minimum,
+    field_comments,
     naming_write_errors,
     parse_config,
     read_config_file,
@@ -55,7 +55,7 @@ class CommentedConfig(DemoConfig):
 
 
 def test_field_help_from_trailing_comments_and_comment_blocks():
-    comments = _field_comments(CommentedConfig)
+    comments = field_comments(CommentedConfig)
     assert comments["blocked"] == "first line of the block, second line"
     assert "plain" not in comments  # the block above belongs to the field before it, not to this one
     assert comments["learning_rate"] == "the subclass's own words win"
