@@ -31,7 +31,7 @@ from sar_zero123.domain import naming_write_errors
 ConfigT = TypeVar("ConfigT")
 
 _COMMENT_RE = re.compile(r"^\s*(\w+)\s*:[^#]*#\s*(.+?)\s*$")
-_FIELD_RE = re.compile(r"^(\s*)(\w+)\s*:")
+_FIELD_RE = re.compile(r"^\s*(\w+)\s*:")
 _BLOCK_RE = re.compile(r"^\s*#\s?(.*?)\s*$")
 
 
@@ -51,7 +51,7 @@ def field_comments(cls: type) -> dict[str, str]:
         body_indent: str | None = None
         block: list[str] = []
         for line in source.splitlines():
-            if not line.strip() or line.lstrip().startswith(("@", "class ")) and body_indent is None:
+            if not line.strip() or (body_indent is None and line.lstrip().startswith(("@", "class "))):
                 block = []
                 continue
             indent = line[: len(line) - len(line.lstrip())]
@@ -68,7 +68,7 @@ def field_comments(cls: type) -> dict[str, str]:
             if trailing:
                 comments[trailing.group(1)] = trailing.group(2)
             elif field_line and block:
-                comments[field_line.group(2)] = " ".join(block)
+                comments[field_line.group(1)] = " ".join(block)
             block = []
     return comments
 

@@ -57,7 +57,8 @@ class CommentedConfig(DemoConfig):
 def test_field_help_from_trailing_comments_and_comment_blocks():
     comments = field_comments(CommentedConfig)
     assert comments["blocked"] == "first line of the block, second line"
-    assert "plain" not in comments  # the block above belongs to the field before it, not to this one
+    # no words: the block above belongs to `blocked`; the method's comment above its `plain` is no field's
+    assert "plain" not in comments
     assert comments["learning_rate"] == "the subclass's own words win"
     assert comments["output_dir"] == "where outputs go"  # inherited
 
