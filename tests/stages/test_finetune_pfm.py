@@ -725,8 +725,10 @@ def test_a_lora_fine_tune_exports_a_plain_unet_whose_change_is_low_rank(script, 
     changed = [key for key in initial if not torch.equal(initial[key], exported[key])]
     projections = ("to_q.weight", "to_k.weight", "to_v.weight", "to_out.0.weight")
     assert changed and all(key.endswith(projections) for key in changed)  # only the attention projections
-    for key in changed:  # rank 2 up to float32 rounding of W + B A
-        assert torch.linalg.matrix_rank(exported[key] - initial[key], rtol=1e-3) <= 2
+    for key in changed:  # rank 2 up to float32 rounding of W + B A (a few ulps of W, on any CPU's kernels)
+        singular = torch.linalg.svdvals((exported[key] - initial[key]).double())
+        rounding = 8 * torch.finfo(torch.float32).eps * initial[key].abs().max().item()
+        assert (singular[2:] <= rounding).all() and singular[0] > 10 * rounding
     # two steps straight equal one step, then a resume to two (the factors are in the checkpoint)
     AcceleratorState._reset_state(True)
     GradientState._reset_state()
