@@ -43,6 +43,8 @@ def script():
 
 @pytest.fixture(autouse=True)
 def fresh_accelerate_state():
+    AcceleratorState._reset_state(True)  # before too: a test of another file may have left one in this worker
+    GradientState._reset_state()
     yield
     AcceleratorState._reset_state(True)
     GradientState._reset_state()
