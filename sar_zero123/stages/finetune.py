@@ -90,10 +90,20 @@ from sar_zero123.training.step import (
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["FinetuneConfig", "run_finetune"]
+__all__ = ["FinetuneConfig", "check_lr_scheduler", "run_finetune"]
 
 #: Schedulers whose learning rate does not depend on the step count: their runs may be extended.
 CONSTANT_LR_SCHEDULERS = ("constant", "constant_with_warmup")
+
+
+def check_lr_scheduler(name: str) -> None:
+    """Refuse a learning-rate schedule that diffusers' ``get_scheduler`` does not know (at the config, not
+    after the model has loaded); ``piecewise_constant`` is left out, having no field for its step rules."""
+    from diffusers.optimization import SchedulerType
+
+    names = [item.value for item in SchedulerType if item is not SchedulerType.PIECEWISE_CONSTANT]
+    if name not in names:
+        raise ValueError(f"lr_scheduler must be one of {names}, got {name!r}")
 
 
 @dataclass
@@ -192,6 +202,7 @@ class FinetuneConfig(LossSettings):
         check_protocol(self.protocol)
         check_minimum(self, "learning_rate", "pose_lr_multiplier", "max_grad_norm", minimum=0, strict=True)
         check_minimum(self, "lr_warmup_steps", "validation_steps", "num_workers", minimum=0)
+        check_lr_scheduler(self.lr_scheduler)
         counts = ("train_batch_size", "gradient_accumulation_steps", "max_train_steps", "checkpointing_steps",
                   "logging_steps", "num_validation_images", "validation_inference_steps")  # fmt: skip
         check_minimum(self, *counts, minimum=1)

@@ -39,7 +39,12 @@ from sar_zero123.model.conditioning import downsampling_factor
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run, read_run_record
 from sar_zero123.runs.stage import launch_state, open_stage_folder
 from sar_zero123.sim.corpus import CORPUS_OPTIONS_FILE, VALIDATION_CLASS, write_prior_corpus
-from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
+from sar_zero123.stages.finetune import (
+    CONSTANT_LR_SCHEDULERS,
+    FinetuneConfig,
+    check_lr_scheduler,
+    run_finetune,
+)
 from sar_zero123.stages.vae import TrainVAEConfig, run_vae
 
 logger = logging.getLogger(__name__)
@@ -78,9 +83,11 @@ class PriorConfig:
     vae_norm_groups: int = 8  # GroupNorm groups of the VAE
     vae_steps: int = 3000  # VAE optimisation steps
     vae_batch_size: int = 8  # chips per VAE step
-    base_steps: int = 25000  # UNet optimisation steps (constant LR: a re-run may extend them)
+    base_steps: int = 25000  # UNet optimisation steps (a constant lr_scheduler: a re-run may extend them)
     train_batch_size: int = 16  # pairs per UNet step
-    learning_rate: float = 1e-3  # AdamW learning rate of the UNet (trained from scratch)
+    learning_rate: float = 1e-3  # AdamW (peak) learning rate of the UNet
+    lr_scheduler: str = "constant"  # diffusers LR schedule of the UNet stage (e.g. cosine: decays to 0)
+    lr_warmup_steps: int = 0  # its warm-up optimisation steps
     input_depression: bool = True  # the pose's 4th entry is the input's absolute depression
     prediction_type: str = "v_prediction"  # the UNet's training target
     snr_gamma: float | None = 5.0  # Min-SNR-gamma weighting of L_simple
@@ -104,6 +111,8 @@ class PriorConfig:
             minimum=1,
         )
         check_minimum(self, "learning_rate", minimum=0, strict=True)
+        check_minimum(self, "lr_warmup_steps", minimum=0)
+        check_lr_scheduler(self.lr_scheduler)
         if self.num_validation_vehicles >= self.num_vehicles:
             raise ValueError(
                 f"num_validation_vehicles must be below num_vehicles ({self.num_vehicles}): the others are "
@@ -250,6 +259,8 @@ def prior_base_config(config: PriorConfig, vae: Path, corpus: Path | None = None
         train_batch_size=config.train_batch_size,
         max_train_steps=config.base_steps,
         learning_rate=config.learning_rate,
+        lr_scheduler=config.lr_scheduler,
+        lr_warmup_steps=config.lr_warmup_steps,
         use_ema=False,
         validation_steps=0,
     )
@@ -274,7 +285,7 @@ def run_prior(config: PriorConfig) -> Path:
         out, "prior", config, data={"corpus": data_identity(config.corpus)},
         resume=config.resume and not config.restart, restart=config.restart, resume_hint="--resume",
         may_differ=("output_dir", "resume", "restart", "corpus_workers", "checkpointing_steps"),
-        may_extend=("base_steps",),
+        may_extend=("base_steps",) if config.lr_scheduler in CONSTANT_LR_SCHEDULERS else (),
     )  # fmt: skip
     if folder.finished:
         logger.info("%s: this prior is finished; nothing to do", out)

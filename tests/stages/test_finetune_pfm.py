@@ -425,6 +425,10 @@ def test_a_cache_on_the_training_device_trains_the_same_weights(script, assets, 
 
     with pytest.raises(ValueError, match="cache_on_device: .* needs cache_latents"):
         FinetuneConfig(pfm_weight=0.0, cache_on_device=True, cache_latents=False)
+    # a schedule diffusers does not know is refused at the config, before any model loads
+    unknown = r"lr_scheduler must be one of \['linear', 'cosine', .*got 'piecewise_constant'"
+    with pytest.raises(ValueError, match=unknown):
+        FinetuneConfig(pfm_weight=0.0, lr_scheduler="piecewise_constant")
 
 
 def test_train_image_encoder_resume_restores_the_tower_bitwise(script, assets, tower_run, tmp_path) -> None:

@@ -275,11 +275,22 @@ def test_pretrain_prior_smoke_writes_a_pipeline_that_takes_depression(tmp_path: 
 
     # a warm start: the UNet stage continues this prior on another corpus, with its VAE and its settings
     # (--model_size micro is the init's to decide: ignored, the tiny pipeline stays tiny)
-    warm_argv = [*argv, "--seed", "1", "--init", str(pipeline), "--model_size", "micro"]
+    # with a learning rate that decays to 0 over its steps (so those steps cannot be extended later)
+    warm_argv = [*argv, "--seed", "1", "--init", str(pipeline), "--model_size", "micro",
+                 "--lr_scheduler", "cosine", "--lr_warmup_steps", "1"]  # fmt: skip
     warm_argv[warm_argv.index("--output_dir") + 1] = str(tmp_path / "warm")
     warm = pretrain_prior.main(warm_argv)
     base = json.loads((tmp_path / "warm" / "base" / "config.json").read_text())
     assert (base["pretrained"], base["vae"]) == (str(pipeline), str(pipeline / "vae"))
+    assert (base["lr_scheduler"], base["lr_warmup_steps"], base["learning_rate"]) == ("cosine", 1, 1e-3)
+    extended = list(warm_argv)
+    extended[extended.index("--base_steps") + 1] = "3"
+    with pytest.raises(ValueError, match=r"other settings.*base_steps: folder 2, this run 3\b"):
+        pretrain_prior.main(extended)
+    with pytest.raises(ValueError, match=r"lr_scheduler must be one of \[.*'cosine'.*\], got 'cosin'"):
+        pretrain_prior.PriorConfig(lr_scheduler="cosin")
+    with pytest.raises(ValueError, match=r"lr_warmup_steps must be >= 0, got -1"):
+        pretrain_prior.PriorConfig(lr_warmup_steps=-1)
     assert (base["spatial_pose"], base["input_depression"], base["prediction_type"]) == (None, False, None)
     assert not (tmp_path / "warm" / "vae").exists()  # no VAE stage
     for part in ("vae", "unet"):  # the same models, whatever path they were loaded from
