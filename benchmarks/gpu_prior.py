@@ -107,9 +107,16 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--size", default="medium", help="build_sar_zero123 size of every arm")
     # 256 pairs ran 11-12 steps/s on an H100 (docs/results/prior.md, section 6): more pairs per step
     parser.add_argument("--train_batch_size", type=int, default=1024, help="pairs per step")
-    parser.add_argument("--learning_rate", type=float, default=8e-4, help="AdamW, constant after warm-up")
+    parser.add_argument("--learning_rate", type=float, default=8e-4, help="AdamW peak, after the warm-up")
     parser.add_argument("--lr_warmup_steps", type=int, default=200, help="linear warm-up steps")
     parser.add_argument("--max_train_steps", type=int, default=100000, help="cap (the clock stops first)")
+    parser.add_argument(
+        "--lr_scheduler",
+        default="constant_with_warmup",
+        help="diffusers schedule after the warm-up; a decaying one (cosine) reaches 0 at --max_train_steps, "
+        "so set those to the steps the budget fits (docs/results/prior.md, section 6, 'A decaying learning "
+        "rate for the warm start')",
+    )
     parser.add_argument("--mixed_precision", default="bf16", choices=["no", "fp16", "bf16"])
     parser.add_argument(
         "--num_workers", type=int, default=4, help="DataLoader workers (with --no-cache_on_device)"
@@ -256,7 +263,7 @@ def train_arm(args: argparse.Namespace, arm: str, corpus: Path, vae: Path, minut
     config = dataclasses.replace(
         config,
         max_train_minutes=minutes,
-        lr_scheduler="constant_with_warmup",
+        lr_scheduler=args.lr_scheduler,
         lr_warmup_steps=args.lr_warmup_steps,
         checkpointing_steps=args.max_train_steps,
         checkpoints_total_limit=1,

@@ -1,7 +1,7 @@
 #!/usr/bin/env bash
 # One GPU call of at most ten minutes for issue 35 (docs/usage/gpus.md), run from the repository root:
 #
-#     OUT=out LIMIT=540 [BATCH=256] [INIT=sar-zero123/sim-prior-rotated] [PROBE=1] \
+#     OUT=out LIMIT=540 [BATCH=256] [INIT=sar-zero123/sim-prior-rotated] [PROBE=1] [DECAY_STEPS=N] \
 #         bash benchmarks/gpu_session.sh [WHEELS [EVALUATORS]]
 #
 # 1. installs the wheels the machine lacks (diffusers, importlib_metadata) from WHEELS (default .whl);
@@ -13,7 +13,10 @@
 #    BATCH pairs per step (default 256: a prior's optimiser steps, more than its pairs, decide how well it
 #    fine-tunes; docs/results/prior.md, section 6, "Steps or pairs"), starting from INIT's weights (default:
 #    the bundled CPU prior, 25,000 steps already; INIT=none trains from scratch), compiled (reduce-overhead)
-#    unless the probe failed; if that arm fails, once more uncompiled in what is left.
+#    unless the probe failed; if that arm fails, once more uncompiled in what is left. With DECAY_STEPS=N the
+#    learning rate decays (cosine) to 0 at step N instead of staying constant: set N to the steps the budget
+#    fits at the probe's (or a past session's) steps/s (docs/results/prior.md, section 6, "A decaying
+#    learning rate for the warm start").
 # Everything lands in OUT: the step timings, gpu_prior's results.json and the pipeline's tar parts, one log.
 set -u
 OUT=${OUT:?OUT must name the output folder}
@@ -44,6 +47,9 @@ fi
 ARM=rotated_input@micro
 COMMON=(--evaluators "$EVALUATORS" --arms "$ARM" --train_batch_size "$BATCH" --init "$INIT" --num_vehicles 20000
     --corpus_minutes 0.4 --eval_reserve_minutes 0.8 --setup_minutes 0.8)
+if [ -n "${DECAY_STEPS:-}" ]; then
+    COMMON+=(--lr_scheduler cosine --max_train_steps "$DECAY_STEPS")
+fi
 python3 benchmarks/gpu_prior.py --out "$OUT" --work /tmp/work "${COMMON[@]}" "${MODE[@]}" \
     --budget_minutes "$(minutes $(($(left) - 20)))" >>"$LOG" 2>&1
 echo "gpu_prior rc=$? at $(( $(date +%s) - T0 )) s" | tee -a "$LOG"

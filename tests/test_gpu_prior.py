@@ -68,8 +68,12 @@ def test_an_arm_starts_from_the_init_pipeline_and_refuses_another_condition_inpu
     args = gpu_prior.parse_args(["--out", "o", "--work", str(tmp_path / "work"), "--evaluators", "e",
                                  "--init", str(start), "--train_batch_size", "2", "--max_train_steps", "1",
                                  "--learning_rate", "1e-30", "--lr_warmup_steps", "0", "--mixed_precision",
-                                 "no", "--no-cache_on_device", "--num_workers", "0"])  # fmt: skip
+                                 "no", "--no-cache_on_device", "--num_workers", "0", "--lr_scheduler",
+                                 "cosine"])  # fmt: skip
     pipeline = gpu_prior.train_arm(args, "rotated_input@tiny", corpus, start / "vae", minutes=5.0)
+    config = json.loads((pipeline.parent / "config.json").read_text())
+    settings = (config["lr_scheduler"], config["max_train_steps"], config["max_train_minutes"])
+    assert settings == ("cosine", 1, 5.0)
     trained = SARZero123Pipeline.from_pretrained(pipeline)
     initial = SARZero123Pipeline.from_pretrained(start)
     # a step at a vanishing learning rate leaves the init's weights: the arm started from them, at their size
