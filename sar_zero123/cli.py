@@ -24,7 +24,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["COMMANDS", "Command", "config_class"]
+__all__ = ["COMMANDS", "Command", "config_class", "console"]
 
 _LOG_FORMAT = "%(asctime)s %(levelname)s %(message)s"
 
@@ -209,3 +209,29 @@ def interpolate(argv: Sequence[str] | None = None) -> Path:
     from sar_zero123.interpolate import main
 
     return main(argv)
+
+
+class _ConsoleScripts:
+    """The console scripts (``[project.scripts]``: ``sar_zero123.cli:console.<function>``).
+
+    Each command function returns its result to Python callers (a folder, a metrics dict); a console
+    script's launcher passes what it calls to ``sys.exit``, which would print that value and exit 1. Here
+    each script runs its function (looked up when called) and exits 0 once it returns; a failure still
+    raises, and ``SystemExit`` (``--help``, a refusal) passes through with its own code.
+    """
+
+    def __getattr__(self, name: str) -> Any:
+        if name not in {command.function for command in COMMANDS}:
+            raise AttributeError(name)
+
+        def script() -> int:
+            globals()[name]()
+            return 0
+
+        script.__name__ = script.__qualname__ = name
+        script.__doc__ = f"``{name}`` as a console script: exit status 0 when it returns."
+        return script
+
+
+#: What the console scripts call: ``console.finetune()`` runs :func:`finetune` on ``sys.argv`` and returns 0.
+console = _ConsoleScripts()

@@ -21,14 +21,28 @@ ROOT = Path(__file__).resolve().parents[1]
 def test_every_command_is_a_console_script_calling_its_function():
     tomllib = pytest.importorskip("tomllib")  # Python >= 3.11
     scripts = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["scripts"]
-    expected = {command.script: f"sar_zero123.cli:{command.function}" for command in cli.COMMANDS}
+    expected = {command.script: f"sar_zero123.cli:console.{command.function}" for command in cli.COMMANDS}
     assert scripts == {**expected, "sar-zero123-demo": "sar_zero123.demo:main"}  # the demo: no stage
     for command in cli.COMMANDS:
-        assert callable(getattr(cli, command.function))
+        assert callable(getattr(cli, command.function)) and callable(getattr(cli.console, command.function))
         assert command.script == "sar-zero123-" + command.function.replace("_", "-")
         also = command.also.split()[-1]
         if also.startswith("train/"):  # the train/ script calls the same function
             assert f"cli.{command.function}(argv)" in (ROOT / also).read_text()
+
+
+def test_console_scripts_exit_0_when_their_command_returns_and_pass_failures_on(monkeypatch):
+    """The launcher calls sys.exit(<what the entry point returns>): a Path or dict would print and exit 1."""
+    for command in cli.COMMANDS:
+        seen = []
+        fake = lambda argv=None, seen=seen: seen.append(argv) or Path("out")  # noqa: E731
+        monkeypatch.setattr(cli, command.function, fake)
+        assert getattr(cli.console, command.function)() == 0 and seen == [None]  # argv: sys.argv
+    monkeypatch.setattr(cli, "finetune", lambda argv=None: (_ for _ in ()).throw(ValueError("bad field")))
+    with pytest.raises(ValueError, match="bad field"):
+        cli.console.finetune()
+    with pytest.raises(AttributeError):
+        cli.console.not_a_command  # noqa: B018
 
 
 @pytest.mark.parametrize("command", cli.COMMANDS, ids=lambda command: command.script)

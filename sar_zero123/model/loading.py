@@ -29,6 +29,7 @@ from sar_zero123.config import read_json
 
 __all__ = [
     "PIPELINE_INDEX",
+    "PIPELINE_SETTINGS",
     "check_component_folder",
     "check_pipeline_folder",
     "expected_files",
@@ -39,6 +40,9 @@ __all__ = [
 
 #: The file ``DiffusionPipeline.save_pretrained`` writes: component name -> [library, class name].
 PIPELINE_INDEX = "model_index.json"
+#: Entries of :data:`PIPELINE_INDEX` that are a pipeline's recorded settings, not components: its
+#: measured-best sampler and its simulator proxy (``SARZero123Pipeline(sampler=..., proxy=...)``).
+PIPELINE_SETTINGS = ("sampler", "proxy")
 # Weight file stems; each may end in .safetensors or .bin, carry a variant (`.fp16`) or be sharded (index).
 _WEIGHT_SUFFIXES = (".safetensors", ".bin", ".safetensors.index.json", ".bin.index.json")
 # diffusers' shape-mismatch message: "Cannot load <name> because <param> expected shape torch.Size([..]),
@@ -148,6 +152,12 @@ def check_pipeline_folder(folder: str | os.PathLike, given: Collection[str] = ()
     components: dict[str, type] = {}
     for name, entry in index.items():
         if name.startswith("_"):
+            continue
+        if name in PIPELINE_SETTINGS:  # settings, not components: null or an object, checked by the pipeline
+            if entry is not None and not isinstance(entry, dict):
+                raise ValueError(
+                    f"{index_path}: '{name}' must be null or an object of settings, got {entry!r}"
+                )
             continue
         if not (isinstance(entry, list) and len(entry) == 2):
             raise ValueError(f"{index_path}: component '{name}' must be [library, class], got {entry!r}")

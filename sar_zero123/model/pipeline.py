@@ -47,7 +47,8 @@ from sar_zero123.model.conditioning import (
     unet_condition_latents,
 )
 from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
-from sar_zero123.model.orientation import AzimuthEstimator, target_view_features
+from sar_zero123.model.orientation import AzimuthEstimator, azimuth_deg, target_view_features
+from sar_zero123.model.proxy import check_proxy_settings, draft_target_views
 from sar_zero123.model.zero123_checkpoints import CLIPImageProcessor, load_zero123_components
 from sar_zero123.pretrained import BUNDLED_NAMESPACE, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar as _progress_bar
@@ -55,6 +56,7 @@ from sar_zero123.progress import progress_bar as _progress_bar
 __all__ = [
     "SARZero123Pipeline",
     "SARZero123PipelineOutput",
+    "SAMPLER_DEFAULTS",
     "check_sampler_start",
     "flipped_heading_pose",
     "same_depression_pose",
@@ -65,7 +67,17 @@ OUTPUT_TYPES = ("pil", "np", "pt", "latent")
 #: Larger guidance scales overflow the guided noise estimate (NaN images); zero-1-to-3 samples with 3.
 MAX_GUIDANCE_SCALE = 100.0
 #: What an image-to-image call (``strength < 1``) starts from (:meth:`SARZero123Pipeline.__call__`).
-START_FROM = ("input", "turned_input")
+START_FROM = ("input", "turned_input", "proxy")
+#: The sampler settings a pipeline may record as its defaults (``SARZero123Pipeline(sampler=...)``), and
+#: the library's defaults for those it does not record. An argument given to a call overrides both.
+SAMPLER_DEFAULTS: dict[str, Any] = {
+    "num_inference_steps": 50,
+    "guidance_scale": 3.0,
+    "strength": 1.0,
+    "heading_guidance_scale": 0.0,
+    "depression_guidance_scale": 0.0,
+    "start_from": "input",
+}
 #: A depression delta is the difference of two depression angles in [0, 90] degrees.
 MAX_ABS_D_EL_DEG = 90.0
 #: Azimuth deltas beyond this many degrees (~2,800 turns) are almost surely a unit error, and float64
@@ -198,8 +210,25 @@ class SARZero123Pipeline(DiffusionPipeline):
         pose_projection: PoseProjection,
         feature_extractor: CLIPImageProcessor | None = None,
         azimuth_estimator: AzimuthEstimator | None = None,
+        sampler: dict[str, Any] | None = None,
+        proxy: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
+        if sampler is not None:
+            if not isinstance(sampler, dict) or set(sampler) - set(SAMPLER_DEFAULTS):
+                raise ValueError(
+                    f"`sampler` must be a dict of some of {list(SAMPLER_DEFAULTS)}, got {sampler!r}"
+                )
+            if sampler.get("start_from", "input") not in START_FROM:
+                raise ValueError(
+                    f"`sampler.start_from` must be one of {START_FROM}, got {sampler['start_from']!r}"
+                )
+            if sampler.get("start_from") == "proxy" and proxy is None:
+                raise ValueError(
+                    "`sampler.start_from` is 'proxy', but the pipeline records no `proxy` settings"
+                )
+        if proxy is not None:
+            proxy = check_proxy_settings(proxy)
         latent_channels = vae.config.latent_channels
         spatial_pose = getattr(pose_projection.config, "spatial_pose", None)
         expected = latent_channels + condition_channels(spatial_pose, latent_channels)
@@ -245,6 +274,8 @@ class SARZero123Pipeline(DiffusionPipeline):
             feature_extractor=feature_extractor,
             azimuth_estimator=azimuth_estimator,
         )
+        # the measured-best sampler and the proxy bank travel with the weights (model_index.json)
+        self.register_to_config(sampler=None if sampler is None else dict(sampler), proxy=proxy)
 
     # ----------------------------------------------------------------------------------------- sizes
     @property
@@ -529,8 +560,8 @@ class SARZero123Pipeline(DiffusionPipeline):
         d_az: float | Sequence[float] | torch.Tensor,
         d_el: float | Sequence[float] | torch.Tensor = 0.0,
         input_depression_deg: float | Sequence[float] | torch.Tensor | None = None,
-        num_inference_steps: int = 50,
-        guidance_scale: float = 3.0,
+        num_inference_steps: int | None = None,
+        guidance_scale: float | None = None,
         num_images_per_prompt: int = 1,
         generator: torch.Generator | list[torch.Generator] | None = None,
         latents: torch.Tensor | None = None,
@@ -541,10 +572,12 @@ class SARZero123Pipeline(DiffusionPipeline):
         | MultiPipelineCallbacks
         | None = None,
         callback_on_step_end_tensor_inputs: Sequence[str] = ("latents",),
-        strength: float = 1.0,
-        heading_guidance_scale: float = 0.0,
-        start_from: Literal["input", "turned_input"] = "input",
-        depression_guidance_scale: float = 0.0,
+        strength: float | None = None,
+        heading_guidance_scale: float | None = None,
+        start_from: Literal["input", "turned_input", "proxy"] | None = None,
+        depression_guidance_scale: float | None = None,
+        start_image: ImageInput | None = None,
+        input_azimuth_deg: float | Sequence[float] | torch.Tensor | None = None,
     ) -> SARZero123PipelineOutput | tuple:
         """Generate views of each input chip at ``(d_az, d_el)`` relative to it.
 
@@ -560,6 +593,12 @@ class SARZero123Pipeline(DiffusionPipeline):
                 its pose projection) are refused.
             num_inference_steps: Number of denoising steps.
             guidance_scale: Classifier-free guidance weight; guidance is off when ``<= 1``.
+
+            Every sampler argument left ``None`` (``num_inference_steps``, ``guidance_scale``, ``strength``,
+            ``heading_guidance_scale``, ``depression_guidance_scale``, ``start_from``) takes the value the
+            pipeline records as measured best for it (``pipe.config.sampler``, saved in
+            ``model_index.json``), else the library's default (:data:`SAMPLER_DEFAULTS`: 50 steps, guidance
+            3, strength 1, no heading or depression guidance, start from the input).
             num_images_per_prompt: Samples per input image.
             generator: One generator, or one per output sample (``B * num_images_per_prompt``).
             latents: Optional initial noise ``(B * num_images_per_prompt, 4, h, w)``, unscaled by
@@ -584,13 +623,28 @@ class SARZero123Pipeline(DiffusionPipeline):
                 pose projection's ``rotation_sign``): a first draft of the target view whose footprint lies
                 where the target's does, for the last denoising steps to correct (shadow and layover stay tied
                 to the range direction). Ignored at ``strength == 1``. Measured not to help on the quickstart
-                (docs/results/prior.md, "Where the held-out vehicle's class goes").
+                (docs/results/prior.md, "Where the held-out vehicle's class goes"). ``"proxy"``: each
+                input's simulator proxy (:mod:`sar_zero123.model.proxy`: the vehicle of the pipeline's
+                ``proxy`` bank that images most like the input at its pose) rendered at the requested pose,
+                a draft whose shadow, layover and front are the requested pose's; it needs
+                ``input_depression_deg`` and the input's azimuth (``input_azimuth_deg``, or the pipeline's
+                ``azimuth_estimator``, whose estimate the simulator fit turns by 180 deg where that fits
+                better).
             depression_guidance_scale: Weight ``g >= 0`` of guidance away from the input's depression: the
                 prediction gains ``g * (eps(d_az, d_el) - eps(d_az, 0))``, which pushes each view from the
                 same request at the input's own depression (:func:`same_depression_pose`), the view a model
                 that ignores ``d_el`` returns. Requests with ``d_el == 0`` are unchanged (both branches are
                 the same; a call whose every ``d_el`` is 0 runs no extra branch). Otherwise one more UNet
                 evaluation per step; 0 (the default) leaves sampling unchanged.
+            start_image: A first draft of each target view (one per input image, the input's size, normalised
+                dB) that a call with ``strength < 1`` noises and starts from instead of ``start_from``'s
+                latent: a simulator proxy re-rendered at the requested pose
+                (:class:`~sar_zero123.sim.proxy.ProxyBank`), whose shadow, layover and front are the
+                requested pose's, for the last denoising steps, conditioned on the input, to carry the
+                input's identity onto. Ignored at ``strength == 1``.
+            input_azimuth_deg: Each input chip's absolute azimuth in degrees (a scalar or one per input),
+                from its metadata (the MSTAR header, the simulator): where ``start_from="proxy"`` fits the
+                proxy. Without it, a pipeline with an ``azimuth_estimator`` estimates it.
 
         Returns:
             :class:`SARZero123PipelineOutput`, or ``(images,)`` when ``return_dict`` is False.
@@ -602,7 +656,13 @@ class SARZero123Pipeline(DiffusionPipeline):
         if isinstance(callback_on_step_end, PipelineCallback | MultiPipelineCallbacks):
             callback_on_step_end_tensor_inputs = callback_on_step_end.tensor_inputs
 
-        # 1. check inputs
+        # 1. check inputs; a sampler argument left None is the pipeline's recorded value, else the library's
+        recorded = {**SAMPLER_DEFAULTS, **(getattr(self.config, "sampler", None) or {})}
+        given = (num_inference_steps, guidance_scale, strength, heading_guidance_scale,
+                 depression_guidance_scale, start_from)  # fmt: skip
+        resolved = [recorded[name] if value is None else value for name, value in zip(recorded, given)]
+        num_inference_steps, guidance_scale, strength = resolved[:3]
+        heading_guidance_scale, depression_guidance_scale, start_from = resolved[3:]
         self._check_inputs(
             num_inference_steps,
             guidance_scale,
@@ -618,6 +678,16 @@ class SARZero123Pipeline(DiffusionPipeline):
         batch_size = images.shape[0]
         pose = _broadcast_pose(d_az, d_el, batch_size)  # (B, 1, 4)
         pose = self._pose_with_depression(pose, d_el, input_depression_deg)
+        start_images = None
+        if start_image is None and start_from == "proxy" and denoising_steps < num_inference_steps:
+            start_image = self._proxy_drafts(images, d_az, d_el, input_azimuth_deg, input_depression_deg)
+        if start_image is not None and denoising_steps < num_inference_steps:
+            start_images = self.preprocess_image(start_image)
+            if start_images.shape[0] != batch_size or start_images.shape[-2:] != images.shape[-2:]:
+                raise ValueError(
+                    f"`start_image` must be one draft per input image of the input's size "
+                    f"{(batch_size, *images.shape[-2:])}, got {tuple(start_images.shape)}"
+                )
         num_samples = batch_size * num_images_per_prompt
         if isinstance(generator, list) and len(generator) != num_samples:
             raise ValueError(
@@ -702,7 +772,10 @@ class SARZero123Pipeline(DiffusionPipeline):
             latents = latents.to(device=device, dtype=dtype)
         if denoising_steps < num_inference_steps:  # the input's own latent, noised to the first timestep
             start_latents = condition_latents[-num_samples:]
-            if start_from == "turned_input":
+            if start_images is not None:
+                start_latents = encode_condition_latents(self.vae, start_images.to(device))
+                start_latents = start_latents.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
+            elif start_from == "turned_input":
                 rotation_sign = self.pose_projection.config.rotation_sign
                 start_latents = rotate_condition_latents(start_latents, sample_pose, rotation_sign)
             start_latents = start_latents * self.vae.config.scaling_factor
@@ -758,6 +831,63 @@ class SARZero123Pipeline(DiffusionPipeline):
             return (output,)
         return SARZero123PipelineOutput(images=output)
 
+
+    @torch.no_grad()
+    def _proxy_drafts(
+        self,
+        images: torch.Tensor,
+        d_az: float | Sequence[float] | torch.Tensor,
+        d_el: float | Sequence[float] | torch.Tensor,
+        input_azimuth_deg: float | Sequence[float] | torch.Tensor | None,
+        input_depression_deg: float | Sequence[float] | torch.Tensor | None,
+    ) -> torch.Tensor:
+        """Each input's simulator proxy at the requested pose (``start_from="proxy"``, :mod:`..proxy`).
+
+        Raises:
+            ValueError: Naming what to pass, where the pipeline records no proxy, the input's depression is
+                not given, or its azimuth is neither given nor estimable.
+        """
+        proxy = getattr(self.config, "proxy", None)
+        if proxy is None:
+            raise ValueError(
+                "`start_from`='proxy': this pipeline records no proxy settings (pipe.config.proxy); build it "
+                "with proxy=sar_zero123.model.proxy.DEFAULT_PROXY, or start from 'input'"
+            )
+        batch_size = images.shape[0]
+
+        def per_input(value: Any, name: str) -> torch.Tensor:
+            _check_real_angles(value, name)
+            tensor = as_angle_tensor(value, name)
+            if tensor.numel() not in (1, batch_size):
+                raise ValueError(
+                    f"`{name}` has {tensor.numel()} values; expected 1 or one per input ({batch_size})"
+                )
+            return tensor.expand(batch_size)
+
+        if input_depression_deg is None:
+            raise ValueError(
+                "`input_depression_deg`: start_from='proxy' fits a simulator vehicle at the input's pose; "
+                "give the input chip's depression in degrees (its metadata), or start from 'input'"
+            )
+        depression = per_input(input_depression_deg, "input_depression_deg")
+        resolve_heading = input_azimuth_deg is None
+        if input_azimuth_deg is not None:
+            azimuth = per_input(input_azimuth_deg, "input_azimuth_deg")
+        elif self.azimuth_estimator is not None:
+            latents = encode_condition_latents(self.vae, images.to(self._execution_device))
+            azimuth = azimuth_deg(self.azimuth_estimator(latents.to(self.unet.dtype)).float()).cpu()
+        else:
+            raise ValueError(
+                "`input_azimuth_deg`: start_from='proxy' fits a simulator vehicle at the input's pose, and "
+                "this pipeline has no azimuth_estimator; give each input chip's absolute azimuth in degrees "
+                "(its metadata), or start from 'input'"
+            )
+        d_az_values = as_angle_tensor(d_az, "d_az").expand(batch_size)
+        d_el_values = as_angle_tensor(d_el, "d_el").expand(batch_size)
+        drafts, _ = draft_target_views(
+            images, azimuth, depression, d_az_values, d_el_values, proxy, resolve_heading=resolve_heading
+        )
+        return drafts
 
     def _pose_with_depression(
         self,

@@ -500,3 +500,94 @@ def test_unet_dtype_is_read_once_per_call(pipe, monkeypatch) -> None:
     monkeypatch.setattr(unet_class, "dtype", property(counting))
     run(pipe, num_inference_steps=6)
     assert len(reads) == 1
+
+
+def test_a_start_image_equal_to_the_input_is_the_input_start_and_another_one_changes_the_view(pipe):
+    """``start_image`` is encoded as the input is (posterior mode): the input itself as the draft gives the
+    input start's bytes; another draft gives another view; a draft of another size is refused."""
+    images = dummy_images(batch_size=2, seed=1)
+    kwargs = {"d_az": [30.0, 150.0], "num_inference_steps": 4, "strength": 0.5, "output_type": "latent"}
+    from_input = run(pipe, images, **kwargs)
+    torch.testing.assert_close(run(pipe, images, start_image=images, **kwargs), from_input)
+    other = run(pipe, images, start_image=images.flip(-1), **kwargs)
+    assert (other - from_input).abs().max() > 1e-3
+    # ignored at strength 1, as start_from is
+    full = {**kwargs, "strength": 1.0}
+    ignored = run(pipe, images, start_image=images.flip(-1), **full)
+    torch.testing.assert_close(ignored, run(pipe, images, **full))
+    with pytest.raises(ValueError, match=r"`start_image` must be one draft per input image"):
+        run(pipe, images, start_image=images[:1], **kwargs)
+
+
+# ------------------------------------------------------------- recorded sampler and the simulator proxy
+SMALL_PROXY = {"num_vehicles": 3, "first_seed": 1_000_000, "blur_sigma_px": 1.5, "render_seed": 0,
+               "min_db": -60.0, "max_db": 0.0}  # fmt: skip
+
+
+def test_a_recorded_sampler_is_the_plain_calls_and_an_argument_overrides_it(tmp_path):
+    sampler = {"num_inference_steps": 3, "guidance_scale": 2.0, "strength": 0.7,
+               "heading_guidance_scale": 0.5}  # fmt: skip
+    recorded = SARZero123Pipeline(**get_dummy_components(), sampler=sampler)
+    recorded.set_progress_bar_config(disable=True)
+    plain = SARZero123Pipeline(**get_dummy_components())
+    plain.set_progress_bar_config(disable=True)
+    explicit = {key: sampler[key] for key in sampler}
+    assert torch.equal(run(recorded, num_inference_steps=None), run(plain, **explicit))
+    overridden = run(recorded, num_inference_steps=None, strength=1.0)
+    assert torch.equal(overridden, run(plain, **{**explicit, "strength": 1.0}))
+    # the plain pipeline's call is the library's defaults; the record survives save and load
+    library = run(plain, num_inference_steps=50, guidance_scale=3.0)
+    assert torch.equal(run(plain, num_inference_steps=None), library)
+    recorded.save_pretrained(tmp_path)
+    assert json.loads((tmp_path / "model_index.json").read_text())["sampler"] == sampler
+    loaded = SARZero123Pipeline.from_pretrained(tmp_path)
+    loaded.set_progress_bar_config(disable=True)
+    assert loaded.config.sampler == sampler and loaded.config.proxy is None
+    assert torch.equal(run(loaded, num_inference_steps=None), run(plain, **explicit))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [({"sampler": {"steps": 3}}, r"`sampler` must be a dict of some of"),
+     ({"sampler": {"start_from": "noise"}}, r"`sampler.start_from` must be one of"),
+     ({"sampler": {"start_from": "proxy"}}, r"records no `proxy` settings"),
+     ({"proxy": {**SMALL_PROXY, "num_vehicles": 0}}, r"proxy.num_vehicles: expected an integer"),
+     ({"proxy": {**SMALL_PROXY, "min_db": 1.0}}, r"proxy.min_db, proxy.max_db: expected finite decibels"),
+     ({"proxy": {"num_vehicles": 3}}, r"proxy: expected the fields .* missing \['blur_sigma_px'")],
+)  # fmt: skip
+def test_bad_recorded_settings_are_refused(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        SARZero123Pipeline(**get_dummy_components(), **kwargs)
+
+
+def test_the_proxy_start_is_the_simulator_draft_at_the_requested_pose(tmp_path):
+    from sar_zero123.model.proxy import draft_target_views
+
+    pipe = SARZero123Pipeline(**get_dummy_components(), proxy=SMALL_PROXY)
+    pipe.set_progress_bar_config(disable=True)
+    images = dummy_images(batch_size=2, seed=3)
+    kwargs = {"d_az": [90.0, -150.0], "num_inference_steps": 4, "strength": 0.5, "output_type": "latent"}
+    drafts, fitted = draft_target_views(
+        images, torch.tensor([10.0, 200.0]), torch.tensor([17.0, 17.0]), torch.tensor([90.0, -150.0]),
+        torch.zeros(2), SMALL_PROXY,
+    )  # fmt: skip
+    assert drafts.shape == (2, 1, DUMMY_IMAGE_SIZE, DUMMY_IMAGE_SIZE) and 0.0 <= float(drafts.min())
+    np.testing.assert_array_equal(fitted, [10.0, 200.0])
+    proxied = run(pipe, images, start_from="proxy", input_azimuth_deg=[10.0, 200.0],
+                  input_depression_deg=17.0, **kwargs)  # fmt: skip
+    torch.testing.assert_close(proxied, run(pipe, images, start_image=drafts, **kwargs))
+    # the proxy settings travel with the pipeline
+    pipe.save_pretrained(tmp_path)
+    loaded = SARZero123Pipeline.from_pretrained(tmp_path)
+    assert loaded.config.proxy == SMALL_PROXY
+    # refusals name what to pass
+    with pytest.raises(ValueError, match=r"`input_depression_deg`: start_from='proxy' fits"):
+        run(pipe, images, start_from="proxy", input_azimuth_deg=10.0, **kwargs)
+    with pytest.raises(ValueError, match=r"`input_azimuth_deg`: .* has no azimuth_estimator"):
+        run(pipe, images, start_from="proxy", input_depression_deg=17.0, **kwargs)
+    with pytest.raises(ValueError, match=r"`input_azimuth_deg` has 3 values; expected 1 or one per input"):
+        run(pipe, images, start_from="proxy", input_azimuth_deg=[1.0, 2.0, 3.0], input_depression_deg=17.0,
+            **kwargs)  # fmt: skip
+    plain = SARZero123Pipeline(**get_dummy_components())
+    with pytest.raises(ValueError, match=r"records no proxy settings"):
+        run(plain, images, start_from="proxy", input_azimuth_deg=10.0, input_depression_deg=17.0, **kwargs)

@@ -1,0 +1,261 @@
+"""Analysis by synthesis on unseen vehicles: template-matched azimuth, front/back and identity (issue 61)
+
+    python benchmarks/proxy_views.py --out proxy_views.json
+    python benchmarks/proxy_views.py --pairs_per_class 8 --bank_sizes 250 --out quick.json
+
+On the simulator's eight named vehicles (never in a prior's corpus), each pair's input is rendered at 17 deg
+and a random azimuth, and the request turns it by ``d_az`` with ``60 <= |d_az| <= 180`` deg (sign random),
+``d_el = 0``. Every row's views are read by template matching (:mod:`sar_zero123.evaluation.template`):
+each view's blurred correlation with its true vehicle's 17 deg renders on a 5 deg grid gives its azimuth;
+over all eight vehicles' renders, its identity. Rows, on the same pairs:
+
+- ``input copy (floor)``; ``input turned`` (the input rotated in the image plane by the request, as the
+  ``rotated_input`` condition turns it); ``true view, another speckle draw (ceiling)``;
+- ``proxy alone (bank N)``: the bank vehicle retrieved for the input
+  (:class:`~sar_zero123.sim.proxy.ProxyBank`: rendered at the input's azimuth and depression, best blurred
+  correlation) re-rendered at the request;
+- the pipeline's plain call; the pipeline with heading guidance 1.5 from the input noised to 80 %;
+- the pipeline started from the proxy's render at the request, noised to each ``--strengths`` level
+  (``start_image``), conditioned on the input as always, with and without heading guidance;
+- the same from an oracle proxy (the true vehicle at the request, another clutter draw): what a perfect fit
+  would give this sampler.
+
+Writes JSON (per row: mean template azimuth error and its standard error, gap closed between floor and
+ceiling, front/back right, identity kept, seconds) and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import torch
+from threadpoolctl import threadpool_limits
+
+from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
+from sar_zero123.config import write_json_atomic
+from sar_zero123.data import SCALING_FILE, DecibelScaling
+from sar_zero123.domain import to_decibels
+from sar_zero123.evaluation.template import read_templates, summarise_readings
+from sar_zero123.model.conditioning import embed_pose, rotate_condition_latents
+from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip
+from sar_zero123.sim.proxy import ProxyBank
+
+INPUT_DEPRESSION_DEG = 17.0
+SIM_ROTATION_SIGN = -1
+GRID_DEG = np.arange(0.0, 360.0, 5.0)
+
+
+def draw_pairs(classes: Sequence[str], pairs_per_class: int, seed: int) -> list[tuple[int, float, float]]:
+    """``(vehicle index, input azimuth, d_az)`` per pair: azimuth in [0, 360), 60 <= |d_az| <= 180."""
+    rng = np.random.default_rng(seed)
+    pairs = []
+    for v in range(len(classes)):
+        for _ in range(pairs_per_class):
+            magnitude = float(rng.uniform(60.0, 180.0))
+            pairs.append((v, float(rng.uniform(0.0, 360.0)), magnitude * float(rng.choice([-1.0, 1.0]))))
+    return pairs
+
+
+_BANKS: dict[int, ProxyBank] = {}  # per worker process: each bank's vehicles are built once
+
+
+def _retrieve(args: tuple) -> tuple[int, float]:
+    """One pair's retrieval (a worker process): the bank index and its score."""
+    bank_size, chip_db, azimuth = args
+    threadpool_limits(limits=1)  # one BLAS thread per process: N processes on N cores, not N x N threads
+    bank = _BANKS.setdefault(bank_size, ProxyBank(bank_size))
+    match = bank.retrieve(chip_db, azimuth, INPUT_DEPRESSION_DEG)
+    return match.index, match.score
+
+
+def retrieve_all(bank_size: int, chips_db: np.ndarray, azimuths: Sequence[float], workers: int) -> np.ndarray:
+    """Every pair's bank index, retrieved in ``workers`` processes."""
+    jobs = [(bank_size, chip, float(a)) for chip, a in zip(chips_db, azimuths)]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        return np.array(
+            [index for index, _ in pool.map(_retrieve, jobs, chunksize=max(1, len(jobs) // (4 * workers)))],
+            dtype=np.int64,
+        )
+
+
+def run(
+    pipeline: str = SIM_PRIOR_ROTATED,
+    *,
+    pairs_per_class: int = 32,
+    bank_sizes: Sequence[int] = (250, 1000),
+    strengths: Sequence[float] = (0.5, 0.7, 0.85),
+    heading_guidance_scale: float = 1.5,
+    num_inference_steps: int = 20,
+    batch_size: int = 32,
+    seed: int = 0,
+    workers: int = 2,
+) -> dict:
+    """Every row's template readings on the same pairs; see the module docstring."""
+    classes = list(TARGET_CLASSES)
+    scaling = DecibelScaling.from_dict(json.loads((resolve_pretrained(pipeline) / SCALING_FILE).read_text()))
+    pipe = SARZero123Pipeline.from_pretrained(pipeline)
+    pipe.set_progress_bar_config(disable=True)
+    size = pipe.default_image_size
+    pairs = draw_pairs(classes, pairs_per_class, seed)
+    targets = [make_target(name) for name in classes]
+    vehicle = np.array([v for v, _, _ in pairs])
+    d_az = [d for _, _, d in pairs]
+    requested = np.array([(a + d) % 360.0 for _, a, d in pairs])
+
+    def render(v: int, azimuth: float, stream: tuple[int, ...]) -> np.ndarray:
+        chip = render_chip(
+            targets[v], azimuth % 360.0, INPUT_DEPRESSION_DEG, size, np.random.default_rng(stream)
+        )
+        return scaling.normalize(chip).astype(np.float32)
+
+    inputs = np.stack([render(v, a, (seed, k, 0)) for k, (v, a, _) in enumerate(pairs)])
+    truth = np.stack([render(v, a + d, (seed, k, 1)) for k, (v, a, d) in enumerate(pairs)])
+    turntables = np.stack(
+        [[render(v, g, (seed, 10_000 + v, int(g))) for g in GRID_DEG] for v in range(len(classes))]
+    )
+
+    def read(views: np.ndarray):
+        return read_templates(views, turntables, GRID_DEG, vehicle, requested)
+
+    floor, ceiling = read(inputs), read(truth)
+    rows: dict[str, dict] = {}
+
+    def add(name: str, views: np.ndarray, seconds: float) -> None:
+        rows[name] = summarise_readings(read(views), floor, ceiling) | {"seconds": seconds}
+        r = rows[name]
+        print(
+            f"{name}: err {r['azimuth_error_deg']:.1f} ± {r['azimuth_error_deg_se']:.1f}, "
+            f"gap {r['gap_closed']:.0%}, "
+            f"front/back {r['front_back_right']:.0%}, identity {r['identity_kept']:.0%} ({seconds:.0f} s)",
+            flush=True,
+        )
+
+    add("input copy (floor)", inputs, 0.0)
+    pose = embed_pose(d_az, [0.0] * len(d_az))
+    turned = rotate_condition_latents(torch.from_numpy(inputs)[:, None], pose, SIM_ROTATION_SIGN)[
+        :, 0
+    ].numpy()
+    add("input turned", turned, 0.0)
+    add("true view, another speckle draw (ceiling)", truth, 0.0)
+
+    proxies: dict[int, np.ndarray] = {}
+    for bank_size in bank_sizes:
+        begin = time.perf_counter()
+        indices = retrieve_all(
+            bank_size, to_decibels(scaling.denormalize(inputs)), [a for _, a, _ in pairs], workers
+        )
+        bank = ProxyBank(bank_size)
+        proxies[bank_size] = np.stack(
+            [
+                scaling.normalize(bank.render(i, r, INPUT_DEPRESSION_DEG, size))
+                for i, r in zip(indices, requested)
+            ]
+        ).astype(np.float32)
+        add(f"proxy alone (bank {bank_size})", proxies[bank_size], time.perf_counter() - begin)
+
+    def sample(start: np.ndarray | None, strength: float, heading: float) -> tuple[np.ndarray, float]:
+        begin, views = time.perf_counter(), []
+        for s in range(0, len(pairs), batch_size):
+            chunk = slice(s, s + batch_size)
+            n = len(d_az[chunk])
+            views.append(pipe(
+                torch.from_numpy(inputs[chunk])[:, None], d_az=d_az[chunk], d_el=0.0,
+                input_depression_deg=INPUT_DEPRESSION_DEG, num_inference_steps=num_inference_steps,
+                heading_guidance_scale=heading, strength=strength,
+                start_image=None if start is None else torch.from_numpy(start[chunk])[:, None],
+                generator=[torch.Generator().manual_seed(seed + k) for k in range(s, s + n)],
+                output_type="np",
+            ).images[..., 0])  # fmt: skip
+        return np.concatenate(views), time.perf_counter() - begin
+
+    add(f"{pipeline}, plain call", *sample(None, 1.0, 0.0))
+    add(
+        f"{pipeline}, heading guidance {heading_guidance_scale:g}, strength 0.8",
+        *sample(None, 0.8, heading_guidance_scale),
+    )
+    best = proxies[max(bank_sizes)]
+    for strength in strengths:
+        for heading in (0.0, heading_guidance_scale):
+            name = f"{pipeline} from the proxy (bank {max(bank_sizes)}), strength {strength:g}, "
+            name += f"heading {heading:g}"
+            add(name, *sample(best, strength, heading))
+    oracle = np.stack([render(v, a + d, (seed, k, 2)) for k, (v, a, d) in enumerate(pairs)])
+    for strength in strengths:  # the true vehicle as the proxy: what a perfect fit would give
+        name = f"{pipeline} from an oracle proxy (the true vehicle), strength {strength:g}, "
+        name += f"heading {heading_guidance_scale:g}"
+        add(name, *sample(oracle, strength, heading_guidance_scale))
+    return {
+        "benchmark": "proxy_views (issue 61)",
+        "pipeline": str(pipeline),
+        "classes": classes,
+        "pairs_per_class": pairs_per_class,
+        "d_az_range_deg": [60.0, 180.0],
+        "input_depression_deg": INPUT_DEPRESSION_DEG,
+        "template_grid_deg": 5.0,
+        "num_inference_steps": num_inference_steps,
+        "seed": seed,
+        "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}",
+        "platform": platform.platform(),
+        "rows": rows,
+    }
+
+
+def format_table(record: dict) -> str:
+    lines = [
+        "| row | template azimuth error (deg) | gap closed | front/back right | identity kept |",
+        "| --- | --- | --- | --- | --- |",
+    ]
+    for name, r in record["rows"].items():
+        lines.append(
+            f"| {name} | {r['azimuth_error_deg']:.1f} ± {r['azimuth_error_deg_se']:.1f} | "
+            f"{r['gap_closed']:.0%} | "
+            f"{r['front_back_right']:.0%} ± {r['front_back_right_se']:.0%} | "
+            f"{r['identity_kept']:.0%} ± {r['identity_kept_se']:.0%} |"
+        )
+    return "\n".join(lines)
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pipeline", default=SIM_PRIOR_ROTATED, help="pipeline folder or bundled name")
+    parser.add_argument(
+        "--pairs_per_class", type=int, default=32, help="pairs per named vehicle (8 vehicles)"
+    )
+    parser.add_argument("--bank_sizes", nargs="+", type=int, default=[250, 1000], help="proxy bank sizes")
+    parser.add_argument(
+        "--strengths",
+        nargs="+",
+        type=float,
+        default=[0.5, 0.7, 0.85],
+        help="noise levels the proxy start is noised to",
+    )
+    parser.add_argument("--heading_guidance_scale", type=float, default=1.5, help="heading guidance weight")
+    parser.add_argument("--num_inference_steps", type=int, default=20, help="DDIM steps")
+    parser.add_argument("--batch_size", type=int, default=32, help="views per pipeline call")
+    parser.add_argument("--seed", type=int, default=0, help="pairs, clutter and sampling seed")
+    parser.add_argument("--workers", type=int, default=2, help="processes for the proxy retrieval")
+    parser.add_argument("--out", default="proxy_views.json", help="output JSON")
+    args = parser.parse_args(argv)
+    if args.pairs_per_class < 2:
+        raise ValueError(f"pairs_per_class must be >= 2, got {args.pairs_per_class}")
+    record = run(
+        args.pipeline, pairs_per_class=args.pairs_per_class, bank_sizes=args.bank_sizes,
+        strengths=args.strengths,
+        heading_guidance_scale=args.heading_guidance_scale, num_inference_steps=args.num_inference_steps,
+        batch_size=args.batch_size, seed=args.seed, workers=args.workers,
+    )  # fmt: skip
+    write_json_atomic(record, Path(args.out))
+    print(format_table(record))
+    return record
+
+
+if __name__ == "__main__":
+    main()

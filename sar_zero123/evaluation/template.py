@@ -1,0 +1,148 @@
+"""Template-matched readings of generated views: an azimuth that a footprint turned in place cannot fool.
+
+The evaluators' regressor reads a view's azimuth from learned features, which a view whose body lies on
+the right axis can satisfy with its front and back swapped. Where the true vehicle is known (the
+simulator), the pixels can be asked instead: each view is correlated (both blurred, Pearson) with the true
+vehicle's renders on an azimuth grid at the requested depression (its *turntable*), and the best-matching
+grid azimuth is the view's reading. Per view:
+
+- ``azimuth_error_deg``: the reading's angular distance to the requested azimuth, in [0, 180];
+- ``front_back_right``: the reading lies nearer the request than the request turned by 180 deg;
+- ``identity_kept``: over every candidate vehicle's turntable, the best match is the true vehicle's.
+
+``gap_closed`` places a row's mean azimuth error between a floor (the input copied as the view) and a
+ceiling (the true view with another speckle draw) on the same pairs: 0 at the floor, 1 at the ceiling.
+The images may be in any affine map of decibels (normalised dB): Pearson correlation does not see it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+from scipy.ndimage import gaussian_filter
+
+__all__ = ["TemplateReadings", "gap_closed", "read_templates", "summarise_readings"]
+
+
+def _normalised(images: np.ndarray, blur_sigma_px: float) -> np.ndarray:
+    """Blurred, mean-free, unit-norm rows ``(N, S * S)`` (a constant image gives a zero row)."""
+    images = np.asarray(images, dtype=np.float64)
+    if blur_sigma_px > 0:
+        images = gaussian_filter(images, (0.0, blur_sigma_px, blur_sigma_px))
+    rows = images.reshape(len(images), -1)
+    rows = rows - rows.mean(axis=1, keepdims=True)
+    norm = np.linalg.norm(rows, axis=1, keepdims=True)
+    return np.where(norm > 0, rows / np.maximum(norm, 1e-300), 0.0)
+
+
+def _angle_between(a_deg: np.ndarray, b_deg: np.ndarray) -> np.ndarray:
+    """Angular distance in [0, 180] degrees."""
+    return np.abs((np.asarray(a_deg) - np.asarray(b_deg) + 180.0) % 360.0 - 180.0)
+
+
+@dataclass(frozen=True)
+class TemplateReadings:
+    """Per-view template readings (:func:`read_templates`); every field is ``(N,)``."""
+
+    matched_azimuth_deg: np.ndarray
+    azimuth_error_deg: np.ndarray
+    front_back_right: np.ndarray
+    identity_kept: np.ndarray
+
+
+def read_templates(
+    views: np.ndarray,
+    turntables: np.ndarray,
+    turntable_azimuths_deg: Sequence[float],
+    vehicle: Sequence[int],
+    requested_azimuth_deg: Sequence[float],
+    blur_sigma_px: float = 1.5,
+) -> TemplateReadings:
+    """Read each view's azimuth and identity off the candidate vehicles' turntables.
+
+    Args:
+        views: Generated views ``(N, S, S)``.
+        turntables: Every candidate vehicle's renders ``(V, K, S, S)`` at ``turntable_azimuths_deg``, at the
+            requested depression (one depression for all views: score each depression separately).
+        turntable_azimuths_deg: The ``K`` grid azimuths (deg).
+        vehicle: Each view's true vehicle, an index into ``turntables`` ``(N,)``.
+        requested_azimuth_deg: Each view's requested absolute azimuth (deg) ``(N,)``.
+        blur_sigma_px: Gaussian blur (pixels) of views and templates before they are correlated.
+
+    Returns:
+        :class:`TemplateReadings`.
+
+    Raises:
+        ValueError: For shapes that do not match, or a vehicle index outside ``[0, V)``.
+    """
+    views = np.asarray(views)
+    turntables = np.asarray(turntables)
+    grid = np.asarray(turntable_azimuths_deg, dtype=np.float64)
+    vehicle = np.asarray(vehicle, dtype=np.int64)
+    requested = np.asarray(requested_azimuth_deg, dtype=np.float64)
+    if views.ndim != 3 or turntables.ndim != 4 or turntables.shape[2:] != views.shape[1:]:
+        raise ValueError(
+            "views (N, S, S) and turntables (V, K, S, S) must share S, "
+            f"got {views.shape} and {turntables.shape}"
+        )
+    n, (v, k) = len(views), turntables.shape[:2]
+    if grid.shape != (k,):
+        raise ValueError(f"turntable_azimuths_deg: expected {k} azimuths, got shape {grid.shape}")
+    if vehicle.shape != (n,) or requested.shape != (n,):
+        raise ValueError(
+            f"vehicle and requested_azimuth_deg: expected ({n},), got {vehicle.shape}, {requested.shape}"
+        )
+    if n and (vehicle.min() < 0 or vehicle.max() >= v):
+        raise ValueError(f"vehicle: expected indices in [0, {v}), got [{vehicle.min()}, {vehicle.max()}]")
+    templates = _normalised(turntables.reshape(v * k, *turntables.shape[2:]), blur_sigma_px)
+    correlation = (_normalised(views, blur_sigma_px) @ templates.T).reshape(n, v, k)  # (N, V, K)
+    own = correlation[np.arange(n), vehicle]  # (N, K)
+    matched = grid[np.argmax(own, axis=1)]
+    error = _angle_between(matched, requested)
+    identity = np.argmax(correlation.max(axis=2), axis=1) == vehicle
+    return TemplateReadings(
+        matched_azimuth_deg=matched,
+        azimuth_error_deg=error,
+        front_back_right=error < 90.0,
+        identity_kept=identity,
+    )
+
+
+def gap_closed(error: float, floor_error: float, ceiling_error: float) -> float:
+    """Share of the gap from the floor's mean error to the ceiling's that a row closes (0 floor, 1 ceiling).
+
+    Raises:
+        ValueError: If the floor is not above the ceiling (the gap is empty: nothing to close).
+    """
+    if not floor_error > ceiling_error:
+        raise ValueError(f"floor_error {floor_error!r} must exceed ceiling_error {ceiling_error!r}")
+    return float((floor_error - error) / (floor_error - ceiling_error))
+
+
+def _mean_se(values: np.ndarray) -> tuple[float, float]:
+    x = np.asarray(values, dtype=np.float64)
+    se = float(x.std(ddof=1) / np.sqrt(len(x))) if len(x) > 1 else float("nan")
+    return float(x.mean()), se
+
+
+def summarise_readings(
+    readings: TemplateReadings, floor: TemplateReadings | None = None, ceiling: TemplateReadings | None = None
+) -> dict[str, float]:
+    """Means and standard errors of a row's readings; with a floor and a ceiling, its gap closed.
+
+    Returns:
+        ``n``, ``azimuth_error_deg`` (+ ``_se``), ``front_back_right`` (+ ``_se``), ``identity_kept``
+        (+ ``_se``) and, given both bounds, ``gap_closed``.
+    """
+    summary: dict[str, float] = {"n": int(len(readings.azimuth_error_deg))}
+    for name in ("azimuth_error_deg", "front_back_right", "identity_kept"):
+        summary[name], summary[f"{name}_se"] = _mean_se(getattr(readings, name))
+    if floor is not None and ceiling is not None:
+        summary["gap_closed"] = gap_closed(
+            summary["azimuth_error_deg"],
+            float(np.mean(floor.azimuth_error_deg)),
+            float(np.mean(ceiling.azimuth_error_deg)),
+        )
+    return summary

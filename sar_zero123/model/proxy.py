@@ -1,0 +1,124 @@
+"""The simulator proxy of each input chip, as the pipeline builds it (analysis by synthesis).
+
+For each input chip, a procedural vehicle of a :class:`~sar_zero123.sim.proxy.ProxyBank` is fitted to it
+(rendered at the chip's azimuth and depression; best blurred correlation) and re-rendered at the requested
+pose, in the pipeline's normalised dB domain: a first draft of the target view whose shadow, layover and
+front are the requested pose's. The pipeline starts sampling from it (``start_from="proxy"``), conditioned
+on the input, so that the input brings the identity and the simulator the geometry.
+
+A pipeline records its proxy settings (:data:`PROXY_FIELDS`) in its ``model_index.json`` (``proxy``); the
+bank's vehicles are built once per process and settings (:func:`proxy_bank`).
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from collections.abc import Mapping
+from typing import Any
+
+import numpy as np
+import torch
+
+from sar_zero123.domain import to_decibels
+from sar_zero123.sim.proxy import PROXY_FIRST_SEED, ProxyBank
+
+__all__ = ["DEFAULT_PROXY", "PROXY_FIELDS", "check_proxy_settings", "draft_target_views", "proxy_bank"]
+
+#: What a pipeline records of its proxy: the bank (:class:`ProxyBank`'s arguments) and the decibel bounds
+#: of its normalised dB domain (``decibel_scaling.json``).
+PROXY_FIELDS = ("num_vehicles", "first_seed", "blur_sigma_px", "render_seed", "min_db", "max_db")
+#: The bank the bundled priors record (docs/results/proxy.md measures 250 against 1,000 vehicles).
+DEFAULT_PROXY: dict[str, Any] = {
+    "num_vehicles": 1000,
+    "first_seed": PROXY_FIRST_SEED,
+    "blur_sigma_px": 1.5,
+    "render_seed": 0,
+    "min_db": -60.0,
+    "max_db": 0.0,
+}
+
+
+def check_proxy_settings(proxy: Mapping[str, Any], name: str = "proxy") -> dict[str, Any]:
+    """A pipeline's proxy settings, checked: exactly :data:`PROXY_FIELDS`, a valid bank, ``min_db < max_db``.
+
+    Raises:
+        ValueError: Naming ``name`` and the field, for a missing, unknown or invalid entry.
+    """
+    if not isinstance(proxy, Mapping):
+        raise ValueError(f"{name}: expected a mapping of {list(PROXY_FIELDS)}, got {type(proxy).__name__}")
+    missing, unknown = set(PROXY_FIELDS) - set(proxy), set(proxy) - set(PROXY_FIELDS)
+    if missing or unknown:
+        raise ValueError(f"{name}: expected the fields {list(PROXY_FIELDS)}; missing {sorted(missing)}, "
+                         f"unknown {sorted(unknown)}")  # fmt: skip
+    bounds = [proxy["min_db"], proxy["max_db"]]
+    if not all(
+        isinstance(b, int | float) and not isinstance(b, bool) and math.isfinite(b) for b in bounds
+    ) or not (bounds[0] < bounds[1]):
+        raise ValueError(
+            f"{name}.min_db, {name}.max_db: expected finite decibels with min < max, got {bounds}"
+        )
+    try:
+        ProxyBank(proxy["num_vehicles"], proxy["first_seed"], proxy["blur_sigma_px"], proxy["render_seed"])
+    except ValueError as error:
+        raise ValueError(f"{name}.{error}") from None
+    return {key: proxy[key] for key in PROXY_FIELDS}
+
+
+@functools.lru_cache(maxsize=4)
+def proxy_bank(num_vehicles: int, first_seed: int, blur_sigma_px: float, render_seed: int) -> ProxyBank:
+    """The bank for these settings, shared within a process (its vehicles are built once)."""
+    return ProxyBank(num_vehicles, first_seed, blur_sigma_px, render_seed)
+
+
+def draft_target_views(
+    images: torch.Tensor,
+    input_azimuth_deg: torch.Tensor,
+    input_depression_deg: torch.Tensor,
+    d_az_deg: torch.Tensor,
+    d_el_deg: torch.Tensor,
+    proxy: Mapping[str, Any],
+    resolve_heading: bool = False,
+) -> tuple[torch.Tensor, np.ndarray]:
+    """Each input chip's proxy, fitted at the chip's pose and rendered at the requested pose.
+
+    Args:
+        images: Input chips in normalised dB ``(B, 1 | 3, H, W)`` (square).
+        input_azimuth_deg: Each chip's absolute azimuth (deg) ``(B,)``: from its metadata, or estimated.
+        input_depression_deg: Each chip's depression (deg) ``(B,)``.
+        d_az_deg: Requested azimuth changes (deg) ``(B,)``.
+        d_el_deg: Requested depression changes (deg) ``(B,)``.
+        proxy: The pipeline's proxy settings (:func:`check_proxy_settings`).
+        resolve_heading: Also fit each chip at its azimuth + 180 deg and keep the better of the two (an
+            estimated azimuth may be right up to its front and back; the simulator tells them apart).
+
+    Returns:
+        ``(drafts, fitted_azimuth_deg)``: drafts ``(B, 1, H, W)`` float32 in [0, 1], and each chip's azimuth
+        as fitted ``(B,)`` (the given one, or that + 180 where ``resolve_heading`` turned it).
+
+    Raises:
+        ValueError: For a target depression outside (0, 90) deg.
+    """
+    bank = proxy_bank(
+        proxy["num_vehicles"], proxy["first_seed"], proxy["blur_sigma_px"], proxy["render_seed"]
+    )
+    low, high = float(proxy["min_db"]), float(proxy["max_db"])
+    chips = images.detach().float().mean(dim=1).cpu().numpy()  # (B, H, W), any affine map of decibels
+    size = chips.shape[-1]
+    drafts, fitted = [], []
+    for k, chip in enumerate(chips):
+        azimuth, depression = float(input_azimuth_deg[k]), float(input_depression_deg[k])
+        target_depression = depression + float(d_el_deg[k])
+        if not 0.0 < target_depression < 90.0:
+            raise ValueError(
+                "input_depression_deg + d_el: expected a target depression in (0, 90) deg, "
+                f"got {target_depression}"
+            )
+        headings = (azimuth, azimuth + 180.0) if resolve_heading else (azimuth,)
+        scores = np.stack([bank.scores(chip, a, depression) for a in headings])  # (headings, vehicles)
+        heading, index = np.unravel_index(int(np.argmax(scores)), scores.shape)
+        fitted_azimuth = headings[int(heading)] % 360.0
+        render = bank.render(int(index), fitted_azimuth + float(d_az_deg[k]), target_depression, size)
+        drafts.append(np.clip((to_decibels(render) - low) / (high - low), 0.0, 1.0))
+        fitted.append(fitted_azimuth)
+    return torch.from_numpy(np.stack(drafts)[:, None].astype(np.float32)), np.asarray(fitted)
