@@ -122,11 +122,17 @@ class AugmentConfig:
     depressions_deg: list[float] = field(default_factory=list)  # only chips at these depressions (empty: all)
     max_chips_per_class: int | None = None  # at most this many chips per class, evenly spaced in index order
     include_real: bool = False  # also list the selected real chips (generated 0, absolute paths)
-    num_inference_steps: int = 20  # denoising steps
-    guidance_scale: float = 3.0  # classifier-free guidance weight (<= 1 disables it)
-    heading_guidance_scale: float = 0.0  # guidance away from the flipped heading (d_az + 180); 0: off
-    depression_guidance_scale: float = 0.0  # guidance away from the input's depression (d_el = 0); 0: off
-    strength: float = 1.0  # in (0, 1]: below 1, start from the chip's own latent noised (SDEdit)
+    # The sampler: each field left unset (None) takes the value the pipeline records as measured best for it
+    # (pipe.config.sampler, its model card), else the library's. With the index's azimuths, a pipeline that
+    # records start_from "proxy" starts each view from a simulator vehicle fitted to the chip.
+    num_inference_steps: int | None = None  # denoising steps
+    guidance_scale: float | None = None  # classifier-free guidance weight (<= 1 disables it)
+    heading_guidance_scale: float | None = None  # guidance away from the flipped heading (d_az + 180); 0: off
+    depression_guidance_scale: float | None = None  # guidance away from the input's depression (d_el = 0)
+    strength: float | None = None  # in (0, 1]: below 1, start from a draft noised to this share (SDEdit)
+    # the draft: "input" (the chip), "turned_input", or "proxy" (a simulator vehicle fitted to the chip at
+    # its index pose and rendered at the requested one)
+    start_from: Literal["input", "turned_input", "proxy"] | None = None
     scheduler: Literal["ddim", "dpmsolver++", "euler"] = "ddim"  # sampler
     batch_size: int = 8  # views per pipeline call (a view changes with it by float rounding only)
     seed: int = 0  # view (row, request) is sampled with view_generator(seed, row, request)
@@ -161,11 +167,14 @@ class AugmentConfig:
             values = getattr(self, name)
             if any(abs(v) > limit for v in values):
                 raise ValueError(f"{name} must lie in [-{limit:g}, {limit:g}] degrees, got {values}")
-        if not (np.isfinite(self.guidance_scale) and self.guidance_scale <= MAX_GUIDANCE_SCALE):
+        if self.guidance_scale is not None and not (
+            np.isfinite(self.guidance_scale) and self.guidance_scale <= MAX_GUIDANCE_SCALE
+        ):
             raise ValueError(
                 f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE:g}, got {self.guidance_scale}"
             )
-        check_minimum(self, "num_inference_steps", "batch_size", minimum=1)
+        check_minimum(self, "num_inference_steps", minimum=1, optional=True)
+        check_minimum(self, "batch_size", minimum=1)
         if self.batch_size > MAX_BATCH_SIZE:
             raise ValueError(f"batch_size must be <= {MAX_BATCH_SIZE} views per call, got {self.batch_size}")
         requests = len(self.d_az or self.target_azimuths_deg) * len(self.d_el)
@@ -174,10 +183,16 @@ class AugmentConfig:
                 f"d_az/target_azimuths_deg x d_el: at most {MAX_REQUESTS_PER_CHIP} requests per chip, got "
                 f"{len(self.d_az or self.target_azimuths_deg)} x {len(self.d_el)} = {requests}"
             )
+        # the fields given are checked here; the pipeline checks its recorded ones with the rest at the call
         check_sampler_start(
-            self.strength, self.heading_guidance_scale, {"num_inference_steps": self.num_inference_steps},
-            depression_guidance_scale=self.depression_guidance_scale,
+            1.0 if self.strength is None else self.strength,
+            self.heading_guidance_scale or 0.0,
+            {} if self.strength is None or self.num_inference_steps is None
+            else {"num_inference_steps": self.num_inference_steps},
+            depression_guidance_scale=self.depression_guidance_scale or 0.0,
         )  # fmt: skip
+        if self.start_from not in (None, "input", "turned_input", "proxy"):
+            raise ValueError(f"start_from: expected input, turned_input or proxy, got {self.start_from!r}")
         check_minimum(self, "max_chips_per_class", minimum=1, optional=True)
         check_minimum(self, "seed", minimum=0)
         check_minimum(self, "speckle_sigma", minimum=0.0, strict=True)
@@ -541,6 +556,7 @@ def augment_dataset(config: AugmentConfig) -> Path:
                 strength=config.strength,
                 heading_guidance_scale=config.heading_guidance_scale,
                 depression_guidance_scale=config.depression_guidance_scale,
+                start_from=config.start_from,
             )
             for view, image in zip(batch, images):
                 if (out / view.path).is_file():  # written before a kill, from this same batch
@@ -586,15 +602,19 @@ def _generate(
     chips: np.ndarray,
     batch: Sequence[ViewRequest],
     *,
-    num_inference_steps: int,
-    guidance_scale: float,
+    num_inference_steps: int | None,
+    guidance_scale: float | None,
     seed: int,
-    strength: float = 1.0,
-    heading_guidance_scale: float = 0.0,
-    depression_guidance_scale: float = 0.0,
+    strength: float | None = 1.0,
+    heading_guidance_scale: float | None = 0.0,
+    depression_guidance_scale: float | None = 0.0,
+    start_from: str | None = None,
 ) -> np.ndarray:
-    """One pipeline call for a batch of views: ``(B, S, S)`` normalised dB from ``(B, S, S)`` chips."""
-    takes_depression = getattr(pipe.pose_projection.config, "input_depression", False)
+    """One pipeline call for a batch of views: ``(B, S, S)`` normalised dB from ``(B, S, S)`` chips; a sampler
+    argument given as ``None`` is the pipeline's recorded value. Each chip's index pose (azimuth, depression)
+    fits the simulator proxy of a pipeline that records one."""
+    has_proxy = getattr(pipe.config, "proxy", None) is not None
+    takes_depression = getattr(pipe.pose_projection.config, "input_depression", False) or has_proxy
     return pipe(
         torch.from_numpy(chips)[:, None],  # (B, 1, S, S)
         d_az=[view.d_az_deg for view in batch],
@@ -607,6 +627,8 @@ def _generate(
         strength=strength,
         heading_guidance_scale=heading_guidance_scale,
         depression_guidance_scale=depression_guidance_scale,
+        start_from=start_from,
+        input_azimuth_deg=[view.record.azimuth_deg for view in batch] if has_proxy else None,
     ).images[..., 0]
 
 

@@ -64,6 +64,7 @@ __all__ = [
     "MAX_IMAGE_SIZE",
     "MAX_VIEWS",
     "GenerateConfig",
+    "chip_azimuth_deg",
     "chip_depression_deg",
     "generate_views",
     "main",
@@ -93,13 +94,19 @@ class GenerateConfig:
     d_az: list[float] = field(default_factory=lambda: [30.0, 60.0, 90.0])  # azimuth deltas in degrees
     d_el: list[float] = field(default_factory=lambda: [0.0])  # depression deltas in degrees (1 or 1 per d_az)
     output_dir: str = "generated_views"  # output folder
-    num_inference_steps: int = 50  # denoising steps
-    guidance_scale: float = 3.0  # classifier-free guidance weight (<= 1 disables it)
-    heading_guidance_scale: float = 0.0  # guidance away from the flipped heading (d_az + 180); 0: off
-    depression_guidance_scale: float = 0.0  # guidance away from the input's depression (d_el = 0); 0: off
-    # in (0, 1]: below 1, sampling starts from the chip's own latent noised to this share of the steps
-    # (SDEdit); 0.8 with heading guidance 1.5 is the quickstart's measured sampler for fine-tuned models
-    strength: float = 1.0
+    # The sampler: each field left unset (None) takes the value the pipeline records as measured best for it
+    # (pipe.config.sampler, its model card), else the library's (50 steps, guidance 3, strength 1, no
+    # heading or depression guidance, start from the input).
+    num_inference_steps: int | None = None  # denoising steps
+    guidance_scale: float | None = None  # classifier-free guidance weight (<= 1 disables it)
+    heading_guidance_scale: float | None = None  # guidance away from the flipped heading (d_az + 180); 0: off
+    depression_guidance_scale: float | None = None  # guidance away from the input's depression (d_el = 0)
+    # in (0, 1]: below 1, sampling starts from a draft noised to this share of the steps (SDEdit)
+    strength: float | None = None
+    # the draft strength < 1 starts from: "input" (the chip), "turned_input", or "proxy" (a simulator vehicle
+    # fitted to the chip and rendered at the requested pose; needs the chip's azimuth)
+    start_from: Literal["input", "turned_input", "proxy"] | None = None
+    input_azimuth: float | None = None  # chip's absolute azimuth (deg); None: the file's (raw MSTAR), if any
     seed: int = 0  # view i uses torch.Generator().manual_seed(seed + i)
     input_domain: Literal["magnitude", "normalized_db"] = "magnitude"  # what the chip file holds
     scaling_file: str | None = None  # DecibelScaling JSON (default: <pipeline>/decibel_scaling.json or unit)
@@ -128,18 +135,28 @@ class GenerateConfig:
                 f"d_el must lie in [-{MAX_ABS_D_EL_DEG:g}, {MAX_ABS_D_EL_DEG:g}] degrees (a difference of "
                 f"two depression angles), got {self.d_el}"
             )
-        if not (np.isfinite(self.guidance_scale) and self.guidance_scale <= MAX_GUIDANCE_SCALE):
+        if self.guidance_scale is not None and not (
+            np.isfinite(self.guidance_scale) and self.guidance_scale <= MAX_GUIDANCE_SCALE
+        ):
             raise ValueError(
                 f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE:g}, got {self.guidance_scale}"
             )
         if len(self.d_el) not in (1, len(self.d_az)):
             raise ValueError(f"d_el: give 1 value or one per d_az ({len(self.d_az)}), got {len(self.d_el)}")
-        if self.num_inference_steps < 1:
+        if self.num_inference_steps is not None and self.num_inference_steps < 1:
             raise ValueError(f"num_inference_steps must be >= 1, got {self.num_inference_steps}")
+        # the fields given are checked here; the pipeline checks its recorded ones with the rest at the call
         check_sampler_start(
-            self.strength, self.heading_guidance_scale, {"num_inference_steps": self.num_inference_steps},
-            depression_guidance_scale=self.depression_guidance_scale,
+            1.0 if self.strength is None else self.strength,
+            self.heading_guidance_scale or 0.0,
+            {} if self.strength is None or self.num_inference_steps is None
+            else {"num_inference_steps": self.num_inference_steps},
+            depression_guidance_scale=self.depression_guidance_scale or 0.0,
         )  # fmt: skip
+        if self.start_from not in (None, "input", "turned_input", "proxy"):
+            raise ValueError(f"start_from: expected input, turned_input or proxy, got {self.start_from!r}")
+        if self.input_azimuth is not None and not np.isfinite(self.input_azimuth):
+            raise ValueError(f"input_azimuth must be a finite angle in degrees, got {self.input_azimuth}")
         if self.image_size is not None and not 1 <= self.image_size <= MAX_IMAGE_SIZE:
             raise ValueError(f"image_size must lie in [1, {MAX_IMAGE_SIZE}] pixels, got {self.image_size}")
         if self.input_depression is not None and not 0.0 < self.input_depression < 90.0:
@@ -212,6 +229,16 @@ def chip_depression_deg(path: str | Path) -> float | None:
         return None
 
 
+def chip_azimuth_deg(path: str | Path) -> float | None:
+    """The absolute azimuth a chip file records, if it records one: an original MSTAR file's ``TargetAz``
+    (:func:`~sar_zero123.data.read_mstar_raw`), else ``None`` (images, ``.npy``, SAMPLE names, whose azimuth
+    is a bin centre)."""
+    path = Path(path)
+    if path.is_file() and is_mstar_raw(path):
+        return read_mstar_raw(path).azimuth_deg
+    return None
+
+
 def resolve_input_depression(image: str | Path, input_depression: float | None) -> tuple[float, str]:
     """The input chip's absolute depression for a pipeline whose pose carries it, and where it came from.
 
@@ -237,13 +264,15 @@ def generate_views(
     chip: np.ndarray,
     d_az: Sequence[float],
     d_el: Sequence[float],
-    num_inference_steps: int,
-    guidance_scale: float,
+    num_inference_steps: int | None,
+    guidance_scale: float | None,
     seed: int,
     input_depression_deg: float | None = None,
-    heading_guidance_scale: float = 0.0,
-    strength: float = 1.0,
-    depression_guidance_scale: float = 0.0,
+    heading_guidance_scale: float | None = 0.0,
+    strength: float | None = 1.0,
+    depression_guidance_scale: float | None = 0.0,
+    start_from: str | None = None,
+    input_azimuth_deg: float | None = None,
 ) -> np.ndarray:
     """All requested views of one chip in a single batched pipeline call (``train/evaluate.py``'s
     ``generate_pair_targets`` generates one view per view pair instead).
@@ -262,6 +291,10 @@ def generate_views(
         strength: Share of the steps run from the chip's own noised latent (1: from noise).
         depression_guidance_scale: Weight of guidance away from the input's depression
             (``SARZero123Pipeline``).
+        start_from: The draft a ``strength < 1`` call starts from (``SARZero123Pipeline``).
+        input_azimuth_deg: The chip's absolute azimuth in degrees (the simulator proxy's fit).
+
+        Every sampler argument given as ``None`` is the pipeline's recorded value (``pipe.config.sampler``).
 
     Returns:
         Views in normalised dB, float32, shape ``(V, H, W)``.
@@ -280,6 +313,8 @@ def generate_views(
         heading_guidance_scale=heading_guidance_scale,
         depression_guidance_scale=depression_guidance_scale,
         strength=strength,
+        start_from=start_from,
+        input_azimuth_deg=input_azimuth_deg,
         generator=generators,
         output_type="np",
     ).images
@@ -354,6 +389,11 @@ def main(argv: Sequence[str] | None = None) -> Path:
             print(f"note: input depression {input_depression_deg:g} deg, read from {config.image!r}")
     elif config.input_depression is not None:
         print("note: this pipeline's pose does not take the input's depression; ignoring --input_depression")
+    input_azimuth_deg = config.input_azimuth
+    if input_azimuth_deg is None:
+        input_azimuth_deg = chip_azimuth_deg(config.image)
+    if input_azimuth_deg is not None and input_depression_deg is None:  # the proxy's fit needs the depression
+        input_depression_deg, _ = resolve_input_depression(config.image, config.input_depression)
     views = generate_views(
         pipe,
         chip,
@@ -366,6 +406,8 @@ def main(argv: Sequence[str] | None = None) -> Path:
         heading_guidance_scale=config.heading_guidance_scale,
         strength=config.strength,
         depression_guidance_scale=config.depression_guidance_scale,
+        start_from=config.start_from,
+        input_azimuth_deg=input_azimuth_deg,
     )
 
     # 2. the folder opened for real (an old one moved aside with --restart), the views written, the record

@@ -354,3 +354,26 @@ def test_bad_input_is_refused_before_anything_is_written(pipeline_dir, tmp_path,
     with pytest.raises(error, match=match):
         main(["--pipeline", str(pipeline_dir), "--image", str(tmp_path / image), "--output_dir", str(out)])
     assert not out.exists()
+
+
+def test_a_plain_generate_uses_the_pipelines_recorded_sampler_and_its_proxy_with_the_chips_azimuth(
+    chip_png, tmp_path
+):
+    proxy = {"num_vehicles": 2, "first_seed": 1_000_000, "blur_sigma_px": 1.5, "render_seed": 0,
+             "min_db": -60.0, "max_db": 0.0}  # fmt: skip
+    sampler = {"num_inference_steps": 4, "strength": 0.5, "start_from": "proxy"}
+    folder = tmp_path / "pipeline"
+    SARZero123Pipeline(**get_dummy_components(), sampler=sampler, proxy=proxy).save_pretrained(folder)
+    pipe = SARZero123Pipeline.from_pretrained(folder)
+    pipe.set_progress_bar_config(disable=True)
+    chip = load_input_chip(GenerateConfig(pipeline=str(folder), image=str(chip_png)), 32)
+    common = ["--pipeline", str(folder), "--image", str(chip_png), "--d-az", "90", "--seed", "1"]
+    for azimuth, start_from in ((["--input_azimuth", "40"], "proxy"), ([], "input")):  # no azimuth: the input
+        out = tmp_path / f"views_{start_from}"
+        main([*common, *azimuth, "--output_dir", str(out)])
+        expected = pipe(torch.from_numpy(chip)[None, None], d_az=90.0, num_inference_steps=4, strength=0.5,
+                        start_from=start_from, input_azimuth_deg=40.0 if azimuth else None,
+                        input_depression_deg=17.0, generator=torch.Generator().manual_seed(1),
+                        output_type="np").images[0, ..., 0]  # fmt: skip
+        np.testing.assert_allclose(np.load(next(out.glob("view_*.npy"))), expected, atol=1e-5)
+        assert json.loads((out / "config.json").read_text())["strength"] is None  # the pipeline's own

@@ -47,7 +47,7 @@ from sar_zero123.model.conditioning import (
     unet_condition_latents,
 )
 from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
-from sar_zero123.model.orientation import AzimuthEstimator, azimuth_deg, target_view_features
+from sar_zero123.model.orientation import AzimuthEstimator, target_view_features
 from sar_zero123.model.proxy import check_proxy_settings, draft_target_views
 from sar_zero123.model.zero123_checkpoints import CLIPImageProcessor, load_zero123_components
 from sar_zero123.pretrained import BUNDLED_NAMESPACE, is_bundled_name, resolve_pretrained
@@ -627,9 +627,8 @@ class SARZero123Pipeline(DiffusionPipeline):
                 input's simulator proxy (:mod:`sar_zero123.model.proxy`: the vehicle of the pipeline's
                 ``proxy`` bank that images most like the input at its pose) rendered at the requested pose,
                 a draft whose shadow, layover and front are the requested pose's; it needs
-                ``input_depression_deg`` and the input's azimuth (``input_azimuth_deg``, or the pipeline's
-                ``azimuth_estimator``, whose estimate the simulator fit turns by 180 deg where that fits
-                better).
+                ``input_depression_deg`` and ``input_azimuth_deg``. A pipeline that records ``"proxy"`` as its
+                start starts from the input when a call gives no ``input_azimuth_deg``.
             depression_guidance_scale: Weight ``g >= 0`` of guidance away from the input's depression: the
                 prediction gains ``g * (eps(d_az, d_el) - eps(d_az, 0))``, which pushes each view from the
                 same request at the input's own depression (:func:`same_depression_pose`), the view a model
@@ -643,8 +642,8 @@ class SARZero123Pipeline(DiffusionPipeline):
                 requested pose's, for the last denoising steps, conditioned on the input, to carry the
                 input's identity onto. Ignored at ``strength == 1``.
             input_azimuth_deg: Each input chip's absolute azimuth in degrees (a scalar or one per input),
-                from its metadata (the MSTAR header, the simulator): where ``start_from="proxy"`` fits the
-                proxy. Without it, a pipeline with an ``azimuth_estimator`` estimates it.
+                from its metadata (the MSTAR header, ``index.csv``, the simulator): where
+                ``start_from="proxy"`` fits the proxy.
 
         Returns:
             :class:`SARZero123PipelineOutput`, or ``(images,)`` when ``return_dict`` is False.
@@ -658,11 +657,15 @@ class SARZero123Pipeline(DiffusionPipeline):
 
         # 1. check inputs; a sampler argument left None is the pipeline's recorded value, else the library's
         recorded = {**SAMPLER_DEFAULTS, **(getattr(self.config, "sampler", None) or {})}
+        recorded_start = recorded["start_from"] if start_from is None else None
         given = (num_inference_steps, guidance_scale, strength, heading_guidance_scale,
                  depression_guidance_scale, start_from)  # fmt: skip
         resolved = [recorded[name] if value is None else value for name, value in zip(recorded, given)]
         num_inference_steps, guidance_scale, strength = resolved[:3]
         heading_guidance_scale, depression_guidance_scale, start_from = resolved[3:]
+        if start_from == "proxy" and input_azimuth_deg is None and recorded_start == "proxy":
+            # a recorded proxy start needs the input's pose; without its azimuth, the input is the start
+            start_from = "input"
         self._check_inputs(
             num_inference_steps,
             guidance_scale,
@@ -870,23 +873,17 @@ class SARZero123Pipeline(DiffusionPipeline):
                 "give the input chip's depression in degrees (its metadata), or start from 'input'"
             )
         depression = per_input(input_depression_deg, "input_depression_deg")
-        resolve_heading = input_azimuth_deg is None
-        if input_azimuth_deg is not None:
-            azimuth = per_input(input_azimuth_deg, "input_azimuth_deg")
-        elif self.azimuth_estimator is not None:
-            latents = encode_condition_latents(self.vae, images.to(self._execution_device))
-            azimuth = azimuth_deg(self.azimuth_estimator(latents.to(self.unet.dtype)).float()).cpu()
-        else:
+        if input_azimuth_deg is None:
+            # an estimated azimuth is no substitute: the bundled estimator is 51 deg off on unseen vehicles
+            # and fitting the heading to it turns the proxy wrong more often (docs/results/proxy.md)
             raise ValueError(
-                "`input_azimuth_deg`: start_from='proxy' fits a simulator vehicle at the input's pose, and "
-                "this pipeline has no azimuth_estimator; give each input chip's absolute azimuth in degrees "
-                "(its metadata), or start from 'input'"
+                "`input_azimuth_deg`: start_from='proxy' fits a simulator vehicle at the input's pose; give "
+                "each input chip's absolute azimuth in degrees (its metadata), or start from 'input'"
             )
+        azimuth = per_input(input_azimuth_deg, "input_azimuth_deg")
         d_az_values = as_angle_tensor(d_az, "d_az").expand(batch_size)
         d_el_values = as_angle_tensor(d_el, "d_el").expand(batch_size)
-        drafts, _ = draft_target_views(
-            images, azimuth, depression, d_az_values, d_el_values, proxy, resolve_heading=resolve_heading
-        )
+        drafts, _ = draft_target_views(images, azimuth, depression, d_az_values, d_el_values, proxy)
         return drafts
 
     def _pose_with_depression(

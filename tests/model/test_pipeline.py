@@ -583,7 +583,7 @@ def test_the_proxy_start_is_the_simulator_draft_at_the_requested_pose(tmp_path):
     # refusals name what to pass
     with pytest.raises(ValueError, match=r"`input_depression_deg`: start_from='proxy' fits"):
         run(pipe, images, start_from="proxy", input_azimuth_deg=10.0, **kwargs)
-    with pytest.raises(ValueError, match=r"`input_azimuth_deg`: .* has no azimuth_estimator"):
+    with pytest.raises(ValueError, match=r"`input_azimuth_deg`: start_from='proxy' fits .*; give each input"):
         run(pipe, images, start_from="proxy", input_depression_deg=17.0, **kwargs)
     with pytest.raises(ValueError, match=r"`input_azimuth_deg` has 3 values; expected 1 or one per input"):
         run(pipe, images, start_from="proxy", input_azimuth_deg=[1.0, 2.0, 3.0], input_depression_deg=17.0,
@@ -591,3 +591,17 @@ def test_the_proxy_start_is_the_simulator_draft_at_the_requested_pose(tmp_path):
     plain = SARZero123Pipeline(**get_dummy_components())
     with pytest.raises(ValueError, match=r"records no proxy settings"):
         run(plain, images, start_from="proxy", input_azimuth_deg=10.0, input_depression_deg=17.0, **kwargs)
+
+
+def test_a_recorded_proxy_start_uses_the_proxy_when_the_azimuth_is_given_and_the_input_otherwise():
+    sampler = {"num_inference_steps": 4, "strength": 0.5, "start_from": "proxy"}
+    pipe = SARZero123Pipeline(**get_dummy_components(), sampler=sampler, proxy=SMALL_PROXY)
+    pipe.set_progress_bar_config(disable=True)
+    images = dummy_images(batch_size=2, seed=4)
+    kwargs = {"d_az": [60.0, 120.0], "num_inference_steps": None, "output_type": "latent"}
+    explicit = {**kwargs, "num_inference_steps": 4, "strength": 0.5}
+    with_azimuth = run(pipe, images, input_azimuth_deg=[0.0, 90.0], input_depression_deg=17.0, **kwargs)
+    proxied = run(pipe, images, start_from="proxy", input_azimuth_deg=[0.0, 90.0], input_depression_deg=17.0,
+                  **explicit)  # fmt: skip
+    torch.testing.assert_close(with_azimuth, proxied)
+    torch.testing.assert_close(run(pipe, images, **kwargs), run(pipe, images, start_from="input", **explicit))
