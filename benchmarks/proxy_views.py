@@ -14,7 +14,8 @@ over all eight vehicles' renders, its identity. Rows, on the same pairs:
 - ``proxy alone (bank N)``: the bank vehicle retrieved for the input
   (:class:`~sar_zero123.sim.proxy.ProxyBank`: rendered at the input's azimuth and depression, best blurred
   correlation) re-rendered at the request;
-- the pipeline's plain call; the pipeline with heading guidance 1.5 from the input noised to 80 %;
+- the pipeline from noise without heading guidance (the library's sampler at these steps); with heading
+  guidance 1.5 from the input noised to 80 % (the recorded sampler without the azimuth);
 - the pipeline started from the proxy's render at the request, noised to each ``--strengths`` level
   (``start_image``), conditioned on the input as always, with and without heading guidance;
 - the same from an oracle proxy (the true vehicle at the request, another clutter draw): what a perfect fit
@@ -188,7 +189,7 @@ def run(
             ).images[..., 0])  # fmt: skip
         return np.concatenate(views), time.perf_counter() - begin
 
-    add(f"{pipeline}, plain call", *sample(None, 1.0, 0.0))
+    add(f"{pipeline}, from noise, no heading guidance", *sample(None, 1.0, 0.0))
     add(
         f"{pipeline}, heading guidance {heading_guidance_scale:g}, strength 0.8",
         *sample(None, 0.8, heading_guidance_scale),

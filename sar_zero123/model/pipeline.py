@@ -77,6 +77,7 @@ SAMPLER_DEFAULTS: dict[str, Any] = {
     "heading_guidance_scale": 0.0,
     "depression_guidance_scale": 0.0,
     "start_from": "input",
+    "proxy_strength": None,  # the strength of a start from the proxy (None: strength)
 }
 #: A depression delta is the difference of two depression angles in [0, 90] degrees.
 MAX_ABS_D_EL_DEG = 90.0
@@ -223,6 +224,8 @@ class SARZero123Pipeline(DiffusionPipeline):
                 raise ValueError(
                     f"`sampler.start_from` must be one of {START_FROM}, got {sampler['start_from']!r}"
                 )
+            if sampler.get("proxy_strength") is not None:
+                _check_strength(sampler["proxy_strength"], {}, "sampler.proxy_")
             if sampler.get("start_from") == "proxy" and proxy is None:
                 raise ValueError(
                     "`sampler.start_from` is 'proxy', but the pipeline records no `proxy` settings"
@@ -598,7 +601,8 @@ class SARZero123Pipeline(DiffusionPipeline):
             ``heading_guidance_scale``, ``depression_guidance_scale``, ``start_from``) takes the value the
             pipeline records as measured best for it (``pipe.config.sampler``, saved in
             ``model_index.json``), else the library's default (:data:`SAMPLER_DEFAULTS`: 50 steps, guidance
-            3, strength 1, no heading or depression guidance, start from the input).
+            3, strength 1, no heading or depression guidance, start from the input). A pipeline may record
+            a ``proxy_strength`` for a start from the proxy, a nearer draft than the input.
             num_images_per_prompt: Samples per input image.
             generator: One generator, or one per output sample (``B * num_images_per_prompt``).
             latents: Optional initial noise ``(B * num_images_per_prompt, 4, h, w)``, unscaled by
@@ -658,6 +662,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         # 1. check inputs; a sampler argument left None is the pipeline's recorded value, else the library's
         recorded = {**SAMPLER_DEFAULTS, **(getattr(self.config, "sampler", None) or {})}
         recorded_start = recorded["start_from"] if start_from is None else None
+        strength_given = strength is not None
         given = (num_inference_steps, guidance_scale, strength, heading_guidance_scale,
                  depression_guidance_scale, start_from)  # fmt: skip
         resolved = [recorded[name] if value is None else value for name, value in zip(recorded, given)]
@@ -666,6 +671,8 @@ class SARZero123Pipeline(DiffusionPipeline):
         if start_from == "proxy" and input_azimuth_deg is None and recorded_start == "proxy":
             # a recorded proxy start needs the input's pose; without its azimuth, the input is the start
             start_from = "input"
+        if start_from == "proxy" and not strength_given and recorded["proxy_strength"] is not None:
+            strength = recorded["proxy_strength"]  # a proxy is a nearer draft: less of it is noised
         self._check_inputs(
             num_inference_steps,
             guidance_scale,
@@ -681,6 +688,8 @@ class SARZero123Pipeline(DiffusionPipeline):
         batch_size = images.shape[0]
         pose = _broadcast_pose(d_az, d_el, batch_size)  # (B, 1, 4)
         pose = self._pose_with_depression(pose, d_el, input_depression_deg)
+        if input_azimuth_deg is not None:  # checked whether or not this call's start uses it
+            input_azimuth_deg = _per_input_angles(input_azimuth_deg, "input_azimuth_deg", batch_size)
         start_images = None
         if start_image is None and start_from == "proxy" and denoising_steps < num_inference_steps:
             start_image = self._proxy_drafts(images, d_az, d_el, input_azimuth_deg, input_depression_deg)
@@ -841,14 +850,17 @@ class SARZero123Pipeline(DiffusionPipeline):
         images: torch.Tensor,
         d_az: float | Sequence[float] | torch.Tensor,
         d_el: float | Sequence[float] | torch.Tensor,
-        input_azimuth_deg: float | Sequence[float] | torch.Tensor | None,
+        input_azimuth_deg: torch.Tensor | None,
         input_depression_deg: float | Sequence[float] | torch.Tensor | None,
     ) -> torch.Tensor:
         """Each input's simulator proxy at the requested pose (``start_from="proxy"``, :mod:`..proxy`).
 
+        Args:
+            input_azimuth_deg: One checked azimuth per input (:func:`_per_input_angles`), or ``None``.
+
         Raises:
-            ValueError: Naming what to pass, where the pipeline records no proxy, the input's depression is
-                not given, or its azimuth is neither given nor estimable.
+            ValueError: Naming what to pass, where the pipeline records no proxy, or the input's depression
+                or azimuth is not given.
         """
         proxy = getattr(self.config, "proxy", None)
         if proxy is None:
@@ -857,30 +869,20 @@ class SARZero123Pipeline(DiffusionPipeline):
                 "with proxy=sar_zero123.model.proxy.DEFAULT_PROXY, or start from 'input'"
             )
         batch_size = images.shape[0]
-
-        def per_input(value: Any, name: str) -> torch.Tensor:
-            _check_real_angles(value, name)
-            tensor = as_angle_tensor(value, name)
-            if tensor.numel() not in (1, batch_size):
-                raise ValueError(
-                    f"`{name}` has {tensor.numel()} values; expected 1 or one per input ({batch_size})"
-                )
-            return tensor.expand(batch_size)
-
         if input_depression_deg is None:
             raise ValueError(
                 "`input_depression_deg`: start_from='proxy' fits a simulator vehicle at the input's pose; "
                 "give the input chip's depression in degrees (its metadata), or start from 'input'"
             )
-        depression = per_input(input_depression_deg, "input_depression_deg")
+        depression = _per_input_angles(input_depression_deg, "input_depression_deg", batch_size)
         if input_azimuth_deg is None:
-            # an estimated azimuth is no substitute: the bundled estimator is 51 deg off on unseen vehicles
+            # an estimated azimuth is no substitute: the bundled estimator is 63 deg off on unseen vehicles
             # and fitting the heading to it turns the proxy wrong more often (docs/results/proxy.md)
             raise ValueError(
                 "`input_azimuth_deg`: start_from='proxy' fits a simulator vehicle at the input's pose; give "
                 "each input chip's absolute azimuth in degrees (its metadata), or start from 'input'"
             )
-        azimuth = per_input(input_azimuth_deg, "input_azimuth_deg")
+        azimuth = input_azimuth_deg
         d_az_values = as_angle_tensor(d_az, "d_az").expand(batch_size)
         d_el_values = as_angle_tensor(d_el, "d_el").expand(batch_size)
         drafts, _ = draft_target_views(images, azimuth, depression, d_az_values, d_el_values, proxy)
@@ -995,6 +997,19 @@ def same_depression_pose(pose: torch.Tensor) -> torch.Tensor:
     same = pose.clone()
     same[..., 0] = 0.0
     return same
+
+
+def _per_input_angles(value: Any, name: str, batch_size: int) -> torch.Tensor:
+    """Angles given as a scalar or one per input image, checked and broadcast to ``(batch_size,)`` float64.
+
+    Raises:
+        ValueError: Naming ``name``, for non-real or non-finite angles or a count other than 1 or the batch.
+    """
+    _check_real_angles(value, name)
+    tensor = as_angle_tensor(value, name)
+    if tensor.numel() not in (1, batch_size):
+        raise ValueError(f"`{name}` has {tensor.numel()} values; expected 1 or one per input ({batch_size})")
+    return tensor.expand(batch_size)
 
 
 def _broadcast_pose(

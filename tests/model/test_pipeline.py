@@ -551,6 +551,7 @@ def test_a_recorded_sampler_is_the_plain_calls_and_an_argument_overrides_it(tmp_
     [({"sampler": {"steps": 3}}, r"`sampler` must be a dict of some of"),
      ({"sampler": {"start_from": "noise"}}, r"`sampler.start_from` must be one of"),
      ({"sampler": {"start_from": "proxy"}}, r"records no `proxy` settings"),
+     ({"sampler": {"proxy_strength": 1.5}}, r"sampler.proxy_strength must lie in \(0, 1\]"),
      ({"proxy": {**SMALL_PROXY, "num_vehicles": 0}}, r"proxy.num_vehicles: expected an integer"),
      ({"proxy": {**SMALL_PROXY, "min_db": 1.0}}, r"proxy.min_db, proxy.max_db: expected finite decibels"),
      ({"proxy": {"num_vehicles": 3}}, r"proxy: expected the fields .* missing \['blur_sigma_px'")],
@@ -588,13 +589,15 @@ def test_the_proxy_start_is_the_simulator_draft_at_the_requested_pose(tmp_path):
     with pytest.raises(ValueError, match=r"`input_azimuth_deg` has 3 values; expected 1 or one per input"):
         run(pipe, images, start_from="proxy", input_azimuth_deg=[1.0, 2.0, 3.0], input_depression_deg=17.0,
             **kwargs)  # fmt: skip
+    with pytest.raises(ValueError, match=r"`input_azimuth_deg` must be finite"):  # checked though unused
+        run(pipe, images, input_azimuth_deg=float("nan"), **kwargs)
     plain = SARZero123Pipeline(**get_dummy_components())
     with pytest.raises(ValueError, match=r"records no proxy settings"):
         run(plain, images, start_from="proxy", input_azimuth_deg=10.0, input_depression_deg=17.0, **kwargs)
 
 
 def test_a_recorded_proxy_start_uses_the_proxy_when_the_azimuth_is_given_and_the_input_otherwise():
-    sampler = {"num_inference_steps": 4, "strength": 0.5, "start_from": "proxy"}
+    sampler = {"num_inference_steps": 4, "strength": 0.75, "start_from": "proxy", "proxy_strength": 0.5}
     pipe = SARZero123Pipeline(**get_dummy_components(), sampler=sampler, proxy=SMALL_PROXY)
     pipe.set_progress_bar_config(disable=True)
     images = dummy_images(batch_size=2, seed=4)
@@ -604,4 +607,6 @@ def test_a_recorded_proxy_start_uses_the_proxy_when_the_azimuth_is_given_and_the
     proxied = run(pipe, images, start_from="proxy", input_azimuth_deg=[0.0, 90.0], input_depression_deg=17.0,
                   **explicit)  # fmt: skip
     torch.testing.assert_close(with_azimuth, proxied)
-    torch.testing.assert_close(run(pipe, images, **kwargs), run(pipe, images, start_from="input", **explicit))
+    from_input = {**explicit, "strength": 0.75}  # no azimuth: the input, at the recorded strength
+    plain = run(pipe, images, **kwargs)
+    torch.testing.assert_close(plain, run(pipe, images, start_from="input", **from_input))

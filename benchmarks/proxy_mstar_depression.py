@@ -1,0 +1,187 @@
+"""Real MSTAR, 17 -> 30 deg: are generated views nearer the real 30 deg chip than a 17 deg one? (issue 61)
+
+    python benchmarks/proxy_mstar_depression.py --mstar ../shared/data/mstar \
+        --eoc1 ../shared/data/mstar_eoc1 --out proxy_mstar_depression.json
+
+For the serials of EOC-1's test set (2S1, BRDM2, T72, ZSU234: their 30 deg chips in ``--eoc1``), each pair's
+input is a 17 deg chip of ``--mstar`` (a 64 px centre crop at the native 0.2 m spacing), the request is
+``d_el = +13`` deg at the same azimuth, and two real references are kept: the same serial's 30 deg chip
+nearest in azimuth, and its other 17 deg chip nearest in azimuth (a second look at the input's pose). A view
+*wins* when its blurred correlation (sigma 1.5 px) with the 30 deg chip exceeds that with the 17 deg one.
+Pairs whose references lie more than ``--max_azimuth_gap`` deg from the input's azimuth are left out.
+
+Rows: the input copy (floor); the 30 deg chip itself (ceiling, 100 % by construction); the simulator proxy
+alone (the bank vehicle fitted to the input at its header pose, rendered at 30 deg); the bundled prior
+sampled from noise with no guidance (the library's sampler); its recorded sampler without the input's
+azimuth (from the input); and with it (from the proxy). Writes JSON and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import os
+import platform
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import torch
+from threadpoolctl import threadpool_limits
+
+from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
+from sar_zero123.config import write_json_atomic
+from sar_zero123.data import SCALING_FILE, DecibelScaling, load_chip
+from sar_zero123.model.proxy import draft_target_views
+from sar_zero123.sim.proxy import blurred_correlation
+
+CLASSES = ("2S1", "BRDM2", "T72", "ZSU234")
+INPUT_DEPRESSION_DEG, TARGET_DEPRESSION_DEG = 17.0, 30.0
+SIZE = 64
+
+
+def _rows(index: Path) -> list[dict[str, str]]:
+    with open(index, newline="") as handle:
+        return list(csv.DictReader(handle))
+
+
+def _gap(a: float, b: float) -> float:
+    return abs((a - b + 180.0) % 360.0 - 180.0)
+
+
+def draw_pairs(mstar: Path, eoc1: Path, per_class: int, max_gap: float, seed: int) -> list[dict]:
+    """``per_class`` pairs per class: input (17 deg), the 30 deg and second 17 deg references."""
+    high = [r for r in _rows(eoc1 / "index.csv") if float(r["depression_deg"]) == TARGET_DEPRESSION_DEG]
+    low = [r for r in _rows(mstar / "index.csv") if float(r["depression_deg"]) == INPUT_DEPRESSION_DEG]
+    rng = np.random.default_rng(seed)
+    pairs = []
+    for name in CLASSES:
+        serials = {r["serial"] for r in high if r["target_class"] == name}
+        inputs = [r for r in low if r["target_class"] == name and r["serial"] in serials]
+        candidates = []
+        for r in inputs:
+            azimuth = float(r["azimuth_deg"])
+            same_high = [h for h in high if h["serial"] == r["serial"] and h["target_class"] == name]
+            same_low = [q for q in inputs if q["serial"] == r["serial"] and q["path"] != r["path"]]
+            if not same_high or not same_low:
+                continue
+            at_30 = min(same_high, key=lambda h: _gap(float(h["azimuth_deg"]), azimuth))
+            at_17 = min(same_low, key=lambda q: _gap(float(q["azimuth_deg"]), azimuth))
+            gaps = (_gap(float(at_30["azimuth_deg"]), azimuth), _gap(float(at_17["azimuth_deg"]), azimuth))
+            if max(gaps) <= max_gap:
+                candidates.append({"class": name, "input": r, "at_30": at_30, "at_17": at_17})
+        chosen = rng.choice(len(candidates), size=min(per_class, len(candidates)), replace=False)
+        pairs += [candidates[k] for k in sorted(chosen)]
+    return pairs
+
+
+def _draft(args: tuple) -> np.ndarray:
+    """One input's proxy at 30 deg (a worker process; its bank is built once per process)."""
+    proxy, image, azimuth = args
+    threadpool_limits(limits=1)
+    one = torch.tensor
+    draft, _ = draft_target_views(
+        torch.from_numpy(image)[None, None], one([azimuth]), one([INPUT_DEPRESSION_DEG]), one([0.0]),
+        one([TARGET_DEPRESSION_DEG - INPUT_DEPRESSION_DEG]), proxy,
+    )  # fmt: skip
+    return draft[0, 0].numpy()
+
+
+def wins(views: np.ndarray, at_30: np.ndarray, at_17: np.ndarray) -> np.ndarray:
+    """Per view: blurred correlation with the 30 deg chip above that with the 17 deg one."""
+    scores = [blurred_correlation(v, np.stack([h, q]), 1.5) for v, h, q in zip(views, at_30, at_17)]
+    return np.array([high > low for high, low in scores])
+
+
+def run(
+    mstar: Path, eoc1: Path, per_class: int = 64, max_gap: float = 3.0, seed: int = 0, workers: int = 2
+) -> dict:
+    """Every row's share of views nearer the 30 deg chip, on the same pairs; see the module docstring."""
+    pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR_ROTATED)
+    pipe.set_progress_bar_config(disable=True)
+    scaling = DecibelScaling.from_file(resolve_pretrained(SIM_PRIOR_ROTATED) / SCALING_FILE)
+    pairs = draw_pairs(mstar, eoc1, per_class, max_gap, seed)
+
+    def chip(root: Path, row: dict) -> np.ndarray:
+        return scaling.normalize(load_chip(root / row["path"], SIZE, crop_size=SIZE)).astype(np.float32)
+
+    inputs = np.stack([chip(mstar, p["input"]) for p in pairs])
+    at_30 = np.stack([chip(eoc1, p["at_30"]) for p in pairs])
+    at_17 = np.stack([chip(mstar, p["at_17"]) for p in pairs])
+    azimuths = [float(p["input"]["azimuth_deg"]) for p in pairs]
+    classes = np.array([p["class"] for p in pairs])
+    rows: dict[str, dict] = {}
+
+    def add(name: str, views: np.ndarray, seconds: float) -> None:
+        won = wins(views, at_30, at_17).astype(np.float64)
+        se = float(won.std(ddof=1) / np.sqrt(len(won)))
+        rows[name] = {"n": len(won), "nearer_30": float(won.mean()), "nearer_30_se": se, "seconds": seconds}
+        rows[name] |= {f"nearer_30_{c}": float(won[classes == c].mean()) for c in CLASSES}
+        print(f"{name}: {won.mean():.1%} ± {se:.1%} ({seconds:.0f} s)", flush=True)
+
+    add("input copy (floor)", inputs, 0.0)
+    add("the 30 deg chip (ceiling)", at_30, 0.0)
+    begin = time.perf_counter()
+    jobs = [(pipe.config.proxy, image, a) for image, a in zip(inputs, azimuths)]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        proxies = np.stack(list(pool.map(_draft, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
+    add(f"proxy alone (bank {pipe.config.proxy['num_vehicles']})", proxies, time.perf_counter() - begin)
+
+    def sample(from_proxy: bool = False, **kwargs) -> tuple[np.ndarray, float]:
+        """The pipeline's views of every pair; ``from_proxy``: the drafts above, as its proxy start."""
+        begin, views = time.perf_counter(), []
+        for s in range(0, len(pairs), 32):
+            chunk = slice(s, s + 32)
+            n = len(inputs[chunk])
+            start = {"start_image": torch.from_numpy(proxies[chunk])[:, None]} if from_proxy else {}
+            views.append(pipe(
+                torch.from_numpy(inputs[chunk])[:, None], d_az=0.0,
+                d_el=TARGET_DEPRESSION_DEG - INPUT_DEPRESSION_DEG, input_depression_deg=INPUT_DEPRESSION_DEG,
+                output_type="np", **kwargs, **start,
+                generator=[torch.Generator().manual_seed(seed + k) for k in range(s, s + n)],
+            ).images[..., 0])  # fmt: skip
+        return np.concatenate(views), time.perf_counter() - begin
+
+    add("bundled prior, library sampler (50 steps from noise)",
+        *sample(num_inference_steps=50, strength=1.0, heading_guidance_scale=0.0, start_from="input"))
+    add("bundled prior, its recorded sampler, no input azimuth (from the input)", *sample())
+    add("bundled prior, its recorded sampler, input azimuth given (from the proxy)",
+        *sample(from_proxy=True))
+    return {
+        "benchmark": "proxy_mstar_depression (issue 61)",
+        "pipeline": SIM_PRIOR_ROTATED,
+        "sampler": pipe.config.sampler,
+        "proxy": pipe.config.proxy,
+        "per_class": per_class,
+        "max_azimuth_gap_deg": max_gap,
+        "seed": seed,
+        "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}",
+        "platform": platform.platform(),
+        "rows": rows,
+    }
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--mstar", required=True, help="MSTAR folder with index.csv (17 deg inputs)")
+    parser.add_argument("--eoc1", required=True, help="EOC-1 folder with index.csv (the 30 deg chips)")
+    parser.add_argument("--per_class", type=int, default=64, help="pairs per class (4 classes)")
+    parser.add_argument("--max_azimuth_gap", type=float, default=3.0, help="references' largest azimuth gap")
+    parser.add_argument("--seed", type=int, default=0, help="pair draw and sampling seed")
+    parser.add_argument("--workers", type=int, default=2, help="processes for the proxy fits")
+    parser.add_argument("--out", default="proxy_mstar_depression.json", help="output JSON")
+    args = parser.parse_args(argv)
+    for name in ("mstar", "eoc1"):
+        if not (Path(getattr(args, name)) / "index.csv").is_file():
+            raise FileNotFoundError(f"--{name}: no index.csv in {getattr(args, name)!r}")
+    record = run(
+        Path(args.mstar), Path(args.eoc1), args.per_class, args.max_azimuth_gap, args.seed, args.workers
+    )
+    write_json_atomic(record, Path(args.out))
+    return record
+
+
+if __name__ == "__main__":
+    main()
