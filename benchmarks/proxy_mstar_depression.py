@@ -13,7 +13,7 @@ Pairs whose references lie more than ``--max_azimuth_gap`` deg from the input's 
 Rows: the input copy (floor); the 30 deg chip itself (ceiling, 100 % by construction); the simulator proxy
 alone (the bank vehicle fitted to the input at its header pose, rendered at 30 deg); the bundled prior
 sampled from noise with no guidance (the library's sampler); its recorded sampler without the input's
-azimuth (from the input); and with it (from the proxy). Writes JSON and prints a table.
+azimuth; and with it (from the proxy, at its recorded noise level and at 30 % and 70 %). Writes JSON.
 """
 
 from __future__ import annotations
@@ -147,8 +147,14 @@ def run(
     add("bundled prior, library sampler (50 steps from noise)",
         *sample(num_inference_steps=50, strength=1.0, heading_guidance_scale=0.0, start_from="input"))
     add("bundled prior, its recorded sampler, no input azimuth (from the input)", *sample())
-    add("bundled prior, its recorded sampler, input azimuth given (from the proxy)",
-        *sample(from_proxy=True))
+    # the drafts above are the pipeline's own proxy starts (draft_target_views), made in parallel; a call
+    # given start_image takes the strength it is given, so the recorded proxy_strength is passed here
+    recorded = pipe.config.sampler["proxy_strength"]
+    add(f"bundled prior, its recorded sampler, input azimuth given (from the proxy noised to {recorded:.0%})",
+        *sample(from_proxy=True, strength=recorded))
+    for strength in sorted({0.3, 0.7} - {recorded}):
+        name = f"bundled prior, from the proxy noised to {strength:.0%}"
+        add(name, *sample(from_proxy=True, strength=strength))
     return {
         "benchmark": "proxy_mstar_depression (issue 61)",
         "pipeline": SIM_PRIOR_ROTATED,

@@ -14,8 +14,9 @@ over all eight vehicles' renders, its identity. Rows, on the same pairs:
 - ``proxy alone (bank N)``: the bank vehicle retrieved for the input
   (:class:`~sar_zero123.sim.proxy.ProxyBank`: rendered at the input's azimuth and depression, best blurred
   correlation) re-rendered at the request;
-- the pipeline from noise without heading guidance (the library's sampler at these steps); with heading
-  guidance 1.5 from the input noised to 80 % (the recorded sampler without the azimuth);
+- the pipeline from noise without heading guidance (the library's sampler at these steps), with heading
+  guidance 1.5 (the bundled prior's recorded sampler without the azimuth), and with heading guidance 1.5 from
+  the input noised to each ``--strengths`` level and to 80 %;
 - the pipeline started from the proxy's render at the request, noised to each ``--strengths`` level
   (``start_image``), conditioned on the input as always, with and without heading guidance;
 - the same from an oracle proxy (the true vehicle at the request, another clutter draw): what a perfect fit
@@ -94,7 +95,7 @@ def run(
     *,
     pairs_per_class: int = 32,
     bank_sizes: Sequence[int] = (250, 1000),
-    strengths: Sequence[float] = (0.5, 0.7),
+    strengths: Sequence[float] = (0.3, 0.5, 0.7),
     heading_guidance_scale: float = 1.5,
     num_inference_steps: int = 20,
     batch_size: int = 32,
@@ -190,6 +191,8 @@ def run(
         return np.concatenate(views), time.perf_counter() - begin
 
     add(f"{pipeline}, from noise, no heading guidance", *sample(None, 1.0, 0.0))
+    add(f"{pipeline}, from noise, heading guidance {heading_guidance_scale:g}",
+        *sample(None, 1.0, heading_guidance_scale))  # fmt: skip
     add(
         f"{pipeline}, heading guidance {heading_guidance_scale:g}, strength 0.8",
         *sample(None, 0.8, heading_guidance_scale),
@@ -251,7 +254,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         "--strengths",
         nargs="+",
         type=float,
-        default=[0.5, 0.7],
+        default=[0.3, 0.5, 0.7],
         help="noise levels the proxy start is noised to",
     )
     parser.add_argument("--heading_guidance_scale", type=float, default=1.5, help="heading guidance weight")

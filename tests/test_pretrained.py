@@ -204,7 +204,7 @@ def test_bundled_rotated_prior_records_its_sampler_and_with_the_azimuth_gets_fro
     pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR_ROTATED)
     pipe.set_progress_bar_config(disable=True)
     assert pipe.config.sampler == {
-        "num_inference_steps": 20, "guidance_scale": 3.0, "heading_guidance_scale": 1.5, "strength": 0.8,
+        "num_inference_steps": 20, "guidance_scale": 3.0, "heading_guidance_scale": 1.5, "strength": 1.0,
         "start_from": "proxy", "proxy_strength": 0.5,
     }  # fmt: skip
     assert pipe.config.proxy["num_vehicles"] == 1000

@@ -76,6 +76,12 @@ class ChipRecord:
         object.__setattr__(self, "azimuth_deg", float(self.azimuth_deg))
         if not self.target_class:
             raise ValueError(f"{self.path}: target_class must be a non-empty string")
+        # the class names folders (augment writes views/<target_class>/): one plain name, never a path
+        if self.target_class in (".", "..") or any(c in self.target_class for c in "/\\\0"):
+            raise ValueError(
+                f"{self.path}: target_class must be a plain name (no '/', '\\', NUL, '.' or '..'), "
+                f"got {self.target_class!r}"
+            )
         if not (math.isfinite(self.depression_deg) and 0.0 < self.depression_deg < 90.0):
             raise ValueError(
                 f"{self.path}: depression_deg must lie in (0, 90) degrees, got {self.depression_deg}"

@@ -135,3 +135,11 @@ def test_utf8_bom_in_index_is_read(tmp_path: Path) -> None:
     text = (tmp_path / "index.csv").read_text()
     (tmp_path / "index.csv").write_bytes("\ufeff".encode() + text.encode())
     assert [r.path.name for r in load_index(tmp_path)] == ["a.npy", "b.npy"]
+
+
+@pytest.mark.parametrize("name", ["../../x", "/abs", "a/b", "..", ".", "a\\b"])
+def test_a_class_name_that_is_a_path_is_refused_at_the_index(tmp_path: Path, name: str) -> None:
+    """The class names a folder of generated views (augment writes views/<target_class>/): ``../../x`` or an
+    absolute path in index.csv would write outside the output folder."""
+    with pytest.raises(ValueError, match=r"target_class must be a plain name"):
+        load_index(make_folder(tmp_path, [f'a.npy,"{name}",,1,17,0,4,4']))
