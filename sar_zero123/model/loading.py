@@ -114,7 +114,17 @@ def check_component_folder(folder: str | os.PathLike, name: str, component_class
             )
 
 
+#: The libraries a pipeline's components may come from: a ``model_index.json`` is data, and naming any other
+#: module would make loading import (run) it.
+COMPONENT_LIBRARIES = ("diffusers", "transformers", "sar_zero123")
+
+
 def _import_class(library: str, class_name: str, name: str, index_path: Path) -> type:
+    if not isinstance(library, str) or library.split(".")[0] not in COMPONENT_LIBRARIES:
+        raise ValueError(
+            f"{index_path}: component '{name}' is listed as {library}.{class_name}; a component must come "
+            f"from one of {list(COMPONENT_LIBRARIES)} (nothing else is imported)"
+        )
     try:
         return getattr(importlib.import_module(library), class_name)
     except (ImportError, AttributeError):

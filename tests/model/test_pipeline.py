@@ -610,3 +610,18 @@ def test_a_recorded_proxy_start_uses_the_proxy_when_the_azimuth_is_given_and_the
     from_input = {**explicit, "strength": 0.75}  # no azimuth: the input, at the recorded strength
     plain = run(pipe, images, **kwargs)
     torch.testing.assert_close(plain, run(pipe, images, start_from="input", **from_input))
+
+
+def test_a_folder_naming_a_module_outside_the_component_libraries_is_refused_before_any_import(
+    pipe, tmp_path, capsys
+):
+    """A model_index.json is data: ["this", "s"] would import the module `this` (printing the Zen of
+    Python)."""
+    pipe.save_pretrained(tmp_path)
+    index_path = tmp_path / "model_index.json"
+    model_index = json.loads(index_path.read_text())
+    model_index["pose_projection"] = ["this", "s"]
+    index_path.write_text(json.dumps(model_index))
+    with pytest.raises(ValueError, match=r"listed as this.s; a component must come from one of"):
+        SARZero123Pipeline.from_pretrained(tmp_path)
+    assert "Beautiful is better than ugly" not in capsys.readouterr().out
