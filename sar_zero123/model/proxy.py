@@ -27,13 +27,18 @@ __all__ = ["DEFAULT_PROXY", "PROXY_FIELDS", "check_proxy_settings", "draft_targe
 
 #: What a pipeline records of its proxy: the bank (:class:`ProxyBank`'s arguments) and the decibel bounds
 #: of its normalised dB domain (``decibel_scaling.json``).
-PROXY_FIELDS = ("num_vehicles", "first_seed", "blur_sigma_px", "render_seed", "min_db", "max_db")
+PROXY_FIELDS = (
+    "num_vehicles", "first_seed", "blur_sigma_px", "render_seed", "max_shift_px", "min_db", "max_db"
+)  # fmt: skip
+#: Fields a record may leave out, and their values (records written before they existed).
+_PROXY_OPTIONAL = {"max_shift_px": 0}
 #: The bank the bundled priors record (docs/results/proxy.md measures 250 against 1,000 vehicles).
 DEFAULT_PROXY: dict[str, Any] = {
     "num_vehicles": 1000,
     "first_seed": PROXY_FIRST_SEED,
     "blur_sigma_px": 1.5,
     "render_seed": 0,
+    "max_shift_px": 0,
     "min_db": -60.0,
     "max_db": 0.0,
 }
@@ -47,6 +52,7 @@ def check_proxy_settings(proxy: Mapping[str, Any], name: str = "proxy") -> dict[
     """
     if not isinstance(proxy, Mapping):
         raise ValueError(f"{name}: expected a mapping of {list(PROXY_FIELDS)}, got {type(proxy).__name__}")
+    proxy = {**_PROXY_OPTIONAL, **proxy}
     missing, unknown = set(PROXY_FIELDS) - set(proxy), set(proxy) - set(PROXY_FIELDS)
     if missing or unknown:
         raise ValueError(f"{name}: expected the fields {list(PROXY_FIELDS)}; missing {sorted(missing)}, "
@@ -59,16 +65,18 @@ def check_proxy_settings(proxy: Mapping[str, Any], name: str = "proxy") -> dict[
             f"{name}.min_db, {name}.max_db: expected finite decibels with min < max, got {bounds}"
         )
     try:
-        ProxyBank(proxy["num_vehicles"], proxy["first_seed"], proxy["blur_sigma_px"], proxy["render_seed"])
+        ProxyBank(*(proxy[key] for key in PROXY_FIELDS[:5]))
     except ValueError as error:
         raise ValueError(f"{name}.{error}") from None
     return {key: proxy[key] for key in PROXY_FIELDS}
 
 
 @functools.lru_cache(maxsize=4)
-def proxy_bank(num_vehicles: int, first_seed: int, blur_sigma_px: float, render_seed: int) -> ProxyBank:
+def proxy_bank(
+    num_vehicles: int, first_seed: int, blur_sigma_px: float, render_seed: int, max_shift_px: int = 0
+) -> ProxyBank:
     """The bank for these settings, shared within a process (its vehicles are built once)."""
-    return ProxyBank(num_vehicles, first_seed, blur_sigma_px, render_seed)
+    return ProxyBank(num_vehicles, first_seed, blur_sigma_px, render_seed, max_shift_px)
 
 
 def draft_target_views(
@@ -99,9 +107,8 @@ def draft_target_views(
     Raises:
         ValueError: For a target depression outside (0, 90) deg.
     """
-    bank = proxy_bank(
-        proxy["num_vehicles"], proxy["first_seed"], proxy["blur_sigma_px"], proxy["render_seed"]
-    )
+    proxy = check_proxy_settings(proxy)
+    bank = proxy_bank(*(proxy[key] for key in PROXY_FIELDS[:5]))
     low, high = float(proxy["min_db"]), float(proxy["max_db"])
     chips = images.detach().float().mean(dim=1).cpu().numpy()  # (B, H, W), any affine map of decibels
     size = chips.shape[-1]
@@ -115,10 +122,12 @@ def draft_target_views(
                 f"got {target_depression}"
             )
         headings = (azimuth, azimuth + 180.0) if resolve_heading else (azimuth,)
-        scores = np.stack([bank.scores(chip, a, depression) for a in headings])  # (headings, vehicles)
+        fits = [bank.scores_and_shifts(chip, a, depression) for a in headings]
+        scores = np.stack([score for score, _ in fits])  # (headings, vehicles)
         heading, index = np.unravel_index(int(np.argmax(scores)), scores.shape)
         fitted_azimuth = headings[int(heading)] % 360.0
-        render = bank.render(int(index), fitted_azimuth + float(d_az_deg[k]), target_depression, size)
+        shift = tuple(int(v) for v in fits[int(heading)][1][index])
+        render = bank.render(int(index), fitted_azimuth + float(d_az_deg[k]), target_depression, size, shift)
         drafts.append(np.clip((to_decibels(render) - low) / (high - low), 0.0, 1.0))
         fitted.append(fitted_azimuth)
     return torch.from_numpy(np.stack(drafts)[:, None].astype(np.float32)), np.asarray(fitted)

@@ -27,7 +27,7 @@ from sar_zero123.sim.procedural import make_procedural_target
 from sar_zero123.sim.render import render_chip
 from sar_zero123.sim.targets import Target
 
-__all__ = ["PROXY_FIRST_SEED", "ProxyBank", "ProxyMatch", "blurred_correlation"]
+__all__ = ["PROXY_FIRST_SEED", "ProxyBank", "ProxyMatch", "blurred_correlation", "shifted_correlation"]
 
 #: First procedural seed of the default bank: above every seed a prior corpus of this package draws
 #: (``write_prior_corpus`` numbers its vehicles from 0), so a bank vehicle is never a training vehicle.
@@ -67,6 +67,56 @@ def blurred_correlation(chip: np.ndarray, renders: np.ndarray, blur_sigma_px: fl
     return np.where(norm > 0, b @ a / np.maximum(norm, 1e-300), 0.0)
 
 
+def shifted_correlation(
+    chip: np.ndarray, renders: np.ndarray, blur_sigma_px: float, max_shift_px: int
+) -> tuple[np.ndarray, np.ndarray]:
+    """The best Pearson correlation of a blurred image with each blurred render shifted by up to
+    ``max_shift_px`` pixels along each axis (circular shifts), and the shift that gives it.
+
+    A real chip's target need not sit at the chip's centre; a render shifted onto it is compared fairly. A
+    circular shift keeps an image's mean and norm, so the Pearson correlation at every shift is one
+    cross-correlation of the mean-free images (by FFT) over the two norms.
+
+    Args:
+        chip: The image ``(S, S)``.
+        renders: ``(N, S, S)``.
+        blur_sigma_px: Gaussian blur (pixels) applied to every image first.
+        max_shift_px: Largest shift along each axis (0: :func:`blurred_correlation`).
+
+    Returns:
+        ``(scores, shifts)``: ``(N,)`` correlations and ``(N, 2)`` integer ``(rows, columns)`` shifts; a
+        render ``np.roll``-ed by its shift (axes 0, 1) correlates with the chip by its score.
+
+    Raises:
+        ValueError: If the shapes do not match, the blur is negative or the shift is not in [0, S / 4].
+    """
+    largest = np.shape(chip)[-1] // 4
+    whole = not isinstance(max_shift_px, bool) and int(max_shift_px) == max_shift_px
+    if not (whole and 0 <= max_shift_px <= largest):
+        raise ValueError(f"max_shift_px: expected an integer in [0, {largest}], got {max_shift_px!r}")
+    if max_shift_px == 0:
+        scores = blurred_correlation(chip, renders, blur_sigma_px)
+        return scores, np.zeros((len(scores), 2), dtype=np.int64)
+    blurred_correlation(chip, renders[:1], blur_sigma_px)  # the same checks
+    a = np.asarray(chip, dtype=np.float64)
+    b = np.asarray(renders, dtype=np.float64)
+    if blur_sigma_px > 0:
+        a = gaussian_filter(a, blur_sigma_px)
+        b = gaussian_filter(b, (0.0, blur_sigma_px, blur_sigma_px))
+    a = a - a.mean()
+    b = b - b.mean(axis=(1, 2), keepdims=True)
+    norm = np.sqrt((a * a).sum() * (b * b).sum(axis=(1, 2)))  # (N,)
+    # c[n, dy, dx] = sum_y,x a[y, x] * b[n, y - dy, x - dx]: the render rolled by (dy, dx) against the chip
+    cross = np.fft.irfft2(np.fft.rfft2(a)[None] * np.conj(np.fft.rfft2(b)), s=a.shape)
+    offsets = np.arange(-max_shift_px, max_shift_px + 1)
+    window = cross[:, offsets % a.shape[0]][:, :, offsets % a.shape[1]]  # (N, 2k + 1, 2k + 1)
+    flat = window.reshape(len(b), -1)
+    best = np.argmax(flat, axis=1)
+    scores = np.where(norm > 0, flat[np.arange(len(b)), best] / np.maximum(norm, 1e-300), 0.0)
+    shifts = np.stack([offsets[best // len(offsets)], offsets[best % len(offsets)]], axis=1)
+    return scores, shifts.astype(np.int64)
+
+
 @dataclass(frozen=True)
 class ProxyMatch:
     """The bank vehicle retrieved for one chip.
@@ -75,11 +125,13 @@ class ProxyMatch:
         index: Its position in the bank (``0 <= index < num_vehicles``).
         seed: Its procedural seed (``first_seed + index``).
         score: Its blurred correlation with the chip.
+        shift_px: ``(rows, columns)`` by which its renders are rolled to lie over the chip's target.
     """
 
     index: int
     seed: int
     score: float
+    shift_px: tuple[int, int] = (0, 0)
 
 
 class ProxyBank:
@@ -92,6 +144,8 @@ class ProxyBank:
         blur_sigma_px: Gaussian blur (pixels) of chip and renders before they are correlated.
         render_seed: Seed of the clutter drawn under every proxy render, so that a proxy is the same bytes
             on every call.
+        max_shift_px: Largest shift (pixels, each axis) of a render onto the chip's target in the fit
+            (:func:`shifted_correlation`); 0 compares the chips as they lie.
 
     Raises:
         ValueError: Naming the argument, for a size outside [1, 100000], a negative seed or blur.
@@ -103,7 +157,10 @@ class ProxyBank:
         first_seed: int = PROXY_FIRST_SEED,
         blur_sigma_px: float = 1.5,
         render_seed: int = 0,
+        max_shift_px: int = 0,
     ) -> None:
+        if isinstance(max_shift_px, bool) or int(max_shift_px) != max_shift_px or not 0 <= max_shift_px <= 16:
+            raise ValueError(f"max_shift_px: expected an integer in [0, 16], got {max_shift_px!r}")
         if (
             isinstance(num_vehicles, bool)
             or int(num_vehicles) != num_vehicles
@@ -120,6 +177,7 @@ class ProxyBank:
         self.first_seed = int(first_seed)
         self.blur_sigma_px = float(blur_sigma_px)
         self.render_seed = int(render_seed)
+        self.max_shift_px = int(max_shift_px)
         self._targets: dict[int, Target] = {}
 
     def target(self, index: int) -> Target:
@@ -131,15 +189,24 @@ class ProxyBank:
             self._targets[index] = make_procedural_target(self.first_seed + index)
         return self._targets[index]
 
-    def render(self, index: int, azimuth_deg: float, depression_deg: float, size: int = 64) -> np.ndarray:
+    def render(
+        self,
+        index: int,
+        azimuth_deg: float,
+        depression_deg: float,
+        size: int = 64,
+        shift_px: tuple[int, int] = (0, 0),
+    ) -> np.ndarray:
         """Bank vehicle ``index`` at a pose: a peak-normalised magnitude chip ``(size, size)`` in [0, 1].
 
-        The clutter under it is drawn from ``render_seed`` (the same bytes on every call).
+        The clutter under it is drawn from ``render_seed`` (the same bytes on every call); the chip is rolled
+        by ``shift_px`` ``(rows, columns)``, a fit's shift onto its chip's target (the target's place in the
+        scene does not turn with its heading).
         """
         generator = np.random.default_rng(self.render_seed)
-        return render_chip(
-            self.target(index), float(azimuth_deg) % 360.0, float(depression_deg), size, generator
-        )
+        target = self.target(index)
+        chip = render_chip(target, float(azimuth_deg) % 360.0, float(depression_deg), size, generator)
+        return np.roll(chip, tuple(int(v) for v in shift_px), axis=(0, 1)) if any(shift_px) else chip
 
     def scores(
         self,
@@ -148,7 +215,8 @@ class ProxyBank:
         depression_deg: float,
         exclude: Sequence[int] = (),
     ) -> np.ndarray:
-        """Every bank vehicle's blurred correlation with a chip, each rendered at the chip's pose.
+        """Every bank vehicle's blurred correlation with a chip, each rendered at the chip's pose (shifted
+        onto the chip's target by up to ``max_shift_px``; :meth:`scores_and_shifts` also gives the shifts).
 
         Args:
             chip_decibels: The chip ``(S, S)`` in decibels or any affine map of them (normalised dB).
@@ -162,6 +230,16 @@ class ProxyBank:
         Raises:
             ValueError: For a chip that is not square, 2-D and finite.
         """
+        return self.scores_and_shifts(chip_decibels, azimuth_deg, depression_deg, exclude)[0]
+
+    def scores_and_shifts(
+        self,
+        chip_decibels: np.ndarray,
+        azimuth_deg: float,
+        depression_deg: float,
+        exclude: Sequence[int] = (),
+    ) -> tuple[np.ndarray, np.ndarray]:
+        """:meth:`scores` and each vehicle's ``(rows, columns)`` shift onto the chip ``(num_vehicles, 2)``."""
         chip = np.asarray(chip_decibels, dtype=np.float64)
         if chip.ndim != 2 or chip.shape[0] != chip.shape[1] or not np.isfinite(chip).all():
             raise ValueError(f"chip_decibels: expected a finite square (S, S) image, got shape {chip.shape}")
@@ -169,10 +247,10 @@ class ProxyBank:
         renders = np.stack(
             [to_decibels(self.render(k, azimuth_deg, depression_deg, size)) for k in range(self.num_vehicles)]
         )
-        scores = blurred_correlation(chip, renders, self.blur_sigma_px)
+        scores, shifts = shifted_correlation(chip, renders, self.blur_sigma_px, self.max_shift_px)
         excluded = [int(k) for k in exclude if 0 <= int(k) < self.num_vehicles]
         scores[excluded] = -np.inf
-        return scores
+        return scores, shifts
 
     def retrieve(
         self,
@@ -182,6 +260,7 @@ class ProxyBank:
         exclude: Sequence[int] = (),
     ) -> ProxyMatch:
         """The bank vehicle whose render at the chip's pose correlates best with the chip (:meth:`scores`)."""
-        scores = self.scores(chip_decibels, azimuth_deg, depression_deg, exclude)
+        scores, shifts = self.scores_and_shifts(chip_decibels, azimuth_deg, depression_deg, exclude)
         best = int(np.argmax(scores))
-        return ProxyMatch(index=best, seed=self.first_seed + best, score=float(scores[best]))
+        shift = (int(shifts[best, 0]), int(shifts[best, 1]))
+        return ProxyMatch(index=best, seed=self.first_seed + best, score=float(scores[best]), shift_px=shift)

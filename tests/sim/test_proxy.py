@@ -9,7 +9,7 @@ from scipy.ndimage import gaussian_filter
 from sar_zero123.domain import to_decibels
 from sar_zero123.sim import render_chip
 from sar_zero123.sim.procedural import make_procedural_target
-from sar_zero123.sim.proxy import PROXY_FIRST_SEED, ProxyBank, blurred_correlation
+from sar_zero123.sim.proxy import PROXY_FIRST_SEED, ProxyBank, blurred_correlation, shifted_correlation
 
 
 def test_blurred_correlation_is_pearson_of_the_blurred_images_and_ignores_affine_maps():
@@ -70,3 +70,34 @@ def test_bad_chips_and_indices_are_refused():
         bank.scores(np.full((64, 64), np.nan), 0.0, 17.0)
     with pytest.raises(ValueError, match=r"index: expected an integer in \[0, 2\)"):
         bank.render(2, 0.0, 17.0)
+
+
+def test_shifted_correlation_is_the_best_rolled_pearson_and_finds_the_shift():
+    rng = np.random.default_rng(2)
+    chip, renders = rng.normal(size=(16, 16)), rng.normal(size=(3, 16, 16))
+    scores, shifts = shifted_correlation(chip, renders, 1.0, 2)
+    blurred = gaussian_filter(chip, 1.0)
+    for n in range(3):  # reference: every roll of the blurred render within +-2 px, scored by Pearson
+        render = gaussian_filter(renders[n], 1.0)
+        rolled = {(dy, dx): blurred_correlation(blurred, np.roll(render, (dy, dx), axis=(0, 1))[None], 0.0)[0]
+                  for dy in range(-2, 3) for dx in range(-2, 3)}  # fmt: skip
+        best = max(rolled, key=rolled.get)
+        assert scores[n] == pytest.approx(rolled[best], abs=1e-9) and tuple(shifts[n]) == best
+    # a chip that is a render rolled by (2, -1) is found at that shift with correlation 1 (no blur: exact)
+    scores, shifts = shifted_correlation(np.roll(renders[1], (2, -1), axis=(0, 1)), renders, 0.0, 3)
+    assert int(np.argmax(scores)) == 1 and scores[1] == pytest.approx(1.0) and tuple(shifts[1]) == (2, -1)
+    no_shift, zero = shifted_correlation(chip, renders, 1.0, 0)
+    np.testing.assert_array_equal(no_shift, blurred_correlation(chip, renders, 1.0))
+    assert not zero.any()
+    with pytest.raises(ValueError, match=r"max_shift_px: expected an integer in \[0, 4\]"):
+        shifted_correlation(chip, renders, 1.0, 5)
+
+
+def test_a_bank_fit_with_shifts_finds_an_off_centre_vehicle_and_renders_it_there():
+    bank = ProxyBank(num_vehicles=4, max_shift_px=4)
+    target = make_procedural_target(PROXY_FIRST_SEED + 2)
+    magnitude = render_chip(target, 80.0, 17.0, 64, np.random.default_rng(5))
+    match = bank.retrieve(to_decibels(np.roll(magnitude, (3, -2), axis=(0, 1))), 80.0, 17.0)
+    assert (match.index, match.shift_px) == (2, (3, -2))
+    rolled = bank.render(2, 80.0, 17.0, 64, match.shift_px)
+    np.testing.assert_array_equal(rolled, np.roll(bank.render(2, 80.0, 17.0, 64), (3, -2), axis=(0, 1)))
