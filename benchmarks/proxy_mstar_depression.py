@@ -96,7 +96,13 @@ def wins(views: np.ndarray, at_30: np.ndarray, at_17: np.ndarray) -> np.ndarray:
 
 
 def run(
-    mstar: Path, eoc1: Path, per_class: int = 64, max_gap: float = 3.0, seed: int = 0, workers: int = 2
+    mstar: Path,
+    eoc1: Path,
+    per_class: int = 64,
+    max_gap: float = 3.0,
+    seed: int = 0,
+    workers: int = 2,
+    max_shifts_px: Sequence[int] = (3,),
 ) -> dict:
     """Every row's share of views nearer the 30 deg chip, on the same pairs; see the module docstring."""
     pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR_ROTATED)
@@ -123,11 +129,20 @@ def run(
 
     add("input copy (floor)", inputs, 0.0)
     add("the 30 deg chip (ceiling)", at_30, 0.0)
-    begin = time.perf_counter()
-    jobs = [(pipe.config.proxy, image, a) for image, a in zip(inputs, azimuths)]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        proxies = np.stack(list(pool.map(_draft, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
-    add(f"proxy alone (bank {pipe.config.proxy['num_vehicles']})", proxies, time.perf_counter() - begin)
+    def fit(proxy: dict) -> np.ndarray:
+        """Every input's proxy at 30 deg, by the pipeline's own code, in ``workers`` processes."""
+        jobs = [(proxy, image, a) for image, a in zip(inputs, azimuths)]
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            return np.stack(list(pool.map(_draft, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
+
+    drafts: dict[int, np.ndarray] = {}
+    recorded_shift = int(pipe.config.proxy.get("max_shift_px", 0))
+    for shift in sorted({recorded_shift, *max_shifts_px}):
+        begin = time.perf_counter()
+        drafts[shift] = fit({**pipe.config.proxy, "max_shift_px": shift})
+        name = f"proxy alone (bank {pipe.config.proxy['num_vehicles']}, shifts up to {shift} px)"
+        add(name, drafts[shift], time.perf_counter() - begin)
+    proxies = drafts[recorded_shift]
 
     def sample(from_proxy: bool = False, **kwargs) -> tuple[np.ndarray, float]:
         """The pipeline's views of every pair; ``from_proxy``: the drafts above, as its proxy start."""
@@ -146,7 +161,7 @@ def run(
 
     add("bundled prior, library sampler (50 steps from noise)",
         *sample(num_inference_steps=50, strength=1.0, heading_guidance_scale=0.0, start_from="input"))
-    add("bundled prior, its recorded sampler, no input azimuth (from the input)", *sample())
+    add("bundled prior, its recorded sampler, no input azimuth (from noise, heading guidance)", *sample())
     # the drafts above are the pipeline's own proxy starts (draft_target_views), made in parallel; a call
     # given start_image takes the strength it is given, so the recorded proxy_strength is passed here
     recorded = pipe.config.sampler["proxy_strength"]
@@ -155,6 +170,10 @@ def run(
     for strength in sorted({0.3, 0.7} - {recorded}):
         name = f"bundled prior, from the proxy noised to {strength:.0%}"
         add(name, *sample(from_proxy=True, strength=strength))
+    for shift in sorted(set(drafts) - {recorded_shift}):
+        proxies = drafts[shift]
+        name = f"bundled prior, from the proxy fitted with shifts up to {shift} px, noised to {recorded:.0%}"
+        add(name, *sample(from_proxy=True, strength=recorded))
     return {
         "benchmark": "proxy_mstar_depression (issue 61)",
         "pipeline": SIM_PRIOR_ROTATED,
@@ -177,13 +196,16 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--max_azimuth_gap", type=float, default=3.0, help="references' largest azimuth gap")
     parser.add_argument("--seed", type=int, default=0, help="pair draw and sampling seed")
     parser.add_argument("--workers", type=int, default=2, help="processes for the proxy fits")
+    parser.add_argument("--max_shifts_px", nargs="*", type=int, default=[3],
+                        help="also fit the proxy with shifts up to each of these (pixels)")
     parser.add_argument("--out", default="proxy_mstar_depression.json", help="output JSON")
     args = parser.parse_args(argv)
     for name in ("mstar", "eoc1"):
         if not (Path(getattr(args, name)) / "index.csv").is_file():
             raise FileNotFoundError(f"--{name}: no index.csv in {getattr(args, name)!r}")
     record = run(
-        Path(args.mstar), Path(args.eoc1), args.per_class, args.max_azimuth_gap, args.seed, args.workers
+        Path(args.mstar), Path(args.eoc1), args.per_class, args.max_azimuth_gap, args.seed, args.workers,
+        args.max_shifts_px,
     )
     write_json_atomic(record, Path(args.out))
     return record
