@@ -30,7 +30,7 @@ import torch
 from sar_zero123.augment_dataset import check_trained_ranges
 from sar_zero123.data import DecibelScaling
 from sar_zero123.generate import GenerateConfig, load_input_chip
-from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.pipeline import SAMPLER_DEFAULTS, SARZero123Pipeline
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip
 
@@ -67,16 +67,19 @@ class DemoModel:
         device: Torch device.
         depression_guidance_scale: Guidance away from the input's depression (0: off; requests with
             ``d_el == 0`` are unchanged).
+
+        Each sampler argument left ``None`` is the pipeline's recorded value (``pipe.config.sampler``). A
+        simulated chip's azimuth is known, so a pipeline that records a proxy start starts from the proxy.
     """
 
     def __init__(
         self,
         pipeline: str = SIM_PRIOR_ROTATED,
-        num_inference_steps: int = 20,
-        guidance_scale: float = 3.0,
-        heading_guidance_scale: float = 0.0,
+        num_inference_steps: int | None = None,
+        guidance_scale: float | None = None,
+        heading_guidance_scale: float | None = None,
         device: str = "cpu",
-        depression_guidance_scale: float = 0.0,
+        depression_guidance_scale: float | None = None,
     ) -> None:
         self.name = pipeline
         self.pipe = SARZero123Pipeline.from_pretrained(pipeline).to(device)
@@ -88,7 +91,9 @@ class DemoModel:
             if scaling_file.is_file()
             else DecibelScaling.for_unit_magnitude()
         )
-        self.num_inference_steps = num_inference_steps
+        recorded = {**SAMPLER_DEFAULTS, **(self.pipe.config.sampler or {})}
+        steps = recorded["num_inference_steps"] if num_inference_steps is None else num_inference_steps
+        self.num_inference_steps = steps  # the page says how many
         self.guidance_scale = guidance_scale
         self.heading_guidance_scale = heading_guidance_scale
         self.depression_guidance_scale = depression_guidance_scale
@@ -150,7 +155,9 @@ class DemoModel:
         generator = [torch.Generator().manual_seed(seed + i) for i in range(len(d_az))]
         output = self.pipe(
             image, d_az=[float(a) for a in d_az], d_el=[float(d_el)] * len(d_az),
-            input_depression_deg=chip.depression_deg if self.needs_depression else None,
+            # with its azimuth (simulated chips), a pipeline that records a proxy start starts from the proxy
+            input_depression_deg=chip.depression_deg if self.needs_depression or chip.azimuth_deg is not None
+            else None, input_azimuth_deg=chip.azimuth_deg,
             num_inference_steps=self.num_inference_steps, guidance_scale=self.guidance_scale,
             heading_guidance_scale=self.heading_guidance_scale,
             depression_guidance_scale=self.depression_guidance_scale, generator=generator, output_type="np",
@@ -244,10 +251,13 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--host", default="127.0.0.1", help="address to bind (default: this machine only)")
     parser.add_argument("--port", type=int, default=7860, help="port (default 7860)")
     parser.add_argument("--share", action="store_true", help="also open a public gradio.live link")
-    parser.add_argument("--num_inference_steps", "--num-inference-steps", type=int, default=20)
-    parser.add_argument("--guidance_scale", "--guidance-scale", type=float, default=3.0)
-    parser.add_argument("--heading_guidance_scale", "--heading-guidance-scale", type=float, default=0.0)
-    parser.add_argument("--depression_guidance_scale", "--depression-guidance-scale", type=float, default=0.0)
+    # the sampler: each flag left out is the pipeline's recorded value (pipe.config.sampler)
+    parser.add_argument("--num_inference_steps", "--num-inference-steps", type=int, default=None)
+    parser.add_argument("--guidance_scale", "--guidance-scale", type=float, default=None)
+    parser.add_argument("--heading_guidance_scale", "--heading-guidance-scale", type=float, default=None)
+    parser.add_argument(
+        "--depression_guidance_scale", "--depression-guidance-scale", type=float, default=None
+    )
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
     if not 1 <= args.num_inference_steps <= 1000:

@@ -4,6 +4,7 @@ Chromium as a user would drive it (skipped without the [demo] extra, playwright 
 from __future__ import annotations
 
 import base64
+import dataclasses
 import io
 import os
 import shutil
@@ -36,14 +37,19 @@ def test_a_simulated_vehicle_its_views_and_its_truth(model):
     # tile k is the view turned by k * 360 / TURNTABLE_VIEWS deg, with that view's own generator
     np.testing.assert_allclose(strip[:, 64:128], model.views(chip, [0.0, 45.0], 0.0, seed=3)[1], atol=2e-3)
     assert to_uint8(strip[:, :64]).shape == (256, 256)
+    # a simulated chip's azimuth is known: the bundled prior starts from its proxy; without it, from noise
+    unknown = dataclasses.replace(chip, azimuth_deg=None)
+    from_noise = model.views(unknown, [60.0, -30.0], 10.0, seed=3)
+    assert np.abs(from_noise - views).max() > 1e-2
+    unguided_level = model.views(unknown, [0.0, 45.0], 0.0, seed=3)[1]
     # depression guidance reaches the pipeline: a depression request moves, a level one does not
     model.depression_guidance_scale = 3.0
     try:
-        level = model.views(chip, [0.0, 45.0], 0.0, seed=3)[1]
-        np.testing.assert_allclose(level, strip[:, 64:128], atol=2e-3)
-        assert np.abs(model.views(chip, [60.0, -30.0], 10.0, seed=3) - views).max() > 1e-3
+        level = model.views(unknown, [0.0, 45.0], 0.0, seed=3)[1]
+        np.testing.assert_allclose(level, unguided_level, atol=2e-3)
+        assert np.abs(model.views(unknown, [60.0, -30.0], 10.0, seed=3) - from_noise).max() > 1e-3
     finally:
-        model.depression_guidance_scale = 0.0
+        model.depression_guidance_scale = None
 
 
 def test_bad_uploads_and_requests_are_refused_with_a_message(model, tmp_path):

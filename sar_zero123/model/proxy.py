@@ -113,6 +113,7 @@ def draft_target_views(
     chips = images.detach().float().mean(dim=1).cpu().numpy()  # (B, H, W), any affine map of decibels
     size = chips.shape[-1]
     drafts, fitted = [], []
+    fits: dict[tuple, tuple[int, float, tuple[int, int]]] = {}  # one fit per distinct input chip and pose
     for k, chip in enumerate(chips):
         azimuth, depression = float(input_azimuth_deg[k]), float(input_depression_deg[k])
         target_depression = depression + float(d_el_deg[k])
@@ -121,13 +122,16 @@ def draft_target_views(
                 "input_depression_deg + d_el: expected a target depression in (0, 90) deg, "
                 f"got {target_depression}"
             )
-        headings = (azimuth, azimuth + 180.0) if resolve_heading else (azimuth,)
-        fits = [bank.scores_and_shifts(chip, a, depression) for a in headings]
-        scores = np.stack([score for score, _ in fits])  # (headings, vehicles)
-        heading, index = np.unravel_index(int(np.argmax(scores)), scores.shape)
-        fitted_azimuth = headings[int(heading)] % 360.0
-        shift = tuple(int(v) for v in fits[int(heading)][1][index])
-        render = bank.render(int(index), fitted_azimuth + float(d_az_deg[k]), target_depression, size, shift)
+        key = (chip.tobytes(), azimuth, depression)
+        if key not in fits:  # a batch of requests for one chip (generate, the demo's turntable) fits once
+            headings = (azimuth, azimuth + 180.0) if resolve_heading else (azimuth,)
+            scored = [bank.scores_and_shifts(chip, a, depression) for a in headings]
+            scores = np.stack([score for score, _ in scored])  # (headings, vehicles)
+            heading, index = np.unravel_index(int(np.argmax(scores)), scores.shape)
+            shift = tuple(int(v) for v in scored[int(heading)][1][index])
+            fits[key] = (int(index), headings[int(heading)] % 360.0, shift)
+        index, fitted_azimuth, shift = fits[key]
+        render = bank.render(index, fitted_azimuth + float(d_az_deg[k]), target_depression, size, shift)
         drafts.append(np.clip((to_decibels(render) - low) / (high - low), 0.0, 1.0))
         fitted.append(fitted_azimuth)
     return torch.from_numpy(np.stack(drafts)[:, None].astype(np.float32)), np.asarray(fitted)

@@ -625,3 +625,19 @@ def test_a_folder_naming_a_module_outside_the_component_libraries_is_refused_bef
     with pytest.raises(ValueError, match=r"listed as this.s; a component must come from one of"):
         SARZero123Pipeline.from_pretrained(tmp_path)
     assert "Beautiful is better than ugly" not in capsys.readouterr().out
+
+
+def test_one_chip_asked_for_several_views_is_fitted_once(monkeypatch):
+    """generate and the demo's turntable send one chip with many requests: one fit, one render per view."""
+    from sar_zero123.model.proxy import draft_target_views, proxy_bank
+
+    bank = proxy_bank(*(SMALL_PROXY[key] for key in ("num_vehicles", "first_seed", "blur_sigma_px",
+                                                      "render_seed", "max_shift_px")))  # fmt: skip
+    calls = []
+    original = bank.scores_and_shifts
+    monkeypatch.setattr(bank, "scores_and_shifts", lambda *a, **k: calls.append(a) or original(*a, **k))
+    images = dummy_images(batch_size=1, seed=5).expand(3, -1, -1, -1)
+    drafts, _ = draft_target_views(images, torch.full((3,), 40.0), torch.full((3,), 17.0),
+                                   torch.tensor([0.0, 90.0, 180.0]), torch.zeros(3), SMALL_PROXY)  # fmt: skip
+    assert len(calls) == 1 and drafts.shape == (3, 1, DUMMY_IMAGE_SIZE, DUMMY_IMAGE_SIZE)
+    assert not torch.equal(drafts[0], drafts[1])  # each view its own render
