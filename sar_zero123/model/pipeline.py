@@ -50,7 +50,7 @@ from sar_zero123.model.loading import check_pipeline_folder, find_failing_compon
 from sar_zero123.model.orientation import AzimuthEstimator, target_view_features
 from sar_zero123.model.proxy import check_proxy_settings, draft_target_views
 from sar_zero123.model.zero123_checkpoints import CLIPImageProcessor, load_zero123_components
-from sar_zero123.pretrained import BUNDLED_NAMESPACE, is_bundled_name, resolve_pretrained
+from sar_zero123.pretrained import BUNDLED_NAMESPACE, BUNDLED_PIPELINES, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar as _progress_bar
 
 __all__ = [
@@ -328,6 +328,8 @@ class SARZero123Pipeline(DiffusionPipeline):
         ):  # a bundled name, or a refusal listing them (never a hub lookup of an unknown bundled name)
             pretrained_model_name_or_path = resolve_pretrained(pretrained_model_name_or_path)
         folder = pretrained_model_name_or_path
+        if isinstance(folder, str | os.PathLike) and not os.path.isdir(folder):
+            _refuse_a_missing_local_name(os.fspath(folder))
         if not (isinstance(folder, str | os.PathLike) and os.path.isdir(folder)):
             return super().from_pretrained(folder, **kwargs)
         # 1. a local folder: each component's files are checked, naming the component, before diffusers
@@ -997,6 +999,27 @@ def same_depression_pose(pose: torch.Tensor) -> torch.Tensor:
     same = pose.clone()
     same[..., 0] = 0.0
     return same
+
+
+def _refuse_a_missing_local_name(text: str) -> None:
+    """Refuse, listing the bundled pipelines, a name that is meant as a local folder or a bundled pipeline but
+    is neither (a hub lookup would answer with a network error naming neither).
+
+    Raises:
+        FileNotFoundError: For a path-like name (``./x``, ``../x``, ``/x``, ``~/x``), a bundled name in
+            another case (``SAR-ZERO123/sim-prior``) or without its namespace (``sim-prior-rotated``).
+    """
+    bundled = sorted(BUNDLED_PIPELINES)
+    listing = f"the bundled pipelines are {bundled}"
+    short_names = {name.split("/")[-1] for name in bundled}
+    if text.lower().startswith(BUNDLED_NAMESPACE.lower()) or text in short_names:
+        matches = [name for name in bundled if name.lower() == text.lower() or name.endswith("/" + text)]
+        hint = f"did you mean {matches[0]!r}? " if matches else ""
+        raise FileNotFoundError(
+            f"{text!r} is neither a pipeline folder nor a bundled name: {hint}{listing}"
+        )
+    if text.startswith(("./", "../", "/", "~", ".\\")) or text in (".", ".."):
+        raise FileNotFoundError(f"{text!r}: no such pipeline folder (a save_pretrained folder); {listing}")
 
 
 def _per_input_angles(value: Any, name: str, batch_size: int) -> torch.Tensor:

@@ -641,3 +641,15 @@ def test_one_chip_asked_for_several_views_is_fitted_once(monkeypatch):
                                    torch.tensor([0.0, 90.0, 180.0]), torch.zeros(3), SMALL_PROXY)  # fmt: skip
     assert len(calls) == 1 and drafts.shape == (3, 1, DUMMY_IMAGE_SIZE, DUMMY_IMAGE_SIZE)
     assert not torch.equal(drafts[0], drafts[1])  # each view its own render
+
+
+@pytest.mark.parametrize(
+    ("name", "match"),
+    [("sim-prior-rotated", r"did you mean 'sar-zero123/sim-prior-rotated'\?"),
+     ("SAR-ZERO123/sim-prior", r"did you mean 'sar-zero123/sim-prior'\?"),
+     ("./nope", r"'./nope': no such pipeline folder"), ("/no/such/folder", r"no such pipeline folder")],
+)  # fmt: skip
+def test_a_missing_local_name_lists_the_bundled_pipelines_instead_of_a_hub_error(name, match):
+    with pytest.raises(FileNotFoundError, match=match) as error:
+        SARZero123Pipeline.from_pretrained(name)
+    assert "sar-zero123/sim-prior-rotated" in str(error.value)
