@@ -102,7 +102,7 @@ def run(
     max_gap: float = 3.0,
     seed: int = 0,
     workers: int = 2,
-    max_shifts_px: Sequence[int] = (3,),
+    max_shifts_px: Sequence[int] = (0,),
 ) -> dict:
     """Every row's share of views nearer the 30 deg chip, on the same pairs; see the module docstring."""
     pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR_ROTATED)
@@ -167,7 +167,7 @@ def run(
     recorded = pipe.config.sampler["proxy_strength"]
     add(f"bundled prior, its recorded sampler, input azimuth given (from the proxy noised to {recorded:.0%})",
         *sample(from_proxy=True, strength=recorded))
-    for strength in sorted({0.3, 0.7} - {recorded}):
+    for strength in sorted({0.3, 0.5, 0.7} - {recorded}):
         name = f"bundled prior, from the proxy noised to {strength:.0%}"
         add(name, *sample(from_proxy=True, strength=strength))
     for shift in sorted(set(drafts) - {recorded_shift}):
@@ -196,7 +196,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--max_azimuth_gap", type=float, default=3.0, help="references' largest azimuth gap")
     parser.add_argument("--seed", type=int, default=0, help="pair draw and sampling seed")
     parser.add_argument("--workers", type=int, default=2, help="processes for the proxy fits")
-    parser.add_argument("--max_shifts_px", nargs="*", type=int, default=[3],
+    parser.add_argument("--max_shifts_px", nargs="*", type=int, default=[0],
                         help="also fit the proxy with shifts up to each of these (pixels)")
     parser.add_argument("--out", default="proxy_mstar_depression.json", help="output JSON")
     args = parser.parse_args(argv)

@@ -47,7 +47,7 @@ from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.evaluation.template import read_templates, summarise_readings
 from sar_zero123.model.conditioning import embed_pose, encode_condition_latents, rotate_condition_latents
 from sar_zero123.model.orientation import azimuth_deg
-from sar_zero123.model.proxy import DEFAULT_PROXY, draft_target_views
+from sar_zero123.model.proxy import DEFAULT_PROXY, check_proxy_settings, draft_target_views
 from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip
 
 INPUT_DEPRESSION_DEG = 17.0
@@ -95,7 +95,7 @@ def run(
     *,
     pairs_per_class: int = 32,
     bank_sizes: Sequence[int] = (250, 1000),
-    strengths: Sequence[float] = (0.3, 0.5, 0.7),
+    strengths: Sequence[float] = (0.3, 0.5),
     heading_guidance_scale: float = 1.5,
     num_inference_steps: int = 20,
     batch_size: int = 32,
@@ -151,15 +151,17 @@ def run(
     add("true view, another speckle draw (ceiling)", truth, 0.0)
 
     proxies: dict[str, np.ndarray] = {}
+    # the pipeline's recorded proxy settings (a pipeline without them: the defaults at its scaling)
+    recorded_proxy = check_proxy_settings(pipe.config.proxy or {**DEFAULT_PROXY, **scaling.to_dict()})
     input_azimuth = [a for _, a, _ in pairs]
     for bank_size in bank_sizes:
-        proxy = {**DEFAULT_PROXY, "num_vehicles": bank_size, **scaling.to_dict()}
+        proxy = {**recorded_proxy, "num_vehicles": bank_size}
         begin = time.perf_counter()
         proxies[str(bank_size)], _ = drafts_all(proxy, inputs, input_azimuth, d_az, False, workers)
         add(f"proxy alone (bank {bank_size}), input azimuth given", proxies[str(bank_size)],
             time.perf_counter() - begin)  # fmt: skip
     # the pipeline's path without the input's azimuth: its estimator's reading, the heading fitted
-    smallest = {**DEFAULT_PROXY, "num_vehicles": min(bank_sizes), **scaling.to_dict()}
+    smallest = {**recorded_proxy, "num_vehicles": min(bank_sizes)}
     with torch.no_grad():
         latents = encode_condition_latents(pipe.vae, torch.from_numpy(inputs)[:, None])
         estimated = azimuth_deg(pipe.azimuth_estimator(latents)).numpy()
@@ -254,7 +256,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         "--strengths",
         nargs="+",
         type=float,
-        default=[0.3, 0.5, 0.7],
+        default=[0.3, 0.5],
         help="noise levels the proxy start is noised to",
     )
     parser.add_argument("--heading_guidance_scale", type=float, default=1.5, help="heading guidance weight")
