@@ -79,6 +79,23 @@ def proxy_bank(
     return ProxyBank(num_vehicles, first_seed, blur_sigma_px, render_seed, max_shift_px)
 
 
+@functools.lru_cache(maxsize=64)
+def _fit(
+    settings: tuple, chip_bytes: bytes, shape: tuple[int, int], azimuth_deg: float, depression_deg: float,
+    resolve_heading: bool,
+) -> tuple[int, float, tuple[int, int]]:
+    """The bank vehicle fitted to one chip at its pose: ``(index, fitted azimuth, shift)``; remembered for
+    the last 64 chips and poses of the process (a fit costs one render per bank vehicle)."""
+    bank = proxy_bank(*settings)
+    chip = np.frombuffer(chip_bytes, dtype=np.float32).reshape(shape)
+    headings = (azimuth_deg, azimuth_deg + 180.0) if resolve_heading else (azimuth_deg,)
+    scored = [bank.scores_and_shifts(chip, a, depression_deg) for a in headings]
+    scores = np.stack([score for score, _ in scored])  # (headings, vehicles)
+    heading, index = np.unravel_index(int(np.argmax(scores)), scores.shape)
+    shift = tuple(int(v) for v in scored[int(heading)][1][index])
+    return int(index), headings[int(heading)] % 360.0, shift
+
+
 def draft_target_views(
     images: torch.Tensor,
     input_azimuth_deg: torch.Tensor,
@@ -113,7 +130,7 @@ def draft_target_views(
     chips = images.detach().float().mean(dim=1).cpu().numpy()  # (B, H, W), any affine map of decibels
     size = chips.shape[-1]
     drafts, fitted = [], []
-    fits: dict[tuple, tuple[int, float, tuple[int, int]]] = {}  # one fit per distinct input chip and pose
+    settings = tuple(proxy[key] for key in PROXY_FIELDS[:5])
     for k, chip in enumerate(chips):
         azimuth, depression = float(input_azimuth_deg[k]), float(input_depression_deg[k])
         target_depression = depression + float(d_el_deg[k])
@@ -122,15 +139,9 @@ def draft_target_views(
                 "input_depression_deg + d_el: expected a target depression in (0, 90) deg, "
                 f"got {target_depression}"
             )
-        key = (chip.tobytes(), azimuth, depression)
-        if key not in fits:  # a batch of requests for one chip (generate, the demo's turntable) fits once
-            headings = (azimuth, azimuth + 180.0) if resolve_heading else (azimuth,)
-            scored = [bank.scores_and_shifts(chip, a, depression) for a in headings]
-            scores = np.stack([score for score, _ in scored])  # (headings, vehicles)
-            heading, index = np.unravel_index(int(np.argmax(scores)), scores.shape)
-            shift = tuple(int(v) for v in scored[int(heading)][1][index])
-            fits[key] = (int(index), headings[int(heading)] % 360.0, shift)
-        index, fitted_azimuth, shift = fits[key]
+        # many requests for one chip (generate, the demo's views and turntable) share one fit
+        fit = _fit(settings, chip.tobytes(), chip.shape, azimuth, depression, resolve_heading)
+        index, fitted_azimuth, shift = fit
         render = bank.render(index, fitted_azimuth + float(d_az_deg[k]), target_depression, size, shift)
         drafts.append(np.clip((to_decibels(render) - low) / (high - low), 0.0, 1.0))
         fitted.append(fitted_azimuth)

@@ -628,8 +628,11 @@ def test_a_folder_naming_a_module_outside_the_component_libraries_is_refused_bef
 
 
 def test_one_chip_asked_for_several_views_is_fitted_once(monkeypatch):
-    """generate and the demo's turntable send one chip with many requests: one fit, one render per view."""
-    from sar_zero123.model.proxy import draft_target_views, proxy_bank
+    """generate and the demo's turntable send one chip with many requests: one fit, one render per view; a
+    later call on the same chip and pose reuses the fit."""
+    from sar_zero123.model.proxy import _fit, draft_target_views, proxy_bank
+
+    _fit.cache_clear()
 
     bank = proxy_bank(*(SMALL_PROXY[key] for key in ("num_vehicles", "first_seed", "blur_sigma_px",
                                                       "render_seed", "max_shift_px")))  # fmt: skip
@@ -641,6 +644,9 @@ def test_one_chip_asked_for_several_views_is_fitted_once(monkeypatch):
                                    torch.tensor([0.0, 90.0, 180.0]), torch.zeros(3), SMALL_PROXY)  # fmt: skip
     assert len(calls) == 1 and drafts.shape == (3, 1, DUMMY_IMAGE_SIZE, DUMMY_IMAGE_SIZE)
     assert not torch.equal(drafts[0], drafts[1])  # each view its own render
+    one = torch.tensor
+    again, _ = draft_target_views(images[:1], one([40.0]), one([17.0]), one([90.0]), one([0.0]), SMALL_PROXY)
+    assert len(calls) == 1 and torch.equal(again[0], drafts[1])  # a later call on the chip: remembered
 
 
 @pytest.mark.parametrize(
