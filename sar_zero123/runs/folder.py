@@ -229,9 +229,9 @@ def run_differences(
 _OUTPUT_FIELDS = ("output_dir", "work_dir", "out")
 
 
-def _inputs_inside(folder: Path, identity: Mapping[str, Any], config: Mapping[str, Any]) -> list[str]:
-    """The inputs (data paths of ``identity``, config fields naming existing paths) inside ``folder``."""
-    root = folder.resolve()
+def _named_inputs(identity: Mapping[str, Any], config: Mapping[str, Any]) -> list[tuple[str, Any]]:
+    """``(name, value)`` of every input a run may read: the data paths of ``identity`` and every config
+    field but the outputs (values that name no existing path are left to the callers to skip)."""
     named: list[tuple[str, Any]] = [
         (key, value.get("path")) for key, value in identity.items() if isinstance(value, Mapping)
     ]
@@ -240,14 +240,35 @@ def _inputs_inside(folder: Path, identity: Mapping[str, Any], config: Mapping[st
     for key, value in config.items():
         if key not in _OUTPUT_FIELDS:
             named += [(key, item) for item in (value if isinstance(value, list | tuple) else [value])]
+    return named
+
+
+def _inputs_inside(folder: Path, identity: Mapping[str, Any], config: Mapping[str, Any]) -> list[str]:
+    """The inputs (data paths of ``identity``, config fields naming existing paths) inside ``folder``."""
+    root = folder.resolve()
     inside, seen = [], set()
-    for name, value in named:
+    for name, value in _named_inputs(identity, config):
         if isinstance(value, str) and value and Path(value).exists():
             resolved = Path(value).resolve()
             if resolved.is_relative_to(root) and resolved not in seen:  # each input once, by its path
                 seen.add(resolved)
                 inside.append(f"{name}: {value}")
     return inside
+
+
+def _inputs_holding(folder: Path, identity: Mapping[str, Any], config: Mapping[str, Any]) -> list[str]:
+    """The inputs (:func:`_named_inputs`) that are ``folder`` or hold it, and the package's own folder (its
+    bundled pipelines) where it holds ``folder``: moving ``folder`` aside would move part of them."""
+    import sar_zero123
+
+    root = folder.resolve()
+    package = ("the sar_zero123 package", str(Path(sar_zero123.__file__).resolve().parent))
+    holding = []
+    for name, value in [*_named_inputs(identity, config), package]:
+        if isinstance(value, str) and value and Path(value).is_dir():
+            if root.is_relative_to(Path(value).resolve()):
+                holding.append(f"{name}: {value}")
+    return holding
 
 
 def move_aside(path: Path) -> Path:
@@ -333,6 +354,12 @@ def open_run_folder(
             raise ValueError(
                 f"restart: {flag_hint} {str(path)!r} holds this run's inputs ({', '.join(inside)}); moving "
                 "it aside would move them too. Name another output folder, or move the inputs out first"
+            )
+        holding = _inputs_holding(path, identity, values)
+        if holding:
+            raise ValueError(
+                f"restart: {flag_hint} {str(path)!r} lies inside this run's inputs ({', '.join(holding)}); "
+                "moving it aside would move part of them. Name an output folder outside them"
             )
         if write:
             _move_aside(path)

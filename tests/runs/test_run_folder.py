@@ -6,6 +6,7 @@ import hashlib
 import json
 import re
 from dataclasses import dataclass
+from pathlib import Path
 
 import pytest
 
@@ -145,6 +146,26 @@ def test_restart_of_a_folder_holding_the_inputs_is_refused_before_moving_anythin
         open_run_folder(folder, "vae", {"seed": 3, "pretrained": str(data)}, restart=True)
     assert sorted(p.name for p in tmp_path.iterdir() if not is_lock_file(p)) == ["run"]  # nothing moved
     open_run_folder(folder, "vae", {"seed": 3, "output_dir": str(folder)}, restart=True)  # outputs are fine
+
+
+def test_restart_of_a_folder_inside_an_input_or_the_package_is_refused_before_moving_anything(tmp_path):
+    """``--output_dir D/chips --data D`` or ``--output_dir P/unet --pipeline P``: moving the output aside
+    would move part of the input; the package's own folder (its bundled pipelines) is never moved from."""
+    import sar_zero123
+
+    data = tmp_path / "dataset"
+    (data / "chips").mkdir(parents=True)
+    (data / "chips" / "a.npy").write_bytes(b"0")
+    with pytest.raises(ValueError, match=r"lies inside this run's inputs \(pipeline: .*dataset\)"):
+        open_run_folder(data / "chips", "vae", {"seed": 3, "pipeline": str(data)}, restart=True)
+    with pytest.raises(ValueError, match=r"lies inside this run's inputs \(data: .*dataset\)"):
+        open_run_folder(data / "chips", "vae", _Config(), data=data, restart=True)
+    assert (data / "chips" / "a.npy").read_bytes() == b"0"  # nothing moved
+    bundled = Path(sar_zero123.__file__).resolve().parent / "pretrained" / "sim_prior_rotated"
+    with pytest.raises(ValueError, match=r"lies inside this run's inputs \(the sar_zero123 package: "):
+        config = {"start": "sar-zero123/sim-prior-rotated"}
+        open_run_folder(bundled, "interpolate", config, restart=True, write=False)  # no lock in the package
+    assert (bundled / "model_index.json").is_file()
 
 
 def test_restart_of_the_working_directory_is_refused_before_moving_anything(tmp_path, monkeypatch):
