@@ -4,10 +4,11 @@
     python benchmarks/prior_views.py --pipeline runs/quickstart/finetune_lambda0/pipeline --out views.png
 
 Each vehicle gets two rows: the generated views (the input chip first) and the simulator's true views at
-the requested poses. The input is at 17 deg depression (MSTAR's training depression); the default pipeline
-is the bundled prior, which never saw the named vehicles. Also prints, per request, whether each blurred
-view (sigma 1.5 px) correlates better with the truth at the requested pose than with the truth at the input
-pose, and writes those numbers beside the figure as JSON.
+the requested poses. The input is at 17 deg depression (MSTAR's training depression) and its azimuth
+is given to the pipeline (the bundled `sim-prior-rotated` then starts from its simulator proxy); the
+default pipeline is the bundled prior, which never saw the named vehicles. Also prints, per request,
+whether each blurred view (sigma 1.5 px) correlates better with the truth at the requested pose than with
+the truth at the input pose, and writes those numbers beside the figure as JSON.
 """
 
 from __future__ import annotations
@@ -92,6 +93,7 @@ def generate_views(
             d_az=d_az,
             d_el=d_el,
             input_depression_deg=input_depression,
+            input_azimuth_deg=args.input_azimuth_deg,  # known here: a recorded proxy start uses it
             num_inference_steps=args.num_inference_steps,
             generator=[torch.Generator().manual_seed(args.seed + k) for k in range(len(REQUESTS))],
             output_type="np",
