@@ -604,7 +604,9 @@ class SARZero123Pipeline(DiffusionPipeline):
             pipeline records as measured best for it (``pipe.config.sampler``, saved in
             ``model_index.json``), else the library's default (:data:`SAMPLER_DEFAULTS`: 50 steps, guidance
             3, strength 1, no heading or depression guidance, start from the input). A pipeline may record
-            a ``proxy_strength`` for a start from the proxy, a nearer draft than the input.
+            a ``proxy_strength`` for a start from the proxy, a nearer draft than the input. A recorded
+            strength runs at least one denoising step of the call's ``num_inference_steps``; a given one is
+            never changed.
             num_images_per_prompt: Samples per input image.
             generator: One generator, or one per output sample (``B * num_images_per_prompt``).
             latents: Optional initial noise ``(B * num_images_per_prompt, 4, h, w)``, unscaled by
@@ -675,6 +677,9 @@ class SARZero123Pipeline(DiffusionPipeline):
             start_from = "input"
         if start_from == "proxy" and not strength_given and recorded["proxy_strength"] is not None:
             strength = recorded["proxy_strength"]  # a proxy is a nearer draft: less of it is noised
+        if not strength_given and isinstance(num_inference_steps, int) and num_inference_steps >= 1:
+            # a recorded strength runs at least one step of a call's own step count (0.3 x 2 steps: 1 step)
+            strength = min(1.0, max(strength, (1.0 + 1e-9) / num_inference_steps))
         self._check_inputs(
             num_inference_steps,
             guidance_scale,

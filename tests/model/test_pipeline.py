@@ -610,6 +610,12 @@ def test_a_recorded_proxy_start_uses_the_proxy_when_the_azimuth_is_given_and_the
     from_input = {**explicit, "strength": 0.75}  # no azimuth: the input, at the recorded strength
     plain = run(pipe, images, **kwargs)
     torch.testing.assert_close(plain, run(pipe, images, start_from="input", **from_input))
+    # a recorded strength runs at least one step of the call's own count (0.5 x 1 step would run none)
+    pose = {"input_azimuth_deg": 0.0, "input_depression_deg": 17.0}
+    one_step = run(pipe, images, **pose, **{**kwargs, "num_inference_steps": 1})
+    assert one_step.shape == with_azimuth.shape
+    with pytest.raises(ValueError, match=r"strength 0.5 x num_inference_steps 1 leaves no denoising step"):
+        run(pipe, images, **{**explicit, "num_inference_steps": 1})  # an explicit strength is never changed
 
 
 def test_a_folder_naming_a_module_outside_the_component_libraries_is_refused_before_any_import(
