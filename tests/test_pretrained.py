@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import json
 import re
 from pathlib import Path
@@ -157,6 +158,13 @@ def test_bundled_prior_follows_depression():
         assert wins >= 3, f"d_az {d_az:g}, d_el {d_el:g}: the requested pose wins for only {wins} of 4 chips"
 
 
+def _render_at_17_deg(name: str, azimuth_deg: float, seed: int, scaling: DecibelScaling) -> np.ndarray:
+    """A named simulator vehicle at 17 deg depression, 64 px, in the pipeline's normalised dB."""
+    rng = np.random.default_rng(seed)
+    magnitude = render_chip(make_target(name), azimuth_deg, 17.0, size=64, generator=rng)
+    return scaling.normalize(magnitude).astype(np.float32)
+
+
 def test_bundled_rotated_prior_turns_unseen_vehicles() -> None:
     """The spatial-pose prior's views of named vehicles it never saw, asked for a 90 deg turn, look more like
     the simulator's view at the requested azimuth than at the input's (docs/results/prior.md, section 6): 4 of
@@ -171,10 +179,7 @@ def test_bundled_rotated_prior_turns_unseen_vehicles() -> None:
     scaling = DecibelScaling.from_file(folder / SCALING_FILE)
     names, azimuths_deg, d_az = ("TANK", "TRUCK", "DOZER", "SPG"), (30.0, 120.0, 210.0, 300.0), 90.0
 
-    def render(name: str, azimuth_deg: float, seed: int) -> np.ndarray:
-        rng = np.random.default_rng(seed)
-        magnitude = render_chip(make_target(name), azimuth_deg, 17.0, size=64, generator=rng)
-        return scaling.normalize(magnitude).astype(np.float32)
+    render = functools.partial(_render_at_17_deg, scaling=scaling)
 
     inputs = np.stack([render(names[k], azimuths_deg[k], k) for k in range(4)])
     generators = [torch.Generator().manual_seed(k) for k in range(4)]
@@ -212,10 +217,7 @@ def test_bundled_rotated_prior_records_its_sampler_and_with_the_azimuth_gets_fro
     names, azimuths_deg, d_az = ("TANK", "TRUCK", "DOZER", "SPG"), (30.0, 120.0, 210.0, 300.0), 150.0
     grid = np.arange(0.0, 360.0, 10.0)
 
-    def render(name: str, azimuth_deg: float, seed: int) -> np.ndarray:
-        rng = np.random.default_rng(seed)
-        magnitude = render_chip(make_target(name), azimuth_deg, 17.0, size=64, generator=rng)
-        return scaling.normalize(magnitude).astype(np.float32)
+    render = functools.partial(_render_at_17_deg, scaling=scaling)
 
     inputs = np.stack([render(names[k], azimuths_deg[k], k) for k in range(4)])
     generators = [torch.Generator().manual_seed(k) for k in range(4)]
