@@ -101,6 +101,7 @@ def run(
     batch_size: int = 32,
     seed: int = 0,
     workers: int = 2,
+    max_shift_px: int | None = None,
 ) -> dict:
     """Every row's template readings on the same pairs; see the module docstring."""
     classes = list(TARGET_CLASSES)
@@ -153,6 +154,8 @@ def run(
     proxies: dict[str, np.ndarray] = {}
     # the pipeline's recorded proxy settings (a pipeline without them: the defaults at its scaling)
     recorded_proxy = check_proxy_settings(pipe.config.proxy or {**DEFAULT_PROXY, **scaling.to_dict()})
+    if max_shift_px is not None:
+        recorded_proxy["max_shift_px"] = max_shift_px
     input_azimuth = [a for _, a, _ in pairs]
     for bank_size in bank_sizes:
         proxy = {**recorded_proxy, "num_vehicles": bank_size}
@@ -264,6 +267,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--batch_size", type=int, default=32, help="views per pipeline call")
     parser.add_argument("--seed", type=int, default=0, help="pairs, clutter and sampling seed")
     parser.add_argument("--workers", type=int, default=2, help="processes for the proxy retrieval")
+    parser.add_argument("--max_shift_px", type=int, default=None,
+                        help="the proxy fit's largest shift (default: the pipeline's recorded proxy settings)")
     parser.add_argument("--out", default="proxy_views.json", help="output JSON")
     args = parser.parse_args(argv)
     if args.pairs_per_class < 2:
@@ -272,7 +277,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         args.pipeline, pairs_per_class=args.pairs_per_class, bank_sizes=args.bank_sizes,
         strengths=args.strengths,
         heading_guidance_scale=args.heading_guidance_scale, num_inference_steps=args.num_inference_steps,
-        batch_size=args.batch_size, seed=args.seed, workers=args.workers,
+        batch_size=args.batch_size, seed=args.seed, workers=args.workers, max_shift_px=args.max_shift_px,
     )  # fmt: skip
     write_json_atomic(record, Path(args.out))
     print(format_table(record))
