@@ -268,7 +268,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--seed", type=int, default=0, help="pairs, clutter and sampling seed")
     parser.add_argument("--workers", type=int, default=2, help="processes for the proxy retrieval")
     parser.add_argument("--max_shift_px", type=int, default=None,
-                        help="the proxy fit's largest shift (default: the pipeline's recorded proxy settings)")
+                        help="the proxy fit's largest shift (default: the pipeline's recorded one)")
     parser.add_argument("--out", default="proxy_views.json", help="output JSON")
     args = parser.parse_args(argv)
     if args.pairs_per_class < 2:
