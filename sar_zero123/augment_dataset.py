@@ -183,16 +183,10 @@ class AugmentConfig:
                 f"d_az/target_azimuths_deg x d_el: at most {MAX_REQUESTS_PER_CHIP} requests per chip, got "
                 f"{len(self.d_az or self.target_azimuths_deg)} x {len(self.d_el)} = {requests}"
             )
-        # the fields given are checked here; the pipeline checks its recorded ones with the rest at the call
         check_sampler_start(
-            1.0 if self.strength is None else self.strength,
-            self.heading_guidance_scale or 0.0,
-            {} if self.strength is None or self.num_inference_steps is None
-            else {"num_inference_steps": self.num_inference_steps},
-            depression_guidance_scale=self.depression_guidance_scale or 0.0,
+            self.strength, self.heading_guidance_scale, {"num_inference_steps": self.num_inference_steps},
+            depression_guidance_scale=self.depression_guidance_scale, start_from=self.start_from,
         )  # fmt: skip
-        if self.start_from not in (None, "input", "turned_input", "proxy"):
-            raise ValueError(f"start_from: expected input, turned_input or proxy, got {self.start_from!r}")
         check_minimum(self, "max_chips_per_class", minimum=1, optional=True)
         check_minimum(self, "seed", minimum=0)
         check_minimum(self, "speckle_sigma", minimum=0.0, strict=True)

@@ -260,12 +260,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     )
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
-    if not 1 <= args.num_inference_steps <= 1000:
+    if args.num_inference_steps is not None and not 1 <= args.num_inference_steps <= 1000:
         parser.error(f"--num_inference_steps must lie in [1, 1000], got {args.num_inference_steps}")
     if not 0 < args.port < 65536:
         parser.error(f"--port must lie in [1, 65535], got {args.port}")
     scales = (args.guidance_scale, args.heading_guidance_scale, args.depression_guidance_scale)
-    if not all(math.isfinite(scale) for scale in scales):
+    if not all(math.isfinite(scale) for scale in scales if scale is not None):  # None: the recorded one
         parser.error(
             "--guidance_scale, --heading_guidance_scale and --depression_guidance_scale must be finite"
         )

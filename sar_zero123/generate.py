@@ -145,16 +145,10 @@ class GenerateConfig:
             raise ValueError(f"d_el: give 1 value or one per d_az ({len(self.d_az)}), got {len(self.d_el)}")
         if self.num_inference_steps is not None and self.num_inference_steps < 1:
             raise ValueError(f"num_inference_steps must be >= 1, got {self.num_inference_steps}")
-        # the fields given are checked here; the pipeline checks its recorded ones with the rest at the call
         check_sampler_start(
-            1.0 if self.strength is None else self.strength,
-            self.heading_guidance_scale or 0.0,
-            {} if self.strength is None or self.num_inference_steps is None
-            else {"num_inference_steps": self.num_inference_steps},
-            depression_guidance_scale=self.depression_guidance_scale or 0.0,
+            self.strength, self.heading_guidance_scale, {"num_inference_steps": self.num_inference_steps},
+            depression_guidance_scale=self.depression_guidance_scale, start_from=self.start_from,
         )  # fmt: skip
-        if self.start_from not in (None, "input", "turned_input", "proxy"):
-            raise ValueError(f"start_from: expected input, turned_input or proxy, got {self.start_from!r}")
         if self.input_azimuth is not None and not np.isfinite(self.input_azimuth):
             raise ValueError(f"input_azimuth must be a finite angle in degrees, got {self.input_azimuth}")
         if self.image_size is not None and not 1 <= self.image_size <= MAX_IMAGE_SIZE:

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from sar_zero123.demo import MAX_UPLOAD_BYTES, TURNTABLE_VIEWS, DemoModel, to_uint8
+from sar_zero123.demo import MAX_UPLOAD_BYTES, TURNTABLE_VIEWS, DemoModel, parse_args, to_uint8
 from sar_zero123.sim import make_target, render_chip
 
 
@@ -50,6 +50,17 @@ def test_a_simulated_vehicle_its_views_and_its_truth(model):
         assert np.abs(model.views(unknown, [60.0, -30.0], 10.0, seed=3) - from_noise).max() > 1e-3
     finally:
         model.depression_guidance_scale = None
+
+
+def test_the_command_with_no_options_leaves_the_sampler_to_the_pipeline_and_refuses_bad_values(capsys):
+    args = parse_args([])
+    assert (args.num_inference_steps, args.guidance_scale, args.heading_guidance_scale) == (None, None, None)
+    assert parse_args(["--num_inference_steps", "7"]).num_inference_steps == 7
+    for bad in (["--num_inference_steps", "0"], ["--heading_guidance_scale", "nan"]):
+        with pytest.raises(SystemExit) as done:
+            parse_args(bad)
+        assert done.value.code == 2
+    assert "must lie in [1, 1000], got 0" in capsys.readouterr().err
 
 
 def test_bad_uploads_and_requests_are_refused_with_a_message(model, tmp_path):

@@ -157,6 +157,8 @@ def test_config_rejects_bad_values(fields, match):
         ({"strength": float("nan")}, r"^strength must lie in \(0, 1\], got nan"),
         ({"strength": 0.2, "num_inference_steps": 4},
          r"^strength 0.2 x num_inference_steps 4 leaves no denoising step"),
+        ({"start_from": "noise"}, r"^start_from must be one of \(.*'proxy'\), got 'noise'"),
+        ({"input_azimuth": float("nan")}, r"input_azimuth must be a finite angle"),
     ],
 )
 def test_config_rejects_impossible_poses_and_guidance(fields, match):

@@ -101,22 +101,29 @@ class SARZero123PipelineOutput(BaseOutput):
 
 
 def check_sampler_start(
-    strength: float,
-    heading_guidance_scale: float,
-    steps: Mapping[str, int],
+    strength: float | None,
+    heading_guidance_scale: float | None,
+    steps: Mapping[str, int | None],
     prefix: str = "",
-    depression_guidance_scale: float = 0.0,
+    depression_guidance_scale: float | None = 0.0,
+    start_from: str | None = "input",
 ) -> None:
     """Refuse, at a config's boundary, a sampler the pipeline cannot run: ``heading_guidance_scale`` or
-    ``depression_guidance_scale`` outside [0, ``MAX_GUIDANCE_SCALE``], ``strength`` outside (0, 1], or a
-    ``strength`` that leaves no denoising step of one of the ``steps`` (field name: step count). Every
-    message names the field as ``prefix`` + its name (the quickstart preset's ``eval_`` fields).
+    ``depression_guidance_scale`` outside [0, ``MAX_GUIDANCE_SCALE``], ``strength`` outside (0, 1], a
+    ``strength`` that leaves no denoising step of one of the ``steps`` (field name: step count), or a
+    ``start_from`` not in :data:`START_FROM`. A ``None`` (a field left to the pipeline's recorded sampler) is
+    checked by the pipeline at the call instead. Every message names the field as ``prefix`` + its name (the
+    quickstart preset's ``eval_`` fields).
 
     Raises:
         ValueError: On any of the above.
     """
-    _check_contrast_scales(heading_guidance_scale, depression_guidance_scale, prefix + "{}")
-    _check_strength(strength, steps, prefix)
+    scales = (heading_guidance_scale, depression_guidance_scale)
+    _check_contrast_scales(*(0.0 if scale is None else scale for scale in scales), prefix + "{}")
+    if strength is not None:
+        _check_strength(strength, {name: count for name, count in steps.items() if count is not None}, prefix)
+    if start_from is not None and start_from not in START_FROM:
+        raise ValueError(f"{prefix}start_from must be one of {START_FROM}, got {start_from!r}")
 
 
 def _check_contrast_scales(heading: float, depression: float, name_format: str) -> None:
@@ -850,7 +857,6 @@ class SARZero123Pipeline(DiffusionPipeline):
             return (output,)
         return SARZero123PipelineOutput(images=output)
 
-
     @torch.no_grad()
     def _proxy_drafts(
         self,
@@ -889,10 +895,9 @@ class SARZero123Pipeline(DiffusionPipeline):
                 "`input_azimuth_deg`: start_from='proxy' fits a simulator vehicle at the input's pose; give "
                 "each input chip's absolute azimuth in degrees (its metadata), or start from 'input'"
             )
-        azimuth = input_azimuth_deg
         d_az_values = as_angle_tensor(d_az, "d_az").expand(batch_size)
         d_el_values = as_angle_tensor(d_el, "d_el").expand(batch_size)
-        drafts, _ = draft_target_views(images, azimuth, depression, d_az_values, d_el_values, proxy)
+        drafts, _ = draft_target_views(images, input_azimuth_deg, depression, d_az_values, d_el_values, proxy)
         return drafts
 
     def _pose_with_depression(

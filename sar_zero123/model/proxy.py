@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from sar_zero123.domain import to_decibels
+from sar_zero123.data import DecibelScaling
 from sar_zero123.sim.proxy import PROXY_FIRST_SEED, ProxyBank
 
 __all__ = ["DEFAULT_PROXY", "PROXY_FIELDS", "check_proxy_settings", "draft_target_views", "proxy_bank"]
@@ -30,6 +30,8 @@ __all__ = ["DEFAULT_PROXY", "PROXY_FIELDS", "check_proxy_settings", "draft_targe
 PROXY_FIELDS = (
     "num_vehicles", "first_seed", "blur_sigma_px", "render_seed", "max_shift_px", "min_db", "max_db"
 )  # fmt: skip
+#: The fields that build the bank (:class:`ProxyBank`'s arguments, in order).
+_BANK_FIELDS = PROXY_FIELDS[:5]
 #: Fields a record may leave out, and their values (records written before they existed).
 _PROXY_OPTIONAL = {"max_shift_px": 0}
 #: The bank the bundled priors record (docs/results/proxy.md measures 250 against 1,000 vehicles).
@@ -65,7 +67,7 @@ def check_proxy_settings(proxy: Mapping[str, Any], name: str = "proxy") -> dict[
             f"{name}.min_db, {name}.max_db: expected finite decibels with min < max, got {bounds}"
         )
     try:
-        ProxyBank(*(proxy[key] for key in PROXY_FIELDS[:5]))
+        ProxyBank(*(proxy[key] for key in _BANK_FIELDS))
     except ValueError as error:
         raise ValueError(f"{name}.{error}") from None
     return {key: proxy[key] for key in PROXY_FIELDS}
@@ -89,11 +91,9 @@ def _fit(
     bank = proxy_bank(*settings)
     chip = np.frombuffer(chip_bytes, dtype=np.float32).reshape(shape)
     headings = (azimuth_deg, azimuth_deg + 180.0) if resolve_heading else (azimuth_deg,)
-    scored = [bank.scores_and_shifts(chip, a, depression_deg) for a in headings]
-    scores = np.stack([score for score, _ in scored])  # (headings, vehicles)
-    heading, index = np.unravel_index(int(np.argmax(scores)), scores.shape)
-    shift = tuple(int(v) for v in scored[int(heading)][1][index])
-    return int(index), headings[int(heading)] % 360.0, shift
+    matches = [bank.retrieve(chip, azimuth, depression_deg) for azimuth in headings]
+    best = max(range(len(headings)), key=lambda h: matches[h].score)  # the first heading wins a tie
+    return matches[best].index, headings[best] % 360.0, matches[best].shift_px
 
 
 def draft_target_views(
@@ -125,12 +125,12 @@ def draft_target_views(
         ValueError: For a target depression outside (0, 90) deg.
     """
     proxy = check_proxy_settings(proxy)
-    bank = proxy_bank(*(proxy[key] for key in PROXY_FIELDS[:5]))
-    low, high = float(proxy["min_db"]), float(proxy["max_db"])
+    settings = tuple(proxy[key] for key in _BANK_FIELDS)
+    bank = proxy_bank(*settings)
+    scaling = DecibelScaling(min_db=float(proxy["min_db"]), max_db=float(proxy["max_db"]))
     chips = images.detach().float().mean(dim=1).cpu().numpy()  # (B, H, W), any affine map of decibels
     size = chips.shape[-1]
     drafts, fitted = [], []
-    settings = tuple(proxy[key] for key in PROXY_FIELDS[:5])
     for k, chip in enumerate(chips):
         azimuth, depression = float(input_azimuth_deg[k]), float(input_depression_deg[k])
         target_depression = depression + float(d_el_deg[k])
@@ -143,6 +143,6 @@ def draft_target_views(
         fit = _fit(settings, chip.tobytes(), chip.shape, azimuth, depression, resolve_heading)
         index, fitted_azimuth, shift = fit
         render = bank.render(index, fitted_azimuth + float(d_az_deg[k]), target_depression, size, shift)
-        drafts.append(np.clip((to_decibels(render) - low) / (high - low), 0.0, 1.0))
+        drafts.append(scaling.normalize(render))
         fitted.append(fitted_azimuth)
     return torch.from_numpy(np.stack(drafts)[:, None].astype(np.float32)), np.asarray(fitted)
