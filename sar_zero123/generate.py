@@ -386,6 +386,8 @@ def main(argv: Sequence[str] | None = None) -> Path:
     input_azimuth_deg = config.input_azimuth
     if input_azimuth_deg is None:
         input_azimuth_deg = chip_azimuth_deg(config.image)
+        if input_azimuth_deg is not None:  # a pipeline recording a proxy start fits its proxy with it
+            print(f"note: input azimuth {input_azimuth_deg:g} deg, read from {config.image!r}")
     if input_azimuth_deg is not None and input_depression_deg is None:  # the proxy's fit needs the depression
         input_depression_deg, _ = resolve_input_depression(config.image, config.input_depression)
     views = generate_views(
