@@ -34,6 +34,7 @@ from threadpoolctl import threadpool_limits
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
 from sar_zero123.config import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling, load_chip
+from sar_zero123.model.conditioning import takes_proxy
 from sar_zero123.model.proxy import draft_target_views
 from sar_zero123.sim.proxy import blurred_correlation
 
@@ -78,15 +79,17 @@ def draw_pairs(mstar: Path, eoc1: Path, per_class: int, max_gap: float, seed: in
 
 
 def _draft(args: tuple) -> np.ndarray:
-    """One input's proxy at 30 deg (a worker process; its bank is built once per process)."""
+    """One input's proxy at its own pose, at 30 deg, and at 30 deg with the heading flipped ``(3, S, S)``
+    (a worker process; one fit; its bank is built once per process)."""
     proxy, image, azimuth = args
     threadpool_limits(limits=1)
     one = torch.tensor
-    draft, _ = draft_target_views(
-        torch.from_numpy(image)[None, None], one([azimuth]), one([INPUT_DEPRESSION_DEG]), one([0.0]),
-        one([TARGET_DEPRESSION_DEG - INPUT_DEPRESSION_DEG]), proxy,
+    d_el = TARGET_DEPRESSION_DEG - INPUT_DEPRESSION_DEG
+    drafts, _ = draft_target_views(
+        torch.from_numpy(image)[None, None].expand(3, 1, *image.shape), one([azimuth] * 3),
+        one([INPUT_DEPRESSION_DEG] * 3), one([0.0, 0.0, 180.0]), one([0.0, d_el, d_el]), proxy,
     )  # fmt: skip
-    return draft[0, 0].numpy()
+    return drafts[:, 0].numpy()
 
 
 def wins(views: np.ndarray, at_30: np.ndarray, at_17: np.ndarray) -> np.ndarray:
@@ -103,6 +106,7 @@ def run(
     seed: int = 0,
     workers: int = 2,
     max_shifts_px: Sequence[int] = (0,),
+    proxy_pipeline: str | None = None,
 ) -> dict:
     """Every row's share of views nearer the 30 deg chip, on the same pairs; see the module docstring."""
     pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR_ROTATED)
@@ -141,17 +145,21 @@ def run(
         begin = time.perf_counter()
         drafts[shift] = fit({**pipe.config.proxy, "max_shift_px": shift})
         name = f"proxy alone (bank {pipe.config.proxy['num_vehicles']}, shifts up to {shift} px)"
-        add(name, drafts[shift], time.perf_counter() - begin)
-    proxies = drafts[recorded_shift]
+        add(name, drafts[shift][:, 1], time.perf_counter() - begin)
+    views_at_three_poses = drafts[recorded_shift]
+    proxies = views_at_three_poses[:, 1]
 
-    def sample(from_proxy: bool = False, **kwargs) -> tuple[np.ndarray, float]:
-        """The pipeline's views of every pair; ``from_proxy``: the drafts above, as its proxy start."""
+    def sample(from_proxy: bool = False, model=pipe, **kwargs) -> tuple[np.ndarray, float]:
+        """The pipeline's views of every pair; ``from_proxy``: the drafts above, as its proxy start; a
+        proxy-conditioned ``model`` takes the fitted proxy at the three poses (``proxy_views``)."""
         begin, views = time.perf_counter(), []
         for s in range(0, len(pairs), 32):
             chunk = slice(s, s + 32)
             n = len(inputs[chunk])
             start = {"start_image": torch.from_numpy(proxies[chunk])[:, None]} if from_proxy else {}
-            views.append(pipe(
+            if takes_proxy(model.pose_projection):
+                start["proxy_views"] = torch.from_numpy(views_at_three_poses[chunk])
+            views.append(model(
                 torch.from_numpy(inputs[chunk])[:, None], d_az=0.0,
                 d_el=TARGET_DEPRESSION_DEG - INPUT_DEPRESSION_DEG, input_depression_deg=INPUT_DEPRESSION_DEG,
                 output_type="np", **kwargs, **start,
@@ -170,13 +178,21 @@ def run(
     for strength in sorted({0.3, 0.5, 0.7} - {recorded}):
         name = f"bundled prior, from the proxy noised to {strength:.0%}"
         add(name, *sample(from_proxy=True, strength=strength))
+    if proxy_pipeline is not None:  # a proxy-conditioned prior on the same pairs and fits
+        other = SARZero123Pipeline.from_pretrained(proxy_pipeline)
+        other.set_progress_bar_config(disable=True)
+        own = other.config.sampler["proxy_strength"]
+        add(f"proxy prior, its recorded sampler, input azimuth given (from the proxy noised to {own:.0%})",
+            *sample(from_proxy=True, model=other, strength=own))  # fmt: skip
+        add("proxy prior, from noise", *sample(model=other, strength=1.0))
     for shift in sorted(set(drafts) - {recorded_shift}):
-        proxies = drafts[shift]
+        proxies = drafts[shift][:, 1]
         name = f"bundled prior, from the proxy fitted with shifts up to {shift} px, noised to {recorded:.0%}"
         add(name, *sample(from_proxy=True, strength=recorded))
     return {
         "benchmark": "proxy_mstar_depression (issue 61)",
         "pipeline": SIM_PRIOR_ROTATED,
+        "proxy_pipeline": proxy_pipeline,
         "sampler": pipe.config.sampler,
         "proxy": pipe.config.proxy,
         "per_class": per_class,
@@ -198,6 +214,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--workers", type=int, default=2, help="processes for the proxy fits")
     parser.add_argument("--max_shifts_px", nargs="*", type=int, default=[0],
                         help="also fit the proxy with shifts up to each of these (pixels)")
+    parser.add_argument("--proxy_pipeline", default=None,
+                        help="also a spatial_pose='proxy' pipeline (folder or name) on the same pairs")
     parser.add_argument("--out", default="proxy_mstar_depression.json", help="output JSON")
     args = parser.parse_args(argv)
     for name in ("mstar", "eoc1"):
@@ -205,7 +223,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
             raise FileNotFoundError(f"--{name}: no index.csv in {getattr(args, name)!r}")
     record = run(
         Path(args.mstar), Path(args.eoc1), args.per_class, args.max_azimuth_gap, args.seed, args.workers,
-        args.max_shifts_px,
+        args.max_shifts_px, args.proxy_pipeline,
     )
     write_json_atomic(record, Path(args.out))
     return record

@@ -90,6 +90,45 @@ def drafts_all(
     return np.stack([d for d, _ in done]).astype(np.float32), np.array([a for _, a in done])
 
 
+class SimulatedPairs:
+    """The benchmark's pairs on the named vehicles: inputs, true views, turntables and the template reader.
+
+    Attributes:
+        pairs: ``(vehicle index, input azimuth, d_az)`` per pair (:func:`draw_pairs`).
+        vehicle, d_az, requested: Per pair: vehicle index, azimuth change, requested absolute azimuth.
+        inputs, truth: Normalised dB chips ``(N, S, S)``: the 17 deg input and the true view (another
+            speckle and clutter draw).
+        turntables: Each vehicle's 17 deg renders on :data:`GRID_DEG` ``(V, G, S, S)``.
+    """
+
+    def __init__(self, size: int, scaling: DecibelScaling, pairs_per_class: int, seed: int) -> None:
+        self.classes = list(TARGET_CLASSES)
+        self.size, self.scaling, self.seed = size, scaling, seed
+        self.targets = [make_target(name) for name in self.classes]
+        self.pairs = draw_pairs(self.classes, pairs_per_class, seed)
+        self.vehicle = np.array([v for v, _, _ in self.pairs])
+        self.d_az = [d for _, _, d in self.pairs]
+        self.input_azimuth = [a for _, a, _ in self.pairs]
+        self.requested = np.array([(a + d) % 360.0 for _, a, d in self.pairs])
+        self.inputs = np.stack([self.render(v, a, (seed, k, 0)) for k, (v, a, _) in enumerate(self.pairs)])
+        self.truth = np.stack([self.render(v, a + d, (seed, k, 1)) for k, (v, a, d) in enumerate(self.pairs)])
+        vehicles = range(len(self.targets))
+        self.turntables = np.stack(
+            [[self.render(v, g, (seed, 10_000 + v, int(g))) for g in GRID_DEG] for v in vehicles]
+        )
+
+    def render(self, v: int, azimuth: float, stream: tuple[int, ...]) -> np.ndarray:
+        """Vehicle ``v`` at 17 deg and ``azimuth``, clutter and speckle from ``stream``, in normalised dB."""
+        chip = render_chip(
+            self.targets[v], azimuth % 360.0, INPUT_DEPRESSION_DEG, self.size, np.random.default_rng(stream)
+        )
+        return self.scaling.normalize(chip).astype(np.float32)
+
+    def read(self, views: np.ndarray):
+        """Template readings of one view per pair (:func:`sar_zero123.evaluation.template.read_templates`)."""
+        return read_templates(views, self.turntables, GRID_DEG, self.vehicle, self.requested)
+
+
 def run(
     pipeline: str = SIM_PRIOR_ROTATED,
     *,
@@ -104,31 +143,13 @@ def run(
     max_shift_px: int | None = None,
 ) -> dict:
     """Every row's template readings on the same pairs; see the module docstring."""
-    classes = list(TARGET_CLASSES)
     scaling = DecibelScaling.from_dict(json.loads((resolve_pretrained(pipeline) / SCALING_FILE).read_text()))
     pipe = SARZero123Pipeline.from_pretrained(pipeline)
     pipe.set_progress_bar_config(disable=True)
     size = pipe.default_image_size
-    pairs = draw_pairs(classes, pairs_per_class, seed)
-    targets = [make_target(name) for name in classes]
-    vehicle = np.array([v for v, _, _ in pairs])
-    d_az = [d for _, _, d in pairs]
-    requested = np.array([(a + d) % 360.0 for _, a, d in pairs])
-
-    def render(v: int, azimuth: float, stream: tuple[int, ...]) -> np.ndarray:
-        chip = render_chip(
-            targets[v], azimuth % 360.0, INPUT_DEPRESSION_DEG, size, np.random.default_rng(stream)
-        )
-        return scaling.normalize(chip).astype(np.float32)
-
-    inputs = np.stack([render(v, a, (seed, k, 0)) for k, (v, a, _) in enumerate(pairs)])
-    truth = np.stack([render(v, a + d, (seed, k, 1)) for k, (v, a, d) in enumerate(pairs)])
-    turntables = np.stack(
-        [[render(v, g, (seed, 10_000 + v, int(g))) for g in GRID_DEG] for v in range(len(classes))]
-    )
-
-    def read(views: np.ndarray):
-        return read_templates(views, turntables, GRID_DEG, vehicle, requested)
+    sim = SimulatedPairs(size, scaling, pairs_per_class, seed)
+    pairs, d_az, inputs, truth = sim.pairs, sim.d_az, sim.inputs, sim.truth
+    render, read = sim.render, sim.read
 
     floor, ceiling = read(inputs), read(truth)
     rows: dict[str, dict] = {}
@@ -156,7 +177,7 @@ def run(
     recorded_proxy = check_proxy_settings(pipe.config.proxy or {**DEFAULT_PROXY, **scaling.to_dict()})
     if max_shift_px is not None:
         recorded_proxy["max_shift_px"] = max_shift_px
-    input_azimuth = [a for _, a, _ in pairs]
+    input_azimuth = sim.input_azimuth
     for bank_size in bank_sizes:
         proxy = {**recorded_proxy, "num_vehicles": bank_size}
         begin = time.perf_counter()
@@ -219,7 +240,7 @@ def run(
     return {
         "benchmark": "proxy_views (issue 61)",
         "pipeline": str(pipeline),
-        "classes": classes,
+        "classes": sim.classes,
         "pairs_per_class": pairs_per_class,
         "d_az_range_deg": [60.0, 180.0],
         "input_depression_deg": INPUT_DEPRESSION_DEG,

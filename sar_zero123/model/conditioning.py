@@ -42,8 +42,11 @@ __all__ = [
     "encode_target_latents",
     "match_channels",
     "rotate_condition_latents",
+    "proxy_pair_latents",
+    "takes_proxy",
     "unet_condition_latents",
     "vae_signature",
+    "widen_for_proxy",
 ]
 
 #: Size of the zero-1-to-3 relative-pose vector ``[d_el_rad, sin d_az, cos d_az, d_radius]``.
@@ -53,7 +56,7 @@ CLIP_IMAGE_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_IMAGE_STD = (0.26862954, 0.26130258, 0.27577711)
 #: What the UNet sees of the input view besides its latent: ``None`` (zero-1-to-3: the latent alone) or
 #: ``"rotated_input"`` (also the latent turned in the image plane by the requested azimuth change).
-SPATIAL_POSE_MODES = (None, "rotated_input")
+SPATIAL_POSE_MODES = (None, "rotated_input", "proxy")
 #: Turn of the image plane per degree of azimuth in the built-in simulator's convention (and the prior's):
 #: the input's footprint turned by ``-d_az`` lies over the target's (``rotate_condition_latents``).
 SIMULATOR_ROTATION_SIGN = -1
@@ -214,7 +217,11 @@ class PoseProjection(ModelMixin, ConfigMixin):
             :func:`unet_condition_latents`): ``None`` is zero-1-to-3 (every loaded zero-1-to-3 checkpoint
             and every pipeline saved before the field existed); ``"rotated_input"`` also concatenates the
             input latent turned in the image plane by ``rotation_sign * d_az``, a spatial hint of where the
-            target's footprint lies (the UNet then has ``3 * latent_channels`` input channels).
+            target's footprint lies (the UNet then has ``3 * latent_channels`` input channels);
+            ``"proxy"`` adds to those two the latents of the input's simulator proxy rendered at the input's
+            pose and at the requested pose (:func:`proxy_pair_latents`; ``5 * latent_channels`` inputs):
+            the UNet learns "the proxy at the input's pose is to the proxy at the target pose as the input is
+            to the target".
         rotation_sign: ``+1`` or ``-1``: the image-plane turn per degree of ``d_az`` in the training
             data's azimuth convention (``-1`` for the built-in simulator, :data:`SIMULATOR_ROTATION_SIGN`).
         trained_vae: The shape of the VAE the model was trained with (:func:`vae_signature`: chip size,
@@ -243,8 +250,10 @@ class PoseProjection(ModelMixin, ConfigMixin):
             raise ValueError(f"`spatial_pose` must be one of {SPATIAL_POSE_MODES}, got {spatial_pose!r}")
         if rotation_sign not in (-1, 1):
             raise ValueError(f"`rotation_sign` must be +1 or -1, got {rotation_sign!r}")
-        for name, value in (("trained_d_el_deg", trained_d_el_deg), ("trained_depression_deg",
-                                                                     trained_depression_deg)):
+        for name, value in (
+            ("trained_d_el_deg", trained_d_el_deg),
+            ("trained_depression_deg", trained_depression_deg),
+        ):
             if value is not None and (len(value) != 2 or not float(value[0]) <= float(value[1])):
                 raise ValueError(f"`{name}` must be [min, max] in degrees or None, got {value!r}")
         if in_features <= POSE_DIM:
@@ -474,14 +483,21 @@ def condition_channels(spatial_pose: str | None, latent_channels: int) -> int:
     """Channels of the UNet's condition input (:func:`unet_condition_latents`) for a spatial-pose mode.
 
     Returns:
-        ``latent_channels`` for zero-1-to-3 (``None``), ``2 * latent_channels`` for ``"rotated_input"``.
+        ``latent_channels`` for zero-1-to-3 (``None``), ``2 * latent_channels`` for ``"rotated_input"``,
+        ``4 * latent_channels`` for ``"proxy"`` (the input, it turned, the proxy at both poses).
 
     Raises:
         ValueError: If ``spatial_pose`` is not one of :data:`SPATIAL_POSE_MODES`.
     """
     if spatial_pose not in SPATIAL_POSE_MODES:
         raise ValueError(f"`spatial_pose` must be one of {SPATIAL_POSE_MODES}, got {spatial_pose!r}")
-    return latent_channels * (1 if spatial_pose is None else 2)
+    return latent_channels * {None: 1, "rotated_input": 2, "proxy": 4}[spatial_pose]
+
+
+def takes_proxy(pose_projection: torch.nn.Module) -> bool:
+    """Whether the model's UNet takes the simulator proxy pair (``spatial_pose == "proxy"``)."""
+    config = getattr(pose_projection, "module", pose_projection).config
+    return getattr(config, "spatial_pose", None) == "proxy"
 
 
 def rotate_condition_latents(latents: torch.Tensor, pose: torch.Tensor, rotation_sign: int) -> torch.Tensor:
@@ -524,22 +540,88 @@ def rotate_condition_latents(latents: torch.Tensor, pose: torch.Tensor, rotation
 
 
 def unet_condition_latents(
-    condition_latents: torch.Tensor, pose: torch.Tensor, pose_projection: torch.nn.Module
+    condition_latents: torch.Tensor,
+    pose: torch.Tensor,
+    pose_projection: torch.nn.Module,
+    proxy_latents: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """What the UNet concatenates to the noisy latent: the input latent, and with
-    ``pose_projection.config.spatial_pose == "rotated_input"`` the same latent turned by the requested azimuth
-    change (:func:`rotate_condition_latents`).
+    """What the UNet concatenates to the noisy latent: the input latent; with
+    ``pose_projection.config.spatial_pose == "rotated_input"`` also the same latent turned by the requested
+    azimuth change (:func:`rotate_condition_latents`); with ``"proxy"`` also the proxy pair's latents.
 
     Args:
         condition_latents: The (possibly dropped, i.e. zeroed) unscaled input latents.
         pose: Pose vectors from :func:`embed_pose`, one per latent.
         pose_projection: The model's :class:`PoseProjection` (possibly DDP-wrapped), which records the mode.
+        proxy_latents: For ``"proxy"`` only: the unscaled latents of the input's simulator proxy at the
+            input's pose and at the requested pose, stacked on channels (:func:`proxy_pair_latents`). Like
+            the pose, never dropped for classifier-free guidance.
+
+    Raises:
+        ValueError: If ``proxy_latents`` is missing for a proxy model, given to another, or of the wrong
+            shape.
 
     Shape:
-        ``(B, C, h, w)``, ``(B, 1, 4)`` -> ``(B, C | 2C, h, w)``.
+        ``(B, C, h, w)``, ``(B, 1, 4)``, ``(B, 2C, h, w)`` -> ``(B, C | 2C | 4C, h, w)``.
     """
     config = getattr(pose_projection, "module", pose_projection).config
-    if getattr(config, "spatial_pose", None) is None:
+    mode = getattr(config, "spatial_pose", None)
+    if (mode == "proxy") != (proxy_latents is not None):
+        raise ValueError(
+            "proxy_latents: a UNet with spatial_pose='proxy' takes the proxy pair's latents, any other none "
+            f"(this one: spatial_pose={mode!r}, proxy_latents "
+            f"{'given' if proxy_latents is not None else 'missing'})"
+        )
+    if mode is None:
         return condition_latents
     turned = rotate_condition_latents(condition_latents, pose, config.rotation_sign)
-    return torch.cat([condition_latents, turned], dim=1)
+    if mode == "rotated_input":
+        return torch.cat([condition_latents, turned], dim=1)
+    expected = (condition_latents.shape[0], 2 * condition_latents.shape[1], *condition_latents.shape[2:])
+    if tuple(proxy_latents.shape) != expected:
+        raise ValueError(f"proxy_latents: expected shape {expected}, got {tuple(proxy_latents.shape)}")
+    return torch.cat([condition_latents, turned, proxy_latents.to(condition_latents.dtype)], dim=1)
+
+
+def proxy_pair_latents(vae: torch.nn.Module, at_input: torch.Tensor, at_target: torch.Tensor) -> torch.Tensor:
+    """The proxy pair a ``"proxy"`` UNet takes: the unscaled VAE posterior modes of the proxy rendered at
+    the input's pose and at the requested pose (normalised dB, like the input), stacked on channels.
+
+    Shape:
+        ``(B, 1 | 3, H, W)`` twice -> ``(B, 2C, h, w)``.
+    """
+    return torch.cat(
+        [encode_condition_latents(vae, at_input), encode_condition_latents(vae, at_target)], dim=1
+    )
+
+
+def widen_for_proxy(unet: torch.nn.Module, pose_projection: torch.nn.Module) -> None:
+    """Turn a ``"rotated_input"`` model into a ``"proxy"`` one in place, computing exactly what it did.
+
+    The UNet's first convolution gains ``2 * latent_channels`` input channels for the proxy pair, their
+    weights zero (a warm start: before training, the proxy changes nothing), and the projection records
+    ``spatial_pose="proxy"``.
+
+    Raises:
+        ValueError: If the model is not a ``"rotated_input"`` one.
+    """
+    config = pose_projection.config
+    if getattr(config, "spatial_pose", None) != "rotated_input":
+        raise ValueError(
+            "spatial_pose: a proxy model widens a 'rotated_input' one (e.g. sar-zero123/sim-prior-rotated), "
+            f"got spatial_pose={getattr(config, 'spatial_pose', None)!r}"
+        )
+    old = unet.conv_in
+    latent_channels = unet.config.out_channels
+    extra = 2 * latent_channels
+    new = torch.nn.Conv2d(
+        old.in_channels + extra, old.out_channels, old.kernel_size, old.stride, old.padding,
+        dtype=old.weight.dtype, device=old.weight.device,
+    )  # fmt: skip
+    with torch.no_grad():
+        new.weight.zero_()
+        new.weight[:, : old.in_channels] = old.weight
+        new.bias.copy_(old.bias)
+    unet.conv_in = new
+    unet.register_to_config(in_channels=old.in_channels + extra)
+    pose_projection.register_to_config(spatial_pose="proxy")

@@ -43,7 +43,9 @@ from sar_zero123.model.conditioning import (
     encode_image_embeddings,
     match_channels,
     pose_class_labels,
+    proxy_pair_latents,
     rotate_condition_latents,
+    takes_proxy,
     unet_condition_latents,
 )
 from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
@@ -590,6 +592,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         depression_guidance_scale: float | None = None,
         start_image: ImageInput | None = None,
         input_azimuth_deg: float | Sequence[float] | torch.Tensor | None = None,
+        proxy_views: torch.Tensor | None = None,
     ) -> SARZero123PipelineOutput | tuple:
         """Generate views of each input chip at ``(d_az, d_el)`` relative to it.
 
@@ -658,7 +661,12 @@ class SARZero123Pipeline(DiffusionPipeline):
                 input's identity onto. Ignored at ``strength == 1``.
             input_azimuth_deg: Each input chip's absolute azimuth in degrees (a scalar or one per input),
                 from its metadata (the MSTAR header, ``index.csv``, the simulator): where
-                ``start_from="proxy"`` fits the proxy.
+                ``start_from="proxy"`` fits the proxy, and a ``spatial_pose="proxy"`` pipeline needs it.
+            proxy_views: For a ``spatial_pose="proxy"`` pipeline only: each input's proxy given instead of
+                fitted, ``(B, 2, H, W)`` normalised dB (at the input's pose, then at the requested pose; every
+                guidance branch takes them), or ``(B, 3, H, W)`` with the proxy at ``d_az + 180`` third (the
+                heading contrast's, as a fitted proxy gives it). An evaluation passes the true vehicle here
+                to bound what a perfect proxy gives, or proxies it fitted once in parallel.
 
         Returns:
             :class:`SARZero123PipelineOutput`, or ``(images,)`` when ``return_dict`` is False.
@@ -714,6 +722,25 @@ class SARZero123Pipeline(DiffusionPipeline):
                     f"`start_image` must be one draft per input image of the input's size "
                     f"{(batch_size, *images.shape[-2:])}, got {tuple(start_images.shape)}"
                 )
+        proxy_model = takes_proxy(self.pose_projection)
+        if proxy_views is not None and not proxy_model:
+            raise ValueError(
+                "`proxy_views`: this pipeline's UNet takes no proxy (pose_projection.config.spatial_pose="
+                f"{getattr(self.pose_projection.config, 'spatial_pose', None)!r}); leave it out"
+            )
+        if proxy_model:
+            if proxy_views is not None:
+                proxy_views = torch.as_tensor(proxy_views)
+                expected = (batch_size, 2, *images.shape[-2:])
+                shape = tuple(proxy_views.shape)
+                if shape not in (expected, (batch_size, 3, *images.shape[-2:])) or not torch.isfinite(
+                    proxy_views
+                ).all():
+                    raise ValueError(
+                        f"`proxy_views` must be finite normalised dB views {expected}: each input's proxy at "
+                        "the input's pose, then at the requested pose (and, as a third, at the flipped "
+                        f"heading d_az + 180 for heading guidance); got {shape}"
+                    )
         num_samples = batch_size * num_images_per_prompt
         if isinstance(generator, list) and len(generator) != num_samples:
             raise ValueError(
@@ -748,14 +775,13 @@ class SARZero123Pipeline(DiffusionPipeline):
         sample_pose, class_labels = branch(pose)
         # contrast branches: the same request with one part changed, each guided away from with its weight;
         # one equal to the request itself (every d_el == 0 for the depression) adds exactly 0 and is skipped
-        contrasts = [
-            (scale, contrast_pose)
-            for scale, contrast_pose in (
-                (heading_guidance_scale, flipped_heading_pose(pose)),
-                (depression_guidance_scale, same_depression_pose(pose)),
-            )
-            if scale > 0.0 and not torch.equal(contrast_pose, pose)
-        ]
+        candidates = (
+            ("heading", heading_guidance_scale, flipped_heading_pose(pose)),
+            ("depression", depression_guidance_scale, same_depression_pose(pose)),
+        )
+        kept = [c for c in candidates if c[1] > 0.0 and not torch.equal(c[2], pose)]
+        contrasts = [(scale, contrast_pose) for _, scale, contrast_pose in kept]
+        contrast_kinds = [kind for kind, _, _ in kept]
         if do_classifier_free_guidance:
             # zero-1-to-3's sampling null: zeros after the projection and for the condition latent; the
             # pose itself is never dropped
@@ -775,7 +801,17 @@ class SARZero123Pipeline(DiffusionPipeline):
                 class_labels = torch.cat([class_labels, contrast_labels])
             guided_pose = torch.cat([guided_pose, contrast_sample_pose])
         branches = 1 + int(do_classifier_free_guidance) + len(contrasts)
-        unet_condition = unet_condition_latents(condition_latents, guided_pose, self.pose_projection)
+        proxy_latents = None
+        if proxy_model:  # the proxy pair of each branch's request (the null keeps the request's: a pose)
+            proxy_latents = self._proxy_latents(
+                images, d_az, d_el, proxy_views, contrast_kinds, input_azimuth_deg, input_depression_deg
+            ).to(dtype)
+            proxy_latents = proxy_latents.repeat_interleave(num_images_per_prompt, dim=1).flatten(0, 1)
+            if do_classifier_free_guidance:
+                proxy_latents = torch.cat([proxy_latents[:num_samples], proxy_latents])
+        unet_condition = unet_condition_latents(
+            condition_latents, guided_pose, self.pose_projection, proxy_latents
+        )
 
         # 3. timesteps
         self.scheduler.set_timesteps(int(num_inference_steps), device=device)
@@ -865,6 +901,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         d_el: float | Sequence[float] | torch.Tensor,
         input_azimuth_deg: torch.Tensor | None,
         input_depression_deg: float | Sequence[float] | torch.Tensor | None,
+        why: str = "start_from='proxy'",
     ) -> torch.Tensor:
         """Each input's simulator proxy at the requested pose (``start_from="proxy"``, :mod:`..proxy`).
 
@@ -875,30 +912,87 @@ class SARZero123Pipeline(DiffusionPipeline):
             ValueError: Naming what to pass, where the pipeline records no proxy, or the input's depression
                 or azimuth is not given.
         """
+        start = why.startswith("start_from")
         proxy = getattr(self.config, "proxy", None)
         if proxy is None:
             raise ValueError(
-                "`start_from`='proxy': this pipeline records no proxy settings (pipe.config.proxy); build it "
-                "with proxy=sar_zero123.model.proxy.DEFAULT_PROXY, or start from 'input'"
+                f"{why}: this pipeline records no proxy settings (pipe.config.proxy); build it with "
+                "proxy=sar_zero123.model.proxy.DEFAULT_PROXY" + (", or start from 'input'" if start else "")
             )
         batch_size = images.shape[0]
         if input_depression_deg is None:
             raise ValueError(
-                "`input_depression_deg`: start_from='proxy' fits a simulator vehicle at the input's pose; "
-                "give the input chip's depression in degrees (its metadata), or start from 'input'"
+                f"`input_depression_deg`: {why} fits a simulator vehicle at the input's pose; give the "
+                "input chip's depression in degrees (its metadata)"
+                + (", or start from 'input'" if start else "")
             )
         depression = _per_input_angles(input_depression_deg, "input_depression_deg", batch_size)
         if input_azimuth_deg is None:
             # an estimated azimuth is no substitute: the bundled estimator is 63 deg off on unseen vehicles
             # and fitting the heading to it turns the proxy wrong more often (docs/results/proxy.md)
             raise ValueError(
-                "`input_azimuth_deg`: start_from='proxy' fits a simulator vehicle at the input's pose; give "
-                "each input chip's absolute azimuth in degrees (its metadata), or start from 'input'"
+                f"`input_azimuth_deg`: {why} fits a simulator vehicle at the input's pose; give each "
+                "input chip's absolute azimuth in degrees (its metadata, or an estimate you trust)"
+                + (", or start from 'input'" if start else "")
             )
         d_az_values = as_angle_tensor(d_az, "d_az").expand(batch_size)
         d_el_values = as_angle_tensor(d_el, "d_el").expand(batch_size)
         drafts, _ = draft_target_views(images, input_azimuth_deg, depression, d_az_values, d_el_values, proxy)
         return drafts
+
+    @torch.no_grad()
+    def _proxy_latents(
+        self,
+        images: torch.Tensor,
+        d_az: float | Sequence[float] | torch.Tensor,
+        d_el: float | Sequence[float] | torch.Tensor,
+        proxy_views: torch.Tensor | None,
+        contrast_kinds: Sequence[str],
+        input_azimuth_deg: torch.Tensor | None,
+        input_depression_deg: float | Sequence[float] | torch.Tensor | None,
+    ) -> torch.Tensor:
+        """The proxy pair of the request and of each contrast branch, for a ``spatial_pose="proxy"`` UNet.
+
+        Each input's proxy is fitted once (:mod:`..proxy`) and rendered at the input's pose and at each
+        branch's request: the request itself, then each contrast's (``"heading"``: ``d_az + 180``;
+        ``"depression"``: ``d_el = 0``), so that a contrast branch sees its own proxy. Given ``proxy_views``
+        (each input's proxy at its pose and at the request), every branch takes them.
+
+        Returns:
+            ``(1 + len(contrast_kinds), B, 2C, h, w)``.
+        """
+        device = self._execution_device
+        if proxy_views is not None:
+            views = proxy_views.to(device=device, dtype=torch.float32)
+            pair = proxy_pair_latents(self.vae, views[:, :1], views[:, 1:2])
+            flipped = pair
+            if views.shape[1] == 3:  # the proxy at the flipped heading, for the heading contrast
+                flipped = proxy_pair_latents(self.vae, views[:, :1], views[:, 2:3])
+            return torch.stack([pair] + [flipped if kind == "heading" else pair for kind in contrast_kinds])
+        batch_size = images.shape[0]
+        d_az_values = as_angle_tensor(d_az, "d_az").expand(batch_size)
+        d_el_values = as_angle_tensor(d_el, "d_el").expand(batch_size)
+        requests = [
+            (torch.zeros_like(d_az_values), torch.zeros_like(d_el_values)),
+            (d_az_values, d_el_values),
+        ]
+        for kind in contrast_kinds:
+            flipped = kind == "heading"
+            requests.append(
+                (d_az_values + 180.0, d_el_values)
+                if flipped
+                else (d_az_values, torch.zeros_like(d_el_values))
+            )
+        latents = [
+            encode_condition_latents(
+                self.vae,
+                self._proxy_drafts(
+                    images, az, el, input_azimuth_deg, input_depression_deg, "spatial_pose='proxy'"
+                ).to(device),
+            )
+            for az, el in requests
+        ]
+        return torch.stack([torch.cat([latents[0], target], dim=1) for target in latents[1:]])
 
     def _pose_with_depression(
         self,
@@ -947,8 +1041,10 @@ class SARZero123Pipeline(DiffusionPipeline):
         trained_depression = getattr(config, "trained_depression_deg", None)
         if trained_depression is not None and depression is not None:
             low, high = float(trained_depression[0]), float(trained_depression[1])
-            for name, values in (("input_depression_deg", depression), ("input_depression_deg + d_el",
-                                                                        depression + d_el_values)):
+            for name, values in (
+                ("input_depression_deg", depression),
+                ("input_depression_deg + d_el", depression + d_el_values),
+            ):
                 if float(values.min()) < low - 1e-6 or float(values.max()) > high + 1e-6:
                     raise ValueError(
                         f"`{name}` must lie in the trained depression range [{low:g}, {high:g}] degrees "
@@ -1025,9 +1121,7 @@ def _refuse_a_missing_local_name(text: str) -> None:
     if text.lower().startswith(BUNDLED_NAMESPACE.lower()) or text in short_names:
         matches = [name for name in bundled if name.lower() == text.lower() or name.endswith("/" + text)]
         hint = f"did you mean {matches[0]!r}? " if matches else ""
-        raise FileNotFoundError(
-            f"{text!r} is neither a pipeline folder nor a bundled name: {hint}{listing}"
-        )
+        raise FileNotFoundError(f"{text!r} is neither a pipeline folder nor a bundled name: {hint}{listing}")
     if text.startswith(("./", "../", "/", "~", ".\\")) or text in (".", ".."):
         raise FileNotFoundError(f"{text!r}: no such pipeline folder (a save_pretrained folder); {listing}")
 

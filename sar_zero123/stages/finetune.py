@@ -43,9 +43,10 @@ from sar_zero123.data import (
     subsample_objects,
     train_validation_pairs,
 )
+from sar_zero123.data.corpus_proxies import load_corpus_proxies
 from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.model.build import load_sar_zero123, record_trained_pose_ranges
-from sar_zero123.model.conditioning import SPATIAL_POSE_MODES, vae_signature
+from sar_zero123.model.conditioning import SPATIAL_POSE_MODES, takes_proxy, vae_signature, widen_for_proxy
 from sar_zero123.runs.checkpoints import (
     RESUME_MAY_DIFFER,
     check_resume_config,
@@ -142,6 +143,7 @@ class FinetuneConfig(LossSettings):
     # built sizes: the UNet also takes the input latent turned by d_az in the image plane ("rotated_input",
     # sar_zero123.model.conditioning.unet_condition_latents); None: zero-1-to-3's condition latent alone
     spatial_pose: str | None = None
+    proxies: str | None = None  # spatial_pose 'proxy': folder of data's proxies (None: data itself)
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
     # "normalized" and "stages" are departures from the paper (docs/results/pfm.md, section 10)
     pfm_features: PfmFeatures = "pooled"  # PFM's features: Eq. 20's pooled, unit length or all stages (LPIPS)
@@ -225,11 +227,27 @@ class FinetuneConfig(LossSettings):
             raise ValueError(f"rehearsal_max_chips must be None or >= 2, got {self.rehearsal_max_chips}")
         if self.spatial_pose not in SPATIAL_POSE_MODES:
             raise ValueError(f"spatial_pose must be one of {SPATIAL_POSE_MODES}, got {self.spatial_pose!r}")
-        if self.spatial_pose is not None and self.pretrained is not None:
+        if self.spatial_pose not in (None, "proxy") and self.pretrained is not None:
             raise ValueError(
-                "spatial_pose: only for a model built from scratch (--size); a pretrained pipeline keeps its "
-                "condition input (pose_projection.config.spatial_pose)"
+                "spatial_pose: only for a model built from scratch (--size), or 'proxy' (a 'rotated_input' "
+                "pipeline widened to take the simulator proxy); a pretrained pipeline keeps its condition "
+                "input (pose_projection.config.spatial_pose)"
             )
+        if self.spatial_pose == "proxy":
+            # the proxies are cached per chip beside the corpus (sar_zero123.data.corpus_proxies)
+            for name, ok, expected in (
+                ("cache_latents", self.cache_latents, "True (the proxies are cached with the chips)"),
+                ("validation_steps", self.validation_steps == 0, "0 (validation pairs carry no proxies)"),
+                (
+                    "rehearsal_data",
+                    self.rehearsal_data is None,
+                    "None (a rehearsal corpus carries no proxies)",
+                ),
+            ):
+                if not ok:
+                    raise ValueError(
+                        f"{name}: spatial_pose='proxy' needs {expected}, got {getattr(self, name)!r}"
+                    )
         if self.input_depression and self.pretrained is not None:
             raise ValueError(
                 "input_depression: only for a model built from scratch (--size); a pretrained pipeline keeps "
@@ -340,13 +358,18 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneIn
         prediction_type=config.prediction_type,
         vae=config.vae,
         input_depression=config.input_depression,
-        spatial_pose=config.spatial_pose,
+        spatial_pose=None if config.pretrained is not None else config.spatial_pose,
     )
+    if config.spatial_pose == "proxy" and not takes_proxy(pipe.pose_projection):
+        widen_for_proxy(pipe.unet, pipe.pose_projection)  # a warm start: zero weights on the proxy pair
     image_size = training_image_size(pipe, config.image_size)
     encoder = None
     if config.pfm_weight > 0:
         encoder = load_pfm_encoder(
-            config.encoder, image_size=image_size, projection_dim=config.pfm_projection_dim, seed=config.seed,
+            config.encoder,
+            image_size=image_size,
+            projection_dim=config.pfm_projection_dim,
+            seed=config.seed,
             features=config.pfm_features,
         )
     train_dataset, validation_dataset, scaling = train_validation_pairs(
@@ -418,7 +441,19 @@ def _prepare_training(
     if config.cache_latents and resumed_step < config.max_train_steps:  # the frozen parts never change
         frozen_tower = None if config.train_image_encoder else image_embedder.image_encoder
         cache_device = accelerator.device if config.cache_on_device else "cpu"
-        cache = ChipLatentCache.encode(load_chip_images(train_dataset), vae, frozen_tower).to(cache_device)
+        proxies = None
+        if takes_proxy(pipe.pose_projection):  # each chip's proxies at its pose, in the chips' dB scaling
+            if config.data is None:
+                raise ValueError(
+                    "data: spatial_pose='proxy' trains on a corpus folder with its proxies "
+                    "(train/pretrain_prior.py writes both), got None (the built-in dataset has none)"
+                )
+            paths = [record.path for record in train_dataset.records]
+            magnitudes = load_corpus_proxies(config.data, paths, config.proxies)
+            proxies = train_dataset.scaling.normalize(magnitudes).float()
+        cache = ChipLatentCache.encode(
+            load_chip_images(train_dataset), vae, frozen_tower, proxy_images=proxies
+        ).to(cache_device)
         train_dataset = CachedViewPairs(train_dataset, cache)
         if rehearsal is not None:
             rehearsal_cache = ChipLatentCache.encode(load_chip_images(rehearsal), vae, frozen_tower)

@@ -34,6 +34,7 @@ from typing import Any
 
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import train_validation_pairs
+from sar_zero123.data.corpus_proxies import PROXIES_RECORD, write_corpus_proxies
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import downsampling_factor
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run, read_run_record
@@ -54,6 +55,7 @@ __all__ = [
     "check_corpus_pairs",
     "init_folder",
     "prior_base_config",
+    "prior_proxies_folder",
     "prior_vae_config",
     "prior_vae_folder",
     "run_prior",
@@ -74,10 +76,14 @@ class PriorConfig:
     image_size: int = 64  # chip side in pixels
     corpus_workers: int = 2  # processes rendering the corpus
     model_size: str = "micro"  # build_sar_zero123 size of the UNet
-    # the UNet also takes the input latent turned by d_az ("rotated_input"; FinetuneConfig.spatial_pose)
+    # the UNet also takes the input latent turned by d_az ("rotated_input"; FinetuneConfig.spatial_pose), and
+    # with "proxy" also each chip's simulator proxy at both poses (a "rotated_input" init is widened)
     spatial_pose: str | None = None
+    proxy_bank_vehicles: int = 250  # "proxy": the bank fitted to each corpus vehicle (data/corpus_proxies.py)
+    proxy_candidates: int = 2  # "proxy": best-fitting bank vehicles kept per corpus vehicle (best, others)
     vae: str | None = None  # an AutoencoderKL folder to use (e.g. the bundled prior's vae/); None trains one
-    # with init, model_size, spatial_pose, input_depression and prediction_type are that pipeline's own
+    # with init, model_size, input_depression and prediction_type are that pipeline's own; spatial_pose is its
+    # own, or "proxy" (widening a "rotated_input" init)
     init: str | None = None  # a prior (name or folder) to continue with its own VAE (warm start)
     vae_widths: list[int] = field(default_factory=lambda: [16, 32, 64])  # VAE block widths (16x16 latents)
     vae_norm_groups: int = 8  # GroupNorm groups of the VAE
@@ -126,6 +132,12 @@ class PriorConfig:
         if self.model_size not in SAR_ZERO123_SIZES:
             raise ValueError(
                 f"model_size must be one of {sorted(SAR_ZERO123_SIZES)}, got {self.model_size!r}"
+            )
+        check_minimum(self, "proxy_bank_vehicles", "proxy_candidates", minimum=1)
+        if self.proxy_candidates > self.proxy_bank_vehicles:
+            raise ValueError(
+                f"proxy_candidates: at most proxy_bank_vehicles ({self.proxy_bank_vehicles}), got "
+                f"{self.proxy_candidates}"
             )
         if self.init is not None:
             if self.vae is not None:
@@ -244,7 +256,9 @@ def prior_base_config(config: PriorConfig, vae: Path, corpus: Path | None = None
         "prediction_type": config.prediction_type,
     }
     if config.init is not None:
-        pose = {**dict.fromkeys(pose), "input_depression": False, "pretrained": str(init_folder(config))}
+        spatial_pose = "proxy" if config.spatial_pose == "proxy" else None  # widens the init's UNet
+        pose = {**dict.fromkeys(pose), "input_depression": False, "pretrained": str(init_folder(config)),
+                "spatial_pose": spatial_pose}  # fmt: skip
     return FinetuneConfig(
         **_stage_settings(config),
         output_dir=str(Path(config.output_dir) / "base"),
@@ -252,6 +266,7 @@ def prior_base_config(config: PriorConfig, vae: Path, corpus: Path | None = None
         size=config.model_size,
         estimate_input_azimuth=True,
         **pose,
+        proxies=None if corpus is None else _proxies_or_none(config, corpus),
         same_depression=False,
         snr_gamma=config.snr_gamma,
         pfm_weight=0.0,
@@ -300,6 +315,12 @@ def run_prior(config: PriorConfig) -> Path:
     corpus = Path(config.corpus) if config.corpus is not None else out / "corpus"
     with state.main_process_first():  # the others then find its index and skip the stage
         _stage("corpus", (corpus / "index.csv").is_file(), timings, lambda: _write_corpus(config, corpus))
+    # each corpus vehicle's simulator proxies, for a proxy-conditioned UNet (written last, atomically)
+    if config.spatial_pose == "proxy":
+        with state.main_process_first():
+            proxies = prior_proxies_folder(config, corpus)
+            proxies_done = (proxies / PROXIES_RECORD).is_file()
+            _stage("proxies", proxies_done, timings, lambda: _write_proxies(config, corpus, proxies))
     # the UNet's batch against the corpus's training pairs, before the VAE stage's minutes
     check_corpus_pairs(config, corpus, num_processes=state.num_processes)
     # 2. VAE, then 3. the UNet and its pose path across depressions (each done once its record is finished)
@@ -356,6 +377,34 @@ def _write_corpus(config: PriorConfig, corpus: Path) -> None:
         mstar_fraction=config.mstar_fraction,
         size=config.image_size,
         seed=config.seed,
+        num_workers=config.corpus_workers,
+    )
+
+
+def prior_proxies_folder(config: PriorConfig, corpus: Path) -> Path:
+    """Where the corpus's proxies are: the corpus's own (read only) where they were written with this
+    bank and candidate count, else ``output_dir/proxies`` (written there, never into a given corpus)."""
+    own = corpus / PROXIES_RECORD
+    if own.is_file():
+        record = json.loads(own.read_text())
+        bank = record.get("bank", {})
+        if bank.get("num_vehicles") == config.proxy_bank_vehicles and (
+            record.get("candidates") == config.proxy_candidates
+        ):
+            return corpus
+    return Path(config.output_dir) / "proxies"
+
+
+def _proxies_or_none(config: PriorConfig, corpus: Path) -> str | None:
+    return str(prior_proxies_folder(config, corpus)) if config.spatial_pose == "proxy" else None
+
+
+def _write_proxies(config: PriorConfig, corpus: Path, out: Path) -> None:
+    write_corpus_proxies(
+        corpus,
+        out,
+        num_vehicles=config.proxy_bank_vehicles,
+        candidates=config.proxy_candidates,
         num_workers=config.corpus_workers,
     )
 

@@ -32,8 +32,9 @@ from torch.utils.data import DataLoader, Dataset
 
 from sar_zero123.config import naming_write_errors, write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
-from sar_zero123.model.conditioning import PoseProjection
+from sar_zero123.model.conditioning import PoseProjection, takes_proxy
 from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.proxy import DEFAULT_PROXY
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.checkpoints import (
     check_finite_state,
@@ -268,9 +269,17 @@ def export_finetuned(
     directory = Path(directory)
     for ema, module in ema_pairs:
         ema.copy_to(module.parameters())
+    # the proxy settings travel on, in this data's dB scaling; a proxy model also keeps its start's sampler
+    proxy = getattr(pipe.config, "proxy", None)
+    proxy_model = takes_proxy(pipe.pose_projection)
+    if proxy is None and proxy_model:
+        proxy = DEFAULT_PROXY
+    if proxy is not None:
+        proxy = {**proxy, "min_db": float(scaling.min_db), "max_db": float(scaling.max_db)}
+    sampler = getattr(pipe.config, "sampler", None) if proxy_model else None
     export = SARZero123Pipeline(
         **{**pipe.components, "scheduler": DDIMScheduler.from_config(pipe.scheduler.config),
-           "unet": merged_unet(pipe.unet)}
+           "unet": merged_unet(pipe.unet)}, sampler=sampler, proxy=proxy,
     )  # fmt: skip
     for module in (export.unet, export.image_encoder, export.pose_projection, export.azimuth_estimator):
         if module is not None:

@@ -687,9 +687,13 @@ class LossSettings:
     timestep_logit_std: float = 1.0  # logit_normal: standard deviation of logit(t / T)
     snr_gamma: float | None = None  # Min-SNR-gamma weighting of L_simple (e.g. 5); None: the paper's L_simple
     azimuth_loss_weight: float = 1.0  # weight of an azimuth estimator's loss on the input's known azimuth
+    # a spatial_pose="proxy" model: share of the pairs given a runner-up proxy instead of the best fit
+    proxy_runner_up_prob: float = 0.25
 
     def __post_init__(self) -> None:
         check_minimum(self, "pfm_weight", "pfm_min_snr", "azimuth_loss_weight", minimum=0)
+        if not 0 <= self.proxy_runner_up_prob <= 1:
+            raise ValueError(f"proxy_runner_up_prob must be in [0, 1], got {self.proxy_runner_up_prob}")
         if not 0 < self.pfm_fraction <= 1:
             raise ValueError(f"pfm_fraction must be in (0, 1], got {self.pfm_fraction}")
         check_minimum(self, "pfm_crop_size", minimum=1, optional=True)

@@ -33,8 +33,10 @@ from transformers import CLIPVisionModelWithProjection
 from sar_zero123.data import ViewPairDataset, load_chip
 from sar_zero123.model.conditioning import (
     embed_pose,
+    encode_condition_latents,
     encode_image_embeddings,
     pose_class_labels,
+    takes_proxy,
     unet_condition_latents,
     vae_input,
 )
@@ -135,6 +137,9 @@ class ChipLatentCache:
         latent_logvar: VAE posterior log-variance ``(N, C, h, w)``.
         image_embeds: Frozen CLIP embeddings ``(N, 1, D)``, or ``None`` when the tower is trained.
         scaling_factor: ``vae.config.scaling_factor`` (multiplies the target latent only).
+        proxy_latents: For a ``spatial_pose="proxy"`` model: the posterior modes of each chip's simulator
+            proxies rendered at that chip's pose ``(N, K, C, h, w)`` (``K`` candidates per chip,
+            :mod:`sar_zero123.data.corpus_proxies`), else ``None``.
     """
 
     images: torch.Tensor
@@ -142,12 +147,14 @@ class ChipLatentCache:
     latent_logvar: torch.Tensor
     image_embeds: torch.Tensor | None
     scaling_factor: float
+    proxy_latents: torch.Tensor | None = None
 
     def to(self, device: torch.device | str) -> ChipLatentCache:
         """The same encodings on ``device`` (a GPU-resident cache: batches are drawn without copies)."""
         moved = {name: getattr(self, name).to(device) for name in ("images", "latent_mean", "latent_logvar")}
         embeds = None if self.image_embeds is None else self.image_embeds.to(device)
-        return dataclasses.replace(self, **moved, image_embeds=embeds)
+        proxies = None if self.proxy_latents is None else self.proxy_latents.to(device)
+        return dataclasses.replace(self, **moved, image_embeds=embeds, proxy_latents=proxies)
 
     @classmethod
     @torch.no_grad()
@@ -157,12 +164,34 @@ class ChipLatentCache:
         vae: AutoencoderKL,
         image_encoder: CLIPVisionModelWithProjection | None = None,
         batch_size: int = 64,
+        proxy_images: torch.Tensor | None = None,
     ) -> ChipLatentCache:
-        """Encodes ``images`` (normalised dB, ``(N, 1, S, S)``) with the frozen VAE (and CLIP tower).
+        """Encodes ``images`` (normalised dB, ``(N, 1, S, S)``) with the frozen VAE (and CLIP tower), and
+        ``proxy_images`` (normalised dB ``(N, K, S, S)``: each chip's ``K`` proxies at its pose) with the VAE.
 
         Raises:
-            ValueError: If ``images`` is not a non-empty ``(N, 1, S, S)`` tensor of finite values.
+            ValueError: If ``images`` is not a non-empty ``(N, 1, S, S)`` tensor of finite values, or
+                ``proxy_images`` not ``(N, K, S, S)`` finite values.
         """
+        proxy_latents = None
+        if proxy_images is not None:
+            if (
+                proxy_images.ndim != 4
+                or proxy_images.shape[0] != images.shape[0]
+                or proxy_images.shape[-2:] != images.shape[-2:]
+                or not torch.isfinite(proxy_images).all()
+            ):
+                raise ValueError(
+                    f"proxy_images: expected finite (N, K, S, S) = ({images.shape[0]}, K, "
+                    f"{tuple(images.shape[-2:])}), got {tuple(proxy_images.shape)}"
+                )
+            flat = proxy_images.reshape(-1, 1, *proxy_images.shape[-2:])
+            modes = [
+                encode_condition_latents(vae, flat[start : start + batch_size]).float().cpu()
+                for start in range(0, flat.shape[0], batch_size)
+            ]
+            latents = torch.cat(modes)
+            proxy_latents = latents.reshape(*proxy_images.shape[:2], *latents.shape[1:])
         if images.ndim != 4 or images.shape[0] == 0:
             raise ValueError(
                 f"images must be a non-empty (N, C, S, S) tensor, got shape {tuple(images.shape)}"
@@ -183,6 +212,7 @@ class ChipLatentCache:
             latent_logvar=torch.cat(logvars),
             image_embeds=torch.cat(embeds) if embeds else None,
             scaling_factor=float(vae.config.scaling_factor),
+            proxy_latents=proxy_latents,
         )
 
 
@@ -203,9 +233,10 @@ class CachedViewPairs(Dataset):
     """The pairs of a :class:`ViewPairDataset` served from a :class:`ChipLatentCache` (no file reads).
 
     Items hold the wrapped dataset's keys (``input``, ``target``, :meth:`ViewPairDataset.pair_fields`) plus
-    ``input_latent_mean``, ``target_latent_mean``, ``target_latent_logvar`` and, with a frozen tower,
-    ``input_image_embeds``. :meth:`set_epoch` redraws the wrapped pair list, so data order and pairs are
-    those of the uncached dataset.
+    ``input_latent_mean``, ``target_latent_mean``, ``target_latent_logvar``, with a frozen tower
+    ``input_image_embeds`` and, with proxies in the cache, ``proxy_latents`` ``(K, 2C, h, w)`` (each
+    candidate proxy at the input's pose, then at the target's). :meth:`set_epoch` redraws the wrapped pair
+    list, so data order and pairs are those of the uncached dataset.
     """
 
     def __init__(self, pairs: ViewPairDataset, cache: ChipLatentCache) -> None:
@@ -250,6 +281,10 @@ class CachedViewPairs(Dataset):
         }
         if cache.image_embeds is not None:
             encodings["input_image_embeds"] = cache.image_embeds[source]
+        if cache.proxy_latents is not None:  # (K, 2C, h, w) per pair: each candidate at both poses
+            encodings["proxy_latents"] = torch.cat(
+                [cache.proxy_latents[source], cache.proxy_latents[target]], dim=-3
+            )
         return encodings
 
 
@@ -307,6 +342,38 @@ def encode_batch(
     return latents, condition_latents, image_embeds, pose
 
 
+def chosen_proxy_latents(
+    batch: dict,
+    pose_projection: torch.nn.Module,
+    runner_up_prob: float,
+    generator: torch.Generator | None = None,
+) -> torch.Tensor | None:
+    """Each pair's proxy pair for a ``spatial_pose="proxy"`` model: the best-fitted candidate, or with
+    probability ``runner_up_prob`` one of the runners-up (uniformly), so that the UNet learns to transfer the
+    proxy's change onto the input rather than to copy an exact proxy (one draw from ``generator``).
+
+    Returns:
+        ``(B, 2C, h, w)`` (``batch["proxy_latents"]`` is ``(B, K, 2C, h, w)``), or ``None`` for another model.
+
+    Raises:
+        ValueError: If a proxy model's batch has no ``proxy_latents`` (a corpus without proxies, or uncached
+            pairs).
+    """
+    if not takes_proxy(pose_projection):
+        return None
+    if "proxy_latents" not in batch:
+        raise ValueError(
+            "batch: a spatial_pose='proxy' model trains on cached pairs with each chip's proxies "
+            "(ChipLatentCache.encode(..., proxy_images=...)); this batch has no `proxy_latents`"
+        )
+    proxies = batch["proxy_latents"]
+    size, candidates = proxies.shape[:2]
+    u = torch.rand(size, generator=generator)
+    pick = torch.randint(1, max(candidates, 2), (size,), generator=generator)
+    choice = torch.where((u < runner_up_prob) & (candidates > 1), pick, torch.zeros_like(pick))
+    return proxies[torch.arange(size), choice.to(proxies.device)].float()
+
+
 def uses_input_depression(pose_projection: torch.nn.Module) -> bool:
     """Whether a (possibly DDP-wrapped) :class:`PoseProjection` takes the input's absolute depression."""
     config = getattr(pose_projection, "module", pose_projection).config
@@ -346,6 +413,9 @@ def conditioning_sensitivity(
     latents, condition, embeds, pose = encode_batch(
         batch, vae=vae, image_encoder=image_encoder, generator=generator, input_depression=input_depression
     )
+    proxy_latents = chosen_proxy_latents(batch, pose_projection, 0.0)
+    if proxy_latents is not None:
+        proxy_latents = proxy_latents.to(condition.device)
     depression = batch["input_depression_deg"] if input_depression else None
     turned = embed_pose(torch.as_tensor(batch["d_az_deg"]) + 180.0, batch["d_el_deg"], depression)
     turned = turned.to(pose.device)
@@ -358,7 +428,7 @@ def conditioning_sensitivity(
         if azimuth_estimator is not None:
             target_features = target_view_features(azimuth_estimator(condition), pose)
         return unet(
-            torch.cat([x_t, unet_condition_latents(condition, pose, pose_projection)], dim=1),
+            torch.cat([x_t, unet_condition_latents(condition, pose, pose_projection, proxy_latents)], dim=1),
             t,
             encoder_hidden_states=tokens,
             class_labels=pose_class_labels(unet, pose, target_features),
@@ -454,6 +524,9 @@ def compute_losses(
         batch, vae=vae, image_encoder=image_encoder, generator=generator,
         input_depression=uses_input_depression(pose_projection),
     )  # fmt: skip
+    proxy_latents = chosen_proxy_latents(batch, pose_projection, settings.proxy_runner_up_prob, generator)
+    if proxy_latents is not None:
+        proxy_latents = proxy_latents.to(condition_latents.device)
     target_features = azimuth_loss = None
     if azimuth_estimator is not None:
         if "input_azimuth_deg" not in batch:
@@ -486,7 +559,9 @@ def compute_losses(
     timesteps = timesteps.to(latents.device)
     x_t = noise_scheduler.add_noise(latents, noise, timesteps)
     model_output = unet(
-        torch.cat([x_t, unet_condition_latents(condition_latents, pose, pose_projection)], dim=1),
+        torch.cat(
+            [x_t, unet_condition_latents(condition_latents, pose, pose_projection, proxy_latents)], dim=1
+        ),
         timesteps,
         encoder_hidden_states=tokens,
         class_labels=pose_class_labels(unet, pose, target_features),

@@ -1,0 +1,182 @@
+"""The proxy-conditioned prior on unseen vehicles: what the generator adds to its simulator proxy (issue 61)
+
+    python benchmarks/proxy_prior_views.py --pipeline PROXY_PRIOR --out proxy_prior_views.json
+
+The pairs, rows and readings of ``benchmarks/proxy_views.py`` (the eight named simulator vehicles, 17 deg
+inputs, ``60 <= |d_az| <= 180``, template-matched azimuth, front/back and identity), for a pipeline whose
+UNet takes the proxy pair (``spatial_pose="proxy"``). Each input's proxy is fitted once, by the pipeline's
+own code (:func:`~sar_zero123.model.proxy.draft_target_views`, in ``--workers`` processes), rendered at the
+input's pose, at the request and at the flipped heading, and handed to the pipeline as ``proxy_views``: the
+same views its plain call fits and renders itself. Rows, on the same pairs:
+
+- the floor (input copy), the ceiling (the true view, another speckle draw) and the proxy alone;
+- ``--baseline`` (``sim-prior-rotated``) with its recorded sampler and the input's azimuth (its best row);
+- the proxy prior with its recorded sampler (its plain call given the input's azimuth), from noise with and
+  without heading guidance, and from the proxy at other strengths;
+- both with an oracle proxy (the true vehicle at the three poses, another clutter draw): where the
+  remaining error sits.
+
+Writes JSON (per row: template azimuth error and its standard error, gap closed, front/back right,
+identity kept, seconds) and prints a table.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import time
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+
+import numpy as np
+import torch
+from threadpoolctl import threadpool_limits
+
+from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
+from sar_zero123.config import write_json_atomic
+from sar_zero123.data import SCALING_FILE, DecibelScaling
+from sar_zero123.evaluation.template import summarise_readings
+from sar_zero123.model.pipeline import SAMPLER_DEFAULTS
+from sar_zero123.model.proxy import check_proxy_settings, draft_target_views
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `benchmarks`
+from benchmarks.proxy_views import INPUT_DEPRESSION_DEG, SimulatedPairs, format_table  # noqa: E402
+
+
+def _fitted(args: tuple) -> np.ndarray:
+    """One input's proxy at its pose, at the request and at the flipped heading ``(3, S, S)`` (one fit)."""
+    proxy, image, azimuth, d_az = args
+    threadpool_limits(limits=1)  # one BLAS thread per process
+    one = torch.tensor
+    drafts, _ = draft_target_views(
+        torch.from_numpy(image)[None, None].expand(3, 1, *image.shape), one([azimuth] * 3),
+        one([INPUT_DEPRESSION_DEG] * 3), one([0.0, d_az, d_az + 180.0]), one([0.0] * 3), proxy,
+    )  # fmt: skip
+    return drafts[:, 0].numpy()
+
+
+def fitted_views(
+    proxy: dict, images: np.ndarray, azimuths: Sequence[float], d_az: Sequence[float], workers: int
+) -> np.ndarray:
+    """Every input's fitted proxy at the three poses ``(N, 3, S, S)``, in ``workers`` processes."""
+    jobs = [(proxy, im, float(a), float(d)) for im, a, d in zip(images, azimuths, d_az)]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        return np.stack(list(pool.map(_fitted, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
+
+
+def run(
+    pipeline: str,
+    *,
+    baseline: str = SIM_PRIOR_ROTATED,
+    pairs_per_class: int = 32,
+    batch_size: int = 32,
+    seed: int = 0,
+    workers: int = 2,
+) -> dict:
+    """Every row's template readings on the same pairs; see the module docstring."""
+    scaling = DecibelScaling.from_dict(json.loads((resolve_pretrained(pipeline) / SCALING_FILE).read_text()))
+    pipe = SARZero123Pipeline.from_pretrained(pipeline)
+    pipe.set_progress_bar_config(disable=True)
+    base = SARZero123Pipeline.from_pretrained(baseline)
+    base.set_progress_bar_config(disable=True)
+    sim = SimulatedPairs(pipe.default_image_size, scaling, pairs_per_class, seed)
+    rows: dict[str, dict] = {}
+    floor, ceiling = sim.read(sim.inputs), sim.read(sim.truth)
+
+    def add(name: str, views: np.ndarray, seconds: float) -> None:
+        rows[name] = summarise_readings(sim.read(views), floor, ceiling) | {"seconds": seconds}
+        r = rows[name]
+        print(f"{name}: err {r['azimuth_error_deg']:.1f} ± {r['azimuth_error_deg_se']:.1f}, gap "
+              f"{r['gap_closed']:.0%}, front/back {r['front_back_right']:.0%}, identity "
+              f"{r['identity_kept']:.0%} ({seconds:.0f} s)", flush=True)  # fmt: skip
+
+    add("input copy (floor)", sim.inputs, 0.0)
+    add("true view, another speckle draw (ceiling)", sim.truth, 0.0)
+    proxy = check_proxy_settings(pipe.config.proxy)
+    begin = time.perf_counter()
+    fitted = fitted_views(proxy, sim.inputs, sim.input_azimuth, sim.d_az, workers)
+    fit_seconds = time.perf_counter() - begin
+    add(f"proxy alone (bank {proxy['num_vehicles']})", fitted[:, 1], fit_seconds)
+    oracle = np.stack([
+        np.stack([sim.render(v, a + turn, (seed, k, 2 + j)) for j, turn in enumerate((0.0, d, d + 180.0))])
+        for k, (v, a, d) in enumerate(sim.pairs)
+    ])  # fmt: skip
+    recorded = {**SAMPLER_DEFAULTS, **(pipe.config.sampler or {})}
+    steps, heading = int(recorded["num_inference_steps"]), float(recorded["heading_guidance_scale"])
+    proxy_strength = float(recorded["proxy_strength"] or recorded["strength"])
+
+    def sample(model, views, start, strength, heading_scale) -> tuple[np.ndarray, float]:
+        begin, out = time.perf_counter(), []
+        for s in range(0, len(sim.pairs), batch_size):
+            chunk = slice(s, s + batch_size)
+            n = len(sim.d_az[chunk])
+            extra = {} if views is None else {"proxy_views": torch.from_numpy(views[chunk])}
+            out.append(model(
+                torch.from_numpy(sim.inputs[chunk])[:, None], d_az=sim.d_az[chunk], d_el=0.0,
+                input_depression_deg=INPUT_DEPRESSION_DEG, num_inference_steps=steps,
+                guidance_scale=float(recorded["guidance_scale"]), heading_guidance_scale=heading_scale,
+                strength=strength,
+                start_image=None if start is None else torch.from_numpy(start[chunk])[:, None],
+                generator=[torch.Generator().manual_seed(seed + k) for k in range(s, s + n)],
+                output_type="np", **extra,
+            ).images[..., 0])  # fmt: skip
+        return np.concatenate(out), time.perf_counter() - begin
+
+    name = f"{baseline}, its recorded sampler, input azimuth given (from the proxy at {proxy_strength:g})"
+    add(name, *sample(base, None, fitted[:, 1], proxy_strength, heading))
+    add(f"proxy prior, its recorded sampler (from the proxy at {proxy_strength:g}, heading {heading:g})",
+        *sample(pipe, fitted, fitted[:, 1], proxy_strength, heading))  # fmt: skip
+    add(f"proxy prior from the proxy at {proxy_strength:g}, heading 0",
+        *sample(pipe, fitted, fitted[:, 1], proxy_strength, 0.0))  # fmt: skip
+    add(f"proxy prior from the proxy at 0.5, heading {heading:g}",
+        *sample(pipe, fitted, fitted[:, 1], 0.5, heading))  # fmt: skip
+    add(f"proxy prior from noise, heading {heading:g}", *sample(pipe, fitted, None, 1.0, heading))
+    add("proxy prior from noise, heading 0", *sample(pipe, fitted, None, 1.0, 0.0))
+    add(f"{baseline} from an oracle proxy at {proxy_strength:g}, heading {heading:g}",
+        *sample(base, None, oracle[:, 1], proxy_strength, heading))  # fmt: skip
+    add(f"proxy prior, oracle proxy pair, from the oracle at {proxy_strength:g}, heading {heading:g}",
+        *sample(pipe, oracle, oracle[:, 1], proxy_strength, heading))  # fmt: skip
+    add(f"proxy prior, oracle proxy pair, from noise, heading {heading:g}",
+        *sample(pipe, oracle, None, 1.0, heading))  # fmt: skip
+    return {
+        "benchmark": "proxy_prior_views (issue 61)",
+        "pipeline": str(pipeline),
+        "baseline": str(baseline),
+        "classes": sim.classes,
+        "pairs_per_class": pairs_per_class,
+        "d_az_range_deg": [60.0, 180.0],
+        "input_depression_deg": INPUT_DEPRESSION_DEG,
+        "recorded_sampler": recorded,
+        "proxy": proxy,
+        "seed": seed,
+        "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}",
+        "platform": platform.platform(),
+        "rows": rows,
+    }
+
+
+def main(argv: Sequence[str] | None = None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--pipeline", required=True, help="a spatial_pose='proxy' pipeline folder or name")
+    parser.add_argument("--baseline", default=SIM_PRIOR_ROTATED, help="the pipeline to compare with")
+    parser.add_argument("--pairs_per_class", type=int, default=32, help="pairs per named vehicle (8)")
+    parser.add_argument("--batch_size", type=int, default=32, help="views per pipeline call")
+    parser.add_argument("--seed", type=int, default=0, help="pairs, clutter and sampling seed")
+    parser.add_argument("--workers", type=int, default=2, help="processes fitting the proxies")
+    parser.add_argument("--out", default="proxy_prior_views.json", help="output JSON")
+    args = parser.parse_args(argv)
+    if args.pairs_per_class < 2:
+        raise ValueError(f"pairs_per_class must be >= 2, got {args.pairs_per_class}")
+    record = run(args.pipeline, baseline=args.baseline, pairs_per_class=args.pairs_per_class,
+                 batch_size=args.batch_size, seed=args.seed, workers=args.workers)  # fmt: skip
+    write_json_atomic(record, Path(args.out))
+    print(format_table(record))
+    return record
+
+
+if __name__ == "__main__":
+    main()
