@@ -320,9 +320,12 @@ def load_checkpoint(accelerator: Accelerator, path: str | os.PathLike) -> dict[s
 
     Raises:
         FileNotFoundError: If the checkpoint has no ``run_state.json``.
+        ValueError: If a registered object's state holds more than tensors and plain values (a pickle that
+            could run code; :func:`_refuse_code_in_custom_state`).
         RuntimeError: If accelerate cannot load it (the message names the folder and the files present).
     """
     state = read_run_state(path)
+    _refuse_code_in_custom_state(path)
     try:
         accelerator.load_state(str(path))
     except (RuntimeError, ValueError, KeyError, OSError, EOFError) as error:
@@ -334,6 +337,29 @@ def load_checkpoint(accelerator: Accelerator, path: str | os.PathLike) -> dict[s
             f"{type(error).__name__}: {detail}; was it written by another script or model configuration?"
         ) from error
     return state
+
+
+def _refuse_code_in_custom_state(path: str | os.PathLike) -> None:
+    """Refuse a checkpoint whose registered objects' states (``custom_checkpoint_*.pkl``, e.g. an EMA's) hold
+    more than tensors and plain values.
+
+    accelerate unpickles those files with ``weights_only=False``, so a crafted one runs code on resume; each
+    is read here first with ``weights_only=True`` (accelerate's own loader, numpy arrays allowed), which
+    refuses any other object before calling it. A checkpoint is data.
+
+    Raises:
+        ValueError: Naming the file.
+    """
+    from accelerate.utils import load
+
+    for custom in sorted(Path(path).glob("custom_checkpoint_*.pkl")):
+        try:
+            load(custom, map_location="cpu")
+        except Exception as error:  # noqa: BLE001 (any failure is a refusal; the type is named)
+            raise ValueError(
+                f"resume_from_checkpoint: {str(custom)!r} holds more than tensors and plain values "
+                f"({type(error).__name__}); its pickle could run code, so it is not loaded"
+            ) from None
 
 
 def resume_step(accelerator: Accelerator, path: str | os.PathLike | None) -> int:

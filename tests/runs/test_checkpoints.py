@@ -337,3 +337,42 @@ def test_a_field_added_since_the_checkpoint_counts_as_its_default(tmp_path: Path
     check_resume_config(path, _Config())  # every new field at its default: the old run's behaviour
     with pytest.raises(ValueError, match=r"image_size: checkpoint None, this run 64"):
         check_resume_config(path, _Config(image_size=64))
+
+
+class _Counter:
+    """A registered object whose state is plain values (as an EMA's is tensors and numbers)."""
+
+    def __init__(self) -> None:
+        self.count = 0
+
+    def state_dict(self) -> dict:
+        return {"count": self.count}
+
+    def load_state_dict(self, state: dict) -> None:
+        self.count = state["count"]
+
+
+class _Payload:
+    """A pickle that runs code when it is loaded (writes a marker file)."""
+
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return (Path.touch, (self.marker,))
+
+
+def test_a_checkpoint_whose_custom_state_could_run_code_is_refused_unrun(tmp_path: Path):
+    accelerator, model, optimizer = _setup()
+    counter = _Counter()
+    accelerator.register_for_checkpointing(counter)
+    counter.count = 7
+    path = save_checkpoint(accelerator, tmp_path, step=1)
+    counter.count = 0
+    load_checkpoint(accelerator, path)
+    assert counter.count == 7  # plain state still resumes
+    marker = tmp_path / "ran"
+    torch.save(_Payload(marker), path / "custom_checkpoint_0.pkl")
+    with pytest.raises(ValueError, match=r"custom_checkpoint_0.pkl' holds more than tensors .*not loaded"):
+        load_checkpoint(accelerator, path)
+    assert not marker.exists()
