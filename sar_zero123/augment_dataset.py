@@ -424,12 +424,18 @@ def _check_out_folder(out: Path, options: dict[str, Any]) -> bool:
 
 
 def _check_chip_sizes(records: Sequence[ChipRecord], size: int) -> None:
-    """Refuse chips smaller than the pipeline's size (they would be upsampled, changing the pixel spacing)."""
+    """Refuse chips smaller than the pipeline's size (they would be upsampled, changing the pixel spacing),
+    read from the files themselves: an index's ``height``/``width`` columns are checked against them, never
+    trusted."""
     small = []
     for record in records:
-        shape = (record.height, record.width)
-        if None in shape:
-            shape = load_magnitude(record.path).shape
+        shape = tuple(load_magnitude(record.path).shape)
+        listed = (record.height, record.width)
+        if None not in listed and tuple(listed) != shape:
+            raise ValueError(
+                f"data: index.csv lists {record.path} as {listed[0]}x{listed[1]} (height, width), but the "
+                f"file is {shape[0]}x{shape[1]}; correct the index's height and width columns"
+            )
         if min(shape) < size:
             small.append(f"{record.path} ({shape[0]}x{shape[1]})")
     if small:

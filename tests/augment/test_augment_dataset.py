@@ -259,6 +259,14 @@ def test_refuses_chips_smaller_than_the_pipeline_or_off_its_scaling(pipeline_dir
                              depressions_deg=(17.0,), size=16)
     with pytest.raises(ValueError, match=r"^data: 2 chip\(s\) are smaller than the pipeline's 32 px"):
         main(run_args(small, pipeline_dir, tmp_path / "a"))
+    # an index that claims the 16 px chips are 64 px is not believed: the files are read
+    index = (small / "index.csv").read_text().replace(",16,16", ",64,64")
+    assert index.count(",64,64") == 2
+    (small / "index.csv").write_text(index)
+    claimed = r"^data: index.csv lists .* as 64x64 \(height, width\), but the file is 16x16"
+    with pytest.raises(ValueError, match=claimed):
+        main(run_args(small, pipeline_dir, tmp_path / "a2"))
+    assert not (tmp_path / "a2").exists()
     chips = simulate_dataset(tmp_path / "chips", classes=("TANK",), instances=1, azimuth_step_deg=180,
                              depressions_deg=(17.0,), size=32)
     scaling = tmp_path / "scaling.json"  # clutter lies far below -10 dB: most pixels clip

@@ -59,7 +59,8 @@ def test_corpus_proxies_are_the_best_bank_fits_rendered_at_every_chip_pose(corpu
         for n in range(first, first + 3):  # the same two bank vehicles at each of the vehicle's poses
             for k in range(2):
                 expected = bank.render(int(best[k]), records[n].azimuth_deg, records[n].depression_deg, 32)
-                np.testing.assert_array_equal(chips[n, k].numpy(), expected.astype(np.float16).astype(np.float32))
+                stored = expected.astype(np.float16).astype(np.float32)
+                np.testing.assert_array_equal(chips[n, k].numpy(), stored)
     # any subset, in the order asked, and relative paths too
     subset = load_corpus_proxies(corpus, [records[5].path, "chips/proc00000/proc00000_001.npy"])
     torch.testing.assert_close(subset, chips[[5, 1]])
@@ -175,7 +176,8 @@ def test_heading_guidance_contrasts_with_the_proxy_at_the_flipped_heading(monkey
     original = SARZero123Pipeline._proxy_drafts
 
     def spy(self, images, d_az, d_el, *args, **kwargs):
-        seen.append((float(torch.as_tensor(d_az).reshape(-1)[0]), float(torch.as_tensor(d_el).reshape(-1)[0])))
+        first = [float(torch.as_tensor(angle).reshape(-1)[0]) for angle in (d_az, d_el)]
+        seen.append(tuple(first))
         return original(self, images, d_az, d_el, *args, **kwargs)
 
     monkeypatch.setattr(SARZero123Pipeline, "_proxy_drafts", spy)
@@ -185,7 +187,7 @@ def test_heading_guidance_contrasts_with_the_proxy_at_the_flipped_heading(monkey
     assert seen == [(0.0, 0.0), (30.0, 0.0), (210.0, 0.0)]  # input pose, the request, its flipped heading
 
 
-def test_a_proxy_fine_tune_widens_its_start_and_exports_a_proxy_pipeline(corpus: Path, tmp_path: Path) -> None:
+def test_a_proxy_fine_tune_widens_its_start_and_exports_a_proxy_pipeline(corpus: Path, tmp_path: Path):
     from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
 
     start = build_sar_zero123("tiny", seed=0, spatial_pose="rotated_input")
@@ -204,6 +206,7 @@ def test_a_proxy_fine_tune_widens_its_start_and_exports_a_proxy_pipeline(corpus:
     weight = pipe.unet.conv_in.weight.detach()
     assert float(weight[:, 12:].abs().max()) > 0.0
     with pytest.raises(ValueError, match="validation_steps: spatial_pose='proxy' needs 0"):
-        FinetuneConfig(pretrained=str(tmp_path / "start"), spatial_pose="proxy", data=str(corpus), pfm_weight=0.0)
+        FinetuneConfig(pretrained=str(tmp_path / "start"), spatial_pose="proxy", data=str(corpus),
+                       pfm_weight=0.0)  # fmt: skip
     with pytest.raises(ValueError, match="spatial_pose: only for a model built from scratch"):
         FinetuneConfig(pretrained=str(tmp_path / "start"), spatial_pose="rotated_input", pfm_weight=0.0)
