@@ -1,7 +1,8 @@
 """Real MSTAR, 17 -> 30 deg: are generated views nearer the real 30 deg chip than a 17 deg one? (issue 61)
 
     python benchmarks/proxy_mstar_depression.py --mstar ../shared/data/mstar \
-        --eoc1 ../shared/data/mstar_eoc1 --out proxy_mstar_depression.json
+        --eoc1 ../shared/data/mstar_eoc1 --out proxy_mstar_depression.json \
+        [--proxy_pipeline sar-zero123/sim-prior-proxy]
 
 For the serials of EOC-1's test set (2S1, BRDM2, T72, ZSU234: their 30 deg chips in ``--eoc1``), each pair's
 input is a 17 deg chip of ``--mstar`` (a 64 px centre crop at the native 0.2 m spacing), the request is
@@ -13,7 +14,9 @@ Pairs whose references lie more than ``--max_azimuth_gap`` deg from the input's 
 Rows: the input copy (floor); the 30 deg chip itself (ceiling, 100 % by construction); the simulator proxy
 alone (the bank vehicle fitted to the input at its header pose, rendered at 30 deg); the bundled prior
 sampled from noise with no guidance (the library's sampler); its recorded sampler without the input's
-azimuth; and with it (from the proxy, at its recorded noise level and at 30 % and 70 %). Writes JSON.
+azimuth; and with it (from the proxy, at its recorded noise level and at 30 % and 70 %). With
+``--proxy_pipeline``, a proxy-conditioned prior (``spatial_pose="proxy"``) on the same pairs and fits: its
+recorded sampler with the input's azimuth, and from noise. Writes JSON.
 """
 
 from __future__ import annotations

@@ -4,7 +4,9 @@
 
 The bundled prior's plain call on one simulated 64 px chip asked for ``--views`` azimuth changes (one batch,
 as ``sar-zero123-generate`` makes it), with its recorded sampler: without the input's azimuth (from noise)
-and with it (from the proxy: one fit of the chip against the bank, then one render per view). The first
+and with it (from the proxy: one fit of the chip against the bank, then one render per view); with
+``--proxy_pipeline``, also a proxy-conditioned prior's plain call (one fit, then the proxy rendered at the
+input's pose and at each request and its flipped heading). The first
 call with the proxy also builds the bank's vehicles (once per process); it is timed apart. Each timing is the
 median of ``--repeats`` calls, each on a fresh chip (so that every call fits), on this process's threads.
 """
@@ -32,6 +34,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--views", type=int, default=3, help="views of the chip per call")
     parser.add_argument("--repeats", type=int, default=3, help="calls per timing (median)")
+    parser.add_argument("--proxy_pipeline", default=None,
+                        help="also time a spatial_pose='proxy' pipeline's plain call (folder or name)")
     parser.add_argument("--out", default="proxy_speed.json", help="output JSON")
     args = parser.parse_args(argv)
     if args.views < 1 or args.repeats < 1:
@@ -41,13 +45,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
     scaling = DecibelScaling.from_file(resolve_pretrained(SIM_PRIOR_ROTATED) / SCALING_FILE)
     d_az = [float(a) for a in np.linspace(30.0, 180.0, args.views)]
 
-    def call(seed: int, **kwargs) -> float:
+    def call(seed: int, model: SARZero123Pipeline = pipe, **kwargs) -> float:
         """One call on a fresh chip (its own clutter: a fit is never reused from an earlier call)."""
         magnitude = render_chip(make_target("TANK"), 30.0, 17.0, 64, np.random.default_rng(seed))
         chip = torch.from_numpy(scaling.normalize(magnitude).astype(np.float32))
         images = chip[None, None].repeat(args.views, 1, 1, 1)  # (V, 1, S, S): one chip, V requests
         begin = time.perf_counter()
-        pipe(images, d_az=d_az, input_depression_deg=17.0, output_type="np", **kwargs)
+        model(images, d_az=d_az, input_depression_deg=17.0, output_type="np", **kwargs)
         return time.perf_counter() - begin
 
     first_proxy_call = call(0, input_azimuth_deg=30.0)  # builds the bank's vehicles
@@ -57,6 +61,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
             call(1 + k, input_azimuth_deg=30.0) for k in range(args.repeats)
         ),
     }
+    if args.proxy_pipeline is not None:  # fits once, renders the proxy at the input's pose and each request
+        other = SARZero123Pipeline.from_pretrained(args.proxy_pipeline)
+        other.set_progress_bar_config(disable=True)
+        name = f"{args.proxy_pipeline}, the proxy-conditioned prior (with the azimuth)"
+        seconds[name] = statistics.median(
+            call(100 + k, model=other, input_azimuth_deg=30.0) for k in range(args.repeats)  # fresh chips
+        )
     record = {
         "benchmark": "proxy_speed (issue 61)",
         "pipeline": SIM_PRIOR_ROTATED,

@@ -370,6 +370,11 @@ def main(argv: Sequence[str] | None = None) -> Path:
         return Path(config.output_dir)
     pipe = SARZero123Pipeline.from_pretrained(config.pipeline).to(config.device)
     size = config.image_size or pipe.default_image_size
+    if size > 2 * pipe.default_image_size:  # the cost grows with its square; the model never saw such sizes
+        raise ValueError(
+            f"image_size: at most twice the pipeline's trained size {pipe.default_image_size} px "
+            f"({2 * pipe.default_image_size}), got {size}; leave it out to use the trained size"
+        )
     chip = load_input_chip(config, size)
     input_depression_deg = None
     if getattr(pipe.pose_projection.config, "input_depression", False):

@@ -379,3 +379,13 @@ def test_a_plain_generate_uses_the_pipelines_recorded_sampler_and_its_proxy_with
                         output_type="np").images[0, ..., 0]  # fmt: skip
         np.testing.assert_allclose(np.load(next(out.glob("view_*.npy"))), expected, atol=1e-5)
         assert json.loads((out / "config.json").read_text())["strength"] is None  # the pipeline's own
+
+
+def test_an_image_size_far_above_the_trained_one_is_refused_before_any_work(pipeline_dir, chip_png, tmp_path):
+    out = tmp_path / "views"
+    argv = ["--pipeline", str(pipeline_dir), "--image", str(chip_png), "--d-az", "30",
+            "--output_dir", str(out), "--image_size", "1024"]  # fmt: skip
+    refused = r"^image_size: at most twice the pipeline's trained size 32 px \(64\)"
+    with pytest.raises(ValueError, match=refused):
+        main(argv)
+    assert not out.exists()

@@ -140,6 +140,16 @@ class PriorConfig:
                 f"{self.proxy_candidates}"
             )
         if self.init is not None:
+            defaults = {item.name: item.default for item in dataclasses.fields(PriorConfig)}
+            kept = ("model_size", "prediction_type", "input_depression")  # image_size sizes the corpus
+            ignored = [name for name in kept if getattr(self, name) != defaults[name]]
+            ignored += ["spatial_pose"] if self.spatial_pose not in (None, "proxy") else []
+            if ignored:
+                raise ValueError(
+                    f"{', '.join(ignored)}: a warm start (init {self.init}) keeps that pipeline's own "
+                    "(spatial_pose may only be 'proxy', which widens a 'rotated_input' init); leave "
+                    f"{'it' if len(ignored) == 1 else 'them'} out"
+                )
             if self.vae is not None:
                 raise ValueError(
                     f"vae: a warm start (init {self.init}) keeps that pipeline's own VAE; leave vae out, got "

@@ -307,6 +307,11 @@ def test_pretrain_prior_smoke_writes_a_pipeline_that_takes_depression(tmp_path: 
         pretrain_prior.PriorConfig(init=str(pipeline), vae=str(pipeline / "vae"))
     with pytest.raises(FileNotFoundError, match="init: expected"):
         pretrain_prior.PriorConfig(init=str(tmp_path / "nowhere"))
+    # settings the warm start would ignore are refused, not recorded as applied
+    ignored = r"^model_size, input_depression, spatial_pose: a warm start .* keeps that pipeline's own"
+    with pytest.raises(ValueError, match=ignored):
+        pretrain_prior.PriorConfig(init=str(pipeline), model_size="tiny", input_depression=False,
+                                   spatial_pose="rotated_input")  # fmt: skip
 
 
 def test_a_folder_that_is_not_a_prior_corpus_or_a_vae_is_refused_before_any_work(tmp_path: Path):
