@@ -435,7 +435,9 @@ def replace_vae(
     if same_latents:
         check_same_latents(vae, pipe.vae, name=f"vae: {str(path)!r}")
     # `pipe.components`, not `from_pipe`: that casts every module to one dtype (float32 by default)
-    return SARZero123Pipeline(**{**pipe.components, "vae": vae.eval()})
+    # the recorded sampler and proxy settings travel with the weights
+    recorded = {name: getattr(pipe.config, name, None) for name in ("sampler", "proxy")}
+    return SARZero123Pipeline(**{**pipe.components, "vae": vae.eval()}, **recorded)
 
 
 def check_same_latents(vae: AutoencoderKL, reference: AutoencoderKL, name: str = "vae") -> None:
