@@ -227,3 +227,24 @@ def test_bundled_rotated_prior_records_its_sampler_and_with_the_azimuth_gets_fro
     requested = [(a + d_az) % 360.0 for a in azimuths_deg]
     readings = read_templates(views, turntables, grid, list(range(4)), requested)
     assert readings.front_back_right.sum() >= 3, readings.azimuth_error_deg
+
+
+def test_bundling_stores_float16_weights_that_load_as_float32_with_the_sampler_recorded(tiny_prior, tmp_path):
+    from safetensors.torch import load_file
+
+    from sar_zero123.pretrained.bundle import bundle_pipeline
+
+    registry, pipe = tiny_prior
+    out = bundle_pipeline(registry / "sim_prior", tmp_path / "bundled", {"heading_guidance_scale": 3.0})
+    stored = load_file(out / "unet" / "diffusion_pytorch_model.safetensors")
+    assert {v.dtype for v in stored.values()} == {torch.float16}
+    assert (out / SCALING_FILE).read_text() == (registry / "sim_prior" / SCALING_FILE).read_text()
+    loaded = SARZero123Pipeline.from_pretrained(out)
+    assert loaded.unet.dtype == torch.float32 and loaded.config.sampler == {"heading_guidance_scale": 3.0}
+    for key, value in loaded.unet.state_dict().items():  # the float32 weights rounded to float16
+        torch.testing.assert_close(value, pipe.unet.state_dict()[key].half().float(), rtol=0, atol=0)
+    with pytest.raises(ValueError, match="exists"):
+        bundle_pipeline(registry / "sim_prior", out)
+    with pytest.raises(FileNotFoundError, match="model_index.json"):
+        bundle_pipeline(tmp_path, tmp_path / "other")
+    assert not list(tmp_path.glob(".*.tmp"))

@@ -1,0 +1,82 @@
+"""Make a bundled pipeline folder from a trained one: float16 weights, the measured sampler recorded.
+
+    python -m sar_zero123.pretrained.bundle PIPELINE NAME --sampler '{"heading_guidance_scale": 3.0}'
+
+copies the ``save_pretrained`` folder ``PIPELINE`` (a prior stage's ``base/pipeline``) to
+``sar_zero123/pretrained/NAME``, with every ``*.safetensors`` tensor of a floating dtype cast to float16
+(half the package's bytes; a pipeline loads them as float32, so the bundled views are those of the rounded
+weights: measure the bundled folder, not the run's) and ``model_index.json``'s ``sampler`` set to the given
+fields (merged over what the folder records). The folder is written beside its final name and renamed into
+place; an existing ``NAME`` is refused. Registering the name (``BUNDLED_PIPELINES``) and its model card are
+left to the developer.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+from safetensors.torch import load_file, save_file
+
+__all__ = ["bundle_pipeline"]
+
+
+def bundle_pipeline(
+    pipeline: str | os.PathLike, destination: str | os.PathLike, sampler: dict[str, Any] | None = None
+) -> Path:
+    """Copy ``pipeline`` to ``destination`` with float16 weights and ``sampler`` recorded; returns it.
+
+    Raises:
+        FileNotFoundError: If ``pipeline`` has no ``model_index.json``.
+        ValueError: If ``destination`` exists, or ``sampler`` is not a mapping.
+    """
+    source, target = Path(pipeline), Path(destination)
+    if not (source / "model_index.json").is_file():
+        raise FileNotFoundError(
+            f"pipeline: expected a save_pretrained folder with model_index.json, got {source}"
+        )
+    if target.exists():
+        raise ValueError(f"destination: {target} exists; bundle into a new folder")
+    if sampler is not None and not isinstance(sampler, dict):
+        raise ValueError(f"sampler: expected a mapping of sampler fields, got {type(sampler).__name__}")
+    scratch = target.with_name(f".{target.name}.tmp")
+    shutil.rmtree(scratch, ignore_errors=True)
+    try:
+        shutil.copytree(source, scratch)
+        for weights in sorted(scratch.rglob("*.safetensors")):
+            tensors = load_file(weights)
+            half = {k: v.half() if v.is_floating_point() else v for k, v in tensors.items()}
+            save_file(half, weights, metadata={"format": "pt"})
+        index_path = scratch / "model_index.json"
+        index = json.loads(index_path.read_text())
+        if sampler is not None:
+            index["sampler"] = {**(index.get("sampler") or {}), **sampler}
+        index_path.write_text(json.dumps(index, indent=2, sort_keys=True) + "\n")
+        os.replace(scratch, target)
+    except BaseException:
+        shutil.rmtree(scratch, ignore_errors=True)
+        raise
+    return target
+
+
+def main(argv: Sequence[str] | None = None) -> Path:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("pipeline", help="the trained pipeline folder (model_index.json)")
+    parser.add_argument("name", help="the bundled folder's name under sar_zero123/pretrained/")
+    parser.add_argument("--sampler", default=None, help="JSON object of sampler fields to record")
+    args = parser.parse_args(argv)
+    if Path(args.name).name != args.name or args.name in ("", ".", ".."):
+        raise ValueError(f"name: expected one folder name, got {args.name!r}")
+    sampler = None if args.sampler is None else json.loads(args.sampler)
+    out = bundle_pipeline(args.pipeline, Path(__file__).resolve().parent / args.name, sampler)
+    print(out)
+    return out
+
+
+if __name__ == "__main__":
+    main()
