@@ -122,6 +122,10 @@ def run(
     recorded = {**SAMPLER_DEFAULTS, **(pipe.config.sampler or {})}
     steps, heading = int(recorded["num_inference_steps"]), float(recorded["heading_guidance_scale"])
     proxy_strength = float(recorded["proxy_strength"] or recorded["strength"])
+    # the baseline's own recorded sampler (sim-prior-rotated: from its proxy noised to 30 %, heading 1.5)
+    base_recorded = {**SAMPLER_DEFAULTS, **(base.config.sampler or {})}
+    base_strength = float(base_recorded["proxy_strength"] or base_recorded["strength"])
+    base_heading = float(base_recorded["heading_guidance_scale"])
 
     def sample(model, views, start, strength, heading_scale) -> tuple[np.ndarray, float]:
         begin, out = time.perf_counter(), []
@@ -140,19 +144,21 @@ def run(
             ).images[..., 0])  # fmt: skip
         return np.concatenate(out), time.perf_counter() - begin
 
-    name = f"{baseline}, its recorded sampler, input azimuth given (from the proxy at {proxy_strength:g})"
-    add(name, *sample(base, None, fitted[:, 1], proxy_strength, heading))
-    add(f"proxy prior, its recorded sampler (from the proxy at {proxy_strength:g}, heading {heading:g})",
+    name = f"{baseline}, its recorded sampler, input azimuth given (from its proxy at {base_strength:g}, "
+    add(name + f"heading {base_heading:g})", *sample(base, None, fitted[:, 1], base_strength, base_heading))
+    start = "from noise" if proxy_strength >= 1.0 else f"from the proxy at {proxy_strength:g}"
+    add(f"proxy prior, its recorded sampler ({start}, heading {heading:g})",
         *sample(pipe, fitted, fitted[:, 1], proxy_strength, heading))  # fmt: skip
-    add(f"proxy prior from the proxy at {proxy_strength:g}, heading 0",
-        *sample(pipe, fitted, fitted[:, 1], proxy_strength, 0.0))  # fmt: skip
-    add(f"proxy prior from the proxy at 0.5, heading {heading:g}",
-        *sample(pipe, fitted, fitted[:, 1], 0.5, heading))  # fmt: skip
-    for scale in sorted({0.0, heading, *headings}):
+    for strength in sorted({0.3, 0.5} - {proxy_strength}):
+        add(f"proxy prior from the proxy at {strength:g}, heading {heading:g}",
+            *sample(pipe, fitted, fitted[:, 1], strength, heading))  # fmt: skip
+    for scale in sorted({0.0, *headings} - ({heading} if proxy_strength >= 1.0 else set())):
         add(f"proxy prior from noise, heading {scale:g}", *sample(pipe, fitted, None, 1.0, scale))
-    add(f"{baseline} from an oracle proxy at {proxy_strength:g}, heading {heading:g}",
-        *sample(base, None, oracle[:, 1], proxy_strength, heading))  # fmt: skip
-    add(f"proxy prior, oracle proxy pair, from the oracle at {proxy_strength:g}, heading {heading:g}",
+    add(f"{baseline} from an oracle proxy at {base_strength:g}, heading {base_heading:g}",
+        *sample(base, None, oracle[:, 1], base_strength, base_heading))  # fmt: skip
+    add(f"proxy prior, oracle proxy pair, from the oracle at 0.3, heading {heading:g}",
+        *sample(pipe, oracle, oracle[:, 1], 0.3, heading))  # fmt: skip
+    add(f"proxy prior, oracle proxy pair, {start}, heading {heading:g}",
         *sample(pipe, oracle, oracle[:, 1], proxy_strength, heading))  # fmt: skip
     add(f"proxy prior, oracle proxy pair, from noise, heading {heading:g}",
         *sample(pipe, oracle, None, 1.0, heading))  # fmt: skip
@@ -161,12 +167,14 @@ def run(
                key=lambda n: rows[n]["azimuth_error_deg"])  # fmt: skip
     baseline_row = next(n for n in rows if n.startswith(f"{baseline}, its recorded"))
     alone = next(n for n in rows if n.startswith("proxy alone"))
+    recorded_row = next(n for n in rows if n.startswith("proxy prior, its recorded sampler"))
     comparisons = {}
-    for other in (baseline_row, alone):
-        diff = readings[best].azimuth_error_deg - readings[other].azimuth_error_deg
-        se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
-        comparisons[f"{best} - {other}"] = {"mean_deg": float(diff.mean()), "se_deg": se}
-        print(f"paired: {best} - {other}: {diff.mean():+.1f} ± {se:.1f} deg")
+    for first in dict.fromkeys((recorded_row, best)):
+        for other in (baseline_row, alone):
+            diff = readings[first].azimuth_error_deg - readings[other].azimuth_error_deg
+            se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
+            comparisons[f"{first} - {other}"] = {"mean_deg": float(diff.mean()), "se_deg": se}
+            print(f"paired: {first} - {other}: {diff.mean():+.1f} ± {se:.1f} deg")
     return {
         "benchmark": "proxy_prior_views (issue 61)",
         "best_row": best,

@@ -21,6 +21,7 @@ _LAZY = {
     "SAREncoder": "sar_zero123.encoder",
     "SIM_PRIOR": "sar_zero123.pretrained",
     "SIM_PRIOR_ROTATED": "sar_zero123.pretrained",
+    "SIM_PRIOR_PROXY": "sar_zero123.pretrained",
     "resolve_pretrained": "sar_zero123.pretrained",
 }
 

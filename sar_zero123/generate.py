@@ -15,11 +15,13 @@ unfinished one), ``--restart`` moves an old folder aside; a bad input chip is re
 written. The chip is read with :func:`sar_zero123.data.load_magnitude`
 (8-bit images as pixel/255), centre-cropped/resized to the pipeline's size and mapped to normalised dB
 with the pipeline folder's ``decibel_scaling.json`` (``DecibelScaling.to_dict``) when present, else
-``--scaling_file`` or the unit-magnitude default. ``--pipeline`` defaults to the multi-view SAR prior
-bundled with the package that also sees the input turned by ``d_az``
-(:data:`sar_zero123.pretrained.SIM_PRIOR_ROTATED`). A pipeline whose pose carries the
-input chip's absolute depression gets ``--input_depression``, else the depression the chip file records
-(:func:`chip_depression_deg`), else :data:`DEFAULT_INPUT_DEPRESSION_DEG` with a printed note.
+``--scaling_file`` or the unit-magnitude default. ``--pipeline`` defaults to the bundled prior measured
+best for the chip: with its absolute azimuth known (``--input_azimuth``, a raw MSTAR header) the one
+conditioned on a simulator proxy fitted to it (:data:`sar_zero123.pretrained.SIM_PRIOR_PROXY`), else the one
+that also sees the input turned by ``d_az`` (:data:`sar_zero123.pretrained.SIM_PRIOR_ROTATED`). A pipeline
+whose pose carries the input chip's absolute depression gets ``--input_depression``, else the depression
+the chip file records (:func:`chip_depression_deg`), else :data:`DEFAULT_INPUT_DEPRESSION_DEG` with a
+printed note.
 """
 
 from __future__ import annotations
@@ -53,7 +55,7 @@ from sar_zero123.model.pipeline import (
     SARZero123Pipeline,
     check_sampler_start,
 )
-from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
+from sar_zero123.pretrained import SIM_PRIOR_PROXY, SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import RunFolder, StageTimer, data_identity, finish_run
 from sar_zero123.runs.stage import open_stage_folder
@@ -89,7 +91,10 @@ GENERATE_MAY_DIFFER = ("output_dir", "resume", "restart")
 class GenerateConfig:
     """Generate novel views of one SAR chip with a saved SARZero123Pipeline."""
 
-    pipeline: str = SIM_PRIOR_ROTATED  # SARZero123Pipeline.save_pretrained folder, or a bundled one's name
+    # SARZero123Pipeline.save_pretrained folder, or a bundled one's name; None: the best measured for this
+    # chip, sim-prior-proxy when its azimuth is known (--input_azimuth, a raw MSTAR header), else
+    # sim-prior-rotated (docs/results/proxy.md)
+    pipeline: str | None = None
     image: str = ""  # input chip (PNG/JPEG/TIFF, .npy, .mat or raw MSTAR file)
     d_az: list[float] = field(default_factory=lambda: [30.0, 60.0, 90.0])  # azimuth deltas in degrees
     d_el: list[float] = field(default_factory=lambda: [0.0])  # depression deltas in degrees (1 or 1 per d_az)
@@ -117,10 +122,13 @@ class GenerateConfig:
     restart: bool = False  # move an existing folder at output_dir aside (never deleted) and generate anew
 
     def __post_init__(self) -> None:
-        if not self.pipeline:
-            raise ValueError("pipeline: a pipeline folder is required")
         if not self.image:
             raise ValueError("image: an input chip file is required")
+        if self.pipeline is None:  # resolved here, so that the run's record names the pipeline it used
+            known = self.input_azimuth is not None or chip_azimuth_deg(self.image) is not None
+            self.pipeline = SIM_PRIOR_PROXY if known else SIM_PRIOR_ROTATED
+        if not self.pipeline:
+            raise ValueError("pipeline: a pipeline folder is required")
         if not self.d_az:
             raise ValueError("d_az: give at least one azimuth delta")
         if len(self.d_az) > MAX_VIEWS:

@@ -22,6 +22,7 @@ __all__ = [
     "BUNDLED_PIPELINES",
     "PRETRAINED_DIR",
     "SIM_PRIOR",
+    "SIM_PRIOR_PROXY",
     "SIM_PRIOR_ROTATED",
     "is_bundled_name",
     "resolve_pretrained",
@@ -32,11 +33,18 @@ SIM_PRIOR = "sar-zero123/sim-prior"
 #: The same recipe with the spatial pose input (``spatial_pose="rotated_input"``): turns unseen vehicles'
 #: footprints (model card: ``sim_prior_rotated.md``).
 SIM_PRIOR_ROTATED = "sar-zero123/sim-prior-rotated"
+#: ``sim-prior-rotated`` taught to read a simulator proxy fitted to its input (``spatial_pose="proxy"``):
+#: needs the input's absolute azimuth (model card: ``sim_prior_proxy.md``).
+SIM_PRIOR_PROXY = "sar-zero123/sim-prior-proxy"
 #: The prefix of every bundled name: a name under it that is not registered (and no such path exists) is
 #: refused with the list of bundled names, rather than looked up on a model hub.
 BUNDLED_NAMESPACE = "sar-zero123/"
 #: Registered name -> folder under :data:`PRETRAINED_DIR`.
-BUNDLED_PIPELINES: dict[str, str] = {SIM_PRIOR: "sim_prior", SIM_PRIOR_ROTATED: "sim_prior_rotated"}
+BUNDLED_PIPELINES: dict[str, str] = {
+    SIM_PRIOR: "sim_prior",
+    SIM_PRIOR_ROTATED: "sim_prior_rotated",
+    SIM_PRIOR_PROXY: "sim_prior_proxy",
+}
 #: Where the bundled folders live (this package's own folder).
 PRETRAINED_DIR = Path(__file__).resolve().parent
 

@@ -5,7 +5,8 @@
 copies the ``save_pretrained`` folder ``PIPELINE`` (a prior stage's ``base/pipeline``) to
 ``sar_zero123/pretrained/NAME``, with every ``*.safetensors`` tensor of a floating dtype cast to float16
 (half the package's bytes; a pipeline loads them as float32, so the bundled views are those of the rounded
-weights: measure the bundled folder, not the run's) and ``model_index.json``'s ``sampler`` set to the given
+weights: measure the bundled folder, not the run's), no ``_name_or_path`` (a path of the training machine)
+in any ``config.json``, and ``model_index.json``'s ``sampler`` set to the given
 fields (merged over what the folder records). The folder is written beside its final name and renamed into
 place; an existing ``NAME`` is refused. Registering the name (``BUNDLED_PIPELINES``) and its model card are
 left to the developer.
@@ -52,6 +53,10 @@ def bundle_pipeline(
             tensors = load_file(weights)
             half = {k: v.half() if v.is_floating_point() else v for k, v in tensors.items()}
             save_file(half, weights, metadata={"format": "pt"})
+        for config_path in sorted(scratch.rglob("config.json")):  # no path of the machine it was trained on
+            config = json.loads(config_path.read_text())
+            if config.pop("_name_or_path", None) is not None:
+                config_path.write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
         index_path = scratch / "model_index.json"
         index = json.loads(index_path.read_text())
         if sampler is not None:
