@@ -66,8 +66,8 @@ def test_anything_else_is_returned_as_a_path_unchanged(path):
 def test_an_unknown_bundled_name_is_refused_listing_the_bundled_ones(tmp_path, monkeypatch):
     message = (
         r"'sar-zero123/nope': no bundled pipeline of that name and no such folder; "
-        r"bundled: \['sar-zero123/sim-prior', 'sar-zero123/sim-prior-rotated', "
-        r"'sar-zero123/sim-prior-proxy'\]"
+        r"bundled: \['sar-zero123/sim-prior', 'sar-zero123/sim-prior-proxy', "
+        r"'sar-zero123/sim-prior-rotated'\]"
     )
     for load in (resolve_pretrained, SARZero123Pipeline.from_pretrained, load_sar_zero123):
         with pytest.raises(FileNotFoundError, match=message):  # never a model-hub lookup

@@ -606,7 +606,8 @@ def test_the_finetune_config_inherits_every_loss_setting_once_and_passes_each_th
                "pfm_balance": "adaptive", "pfm_monotonic_q": 8, "pfm_snr_gamma": 5.0, "drop_image_prob": 0.1,
                "drop_both_prob": 0.1,
                "drop_latent_prob": 0.1, "timestep_sampling": "logit_normal", "timestep_logit_mean": 0.3,
-               "timestep_logit_std": 0.7, "snr_gamma": 2.0, "azimuth_loss_weight": 0.5}  # fmt: skip
+               "timestep_logit_std": 0.7, "snr_gamma": 2.0, "azimuth_loss_weight": 0.5,
+               "proxy_runner_up_prob": 0.5}  # fmt: skip
     assert set(changed) == set(names)
     config = FinetuneConfig(encoder="enc", **changed)
     settings = config.loss_settings()
