@@ -972,27 +972,27 @@ class SARZero123Pipeline(DiffusionPipeline):
         batch_size = images.shape[0]
         d_az_values = as_angle_tensor(d_az, "d_az").expand(batch_size)
         d_el_values = as_angle_tensor(d_el, "d_el").expand(batch_size)
-        requests = [
-            (torch.zeros_like(d_az_values), torch.zeros_like(d_el_values)),
-            (d_az_values, d_el_values),
-        ]
+        zeros = torch.zeros_like(d_el_values)
+        requests = [(torch.zeros_like(d_az_values), zeros), (d_az_values, d_el_values)]  # input pose, request
         for kind in contrast_kinds:
-            flipped = kind == "heading"
-            requests.append(
-                (d_az_values + 180.0, d_el_values)
-                if flipped
-                else (d_az_values, torch.zeros_like(d_el_values))
-            )
-        latents = [
-            encode_condition_latents(
-                self.vae,
-                self._proxy_drafts(
-                    images, az, el, input_azimuth_deg, input_depression_deg, "spatial_pose='proxy'"
-                ).to(device),
-            )
-            for az, el in requests
-        ]
-        return torch.stack([torch.cat([latents[0], target], dim=1) for target in latents[1:]])
+            requests.append((d_az_values + 180.0, d_el_values) if kind == "heading" else (d_az_values, zeros))
+        # one call, each chip's requests side by side: one fit per chip however large the batch (the fit
+        # cache keeps the last 64), and one VAE encoding of every render
+        count = len(requests)
+        d_az_all = torch.stack([az for az, _ in requests], dim=1).reshape(-1)  # (B * R,), chip-major
+        d_el_all = torch.stack([el for _, el in requests], dim=1).reshape(-1)
+        if input_depression_deg is not None:
+            depression = _per_input_angles(input_depression_deg, "input_depression_deg", batch_size)
+            input_depression_deg = depression.repeat_interleave(count)
+        if input_azimuth_deg is not None:
+            input_azimuth_deg = input_azimuth_deg.repeat_interleave(count)
+        drafts = self._proxy_drafts(
+            images.repeat_interleave(count, dim=0), d_az_all, d_el_all, input_azimuth_deg,
+            input_depression_deg, "spatial_pose='proxy'",
+        )  # fmt: skip
+        latents = encode_condition_latents(self.vae, drafts.to(device))
+        latents = latents.reshape(batch_size, count, *latents.shape[1:])
+        return torch.stack([torch.cat([latents[:, 0], latents[:, r]], dim=1) for r in range(1, count)])
 
     def _pose_with_depression(
         self,

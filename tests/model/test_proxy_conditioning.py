@@ -177,15 +177,32 @@ def test_heading_guidance_contrasts_with_the_proxy_at_the_flipped_heading(monkey
     original = SARZero123Pipeline._proxy_drafts
 
     def spy(self, images, d_az, d_el, *args, **kwargs):
-        first = [float(torch.as_tensor(angle).reshape(-1)[0]) for angle in (d_az, d_el)]
-        seen.append(tuple(first))
+        seen.append([torch.as_tensor(a, dtype=torch.float64).reshape(-1).tolist() for a in (d_az, d_el)])
         return original(self, images, d_az, d_el, *args, **kwargs)
 
     monkeypatch.setattr(SARZero123Pipeline, "_proxy_drafts", spy)
     size = pipe.default_image_size
-    pipe(torch.rand(1, 1, size, size), 30.0, 0.0, input_depression_deg=17.0, input_azimuth_deg=10.0,
+    pipe(torch.rand(2, 1, size, size), [30.0, -90.0], 0.0, input_depression_deg=17.0, input_azimuth_deg=10.0,
          num_inference_steps=1, guidance_scale=2.0, heading_guidance_scale=1.0, output_type="np")  # fmt: skip
-    assert seen == [(0.0, 0.0), (30.0, 0.0), (210.0, 0.0)]  # input pose, the request, its flipped heading
+    # one call, each chip's renders side by side: its input pose, the request, the flipped heading
+    assert seen == [[[0.0, 30.0, 210.0, 0.0, -90.0, 90.0], [0.0] * 6]]
+
+
+def test_each_chip_is_fitted_once_however_large_the_batch(monkeypatch) -> None:
+    pipe = _proxy_pipeline()
+    fits = []
+    original = ProxyBank.retrieve
+
+    def counting(self, chip, *args, **kwargs):
+        fits.append(1)
+        return original(self, chip, *args, **kwargs)
+
+    monkeypatch.setattr(ProxyBank, "retrieve", counting)
+    size = pipe.default_image_size
+    chips = torch.rand(65, 1, size, size, generator=torch.Generator().manual_seed(7))  # > the 64 fits kept
+    pipe(chips, 120.0, 0.0, input_depression_deg=17.0, input_azimuth_deg=10.0, num_inference_steps=1,
+         guidance_scale=2.0, heading_guidance_scale=1.0, output_type="np")  # fmt: skip
+    assert len(fits) == 65  # not once per render (3 x 65)
 
 
 def test_a_proxy_fine_tune_widens_its_start_and_exports_a_proxy_pipeline(corpus: Path, tmp_path: Path):
