@@ -32,6 +32,7 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
+from sar_zero123.config import write_json_atomic
 from sar_zero123.data.images import load_magnitude
 from sar_zero123.data.index import load_index
 from sar_zero123.domain import naming_write_errors, to_decibels
@@ -125,13 +126,13 @@ def write_corpus_proxies(
     vehicles: dict[tuple[str, str], list[int]] = {}
     for n, record in enumerate(records):
         vehicles.setdefault((record.target_class, record.serial), []).append(n)
-    size = int(np.shape(load_magnitude(records[0].path))[-1])
-    jobs = []
+    jobs, size = [], None
     for members in vehicles.values():
         chip = np.asarray(load_magnitude(records[members[0]].path), dtype=np.float32)
+        size = chip.shape[-1] if size is None else size
         if chip.shape != (size, size):
             raise ValueError(
-                f"{paths[members[0]]}: expected a ({size}, {size}) chip like the index's first, got "
+                f"{paths[members[0]]}: expected a square chip of the index's first size {size}, got "
                 f"{chip.shape}"
             )
         poses = [(records[n].azimuth_deg, records[n].depression_deg) for n in members]
@@ -169,16 +170,7 @@ def write_corpus_proxies(
         except BaseException:
             Path(tmp).unlink(missing_ok=True)
             raise
-    with naming_write_errors(out / PROXIES_RECORD, kept):
-        fd, tmp = tempfile.mkstemp(prefix=".proxies-", suffix=".json", dir=out)
-        try:
-            with os.fdopen(fd, "w") as f:
-                json.dump(record, f)
-            os.replace(tmp, out / PROXIES_RECORD)
-        except BaseException:
-            Path(tmp).unlink(missing_ok=True)
-            raise
-    return out / PROXIES_RECORD
+    return write_json_atomic(record, out / PROXIES_RECORD)  # last: the proxies are complete
 
 
 def load_corpus_proxies(

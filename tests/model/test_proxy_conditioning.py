@@ -71,7 +71,7 @@ def test_corpus_proxies_are_the_best_bank_fits_rendered_at_every_chip_pose(corpu
         load_corpus_proxies(corpus / "chips", [])
     with pytest.raises(ValueError, match="candidates"):
         write_corpus_proxies(corpus, **BANK, candidates=4)
-    assert not list(corpus.glob(".proxies-*"))  # no temporary file left behind
+    assert not list(corpus.glob(".*"))  # no temporary file left behind
     assert (corpus / PROXIES_FILE).is_file()
 
 
