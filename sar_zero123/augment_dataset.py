@@ -699,5 +699,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     return augment_dataset(parse_config(AugmentConfig, argv))
 
 
-if __name__ == "__main__":
-    main()
+if __name__ == "__main__":  # exit 0 on success; a refusal in one line (--traceback: in full)
+    from sar_zero123.cli import console
+
+    raise SystemExit(console.augment())

@@ -193,5 +193,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     return out
 
 
-if __name__ == "__main__":
-    main()
+if __name__ == "__main__":  # exit 0 on success; a refusal in one line (--traceback: in full)
+    from sar_zero123.cli import console
+
+    raise SystemExit(console.interpolate())

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import dataclasses
 import re
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -38,11 +40,43 @@ def test_console_scripts_exit_0_when_their_command_returns_and_pass_failures_on(
         fake = lambda argv=None, seen=seen: seen.append(argv) or Path("out")  # noqa: E731
         monkeypatch.setattr(cli, command.function, fake)
         assert getattr(cli.console, command.function)() == 0 and seen == [None]  # argv: sys.argv
-    monkeypatch.setattr(cli, "finetune", lambda argv=None: (_ for _ in ()).throw(ValueError("bad field")))
-    with pytest.raises(ValueError, match="bad field"):
+    monkeypatch.setattr(cli, "finetune", lambda argv=None: (_ for _ in ()).throw(RuntimeError("a bug")))
+    with pytest.raises(RuntimeError, match="a bug"):  # not a refusal: its traceback
         cli.console.finetune()
     with pytest.raises(AttributeError):
         cli.console.not_a_command  # noqa: B018
+
+
+def test_a_refusal_at_the_command_line_is_one_line_and_exit_status_2_unless_asked_for_its_traceback(
+    monkeypatch, capsys
+):
+    """A command that refuses its input (ValueError, FileNotFoundError, ...) prints one line naming the
+    field on stderr and exits 2; ``--traceback`` (removed before the flags are parsed) lets it raise."""
+    errors = (ValueError("pfm_weight: expected a value >= 0,\n  got -1"), FileNotFoundError("data: no index"))
+    for error in errors:
+        seen = []
+
+        def refuse(argv=None, error=error, seen=seen):
+            seen.append(list(sys.argv[1:]))
+            raise error
+
+        monkeypatch.setattr(cli, "finetune", refuse)
+        monkeypatch.setattr(sys, "argv", ["finetune_pfm.py", "--pfm_weight", "-1"])
+        assert cli.console.finetune() == cli.REFUSED == 2
+        expected = " ".join(str(error).split())
+        line = f"sar-zero123-finetune: error: {expected} (--traceback shows where)\n"
+        assert capsys.readouterr().err == line
+        monkeypatch.setattr(sys, "argv", ["finetune_pfm.py", "--traceback", "--pfm_weight", "-1"])
+        with pytest.raises(type(error)):
+            cli.console.finetune()
+        assert seen == [["--pfm_weight", "-1"]] * 2  # the flag never reaches the config parser
+    # a real command: a missing chip, refused in one line by the installed module's entry point
+    done = subprocess.run([sys.executable, "-m", "sar_zero123.generate", "--image", "/nonexistent/chip.png"],
+                          capture_output=True, text=True, check=False)  # fmt: skip
+    assert done.returncode == 2 and done.stdout == ""
+    assert done.stderr.strip().splitlines() == [
+        "sar-zero123-generate: error: image: '/nonexistent/chip.png' is not a file (--traceback shows where)"
+    ]
 
 
 @pytest.mark.parametrize("command", cli.COMMANDS, ids=lambda command: command.script)

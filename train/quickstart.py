@@ -49,5 +49,5 @@ def main(argv: Sequence[str] | None = None) -> Path:
     return cli.quickstart(argv)
 
 
-if __name__ == "__main__":
-    main()
+if __name__ == "__main__":  # exit 0 on success; a refusal in one line (--traceback: in full)
+    raise SystemExit(cli.console.quickstart())

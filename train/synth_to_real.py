@@ -24,5 +24,5 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     return cli.synth_to_real(argv)
 
 
-if __name__ == "__main__":
-    main()
+if __name__ == "__main__":  # exit 0 on success; a refusal in one line (--traceback: in full)
+    raise SystemExit(cli.console.synth_to_real())

@@ -19,5 +19,5 @@ def main(argv: list[str] | None = None) -> dict[str, dict[str, float]]:
     return cli.evaluators(argv)
 
 
-if __name__ == "__main__":
-    main()
+if __name__ == "__main__":  # exit 0 on success; a refusal in one line (--traceback: in full)
+    raise SystemExit(cli.console.evaluators())

@@ -47,7 +47,7 @@ from sar_zero123.evaluation.evaluators import (
     standard_error,
 )
 from sar_zero123.model.build import same_weights
-from sar_zero123.model.conditioning import encode_condition_latents
+from sar_zero123.model.conditioning import encode_condition_latents, takes_proxy
 from sar_zero123.model.pipeline import SARZero123Pipeline
 
 logger = logging.getLogger(__name__)
@@ -130,6 +130,7 @@ _PAIR_COLUMNS = (
     "d_az_deg",
     "d_el_deg",
     "label",
+    "input_azimuth_deg",
     "target_azimuth_deg",
     "input_depression_deg",
     "target_depression_deg",
@@ -148,6 +149,7 @@ class PairSet:
     d_az_deg: torch.Tensor  # (N,)
     d_el_deg: torch.Tensor  # (N,)
     labels: torch.Tensor  # (N,)
+    input_azimuth_deg: torch.Tensor  # (N,) the input chip's absolute azimuth (its header or index.csv)
     target_azimuth_deg: torch.Tensor  # (N,)
     seeds: torch.Tensor  # (N,) generator seed of each sample
     input_depression_deg: torch.Tensor  # (N,)
@@ -292,6 +294,7 @@ def _stack_pairs(group: str, dataset: ViewPairDataset, first_seed: int) -> PairS
         d_az_deg=torch.cat(columns["d_az_deg"]).float(),
         d_el_deg=torch.cat(columns["d_el_deg"]).float(),
         labels=torch.cat(columns["label"]).long(),
+        input_azimuth_deg=torch.cat(columns["input_azimuth_deg"]).double(),
         target_azimuth_deg=torch.cat(columns["target_azimuth_deg"]).double(),
         seeds=torch.arange(len(dataset)) + first_seed,
         input_depression_deg=torch.cat(columns["input_depression_deg"]).float(),
@@ -365,7 +368,9 @@ def generate_pair_targets(
 
     Not :func:`sar_zero123.generate.generate_views`, which generates several views of one chip. A pipeline
     whose pose carries the input's absolute depression (``pose_projection.config.input_depression``) gets
-    each pair's input depression. Each batch logs a progress line (``desc``), outside the timed calls.
+    each pair's input depression; a call that uses a simulator proxy (``start_from="proxy"``, or a
+    ``spatial_pose="proxy"`` UNet) gets each input's depression and azimuth (its metadata), so that the
+    pipeline fits the proxy itself. Each batch logs a progress line (``desc``), outside the timed calls.
     ``strength`` and ``start_from`` are the pipeline's (image-to-image sampling; 1 starts from noise), as are
     the two contrast guidances (``heading_guidance_scale``, ``depression_guidance_scale``).
 
@@ -374,11 +379,13 @@ def generate_pair_targets(
     """
     device = torch.device(device)
     outputs, seconds = [], 0.0
-    takes_depression = getattr(pipe.pose_projection.config, "input_depression", False)
+    uses_proxy = start_from == "proxy" or takes_proxy(pipe.pose_projection)
+    takes_depression = uses_proxy or getattr(pipe.pose_projection.config, "input_depression", False)
     for start in range(0, len(pairs), batch_size):
         stop = min(start + batch_size, len(pairs))
         generators = [torch.Generator(device).manual_seed(int(s)) for s in pairs.seeds[start:stop]]
         depression = pairs.input_depression_deg[start:stop].to(device) if takes_depression else None
+        azimuth = pairs.input_azimuth_deg[start:stop] if uses_proxy else None
         if device.type == "cuda":
             torch.cuda.synchronize(device)
         begin = time.perf_counter()
@@ -387,6 +394,7 @@ def generate_pair_targets(
             d_az=pairs.d_az_deg[start:stop].to(device),
             d_el=pairs.d_el_deg[start:stop].to(device),
             input_depression_deg=depression,
+            input_azimuth_deg=azimuth,
             num_inference_steps=num_inference_steps,
             guidance_scale=guidance_scale,
             heading_guidance_scale=heading_guidance_scale,

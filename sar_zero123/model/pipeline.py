@@ -977,7 +977,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         for kind in contrast_kinds:
             requests.append((d_az_values + 180.0, d_el_values) if kind == "heading" else (d_az_values, zeros))
         # one call, each chip's requests side by side: one fit per chip however large the batch (the fit
-        # cache keeps the last 64), and one VAE encoding of every render
+        # cache keeps the last 1,024), and one VAE encoding of every render
         count = len(requests)
         d_az_all = torch.stack([az for az, _ in requests], dim=1).reshape(-1)  # (B * R,), chip-major
         d_el_all = torch.stack([el for _, el in requests], dim=1).reshape(-1)

@@ -81,13 +81,14 @@ def proxy_bank(
     return ProxyBank(num_vehicles, first_seed, blur_sigma_px, render_seed, max_shift_px)
 
 
-@functools.lru_cache(maxsize=64)
+@functools.lru_cache(maxsize=1024)
 def _fit(
     settings: tuple, chip_bytes: bytes, shape: tuple[int, int], azimuth_deg: float, depression_deg: float,
     resolve_heading: bool,
 ) -> tuple[int, float, tuple[int, int]]:
     """The bank vehicle fitted to one chip at its pose: ``(index, fitted azimuth, shift)``; remembered for
-    the last 64 chips and poses of the process (a fit costs one render per bank vehicle)."""
+    the last 1,024 chips and poses of the process (a fit costs one render per bank vehicle; the rows of an
+    evaluation share their pairs' fits), at about 17 kB each for a 64 px chip."""
     bank = proxy_bank(*settings)
     chip = np.frombuffer(chip_bytes, dtype=np.float32).reshape(shape)
     headings = (azimuth_deg, azimuth_deg + 180.0) if resolve_heading else (azimuth_deg,)

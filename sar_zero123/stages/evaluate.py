@@ -136,7 +136,9 @@ class EvaluateConfig:
     # in (0, 1]: below 1, sampling starts from a latent of the input noised to this fraction of the steps
     # (SDEdit); 1: from noise
     strength: float = 1.0
-    start_from: str = "input"  # the latent strength < 1 starts from: "input", or "turned_input" (by d_az)
+    # the latent strength < 1 starts from: "input", "turned_input" (by d_az), or "proxy" (a simulator vehicle
+    # fitted to the input at its pose from index.csv, re-rendered at the request)
+    start_from: str = "input"
     # an AutoencoderKL folder decoding for every pipeline instead of its own VAE; it must encode as theirs
     # (a decoder fine-tuned alone: train/train_vae.py --pretrained PIPELINE --no-train_encoder)
     vae: str | None = None

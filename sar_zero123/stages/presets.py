@@ -23,7 +23,7 @@ from sar_zero123.data.splits import OOD_INTERVAL_WIDTH_DEG, check_protocol, ood_
 from sar_zero123.evaluation.protocol import SCHEDULERS
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import downsampling_factor
-from sar_zero123.model.pipeline import check_sampler_start
+from sar_zero123.model.pipeline import START_FROM, check_sampler_start
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.sim import TARGET_CLASSES
 from sar_zero123.stages.evaluate import MAX_EVALUATION_PAIRS, MAX_SWEEP_STEP_COUNTS
@@ -126,6 +126,10 @@ class Preset:
     # noised latent (1: from noise)
     eval_heading_guidance_scale: float = 0.0
     eval_strength: float = 1.0
+    # what eval_strength < 1 starts from (train/evaluate.py's --start_from): "input", "turned_input", or
+    # "proxy", a simulator vehicle fitted to each input at its pose from index.csv and re-rendered at the
+    # request
+    eval_start_from: str = "input"
     # guidance away from the input's depression (train/evaluate.py's --depression_guidance_scale; 0: off):
     # changes only requests with d_el != 0, the depression evaluation's
     eval_depression_guidance_scale: float = 0.0
@@ -251,6 +255,8 @@ class Preset:
                             {"eval_steps": self.eval_steps, "speed_steps": min(self.speed_steps)},
                             prefix="eval_",
                             depression_guidance_scale=self.eval_depression_guidance_scale)  # fmt: skip
+        if self.eval_start_from not in START_FROM:
+            raise ValueError(f"eval_start_from must be one of {START_FROM}, got {self.eval_start_from!r}")
         looks = self.eval_speckle_looks
         if looks is not None and (isinstance(looks, bool) or not isinstance(looks, int) or looks < 1):
             raise ValueError(f"eval_speckle_looks must be an integer >= 1 or None, got {looks!r}")

@@ -10,6 +10,7 @@ quickstart's settings and the preset's values), runs each stage (each under its 
 from __future__ import annotations
 
 import dataclasses
+import json
 import logging
 from collections.abc import Callable
 from dataclasses import dataclass
@@ -31,6 +32,7 @@ from sar_zero123.stages.evaluate import EVALUATE_MAY_DIFFER, EvaluateConfig, run
 from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, run_evaluators
 from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
 from sar_zero123.stages.presets import PRESETS, Preset, QuickstartConfig, apply_overrides
+from sar_zero123.stages.proxies import PROXIES_FOLDER, ProxiesConfig, run_proxies
 from sar_zero123.stages.report import write_report
 from sar_zero123.stages.simclr import PretrainSimCLRConfig, run_simclr
 from sar_zero123.stages.simulate import SimulateConfig, run_simulate
@@ -72,6 +74,14 @@ def _protocol(config: QuickstartConfig, preset: Preset) -> str:
     return config.protocol or f"ood-{preset.classes[-1]}"
 
 
+def _takes_proxy(prior: str | None) -> bool:
+    """Whether the prior's UNet takes the simulator proxy (``spatial_pose="proxy"``)."""
+    if prior is None:
+        return False
+    config = resolve_pretrained(prior) / "pose_projection" / "config.json"
+    return config.is_file() and json.loads(config.read_text()).get("spatial_pose") == "proxy"
+
+
 def _training_stages(config: QuickstartConfig, preset: Preset, out: Path) -> list[StagePlan]:
     """SimCLR; the VAE and base model without a prior; the rehearsal corpus; one fine-tune per lambda."""
     data = str(out / "data" if config.data is None else Path(config.data))
@@ -108,6 +118,12 @@ def _training_stages(config: QuickstartConfig, preset: Preset, out: Path) -> lis
             learning_rate=1e-4, num_eval_images=16,
         ), run_vae))  # fmt: skip
 
+    proxies_dir = out / "proxies"
+    if _takes_proxy(preset.prior):  # each training chip's simulator proxies, the fine-tunes' condition
+        plans.append(StagePlan("proxies", _build(
+            "proxies", ProxiesConfig, data=data, output_dir=str(proxies_dir),
+        ), run_proxies))  # fmt: skip
+
     rehearsal_dir = out / "rehearsal"
     if preset.rehearsal_vehicles:
         plans.append(StagePlan("rehearsal corpus", _build(
@@ -135,6 +151,8 @@ def _training_stages(config: QuickstartConfig, preset: Preset, out: Path) -> lis
                           rehearsal_fraction=preset.rehearsal_fraction)  # fmt: skip
         if preset.prior is None or preset.vae_decoder_steps:
             values["vae"] = str(vae_dir)
+        if _takes_proxy(preset.prior):
+            values["proxies"] = str(proxies_dir / PROXIES_FOLDER)
         if pretrained is None:
             values.update(size=preset.model_size, estimate_input_azimuth=preset.estimate_input_azimuth,
                           prediction_type=preset.prediction_type)  # fmt: skip
@@ -200,7 +218,8 @@ def plan_stages(config: QuickstartConfig) -> list[StagePlan]:
         "protocol": _protocol(config, preset), "n": preset.eval_n, "num_inference_steps": preset.eval_steps,
         "guidance_scale": 3.0, "heading_guidance_scale": preset.eval_heading_guidance_scale,
         "depression_guidance_scale": preset.eval_depression_guidance_scale,
-        "strength": preset.eval_strength, "crop_size": min(64, preset.image_size),
+        "strength": preset.eval_strength, "start_from": preset.eval_start_from,
+        "crop_size": min(64, preset.image_size),
         "eval_batch_size": 8, "seed": config.seed, "resume": True, "speckle_looks": preset.eval_speckle_looks,
     }  # fmt: skip
     plans.append(StagePlan("evaluate", _build(

@@ -431,6 +431,44 @@ def test_evaluate_depression_protocol_passes_input_depression(tmp_path: Path, mo
     assert "Dep. gap closed ↑" in markdown and "Dep. overshoot (deg)" in markdown
 
 
+def test_evaluate_from_the_proxy_gives_each_pairs_input_pose(tmp_path: Path, monkeypatch) -> None:
+    """``--start_from proxy``: every call gets each pair's input azimuth (target azimuth minus d_az, a chip's
+    own from index.csv) and depression, so that the pipeline fits its simulator proxy itself."""
+    data = write_chip_folder(tmp_path / "data", azimuths_deg=tuple(range(0, 360, 60)), size=32)
+    _evaluators(tmp_path / "evaluators")
+    proxy = {"num_vehicles": 2, "first_seed": 1_000_000, "blur_sigma_px": 1.5, "render_seed": 0,
+             "min_db": -60.0, "max_db": 0.0}  # fmt: skip
+    SARZero123Pipeline(**get_dummy_components(), proxy=proxy).save_pretrained(tmp_path / "pipe")
+    calls: list[dict] = []
+    call = SARZero123Pipeline.__call__
+
+    def spy(self, *args, **kwargs):
+        calls.append(kwargs)
+        return call(self, *args, **kwargs)
+
+    monkeypatch.setattr(SARZero123Pipeline, "__call__", spy)
+    out = tmp_path / "eval"
+    argv = [
+        "--pipeline", str(tmp_path / "pipe"), "--evaluators", str(tmp_path / "evaluators"),
+        "--data", str(data), "--protocol", "ood-B", "--n", "4", "--num-inference-steps", "2",
+        "--strength", "0.5", "--start_from", "proxy", "--crop_size", "32", "--eval_batch_size", "2",
+        "--num_figure_pairs", "1", "--output_dir", str(out), "--device", "cpu",
+    ]  # fmt: skip
+    with pytest.warns(UserWarning, match="rank-deficient"):
+        evaluate.main(argv)
+    assert [c["start_from"] for c in calls] == ["proxy"] * 2
+    config = EvaluateConfig(**json.loads((out / "config.json").read_text()))
+    pair_sets = evaluation_pairs(config, load_evaluators(tmp_path / "evaluators"), image_size=32)
+    for kwargs, pairs in zip(calls, pair_sets.values(), strict=True):
+        expected = (pairs.target_azimuth_deg - pairs.d_az_deg.double()) % 360.0
+        azimuth = torch.as_tensor(kwargs["input_azimuth_deg"]).double()
+        torch.testing.assert_close(azimuth, expected, atol=1e-4, rtol=0)  # the chips' 60 deg grid
+        assert set(azimuth.round().tolist()) <= {0.0, 60.0, 120.0, 180.0, 240.0, 300.0}
+        depression = torch.as_tensor(kwargs["input_depression_deg"])
+        torch.testing.assert_close(depression, pairs.input_depression_deg)
+    assert json.loads((out / "table3.json").read_text())["start_from"] == "proxy"
+
+
 def test_evaluate_rejects_bad_depression_requests() -> None:
     with pytest.raises(ValueError, match="pass --no-same_depression"):
         EvaluateConfig(pipeline=["a"], input_depression_deg=17.0, target_depressions_deg=[30.0])

@@ -152,6 +152,55 @@ def test_rehearsal_vehicles_plan_a_corpus_stage_that_every_fine_tune_rehearses(t
         CorpusConfig(size=8)
 
 
+def test_a_proxy_prior_plans_a_proxies_stage_that_every_fine_tune_conditions_on(tmp_path: Path) -> None:
+    """A prior whose UNet takes the simulator proxy: a proxies stage (the data's vehicles fitted, read only)
+    before the fine-tunes, each of which reads its proxies; the evaluations start where eval_start_from says.
+    The stage writes the proxies into its own folder and a second run finds them finished."""
+    out = tmp_path / "run"
+    override = ["prior=sar-zero123/sim-prior-proxy", "image_size=64", "eval_start_from='proxy'"]
+    plans = quickstart.plan_stages(
+        quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=override)
+    )
+    names = [plan.name for plan in plans]
+    assert names[names.index("simclr") + 1 : names.index("evaluators")] == [
+        "proxies", "finetune lambda=0", "finetune lambda=4"]  # fmt: skip
+    by_name = {plan.name: plan.config for plan in plans}
+    stage = by_name["proxies"]
+    assert (stage.data, stage.output_dir) == (str(out / "data"), str(out / "proxies"))
+    for name in ("finetune lambda=0", "finetune lambda=4"):
+        assert by_name[name].proxies == str(out / "proxies" / "proxies")
+    assert {by_name[name].start_from for name in ("evaluate", "evaluate depressions")} == {"proxy"}
+    assert not out.exists()
+    rotated = quickstart.plan_stages(quickstart.QuickstartConfig(output_dir=str(out), preset="smoke"))
+    assert "proxies" not in [plan.name for plan in rotated]
+    assert all(getattr(plan.config, "proxies", None) is None for plan in rotated)
+    words = r"eval_start_from must be one of \('input', 'turned_input', 'proxy'\)"
+    with pytest.raises(ValueError, match=words):
+        quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=["eval_start_from='noise'"])
+    # the stage, on a two-vehicle folder: read only, the proxies in its own folder, finished on a second run
+    from chip_folders import write_chip_folder
+
+    from sar_zero123.data.corpus_proxies import load_corpus_proxies
+    from sar_zero123.data.index import load_index
+    from sar_zero123.stages.proxies import ProxiesConfig, run_proxies
+
+    data = write_chip_folder(tmp_path / "data", azimuths_deg=(0, 90, 180), size=16)
+    before = {p: p.stat().st_mtime_ns for p in data.rglob("*")}
+    config = ProxiesConfig(data=str(data), output_dir=str(tmp_path / "proxies"), num_vehicles=3,
+                           num_workers=1)  # fmt: skip
+    folder = run_proxies(config)
+    assert folder == tmp_path / "proxies" / "proxies"
+    paths = [record.path for record in load_index(data)]
+    assert load_corpus_proxies(data, paths, folder).shape == (len(paths), 2, 16, 16)
+    assert {p: p.stat().st_mtime_ns for p in data.rglob("*")} == before
+    written = {p: p.stat().st_mtime_ns for p in folder.rglob("*")}
+    assert run_proxies(config) == folder and {p: p.stat().st_mtime_ns for p in folder.rglob("*")} == written
+    with pytest.raises(ValueError, match=r"candidates: at most num_vehicles \(1\), got 2"):
+        ProxiesConfig(data=str(data), num_vehicles=1)
+    with pytest.raises(FileNotFoundError, match="data: expected a folder with index.csv"):
+        run_proxies(dataclasses.replace(config, data=str(tmp_path / "nothing")))
+
+
 def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     out = tmp_path / "quickstart"
     with warnings.catch_warnings():
