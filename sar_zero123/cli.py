@@ -19,13 +19,12 @@ from __future__ import annotations
 import importlib
 import json
 import logging
-import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-__all__ = ["COMMANDS", "REFUSALS", "Command", "config_class", "console"]
+__all__ = ["COMMANDS", "Command", "config_class", "console"]
 
 _LOG_FORMAT = "%(asctime)s %(levelname)s %(message)s"
 
@@ -212,24 +211,14 @@ def interpolate(argv: Sequence[str] | None = None) -> Path:
     return main(argv)
 
 
-#: What a command raises when it refuses its input (a bad field, a missing file, a folder holding other
-#: work): at the command line one line names it, without a traceback (``--traceback`` shows one).
-REFUSALS = (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError)
-#: The exit status of a refused command (argparse's for a bad flag).
-REFUSED = 2
-TRACEBACK_FLAG = "--traceback"
-
-
 class _ConsoleScripts:
     """The console scripts (``[project.scripts]``: ``sar_zero123.cli:console.<function>``).
 
     Each command function returns its result to Python callers (a folder, a metrics dict); a console
     script's launcher passes what it calls to ``sys.exit``, which would print that value and exit 1. Here
-    each script runs its function (looked up when called) and exits 0 once it returns. A refusal
-    (:data:`REFUSALS`) prints one line, ``sar-zero123-<command>: error: <message>``, on stderr and exits
-    :data:`REFUSED`; ``--traceback`` (anywhere on the command line) lets it raise with its traceback
-    instead. Any other failure raises, and ``SystemExit`` (``--help``, a bad flag) passes through with its
-    own code. The ``train/`` scripts run the same way.
+    each script runs its function (looked up when called) under :func:`sar_zero123.config.run_command`:
+    exit 0 once it returns, a refusal in one line, ``sar-zero123-<command>: error: <message>``, exit 2
+    (``--traceback``: raised in full). The ``train/`` scripts and ``python -m`` commands run the same way.
     """
 
     def __getattr__(self, name: str) -> Any:
@@ -237,19 +226,10 @@ class _ConsoleScripts:
             raise AttributeError(name)
 
         def script() -> int:
-            show_traceback = TRACEBACK_FLAG in sys.argv[1:]
-            if show_traceback:
-                sys.argv[1:] = [arg for arg in sys.argv[1:] if arg != TRACEBACK_FLAG]
-            try:
-                globals()[name]()
-            except REFUSALS as error:
-                if show_traceback:
-                    raise
-                prog = next(command.script for command in COMMANDS if command.function == name)
-                message = " ".join(str(error).split()) or type(error).__name__
-                print(f"{prog}: error: {message} ({TRACEBACK_FLAG} shows where)", file=sys.stderr)
-                return REFUSED
-            return 0
+            from sar_zero123.config import run_command
+
+            prog = next(command.script for command in COMMANDS if command.function == name)
+            return run_command(globals()[name], prog)
 
         script.__name__ = script.__qualname__ = name
         script.__doc__ = f"``{name}`` as a console script: exit status 0 when it returns."

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from sar_zero123 import cli
-from sar_zero123.config import field_comments, parse_config
+from sar_zero123.config import REFUSED, field_comments, parse_config
 from sar_zero123.stages.finetune import FinetuneConfig
 from sar_zero123.stages.simclr import PretrainSimCLRConfig
 from sar_zero123.stages.simulate import SimulateConfig
@@ -62,7 +62,7 @@ def test_a_refusal_at_the_command_line_is_one_line_and_exit_status_2_unless_aske
 
         monkeypatch.setattr(cli, "finetune", refuse)
         monkeypatch.setattr(sys, "argv", ["finetune_pfm.py", "--pfm_weight", "-1"])
-        assert cli.console.finetune() == cli.REFUSED == 2
+        assert cli.console.finetune() == REFUSED == 2
         expected = " ".join(str(error).split())
         line = f"sar-zero123-finetune: error: {expected} (--traceback shows where)\n"
         assert capsys.readouterr().err == line
