@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import inspect
 import json
 import os
@@ -405,3 +406,80 @@ def run_command(function: Callable[[], Any], prog: str) -> int:
         print(f"{prog}: error: {message} ({TRACEBACK_FLAG} shows where)", file=sys.stderr)
         return REFUSED
     return 0
+
+
+#: The file a sealed folder (a checkpoint, a pipeline) lists its other files in, with their sizes and SHA-256.
+MANIFEST_FILE = "manifest.json"
+_HASH_CHUNK = 1 << 22
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """The SHA-256 of a file's bytes (read in chunks; synced, so that they are the bytes on disk)."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as handle:
+        while chunk := handle.read(_HASH_CHUNK):
+            digest.update(chunk)
+        os.fsync(handle.fileno())
+    return digest.hexdigest()
+
+
+def _sealed_files(folder: Path) -> list[Path]:
+    return sorted(p for p in folder.rglob("*") if p.is_file() and p.name != MANIFEST_FILE)
+
+
+def write_manifest(folder: str | os.PathLike) -> Path:
+    """Write :data:`MANIFEST_FILE` (atomically, last): the size in bytes and SHA-256 of every other file under
+    ``folder``; :func:`manifest_problem` checks the folder against it."""
+    folder = Path(folder)
+    files = {
+        path.relative_to(folder).as_posix(): {"bytes": path.stat().st_size, "sha256": file_sha256(path)}
+        for path in _sealed_files(folder)
+    }
+    return write_json_atomic({"files": files}, folder / MANIFEST_FILE)
+
+
+def manifest_problem(
+    folder: str | os.PathLike, check_hashes: bool = True, unlisted: Callable[[str], bool] | None = None
+) -> str | None:
+    """Why ``folder`` does not match its :data:`MANIFEST_FILE`, or ``None`` when it does (or has none).
+
+    Args:
+        folder: A folder sealed by :func:`write_manifest`.
+        check_hashes: Also compare SHA-256 digests (reads every byte), not only the sizes.
+        unlisted: Which files the manifest does not list are a problem (by relative POSIX path); ``None``:
+            none are.
+
+    Returns:
+        ``None``, or a sentence naming the file and what is wrong with it.
+    """
+    folder = Path(folder)
+    manifest_file = folder / MANIFEST_FILE
+    if not manifest_file.is_file():
+        return None
+    try:
+        files = json.loads(manifest_file.read_text())["files"]
+        entries = [(str(name), int(entry["bytes"]), str(entry["sha256"])) for name, entry in files.items()]
+    except (ValueError, KeyError, TypeError, AttributeError) as error:
+        return f"{str(manifest_file)!r} is not a valid manifest ({error})"
+    root = folder.resolve()
+    for name, size, _ in sorted(entries):
+        file = folder / name
+        if not file.resolve().is_relative_to(root):
+            return f"{MANIFEST_FILE} of {str(folder)!r} lists {name!r}, outside the folder"
+        if not file.is_file():
+            return f"{str(file)!r}, listed in {MANIFEST_FILE}, is missing"
+        if file.stat().st_size != size:
+            actual = file.stat().st_size
+            return f"{str(file)!r} has {actual} bytes, {MANIFEST_FILE} records {size} (truncated?)"
+    if unlisted is not None:
+        listed = {name for name, _, _ in entries}
+        for path in _sealed_files(folder):
+            name = path.relative_to(folder).as_posix()
+            if name not in listed and unlisted(name):
+                return f"{str(path)!r} is not listed in {MANIFEST_FILE} (added after the folder was written)"
+    if check_hashes:
+        for name, _, digest in sorted(entries):
+            if file_sha256(folder / name) != digest:
+                file = str(folder / name)
+                return f"{file!r} does not match its SHA-256 in {MANIFEST_FILE} (changed or corrupt)"
+    return None

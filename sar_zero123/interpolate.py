@@ -38,7 +38,7 @@ from pathlib import Path
 import torch
 from safetensors.torch import load_file, save_file
 
-from sar_zero123.config import parse_config
+from sar_zero123.config import parse_config, write_manifest
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.folder import StageTimer, content_identity, finish_run
 from sar_zero123.runs.stage import open_stage_folder
@@ -151,6 +151,7 @@ def interpolate_pipelines(
             component = relative.parts[0] if len(relative.parts) > 1 else "the pipeline folder"
             mixed = interpolate_state(load_file(other), load_file(tuned_dir / relative), alpha, component)
             save_file(mixed, staged / relative, metadata={"format": "pt"})
+        write_manifest(staged)  # sealed last: the loader refuses a file changed since
         os.replace(staged, out)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)

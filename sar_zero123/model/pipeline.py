@@ -10,6 +10,7 @@ unconditional branches in one batched UNet call.
 from __future__ import annotations
 
 import inspect
+import logging
 import math
 import numbers
 import os
@@ -30,6 +31,7 @@ from diffusers.utils import BaseOutput
 from diffusers.utils.torch_utils import randn_tensor
 from transformers import CLIPVisionModelWithProjection
 
+from sar_zero123.config import MANIFEST_FILE, manifest_problem, write_manifest
 from sar_zero123.domain import signed_to_unit
 from sar_zero123.model.conditioning import (
     POSE_DIM,
@@ -63,6 +65,8 @@ __all__ = [
     "flipped_heading_pose",
     "same_depression_pose",
 ]
+
+logger = logging.getLogger(__name__)
 
 ImageInput = PIL.Image.Image | np.ndarray | torch.Tensor | Sequence[PIL.Image.Image] | Sequence[np.ndarray]
 OUTPUT_TYPES = ("pil", "np", "pt", "latent")
@@ -318,7 +322,10 @@ class SARZero123Pipeline(DiffusionPipeline):
             pretrained_model_name_or_path: A registered name such as ``"sar-zero123/sim-prior"``
                 (:data:`sar_zero123.pretrained.SIM_PRIOR`), a ``save_pretrained`` folder, or anything
                 else diffusers loads (passed on unchanged; an existing path wins over a name).
-            **kwargs: diffusers' loading options (``torch_dtype``, ...).
+            **kwargs: diffusers' loading options (``torch_dtype``, ...), and ``verify_manifest`` (default
+                True): a local folder's files must match the ``manifest.json`` that :meth:`save_pretrained`
+                wrote; ``False`` loads a changed folder anyway, with a logged warning naming what differs.
+                A folder without a manifest (written before manifests existed) loads with a warning.
 
         Returns:
             The pipeline.
@@ -328,8 +335,10 @@ class SARZero123Pipeline(DiffusionPipeline):
                 unknown name under ``"sar-zero123/"`` (listing the bundled ones), or a
                 folder without ``model_index.json`` or missing a component's folder, config or weights;
                 the message names the component, the file expected and the folder.
-            ValueError: For a folder whose JSON is invalid (naming the file), or a component whose files
-                do not load (a config that does not fit its weights, a truncated weight file), naming it.
+            ValueError: For a folder whose JSON is invalid (naming the file), a component whose files
+                do not load (a config that does not fit its weights, a truncated weight file), naming it,
+                or a file that differs from the folder's ``manifest.json`` (changed, truncated, missing, or
+                a weight or config added since), naming it, unless ``verify_manifest=False``.
         """
         if isinstance(pretrained_model_name_or_path, str | os.PathLike) and (
             is_bundled_name(pretrained_model_name_or_path)
@@ -337,12 +346,15 @@ class SARZero123Pipeline(DiffusionPipeline):
         ):  # a bundled name, or a refusal listing them (never a hub lookup of an unknown bundled name)
             pretrained_model_name_or_path = resolve_pretrained(pretrained_model_name_or_path)
         folder = pretrained_model_name_or_path
+        verify_manifest = kwargs.pop("verify_manifest", True)
         if isinstance(folder, str | os.PathLike) and not os.path.isdir(folder):
             _refuse_a_missing_local_name(os.fspath(folder))
         if not (isinstance(folder, str | os.PathLike) and os.path.isdir(folder)):
             return super().from_pretrained(folder, **kwargs)
-        # 1. a local folder: each component's files are checked, naming the component, before diffusers
-        # reads them (diffusers names a fallback `.bin` file or the pipeline folder instead)
+        # 1. a local folder: every file it was saved with is checked against its manifest (a changed weight,
+        # config or scaling would load and give other views), then each component's files, naming the
+        # component, before diffusers reads them (diffusers names a fallback `.bin` file or the folder)
+        _check_manifest(folder, verify_manifest)
         components = check_pipeline_folder(folder, given=kwargs)
         try:
             return super().from_pretrained(folder, **kwargs)
@@ -350,6 +362,16 @@ class SARZero123Pipeline(DiffusionPipeline):
             # 2. the files are there but something does not load: say which component
             find_failing_component(folder, components)
             raise
+
+    def save_pretrained(self, save_directory: str | os.PathLike, **kwargs: Any) -> None:
+        """diffusers' ``save_pretrained``, then ``manifest.json`` (written last, atomically): the size and
+        SHA-256 of every file of the folder, which :meth:`from_pretrained` checks before loading.
+
+        A writer that adds a file to the folder afterwards (a ``decibel_scaling.json``) seals it again with
+        :func:`sar_zero123.config.write_manifest`.
+        """
+        super().save_pretrained(save_directory, **kwargs)
+        write_manifest(save_directory)
 
     @classmethod
     def from_zero123(
@@ -1105,6 +1127,29 @@ def same_depression_pose(pose: torch.Tensor) -> torch.Tensor:
     same = pose.clone()
     same[..., 0] = 0.0
     return same
+
+
+#: Files of a pipeline folder that its manifest must list: what loading reads (weights, configs, scaling).
+_SEALED_SUFFIXES = (".json", ".safetensors", ".bin", ".pt", ".pth", ".ckpt", ".pkl", ".py", ".msgpack")
+
+
+def _check_manifest(folder: str | os.PathLike, verify: bool) -> None:
+    """Refuse (``verify``) or warn about a pipeline folder whose files differ from its ``manifest.json``."""
+    if not (Path(folder) / MANIFEST_FILE).is_file():
+        logger.warning(
+            "pipeline %s has no %s (saved before manifests): its files are loaded unchecked; "
+            "save it again with save_pretrained to seal it", folder, MANIFEST_FILE,
+        )  # fmt: skip
+        return
+    problem = manifest_problem(folder, unlisted=lambda name: name.endswith(_SEALED_SUFFIXES))
+    if problem is None:
+        return
+    if verify:
+        raise ValueError(
+            f"pipeline {os.fspath(folder)!r}: {problem}. A pipeline's files are loaded only as they were "
+            "saved; pass verify_manifest=False to load it anyway"
+        )
+    logger.warning("pipeline %s loaded with verify_manifest=False although %s", folder, problem)
 
 
 def _refuse_a_missing_local_name(text: str) -> None:

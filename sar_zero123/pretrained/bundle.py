@@ -24,6 +24,8 @@ from typing import Any
 
 from safetensors.torch import load_file, save_file
 
+from sar_zero123.config import write_manifest
+
 __all__ = ["bundle_pipeline"]
 
 
@@ -62,6 +64,7 @@ def bundle_pipeline(
         if sampler is not None:
             index["sampler"] = {**(index.get("sampler") or {}), **sampler}
         index_path.write_text(json.dumps(index, indent=2, sort_keys=True) + "\n")
+        write_manifest(scratch)  # sealed last: the loader refuses a file changed since
         os.replace(scratch, target)
     except BaseException:
         shutil.rmtree(scratch, ignore_errors=True)

@@ -24,7 +24,6 @@ Multi-node runs need ``output_dir`` on a file system shared by all nodes, as acc
 from __future__ import annotations
 
 import gc
-import hashlib
 import json
 import logging
 import math
@@ -40,14 +39,20 @@ from accelerate import Accelerator
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
-from sar_zero123.config import config_to_dict, naming_write_errors, write_json_atomic
+from sar_zero123.config import (  # noqa: F401 (MANIFEST_FILE, write_manifest: this module's names too)
+    MANIFEST_FILE,
+    config_to_dict,
+    manifest_problem,
+    naming_write_errors,
+    write_json_atomic,
+    write_manifest,
+)
 from sar_zero123.runs.folder import field_defaults
 
 logger = logging.getLogger(__name__)
 
 CHECKPOINT_PREFIX = "checkpoint-"
 STATE_FILE = "run_state.json"
-MANIFEST_FILE = "manifest.json"
 #: Config fields that may change between a checkpoint and its resumed run: they do not change what is
 #: computed (where and how often things are written or logged, the validation samples, the loaders' workers).
 RESUME_MAY_DIFFER = (
@@ -68,7 +73,6 @@ RESUME_MAY_DIFFER = (
     "num_eval_images",
     "max_train_minutes",  # finetune_pfm: where this session stops, not what a step computes
 )
-_HASH_CHUNK = 1 << 22
 _CHECKPOINT_RE = re.compile(rf"^{CHECKPOINT_PREFIX}(\d+)$")
 
 
@@ -165,32 +169,6 @@ def save_checkpoint(
     return final
 
 
-def _sha256(path: Path) -> str:
-    digest = hashlib.sha256()
-    with path.open("rb") as handle:
-        while chunk := handle.read(_HASH_CHUNK):
-            digest.update(chunk)
-        os.fsync(handle.fileno())  # the bytes just hashed are the bytes on disk after a power loss
-    return digest.hexdigest()
-
-
-def _checkpoint_files(folder: Path) -> list[Path]:
-    return sorted(p for p in folder.rglob("*") if p.is_file() and p.name != MANIFEST_FILE)
-
-
-def write_manifest(folder: str | os.PathLike) -> Path:
-    """Write ``manifest.json``: size in bytes and SHA-256 of every other file under ``folder``.
-
-    Written last by :func:`save_checkpoint`; :func:`verify_checkpoint` checks a folder against it.
-    """
-    folder = Path(folder)
-    files = {
-        path.relative_to(folder).as_posix(): {"bytes": path.stat().st_size, "sha256": _sha256(path)}
-        for path in _checkpoint_files(folder)
-    }
-    return write_json_atomic({"files": files}, folder / MANIFEST_FILE)
-
-
 def verify_checkpoint(path: str | os.PathLike, check_hashes: bool = True) -> str | None:
     """Why a checkpoint folder cannot be resumed, or ``None`` when it is complete and intact.
 
@@ -209,25 +187,7 @@ def verify_checkpoint(path: str | os.PathLike, check_hashes: bool = True) -> str
         return f"{str(path)!r} is not a folder"
     if not (path / STATE_FILE).is_file():
         return f"{str(path / STATE_FILE)!r} is missing (the checkpoint is incomplete)"
-    manifest_file = path / MANIFEST_FILE
-    if not manifest_file.is_file():
-        return None
-    try:
-        files = json.loads(manifest_file.read_text())["files"]
-    except (ValueError, KeyError, TypeError) as error:
-        return f"{str(manifest_file)!r} is not a valid manifest ({error})"
-    for name, entry in sorted(files.items()):
-        file = path / name
-        if not file.is_file():
-            return f"{str(file)!r}, listed in {MANIFEST_FILE}, is missing"
-        size = file.stat().st_size
-        if size != entry["bytes"]:
-            return f"{str(file)!r} has {size} bytes, {MANIFEST_FILE} records {entry['bytes']} (truncated?)"
-    if check_hashes:
-        for name, entry in sorted(files.items()):
-            if _sha256(path / name) != entry["sha256"]:
-                return f"{str(path / name)!r} does not match its SHA-256 in {MANIFEST_FILE} (corrupt)"
-    return None
+    return manifest_problem(path, check_hashes=check_hashes)
 
 
 def resolve_resume_checkpoint(output_dir: str | os.PathLike, value: str | None) -> Path | None:

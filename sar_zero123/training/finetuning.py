@@ -30,7 +30,7 @@ from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
 from diffusers.training_utils import EMAModel
 from torch.utils.data import DataLoader, Dataset
 
-from sar_zero123.config import naming_write_errors, write_json_atomic
+from sar_zero123.config import naming_write_errors, write_json_atomic, write_manifest
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.model.conditioning import PoseProjection, takes_proxy
 from sar_zero123.model.pipeline import SARZero123Pipeline
@@ -290,6 +290,7 @@ def export_finetuned(
     with naming_write_errors(directory, kept):
         export.save_pretrained(directory)
         write_json_atomic(scaling.to_dict(), directory / SCALING_FILE)
+        write_manifest(directory)  # sealed again, the scaling included
     return directory
 
 

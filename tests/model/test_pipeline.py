@@ -364,6 +364,64 @@ def test_mismatched_components_are_rejected():
         SARZero123Pipeline(**components)
 
 
+def test_a_pipeline_folder_loads_only_as_it_was_saved(pipe, tmp_path, caplog):
+    """save_pretrained seals the folder with manifest.json (size and SHA-256 of every file); from_pretrained
+    refuses a changed, truncated, missing or added weight or config by name, loads it with
+    verify_manifest=False (warning), and loads an older folder without a manifest with a warning."""
+    import json
+
+    from sar_zero123.config import MANIFEST_FILE, file_sha256
+
+    pipe.save_pretrained(tmp_path / "ok")
+    listed = json.loads((tmp_path / "ok" / MANIFEST_FILE).read_text())["files"]
+    on_disk = sorted(p.relative_to(tmp_path / "ok").as_posix() for p in (tmp_path / "ok").rglob("*")
+                     if p.is_file() and p.name != MANIFEST_FILE)  # fmt: skip
+    assert sorted(listed) == on_disk and "unet/diffusion_pytorch_model.safetensors" in listed
+    for name, entry in listed.items():
+        assert entry == {"bytes": (tmp_path / "ok" / name).stat().st_size,
+                         "sha256": file_sha256(tmp_path / "ok" / name)}  # fmt: skip
+    weights = "unet/diffusion_pytorch_model.safetensors"
+
+    def changed(name, edit):
+        folder = tmp_path / name
+        shutil.copytree(tmp_path / "ok", folder)
+        edit(folder)
+        return folder
+
+    def zero_half(folder):  # the same size, other bytes: half the UNet's weights zeroed
+        data = bytearray((folder / weights).read_bytes())
+        data[len(data) // 2 :] = bytes(len(data) - len(data) // 2)
+        (folder / weights).write_bytes(bytes(data))
+
+    def edit_scheduler(folder):
+        config = json.loads((folder / "scheduler/scheduler_config.json").read_text())
+        (folder / "scheduler/scheduler_config.json").write_text(json.dumps({**config, "beta_end": 10.0}))
+
+    cases = {
+        "zeroed": (zero_half, rf"/{weights}' does not match its SHA-256 in manifest.json \(changed"),
+        "scheduler": (edit_scheduler, r"scheduler_config.json' has \d+ bytes, manifest.json records"),
+        "missing": (lambda f: (f / weights).unlink(), rf"/{weights}', listed in manifest.json, is missing"),
+        "added": (lambda f: (f / "unet" / "extra.safetensors").write_bytes(b"x"),
+                  r"unet/extra.safetensors' is not listed in manifest.json \(added after"),
+    }  # fmt: skip
+    for name, (edit, words) in cases.items():
+        folder = changed(name, edit)
+        with pytest.raises(ValueError, match=rf"pipeline '.*{name}': .*{words}.*verify_manifest=False"):
+            SARZero123Pipeline.from_pretrained(folder)
+    caplog.set_level("WARNING", logger="sar_zero123.model.pipeline")
+    loaded = SARZero123Pipeline.from_pretrained(tmp_path / "zeroed", verify_manifest=False)
+    assert "loaded with verify_manifest=False although" in caplog.text
+    assert loaded.unet.conv_in.weight.shape == pipe.unet.conv_in.weight.shape
+    caplog.clear()
+    (tmp_path / "zeroed" / MANIFEST_FILE).unlink()  # a folder saved before manifests: loads, with a warning
+    SARZero123Pipeline.from_pretrained(tmp_path / "zeroed")
+    assert f"has no {MANIFEST_FILE} (saved before manifests)" in caplog.text
+    caplog.clear()
+    (tmp_path / "ok" / "notes.md").write_text("a user's notes")  # not a file loading reads: no refusal
+    SARZero123Pipeline.from_pretrained(tmp_path / "ok")
+    assert caplog.text == ""
+
+
 def test_a_vae_or_unet_from_another_model_is_refused_at_load(pipe, tmp_path):
     """A VAE copied into a pipeline folder from another model: refused naming both sizes (issue 39)."""
     from diffusers import AutoencoderKL, UNet2DConditionModel
@@ -374,8 +432,10 @@ def test_a_vae_or_unet_from_another_model_is_refused_at_load(pipe, tmp_path):
     shutil.copytree(tmp_path / "ok", tmp_path / "swapped")
     shutil.rmtree(tmp_path / "swapped" / "vae")
     bigger.save_pretrained(tmp_path / "swapped" / "vae")
+    with pytest.raises(ValueError, match=r"swapped/vae/config.json' does not match its SHA-256 in manifest"):
+        SARZero123Pipeline.from_pretrained(tmp_path / "swapped")  # first: not the files it was saved with
     with pytest.raises(ValueError, match=r"vae: built for 64 px chips .* 16x16 latents, i.e. 32 px"):
-        SARZero123Pipeline.from_pretrained(tmp_path / "swapped")
+        SARZero123Pipeline.from_pretrained(tmp_path / "swapped", verify_manifest=False)
     deeper = AutoencoderKL(**{**dict(vae), "block_out_channels": (*vae.block_out_channels, 32),
                               "down_block_types": (*vae.down_block_types, "DownEncoderBlock2D"),
                               "up_block_types": (*vae.up_block_types, "UpDecoderBlock2D")})  # fmt: skip
