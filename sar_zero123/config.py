@@ -438,16 +438,12 @@ def write_manifest(folder: str | os.PathLike) -> Path:
     return write_json_atomic({"files": files}, folder / MANIFEST_FILE)
 
 
-def manifest_problem(
-    folder: str | os.PathLike, check_hashes: bool = True, unlisted: Callable[[str], bool] | None = None
-) -> str | None:
+def manifest_problem(folder: str | os.PathLike, check_hashes: bool = True) -> str | None:
     """Why ``folder`` does not match its :data:`MANIFEST_FILE`, or ``None`` when it does (or has none).
 
     Args:
         folder: A folder sealed by :func:`write_manifest`.
         check_hashes: Also compare SHA-256 digests (reads every byte), not only the sizes.
-        unlisted: Which files the manifest does not list are a problem (by relative POSIX path); ``None``:
-            none are.
 
     Returns:
         ``None``, or a sentence naming the file and what is wrong with it.
@@ -471,15 +467,21 @@ def manifest_problem(
         if file.stat().st_size != size:
             actual = file.stat().st_size
             return f"{str(file)!r} has {actual} bytes, {MANIFEST_FILE} records {size} (truncated?)"
-    if unlisted is not None:
-        listed = {name for name, _, _ in entries}
-        for path in _sealed_files(folder):
-            name = path.relative_to(folder).as_posix()
-            if name not in listed and unlisted(name):
-                return f"{str(path)!r} is not listed in {MANIFEST_FILE} (added after the folder was written)"
     if check_hashes:
         for name, _, digest in sorted(entries):
             if file_sha256(folder / name) != digest:
                 file = str(folder / name)
                 return f"{file!r} does not match its SHA-256 in {MANIFEST_FILE} (changed or corrupt)"
     return None
+
+
+def unlisted_files(folder: str | os.PathLike) -> list[str]:
+    """The files under ``folder`` (relative POSIX paths) that its :data:`MANIFEST_FILE` does not list (added
+    after it was sealed); ``[]`` for a folder without a valid manifest."""
+    folder = Path(folder)
+    try:
+        listed = set(json.loads((folder / MANIFEST_FILE).read_text())["files"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return []
+    names = (path.relative_to(folder).as_posix() for path in _sealed_files(folder))
+    return [name for name in names if name not in listed]

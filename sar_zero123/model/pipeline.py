@@ -31,7 +31,7 @@ from diffusers.utils import BaseOutput
 from diffusers.utils.torch_utils import randn_tensor
 from transformers import CLIPVisionModelWithProjection
 
-from sar_zero123.config import MANIFEST_FILE, manifest_problem, write_manifest
+from sar_zero123.config import MANIFEST_FILE, manifest_problem, unlisted_files, write_manifest
 from sar_zero123.domain import signed_to_unit
 from sar_zero123.model.conditioning import (
     POSE_DIM,
@@ -337,8 +337,9 @@ class SARZero123Pipeline(DiffusionPipeline):
                 the message names the component, the file expected and the folder.
             ValueError: For a folder whose JSON is invalid (naming the file), a component whose files
                 do not load (a config that does not fit its weights, a truncated weight file), naming it,
-                or a file that differs from the folder's ``manifest.json`` (changed, truncated, missing, or
-                a weight or config added since), naming it, unless ``verify_manifest=False``.
+                or a file that differs from the folder's ``manifest.json`` (changed, truncated or missing),
+                naming it, unless ``verify_manifest=False``. A weight or config added since is named in a
+                warning.
         """
         if isinstance(pretrained_model_name_or_path, str | os.PathLike) and (
             is_bundled_name(pretrained_model_name_or_path)
@@ -1129,7 +1130,8 @@ def same_depression_pose(pose: torch.Tensor) -> torch.Tensor:
     return same
 
 
-#: Files of a pipeline folder that its manifest must list: what loading reads (weights, configs, scaling).
+#: Files of a pipeline folder that loading may read (weights, configs, scaling): one that its manifest does
+#: not list is named in a warning.
 _SEALED_SUFFIXES = (".json", ".safetensors", ".bin", ".pt", ".pth", ".ckpt", ".pkl", ".py", ".msgpack")
 
 
@@ -1141,7 +1143,11 @@ def _check_manifest(folder: str | os.PathLike, verify: bool) -> None:
             "save it again with save_pretrained to seal it", folder, MANIFEST_FILE,
         )  # fmt: skip
         return
-    problem = manifest_problem(folder, unlisted=lambda name: name.endswith(_SEALED_SUFFIXES))
+    added = [name for name in unlisted_files(folder) if name.endswith(_SEALED_SUFFIXES)]
+    if added:  # files beside the sealed ones (a scaling written after save_pretrained): loaded, named
+        logger.warning("pipeline %s: %s not in its %s (added after it was saved)", folder, added,
+                       MANIFEST_FILE)  # fmt: skip
+    problem = manifest_problem(folder)
     if problem is None:
         return
     if verify:

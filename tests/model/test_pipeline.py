@@ -366,8 +366,9 @@ def test_mismatched_components_are_rejected():
 
 def test_a_pipeline_folder_loads_only_as_it_was_saved(pipe, tmp_path, caplog):
     """save_pretrained seals the folder with manifest.json (size and SHA-256 of every file); from_pretrained
-    refuses a changed, truncated, missing or added weight or config by name, loads it with
-    verify_manifest=False (warning), and loads an older folder without a manifest with a warning."""
+    refuses a changed, truncated or missing weight or config by name, loads it with verify_manifest=False
+    (warning), names a file added since in a warning, and loads an older folder without a manifest with a
+    warning."""
     import json
 
     from sar_zero123.config import MANIFEST_FILE, file_sha256
@@ -401,8 +402,6 @@ def test_a_pipeline_folder_loads_only_as_it_was_saved(pipe, tmp_path, caplog):
         "zeroed": (zero_half, rf"/{weights}' does not match its SHA-256 in manifest.json \(changed"),
         "scheduler": (edit_scheduler, r"scheduler_config.json' has \d+ bytes, manifest.json records"),
         "missing": (lambda f: (f / weights).unlink(), rf"/{weights}', listed in manifest.json, is missing"),
-        "added": (lambda f: (f / "unet" / "extra.safetensors").write_bytes(b"x"),
-                  r"unet/extra.safetensors' is not listed in manifest.json \(added after"),
     }  # fmt: skip
     for name, (edit, words) in cases.items():
         folder = changed(name, edit)
@@ -417,9 +416,12 @@ def test_a_pipeline_folder_loads_only_as_it_was_saved(pipe, tmp_path, caplog):
     SARZero123Pipeline.from_pretrained(tmp_path / "zeroed")
     assert f"has no {MANIFEST_FILE} (saved before manifests)" in caplog.text
     caplog.clear()
-    (tmp_path / "ok" / "notes.md").write_text("a user's notes")  # not a file loading reads: no refusal
+    (tmp_path / "ok" / "notes.md").write_text("a user's notes")  # not a file loading reads: not named
     SARZero123Pipeline.from_pretrained(tmp_path / "ok")
     assert caplog.text == ""
+    (tmp_path / "ok" / "decibel_scaling.json").write_text("{}")  # added after saving: loads, named
+    SARZero123Pipeline.from_pretrained(tmp_path / "ok")
+    assert "['decibel_scaling.json'] not in its manifest.json (added after it was saved)" in caplog.text
 
 
 def test_a_vae_or_unet_from_another_model_is_refused_at_load(pipe, tmp_path):
@@ -470,7 +472,7 @@ def test_a_vae_of_another_shape_than_the_one_trained_with_is_refused_even_when_s
                                          r"block_out_channels \[16, 32, 32\] \(the model was trained with "
                                          r"\[16, 32\]\); scaling_factor 0.5 \(the model was trained with "
                                          r"0.18215\): the vae comes from another model"):  # fmt: skip
-        SARZero123Pipeline.from_pretrained(tmp_path / "swapped")
+        SARZero123Pipeline.from_pretrained(tmp_path / "swapped", verify_manifest=False)
     loaded = SARZero123Pipeline.from_pretrained(tmp_path / "ok")
     assert loaded.pose_projection.config.trained_vae == vae_signature(pipe.vae.config)
     pipe.pose_projection.register_to_config(trained_vae=None)  # the module-scoped fixture as it was
@@ -501,6 +503,7 @@ def test_folder_saved_under_the_old_module_paths_still_loads(pipe, tmp_path):
     model_index = json.loads(index_path.read_text())
     model_index["pose_projection"] = ["sar_zero123.conditioning", "PoseProjection"]
     index_path.write_text(json.dumps(model_index))
+    (tmp_path / "manifest.json").unlink()  # folders of that time had none
     loaded = SARZero123Pipeline.from_pretrained(tmp_path)
     loaded.set_progress_bar_config(disable=True)
     assert type(loaded.pose_projection) is PoseProjection
@@ -688,8 +691,10 @@ def test_a_folder_naming_a_module_outside_the_component_libraries_is_refused_bef
     model_index = json.loads(index_path.read_text())
     model_index["pose_projection"] = ["this", "s"]
     index_path.write_text(json.dumps(model_index))
-    with pytest.raises(ValueError, match=r"listed as this.s; a component must come from one of"):
+    with pytest.raises(ValueError, match=r"model_index.json' has \d+ bytes, manifest.json records"):
         SARZero123Pipeline.from_pretrained(tmp_path)
+    with pytest.raises(ValueError, match=r"listed as this.s; a component must come from one of"):
+        SARZero123Pipeline.from_pretrained(tmp_path, verify_manifest=False)  # the allow-list holds even so
     assert "Beautiful is better than ugly" not in capsys.readouterr().out
 
 
