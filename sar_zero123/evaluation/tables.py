@@ -236,7 +236,9 @@ def plot_lambda_sweep(
 
 
 def plot_speed_error(rows: list[dict[str, Any]], path: Path) -> Path:
-    """Azimuth error and accuracy against images/s, one line per (pipeline, scheduler), points = steps."""
+    """Azimuth error and accuracy against images/s (one standard error as bars), one line per (pipeline,
+    scheduler), points labelled by steps; rows on the speed/azimuth-error Pareto front (``row["pareto"]``)
+    ringed."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -250,7 +252,9 @@ def plot_speed_error(rows: list[dict[str, Any]], path: Path) -> Path:
         points = sorted(points, key=lambda r: r["images_per_s"])
         speed = [p["images_per_s"] for p in points]
         for axis, metric in zip(axes, ("azimuth_error_deg", "accuracy")):
-            axis.plot(speed, [p[metric] for p in points], "o-", label=f"{pipeline} / {scheduler}")
+            errors = [p.get(f"{metric}_se", 0.0) for p in points]
+            axis.errorbar(speed, [p[metric] for p in points], yerr=errors, fmt="o-", capsize=2, markersize=3,
+                          label=f"{pipeline} / {scheduler}")  # fmt: skip
             for p in points:
                 axis.annotate(
                     str(p["steps"]),
@@ -259,6 +263,10 @@ def plot_speed_error(rows: list[dict[str, Any]], path: Path) -> Path:
                     xytext=(3, 3),
                     textcoords="offset points",
                 )
+    front = [r for r in rows if r.get("pareto")]
+    if front:
+        axes[0].scatter([r["images_per_s"] for r in front], [r["azimuth_error_deg"] for r in front], s=90,
+                        facecolors="none", edgecolors="black", label="Pareto front")  # fmt: skip
     axes[0].set_ylabel("azimuth error (deg) ↓")
     axes[1].set_ylabel("accuracy (%) ↑")
     for axis in axes:
@@ -272,16 +280,28 @@ def plot_speed_error(rows: list[dict[str, Any]], path: Path) -> Path:
     return path
 
 
-def speed_markdown(rows: list[dict[str, Any]], device: str) -> str:
-    """Markdown speed/error table."""
+def speed_markdown(rows: list[dict[str, Any]], device: str, memory: str = "resident set size") -> str:
+    """Markdown speed/error table: each error beside its standard error, UNet evaluations per image, peak
+    memory, and the Pareto front of speed against azimuth error; labelled indicative below 256 pairs."""
+    small = any(row["n"] < 256 for row in rows)
     lines = [
-        f"Device: {device}. Points use the seen pairs; images/s counts pipeline calls only.\n",
-        "| Pipeline | Scheduler | Steps | images/s | Az. err. (deg) ↓ | Acc. (%) ↑ | n |",
-        "| --- | --- | --- | --- | --- | --- | --- |",
+        f"Device: {device}. Points use the seen pairs; images/s counts pipeline calls only; peak memory: "
+        f"{memory}; front: on the Pareto front of images/s against azimuth error."
+        + (" **Indicative: fewer than 256 pairs per row** (the standard errors overlap)." if small else "")
+        + "\n",
+        "| Pipeline | Scheduler | Steps | images/s | UNet evals / image | Az. err. (deg) ↓ | Acc. (%) ↑ | "
+        "Peak mem. (MiB) | Front | n |",
+        "| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |",
     ]
     for row in rows:
+        evaluations = row.get("unet_evaluations_per_image")
+        memory_mib = row.get("peak_memory_mib")
         lines.append(
             f"| {row['pipeline']} | {row['scheduler']} | {row['steps']} | {row['images_per_s']:.2f} | "
-            f"{row['azimuth_error_deg']:.1f} | {row['accuracy']:.1f} | {row['n']} |"
+            f"{'-' if evaluations is None else f'{evaluations:.1f}'} | "
+            f"{row['azimuth_error_deg']:.1f} ± {row.get('azimuth_error_deg_se', float('nan')):.1f} | "
+            f"{row['accuracy']:.1f} ± {row.get('accuracy_se', float('nan')):.1f} | "
+            f"{'-' if memory_mib is None else f'{memory_mib:.0f}'} | {'yes' if row.get('pareto') else ''} | "
+            f"{row['n']} |"
         )
     return "\n".join(lines) + "\n"

@@ -36,17 +36,22 @@ from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.evaluation.evaluators import Evaluators, blur_views, load_evaluators
 from sar_zero123.evaluation.protocol import (
     INPUT_COPY,
+    MIN_SPEED_PAIRS,
     PAPER_TABLE3,
     REAL_TARGET,
     SCHEDULERS,
+    SPEED_ERROR_SCORES,
     VAE_ROUND_TRIP,
     PairSet,
+    PeakMemory,
+    UNetImageCount,
     add_gap_closed,
     build_pair_sets,
     check_pipeline_scaling,
     d_el_counts,
     device_name,
     generate_pair_targets,
+    pareto_front,
     same_weights,
     score,
     set_scheduler,
@@ -149,7 +154,7 @@ class EvaluateConfig:
     # rows "real target blurred <s> px": how much detail the evaluators need to read class and pose
     blurred_target_sigmas_px: list[float] = field(default_factory=list)
     steps: list[int] = field(default_factory=list)  # speed/error sweep: step counts (e.g. 10 20 50)
-    schedulers: list[str] = field(default_factory=list)  # speed/error sweep: ddim, dpmsolver++, euler
+    schedulers: list[str] = field(default_factory=list)  # speed/error sweep: ddim, dpmsolver++, euler, unipc
     speed_n: int | None = None  # samples per speed/error point, from the seen pairs (None: all of them)
     image_size: int | None = None  # chip size fed to the pipelines (None: the pipeline's own)
     chip_crop_size: int | None = None  # centre crop of the chip files before resizing
@@ -598,28 +603,38 @@ def _speed_sweep(
                 batch_size=1, device=device, desc=f"{name} {scheduler} warm-up",
             )  # fmt: skip
             for steps in config.steps:
-                images, seconds = generate_pair_targets(
-                    pipe,
-                    pairs,
-                    num_inference_steps=steps,
-                    guidance_scale=config.guidance_scale,
-                    heading_guidance_scale=config.heading_guidance_scale,
-                    depression_guidance_scale=config.depression_guidance_scale,
-                    strength=config.strength,
-                    start_from=config.start_from,
-                    batch_size=config.eval_batch_size,
-                    device=device,
-                    desc=f"{name} {scheduler} {steps} steps",
-                )
+                with UNetImageCount(pipe) as unet_count, PeakMemory(device) as memory:
+                    images, seconds = generate_pair_targets(
+                        pipe,
+                        pairs,
+                        num_inference_steps=steps,
+                        guidance_scale=config.guidance_scale,
+                        heading_guidance_scale=config.heading_guidance_scale,
+                        depression_guidance_scale=config.depression_guidance_scale,
+                        strength=config.strength,
+                        start_from=config.start_from,
+                        batch_size=config.eval_batch_size,
+                        device=device,
+                        desc=f"{name} {scheduler} {steps} steps",
+                    )
                 scores = score(images, pairs, evaluators, **_scoring(config, device))
                 rows.append({
                     "pipeline": name, "scheduler": scheduler, "steps": steps, "n": len(pairs),
-                    "images_per_s": len(pairs) / seconds, "azimuth_error_deg": scores["azimuth_error_deg"],
-                    "accuracy": scores["accuracy"], "ms_ssim": scores["ms_ssim"],
+                    "batch_size": config.eval_batch_size, "images_per_s": len(pairs) / seconds,
+                    "unet_evaluations_per_image": unet_count.samples / len(pairs),
+                    "peak_memory_mib": memory.peak_mib,
+                    **{key: scores[key] for key in SPEED_ERROR_SCORES},
                 })  # fmt: skip
                 logger.info("speed %s", json.dumps(rows[-1]))
         pipe.scheduler = original
-    write_json_atomic({"device": str(device), "rows": rows}, output_dir / "speed_error.json")
-    (output_dir / "speed_error.md").write_text(speed_markdown(rows, device_name(device)))
+    for row, on_front in zip(rows, pareto_front(rows), strict=True):
+        row["pareto"] = on_front
+    memory_kind = "max allocated (CUDA)" if device.type == "cuda" else "resident set size (CPU)"
+    write_json_atomic(
+        {"device": str(device), "device_name": device_name(device), "peak_memory": memory_kind,
+         "indicative": len(pairs) < MIN_SPEED_PAIRS, "rows": rows},
+        output_dir / "speed_error.json",
+    )  # fmt: skip
+    (output_dir / "speed_error.md").write_text(speed_markdown(rows, device_name(device), memory_kind))
     plot_speed_error(rows, output_dir / "speed_error.png")
     return ["speed_error.json", "speed_error.md", "speed_error.png"]

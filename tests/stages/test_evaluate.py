@@ -32,6 +32,7 @@ from sar_zero123.evaluation.protocol import (
     add_gap_closed,
     build_pair_sets,
     gap_closed,
+    pareto_front,
 )
 from sar_zero123.evaluation.tables import table3_markdown
 from sar_zero123.model.build import build_sar_zero123
@@ -186,6 +187,14 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path, monkeypatch, capl
     rows = result["speed_error"]
     assert len(rows) == 2 * 2 * 2 and {row["scheduler"] for row in rows} == {"ddim", "euler"}
     assert all(row["images_per_s"] > 0 and row["n"] == 2 for row in rows)
+    # each row: its cost in UNet evaluations counted (guidance 3: two per step), its peak memory, its
+    # errors' standard errors and whether it is on the front; below 256 pairs the table says indicative
+    for row in rows:
+        assert row["unet_evaluations_per_image"] == 2 * row["steps"] and row["batch_size"] == 2
+        assert row["peak_memory_mib"] > 0 and row["azimuth_error_deg_se"] >= 0 and row["accuracy_se"] >= 0
+    assert [row["pareto"] for row in rows] == pareto_front(rows) and any(row["pareto"] for row in rows)
+    assert json.loads((out / "speed_error.json").read_text())["indicative"] is True
+    assert "Indicative: fewer than 256 pairs per row" in (out / "speed_error.md").read_text()
     assert isinstance(pipe.scheduler, type(get_dummy_components()["scheduler"]))
 
     # the run folder records what made it and is finished only with its last output
@@ -296,6 +305,14 @@ def test_evaluate_rejects_evaluators_for_other_classes(tmp_path: Path) -> None:
     ):
         build_pair_sets(evaluators, data=data, protocol="extended", n=2, image_size=32, work_dir=tmp_path,
                         evaluators_name="evaluators/")  # fmt: skip
+
+
+def test_pareto_front_keeps_the_rows_no_other_row_beats_on_both_speed_and_error() -> None:
+    rows = [{"images_per_s": v, "azimuth_error_deg": e} for v, e in
+            ((1.0, 10.0), (2.0, 12.0), (2.0, 15.0), (4.0, 12.0), (8.0, 30.0), (0.5, 10.0))]  # fmt: skip
+    # (2, 12) is beaten by (4, 12): as accurate and faster; (0.5, 10) by (1, 10)
+    assert pareto_front(rows) == [True, False, False, True, True, False]
+    assert pareto_front(rows[:1]) == [True] and pareto_front([rows[0], dict(rows[0])]) == [True, True]
 
 
 def test_gap_closed_is_the_fraction_between_floor_and_ceiling() -> None:
