@@ -80,6 +80,7 @@ def run(
     workers: int = 2,
     headings: Sequence[float] = (1.5, 3.0),
     fits: str | None = None,
+    steps_sweep: Sequence[int] = (),
 ) -> dict:
     """Every row's template readings on the same pairs; see the module docstring."""
     scaling = DecibelScaling.from_dict(json.loads((resolve_pretrained(pipeline) / SCALING_FILE).read_text()))
@@ -127,7 +128,7 @@ def run(
     base_strength = float(base_recorded["proxy_strength"] or base_recorded["strength"])
     base_heading = float(base_recorded["heading_guidance_scale"])
 
-    def sample(model, views, start, strength, heading_scale) -> tuple[np.ndarray, float]:
+    def sample(model, views, start, strength, heading_scale, num_steps=None) -> tuple[np.ndarray, float]:
         begin, out = time.perf_counter(), []
         for s in range(0, len(sim.pairs), batch_size):
             chunk = slice(s, s + batch_size)
@@ -135,7 +136,7 @@ def run(
             extra = {} if views is None else {"proxy_views": torch.from_numpy(views[chunk])}
             out.append(model(
                 torch.from_numpy(sim.inputs[chunk])[:, None], d_az=sim.d_az[chunk], d_el=0.0,
-                input_depression_deg=INPUT_DEPRESSION_DEG, num_inference_steps=steps,
+                input_depression_deg=INPUT_DEPRESSION_DEG, num_inference_steps=num_steps or steps,
                 guidance_scale=float(recorded["guidance_scale"]), heading_guidance_scale=heading_scale,
                 strength=strength,
                 start_image=None if start is None else torch.from_numpy(start[chunk])[:, None],
@@ -144,9 +145,25 @@ def run(
             ).images[..., 0])  # fmt: skip
         return np.concatenate(out), time.perf_counter() - begin
 
+    start = "from noise" if proxy_strength >= 1.0 else f"from the proxy at {proxy_strength:g}"
+    if steps_sweep:  # the recorded sampler at other step counts only, paired with its own step count
+        add(f"proxy prior, its recorded sampler ({start}, heading {heading:g})",
+            *sample(pipe, fitted, fitted[:, 1], proxy_strength, heading))  # fmt: skip
+        recorded_row = next(n for n in rows if n.startswith("proxy prior, its recorded sampler"))
+        comparisons = {}
+        for count in steps_sweep:
+            name = f"proxy prior, its recorded sampler at {count} steps"
+            add(name, *sample(pipe, fitted, fitted[:, 1], proxy_strength, heading, count))
+            diff = readings[name].azimuth_error_deg - readings[recorded_row].azimuth_error_deg
+            se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
+            comparisons[f"{name} - {recorded_row}"] = {"mean_deg": float(diff.mean()), "se_deg": se}
+            print(f"paired: {count} steps - {steps} steps: {diff.mean():+.1f} ± {se:.1f} deg")
+        return {"benchmark": "proxy_prior_views (issue 63: step counts)", "pipeline": str(pipeline),
+                "recorded_sampler": recorded, "steps": list(steps_sweep), "seed": seed,
+                "paired_azimuth_error_differences": comparisons, "rows": rows,
+                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
     name = f"{baseline}, its recorded sampler, input azimuth given (from its proxy at {base_strength:g}, "
     add(name + f"heading {base_heading:g})", *sample(base, None, fitted[:, 1], base_strength, base_heading))
-    start = "from noise" if proxy_strength >= 1.0 else f"from the proxy at {proxy_strength:g}"
     add(f"proxy prior, its recorded sampler ({start}, heading {heading:g})",
         *sample(pipe, fitted, fitted[:, 1], proxy_strength, heading))  # fmt: skip
     for strength in sorted({0.3, 0.5} - {proxy_strength}):
@@ -206,13 +223,15 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="heading guidance weights of the rows from noise (0 is always one)")
     parser.add_argument("--fits", default=None,
                         help="an .npz to keep the proxy fits in (reused when the pairs and bank match)")
+    parser.add_argument("--steps", nargs="+", type=int, default=[],
+                        help="only the recorded sampler, at its own and at these step counts (paired)")
     parser.add_argument("--out", default="proxy_prior_views.json", help="output JSON")
     args = parser.parse_args(argv)
     if args.pairs_per_class < 2:
         raise ValueError(f"pairs_per_class must be >= 2, got {args.pairs_per_class}")
     record = run(args.pipeline, baseline=args.baseline, pairs_per_class=args.pairs_per_class,
                  batch_size=args.batch_size, seed=args.seed, workers=args.workers, headings=args.headings,
-                 fits=args.fits)  # fmt: skip
+                 fits=args.fits, steps_sweep=args.steps)  # fmt: skip
     write_json_atomic(record, Path(args.out))
     print(format_table(record))
     return record
