@@ -25,24 +25,75 @@ from sar_zero123.domain import center_crop
 
 from .mstar_raw import is_mstar_raw, read_mstar_raw
 
-__all__ = ["IMAGE_SUFFIXES", "MIN_CHIP_SIZE", "center_crop_resize", "load_magnitude"]
+__all__ = ["IMAGE_SUFFIXES", "MAX_CHIP_PIXELS", "MIN_CHIP_SIZE", "center_crop_resize", "load_magnitude"]
 
 IMAGE_SUFFIXES = (".jpeg", ".jpg", ".png", ".tif", ".tiff", ".bmp")
 #: Smallest side (pixels) of an image taken as a chip: below it an image is an icon or a mistake, and
 #: upsampling it would invent the chip (MSTAR chips are 128 to 193 px; the tiny model takes 32 px).
 MIN_CHIP_SIZE = 16
+#: Most pixels a chip file may declare (4096 x 4096): checked from the file's header before any pixel is
+#: decoded, so that a file claiming a huge image (a 20,000 px PNG, an ``.npy`` header of 100,000 x 100,000)
+#: is refused instead of allocating gigabytes. MSTAR chips are 128 to 193 px.
+MAX_CHIP_PIXELS = 4096 * 4096
 # Keys of the complex image in SAMPLE .mat files, in order of preference.
 _MAT_IMAGE_KEYS = ("complex_img", "complex_img_unshifted")
+
+
+def _check_declared_size(path: Path, shape: tuple[int, ...]) -> None:
+    """Refuse a file whose header declares more than :data:`MAX_CHIP_PIXELS` pixels, before decoding."""
+    pixels = int(np.prod([int(n) for n in shape], dtype=object)) if shape else 1
+    if pixels > MAX_CHIP_PIXELS:
+        raise ValueError(
+            f"{path}: the file declares a {' x '.join(str(int(n)) for n in shape)} image ({pixels:,} "
+            f"values); a chip has at most {MAX_CHIP_PIXELS:,} (4096 x 4096): crop the target first"
+        )
+
+
+def _load_npy(path: Path) -> np.ndarray:
+    """An ``.npy`` chip, its header checked (shape, type, and the bytes it needs) before the array is read."""
+    try:
+        with path.open("rb") as handle:
+            version = np.lib.format.read_magic(handle)
+            if version == (1, 0):
+                shape, _, dtype = np.lib.format.read_array_header_1_0(handle)
+            else:  # 2.0, and 3.0 (the same layout with a UTF-8 header)
+                shape, _, dtype = np.lib.format.read_array_header_2_0(handle)
+            offset = handle.tell()
+    except (OSError, ValueError, EOFError) as error:
+        message = f"{path}: cannot read the .npy header ({error}); the file is truncated or corrupt"
+        raise ValueError(message) from None
+    if not (np.issubdtype(dtype, np.floating) or np.issubdtype(dtype, np.integer)):
+        raise ValueError(f"{path}: .npy chip must hold real numbers, got dtype {dtype}")
+    _check_declared_size(path, shape)
+    needed = offset + int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+    if path.stat().st_size < needed:
+        raise ValueError(
+            f"{path}: the .npy header declares {shape} {dtype} ({needed:,} bytes with the header) but the "
+            f"file has {path.stat().st_size:,}; it is truncated"
+        )
+    try:
+        return np.load(path, allow_pickle=False).astype(np.float32)
+    except (OSError, ValueError, EOFError) as error:
+        message = f"{path}: cannot read the .npy array ({error}); the file is truncated or corrupt"
+        raise ValueError(message) from None
 
 
 def _load_image_file(path: Path) -> np.ndarray:
     try:
         with Image.open(path) as image:
+            _check_declared_size(path, (image.height, image.width))  # from the header: nothing decoded yet
             if image.mode in ("RGB", "RGBA", "P", "LA"):
                 # Grayscale stored as colour: the channels are equal for SAR chips; take luminance.
                 image = image.convert("L")
             pixels = np.asarray(image)
-    except (OSError, SyntaxError, ValueError) as error:  # PIL's errors for truncated or foreign bytes
+    except Image.DecompressionBombError as error:  # PIL's own bound, checked as it opens the header
+        raise ValueError(
+            f"{path}: the file declares an image of more than {MAX_CHIP_PIXELS:,} pixels ({error}); a chip "
+            "has at most 4096 x 4096: crop the target first"
+        ) from None
+    except (OSError, SyntaxError, ValueError) as error:
+        if str(error).startswith(f"{path}: the file declares"):
+            raise
         raise ValueError(
             f"{path}: cannot read the {path.suffix} image ({error}); the file is truncated, corrupt or not "
             "an image"
@@ -60,19 +111,33 @@ def _load_image_file(path: Path) -> np.ndarray:
 
 
 def _load_mat(path: Path) -> np.ndarray:
-    from scipy.io import loadmat
+    """A SAMPLE ``.mat`` chip: its variables listed first (names, shapes, types: nothing decoded), the image
+    variable checked for its size and for holding numbers, then only that variable read."""
+    from scipy.io import loadmat, whosmat
     from scipy.io.matlab import MatReadError
 
     try:
-        contents = loadmat(path)
-    except (MatReadError, OSError, ValueError, TypeError) as error:
+        listed = {name: (tuple(shape), kind) for name, shape, kind in whosmat(path)}
+        key = next((k for k in _MAT_IMAGE_KEYS if k in listed), None)
+        if key is None:
+            raise ValueError(
+                f"{path}: .mat file has none of the keys {list(_MAT_IMAGE_KEYS)}; it has {sorted(listed)}"
+            )
+        shape, kind = listed[key]
+        if kind not in ("double", "single", "int8", "uint8", "int16", "uint16", "int32", "uint32", "int64",
+                        "uint64"):  # fmt: skip
+            raise ValueError(f"{path}: .mat variable {key!r} must hold numbers, got MATLAB class {kind!r}")
+        _check_declared_size(path, shape)
+        contents = loadmat(path, variable_names=[key])
+    except ValueError as error:
+        if str(error).startswith(str(path)):
+            raise
         message = f"{path}: cannot read the .mat file ({error}); the file is truncated or corrupt"
         raise ValueError(message) from None
-    for key in _MAT_IMAGE_KEYS:
-        if key in contents:
-            return np.abs(np.asarray(contents[key])).astype(np.float32)
-    keys = sorted(k for k in contents if not k.startswith("__"))
-    raise ValueError(f"{path}: .mat file has none of the keys {list(_MAT_IMAGE_KEYS)}; it has {keys}")
+    except (MatReadError, OSError, TypeError) as error:
+        message = f"{path}: cannot read the .mat file ({error}); the file is truncated or corrupt"
+        raise ValueError(message) from None
+    return np.abs(np.asarray(contents[key])).astype(np.float32)
 
 
 def load_magnitude(path: str | Path) -> np.ndarray:
@@ -89,7 +154,8 @@ def load_magnitude(path: str | Path) -> np.ndarray:
 
     Raises:
         FileNotFoundError: If ``path`` does not exist.
-        ValueError: If the file cannot be read (truncated or corrupt; the message names it), is not a
+        ValueError: If the file cannot be read (truncated or corrupt; the message names it), declares more
+            than :data:`MAX_CHIP_PIXELS` pixels (refused from its header, before decoding), is not a
             single-channel 2-D image, or holds negative or non-finite magnitudes.
     """
     path = Path(path)
@@ -97,14 +163,7 @@ def load_magnitude(path: str | Path) -> np.ndarray:
         raise FileNotFoundError(f"chip file not found: {path}")
     suffix = path.suffix.lower()
     if suffix == ".npy":
-        try:
-            magnitude = np.load(path, allow_pickle=False)
-        except (OSError, ValueError, EOFError) as error:
-            message = f"{path}: cannot read the .npy array ({error}); the file is truncated or corrupt"
-            raise ValueError(message) from None
-        if not (np.issubdtype(magnitude.dtype, np.floating) or np.issubdtype(magnitude.dtype, np.integer)):
-            raise ValueError(f"{path}: .npy chip must hold real numbers, got dtype {magnitude.dtype}")
-        magnitude = magnitude.astype(np.float32)
+        magnitude = _load_npy(path)
     elif suffix == ".mat":
         magnitude = _load_mat(path)
     elif suffix in IMAGE_SUFFIXES:

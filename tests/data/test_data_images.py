@@ -61,6 +61,50 @@ def test_missing_and_unknown_files(tmp_path: Path) -> None:
         load_magnitude(tmp_path / "m.mat")
 
 
+def test_a_file_declaring_a_huge_image_is_refused_from_its_header(tmp_path: Path) -> None:
+    """A 5,000 and a 20,000 px PNG, an .npy header of 100,000 x 100,000 (37 GiB) and a .mat variable of
+    5,000 x 5,000 are refused naming the declared size, before any pixel is decoded; a truncated .npy and a
+    .mat image that holds text are refused by name too; the bound itself still loads."""
+    import tracemalloc
+
+    from scipy.io import savemat
+
+    from sar_zero123.data.images import MAX_CHIP_PIXELS
+
+    Image.new("L", (20_000, 20_000)).save(tmp_path / "bomb.png")  # compresses to a few hundred kB
+    Image.new("L", (5000, 5000)).save(tmp_path / "big.png")
+    header = tmp_path / "header.npy"
+    with header.open("wb") as handle:  # a valid header claiming 100,000 x 100,000 float32, and no data
+        np.lib.format.write_array_header_1_0(handle, {"descr": "<f4", "fortran_order": False,
+                                                      "shape": (100_000, 100_000)})  # fmt: skip
+    savemat(tmp_path / "wide.mat", {"complex_img": np.zeros((5000, 5000), np.complex64)})
+    tracemalloc.start()
+    for name, size in (("big.png", "5000 x 5000"), ("header.npy", "100000 x 100000"),
+                       ("wide.mat", "5000 x 5000")):  # fmt: skip
+        words = rf"{name}: the file declares a {size} image \(.* values\); a chip"
+        with pytest.raises(ValueError, match=words):
+            load_magnitude(tmp_path / name)
+    words = r"bomb.png: the file declares an image of more than 16,777,216 pixels"
+    with pytest.raises(ValueError, match=words):  # above PIL's own bound, which refuses it as it opens
+        load_magnitude(tmp_path / "bomb.png")
+    _, peak = tracemalloc.get_traced_memory()
+    tracemalloc.stop()
+    assert peak < 64 * 2**20  # nothing near the declared sizes was allocated
+    short = tmp_path / "short.npy"
+    np.save(short, np.ones((32, 32), np.float32))
+    short.write_bytes(short.read_bytes()[:-100])
+    words = r"short.npy: the .npy header declares \(32, 32\) float32 .* truncated"
+    with pytest.raises(ValueError, match=words):
+        load_magnitude(short)
+    savemat(tmp_path / "text.mat", {"complex_img": "not an image"})
+    words = r"text.mat: .mat variable 'complex_img' must hold numbers, got .*'char'"
+    with pytest.raises(ValueError, match=words):
+        load_magnitude(tmp_path / "text.mat")
+    side = int(MAX_CHIP_PIXELS**0.5)
+    np.save(tmp_path / "edge.npy", np.zeros((side, side), np.float32))
+    assert load_magnitude(tmp_path / "edge.npy").shape == (side, side)
+
+
 def test_center_crop_keeps_pixels_of_large_chips() -> None:
     image = np.arange(193 * 192, dtype=np.float32).reshape(193, 192)
     out = center_crop_resize(image, size=128)
