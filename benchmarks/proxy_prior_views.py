@@ -81,6 +81,7 @@ def run(
     headings: Sequence[float] = (1.5, 3.0),
     fits: str | None = None,
     steps_sweep: Sequence[int] = (),
+    shortlist: int | None = None,
 ) -> dict:
     """Every row's template readings on the same pairs; see the module docstring."""
     scaling = DecibelScaling.from_dict(json.loads((resolve_pretrained(pipeline) / SCALING_FILE).read_text()))
@@ -105,6 +106,8 @@ def run(
     add("input copy (floor)", sim.inputs, 0.0)
     add("true view, another speckle draw (ceiling)", sim.truth, 0.0)
     proxy = check_proxy_settings(pipe.config.proxy)
+    if shortlist is not None:  # the fits made in two stages (sar_zero123.sim.proxy.ProxyBank's shortlist)
+        proxy = check_proxy_settings({**proxy, "shortlist": shortlist})
     key = json.dumps({"proxy": proxy, "pairs_per_class": pairs_per_class, "seed": seed}, sort_keys=True)
     cached = None if fits is None or not Path(fits).is_file() else np.load(fits)
     if cached is not None and str(cached["key"]) == key:  # the same pairs and bank: the same fits
@@ -159,7 +162,7 @@ def run(
             comparisons[f"{name} - {recorded_row}"] = {"mean_deg": float(diff.mean()), "se_deg": se}
             print(f"paired: {count} steps - {steps} steps: {diff.mean():+.1f} ± {se:.1f} deg")
         return {"benchmark": "proxy_prior_views (issue 63: step counts)", "pipeline": str(pipeline),
-                "recorded_sampler": recorded, "steps": list(steps_sweep), "seed": seed,
+                "recorded_sampler": recorded, "steps": list(steps_sweep), "seed": seed, "proxy": proxy,
                 "paired_azimuth_error_differences": comparisons, "rows": rows,
                 "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
     name = f"{baseline}, its recorded sampler, input azimuth given (from its proxy at {base_strength:g}, "
@@ -225,13 +228,15 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="an .npz to keep the proxy fits in (reused when the pairs and bank match)")
     parser.add_argument("--steps", nargs="+", type=int, default=[],
                         help="only the recorded sampler, at its own and at these step counts (paired)")
+    parser.add_argument("--shortlist", type=int, default=None,
+                        help="fit in two stages, this many vehicles re-rendered at the exact pose")
     parser.add_argument("--out", default="proxy_prior_views.json", help="output JSON")
     args = parser.parse_args(argv)
     if args.pairs_per_class < 2:
         raise ValueError(f"pairs_per_class must be >= 2, got {args.pairs_per_class}")
     record = run(args.pipeline, baseline=args.baseline, pairs_per_class=args.pairs_per_class,
                  batch_size=args.batch_size, seed=args.seed, workers=args.workers, headings=args.headings,
-                 fits=args.fits, steps_sweep=args.steps)  # fmt: skip
+                 fits=args.fits, steps_sweep=args.steps, shortlist=args.shortlist)  # fmt: skip
     write_json_atomic(record, Path(args.out))
     print(format_table(record))
     return record

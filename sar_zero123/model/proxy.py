@@ -28,12 +28,13 @@ __all__ = ["DEFAULT_PROXY", "PROXY_FIELDS", "check_proxy_settings", "draft_targe
 #: What a pipeline records of its proxy: the bank (:class:`ProxyBank`'s arguments) and the decibel bounds
 #: of its normalised dB domain (``decibel_scaling.json``).
 PROXY_FIELDS = (
-    "num_vehicles", "first_seed", "blur_sigma_px", "render_seed", "max_shift_px", "min_db", "max_db"
+    "num_vehicles", "first_seed", "blur_sigma_px", "render_seed", "max_shift_px", "shortlist", "min_db",
+    "max_db",
 )  # fmt: skip
 #: The fields that build the bank (:class:`ProxyBank`'s arguments, in order).
-_BANK_FIELDS = PROXY_FIELDS[:5]
+_BANK_FIELDS = PROXY_FIELDS[:6]
 #: Fields a record may leave out, and their values (records written before they existed).
-_PROXY_OPTIONAL = {"max_shift_px": 0}
+_PROXY_OPTIONAL = {"max_shift_px": 0, "shortlist": 0}
 #: The bank the bundled priors record (docs/results/proxy.md measures 250 against 1,000 vehicles).
 DEFAULT_PROXY: dict[str, Any] = {
     "num_vehicles": 1000,
@@ -41,6 +42,7 @@ DEFAULT_PROXY: dict[str, Any] = {
     "blur_sigma_px": 1.5,
     "render_seed": 0,
     "max_shift_px": 0,
+    "shortlist": 0,
     "min_db": -60.0,
     "max_db": 0.0,
 }
@@ -75,10 +77,11 @@ def check_proxy_settings(proxy: Mapping[str, Any], name: str = "proxy") -> dict[
 
 @functools.lru_cache(maxsize=4)
 def proxy_bank(
-    num_vehicles: int, first_seed: int, blur_sigma_px: float, render_seed: int, max_shift_px: int = 0
+    num_vehicles: int, first_seed: int, blur_sigma_px: float, render_seed: int, max_shift_px: int = 0,
+    shortlist: int = 0,
 ) -> ProxyBank:
     """The bank for these settings, shared within a process (its vehicles are built once)."""
-    return ProxyBank(num_vehicles, first_seed, blur_sigma_px, render_seed, max_shift_px)
+    return ProxyBank(num_vehicles, first_seed, blur_sigma_px, render_seed, max_shift_px, shortlist)
 
 
 @functools.lru_cache(maxsize=1024)

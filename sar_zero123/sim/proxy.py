@@ -16,6 +16,7 @@ takes about 2-3 ms on one core, so a retrieval over ``num_vehicles`` vehicles co
 
 from __future__ import annotations
 
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -27,12 +28,20 @@ from sar_zero123.sim.procedural import make_procedural_target
 from sar_zero123.sim.render import render_chip
 from sar_zero123.sim.targets import Target
 
-__all__ = ["PROXY_FIRST_SEED", "ProxyBank", "ProxyMatch", "blurred_correlation", "shifted_correlation"]
+__all__ = [
+    "POSE_BUCKET_DEG", "PROXY_FIRST_SEED", "ProxyBank", "ProxyMatch", "blurred_correlation",
+    "shifted_correlation",
+]  # fmt: skip
 
 #: First procedural seed of the default bank: above every seed a prior corpus of this package draws
 #: (``write_prior_corpus`` numbers its vehicles from 0), so a bank vehicle is never a training vehicle.
 PROXY_FIRST_SEED = 1_000_000
 _MAX_BANK = 100_000
+#: A shortlisting bank renders every vehicle once per pose bucket of this many degrees (azimuth and
+#: depression) and keeps the renders for the chips near that pose.
+POSE_BUCKET_DEG = 5.0
+#: Pose buckets kept per bank (each about 2 MB for 1,000 vehicles at 64 px), the least recently used dropped.
+_MAX_POSE_BUCKETS = 64
 
 
 def blurred_correlation(chip: np.ndarray, renders: np.ndarray, blur_sigma_px: float) -> np.ndarray:
@@ -146,9 +155,16 @@ class ProxyBank:
             on every call.
         max_shift_px: Largest shift (pixels, each axis) of a render onto the chip's target in the fit
             (:func:`shifted_correlation`); 0 compares the chips as they lie.
+        shortlist: 0 fits exhaustively: every vehicle rendered at the chip's exact pose. ``k > 0`` fits in
+            two stages: every vehicle rendered once at the centre of the chip's pose bucket
+            (:data:`POSE_BUCKET_DEG`; kept for the next chips near that pose), the ``k`` best by a coarse
+            correlation (blurred, 2 x 2 pooled) rendered again at the exact pose and scored as the
+            exhaustive fit scores them; the others score ``-inf``. Over a dataset, whose chips share a few
+            dozen pose buckets, a fit then costs ``k`` renders instead of ``num_vehicles``.
 
     Raises:
-        ValueError: Naming the argument, for a size outside [1, 100000], a negative seed or blur.
+        ValueError: Naming the argument, for a size outside [1, 100000], a negative seed or blur, or a
+            shortlist outside [0, num_vehicles].
     """
 
     def __init__(
@@ -158,6 +174,7 @@ class ProxyBank:
         blur_sigma_px: float = 1.5,
         render_seed: int = 0,
         max_shift_px: int = 0,
+        shortlist: int = 0,
     ) -> None:
         if isinstance(max_shift_px, bool) or int(max_shift_px) != max_shift_px or not 0 <= max_shift_px <= 16:
             raise ValueError(f"max_shift_px: expected an integer in [0, 16], got {max_shift_px!r}")
@@ -177,8 +194,14 @@ class ProxyBank:
         self.first_seed = int(first_seed)
         self.blur_sigma_px = float(blur_sigma_px)
         self.render_seed = int(render_seed)
+        if isinstance(shortlist, bool) or int(shortlist) != shortlist or not 0 <= shortlist <= num_vehicles:
+            raise ValueError(
+                f"shortlist: expected an integer in [0, num_vehicles = {num_vehicles}], got {shortlist!r}"
+            )
         self.max_shift_px = int(max_shift_px)
+        self.shortlist = int(shortlist)
         self._targets: dict[int, Target] = {}
+        self._buckets: OrderedDict[tuple[int, int, int], np.ndarray] = OrderedDict()
 
     def target(self, index: int) -> Target:
         """Bank vehicle ``index`` (built on first use, then kept)."""
@@ -244,13 +267,53 @@ class ProxyBank:
         if chip.ndim != 2 or chip.shape[0] != chip.shape[1] or not np.isfinite(chip).all():
             raise ValueError(f"chip_decibels: expected a finite square (S, S) image, got shape {chip.shape}")
         size = chip.shape[0]
-        renders = np.stack(
-            [to_decibels(self.render(k, azimuth_deg, depression_deg, size)) for k in range(self.num_vehicles)]
-        )
-        scores, shifts = shifted_correlation(chip, renders, self.blur_sigma_px, self.max_shift_px)
         excluded = [int(k) for k in exclude if 0 <= int(k) < self.num_vehicles]
+        candidates = np.arange(self.num_vehicles)
+        if self.shortlist:  # the vehicles that fit best near this pose, then the exact fit among them
+            features = self._bucket_features(azimuth_deg, depression_deg, size)
+            coarse = features @ self._coarse_features(chip[None])[0]
+            coarse[excluded] = -np.inf
+            candidates = np.sort(np.argsort(-coarse, kind="stable")[: self.shortlist])
+        renders = np.stack(
+            [to_decibels(self.render(int(k), azimuth_deg, depression_deg, size)) for k in candidates]
+        )
+        found, found_shifts = shifted_correlation(chip, renders, self.blur_sigma_px, self.max_shift_px)
+        scores = np.full(self.num_vehicles, -np.inf)
+        shifts = np.zeros((self.num_vehicles, 2), dtype=np.int64)
+        scores[candidates], shifts[candidates] = found, found_shifts
         scores[excluded] = -np.inf
         return scores, shifts
+
+    def _coarse_features(self, images: np.ndarray) -> np.ndarray:
+        """Blurred, 2 x 2 average-pooled, mean-free, unit-norm images ``(N, S * S / 4)`` float32: their dot
+        products are the Pearson correlations of the pooled images (any affine map of decibels alike)."""
+        images = np.asarray(images, dtype=np.float64)
+        if self.blur_sigma_px > 0:
+            images = gaussian_filter(images, (0.0, self.blur_sigma_px, self.blur_sigma_px))
+        n, size = images.shape[0], images.shape[-1] // 2 * 2
+        pooled = images[:, :size, :size].reshape(n, size // 2, 2, size // 2, 2).mean(axis=(2, 4))
+        pooled = pooled.reshape(n, -1)
+        pooled -= pooled.mean(axis=1, keepdims=True)
+        norm = np.linalg.norm(pooled, axis=1, keepdims=True)
+        return np.where(norm > 0, pooled / np.maximum(norm, 1e-300), 0.0).astype(np.float32)
+
+    def _bucket_features(self, azimuth_deg: float, depression_deg: float, size: int) -> np.ndarray:
+        """Every vehicle's coarse features at the centre of the pose's bucket (rendered once, then kept)."""
+        turns = int(round(360.0 / POSE_BUCKET_DEG))
+        key = (int(round(float(azimuth_deg) / POSE_BUCKET_DEG)) % turns,
+               int(round(float(depression_deg) / POSE_BUCKET_DEG)), int(size))  # fmt: skip
+        if key in self._buckets:
+            self._buckets.move_to_end(key)
+            return self._buckets[key]
+        azimuth = key[0] * POSE_BUCKET_DEG
+        depression = min(max(key[1] * POSE_BUCKET_DEG, 1.0), 89.0)
+        renders = np.stack(
+            [to_decibels(self.render(k, azimuth, depression, size)) for k in range(self.num_vehicles)]
+        )
+        self._buckets[key] = self._coarse_features(renders)
+        while len(self._buckets) > _MAX_POSE_BUCKETS:
+            self._buckets.popitem(last=False)
+        return self._buckets[key]
 
     def retrieve(
         self,

@@ -43,6 +43,39 @@ def test_a_bank_vehicle_under_other_clutter_retrieves_itself_and_leave_one_out_r
         assert bank.scores(chip, azimuth, depression, exclude=[k])[k] == -np.inf
 
 
+def test_a_shortlist_fit_scores_its_candidates_as_the_exhaustive_fit_and_renders_a_bucket_once(
+    monkeypatch,
+):
+    """shortlist=k: every vehicle rendered once at the pose bucket's centre (kept for the next chip near that
+    pose), the k best re-rendered at the exact pose and scored exactly as the exhaustive fit scores them; the
+    others score -inf; an excluded vehicle is never shortlisted."""
+    exhaustive, short = ProxyBank(num_vehicles=12), ProxyBank(num_vehicles=12, shortlist=4)
+    target = make_procedural_target(PROXY_FIRST_SEED + 7)
+    chip = to_decibels(render_chip(target, 38.0, 17.0, 32, np.random.default_rng(5)))
+    renders = []
+    original = ProxyBank.render
+
+    def counted(self, *args, **kwargs):
+        renders.append(args[1:3])
+        return original(self, *args, **kwargs)
+
+    monkeypatch.setattr(ProxyBank, "render", counted)
+    expected = exhaustive.scores(chip, 38.0, 17.0)
+    assert len(renders) == 12 and set(renders) == {(38.0, 17.0)}
+    renders.clear()
+    got = short.scores(chip, 38.0, 17.0)
+    assert renders[:12] == [(40.0, 15.0)] * 12 and renders[12:] == [(38.0, 17.0)] * 4  # bucket, then exact
+    kept = np.isfinite(got)
+    assert kept.sum() == 4 and kept[7] and int(np.argmax(got)) == int(np.argmax(expected)) == 7
+    np.testing.assert_allclose(got[kept], expected[kept], rtol=0, atol=1e-12)
+    renders.clear()
+    match = short.retrieve(chip, 41.0, 16.0, exclude=[7])  # the same bucket: only the shortlist rendered
+    assert renders == [(41.0, 16.0)] * 4 and match.index != 7
+    words = r"shortlist: expected an integer in \[0, num_vehicles = 12\], got 13"
+    with pytest.raises(ValueError, match=words):
+        ProxyBank(num_vehicles=12, shortlist=13)
+
+
 def test_renders_are_the_same_bytes_on_every_call_and_turn_with_the_azimuth():
     bank = ProxyBank(num_vehicles=2, render_seed=3)
     first = bank.render(1, 30.0, 17.0, 64)
