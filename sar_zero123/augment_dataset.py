@@ -61,6 +61,7 @@ from sar_zero123.model.pipeline import (
     SARZero123Pipeline,
     check_sampler_start,
 )
+from sar_zero123.model.proxy import DATASET_SHORTLIST, with_shortlist
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import check_options_folder, content_identity, field_defaults, move_aside
@@ -397,6 +398,7 @@ def _recorded_options(config: AugmentConfig) -> dict[str, Any]:
     if not folder.is_dir():
         raise FileNotFoundError(f"pipeline: {config.pipeline!r} is neither a bundled name nor a folder")
     options[PIPELINE_DIGEST] = content_identity(folder)
+    options["proxy_shortlist"] = DATASET_SHORTLIST  # how a proxy pipeline's fits are made (two stages)
     return options
 
 
@@ -526,6 +528,8 @@ def augment_dataset(config: AugmentConfig) -> Path:
     # 2. the pipeline, and every check that can fail before generating
     pipe = SARZero123Pipeline.from_pretrained(config.pipeline).to(config.device)
     pipe.set_progress_bar_config(disable=True)
+    if getattr(pipe.config, "proxy", None) is not None:  # a dataset's fits share pose buckets: shortlisted
+        pipe.register_to_config(proxy=with_shortlist(pipe.config.proxy))
     scheduler_class, overrides = SCHEDULERS[config.scheduler]
     pipe.scheduler = scheduler_class.from_config(pipe.scheduler.config, **overrides)
     size = pipe.default_image_size

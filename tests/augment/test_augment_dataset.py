@@ -182,6 +182,52 @@ def test_strength_starts_from_the_chip_and_is_recorded(augmented, data_dir, pipe
         main(run_args(data_dir, pipeline_dir, tmp_path / "few", "--strength", "0.1"))
 
 
+def test_a_proxy_pipeline_fits_a_datasets_chips_through_a_shortlist(data_dir, tmp_path, monkeypatch):
+    """A pipeline that records an exhaustive proxy fit: augment fits its chips in two stages
+    (DATASET_SHORTLIST, at most the bank), at each chip's index pose, and records it; each view is the
+    pipeline's call with those settings."""
+    from sar_zero123.model import proxy as proxy_module
+    from sar_zero123.model.proxy import DATASET_SHORTLIST, with_shortlist
+
+    proxy = {"num_vehicles": 3, "first_seed": 1_000_000, "blur_sigma_px": 1.5, "render_seed": 0,
+             "min_db": -60.0, "max_db": 0.0}  # fmt: skip
+    folder = tmp_path / "proxy_pipeline"
+    pipe = build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True)
+    SARZero123Pipeline(**pipe.components, proxy=proxy,
+                       sampler={"start_from": "proxy", "strength": 0.5}).save_pretrained(folder)  # fmt: skip
+    (folder / SCALING_FILE).write_text(json.dumps(DecibelScaling.for_unit_magnitude().to_dict()))
+    fits = []
+    original = proxy_module._fit
+
+    def spy(settings, *args):
+        fits.append(settings)
+        return original(settings, *args)
+
+    monkeypatch.setattr(proxy_module, "_fit", spy)
+    out = main(["--data", str(data_dir), "--pipeline", str(folder), "--out", str(tmp_path / "out"),
+                "--d_az", "90", "--classes", "APC", "--max_chips_per_class", "1",
+                "--num_inference_steps", "2"])  # fmt: skip
+    assert json.loads((out / AUGMENT_FILE).read_text())["proxy_shortlist"] == DATASET_SHORTLIST
+    assert fits and {settings[5] for settings in fits} == {3}  # the shortlist, at most the bank's 3 vehicles
+    monkeypatch.undo()
+    assert with_shortlist(proxy)["shortlist"] == 3 and with_shortlist(None) is None
+    assert with_shortlist({**proxy, "shortlist": 2})["shortlist"] == 2  # a recorded shortlist is kept
+    loaded = SARZero123Pipeline.from_pretrained(folder)
+    loaded.set_progress_bar_config(disable=True)
+    loaded.register_to_config(proxy=with_shortlist(loaded.config.proxy))
+    (row,) = read_csv(out / PROVENANCE_FILE)
+    record = next(r for r in read_csv(data_dir / "index.csv") if r["path"] == row["source_path"])
+    chip_config = GenerateConfig(pipeline=str(folder), image=str(data_dir / row["source_path"]))
+    chip = torch.from_numpy(load_input_chip(chip_config, loaded.default_image_size))[None, None]
+    row_index, request = (int(part[1:]) for part in Path(row["path"]).stem.split("_")[-2:])
+    expected = loaded(chip, d_az=90.0, d_el=0.0, input_depression_deg=17.0, num_inference_steps=2,
+                      input_azimuth_deg=float(record["azimuth_deg"]),
+                      generator=view_generator(0, row_index, request),
+                      output_type="np").images[0, ..., 0]  # fmt: skip
+    view = DecibelScaling.for_unit_magnitude().normalize(np.load(out / row["path"]).astype(np.float64))
+    np.testing.assert_allclose(view, expected, atol=1e-4)
+
+
 def test_refuses_a_folder_of_other_options_or_other_files(augmented, data_dir, pipeline_dir, tmp_path):
     out = tmp_path / "out"
     shutil.copytree(augmented, out)
