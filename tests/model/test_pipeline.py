@@ -643,7 +643,7 @@ def test_the_proxy_start_is_the_simulator_draft_at_the_requested_pose(tmp_path):
     # the proxy settings travel with the pipeline
     pipe.save_pretrained(tmp_path)
     loaded = SARZero123Pipeline.from_pretrained(tmp_path)
-    assert loaded.config.proxy == SMALL_PROXY
+    assert loaded.config.proxy == {**SMALL_PROXY, "shortlist": 0}  # recorded with the field it left out
     # refusals name what to pass
     with pytest.raises(ValueError, match=r"`input_depression_deg`: start_from='proxy' fits"):
         run(pipe, images, start_from="proxy", input_azimuth_deg=10.0, **kwargs)
@@ -706,7 +706,7 @@ def test_one_chip_asked_for_several_views_is_fitted_once(monkeypatch):
     _fit.cache_clear()
 
     bank = proxy_bank(*(SMALL_PROXY[key] for key in ("num_vehicles", "first_seed", "blur_sigma_px",
-                                                      "render_seed", "max_shift_px")))  # fmt: skip
+                                                      "render_seed", "max_shift_px")), 0)  # fmt: skip
     calls = []
     original = bank.scores_and_shifts
     monkeypatch.setattr(bank, "scores_and_shifts", lambda *a, **k: calls.append(a) or original(*a, **k))
