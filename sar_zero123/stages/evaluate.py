@@ -503,6 +503,15 @@ def _score_speckled(
     results.setdefault(f"{row} + speckle", {})[group] = scores
 
 
+def _sampler(config: EvaluateConfig) -> dict[str, Any]:
+    """How every row samples (:func:`generate_pair_targets`' arguments besides the step count)."""
+    return {
+        "guidance_scale": config.guidance_scale, "heading_guidance_scale": config.heading_guidance_scale,
+        "depression_guidance_scale": config.depression_guidance_scale, "strength": config.strength,
+        "start_from": config.start_from, "batch_size": config.eval_batch_size,
+    }  # fmt: skip
+
+
 def _score_pipelines(
     config: EvaluateConfig,
     pipes: dict[str, SARZero123Pipeline],
@@ -517,18 +526,9 @@ def _score_pipelines(
         results[name], generated[name] = {}, {}
         for group, pairs in pair_sets.items():
             images, seconds = generate_pair_targets(
-                pipe,
-                pairs,
-                num_inference_steps=config.num_inference_steps,
-                guidance_scale=config.guidance_scale,
-                heading_guidance_scale=config.heading_guidance_scale,
-                depression_guidance_scale=config.depression_guidance_scale,
-                strength=config.strength,
-                start_from=config.start_from,
-                batch_size=config.eval_batch_size,
-                device=device,
-                desc=f"{name} {group}",
-            )
+                pipe, pairs, num_inference_steps=config.num_inference_steps, device=device,
+                desc=f"{name} {group}", **_sampler(config),
+            )  # fmt: skip
             generated[name][group] = images
             scores = score(images, pairs, evaluators, **_scoring(config, device))
             results[name][group] = {**scores, "seconds": seconds}
@@ -605,18 +605,9 @@ def _speed_sweep(
             for steps in config.steps:
                 with UNetImageCount(pipe) as unet_count, PeakMemory(device) as memory:
                     images, seconds = generate_pair_targets(
-                        pipe,
-                        pairs,
-                        num_inference_steps=steps,
-                        guidance_scale=config.guidance_scale,
-                        heading_guidance_scale=config.heading_guidance_scale,
-                        depression_guidance_scale=config.depression_guidance_scale,
-                        strength=config.strength,
-                        start_from=config.start_from,
-                        batch_size=config.eval_batch_size,
-                        device=device,
-                        desc=f"{name} {scheduler} {steps} steps",
-                    )
+                        pipe, pairs, num_inference_steps=steps, device=device,
+                        desc=f"{name} {scheduler} {steps} steps", **_sampler(config),
+                    )  # fmt: skip
                 scores = score(images, pairs, evaluators, **_scoring(config, device))
                 rows.append({
                     "pipeline": name, "scheduler": scheduler, "steps": steps, "n": len(pairs),

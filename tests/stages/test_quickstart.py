@@ -63,19 +63,24 @@ def test_every_stage_config_is_built_before_any_work(tmp_path: Path) -> None:
     assert not out.exists()
 
 
+def _planned(out: Path, override: list[str]) -> tuple[list[str], dict]:
+    """The smoke preset with ``override`` planned into ``out``: the stages between SimCLR and the
+    evaluators, and every stage's config by name."""
+    plans = quickstart.plan_stages(
+        quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=override)
+    )
+    names = [plan.name for plan in plans]
+    return names[names.index("simclr") + 1 : names.index("evaluators")], {p.name: p.config for p in plans}
+
+
 def test_a_prior_with_a_decoder_fine_tune_plans_the_decoder_before_the_fine_tunes(tmp_path: Path) -> None:
     """vae_decoder_steps > 0 adds the "vae decoder" stage (the prior's decoder alone, the SimCLR encoder's
     feature loss); every fine-tune decodes with it, and eval_speckle_looks reaches the evaluation."""
     out = tmp_path / "run"
     override = ["prior=sar-zero123/sim-prior", "vae_decoder_steps=3", "vae_feature_loss_weight=0.5",
                 "eval_speckle_looks=1", "image_size=64"]  # fmt: skip
-    plans = quickstart.plan_stages(
-        quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=override)
-    )
-    names = [plan.name for plan in plans]
-    assert names[names.index("simclr") + 1 : names.index("evaluators")] == [
-        "vae decoder", "finetune lambda=0", "finetune lambda=4"]  # fmt: skip
-    by_name = {plan.name: plan.config for plan in plans}
+    between, by_name = _planned(out, override)
+    assert between == ["vae decoder", "finetune lambda=0", "finetune lambda=4"]
     decoder = by_name["vae decoder"]
     assert decoder.pretrained == "sar-zero123/sim-prior" and decoder.train_encoder is False
     assert decoder.feature_loss_weight == 0.5 and decoder.feature_encoder == str(out / "simclr" / "encoder")
@@ -109,13 +114,8 @@ def test_rehearsal_vehicles_plan_a_corpus_stage_that_every_fine_tune_rehearses(t
     out = tmp_path / "run"
     override = ["prior=sar-zero123/sim-prior", "image_size=64", "rehearsal_vehicles=3",
                 "rehearsal_fraction=0.5"]  # fmt: skip
-    plans = quickstart.plan_stages(
-        quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=override)
-    )
-    names = [plan.name for plan in plans]
-    assert names[names.index("simclr") + 1 : names.index("evaluators")] == [
-        "rehearsal corpus", "finetune lambda=0", "finetune lambda=4"]  # fmt: skip
-    by_name = {plan.name: plan.config for plan in plans}
+    between, by_name = _planned(out, override)
+    assert between == ["rehearsal corpus", "finetune lambda=0", "finetune lambda=4"]
     corpus = by_name["rehearsal corpus"]
     assert (corpus.num_vehicles, corpus.num_validation_vehicles, corpus.size) == (3, 1, 64)
     for name in ("finetune lambda=0", "finetune lambda=4"):
@@ -158,13 +158,8 @@ def test_a_proxy_prior_plans_a_proxies_stage_that_every_fine_tune_conditions_on(
     The stage writes the proxies into its own folder and a second run finds them finished."""
     out = tmp_path / "run"
     override = ["prior=sar-zero123/sim-prior-proxy", "image_size=64", "eval_start_from='proxy'"]
-    plans = quickstart.plan_stages(
-        quickstart.QuickstartConfig(output_dir=str(out), preset="smoke", override=override)
-    )
-    names = [plan.name for plan in plans]
-    assert names[names.index("simclr") + 1 : names.index("evaluators")] == [
-        "proxies", "finetune lambda=0", "finetune lambda=4"]  # fmt: skip
-    by_name = {plan.name: plan.config for plan in plans}
+    between, by_name = _planned(out, override)
+    assert between == ["proxies", "finetune lambda=0", "finetune lambda=4"]
     stage = by_name["proxies"]
     assert (stage.data, stage.output_dir) == (str(out / "data"), str(out / "proxies"))
     for name in ("finetune lambda=0", "finetune lambda=4"):
