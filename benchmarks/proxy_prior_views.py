@@ -154,13 +154,26 @@ def run(
             *sample(pipe, fitted, fitted[:, 1], proxy_strength, heading))  # fmt: skip
         recorded_row = next(n for n in rows if n.startswith("proxy prior, its recorded sampler"))
         comparisons = {}
+        # the baseline's two recorded samplers: from its proxy (azimuth given) and from noise (no azimuth)
+        base_steps = int(base_recorded["num_inference_steps"])
+        base_rows = {"from its proxy": (fitted[:, 1], base_strength),
+                     "from noise, no azimuth": (None, 1.0)}  # fmt: skip
+        for label, (start_views, strength) in base_rows.items():
+            views, seconds = sample(base, None, start_views, strength, base_heading, base_steps)
+            add(f"{baseline}, recorded sampler {label}", views, seconds)
         for count in steps_sweep:
             name = f"proxy prior, its recorded sampler at {count} steps"
             add(name, *sample(pipe, fitted, fitted[:, 1], proxy_strength, heading, count))
-            diff = readings[name].azimuth_error_deg - readings[recorded_row].azimuth_error_deg
-            se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
-            comparisons[f"{name} - {recorded_row}"] = {"mean_deg": float(diff.mean()), "se_deg": se}
-            print(f"paired: {count} steps - {steps} steps: {diff.mean():+.1f} ± {se:.1f} deg")
+            pairs_of_rows = [(name, recorded_row)]
+            for label, (start_views, strength) in base_rows.items():
+                other = f"{baseline}, recorded sampler {label} at {count} steps"
+                add(other, *sample(base, None, start_views, strength, base_heading, count))
+                pairs_of_rows.append((other, f"{baseline}, recorded sampler {label}"))
+            for first, second in pairs_of_rows:
+                diff = readings[first].azimuth_error_deg - readings[second].azimuth_error_deg
+                se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
+                comparisons[f"{first} - {second}"] = {"mean_deg": float(diff.mean()), "se_deg": se}
+                print(f"paired: {first} - {second}: {diff.mean():+.1f} ± {se:.1f} deg")
         return {"benchmark": "proxy_prior_views (issue 63: step counts)", "pipeline": str(pipeline),
                 "recorded_sampler": recorded, "steps": list(steps_sweep), "seed": seed, "proxy": proxy,
                 "paired_azimuth_error_differences": comparisons, "rows": rows,
