@@ -82,6 +82,7 @@ def run(
     fits: str | None = None,
     steps_sweep: Sequence[int] = (),
     shortlist: int | None = None,
+    bank_size: int | None = None,
 ) -> dict:
     """Every row's template readings on the same pairs; see the module docstring."""
     scaling = DecibelScaling.from_dict(json.loads((resolve_pretrained(pipeline) / SCALING_FILE).read_text()))
@@ -106,6 +107,8 @@ def run(
     add("input copy (floor)", sim.inputs, 0.0)
     add("true view, another speckle draw (ceiling)", sim.truth, 0.0)
     proxy = check_proxy_settings(pipe.config.proxy)
+    if bank_size is not None:  # another bank than the pipeline's (its first bank_size vehicles)
+        proxy = check_proxy_settings({**proxy, "num_vehicles": bank_size})
     if shortlist is not None:  # the fits made in two stages (sar_zero123.sim.proxy.ProxyBank's shortlist)
         proxy = check_proxy_settings({**proxy, "shortlist": shortlist})
     key = json.dumps({"proxy": proxy, "pairs_per_class": pairs_per_class, "seed": seed}, sort_keys=True)
@@ -243,13 +246,16 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="only the recorded sampler, at its own and at these step counts (paired)")
     parser.add_argument("--shortlist", type=int, default=None,
                         help="fit in two stages, this many vehicles re-rendered at the exact pose")
+    parser.add_argument("--bank_size", type=int, default=None,
+                        help="fit with a bank of this many vehicles (default: the pipeline's)")
     parser.add_argument("--out", default="proxy_prior_views.json", help="output JSON")
     args = parser.parse_args(argv)
     if args.pairs_per_class < 2:
         raise ValueError(f"pairs_per_class must be >= 2, got {args.pairs_per_class}")
     record = run(args.pipeline, baseline=args.baseline, pairs_per_class=args.pairs_per_class,
                  batch_size=args.batch_size, seed=args.seed, workers=args.workers, headings=args.headings,
-                 fits=args.fits, steps_sweep=args.steps, shortlist=args.shortlist)  # fmt: skip
+                 fits=args.fits, steps_sweep=args.steps, shortlist=args.shortlist,
+                 bank_size=args.bank_size)  # fmt: skip
     write_json_atomic(record, Path(args.out))
     print(format_table(record))
     return record
