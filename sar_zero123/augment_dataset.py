@@ -40,7 +40,6 @@ from typing import Any, Literal
 
 import numpy as np
 import torch
-from diffusers import DDIMScheduler, DPMSolverMultistepScheduler, EulerDiscreteScheduler
 
 from sar_zero123.augment import rayleigh_speckle
 from sar_zero123.augment.codomain import readd_speckle
@@ -58,6 +57,7 @@ from sar_zero123.model.pipeline import (
     MAX_ABS_D_AZ_DEG,
     MAX_ABS_D_EL_DEG,
     MAX_GUIDANCE_SCALE,
+    SCHEDULERS,
     SARZero123Pipeline,
     check_sampler_start,
 )
@@ -93,12 +93,6 @@ PIPELINE_DIGEST = "pipeline_sha256"
 PROVENANCE_FILE = "provenance.csv"
 #: Columns ``provenance.csv`` adds to :data:`~sar_zero123.domain.INDEX_COLUMNS`.
 PROVENANCE_COLUMNS = ("source_path", "d_az_deg", "d_el_deg", "pipeline", "seed", "generated")
-#: Samplers ``--scheduler`` names; each keeps the pipeline's noise schedule.
-SCHEDULERS = {
-    "ddim": (DDIMScheduler, {}),
-    "dpmsolver++": (DPMSolverMultistepScheduler, {"algorithm_type": "dpmsolver++"}),
-    "euler": (EulerDiscreteScheduler, {}),
-}
 # The pipeline's own tolerance for the trained ranges.
 _RANGE_TOL_DEG = 1e-6
 #: Most views per pipeline call (``batch_size``): the batch's latents and activations are allocated at once.
@@ -134,7 +128,7 @@ class AugmentConfig:
     # the draft: "input" (the chip), "turned_input", or "proxy" (a simulator vehicle fitted to the chip at
     # its index pose and rendered at the requested one)
     start_from: Literal["input", "turned_input", "proxy"] | None = None
-    scheduler: Literal["ddim", "dpmsolver++", "euler"] = "ddim"  # sampler
+    scheduler: Literal["ddim", "dpmsolver++", "euler", "unipc"] = "ddim"  # sampler (SCHEDULERS)
     batch_size: int = 8  # views per pipeline call (a view changes with it by float rounding only)
     seed: int = 0  # view (row, request) is sampled with view_generator(seed, row, request)
     speckle: bool = False  # re-add Rayleigh speckle (Eq. 17-18) to the generated magnitudes

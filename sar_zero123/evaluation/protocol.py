@@ -27,12 +27,6 @@ from pathlib import Path
 from typing import Any
 
 import torch
-from diffusers import (
-    DDIMScheduler,
-    DPMSolverMultistepScheduler,
-    EulerDiscreteScheduler,
-    UniPCMultistepScheduler,
-)
 from torch.utils.data import DataLoader
 
 from sar_zero123.data import (
@@ -54,7 +48,7 @@ from sar_zero123.evaluation.evaluators import (
 )
 from sar_zero123.model.build import same_weights
 from sar_zero123.model.conditioning import encode_condition_latents, takes_proxy
-from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.pipeline import SCHEDULERS, SARZero123Pipeline
 
 logger = logging.getLogger(__name__)
 
@@ -125,12 +119,6 @@ INPUT_COPY = "input copy (floor)"  # the input view returned as the generated on
 REAL_TARGET = "real target (ceiling)"  # the true target view: the best any generator can score
 VAE_ROUND_TRIP = "VAE round trip (ceiling)"  # the target encoded and decoded: the best for this VAE
 REFERENCE_ROWS = (INPUT_COPY, REAL_TARGET, VAE_ROUND_TRIP)
-SCHEDULERS = {
-    "ddim": (DDIMScheduler, {}),
-    "dpmsolver++": (DPMSolverMultistepScheduler, {"algorithm_type": "dpmsolver++"}),
-    "euler": (EulerDiscreteScheduler, {}),
-    "unipc": (UniPCMultistepScheduler, {}),
-}
 _PAIR_COLUMNS = (
     "input",
     "target",

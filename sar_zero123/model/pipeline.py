@@ -24,7 +24,15 @@ import diffusers
 import numpy as np
 import PIL.Image
 import torch
-from diffusers import AutoencoderKL, DiffusionPipeline, UNet2DConditionModel
+from diffusers import (
+    AutoencoderKL,
+    DDIMScheduler,
+    DiffusionPipeline,
+    DPMSolverMultistepScheduler,
+    EulerDiscreteScheduler,
+    UNet2DConditionModel,
+    UniPCMultistepScheduler,
+)
 from diffusers.callbacks import MultiPipelineCallbacks, PipelineCallback
 from diffusers.schedulers.scheduling_utils import SchedulerMixin
 from diffusers.utils import BaseOutput
@@ -58,6 +66,7 @@ from sar_zero123.pretrained import BUNDLED_NAMESPACE, BUNDLED_PIPELINES, is_bund
 from sar_zero123.progress import progress_bar as _progress_bar
 
 __all__ = [
+    "SCHEDULERS",
     "SARZero123Pipeline",
     "SARZero123PipelineOutput",
     "SAMPLER_DEFAULTS",
@@ -72,6 +81,14 @@ ImageInput = PIL.Image.Image | np.ndarray | torch.Tensor | Sequence[PIL.Image.Im
 OUTPUT_TYPES = ("pil", "np", "pt", "latent")
 #: Larger guidance scales overflow the guided noise estimate (NaN images); zero-1-to-3 samples with 3.
 MAX_GUIDANCE_SCALE = 100.0
+#: The samplers a command may name (``--scheduler``, the evaluation's sweep): each built from the pipeline's
+#: scheduler config, so that it keeps the noise schedule the model was trained with.
+SCHEDULERS = {
+    "ddim": (DDIMScheduler, {}),
+    "dpmsolver++": (DPMSolverMultistepScheduler, {"algorithm_type": "dpmsolver++"}),
+    "euler": (EulerDiscreteScheduler, {}),
+    "unipc": (UniPCMultistepScheduler, {}),
+}
 #: What an image-to-image call (``strength < 1``) starts from (:meth:`SARZero123Pipeline.__call__`).
 START_FROM = ("input", "turned_input", "proxy")
 #: The sampler settings a pipeline may record as its defaults (``SARZero123Pipeline(sampler=...)``), and
