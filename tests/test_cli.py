@@ -70,12 +70,14 @@ def test_a_refusal_at_the_command_line_is_one_line_and_exit_status_2_unless_aske
         with pytest.raises(type(error)):
             cli.console.finetune()
         assert seen == [["--pfm_weight", "-1"]] * 2  # the flag never reaches the config parser
-    # a real command: a missing chip, refused in one line by the installed module's entry point
-    done = subprocess.run([sys.executable, "-m", "sar_zero123.generate", "--image", "/nonexistent/chip.png"],
+    # a real command (the lightest to import): a missing pipeline, refused in one line by its entry point
+    done = subprocess.run([sys.executable, "-m", "sar_zero123.interpolate", "--start", "/nonexistent/start",
+                           "--finetuned", "/nonexistent/tuned", "--output_dir", "/nonexistent/out"],
                           capture_output=True, text=True, check=False)  # fmt: skip
     assert done.returncode == 2 and done.stdout == ""
     assert done.stderr.strip().splitlines() == [
-        "sar-zero123-generate: error: image: '/nonexistent/chip.png' is not a file (--traceback shows where)"
+        "sar-zero123-interpolate: error: start: expected a pipeline folder with model_index.json, got "
+        "/nonexistent/start (--traceback shows where)"
     ]
 
 

@@ -65,13 +65,21 @@ def test_a_file_declaring_a_huge_image_is_refused_from_its_header(tmp_path: Path
     """A 5,000 and a 20,000 px PNG, an .npy header of 100,000 x 100,000 (37 GiB) and a .mat variable of
     5,000 x 5,000 are refused naming the declared size, before any pixel is decoded; a truncated .npy and a
     .mat image that holds text are refused by name too; the bound itself still loads."""
+    import struct
     import tracemalloc
+    import zlib
 
     from scipy.io import savemat
 
     from sar_zero123.data.images import MAX_CHIP_PIXELS
 
-    Image.new("L", (20_000, 20_000)).save(tmp_path / "bomb.png")  # compresses to a few hundred kB
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+
+    # a 20,000 x 20,000 PNG header with an empty image stream: a few dozen bytes claiming 400 M pixels
+    header = chunk(b"IHDR", struct.pack(">IIBBBBB", 20_000, 20_000, 8, 0, 0, 0, 0))
+    stream = chunk(b"IDAT", zlib.compress(b"")) + chunk(b"IEND", b"")
+    (tmp_path / "bomb.png").write_bytes(b"\x89PNG\r\n\x1a\n" + header + stream)
     Image.new("L", (5000, 5000)).save(tmp_path / "big.png")
     header = tmp_path / "header.npy"
     with header.open("wb") as handle:  # a valid header claiming 100,000 x 100,000 float32, and no data
