@@ -166,15 +166,22 @@ def _render_at_17_deg(name: str, azimuth_deg: float, seed: int, scaling: Decibel
     return scaling.normalize(magnitude).astype(np.float32)
 
 
+def _bundled(folder_name: str, name: str, what: str) -> tuple[SARZero123Pipeline, Path]:
+    """A bundled pipeline loaded by its name, quiet, and its folder; the test skips where its weights are
+    not installed."""
+    folder = PACKAGE_PRIOR.parent / folder_name
+    if not (folder / "model_index.json").is_file():
+        pytest.skip(f"bundled {what} weights not installed (no model_index.json in {folder})")
+    pipe = SARZero123Pipeline.from_pretrained(name)
+    pipe.set_progress_bar_config(disable=True)
+    return pipe, folder
+
+
 def test_bundled_rotated_prior_turns_unseen_vehicles() -> None:
     """The spatial-pose prior's views of named vehicles it never saw, asked for a 90 deg turn, look more like
     the simulator's view at the requested azimuth than at the input's (docs/results/prior.md, section 6): 4 of
     4 chips; `sim-prior` wins 2 of the same 4, so the test tells the two apart."""
-    folder = PACKAGE_PRIOR.parent / "sim_prior_rotated"
-    if not (folder / "model_index.json").is_file():
-        pytest.skip(f"bundled rotated prior weights not installed (no model_index.json in {folder})")
-    pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR_ROTATED)
-    pipe.set_progress_bar_config(disable=True)
+    pipe, folder = _bundled("sim_prior_rotated", SIM_PRIOR_ROTATED, "rotated prior")
     assert pipe.pose_projection.config.spatial_pose == "rotated_input" and pipe.unet.config.in_channels == 12
     assert pipe.pose_projection.config.trained_depression_deg == [10.0, 60.0]
     scaling = DecibelScaling.from_file(folder / SCALING_FILE)
@@ -204,11 +211,7 @@ def test_bundled_rotated_prior_records_its_sampler_and_with_the_azimuth_gets_fro
     90 deg of the request for at least 3 of 4 (measured: 75 % of 256 requests; the input copy 25 %)."""
     from sar_zero123.evaluation.template import read_templates
 
-    folder = PACKAGE_PRIOR.parent / "sim_prior_rotated"
-    if not (folder / "model_index.json").is_file():
-        pytest.skip(f"bundled rotated prior weights not installed (no model_index.json in {folder})")
-    pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR_ROTATED)
-    pipe.set_progress_bar_config(disable=True)
+    pipe, folder = _bundled("sim_prior_rotated", SIM_PRIOR_ROTATED, "rotated prior")
     assert pipe.config.sampler == {
         "num_inference_steps": 20, "guidance_scale": 3.0, "heading_guidance_scale": 1.5, "strength": 1.0,
         "start_from": "proxy", "proxy_strength": 0.3,
@@ -254,17 +257,13 @@ def test_bundling_stores_float16_weights_that_load_as_float32_with_the_sampler_r
 
 def test_bundled_proxy_prior_takes_its_proxy_and_gets_front_and_back_right() -> None:
     """The proxy-conditioned prior's plain call (the input's azimuth given; it fits and renders the proxy
-    itself, docs/results/proxy.md, section 6): on four named vehicles it never saw, asked for 150 deg turns,
+    itself, docs/results/proxy.md, section 5): on four named vehicles it never saw, asked for 150 deg turns,
     each view's template-matched azimuth lies within 90 deg of the request for at least 3 of 4; without the
     azimuth it refuses, naming what to pass."""
     from sar_zero123.evaluation.template import read_templates
     from sar_zero123.pretrained import SIM_PRIOR_PROXY
 
-    folder = PACKAGE_PRIOR.parent / "sim_prior_proxy"
-    if not (folder / "model_index.json").is_file():
-        pytest.skip(f"bundled proxy prior weights not installed (no model_index.json in {folder})")
-    pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR_PROXY)
-    pipe.set_progress_bar_config(disable=True)
+    pipe, folder = _bundled("sim_prior_proxy", SIM_PRIOR_PROXY, "proxy prior")
     assert pipe.pose_projection.config.spatial_pose == "proxy" and pipe.unet.config.in_channels == 20
     assert pipe.config.proxy["num_vehicles"] == 1000 and pipe.unet.dtype == torch.float32
     scaling = DecibelScaling.from_file(folder / SCALING_FILE)

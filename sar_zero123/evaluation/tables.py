@@ -16,6 +16,7 @@ import torch
 from sar_zero123.evaluation.protocol import (
     BLUR_SIGMA_PX,
     INPUT_COPY,
+    MIN_SPEED_PAIRS,
     PAPER_TABLE3,
     REAL_TARGET,
     VAE_ROUND_TRIP,
@@ -282,12 +283,14 @@ def plot_speed_error(rows: list[dict[str, Any]], path: Path) -> Path:
 
 def speed_markdown(rows: list[dict[str, Any]], device: str, memory: str = "resident set size") -> str:
     """Markdown speed/error table: each error beside its standard error, UNet evaluations per image, peak
-    memory, and the Pareto front of speed against azimuth error; labelled indicative below 256 pairs."""
-    small = any(row["n"] < 256 for row in rows)
+    memory, and the Pareto front of speed against azimuth error; labelled indicative below
+    :data:`~sar_zero123.evaluation.protocol.MIN_SPEED_PAIRS` pairs."""
+    small = any(row["n"] < MIN_SPEED_PAIRS for row in rows)
     lines = [
         f"Device: {device}. Points use the seen pairs; images/s counts pipeline calls only; peak memory: "
         f"{memory}; front: on the Pareto front of images/s against azimuth error."
-        + (" **Indicative: fewer than 256 pairs per row** (the standard errors overlap)." if small else "")
+        + (f" **Indicative: fewer than {MIN_SPEED_PAIRS} pairs per row** (the standard errors overlap)."
+           if small else "")
         + "\n",
         "| Pipeline | Scheduler | Steps | images/s | UNet evals / image | Az. err. (deg) ↓ | Acc. (%) ↑ | "
         "Peak mem. (MiB) | Front | n |",
