@@ -99,8 +99,8 @@ def write_crops(data: str | Path, out: str | Path, image_size: int = 64, every: 
 def _gpu_plans(args: argparse.Namespace) -> list[StagePlan]:
     """The quickstart's stages for this data and preset, in the order this call runs them."""
     config = QuickstartConfig(
-        output_dir=args.work, preset=args.preset, data=args.data, protocol=args.protocol,
-        lambdas=args.lambdas, seed=args.seed, override=args.override,
+        output_dir=args.work, recipe=args.preset, data=args.data, protocol=args.protocol,
+        lambdas=args.lambdas, seed=args.seed, set=args.override,
     )  # fmt: skip
     plans = {plan.name: plan for plan in plan_stages(config)}
     finetunes = [name for name in plans if name.startswith("finetune ")]

@@ -18,7 +18,10 @@ same views its plain call fits and renders itself. Rows, on the same pairs:
 
 Writes JSON (per row: template azimuth error and its standard error, gap closed, front/back right,
 identity kept, seconds; the best proxy-prior row's paired error difference from the baseline and from the
-proxy alone, on the same pairs) and prints a table. ``--fits`` keeps the fits (about 6 minutes on 2 cores)
+proxy alone, on the same pairs) and prints a table. ``--consensus K T`` runs only the proxy alone and both
+recorded samplers, from the best fit and from a consensus proxy: the weighted mean (weights
+``exp((score - best) / T)``) of the K best-fitting vehicles' renders, a posterior-mean estimate of the
+vehicle's other sides where one view leaves them open. ``--fits`` keeps the fits (about 6 minutes on 2 cores)
 for a re-run on the same pairs.
 """
 
@@ -43,7 +46,7 @@ from sar_zero123.config import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.evaluation.template import summarise_readings
 from sar_zero123.model.pipeline import SAMPLER_DEFAULTS
-from sar_zero123.model.proxy import check_proxy_settings, draft_target_views
+from sar_zero123.model.proxy import PROXY_FIELDS, check_proxy_settings, draft_target_views, proxy_bank
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `benchmarks`
 from benchmarks.proxy_views import INPUT_DEPRESSION_DEG, SimulatedPairs, format_table  # noqa: E402
@@ -70,6 +73,36 @@ def fitted_views(
         return np.stack(list(pool.map(_fitted, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
 
 
+def _consensus(args: tuple) -> np.ndarray:
+    """One input's consensus proxy at the three poses ``(3, S, S)``: its ``k`` best-fitting bank vehicles'
+    renders, averaged in normalised dB with weights ``exp((score - best) / temperature)``."""
+    proxy, image, azimuth, d_az, k, temperature = args
+    threadpool_limits(limits=1)
+    bank = proxy_bank(*(proxy[key] for key in PROXY_FIELDS[:6]))
+    scaling = DecibelScaling(min_db=float(proxy["min_db"]), max_db=float(proxy["max_db"]))
+    scores = bank.scores(image, azimuth, INPUT_DEPRESSION_DEG)
+    best = np.argsort(-scores, kind="stable")[:k]
+    weights = np.exp((scores[best] - scores[best[0]]) / temperature)
+    weights /= weights.sum()
+    size = image.shape[-1]
+    return np.stack([
+        np.einsum("k,khw->hw", weights, np.stack(
+            [scaling.normalize(bank.render(int(v), azimuth + turn, INPUT_DEPRESSION_DEG, size)) for v in best]
+        ))
+        for turn in (0.0, d_az, d_az + 180.0)
+    ]).astype(np.float32)  # fmt: skip
+
+
+def consensus_views(
+    proxy: dict, images: np.ndarray, azimuths: Sequence[float], d_az: Sequence[float], k: int,
+    temperature: float, workers: int,
+) -> np.ndarray:
+    """Every input's consensus proxy (:func:`_consensus`) at the three poses ``(N, 3, S, S)``."""
+    jobs = [(proxy, im, float(a), float(d), k, temperature) for im, a, d in zip(images, azimuths, d_az)]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        return np.stack(list(pool.map(_consensus, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
+
+
 def run(
     pipeline: str,
     *,
@@ -83,6 +116,7 @@ def run(
     steps_sweep: Sequence[int] = (),
     shortlist: int | None = None,
     bank_size: int | None = None,
+    consensus: tuple[int, float] | None = None,
 ) -> dict:
     """Every row's template readings on the same pairs; see the module docstring."""
     scaling = DecibelScaling.from_dict(json.loads((resolve_pretrained(pipeline) / SCALING_FILE).read_text()))
@@ -152,6 +186,32 @@ def run(
         return np.concatenate(out), time.perf_counter() - begin
 
     start = "from noise" if proxy_strength >= 1.0 else f"from the proxy at {proxy_strength:g}"
+    if consensus is not None:  # the best fit against the consensus of the k best, through both samplers
+        k, temperature = int(consensus[0]), float(consensus[1])
+        begin = time.perf_counter()
+        mean = consensus_views(proxy, sim.inputs, sim.input_azimuth, sim.d_az, k, temperature, workers)
+        label = f"consensus of the {k} best (temperature {temperature:g})"
+        add(f"proxy alone, {label}", mean[:, 1], time.perf_counter() - begin)
+        base_steps = int(base_recorded["num_inference_steps"])
+        pairs_of_rows = [(f"proxy alone, {label}", next(n for n in rows if n.startswith("proxy alone (")))]
+        for views, name in ((fitted, "the best fit"), (mean, label)):
+            add(f"proxy prior, its recorded sampler, {name}",
+                *sample(pipe, views, views[:, 1], proxy_strength, heading))
+            add(f"{baseline}, its recorded sampler, {name}",
+                *sample(base, None, views[:, 1], base_strength, base_heading, base_steps))
+        for model in ("proxy prior", baseline):
+            pairs_of_rows.append((f"{model}, its recorded sampler, {label}",
+                                  f"{model}, its recorded sampler, the best fit"))
+        comparisons = {}
+        for first, second in pairs_of_rows:
+            diff = readings[first].azimuth_error_deg - readings[second].azimuth_error_deg
+            se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
+            comparisons[f"{first} - {second}"] = {"mean_deg": float(diff.mean()), "se_deg": se}
+            print(f"paired: {first} - {second}: {diff.mean():+.1f} ± {se:.1f} deg")
+        return {"benchmark": "proxy_prior_views (issue 61: consensus proxy)", "pipeline": str(pipeline),
+                "baseline": str(baseline), "recorded_sampler": recorded, "consensus": [k, temperature],
+                "seed": seed, "proxy": proxy, "paired_azimuth_error_differences": comparisons, "rows": rows,
+                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
     if steps_sweep:  # the recorded sampler at other step counts only, paired with its own step count
         add(f"proxy prior, its recorded sampler ({start}, heading {heading:g})",
             *sample(pipe, fitted, fitted[:, 1], proxy_strength, heading))  # fmt: skip
@@ -248,14 +308,21 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="fit in two stages, this many vehicles re-rendered at the exact pose")
     parser.add_argument("--bank_size", type=int, default=None,
                         help="fit with a bank of this many vehicles (default: the pipeline's)")
+    parser.add_argument("--consensus", nargs=2, type=float, default=None, metavar=("K", "TEMPERATURE"),
+                        help="only the proxy alone and both recorded samplers, from the best fit and from "
+                             "the weighted mean of the K best fits' renders (weights exp(score / T))")
     parser.add_argument("--out", default="proxy_prior_views.json", help="output JSON")
     args = parser.parse_args(argv)
+    if args.consensus is not None and not (args.consensus[0] >= 1 and args.consensus[1] > 0):
+        raise ValueError(f"consensus: expected K >= 1 and a temperature > 0, got {args.consensus}")
     if args.pairs_per_class < 2:
         raise ValueError(f"pairs_per_class must be >= 2, got {args.pairs_per_class}")
+    consensus = None if args.consensus is None else (int(args.consensus[0]), args.consensus[1])
     record = run(args.pipeline, baseline=args.baseline, pairs_per_class=args.pairs_per_class,
                  batch_size=args.batch_size, seed=args.seed, workers=args.workers, headings=args.headings,
                  fits=args.fits, steps_sweep=args.steps, shortlist=args.shortlist,
-                 bank_size=args.bank_size)  # fmt: skip
+                 bank_size=args.bank_size,
+                 consensus=consensus)  # fmt: skip
     write_json_atomic(record, Path(args.out))
     print(format_table(record))
     return record

@@ -36,7 +36,7 @@ import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
 
 import numpy as np
 import torch
@@ -48,6 +48,7 @@ from sar_zero123.config import (
     check_output_dir,
     config_to_dict,
     parse_config,
+    read_json,
     write_json_atomic,
 )
 from sar_zero123.data import ChipRecord, DecibelScaling, load_index, load_magnitude, wrap_azimuth_deg
@@ -56,12 +57,10 @@ from sar_zero123.generate import GenerateConfig, _resolve_scaling, load_input_ch
 from sar_zero123.model.pipeline import (
     MAX_ABS_D_AZ_DEG,
     MAX_ABS_D_EL_DEG,
-    MAX_GUIDANCE_SCALE,
-    SCHEDULERS,
     SARZero123Pipeline,
-    check_sampler_start,
 )
 from sar_zero123.model.proxy import DATASET_SHORTLIST, with_shortlist
+from sar_zero123.model.sampler import SamplerSettings, scheduler_name
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import check_options_folder, content_identity, field_defaults, move_aside
@@ -104,8 +103,14 @@ MAX_AUGMENT_VIEWS = 1_000_000
 
 
 @dataclass
-class AugmentConfig:
-    """Add novel views from a SARZero123Pipeline to a dataset of labelled chips."""
+class AugmentConfig(SamplerSettings):
+    """Add novel views from a SARZero123Pipeline to a dataset of labelled chips.
+
+    The sampler's fields (:class:`~sar_zero123.model.sampler.SamplerSettings`) are inherited: each left unset
+    takes the value the pipeline records as measured best for it (its model card), else the library's; with
+    the index's azimuths, a pipeline that records a start from the proxy starts each view from a simulator
+    vehicle fitted to the chip.
+    """
 
     data: str = ""  # dataset folder: index.csv, or a tree of original MSTAR files
     pipeline: str = SIM_PRIOR_ROTATED  # SARZero123Pipeline.save_pretrained folder, or a bundled one's name
@@ -117,18 +122,6 @@ class AugmentConfig:
     depressions_deg: list[float] = field(default_factory=list)  # only chips at these depressions (empty: all)
     max_chips_per_class: int | None = None  # at most this many chips per class, evenly spaced in index order
     include_real: bool = False  # also list the selected real chips (generated 0, absolute paths)
-    # The sampler: each field left unset (None) takes the value the pipeline records as measured best for it
-    # (pipe.config.sampler, its model card), else the library's. With the index's azimuths, a pipeline that
-    # records start_from "proxy" starts each view from a simulator vehicle fitted to the chip.
-    num_inference_steps: int | None = None  # denoising steps
-    guidance_scale: float | None = None  # classifier-free guidance weight (<= 1 disables it)
-    heading_guidance_scale: float | None = None  # guidance away from the flipped heading (d_az + 180); 0: off
-    depression_guidance_scale: float | None = None  # guidance away from the input's depression (d_el = 0)
-    strength: float | None = None  # in (0, 1]: below 1, start from a draft noised to this share (SDEdit)
-    # the draft: "input" (the chip), "turned_input", or "proxy" (a simulator vehicle fitted to the chip at
-    # its index pose and rendered at the requested one)
-    start_from: Literal["input", "turned_input", "proxy"] | None = None
-    scheduler: Literal["ddim", "dpmsolver++", "euler", "unipc"] = "ddim"  # sampler (SCHEDULERS)
     batch_size: int = 8  # views per pipeline call (a view changes with it by float rounding only)
     seed: int = 0  # view (row, request) is sampled with view_generator(seed, row, request)
     speckle: bool = False  # re-add Rayleigh speckle (Eq. 17-18) to the generated magnitudes
@@ -140,6 +133,7 @@ class AugmentConfig:
     restart: bool = False  # move an existing out folder aside (never deleted) and start anew
 
     def __post_init__(self) -> None:
+        super().__post_init__()  # the sampler's fields, validated where they are declared
         if not self.data:
             raise ValueError("data: a dataset folder is required")
         if not self.out:
@@ -162,13 +156,6 @@ class AugmentConfig:
             values = getattr(self, name)
             if any(abs(v) > limit for v in values):
                 raise ValueError(f"{name} must lie in [-{limit:g}, {limit:g}] degrees, got {values}")
-        if self.guidance_scale is not None and not (
-            np.isfinite(self.guidance_scale) and self.guidance_scale <= MAX_GUIDANCE_SCALE
-        ):
-            raise ValueError(
-                f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE:g}, got {self.guidance_scale}"
-            )
-        check_minimum(self, "num_inference_steps", minimum=1, optional=True)
         check_minimum(self, "batch_size", minimum=1)
         if self.batch_size > MAX_BATCH_SIZE:
             raise ValueError(f"batch_size must be <= {MAX_BATCH_SIZE} views per call, got {self.batch_size}")
@@ -178,10 +165,6 @@ class AugmentConfig:
                 f"d_az/target_azimuths_deg x d_el: at most {MAX_REQUESTS_PER_CHIP} requests per chip, got "
                 f"{len(self.d_az or self.target_azimuths_deg)} x {len(self.d_el)} = {requests}"
             )
-        check_sampler_start(
-            self.strength, self.heading_guidance_scale, {"num_inference_steps": self.num_inference_steps},
-            depression_guidance_scale=self.depression_guidance_scale, start_from=self.start_from,
-        )  # fmt: skip
         check_minimum(self, "max_chips_per_class", minimum=1, optional=True)
         check_minimum(self, "seed", minimum=0)
         check_minimum(self, "speckle_sigma", minimum=0.0, strict=True)
@@ -392,8 +375,21 @@ def _recorded_options(config: AugmentConfig) -> dict[str, Any]:
     if not folder.is_dir():
         raise FileNotFoundError(f"pipeline: {config.pipeline!r} is neither a bundled name nor a folder")
     options[PIPELINE_DIGEST] = content_identity(folder)
-    options["proxy_shortlist"] = DATASET_SHORTLIST  # how a proxy pipeline's fits are made (two stages)
+    # the pipeline's own scheduler by name, and how a proxy pipeline fits (the loader refuses bad folders)
+    index = _json_or_empty(folder / "model_index.json")
+    if config.scheduler is None:
+        scheduler = _json_or_empty(folder / "scheduler" / "scheduler_config.json")
+        name = str(scheduler.get("_class_name", "unknown"))
+        options["scheduler"] = scheduler_name(name, scheduler) or name
+    if index.get("proxy") is not None:
+        options["proxy_shortlist"] = DATASET_SHORTLIST  # how a proxy pipeline's fits are made (two stages)
     return options
+
+
+def _json_or_empty(path: Path) -> dict[str, Any]:
+    """A JSON object file, or ``{}`` where it is missing or holds no object."""
+    data = read_json(path, str(path.name)) if path.is_file() else {}
+    return data if isinstance(data, dict) else {}
 
 
 def _check_out_folder(out: Path, options: dict[str, Any]) -> bool:
@@ -524,8 +520,7 @@ def augment_dataset(config: AugmentConfig) -> Path:
     pipe.set_progress_bar_config(disable=True)
     if getattr(pipe.config, "proxy", None) is not None:  # a dataset's fits share pose buckets: shortlisted
         pipe.register_to_config(proxy=with_shortlist(pipe.config.proxy))
-    scheduler_class, overrides = SCHEDULERS[config.scheduler]
-    pipe.scheduler = scheduler_class.from_config(pipe.scheduler.config, **overrides)
+    config.apply_scheduler(pipe)
     size = pipe.default_image_size
     _check_chip_sizes([record for _, record in selected], size)
     check_trained_ranges(pipe.pose_projection.config, config.d_el, [r.depression_deg for _, r in selected])

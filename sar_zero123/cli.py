@@ -90,11 +90,11 @@ def config_class(command: Command) -> type:
 def quickstart(argv: Sequence[str] | None = None) -> Path:
     """``sar-zero123-quickstart``: runs the whole chain; returns the path of ``report.md``."""
     from sar_zero123.config import parse_config
-    from sar_zero123.stages.presets import QuickstartConfig
+    from sar_zero123.stages.presets import QUICKSTART_FLAG_ALIASES, QuickstartConfig
     from sar_zero123.stages.quickstart import run_quickstart
 
     logging.basicConfig(level=logging.INFO, format=_LOG_FORMAT)
-    report = run_quickstart(parse_config(QuickstartConfig, argv))
+    report = run_quickstart(parse_config(QuickstartConfig, argv, aliases=QUICKSTART_FLAG_ALIASES))
     print(f"report: {report}")
     return report
 

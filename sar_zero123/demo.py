@@ -18,7 +18,6 @@ are plain functions of numpy arrays, tested without a browser.
 from __future__ import annotations
 
 import argparse
-import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,6 +30,7 @@ from sar_zero123.augment_dataset import check_trained_ranges
 from sar_zero123.data import DecibelScaling
 from sar_zero123.generate import GenerateConfig, load_input_chip
 from sar_zero123.model.pipeline import SAMPLER_DEFAULTS, SARZero123Pipeline
+from sar_zero123.model.sampler import SCHEDULERS, SamplerSettings
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip
 
@@ -67,6 +67,7 @@ class DemoModel:
         device: Torch device.
         depression_guidance_scale: Guidance away from the input's depression (0: off; requests with
             ``d_el == 0`` are unchanged).
+        scheduler: One of :data:`~sar_zero123.model.sampler.SCHEDULERS` (``None``: the pipeline's own).
 
         Each sampler argument left ``None`` is the pipeline's recorded value (``pipe.config.sampler``). A
         simulated chip's azimuth is known, so a pipeline that records a proxy start starts from the proxy.
@@ -80,10 +81,17 @@ class DemoModel:
         heading_guidance_scale: float | None = None,
         device: str = "cpu",
         depression_guidance_scale: float | None = None,
+        scheduler: str | None = None,
     ) -> None:
+        sampler = SamplerSettings(
+            num_inference_steps=num_inference_steps, scheduler=scheduler, guidance_scale=guidance_scale,
+            heading_guidance_scale=heading_guidance_scale,
+            depression_guidance_scale=depression_guidance_scale,
+        )  # fmt: skip
         self.name = pipeline
         self.pipe = SARZero123Pipeline.from_pretrained(pipeline).to(device)
         self.pipe.set_progress_bar_config(disable=True)
+        sampler.apply_scheduler(self.pipe)
         self.size = self.pipe.default_image_size
         scaling_file = resolve_pretrained(pipeline) / "decibel_scaling.json"
         self.scaling = (
@@ -258,17 +266,19 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument(
         "--depression_guidance_scale", "--depression-guidance-scale", type=float, default=None
     )
+    parser.add_argument("--scheduler", choices=sorted(SCHEDULERS), default=None)
     parser.add_argument("--device", default="cpu")
     args = parser.parse_args(argv)
-    if args.num_inference_steps is not None and not 1 <= args.num_inference_steps <= 1000:
-        parser.error(f"--num_inference_steps must lie in [1, 1000], got {args.num_inference_steps}")
     if not 0 < args.port < 65536:
         parser.error(f"--port must lie in [1, 65535], got {args.port}")
-    scales = (args.guidance_scale, args.heading_guidance_scale, args.depression_guidance_scale)
-    if not all(math.isfinite(scale) for scale in scales if scale is not None):  # None: the recorded one
-        parser.error(
-            "--guidance_scale, --heading_guidance_scale and --depression_guidance_scale must be finite"
-        )
+    try:  # the sampler's flags, checked where they are declared
+        SamplerSettings(
+            num_inference_steps=args.num_inference_steps, scheduler=args.scheduler,
+            guidance_scale=args.guidance_scale, heading_guidance_scale=args.heading_guidance_scale,
+            depression_guidance_scale=args.depression_guidance_scale,
+        )  # fmt: skip
+    except ValueError as error:
+        parser.error(f"--{error}")
     return args
 
 
@@ -280,7 +290,8 @@ def main(argv: Sequence[str] | None = None) -> None:
         raise SystemExit("the demo needs gradio: pip install -e '.[demo]'") from None
     args = parse_args(argv)
     model = DemoModel(args.pipeline, args.num_inference_steps, args.guidance_scale,
-                      args.heading_guidance_scale, args.device, args.depression_guidance_scale)  # fmt: skip
+                      args.heading_guidance_scale, args.device, args.depression_guidance_scale,
+                      args.scheduler)  # fmt: skip
     build_demo(model).launch(
         server_name=args.host, server_port=args.port, share=args.share, max_file_size=MAX_UPLOAD_BYTES,
         show_api=False,

@@ -49,12 +49,8 @@ from sar_zero123.data import (
 )
 from sar_zero123.data.mstar_raw import is_mstar_raw
 from sar_zero123.data.splits import TRAIN_DEPRESSION_DEG
-from sar_zero123.model.pipeline import (
-    MAX_ABS_D_EL_DEG,
-    MAX_GUIDANCE_SCALE,
-    SARZero123Pipeline,
-    check_sampler_start,
-)
+from sar_zero123.model.pipeline import MAX_ABS_D_EL_DEG, SARZero123Pipeline
+from sar_zero123.model.sampler import SamplerSettings
 from sar_zero123.pretrained import SIM_PRIOR_PROXY, SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import RunFolder, StageTimer, data_identity, finish_run
@@ -88,8 +84,12 @@ GENERATE_MAY_DIFFER = ("output_dir", "resume", "restart")
 
 
 @dataclass
-class GenerateConfig:
-    """Generate novel views of one SAR chip with a saved SARZero123Pipeline."""
+class GenerateConfig(SamplerSettings):
+    """Generate novel views of one SAR chip with a saved SARZero123Pipeline.
+
+    The sampler's fields (:class:`~sar_zero123.model.sampler.SamplerSettings`) are inherited: each left unset
+    takes the value the pipeline records as measured best for it (its model card), else the library's.
+    """
 
     # SARZero123Pipeline.save_pretrained folder, or a bundled one's name; None: the best measured for this
     # chip, sim-prior-proxy when its azimuth is known (--input_azimuth, a raw MSTAR header), else
@@ -99,18 +99,6 @@ class GenerateConfig:
     d_az: list[float] = field(default_factory=lambda: [30.0, 60.0, 90.0])  # azimuth deltas in degrees
     d_el: list[float] = field(default_factory=lambda: [0.0])  # depression deltas in degrees (1 or 1 per d_az)
     output_dir: str = "generated_views"  # output folder
-    # The sampler: each field left unset (None) takes the value the pipeline records as measured best for it
-    # (pipe.config.sampler, its model card), else the library's (50 steps, guidance 3, strength 1, no
-    # heading or depression guidance, start from the input).
-    num_inference_steps: int | None = None  # denoising steps
-    guidance_scale: float | None = None  # classifier-free guidance weight (<= 1 disables it)
-    heading_guidance_scale: float | None = None  # guidance away from the flipped heading (d_az + 180); 0: off
-    depression_guidance_scale: float | None = None  # guidance away from the input's depression (d_el = 0)
-    # in (0, 1]: below 1, sampling starts from a draft noised to this share of the steps (SDEdit)
-    strength: float | None = None
-    # the draft strength < 1 starts from: "input" (the chip), "turned_input", or "proxy" (a simulator vehicle
-    # fitted to the chip and rendered at the requested pose; needs the chip's azimuth)
-    start_from: Literal["input", "turned_input", "proxy"] | None = None
     input_azimuth: float | None = None  # chip's absolute azimuth (deg); None: the file's (raw MSTAR), if any
     seed: int = 0  # view i uses torch.Generator().manual_seed(seed + i)
     input_domain: Literal["magnitude", "normalized_db"] = "magnitude"  # what the chip file holds
@@ -122,6 +110,7 @@ class GenerateConfig:
     restart: bool = False  # move an existing folder at output_dir aside (never deleted) and generate anew
 
     def __post_init__(self) -> None:
+        super().__post_init__()  # the sampler's fields, validated where they are declared
         if not self.image:
             raise ValueError("image: an input chip file is required")
         if self.pipeline is None:  # resolved here, so that the run's record names the pipeline it used
@@ -143,20 +132,8 @@ class GenerateConfig:
                 f"d_el must lie in [-{MAX_ABS_D_EL_DEG:g}, {MAX_ABS_D_EL_DEG:g}] degrees (a difference of "
                 f"two depression angles), got {self.d_el}"
             )
-        if self.guidance_scale is not None and not (
-            np.isfinite(self.guidance_scale) and self.guidance_scale <= MAX_GUIDANCE_SCALE
-        ):
-            raise ValueError(
-                f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE:g}, got {self.guidance_scale}"
-            )
         if len(self.d_el) not in (1, len(self.d_az)):
             raise ValueError(f"d_el: give 1 value or one per d_az ({len(self.d_az)}), got {len(self.d_el)}")
-        if self.num_inference_steps is not None and self.num_inference_steps < 1:
-            raise ValueError(f"num_inference_steps must be >= 1, got {self.num_inference_steps}")
-        check_sampler_start(
-            self.strength, self.heading_guidance_scale, {"num_inference_steps": self.num_inference_steps},
-            depression_guidance_scale=self.depression_guidance_scale, start_from=self.start_from,
-        )  # fmt: skip
         if self.input_azimuth is not None and not np.isfinite(self.input_azimuth):
             raise ValueError(f"input_azimuth must be a finite angle in degrees, got {self.input_azimuth}")
         if self.image_size is not None and not 1 <= self.image_size <= MAX_IMAGE_SIZE:
@@ -377,6 +354,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     if _open_output_dir(config, write=False).finished:
         return Path(config.output_dir)
     pipe = SARZero123Pipeline.from_pretrained(config.pipeline).to(config.device)
+    config.apply_scheduler(pipe)
     size = config.image_size or pipe.default_image_size
     if size > 2 * pipe.default_image_size:  # the cost grows with its square; the model never saw such sizes
         raise ValueError(

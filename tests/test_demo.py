@@ -56,11 +56,13 @@ def test_the_command_with_no_options_leaves_the_sampler_to_the_pipeline_and_refu
     args = parse_args([])
     assert (args.num_inference_steps, args.guidance_scale, args.heading_guidance_scale) == (None, None, None)
     assert parse_args(["--num_inference_steps", "7"]).num_inference_steps == 7
-    for bad in (["--num_inference_steps", "0"], ["--heading_guidance_scale", "nan"]):
+    expected = ("num_inference_steps must be an integer in [1, 1,000], got 0",
+                "heading_guidance_scale must lie in [0, 100], got nan")  # fmt: skip
+    for bad, message in zip((["--num_inference_steps", "0"], ["--heading_guidance_scale", "nan"]), expected):
         with pytest.raises(SystemExit) as done:
             parse_args(bad)
         assert done.value.code == 2
-    assert "must lie in [1, 1000], got 0" in capsys.readouterr().err
+        assert f"error: --{message}" in capsys.readouterr().err
 
 
 def test_bad_uploads_and_requests_are_refused_with_a_message(model, tmp_path):

@@ -16,7 +16,7 @@ from collections.abc import Sequence
 from typing import Any
 
 from sar_zero123 import cli
-from sar_zero123.evaluation.protocol import SCHEDULERS
+from sar_zero123.model.sampler import SCHEDULERS
 
 __all__ = ["SCHEDULERS", "main"]
 

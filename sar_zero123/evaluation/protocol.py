@@ -48,7 +48,8 @@ from sar_zero123.evaluation.evaluators import (
 )
 from sar_zero123.model.build import same_weights
 from sar_zero123.model.conditioning import encode_condition_latents, takes_proxy
-from sar_zero123.model.pipeline import SCHEDULERS, SARZero123Pipeline
+from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.sampler import SCHEDULERS, SamplerSettings, set_scheduler
 
 logger = logging.getLogger(__name__)
 
@@ -338,26 +339,20 @@ def check_pipeline_scaling(pipeline_dir: str | os.PathLike, evaluators: Evaluato
 
 
 # ---------------------------------------------------------------------------------------- generation
-def set_scheduler(pipe: SARZero123Pipeline, name: str) -> None:
-    """Swaps the pipeline's sampler for `ddim`, `dpmsolver++` or `euler`, keeping the noise schedule."""
-    scheduler_class, overrides = SCHEDULERS[name]
-    pipe.scheduler = scheduler_class.from_config(pipe.scheduler.config, **overrides)
-
-
 @torch.no_grad()
 def generate_pair_targets(
     pipe: SARZero123Pipeline,
     pairs: PairSet,
     *,
-    num_inference_steps: int,
-    guidance_scale: float,
+    num_inference_steps: int | None,
+    guidance_scale: float | None,
     batch_size: int,
     device: torch.device,
     desc: str = "generating",
-    heading_guidance_scale: float = 0.0,
-    strength: float = 1.0,
-    start_from: str = "input",
-    depression_guidance_scale: float = 0.0,
+    heading_guidance_scale: float | None = 0.0,
+    strength: float | None = 1.0,
+    start_from: str | None = "input",
+    depression_guidance_scale: float | None = 0.0,
 ) -> tuple[torch.Tensor, float]:
     """Generates the target view of every pair (seeded per pair), in batches, timing the pipeline calls.
 
@@ -367,14 +362,17 @@ def generate_pair_targets(
     ``spatial_pose="proxy"`` UNet) gets each input's depression and azimuth (its metadata), so that the
     pipeline fits the proxy itself. Each batch logs a progress line (``desc``), outside the timed calls.
     ``strength`` and ``start_from`` are the pipeline's (image-to-image sampling; 1 starts from noise), as are
-    the two contrast guidances (``heading_guidance_scale``, ``depression_guidance_scale``).
+    the two contrast guidances (``heading_guidance_scale``, ``depression_guidance_scale``); a sampler argument
+    ``None`` is the pipeline's recorded value (:class:`~sar_zero123.model.sampler.SamplerSettings`).
 
     Returns:
         ``(images (N, 1, S, S) on CPU, seconds spent in the pipeline)``.
     """
     device = torch.device(device)
     outputs, seconds = [], 0.0
-    uses_proxy = start_from == "proxy" or takes_proxy(pipe.pose_projection)
+    recorded = getattr(pipe.config, "sampler", None)
+    start = SamplerSettings(start_from=start_from).resolved(recorded)["start_from"]
+    uses_proxy = start == "proxy" or takes_proxy(pipe.pose_projection)
     takes_depression = uses_proxy or getattr(pipe.pose_projection.config, "input_depression", False)
     for start in range(0, len(pairs), batch_size):
         stop = min(start + batch_size, len(pairs))

@@ -11,11 +11,10 @@ from __future__ import annotations
 
 import inspect
 import logging
-import math
 import numbers
 import os
 import sys
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -26,12 +25,8 @@ import PIL.Image
 import torch
 from diffusers import (
     AutoencoderKL,
-    DDIMScheduler,
     DiffusionPipeline,
-    DPMSolverMultistepScheduler,
-    EulerDiscreteScheduler,
     UNet2DConditionModel,
-    UniPCMultistepScheduler,
 )
 from diffusers.callbacks import MultiPipelineCallbacks, PipelineCallback
 from diffusers.schedulers.scheduling_utils import SchedulerMixin
@@ -61,6 +56,16 @@ from sar_zero123.model.conditioning import (
 from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
 from sar_zero123.model.orientation import AzimuthEstimator, target_view_features
 from sar_zero123.model.proxy import check_proxy_settings, draft_target_views
+from sar_zero123.model.sampler import (
+    MAX_GUIDANCE_SCALE,
+    SAMPLER_DEFAULTS,
+    SCHEDULERS,
+    START_FROM,
+    SamplerSettings,
+    _check_contrast_scales,
+    _check_strength,
+    check_sampler_start,
+)
 from sar_zero123.model.zero123_checkpoints import CLIPImageProcessor, load_zero123_components
 from sar_zero123.pretrained import BUNDLED_NAMESPACE, BUNDLED_PIPELINES, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar as _progress_bar
@@ -70,6 +75,7 @@ __all__ = [
     "SARZero123Pipeline",
     "SARZero123PipelineOutput",
     "SAMPLER_DEFAULTS",
+    "SamplerSettings",
     "check_sampler_start",
     "flipped_heading_pose",
     "same_depression_pose",
@@ -79,29 +85,6 @@ logger = logging.getLogger(__name__)
 
 ImageInput = PIL.Image.Image | np.ndarray | torch.Tensor | Sequence[PIL.Image.Image] | Sequence[np.ndarray]
 OUTPUT_TYPES = ("pil", "np", "pt", "latent")
-#: Larger guidance scales overflow the guided noise estimate (NaN images); zero-1-to-3 samples with 3.
-MAX_GUIDANCE_SCALE = 100.0
-#: The samplers a command may name (``--scheduler``, the evaluation's sweep): each built from the pipeline's
-#: scheduler config, so that it keeps the noise schedule the model was trained with.
-SCHEDULERS = {
-    "ddim": (DDIMScheduler, {}),
-    "dpmsolver++": (DPMSolverMultistepScheduler, {"algorithm_type": "dpmsolver++"}),
-    "euler": (EulerDiscreteScheduler, {}),
-    "unipc": (UniPCMultistepScheduler, {}),
-}
-#: What an image-to-image call (``strength < 1``) starts from (:meth:`SARZero123Pipeline.__call__`).
-START_FROM = ("input", "turned_input", "proxy")
-#: The sampler settings a pipeline may record as its defaults (``SARZero123Pipeline(sampler=...)``), and
-#: the library's defaults for those it does not record. An argument given to a call overrides both.
-SAMPLER_DEFAULTS: dict[str, Any] = {
-    "num_inference_steps": 50,
-    "guidance_scale": 3.0,
-    "strength": 1.0,
-    "heading_guidance_scale": 0.0,
-    "depression_guidance_scale": 0.0,
-    "start_from": "input",
-    "proxy_strength": None,  # the strength of a start from the proxy (None: strength)
-}
 #: A depression delta is the difference of two depression angles in [0, 90] degrees.
 MAX_ABS_D_EL_DEG = 90.0
 #: Azimuth deltas beyond this many degrees (~2,800 turns) are almost surely a unit error, and float64
@@ -121,58 +104,6 @@ class SARZero123PipelineOutput(BaseOutput):
     """
 
     images: list[PIL.Image.Image] | np.ndarray | torch.Tensor
-
-
-def check_sampler_start(
-    strength: float | None,
-    heading_guidance_scale: float | None,
-    steps: Mapping[str, int | None],
-    prefix: str = "",
-    depression_guidance_scale: float | None = 0.0,
-    start_from: str | None = "input",
-) -> None:
-    """Refuse, at a config's boundary, a sampler the pipeline cannot run: ``heading_guidance_scale`` or
-    ``depression_guidance_scale`` outside [0, ``MAX_GUIDANCE_SCALE``], ``strength`` outside (0, 1], a
-    ``strength`` that leaves no denoising step of one of the ``steps`` (field name: step count), or a
-    ``start_from`` not in :data:`START_FROM`. A ``None`` (a field left to the pipeline's recorded sampler) is
-    checked by the pipeline at the call instead. Every message names the field as ``prefix`` + its name (the
-    quickstart preset's ``eval_`` fields).
-
-    Raises:
-        ValueError: On any of the above.
-    """
-    scales = (heading_guidance_scale, depression_guidance_scale)
-    _check_contrast_scales(*(0.0 if scale is None else scale for scale in scales), prefix + "{}")
-    if strength is not None:
-        _check_strength(strength, {name: count for name, count in steps.items() if count is not None}, prefix)
-    if start_from is not None and start_from not in START_FROM:
-        raise ValueError(f"{prefix}start_from must be one of {START_FROM}, got {start_from!r}")
-
-
-def _check_contrast_scales(heading: float, depression: float, name_format: str) -> None:
-    """Both contrast guidance weights in [0, ``MAX_GUIDANCE_SCALE``]; the message names each field as
-    ``name_format.format(name)``.
-
-    Raises:
-        ValueError: For a bool, NaN or a weight outside the range.
-    """
-    for name, scale in (("heading_guidance_scale", heading), ("depression_guidance_scale", depression)):
-        if isinstance(scale, bool) or not 0.0 <= scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
-            field = name_format.format(name)
-            raise ValueError(f"{field} must lie in [0, {MAX_GUIDANCE_SCALE:g}], got {scale}")
-
-
-def _check_strength(strength: float, steps: Mapping[str, int], prefix: str = "") -> None:
-    """``strength`` in (0, 1] leaving at least one denoising step of each of ``steps`` (name: step count)."""
-    if isinstance(strength, bool) or not (
-        isinstance(strength, numbers.Real) and math.isfinite(strength) and 0.0 < strength <= 1.0
-    ):
-        raise ValueError(f"{prefix}strength must lie in (0, 1], got {strength!r}")
-    for name, count in steps.items():
-        if int(count * strength) < 1:
-            raise ValueError(
-                f"{prefix}strength {strength} x {name} {count} leaves no denoising step; raise either"
-            )
 
 
 def _denoising_steps(strength: float, num_inference_steps: int) -> int:

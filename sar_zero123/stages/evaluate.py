@@ -66,12 +66,8 @@ from sar_zero123.evaluation.tables import (
     table4_markdown,
 )
 from sar_zero123.model.build import replace_vae
-from sar_zero123.model.pipeline import (
-    MAX_GUIDANCE_SCALE,
-    START_FROM,
-    SARZero123Pipeline,
-    check_sampler_start,
-)
+from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.sampler import MAX_INFERENCE_STEPS, SamplerSettings, check_sampler_start
 from sar_zero123.runs.folder import (
     StageTimer,
     data_identity,
@@ -99,8 +95,6 @@ __all__ = [
 
 #: Most pairs in one evaluation (the paper scores 1,000; 100,000 is hours of generation on one GPU).
 MAX_EVALUATION_PAIRS = 100_000
-#: Most denoising steps per view (the noise schedules have 1,000 training timesteps).
-MAX_INFERENCE_STEPS = 1_000
 #: Most step counts in the speed/error sweep (each is a full generation per pipeline and scheduler).
 MAX_SWEEP_STEP_COUNTS = 16
 #: Most pairs per group shown in ``views.png``.
@@ -116,8 +110,13 @@ EVALUATE_MAY_DIFFER = ("resume", "restart", "device", "output_dir", "work_dir")
 
 
 @dataclass
-class EvaluateConfig:
-    """Score novel-view pipelines with the paper's protocol and write Tables III/IV and figures."""
+class EvaluateConfig(SamplerSettings):
+    """Score novel-view pipelines with the paper's protocol and write Tables III/IV and figures.
+
+    The sampler's fields (:class:`~sar_zero123.model.sampler.SamplerSettings`) are inherited: each left unset
+    takes the value each pipeline records as measured best for it (its model card), else the library's
+    (50 steps, guidance 3, from noise: zero-1-to-3's and the paper's); ``table3.json`` lists each row's.
+    """
 
     pipeline: list[str] = field(default_factory=list)  # SARZero123Pipeline folders (repeat the flag)
     pipeline_names: list[str] = field(default_factory=list)  # row labels (default: folder names)
@@ -134,16 +133,6 @@ class EvaluateConfig:
     outside_trained_range: bool = False
     max_d_az_deg: float | None = None  # largest |d_az| of a pair (None: any)
     n: int = 1000  # generated samples in total (split evenly between seen and unseen; at most 100,000)
-    num_inference_steps: int = 50  # denoising steps for Tables III/IV
-    guidance_scale: float = 3.0  # classifier-free guidance weight
-    heading_guidance_scale: float = 0.0  # guidance away from the flipped heading (SARZero123Pipeline); 0: off
-    depression_guidance_scale: float = 0.0  # guidance away from the input's depression (SARZero123Pipeline)
-    # in (0, 1]: below 1, sampling starts from a latent of the input noised to this fraction of the steps
-    # (SDEdit); 1: from noise
-    strength: float = 1.0
-    # the latent strength < 1 starts from: "input", "turned_input" (by d_az), or "proxy" (a simulator vehicle
-    # fitted to the input at its pose from index.csv, re-rendered at the request)
-    start_from: str = "input"
     # an AutoencoderKL folder decoding for every pipeline instead of its own VAE; it must encode as theirs
     # (a decoder fine-tuned alone: train/train_vae.py --pretrained PIPELINE --no-train_encoder)
     vae: str | None = None
@@ -169,6 +158,7 @@ class EvaluateConfig:
     restart: bool = False  # move an existing run in output_dir aside (never deleted) and start over
 
     def __post_init__(self) -> None:
+        super().__post_init__()  # the sampler's fields, validated where they are declared
         self._check_pipelines()
         self._check_sizes()
         self._check_sweep()
@@ -202,31 +192,18 @@ class EvaluateConfig:
             raise ValueError(f"lambdas has {len(self.lambdas)} values for {len(self.pipeline)} pipelines")
         if self.protocol != "extended" and not self.protocol.startswith("ood-"):
             raise ValueError(f"protocol must be 'extended' or 'ood-<CLASS>', got {self.protocol!r}")
-        if not math.isfinite(self.guidance_scale) or self.guidance_scale > MAX_GUIDANCE_SCALE:
-            raise ValueError(
-                f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE}, got {self.guidance_scale}"
-            )
 
     def _check_start(self) -> None:
-        """``strength`` (for Table III's and the sweep's step counts) and ``start_from``, after the step
-        counts are known to be valid."""
-        steps = {"num_inference_steps": self.num_inference_steps}
-        if self.steps:
-            steps["steps"] = min(self.steps)
-        check_sampler_start(
-            self.strength, self.heading_guidance_scale, steps,
-            depression_guidance_scale=self.depression_guidance_scale,
-        )  # fmt: skip
-        if self.start_from not in START_FROM:
-            raise ValueError(f"start_from must be one of {START_FROM}, got {self.start_from!r}")
+        """A given ``strength`` leaves a denoising step at the sweep's step counts too."""
+        if self.strength is not None and self.steps:
+            check_sampler_start(self.strength, None, {"steps": min(self.steps)})
 
     def _check_sizes(self) -> None:
-        check_minimum(self, "n", "num_inference_steps", "eval_batch_size", "crop_size", minimum=1)
+        check_minimum(self, "n", "eval_batch_size", "crop_size", minimum=1)
         check_minimum(self, "image_size", "chip_crop_size", "speed_n", minimum=1, optional=True)
         check_minimum(self, "num_figure_pairs", minimum=0)
         for name, bound in (
             ("n", MAX_EVALUATION_PAIRS),
-            ("num_inference_steps", MAX_INFERENCE_STEPS),
             ("eval_batch_size", MAX_EVAL_BATCH_SIZE),
             ("num_figure_pairs", MAX_FIGURE_PAIRS),
             ("image_size", MAX_IMAGE_SIZE),
@@ -383,7 +360,7 @@ def run_evaluate(config: EvaluateConfig) -> Path:
     results = _score_references(config, pipes, pair_sets, evaluators, device)
     generated = _score_pipelines(config, pipes, pair_sets, evaluators, device, results)
     add_gap_closed(results, floor=INPUT_COPY, ceiling=VAE_ROUND_TRIP)
-    outputs = _write_tables(config, folder.path, results, pair_sets, evaluators, lifted, device)
+    outputs = _write_tables(config, folder.path, results, pair_sets, evaluators, lifted, device, pipes)
     if config.num_figure_pairs > 0:
         plot_views(pair_sets, generated, config.num_figure_pairs, folder.path / "views.png")
         outputs.append("views.png")
@@ -415,6 +392,7 @@ def _load_pipelines(
             pipe = replace_vae(pipe, config.vae, same_latents=True)
         pipe = pipe.to(device)
         pipe.set_progress_bar_config(disable=True)
+        config.apply_scheduler(pipe)
         pipes[name] = pipe
         projection = pipe.pose_projection.config
         if config.outside_trained_range and projection.get("trained_d_el_deg") is not None:
@@ -504,12 +482,11 @@ def _score_speckled(
 
 
 def _sampler(config: EvaluateConfig) -> dict[str, Any]:
-    """How every row samples (:func:`generate_pair_targets`' arguments besides the step count)."""
-    return {
-        "guidance_scale": config.guidance_scale, "heading_guidance_scale": config.heading_guidance_scale,
-        "depression_guidance_scale": config.depression_guidance_scale, "strength": config.strength,
-        "start_from": config.start_from, "batch_size": config.eval_batch_size,
-    }  # fmt: skip
+    """How every row samples (:func:`generate_pair_targets`' arguments besides the step count; ``None``: the
+    pipeline's recorded value)."""
+    arguments = config.sampler_arguments()
+    del arguments["num_inference_steps"]
+    return {**arguments, "batch_size": config.eval_batch_size}
 
 
 def _score_pipelines(
@@ -545,6 +522,7 @@ def _write_tables(
     evaluators: Evaluators,
     lifted: dict[str, dict],
     device: torch.device,
+    pipes: dict[str, SARZero123Pipeline],
 ) -> list[str]:
     """``table3.{json,md}`` and ``table4.{json,md}``; returns their names."""
     evaluator_metrics = {
@@ -559,12 +537,9 @@ def _write_tables(
     table3 = {
         "protocol": config.protocol,
         "device": str(device),
-        "num_inference_steps": config.num_inference_steps,
-        "guidance_scale": config.guidance_scale,
-        "heading_guidance_scale": config.heading_guidance_scale,
-        "depression_guidance_scale": config.depression_guidance_scale,
-        "strength": config.strength,
-        "start_from": config.start_from,
+        **config.sampler_arguments(),
+        # each row's sampler as it ran: the config's values, the rest each pipeline's recorded ones
+        "samplers": {name: config.resolved(getattr(p.config, "sampler", None)) for name, p in pipes.items()},
         "results": results,
         "paper": PAPER_TABLE3,
         "evaluator_test_metrics": evaluator_metrics,

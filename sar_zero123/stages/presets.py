@@ -14,27 +14,34 @@ import dataclasses
 import json
 import logging
 import math
+import types
+import typing
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Literal
+from typing import Any
+
+import yaml
 
 from sar_zero123.data.splits import OOD_INTERVAL_WIDTH_DEG, check_protocol, ood_validation_intervals
-from sar_zero123.evaluation.protocol import SCHEDULERS
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import downsampling_factor
 from sar_zero123.model.pipeline import START_FROM, check_sampler_start
-from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
+from sar_zero123.model.sampler import SCHEDULERS
+from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.sim import TARGET_CLASSES
 from sar_zero123.stages.evaluate import MAX_EVALUATION_PAIRS, MAX_SWEEP_STEP_COUNTS
 from sar_zero123.training.losses import (
-    DEFAULT_PFM_MIN_SNR,
     TRAINED_PREDICTION_TYPES,
     LossSettings,
     check_prediction_type,
 )
 
-__all__ = ["DEFAULT_PRESET", "MAX_EVAL_N", "PRESETS", "Preset", "QuickstartConfig", "apply_overrides"]
+__all__ = [
+    "DEFAULT_PRESET", "MAX_EVAL_N", "PRESETS", "QUICKSTART_FLAG_ALIASES", "RECIPE_DIR", "RECIPE_STAGES",
+    "RENAMED_QUICKSTART_FIELDS", "Preset", "QuickstartConfig", "apply_overrides", "load_recipe",
+    "recipe_names",
+]  # fmt: skip
 
 logger = logging.getLogger(__name__)
 
@@ -44,7 +51,8 @@ MAX_EVAL_N = MAX_EVALUATION_PAIRS
 
 @dataclass(frozen=True)
 class Preset:
-    """Sizes of one quickstart run (see `PRESETS`)."""
+    """Every setting of one quickstart run, by stage (:data:`RECIPE_STAGES`): a recipe file's values merged
+    onto the default recipe's (:func:`load_recipe`; ``sar_zero123/recipes/default.yaml`` sets them all)."""
 
     classes: tuple[str, ...]  # simulated classes; the last one is held out (unseen)
     instances: int  # simulated objects per class
@@ -74,65 +82,65 @@ class Preset:
     speed_steps: tuple[int, ...]  # step counts of the speed/error sweep
     speed_n: int  # samples per speed/error point
     schedulers: tuple[str, ...]  # samplers of the speed/error sweep
-    lr_scheduler: str = "constant"  # diffusers LR schedule of the base model and of each fine-tune
-    lr_warmup_steps: int = 0  # its warm-up steps (each stage)
-    ema_decay: float | None = None  # EMA of the exported UNet (None: the last weights)
-    train_image_encoder: bool = False  # train the (random) CLIP tower with the UNet
+    lr_scheduler: str  # diffusers LR schedule of the base model and of each fine-tune
+    lr_warmup_steps: int  # its warm-up steps (each stage)
+    ema_decay: float | None  # EMA of the exported UNet (None: the last weights)
+    train_image_encoder: bool  # train the (random) CLIP tower with the UNet
     # the base model's training target and loss weighting (finetune_pfm.py's fields of the same names; the
     # fine-tunes inherit the prediction type from the base model's scheduler)
-    prediction_type: str = "epsilon"  # "epsilon" (zero-1-to-3, the paper) or "v_prediction"
-    snr_gamma: float | None = None  # Min-SNR-gamma weighting of L_simple in every stage (None: unweighted)
-    timestep_sampling: str = "uniform"  # training t density of every stage: "uniform" or "logit_normal"
-    timestep_logit_mean: float = 0.0  # logit_normal: mean of logit(t / T) (> 0 favours high noise)
+    prediction_type: str  # "epsilon" (zero-1-to-3, the paper) or "v_prediction"
+    snr_gamma: float | None  # Min-SNR-gamma weighting of L_simple in every stage (None: unweighted)
+    timestep_sampling: str  # training t density of every stage: "uniform" or "logit_normal"
+    timestep_logit_mean: float  # logit_normal: mean of logit(t / T) (> 0 favours high noise)
     # every training stage (SimCLR, VAE, base model, fine-tunes) saves a resumable checkpoint every this
     # many steps and keeps the last two; a re-run resumes an interrupted stage from its newest intact one
-    checkpointing_steps: int = 1000
+    checkpointing_steps: int
     # accelerate mixed precision of every training stage ("bf16" on a recent GPU); the evaluation samples
     # in float32 either way
-    mixed_precision: str = "no"
+    mixed_precision: str
     # a pretrained pipeline (a bundled name such as "sar-zero123/sim-prior", or a folder) that every fine-tune
     # starts from, as the paper fine-tunes zero-1-to-3: its VAE is kept and no base model is trained
     # (vae_* and base_steps unused); None trains the VAE and a base model from scratch
-    prior: str | None = None
+    prior: str | None
     # target depressions of a second Table III from 17 deg inputs (d_el = target - 17) on a simulated set
     # at 17 deg and these depressions, with a depression regressor among the evaluators; () skips it
-    depression_targets_deg: tuple[float, ...] = ()
+    depression_targets_deg: tuple[float, ...]
     # with a prior: fine-tune its VAE's decoder alone (the encoder, hence the latents the prior's UNet knows,
     # kept) this many steps on the training chips, with vae_feature_loss_weight times the feature loss through
     # the SimCLR encoder, before the fine-tunes, which then decode with it; 0 keeps the prior's VAE
-    vae_decoder_steps: int = 0
-    vae_feature_loss_weight: float = 0.0
+    vae_decoder_steps: int
+    vae_feature_loss_weight: float
     # the evaluation also scores every view and VAE round trip with speckle re-added (readd_speckle with this
     # many looks: 1 for MSTAR), as rows "<row> + speckle"; None: not
-    eval_speckle_looks: int | None = None
+    eval_speckle_looks: int | None
     # how lambda scales PFM in the lambda > 0 fine-tunes (finetune_pfm.py's --pfm_balance: "none" is Eq. 21's
     # fixed weight, "adaptive" makes PFM pull lambda times as hard as L_simple) and where PFM applies
     # (--pfm_min_snr: PFM only where SNR(t) >= this)
-    pfm_balance: str = "none"
-    pfm_min_snr: float = DEFAULT_PFM_MIN_SNR
+    pfm_balance: str
+    pfm_min_snr: float
     # rehearsal (with a prior): a corpus of this many procedural vehicles, rendered with the prior's corpus
     # options into rehearsal/corpus (one vehicle held out as its validation class), whose pairs across
     # depressions make rehearsal_fraction of every fine-tune batch, so that the fine-tunes keep the prior's
     # depression requests (docs/results/prior.md, section 6, "Rehearsal"); 0: the task's pairs only
-    rehearsal_vehicles: int = 0
-    rehearsal_fraction: float = 0.25
+    rehearsal_vehicles: int
+    rehearsal_fraction: float
     # the fine-tunes train rank-r LoRA factors beside the frozen UNet (finetune_pfm.py's --lora_rank, merged
     # at export) instead of every UNet weight; None: every weight trains. Measured (docs/results/prior.md,
     # section 6, "LoRA fine-tunes and the learning rate"): it keeps depression requests as a lower learning
     # rate does, no better
-    finetune_lora_rank: int | None = None
+    finetune_lora_rank: int | None
     # how both evaluations sample (train/evaluate.py's --heading_guidance_scale and --strength): guidance
     # away from the flipped heading (0: off), and in (0, 1] the share of the steps sampled from the input's
     # noised latent (1: from noise)
-    eval_heading_guidance_scale: float = 0.0
-    eval_strength: float = 1.0
+    eval_heading_guidance_scale: float
+    eval_strength: float
     # what eval_strength < 1 starts from (train/evaluate.py's --start_from): "input", "turned_input", or
     # "proxy", a simulator vehicle fitted to each input at its pose from index.csv and re-rendered at the
     # request
-    eval_start_from: str = "input"
+    eval_start_from: str
     # guidance away from the input's depression (train/evaluate.py's --depression_guidance_scale; 0: off):
     # changes only requests with d_el != 0, the depression evaluation's
-    eval_depression_guidance_scale: float = 0.0
+    eval_depression_guidance_scale: float
 
     def _check_image_size(self) -> None:
         """The prior exists and the chips fit its VAE and UNet (or ``model_size``'s): checked before any
@@ -266,164 +274,161 @@ class Preset:
             )
 
 
-DEFAULT_PRESET = Preset(
-    # TANK held out, as MSTAR-OOD holds out the T72 tank; the seen SPG has its turret at the rear like
-    # MSTAR's seen 2S1. Held out instead, the SPG is read back to front by an azimuth estimator trained
-    # on the other three (learning.md, section 6a).
-    classes=("APC", "TRUCK", "SPG", "TANK"),
-    instances=1,
-    azimuth_step_deg=5.0,
-    model_size="micro",
-    image_size=64,
-    encoder_cifar_stem=False,
-    encoder_depths=(1, 1, 1, 1),
-    encoder_widths=(16, 32, 64, 128),
-    simclr_steps=200,
-    simclr_batch_size=64,
-    # a VAE with a quarter of the "small" one's parameters trains faster per chip, so the same stage time
-    # buys more chips and a better reconstruction (docs/results/learning.md, section 6b)
-    vae_widths=(16, 32, 64),
-    vae_norm_groups=8,
-    vae_steps=540,
-    vae_batch_size=8,
-    estimate_input_azimuth=True,
-    # enough steps for pose use to emerge, within the quickstart's time budget (learning.md, 7c-7d)
-    base_steps=3000,
-    # v prediction with Min-SNR-5 weighting: on the same steps it turns more views to the requested pose
-    # and keeps their class more often than epsilon L_simple (learning.md, section 9h)
-    prediction_type="v_prediction",
-    snr_gamma=5.0,
-    # from the prior, 1,000 steps turn the held-out vehicle best (200 keep more of the prior's depression
-    # following; docs/results/prior.md, section 5)
-    finetune_steps=1000,
-    finetune_batch_size=16,
-    finetune_learning_rate=1e-3,
-    pfm_fraction=0.25,
-    pfm_projection_dim=10,
-    evaluator_epochs=40,
-    evaluator_learning_rate=2e-3,
-    eval_n=128,
-    eval_steps=20,
-    speed_steps=(5, 20),
-    speed_n=4,
-    schedulers=("ddim", "dpmsolver++", "euler"),
-    # the paper's regime: both fine-tunes start from a bundled multi-view prior (its VAE kept), the one that
-    # also sees the input turned by d_az: from it the held-out TANK closes 63 % of its azimuth gap against
-    # 48 % and the seen vehicles keep their class in 77 % of views against 66 % (64 + 64 pairs, about 1.3
-    # standard errors each, prior.md section 6); on real MSTAR the held-out T72 keeps its class in 42 %
-    # against 31 % (400 + 400 pairs, about 3 standard errors, mstar_prior.md section 4c)
-    prior=SIM_PRIOR_ROTATED,
-    depression_targets_deg=(10.0, 30.0, 45.0),
-    # the fine-tuned models sampled with heading guidance 1.5 from the input noised to 80 % of the steps: on
-    # 256 + 256 pairs the lambda = 0 model closes 98 % of the seen azimuth gap against 66 % and 74 % of the
-    # held-out TANK's against 46 %, its seen accuracy level (84.4 % against 83.6 %), for 20 % more UNet
-    # calls per view (docs/results/prior.md, section 6, "Steps, learning rate or batch")
-    eval_heading_guidance_scale=1.5,
-    eval_strength=0.8,
-    # depression requests guided away from the input's depression at G = 15: the 1,000-step fine-tunes forget
-    # most of the prior's depression response, and on 128 + 128 pairs the lambda = 0 model's views land closer
-    # to the requested depression in 77 % / 87 % of pairs (seen / TANK) against 9 % / 20 % (lambda = 4: 82 % /
-    # 89 % against 27 % / 29 %), the seen SFD 10.8 against 6.6; azimuth requests are unchanged
-    # (docs/results/prior.md, section 6, "Depression guidance")
-    eval_depression_guidance_scale=15.0,
-)
+#: The bundled recipes (``sar_zero123/recipes/<name>.yaml``): small, diffable YAML files of per-stage values,
+#: each merged onto the recipe it ``extends`` (``default`` holds every field).
+RECIPE_DIR = Path(__file__).resolve().parents[1] / "recipes"
+#: Every :class:`Preset` field under the stage it sizes: a recipe's sections, and ``--set STAGE.FIELD=VALUE``.
+RECIPE_STAGES: dict[str, tuple[str, ...]] = {
+    "data": ("classes", "instances", "azimuth_step_deg", "image_size"),
+    "simclr": ("encoder_cifar_stem", "encoder_depths", "encoder_widths", "simclr_steps", "simclr_batch_size"),
+    "vae": ("vae_widths", "vae_norm_groups", "vae_steps", "vae_batch_size", "vae_decoder_steps",
+            "vae_feature_loss_weight"),
+    "model": ("prior", "model_size", "estimate_input_azimuth", "base_steps", "prediction_type", "snr_gamma",
+              "timestep_sampling", "timestep_logit_mean", "train_image_encoder"),
+    "finetune": ("finetune_steps", "finetune_batch_size", "finetune_learning_rate", "lr_scheduler",
+                 "lr_warmup_steps", "ema_decay", "pfm_fraction", "pfm_projection_dim", "pfm_balance",
+                 "pfm_min_snr", "rehearsal_vehicles", "rehearsal_fraction", "finetune_lora_rank"),
+    "evaluators": ("evaluator_epochs", "evaluator_learning_rate"),
+    "evaluate": ("eval_n", "eval_steps", "eval_heading_guidance_scale", "eval_strength", "eval_start_from",
+                 "eval_depression_guidance_scale", "eval_speckle_looks", "depression_targets_deg",
+                 "speed_steps", "speed_n", "schedulers"),
+    "run": ("checkpointing_steps", "mixed_precision"),
+}  # fmt: skip
+_STAGE_OF = {name: stage for stage, names in RECIPE_STAGES.items() for name in names}
+#: A recipe file is a few kilobytes; a larger one is not a recipe.
+MAX_RECIPE_BYTES = 64 * 1024
+#: Most recipes in one chain of ``extends``.
+MAX_RECIPE_DEPTH = 8
+_RECIPE_SUFFIXES = (".yaml", ".yml", ".json")
 
-# The presets whose documented runs sampled from noise without heading guidance keep that sampler (on real
-# MSTAR the guided sampler is measured in docs/results/mstar_prior.md, section 4e)
-_PLAIN_SAMPLING: dict[str, Any] = {
-    "eval_heading_guidance_scale": 0.0,
-    "eval_strength": 1.0,
-    "eval_depression_guidance_scale": 0.0,
-}
 
-# Real chips (`--data /path/to/mstar --protocol ood-T72` or `extended`): 64 px centre crops at the
-# native 0.2 m spacing, about 6,000 training chips, so fewer evaluator epochs and more base steps, and
-# the "small" model's VAE trained 600 x 16 (run time and results: docs/results/mstar_novel_views.md).
-# Simulator fields unused.
-_MSTAR = dataclasses.replace(
-    DEFAULT_PRESET, vae_widths=(32, 64, 128), vae_norm_groups=32, vae_steps=600, vae_batch_size=16,
-    base_steps=8000, finetune_steps=1000,
-    evaluator_epochs=20, eval_n=400, speed_steps=(5, 10, 20), speed_n=16,
-    prediction_type="epsilon", snr_gamma=None,  # as measured (mstar_novel_views.md)
-    prior=None,  # trained from scratch; "mstar-prior" starts from the bundled prior
-    depression_targets_deg=(),  # real chips: 15 and 17 deg only
-    **_PLAIN_SAMPLING,
-)
+def recipe_names() -> list[str]:
+    """The bundled recipes' names, sorted."""
+    return sorted(path.stem for path in RECIPE_DIR.glob("*.yaml"))
 
-PRESETS: dict[str, Preset] = {
-    "default": DEFAULT_PRESET,
-    # the default trained from scratch (VAE and a base model of base_steps, then the fine-tunes): the
-    # comparison row for the prior
-    "scratch": dataclasses.replace(DEFAULT_PRESET, prior=None, finetune_steps=200, **_PLAIN_SAMPLING),
-    # the scratch preset trained longer, for the seen-accuracy and unseen-vehicle targets: the same
-    # simulated data, the VAE trained 3,000 steps instead of 540 and 15,000 base steps, with the default's
-    # v prediction and Min-SNR-5, which keeps the seen class more often than epsilon L_simple on the same
-    # data, VAE and evaluators (run times and results: docs/results/learning.md, sections 6d, 8c, 9 and 9i)
-    "long": dataclasses.replace(
-        DEFAULT_PRESET, vae_steps=3000, base_steps=15000, finetune_steps=600, eval_n=256,
-        speed_steps=(5, 10, 20, 50), speed_n=32, prior=None, **_PLAIN_SAMPLING,
-    ),
-    "mstar": _MSTAR,
-    # The paper's regime on real chips (`--data /path/to/mstar --protocol ood-T72`): both fine-tunes start
-    # from the bundled multi-view prior (its VAE kept; MSTAR's 8-bit chips share its unit-magnitude dB
-    # scaling), 8,000 steps each with the default's Min-SNR-5 (2,000 keep the class of 28 % of seen views,
-    # 8,000 of 66 %); the SimCLR encoder that PFM matches is trained 4,000 steps x 128 chips; Table III on
-    # 400 seen + 400 unseen pairs; the `mstar` values otherwise (run time and results:
-    # docs/results/mstar_prior.md). The prior that also sees the input turned by d_az: on the same pairs
-    # and evaluators at 4,000 steps it keeps the seen class in 49.0 % of views against 40.0 % and the T72's
-    # in 42.0 % against 31.2 %, with a lower azimuth error in both groups (section 4c); at 8,000 steps
-    # 75.5 % / 26.4 deg seen (`sim-prior`'s preset run: 66.0 % / 28.3 deg, other pairs)
-    # (`--override finetune_steps=16000` meets the seen parts of issue 35's target 3, 81.8 % / 21.8 deg,
-    # and keeps the T72 in 13 % of views against 19.5 % at 8,000 on the same pairs: section 4f)
-    "mstar-prior": dataclasses.replace(
-        _MSTAR, prior=SIM_PRIOR_ROTATED, snr_gamma=5.0, simclr_steps=4000, simclr_batch_size=128,
-        finetune_steps=8000,
-        eval_n=800,
-    ),
-    "smoke": Preset(
-        classes=("TANK", "APC", "TRUCK"),
-        instances=1,
-        azimuth_step_deg=60.0,
-        model_size="tiny",
-        image_size=32,
-        encoder_cifar_stem=True,
-        encoder_depths=(1, 1),
-        encoder_widths=(8, 16),
-        vae_widths=(16, 32),
-        vae_norm_groups=8,
-        simclr_steps=2,
-        simclr_batch_size=8,
-        vae_steps=2,
-        vae_batch_size=4,
-        estimate_input_azimuth=True,
-        base_steps=2,
-        finetune_steps=2,
-        finetune_batch_size=2,
-        finetune_learning_rate=1e-4,
-        pfm_fraction=1.0,
-        pfm_projection_dim=10,
-        evaluator_epochs=1,
-        evaluator_learning_rate=1e-3,
-        eval_n=4,
-        eval_steps=2,
-        speed_steps=(2,),  # one step at eval_strength 0.5
-        speed_n=2,
-        schedulers=("ddim", "euler"),
-        # the optional training settings, so that the smoke test runs them
-        lr_scheduler="cosine",
-        lr_warmup_steps=1,
-        ema_decay=0.9,
-        train_image_encoder=True,
-        prediction_type="v_prediction",
-        snr_gamma=5.0,
-        timestep_sampling="logit_normal",
-        checkpointing_steps=1,
-        depression_targets_deg=(30.0,),
-        eval_heading_guidance_scale=1.5,
-        eval_strength=0.5,  # one of eval_steps' two steps
-        eval_depression_guidance_scale=2.0,
-    ),
-}
+
+def _typed(name: str, value: Any) -> Any:
+    """``value`` as field ``name`` of :class:`Preset` takes it (a list becomes a tuple, an int a float).
+
+    Raises:
+        ValueError: Naming the field, for a value of another type.
+    """
+    annotation = typing.get_type_hints(Preset)[name]
+    union = typing.get_origin(annotation) in (typing.Union, types.UnionType)
+    allowed = typing.get_args(annotation) if union else (annotation,)
+    if value is None and type(None) in allowed:
+        return None
+    for kind in allowed:
+        if typing.get_origin(kind) is tuple:
+            item = typing.get_args(kind)[0]
+            if isinstance(value, list | tuple) and all(_is_a(v, item) for v in value):
+                return tuple(float(v) if item is float else v for v in value)
+        elif kind is not type(None) and _is_a(value, kind):
+            return float(value) if kind is float else value
+    raise ValueError(f"{name} takes {_type_name(annotation)}, got {value!r}")
+
+
+def _is_a(value: Any, kind: type) -> bool:
+    """``value`` is a ``kind`` (a bool is not a number; an int is a float)."""
+    if isinstance(value, bool):
+        return kind is bool
+    if kind is float:
+        return isinstance(value, int | float)
+    return isinstance(value, kind)
+
+
+def _type_name(annotation: Any) -> str:
+    return str(annotation).replace("typing.", "").replace("<class '", "").replace("'>", "")
+
+
+def _recipe_file(recipe: str) -> Path:
+    """A bundled recipe's file by name, or a recipe file given by path.
+
+    Raises:
+        FileNotFoundError: For a name that is neither a bundled recipe nor a file.
+        ValueError: For a file that is not ``.yaml``/``.yml``/``.json``, or larger than
+            :data:`MAX_RECIPE_BYTES`.
+    """
+    if recipe in recipe_names():
+        return RECIPE_DIR / f"{recipe}.yaml"
+    path = Path(recipe)
+    if not path.is_file():
+        raise FileNotFoundError(
+            f"recipe: {recipe!r} is neither a bundled recipe ({', '.join(recipe_names())}) nor a file"
+        )
+    if path.suffix.lower() not in _RECIPE_SUFFIXES:
+        raise ValueError(f"recipe: expected a {'/'.join(_RECIPE_SUFFIXES)} file, got {recipe!r}")
+    if path.stat().st_size > MAX_RECIPE_BYTES:
+        raise ValueError(f"recipe: {recipe!r} holds {path.stat().st_size:,} bytes, more than a recipe's "
+                         f"{MAX_RECIPE_BYTES:,}")  # fmt: skip
+    return path
+
+
+def _recipe_values(recipe: str, seen: tuple[str, ...] = ()) -> dict[str, Any]:
+    """Every field a recipe sets, merged onto the recipes it extends (a recipe's own values win).
+
+    Raises:
+        ValueError: Naming the recipe, for a file that is not a mapping of stages to fields, an unknown stage
+            or field, a field under another stage than its own, a field given twice, or a chain of
+            ``extends`` that loops or is deeper than :data:`MAX_RECIPE_DEPTH`.
+    """
+    if recipe in seen or len(seen) >= MAX_RECIPE_DEPTH:
+        raise ValueError(f"recipe: the chain of extends {' -> '.join([*seen, recipe])} loops or is too deep")
+    path = _recipe_file(recipe)
+    try:
+        data = yaml.safe_load(path.read_text(encoding="utf-8"))  # data only: never a tag that builds objects
+    except (yaml.YAMLError, UnicodeDecodeError) as error:
+        raise ValueError(f"recipe {recipe!r}: not a YAML file ({error})") from None
+    if not isinstance(data, dict):
+        kind = type(data).__name__
+        raise ValueError(f"recipe {recipe!r}: expected a mapping of stages to fields, got {kind}")
+    data = dict(data)
+    parent = data.pop("extends", None)
+    if parent is not None and (not isinstance(parent, str) or parent not in recipe_names()):
+        names = ", ".join(recipe_names())
+        raise ValueError(f"recipe {recipe!r}: extends must name a bundled recipe ({names}), got {parent!r}")
+    values: dict[str, Any] = {}
+    for stage, section in data.items():
+        if stage not in RECIPE_STAGES:
+            raise ValueError(f"recipe {recipe!r}: unknown stage {stage!r}; stages are {list(RECIPE_STAGES)}")
+        if not isinstance(section, dict):
+            raise ValueError(f"recipe {recipe!r}: {stage} must map fields to values, got {section!r}")
+        for name, value in section.items():
+            if _STAGE_OF.get(name) != stage:
+                where = f"; it belongs under {_STAGE_OF[name]}" if name in _STAGE_OF else ""
+                raise ValueError(f"recipe {recipe!r}: {stage}.{name} is not a field of {stage}{where}")
+            values[name] = _typed(name, value)
+    base = _recipe_values(parent, (*seen, recipe)) if parent is not None else {}
+    return {**base, **values}
+
+
+def load_recipe(recipe: str) -> Preset:
+    """The :class:`Preset` of a bundled recipe (by name) or a recipe file (by path), checked.
+
+    Raises:
+        FileNotFoundError: For an unknown name or a missing file.
+        ValueError: Naming the recipe and field, for anything :func:`_recipe_values` or :class:`Preset`
+            refuses, or a recipe that leaves a field unset (extend ``default``, which sets them all).
+    """
+    values = _recipe_values(recipe)
+    missing = [f.name for f in dataclasses.fields(Preset) if f.name not in values]
+    if missing:
+        raise ValueError(f"recipe {recipe!r}: no value for {missing}; add extends: default")
+    try:
+        return Preset(**values)
+    except ValueError as error:
+        raise ValueError(f"recipe {recipe!r}: {error}") from None
+
+
+#: The bundled recipes, loaded: each a checked :class:`Preset`.
+PRESETS: dict[str, Preset] = {name: load_recipe(name) for name in recipe_names()}
+DEFAULT_PRESET = PRESETS["default"]
+
+
+#: Older flags of the quickstart, still accepted (not shown in ``--help``).
+QUICKSTART_FLAG_ALIASES = {"--preset": "recipe", "--override": "set"}
+#: Record fields of quickstart folders written before recipes were files, and the fields that replaced them.
+RENAMED_QUICKSTART_FIELDS = {"preset": "recipe", "override": "set"}
 
 
 @dataclass
@@ -431,18 +436,19 @@ class QuickstartConfig:
     """Simulate (or read `data`), pretrain SimCLR, fine-tune each lambda, train evaluators, evaluate."""
 
     output_dir: str = "runs/quickstart"  # run folder (every stage writes a subfolder; report.md at the top)
-    # "default" (the bundled prior), "scratch" (from scratch), "long", "mstar" (real data from scratch),
-    # "mstar-prior" (real data, fine-tuned from the bundled prior: the paper's regime), "smoke" (seconds)
-    preset: Literal["default", "scratch", "long", "mstar", "mstar-prior", "smoke"] = "default"
-    data: str | None = None  # chip folder (index.csv or raw MSTAR files); None simulates the preset's classes
+    # a bundled recipe (sar_zero123/recipes: default, the bundled prior fine-tuned on the simulator; scratch;
+    # long; mstar, real data from scratch; mstar-prior, real data from the prior, the paper's regime; proxy;
+    # rehearsal; gentle; smoke, seconds) or a recipe file of your own (YAML, extends: default)
+    recipe: str = "default"
+    data: str | None = None  # chip folder (index.csv or raw MSTAR files); None simulates the recipe's classes
     protocol: str | None = None  # "extended" or "ood-<CLASS>"; None = ood-<last simulated class>
     # PFM weights fine-tuned from the base model and evaluated side by side (a lambda sweep: 0 1 4 16);
     # a re-run in the same folder with more values trains only the new ones
     lambdas: list[float] = field(default_factory=lambda: [0.0, 4.0])
     seed: int = 0  # seed of every stage
-    # preset fields replaced for this run, FIELD=VALUE with a Python literal (base_steps=3000,
-    # lr_scheduler=cosine, vae_widths=16,32,64); the run's preset.json records the result
-    override: list[str] = field(default_factory=list)
+    # recipe fields replaced for this run, [STAGE.]FIELD=VALUE with a Python literal (finetune.finetune_steps=
+    # 3000, lr_scheduler=cosine, vae_widths=16,32,64); the run's preset.json records the result
+    set: list[str] = field(default_factory=list)
     # continue this folder: an interrupted run resumes each stage, a finished one is kept, and more --lambdas
     # train only the new fine-tunes (then every lambda is evaluated again on the same pairs)
     resume: bool = False
@@ -451,20 +457,22 @@ class QuickstartConfig:
     def __post_init__(self) -> None:
         if self.resume and self.restart:
             raise ValueError("resume and restart: choose one (continue this run, or move it aside)")
-        if self.preset not in PRESETS:
-            raise ValueError(f"preset must be one of {sorted(PRESETS)}, got {self.preset!r}")
         if not self.lambdas or min(self.lambdas) < 0 or len(set(self.lambdas)) != len(self.lambdas):
             raise ValueError(f"lambdas must be distinct values >= 0, got {self.lambdas}")
         if self.data is not None and not Path(self.data).is_dir():
             raise FileNotFoundError(f"data: expected a chip folder, got {self.data}")
         if self.data is not None and self.protocol is None:
             raise ValueError("protocol: give 'extended' or 'ood-<CLASS>' with --data (e.g. ood-T72)")
-        preset = apply_overrides(PRESETS[self.preset], self.override)  # a bad override fails before any stage
+        preset = self.preset()  # a bad recipe or --set fails before any stage
         if self.data is None and (self.protocol is None or self.protocol.startswith("ood-")):
             _check_simulated_validation_split(preset.azimuth_step_deg, self.seed)
         if self.protocol is not None and check_protocol(self.protocol) == "soc":
             # evaluate.py pairs seen/unseen views by `extended` or `ood-*`: fail here, not after training
             raise ValueError("protocol: the quickstart evaluates 'extended' or 'ood-<CLASS>', got 'soc'")
+
+    def preset(self) -> Preset:
+        """The run's settings: the recipe with ``set``'s values (each checked)."""
+        return apply_overrides(load_recipe(self.recipe), self.set)
 
 
 def _check_simulated_validation_split(azimuth_step_deg: float, seed: int) -> None:
@@ -483,33 +491,28 @@ def _check_simulated_validation_split(azimuth_step_deg: float, seed: int) -> Non
 
 
 def apply_overrides(preset: Preset, overrides: Sequence[str]) -> Preset:
-    """`preset` with the `FIELD=VALUE` items of `overrides` replaced (`VALUE` a Python literal; a bare word
-    is a string; a list becomes a tuple); the preset's own checks run on the result.
+    """`preset` with the `[STAGE.]FIELD=VALUE` items of `overrides` replaced (`VALUE` a Python literal; a bare
+    word is a string; a list becomes a tuple); the preset's own checks run on the result.
 
     Raises:
-        ValueError: naming the item, for an unknown field, a missing ``=``, or a value whose type differs
-            from the preset's (an int is accepted for a float field; a field that is ``None`` takes any).
+        ValueError: naming the item, for an unknown field, a stage the field is not under, a missing ``=``,
+            or a value of another type than the field's (an int is accepted for a float field).
     """
-    fields = {f.name for f in dataclasses.fields(Preset)}
     changes: dict[str, Any] = {}
     for item in overrides:
-        name, separator, text = item.partition("=")
-        if not separator or name not in fields:
-            raise ValueError(f"override: expected FIELD=VALUE, FIELD one of {sorted(fields)}; got {item!r}")
+        key, separator, text = item.partition("=")
+        stage, dot, name = key.rpartition(".")
+        if not separator or name not in _STAGE_OF or (dot and _STAGE_OF[name] != stage):
+            raise ValueError(
+                f"set: expected [STAGE.]FIELD=VALUE with FIELD one of {sorted(_STAGE_OF)} under its stage "
+                f"({', '.join(RECIPE_STAGES)}); got {item!r}"
+            )
         try:
             value = ast.literal_eval(text)
         except (ValueError, SyntaxError):
             value = text  # a bare word: lr_scheduler=cosine
-        if isinstance(value, list):
-            value = tuple(value)
-        current = getattr(preset, name)
-        same_type = isinstance(value, type(current)) and isinstance(value, bool) == isinstance(current, bool)
-        int_for_float = isinstance(current, float) and isinstance(value, int) and not isinstance(value, bool)
-        if current is not None and value is not None and not (same_type or int_for_float):
-            raise ValueError(
-                f"override: {name} takes a {type(current).__name__} like {current!r}, got {item!r}"
-            )
-        changes[name] = float(value) if int_for_float else value
+        try:
+            changes[name] = _typed(name, value)
+        except ValueError as error:
+            raise ValueError(f"set: {error} (in {item!r})") from None
     return dataclasses.replace(preset, **changes)
-
-

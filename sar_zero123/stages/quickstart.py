@@ -31,7 +31,7 @@ from sar_zero123.stages.corpus import CORPUS_FOLDER, CorpusConfig, run_corpus
 from sar_zero123.stages.evaluate import EVALUATE_MAY_DIFFER, EvaluateConfig, run_evaluate
 from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, run_evaluators
 from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
-from sar_zero123.stages.presets import PRESETS, Preset, QuickstartConfig, apply_overrides
+from sar_zero123.stages.presets import RENAMED_QUICKSTART_FIELDS, Preset, QuickstartConfig
 from sar_zero123.stages.proxies import PROXIES_FOLDER, ProxiesConfig, run_proxies
 from sar_zero123.stages.report import write_report
 from sar_zero123.stages.simclr import PretrainSimCLRConfig, run_simclr
@@ -66,7 +66,7 @@ def _build(stage: str, cls: type, **values: Any) -> Any:
         return cls(**values)
     except (ValueError, TypeError) as error:
         raise ValueError(
-            f"the {stage} stage refuses this preset (check --preset and --override): {error}"
+            f"the {stage} stage refuses this recipe (check --recipe and --set): {error}"
         ) from error
 
 
@@ -178,7 +178,7 @@ def plan_stages(config: QuickstartConfig) -> list[StagePlan]:
     Raises:
         ValueError: Naming the stage that refuses a setting of the preset (or its overrides).
     """
-    preset = apply_overrides(PRESETS[config.preset], config.override)
+    preset = config.preset()
     out = Path(config.output_dir)
     data = out / "data" if config.data is None else Path(config.data)
     depression_data = out / "data_depression"
@@ -271,14 +271,16 @@ def run_quickstart(config: QuickstartConfig) -> Path:
     Raises:
         ValueError: For a preset a stage refuses (before any work), or a folder holding other work.
     """
-    preset = apply_overrides(PRESETS[config.preset], config.override)
+    preset = config.preset()
     plans = plan_stages(config)  # every stage's config checked before any work
     out = Path(config.output_dir)
     # the preset's values one by one, so that a refusal names the field that differs
     record = {**config_to_dict(config), **{f"preset.{k}": v for k, v in dataclasses.asdict(preset).items()}}
     folder = open_stage_folder(
         out, "quickstart", record, data=None if config.data is None else config.data, resume=config.resume,
-        restart=config.restart, may_differ=("output_dir", "resume", "restart", "override"),
+        # the recipe's name and the --set items may differ: the preset.* values they give are compared
+        restart=config.restart, may_differ=("output_dir", "resume", "restart", "recipe", "set",
+                                            *RENAMED_QUICKSTART_FIELDS),
         may_extend=("lambdas",), resume_hint="--resume",
     )  # fmt: skip
     report = out / "report.md"

@@ -86,7 +86,7 @@ def _setup_lines(
     return [
         "# sar_zero123 quickstart report",
         "",
-        f"Preset `{config.preset}`, seed {config.seed}, device {device} ({torch.get_num_threads()} threads), "
+        f"Recipe `{config.recipe}`, seed {config.seed}, device {device} ({torch.get_num_threads()} threads), "
         f"{total / 60:.1f} min of stage time in all. **CPU quick-run numbers on {data_kind}**: {start}, "
         f"then fine-tuned for {preset.finetune_steps} steps with each lambda (PFM on "
         f"{preset.pfm_fraction:g} of the eligible samples, features projected to "

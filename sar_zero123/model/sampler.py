@@ -1,0 +1,204 @@
+"""How a pipeline samples, declared once: :class:`SamplerSettings`, the library's defaults and their checks.
+
+Every command that samples (``generate``, ``augment``, ``evaluate``, the demo) takes a
+:class:`SamplerSettings`: its configs inherit these fields, their flags, help and validation, as the
+fine-tune's config inherits :class:`~sar_zero123.training.losses.LossSettings`. A field left ``None`` takes
+the value the pipeline records as measured best for it (``pipe.config.sampler``, written by
+``save_pretrained`` and shown in a bundled prior's model card), else the library's (:data:`SAMPLER_DEFAULTS`),
+so that a command run with no sampler option gives the best views measured for its pipeline, and a new
+sampler option is declared here and read by :meth:`SARZero123Pipeline.__call__
+<sar_zero123.model.pipeline.SARZero123Pipeline.__call__>`.
+"""
+
+from __future__ import annotations
+
+import math
+import numbers
+from collections.abc import Mapping
+from dataclasses import dataclass, fields
+from typing import Any, Literal
+
+from diffusers import (
+    DDIMScheduler,
+    DPMSolverMultistepScheduler,
+    EulerDiscreteScheduler,
+    UniPCMultistepScheduler,
+)
+
+__all__ = [
+    "MAX_GUIDANCE_SCALE", "MAX_INFERENCE_STEPS", "SAMPLER_DEFAULTS", "SCHEDULERS", "START_FROM",
+    "SamplerSettings", "check_sampler_start", "scheduler_name", "set_scheduler",
+]  # fmt: skip
+
+#: Larger guidance scales overflow the guided noise estimate (NaN images); zero-1-to-3 samples with 3.
+MAX_GUIDANCE_SCALE = 100.0
+#: Most denoising steps per view (the noise schedules have 1,000 training timesteps).
+MAX_INFERENCE_STEPS = 1_000
+#: The samplers a command may name (``--scheduler``, the evaluation's sweep): each built from the pipeline's
+#: scheduler config, so that it keeps the noise schedule the model was trained with.
+SCHEDULERS = {
+    "ddim": (DDIMScheduler, {}),
+    "dpmsolver++": (DPMSolverMultistepScheduler, {"algorithm_type": "dpmsolver++"}),
+    "euler": (EulerDiscreteScheduler, {}),
+    "unipc": (UniPCMultistepScheduler, {}),
+}
+#: What an image-to-image call (``strength < 1``) starts from (:meth:`SARZero123Pipeline.__call__`).
+START_FROM = ("input", "turned_input", "proxy")
+#: The sampler settings a pipeline may record as its defaults (``SARZero123Pipeline(sampler=...)``), and
+#: the library's defaults for those it does not record. An argument given to a call overrides both.
+SAMPLER_DEFAULTS: dict[str, Any] = {
+    "num_inference_steps": 50,
+    "guidance_scale": 3.0,
+    "strength": 1.0,
+    "heading_guidance_scale": 0.0,
+    "depression_guidance_scale": 0.0,
+    "start_from": "input",
+    "proxy_strength": None,  # the strength of a start from the proxy (None: strength)
+}
+
+
+@dataclass
+class SamplerSettings:
+    """How a pipeline samples its views: the fields every sampling command's config inherits.
+
+    Each field left ``None`` takes the value the pipeline records as measured best for it
+    (``pipe.config.sampler``), else the library's (:data:`SAMPLER_DEFAULTS`: 50 steps, guidance 3, strength 1,
+    no heading or depression guidance, start from the input); ``scheduler`` ``None`` keeps the pipeline's
+    own scheduler. Each value is validated here, once; the field names are the commands' flags, so errors
+    name the user's flag.
+
+    Raises:
+        ValueError: Naming the first field out of range.
+    """
+
+    num_inference_steps: int | None = None  # denoising steps
+    scheduler: Literal["ddim", "dpmsolver++", "euler", "unipc"] | None = None  # None: the pipeline's own
+    guidance_scale: float | None = None  # classifier-free guidance weight (<= 1 disables it)
+    heading_guidance_scale: float | None = None  # guidance away from the flipped heading (d_az + 180); 0: off
+    depression_guidance_scale: float | None = None  # guidance away from the input's depression (d_el = 0)
+    strength: float | None = None  # in (0, 1]: below 1, start from a draft noised to this share (SDEdit)
+    # the draft a strength < 1 starts from: "input" (the chip), "turned_input" (turned by d_az in the image
+    # plane), or "proxy" (a simulator vehicle fitted to the chip at its pose, rendered at the request)
+    start_from: Literal["input", "turned_input", "proxy"] | None = None
+
+    def __post_init__(self) -> None:
+        steps = self.num_inference_steps
+        if steps is not None and (
+            isinstance(steps, bool) or int(steps) != steps or not 1 <= steps <= MAX_INFERENCE_STEPS
+        ):
+            raise ValueError(
+                f"num_inference_steps must be an integer in [1, {MAX_INFERENCE_STEPS:,}], got {steps!r}"
+            )
+        if self.scheduler is not None and self.scheduler not in SCHEDULERS:
+            raise ValueError(f"scheduler must be one of {sorted(SCHEDULERS)} or None, got {self.scheduler!r}")
+        scale = self.guidance_scale
+        if scale is not None and (
+            isinstance(scale, bool) or not (math.isfinite(scale) and scale <= MAX_GUIDANCE_SCALE)
+        ):
+            raise ValueError(f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE:g}, got {scale!r}")
+        check_sampler_start(
+            self.strength, self.heading_guidance_scale, {"num_inference_steps": steps},
+            depression_guidance_scale=self.depression_guidance_scale, start_from=self.start_from,
+        )  # fmt: skip
+
+    def sampler_arguments(self) -> dict[str, Any]:
+        """The pipeline call's sampler arguments: every field but ``scheduler`` (``None``: recorded)."""
+        names = [item.name for item in fields(SamplerSettings) if item.name != "scheduler"]
+        return {name: getattr(self, name) for name in names}
+
+    def sampler_settings(self) -> SamplerSettings:
+        """These fields alone, as a plain :class:`SamplerSettings` (from a command's config)."""
+        return SamplerSettings(**{item.name: getattr(self, item.name) for item in fields(SamplerSettings)})
+
+    def resolved(self, recorded: Mapping[str, Any] | None) -> dict[str, Any]:
+        """Every sampler value a call with these settings uses, given what a pipeline records (its
+        ``config.sampler``): a field left ``None`` is the recorded value, else the library's; a recorded start
+        from the proxy starts at its recorded ``proxy_strength`` when no strength is given."""
+        recorded = {**SAMPLER_DEFAULTS, **(recorded or {})}
+        values = {
+            name: recorded[name] if value is None else value
+            for name, value in self.sampler_arguments().items()
+        }
+        proxy_strength = recorded["proxy_strength"]
+        if self.strength is None and values["start_from"] == "proxy" and proxy_strength is not None:
+            values["strength"] = proxy_strength
+        return {"scheduler": self.scheduler, **values}
+
+    def apply_scheduler(self, pipe: Any) -> None:
+        """Swaps ``pipe``'s scheduler for ``scheduler`` (:func:`set_scheduler`); ``None`` keeps it."""
+        if self.scheduler is not None:
+            set_scheduler(pipe, self.scheduler)
+
+
+def set_scheduler(pipe: Any, name: str) -> None:
+    """Swaps the pipeline's sampler for one of :data:`SCHEDULERS`, keeping the noise schedule.
+
+    Raises:
+        ValueError: For a name not in :data:`SCHEDULERS`.
+    """
+    if name not in SCHEDULERS:
+        raise ValueError(f"scheduler must be one of {sorted(SCHEDULERS)}, got {name!r}")
+    scheduler_class, overrides = SCHEDULERS[name]
+    pipe.scheduler = scheduler_class.from_config(pipe.scheduler.config, **overrides)
+
+
+def scheduler_name(scheduler_class_name: str, config: Mapping[str, Any] | None = None) -> str | None:
+    """The :data:`SCHEDULERS` name of a scheduler (its class name and config), or ``None`` for another."""
+    for name, (scheduler_class, overrides) in SCHEDULERS.items():
+        if scheduler_class.__name__ == scheduler_class_name and all(
+            (config or {}).get(key, value) == value for key, value in overrides.items()
+        ):
+            return name
+    return None
+
+
+def check_sampler_start(
+    strength: float | None,
+    heading_guidance_scale: float | None,
+    steps: Mapping[str, int | None],
+    prefix: str = "",
+    depression_guidance_scale: float | None = 0.0,
+    start_from: str | None = "input",
+) -> None:
+    """Refuse, at a config's boundary, a sampler the pipeline cannot run: ``heading_guidance_scale`` or
+    ``depression_guidance_scale`` outside [0, ``MAX_GUIDANCE_SCALE``], ``strength`` outside (0, 1], a
+    ``strength`` that leaves no denoising step of one of the ``steps`` (field name: step count), or a
+    ``start_from`` not in :data:`START_FROM`. A ``None`` (a field left to the pipeline's recorded sampler) is
+    checked by the pipeline at the call instead. Every message names the field as ``prefix`` + its name (the
+    quickstart preset's ``eval_`` fields).
+
+    Raises:
+        ValueError: On any of the above.
+    """
+    scales = (heading_guidance_scale, depression_guidance_scale)
+    _check_contrast_scales(*(0.0 if scale is None else scale for scale in scales), prefix + "{}")
+    if strength is not None:
+        _check_strength(strength, {name: count for name, count in steps.items() if count is not None}, prefix)
+    if start_from is not None and start_from not in START_FROM:
+        raise ValueError(f"{prefix}start_from must be one of {START_FROM}, got {start_from!r}")
+
+
+def _check_contrast_scales(heading: float, depression: float, name_format: str) -> None:
+    """Both contrast guidance weights in [0, ``MAX_GUIDANCE_SCALE``]; the message names each field as
+    ``name_format.format(name)``.
+
+    Raises:
+        ValueError: For a bool, NaN or a weight outside the range.
+    """
+    for name, scale in (("heading_guidance_scale", heading), ("depression_guidance_scale", depression)):
+        if isinstance(scale, bool) or not 0.0 <= scale <= MAX_GUIDANCE_SCALE:  # NaN fails too
+            field = name_format.format(name)
+            raise ValueError(f"{field} must lie in [0, {MAX_GUIDANCE_SCALE:g}], got {scale}")
+
+
+def _check_strength(strength: float, steps: Mapping[str, int], prefix: str = "") -> None:
+    """``strength`` in (0, 1] leaving at least one denoising step of each of ``steps`` (name: step count)."""
+    if isinstance(strength, bool) or not (
+        isinstance(strength, numbers.Real) and math.isfinite(strength) and 0.0 < strength <= 1.0
+    ):
+        raise ValueError(f"{prefix}strength must lie in (0, 1], got {strength!r}")
+    for name, count in steps.items():
+        if int(count * strength) < 1:
+            raise ValueError(
+                f"{prefix}strength {strength} x {name} {count} leaves no denoising step; raise either"
+            )

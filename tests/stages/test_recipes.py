@@ -1,0 +1,110 @@
+"""Recipes as files: small YAML files of per-stage values, merged onto the default recipe."""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import pytest
+import yaml
+
+from sar_zero123.config import parse_config
+from sar_zero123.stages.presets import (
+    MAX_RECIPE_BYTES,
+    PRESETS,
+    QUICKSTART_FLAG_ALIASES,
+    RECIPE_DIR,
+    RECIPE_STAGES,
+    Preset,
+    QuickstartConfig,
+    apply_overrides,
+    load_recipe,
+    recipe_names,
+)
+
+
+def test_every_field_lies_under_exactly_one_stage_and_the_default_sets_them_all() -> None:
+    staged = [name for names in RECIPE_STAGES.values() for name in names]
+    assert sorted(staged) == sorted(f.name for f in dataclasses.fields(Preset))
+    default = yaml.safe_load((RECIPE_DIR / "default.yaml").read_text())
+    assert "extends" not in default
+    assert sorted(n for section in default.values() for n in section) == sorted(staged)
+
+
+def test_bundled_recipes_load_extend_a_parent_and_set_only_what_differs() -> None:
+    assert {"default", "scratch", "long", "mstar", "mstar-prior", "smoke", "proxy"} <= set(recipe_names())
+    for name in recipe_names():
+        assert PRESETS[name] == load_recipe(name)
+        if name == "default":
+            continue
+        raw = yaml.safe_load((RECIPE_DIR / f"{name}.yaml").read_text())
+        parent = PRESETS[raw.pop("extends")]
+        for section in raw.values():  # a value equal to the parent's is a default, not a recipe field
+            for field, value in section.items():
+                current = getattr(parent, field)
+                assert (list(current) if isinstance(current, tuple) else current) != value, (name, field)
+    assert PRESETS["proxy"].prior == "sar-zero123/sim-prior-proxy"
+    assert PRESETS["proxy"].eval_start_from == "proxy"
+    assert PRESETS["mstar-prior"].vae_widths == PRESETS["mstar"].vae_widths  # two levels of extends
+
+
+def test_a_recipe_file_of_ones_own_extends_a_bundled_one(tmp_path: Path) -> None:
+    path = tmp_path / "mine.yaml"
+    path.write_text("extends: default\nfinetune:\n  finetune_steps: 3000\n  finetune_learning_rate: 3.0e-4\n")
+    mine = load_recipe(str(path))
+    assert mine == apply_overrides(PRESETS["default"], ["finetune_steps=3000", "finetune_learning_rate=3e-4"])
+    assert mine == PRESETS["gentle"]
+    assert QuickstartConfig(output_dir=str(tmp_path / "run"), recipe=str(path)).preset() == mine
+    # --set takes FIELD=VALUE or STAGE.FIELD=VALUE
+    assert apply_overrides(mine, ["finetune.finetune_steps=10"]).finetune_steps == 10
+
+
+@pytest.mark.parametrize(
+    ("text", "match"),
+    [
+        ("extends: default\ntrain:\n  finetune_steps: 3\n", "unknown stage 'train'"),
+        ("extends: default\nfinetune:\n  steps: 3\n", "finetune.steps is not a field of finetune"),
+        ("extends: default\nvae:\n  finetune_steps: 3\n", "it belongs under finetune"),
+        ("extends: default\nfinetune:\n  finetune_steps: many\n", "finetune_steps takes int, got 'many'"),
+        ("extends: default\nfinetune:\n  finetune_steps: 0\n", "finetune_steps must be an integer >= 1"),
+        ("extends: ../default.yaml\n", "extends must name a bundled recipe"),
+        ("finetune:\n  finetune_steps: 3\n", "no value for"),
+        ("- a\n- b\n", "expected a mapping of stages to fields, got list"),
+        ("extends: default\nfinetune: 3\n", "finetune must map fields to values"),
+        ("!!python/object/apply:os.system ['echo owned']\n", "not a YAML file"),
+        ("extends: default\nfinetune: {finetune_steps: [1\n", "not a YAML file"),
+    ],
+)
+def test_a_bad_recipe_is_refused_by_name_before_any_stage(tmp_path: Path, text: str, match: str) -> None:
+    path = tmp_path / "bad.yaml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=match):
+        load_recipe(str(path))
+    with pytest.raises(ValueError, match=match):
+        QuickstartConfig(output_dir=str(tmp_path / "run"), recipe=str(path))
+
+
+def test_recipe_files_are_bounded_and_named(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match=r"recipe: 'nope' is neither a bundled recipe \(default"):
+        load_recipe("nope")
+    script = tmp_path / "recipe.py"
+    script.write_text("x = 1\n")
+    with pytest.raises(ValueError, match="expected a .yaml/.yml/.json file"):
+        load_recipe(str(script))
+    big = tmp_path / "big.yaml"
+    big.write_text("#" * (MAX_RECIPE_BYTES + 1))
+    with pytest.raises(ValueError, match="more than a recipe's"):
+        load_recipe(str(big))
+    json_recipe = tmp_path / "r.json"
+    json_recipe.write_text('{"extends": "default", "evaluate": {"eval_n": 64}}')
+    assert load_recipe(str(json_recipe)).eval_n == 64
+
+
+def test_the_older_flags_still_work(tmp_path: Path) -> None:
+    out = str(tmp_path / "run")
+    old_flags = ["--output_dir", out, "--preset", "smoke", "--override", "eval_n=8"]
+    new_flags = ["--output_dir", out, "--recipe", "smoke", "--set", "evaluate.eval_n=8"]
+    old = parse_config(QuickstartConfig, old_flags, aliases=QUICKSTART_FLAG_ALIASES)
+    new = parse_config(QuickstartConfig, new_flags, aliases=QUICKSTART_FLAG_ALIASES)
+    assert old.recipe == new.recipe == "smoke"
+    assert old.preset() == new.preset() == apply_overrides(PRESETS["smoke"], ["eval_n=8"])
