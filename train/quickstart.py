@@ -1,7 +1,7 @@
 """End-to-end run on the built-in simulator (or a chip folder): the README's main command.
 
     python train/quickstart.py --output_dir runs/quickstart
-    python train/quickstart.py --preset mstar --data /path/to/mstar --protocol ood-T72 --output_dir runs/mstar
+    python train/quickstart.py --recipe mstar --data /path/to/mstar --protocol ood-T72 --output_dir runs/mstar
 
 With the default preset, on a 2-core CPU, it
 

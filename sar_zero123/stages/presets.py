@@ -3,7 +3,7 @@
 :class:`Preset` holds every size of one run (data, SimCLR, VAE, base model, fine-tunes, evaluators,
 evaluation); :data:`PRESETS` names the shipped ones; :class:`QuickstartConfig` is what the user chooses
 (a preset, overrides of its fields, the data, the protocol, the PFM weights, the seed). Every field is
-checked when the preset is built, in the preset's own names, so a bad ``--override`` fails before the
+checked when the preset is built, in the preset's own names, so a bad ``--set`` fails before the
 first stage. :func:`~sar_zero123.stages.quickstart.run_quickstart` runs them.
 """
 
@@ -168,7 +168,7 @@ class Preset:
             )
 
     def __post_init__(self) -> None:
-        # every field checked here, in the preset's own names, so that a bad --override fails before the
+        # every field checked here, in the preset's own names, so that a bad --set fails before the
         # first stage instead of when its stage starts
         counts = ("instances", "simclr_steps", "simclr_batch_size", "vae_steps", "vae_batch_size",
                   "base_steps", "finetune_steps", "finetune_batch_size", "evaluator_epochs", "eval_steps",
@@ -486,7 +486,7 @@ def _check_simulated_validation_split(azimuth_step_deg: float, seed: int) -> Non
             f"seed: the ood protocol's validation split holds the azimuths of {len(intervals)} "
             f"{OOD_INTERVAL_WIDTH_DEG:g}-deg intervals drawn with --seed {seed} (starting at {starts} deg), "
             f"and no simulated chip lies in them with azimuth_step_deg={azimuth_step_deg:g}: choose another "
-            f"--seed, or a finer grid (--override azimuth_step_deg={OOD_INTERVAL_WIDTH_DEG:g} always works)"
+            f"--seed, or a finer grid (--set azimuth_step_deg={OOD_INTERVAL_WIDTH_DEG:g} always works)"
         )
 
 
