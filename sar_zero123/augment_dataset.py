@@ -598,9 +598,9 @@ def _generate(
     num_inference_steps: int | None,
     guidance_scale: float | None,
     seed: int,
-    strength: float | None = 1.0,
-    heading_guidance_scale: float | None = 0.0,
-    depression_guidance_scale: float | None = 0.0,
+    strength: float | None = None,
+    heading_guidance_scale: float | None = None,
+    depression_guidance_scale: float | None = None,
     start_from: str | None = None,
 ) -> np.ndarray:
     """One pipeline call for a batch of views: ``(B, S, S)`` normalised dB from ``(B, S, S)`` chips; a sampler

@@ -95,7 +95,7 @@ def _scalar_parser(annotation: Any, name: str) -> Any:
     raise TypeError(f"config field {name!r}: unsupported type {annotation!r}")
 
 
-def _add_field(parser: argparse.ArgumentParser, field: dataclasses.Field, annotation: Any, help_text: str):
+def _add_field(parser: Any, field: dataclasses.Field, annotation: Any, help_text: str):
     name = field.name
     flags = [f"--{name}"] + ([f"--{name.replace('_', '-')}"] if "_" in name else [])
     inner, optional = _unwrap_optional(annotation)
@@ -163,6 +163,37 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
     return values
 
 
+@dataclasses.dataclass(frozen=True)
+class RemovedField:
+    """A config field that was removed: the value it held by default, and why it went (what was measured, and
+    what replaces it). A config class lists them in ``REMOVED_FIELDS``; a flag, a ``--config`` file or a run
+    folder's record that sets one to another value than ``default`` is refused, naming it and ``reason``."""
+
+    default: Any
+    reason: str
+
+
+def removed_fields(config: Any) -> Mapping[str, RemovedField]:
+    """The removed fields of a config class or instance (its ``REMOVED_FIELDS``; ``{}`` where it has none)."""
+    return getattr(config, "REMOVED_FIELDS", {})
+
+
+def drop_removed_fields(config: Any, values: Mapping[str, Any], where: str) -> dict[str, Any]:
+    """``values`` without the removed fields that hold their old default (a config or record written before
+    they went reads as it did).
+
+    Raises:
+        ValueError: Naming ``where``, the field and why it went, for one set to another value.
+    """
+    removed = removed_fields(config)
+    for name, item in removed.items():
+        if name in values and values[name] != item.default:
+            raise ValueError(
+                f"{where}: {name}={values[name]!r}, but {name} was removed: {item.reason}"
+            )
+    return {name: value for name, value in values.items() if name not in removed}
+
+
 def parse_config(
     cls: type[ConfigT],
     argv: Sequence[str] | None = None,
@@ -205,10 +236,19 @@ def parse_config(
     # the command's own fields first, then those it inherits (FinetuneConfig's loss fields)
     own = cls.__dict__.get("__annotations__", {})
     fields = sorted((f for f in dataclasses.fields(cls) if f.init), key=lambda f: f.name not in own)
+    # research options kept beside the measured ones, each with what was measured (EXPERIMENTAL_FIELDS)
+    experimental: Mapping[str, str] = getattr(cls, "EXPERIMENTAL_FIELDS", {})
+    group = parser.add_argument_group(
+        "experimental", "research options, measured not to improve on the defaults (why, per option)"
+    ) if experimental else parser  # fmt: skip
     for field in fields:
         default = field.default if field.default is not dataclasses.MISSING else field.default_factory()  # type: ignore[misc]
         help_text = f"{comments.get(field.name, '')} (default: {default!r})".strip()
-        _add_field(parser, field, hints[field.name], help_text)
+        if field.name in experimental:
+            measured = experimental[field.name].replace("%", "%%")  # argparse formats help with %
+            _add_field(group, field, hints[field.name], f"{help_text}; measured: {measured}")
+        else:
+            _add_field(parser, field, hints[field.name], help_text)
     names = {field.name for field in fields}
     if "resume_from_checkpoint" in names and "resume" not in names:
         parser.add_argument(
@@ -217,6 +257,11 @@ def parse_config(
             help="continue the run in the output folder from its newest intact checkpoint (the same as "
             "--resume_from_checkpoint latest)",
         )  # fmt: skip
+    removed = removed_fields(cls)
+    for token in sys.argv[1:] if argv is None else argv:
+        flag = token.partition("=")[0].lstrip("-").replace("-", "_")
+        if token.startswith("--") and flag in removed:
+            raise ValueError(f"--{flag} was removed: {removed[flag].reason}")
     if aliases:
         unknown_targets = sorted(set(aliases.values()) - names)
         if unknown_targets:
@@ -226,7 +271,7 @@ def parse_config(
     config_path = namespace.pop("config")
     values: dict[str, Any] = {}
     if config_path is not None:
-        file_values = read_config_file(config_path)
+        file_values = drop_removed_fields(cls, read_config_file(config_path), f"--config {config_path!r}")
         known = {f.name for f in fields}
         unknown = sorted(set(file_values) - known)
         if unknown:

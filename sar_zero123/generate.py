@@ -247,9 +247,9 @@ def generate_views(
     guidance_scale: float | None,
     seed: int,
     input_depression_deg: float | None = None,
-    heading_guidance_scale: float | None = 0.0,
-    strength: float | None = 1.0,
-    depression_guidance_scale: float | None = 0.0,
+    heading_guidance_scale: float | None = None,
+    strength: float | None = None,
+    depression_guidance_scale: float | None = None,
     start_from: str | None = None,
     input_azimuth_deg: float | None = None,
 ) -> np.ndarray:

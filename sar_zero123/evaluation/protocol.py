@@ -349,10 +349,10 @@ def generate_pair_targets(
     batch_size: int,
     device: torch.device,
     desc: str = "generating",
-    heading_guidance_scale: float | None = 0.0,
-    strength: float | None = 1.0,
-    start_from: str | None = "input",
-    depression_guidance_scale: float | None = 0.0,
+    heading_guidance_scale: float | None = None,
+    strength: float | None = None,
+    start_from: str | None = None,
+    depression_guidance_scale: float | None = None,
 ) -> tuple[torch.Tensor, float]:
     """Generates the target view of every pair (seeded per pair), in batches, timing the pipeline calls.
 

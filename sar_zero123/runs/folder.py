@@ -38,7 +38,13 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Literal
 
-from sar_zero123.config import config_to_dict, read_json, write_json_atomic
+from sar_zero123.config import (
+    config_to_dict,
+    drop_removed_fields,
+    read_json,
+    removed_fields,
+    write_json_atomic,
+)
 from sar_zero123.runs.lock import is_lock_file, lock_output_folder, release_output_folder
 
 logger = logging.getLogger(__name__)
@@ -386,8 +392,11 @@ def open_run_folder(
             "version): choose an empty folder, or pass --restart to move its contents aside"
         )
     extendable = set(may_extend) if resume else set()
+    # a field since removed counts as absent where the folder holds its old default, and is refused otherwise
+    drop_removed_fields(config, record.get("config", {}), f"{flag_hint}: {str(path)!r}")
     differences = run_differences(
-        record, stage, values, identity, ignore=set(may_differ) | extendable, defaults=field_defaults(config)
+        record, stage, values, identity, ignore=set(may_differ) | extendable | set(removed_fields(config)),
+        defaults=field_defaults(config),
     )
     if differences:
         raise ValueError(

@@ -35,7 +35,7 @@ from diffusers import DDPMScheduler
 from diffusers.optimization import get_scheduler
 from torch.utils.data import DataLoader
 
-from sar_zero123.config import check_minimum, save_config, write_json_atomic
+from sar_zero123.config import RemovedField, check_minimum, save_config, write_json_atomic
 from sar_zero123.data import (
     MixedPairs,
     ViewPairDataset,
@@ -147,10 +147,6 @@ class FinetuneConfig(LossSettings):
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
     # "normalized" and "stages" are departures from the paper (docs/results/pfm.md, section 10)
     pfm_features: PfmFeatures = "pooled"  # PFM's features: Eq. 20's pooled, unit length or all stages (LPIPS)
-    # PFM only in the steps [pfm_start_step, pfm_stop_step) of the run (the others train L_simple alone):
-    # a warm-up without PFM, or PFM switched off late; the paper uses it in every step
-    pfm_start_step: int = 0  # first optimisation step with PFM (0: from the start)
-    pfm_stop_step: int | None = None  # first step without PFM again (None: to the end)
     # train only rank-r LoRA factors beside the frozen UNet weights (sar_zero123.training.lora), merged into a
     # plain UNet at export; None: every UNet weight trains (zero-1-to-3). The pose projection trains whole
     lora_rank: int | None = None
@@ -195,6 +191,33 @@ class FinetuneConfig(LossSettings):
     # unused): for a GPU whose memory holds the corpus, where worker start-up each epoch bounds the steps/s
     cache_on_device: bool = False
 
+    #: Options measured to do nothing, removed (a config or run folder holding their old default reads as
+    #: before; another value is refused with the reason).
+    REMOVED_FIELDS = {
+        "pfm_start_step": RemovedField(0, "PFM switched on after 500 steps of L_simple alone kept the seen "
+                                       "class less often than PFM from the first step (44.5 against 55.9 %; "
+                                       "docs/results/pfm.md, section 8); PFM applies in every step"),
+        "pfm_stop_step": RemovedField(None, "PFM switched off after 300 steps damaged the seen classes as "
+                                      "much as 1,000 PFM steps (docs/results/pfm.md, section 6); PFM "
+                                      "applies in every step"),
+        "pfm_monotonic_q": RemovedField(0, "random monotonic maps before PFM's encoder changed nothing "
+                                        "measurable (docs/results/pfm.md, section 7); PFM compares the "
+                                        "images as Eq. 20 does"),
+    }  # fmt: skip
+
+    #: Research options kept beside the measured ones: --help lists them apart, with what was measured.
+    EXPERIMENTAL_FIELDS = {
+        "pfm_features": "unit-length features gave the lowest seen axis error, all stages (LPIPS-style) the "
+                        "lowest unseen SFD, neither beat lambda = 0 on seen accuracy (docs/results/pfm.md, "
+                        "section 10)",
+        "pfm_snr_gamma": "PFM weighted by SNR on every sample keeps the seen azimuth at lambda = 4 (78.5 % / "
+                         "49.0 deg against lambda = 0's 83.6 % / 50.7), no unseen gain (pfm.md, section 10)",
+        "lora_rank": "rank 8 keeps the prior's depression requests as a lower learning rate does, no better, "
+                     "at 1.5 times a full step's cost (docs/results/prior.md, section 6)",
+        "lora_alpha": "with lora_rank only",
+        "lora_modules": "with lora_rank only",
+    }  # fmt: skip
+
     def __post_init__(self) -> None:
         super().__post_init__()  # the loss fields, validated where they are declared
         if self.pfm_weight > 0 and self.encoder is None:
@@ -210,12 +233,6 @@ class FinetuneConfig(LossSettings):
         check_minimum(self, *counts, minimum=1)
         check_minimum(self, "pfm_projection_dim", "checkpoints_total_limit", minimum=1, optional=True)
         check_pfm_features(self.pfm_features, self.pfm_projection_dim)
-        check_minimum(self, "pfm_start_step", minimum=0)
-        if self.pfm_stop_step is not None and not self.pfm_stop_step > self.pfm_start_step:
-            raise ValueError(
-                f"pfm_stop_step must be > pfm_start_step ({self.pfm_start_step}) or None, got "
-                f"{self.pfm_stop_step}"
-            )
         check_minimum(self, "image_size", minimum=8, optional=True)
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
@@ -268,15 +285,6 @@ class FinetuneConfig(LossSettings):
         # built from LossSettings' own field names: a setting added there is read here without a copy
         names = [item.name for item in dataclasses.fields(LossSettings)]
         return LossSettings(**{name: getattr(self, name) for name in names})
-
-    def loss_settings_at(self, step: int) -> LossSettings:
-        """The loss settings of optimisation step ``step`` (0-based): without PFM outside
-        ``[pfm_start_step, pfm_stop_step)``."""
-        settings = self.loss_settings()
-        stop = self.pfm_stop_step
-        if self.pfm_start_step <= step and (stop is None or step < stop):
-            return settings
-        return dataclasses.replace(settings, pfm_weight=0.0)
 
     def extendable_fields(self) -> tuple[str, ...]:
         """Fields a resumed run may change: ``max_train_steps`` when the learning rate ignores the steps."""

@@ -35,6 +35,7 @@ from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.model.conditioning import PoseProjection, takes_proxy
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.proxy import DEFAULT_PROXY
+from sar_zero123.model.sampler import EXPORTED_SAMPLER
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.checkpoints import (
     check_finite_state,
@@ -276,7 +277,8 @@ def export_finetuned(
         proxy = DEFAULT_PROXY
     if proxy is not None:
         proxy = {**proxy, "min_db": float(scaling.min_db), "max_db": float(scaling.max_db)}
-    sampler = getattr(pipe.config, "sampler", None) if proxy_model else None
+    # the measured step count, and a proxy model's whole sampler (its start from the proxy)
+    sampler = {**EXPORTED_SAMPLER, **((getattr(pipe.config, "sampler", None) or {}) if proxy_model else {})}
     export = SARZero123Pipeline(
         **{**pipe.components, "scheduler": DDIMScheduler.from_config(pipe.scheduler.config),
            "unet": merged_unet(pipe.unet)}, sampler=sampler, proxy=proxy,
@@ -350,7 +352,6 @@ def train_finetune_steps(
     for batch_index, epoch, batch in batches:
         with accelerator.accumulate(*trainer.trained_modules):
             generator = micro_batch_generator(config.seed, batch_index, accelerator.process_index)
-            trainer.loss_kwargs["loss_settings"] = config.loss_settings_at(global_step)
             losses = compute_losses(
                 batch,
                 unet=trainer.unet,

@@ -32,7 +32,6 @@ import torch.nn.functional as F
 from safetensors.torch import save_file
 from torch import nn
 
-from sar_zero123.augment.codomain import apply_lookup_table, sample_monotonic_map
 from sar_zero123.config import check_minimum
 from sar_zero123.domain import center_crop, signed_to_unit, unit_to_signed
 from sar_zero123.encoder import SAREncoder
@@ -463,24 +462,15 @@ def _to_encoder_input(images: torch.Tensor, size: int) -> torch.Tensor:
     return images
 
 
-def _remapped(images: torch.Tensor, codomain_tables: torch.Tensor | None) -> torch.Tensor:
-    """Encoder inputs in [0, 1] through one monotonic lookup table per sample (none: unchanged)."""
-    return images if codomain_tables is None else apply_lookup_table(images, codomain_tables)
-
-
 @torch.no_grad()
 def encode_target_features(target_images: torch.Tensor, encoder: nn.Module, *,
-                           crop_size: int | None = None,
-                           codomain_tables: torch.Tensor | None = None) -> torch.Tensor:
+                           crop_size: int | None = None) -> torch.Tensor:
     """Frozen-encoder features h = f(x0) of the real target views (no gradient).
 
     Args:
         target_images: Target views, normalised dB in [0, 1].
         encoder: Frozen SAR encoder (``forward((B, 1, S, S)) -> (B, D)``, ``config.image_size``).
         crop_size: Optional centre crop in pixels (before the resize to ``encoder.config.image_size``).
-        codomain_tables: Optional ``(B, Q)`` monotonic lookup tables
-            (:func:`~sar_zero123.augment.codomain.sample_monotonic_map`), one per sample, applied to the
-            encoder's input in normalised dB (see :func:`pfm_loss`).
 
     Returns:
         Float32 features.
@@ -491,7 +481,7 @@ def encode_target_features(target_images: torch.Tensor, encoder: nn.Module, *,
     images = center_crop(target_images, crop_size) if crop_size is not None else target_images
     images = unit_to_signed(images)  # to the VAE's [-1, 1] so both branches share one mapping
     encoder_dtype = next(encoder.parameters()).dtype
-    inputs = _remapped(_to_encoder_input(images, encoder.config.image_size), codomain_tables)
+    inputs = _to_encoder_input(images, encoder.config.image_size)
     return encoder(inputs.to(encoder_dtype)).float()
 
 
@@ -523,7 +513,6 @@ def pfm_loss(
     *,
     crop_size: int | None = None,
     target_features: torch.Tensor | None = None,
-    codomain_tables: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Projected Feature Matching, Eq. (20): ``||f(x0) - f(D(x0_hat))||^2`` per sample.
 
@@ -537,11 +526,6 @@ def pfm_loss(
     sees only the window, which changes interior pixels as much as border ones (numbers in
     ``docs/results/pfm.md``).
 
-    With ``codomain_tables`` (a departure from Eq. 20, after E-LPIPS, Kettunen et al. 2019), the same random
-    monotonic map of the co-domain (the paper's Algorithm 1) is applied to both images before the encoder,
-    one map per sample: PFM then rewards only what such a remapping of the decibel values keeps, the
-    features the SimCLR encoder was trained to hold invariant, and not patterns of particular grey levels.
-
     Gradients flow through the frozen decoder and encoder into ``x0_hat_latents`` only.
 
     Args:
@@ -551,10 +535,7 @@ def pfm_loss(
         encoder: Frozen SAR encoder with ``config.image_size`` (eval mode, no gradients).
         crop_size: Optional side in pixels of the centre crop; ``image_size - crop_size`` must be a
             multiple of twice the VAE downsampling factor.
-        target_features: Optional precomputed :func:`encode_target_features` output (without
-            ``codomain_tables``: the tables change the target's features).
-        codomain_tables: Optional ``(B, Q)`` monotonic lookup tables, one per sample, applied to the
-            encoder inputs (normalised dB in [0, 1]) of the target and of the estimate alike.
+        target_features: Optional precomputed :func:`encode_target_features` output.
 
     Returns:
         Float32 per-sample squared L2 feature distance.
@@ -572,8 +553,6 @@ def pfm_loss(
     if x0_hat_latents.shape[0] != target_images.shape[0]:
         raise ValueError(f"batch sizes differ: x0_hat_latents {x0_hat_latents.shape[0]}, "
                          f"target_images {target_images.shape[0]}")
-    if codomain_tables is not None and target_features is not None:
-        raise ValueError("target_features: precomputed features cannot take codomain_tables; pass one")
     factor = downsampling_factor(vae.config.block_out_channels)
     image_size = target_images.shape[-1]
     if x0_hat_latents.shape[-1] * factor != image_size:
@@ -585,14 +564,12 @@ def pfm_loss(
         latents = center_crop(latents, crop_size // factor)
     # 2. features of the real target (no gradient)
     if target_features is None:
-        target_features = encode_target_features(
-            target_images, encoder, crop_size=crop_size, codomain_tables=codomain_tables
-        )
+        target_features = encode_target_features(target_images, encoder, crop_size=crop_size)
     # 3. decode the estimate and encode it; gradients flow to x0_hat_latents
     vae_dtype = next(vae.parameters()).dtype
     decoded = vae.decode(latents.to(vae_dtype) / vae.config.scaling_factor).sample  # (B, C, crop, crop)
     encoder_dtype = next(encoder.parameters()).dtype
-    inputs = _remapped(_to_encoder_input(decoded, encoder.config.image_size), codomain_tables)
+    inputs = _to_encoder_input(decoded, encoder.config.image_size)
     features = encoder(inputs.to(encoder_dtype)).float()
     return (features - target_features).pow(2).sum(dim=1)
 
@@ -674,9 +651,6 @@ class LossSettings:
     # how lambda scales PFM (balanced_pfm_weight; docs/results/pfm.md, section 6): "none" weights PFM as in
     # Eq. (21); "adaptive": PFM's gradient at the network output is lambda times L_simple's in every step
     pfm_balance: Literal["none", "adaptive"] = "none"  # "none": Eq. 21's fixed lambda; "adaptive": balanced
-    # a random monotonic map (Algorithm 1) with this many levels, one per sample and step, applied to both
-    # images before PFM's encoder (after E-LPIPS; a departure from Eq. 20); 0 = off, the paper's PFM
-    pfm_monotonic_q: int = 0
     # pfm_snr_weights, a departure from Eq. 21 (None: the paper's equal weight at every t)
     pfm_snr_gamma: float | None = None  # PFM per sample times min(SNR(t), gamma) / gamma; None: equal weight
     drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
@@ -702,8 +676,6 @@ class LossSettings:
         check_minimum(self, "pfm_snr_gamma", minimum=0, strict=True, optional=True)
         if self.pfm_snr_gamma is not None and not math.isfinite(self.pfm_snr_gamma):
             raise ValueError(f"pfm_snr_gamma must be finite or None, got {self.pfm_snr_gamma}")
-        if self.pfm_monotonic_q == 1 or self.pfm_monotonic_q < 0:
-            raise ValueError(f"pfm_monotonic_q must be 0 (off) or >= 2 levels, got {self.pfm_monotonic_q}")
         probs = (self.drop_image_prob, self.drop_both_prob, self.drop_latent_prob)
         if not (min(probs) >= 0 and sum(probs) <= 1):
             raise ValueError(
@@ -764,7 +736,6 @@ def total_loss(
     generator: torch.Generator | None = None,
     denoising_weights: torch.Tensor | None = None,
     pfm_balance: str = "none",
-    pfm_monotonic_q: int = 0,
     pfm_snr_gamma: float | None = None,
 ) -> LossOutput:
     """L = L_simple + lambda * L_PFM, Eq. (21); ``pfm_weight = 0`` is plain zero-1-to-3 fine-tuning and
@@ -783,14 +754,12 @@ def total_loss(
         pfm_min_snr: PFM only where ``SNR(t) >= pfm_min_snr`` (:func:`pfm_timestep_mask`).
         pfm_fraction: Fraction in (0, 1] of the eligible samples on which PFM is computed (at least one).
         crop_size: Optional centre crop in pixels for PFM (see :func:`pfm_loss`).
-        generator: Draws the PFM subset when ``pfm_fraction < 1``, and the monotonic maps.
+        generator: Draws the PFM subset when ``pfm_fraction < 1``.
         denoising_weights: Optional per-sample weights of L_simple (Min-SNR-gamma,
             :func:`~sar_zero123.training.step.min_snr_weights`), applied before the sum.
         pfm_balance: ``"none"`` (Eq. 21 as written) or ``"adaptive"``: PFM is multiplied by
             :func:`balanced_pfm_weight` of this batch, so ``pfm_weight`` is the ratio of PFM's gradient to
             L_simple's at the network output (a departure from the paper, ``docs/results/pfm.md``).
-        pfm_monotonic_q: ``Q >= 2``: one random monotonic map with Q levels per PFM sample, drawn once per
-            call from ``generator`` and applied to both images before the encoder (:func:`pfm_loss`); 0: off.
         pfm_snr_gamma: ``gamma > 0``: each sample's PFM times :func:`pfm_snr_weights` (before the
             balance, so the adaptive scale sees the weighted term); None: Eq. 21's equal weight.
 
@@ -829,14 +798,10 @@ def total_loss(
             snr_weights = None
             if pfm_snr_gamma is not None:
                 snr_weights = pfm_snr_weights(timesteps[eligible], scheduler, pfm_snr_gamma)
-            tables = None  # drawn once: the balanced form evaluates pfm_of on the same maps
-            if pfm_monotonic_q:
-                tables = sample_monotonic_map(keep, pfm_monotonic_q, generator=generator)
 
             def pfm_of(output: torch.Tensor) -> torch.Tensor:
                 x0_hat = estimate_x0(x_t[eligible], output[eligible], timesteps[eligible], scheduler)
-                values = pfm_loss(x0_hat, target_images[eligible], vae, encoder, crop_size=crop_size,
-                                  codomain_tables=tables)  # fmt: skip
+                values = pfm_loss(x0_hat, target_images[eligible], vae, encoder, crop_size=crop_size)
                 if snr_weights is not None:
                     values = values * snr_weights
                 return torch.zeros_like(denoising).index_put((eligible,), values * (num_eligible / keep))

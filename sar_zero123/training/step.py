@@ -576,7 +576,7 @@ def compute_losses(
         target_images=batch["target"].to(device=latents.device, dtype=vae.dtype), vae=vae, encoder=encoder,
         pfm_min_snr=settings.pfm_min_snr, pfm_fraction=settings.pfm_fraction,
         crop_size=settings.pfm_crop_size, generator=generator, denoising_weights=weights,
-        pfm_balance=settings.pfm_balance, pfm_monotonic_q=settings.pfm_monotonic_q,
+        pfm_balance=settings.pfm_balance,
         pfm_snr_gamma=settings.pfm_snr_gamma,
     )  # fmt: skip
     if azimuth_loss is not None:

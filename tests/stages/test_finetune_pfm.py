@@ -27,6 +27,7 @@ from sar_zero123.encoder import SAREncoder, SAREncoderConfig
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.orientation import AzimuthEstimator
 from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.sampler import EXPORTED_SAMPLER
 from sar_zero123.runs.launch import check_global_batch, weights_digest
 from sar_zero123.training.losses import LossSettings
 from sar_zero123.training.step import ImageEmbedder, compute_losses, micro_batch_generator
@@ -135,6 +136,8 @@ def test_smoke_two_steps_writes_checkpoint_grid_and_pipeline(script, assets, tmp
     assert saved["pfm_weight"] == 4.0 and saved["pfm_crop_size"] == 16
     assert json.loads((out / "pipeline" / "decibel_scaling.json").read_text())["min_db"] == -60.0
     pipe = SARZero123Pipeline.from_pretrained(out / "pipeline")
+    # the exported pipeline records the measured step count: its plain call samples 20 steps, not 50
+    assert pipe.config.sampler == EXPORTED_SAMPLER == {"num_inference_steps": 20}
     image = torch.rand(1, 1, 32, 32)
     result = pipe(
         image, d_az=30.0, num_inference_steps=2, output_type="pt", generator=torch.Generator().manual_seed(0)
@@ -687,23 +690,35 @@ def test_rehearsal_mixes_corpus_pairs_into_the_fine_tune_and_widens_its_ranges(s
         script.main(one_step_args(assets, tmp_path / "other", "--rehearsal_max_chips", "1"))
 
 
-def test_pfm_window_turns_pfm_off_outside_its_steps(tmp_path) -> None:
+def test_options_measured_to_do_nothing_are_refused_by_name_and_old_records_still_read(tmp_path) -> None:
+    from sar_zero123.config import parse_config
+    from sar_zero123.runs.folder import open_run_folder
     from sar_zero123.stages.finetune import FinetuneConfig
 
     encoder = str(tmp_path / "encoder")
-    config = FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder, pfm_weight=2.0,
-                            pfm_start_step=3, pfm_stop_step=5, pfm_balance="adaptive")  # fmt: skip
-    weights = [config.loss_settings_at(step).pfm_weight for step in range(7)]
-    assert weights == [0.0, 0.0, 0.0, 2.0, 2.0, 0.0, 0.0]
-    assert config.loss_settings_at(4) == config.loss_settings()  # inside the window: the run's settings
-    assert config.loss_settings_at(0).pfm_balance == "adaptive"  # only lambda changes outside it
-    always = FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder)
-    assert all(always.loss_settings_at(step).pfm_weight == 4.0 for step in (0, 10**6))
-    with pytest.raises(ValueError, match=r"pfm_stop_step must be > pfm_start_step \(3\) or None, got 3"):
-        FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder, pfm_start_step=3,
-                       pfm_stop_step=3)  # fmt: skip
-    with pytest.raises(ValueError, match="pfm_start_step"):
-        FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder, pfm_start_step=-1)
+    for flag, value in (("pfm_start_step", "500"), ("pfm_stop_step", "300"), ("pfm_monotonic_q", "512")):
+        with pytest.raises(ValueError, match=rf"--{flag} was removed: .*docs/results/pfm.md"):
+            parse_config(FinetuneConfig, [f"--{flag}", value, "--encoder", encoder])
+    # a config file written before they went: their old defaults read as before, another value is refused
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"encoder": encoder, "size": "tiny", "pfm_start_step": 0, "pfm_stop_step": None,
+                               "pfm_monotonic_q": 0}))  # fmt: skip
+    assert parse_config(FinetuneConfig, ["--config", str(old)]).size == "tiny"
+    old.write_text(json.dumps({"encoder": encoder, "pfm_start_step": 500}))
+    with pytest.raises(ValueError, match=r"pfm_start_step=500, but pfm_start_step was removed: PFM switched"):
+        parse_config(FinetuneConfig, ["--config", str(old)])
+    # a run folder recorded with them: resumable at the old defaults, refused by name otherwise
+    config = FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder)
+    folder = open_run_folder(config.output_dir, "finetune", config, data={})
+    record_path = folder.path / "run.json"
+    record = json.loads(record_path.read_text())
+    record["config"].update(pfm_start_step=0, pfm_stop_step=None, pfm_monotonic_q=0)
+    record_path.write_text(json.dumps(record))
+    assert open_run_folder(config.output_dir, "finetune", config, data={}, resume=True).status != "new"
+    record["config"]["pfm_monotonic_q"] = 512
+    record_path.write_text(json.dumps(record))
+    with pytest.raises(ValueError, match="pfm_monotonic_q=512, but pfm_monotonic_q was removed"):
+        open_run_folder(config.output_dir, "finetune", config, data={}, resume=True)
     with pytest.raises(ValueError, match="pfm_balance"):
         FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder, pfm_balance="auto")
 

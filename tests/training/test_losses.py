@@ -11,7 +11,6 @@ import torch.nn.functional as F
 from diffusers import AutoencoderKL, DDPMScheduler
 from torch import nn
 
-from sar_zero123.augment.codomain import apply_lookup_table, sample_monotonic_map
 from sar_zero123.training.losses import (
     DEFAULT_PFM_MIN_SNR,
     MAX_PFM_BALANCE,
@@ -206,54 +205,6 @@ def test_pfm_loss_zero_for_identical_images(vae, encoder) -> None:
     torch.testing.assert_close(pfm_loss(latents, target, vae, encoder), torch.zeros(2), atol=1e-10, rtol=0)
 
 
-def test_pfm_loss_with_codomain_tables_remaps_both_images_before_the_encoder(vae, encoder) -> None:
-    """E-LPIPS-style PFM: the same monotonic map of each sample's encoder inputs, estimate and target."""
-    generator = torch.Generator().manual_seed(7)
-    target = torch.rand(3, 1, 32, 32, generator=generator)
-    x0_hat = torch.randn(3, 4, 16, 16, generator=generator, requires_grad=True)
-    identity = torch.linspace(0, 1, 5).expand(3, 5)  # linear interpolation of the identity map
-    torch.testing.assert_close(pfm_loss(x0_hat, target, vae, encoder, codomain_tables=identity),
-                               pfm_loss(x0_hat, target, vae, encoder))  # fmt: skip
-    tables = sample_monotonic_map(3, 8, generator=generator)
-    loss = pfm_loss(x0_hat, target, vae, encoder, codomain_tables=tables)
-    size = encoder.config.image_size  # reference: decode, to [0, 1], resize, remap, encode (one by one)
-    for i in range(3):
-        decoded = vae.decode(x0_hat[i : i + 1] / vae.config.scaling_factor).sample
-        a = F.interpolate((decoded + 1) / 2, size=(size, size), mode="bilinear", antialias=True)
-        b = F.interpolate(target[i : i + 1], size=(size, size), mode="bilinear", antialias=True)
-        a, b = (apply_lookup_table(image, tables[i : i + 1]) for image in (a, b))
-        torch.testing.assert_close(loss[i], ((encoder(a) - encoder(b)) ** 2).sum(), atol=1e-6, rtol=1e-5)
-    loss.sum().backward()
-    assert x0_hat.grad.abs().sum() > 0  # the map passes gradients to the estimate
-    # a perfect estimate scores 0 under any map; precomputed target features cannot take one
-    latents = torch.randn(3, 4, 16, 16, generator=generator)
-    with torch.no_grad():
-        decoded = (vae.decode(latents / vae.config.scaling_factor).sample + 1) / 2
-    perfect = pfm_loss(latents, decoded, vae, encoder, codomain_tables=tables)
-    torch.testing.assert_close(perfect, torch.zeros(3), atol=1e-10, rtol=0)
-    with pytest.raises(ValueError, match="target_features: precomputed features cannot take codomain_tables"):
-        pfm_loss(latents, decoded, vae, encoder, codomain_tables=tables, target_features=torch.zeros(3, 8))
-
-
-def test_total_loss_draws_one_monotonic_map_per_pfm_sample_from_the_generator(vae, encoder) -> None:
-    scheduler = scheduler_for("scaled_linear", "v_prediction")
-    x_t, output, target, images = _adaptive_case(vae)
-    timesteps = torch.tensor([10, 400, 950])
-    kwargs = dict(pfm_weight=1.0, target_images=images, vae=vae, encoder=encoder, pfm_min_snr=0.0)
-    out = total_loss(output, target, x_t, timesteps, scheduler, pfm_monotonic_q=8,
-                     generator=torch.Generator().manual_seed(3), **kwargs)  # fmt: skip
-    tables = sample_monotonic_map(3, 8, generator=torch.Generator().manual_seed(3))
-    x0 = estimate_x0(x_t, output, timesteps, scheduler)
-    torch.testing.assert_close(out.pfm, pfm_loss(x0, images, vae, encoder, codomain_tables=tables))
-    plain = total_loss(output, target, x_t, timesteps, scheduler, **kwargs)
-    assert not torch.allclose(out.pfm, plain.pfm)  # the maps change what PFM measures
-    # the balanced form evaluates PFM once per step on the same maps: its values are the plain form's
-    seeded = torch.Generator().manual_seed(3)
-    balanced = total_loss(output.clone().requires_grad_(True), target, x_t, timesteps, scheduler,
-                          pfm_monotonic_q=8, pfm_balance="adaptive", generator=seeded, **kwargs)  # fmt: skip
-    torch.testing.assert_close(balanced.pfm.detach(), out.pfm)
-
-
 def test_pfm_loss_crop_decodes_latent_window(vae, encoder) -> None:
     generator = torch.Generator().manual_seed(1)
     target = torch.rand(2, 1, 32, 32, generator=generator)
@@ -353,7 +304,6 @@ def test_total_loss_weights_l_simple_before_adding_lambda_pfm(vae, encoder) -> N
         ({"pfm_fraction": 0.0}, r"pfm_fraction must be in \(0, 1\], got 0.0"),
         ({"pfm_crop_size": 0}, r"pfm_crop_size must be >= 1 or None, got 0"),
         ({"pfm_balance": "vqgan"}, r"pfm_balance must be one of \('none', 'adaptive'\), got 'vqgan'"),
-        ({"pfm_monotonic_q": 1}, r"pfm_monotonic_q must be 0 \(off\) or >= 2 levels, got 1"),
         ({"pfm_snr_gamma": 0.0}, r"pfm_snr_gamma must be > 0 or None, got 0.0"),
         ({"pfm_snr_gamma": float("inf")}, r"pfm_snr_gamma must be finite or None, got inf"),
         ({"drop_image_prob": 0.6, "drop_both_prob": 0.6}, r"drop_image_prob, .* got \(0.6, 0.6, 0.05\)"),
@@ -603,7 +553,7 @@ def test_the_finetune_config_inherits_every_loss_setting_once_and_passes_each_th
         LossSettings()
     )
     changed = {"pfm_weight": 0.5, "pfm_min_snr": 0.2, "pfm_fraction": 0.5, "pfm_crop_size": 16,
-               "pfm_balance": "adaptive", "pfm_monotonic_q": 8, "pfm_snr_gamma": 5.0, "drop_image_prob": 0.1,
+               "pfm_balance": "adaptive", "pfm_snr_gamma": 5.0, "drop_image_prob": 0.1,
                "drop_both_prob": 0.1,
                "drop_latent_prob": 0.1, "timestep_sampling": "logit_normal", "timestep_logit_mean": 0.3,
                "timestep_logit_std": 0.7, "snr_gamma": 2.0, "azimuth_loss_weight": 0.5,
