@@ -176,6 +176,10 @@ class SARZero123Pipeline(DiffusionPipeline):
         proxy: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
+        for name, module, kind in (("scheduler", scheduler, SchedulerMixin), ("vae", vae, AutoencoderKL),
+                                   ("unet", unet, UNet2DConditionModel)):  # fmt: skip
+            if not isinstance(module, kind):
+                raise ValueError(f"`{name}` must be a diffusers {kind.__name__}, got {type(module).__name__}")
         if sampler is not None:
             if not isinstance(sampler, dict) or set(sampler) - set(SAMPLER_DEFAULTS):
                 raise ValueError(
@@ -531,6 +535,27 @@ class SARZero123Pipeline(DiffusionPipeline):
         images = signed_to_unit(decoded.float()).clamp(0.0, 1.0)
         return match_channels(images, 1)
 
+    @staticmethod
+    def _callback_latents(outputs: Any, latents: torch.Tensor) -> torch.Tensor:
+        """The latents a ``callback_on_step_end`` hands back: its ``"latents"`` entry, else the step's own.
+
+        Raises:
+            ValueError: For a callback that returns no dict, or latents of another shape or dtype.
+        """
+        if not isinstance(outputs, dict):
+            raise ValueError(
+                "`callback_on_step_end` must return a dict (callback_kwargs, or {} to change nothing), got "
+                f"{type(outputs).__name__}"
+            )
+        new = outputs.pop("latents", latents)
+        if not isinstance(new, torch.Tensor) or new.shape != latents.shape or new.dtype != latents.dtype:
+            got = tuple(new.shape) if isinstance(new, torch.Tensor) else type(new).__name__
+            raise ValueError(
+                f"`callback_on_step_end` returned latents {got}; expected a tensor {tuple(latents.shape)} of "
+                f"{latents.dtype}, as it was given"
+            )
+        return new
+
     def _scheduler_step_kwargs(
         self, generator: torch.Generator | list[torch.Generator] | None
     ) -> dict[str, Any]:
@@ -713,6 +738,12 @@ class SARZero123Pipeline(DiffusionPipeline):
                         f"heading d_az + 180 for heading guidance); got {shape}"
                     )
         num_samples = batch_size * num_images_per_prompt
+        generators = generator if isinstance(generator, list) else [generator]
+        if generator is not None and not all(isinstance(g, torch.Generator) for g in generators):
+            raise ValueError(
+                "`generator` must be a torch.Generator or a list of them (one per output sample), got "
+                f"{generator!r}; a seed s is torch.Generator().manual_seed(s)"
+            )
         if isinstance(generator, list) and len(generator) != num_samples:
             raise ValueError(
                 f"`generator` is a list of {len(generator)} generators; expected one per output sample, "
@@ -844,7 +875,7 @@ class SARZero123Pipeline(DiffusionPipeline):
                     step_tensors = {"latents": latents}
                     callback_kwargs = {k: step_tensors[k] for k in callback_on_step_end_tensor_inputs}
                     callback_outputs = callback_on_step_end(self, step_index, timestep, callback_kwargs)
-                    latents = callback_outputs.pop("latents", latents)
+                    latents = self._callback_latents(callback_outputs, latents)
                 progress_bar.update()
 
         # 6. decode to single-channel normalised dB; never return NaN or inf as an image

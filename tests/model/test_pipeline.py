@@ -730,3 +730,24 @@ def test_a_missing_local_name_lists_the_bundled_pipelines_instead_of_a_hub_error
     with pytest.raises(FileNotFoundError, match=match) as error:
         SARZero123Pipeline.from_pretrained(name)
     assert "sar-zero123/sim-prior-rotated" in str(error.value)
+
+
+def test_a_bad_generator_or_callback_is_refused_by_name(pipe):
+    for generator in (42, [1], [torch.Generator(), None]):
+        with pytest.raises(ValueError, match=r"`generator` must be a torch.Generator or a list of them"):
+            run(pipe, generator=generator)
+    with pytest.raises(ValueError, match="`callback_on_step_end` must return a dict"):
+        run(pipe, callback_on_step_end=lambda p, step, t, kwargs: None)
+    with pytest.raises(ValueError, match=r"`callback_on_step_end` returned latents \(1,\); expected a tensor"):
+        run(pipe, callback_on_step_end=lambda p, step, t, kwargs: {"latents": torch.zeros(1)})
+    # a callback that hands the latents back unchanged, or changes nothing, leaves the views as they were
+    plain = run(pipe)
+    torch.testing.assert_close(run(pipe, callback_on_step_end=lambda p, step, t, kwargs: kwargs), plain)
+    torch.testing.assert_close(run(pipe, callback_on_step_end=lambda p, step, t, kwargs: {}), plain)
+
+
+@pytest.mark.parametrize("name", ["scheduler", "vae", "unet"])
+def test_a_missing_component_is_refused_by_name(name):
+    components = {**get_dummy_components(), name: None}
+    with pytest.raises(ValueError, match=rf"`{name}` must be a diffusers \w+, got NoneType"):
+        SARZero123Pipeline(**components)
