@@ -15,6 +15,7 @@ output folder is a dataset every script reads (:func:`sar_zero123.data.load_inde
 * ``index.csv`` with the standard columns (:data:`sar_zero123.domain.INDEX_COLUMNS`), written last;
 * ``provenance.csv``: the same rows and columns plus :data:`PROVENANCE_COLUMNS`. They live in a file of
   their own because ``load_index`` refuses columns it does not know;
+* ``views.json``: what the generated arrays hold (magnitude) and the dB scaling they were mapped back with;
 * ``augment.json``: the options and the SHA-256 of the pipeline's files. A folder made with other options
   or other weights is refused, so that a re-run after a kill resumes (views already on disk are kept) and
   never mixes two augmentations or two models.
@@ -86,6 +87,12 @@ __all__ = [
 
 #: The options of an augmentation, in its output folder.
 AUGMENT_FILE = "augment.json"
+#: What every generated view's ``.npy`` holds, as ``views.json`` says in the output folder.
+VIEWS_DOMAIN = (
+    "magnitude (float32 .npy, as the source chips): each generated view in normalised dB mapped back by "
+    "sar_zero123.data.DecibelScaling(**scaling).denormalize, clipped to [0, the scaling's peak]"
+)
+VIEWS_FILE = "views.json"
 #: Key of ``augment.json`` holding the SHA-256 of the pipeline's files (:func:`content_identity`).
 PIPELINE_DIGEST = "pipeline_sha256"
 #: The index rows with their provenance (``load_index`` refuses unknown columns in ``index.csv``).
@@ -527,6 +534,8 @@ def augment_dataset(config: AugmentConfig) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     if not resuming:
         write_json_atomic(options, out / AUGMENT_FILE)
+    scaling = _resolve_scaling(config.scaling_file, config.pipeline)
+    write_json_atomic({"domain": VIEWS_DOMAIN, "scaling": scaling.to_dict()}, out / VIEWS_FILE)
 
     # 3. generate the batches that miss a view; each view has its own generators
     batches = [views[start : start + config.batch_size] for start in range(0, len(views), config.batch_size)]
@@ -534,7 +543,6 @@ def augment_dataset(config: AugmentConfig) -> Path:
     for folder in sorted({(out / view.path).parent for batch in pending for view in batch}):
         folder.mkdir(parents=True, exist_ok=True)
     prepared_chip = _chip_loader(config.pipeline, config.scaling_file, size)
-    scaling = _resolve_scaling(config.scaling_file, config.pipeline)
     speckle_sigma = config.speckle_sigma if config.speckle else None
     with progress_bar(total=sum(len(batch) for batch in pending), desc="augmenting", unit="view") as progress:
         for batch in pending:

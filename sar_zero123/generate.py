@@ -6,13 +6,14 @@ Example::
     python -m sar_zero123.generate --pipeline runs/pfm/pipeline --image chip.png \\
         --d-az 30 60 90 --d-el 0 --output_dir views/
 
-writes, for each requested view ``i``, ``view_{i}_daz{d_az}_del{d_el}.png`` (8-bit, normalised dB) and
-the float32 array ``.npy`` (H, W) in the normalised dB domain, plus ``input.png``, ``contact_sheet.png``
-and the resolved ``config.json``. The output folder follows :mod:`sar_zero123.runs.folder`: one
-that holds views made with other settings or from another input file is refused before any work, naming
-each difference; ``--resume`` returns a finished folder with the same settings as it is (and redoes an
-unfinished one), ``--restart`` moves an old folder aside; a bad input chip is refused before anything is
-written. The chip is read with :func:`sar_zero123.data.load_magnitude`
+writes, for each requested view ``i``, ``view_{i}_daz{d_az}_del{d_el}.png`` (8-bit, normalised dB) and the
+float32 array ``.npy`` (H, W) in the normalised dB domain, plus ``input.png``, ``contact_sheet.png`` and the
+resolved ``config.json``; ``views.json`` lists the views with their requests and says what the arrays hold
+(:data:`VIEWS_DOMAIN`, the dB scaling). The output folder follows :mod:`sar_zero123.runs.folder`: one that
+holds views made with other settings or from another input file is refused before any work, naming each
+difference; ``--resume`` returns a finished folder with the same settings as it is (and redoes an unfinished
+one), ``--restart`` moves an old folder aside; a bad input chip is refused before anything is written.
+The chip is read with :func:`sar_zero123.data.load_magnitude`
 (8-bit images as pixel/255), centre-cropped/resized to the pipeline's size and mapped to normalised dB
 with the pipeline folder's ``decibel_scaling.json`` (``DecibelScaling.to_dict``) when present, else
 ``--scaling_file`` or the unit-magnitude default. ``--pipeline`` defaults to the bundled prior measured
@@ -37,7 +38,7 @@ import PIL.Image
 import torch
 from matplotlib.figure import Figure
 
-from sar_zero123.config import naming_write_errors, parse_config, save_config
+from sar_zero123.config import naming_write_errors, parse_config, save_config, write_json_atomic
 from sar_zero123.data import (
     SCALING_FILE,
     DecibelScaling,
@@ -79,6 +80,12 @@ DEFAULT_INPUT_DEPRESSION_DEG = TRAIN_DEPRESSION_DEG
 MAX_VIEWS = 64
 #: Largest ``image_size``: 4x the zero-1-to-3 resolution (the allocations grow with its square).
 MAX_IMAGE_SIZE = 1024
+#: What each view's ``.npy`` (and ``.png``) holds, as ``views.json`` says beside them.
+VIEWS_DOMAIN = (
+    "normalised dB in [0, 1] (float32 .npy; the .png is the same at 8 bits): dB = min_db + value * (max_db - "
+    "min_db), magnitude = sar_zero123.data.DecibelScaling(**scaling).denormalize(value)"
+)
+VIEWS_FILE = "views.json"
 #: Settings that never change the views a folder holds: where it is and how it is reused.
 GENERATE_MAY_DIFFER = ("output_dir", "resume", "restart")
 
@@ -414,7 +421,14 @@ def main(argv: Sequence[str] | None = None) -> Path:
         titles.append(f"d_az {d_az_deg:g}, d_el {d_el_deg:g}")
         outputs += [f"{stem}.png", f"{stem}.npy"]
     _contact_sheet(chip, views, titles, out / "contact_sheet.png")
-    finish_run(folder, [*outputs, "contact_sheet.png"], seconds=timer.seconds)
+    scaling = _resolve_scaling(config.scaling_file, config.pipeline)
+    write_json_atomic(
+        {"domain": VIEWS_DOMAIN, "scaling": scaling.to_dict(),
+         "views": [{"png": f"{stem}.png", "npy": f"{stem}.npy", "d_az_deg": float(a), "d_el_deg": float(e)}
+                   for stem, a, e in zip([o[:-4] for o in outputs[2::2]], config.d_az, d_el)]},
+        out / VIEWS_FILE,
+    )  # fmt: skip
+    finish_run(folder, [*outputs, "contact_sheet.png", VIEWS_FILE], seconds=timer.seconds)
     return out
 
 

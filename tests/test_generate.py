@@ -64,6 +64,13 @@ def test_main_writes_one_png_and_npy_per_view_and_a_contact_sheet(pipeline_dir, 
         np.testing.assert_array_equal(png, np.round(view * 255).astype(np.uint8))
     assert (out / "input.png").exists() and PIL.Image.open(out / "contact_sheet.png").size[0] > 4 * 32
     assert json.loads((out / "config.json").read_text())["d_az"] == [30.0, 60.0, 90.0]
+    # views.json says what the arrays hold and lists each view with its request
+    described = json.loads((out / "views.json").read_text())
+    assert described["domain"].startswith("normalised dB in [0, 1]")
+    assert described["scaling"] == DecibelScaling().to_dict()  # a pipeline without decibel_scaling.json
+    assert [(v["npy"], v["d_az_deg"], v["d_el_deg"]) for v in described["views"]] == [
+        (p.name, a, 0.0) for p, a in zip(arrays, (30.0, 60.0, 90.0))
+    ]
 
     # view i is the pipeline's sample with generator seed + i
     config = GenerateConfig(pipeline=str(pipeline_dir), image=str(chip_png))

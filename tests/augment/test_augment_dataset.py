@@ -102,6 +102,8 @@ def test_output_is_a_dataset_with_one_row_per_chip_and_request(augmented, data_d
     assert pairs[(270.0, 90.0)] == 0.0 and pairs[(0.0, -90.0)] == 270.0
     assert sorted({float(row["d_az_deg"]) for row in provenance}) == [-90.0, 90.0]
     assert json.loads((augmented / AUGMENT_FILE).read_text())["d_az"] == [-90.0, 90.0]
+    described = json.loads((augmented / "views.json").read_text())  # what the arrays hold, beside them
+    assert described["domain"].startswith("magnitude") and set(described["scaling"]) >= {"min_db", "max_db"}
 
 
 def test_target_azimuths_selection_and_real_rows(data_dir, pipeline_dir, tmp_path):
