@@ -40,10 +40,13 @@ from safetensors.torch import load_file, save_file
 
 from sar_zero123.config import parse_config, write_manifest
 from sar_zero123.pretrained import resolve_pretrained
-from sar_zero123.runs.folder import StageTimer, content_identity, finish_run
+from sar_zero123.runs.folder import StageTimer, content_identity, finish_run, weights_identity
 from sar_zero123.runs.stage import open_stage_folder
 
-__all__ = ["InterpolateConfig", "interpolate_pipelines", "interpolate_state", "main", "run_interpolate"]
+__all__ = [
+    "InterpolateConfig", "check_lineage", "interpolate_pipelines", "interpolate_state", "main",
+    "run_interpolate",
+]  # fmt: skip
 
 _WEIGHTS_SUFFIX = ".safetensors"
 
@@ -101,6 +104,28 @@ def _architecture(config_file: Path) -> dict:
     return {k: v for k, v in json.loads(config_file.read_text()).items() if not k.startswith("_")}
 
 
+def check_lineage(start: str | os.PathLike, start_dir: Path, tuned_dir: Path) -> None:
+    """Refuse a ``start`` other than the pipeline the fine-tune started from, where the fine-tune's
+    ``model_index.json`` records that (``lineage``: the SHA-256 of the start's weights,
+    :func:`~sar_zero123.runs.folder.weights_identity`).
+
+    Raises:
+        ValueError: Naming both, when the weights differ.
+    """
+    index = json.loads((tuned_dir / "model_index.json").read_text())
+    lineage = index.get("lineage") if isinstance(index, dict) else None
+    started = lineage.get("start_weights") if isinstance(lineage, dict) else None
+    if started is None:  # a fine-tune exported before lineage was recorded, or of unknown origin
+        return
+    current = weights_identity(start_dir)
+    if current != started:
+        raise ValueError(
+            f"start: the fine-tune {str(tuned_dir)!r} started from {lineage.get('start')!r} (weights SHA-256 "
+            f"{str(started)[:12]}...), not from {str(start)!r} ({current[:12]}...): the mix would not lie "
+            "between the fine-tune and the model it came from; pass the pipeline it started from"
+        )
+
+
 def interpolate_pipelines(
     start: str | os.PathLike, finetuned: str | os.PathLike, alpha: float, output_dir: str | os.PathLike
 ) -> Path:
@@ -117,6 +142,7 @@ def interpolate_pipelines(
             raise FileNotFoundError(
                 f"{field_name}: expected a pipeline folder with model_index.json, got {folder}"
             )
+    check_lineage(start, start_dir, tuned_dir)
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"alpha must lie in [0, 1] (1: the fine-tune), got {alpha}")
     if out.exists():
@@ -172,6 +198,7 @@ def run_interpolate(config: InterpolateConfig) -> Path:
             raise FileNotFoundError(
                 f"{field_name}: expected a pipeline folder with model_index.json, got {folder}"
             )
+    check_lineage(config.start, start_dir, tuned_dir)  # before the folder is opened: nothing left behind
     data = {"start": content_identity(start_dir), "finetuned": content_identity(tuned_dir)}
     folder = open_stage_folder(
         config.output_dir, "interpolate", config, data=data, resume=config.resume, restart=config.restart,
@@ -181,6 +208,9 @@ def run_interpolate(config: InterpolateConfig) -> Path:
     if folder.finished:
         return pipeline
     if not (pipeline / "model_index.json").is_file():  # renamed into place whole, or absent
+        for stale in folder.path.glob(f".{pipeline.name}.*"):  # the scratch folder of a run killed before
+            if stale.is_dir():
+                shutil.rmtree(stale)
         interpolate_pipelines(start_dir, tuned_dir, config.alpha, pipeline)
     finish_run(folder, ["pipeline/model_index.json"], seconds=timer.seconds, results={"alpha": config.alpha})
     return pipeline

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 from pathlib import Path
 
 import pytest
@@ -91,3 +92,30 @@ def test_pipelines_of_other_architectures_are_refused_before_anything_is_written
         interpolate_pipelines(start, tuned, 0.5, tmp_path / "t4")
     with pytest.raises(FileNotFoundError, match="start: expected a pipeline folder with model_index.json"):
         interpolate_pipelines(tmp_path / "nowhere", tuned, 0.5, tmp_path / "o")
+
+
+def test_a_start_the_fine_tune_did_not_start_from_is_refused_before_any_write(tmp_path: Path) -> None:
+    from sar_zero123.runs.folder import weights_identity
+
+    start = _pipeline(tmp_path / "start", {"w": torch.zeros(2)})
+    other = _pipeline(tmp_path / "other", {"w": torch.full((2,), 5.0)})
+    tuned = _pipeline(tmp_path / "tuned", {"w": torch.ones(2)})
+    index = {"_class_name": "SARZero123Pipeline",
+             "lineage": {"start": str(start), "start_weights": weights_identity(start)}}  # fmt: skip
+    (tuned / "model_index.json").write_text(json.dumps(index))
+    out = tmp_path / "cli"
+    flags = ["--finetuned", str(tuned), "--alpha", "0.5", "--output_dir", str(out)]
+    with pytest.raises(ValueError, match=r"start: the fine-tune .* started from .*start.*, not from .*other"):
+        main(["--start", str(other), *flags])
+    assert not out.exists()  # refused before the folder is opened: the corrected command runs
+    # a model card edited beside the weights is the same start
+    (start / "README.md").write_text("a model card")
+    assert main(["--start", str(start), *flags]) == out / "pipeline"
+    # a killed run's scratch folder is removed when the run is redone
+    shutil.rmtree(out / "pipeline")  # killed before the rename: only the scratch folder is left
+    (out / ".pipeline.abc123").mkdir()
+    (out / ".pipeline.abc123" / "partial.safetensors").write_bytes(b"x" * 100)
+    record = json.loads((out / "run.json").read_text())
+    (out / "run.json").write_text(json.dumps({**record, "finished": False}))
+    assert main(["--start", str(start), *flags, "--resume"]) == out / "pipeline"
+    assert sorted(p.name for p in out.iterdir()) == ["pipeline", "run.json"]

@@ -18,7 +18,7 @@ from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
 
 from sar_zero123.data import ViewPairDataset
 from sar_zero123.model.conditioning import POSE_DIM, PoseProjection, condition_channels, downsampling_factor
-from sar_zero123.model.loading import load_component
+from sar_zero123.model.loading import PIPELINE_SETTINGS, load_component
 from sar_zero123.model.orientation import AZIMUTH_DIM, AzimuthEstimator
 from sar_zero123.model.pipeline import SARZero123Pipeline, check_vae_image_size
 from sar_zero123.model.zero123_checkpoints import (
@@ -435,8 +435,8 @@ def replace_vae(
     if same_latents:
         check_same_latents(vae, pipe.vae, name=f"vae: {str(path)!r}")
     # `pipe.components`, not `from_pipe`: that casts every module to one dtype (float32 by default)
-    # the recorded sampler and proxy settings travel with the weights
-    recorded = {name: getattr(pipe.config, name, None) for name in ("sampler", "proxy")}
+    # the recorded sampler, proxy settings and lineage travel with the weights
+    recorded = {name: getattr(pipe.config, name, None) for name in PIPELINE_SETTINGS}
     return SARZero123Pipeline(**{**pipe.components, "vae": vae.eval()}, **recorded)
 
 

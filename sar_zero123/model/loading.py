@@ -41,8 +41,9 @@ __all__ = [
 #: The file ``DiffusionPipeline.save_pretrained`` writes: component name -> [library, class name].
 PIPELINE_INDEX = "model_index.json"
 #: Entries of :data:`PIPELINE_INDEX` that are a pipeline's recorded settings, not components: its
-#: measured-best sampler and its simulator proxy (``SARZero123Pipeline(sampler=..., proxy=...)``).
-PIPELINE_SETTINGS = ("sampler", "proxy")
+#: measured-best sampler, its simulator proxy and what its weights started from
+#: (``SARZero123Pipeline(sampler=..., proxy=..., lineage=...)``).
+PIPELINE_SETTINGS = ("sampler", "proxy", "lineage")
 # Weight file stems; each may end in .safetensors or .bin, carry a variant (`.fp16`) or be sharded (index).
 _WEIGHT_SUFFIXES = (".safetensors", ".bin", ".safetensors.index.json", ".bin.index.json")
 # diffusers' shape-mismatch message: "Cannot load <name> because <param> expected shape torch.Size([..]),

@@ -154,6 +154,13 @@ class SARZero123Pipeline(DiffusionPipeline):
             used (preprocessing runs in torch, see :func:`encode_image_embeddings`).
         azimuth_estimator: Optional :class:`~sar_zero123.model.orientation.AzimuthEstimator`, given exactly
             when the UNet's timestep embedding takes the target's estimated azimuth after the pose.
+        sampler: The sampler measured best for these weights (a dict of :data:`SAMPLER_DEFAULTS`' keys):
+            every call argument left ``None`` takes it (saved in ``model_index.json``).
+        proxy: The simulator proxy's settings (:data:`~sar_zero123.model.proxy.PROXY_FIELDS`), for a start
+            from the proxy or a ``spatial_pose="proxy"`` UNet.
+        lineage: What the weights were trained from: ``{"start": name or path, "start_weights": SHA-256 of
+            its weight files}`` (:func:`~sar_zero123.runs.folder.weights_identity`), recorded by a fine-tune's
+            export and checked by ``interpolate``; ``None`` for weights of unknown origin.
 
     Raises:
         ValueError: If the component sizes do not fit together.
@@ -174,6 +181,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         azimuth_estimator: AzimuthEstimator | None = None,
         sampler: dict[str, Any] | None = None,
         proxy: dict[str, Any] | None = None,
+        lineage: dict[str, Any] | None = None,
     ) -> None:
         super().__init__()
         for name, module, kind in (("scheduler", scheduler, SchedulerMixin), ("vae", vae, AutoencoderKL),
@@ -243,7 +251,14 @@ class SARZero123Pipeline(DiffusionPipeline):
             azimuth_estimator=azimuth_estimator,
         )
         # the measured-best sampler and the proxy bank travel with the weights (model_index.json)
-        self.register_to_config(sampler=None if sampler is None else dict(sampler), proxy=proxy)
+        if lineage is not None and not (
+            isinstance(lineage, dict) and all(isinstance(v, str | None) for v in lineage.values())
+        ):
+            raise ValueError(f"`lineage` must be a dict of strings (where the weights began), got {lineage}")
+        self.register_to_config(
+            sampler=None if sampler is None else dict(sampler), proxy=proxy,
+            lineage=None if lineage is None else dict(lineage),
+        )  # fmt: skip
 
     # ----------------------------------------------------------------------------------------- sizes
     @property

@@ -62,6 +62,8 @@ __all__ = [
     "open_run_folder",
     "read_run_record",
     "run_differences",
+    "WEIGHT_SUFFIXES",
+    "weights_identity",
 ]
 
 #: The record of a run folder.
@@ -158,6 +160,33 @@ def content_identity(path: str | os.PathLike) -> str:
     digest = hashlib.sha256()
     for file in files:
         digest.update((file.relative_to(root).as_posix() if root.is_dir() else file.name).encode() + b"\0")
+        with open(file, "rb") as handle:
+            for block in iter(lambda: handle.read(1 << 20), b""):
+                digest.update(block)
+        digest.update(b"\0")
+    return digest.hexdigest()
+
+
+#: The files that hold a model's weights (what :func:`weights_identity` hashes).
+WEIGHT_SUFFIXES = (".safetensors", ".bin", ".ckpt", ".pt", ".pth")
+
+
+def weights_identity(path: str | os.PathLike) -> str:
+    """SHA-256 over a model folder's weight files (names and bytes; :data:`WEIGHT_SUFFIXES`), or over a
+    checkpoint file: what a fine-tune started from, whatever model card or config text changes beside it.
+
+    Raises:
+        FileNotFoundError: If ``path`` does not exist.
+    """
+    root = Path(path)
+    if not root.exists():
+        raise FileNotFoundError(f"{str(root)!r} does not exist")
+    files = [root] if root.is_file() else sorted(
+        p for p in root.rglob("*") if p.is_file() and p.suffix in WEIGHT_SUFFIXES
+    )  # fmt: skip
+    digest = hashlib.sha256()
+    for file in files:
+        digest.update((file.name if root.is_file() else file.relative_to(root).as_posix()).encode() + b"\0")
         with open(file, "rb") as handle:
             for block in iter(lambda: handle.read(1 << 20), b""):
                 digest.update(block)

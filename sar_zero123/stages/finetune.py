@@ -47,6 +47,7 @@ from sar_zero123.data.corpus_proxies import load_corpus_proxies
 from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.model.build import load_sar_zero123, record_trained_pose_ranges
 from sar_zero123.model.conditioning import SPATIAL_POSE_MODES, takes_proxy, vae_signature, widen_for_proxy
+from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.checkpoints import (
     RESUME_MAY_DIFFER,
     check_resume_config,
@@ -57,7 +58,7 @@ from sar_zero123.runs.checkpoints import (
     resolve_resume_checkpoint,
     resume_step,
 )
-from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
+from sar_zero123.runs.folder import StageTimer, data_identity, finish_run, weights_identity
 from sar_zero123.runs.launch import check_global_batch, check_replicas_agree, start_run, tracker_hparams
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.sim.corpus import CORPUS_OPTIONS_FILE, VALIDATION_CLASS
@@ -289,6 +290,15 @@ class FinetuneConfig(LossSettings):
     def extendable_fields(self) -> tuple[str, ...]:
         """Fields a resumed run may change: ``max_train_steps`` when the learning rate ignores the steps."""
         return ("max_train_steps",) if self.lr_scheduler in CONSTANT_LR_SCHEDULERS else ()
+
+
+def _lineage(config: FinetuneConfig) -> dict[str, str] | None:
+    """What the run's weights started from: the ``pretrained`` pipeline or checkpoint, by name and by the
+    SHA-256 of its weight files (``None`` for a model built from scratch)."""
+    if config.pretrained is None:
+        return None
+    start = resolve_pretrained(config.pretrained)
+    return {"start": str(config.pretrained), "start_weights": weights_identity(start)}
 
 
 def run_finetune(config: FinetuneConfig) -> Path:
@@ -536,7 +546,8 @@ def _export(
                  "replica_weight_digests": digests}  # fmt: skip
         write_json_atomic(state, output_dir / "train_state.json")
         if config.save_pipeline:
-            export_finetuned(output_dir / "pipeline", inputs.pipe, inputs.scaling, trainer.ema_pairs)
+            export_finetuned(output_dir / "pipeline", inputs.pipe, inputs.scaling, trainer.ema_pairs,
+                             lineage=_lineage(config))  # fmt: skip
     if config.save_pipeline:
         outputs.append("pipeline/model_index.json")
     return outputs

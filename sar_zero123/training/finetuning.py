@@ -246,6 +246,7 @@ def export_finetuned(
     pipe: SARZero123Pipeline,
     scaling: DecibelScaling,
     ema_pairs: Sequence[tuple[EMAModel, torch.nn.Module]] = (),
+    lineage: dict[str, Any] | None = None,
 ) -> Path:
     """``save_pretrained`` of the fine-tuned pipeline (float32) plus the ``DecibelScaling`` it expects.
 
@@ -260,6 +261,8 @@ def export_finetuned(
         pipe: The pipeline the run started from, with its trained modules.
         scaling: The dB scaling of the training data (written as ``decibel_scaling.json``).
         ema_pairs: ``(ema, module)`` pairs from :func:`ema_models` (empty without EMA).
+        lineage: What the run started from (``SARZero123Pipeline``'s ``lineage``), recorded in
+            ``model_index.json``; ``None`` for a model built from scratch.
 
     Returns:
         ``directory``.
@@ -281,7 +284,7 @@ def export_finetuned(
     sampler = {**EXPORTED_SAMPLER, **((getattr(pipe.config, "sampler", None) or {}) if proxy_model else {})}
     export = SARZero123Pipeline(
         **{**pipe.components, "scheduler": DDIMScheduler.from_config(pipe.scheduler.config),
-           "unet": merged_unet(pipe.unet)}, sampler=sampler, proxy=proxy,
+           "unet": merged_unet(pipe.unet)}, sampler=sampler, proxy=proxy, lineage=lineage,
     )  # fmt: skip
     for module in (export.unet, export.image_encoder, export.pose_projection, export.azimuth_estimator):
         if module is not None:
@@ -290,6 +293,8 @@ def export_finetuned(
     export.to(torch.float32)
     kept = "the checkpoints are kept and the run is not marked finished; free space and resume to export"
     with naming_write_errors(directory, kept):
+        for stale in Path(directory).glob(".*.tmp"):  # a half-written file of an export killed before
+            stale.unlink()
         export.save_pretrained(directory)
         write_json_atomic(scaling.to_dict(), directory / SCALING_FILE)
         write_manifest(directory)  # sealed again, the scaling included

@@ -771,3 +771,20 @@ def test_lora_settings_are_checked_at_the_boundary() -> None:
         FinetuneConfig(pfm_weight=0.0, lora_rank=4, lora_alpha=-1)
     with pytest.raises(ValueError, match="lora_modules must be one of .*got 'mlp'"):
         FinetuneConfig(pfm_weight=0.0, lora_rank=4, lora_modules="mlp")
+
+
+def test_export_records_the_lineage_and_drops_a_killed_exports_half_written_file(tmp_path) -> None:
+    from sar_zero123.data import DecibelScaling
+    from sar_zero123.training.finetuning import export_finetuned
+    from tests.dummies import get_dummy_components
+
+    directory = tmp_path / "pipeline"
+    directory.mkdir()
+    (directory / ".model_index.json.x1y2.tmp").write_text("{")  # what a kill during a write leaves
+    lineage = {"start": "sar-zero123/sim-prior-rotated", "start_weights": "ab" * 32}
+    pipe = SARZero123Pipeline(**get_dummy_components())
+    export_finetuned(directory, pipe, DecibelScaling(), lineage=lineage)
+    assert not list(directory.glob(".*.tmp"))
+    assert SARZero123Pipeline.from_pretrained(directory).config.lineage == lineage
+    with pytest.raises(ValueError, match="`lineage` must be a dict of strings"):
+        SARZero123Pipeline(**get_dummy_components(), lineage={"start": 3})
