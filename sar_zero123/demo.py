@@ -9,7 +9,9 @@ bundled prior (default ``sar-zero123/sim-prior-rotated``) or ``--pipeline DIR``.
 Safe by default: the server binds to 127.0.0.1 unless ``--host`` says otherwise, never opens a public share
 link unless ``--share`` is given, takes uploads up to :data:`MAX_UPLOAD_BYTES`, runs one generation at a
 time with at most :data:`MAX_QUEUED` requests waiting, and answers a malformed upload or an out-of-range
-request with a message on the page (``gradio.Error``), never a stack trace.
+request with a message on the page (``gradio.Error``), never a stack trace. It contacts nothing outside the
+machine by default: gradio's analytics and version check are off and the page uses the system's fonts
+(:func:`build_demo`). A file uploaded switches the input to it.
 
 The page is a thin shell over :class:`DemoModel`, whose methods (chip loading, one view, the turntable)
 are plain functions of numpy arrays, tested without a browser.
@@ -18,6 +20,7 @@ are plain functions of numpy arrays, tested without a browser.
 from __future__ import annotations
 
 import argparse
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -36,6 +39,9 @@ from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip
 
 __all__ = ["MAX_QUEUED", "MAX_UPLOAD_BYTES", "TURNTABLE_VIEWS", "DemoModel", "build_demo", "main"]
 
+#: The page's fonts: the system's own, so that the browser fetches nothing from the web.
+LOCAL_FONTS = ("system-ui", "sans-serif")
+LOCAL_MONO_FONTS = ("ui-monospace", "monospace")
 #: Largest upload the page accepts (an MSTAR chip file is about 130 kB; a 128 px PNG a few kB).
 MAX_UPLOAD_BYTES = 5 * 1024 * 1024
 #: Requests that may wait for the one generation running; more are refused with a message.
@@ -185,7 +191,10 @@ def to_uint8(image: np.ndarray, scale: int = 4) -> np.ndarray:
 
 
 def build_demo(model: DemoModel) -> Any:
-    """The page (a ``gradio.Blocks``) over ``model``; ``.launch()`` serves it."""
+    """The page (a ``gradio.Blocks``) over ``model``; ``.launch()`` serves it. It contacts nothing outside
+    the machine: gradio's analytics and version check are off, and the theme uses the system's fonts
+    instead of fetching web fonts."""
+    os.environ.setdefault("GRADIO_ANALYTICS_ENABLED", "False")  # read when gradio is imported
     import gradio as gr
 
     low, high = model.trained_d_el_deg
@@ -220,7 +229,8 @@ def build_demo(model: DemoModel) -> Any:
         except ValueError as error:
             raise gr.Error(str(error)) from None
 
-    with gr.Blocks(title="sar_zero123: novel SAR views") as demo:
+    local_theme = gr.themes.Default(font=LOCAL_FONTS, font_mono=LOCAL_MONO_FONTS)  # no web fonts
+    with gr.Blocks(title="sar_zero123: novel SAR views", analytics_enabled=False, theme=local_theme) as demo:
         gr.Markdown(
             f"## Novel views of a SAR chip\nPipeline `{model.name}`, {model.num_inference_steps} denoising "
             "steps. Pick a simulated vehicle or upload a chip, set the azimuth and depression changes, "
@@ -246,6 +256,8 @@ def build_demo(model: DemoModel) -> Any:
                     shown_view = gr.Image(label="generated view", elem_id="view_image")
                     shown_truth = gr.Image(label="simulator truth", elem_id="truth_image")
                 strip = gr.Image(label="turntable", elem_id="turntable_image")
+        # a file uploaded is the input from then on (the choice is switched, so the page shows it)
+        upload.upload(lambda _: "upload", upload, source)
         inputs = [source, upload, vehicle, azimuth, depression]
         go.click(generate, [*inputs, d_az, d_el, seed], [shown_input, shown_view, shown_truth])
         spin.click(turntable, [*inputs, d_el, seed], [strip])
