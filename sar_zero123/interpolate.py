@@ -36,16 +36,17 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import torch
+from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from sar_zero123.config import parse_config, write_manifest
+from sar_zero123.config import manifest_problem, parse_config, write_manifest
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.folder import StageTimer, content_identity, finish_run, weights_identity
 from sar_zero123.runs.stage import open_stage_folder
 
 __all__ = [
-    "InterpolateConfig", "check_lineage", "interpolate_pipelines", "interpolate_state", "main",
-    "run_interpolate",
+    "InterpolateConfig", "check_lineage", "check_readable", "interpolate_pipelines", "interpolate_state",
+    "main", "run_interpolate",
 ]  # fmt: skip
 
 _WEIGHTS_SUFFIX = ".safetensors"
@@ -102,6 +103,26 @@ def _architecture(config_file: Path) -> dict:
     """A component's config without the bookkeeping keys diffusers and transformers add (``_name_or_path``,
     ``_diffusers_version``...)."""
     return {k: v for k, v in json.loads(config_file.read_text()).items() if not k.startswith("_")}
+
+
+def check_readable(folder: Path, field_name: str) -> None:
+    """Refuse a pipeline folder whose files differ from its manifest, or whose weights do not read.
+
+    Raises:
+        ValueError: Naming ``field_name`` and the file (a truncated or changed file, a header that does not
+            parse).
+    """
+    problem = manifest_problem(folder)
+    if problem is not None:
+        raise ValueError(f"{field_name}: {problem}")
+    for weights in sorted(folder.rglob(f"*{_WEIGHTS_SUFFIX}")):
+        try:
+            with safe_open(str(weights), framework="pt") as handle:
+                handle.keys()
+        except Exception as error:  # safetensors raises its own error type, not an OSError
+            raise ValueError(
+                f"{field_name}: {str(weights)!r} is not a readable safetensors file ({error})"
+            ) from None
 
 
 def check_lineage(start: str | os.PathLike, start_dir: Path, tuned_dir: Path) -> None:
@@ -198,7 +219,9 @@ def run_interpolate(config: InterpolateConfig) -> Path:
             raise FileNotFoundError(
                 f"{field_name}: expected a pipeline folder with model_index.json, got {folder}"
             )
-    check_lineage(config.start, start_dir, tuned_dir)  # before the folder is opened: nothing left behind
+    for field_name, folder in (("start", start_dir), ("finetuned", tuned_dir)):
+        check_readable(folder, field_name)  # before the folder is opened: a refusal leaves nothing behind
+    check_lineage(config.start, start_dir, tuned_dir)
     data = {"start": content_identity(start_dir), "finetuned": content_identity(tuned_dir)}
     folder = open_stage_folder(
         config.output_dir, "interpolate", config, data=data, resume=config.resume, restart=config.restart,

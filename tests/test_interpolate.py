@@ -119,3 +119,18 @@ def test_a_start_the_fine_tune_did_not_start_from_is_refused_before_any_write(tm
     (out / "run.json").write_text(json.dumps({**record, "finished": False}))
     assert main(["--start", str(start), *flags, "--resume"]) == out / "pipeline"
     assert sorted(p.name for p in out.iterdir()) == ["pipeline", "run.json"]
+
+
+def test_a_truncated_weight_file_is_refused_by_name_and_the_corrected_command_runs(tmp_path: Path) -> None:
+    start = _pipeline(tmp_path / "start", {"w": torch.zeros(64)})
+    tuned = _pipeline(tmp_path / "tuned", {"w": torch.ones(64)})
+    weights = tuned / "unet" / "diffusion_pytorch_model.safetensors"
+    good = weights.read_bytes()
+    weights.write_bytes(good[: len(good) // 2])
+    out = tmp_path / "cli"
+    flags = ["--start", str(start), "--finetuned", str(tuned), "--alpha", "0.5", "--output_dir", str(out)]
+    with pytest.raises(ValueError, match=r"finetuned: '.*diffusion_pytorch_model.safetensors' is not a"):
+        main(flags)
+    assert not out.exists()
+    weights.write_bytes(good)
+    assert main(flags) == out / "pipeline"
