@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -294,6 +295,44 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     return args
 
 
+#: What the served page may load from outside this machine: nothing. Tags gradio's page template adds that
+#: would (font preconnects, an iframe-resizer script from a CDN, a preview image's address) are removed.
+_EXTERNAL_TAGS = (
+    re.compile(r"<link\b[^>]*\bhref=[\"']https?://[^>]*>", re.IGNORECASE),
+    re.compile(r"<script\b[^>]*\bsrc=[\"']https?://[^>]*>\s*</script>", re.IGNORECASE),
+    re.compile(r"<meta\b[^>]*\bcontent=[\"']https?://[^>]*>", re.IGNORECASE),
+)
+
+
+def strip_external_resources(html: str) -> str:
+    """``html`` without the tags that make a browser contact another host (links, scripts and preview
+    metadata whose address is absolute: ``http(s)://...``); the page's own relative ones are kept."""
+    for pattern in _EXTERNAL_TAGS:
+        html = pattern.sub("", html)
+    return html
+
+
+def local_app(demo: Any) -> Any:
+    """A FastAPI app serving ``demo`` whose HTML pages load nothing from outside the machine
+    (:func:`strip_external_resources` on every ``text/html`` response)."""
+    import gradio as gr
+    from fastapi import FastAPI, Request, Response
+
+    app = FastAPI()
+
+    @app.middleware("http")
+    async def local_only(request: Request, call_next: Any) -> Any:
+        response = await call_next(request)
+        if not response.headers.get("content-type", "").startswith("text/html"):
+            return response
+        body = b"".join([chunk async for chunk in response.body_iterator])
+        headers = {k: v for k, v in response.headers.items() if k.lower() != "content-length"}
+        page = strip_external_resources(body.decode("utf-8", errors="replace"))
+        return Response(page, status_code=response.status_code, headers=headers, media_type="text/html")
+
+    return gr.mount_gradio_app(app, demo, path="/", max_file_size=MAX_UPLOAD_BYTES, show_api=False)
+
+
 def main(argv: Sequence[str] | None = None) -> None:
     """Serve the page until interrupted."""
     try:
@@ -304,10 +343,15 @@ def main(argv: Sequence[str] | None = None) -> None:
     model = DemoModel(args.pipeline, args.num_inference_steps, args.guidance_scale,
                       args.heading_guidance_scale, args.device, args.depression_guidance_scale,
                       args.scheduler)  # fmt: skip
-    build_demo(model).launch(
-        server_name=args.host, server_port=args.port, share=args.share, max_file_size=MAX_UPLOAD_BYTES,
-        show_api=False,
-    )  # fmt: skip
+    demo = build_demo(model)
+    if args.share:  # a public link is gradio's own server (and contacts gradio's share servers by design)
+        demo.launch(server_name=args.host, server_port=args.port, share=True, max_file_size=MAX_UPLOAD_BYTES,
+                    show_api=False)  # fmt: skip
+        return
+    import uvicorn
+
+    print(f"serving http://{args.host}:{args.port} (this machine only unless --host says otherwise)")
+    uvicorn.run(local_app(demo), host=args.host, port=args.port, log_level="warning")
 
 
 if __name__ == "__main__":

@@ -7,8 +7,10 @@ import base64
 import dataclasses
 import io
 import os
+import re
 import shutil
 import socket
+import time
 
 import numpy as np
 import pytest
@@ -153,3 +155,48 @@ def test_the_page_in_a_browser_generates_a_view_and_explains_a_bad_upload(model,
             browser.close()
     finally:
         demo.close()
+
+
+def test_the_served_page_loads_nothing_from_outside_the_machine():
+    from sar_zero123.demo import strip_external_resources
+
+    page = (
+        '<head><link rel="preconnect" href="https://fonts.googleapis.com" />'
+        '<link rel="stylesheet" href="./assets/index.css">'
+        '<script src="https://cdnjs.cloudflare.com/ajax/libs/x.js" async></script>'
+        '<script type="module" src="./assets/index.js"></script>'
+        '<meta property="og:image" content="https://raw.githubusercontent.com/a.jpg" />'
+        '<meta charset="utf-8" /></head>'
+    )
+    assert strip_external_resources(page) == (
+        '<head><link rel="stylesheet" href="./assets/index.css">'
+        '<script type="module" src="./assets/index.js"></script><meta charset="utf-8" /></head>'
+    )
+
+
+def test_the_local_app_serves_a_page_without_external_addresses(model):
+    pytest.importorskip("gradio")
+    import threading
+    import urllib.request
+
+    import uvicorn
+
+    from sar_zero123.demo import build_demo, local_app
+
+    port = _free_port()
+    server = uvicorn.Server(uvicorn.Config(local_app(build_demo(model)), host="127.0.0.1", port=port,
+                                           log_level="warning"))  # fmt: skip
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        for _ in range(100):
+            if server.started:
+                break
+            time.sleep(0.1)
+        page = urllib.request.urlopen(f"http://127.0.0.1:{port}/").read().decode()
+        # no tag that makes the browser contact another host (the app's config data may name addresses)
+        assert "gradio" in page and "fonts.googleapis" not in page and "cdnjs" not in page
+        assert re.search(r"<(link|script|meta)\b[^>]*\b(href|src|content)=[\"']https?://", page) is None
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10)
