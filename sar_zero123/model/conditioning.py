@@ -227,6 +227,9 @@ class PoseProjection(ModelMixin, ConfigMixin):
         trained_vae: The shape of the VAE the model was trained with (:func:`vae_signature`: chip size,
             block widths, latent channels, scaling factor), or ``None`` (unknown: pipelines saved before
             the field existed, zero-1-to-3 checkpoints); a pipeline refuses a VAE of another shape.
+        trained_estimator: The SHA-256 of the azimuth estimator the UNet was trained beside
+            (:func:`~sar_zero123.model.orientation.estimator_weights_digest`), or ``None`` (unknown); a
+            pipeline refuses another estimator.
 
     Raises:
         ValueError: If ``in_features <= 4``, ``out_features < 1``, a range is not ``[min, max]``,
@@ -244,6 +247,7 @@ class PoseProjection(ModelMixin, ConfigMixin):
         spatial_pose: str | None = None,
         rotation_sign: int = SIMULATOR_ROTATION_SIGN,
         trained_vae: dict[str, Any] | None = None,
+        trained_estimator: str | None = None,
     ) -> None:
         super().__init__()
         if spatial_pose not in SPATIAL_POSE_MODES:

@@ -16,6 +16,7 @@ unchanged: an input view and a relative pose; no absolute azimuth is needed at s
 
 from __future__ import annotations
 
+import hashlib
 import math
 from collections.abc import Sequence
 
@@ -27,6 +28,7 @@ __all__ = [
     "AZIMUTH_DIM",
     "AzimuthEstimator",
     "azimuth_deg",
+    "estimator_weights_digest",
     "azimuth_estimation_loss",
     "azimuth_vector",
     "target_view_features",
@@ -162,3 +164,14 @@ class AzimuthEstimator(ModelMixin, ConfigMixin):
         raw = self.head(self.features(condition_latents.to(self.head.weight.dtype))).float()
         azimuth = torch.nn.functional.normalize(raw[:, :AZIMUTH_DIM], dim=-1, eps=1e-6)
         return torch.cat([azimuth, raw[:, AZIMUTH_DIM:]], dim=-1)
+
+
+def estimator_weights_digest(estimator: torch.nn.Module) -> str:
+    """SHA-256 of an azimuth estimator's weights (names and values at float16, so that a bundled copy stored
+    in float16 and the float32 weights it came from agree): the estimator a UNet was trained beside, recorded
+    in ``PoseProjection.config.trained_estimator`` and checked when a pipeline is assembled."""
+    digest = hashlib.sha256()
+    for name, tensor in sorted(estimator.state_dict().items()):
+        digest.update(name.encode() + b"\0")
+        digest.update(tensor.detach().to(device="cpu", dtype=torch.float16).contiguous().numpy().tobytes())
+    return digest.hexdigest()

@@ -54,7 +54,7 @@ from sar_zero123.model.conditioning import (
     unet_condition_latents,
 )
 from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
-from sar_zero123.model.orientation import AzimuthEstimator, target_view_features
+from sar_zero123.model.orientation import AzimuthEstimator, estimator_weights_digest, target_view_features
 from sar_zero123.model.proxy import check_proxy_settings, draft_target_views
 from sar_zero123.model.sampler import (
     MAX_GUIDANCE_SCALE,
@@ -221,6 +221,15 @@ class SARZero123Pipeline(DiffusionPipeline):
             )
         check_vae_image_size(vae, unet)
         check_vae_signature(vae.config, getattr(pose_projection.config, "trained_vae", None))
+        trained_estimator = getattr(pose_projection.config, "trained_estimator", None)
+        if trained_estimator is not None and azimuth_estimator is not None:
+            digest = estimator_weights_digest(azimuth_estimator)
+            if digest != trained_estimator:
+                raise ValueError(
+                    f"`azimuth_estimator`: weights SHA-256 {digest[:12]}..., but the UNet was trained beside "
+                    f"the estimator {trained_estimator[:12]}... (pose_projection.config.trained_estimator): "
+                    "an estimator from another run reads azimuths the UNet never learned; use its own"
+                )
         if pose_projection.config.in_features != image_encoder.config.projection_dim + POSE_DIM:
             raise ValueError(
                 f"`pose_projection.config.in_features` must be image_encoder projection_dim + {POSE_DIM} = "

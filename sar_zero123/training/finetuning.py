@@ -33,6 +33,7 @@ from torch.utils.data import DataLoader, Dataset
 from sar_zero123.config import naming_write_errors, write_json_atomic, write_manifest
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.model.conditioning import PoseProjection, takes_proxy
+from sar_zero123.model.orientation import estimator_weights_digest
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.proxy import DEFAULT_PROXY
 from sar_zero123.model.sampler import EXPORTED_SAMPLER
@@ -289,6 +290,10 @@ def export_finetuned(
     for module in (export.unet, export.image_encoder, export.pose_projection, export.azimuth_estimator):
         if module is not None:
             module.eval()
+    if export.azimuth_estimator is not None:  # the estimator the UNet was trained beside, checked at loading
+        export.pose_projection.register_to_config(
+            trained_estimator=estimator_weights_digest(export.azimuth_estimator)
+        )
     check_finite_state(export.components, what=str(directory))
     export.to(torch.float32)
     kept = "the checkpoints are kept and the run is not marked finished; free space and resume to export"

@@ -241,3 +241,21 @@ def test_several_images_per_input_get_the_single_image_conditioning(pipe: SARZer
     single, double = run(1), run(2)
     torch.testing.assert_close(double[:1], single, atol=1e-5, rtol=0)
     assert not torch.allclose(double[0], double[1])  # other noise, other view
+
+
+def test_an_estimator_from_another_run_is_refused_and_its_own_loads(tmp_path) -> None:
+    from sar_zero123.data import DecibelScaling
+    from sar_zero123.model.orientation import estimator_weights_digest
+    from sar_zero123.model.pipeline import SARZero123Pipeline
+    from sar_zero123.training.finetuning import export_finetuned
+
+    pipe = build_sar_zero123("tiny", estimate_input_azimuth=True, seed=3)
+    export_finetuned(tmp_path / "pipeline", pipe, DecibelScaling())
+    loaded = SARZero123Pipeline.from_pretrained(tmp_path / "pipeline")
+    recorded = loaded.pose_projection.config.trained_estimator
+    assert recorded == estimator_weights_digest(pipe.azimuth_estimator) == estimator_weights_digest(
+        loaded.azimuth_estimator.half()  # a float16 copy (a bundled prior's) is the same estimator
+    )
+    other = build_sar_zero123("tiny", estimate_input_azimuth=True, seed=4).azimuth_estimator
+    with pytest.raises(ValueError, match=r"`azimuth_estimator`: weights SHA-256 .* but the UNet was trained"):
+        SARZero123Pipeline(**{**loaded.components, "azimuth_estimator": other})
