@@ -15,6 +15,7 @@ Conventions::
 
 from __future__ import annotations
 
+import re
 import sys
 from collections.abc import Iterator
 from contextlib import contextmanager
@@ -138,6 +139,12 @@ def center_crop(image: Array, crop_size: int) -> Array:
     return image[..., top : top + crop_size, left : left + crop_size]
 
 
+#: How torch.save's writer reports a failed write (a full disk), as a RuntimeError rather than an OSError.
+_TORCH_WRITER_FAILURE = re.compile(
+    r"enforce fail at inline_container|PytorchStreamWriter failed", re.IGNORECASE
+)
+
+
 @contextmanager
 def naming_write_errors(path: Any, kept: str) -> Iterator[None]:
     """Around a write: a failed write (disk full, a file-size limit, a read-only folder) is raised as an
@@ -160,6 +167,9 @@ def naming_write_errors(path: Any, kept: str) -> Iterator[None]:
             inner = (getattr(error, "filename", None), error.strerror or str(error))
         elif inner is None and type(error).__name__ == "SafetensorError":  # not an OSError
             inner = (None, str(error))
+        elif inner is None and isinstance(error, RuntimeError) and _TORCH_WRITER_FAILURE.search(str(error)):
+            # torch.save's zip writer on a full disk: "[enforce fail at inline_container.cc] unexpected pos"
+            inner = (None, f"PyTorch's file writer failed ({str(error).strip()[:120]}): is the disk full?")
         if inner is None:
             raise
         file, reason = inner

@@ -40,6 +40,7 @@ from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
 from sar_zero123.config import manifest_problem, parse_config, write_manifest
+from sar_zero123.domain import naming_write_errors
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.folder import StageTimer, content_identity, finish_run, weights_identity
 from sar_zero123.runs.stage import open_stage_folder
@@ -191,15 +192,17 @@ def interpolate_pipelines(
     # 2. the fine-tune's folder copied under a temporary name, its weights replaced, then renamed into place
     out.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
+    kept = "nothing was written to it (the scratch copy is removed); free space and run the command again"
     try:
-        staged = scratch / "pipeline"
-        shutil.copytree(tuned_dir, staged)
-        for relative, other in plan:
-            component = relative.parts[0] if len(relative.parts) > 1 else "the pipeline folder"
-            mixed = interpolate_state(load_file(other), load_file(tuned_dir / relative), alpha, component)
-            save_file(mixed, staged / relative, metadata={"format": "pt"})
-        write_manifest(staged)  # sealed last: the loader refuses a file changed since
-        os.replace(staged, out)
+        with naming_write_errors(out, kept):
+            staged = scratch / "pipeline"
+            shutil.copytree(tuned_dir, staged)
+            for relative, other in plan:
+                component = relative.parts[0] if len(relative.parts) > 1 else "the pipeline folder"
+                mixed = interpolate_state(load_file(other), load_file(tuned_dir / relative), alpha, component)
+                save_file(mixed, staged / relative, metadata={"format": "pt"})
+            write_manifest(staged)  # sealed last: the loader refuses a file changed since
+            os.replace(staged, out)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return out

@@ -5,6 +5,7 @@ from __future__ import annotations
 import errno
 import json
 import resource
+import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -167,5 +168,14 @@ def test_naming_write_errors_names_the_outer_path_and_the_inner_file_and_passes_
     with pytest.raises(OSError, match=r"^could not write 'w.safetensors': I/O error: File too large; none$"):
         with naming_write_errors("w.safetensors", "none"):
             raise SafetensorError("I/O error: File too large")
+    # torch.save's writer on a full disk raises a RuntimeError; shutil.copytree a shutil.Error (an OSError)
+    with pytest.raises(OSError, match=r"could not write 'ckpt': PyTorch's file writer failed .*disk full\?"):
+        with naming_write_errors("ckpt", "kept"):
+            raise RuntimeError("[enforce fail at inline_container.cc:595] . unexpected pos 64 vs 0")
+    with pytest.raises(OSError, match=r"could not write 'out': .*No space left on device.*; kept"):
+        with naming_write_errors("out", "kept"):
+            raise shutil.Error([("a", "b", "[Errno 28] No space left on device")])
+    with pytest.raises(RuntimeError, match="other"), naming_write_errors("x", "y"):  # not a write failure
+        raise RuntimeError("other")
     with pytest.raises(KeyError), naming_write_errors("x", "y"):  # not a write failure: unchanged
         raise KeyError("z")
