@@ -38,7 +38,7 @@ from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretraine
 from sar_zero123.config import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling, load_chip
 from sar_zero123.model.conditioning import takes_proxy
-from sar_zero123.model.proxy import draft_target_views
+from sar_zero123.model.proxy import PROXY_FIELDS, draft_target_views, proxy_bank
 from sar_zero123.sim.proxy import blurred_correlation
 
 CLASSES = ("2S1", "BRDM2", "T72", "ZSU234")
@@ -95,6 +95,25 @@ def _draft(args: tuple) -> np.ndarray:
     return drafts[:, 0].numpy()
 
 
+def _consensus(args: tuple) -> np.ndarray:
+    """One input's consensus proxy at 30 deg ``(S, S)``: the renders of its ``k`` best-fitting bank vehicles
+    (each shifted onto the chip as fitted), averaged in normalised dB with weights
+    ``exp((score - best) / temperature)`` (a worker process)."""
+    proxy, image, azimuth, k, temperature = args
+    threadpool_limits(limits=1)
+    bank = proxy_bank(*(proxy[key] for key in PROXY_FIELDS[:6]))
+    scaling = DecibelScaling(min_db=float(proxy["min_db"]), max_db=float(proxy["max_db"]))
+    scores, shifts = bank.scores_and_shifts(image, azimuth, INPUT_DEPRESSION_DEG)
+    best = np.argsort(-scores, kind="stable")[:k]
+    weights = np.exp((scores[best] - scores[best[0]]) / temperature)
+    size = image.shape[-1]
+    renders = [
+        scaling.normalize(bank.render(int(v), azimuth, TARGET_DEPRESSION_DEG, size, tuple(shifts[v])))
+        for v in best
+    ]
+    return np.einsum("k,khw->hw", weights / weights.sum(), np.stack(renders)).astype(np.float32)
+
+
 def wins(views: np.ndarray, at_30: np.ndarray, at_17: np.ndarray) -> np.ndarray:
     """Per view: blurred correlation with the 30 deg chip above that with the 17 deg one."""
     scores = [blurred_correlation(v, np.stack([h, q]), 1.5) for v, h, q in zip(views, at_30, at_17)]
@@ -110,6 +129,7 @@ def run(
     workers: int = 2,
     max_shifts_px: Sequence[int] = (0,),
     proxy_pipeline: str | None = None,
+    consensus: tuple[int, float] | None = None,
 ) -> dict:
     """Every row's share of views nearer the 30 deg chip, on the same pairs; see the module docstring."""
     pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR_ROTATED)
@@ -149,6 +169,27 @@ def run(
         drafts[shift] = fit({**pipe.config.proxy, "max_shift_px": shift})
         name = f"proxy alone (bank {pipe.config.proxy['num_vehicles']}, shifts up to {shift} px)"
         add(name, drafts[shift][:, 1], time.perf_counter() - begin)
+    if consensus is not None:  # the proxy alone only: the best fit against the consensus of the k best
+        k, temperature = consensus
+        shift = max(drafts)
+        begin = time.perf_counter()
+        jobs = [({**pipe.config.proxy, "max_shift_px": shift}, image, a, k, temperature)
+                for image, a in zip(inputs, azimuths)]  # fmt: skip
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            chunks = max(1, len(jobs) // (4 * workers))
+            mean = np.stack(list(pool.map(_consensus, jobs, chunksize=chunks)))
+        name = f"proxy alone, consensus of the {k} best (temperature {temperature:g}, shifts <= {shift} px)"
+        add(name, mean, time.perf_counter() - begin)
+        best = f"proxy alone (bank {pipe.config.proxy['num_vehicles']}, shifts up to {shift} px)"
+        diff = wins(mean, at_30, at_17).astype(float) - wins(drafts[shift][:, 1], at_30, at_17).astype(float)
+        rows[name]["paired_difference_from_best_fit"] = float(diff.mean())
+        se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
+        rows[name]["paired_difference_se"] = se
+        print(f"paired: {name} - {best}: {diff.mean():+.1%} ± {se:.1%}")
+        return {"benchmark": "proxy_mstar_depression (issue 61: consensus proxy)",
+                "consensus": [k, temperature], "proxy": pipe.config.proxy, "per_class": per_class,
+                "seed": seed, "rows": rows,
+                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
     views_at_three_poses = drafts[recorded_shift]
     proxies = views_at_three_poses[:, 1]
 
@@ -219,6 +260,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         help="also fit the proxy with shifts up to each of these (pixels)")
     parser.add_argument("--proxy_pipeline", default=None,
                         help="also a spatial_pose='proxy' pipeline (folder or name) on the same pairs")
+    parser.add_argument("--consensus", nargs=2, type=float, default=None, metavar=("K", "TEMPERATURE"),
+                        help="only the proxies alone: the best fit and the weighted mean of the K best fits")
     parser.add_argument("--out", default="proxy_mstar_depression.json", help="output JSON")
     args = parser.parse_args(argv)
     for name in ("mstar", "eoc1"):
@@ -227,6 +270,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
     record = run(
         Path(args.mstar), Path(args.eoc1), args.per_class, args.max_azimuth_gap, args.seed, args.workers,
         args.max_shifts_px, args.proxy_pipeline,
+        None if args.consensus is None else (int(args.consensus[0]), float(args.consensus[1])),
     )
     write_json_atomic(record, Path(args.out))
     return record
