@@ -226,22 +226,6 @@ def main() -> None:
         ),
         watch=[restart_data],
     )
-    case(
-        "2. interpolate --output_dir <the bundled prior's folder> --restart",
-        lambda: launcher(
-            "sar-zero123-interpolate",
-            [
-                "--start",
-                "sar-zero123/sim-prior-rotated",
-                "--finetuned",
-                str(interp_tuned),
-                "--output_dir",
-                str(BUNDLED),
-                "--restart",
-            ],
-        ),
-        watch=[BUNDLED],
-    )
     # 3. security
     index = (escape / "index.csv").read_text().splitlines()
     header = index[0].split(",")
@@ -402,6 +386,23 @@ def main() -> None:
             "from sar_zero123.stages.finetune import FinetuneConfig\n"
             "print(parse_config(FinetuneConfig, ['--pfm_monotonic_q', '512', '--encoder', 'e']).pfm_weight)"
         ),
+    )
+    # last: on a tree that moves it, the bundled prior is gone for every later case
+    case(
+        "2. interpolate --output_dir <the bundled prior's folder> --restart",
+        lambda: launcher(
+            "sar-zero123-interpolate",
+            [
+                "--start",
+                "sar-zero123/sim-prior-rotated",
+                "--finetuned",
+                str(interp_tuned),
+                "--output_dir",
+                str(BUNDLED),
+                "--restart",
+            ],
+        ),
+        watch=[BUNDLED],
     )
     OUTPUT.parent.mkdir(parents=True, exist_ok=True)
     OUTPUT.write_text(json.dumps({"tree": str(ROOT), "threads": THREADS, "cases": RESULTS}, indent=1) + "\n")

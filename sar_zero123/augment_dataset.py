@@ -64,7 +64,13 @@ from sar_zero123.model.proxy import DATASET_SHORTLIST, with_shortlist
 from sar_zero123.model.sampler import SamplerSettings, scheduler_name
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar
-from sar_zero123.runs.folder import check_options_folder, content_identity, field_defaults, move_aside
+from sar_zero123.runs.folder import (
+    check_options_folder,
+    check_restart_target,
+    content_identity,
+    field_defaults,
+    move_aside,
+)
 from sar_zero123.runs.lock import is_lock_file, lock_output_folder, release_output_folder
 from sar_zero123.sim.dataset import write_index_atomic
 
@@ -494,16 +500,12 @@ def augment_dataset(config: AugmentConfig) -> Path:
     out = Path(config.out)
     options = _recorded_options(config)
     check_output_dir(out, "out")
+    restart = config.restart and out.is_dir() and any(not is_lock_file(p) for p in out.iterdir())
+    if restart:  # before the lock file is made beside out: a refusal leaves the inputs as they were
+        inputs = {name: options.get(name) for name in ("data", "pipeline", "scaling_file")}
+        check_restart_target(out, {}, inputs, "out")  # either way round: out inside an input refused too
     lock_output_folder(out, "out")  # one writer: a second augmentation into this folder is refused now
-    if config.restart and out.is_dir() and any(not is_lock_file(p) for p in out.iterdir()):
-        paths = {name: options.get(name) for name in ("data", "pipeline", "scaling_file")}
-        root = out.resolve()
-        inside = [name for name, path in paths.items() if path and Path(path).resolve().is_relative_to(root)]
-        if inside:
-            raise ValueError(
-                f"restart: out {str(out)!r} holds this run's inputs ({', '.join(inside)}); moving it aside "
-                "would move them too. Name another out folder, or move the inputs out first"
-            )
+    if restart:
         move_aside(out)
     resuming = _check_out_folder(out, options)
     if resuming and not config.resume:

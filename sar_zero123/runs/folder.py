@@ -54,6 +54,7 @@ __all__ = [
     "RunFolder",
     "StageTimer",
     "check_options_folder",
+    "check_restart_target",
     "code_version",
     "data_identity",
     "field_defaults",
@@ -306,6 +307,30 @@ def _inputs_holding(folder: Path, identity: Mapping[str, Any], config: Mapping[s
     return holding
 
 
+def check_restart_target(
+    path: Path, identity: Mapping[str, Any], config: Mapping[str, Any], flag_hint: str = "output_dir"
+) -> None:
+    """Refuse to move ``path`` aside (``--restart``) when it holds one of the run's inputs, or lies inside one
+    of them or inside the package (its bundled pipelines): the inputs are the data paths of ``identity`` and
+    every config field but the outputs that names an existing path.
+
+    Raises:
+        ValueError: Naming ``flag_hint``, the folder and the inputs, either way round.
+    """
+    inside = _inputs_inside(path, identity, config)
+    if inside:
+        raise ValueError(
+            f"restart: {flag_hint} {str(path)!r} holds this run's inputs ({', '.join(inside)}); moving "
+            "it aside would move them too. Name another output folder, or move the inputs out first"
+        )
+    holding = _inputs_holding(path, identity, config)
+    if holding:
+        raise ValueError(
+            f"restart: {flag_hint} {str(path)!r} lies inside this run's inputs ({', '.join(holding)}); "
+            "moving it aside would move part of them. Name an output folder outside them"
+        )
+
+
 def move_aside(path: Path) -> Path:
     """Move the folder ``path`` aside to ``<name>.replaced-<UTC time>`` (never deleted); returns the new path.
 
@@ -384,18 +409,7 @@ def open_run_folder(
         lock_output_folder(path, flag_hint)
     occupied = path.is_dir() and any(not is_lock_file(p) for p in path.iterdir())
     if occupied and restart:
-        inside = _inputs_inside(path, identity, values)
-        if inside:
-            raise ValueError(
-                f"restart: {flag_hint} {str(path)!r} holds this run's inputs ({', '.join(inside)}); moving "
-                "it aside would move them too. Name another output folder, or move the inputs out first"
-            )
-        holding = _inputs_holding(path, identity, values)
-        if holding:
-            raise ValueError(
-                f"restart: {flag_hint} {str(path)!r} lies inside this run's inputs ({', '.join(holding)}); "
-                "moving it aside would move part of them. Name an output folder outside them"
-            )
+        check_restart_target(path, identity, values, flag_hint)
         if write:
             _move_aside(path)
         occupied = False

@@ -258,9 +258,16 @@ def test_no_resume_refuses_and_restart_moves_the_folder_aside(augmented, data_di
     inside = tmp_path / "inside"
     shutil.copytree(augmented, inside)
     shutil.copytree(data_dir, inside / "data")
-    with pytest.raises(ValueError, match=r"restart: out .* holds this run's inputs \(data\)"):
+    with pytest.raises(ValueError, match=r"restart: out .* holds this run's inputs \(data: "):
         main(run_args(inside / "data", pipeline_dir, inside, "--restart"))
     assert (inside / "data" / "index.csv").is_file()
+    # the other way round: an out folder inside the data (its chips/) is not moved aside either
+    data = tmp_path / "data_copy"
+    shutil.copytree(data_dir, data)
+    before = sorted(p.relative_to(data) for p in data.rglob("*"))
+    with pytest.raises(ValueError, match=r"restart: out .* lies inside this run's inputs \(data: "):
+        main(run_args(data, pipeline_dir, data / "chips", "--restart"))
+    assert sorted(p.relative_to(data) for p in data.rglob("*")) == before
 
 
 def test_refuses_to_resume_onto_a_pipeline_whose_weights_changed(augmented, data_dir, pipeline_dir, tmp_path):
