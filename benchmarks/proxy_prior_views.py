@@ -73,6 +73,18 @@ def fitted_views(
         return np.stack(list(pool.map(_fitted, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
 
 
+def paired_differences(readings: dict, pairs_of_rows: Sequence[tuple[str, str]]) -> dict[str, dict]:
+    """Each ``(first, second)`` row pair's template azimuth error differenced on the same pairs: mean and
+    standard error (negative: the first is nearer the request); printed as it goes."""
+    comparisons = {}
+    for first, second in pairs_of_rows:
+        diff = readings[first].azimuth_error_deg - readings[second].azimuth_error_deg
+        se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
+        comparisons[f"{first} - {second}"] = {"mean_deg": float(diff.mean()), "se_deg": se}
+        print(f"paired: {first} - {second}: {diff.mean():+.1f} ± {se:.1f} deg")
+    return comparisons
+
+
 def _consensus(args: tuple) -> np.ndarray:
     """One input's consensus proxy at the three poses ``(3, S, S)``: its ``k`` best-fitting bank vehicles'
     renders, averaged in normalised dB with weights ``exp((score - best) / temperature)``."""
@@ -202,12 +214,7 @@ def run(
         for model in ("proxy prior", baseline):
             pairs_of_rows.append((f"{model}, its recorded sampler, {label}",
                                   f"{model}, its recorded sampler, the best fit"))
-        comparisons = {}
-        for first, second in pairs_of_rows:
-            diff = readings[first].azimuth_error_deg - readings[second].azimuth_error_deg
-            se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
-            comparisons[f"{first} - {second}"] = {"mean_deg": float(diff.mean()), "se_deg": se}
-            print(f"paired: {first} - {second}: {diff.mean():+.1f} ± {se:.1f} deg")
+        comparisons = paired_differences(readings, pairs_of_rows)
         return {"benchmark": "proxy_prior_views (issue 61: consensus proxy)", "pipeline": str(pipeline),
                 "baseline": str(baseline), "recorded_sampler": recorded, "consensus": [k, temperature],
                 "seed": seed, "proxy": proxy, "paired_azimuth_error_differences": comparisons, "rows": rows,
@@ -232,11 +239,7 @@ def run(
                 other = f"{baseline}, recorded sampler {label} at {count} steps"
                 add(other, *sample(base, None, start_views, strength, base_heading, count))
                 pairs_of_rows.append((other, f"{baseline}, recorded sampler {label}"))
-            for first, second in pairs_of_rows:
-                diff = readings[first].azimuth_error_deg - readings[second].azimuth_error_deg
-                se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
-                comparisons[f"{first} - {second}"] = {"mean_deg": float(diff.mean()), "se_deg": se}
-                print(f"paired: {first} - {second}: {diff.mean():+.1f} ± {se:.1f} deg")
+            comparisons |= paired_differences(readings, pairs_of_rows)
         return {"benchmark": "proxy_prior_views (issue 63: step counts)", "pipeline": str(pipeline),
                 "recorded_sampler": recorded, "steps": list(steps_sweep), "seed": seed, "proxy": proxy,
                 "paired_azimuth_error_differences": comparisons, "rows": rows,
@@ -264,13 +267,8 @@ def run(
     baseline_row = next(n for n in rows if n.startswith(f"{baseline}, its recorded"))
     alone = next(n for n in rows if n.startswith("proxy alone"))
     recorded_row = next(n for n in rows if n.startswith("proxy prior, its recorded sampler"))
-    comparisons = {}
-    for first in dict.fromkeys((recorded_row, best)):
-        for other in (baseline_row, alone):
-            diff = readings[first].azimuth_error_deg - readings[other].azimuth_error_deg
-            se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
-            comparisons[f"{first} - {other}"] = {"mean_deg": float(diff.mean()), "se_deg": se}
-            print(f"paired: {first} - {other}: {diff.mean():+.1f} ± {se:.1f} deg")
+    firsts = dict.fromkeys((recorded_row, best))
+    comparisons = paired_differences(readings, [(f, o) for f in firsts for o in (baseline_row, alone)])
     return {
         "benchmark": "proxy_prior_views (issue 61)",
         "best_row": best,
