@@ -403,6 +403,8 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneIn
     )
     record_trained_pose_ranges(pipe.pose_projection, train_dataset)
     pipe.pose_projection.register_to_config(trained_vae=vae_signature(pipe.vae.config))  # refused if swapped
+    # the estimator trains with the UNet: the start's record no longer describes it (the export records anew)
+    pipe.pose_projection.register_to_config(trained_estimator=None)
     rehearsal = None
     if config.rehearsal_data is not None and config.rehearsal_fraction > 0:
         rehearsal, _, _ = train_validation_pairs(

@@ -282,6 +282,8 @@ def export_finetuned(
     if proxy is not None:
         proxy = {**proxy, "min_db": float(scaling.min_db), "max_db": float(scaling.max_db)}
     # the measured step count, and a proxy model's whole sampler (its start from the proxy)
+    # the estimator's record is rewritten below for the weights exported (the start's no longer holds)
+    pipe.pose_projection.register_to_config(trained_estimator=None)
     sampler = {**EXPORTED_SAMPLER, **((getattr(pipe.config, "sampler", None) or {}) if proxy_model else {})}
     export = SARZero123Pipeline(
         **{**pipe.components, "scheduler": DDIMScheduler.from_config(pipe.scheduler.config),
