@@ -272,6 +272,8 @@ def parse_config(
     values: dict[str, Any] = {}
     if config_path is not None:
         file_values = drop_removed_fields(cls, read_config_file(config_path), f"--config {config_path!r}")
+        renamed: Mapping[str, str] = getattr(cls, "RENAMED_FIELDS", {})  # a file written under older names
+        file_values = {renamed.get(name, name): value for name, value in file_values.items()}
         known = {f.name for f in fields}
         unknown = sorted(set(file_values) - known)
         if unknown:

@@ -454,6 +454,9 @@ class QuickstartConfig:
     resume: bool = False
     restart: bool = False  # move an existing run in output_dir aside (never deleted) and start over
 
+    #: Fields of an older name: a ``--config`` file (a run folder's ``config.json``) may still use them.
+    RENAMED_FIELDS = RENAMED_QUICKSTART_FIELDS
+
     def __post_init__(self) -> None:
         if self.resume and self.restart:
             raise ValueError("resume and restart: choose one (continue this run, or move it aside)")

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import json
 from pathlib import Path
 
 import pytest
@@ -108,3 +109,12 @@ def test_the_older_flags_still_work(tmp_path: Path) -> None:
     new = parse_config(QuickstartConfig, new_flags, aliases=QUICKSTART_FLAG_ALIASES)
     assert old.recipe == new.recipe == "smoke"
     assert old.preset() == new.preset() == apply_overrides(PRESETS["smoke"], ["eval_n=8"])
+
+
+def test_an_old_quickstart_config_file_still_parses(tmp_path: Path) -> None:
+    old = tmp_path / "config.json"
+    written = {"output_dir": str(tmp_path / "r"), "preset": "smoke", "override": ["eval_n=8"], "seed": 0}
+    old.write_text(json.dumps(written))
+    config = parse_config(QuickstartConfig, ["--config", str(old)], aliases=QUICKSTART_FLAG_ALIASES)
+    assert (config.recipe, config.set) == ("smoke", ["eval_n=8"])
+    assert config.preset().eval_n == 8
