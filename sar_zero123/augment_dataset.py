@@ -504,6 +504,11 @@ def augment_dataset(config: AugmentConfig) -> Path:
     if restart:  # before the lock file is made beside out: a refusal leaves the inputs as they were
         inputs = {name: options.get(name) for name in ("data", "pipeline", "scaling_file")}
         check_restart_target(out, {}, inputs, "out")  # either way round: out inside an input refused too
+        if not (out / AUGMENT_FILE).is_file():
+            raise ValueError(
+                f"restart: out {str(out)!r} holds no {AUGMENT_FILE}: it is not an augmentation of this "
+                "project, and --restart moves only those; name another out folder"
+            )
     lock_output_folder(out, "out")  # one writer: a second augmentation into this folder is refused now
     if restart:
         move_aside(out)

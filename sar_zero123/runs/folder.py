@@ -410,6 +410,11 @@ def open_run_folder(
     occupied = path.is_dir() and any(not is_lock_file(p) for p in path.iterdir())
     if occupied and restart:
         check_restart_target(path, identity, values, flag_hint)
+        if read_run_record(path) is None:  # moving aside is for this project's runs, never a folder of yours
+            raise ValueError(
+                f"restart: {flag_hint} {str(path)!r} holds no {RUN_RECORD}: it is not a run folder of this "
+                f"project, and --restart moves only those; name another {flag_hint}"
+            )
         if write:
             _move_aside(path)
         occupied = False
@@ -432,7 +437,7 @@ def open_run_folder(
     if record is None:
         raise ValueError(
             f"{flag_hint}: {str(path)!r} is not empty and holds no {RUN_RECORD} (not a {stage} run of this "
-            "version): choose an empty folder, or pass --restart to move its contents aside"
+            "version): choose an empty or new folder"
         )
     extendable = set(may_extend) if resume else set()
     # a field since removed counts as absent where the folder holds its old default, and is refused otherwise

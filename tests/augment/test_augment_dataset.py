@@ -268,6 +268,13 @@ def test_no_resume_refuses_and_restart_moves_the_folder_aside(augmented, data_di
     with pytest.raises(ValueError, match=r"restart: out .* lies inside this run's inputs \(data: "):
         main(run_args(data, pipeline_dir, data / "chips", "--restart"))
     assert sorted(p.relative_to(data) for p in data.rglob("*")) == before
+    # a folder that is not an augmentation is never moved aside
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match=r"restart: out .*mine' holds no augment.json: it is not an"):
+        main(run_args(data_dir, pipeline_dir, mine, "--restart"))
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]
 
 
 def test_refuses_to_resume_onto_a_pipeline_whose_weights_changed(augmented, data_dir, pipeline_dir, tmp_path):

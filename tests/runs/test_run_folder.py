@@ -118,6 +118,16 @@ def test_a_foreign_non_empty_folder_is_refused(tmp_path):
     assert _snapshot(folder) == {"notes.txt": b"mine"}
 
 
+def test_restart_never_moves_a_folder_that_is_not_a_run(tmp_path):
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("mine")
+    with pytest.raises(ValueError, match=r"restart: output_dir '.*photos' holds no run.json: it is not"):
+        open_run_folder(folder, "vae", _Config(), restart=True)
+    assert _snapshot(folder) == {"notes.txt": b"mine"}
+    assert sorted(p.name for p in tmp_path.iterdir() if not is_lock_file(p)) == ["photos"]  # nothing moved
+
+
 def test_restart_moves_the_old_run_aside(tmp_path):
     folder = tmp_path / "run"
     open_run_folder(folder, "vae", _Config())
@@ -172,9 +182,9 @@ def test_restart_of_the_working_directory_is_refused_before_moving_anything(tmp_
     folder = tmp_path / "run"
     open_run_folder(folder, "vae", _Config())
     monkeypatch.chdir(folder)
-    for name in (".", str(folder), ".."):
-        message = rf"restart: output_dir '{re.escape(name)}' is the working directory or holds it"
-        with pytest.raises(ValueError, match=message):
+    for name in (".", str(folder), ".."):  # ".." is no run folder either: refused for that first
+        reason = "holds no run.json" if name == ".." else "is the working directory or holds it"
+        with pytest.raises(ValueError, match=rf"restart: output_dir '{re.escape(name)}' {reason}"):
             open_run_folder(name, "vae", _Config(seed=3), restart=True)
     assert sorted(p.name for p in tmp_path.iterdir() if not is_lock_file(p)) == ["run"]  # nothing moved
     assert read_run_record(folder)["config"]["seed"] == 0
