@@ -65,6 +65,7 @@ from sar_zero123.model.sampler import (
     _check_contrast_scales,
     _check_strength,
     check_sampler_start,
+    resolve_sampler,
 )
 from sar_zero123.model.zero123_checkpoints import CLIPImageProcessor, load_zero123_components
 from sar_zero123.pretrained import BUNDLED_NAMESPACE, BUNDLED_PIPELINES, is_bundled_name, resolve_pretrained
@@ -699,22 +700,14 @@ class SARZero123Pipeline(DiffusionPipeline):
             callback_on_step_end_tensor_inputs = callback_on_step_end.tensor_inputs
 
         # 1. check inputs; a sampler argument left None is the pipeline's recorded value, else the library's
-        recorded = {**SAMPLER_DEFAULTS, **(getattr(self.config, "sampler", None) or {})}
-        recorded_start = recorded["start_from"] if start_from is None else None
-        strength_given = strength is not None
-        given = (num_inference_steps, guidance_scale, strength, heading_guidance_scale,
-                 depression_guidance_scale, start_from)  # fmt: skip
-        resolved = [recorded[name] if value is None else value for name, value in zip(recorded, given)]
-        num_inference_steps, guidance_scale, strength = resolved[:3]
-        heading_guidance_scale, depression_guidance_scale, start_from = resolved[3:]
-        if start_from == "proxy" and input_azimuth_deg is None and recorded_start == "proxy":
-            # a recorded proxy start needs the input's pose; without its azimuth, the input is the start
-            start_from = "input"
-        if start_from == "proxy" and not strength_given and recorded["proxy_strength"] is not None:
-            strength = recorded["proxy_strength"]  # a proxy is a nearer draft: less of it is noised
-        if not strength_given and isinstance(num_inference_steps, int) and num_inference_steps >= 1:
-            # a recorded strength runs at least one step of a call's own step count (0.3 x 2 steps: 1 step)
-            strength = min(1.0, max(strength, (1.0 + 1e-9) / num_inference_steps))
+        given = {"num_inference_steps": num_inference_steps, "guidance_scale": guidance_scale,
+                 "strength": strength, "heading_guidance_scale": heading_guidance_scale,
+                 "depression_guidance_scale": depression_guidance_scale,
+                 "start_from": start_from}  # fmt: skip
+        recorded = getattr(self.config, "sampler", None)
+        values = resolve_sampler(given, recorded, input_azimuth_given=input_azimuth_deg is not None)
+        (num_inference_steps, guidance_scale, strength, heading_guidance_scale, depression_guidance_scale,
+         start_from) = (values[name] for name in given)  # fmt: skip
         self._check_inputs(
             num_inference_steps,
             guidance_scale,

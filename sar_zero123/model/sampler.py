@@ -27,7 +27,8 @@ from diffusers import (
 
 __all__ = [
     "EXPORTED_SAMPLER", "MAX_GUIDANCE_SCALE", "MAX_INFERENCE_STEPS", "SAMPLER_DEFAULTS", "SCHEDULERS",
-    "START_FROM", "SamplerSettings", "check_sampler_start", "scheduler_name", "set_scheduler",
+    "START_FROM", "SamplerSettings", "check_sampler_start", "resolve_sampler", "scheduler_name",
+    "set_scheduler",
 ]  # fmt: skip
 
 #: Larger guidance scales overflow the guided noise estimate (NaN images); zero-1-to-3 samples with 3.
@@ -114,28 +115,48 @@ class SamplerSettings:
         names = [item.name for item in fields(SamplerSettings) if item.name != "scheduler"]
         return {name: getattr(self, name) for name in names}
 
-    def sampler_settings(self) -> SamplerSettings:
-        """These fields alone, as a plain :class:`SamplerSettings` (from a command's config)."""
-        return SamplerSettings(**{item.name: getattr(self, item.name) for item in fields(SamplerSettings)})
-
     def resolved(self, recorded: Mapping[str, Any] | None) -> dict[str, Any]:
         """Every sampler value a call with these settings uses, given what a pipeline records (its
-        ``config.sampler``): a field left ``None`` is the recorded value, else the library's; a recorded start
-        from the proxy starts at its recorded ``proxy_strength`` when no strength is given."""
-        recorded = {**SAMPLER_DEFAULTS, **(recorded or {})}
-        values = {
-            name: recorded[name] if value is None else value
-            for name, value in self.sampler_arguments().items()
-        }
-        proxy_strength = recorded["proxy_strength"]
-        if self.strength is None and values["start_from"] == "proxy" and proxy_strength is not None:
-            values["strength"] = proxy_strength
-        return {"scheduler": self.scheduler, **values}
+        ``config.sampler``; :func:`resolve_sampler`), and the scheduler (``None``: the pipeline's own)."""
+        return {"scheduler": self.scheduler, **resolve_sampler(self.sampler_arguments(), recorded)}
 
     def apply_scheduler(self, pipe: Any) -> None:
         """Swaps ``pipe``'s scheduler for ``scheduler`` (:func:`set_scheduler`); ``None`` keeps it."""
         if self.scheduler is not None:
             set_scheduler(pipe, self.scheduler)
+
+
+def resolve_sampler(
+    given: Mapping[str, Any], recorded: Mapping[str, Any] | None, input_azimuth_given: bool = True
+) -> dict[str, Any]:
+    """The sampler a pipeline call runs: each argument ``given`` as ``None`` takes the pipeline's ``recorded``
+    value (its ``config.sampler``), else the library's (:data:`SAMPLER_DEFAULTS`). A recorded start from the
+    proxy falls back to the input when the call gives no input azimuth (the fit needs it); a start from the
+    proxy takes the recorded ``proxy_strength`` when no strength is given; a strength not given runs at least
+    one step of the call's step count. The one place these rules live (the pipeline call and the commands'
+    records use it).
+
+    Args:
+        given: The call's sampler arguments (:data:`SAMPLER_DEFAULTS`' keys but ``proxy_strength``).
+        recorded: The pipeline's recorded sampler, or ``None``.
+        input_azimuth_given: Whether the call gives the input's azimuth.
+
+    Returns:
+        Every sampler argument's value (``proxy_strength`` excluded).
+    """
+    recorded = {**SAMPLER_DEFAULTS, **(recorded or {})}
+    values = {name: recorded[name] if given.get(name) is None else given[name]
+              for name in SAMPLER_DEFAULTS if name != "proxy_strength"}  # fmt: skip
+    if values["start_from"] == "proxy" and given.get("start_from") is None and not input_azimuth_given:
+        values["start_from"] = "input"  # a recorded proxy start needs the input's pose
+    strength_given = given.get("strength") is not None
+    if values["start_from"] == "proxy" and not strength_given and recorded["proxy_strength"] is not None:
+        values["strength"] = recorded["proxy_strength"]  # a proxy is a nearer draft: less of it is noised
+    steps = values["num_inference_steps"]
+    if not strength_given and isinstance(steps, int) and not isinstance(steps, bool) and steps >= 1:
+        # a recorded strength runs at least one step of a call's own step count (0.3 x 2 steps: 1 step)
+        values["strength"] = min(1.0, max(values["strength"], (1.0 + 1e-9) / steps))
+    return values
 
 
 def set_scheduler(pipe: Any, name: str) -> None:

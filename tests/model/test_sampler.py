@@ -12,6 +12,7 @@ from sar_zero123.model.sampler import (
     SAMPLER_DEFAULTS,
     SCHEDULERS,
     SamplerSettings,
+    resolve_sampler,
     scheduler_name,
     set_scheduler,
 )
@@ -41,6 +42,13 @@ def test_a_field_left_none_is_the_recorded_value_then_the_librarys() -> None:
     assert (given["num_inference_steps"], given["strength"], given["scheduler"]) == (5, 0.5, "euler")
     # a start from the input does not take the proxy's strength
     assert SamplerSettings(start_from="input").resolved(recorded)["strength"] == 1.0
+    # without the input's azimuth a recorded proxy start is the input's, at the recorded strength
+    plain = resolve_sampler({}, recorded, input_azimuth_given=False)
+    assert (plain["start_from"], plain["strength"]) == ("input", 1.0)
+    # a strength left to the record runs at least one of the call's steps; a given one is never changed
+    short = {**recorded, "proxy_strength": 0.3}
+    assert resolve_sampler({"num_inference_steps": 2}, short)["strength"] == pytest.approx(0.5)
+    assert resolve_sampler({"num_inference_steps": 2, "strength": 0.3}, short)["strength"] == 0.3
     # nothing recorded: the library's defaults
     library = SamplerSettings().resolved(None)
     assert {k: library[k] for k in SAMPLER_DEFAULTS if k != "proxy_strength"} == {
