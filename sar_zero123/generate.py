@@ -409,7 +409,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
     out = folder.path
     save_config(config, out)
     d_el = config.d_el * len(config.d_az) if len(config.d_el) == 1 else config.d_el
-    titles, outputs = [], ["config.json", "input.png"]
+    titles, outputs, listed = [], ["config.json", "input.png"], []
     _save_png(chip, out / "input.png")
     for index, (view, d_az_deg, d_el_deg) in enumerate(
         progress_bar(list(zip(views, config.d_az, d_el)), desc="writing views", unit="view")
@@ -419,15 +419,12 @@ def main(argv: Sequence[str] | None = None) -> Path:
             _save_png(view, out / f"{stem}.png")
             np.save(out / f"{stem}.npy", view.astype(np.float32))
         titles.append(f"d_az {d_az_deg:g}, d_el {d_el_deg:g}")
+        listed.append({"png": f"{stem}.png", "npy": f"{stem}.npy", "d_az_deg": float(d_az_deg),
+                       "d_el_deg": float(d_el_deg)})  # fmt: skip
         outputs += [f"{stem}.png", f"{stem}.npy"]
     _contact_sheet(chip, views, titles, out / "contact_sheet.png")
-    scaling = _resolve_scaling(config.scaling_file, config.pipeline)
-    write_json_atomic(
-        {"domain": VIEWS_DOMAIN, "scaling": scaling.to_dict(),
-         "views": [{"png": f"{stem}.png", "npy": f"{stem}.npy", "d_az_deg": float(a), "d_el_deg": float(e)}
-                   for stem, a, e in zip([o[:-4] for o in outputs[2::2]], config.d_az, d_el)]},
-        out / VIEWS_FILE,
-    )  # fmt: skip
+    scaling = _resolve_scaling(config.scaling_file, config.pipeline).to_dict()
+    write_json_atomic({"domain": VIEWS_DOMAIN, "scaling": scaling, "views": listed}, out / VIEWS_FILE)
     finish_run(folder, [*outputs, "contact_sheet.png", VIEWS_FILE], seconds=timer.seconds)
     return out
 
