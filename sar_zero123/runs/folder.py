@@ -154,10 +154,21 @@ def content_identity(path: str | os.PathLike) -> str:
     Raises:
         FileNotFoundError: If ``path`` does not exist.
     """
-    root = Path(path)
+    return _files_digest(Path(path))
+
+
+def _files_digest(root: Path, suffixes: tuple[str, ...] | None = None) -> str:
+    """SHA-256 over the relative names and bytes of the files under ``root`` (those ending in ``suffixes``
+    only, when given), or of ``root`` itself when it is a file.
+
+    Raises:
+        FileNotFoundError: If ``root`` does not exist.
+    """
     if not root.exists():
         raise FileNotFoundError(f"{str(root)!r} does not exist")
-    files = sorted(p for p in root.rglob("*") if p.is_file()) if root.is_dir() else [root]
+    files = [root] if not root.is_dir() else sorted(
+        p for p in root.rglob("*") if p.is_file() and (suffixes is None or p.suffix in suffixes)
+    )  # fmt: skip
     digest = hashlib.sha256()
     for file in files:
         digest.update((file.relative_to(root).as_posix() if root.is_dir() else file.name).encode() + b"\0")
@@ -179,20 +190,7 @@ def weights_identity(path: str | os.PathLike) -> str:
     Raises:
         FileNotFoundError: If ``path`` does not exist.
     """
-    root = Path(path)
-    if not root.exists():
-        raise FileNotFoundError(f"{str(root)!r} does not exist")
-    files = [root] if root.is_file() else sorted(
-        p for p in root.rglob("*") if p.is_file() and p.suffix in WEIGHT_SUFFIXES
-    )  # fmt: skip
-    digest = hashlib.sha256()
-    for file in files:
-        digest.update((file.name if root.is_file() else file.relative_to(root).as_posix()).encode() + b"\0")
-        with open(file, "rb") as handle:
-            for block in iter(lambda: handle.read(1 << 20), b""):
-                digest.update(block)
-        digest.update(b"\0")
-    return digest.hexdigest()
+    return _files_digest(Path(path), WEIGHT_SUFFIXES)
 
 
 def read_run_record(folder: str | os.PathLike) -> dict[str, Any] | None:
