@@ -39,14 +39,20 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from sar_zero123.config import manifest_problem, naming_write_errors, parse_config, write_manifest
+from sar_zero123.config import (
+    manifest_problem,
+    naming_write_errors,
+    parse_config,
+    write_json_atomic,
+    write_manifest,
+)
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.folder import StageTimer, content_identity, finish_run, weights_identity
 from sar_zero123.runs.stage import open_stage_folder
 
 __all__ = [
     "InterpolateConfig", "check_lineage", "check_readable", "interpolate_pipelines", "interpolate_state",
-    "main", "run_interpolate",
+    "main", "mix_plan", "run_interpolate",
 ]  # fmt: skip
 
 _WEIGHTS_SUFFIX = ".safetensors"
@@ -99,10 +105,17 @@ def interpolate_state(
     return mixed
 
 
-def _architecture(config_file: Path) -> dict:
+#: Config entries that record what a component was trained beside, not its architecture.
+_RECORD_KEYS = ("trained_estimator",)
+
+
+def _architecture(config_file: Path) -> dict | None:
     """A component's config without the bookkeeping keys diffusers and transformers add (``_name_or_path``,
-    ``_diffusers_version``...)."""
-    return {k: v for k, v in json.loads(config_file.read_text()).items() if not k.startswith("_")}
+    ``_diffusers_version``...) and without :data:`_RECORD_KEYS`; ``None`` where it has no ``config.json``."""
+    if not config_file.is_file():
+        return None
+    config = json.loads(config_file.read_text())
+    return {k: v for k, v in config.items() if not k.startswith("_") and k not in _RECORD_KEYS}
 
 
 def check_readable(folder: Path, field_name: str) -> None:
@@ -154,8 +167,9 @@ def interpolate_pipelines(
 
     Raises:
         FileNotFoundError: If either pipeline folder lacks ``model_index.json``.
-        ValueError: For an ``alpha`` outside [0, 1], an existing ``output_dir``, or two pipelines of different
-            architectures (naming the component and what differs).
+        ValueError: For an ``alpha`` outside [0, 1], an existing ``output_dir``, a start the fine-tune did not
+            start from (:func:`check_lineage`), or two pipelines of different architectures (naming the
+            component and what differs).
     """
     start_dir, tuned_dir, out = resolve_pretrained(start), Path(finetuned), Path(output_dir)
     for field_name, folder in (("start", start_dir), ("finetuned", tuned_dir)):
@@ -163,12 +177,23 @@ def interpolate_pipelines(
             raise FileNotFoundError(
                 f"{field_name}: expected a pipeline folder with model_index.json, got {folder}"
             )
-    check_lineage(start, start_dir, tuned_dir)
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"alpha must lie in [0, 1] (1: the fine-tune), got {alpha}")
     if out.exists():
         raise ValueError(f"output_dir: {str(out)!r} exists; give a new folder")
-    # 1. every weight file of the fine-tune: its file and config checked against the start (tensors: step 2)
+    return _write_mix(mix_plan(start, start_dir, tuned_dir), tuned_dir, alpha, out)
+
+
+def mix_plan(start: str | os.PathLike, start_dir: Path, tuned_dir: Path) -> list[tuple[Path, Path]]:
+    """Every weight file of the fine-tune with the start's file it is mixed with, ``(relative path, start's
+    file)``, after checking that the fine-tune began from this start (:func:`check_lineage`) and that each
+    component's config matches (tensors are checked as they are mixed).
+
+    Raises:
+        ValueError: Naming the component, for a start the fine-tune did not begin from, a weight file the
+            start lacks, configs of another architecture, or a fine-tune without weights.
+    """
+    check_lineage(start, start_dir, tuned_dir)
     plan: list[tuple[Path, Path]] = []
     for weights in sorted(tuned_dir.rglob(f"*{_WEIGHTS_SUFFIX}")):
         relative = weights.relative_to(tuned_dir)
@@ -178,17 +203,20 @@ def interpolate_pipelines(
             raise ValueError(
                 f"{component}: the start has no {relative} (not the pipeline the fine-tune began from?)"
             )
-        configs = [folder / relative.parent / "config.json" for folder in (start_dir, tuned_dir)]
-        if all(c.is_file() for c in configs) and _architecture(configs[0]) != _architecture(configs[1]):
-            changed = sorted(
-                k for k in _architecture(configs[0]).keys() | _architecture(configs[1]).keys()
-                if _architecture(configs[0]).get(k) != _architecture(configs[1]).get(k)
-            )  # fmt: skip
+        name = relative.parent / "config.json"
+        first, second = _architecture(start_dir / name), _architecture(tuned_dir / name)
+        if first is not None and second is not None and first != second:
+            changed = sorted(k for k in first.keys() | second.keys() if first.get(k) != second.get(k))
             raise ValueError(f"{component}: the two pipelines' configs differ in {changed}")
         plan.append((relative, other))
     if not plan:
         raise ValueError(f"finetuned: {tuned_dir} holds no {_WEIGHTS_SUFFIX} weights")
-    # 2. the fine-tune's folder copied under a temporary name, its weights replaced, then renamed into place
+    return plan
+
+
+def _write_mix(plan: list[tuple[Path, Path]], tuned_dir: Path, alpha: float, out: Path) -> Path:
+    """The fine-tune's folder copied under a temporary name, each planned weight file mixed, the folder
+    sealed, then renamed into place whole; returns ``out``."""
     out.parent.mkdir(parents=True, exist_ok=True)
     scratch = Path(tempfile.mkdtemp(prefix=f".{out.name}.", dir=out.parent))
     kept = "nothing was written to it (the scratch copy is removed); free space and run the command again"
@@ -200,11 +228,23 @@ def interpolate_pipelines(
                 component = relative.parts[0] if len(relative.parts) > 1 else "the pipeline folder"
                 mixed = interpolate_state(load_file(other), load_file(tuned_dir / relative), alpha, component)
                 save_file(mixed, staged / relative, metadata={"format": "pt"})
+            _forget_trained_estimator(staged)
             write_manifest(staged)  # sealed last: the loader refuses a file changed since
             os.replace(staged, out)
     finally:
         shutil.rmtree(scratch, ignore_errors=True)
     return out
+
+
+def _forget_trained_estimator(folder: Path) -> None:
+    """The mix's azimuth estimator is neither run's: its pose projection's record of the estimator the UNet
+    was trained beside (``trained_estimator``) is cleared, so that the mix loads as a pipeline of unknown
+    estimator origin."""
+    config_file = folder / "pose_projection" / "config.json"
+    if config_file.is_file():
+        config = json.loads(config_file.read_text())
+        if config.get("trained_estimator") is not None:
+            write_json_atomic({**config, "trained_estimator": None}, config_file)
 
 
 def run_interpolate(config: InterpolateConfig) -> Path:
@@ -223,7 +263,7 @@ def run_interpolate(config: InterpolateConfig) -> Path:
             )
     for field_name, folder in (("start", start_dir), ("finetuned", tuned_dir)):
         check_readable(folder, field_name)  # before the folder is opened: a refusal leaves nothing behind
-    check_lineage(config.start, start_dir, tuned_dir)
+    plan = mix_plan(config.start, start_dir, tuned_dir)
     data = {"start": content_identity(start_dir), "finetuned": content_identity(tuned_dir)}
     folder = open_stage_folder(
         config.output_dir, "interpolate", config, data=data, resume=config.resume, restart=config.restart,
@@ -236,7 +276,7 @@ def run_interpolate(config: InterpolateConfig) -> Path:
         for stale in folder.path.glob(f".{pipeline.name}.*"):  # the scratch folder of a run killed before
             if stale.is_dir():
                 shutil.rmtree(stale)
-        interpolate_pipelines(start_dir, tuned_dir, config.alpha, pipeline)
+        _write_mix(plan, tuned_dir, config.alpha, pipeline)
     finish_run(folder, ["pipeline/model_index.json"], seconds=timer.seconds, results={"alpha": config.alpha})
     return pipeline
 

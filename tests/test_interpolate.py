@@ -134,3 +134,27 @@ def test_a_truncated_weight_file_is_refused_by_name_and_the_corrected_command_ru
     assert not out.exists()
     weights.write_bytes(good)
     assert main(flags) == out / "pipeline"
+
+
+def test_a_fine_tune_recording_its_estimator_mixes_with_its_start_and_the_mix_loads(tmp_path: Path) -> None:
+    from sar_zero123 import SARZero123Pipeline
+    from sar_zero123.data import DecibelScaling
+    from sar_zero123.model.build import build_sar_zero123
+    from sar_zero123.runs.folder import weights_identity
+    from sar_zero123.training.finetuning import export_finetuned
+
+    pipe = build_sar_zero123("tiny", estimate_input_azimuth=True, seed=3)
+    pipe.save_pretrained(tmp_path / "start")
+    with torch.no_grad():  # the fine-tune moved the estimator
+        next(pipe.azimuth_estimator.parameters()).add_(0.5)
+    lineage = {"start": str(tmp_path / "start"), "start_weights": weights_identity(tmp_path / "start")}
+    export_finetuned(tmp_path / "tuned", pipe, DecibelScaling(), lineage=lineage)
+    assert SARZero123Pipeline.from_pretrained(tmp_path / "tuned").pose_projection.config.trained_estimator
+    out = main(["--start", str(tmp_path / "start"), "--finetuned", str(tmp_path / "tuned"), "--alpha", "0.5",
+                "--output_dir", str(tmp_path / "mix")])  # fmt: skip
+    mixed = SARZero123Pipeline.from_pretrained(out)  # the record of neither run's estimator is kept
+    assert mixed.pose_projection.config.trained_estimator is None
+    first = next(iter(pipe.azimuth_estimator.state_dict()))
+    start_file = tmp_path / "start" / "azimuth_estimator" / "diffusion_pytorch_model.safetensors"
+    expected = load_file(start_file)[first] + 0.25  # halfway to the fine-tune's estimator
+    torch.testing.assert_close(mixed.azimuth_estimator.state_dict()[first], expected)
