@@ -21,13 +21,17 @@ identity kept, seconds; the best proxy-prior row's paired error difference from 
 proxy alone, on the same pairs) and prints a table. ``--consensus K T`` runs only the proxy alone and both
 recorded samplers, from the best fit and from a consensus proxy: the weighted mean (weights
 ``exp((score - best) / T)``) of the K best-fitting vehicles' renders, a posterior-mean estimate of the
-vehicle's other sides where one view leaves them open. ``--fits`` keeps the fits (about 6 minutes on 2 cores)
-for a re-run on the same pairs.
+vehicle's other sides where one view leaves them open. ``--refine K S`` runs only the proxy alone and the
+proxy prior's recorded sampler, from the best fit and from that fit refined by rendering and comparing: the
+best fit, or each of the K best, stretched along its length and its width by every pair of the factors S
+(its scatterers and solids scaled), and the stretch that correlates best with the input kept.
+``--fits`` keeps the fits (about 6 minutes on 2 cores) for a re-run on the same pairs.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import platform
@@ -44,9 +48,14 @@ from threadpoolctl import threadpool_limits
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
 from sar_zero123.config import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
+from sar_zero123.domain import to_decibels
 from sar_zero123.evaluation.template import summarise_readings
 from sar_zero123.model.pipeline import SAMPLER_DEFAULTS
 from sar_zero123.model.proxy import PROXY_FIELDS, check_proxy_settings, draft_target_views, proxy_bank
+from sar_zero123.sim import render_chip
+from sar_zero123.sim.primitives import Box, HorizontalCylinder, VerticalCylinder, Wedge
+from sar_zero123.sim.proxy import blurred_correlation
+from sar_zero123.sim.targets import Target
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `benchmarks`
 from benchmarks.proxy_views import INPUT_DEPRESSION_DEG, SimulatedPairs, format_table  # noqa: E402
@@ -106,13 +115,91 @@ def _consensus(args: tuple) -> np.ndarray:
 
 
 def consensus_views(
-    proxy: dict, images: np.ndarray, azimuths: Sequence[float], d_az: Sequence[float], k: int,
-    temperature: float, workers: int,
+    proxy: dict,
+    images: np.ndarray,
+    azimuths: Sequence[float],
+    d_az: Sequence[float],
+    k: int,
+    temperature: float,
+    workers: int,
 ) -> np.ndarray:
     """Every input's consensus proxy (:func:`_consensus`) at the three poses ``(N, 3, S, S)``."""
     jobs = [(proxy, im, float(a), float(d), k, temperature) for im, a, d in zip(images, azimuths, d_az)]
     with ProcessPoolExecutor(max_workers=workers) as pool:
         return np.stack(list(pool.map(_consensus, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
+
+
+def stretched(target: Target, length_scale: float, width_scale: float) -> Target:
+    """``target`` stretched by ``length_scale`` along its length (``u``) and ``width_scale`` across it
+    (``v``): scatterer positions and solids alike (a cylinder's radius by the mean of the two; a yawed solid's
+    extents along its own axes, a refinement's approximation)."""
+
+    def solid(p):
+        fields = {f.name: getattr(p, f.name) for f in dataclasses.fields(p)}
+        fields["center_u"] *= length_scale
+        fields["center_v"] *= width_scale
+        if isinstance(p, Box | Wedge):
+            fields["length"] *= length_scale
+            fields["width"] *= width_scale
+        elif isinstance(p, VerticalCylinder):
+            fields["radius"] *= float(np.sqrt(length_scale * width_scale))
+        elif isinstance(p, HorizontalCylinder):
+            fields["length"] *= length_scale
+        return type(p)(**fields)
+
+    position = target.scatterers.position * np.array([length_scale, width_scale, 1.0])
+    return dataclasses.replace(
+        target, primitives=tuple(solid(p) for p in target.primitives),
+        scatterers=dataclasses.replace(target.scatterers, position=position),
+        radius_m=target.radius_m * max(length_scale, width_scale),
+    )  # fmt: skip
+
+
+def _refined(args: tuple) -> np.ndarray:
+    """One input's proxies at the three poses ``(3, 3, S, S)`` (best fit; refined; refined among the k
+    best): a stretch of a fitted vehicle replaces it where it correlates better with the input."""
+    proxy, image, azimuth, d_az, k, factors = args
+    threadpool_limits(limits=1)
+    bank = proxy_bank(*(proxy[key] for key in PROXY_FIELDS[:6]))
+    scaling = DecibelScaling(min_db=float(proxy["min_db"]), max_db=float(proxy["max_db"]))
+    size = image.shape[-1]
+
+    def render(target: Target, turn: float) -> np.ndarray:
+        rng = np.random.default_rng(bank.render_seed)
+        return render_chip(target, (azimuth + turn) % 360.0, INPUT_DEPRESSION_DEG, size, rng)
+
+    scores = bank.scores(image, azimuth, INPUT_DEPRESSION_DEG)
+    order = np.argsort(-scores, kind="stable")[:k]
+    best = best_first = (scores[order[0]], bank.target(int(order[0])))
+    for rank, index in enumerate(order):
+        vehicle = bank.target(int(index))
+        candidates = [stretched(vehicle, a, b) for a in factors for b in factors if (a, b) != (1, 1)]
+        fit = blurred_correlation(image, np.stack([to_decibels(render(c, 0.0)) for c in candidates]),
+                                  bank.blur_sigma_px)  # fmt: skip
+        if fit.max() > best[0]:
+            best = (fit.max(), candidates[int(np.argmax(fit))])
+        if rank == 0:
+            best_first = best
+    vehicles = (bank.target(int(order[0])), best_first[1], best[1])
+    return np.stack([
+        np.stack([scaling.normalize(render(v, turn)) for turn in (0.0, d_az, d_az + 180.0)]) for v in vehicles
+    ]).astype(np.float32)  # fmt: skip
+
+
+def refined_views(
+    proxy: dict,
+    images: np.ndarray,
+    azimuths: Sequence[float],
+    d_az: Sequence[float],
+    k: int,
+    factors: Sequence[float],
+    workers: int,
+) -> np.ndarray:
+    """Every input's proxies (:func:`_refined`) ``(3, N, 3, S, S)``: best fit, refined, refined among k."""
+    jobs = [(proxy, im, float(a), float(d), k, tuple(factors)) for im, a, d in zip(images, azimuths, d_az)]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        out = np.stack(list(pool.map(_refined, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
+    return out.transpose(1, 0, 2, 3, 4)
 
 
 def run(
@@ -129,6 +216,7 @@ def run(
     shortlist: int | None = None,
     bank_size: int | None = None,
     consensus: tuple[int, float] | None = None,
+    refine: tuple[int, Sequence[float]] | None = None,
 ) -> dict:
     """Every row's template readings on the same pairs; see the module docstring."""
     scaling = DecibelScaling.from_dict(json.loads((resolve_pretrained(pipeline) / SCALING_FILE).read_text()))
@@ -198,6 +286,24 @@ def run(
         return np.concatenate(out), time.perf_counter() - begin
 
     start = "from noise" if proxy_strength >= 1.0 else f"from the proxy at {proxy_strength:g}"
+    if refine is not None:  # the best fit against its stretches refined by rendering and comparing
+        k, factors = int(refine[0]), [float(f) for f in refine[1]]
+        begin = time.perf_counter()
+        variants = refined_views(proxy, sim.inputs, sim.input_azimuth, sim.d_az, k, factors, workers)
+        seconds = time.perf_counter() - begin
+        names = ["the best fit", "the best fit stretched", f"the best stretch of the {k} best fits"]
+        for views, name in zip(variants, names):
+            add(f"proxy alone, {name}", views[:, 1], seconds)
+            add(f"proxy prior, its recorded sampler, {name}",
+                *sample(pipe, views, views[:, 1], proxy_strength, heading))  # fmt: skip
+        comparisons = paired_differences(readings, [
+            (f"{model}, {name}", f"{model}, {names[0]}") for name in names[1:]
+            for model in ("proxy alone", "proxy prior, its recorded sampler")
+        ])  # fmt: skip
+        return {"benchmark": "proxy_prior_views (issue 61: refined proxy)", "pipeline": str(pipeline),
+                "recorded_sampler": recorded, "refine": {"k": k, "factors": factors}, "seed": seed,
+                "proxy": proxy, "paired_azimuth_error_differences": comparisons, "rows": rows,
+                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
     if consensus is not None:  # the best fit against the consensus of the k best, through both samplers
         k, temperature = int(consensus[0]), float(consensus[1])
         begin = time.perf_counter()
@@ -207,13 +313,18 @@ def run(
         base_steps = int(base_recorded["num_inference_steps"])
         pairs_of_rows = [(f"proxy alone, {label}", next(n for n in rows if n.startswith("proxy alone (")))]
         for views, name in ((fitted, "the best fit"), (mean, label)):
-            add(f"proxy prior, its recorded sampler, {name}",
-                *sample(pipe, views, views[:, 1], proxy_strength, heading))
-            add(f"{baseline}, its recorded sampler, {name}",
-                *sample(base, None, views[:, 1], base_strength, base_heading, base_steps))
+            add(
+                f"proxy prior, its recorded sampler, {name}",
+                *sample(pipe, views, views[:, 1], proxy_strength, heading),
+            )
+            add(
+                f"{baseline}, its recorded sampler, {name}",
+                *sample(base, None, views[:, 1], base_strength, base_heading, base_steps),
+            )
         for model in ("proxy prior", baseline):
-            pairs_of_rows.append((f"{model}, its recorded sampler, {label}",
-                                  f"{model}, its recorded sampler, the best fit"))
+            pairs_of_rows.append(
+                (f"{model}, its recorded sampler, {label}", f"{model}, its recorded sampler, the best fit")
+            )
         comparisons = paired_differences(readings, pairs_of_rows)
         return {"benchmark": "proxy_prior_views (issue 61: consensus proxy)", "pipeline": str(pipeline),
                 "baseline": str(baseline), "recorded_sampler": recorded, "consensus": [k, temperature],
@@ -296,19 +407,55 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--batch_size", type=int, default=32, help="views per pipeline call")
     parser.add_argument("--seed", type=int, default=0, help="pairs, clutter and sampling seed")
     parser.add_argument("--workers", type=int, default=2, help="processes fitting the proxies")
-    parser.add_argument("--headings", nargs="+", type=float, default=[1.5, 3.0],
-                        help="heading guidance weights of the rows from noise (0 is always one)")
-    parser.add_argument("--fits", default=None,
-                        help="an .npz to keep the proxy fits in (reused when the pairs and bank match)")
-    parser.add_argument("--steps", nargs="+", type=int, default=[],
-                        help="only the recorded sampler, at its own and at these step counts (paired)")
-    parser.add_argument("--shortlist", type=int, default=None,
-                        help="fit in two stages, this many vehicles re-rendered at the exact pose")
-    parser.add_argument("--bank_size", type=int, default=None,
-                        help="fit with a bank of this many vehicles (default: the pipeline's)")
-    parser.add_argument("--consensus", nargs=2, type=float, default=None, metavar=("K", "TEMPERATURE"),
-                        help="only the proxy alone and both recorded samplers, from the best fit and from "
-                             "the weighted mean of the K best fits' renders (weights exp(score / T))")
+    parser.add_argument(
+        "--headings",
+        nargs="+",
+        type=float,
+        default=[1.5, 3.0],
+        help="heading guidance weights of the rows from noise (0 is always one)",
+    )
+    parser.add_argument(
+        "--fits",
+        default=None,
+        help="an .npz to keep the proxy fits in (reused when the pairs and bank match)",
+    )
+    parser.add_argument(
+        "--steps",
+        nargs="+",
+        type=int,
+        default=[],
+        help="only the recorded sampler, at its own and at these step counts (paired)",
+    )
+    parser.add_argument(
+        "--shortlist",
+        type=int,
+        default=None,
+        help="fit in two stages, this many vehicles re-rendered at the exact pose",
+    )
+    parser.add_argument(
+        "--bank_size",
+        type=int,
+        default=None,
+        help="fit with a bank of this many vehicles (default: the pipeline's)",
+    )
+    parser.add_argument(
+        "--consensus",
+        nargs=2,
+        type=float,
+        default=None,
+        metavar=("K", "TEMPERATURE"),
+        help="only the proxy alone and both recorded samplers, from the best fit and from "
+        "the weighted mean of the K best fits' renders (weights exp(score / T))",
+    )
+    parser.add_argument(
+        "--refine",
+        nargs="+",
+        type=float,
+        default=None,
+        metavar="K_THEN_FACTORS",
+        help="only the proxy alone and the recorded sampler, from the best fit and from the "
+        "K best fits stretched along length and width by each pair of the factors",
+    )
     parser.add_argument("--out", default="proxy_prior_views.json", help="output JSON")
     args = parser.parse_args(argv)
     if args.consensus is not None and not (args.consensus[0] >= 1 and args.consensus[1] > 0):
@@ -316,11 +463,16 @@ def main(argv: Sequence[str] | None = None) -> dict:
     if args.pairs_per_class < 2:
         raise ValueError(f"pairs_per_class must be >= 2, got {args.pairs_per_class}")
     consensus = None if args.consensus is None else (int(args.consensus[0]), args.consensus[1])
+    refine = None
+    if args.refine is not None:
+        if len(args.refine) < 2 or args.refine[0] < 1 or min(args.refine[1:]) <= 0:
+            raise ValueError(f"refine: expected K >= 1 then factors > 0, got {args.refine}")
+        refine = (int(args.refine[0]), args.refine[1:])
     record = run(args.pipeline, baseline=args.baseline, pairs_per_class=args.pairs_per_class,
                  batch_size=args.batch_size, seed=args.seed, workers=args.workers, headings=args.headings,
                  fits=args.fits, steps_sweep=args.steps, shortlist=args.shortlist,
                  bank_size=args.bank_size,
-                 consensus=consensus)  # fmt: skip
+                 consensus=consensus, refine=refine)  # fmt: skip
     write_json_atomic(record, Path(args.out))
     print(format_table(record))
     return record
