@@ -112,6 +112,7 @@ def simclr(argv: Sequence[str] | None = None) -> dict[str, Any]:
     from sar_zero123.stages.simclr import PretrainSimCLRConfig, run_simclr
 
     output_dir = run_simclr(parse_config(PretrainSimCLRConfig, argv))
+    print(output_dir)  # the run folder, the last line on stdout as for every command
     return json.loads((output_dir / "metrics.json").read_text())
 
 
@@ -154,6 +155,7 @@ def evaluators(argv: Sequence[str] | None = None) -> dict[str, dict[str, float]]
             f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in metrics.items()
         )
         print(f"{name}: {summary}")
+    print(folder)
     return results
 
 
@@ -167,6 +169,7 @@ def evaluate(argv: Sequence[str] | None = None) -> dict[str, Any]:
     logging.basicConfig(level=logging.INFO, format=_LOG_FORMAT)
     folder = run_evaluate(config)
     print((folder / "table3.md").read_text())
+    print(folder)
     return load_evaluation(folder)
 
 
@@ -177,7 +180,9 @@ def table1(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
     config = parse_config(Table1Config, argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    return json.loads((run_table1(config) / "table1.json").read_text())
+    folder = run_table1(config)
+    print(folder)
+    return json.loads((folder / "table1.json").read_text())
 
 
 def synth_to_real(argv: Sequence[str] | None = None) -> dict[str, Any]:
@@ -187,7 +192,9 @@ def synth_to_real(argv: Sequence[str] | None = None) -> dict[str, Any]:
 
     config = parse_config(SynthToRealConfig, argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    return json.loads((run_synth_to_real(config) / "table2.json").read_text())
+    folder = run_synth_to_real(config)
+    print(folder)
+    return json.loads((folder / "table2.json").read_text())
 
 
 def generate(argv: Sequence[str] | None = None) -> Path:

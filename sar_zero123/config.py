@@ -188,9 +188,7 @@ def drop_removed_fields(config: Any, values: Mapping[str, Any], where: str) -> d
     removed = removed_fields(config)
     for name, item in removed.items():
         if name in values and values[name] != item.default:
-            raise ValueError(
-                f"{where}: {name}={values[name]!r}, but {name} was removed: {item.reason}"
-            )
+            raise ValueError(f"{where}: {name}={values[name]!r}, but {name} was removed: {item.reason}")
     return {name: value for name, value in values.items() if name not in removed}
 
 
@@ -331,12 +329,20 @@ OUTPUT_DIR_FIELDS = ("output_dir", "work_dir")
 
 
 def check_output_dir(path: str | os.PathLike, field: str = "output_dir") -> Path:
-    """Check, before any work, that ``path`` is or can become a folder (it and its parents are no files).
+    """Check, before any work, that ``path`` is or can become a folder (it and its parents are no files) and
+    lies outside the installed ``sar_zero123`` package (its bundled pipelines; a reinstall would lose it).
 
     Raises:
         NotADirectoryError: naming ``field``, the path and the file in the way.
+        ValueError: naming ``field``, for a folder inside the package.
     """
     path = Path(path)
+    package = Path(__file__).resolve().parent
+    if path.resolve().is_relative_to(package):
+        raise ValueError(
+            f"{field}: {str(path)!r} lies inside the installed sar_zero123 package ({str(package)!r}), "
+            "beside its bundled pipelines; name a folder outside it"
+        )
     for candidate in (path, *path.parents):
         if candidate.exists():
             if not candidate.is_dir():
@@ -436,22 +442,26 @@ def run_command(function: Callable[[], Any], prog: str) -> int:
     """Run a command-line entry point (``function()`` reads ``sys.argv``); returns its exit status.
 
     0 once it returns, whatever it returns (a console script's launcher would print a returned folder and
-    exit 1). A refusal (:data:`REFUSALS`) prints one line, ``<prog>: error: <message>``, on stderr and
-    returns :data:`REFUSED`; ``--traceback`` anywhere on the command line (removed before the flags are
-    parsed) lets it raise with its traceback instead. Any other exception raises (a bug shows where it
-    is), and ``SystemExit`` (``--help``, a bad flag) passes through with its own code.
+    exit 1); a returned path (the command's output folder or file) is printed on stdout as its last line,
+    for a shell to read (``out=$(sar-zero123-augment ... | tail -n 1)``). A refusal (:data:`REFUSALS`)
+    prints one line, ``<prog>: error: <message>``, on stderr and returns :data:`REFUSED`; ``--traceback``
+    anywhere on the command line (removed before the flags are parsed) lets it raise with its traceback
+    instead. Any other exception raises (a bug shows where it is), and ``SystemExit`` (``--help``, a bad
+    flag) passes through with its own code.
     """
     show_traceback = TRACEBACK_FLAG in sys.argv[1:]
     if show_traceback:
         sys.argv[1:] = [arg for arg in sys.argv[1:] if arg != TRACEBACK_FLAG]
     try:
-        function()
+        result = function()
     except REFUSALS as error:
         if show_traceback:
             raise
         message = " ".join(str(error).split()) or type(error).__name__
         print(f"{prog}: error: {message} ({TRACEBACK_FLAG} shows where)", file=sys.stderr)
         return REFUSED
+    if isinstance(result, Path):
+        print(result, flush=True)
     return 0
 
 

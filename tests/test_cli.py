@@ -33,13 +33,15 @@ def test_every_command_is_a_console_script_calling_its_function():
             assert f"cli.{command.function}(argv)" in (ROOT / also).read_text()
 
 
-def test_console_scripts_exit_0_when_their_command_returns_and_pass_failures_on(monkeypatch):
-    """The launcher calls sys.exit(<what the entry point returns>): a Path or dict would print and exit 1."""
+def test_console_scripts_exit_0_when_their_command_returns_and_pass_failures_on(monkeypatch, capsys):
+    """The launcher calls sys.exit(<what the entry point returns>): a Path or dict would print and exit 1. A
+    returned path is the last line on stdout, for a shell to read."""
     for command in cli.COMMANDS:
         seen = []
         fake = lambda argv=None, seen=seen: seen.append(argv) or Path("out")  # noqa: E731
         monkeypatch.setattr(cli, command.function, fake)
         assert getattr(cli.console, command.function)() == 0 and seen == [None]  # argv: sys.argv
+        assert capsys.readouterr().out.splitlines()[-1] == "out"
     monkeypatch.setattr(cli, "finetune", lambda argv=None: (_ for _ in ()).throw(RuntimeError("a bug")))
     with pytest.raises(RuntimeError, match="a bug"):  # not a refusal: its traceback
         cli.console.finetune()

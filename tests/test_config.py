@@ -13,6 +13,7 @@ import pytest
 
 from sar_zero123.config import (
     check_minimum,
+    check_output_dir,
     field_comments,
     naming_write_errors,
     parse_config,
@@ -179,3 +180,15 @@ def test_naming_write_errors_names_the_outer_path_and_the_inner_file_and_passes_
         raise RuntimeError("other")
     with pytest.raises(KeyError), naming_write_errors("x", "y"):  # not a write failure: unchanged
         raise KeyError("z")
+
+
+def test_an_output_folder_inside_the_installed_package_is_refused(tmp_path: Path) -> None:
+    """Views written beside the bundled pipelines would be lost on a reinstall (or taken for one)."""
+    import sar_zero123
+
+    package = Path(sar_zero123.__file__).resolve().parent
+    for path in (package / "pretrained" / "views", package):
+        with pytest.raises(ValueError, match=r"output_dir: .* lies inside the installed sar_zero123 package"):
+            check_output_dir(path)
+    assert not (package / "pretrained" / "views").exists()
+    assert check_output_dir(tmp_path / "views") == tmp_path / "views"

@@ -236,8 +236,12 @@ def field_defaults(config: Any) -> dict[str, Any]:
 
 
 def run_differences(
-    record: Mapping[str, Any], stage: str, config: Mapping[str, Any], data: Mapping[str, Any],
-    ignore: Iterable[str] = (), defaults: Mapping[str, Any] | None = None,
+    record: Mapping[str, Any],
+    stage: str,
+    config: Mapping[str, Any],
+    data: Mapping[str, Any],
+    ignore: Iterable[str] = (),
+    defaults: Mapping[str, Any] | None = None,
 ) -> list[str]:
     """Every difference between a folder's record and a new run, as ``"field: folder X, this run Y"``.
 
@@ -297,10 +301,12 @@ def _inputs_holding(folder: Path, identity: Mapping[str, Any], config: Mapping[s
 
     root = folder.resolve()
     package = ("the sar_zero123 package", str(Path(sar_zero123.__file__).resolve().parent))
-    holding = []
+    holding, seen = [], set()
     for name, value in [*_named_inputs(identity, config), package]:
         if isinstance(value, str) and value and Path(value).is_dir():
-            if root.is_relative_to(Path(value).resolve()):
+            resolved = Path(value).resolve()
+            if root.is_relative_to(resolved) and (name, resolved) not in seen:  # each input once
+                seen.add((name, resolved))
                 holding.append(f"{name}: {value}")
     return holding
 
@@ -408,10 +414,16 @@ def open_run_folder(
     occupied = path.is_dir() and any(not is_lock_file(p) for p in path.iterdir())
     if occupied and restart:
         check_restart_target(path, identity, values, flag_hint)
-        if read_run_record(path) is None:  # moving aside is for this project's runs, never a folder of yours
+        existing = read_run_record(path)
+        if existing is None:  # moving aside is for this project's runs, never a folder of yours
             raise ValueError(
                 f"restart: {flag_hint} {str(path)!r} holds no {RUN_RECORD}: it is not a run folder of this "
                 f"project, and --restart moves only those; name another {flag_hint}"
+            )
+        if existing.get("stage") != stage:  # nor another command's work (a dataset, a prior, a fine-tune)
+            raise ValueError(
+                f"restart: {flag_hint} {str(path)!r} holds a {existing.get('stage')} run, not a {stage} run; "
+                f"--restart moves aside only this command's own runs; name another {flag_hint}"
             )
         if write:
             _move_aside(path)
@@ -441,13 +453,18 @@ def open_run_folder(
     # a field since removed counts as absent where the folder holds its old default, and is refused otherwise
     drop_removed_fields(config, record.get("config", {}), f"{flag_hint}: {str(path)!r}")
     differences = run_differences(
-        record, stage, values, identity, ignore=set(may_differ) | extendable | set(removed_fields(config)),
+        record,
+        stage,
+        values,
+        identity,
+        ignore=set(may_differ) | extendable | set(removed_fields(config)),
         defaults=field_defaults(config),
     )
     if differences:
         raise ValueError(
             f"{flag_hint}: {str(path)!r} holds a {record.get('stage')} run made with other settings; reusing "
-            "it would replace or misdescribe that work. Differences: " + "; ".join(differences)
+            "it would replace or misdescribe that work. Differences: "
+            + "; ".join(differences)
             + ". Choose another folder, or pass --restart to move this run aside."
         )
     finished = bool(record.get("finished"))

@@ -52,6 +52,10 @@ def chip_generator(
 
 #: Upper bound on the chips one call writes (MSTAR has about 15,000; 200,000 chips of 128 px are 13 GB).
 MAX_SIM_CHIPS = 200_000
+#: Largest chip side (pixels): MSTAR chips are 128-192 px; every command that sizes images stops at 1,024.
+MAX_SIM_SIZE = 1024
+#: Upper bound on the bytes of chips one call writes (float32 ``.npy``).
+MAX_SIM_BYTES = 16 * 2**30
 
 
 def check_simulation_options(
@@ -68,8 +72,8 @@ def check_simulation_options(
     """Refuse options :func:`simulate_dataset` cannot honour, naming the option and what it expects.
 
     Raises:
-        ValueError: For an unknown class, a count below 1, an angle out of range, or more chips than
-            ``MAX_SIM_CHIPS``.
+        ValueError: For an unknown class, a count below 1, an angle out of range, more chips than
+            ``MAX_SIM_CHIPS``, a size above ``MAX_SIM_SIZE`` or more bytes than ``MAX_SIM_BYTES``.
     """
     unknown = [c for c in classes if c not in TARGET_CLASSES]
     if not classes or unknown:
@@ -91,8 +95,14 @@ def check_simulation_options(
             f"{len(depressions_deg)} depressions would write {chips:.3g} chips, more than {MAX_SIM_CHIPS}; "
             "use a larger azimuth step"
         )
-    if int(size) != size or size < 16:
-        raise ValueError(f"size: expected an integer >= 16, got {size!r}")
+    if int(size) != size or not 16 <= size <= MAX_SIM_SIZE:
+        raise ValueError(f"size: expected an integer in [16, {MAX_SIM_SIZE}] (pixels), got {size!r}")
+    gib = chips * size * size * 4 / 2**30  # float32 .npy chips
+    if gib > MAX_SIM_BYTES / 2**30:
+        raise ValueError(
+            f"size: {chips} chips of {size} x {size} px would write {gib:.1f} GiB, "
+            f"more than {MAX_SIM_BYTES / 2**30:.0f} GiB; use a smaller size or fewer chips"
+        )
     if int(seed) != seed or seed < 0:
         raise ValueError(f"seed: expected an integer >= 0, got {seed!r}")
     if not 0.0 <= azimuth_jitter_deg < azimuth_step_deg:

@@ -68,6 +68,7 @@ from sar_zero123.evaluation.tables import (
 from sar_zero123.model.build import replace_vae
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.sampler import MAX_INFERENCE_STEPS, SamplerSettings, check_sampler_start
+from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.folder import (
     StageTimer,
     data_identity,
@@ -330,7 +331,10 @@ def run_evaluate(config: EvaluateConfig) -> Path:
     inputs = {
         "data": data_identity(config.data),
         "evaluators": model_identity(config.evaluators, "evaluators"),
-        "pipelines": [model_identity(path, f"pipeline[{i}]") for i, path in enumerate(config.pipeline)],
+        "pipelines": [
+            model_identity(resolve_pretrained(path), f"pipeline[{i}]")
+            for i, path in enumerate(config.pipeline)
+        ],
     }
     if config.vae is not None:
         inputs["vae"] = model_identity(config.vae, "vae")
@@ -386,7 +390,7 @@ def _load_pipelines(
     """Each pipeline by its row name, and those whose trained-range refusal was lifted, with their ranges."""
     pipes, lifted = {}, {}
     for name, path in zip(config.names, config.pipeline):
-        check_pipeline_scaling(path, evaluators)
+        check_pipeline_scaling(resolve_pretrained(path), evaluators)
         pipe = SARZero123Pipeline.from_pretrained(path)
         if config.vae is not None:
             pipe = replace_vae(pipe, config.vae, same_latents=True)

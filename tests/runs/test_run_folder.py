@@ -128,6 +128,19 @@ def test_restart_never_moves_a_folder_that_is_not_a_run(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir() if not is_lock_file(p)) == ["photos"]  # nothing moved
 
 
+def test_restart_never_moves_another_commands_run(tmp_path):
+    """``generate --output_dir <a simulated dataset> --restart``: the dataset is a run folder, but of another
+    command; --restart moves aside only this command's own runs."""
+    folder = tmp_path / "dataset"
+    open_run_folder(folder, "simulate", _Config())
+    (folder / "index.csv").write_text("path\n")
+    message = r"restart: output_dir '.*dataset' holds a simulate run, not a vae run"
+    with pytest.raises(ValueError, match=message):
+        open_run_folder(folder, "vae", _Config(), restart=True)
+    assert (folder / "index.csv").read_text() == "path\n"
+    assert sorted(p.name for p in tmp_path.iterdir() if not is_lock_file(p)) == ["dataset"]  # nothing moved
+
+
 def test_restart_moves_the_old_run_aside(tmp_path):
     folder = tmp_path / "run"
     open_run_folder(folder, "vae", _Config())

@@ -361,6 +361,8 @@ def test_simulate_dataset_interrupted_leaves_no_index(tmp_path, monkeypatch):
         ({"clutter_db_spread": -1.0}, "clutter_db_spread"),
         ({"classes": ["TANK", "tank"]}, r"classes: duplicate names in \['TANK', 'TANK'\]"),
         ({"azimuth_step_deg": 1e-9}, r"azimuth_step_deg=1e-09 .* would write .* chips, more than 200000"),
+        ({"size": 100_000}, r"size: expected an integer in \[16, 1024\] \(pixels\), got 100000"),
+        ({"size": 1024, "instances": 60, "classes": ["TANK"]}, r"size: 8640 chips of 1024 .* 33.8 GiB"),
     ],
 )
 def test_simulate_dataset_rejects_bad_arguments(tmp_path, kwargs, field):

@@ -583,3 +583,21 @@ def test_blurred_targets_are_gaussian_filtered_in_the_image_plane_and_bounded() 
     for sigmas, match in (([0.0], r"must lie in \(0, 64\]"), ([1.0, 1.0], "at most 8 distinct values")):
         with pytest.raises(ValueError, match=match):
             EvaluateConfig(pipeline=["p"], blurred_target_sigmas_px=sigmas)
+
+
+def test_evaluate_takes_a_bundled_pipeline_by_its_name(tmp_path: Path) -> None:
+    """``--pipeline sar-zero123/sim-prior-rotated`` is the bundled folder, as for every other command: its
+    decibel bounds are read and checked against the evaluators' (here refused: they differ), not reported
+    missing."""
+    data = write_chip_folder(tmp_path / "data", azimuths_deg=(0.0, 90.0), size=32)
+    _evaluators(tmp_path / "evaluators")
+    for kind in ("classifier", "regressor"):
+        saved = tmp_path / "evaluators" / kind / "evaluator.json"
+        record = json.loads(saved.read_text())
+        saved.write_text(json.dumps({**record, "scaling": {**record["scaling"], "min_db": -50.0}}))
+    config = EvaluateConfig(
+        pipeline=["sar-zero123/sim-prior-rotated"], evaluators=str(tmp_path / "evaluators"), data=str(data),
+        n=2, crop_size=32, output_dir=str(tmp_path / "eval"), device="cpu",
+    )  # fmt: skip
+    with pytest.raises(ValueError, match="sim_prior_rotated expects decibel scaling"):
+        stage.run_evaluate(config)
