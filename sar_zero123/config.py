@@ -6,6 +6,12 @@ accepted too), optionally reads ``--config x.yaml`` (or ``.json``) first, and le
 the file. A list field's flag may be repeated; its values add up. The trailing comment becomes the
 flag's help text. The dataclass's ``__post_init__`` does the validation, so a bad value fails with a
 ``ValueError`` naming the field before any work starts.
+
+A command's flags are the settings a user of it chooses; the rest (architecture sizes, optimiser and loss
+details, logging, workers, research options: a class's ``ADVANCED_FIELDS`` and ``EXPERIMENTAL_FIELDS``)
+are set with ``--set FIELD=VALUE`` (any field, repeatable) or a ``--config`` file, in the spirit of
+nanoGPT's configurator, and are listed with their defaults at the end of ``--help``. Their older spelling
+``--field VALUE`` still parses (unlisted), so that recorded commands run as they did.
 """
 
 from __future__ import annotations
@@ -192,6 +198,85 @@ def drop_removed_fields(config: Any, values: Mapping[str, Any], where: str) -> d
     return {name: value for name, value in values.items() if name not in removed}
 
 
+def advanced_fields(cls: Any) -> dict[str, str]:
+    """A config class's settings that are not flags, each with what ``--help`` adds to its comment: its
+    ``ADVANCED_FIELDS`` and those of the classes it inherits fields from (``""``), and its
+    ``EXPERIMENTAL_FIELDS`` (the measurement)."""
+    names: dict[str, str] = {}
+    for klass in reversed(getattr(cls, "__mro__", type(cls).__mro__)):
+        names.update(dict.fromkeys(klass.__dict__.get("ADVANCED_FIELDS", ()), ""))
+    experimental: Mapping[str, str] = getattr(cls, "EXPERIMENTAL_FIELDS", {})
+    names.update({name: f"experimental; measured: {text}" for name, text in experimental.items()})
+    return names
+
+
+def _set_value(text: str, annotation: Any, name: str) -> Any:
+    """The value of ``--set NAME=TEXT`` for a field of this type: a number, a name, ``true``/``false``,
+    ``none`` (optional fields), a list as ``[8, 16]`` or ``8,16``.
+
+    Raises:
+        ValueError: Naming the field, for text that is not a value of its type.
+    """
+    inner, optional = _unwrap_optional(annotation)
+    if optional and text.strip().lower() in ("none", "null", "~"):
+        return None
+    try:
+        if inner is bool:
+            value = yaml.safe_load(text)
+            if not isinstance(value, bool):
+                raise ValueError(f"expected true or false, got {text!r}")
+            return value
+        if typing.get_origin(inner) in (list, tuple, Sequence, typing.Sequence):
+            args = [a for a in typing.get_args(inner) if a is not Ellipsis]
+            element = _scalar_parser(args[0] if args else str, name)
+            stripped = text.strip()
+            items = stripped[1:-1] if stripped.startswith("[") and stripped.endswith("]") else stripped
+            return [element(item.strip().strip("'\"")) for item in re.split(r"[,\s]+", items) if item.strip()]
+        value = _scalar_parser(inner, name)(text)
+        if typing.get_origin(inner) is typing.Literal and value not in typing.get_args(inner):
+            raise ValueError(f"expected one of {list(typing.get_args(inner))}")
+        return value
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"--set {name}={text}: not a value of {name} ({error})") from None
+
+
+def _set_values(pairs: Sequence[str], cls: type, hints: Mapping[str, Any], names: set[str]) -> dict[str, Any]:
+    """``--set FIELD=VALUE`` pairs as field values (a later pair wins).
+
+    Raises:
+        ValueError: For a pair without ``=`` or a field the command does not have (listing them).
+    """
+    values: dict[str, Any] = {}
+    for pair in pairs:
+        name, equals, text = pair.partition("=")
+        name = name.strip().replace("-", "_")
+        if not equals or not name:
+            raise ValueError(f"--set {pair!r}: expected FIELD=VALUE")
+        if name in removed_fields(cls):
+            raise ValueError(f"--set {name}: {name} was removed: {removed_fields(cls)[name].reason}")
+        if name not in names:
+            raise ValueError(f"--set {pair!r}: no field {name!r}; expected one of {sorted(names)}")
+        values[name] = _set_value(text, hints[name], name)
+    return values
+
+
+def _advanced_epilog(
+    fields: Sequence[dataclasses.Field], advanced: Mapping[str, str], comments: Mapping[str, str]
+) -> str:
+    """The end of ``--help``: each setting that is not a flag, its default and its comment."""
+    import textwrap
+
+    lines = ["settings without a flag (--set FIELD=VALUE, repeatable, or a --config file):"]
+    for field in fields:
+        if field.name not in advanced:
+            continue
+        default = field.default if field.default is not dataclasses.MISSING else field.default_factory()  # type: ignore[misc]
+        text = "; ".join(part for part in (comments.get(field.name, ""), advanced[field.name]) if part)
+        lines += textwrap.wrap(f"{field.name} (default: {default!r}): {text}", width=100,
+                               initial_indent="  ", subsequent_indent="      ")  # fmt: skip
+    return "\n".join(lines)
+
+
 def parse_config(
     cls: type[ConfigT],
     argv: Sequence[str] | None = None,
@@ -227,27 +312,34 @@ def parse_config(
     hints = typing.get_type_hints(cls)
     comments = field_comments(cls)
     summary = (cls.__doc__ or "").strip().splitlines()
-    parser = argparse.ArgumentParser(prog=prog, description=summary[0] if summary else None)
-    parser.add_argument(
-        "--config", default=None, help="YAML or JSON file with field values (flags override it)"
-    )
     # the command's own fields first, then those it inherits (FinetuneConfig's loss fields)
     own = cls.__dict__.get("__annotations__", {})
     fields = sorted((f for f in dataclasses.fields(cls) if f.init), key=lambda f: f.name not in own)
-    # research options kept beside the measured ones, each with what was measured (EXPERIMENTAL_FIELDS)
-    experimental: Mapping[str, str] = getattr(cls, "EXPERIMENTAL_FIELDS", {})
-    group = parser.add_argument_group(
-        "experimental", "research options, measured not to improve on the defaults (why, per option)"
-    ) if experimental else parser  # fmt: skip
+    names = {field.name for field in fields}
+    # settings that are not flags: --set FIELD=VALUE or --config (ADVANCED_FIELDS, EXPERIMENTAL_FIELDS)
+    advanced = {name: text for name, text in advanced_fields(cls).items() if name in names}
+    takes_set = "set" not in names  # the quickstart's own --set names a stage too
+    parser = argparse.ArgumentParser(
+        prog=prog, description=summary[0] if summary else None,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog=_advanced_epilog(fields, advanced, comments) if advanced and takes_set else None,
+    )  # fmt: skip
+    parser.add_argument(
+        "--config", default=None, help="YAML or JSON file with field values (flags override it)"
+    )
+    if takes_set:
+        parser.add_argument(
+            "--set", dest="_set", action="append", default=[], metavar="FIELD=VALUE",
+            help="set any field, those listed at the end included; repeatable (lists as 8,16 or [8, 16]; "
+                 "none for an optional field)",
+        )  # fmt: skip
     for field in fields:
         default = field.default if field.default is not dataclasses.MISSING else field.default_factory()  # type: ignore[misc]
         help_text = f"{comments.get(field.name, '')} (default: {default!r})".strip()
-        if field.name in experimental:
-            measured = experimental[field.name].replace("%", "%%")  # argparse formats help with %
-            _add_field(group, field, hints[field.name], f"{help_text}; measured: {measured}")
-        else:
-            _add_field(parser, field, hints[field.name], help_text)
-    names = {field.name for field in fields}
+        # a setting without a flag still parses as --name VALUE (the commands recorded in the results pages
+        # and older scripts run as they did), but is listed as a setting, not a flag
+        hidden = field.name in advanced and takes_set
+        _add_field(parser, field, hints[field.name], argparse.SUPPRESS if hidden else help_text)
     if "resume_from_checkpoint" in names and "resume" not in names:
         parser.add_argument(
             "--resume", dest="resume_from_checkpoint", action="store_const", const="latest",
@@ -267,6 +359,7 @@ def parse_config(
         argv = _rename_flags(sys.argv[1:] if argv is None else argv, aliases)
     namespace = vars(parser.parse_args(argv))
     config_path = namespace.pop("config")
+    set_pairs = namespace.pop("_set", [])
     values: dict[str, Any] = {}
     if config_path is not None:
         file_values = drop_removed_fields(cls, read_config_file(config_path), f"--config {config_path!r}")
@@ -280,6 +373,7 @@ def parse_config(
             )
         values.update(file_values)
     values.update(namespace)
+    values.update(_set_values(set_pairs, cls, hints, names))
     values = {name: _coerce(value, hints[name]) for name, value in values.items()}
     config = cls(**values)
     for name in OUTPUT_DIR_FIELDS:

@@ -98,6 +98,12 @@ class GenerateConfig(SamplerSettings):
     takes the value the pipeline records as measured best for it (its model card), else the library's.
     """
 
+    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
+    ADVANCED_FIELDS = (
+        "input_domain", "scaling_file", "device", "image_size",
+    )  # fmt: skip
+
+
     # SARZero123Pipeline.save_pretrained folder, or a bundled one's name; None: the best measured for this
     # chip, sim-prior-proxy when its azimuth is known (--input_azimuth, a raw MSTAR header), else
     # sim-prior-rotated (docs/results/proxy.md)

@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 
 from sar_zero123 import cli
-from sar_zero123.config import REFUSED, field_comments, parse_config
+from sar_zero123.config import REFUSED, advanced_fields, field_comments, parse_config
 from sar_zero123.stages.finetune import FinetuneConfig
 from sar_zero123.stages.simclr import PretrainSimCLRConfig
 from sar_zero123.stages.simulate import SimulateConfig
@@ -91,8 +91,17 @@ def test_help_lists_every_field_of_the_config_with_underscores(command, capsys):
     assert done.value.code == 0
     text = capsys.readouterr().out
     fields = [field.name for field in dataclasses.fields(config) if field.init]
-    missing = [name for name in fields if not re.search(rf"--{name}\b", text)]
+    # a flag per chosen setting; the settings without a flag (--set FIELD=VALUE) listed at the end
+    advanced = advanced_fields(config)
+    assert set(advanced) <= set(fields), (
+        f"{command.script}: ADVANCED_FIELDS names no field {set(advanced) - set(fields)}"
+    )
+    flags, _, settings = text.partition("settings without a flag (--set FIELD=VALUE")
+    missing = [name for name in fields if name not in advanced and not re.search(rf"--{name}\b", flags)]
     assert not missing, f"{command.script} --help lacks {missing}"
+    unlisted = [name for name in advanced if not re.search(rf"^  {name} \(default: ", settings, re.M)]
+    assert not unlisted and not any(re.search(rf"--{name}\b", flags) for name in advanced), unlisted
+    assert "--set FIELD=VALUE" in flags or "set" in fields  # any field, on every command
     undocumented = [name for name in fields if name not in field_comments(config)]
     assert not undocumented, f"{command.script}: no help (a comment on or above the field): {undocumented}"
     # every command that writes a run folder continues it with --resume and starts over with --restart

@@ -8,6 +8,7 @@ import resource
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import pytest
 
@@ -70,8 +71,22 @@ def test_defaults_and_flags():
     assert config == DemoConfig()
     config = parse_config(
         DemoConfig,
-        ["--learning-rate", "0.5", "--max_steps", "3", "--no-use_ema", "--presets", "a", "b", "c",
-         "--steps", "10", "20", "--data", "none"],
+        [
+            "--learning-rate",
+            "0.5",
+            "--max_steps",
+            "3",
+            "--no-use_ema",
+            "--presets",
+            "a",
+            "b",
+            "c",
+            "--steps",
+            "10",
+            "20",
+            "--data",
+            "none",
+        ],
     )
     assert config.learning_rate == 0.5 and config.max_steps == 3 and config.use_ema is False
     assert config.presets == ("a", "b", "c") and config.steps == [10, 20] and config.data is None
@@ -149,8 +164,11 @@ def test_a_write_past_the_file_size_limit_names_the_file_and_keeps_the_previous(
     soft, hard = resource.getrlimit(resource.RLIMIT_FSIZE)
     resource.setrlimit(resource.RLIMIT_FSIZE, (4096, hard))  # Python ignores SIGXFSZ: the write fails
     try:
-        with pytest.raises(OSError, match=r"^\[Errno 27\] could not write '.*/record.json': File too large; "
-                                          r"the previous file, if any, is unchanged$"):
+        with pytest.raises(
+            OSError,
+            match=r"^\[Errno 27\] could not write '.*/record.json': File too large; "
+            r"the previous file, if any, is unchanged$",
+        ):
             write_json_atomic({"new": "x" * 10_000}, path)
     finally:
         resource.setrlimit(resource.RLIMIT_FSIZE, (soft, hard))
@@ -192,3 +210,46 @@ def test_an_output_folder_inside_the_installed_package_is_refused(tmp_path: Path
             check_output_dir(path)
     assert not (package / "pretrained" / "views").exists()
     assert check_output_dir(tmp_path / "views") == tmp_path / "views"
+
+
+@dataclass
+class AdvancedConfig(DemoConfig):
+    """A command with settings that are not flags."""
+
+    mode: Literal["a", "b"] = "a"  # a choice
+
+    ADVANCED_FIELDS = ("max_steps", "presets", "steps", "use_ema", "mode")
+
+
+def test_settings_without_a_flag_take_set_and_config_and_are_listed_at_the_end_of_help(tmp_path, capsys):
+    config = parse_config(
+        AdvancedConfig,
+        ["--set", "max_steps=3", "--set", "presets=[x, y]", "--set", "steps=10,20", "--set", "use_ema=false",
+         "--set", "mode=b", "--set", "learning_rate=2e-3", "--set", "data=none"],
+    )  # fmt: skip
+    assert (config.max_steps, config.presets, config.steps, config.use_ema, config.mode) == (
+        3, ("x", "y"), [10, 20], False, "b"
+    )  # fmt: skip
+    assert config.learning_rate == 2e-3 and config.data is None  # a flag's field too
+    # the older spelling still parses (recorded commands run as they did); a later --set wins over --config
+    path = tmp_path / "c.yaml"
+    path.write_text("max_steps: 7\n")
+    assert parse_config(AdvancedConfig, ["--max_steps", "5"]).max_steps == 5
+    assert parse_config(AdvancedConfig, ["--config", str(path), "--set", "max_steps=8"]).max_steps == 8
+    for argv, message in [
+        (["--set", "max_steps"], r"--set 'max_steps': expected FIELD=VALUE"),
+        (["--set", "max_stpes=3"], r"--set 'max_stpes=3': no field 'max_stpes'; expected one of \['data'"),
+        (["--set", "max_steps=three"], r"--set max_steps=three: not a value of max_steps"),
+        (["--set", "use_ema=maybe"], r"--set use_ema=maybe: not a value of use_ema \(expected true or false"),
+        (["--set", "learning_rate=-1"], r"learning_rate must be > 0, got -1.0"),
+        (["--set", "mode=c"], r"mode"),
+    ]:
+        with pytest.raises(ValueError, match=message):
+            parse_config(AdvancedConfig, argv)
+    with pytest.raises(SystemExit):
+        parse_config(AdvancedConfig, ["--help"])
+    text = capsys.readouterr().out
+    flags, _, settings = text.partition("settings without a flag (--set FIELD=VALUE, repeatable")
+    assert "--learning_rate" in flags and "--set FIELD=VALUE" in flags and "--max_steps" not in flags
+    assert "  max_steps (default: 10): optimisation steps" in settings
+    assert "  mode (default: 'a'): a choice" in settings

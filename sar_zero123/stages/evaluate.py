@@ -119,6 +119,14 @@ class EvaluateConfig(SamplerSettings):
     (50 steps, guidance 3, from noise: zero-1-to-3's and the paper's); ``table3.json`` lists each row's.
     """
 
+    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
+    ADVANCED_FIELDS = (
+        "work_dir", "same_depression", "input_depression_deg", "outside_trained_range", "max_d_az_deg",
+        "vae", "speckle_looks", "blurred_target_sigmas_px", "speed_n", "image_size", "chip_crop_size",
+        "crop_size", "paper_scoring_size", "eval_batch_size", "num_figure_pairs", "device",
+    )  # fmt: skip
+
+
     pipeline: list[str] = field(default_factory=list)  # SARZero123Pipeline folders (repeat the flag)
     pipeline_names: list[str] = field(default_factory=list)  # row labels (default: folder names)
     lambdas: list[float] = field(default_factory=list)  # PFM weight of each pipeline, for the Fig. 12 sweep

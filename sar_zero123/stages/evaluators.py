@@ -82,6 +82,14 @@ EVALUATORS_MAY_DIFFER = (
 class TrainEvaluatorsConfig:
     """Train the scratch ResNet-18 classifier, azimuth regressor (SimCLR probes, depression regressor)."""
 
+    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
+    ADVANCED_FIELDS = (
+        "depression_test_fraction", "work_dir", "chip_crop_size", "cifar_stem", "depths", "hidden_sizes",
+        "mlp_hidden_sizes", "probe_epochs", "weight_decay", "max_train_chips", "checkpointing_epochs",
+        "resume_from_checkpoint", "num_workers", "mixed_precision",
+    )  # fmt: skip
+
+
     output_dir: str = "runs/evaluators"  # folder for classifier/, regressor/, probes/, metrics.json
     data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
     depression_data: str | None = None  # chip folder (index.csv) at many depressions: depression_regressor/

@@ -116,6 +116,18 @@ class FinetuneConfig(LossSettings):
     :class:`~sar_zero123.training.losses.LossSettings`'s, inherited: declared, defaulted and validated there.
     """
 
+    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
+    ADVANCED_FIELDS = (
+        "pose_in_time_embedding", "estimate_input_azimuth", "input_code_dim", "rehearsal_max_chips",
+        "input_depression", "pose_lr_multiplier", "adam_weight_decay", "lr_scheduler", "lr_warmup_steps",
+        "gradient_accumulation_steps", "max_grad_norm", "mixed_precision", "gradient_checkpointing",
+        "train_image_encoder", "use_ema", "ema_decay", "prediction_type", "checkpointing_steps",
+        "logging_steps", "checkpoints_total_limit", "validation_steps", "num_validation_images",
+        "validation_inference_steps", "guidance_scale", "num_workers", "report_to", "save_pipeline",
+        "cache_latents", "cache_on_device",
+    )  # fmt: skip
+
+
     output_dir: str = "runs/finetune_pfm"  # run folder: checkpoints, logs, validation grids, final pipeline
     pretrained: str | None = None  # pipeline folder or zero-1-to-3 checkpoint; None: build `size`
     # built when pretrained is None

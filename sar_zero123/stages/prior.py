@@ -66,6 +66,15 @@ __all__ = [
 class PriorConfig:
     """Corpus, VAE and UNet of the multi-view prior (defaults: the bundled prior's recipe)."""
 
+    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
+    ADVANCED_FIELDS = (
+        "num_validation_vehicles", "depression_range_deg", "mstar_fraction", "corpus_workers",
+        "proxy_bank_vehicles", "proxy_candidates", "vae_widths", "vae_norm_groups", "vae_steps",
+        "vae_batch_size", "lr_scheduler", "lr_warmup_steps", "input_depression", "prediction_type",
+        "snr_gamma", "checkpointing_steps", "mixed_precision",
+    )  # fmt: skip
+
+
     output_dir: str = "runs/prior"  # run folder: corpus/, vae/, base/ (its pipeline/ is the prior)
     corpus: str | None = None  # an existing corpus folder to train on; None writes output_dir/corpus
     num_vehicles: int = 2000  # procedural vehicles in the corpus (validation ones included)

@@ -63,6 +63,16 @@ __all__ = ["PretrainSimCLRConfig", "load_train_magnitudes", "run_simclr", "selec
 class PretrainSimCLRConfig:
     """SimCLR pretraining of the SAR encoder (ResNet-18) with co-domain augmentations."""
 
+    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
+    ADVANCED_FIELDS = (
+        "work_dir", "max_train_chips", "chip_crop_size", "speckle_lambda1", "speckle_lambda2",
+        "speckle_mode", "monotonic_gamma", "in_channels", "cifar_stem", "depths", "hidden_sizes",
+        "embedding_size", "projection_hidden_dim", "projection_dim", "temperature", "gather_negatives",
+        "momentum", "weight_decay", "mixed_precision", "channels_last", "checkpointing_steps",
+        "checkpoints_total_limit", "logging_steps", "report_to", "num_workers",
+    )  # fmt: skip
+
+
     output_dir: str = "runs/simclr"  # run folder: encoder/, checkpoints, logs, config.json, metrics.json
     data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
     protocol: str = "extended"  # split protocol of the data; only the "train" split is used

@@ -30,6 +30,12 @@ MAX_SHEET_VEHICLES = 512
 class SimulateConfig:
     """Simulate SAR target chips into ``out``: ``index.csv`` and ``chips/<dep>deg/<CLASS>/*.npy``."""
 
+    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
+    ADVANCED_FIELDS = (
+        "azimuth_jitter_deg", "normalization", "real_root", "procedural_sheet",
+    )  # fmt: skip
+
+
     out: str = "runs/sim"  # output folder
     classes: list[str] = field(default_factory=lambda: list(TARGET_CLASSES))  # classes to simulate
     instances: int = 2  # instances (serials) per class

@@ -49,6 +49,13 @@ SYNTH_TO_REAL_MAY_DIFFER = ("resume", "restart", "output_dir", "num_workers")
 class SynthToRealConfig:
     """Table II: classifiers trained on SAMPLE synthetic chips with each augmentation, tested on real."""
 
+    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
+    ADVANCED_FIELDS = (
+        "image_size", "cifar_stem", "hidden_sizes", "embedding_size", "train_batch_size", "learning_rate",
+        "weight_decay", "mixed_precision", "num_workers",
+    )  # fmt: skip
+
+
     sample: str | None = None  # SAMPLE folder (png_images/ and/or mat_files/); required
     image_format: str = "qpm"  # SAMPLE variant: "qpm", "decibel" (PNG) or "mat" (complex .mat)
     output_dir: str = "runs/table2"  # table2.json, table2.md and <row>/classifier

@@ -69,6 +69,14 @@ TABLE1_MAY_DIFFER = ("resume", "restart", "output_dir", "work_dir", "num_workers
 class Table1Config:
     """Table I: SimCLR encoders per augmentation preset, probed on frozen MSTAR features."""
 
+    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
+    ADVANCED_FIELDS = (
+        "work_dir", "image_size", "global_batch_size", "cifar_stem", "hidden_sizes", "embedding_size",
+        "mixed_precision", "channels_last", "max_train_chips", "max_test_chips", "probe_epochs", "tsne",
+        "tsne_points", "num_workers",
+    )  # fmt: skip
+
+
     output_dir: str = "runs/table1"  # one sub-folder per preset, plus table1.json, table1.md, tsne.png
     data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
     protocol: str = "extended"  # split protocol: encoders and probes train on "train", report on "test"

@@ -69,6 +69,15 @@ __all__ = [
 class TrainVAEConfig:
     """Train an AutoencoderKL on SAR chips (normalised dB)."""
 
+    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
+    ADVANCED_FIELDS = (
+        "block_out_channels", "layers_per_block", "latent_channels", "norm_num_groups",
+        "reconstruction_loss", "kl_weight", "max_grad_norm", "mixed_precision", "checkpointing_steps",
+        "checkpoints_total_limit", "num_eval_images", "num_scaling_batches", "report_to", "train_encoder",
+        "feature_loss_weight", "feature_encoder",
+    )  # fmt: skip
+
+
     output_dir: str = "runs/vae"  # run folder: checkpoints, logs, metrics.json, vae/
     data: str | None = None  # dataset folder with index.csv; None simulates the built-in dataset
     protocol: str = "extended"  # split protocol: extended, soc or ood-<CLASS>

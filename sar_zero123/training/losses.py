@@ -644,6 +644,14 @@ class LossSettings:
         ValueError: Naming the first field out of range.
     """
 
+    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
+    ADVANCED_FIELDS = (
+        "pfm_min_snr", "pfm_fraction", "pfm_crop_size", "pfm_balance", "drop_image_prob", "drop_both_prob",
+        "drop_latent_prob", "timestep_sampling", "timestep_logit_mean", "timestep_logit_std", "snr_gamma",
+        "azimuth_loss_weight", "proxy_runner_up_prob",
+    )  # fmt: skip
+
+
     pfm_weight: float = 4.0  # lambda of Eq. (21) (paper: 4); 0 = plain zero-1-to-3 fine-tuning (no PFM)
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
     pfm_fraction: float = 1.0  # fraction in (0, 1] of the eligible samples on which PFM is computed
