@@ -119,7 +119,7 @@ class BenchmarkConfig:
     views_per_chip: int = 3  # generated views per kept chip, evenly between it and its neighbours
     # pretrained pipeline each generator is fine-tuned from: the prior that also sees the input turned by
     # d_az; its K = 12 views help by their pose (+4.2 points over the same-azimuth control, against -1.2 from
-    # sim-prior; docs/results/augmentation_benefit.md, "The rotated prior as the generator")
+    # sim-prior; docs/results/history/augmentation_benefit.md, "The rotated prior as the generator")
     pipeline: str = SIM_PRIOR_ROTATED
     finetune_steps: int = 3000  # fine-tune steps per generator (400 and 1,000 keep too little identity)
     finetune_batch_size: int = 16  # pairs per fine-tune step

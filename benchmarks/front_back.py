@@ -47,7 +47,7 @@ from sar_zero123.model.conditioning import embed_pose, rotate_condition_latents
 from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip
 
 INPUT_DEPRESSION_DEG = 17.0
-SIM_ROTATION_SIGN = -1  # the simulator's turn direction (docs/results/prior.md, section 6)
+SIM_ROTATION_SIGN = -1  # the simulator's turn direction (docs/results/history/prior.md, section 6)
 BANDS_DEG = ((0.0, 60.0), (60.0, 120.0), (120.0, 180.0))
 
 

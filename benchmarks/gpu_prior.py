@@ -9,7 +9,7 @@ One process, three stages, every one a library call (the stages of ``sar_zero123
    ``--corpus_workers`` processes: more vehicles with fewer views each than the bundled prior's corpus, as
    many as ``--corpus_minutes`` allows at the rate a pilot measures;
    and the evaluation chips of the eight named vehicles (never in any corpus), rendered as
-   ``docs/results/prior.md`` renders them, unless ``--eval_data`` names them;
+   ``docs/results/history/prior.md`` renders them, unless ``--eval_data`` names them;
 2. one prior per arm (:func:`~sar_zero123.stages.finetune.run_finetune` through
    :func:`~sar_zero123.stages.prior.prior_base_config`): the same corpus, VAE (the bundled prior's, latents
    cached once), batch and wall-clock budget (``max_train_minutes``); an arm differs only in its
@@ -83,7 +83,7 @@ def parse_arm(arm: str, default_size: str) -> tuple[str | None, str]:
     return ARMS[name], size
 
 
-#: The named vehicles' evaluation chips (docs/results/prior.md, section 5).
+#: The named vehicles' evaluation chips (docs/results/history/prior.md, section 5).
 EVAL_CLASSES = ("TANK", "APC", "TRUCK", "DOZER", "SPG", "RADAR", "AAGUN", "SCOUT")
 EVAL_DEPRESSIONS = ("10", "15", "17", "30", "45")
 PART_BYTES = 15 * 2**20  # under the 16 MiB a returned file may hold
@@ -105,7 +105,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--corpus_minutes", type=float, default=1.0, help="most the corpus may take")
     parser.add_argument("--corpus_workers", type=int, default=16, help="processes rendering the corpus")
     parser.add_argument("--size", default="medium", help="build_sar_zero123 size of every arm")
-    # 256 pairs ran 11-12 steps/s on an H100 (docs/results/prior.md, section 6): more pairs per step
+    # 256 pairs ran 11-12 steps/s on an H100 (docs/results/history/prior.md, section 6): more pairs per step
     parser.add_argument("--train_batch_size", type=int, default=1024, help="pairs per step")
     parser.add_argument("--learning_rate", type=float, default=8e-4, help="AdamW peak, after the warm-up")
     parser.add_argument("--lr_warmup_steps", type=int, default=200, help="linear warm-up steps")
@@ -114,8 +114,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
         "--lr_scheduler",
         default="constant_with_warmup",
         help="diffusers schedule after the warm-up; a decaying one (cosine) reaches 0 at --max_train_steps, "
-        "so set those to the steps the budget fits (docs/results/prior.md, section 6, 'A decaying learning "
-        "rate for the warm start')",
+        "so set those to the steps the budget fits (docs/results/history/prior.md, section 6, "
+        "'A decaying learning rate for the warm start')",
     )
     parser.add_argument("--mixed_precision", default="bf16", choices=["no", "fp16", "bf16"])
     parser.add_argument(
@@ -194,7 +194,7 @@ def device_name() -> str:
 
 
 def render_eval_data(folder: Path, seed: int) -> Path:
-    """The named vehicles at every 5 deg of azimuth, docs/results/prior.md's command (section 5)."""
+    """The named vehicles at every 5 deg of azimuth, docs/results/history/prior.md's command (section 5)."""
     if (folder / "index.csv").is_file():
         return folder
     command = [sys.executable, "-m", "sar_zero123.sim", "--out", str(folder), "--classes", *EVAL_CLASSES,

@@ -7,15 +7,15 @@
 # 1. installs the wheels the machine lacks (diffusers, importlib_metadata) from WHEELS (default .whl);
 # 2. with PROBE=1, times one training step of the shippable `micro` prior, eager and compiled
 #    (benchmarks/step_operators.py at BATCH pairs, bf16), each under a time limit (about two minutes; measured
-#    on one H100 on 2026-11-27 at 1,024 pairs: docs/results/prior.md, section 6); without it, compiles
+#    on one H100 on 2026-11-27 at 1,024 pairs: docs/results/history/prior.md, section 6); without it, compiles
 #    without probing;
 # 3. trains the `rotated_input@micro` prior with benchmarks/gpu_prior.py in what is left of LIMIT seconds at
 #    BATCH pairs per step (default 256: a prior's optimiser steps, more than its pairs, decide how well it
-#    fine-tunes; docs/results/prior.md, section 6, "Steps or pairs"), starting from INIT's weights (default:
+#    fine-tunes; docs/results/history/prior.md, section 6, "Steps or pairs"), starting from INIT's weights (default:
 #    the bundled CPU prior, 25,000 steps already; INIT=none trains from scratch), compiled (reduce-overhead)
 #    unless the probe failed; if that arm fails, once more uncompiled in what is left. With DECAY_STEPS=N the
 #    learning rate decays (cosine) to 0 at step N instead of staying constant: set N to the steps the budget
-#    fits at the probe's (or a past session's) steps/s (docs/results/prior.md, section 6, "A decaying
+#    fits at the probe's (or a past session's) steps/s (docs/results/history/prior.md, section 6, "A decaying
 #    learning rate for the warm start").
 # Everything lands in OUT: the step timings, gpu_prior's results.json and the pipeline's tar parts, one log.
 set -u

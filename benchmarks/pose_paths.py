@@ -1,4 +1,4 @@
-"""Which pose path lets a small UNet place the target view? Oracle ablation (docs/results/learning.md, sec. 3)
+"""Which pose path lets a small UNet place the target view? Oracle ablation (results/history/learning.md, 3)
 
     python benchmarks/pose_paths.py --data runs/quickstart/data --vae runs/quickstart/vae/vae \\
         --evaluators runs/quickstart/evaluators --mode composed --steps 3000 --out pose_paths_composed.json

@@ -1,4 +1,4 @@
-"""Is the input view rotated by d_az a better floor than the input view itself? (docs/results/learning.md)
+"""Is the input view rotated by d_az a better floor than the input itself? (docs/results/history/learning.md)
 
     python benchmarks/rotation_floor.py --evaluators runs/quickstart/evaluators --data runs/quickstart/data \\
         --protocol ood-SPG --n 128 --out rotation_floor.json

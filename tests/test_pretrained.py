@@ -120,7 +120,7 @@ def _pearson(a: np.ndarray, b: np.ndarray) -> float:
 def test_bundled_prior_follows_depression():
     """Views of the bundled prior asked for a depression change look more like the simulator's view at the
     requested depression than at the input's, for named vehicles it never saw (it trained on procedural
-    vehicles only). Azimuth requests on unseen vehicles are not followed (docs/results/prior.md): not
+    vehicles only). Azimuth requests on unseen vehicles are not followed (docs/results/history/prior.md): not
     tested."""
     if not (PACKAGE_PRIOR / "model_index.json").is_file():
         pytest.skip(f"bundled prior weights not installed (no model_index.json in {PACKAGE_PRIOR})")
@@ -179,8 +179,8 @@ def _bundled(folder_name: str, name: str, what: str) -> tuple[SARZero123Pipeline
 
 def test_bundled_rotated_prior_turns_unseen_vehicles() -> None:
     """The spatial-pose prior's views of named vehicles it never saw, asked for a 90 deg turn, look more like
-    the simulator's view at the requested azimuth than at the input's (docs/results/prior.md, section 6): 4 of
-    4 chips; `sim-prior` wins 2 of the same 4, so the test tells the two apart."""
+    the simulator's view at the requested azimuth than at the input's (docs/results/history/prior.md,
+    section 6): 4 of 4 chips; `sim-prior` wins 2 of the same 4, so the test tells the two apart."""
     pipe, folder = _bundled("sim_prior_rotated", SIM_PRIOR_ROTATED, "rotated prior")
     assert pipe.pose_projection.config.spatial_pose == "rotated_input" and pipe.unet.config.in_channels == 12
     assert pipe.pose_projection.config.trained_depression_deg == [10.0, 60.0]

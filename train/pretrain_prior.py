@@ -6,8 +6,8 @@
 The flags are the fields of :class:`sar_zero123.stages.PriorConfig`; the stage is
 :func:`sar_zero123.stages.run_prior` (corpus, VAE, UNet, each resumable: a re-run of the same command
 continues where it stopped, and more ``--base_steps`` extend the UNet). ``--restart`` moves an earlier run
-aside. The pipeline lands in ``output_dir/base/pipeline``; ``docs/results/prior.md`` gives the measured
-recipe.
+aside. The pipeline lands in ``output_dir/base/pipeline``; ``docs/results/history/prior.md`` gives the
+measured recipe.
 """
 
 from __future__ import annotations

@@ -16,7 +16,7 @@ SSIM. The **corrected** ones below implement the stated definitions: one true 7x
 MS-SSIM term averaged over the valid region only (Wang et al. 2003), a centred 7x7 reflect-padded Kuan
 filter without rounding, and the same Gaussian window for the SSIM after it, at the generated resolution.
 Table III reports the paper-comparable values with the corrected ones beside them;
-docs/results/evaluation.md lists the measured differences on real MSTAR pairs.
+docs/results/history/evaluation.md lists the measured differences on real MSTAR pairs.
 
 All image metrics take `(B, C, H, W)` tensors in [0, 1] (normalised dB, see `docs/ARCHITECTURE.md`) and
 return per-sample `(B,)` scores; callers take the mean.
@@ -26,7 +26,7 @@ Cross-checks (pinned in tests/evaluation/test_metrics.py): with a 9x9 window, si
 1e-12, and the MS-SSIM contrast-structure terms equal torchmetrics' to 1e-5. The full `ms_ssim` is *not*
 torchmetrics' number even with a 9x9 window: torchmetrics averages the last scale's SSIM term over the whole
 reflect-padded map, which moves dissimilar pairs far more than near-identical ones (the differences on
-real pairs are in docs/results/evaluation.md). pytorch-msssim refuses 64x64 inputs with a 7x7 window.
+real pairs are in docs/results/history/evaluation.md). pytorch-msssim refuses 64x64 inputs with a 7x7 window.
 """
 
 from __future__ import annotations

@@ -17,7 +17,7 @@ meaningful there:
    (SNR(T-1) = 0.00468, amplification 14.6) keeps PFM, so the default is the paper's setting there, while
    schedules that reach far lower SNR (linear, cosine, zero terminal SNR) drop PFM exactly where their
    x0 estimate would be amplified beyond anything the paper trained with. The measurements behind it
-   (gradient norms and x0 errors against t on real MSTAR latents) are in ``docs/results/pfm.md``.
+   (gradient norms and x0 errors against t on real MSTAR latents) are in ``docs/results/history/pfm.md``.
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from sar_zero123.model.conditioning import downsampling_factor
 MIN_ALPHA_CUMPROD = 2.0**-24
 
 #: Default SNR threshold below which PFM is skipped: amplification 1/sqrt(SNR) <= 15.8, which keeps every
-#: timestep of the paper's scaled_linear schedule (see module docstring and docs/results/pfm.md).
+#: timestep of the paper's scaled_linear schedule (see module docstring and docs/results/history/pfm.md).
 DEFAULT_PFM_MIN_SNR = 0.004
 
 #: What a diffusers scheduler's ``prediction_type`` may say the network predicts: the noise (zero-1-to-3,
@@ -282,7 +282,7 @@ class ProjectedFeatureEncoder(nn.Module):
     :func:`random_feature_projection` this is their PFM, whose lambda values the paper reports. Its
     expectation over the draw of ``W`` is ``||f(x0) - f(x0_hat)||^2 / (3 D)`` (each entry has variance
     ``1 / (3 D)``), i.e. 1536x smaller than the 512-d form for ``D = 512``; one draw scatters around that
-    (measured ratios on real MSTAR latents: ``docs/results/pfm.md``).
+    (measured ratios on real MSTAR latents: ``docs/results/history/pfm.md``).
 
     The weight is a buffer: it moves with ``.to()``, is saved in ``state_dict`` and never trains.
     ``config`` is the wrapped encoder's (``image_size`` is read by :func:`pfm_loss`).
@@ -524,7 +524,7 @@ def pfm_loss(
     target and of the estimate are both resized to the encoder's input size, so the encoder cost stays.
     Decoding a latent window is not the centre of the full decode: the VAE's mid-block self-attention
     sees only the window, which changes interior pixels as much as border ones (numbers in
-    ``docs/results/pfm.md``).
+    ``docs/results/history/pfm.md``).
 
     Gradients flow through the frozen decoder and encoder into ``x0_hat_latents`` only.
 
@@ -604,9 +604,9 @@ def pfm_snr_weights(timesteps: torch.Tensor, scheduler, gamma: float) -> torch.T
     Not in the paper (Eq. 21 weights PFM alike at every t). PFM is a distance between functions of the
     target and of the one-step estimate x0_hat, whose error for a given noise-prediction error grows as
     ``1 / SNR(t)``: unweighted, the noisiest timesteps, where x0_hat is a blur, give PFM most of its
-    gradient (docs/results/pfm.md, section 6: 8-700 times L_simple's above t = 300). Min-SNR-gamma (Hang
-    et al., 2023) weights an x0-space loss by ``min(SNR, gamma)``; divided by ``gamma`` the weight is 1
-    wherever ``SNR(t) >= gamma`` and falls in proportion to the SNR above, a smooth form of
+    gradient (docs/results/history/pfm.md, section 6: 8-700 times L_simple's above t = 300).
+    Min-SNR-gamma (Hang et al., 2023) weights an x0-space loss by ``min(SNR, gamma)``; divided by ``gamma``
+    the weight is 1 wherever ``SNR(t) >= gamma`` and falls in proportion to the SNR above, a smooth form of
     :func:`pfm_timestep_mask`'s hard threshold.
 
     Args:
@@ -656,8 +656,9 @@ class LossSettings:
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
     pfm_fraction: float = 1.0  # fraction in (0, 1] of the eligible samples on which PFM is computed
     pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
-    # how lambda scales PFM (balanced_pfm_weight; docs/results/pfm.md, section 6): "none" weights PFM as in
-    # Eq. (21); "adaptive": PFM's gradient at the network output is lambda times L_simple's in every step
+    # how lambda scales PFM (balanced_pfm_weight; docs/results/history/pfm.md, section 6): "none" weights
+    # PFM as in Eq. (21); "adaptive": PFM's gradient at the network output is lambda times L_simple's in
+    # every step
     pfm_balance: Literal["none", "adaptive"] = "none"  # "none": Eq. 21's fixed lambda; "adaptive": balanced
     # pfm_snr_weights, a departure from Eq. 21 (None: the paper's equal weight at every t)
     pfm_snr_gamma: float | None = None  # PFM per sample times min(SNR(t), gamma) / gamma; None: equal weight
@@ -767,7 +768,7 @@ def total_loss(
             :func:`~sar_zero123.training.step.min_snr_weights`), applied before the sum.
         pfm_balance: ``"none"`` (Eq. 21 as written) or ``"adaptive"``: PFM is multiplied by
             :func:`balanced_pfm_weight` of this batch, so ``pfm_weight`` is the ratio of PFM's gradient to
-            L_simple's at the network output (a departure from the paper, ``docs/results/pfm.md``).
+            L_simple's at the network output (a departure from the paper, ``docs/results/history/pfm.md``).
         pfm_snr_gamma: ``gamma > 0``: each sample's PFM times :func:`pfm_snr_weights` (before the
             balance, so the adaptive scale sees the weighted term); None: Eq. 21's equal weight.
 
@@ -829,7 +830,7 @@ def balanced_pfm_weight(
     """The adaptive PFM scale ``||grad L_simple|| / ||grad PFM||``, both taken at the network output.
 
     Not in the paper: Eq. (21) weights PFM by a fixed lambda, so how hard PFM pulls depends on the encoder's
-    feature scale, the projection and the timestep (``docs/results/pfm.md``: at the bundled prior,
+    feature scale, the projection and the timestep (``docs/results/history/pfm.md``: at the bundled prior,
     lambda = 4 gives PFM a gradient 5 times L_simple's below t = 500 and 700 times above t = 900). With this
     scale, ``lambda * scale * PFM`` pulls the network output exactly lambda times as hard as L_simple in
     every batch, as VQGAN's adaptive weight balances its perceptual and adversarial terms (Esser et al.,
