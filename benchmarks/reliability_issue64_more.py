@@ -509,11 +509,18 @@ def main() -> None:  # noqa: PLR0915 - one case after another
     ]:
         escape = data_copy(f"path_{len(RESULTS)}")
         write_index_rows(escape, lambda header, row, p=path: row.__setitem__(header.index("path"), p), True)
+        # an index may name chips stored elsewhere (augment's own output lists the real chips it keeps by
+        # their path): the chip is read, and nothing is written beside it or anywhere but --out
+        before = files_under(TMP)
         case(
-            f"3. augment: an index.csv row whose chip path is {label}",
+            f"3. augment: an index.csv row whose chip path is {label} (read; written only into --out)",
             lambda e=escape: launcher(
                 "sar-zero123-augment", ["--data", str(e), "--out", str(TMP / (e.name + "_o")), *augment]
             ),
+            watch=[outside],
+            facts=lambda e=escape, b=before: {
+                "written_outside_out": any(not f.startswith(e.name + "_o") for f in files_under(TMP) - b)
+            },
         )
 
     def list_outside(folder: Path) -> None:
@@ -574,7 +581,7 @@ def main() -> None:  # noqa: PLR0915 - one case after another
     ]:
         folder = sealed_pipeline(f"trusted_{len(RESULTS)}", edit)
         # values no check of the files catches: loaded with the manifest check off, they are still refused
-        extra = ", verify_manifest=False" if "recorded" in label or "min_db" in label else ""
+        extra = ", verify_manifest=False" if "recorded" in label else ""
         case(
             f"4. a pipeline with {label}{' (manifest check off)' if extra else ''}",
             lambda f=folder, e=extra: load(f, e),

@@ -198,6 +198,10 @@ class SARZero123Pipeline(DiffusionPipeline):
                 raise ValueError(
                     f"`sampler.start_from` must be one of {START_FROM}, got {sampler['start_from']!r}"
                 )
+            try:  # each recorded value within what a call may ask for (steps, guidance, strength)
+                SamplerSettings(**{key: value for key, value in sampler.items() if key != "proxy_strength"})
+            except (TypeError, ValueError) as error:
+                raise ValueError(f"`sampler` (recorded in model_index.json): {error}") from None
             if sampler.get("proxy_strength") is not None:
                 _check_strength(sampler["proxy_strength"], {}, "sampler.proxy_")
             if sampler.get("start_from") == "proxy" and proxy is None:

@@ -615,6 +615,8 @@ def test_a_recorded_sampler_is_the_plain_calls_and_an_argument_overrides_it(tmp_
      ({"sampler": {"start_from": "noise"}}, r"`sampler.start_from` must be one of"),
      ({"sampler": {"start_from": "proxy"}}, r"records no `proxy` settings"),
      ({"sampler": {"proxy_strength": 1.5}}, r"sampler.proxy_strength must lie in \(0, 1\]"),
+     ({"sampler": {"guidance_scale": 1e9}}, r"`sampler` \(recorded in model_index.json\): guidance"),
+     ({"sampler": {"num_inference_steps": 10**7}}, r"`sampler` .*: num_inference_steps must be an"),
      ({"proxy": {**SMALL_PROXY, "num_vehicles": 0}}, r"proxy.num_vehicles: expected an integer"),
      ({"proxy": {**SMALL_PROXY, "min_db": 1.0}}, r"proxy.min_db, proxy.max_db: expected finite decibels"),
      ({"proxy": {"num_vehicles": 3}}, r"proxy: expected the fields .* missing \['blur_sigma_px'")],
