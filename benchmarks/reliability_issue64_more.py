@@ -519,7 +519,9 @@ def main() -> None:  # noqa: PLR0915 - one case after another
             ),
             watch=[outside],
             facts=lambda e=escape, b=before: {
-                "written_outside_out": any(not f.startswith(e.name + "_o") for f in files_under(TMP) - b)
+                "written_outside_out": any(
+                    not f.startswith((e.name + "_o", f".{e.name}_o.lock")) for f in files_under(TMP) - b
+                )
             },
         )
 
