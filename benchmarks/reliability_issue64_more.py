@@ -385,31 +385,31 @@ def main() -> None:  # noqa: PLR0915 - one case after another
     shutil.rmtree(Path(__file__).resolve().parents[1] / "sar_zero123" / "pretrained" / "views", True)
 
     # 3. security: pickles, YAML tags, module and class names, index paths
-    simclr_run = TMP / "simclr_ok"
-    checkpoints = sorted((simclr_run / "checkpoints").glob("checkpoint-*")) if simclr_run.exists() else []
-    for victim in ("random_states_0.pkl", "optimizer.bin", "scheduler.bin"):
-        crashed = TMP / f"resume_{victim.split('.')[0]}"
-        if checkpoints:
-            shutil.copytree(simclr_run, crashed)
-            newest = sorted((crashed / "checkpoints").glob("checkpoint-*"))[-1]
-            with open(newest / victim, "wb") as handle:
-                pickle.dump(_Payload(), handle)
+    # a run killed after its first checkpoint (run.json unfinished), its checkpoint then crafted: a pickle in
+    # place of a state file, and the checkpoint's manifest left as it was or sealed again over the pickle
+    stopped = TMP / "simclr_stopped"
+    simclr_args = ["--data", str(data), "--max_train_steps", "3", "--checkpointing_steps", "1", *SIMCLR_TINY]
+    launcher(
+        "sar-zero123-simclr", [*simclr_args, "--output_dir", str(stopped), "--max_train_minutes", "1e-9"]
+    )
+    record = json.loads((stopped / "run.json").read_text())
+    (stopped / "run.json").write_text(json.dumps({**record, "finished": False}))
+    crafted = [("random_states_0.pkl", False), ("random_states_0.pkl", True), ("optimizer.bin", True),
+               ("custom_checkpoint_0.pkl", True)]  # fmt: skip
+    for victim, reseal in crafted:
+        crashed = TMP / f"resume_{victim.split('.')[0]}_{reseal}"
+        shutil.copytree(stopped, crashed)
+        with open(crashed / "checkpoint-1" / victim, "wb") as handle:
+            pickle.dump(_Payload(), handle)
+        if reseal:
+            python(f"from sar_zero123.runs.checkpoints import write_manifest; "
+                   f"write_manifest({str(crashed / 'checkpoint-1')!r})")  # fmt: skip
+        sealed = "its manifest sealed again over it" if reseal else "its manifest as it was"
         case(
-            f"3. simclr --resume onto a checkpoint whose {victim} is a crafted pickle",
+            f"3. simclr --resume onto a checkpoint whose {victim} is a crafted pickle, {sealed}",
             lambda c=crashed: launcher(
                 "sar-zero123-simclr",
-                [
-                    "--data",
-                    str(data),
-                    "--output_dir",
-                    str(c),
-                    "--max_train_steps",
-                    "2",
-                    "--checkpointing_steps",
-                    "1",
-                    *SIMCLR_TINY,
-                    "--resume",
-                ],
+                [*simclr_args, "--output_dir", str(c), "--max_train_minutes", "1e-9", "--resume"],
             ),
             facts=ran_code,
         )

@@ -280,12 +280,13 @@ def load_checkpoint(accelerator: Accelerator, path: str | os.PathLike) -> dict[s
 
     Raises:
         FileNotFoundError: If the checkpoint has no ``run_state.json``.
-        ValueError: If a registered object's state holds more than tensors and plain values (a pickle that
-            could run code; :func:`_refuse_code_in_custom_state`).
+        ValueError: If a pickled file of the checkpoint (a registered object's state, the optimiser's, the
+            random states) holds more than tensors and plain values (a pickle that could run code, or one
+            accelerate would skip unsaid; :func:`_refuse_code_in_pickles`).
         RuntimeError: If accelerate cannot load it (the message names the folder and the files present).
     """
     state = read_run_state(path)
-    _refuse_code_in_custom_state(path)
+    _refuse_code_in_pickles(path)
     try:
         accelerator.load_state(str(path))
     except (RuntimeError, ValueError, KeyError, OSError, EOFError) as error:
@@ -299,27 +300,36 @@ def load_checkpoint(accelerator: Accelerator, path: str | os.PathLike) -> dict[s
     return state
 
 
-def _refuse_code_in_custom_state(path: str | os.PathLike) -> None:
-    """Refuse a checkpoint whose registered objects' states (``custom_checkpoint_*.pkl``, e.g. an EMA's) hold
-    more than tensors and plain values.
+#: The pickled files accelerate's ``load_state`` reads from a checkpoint folder (weights are safetensors).
+_PICKLED_STATE = ("custom_checkpoint_*.pkl", "random_states_*.pkl", "optimizer*.bin", "scheduler*.bin",
+                  "sampler*.bin", "dl_state_dict*.bin", "scaler*.pt")  # fmt: skip
 
-    accelerate unpickles those files with ``weights_only=False``, so a crafted one runs code on resume; each
-    is read here first with ``weights_only=True`` (accelerate's own loader, numpy arrays allowed), which
-    refuses any other object before calling it. A checkpoint is data.
+
+def _refuse_code_in_pickles(path: str | os.PathLike) -> None:
+    """Refuse a checkpoint whose pickled files (:data:`_PICKLED_STATE`: registered objects' states such as an
+    EMA's, the optimiser's and scheduler's, the random states) hold more than tensors and plain values.
+
+    accelerate unpickles registered objects' states with ``weights_only=False``, so a crafted one would run
+    code on resume; it reads the others with ``weights_only=True`` but skips random states it cannot read
+    with no more than a log line (a resume that is silently not the same run), and an unreadable optimiser
+    state surfaces as a raw unpickling error. Each file is read here first with ``weights_only=True``
+    (accelerate's own loader, numpy arrays allowed), which refuses any other object before calling it. A
+    checkpoint is data.
 
     Raises:
         ValueError: Naming the file.
     """
     from accelerate.utils import load
 
-    for custom in sorted(Path(path).glob("custom_checkpoint_*.pkl")):
-        try:
-            load(custom, map_location="cpu")
-        except Exception as error:  # noqa: BLE001 (any failure is a refusal; the type is named)
-            raise ValueError(
-                f"resume_from_checkpoint: {str(custom)!r} holds more than tensors and plain values "
-                f"({type(error).__name__}); its pickle could run code, so it is not loaded"
-            ) from None
+    for pattern in _PICKLED_STATE:
+        for pickled in sorted(Path(path).glob(pattern)):
+            try:
+                load(pickled, map_location="cpu")
+            except Exception as error:  # noqa: BLE001 (any failure is a refusal; the type is named)
+                raise ValueError(
+                    f"resume_from_checkpoint: {str(pickled)!r} holds more than tensors and plain values "
+                    f"({type(error).__name__}); its pickle could run code, so it is not loaded"
+                ) from None
 
 
 def resume_step(accelerator: Accelerator, path: str | os.PathLike | None) -> int:

@@ -218,7 +218,8 @@ class FinetuneConfig(LossSettings):
                                         "the images as Eq. 20 does"),
     }  # fmt: skip
 
-    #: Research options kept beside the measured ones: --help lists them apart, with what was measured.
+    #: Research options kept beside the measured ones: settings without a flag (--set), listed at the end of
+    #: --help with what was measured.
     EXPERIMENTAL_FIELDS = {
         "pfm_features": "unit-length features gave the lowest seen axis error, all stages (LPIPS-style) the "
                         "lowest unseen SFD, neither beat lambda = 0 on seen accuracy "

@@ -376,3 +376,18 @@ def test_a_checkpoint_whose_custom_state_could_run_code_is_refused_unrun(tmp_pat
     with pytest.raises(ValueError, match=r"custom_checkpoint_0.pkl' holds more than tensors .*not loaded"):
         load_checkpoint(accelerator, path)
     assert not marker.exists()
+
+
+@pytest.mark.parametrize("name", ["random_states_0.pkl", "optimizer.bin"])
+def test_a_checkpoint_whose_random_or_optimiser_state_is_a_crafted_pickle_is_refused_unrun(tmp_path, name):
+    """accelerate reads these with weights_only=True, but skips random states it cannot read with a log line
+    only (a resume that is silently another run) and lets an optimiser's unpickling error out raw: both are
+    refused by name, before accelerate reads anything."""
+    accelerator, model, optimizer = _setup()
+    path = save_checkpoint(accelerator, tmp_path, step=1)
+    load_checkpoint(accelerator, path)  # the genuine files read under weights_only
+    marker = tmp_path / "ran"
+    torch.save(_Payload(marker), path / name)
+    with pytest.raises(ValueError, match=rf"{re.escape(name)}' holds more than tensors .*not loaded"):
+        load_checkpoint(accelerator, path)
+    assert not marker.exists()
