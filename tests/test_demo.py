@@ -200,3 +200,18 @@ def test_the_local_app_serves_a_page_without_external_addresses(model):
     finally:
         server.should_exit = True
         thread.join(timeout=10)
+
+
+def test_an_upload_switches_the_input_to_it(model):
+    """A file uploaded while the input choice is left on "simulated vehicle" is the input from then on: the
+    upload event sets the choice to "upload", so the page generates from the file it shows."""
+    gr = pytest.importorskip("gradio")
+    from sar_zero123.demo import build_demo
+
+    demo = build_demo(model)
+    choice = next(b for b in demo.blocks.values() if isinstance(b, gr.Radio) and b.label == "input")
+    assert choice.value == "simulated vehicle"
+    switches = [fn for fn in demo.fns.values()
+                if any(event == "upload" for _, event in fn.targets) and choice in fn.outputs]  # fmt: skip
+    assert len(switches) == 1
+    assert switches[0].fn("chip.png") == "upload"
