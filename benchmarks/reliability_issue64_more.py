@@ -111,26 +111,15 @@ def main() -> None:  # noqa: PLR0915 - one case after another
         return TMP / name
 
     augment = ["--d_az", "30", "--num_inference_steps", "2"]
+    small_sim = ["--classes", "TANK", "--instances", "1", "--azimuth_step_deg", "180",
+                 "--depressions_deg", "17", "--size", "32"]  # fmt: skip
 
     # 1. a successful command exits 0 and prints its output folder
     case(
         "1. sar-zero123-simulate succeeds",
         lambda: launcher(
             "sar-zero123-simulate",
-            [
-                "--out",
-                str(TMP / "sim_ok"),
-                "--classes",
-                "TANK",
-                "--instances",
-                "1",
-                "--azimuth_step_deg",
-                "180",
-                "--depressions_deg",
-                "17",
-                "--size",
-                "32",
-            ],
+            ["--out", str(TMP / "sim_ok"), *small_sim],
         ),
     )
     case(
@@ -338,20 +327,7 @@ def main() -> None:  # noqa: PLR0915 - one case after another
     other_run = TMP / "other_command_run"
     launcher(
         "sar-zero123-simulate",
-        [
-            "--out",
-            str(other_run),
-            "--classes",
-            "TANK",
-            "--instances",
-            "1",
-            "--azimuth_step_deg",
-            "180",
-            "--depressions_deg",
-            "17",
-            "--size",
-            "32",
-        ],
+        ["--out", str(other_run), *small_sim],
     )
     case(
         "2. generate --output_dir <a simulate folder, a dataset> --restart",
@@ -648,41 +624,15 @@ def main() -> None:  # noqa: PLR0915 - one case after another
             timeout=60,
         ),
     )
-    case(
-        "5. simulate --size 100000",
-        lambda: launcher(
-            "sar-zero123-simulate",
-            ["--out", str(TMP / "sim_huge"), "--size", "100000", "--classes", "TANK"],
-            timeout=60,
-        ),
-    )
-    case(
-        "5. simulate --instances 1000000 --azimuth_step_deg 0.01",
-        lambda: launcher(
-            "sar-zero123-simulate",
-            ["--out", str(TMP / "sim_many"), "--instances", "1000000", "--azimuth_step_deg", "0.01"],
-            timeout=60,
-        ),
-    )
-    case(
-        "5. evaluate --n 1000000000",
-        lambda: launcher(
-            "sar-zero123-evaluate",
-            [
-                "--pipeline",
-                "sar-zero123/sim-prior-rotated",
-                "--evaluators",
-                str(data),
-                "--data",
-                str(data),
-                "--n",
-                "1000000000",
-                "--output_dir",
-                str(TMP / "ev_n"),
-            ],
-            timeout=60,
-        ),
-    )
+    ev = ["--pipeline", "sar-zero123/sim-prior-rotated", "--evaluators", str(data), "--data", str(data)]
+    for name, script, argv in [
+        ("simulate --size 100000", "simulate", ["--out", str(TMP / "sim_huge"), "--size", "100000"]),
+        ("simulate --instances 1000000 --azimuth_step_deg 0.01", "simulate",
+         ["--out", str(TMP / "sim_many"), "--instances", "1000000", "--azimuth_step_deg", "0.01"]),
+        ("evaluate --n 1000000000", "evaluate",
+         [*ev, "--n", "1000000000", "--output_dir", str(TMP / "ev_n")]),
+    ]:  # fmt: skip
+        case(f"5. {name}", lambda s=script, a=argv: launcher(f"sar-zero123-{s}", a, timeout=60))
     case(
         "5. quickstart --set an unknown field (refused before any stage)",
         lambda: launcher(
