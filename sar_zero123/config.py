@@ -101,7 +101,7 @@ def _scalar_parser(annotation: Any, name: str) -> Any:
     raise TypeError(f"config field {name!r}: unsupported type {annotation!r}")
 
 
-def _add_field(parser: Any, field: dataclasses.Field, annotation: Any, help_text: str):
+def _add_field(parser: argparse.ArgumentParser, field: dataclasses.Field, annotation: Any, help_text: str):
     name = field.name
     flags = [f"--{name}"] + ([f"--{name.replace('_', '-')}"] if "_" in name else [])
     inner, optional = _unwrap_optional(annotation)

@@ -242,7 +242,7 @@ def test_settings_without_a_flag_take_set_and_config_and_are_listed_at_the_end_o
         (["--set", "max_steps=three"], r"--set max_steps=three: not a value of max_steps"),
         (["--set", "use_ema=maybe"], r"--set use_ema=maybe: not a value of use_ema \(expected true or false"),
         (["--set", "learning_rate=-1"], r"learning_rate must be > 0, got -1.0"),
-        (["--set", "mode=c"], r"mode"),
+        (["--set", "mode=c"], r"--set mode=c: not a value of mode \(expected one of \['a', 'b'\]\)"),
     ]:
         with pytest.raises(ValueError, match=message):
             parse_config(AdvancedConfig, argv)

@@ -33,6 +33,7 @@ def main(argv: Sequence[str] | None = None, prog: str = "python -m sar_zero123.s
     with open(out / "index.csv") as f:
         n_chips = sum(1 for _ in f) - 1
     print(f"{out / 'index.csv'}: {n_chips} chips ({time.perf_counter() - start:.1f} s)")
+    print(out)  # the output folder, the last line on stdout as for every command
     return 0
 
 
