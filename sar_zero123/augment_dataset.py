@@ -130,7 +130,6 @@ class AugmentConfig(SamplerSettings):
         "batch_size", "speckle_sigma", "speckle_looks", "scaling_file", "device", "include_real",
     )  # fmt: skip
 
-
     data: str = ""  # dataset folder: index.csv, or a tree of original MSTAR files
     pipeline: str = SIM_PRIOR_ROTATED  # SARZero123Pipeline.save_pretrained folder, or a bundled one's name
     out: str = ""  # output dataset folder (a re-run with the same options resumes it)

@@ -103,7 +103,6 @@ class GenerateConfig(SamplerSettings):
         "input_domain", "scaling_file", "device", "image_size",
     )  # fmt: skip
 
-
     # SARZero123Pipeline.save_pretrained folder, or a bundled one's name; None: the best measured for this
     # chip, sim-prior-proxy when its azimuth is known (--input_azimuth, a raw MSTAR header), else
     # sim-prior-rotated (docs/results/proxy.md)

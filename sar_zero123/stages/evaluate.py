@@ -126,7 +126,6 @@ class EvaluateConfig(SamplerSettings):
         "crop_size", "paper_scoring_size", "eval_batch_size", "num_figure_pairs", "device",
     )  # fmt: skip
 
-
     pipeline: list[str] = field(default_factory=list)  # SARZero123Pipeline folders (repeat the flag)
     pipeline_names: list[str] = field(default_factory=list)  # row labels (default: folder names)
     lambdas: list[float] = field(default_factory=list)  # PFM weight of each pipeline, for the Fig. 12 sweep

@@ -89,7 +89,6 @@ class TrainEvaluatorsConfig:
         "resume_from_checkpoint", "num_workers", "mixed_precision",
     )  # fmt: skip
 
-
     output_dir: str = "runs/evaluators"  # folder for classifier/, regressor/, probes/, metrics.json
     data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
     depression_data: str | None = None  # chip folder (index.csv) at many depressions: depression_regressor/

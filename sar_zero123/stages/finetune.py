@@ -127,7 +127,6 @@ class FinetuneConfig(LossSettings):
         "cache_latents", "cache_on_device",
     )  # fmt: skip
 
-
     output_dir: str = "runs/finetune_pfm"  # run folder: checkpoints, logs, validation grids, final pipeline
     pretrained: str | None = None  # pipeline folder or zero-1-to-3 checkpoint; None: build `size`
     # built when pretrained is None

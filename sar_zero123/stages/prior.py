@@ -74,7 +74,6 @@ class PriorConfig:
         "snr_gamma", "checkpointing_steps", "mixed_precision",
     )  # fmt: skip
 
-
     output_dir: str = "runs/prior"  # run folder: corpus/, vae/, base/ (its pipeline/ is the prior)
     corpus: str | None = None  # an existing corpus folder to train on; None writes output_dir/corpus
     num_vehicles: int = 2000  # procedural vehicles in the corpus (validation ones included)

@@ -72,7 +72,6 @@ class PretrainSimCLRConfig:
         "checkpoints_total_limit", "logging_steps", "report_to", "num_workers",
     )  # fmt: skip
 
-
     output_dir: str = "runs/simclr"  # run folder: encoder/, checkpoints, logs, config.json, metrics.json
     data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
     protocol: str = "extended"  # split protocol of the data; only the "train" split is used

@@ -35,7 +35,6 @@ class SimulateConfig:
         "azimuth_jitter_deg", "normalization", "real_root", "procedural_sheet",
     )  # fmt: skip
 
-
     out: str = "runs/sim"  # output folder
     classes: list[str] = field(default_factory=lambda: list(TARGET_CLASSES))  # classes to simulate
     instances: int = 2  # instances (serials) per class

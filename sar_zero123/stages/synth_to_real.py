@@ -55,7 +55,6 @@ class SynthToRealConfig:
         "weight_decay", "mixed_precision", "num_workers",
     )  # fmt: skip
 
-
     sample: str | None = None  # SAMPLE folder (png_images/ and/or mat_files/); required
     image_format: str = "qpm"  # SAMPLE variant: "qpm", "decibel" (PNG) or "mat" (complex .mat)
     output_dir: str = "runs/table2"  # table2.json, table2.md and <row>/classifier

@@ -76,7 +76,6 @@ class Table1Config:
         "tsne_points", "num_workers",
     )  # fmt: skip
 
-
     output_dir: str = "runs/table1"  # one sub-folder per preset, plus table1.json, table1.md, tsne.png
     data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
     protocol: str = "extended"  # split protocol: encoders and probes train on "train", report on "test"

@@ -77,7 +77,6 @@ class TrainVAEConfig:
         "feature_loss_weight", "feature_encoder",
     )  # fmt: skip
 
-
     output_dir: str = "runs/vae"  # run folder: checkpoints, logs, metrics.json, vae/
     data: str | None = None  # dataset folder with index.csv; None simulates the built-in dataset
     protocol: str = "extended"  # split protocol: extended, soc or ood-<CLASS>

@@ -651,7 +651,6 @@ class LossSettings:
         "azimuth_loss_weight", "proxy_runner_up_prob",
     )  # fmt: skip
 
-
     pfm_weight: float = 4.0  # lambda of Eq. (21) (paper: 4); 0 = plain zero-1-to-3 fine-tuning (no PFM)
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
     pfm_fraction: float = 1.0  # fraction in (0, 1] of the eligible samples on which PFM is computed
