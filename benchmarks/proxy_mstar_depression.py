@@ -130,6 +130,7 @@ def run(
     max_shifts_px: Sequence[int] = (0,),
     proxy_pipeline: str | None = None,
     consensus: tuple[int, float] | None = None,
+    retrieval: tuple[str, Sequence[int]] | None = None,
 ) -> dict:
     """Every row's share of views nearer the 30 deg chip, on the same pairs; see the module docstring."""
     pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR_ROTATED)
@@ -156,6 +157,7 @@ def run(
 
     add("input copy (floor)", inputs, 0.0)
     add("the 30 deg chip (ceiling)", at_30, 0.0)
+
     def fit(proxy: dict) -> np.ndarray:
         """Every input's proxy at 30 deg, by the pipeline's own code, in ``workers`` processes."""
         jobs = [(proxy, image, a) for image, a in zip(inputs, azimuths)]
@@ -164,11 +166,34 @@ def run(
 
     drafts: dict[int, np.ndarray] = {}
     recorded_shift = int(pipe.config.proxy.get("max_shift_px", 0))
+    exhaustive = {**pipe.config.proxy, "shortlist": 0, "retrieval": None}
     for shift in sorted({recorded_shift, *max_shifts_px}):
         begin = time.perf_counter()
-        drafts[shift] = fit({**pipe.config.proxy, "max_shift_px": shift})
+        drafts[shift] = fit({**exhaustive, "max_shift_px": shift})
         name = f"proxy alone (bank {pipe.config.proxy['num_vehicles']}, shifts up to {shift} px)"
         add(name, drafts[shift][:, 1], time.perf_counter() - begin)
+    if retrieval is not None:  # the proxy alone only: the exhaustive fit against the learned shortlist
+        name, sizes = retrieval
+        for shift in sorted(drafts):
+            best = f"proxy alone (bank {pipe.config.proxy['num_vehicles']}, shifts up to {shift} px)"
+            for k in sizes:
+                begin = time.perf_counter()
+                learned = fit({**exhaustive, "max_shift_px": shift, "shortlist": int(k), "retrieval": name})
+                row = f"proxy alone, learned shortlist of {k} (shifts up to {shift} px)"
+                add(row, learned[:, 1], time.perf_counter() - begin)
+                diff = wins(learned[:, 1], at_30, at_17).astype(float) - wins(
+                    drafts[shift][:, 1], at_30, at_17
+                )
+                se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
+                same = np.all(learned[:, 0] == drafts[shift][:, 0], axis=(1, 2))
+                rows[row] |= {"paired_difference_from_exhaustive": float(diff.mean()),
+                              "paired_difference_se": se,
+                              "same_fit_as_exhaustive": float(same.mean())}  # fmt: skip
+                print(f"paired: {row} - {best}: {diff.mean():+.1%} ± {se:.1%}; the same vehicle in "
+                      f"{rows[row]['same_fit_as_exhaustive']:.0%}", flush=True)  # fmt: skip
+        return {"benchmark": "proxy_mstar_depression (issue 61: learned shortlist)", "retrieval": name,
+                "proxy": exhaustive, "per_class": per_class, "seed": seed, "rows": rows,
+                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
     if consensus is not None:  # the proxy alone only: the best fit against the consensus of the k best
         k, temperature = consensus
         shift = max(drafts)
@@ -211,14 +236,18 @@ def run(
             ).images[..., 0])  # fmt: skip
         return np.concatenate(views), time.perf_counter() - begin
 
-    add("bundled prior, library sampler (50 steps from noise)",
-        *sample(num_inference_steps=50, strength=1.0, heading_guidance_scale=0.0, start_from="input"))
+    add(
+        "bundled prior, library sampler (50 steps from noise)",
+        *sample(num_inference_steps=50, strength=1.0, heading_guidance_scale=0.0, start_from="input"),
+    )
     add("bundled prior, its recorded sampler, no input azimuth (from noise, heading guidance)", *sample())
     # the drafts above are the pipeline's own proxy starts (draft_target_views), made in parallel; a call
     # given start_image takes the strength it is given, so the recorded proxy_strength is passed here
     recorded = pipe.config.sampler["proxy_strength"]
-    add(f"bundled prior, its recorded sampler, input azimuth given (from the proxy noised to {recorded:.0%})",
-        *sample(from_proxy=True, strength=recorded))
+    add(
+        f"bundled prior, its recorded sampler, input azimuth given (from the proxy noised to {recorded:.0%})",
+        *sample(from_proxy=True, strength=recorded),
+    )
     for strength in sorted({0.3, 0.5, 0.7} - {recorded}):
         name = f"bundled prior, from the proxy noised to {strength:.0%}"
         add(name, *sample(from_proxy=True, strength=strength))
@@ -256,21 +285,45 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--max_azimuth_gap", type=float, default=3.0, help="references' largest azimuth gap")
     parser.add_argument("--seed", type=int, default=0, help="pair draw and sampling seed")
     parser.add_argument("--workers", type=int, default=2, help="processes for the proxy fits")
-    parser.add_argument("--max_shifts_px", nargs="*", type=int, default=[0],
-                        help="also fit the proxy with shifts up to each of these (pixels)")
-    parser.add_argument("--proxy_pipeline", default=None,
-                        help="also a spatial_pose='proxy' pipeline (folder or name) on the same pairs")
-    parser.add_argument("--consensus", nargs=2, type=float, default=None, metavar=("K", "TEMPERATURE"),
-                        help="only the proxies alone: the best fit and the weighted mean of the K best fits")
+    parser.add_argument(
+        "--max_shifts_px",
+        nargs="*",
+        type=int,
+        default=[0],
+        help="also fit the proxy with shifts up to each of these (pixels)",
+    )
+    parser.add_argument(
+        "--proxy_pipeline",
+        default=None,
+        help="also a spatial_pose='proxy' pipeline (folder or name) on the same pairs",
+    )
+    parser.add_argument(
+        "--consensus",
+        nargs=2,
+        type=float,
+        default=None,
+        metavar=("K", "TEMPERATURE"),
+        help="only the proxies alone: the best fit and the weighted mean of the K best fits",
+    )
+    parser.add_argument("--retrieval", nargs="+", default=None, metavar="NAME_THEN_SIZES",
+                        help="only the proxy alone: the exhaustive fit against a learned shortlist (a name "
+                        "or folder) of each size")  # fmt: skip
     parser.add_argument("--out", default="proxy_mstar_depression.json", help="output JSON")
     args = parser.parse_args(argv)
     for name in ("mstar", "eoc1"):
         if not (Path(getattr(args, name)) / "index.csv").is_file():
             raise FileNotFoundError(f"--{name}: no index.csv in {getattr(args, name)!r}")
     record = run(
-        Path(args.mstar), Path(args.eoc1), args.per_class, args.max_azimuth_gap, args.seed, args.workers,
-        args.max_shifts_px, args.proxy_pipeline,
+        Path(args.mstar),
+        Path(args.eoc1),
+        args.per_class,
+        args.max_azimuth_gap,
+        args.seed,
+        args.workers,
+        args.max_shifts_px,
+        args.proxy_pipeline,
         None if args.consensus is None else (int(args.consensus[0]), float(args.consensus[1])),
+        None if args.retrieval is None else (args.retrieval[0], [int(k) for k in args.retrieval[1:]]),
     )
     write_json_atomic(record, Path(args.out))
     return record

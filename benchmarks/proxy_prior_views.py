@@ -202,6 +202,23 @@ def refined_views(
     return out.transpose(1, 0, 2, 3, 4)
 
 
+def _fit_seconds(proxy: dict, sim: SimulatedPairs, chips: int) -> float:
+    """Median seconds of one fit and one render (one request) on one thread, over the first ``chips`` inputs,
+    after a first call that builds the bank and any learned shortlist."""
+    one = torch.tensor
+    times = []
+    with threadpool_limits(limits=1):
+        for k in range(-1, chips):
+            image = sim.inputs[k] if k >= 0 else np.flip(sim.inputs[0]).copy()  # the first: a warm-up
+            begin = time.perf_counter()
+            draft_target_views(
+                torch.from_numpy(image)[None, None], one([sim.input_azimuth[k]]), one([INPUT_DEPRESSION_DEG]),
+                one([sim.d_az[k]]), one([0.0]), proxy,
+            )  # fmt: skip
+            times.append(time.perf_counter() - begin)
+    return float(np.median(times[1:]))
+
+
 def run(
     pipeline: str,
     *,
@@ -217,6 +234,7 @@ def run(
     bank_size: int | None = None,
     consensus: tuple[int, float] | None = None,
     refine: tuple[int, Sequence[float]] | None = None,
+    retrieval: tuple[str, Sequence[int], int] | None = None,
 ) -> dict:
     """Every row's template readings on the same pairs; see the module docstring."""
     scaling = DecibelScaling.from_dict(json.loads((resolve_pretrained(pipeline) / SCALING_FILE).read_text()))
@@ -245,6 +263,8 @@ def run(
         proxy = check_proxy_settings({**proxy, "num_vehicles": bank_size})
     if shortlist is not None:  # the fits made in two stages (sar_zero123.sim.proxy.ProxyBank's shortlist)
         proxy = check_proxy_settings({**proxy, "shortlist": shortlist})
+    if retrieval is not None:  # the exhaustive fit, whatever the pipeline records
+        proxy = check_proxy_settings({**proxy, "shortlist": 0, "retrieval": None})
     key = json.dumps({"proxy": proxy, "pairs_per_class": pairs_per_class, "seed": seed}, sort_keys=True)
     cached = None if fits is None or not Path(fits).is_file() else np.load(fits)
     if cached is not None and str(cached["key"]) == key:  # the same pairs and bank: the same fits
@@ -255,7 +275,8 @@ def run(
         fit_seconds = time.perf_counter() - begin
         if fits is not None:
             np.savez(fits, views=fitted, seconds=fit_seconds, key=key)
-    add(f"proxy alone (bank {proxy['num_vehicles']})", fitted[:, 1], fit_seconds)
+    alone_row = f"proxy alone (bank {proxy['num_vehicles']})"
+    add(alone_row, fitted[:, 1], fit_seconds)
     oracle = np.stack([
         np.stack([sim.render(v, a + turn, (seed, k, 2 + j)) for j, turn in enumerate((0.0, d, d + 180.0))])
         for k, (v, a, d) in enumerate(sim.pairs)
@@ -286,6 +307,33 @@ def run(
         return np.concatenate(out), time.perf_counter() - begin
 
     start = "from noise" if proxy_strength >= 1.0 else f"from the proxy at {proxy_strength:g}"
+    if retrieval is not None:  # the exhaustive fit against the learned shortlist of each size
+        name, sizes = retrieval[0], [int(k) for k in retrieval[1]]
+        same_fit, fit_seconds_per_chip = {}, {"exhaustive": _fit_seconds(proxy, sim, 8)}
+        recorded_rows = ["proxy prior, its recorded sampler, exhaustive fit"]
+        add(recorded_rows[0], *sample(pipe, fitted, fitted[:, 1], proxy_strength, heading))
+        pairs_of_rows = []
+        for k in sizes:
+            learned = check_proxy_settings({**proxy, "shortlist": k, "retrieval": name})
+            begin = time.perf_counter()
+            views = fitted_views(learned, sim.inputs, sim.input_azimuth, sim.d_az, workers)
+            label = f"learned shortlist of {k}"
+            add(f"proxy alone, {label}", views[:, 1], time.perf_counter() - begin)
+            same_fit[k] = float(np.mean(np.all(views[:, 0] == fitted[:, 0], axis=(1, 2))))
+            fit_seconds_per_chip[label] = _fit_seconds(learned, sim, 8)
+            print(f"{label}: the exhaustive fit's vehicle in {same_fit[k]:.0%} of inputs; "
+                  f"{fit_seconds_per_chip[label]:.3f} s per fit", flush=True)  # fmt: skip
+            pairs_of_rows.append((f"proxy alone, {label}", alone_row))
+            if k == retrieval[2]:
+                recorded_rows.append(f"proxy prior, its recorded sampler, {label}")
+                add(recorded_rows[-1], *sample(pipe, views, views[:, 1], proxy_strength, heading))
+                pairs_of_rows.append((recorded_rows[-1], recorded_rows[0]))
+        comparisons = paired_differences(readings, pairs_of_rows)
+        return {"benchmark": "proxy_prior_views (issue 61: learned shortlist)", "pipeline": str(pipeline),
+                "retrieval": name, "pairs_per_class": pairs_per_class, "seed": seed, "proxy": proxy,
+                "same_fit_as_exhaustive": same_fit, "fit_seconds_per_chip": fit_seconds_per_chip,
+                "paired_azimuth_error_differences": comparisons, "rows": rows,
+                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
     if refine is not None:  # the best fit against its stretches refined by rendering and comparing
         k, factors = int(refine[0]), [float(f) for f in refine[1]]
         begin = time.perf_counter()
@@ -456,6 +504,14 @@ def main(argv: Sequence[str] | None = None) -> dict:
         help="only the proxy alone and the recorded sampler, from the best fit and from the "
         "K best fits stretched along length and width by each pair of the factors",
     )
+    parser.add_argument(
+        "--retrieval",
+        nargs="+",
+        default=None,
+        metavar="NAME_THEN_SIZES",
+        help="only the proxy alone from the exhaustive fit and from a learned shortlist (a name or "
+        "folder) of each size, and the recorded sampler from the exhaustive fit and from the first size",
+    )
     parser.add_argument("--out", default="proxy_prior_views.json", help="output JSON")
     args = parser.parse_args(argv)
     if args.consensus is not None and not (args.consensus[0] >= 1 and args.consensus[1] > 0):
@@ -468,11 +524,17 @@ def main(argv: Sequence[str] | None = None) -> dict:
         if len(args.refine) < 2 or args.refine[0] < 1 or min(args.refine[1:]) <= 0:
             raise ValueError(f"refine: expected K >= 1 then factors > 0, got {args.refine}")
         refine = (int(args.refine[0]), args.refine[1:])
+    retrieval = None
+    if args.retrieval is not None:
+        sizes = [int(k) for k in args.retrieval[1:]]
+        if not sizes or min(sizes) < 1:
+            raise ValueError(f"retrieval: expected a name then shortlist sizes >= 1, got {args.retrieval}")
+        retrieval = (args.retrieval[0], sizes, sizes[0])
     record = run(args.pipeline, baseline=args.baseline, pairs_per_class=args.pairs_per_class,
                  batch_size=args.batch_size, seed=args.seed, workers=args.workers, headings=args.headings,
                  fits=args.fits, steps_sweep=args.steps, shortlist=args.shortlist,
                  bank_size=args.bank_size,
-                 consensus=consensus, refine=refine)  # fmt: skip
+                 consensus=consensus, refine=refine, retrieval=retrieval)  # fmt: skip
     write_json_atomic(record, Path(args.out))
     print(format_table(record))
     return record

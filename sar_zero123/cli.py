@@ -75,6 +75,9 @@ COMMANDS: tuple[Command, ...] = (
     Command("sar-zero123-augment", "python -m sar_zero123.augment_dataset", "augment",
             "sar_zero123.augment_dataset:AugmentConfig", "augment",
             "a dataset plus generated views of its chips"),
+    Command("sar-zero123-proxy-retrieval", "python train/train_proxy_retrieval.py", "proxy_retrieval",
+            "sar_zero123.stages.proxy_retrieval:ProxyRetrievalConfig", "proxy_retrieval",
+            "the learned shortlist of the simulator proxy's fit"),
     Command("sar-zero123-interpolate", "python -m sar_zero123.interpolate", "interpolate",
             "sar_zero123.interpolate:InterpolateConfig", "interpolate",
             "a fine-tuned pipeline's weights mixed with its prior's (WiSE-FT)"),
@@ -122,6 +125,14 @@ def vae(argv: Sequence[str] | None = None) -> Path:
     from sar_zero123.stages.vae import TrainVAEConfig, run_vae
 
     return run_vae(parse_config(TrainVAEConfig, argv))
+
+
+def proxy_retrieval(argv: Sequence[str] | None = None) -> Path:
+    """``sar-zero123-proxy-retrieval``: trains the learned shortlist of the proxy fit; returns its folder."""
+    from sar_zero123.config import parse_config
+    from sar_zero123.stages.proxy_retrieval import ProxyRetrievalConfig, run_proxy_retrieval
+
+    return run_proxy_retrieval(parse_config(ProxyRetrievalConfig, argv))
 
 
 def prior(argv: Sequence[str] | None = None) -> Path:

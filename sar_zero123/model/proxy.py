@@ -32,12 +32,14 @@ __all__ = [
 #: of its normalised dB domain (``decibel_scaling.json``).
 PROXY_FIELDS = (
     "num_vehicles", "first_seed", "blur_sigma_px", "render_seed", "max_shift_px", "shortlist", "min_db",
-    "max_db",
+    "max_db", "retrieval",
 )  # fmt: skip
 #: The fields that build the bank (:class:`ProxyBank`'s arguments, in order).
 _BANK_FIELDS = PROXY_FIELDS[:6]
+#: The fields :func:`proxy_bank` takes (the bank and its learned shortlist).
+_FIT_FIELDS = (*_BANK_FIELDS, "retrieval")
 #: Fields a record may leave out, and their values (records written before they existed).
-_PROXY_OPTIONAL = {"max_shift_px": 0, "shortlist": 0}
+_PROXY_OPTIONAL = {"max_shift_px": 0, "shortlist": 0, "retrieval": None}
 #: The shortlist a dataset's fits use (``sar-zero123-augment``; :class:`ProxyBank`'s ``shortlist``): on the
 #: 256 turns of the named vehicles (docs/results/proxy.md, section 4) the proxy alone lands 41.3 deg from the
 #: request against 40.7 exhaustively, the proxy prior's views 34.5 against 33.8 deg, for 128 renders per
@@ -53,6 +55,7 @@ DEFAULT_PROXY: dict[str, Any] = {
     "shortlist": 0,
     "min_db": -60.0,
     "max_db": 0.0,
+    "retrieval": None,
 }
 
 
@@ -80,21 +83,51 @@ def check_proxy_settings(proxy: Mapping[str, Any], name: str = "proxy") -> dict[
         ProxyBank(*(proxy[key] for key in _BANK_FIELDS))
     except ValueError as error:
         raise ValueError(f"{name}.{error}") from None
+    retrieval = proxy["retrieval"]
+    if retrieval is not None:
+        if not isinstance(retrieval, str) or not retrieval:
+            raise ValueError(f"{name}.retrieval: expected null or the name or folder of a learned shortlist, "
+                             f"got {retrieval!r}")  # fmt: skip
+        if not proxy["shortlist"]:
+            raise ValueError(f"{name}.retrieval: a learned shortlist needs shortlist > 0 (the vehicles it "
+                             "renders), got shortlist = 0")  # fmt: skip
     return {key: proxy[key] for key in PROXY_FIELDS}
 
 
 @functools.lru_cache(maxsize=4)
 def proxy_bank(
-    num_vehicles: int, first_seed: int, blur_sigma_px: float, render_seed: int, max_shift_px: int = 0,
+    num_vehicles: int,
+    first_seed: int,
+    blur_sigma_px: float,
+    render_seed: int,
+    max_shift_px: int = 0,
     shortlist: int = 0,
+    retrieval: str | None = None,
 ) -> ProxyBank:
-    """The bank for these settings, shared within a process (its vehicles are built once)."""
-    return ProxyBank(num_vehicles, first_seed, blur_sigma_px, render_seed, max_shift_px, shortlist)
+    """The bank for these settings, shared within a process (its vehicles are built once; a learned
+    shortlist, :func:`~sar_zero123.pretrained.resolve_retrieval`, loaded once).
+
+    Raises:
+        FileNotFoundError, ValueError: For a retrieval that is not found or ranks another bank.
+    """
+    net = None
+    if retrieval is not None:
+        from sar_zero123.pretrained import resolve_retrieval
+        from sar_zero123.model.retrieval import load_retrieval
+
+        bank = {"num_vehicles": num_vehicles, "first_seed": first_seed, "blur_sigma_px": blur_sigma_px,
+                "render_seed": render_seed}  # fmt: skip
+        net = load_retrieval(resolve_retrieval(retrieval), bank)
+    return ProxyBank(num_vehicles, first_seed, blur_sigma_px, render_seed, max_shift_px, shortlist, net)
 
 
 @functools.lru_cache(maxsize=1024)
 def _fit(
-    settings: tuple, chip_bytes: bytes, shape: tuple[int, int], azimuth_deg: float, depression_deg: float,
+    settings: tuple,
+    chip_bytes: bytes,
+    shape: tuple[int, int],
+    azimuth_deg: float,
+    depression_deg: float,
     resolve_heading: bool,
 ) -> tuple[int, float, tuple[int, int]]:
     """The bank vehicle fitted to one chip at its pose: ``(index, fitted azimuth, shift)``; remembered for
@@ -137,7 +170,7 @@ def draft_target_views(
         ValueError: For a target depression outside (0, 90) deg.
     """
     proxy = check_proxy_settings(proxy)
-    settings = tuple(proxy[key] for key in _BANK_FIELDS)
+    settings = tuple(proxy[key] for key in _FIT_FIELDS)
     bank = proxy_bank(*settings)
     scaling = DecibelScaling(min_db=float(proxy["min_db"]), max_db=float(proxy["max_db"]))
     chips = images.detach().float().mean(dim=1).cpu().numpy()  # (B, H, W), any affine map of decibels

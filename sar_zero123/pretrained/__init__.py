@@ -24,8 +24,10 @@ __all__ = [
     "SIM_PRIOR",
     "SIM_PRIOR_PROXY",
     "SIM_PRIOR_ROTATED",
+    "PROXY_RETRIEVAL",
     "is_bundled_name",
     "resolve_pretrained",
+    "resolve_retrieval",
 ]
 
 #: The multi-view SAR prior trained on procedural simulated vehicles only (model card: ``sim_prior.md``).
@@ -36,6 +38,11 @@ SIM_PRIOR_ROTATED = "sar-zero123/sim-prior-rotated"
 #: ``sim-prior-rotated`` taught to read a simulator proxy fitted to its input (``spatial_pose="proxy"``):
 #: needs the input's absolute azimuth (model card: ``sim_prior_proxy.md``).
 SIM_PRIOR_PROXY = "sar-zero123/sim-prior-proxy"
+#: The learned shortlist of the default proxy bank (:class:`~sar_zero123.model.retrieval.ProxyRetrievalNet`;
+#: model card: ``proxy_retrieval.md``): a proxy fit in 64 renders instead of 1,000.
+PROXY_RETRIEVAL = "sar-zero123/proxy-retrieval"
+#: Registered retrieval name -> folder under :data:`PRETRAINED_DIR`.
+BUNDLED_RETRIEVAL: dict[str, str] = {PROXY_RETRIEVAL: "proxy_retrieval"}
 #: The prefix of every bundled name: a name under it that is not registered (and no such path exists) is
 #: refused with the list of bundled names, rather than looked up on a model hub.
 BUNDLED_NAMESPACE = "sar-zero123/"
@@ -92,5 +99,30 @@ def resolve_pretrained(name_or_path: str | os.PathLike) -> Path:
             f"bundled pipeline {name!r}: its weights are missing from this install (no model_index.json "
             f"in {str(folder)!r}); reinstall sar_zero123 from a release that ships them, or pass the "
             "folder of a saved pipeline instead"
+        )
+    return folder
+
+
+def resolve_retrieval(name_or_path: str | os.PathLike) -> Path:
+    """The folder of a learned proxy shortlist: a registered name (:data:`PROXY_RETRIEVAL`) or a path.
+
+    Raises:
+        FileNotFoundError: For a name under :data:`BUNDLED_NAMESPACE` that is not registered, or a folder
+            without the network's ``config.json`` (the message names what was looked for).
+    """
+    text = os.fspath(name_or_path)
+    if text in BUNDLED_RETRIEVAL and not Path(text).exists():
+        folder = PRETRAINED_DIR / BUNDLED_RETRIEVAL[text]
+    elif text.startswith(BUNDLED_NAMESPACE) and not Path(text).exists():
+        raise FileNotFoundError(
+            f"{text!r}: no bundled retrieval of that name and no such folder; bundled: "
+            f"{sorted(BUNDLED_RETRIEVAL)}"
+        )
+    else:
+        folder = Path(text)
+    if not (folder / "config.json").is_file():
+        raise FileNotFoundError(
+            f"retrieval {text!r}: no config.json in {str(folder)!r} (a folder written by "
+            "train/train_proxy_retrieval.py)"
         )
     return folder

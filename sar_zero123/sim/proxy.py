@@ -19,6 +19,7 @@ from __future__ import annotations
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from scipy.ndimage import gaussian_filter
@@ -161,6 +162,10 @@ class ProxyBank:
             correlation (blurred, 2 x 2 pooled) rendered again at the exact pose and scored as the
             exhaustive fit scores them; the others score ``-inf``. Over a dataset, whose chips share a few
             dozen pose buckets, a fit then costs ``k`` renders instead of ``num_vehicles``.
+        retrieval: A learned shortlist for this bank
+            (:class:`~sar_zero123.model.retrieval.ProxyRetrievalNet`): with ``shortlist = k > 0`` the ``k``
+            vehicles it ranks best for the chip at its pose are rendered and scored, and no pose bucket is
+            rendered, so that one chip's fit costs ``k`` renders.
 
     Raises:
         ValueError: Naming the argument, for a size outside [1, 100000], a negative seed or blur, or a
@@ -175,6 +180,7 @@ class ProxyBank:
         render_seed: int = 0,
         max_shift_px: int = 0,
         shortlist: int = 0,
+        retrieval: Any = None,
     ) -> None:
         if isinstance(max_shift_px, bool) or int(max_shift_px) != max_shift_px or not 0 <= max_shift_px <= 16:
             raise ValueError(f"max_shift_px: expected an integer in [0, 16], got {max_shift_px!r}")
@@ -200,6 +206,13 @@ class ProxyBank:
             )
         self.max_shift_px = int(max_shift_px)
         self.shortlist = int(shortlist)
+        if retrieval is not None:
+            ranked = getattr(retrieval, "bank", None)
+            mine = {"num_vehicles": self.num_vehicles, "first_seed": self.first_seed,
+                    "blur_sigma_px": self.blur_sigma_px, "render_seed": self.render_seed}  # fmt: skip
+            if ranked != mine:
+                raise ValueError(f"retrieval: ranks the bank {ranked}, not this bank {mine}")
+        self.retrieval = retrieval
         self._targets: dict[int, Target] = {}
         self._buckets: OrderedDict[tuple[int, int, int], np.ndarray] = OrderedDict()
 
@@ -269,7 +282,11 @@ class ProxyBank:
         size = chip.shape[0]
         excluded = [int(k) for k in exclude if 0 <= int(k) < self.num_vehicles]
         candidates = np.arange(self.num_vehicles)
-        if self.shortlist:  # the vehicles that fit best near this pose, then the exact fit among them
+        if self.shortlist and self.retrieval is not None:  # the learned shortlist, then the exact fit
+            ranked = self.retrieval.rank(chip, azimuth_deg, depression_deg)
+            ranked = ranked[~np.isin(ranked, excluded)]
+            candidates = np.sort(ranked[: self.shortlist])
+        elif self.shortlist:  # the vehicles that fit best near this pose, then the exact fit among them
             features = self._bucket_features(azimuth_deg, depression_deg, size)
             coarse = features @ self._coarse_features(chip[None])[0]
             coarse[excluded] = -np.inf

@@ -1,0 +1,377 @@
+"""A learned shortlist for the proxy fit: a small network that ranks a bank's vehicles for a chip at its pose.
+
+An exhaustive fit (:class:`~sar_zero123.sim.proxy.ProxyBank`) renders every bank vehicle at the chip's pose,
+about 2.4 s for 1,000 vehicles on one core: most of a proxy view's cost. :class:`ProxyRetrievalNet` reads the
+chip (blurred, 2 x 2 pooled, standardised, and a copy turned to the vehicle's frame) and its pose, and gives
+one logit per bank vehicle, trained to match the softmax of each vehicle's correlation with the chip at that
+pose (:func:`retrieval_loss`). A fit then renders only the ``shortlist`` vehicles it ranks best and scores
+them exactly as the exhaustive fit does, in a few dozen renders.
+
+Its training chips (:func:`make_retrieval_data`) are procedural vehicles never in a prior corpus nor the
+named test vehicles: half the bank's own vehicles, half others (seeds from :data:`RETRIEVAL_FIRST_SEED`),
+rendered with clutter and speckle at random poses, and half of them remapped by the co-domain augmentation's
+random monotonic map (:func:`~sar_zero123.augment.codomain.random_monotonic`) so that a chip's intensity
+mapping does not decide; each chip's target is the bank's pooled correlations at the centre of its pose
+bucket (the bank's shortlist features), computed on the chip before the remap.
+
+The network is tied to one bank (its logits are that bank's vehicles): its config records the bank, and
+:func:`load_retrieval` refuses another bank.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import math
+from collections.abc import Sequence
+from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+from sar_zero123.domain import to_decibels
+from sar_zero123.sim.procedural import make_procedural_target
+from sar_zero123.sim.proxy import POSE_BUCKET_DEG, ProxyBank
+from sar_zero123.sim.render import render_chip
+
+logger = logging.getLogger(__name__)
+
+__all__ = [
+    "RETRIEVAL_FIRST_SEED", "RETRIEVAL_TOP", "ProxyRetrievalNet", "load_retrieval", "make_retrieval_data",
+    "retrieval_inputs", "retrieval_loss", "save_retrieval", "shortlist_recall", "train_retrieval",
+]  # fmt: skip
+
+#: First procedural seed of the training vehicles that are not bank vehicles: above the default bank's
+#: seeds (1,000,000 + its size) and every prior corpus's, so no training vehicle is a test vehicle.
+RETRIEVAL_FIRST_SEED = 2_000_000
+#: Bank vehicles kept per training chip as its soft target (the rest weigh nothing at the temperature used).
+RETRIEVAL_TOP = 64
+#: The rotation convention of the simulator's chips (``SIM_ROTATION_SIGN`` of the priors): a vehicle turned
+#: by ``a`` turns its footprint by ``-a`` in the image plane.
+_ROTATION_SIGN = -1
+_CONFIG = "config.json"
+_WEIGHTS = "model.safetensors"
+
+
+def _pose_features(azimuth_deg: torch.Tensor, depression_deg: torch.Tensor, harmonics: int) -> torch.Tensor:
+    """``[cos k a, sin k a (k = 1..harmonics), e, e^2]``, ``e = (depression - 30) / 15``: ``(B, 2H + 2)``."""
+    a = torch.deg2rad(azimuth_deg.float())[:, None] * torch.arange(1, harmonics + 1, dtype=torch.float32)
+    e = ((depression_deg.float() - 30.0) / 15.0)[:, None]
+    return torch.cat([torch.cos(a), torch.sin(a), e, e * e], dim=1)
+
+
+def retrieval_inputs(chips: torch.Tensor, blur_sigma_px: float) -> torch.Tensor:
+    """Chips as the network reads them: blurred, 2 x 2 average-pooled, standardised per chip.
+
+    Args:
+        chips: ``(B, S, S)`` decibels or any affine map of them (normalised dB), ``S`` even.
+        blur_sigma_px: The bank's blur (pixels), applied before pooling.
+
+    Returns:
+        ``(B, S / 2, S / 2)`` float32, zero mean and unit variance per chip (0 for a constant chip).
+    """
+    x = chips.float()[:, None]
+    if blur_sigma_px > 0:
+        radius = max(1, int(math.ceil(4 * blur_sigma_px)))
+        t = torch.arange(-radius, radius + 1, dtype=torch.float32)
+        kernel = torch.exp(-0.5 * (t / blur_sigma_px) ** 2)
+        kernel = kernel / kernel.sum()
+        x = F.pad(x, (radius, radius, radius, radius), mode="reflect")
+        x = F.conv2d(F.conv2d(x, kernel.view(1, 1, 1, -1)), kernel.view(1, 1, -1, 1))
+    x = F.avg_pool2d(x, 2)[:, 0]
+    mean = x.mean(dim=(1, 2), keepdim=True)
+    std = x.std(dim=(1, 2), keepdim=True)
+    return torch.where(std > 0, (x - mean) / std.clamp_min(1e-6), torch.zeros_like(x))
+
+
+class ProxyRetrievalNet(nn.Module):
+    """Logits over a bank's vehicles for chips at their poses.
+
+    Args:
+        bank: The bank it ranks: ``num_vehicles``, ``first_seed``, ``blur_sigma_px``, ``render_seed``.
+        channels: Widths of the four convolution stages (the last three halve the 32 px input).
+        embed_dim: Width of the chip's embedding and of each vehicle's code.
+        harmonics: Azimuth harmonics of the pose features.
+    """
+
+    def __init__(
+        self, bank: dict[str, Any], channels: Sequence[int] = (32, 64, 128, 128), embed_dim: int = 256,
+        harmonics: int = 3,
+    ) -> None:  # fmt: skip
+        super().__init__()
+        if len(channels) != 4 or not all(isinstance(c, int) and c >= 1 for c in channels):
+            raise ValueError(f"channels: expected four positive integers, got {channels!r}")
+        self.bank = {key: bank[key] for key in ("num_vehicles", "first_seed", "blur_sigma_px", "render_seed")}
+        self.channels, self.embed_dim, self.harmonics = (
+            tuple(int(c) for c in channels),
+            int(embed_dim),
+            int(harmonics),
+        )
+        layers: list[nn.Module] = []
+        width = 2
+        for k, c in enumerate(self.channels):
+            layers += [
+                nn.Conv2d(width, c, 3, stride=1 if k == 0 else 2, padding=1),
+                nn.GroupNorm(8, c),
+                nn.SiLU(),
+            ]
+            width = c
+        self.trunk = nn.Sequential(*layers, nn.AdaptiveAvgPool2d(4), nn.Flatten())
+        pose_dim = 2 * self.harmonics + 2
+        self.head = nn.Sequential(
+            nn.Linear(width * 16 + pose_dim, 512), nn.SiLU(), nn.Linear(512 + pose_dim, self.embed_dim)
+        )
+        self.codes = nn.Parameter(
+            torch.randn(int(self.bank["num_vehicles"]), self.embed_dim) / self.embed_dim**0.5
+        )
+        self.bias = nn.Parameter(torch.zeros(int(self.bank["num_vehicles"])))
+
+    def config(self) -> dict[str, Any]:
+        """What :func:`load_retrieval` rebuilds it from."""
+        return {"bank": self.bank, "channels": list(self.channels), "embed_dim": self.embed_dim,
+                "harmonics": self.harmonics}  # fmt: skip
+
+    def forward(
+        self, inputs: torch.Tensor, azimuth_deg: torch.Tensor, depression_deg: torch.Tensor
+    ) -> torch.Tensor:
+        """Logits ``(B, num_vehicles)`` for :func:`retrieval_inputs` ``(B, s, s)`` at their poses ``(B,)``."""
+        x = inputs[:, None]
+        # the chip turned to the vehicle's frame (its hull along one axis whatever its azimuth)
+        angle = torch.deg2rad(-azimuth_deg.float() * _ROTATION_SIGN)
+        cos, sin = torch.cos(angle), torch.sin(angle)
+        theta = torch.stack([torch.stack([cos, -sin, torch.zeros_like(cos)], 1),
+                             torch.stack([sin, cos, torch.zeros_like(cos)], 1)], 1)  # fmt: skip
+        grid = F.affine_grid(theta, list(x.shape), align_corners=False)
+        turned = F.grid_sample(x, grid, mode="bilinear", padding_mode="zeros", align_corners=False)
+        pose = _pose_features(azimuth_deg, depression_deg, self.harmonics)
+        h = self.head[1](self.head[0](torch.cat([self.trunk(torch.cat([x, turned], 1)), pose], 1)))
+        z = self.head[2](torch.cat([h, pose], 1))
+        return z @ self.codes.t() + self.bias
+
+    @torch.no_grad()
+    def rank(self, chip: np.ndarray, azimuth_deg: float, depression_deg: float) -> np.ndarray:
+        """Bank indices, best first, for one chip ``(S, S)`` (any affine map of decibels) at its pose."""
+        inputs = retrieval_inputs(torch.from_numpy(np.asarray(chip, dtype=np.float32))[None],
+                                  float(self.bank["blur_sigma_px"]))  # fmt: skip
+        logits = self(inputs, torch.tensor([float(azimuth_deg)]), torch.tensor([float(depression_deg)]))[0]
+        return torch.argsort(logits, descending=True, stable=True).numpy()
+
+
+def retrieval_loss(
+    logits: torch.Tensor, top_index: torch.Tensor, top_score: torch.Tensor, temperature: float
+) -> torch.Tensor:
+    """Cross-entropy of the logits against each chip's soft target: the softmax of its ``RETRIEVAL_TOP`` best
+    bank correlations over ``temperature`` (the other vehicles weigh nothing)."""
+    target = torch.softmax(top_score.float() / temperature, dim=1)
+    log_p = torch.log_softmax(logits.float(), dim=1).gather(1, top_index.long())
+    return -(target * log_p).sum(dim=1).mean()
+
+
+def shortlist_recall(ranked: np.ndarray, best: np.ndarray, ks: Sequence[int]) -> dict[int, float]:
+    """Share of chips whose exhaustive best (``best`` ``(N,)``) is among the first ``k`` of ``ranked``
+    ``(N, V)``, for each ``k``."""
+    position = np.argmax(ranked == best[:, None], axis=1)
+    return {int(k): float(np.mean(position < k)) for k in ks}
+
+
+def _bucket_chips(args: tuple) -> dict[str, np.ndarray]:
+    """One pose bucket's training chips and targets (a worker process)."""
+    from threadpoolctl import threadpool_limits
+
+    from sar_zero123.augment.codomain import random_monotonic
+
+    bank_args, azimuth, depression, count, seed, size = args
+    threadpool_limits(limits=1)
+    bank = _worker_bank(*bank_args)
+    rng = np.random.default_rng(seed)
+    features = bank._bucket_features(azimuth, depression, size)  # (V, size^2 / 4) at the bucket's centre
+    chips, azimuths, depressions, top_index, top_score = [], [], [], [], []
+    generator = torch.Generator().manual_seed(int(rng.integers(2**62)))
+    for k in range(count):
+        if k % 2 == 0:
+            target = bank.target(int(rng.integers(bank.num_vehicles)))
+        else:
+            target = make_procedural_target(RETRIEVAL_FIRST_SEED + int(rng.integers(1_000_000)))
+        a = float(azimuth + rng.uniform(-POSE_BUCKET_DEG / 2, POSE_BUCKET_DEG / 2)) % 360.0
+        e = float(np.clip(depression + rng.uniform(-POSE_BUCKET_DEG / 2, POSE_BUCKET_DEG / 2), 1.0, 89.0))
+        magnitude = render_chip(target, a, e, size, rng)
+        scores = features @ bank._coarse_features(to_decibels(magnitude)[None])[0]
+        best = np.argsort(-scores, kind="stable")[:RETRIEVAL_TOP]
+        if rng.uniform() < 0.5:  # the co-domain's random monotonic map: the target stays the chip's own
+            magnitude = random_monotonic(torch.from_numpy(magnitude)[None, None].clamp(0, 1), gamma=0.5,
+                                         generator=generator)[0, 0].numpy()  # fmt: skip
+        chips.append(to_decibels(np.maximum(magnitude, 1e-6)).astype(np.float32))
+        azimuths.append(a), depressions.append(e), top_index.append(best), top_score.append(scores[best])
+    inputs = retrieval_inputs(torch.from_numpy(np.stack(chips)), bank.blur_sigma_px).numpy()
+    return {"inputs": inputs.astype(np.float16), "azimuth": np.array(azimuths, dtype=np.float32),
+            "depression": np.array(depressions, dtype=np.float32),
+            "top_index": np.stack(top_index).astype(np.int16),
+            "top_score": np.stack(top_score).astype(np.float32)}  # fmt: skip
+
+
+_BANKS: dict[tuple, ProxyBank] = {}
+
+
+def _worker_bank(*bank_args: Any) -> ProxyBank:
+    if bank_args not in _BANKS:
+        _BANKS[bank_args] = ProxyBank(*bank_args)
+    return _BANKS[bank_args]
+
+
+def make_retrieval_data(
+    bank: ProxyBank,
+    depressions: Sequence[float],
+    chips_per_bucket: int,
+    seed: int = 0,
+    size: int = 64,
+    workers: int = 2,
+) -> dict[str, np.ndarray]:
+    """Training chips for :class:`ProxyRetrievalNet`: ``chips_per_bucket`` in every azimuth bucket at each
+    depression bucket centre (module docstring), in ``workers`` processes.
+
+    Returns:
+        ``inputs`` ``(N, S/2, S/2)`` float16 (:func:`retrieval_inputs`), ``azimuth``, ``depression`` ``(N,)``,
+        ``top_index`` ``(N, RETRIEVAL_TOP)`` int16 and ``top_score`` (the bank's pooled correlations).
+    """
+    if not bank.num_vehicles <= np.iinfo(np.int16).max:
+        raise ValueError(
+            f"bank.num_vehicles: expected at most {np.iinfo(np.int16).max}, got {bank.num_vehicles}"
+        )
+    bank_args = (bank.num_vehicles, bank.first_seed, bank.blur_sigma_px, bank.render_seed)
+    jobs = [
+        (bank_args, float(a), float(e), int(chips_per_bucket), (seed, j), size)
+        for j, (a, e) in enumerate(
+            (a, e) for e in depressions for a in np.arange(0.0, 360.0, POSE_BUCKET_DEG)
+        )
+    ]
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        parts = list(pool.map(_bucket_chips, jobs))
+    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+
+
+def train_retrieval(
+    data: dict[str, np.ndarray],
+    bank: dict[str, Any],
+    steps: int,
+    batch_size: int = 256,
+    learning_rate: float = 2e-3,
+    temperature: float = 0.01,
+    seed: int = 0,
+    held_out_share: float = 0.05,
+    log_every: int = 250,
+) -> tuple[ProxyRetrievalNet, dict[int, float]]:
+    """Train a :class:`ProxyRetrievalNet` on :func:`make_retrieval_data`'s chips (AdamW, 200 warm-up steps,
+    cosine decay; :func:`retrieval_loss`), a seeded ``held_out_share`` of them kept out.
+
+    Returns:
+        ``(net, recall)``: the network in eval mode, and the share of held-out chips whose bucket's best
+        vehicle it ranks within its first 1, 8, 32, 64 and 128 (:func:`shortlist_recall`).
+
+    Raises:
+        ValueError: For fewer chips than a batch, or a non-positive step count, batch or temperature.
+    """
+    n = len(data["azimuth"])
+    if not (steps >= 1 and batch_size >= 1 and temperature > 0 and 0 < held_out_share < 1):
+        raise ValueError(
+            f"steps, batch_size, temperature, held_out_share: expected >= 1, >= 1, > 0 and in (0, 1), got "
+            f"{steps}, {batch_size}, {temperature}, {held_out_share}"
+        )
+    held_count = max(1, int(n * held_out_share))
+    if n - held_count < batch_size:
+        raise ValueError(
+            f"batch_size: expected at most the {n - held_count} training chips, got {batch_size}"
+        )
+    torch.manual_seed(seed)
+    order = np.random.default_rng(seed).permutation(n)
+    held, train = order[:held_count], order[held_count:]
+    tensors = {k: torch.from_numpy(np.asarray(v)) for k, v in data.items()}
+    net = ProxyRetrievalNet(bank)
+    optimizer = torch.optim.AdamW(net.parameters(), lr=learning_rate, weight_decay=1e-4)
+    schedule = torch.optim.lr_scheduler.LambdaLR(
+        optimizer, lambda s: min(1.0, (s + 1) / 200) * 0.5 * (1 + math.cos(math.pi * min(s, steps) / steps))
+    )
+    rng = np.random.default_rng(seed + 1)
+    for step in range(steps):
+        batch = torch.from_numpy(rng.choice(train, batch_size, replace=False))
+        logits = net(
+            tensors["inputs"][batch].float(), tensors["azimuth"][batch], tensors["depression"][batch]
+        )
+        loss = retrieval_loss(logits, tensors["top_index"][batch], tensors["top_score"][batch], temperature)
+        optimizer.zero_grad(set_to_none=True)
+        loss.backward()
+        optimizer.step()
+        schedule.step()
+        if log_every and (step % log_every == 0 or step == steps - 1):
+            logger.info("step %d: loss %.3f", step, loss.item())
+    net.eval()
+    with torch.no_grad():
+        rows = torch.from_numpy(held)
+        logits = net(tensors["inputs"][rows].float(), tensors["azimuth"][rows], tensors["depression"][rows])
+        ranked = torch.argsort(logits, dim=1, descending=True, stable=True).numpy()
+    best = np.asarray(data["top_index"])[held, 0].astype(np.int64)
+    return net, shortlist_recall(ranked, best, (1, 8, 32, 64, 128))
+
+
+def save_retrieval(net: ProxyRetrievalNet, folder: str | Path, extra: dict[str, Any] | None = None) -> Path:
+    """Write ``config.json`` and ``model.safetensors`` (float16) to ``folder``, sealed last by its
+    ``manifest.json`` (:func:`~sar_zero123.config.write_manifest`)."""
+    from safetensors.torch import save_file
+
+    from sar_zero123.config import write_manifest
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    state = {k: v.detach().to(torch.float16).contiguous() for k, v in net.state_dict().items()}
+    save_file(state, str(folder / _WEIGHTS))
+    (folder / _CONFIG).write_text(
+        json.dumps({**net.config(), **(extra or {})}, indent=2, sort_keys=True) + "\n"
+    )
+    write_manifest(folder)
+    return folder
+
+
+def load_retrieval(folder: str | Path, bank: dict[str, Any] | None = None) -> ProxyRetrievalNet:
+    """A saved :class:`ProxyRetrievalNet` (weights read as safetensors: data, never code).
+
+    Raises:
+        FileNotFoundError: If ``folder`` lacks its config or weights.
+        ValueError: If a file differs from the folder's ``manifest.json``, its config is malformed, or it
+            records another bank than ``bank``.
+    """
+    from safetensors.torch import load_file
+
+    from sar_zero123.config import manifest_problem
+
+    folder = Path(folder)
+    for name in (_CONFIG, _WEIGHTS):
+        if not (folder / name).is_file():
+            raise FileNotFoundError(
+                f"retrieval: {folder / name} not found (a saved ProxyRetrievalNet folder)"
+            )
+    problem = manifest_problem(folder)
+    if problem is not None:
+        raise ValueError(f"retrieval: {problem}")
+    try:
+        config = json.loads((folder / _CONFIG).read_text())
+        saved_bank = {
+            key: config["bank"][key] for key in ("num_vehicles", "first_seed", "blur_sigma_px", "render_seed")
+        }
+        net = ProxyRetrievalNet(saved_bank, config["channels"], config["embed_dim"], config["harmonics"])
+    except (ValueError, KeyError, TypeError) as error:
+        raise ValueError(
+            f"retrieval: {folder / _CONFIG} is not a ProxyRetrievalNet config ({error})"
+        ) from None
+    if bank is not None:
+        wanted = {key: bank[key] for key in saved_bank}
+        if wanted != saved_bank:
+            raise ValueError(f"retrieval: {folder} ranks the bank {saved_bank}, not {wanted}")
+    state = load_file(str(folder / _WEIGHTS))
+    try:
+        net.load_state_dict({k: v.float() for k, v in state.items()})
+    except RuntimeError as error:
+        raise ValueError(f"retrieval: {folder / _WEIGHTS} does not match its config ({error})") from None
+    return net.eval()

@@ -1,0 +1,109 @@
+"""The proxy-retrieval stage: the learned shortlist of a proxy bank, trained on the simulator only.
+
+``sar-zero123-proxy-retrieval`` (``python train/train_proxy_retrieval.py``) parses its flags into
+:class:`ProxyRetrievalConfig` and calls :func:`run_proxy_retrieval`: the training chips
+(:func:`~sar_zero123.model.retrieval.make_retrieval_data`, cached in ``data.npz``), the network
+(:func:`~sar_zero123.model.retrieval.train_retrieval`) written to ``retrieval/`` (sealed), and its held-out
+recall in ``metrics.json``. A pipeline uses it through its proxy settings (``"shortlist": 64, "retrieval":
+"<output_dir>/retrieval"``); the bundled one is ``sar-zero123/proxy-retrieval``.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from sar_zero123.config import write_json_atomic
+from sar_zero123.model.proxy import DEFAULT_PROXY
+from sar_zero123.runs.folder import StageTimer, finish_run
+from sar_zero123.runs.stage import open_stage_folder
+from sar_zero123.sim.proxy import ProxyBank
+from sar_zero123.model.retrieval import make_retrieval_data, save_retrieval, train_retrieval
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["ProxyRetrievalConfig", "run_proxy_retrieval"]
+
+
+@dataclass
+class ProxyRetrievalConfig:
+    """Train the learned shortlist of the default proxy bank into ``output_dir/retrieval``."""
+
+    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
+    ADVANCED_FIELDS = ("batch_size", "learning_rate", "temperature", "workers")
+
+    output_dir: str = "runs/proxy_retrieval"  # run folder: data.npz, retrieval/, metrics.json
+    num_vehicles: int = DEFAULT_PROXY["num_vehicles"]  # vehicles of the bank it ranks (the default bank's)
+    depressions_deg: list[float] = field(default_factory=lambda: [15.0, 20.0, 30.0, 45.0])  # bucket centres
+    chips_per_bucket: int = 200  # training chips per 5 deg pose bucket
+    steps: int = 6000  # optimiser steps
+    batch_size: int = 256  # chips per step
+    learning_rate: float = 2e-3  # AdamW peak learning rate (cosine decay)
+    temperature: float = 0.01  # softmax temperature of the targets (the bank's correlations)
+    seed: int = 0  # chips, split and initialisation
+    workers: int = 2  # processes rendering the training chips
+    resume: bool = False  # a finished run with these settings is returned; an unfinished one is redone
+    restart: bool = False  # move an existing folder at output_dir aside (never deleted) and train anew
+
+    def __post_init__(self) -> None:
+        self.depressions_deg = [float(d) for d in self.depressions_deg]
+        if not all(0.0 < d < 90.0 for d in self.depressions_deg) or not self.depressions_deg:
+            raise ValueError(f"depressions_deg: expected degrees in (0, 90), got {self.depressions_deg}")
+        for name, low in (("num_vehicles", 1), ("chips_per_bucket", 1), ("steps", 1), ("batch_size", 1),
+                          ("workers", 1)):  # fmt: skip
+            value = getattr(self, name)
+            if isinstance(value, bool) or not isinstance(value, int) or value < low:
+                raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
+        if self.num_vehicles > np.iinfo(np.int16).max:
+            raise ValueError(
+                f"num_vehicles: expected at most {np.iinfo(np.int16).max}, got {self.num_vehicles}"
+            )
+        for name in ("learning_rate", "temperature"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}: expected a value > 0, got {getattr(self, name)!r}")
+
+
+def run_proxy_retrieval(config: ProxyRetrievalConfig) -> Path:
+    """Render the chips (or reuse ``data.npz`` made with the same settings), train, and write the network;
+    returns its folder (``output_dir/retrieval``)."""
+    timer = StageTimer()
+    folder = open_stage_folder(
+        config.output_dir, "proxy_retrieval", config, data=None, resume=config.resume, restart=config.restart,
+        may_differ=("resume", "restart", "workers"), resume_hint="--resume",
+    )  # fmt: skip
+    out = folder.path / "retrieval"
+    if folder.finished:
+        logger.info("%s already holds this network", folder.path)
+        return out
+    bank = {**DEFAULT_PROXY, "num_vehicles": config.num_vehicles}
+    bank = {key: bank[key] for key in ("num_vehicles", "first_seed", "blur_sigma_px", "render_seed")}
+    settings = {"bank": bank, "depressions_deg": config.depressions_deg,
+                "chips_per_bucket": config.chips_per_bucket, "seed": config.seed}  # fmt: skip
+    key = json.dumps(settings, sort_keys=True)
+    data_file = folder.path / "data.npz"
+    data = None
+    if data_file.is_file():  # the stage's own file, written last and whole; checked against its key
+        with np.load(data_file, allow_pickle=False) as stored:
+            if str(stored["key"]) == key:
+                data = {name: stored[name] for name in stored.files if name != "key"}
+    if data is None:
+        data = make_retrieval_data(ProxyBank(*bank.values()), config.depressions_deg, config.chips_per_bucket,
+                                   config.seed, workers=config.workers)  # fmt: skip
+        partial = folder.path / "data.partial.npz"
+        np.savez(partial, key=np.array(key), **data)
+        partial.replace(data_file)
+        logger.info("rendered %d training chips in %.0f s", len(data["azimuth"]), timer.seconds)
+    net, recall = train_retrieval(data, bank, config.steps, config.batch_size, config.learning_rate,
+                                  config.temperature, config.seed)  # fmt: skip
+    save_retrieval(net, out, {"training": {"chips": int(len(data["azimuth"])), "steps": config.steps,
+                                           "command": "train/train_proxy_retrieval.py"}})  # fmt: skip
+    metrics = {"held_out_recall": {str(k): v for k, v in recall.items()}, "chips": int(len(data["azimuth"])),
+               "seconds": timer.seconds}  # fmt: skip
+    write_json_atomic(metrics, folder.path / "metrics.json")
+    logger.info("held-out recall of the bucket's best vehicle: %s", recall)
+    finish_run(folder, ["retrieval", "metrics.json", "data.npz"], seconds=timer.seconds, results=metrics)
+    return out

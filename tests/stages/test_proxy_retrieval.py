@@ -1,0 +1,49 @@
+"""The proxy-retrieval stage: a tiny run end to end, its folder, its refusals."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from sar_zero123.sim.proxy import ProxyBank
+from sar_zero123.model.retrieval import load_retrieval
+from sar_zero123.stages.proxy_retrieval import ProxyRetrievalConfig, run_proxy_retrieval
+
+TINY = {"num_vehicles": 4, "depressions_deg": [17.0], "chips_per_bucket": 2, "steps": 3, "batch_size": 8,
+        "workers": 1}  # fmt: skip
+
+
+def test_a_tiny_run_writes_a_sealed_network_for_its_bank_and_its_recall(tmp_path):
+    out = run_proxy_retrieval(ProxyRetrievalConfig(output_dir=str(tmp_path / "run"), **TINY))
+    assert out == tmp_path / "run" / "retrieval"
+    assert sorted(p.name for p in out.iterdir()) == ["config.json", "manifest.json", "model.safetensors"]
+    net = load_retrieval(
+        out, {"num_vehicles": 4, "first_seed": 1_000_000, "blur_sigma_px": 1.5, "render_seed": 0}
+    )
+    metrics = json.loads((tmp_path / "run" / "metrics.json").read_text())
+    assert metrics["chips"] == 72 * 2 and set(metrics["held_out_recall"]) == {"1", "8", "32", "64", "128"}
+    assert metrics["held_out_recall"]["8"] == 1.0  # 4 vehicles: every one within the first 8
+    with np.load(tmp_path / "run" / "data.npz") as data:
+        assert data["inputs"].shape == (144, 32, 32) and data["top_index"].shape == (144, 4)
+    chip = ProxyBank(4).render(2, 40.0, 17.0, 64)
+    bank = ProxyBank(4, shortlist=2, retrieval=net)
+    assert np.isfinite(bank.scores(np.log10(chip + 1e-3), 40.0, 17.0)).sum() == 2
+    # the same settings again: the finished run is returned as it is
+    again = run_proxy_retrieval(ProxyRetrievalConfig(output_dir=str(tmp_path / "run"), resume=True, **TINY))
+    assert again == out
+    with pytest.raises(ValueError, match=r"steps"):
+        run_proxy_retrieval(ProxyRetrievalConfig(output_dir=str(tmp_path / "run"), **{**TINY, "steps": 4}))
+
+
+@pytest.mark.parametrize(
+    ("changes", "match"),
+    [({"depressions_deg": [95.0]}, r"depressions_deg: expected degrees in \(0, 90\), got \[95.0\]"),
+     ({"steps": 0}, r"steps: expected an integer >= 1, got 0"),
+     ({"num_vehicles": 40000}, r"num_vehicles: expected at most 32767, got 40000"),
+     ({"temperature": 0.0}, r"temperature: expected a value > 0, got 0.0")],
+)  # fmt: skip
+def test_bad_settings_are_refused_by_name(changes, match):
+    with pytest.raises(ValueError, match=match):
+        ProxyRetrievalConfig(**{**TINY, **changes})
