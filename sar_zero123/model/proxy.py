@@ -28,8 +28,11 @@ __all__ = [
     "proxy_bank", "with_shortlist",
 ]  # fmt: skip
 
-#: What a pipeline records of its proxy: the bank (:class:`ProxyBank`'s arguments) and the decibel bounds
-#: of its normalised dB domain (``decibel_scaling.json``).
+#: What a pipeline records of its proxy: the bank (:class:`ProxyBank`'s arguments), the decibel bounds of its
+#: normalised dB domain (``decibel_scaling.json``) and its learned shortlist (``retrieval``: ``None``, or the
+#: name or folder of a :class:`~sar_zero123.model.retrieval.ProxyRetrievalNet` ranking that bank, whose
+#: ``shortlist`` best vehicles a fit renders; the bundled pipelines record ``sar-zero123/proxy-retrieval``
+#: with 64: the exhaustive fit's vehicle for 99 % of the named vehicles' inputs, docs/results/proxy.md).
 PROXY_FIELDS = (
     "num_vehicles", "first_seed", "blur_sigma_px", "render_seed", "max_shift_px", "shortlist", "min_db",
     "max_db", "retrieval",
@@ -112,8 +115,8 @@ def proxy_bank(
     """
     net = None
     if retrieval is not None:
-        from sar_zero123.pretrained import resolve_retrieval
         from sar_zero123.model.retrieval import load_retrieval
+        from sar_zero123.pretrained import resolve_retrieval
 
         bank = {"num_vehicles": num_vehicles, "first_seed": first_seed, "blur_sigma_px": blur_sigma_px,
                 "render_seed": render_seed}  # fmt: skip
@@ -170,7 +173,10 @@ def draft_target_views(
         ValueError: For a target depression outside (0, 90) deg.
     """
     proxy = check_proxy_settings(proxy)
-    settings = tuple(proxy[key] for key in _FIT_FIELDS)
+    # the bank's own arguments alone where no learned shortlist is recorded: one cached bank per settings,
+    # whichever caller asks for it
+    fields = _FIT_FIELDS if proxy["retrieval"] is not None else _BANK_FIELDS
+    settings = tuple(proxy[key] for key in fields)
     bank = proxy_bank(*settings)
     scaling = DecibelScaling(min_db=float(proxy["min_db"]), max_db=float(proxy["max_db"]))
     chips = images.detach().float().mean(dim=1).cpu().numpy()  # (B, H, W), any affine map of decibels

@@ -19,10 +19,10 @@ import numpy as np
 
 from sar_zero123.config import write_json_atomic
 from sar_zero123.model.proxy import DEFAULT_PROXY
+from sar_zero123.model.retrieval import make_retrieval_data, save_retrieval, train_retrieval
 from sar_zero123.runs.folder import StageTimer, finish_run
 from sar_zero123.runs.stage import open_stage_folder
 from sar_zero123.sim.proxy import ProxyBank
-from sar_zero123.model.retrieval import make_retrieval_data, save_retrieval, train_retrieval
 
 logger = logging.getLogger(__name__)
 

@@ -645,7 +645,7 @@ def test_the_proxy_start_is_the_simulator_draft_at_the_requested_pose(tmp_path):
     # the proxy settings travel with the pipeline
     pipe.save_pretrained(tmp_path)
     loaded = SARZero123Pipeline.from_pretrained(tmp_path)
-    assert loaded.config.proxy == {**SMALL_PROXY, "shortlist": 0}  # recorded with the field it left out
+    assert loaded.config.proxy == {**SMALL_PROXY, "shortlist": 0, "retrieval": None}  # the fields it left out
     # refusals name what to pass
     with pytest.raises(ValueError, match=r"`input_depression_deg`: start_from='proxy' fits"):
         run(pipe, images, start_from="proxy", input_azimuth_deg=10.0, **kwargs)

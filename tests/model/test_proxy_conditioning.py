@@ -168,7 +168,7 @@ def test_a_proxy_pipeline_fits_its_proxy_and_needs_the_input_pose(tmp_path: Path
     pipe.save_pretrained(tmp_path / "pipe")
     loaded = SARZero123Pipeline.from_pretrained(tmp_path / "pipe")
     assert takes_proxy(loaded.pose_projection) and loaded.unet.config.in_channels == 20
-    assert loaded.config.proxy == {**PROXY, "shortlist": 0}
+    assert loaded.config.proxy == {**PROXY, "shortlist": 0, "retrieval": None}
 
 
 def test_heading_guidance_contrasts_with_the_proxy_at_the_flipped_heading(monkeypatch) -> None:

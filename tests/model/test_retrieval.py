@@ -10,8 +10,6 @@ import torch
 
 from sar_zero123.domain import to_decibels
 from sar_zero123.model.proxy import DEFAULT_PROXY, check_proxy_settings, proxy_bank
-from sar_zero123.pretrained import resolve_retrieval
-from sar_zero123.sim.proxy import ProxyBank
 from sar_zero123.model.retrieval import (
     RETRIEVAL_TOP,
     ProxyRetrievalNet,
@@ -22,6 +20,8 @@ from sar_zero123.model.retrieval import (
     save_retrieval,
     shortlist_recall,
 )
+from sar_zero123.pretrained import resolve_retrieval
+from sar_zero123.sim.proxy import ProxyBank
 
 BANK = {"num_vehicles": 6, "first_seed": 1_000_000, "blur_sigma_px": 1.5, "render_seed": 0}
 
@@ -82,7 +82,7 @@ def test_save_and_load_round_trip_and_refuse_another_bank(tmp_path):
         load_retrieval(tmp_path / "r", {**BANK, "num_vehicles": 7})
     config = tmp_path / "r" / "config.json"
     config.write_text(config.read_text().replace('"embed_dim": 16', '"embed_dim": 17'))
-    with pytest.raises(ValueError, match=r"retrieval: .*config.json' does not match its SHA-256 in manifest.json"):
+    with pytest.raises(ValueError, match=r"retrieval: .*config.json' does not match its SHA-256"):
         load_retrieval(tmp_path / "r")
     with pytest.raises(FileNotFoundError, match=r"retrieval: .*model.safetensors not found"):
         (tmp_path / "r" / "model.safetensors").unlink()

@@ -7,8 +7,8 @@ import json
 import numpy as np
 import pytest
 
-from sar_zero123.sim.proxy import ProxyBank
 from sar_zero123.model.retrieval import load_retrieval
+from sar_zero123.sim.proxy import ProxyBank
 from sar_zero123.stages.proxy_retrieval import ProxyRetrievalConfig, run_proxy_retrieval
 
 TINY = {"num_vehicles": 4, "depressions_deg": [17.0], "chips_per_bucket": 2, "steps": 3, "batch_size": 8,
