@@ -167,9 +167,11 @@ def run(
     drafts: dict[int, np.ndarray] = {}
     recorded_shift = int(pipe.config.proxy.get("max_shift_px", 0))
     exhaustive = {**pipe.config.proxy, "shortlist": 0, "retrieval": None}
+    # the pipeline's own fit (its recorded proxy); the exhaustive one beside a shortlist or a consensus
+    base = exhaustive if retrieval is not None or consensus is not None else pipe.config.proxy
     for shift in sorted({recorded_shift, *max_shifts_px}):
         begin = time.perf_counter()
-        drafts[shift] = fit({**exhaustive, "max_shift_px": shift})
+        drafts[shift] = fit({**base, "max_shift_px": shift})
         name = f"proxy alone (bank {pipe.config.proxy['num_vehicles']}, shifts up to {shift} px)"
         add(name, drafts[shift][:, 1], time.perf_counter() - begin)
     if retrieval is not None:  # the proxy alone only: the exhaustive fit against the learned shortlist
