@@ -184,23 +184,34 @@ def _bucket_chips(args: tuple) -> dict[str, np.ndarray]:
 
     from sar_zero123.augment.codomain import random_monotonic
 
-    bank_args, azimuth, depression, count, seed, size = args
+    bank_args, azimuth, depression, count, seed, size, pool = args
     threadpool_limits(limits=1)
     bank = _worker_bank(*bank_args)
     rng = np.random.default_rng(seed)
-    features = bank._bucket_features(azimuth, depression, size)  # (V, size^2 / 4) at the bucket's centre
-    chips, azimuths, depressions, top_index, top_score = [], [], [], [], []
+    # pose targets: the bank's pooled correlations at the bucket's centre (V, size^2 / 4); turntable targets
+    # (pool > 0) are looked up by the caller from each chip's vehicle
+    features = None if pool else bank._bucket_features(azimuth, depression, size)
+    chips, azimuths, depressions, top_index, top_score, vehicles = [], [], [], [], [], []
     generator = torch.Generator().manual_seed(int(rng.integers(2**62)))
     for k in range(count):
-        if k % 2 == 0:
-            target = bank.target(int(rng.integers(bank.num_vehicles)))
+        if pool:
+            vehicle = int(rng.integers(bank.num_vehicles + pool))
+            target = _pool_target(bank, vehicle)
+        elif k % 2 == 0:
+            vehicle = int(rng.integers(bank.num_vehicles))
+            target = bank.target(vehicle)
         else:
+            vehicle = -1
             target = make_procedural_target(RETRIEVAL_FIRST_SEED + int(rng.integers(1_000_000)))
         a = float(azimuth + rng.uniform(-POSE_BUCKET_DEG / 2, POSE_BUCKET_DEG / 2)) % 360.0
         e = float(np.clip(depression + rng.uniform(-POSE_BUCKET_DEG / 2, POSE_BUCKET_DEG / 2), 1.0, 89.0))
         magnitude = render_chip(target, a, e, size, rng)
-        scores = features @ bank._coarse_features(to_decibels(magnitude)[None])[0]
-        best = np.argsort(-scores, kind="stable")[:RETRIEVAL_TOP]
+        vehicles.append(vehicle)
+        if features is None:
+            best, scores = np.zeros(0, dtype=np.int64), np.zeros(0)
+        else:
+            scores = features @ bank._coarse_features(to_decibels(magnitude)[None])[0]
+            best = np.argsort(-scores, kind="stable")[:RETRIEVAL_TOP]
         if rng.uniform() < 0.5:  # the co-domain's random monotonic map: the target stays the chip's own
             magnitude = random_monotonic(torch.from_numpy(magnitude)[None, None].clamp(0, 1), gamma=0.5,
                                          generator=generator)[0, 0].numpy()  # fmt: skip
@@ -208,12 +219,67 @@ def _bucket_chips(args: tuple) -> dict[str, np.ndarray]:
         azimuths.append(a), depressions.append(e), top_index.append(best), top_score.append(scores[best])
     inputs = retrieval_inputs(torch.from_numpy(np.stack(chips)), bank.blur_sigma_px).numpy()
     return {"inputs": inputs.astype(np.float16), "azimuth": np.array(azimuths, dtype=np.float32),
+            "vehicle": np.array(vehicles, dtype=np.int32),
             "depression": np.array(depressions, dtype=np.float32),
             "top_index": np.stack(top_index).astype(np.int16),
             "top_score": np.stack(top_score).astype(np.float32)}  # fmt: skip
 
 
 _BANKS: dict[tuple, ProxyBank] = {}
+#: Procedural seed of the turntable pool's first vehicle beyond the bank (:func:`turntable_similarity`).
+TURNTABLE_POOL_SEED = RETRIEVAL_FIRST_SEED + 1_500_000
+
+
+def _pool_target(bank: ProxyBank, vehicle: int):
+    """Vehicle ``vehicle`` of the turntable pool: the bank's own first, then procedural seeds from
+    :data:`TURNTABLE_POOL_SEED`."""
+    if vehicle < bank.num_vehicles:
+        return bank.target(vehicle)
+    return make_procedural_target(TURNTABLE_POOL_SEED + vehicle - bank.num_vehicles)
+
+
+def _turntable_features(args: tuple) -> np.ndarray:
+    """Pooled features ``(len(vehicles), A, size^2 / 4)`` of pool vehicles on an azimuth grid (a worker)."""
+    from threadpoolctl import threadpool_limits
+
+    bank_args, vehicles, azimuths, depression, size = args
+    threadpool_limits(limits=1)
+    bank = _worker_bank(*bank_args)
+    out = []
+    for vehicle in vehicles:
+        target = _pool_target(bank, int(vehicle))
+        renders = [
+            render_chip(target, a, depression, size, np.random.default_rng(bank.render_seed))
+            for a in azimuths
+        ]
+        out.append(bank._coarse_features(to_decibels(np.stack(renders))).astype(np.float16))
+    return np.stack(out)
+
+
+def turntable_similarity(
+    bank: ProxyBank,
+    pool: int,
+    step_deg: float = 15.0,
+    depression_deg: float = 17.0,
+    size: int = 64,
+    workers: int = 2,
+) -> np.ndarray:
+    """How alike each pool vehicle and each bank vehicle image from every side: the pooled correlation of
+    their renders at the same azimuth (a ``step_deg`` grid, at ``depression_deg``), averaged over the grid.
+
+    Returns:
+        ``(num_vehicles + pool, num_vehicles)`` float32: rows are the bank's vehicles, then ``pool``
+        procedural vehicles from :data:`TURNTABLE_POOL_SEED`; columns the bank's.
+    """
+    azimuths = np.arange(0.0, 360.0, step_deg)
+    bank_args = (bank.num_vehicles, bank.first_seed, bank.blur_sigma_px, bank.render_seed)
+    chunks = np.array_split(np.arange(bank.num_vehicles + pool), max(1, 8 * workers))
+    with ProcessPoolExecutor(max_workers=workers) as executor:
+        jobs = [(bank_args, c, azimuths, depression_deg, size) for c in chunks if len(c)]
+        features = torch.from_numpy(
+            np.concatenate(list(executor.map(_turntable_features, jobs))).astype(np.float32)
+        )
+    return (torch.einsum("upd,vpd->uv", features, features[: bank.num_vehicles]) / len(azimuths)).numpy()
 
 
 def _worker_bank(*bank_args: Any) -> ProxyBank:
@@ -229,28 +295,51 @@ def make_retrieval_data(
     seed: int = 0,
     size: int = 64,
     workers: int = 2,
+    target: str = "pose",
+    pool: int = 1500,
 ) -> dict[str, np.ndarray]:
     """Training chips for :class:`ProxyRetrievalNet`: ``chips_per_bucket`` in every azimuth bucket at each
     depression bucket centre (module docstring), in ``workers`` processes.
 
+    Args:
+        target: ``"pose"``: each chip's target is the bank's pooled correlations with it at its pose bucket
+            (the network learns the exhaustive fit's ranking; chips of bank vehicles and of random procedural
+            ones). ``"turntable"``: its vehicle's :func:`turntable_similarity` to each bank vehicle (the
+            network learns which bank vehicles image like the chip's from every side; chips of the bank's
+            vehicles and of ``pool`` procedural ones).
+        pool: Procedural vehicles beyond the bank that the turntable targets cover.
+
     Returns:
-        ``inputs`` ``(N, S/2, S/2)`` float16 (:func:`retrieval_inputs`), ``azimuth``, ``depression`` ``(N,)``,
-        ``top_index`` ``(N, RETRIEVAL_TOP)`` int16 and ``top_score`` (the bank's pooled correlations).
+        ``inputs`` ``(N, S/2, S/2)`` float16 (:func:`retrieval_inputs`), ``azimuth``, ``depression``,
+        ``vehicle`` ``(N,)``, ``top_index`` ``(N, RETRIEVAL_TOP)`` int16 and ``top_score``.
+
+    Raises:
+        ValueError: For another ``target``, or a bank too large for int16 indices.
     """
+    if target not in ("pose", "turntable"):
+        raise ValueError(f"target: expected 'pose' or 'turntable', got {target!r}")
     if not bank.num_vehicles <= np.iinfo(np.int16).max:
         raise ValueError(
             f"bank.num_vehicles: expected at most {np.iinfo(np.int16).max}, got {bank.num_vehicles}"
         )
     bank_args = (bank.num_vehicles, bank.first_seed, bank.blur_sigma_px, bank.render_seed)
+    pool = int(pool) if target == "turntable" else 0
+    similarity = turntable_similarity(bank, pool, size=size, workers=workers) if pool else None
     jobs = [
-        (bank_args, float(a), float(e), int(chips_per_bucket), (seed, j), size)
+        (bank_args, float(a), float(e), int(chips_per_bucket), (seed, j), size, pool)
         for j, (a, e) in enumerate(
             (a, e) for e in depressions for a in np.arange(0.0, 360.0, POSE_BUCKET_DEG)
         )
     ]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        parts = list(pool.map(_bucket_chips, jobs))
-    return {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+    with ProcessPoolExecutor(max_workers=workers) as executor:
+        parts = list(executor.map(_bucket_chips, jobs))
+    data = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+    if similarity is not None:
+        rows = torch.from_numpy(similarity)[torch.from_numpy(data["vehicle"]).long()]
+        top = torch.topk(rows, min(RETRIEVAL_TOP, bank.num_vehicles), dim=1)  # sorted, best first
+        data["top_index"] = top.indices.numpy().astype(np.int16)
+        data["top_score"] = top.values.numpy().astype(np.float32)
+    return data
 
 
 def train_retrieval(
@@ -263,9 +352,11 @@ def train_retrieval(
     seed: int = 0,
     held_out_share: float = 0.05,
     log_every: int = 250,
+    init: ProxyRetrievalNet | None = None,
 ) -> tuple[ProxyRetrievalNet, dict[int, float]]:
     """Train a :class:`ProxyRetrievalNet` on :func:`make_retrieval_data`'s chips (AdamW, 200 warm-up steps,
-    cosine decay; :func:`retrieval_loss`), a seeded ``held_out_share`` of them kept out.
+    cosine decay; :func:`retrieval_loss`), a seeded ``held_out_share`` of them kept out, from ``init``'s
+    weights where given.
 
     Returns:
         ``(net, recall)``: the network in eval mode, and the share of held-out chips whose bucket's best
@@ -290,6 +381,11 @@ def train_retrieval(
     held, train = order[:held_count], order[held_count:]
     tensors = {k: torch.from_numpy(np.asarray(v)) for k, v in data.items()}
     net = ProxyRetrievalNet(bank)
+    if init is not None:  # continue from a trained network of the same bank and sizes
+        if init.config() != net.config():
+            raise ValueError(f"init: expected a network of {net.config()}, got {init.config()}")
+        net.load_state_dict(init.state_dict())
+    net.train()
     optimizer = torch.optim.AdamW(net.parameters(), lr=learning_rate, weight_decay=1e-4)
     schedule = torch.optim.lr_scheduler.LambdaLR(
         optimizer, lambda s: min(1.0, (s + 1) / 200) * 0.5 * (1 + math.cos(math.pi * min(s, steps) / steps))

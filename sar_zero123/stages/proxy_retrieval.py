@@ -14,12 +14,13 @@ import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Literal
 
 import numpy as np
 
 from sar_zero123.config import write_json_atomic
 from sar_zero123.model.proxy import DEFAULT_PROXY
-from sar_zero123.model.retrieval import make_retrieval_data, save_retrieval, train_retrieval
+from sar_zero123.model.retrieval import load_retrieval, make_retrieval_data, save_retrieval, train_retrieval
 from sar_zero123.runs.folder import StageTimer, finish_run
 from sar_zero123.runs.stage import open_stage_folder
 from sar_zero123.sim.proxy import ProxyBank
@@ -34,9 +35,11 @@ class ProxyRetrievalConfig:
     """Train the learned shortlist of the default proxy bank into ``output_dir/retrieval``."""
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
-    ADVANCED_FIELDS = ("batch_size", "learning_rate", "temperature", "workers")
+    ADVANCED_FIELDS = ("batch_size", "learning_rate", "temperature", "workers", "pool_vehicles")
 
     output_dir: str = "runs/proxy_retrieval"  # run folder: data.npz, retrieval/, metrics.json
+    target: Literal["pose", "turntable"] = "pose"  # rank as the fit at the chip's pose, or from every side
+    init: str | None = None  # a saved network (name or folder) of the same bank to start from
     num_vehicles: int = DEFAULT_PROXY["num_vehicles"]  # vehicles of the bank it ranks (the default bank's)
     depressions_deg: list[float] = field(default_factory=lambda: [15.0, 20.0, 30.0, 45.0])  # bucket centres
     chips_per_bucket: int = 200  # training chips per 5 deg pose bucket
@@ -45,6 +48,7 @@ class ProxyRetrievalConfig:
     learning_rate: float = 2e-3  # AdamW peak learning rate (cosine decay)
     temperature: float = 0.01  # softmax temperature of the targets (the bank's correlations)
     seed: int = 0  # chips, split and initialisation
+    pool_vehicles: int = 1500  # procedural vehicles beyond the bank that turntable targets cover
     workers: int = 2  # processes rendering the training chips
     resume: bool = False  # a finished run with these settings is returned; an unfinished one is redone
     restart: bool = False  # move an existing folder at output_dir aside (never deleted) and train anew
@@ -54,7 +58,7 @@ class ProxyRetrievalConfig:
         if not all(0.0 < d < 90.0 for d in self.depressions_deg) or not self.depressions_deg:
             raise ValueError(f"depressions_deg: expected degrees in (0, 90), got {self.depressions_deg}")
         for name, low in (("num_vehicles", 1), ("chips_per_bucket", 1), ("steps", 1), ("batch_size", 1),
-                          ("workers", 1)):  # fmt: skip
+                          ("workers", 1), ("pool_vehicles", 0)):  # fmt: skip
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < low:
                 raise ValueError(f"{name}: expected an integer >= {low}, got {value!r}")
@@ -81,8 +85,9 @@ def run_proxy_retrieval(config: ProxyRetrievalConfig) -> Path:
         return out
     bank = {**DEFAULT_PROXY, "num_vehicles": config.num_vehicles}
     bank = {key: bank[key] for key in ("num_vehicles", "first_seed", "blur_sigma_px", "render_seed")}
-    settings = {"bank": bank, "depressions_deg": config.depressions_deg,
-                "chips_per_bucket": config.chips_per_bucket, "seed": config.seed}  # fmt: skip
+    settings = {"bank": bank, "depressions_deg": config.depressions_deg, "target": config.target,
+                "chips_per_bucket": config.chips_per_bucket, "seed": config.seed,
+                "pool_vehicles": config.pool_vehicles if config.target == "turntable" else 0}  # fmt: skip
     key = json.dumps(settings, sort_keys=True)
     data_file = folder.path / "data.npz"
     data = None
@@ -92,14 +97,21 @@ def run_proxy_retrieval(config: ProxyRetrievalConfig) -> Path:
                 data = {name: stored[name] for name in stored.files if name != "key"}
     if data is None:
         data = make_retrieval_data(ProxyBank(*bank.values()), config.depressions_deg, config.chips_per_bucket,
-                                   config.seed, workers=config.workers)  # fmt: skip
+                                   config.seed, workers=config.workers, target=config.target,
+                                   pool=config.pool_vehicles)  # fmt: skip
         partial = folder.path / "data.partial.npz"
         np.savez(partial, key=np.array(key), **data)
         partial.replace(data_file)
         logger.info("rendered %d training chips in %.0f s", len(data["azimuth"]), timer.seconds)
+    init = None
+    if config.init is not None:
+        from sar_zero123.pretrained import resolve_retrieval
+
+        init = load_retrieval(resolve_retrieval(config.init), bank)
     net, recall = train_retrieval(data, bank, config.steps, config.batch_size, config.learning_rate,
-                                  config.temperature, config.seed)  # fmt: skip
+                                  config.temperature, config.seed, init=init)  # fmt: skip
     save_retrieval(net, out, {"training": {"chips": int(len(data["azimuth"])), "steps": config.steps,
+                                           "target": config.target, "init": config.init,
                                            "command": "train/train_proxy_retrieval.py"}})  # fmt: skip
     metrics = {"held_out_recall": {str(k): v for k, v in recall.items()}, "chips": int(len(data["azimuth"])),
                "seconds": timer.seconds}  # fmt: skip

@@ -128,10 +128,10 @@ def test_recorded_retrieval_is_checked_and_loaded(tmp_path):
 
 def test_training_chips_carry_the_banks_pooled_correlations_as_targets():
     bank_args = tuple(BANK.values())
-    out = _bucket_chips((bank_args, 90.0, 15.0, 4, (0, 1), 64))
+    out = _bucket_chips((bank_args, 90.0, 15.0, 4, (0, 1), 64, 0))
     assert out["inputs"].shape == (4, 32, 32) and out["inputs"].dtype == np.float16
     assert out["top_index"].shape == (4, min(RETRIEVAL_TOP, BANK["num_vehicles"]))
     assert np.all(np.abs(out["azimuth"] - 90.0) <= 2.5) and np.all(np.abs(out["depression"] - 15.0) <= 2.5)
     assert np.all(np.diff(out["top_score"], axis=1) <= 0)  # best first
-    again = _bucket_chips((bank_args, 90.0, 15.0, 4, (0, 1), 64))
+    again = _bucket_chips((bank_args, 90.0, 15.0, 4, (0, 1), 64, 0))
     np.testing.assert_array_equal(out["top_index"], again["top_index"])  # seeded

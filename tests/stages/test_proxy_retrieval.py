@@ -47,3 +47,25 @@ def test_a_tiny_run_writes_a_sealed_network_for_its_bank_and_its_recall(tmp_path
 def test_bad_settings_are_refused_by_name(changes, match):
     with pytest.raises(ValueError, match=match):
         ProxyRetrievalConfig(**{**TINY, **changes})
+
+
+def test_turntable_targets_rank_the_bank_by_likeness_from_every_side(tmp_path):
+    """A bank vehicle is most like itself from every side (similarity 1 with itself, its renders being the
+    same bytes); a run with turntable targets starts from a saved network and records both."""
+    from sar_zero123.model.retrieval import make_retrieval_data, turntable_similarity
+
+    bank = ProxyBank(3)
+    similarity = turntable_similarity(bank, pool=2, step_deg=90.0, workers=1)
+    assert similarity.shape == (5, 3) and np.all(similarity <= 1.0 + 1e-3)
+    np.testing.assert_allclose(np.diag(similarity[:3]), 1.0, atol=1e-3)
+    assert np.all(np.argmax(similarity[:3], axis=1) == np.arange(3))
+    data = make_retrieval_data(bank, [17.0], 1, workers=1, target="turntable", pool=2)
+    assert data["top_index"].shape == (72, 3) and np.all(data["vehicle"] < 5)
+    own = data["vehicle"] < 3  # the bank's own vehicles: themselves first
+    assert np.array_equal(data["top_index"][own, 0], data["vehicle"][own])
+    first = run_proxy_retrieval(ProxyRetrievalConfig(output_dir=str(tmp_path / "a"), **TINY))
+    out = run_proxy_retrieval(ProxyRetrievalConfig(output_dir=str(tmp_path / "b"), target="turntable",
+                                                   init=str(first), pool_vehicles=2, **TINY))  # fmt: skip
+    assert json.loads((out / "config.json").read_text())["training"]["target"] == "turntable"
+    with pytest.raises(ValueError, match=r"target: expected 'pose' or 'turntable', got 'x'"):
+        make_retrieval_data(bank, [17.0], 1, workers=1, target="x")
