@@ -20,6 +20,7 @@ The network is tied to one bank (its logits are that bank's vehicles): its confi
 
 from __future__ import annotations
 
+import functools
 import json
 import logging
 import math
@@ -34,6 +35,7 @@ import torch.nn.functional as F
 from torch import nn
 
 from sar_zero123.domain import to_decibels
+from sar_zero123.model.proxy import proxy_bank
 from sar_zero123.sim.procedural import make_procedural_target
 from sar_zero123.sim.proxy import POSE_BUCKET_DEG, ProxyBank
 from sar_zero123.sim.render import render_chip
@@ -186,7 +188,7 @@ def _bucket_chips(args: tuple) -> dict[str, np.ndarray]:
 
     bank_args, azimuth, depression, count, seed, size, pool = args
     threadpool_limits(limits=1)
-    bank = _worker_bank(*bank_args)
+    bank = proxy_bank(*bank_args)  # built once per worker process
     rng = np.random.default_rng(seed)
     # pose targets: the bank's pooled correlations at the bucket's centre (V, size^2 / 4); turntable targets
     # (pool > 0) are looked up by the caller from each chip's vehicle
@@ -225,7 +227,6 @@ def _bucket_chips(args: tuple) -> dict[str, np.ndarray]:
             "top_score": np.stack(top_score).astype(np.float32)}  # fmt: skip
 
 
-_BANKS: dict[tuple, ProxyBank] = {}
 #: Procedural seed of the turntable pool's first vehicle beyond the bank (:func:`turntable_similarity`).
 TURNTABLE_POOL_SEED = RETRIEVAL_FIRST_SEED + 1_500_000
 
@@ -235,7 +236,13 @@ def _pool_target(bank: ProxyBank, vehicle: int):
     :data:`TURNTABLE_POOL_SEED`."""
     if vehicle < bank.num_vehicles:
         return bank.target(vehicle)
-    return make_procedural_target(TURNTABLE_POOL_SEED + vehicle - bank.num_vehicles)
+    return _pool_vehicle(TURNTABLE_POOL_SEED + vehicle - bank.num_vehicles)
+
+
+@functools.lru_cache(maxsize=4096)
+def _pool_vehicle(seed: int):
+    """A pool vehicle beyond the bank, built once per process (its chips and turntable reuse it)."""
+    return make_procedural_target(seed)
 
 
 def _turntable_features(args: tuple) -> np.ndarray:
@@ -244,7 +251,7 @@ def _turntable_features(args: tuple) -> np.ndarray:
 
     bank_args, vehicles, azimuths, depression, size = args
     threadpool_limits(limits=1)
-    bank = _worker_bank(*bank_args)
+    bank = proxy_bank(*bank_args)  # built once per worker process
     out = []
     for vehicle in vehicles:
         target = _pool_target(bank, int(vehicle))
@@ -281,11 +288,6 @@ def turntable_similarity(
         )
     return (torch.einsum("upd,vpd->uv", features, features[: bank.num_vehicles]) / len(azimuths)).numpy()
 
-
-def _worker_bank(*bank_args: Any) -> ProxyBank:
-    if bank_args not in _BANKS:
-        _BANKS[bank_args] = ProxyBank(*bank_args)
-    return _BANKS[bank_args]
 
 
 def make_retrieval_data(
