@@ -35,7 +35,6 @@ import torch.nn.functional as F
 from torch import nn
 
 from sar_zero123.domain import to_decibels
-from sar_zero123.model.proxy import proxy_bank
 from sar_zero123.sim.procedural import make_procedural_target
 from sar_zero123.sim.proxy import POSE_BUCKET_DEG, ProxyBank
 from sar_zero123.sim.render import render_chip
@@ -188,7 +187,7 @@ def _bucket_chips(args: tuple) -> dict[str, np.ndarray]:
 
     bank_args, azimuth, depression, count, seed, size, pool = args
     threadpool_limits(limits=1)
-    bank = proxy_bank(*bank_args)  # built once per worker process
+    bank = _bank(*bank_args)  # built once per worker process
     rng = np.random.default_rng(seed)
     # pose targets: the bank's pooled correlations at the bucket's centre (V, size^2 / 4); turntable targets
     # (pool > 0) are looked up by the caller from each chip's vehicle
@@ -227,6 +226,8 @@ def _bucket_chips(args: tuple) -> dict[str, np.ndarray]:
             "top_score": np.stack(top_score).astype(np.float32)}  # fmt: skip
 
 
+#: A bank per settings, built once per process (``model.proxy.proxy_bank`` would import this module back).
+_bank = functools.lru_cache(maxsize=4)(ProxyBank)
 #: Procedural seed of the turntable pool's first vehicle beyond the bank (:func:`turntable_similarity`).
 TURNTABLE_POOL_SEED = RETRIEVAL_FIRST_SEED + 1_500_000
 
@@ -251,7 +252,7 @@ def _turntable_features(args: tuple) -> np.ndarray:
 
     bank_args, vehicles, azimuths, depression, size = args
     threadpool_limits(limits=1)
-    bank = proxy_bank(*bank_args)  # built once per worker process
+    bank = _bank(*bank_args)  # built once per worker process
     out = []
     for vehicle in vehicles:
         target = _pool_target(bank, int(vehicle))

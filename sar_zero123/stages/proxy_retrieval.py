@@ -66,6 +66,10 @@ class ProxyRetrievalConfig:
             raise ValueError(
                 f"num_vehicles: expected at most {np.iinfo(np.int16).max}, got {self.num_vehicles}"
             )
+        if self.init is not None:  # refused before any chip is rendered
+            from sar_zero123.pretrained import resolve_retrieval
+
+            resolve_retrieval(self.init)
         for name in ("learning_rate", "temperature"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}: expected a value > 0, got {getattr(self, name)!r}")

@@ -49,6 +49,12 @@ def test_bad_settings_are_refused_by_name(changes, match):
         ProxyRetrievalConfig(**{**TINY, **changes})
 
 
+def test_a_missing_start_network_is_refused_before_any_work(tmp_path):
+    with pytest.raises(FileNotFoundError, match=r"retrieval '.*nothing': no config.json in"):
+        ProxyRetrievalConfig(output_dir=str(tmp_path / "run"), init=str(tmp_path / "nothing"), **TINY)
+    assert not (tmp_path / "run").exists()
+
+
 def test_turntable_targets_rank_the_bank_by_likeness_from_every_side(tmp_path):
     """A bank vehicle is most like itself from every side (similarity 1 with itself, its renders being the
     same bytes); a run with turntable targets starts from a saved network and records both."""
