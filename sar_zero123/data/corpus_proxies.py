@@ -33,6 +33,7 @@ import torch
 from safetensors.torch import load_file, save_file
 
 from sar_zero123.config import write_json_atomic
+from sar_zero123.data.datasets import load_chip
 from sar_zero123.data.images import load_magnitude
 from sar_zero123.data.index import load_index
 from sar_zero123.domain import naming_write_errors, to_decibels
@@ -86,6 +87,7 @@ def write_corpus_proxies(
     blur_sigma_px: float = 1.5,
     render_seed: int = 0,
     candidates: int = 2,
+    size: int | None = None,
     num_workers: int = 1,
     progress: bool = True,
 ) -> Path:
@@ -98,6 +100,10 @@ def write_corpus_proxies(
         num_vehicles, first_seed, blur_sigma_px, render_seed: The :class:`ProxyBank` (a smaller bank than
             the pipeline's fits a little worse: a UNet trained on it learns not to copy its proxy).
         candidates: Best-scoring bank vehicles kept per corpus vehicle (1-8).
+        size: Side of the chips the proxies are fitted to and rendered at: each chip is read as a
+            fine-tune reads it (:func:`~sar_zero123.data.datasets.load_chip`: a centre crop keeping the
+            pixel spacing, so real MSTAR chips of 128 to 193 pixels fit at their 0.2 m). ``None``: the
+            chips as they are, which must then be square and of one size (a simulated corpus).
         num_workers: Processes fitting vehicles in parallel.
         progress: Print a line every 200 vehicles.
 
@@ -126,10 +132,16 @@ def write_corpus_proxies(
     vehicles: dict[tuple[str, str], list[int]] = {}
     for n, record in enumerate(records):
         vehicles.setdefault((record.target_class, record.serial), []).append(n)
-    jobs, size = [], None
+    if size is not None and (isinstance(size, bool) or int(size) != size or size < 1):
+        raise ValueError(f"size: expected an integer >= 1 or None, got {size!r}")
+    jobs, read_size = [], size
     for members in vehicles.values():
-        chip = np.asarray(load_magnitude(records[members[0]].path), dtype=np.float32)
-        size = chip.shape[-1] if size is None else size
+        path = records[members[0]].path
+        if read_size is None:  # the chips as stored: one square size
+            chip = np.asarray(load_magnitude(path), dtype=np.float32)
+        else:
+            chip = load_chip(path, int(read_size))
+        size = chip.shape[-1] if size is None else int(size)
         if chip.shape != (size, size):
             raise ValueError(
                 f"{paths[members[0]]}: expected a square chip of the index's first size {size}, got "

@@ -35,12 +35,16 @@ class ProxiesConfig:
     output_dir: str = "runs/proxies"  # stage folder: its record and proxies/
     num_vehicles: int = 250  # bank vehicles fitted to each data vehicle (sar_zero123.sim.proxy.ProxyBank)
     candidates: int = 2  # best-fitting bank vehicles kept per data vehicle (the best, then runners-up)
+    image_size: int | None = None  # side the chips are read at as a fine-tune reads them (None: as stored)
     first_seed: int = PROXY_FIRST_SEED  # procedural seed of the bank's first vehicle
     num_workers: int = 2  # processes fitting vehicles in parallel
     resume: bool = True  # a finished stage with these settings is returned; an unfinished one is redone
     restart: bool = False  # move an existing folder at output_dir aside (never deleted) and start over
 
     def __post_init__(self) -> None:
+        size = self.image_size
+        if size is not None and (isinstance(size, bool) or not isinstance(size, int) or size < 1):
+            raise ValueError(f"image_size: expected an integer >= 1 or None, got {size!r}")
         for name in ("num_vehicles", "candidates", "num_workers"):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, int) or value < 1:
@@ -71,7 +75,7 @@ def run_proxies(config: ProxiesConfig) -> Path:
         return out
     record = write_corpus_proxies(
         config.data, out, num_vehicles=config.num_vehicles, candidates=config.candidates,
-        first_seed=config.first_seed, num_workers=config.num_workers,
+        first_seed=config.first_seed, size=config.image_size, num_workers=config.num_workers,
     )  # fmt: skip
     finish_run(folder, [f"{PROXIES_FOLDER}/{Path(record).name}"], seconds=timer.seconds)
     return out

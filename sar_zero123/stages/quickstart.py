@@ -121,7 +121,7 @@ def _training_stages(config: QuickstartConfig, preset: Preset, out: Path) -> lis
     proxies_dir = out / "proxies"
     if _takes_proxy(preset.prior):  # each training chip's simulator proxies, the fine-tunes' condition
         plans.append(StagePlan("proxies", _build(
-            "proxies", ProxiesConfig, data=data, output_dir=str(proxies_dir),
+            "proxies", ProxiesConfig, data=data, output_dir=str(proxies_dir), image_size=preset.image_size,
         ), run_proxies))  # fmt: skip
 
     rehearsal_dir = out / "rehearsal"

@@ -75,6 +75,41 @@ def test_corpus_proxies_are_the_best_bank_fits_rendered_at_every_chip_pose(corpu
     assert (corpus / PROXIES_FILE).is_file()
 
 
+def test_corpus_proxies_of_chips_of_several_sizes_fit_the_crop_a_fine_tune_reads(tmp_path: Path) -> None:
+    """Real folders mix chip sizes (MSTAR: 128 to 193 px): with ``size`` each vehicle is fitted to the centre
+    crop a fine-tune reads (``load_chip``) and its proxies rendered at that size; without it they are refused."""
+    import dataclasses
+
+    from chip_folders import write_chip_folder
+
+    from sar_zero123.data.datasets import load_chip
+    from sar_zero123.data.index import write_index
+
+    root = write_chip_folder(tmp_path / "mixed", classes=("A",), azimuths_deg=(0, 90), size=24)
+    other = write_chip_folder(tmp_path / "other", classes=("B",), azimuths_deg=(0, 90), size=30)
+    records = list(load_index(root))
+    for record in load_index(other):
+        path = root / Path(record.path).name
+        path.write_bytes(Path(record.path).read_bytes())
+        records.append(dataclasses.replace(record, path=path))
+    write_index(records, root)
+    with pytest.raises(ValueError, match=r"expected a square chip of the index's first size 24, got \(30, 30\)"):
+        write_corpus_proxies(root, tmp_path / "refused", **BANK, candidates=1, progress=False)
+    with pytest.raises(ValueError, match="size: expected an integer >= 1 or None, got 0"):
+        write_corpus_proxies(root, tmp_path / "refused", **BANK, size=0, progress=False)
+    write_corpus_proxies(root, tmp_path / "proxies", **BANK, candidates=1, size=20, progress=False)
+    chips = load_corpus_proxies(root, [r.path for r in records], tmp_path / "proxies")
+    assert chips.shape == (8, 1, 20, 20)
+    bank = ProxyBank(**BANK)
+    for first in (0, 4):  # each vehicle (4 chips) fitted to its first chip's 20 px centre crop
+        fit = records[first]
+        crop = load_chip(fit.path, 20)
+        scores = bank.scores(to_decibels(crop.astype(np.float64)), fit.azimuth_deg, fit.depression_deg)
+        for n in range(first, first + 4):
+            expected = bank.render(int(np.argmax(scores)), records[n].azimuth_deg, records[n].depression_deg, 20)
+            np.testing.assert_allclose(chips[n, 0].numpy(), expected, rtol=0, atol=1e-3)
+
+
 def test_a_widened_model_computes_what_it_did_until_trained() -> None:
     pipe = build_sar_zero123("tiny", seed=0, spatial_pose="rotated_input")
     unet, projection = pipe.unet, pipe.pose_projection

@@ -162,6 +162,7 @@ def test_a_proxy_prior_plans_a_proxies_stage_that_every_fine_tune_conditions_on(
     assert between == ["proxies", "finetune lambda=0", "finetune lambda=4"]
     stage = by_name["proxies"]
     assert (stage.data, stage.output_dir) == (str(out / "data"), str(out / "proxies"))
+    assert stage.image_size == 64  # the chips read as the fine-tunes read them (real chips: a centre crop)
     for name in ("finetune lambda=0", "finetune lambda=4"):
         assert by_name[name].proxies == str(out / "proxies" / "proxies")
     assert {by_name[name].start_from for name in ("evaluate", "evaluate depressions")} == {"proxy"}
