@@ -191,7 +191,7 @@ def _bucket_chips(args: tuple) -> dict[str, np.ndarray]:
     rng = np.random.default_rng(seed)
     # pose targets: the bank's pooled correlations at the bucket's centre (V, size^2 / 4); turntable targets
     # (pool > 0) are looked up by the caller from each chip's vehicle
-    features = None if pool else bank._bucket_features(azimuth, depression, size)
+    features = None if pool else bank.bucket_features(azimuth, depression, size)
     chips, azimuths, depressions, top_index, top_score, vehicles = [], [], [], [], [], []
     generator = torch.Generator().manual_seed(int(rng.integers(2**62)))
     for k in range(count):
@@ -211,7 +211,7 @@ def _bucket_chips(args: tuple) -> dict[str, np.ndarray]:
         if features is None:
             best, scores = np.zeros(0, dtype=np.int64), np.zeros(0)
         else:
-            scores = features @ bank._coarse_features(to_decibels(magnitude)[None])[0]
+            scores = features @ bank.coarse_features(to_decibels(magnitude)[None])[0]
             best = np.argsort(-scores, kind="stable")[:RETRIEVAL_TOP]
         if rng.uniform() < 0.5:  # the co-domain's random monotonic map: the target stays the chip's own
             magnitude = random_monotonic(torch.from_numpy(magnitude)[None, None].clamp(0, 1), gamma=0.5,
@@ -260,7 +260,7 @@ def _turntable_features(args: tuple) -> np.ndarray:
             render_chip(target, a, depression, size, np.random.default_rng(bank.render_seed))
             for a in azimuths
         ]
-        out.append(bank._coarse_features(to_decibels(np.stack(renders))).astype(np.float16))
+        out.append(bank.coarse_features(to_decibels(np.stack(renders))).astype(np.float16))
     return np.stack(out)
 
 

@@ -287,8 +287,8 @@ class ProxyBank:
             ranked = ranked[~np.isin(ranked, excluded)]
             candidates = np.sort(ranked[: self.shortlist])
         elif self.shortlist:  # the vehicles that fit best near this pose, then the exact fit among them
-            features = self._bucket_features(azimuth_deg, depression_deg, size)
-            coarse = features @ self._coarse_features(chip[None])[0]
+            features = self.bucket_features(azimuth_deg, depression_deg, size)
+            coarse = features @ self.coarse_features(chip[None])[0]
             coarse[excluded] = -np.inf
             candidates = np.sort(np.argsort(-coarse, kind="stable")[: self.shortlist])
         renders = np.stack(
@@ -301,7 +301,7 @@ class ProxyBank:
         scores[excluded] = -np.inf
         return scores, shifts
 
-    def _coarse_features(self, images: np.ndarray) -> np.ndarray:
+    def coarse_features(self, images: np.ndarray) -> np.ndarray:
         """Blurred, 2 x 2 average-pooled, mean-free, unit-norm images ``(N, S * S / 4)`` float32: their dot
         products are the Pearson correlations of the pooled images (any affine map of decibels alike)."""
         images = np.asarray(images, dtype=np.float64)
@@ -314,7 +314,7 @@ class ProxyBank:
         norm = np.linalg.norm(pooled, axis=1, keepdims=True)
         return np.where(norm > 0, pooled / np.maximum(norm, 1e-300), 0.0).astype(np.float32)
 
-    def _bucket_features(self, azimuth_deg: float, depression_deg: float, size: int) -> np.ndarray:
+    def bucket_features(self, azimuth_deg: float, depression_deg: float, size: int) -> np.ndarray:
         """Every vehicle's coarse features at the centre of the pose's bucket (rendered once, then kept)."""
         turns = int(round(360.0 / POSE_BUCKET_DEG))
         key = (int(round(float(azimuth_deg) / POSE_BUCKET_DEG)) % turns,
@@ -327,7 +327,7 @@ class ProxyBank:
         renders = np.stack(
             [to_decibels(self.render(k, azimuth, depression, size)) for k in range(self.num_vehicles)]
         )
-        self._buckets[key] = self._coarse_features(renders)
+        self._buckets[key] = self.coarse_features(renders)
         while len(self._buckets) > _MAX_POSE_BUCKETS:
             self._buckets.popitem(last=False)
         return self._buckets[key]
