@@ -76,8 +76,9 @@ def test_corpus_proxies_are_the_best_bank_fits_rendered_at_every_chip_pose(corpu
 
 
 def test_corpus_proxies_of_chips_of_several_sizes_fit_the_crop_a_fine_tune_reads(tmp_path: Path) -> None:
-    """Real folders mix chip sizes (MSTAR: 128 to 193 px): with ``size`` each vehicle is fitted to the centre
-    crop a fine-tune reads (``load_chip``) and its proxies rendered at that size; without it they are refused."""
+    """Real folders mix chip sizes (MSTAR: 128 to 193 px): with ``size`` each vehicle is fitted to the
+    centre crop a fine-tune reads (``load_chip``) and its proxies rendered at that size; without it they
+    are refused."""
     import dataclasses
 
     from chip_folders import write_chip_folder
@@ -93,7 +94,8 @@ def test_corpus_proxies_of_chips_of_several_sizes_fit_the_crop_a_fine_tune_reads
         path.write_bytes(Path(record.path).read_bytes())
         records.append(dataclasses.replace(record, path=path))
     write_index(records, root)
-    with pytest.raises(ValueError, match=r"expected a square chip of the index's first size 24, got \(30, 30\)"):
+    refused = r"expected a square chip of the index's first size 24, got \(30, 30\)"
+    with pytest.raises(ValueError, match=refused):
         write_corpus_proxies(root, tmp_path / "refused", **BANK, candidates=1, progress=False)
     with pytest.raises(ValueError, match="size: expected an integer >= 1 or None, got 0"):
         write_corpus_proxies(root, tmp_path / "refused", **BANK, size=0, progress=False)
@@ -105,8 +107,9 @@ def test_corpus_proxies_of_chips_of_several_sizes_fit_the_crop_a_fine_tune_reads
         fit = records[first]
         crop = load_chip(fit.path, 20)
         scores = bank.scores(to_decibels(crop.astype(np.float64)), fit.azimuth_deg, fit.depression_deg)
+        best = int(np.argmax(scores))
         for n in range(first, first + 4):
-            expected = bank.render(int(np.argmax(scores)), records[n].azimuth_deg, records[n].depression_deg, 20)
+            expected = bank.render(best, records[n].azimuth_deg, records[n].depression_deg, 20)
             np.testing.assert_allclose(chips[n, 0].numpy(), expected, rtol=0, atol=1e-3)
 
 
