@@ -26,6 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
 import torch
 from torch.utils.data import DataLoader
 
@@ -46,6 +47,7 @@ from sar_zero123.evaluation.evaluators import (
     score_views,
     standard_error,
 )
+from sar_zero123.evaluation.template import read_chip_templates
 from sar_zero123.model.build import same_weights
 from sar_zero123.model.conditioning import encode_condition_latents, takes_proxy
 from sar_zero123.model.pipeline import SARZero123Pipeline
@@ -79,7 +81,7 @@ __all__ = [
 ]
 
 # the errors whose floor-to-ceiling gap Table III reports, keyed `<first word>_gap_closed`
-GAP_METRICS = ("azimuth_error_deg", "accuracy", "depression_error_deg")
+GAP_METRICS = ("azimuth_error_deg", "accuracy", "depression_error_deg", "template_azimuth_error_deg")
 BLUR_SIGMA_PX = 1.5  # Gaussian blur before the "closer to target depression" correlations
 # Table III of the paper (zero123 fine-tuned on MSTAR, 1,000 samples: 500 seen, 500 unseen T72).
 PAPER_TABLE3 = {
@@ -154,14 +156,22 @@ class PairSet:
     has_reference: torch.Tensor
     # (N, 1, S, S) those views (zeros where has_reference is False); None where no pair has one
     references: torch.Tensor | None = None
+    # the template reading's turntable (`chip_templates`): chips (M, 1, S, S) and their azimuths (M,), shared
+    # by every pair, and (N, M) which of them each pair's view is read against; None: no template reading
+    templates: torch.Tensor | None = None
+    template_azimuth_deg: torch.Tensor | None = None
+    template_candidates: torch.Tensor | None = None
 
     def __len__(self) -> int:
         return self.inputs.shape[0]
 
     def subset(self, count: int) -> PairSet:
-        """The first `count` pairs."""
-        columns = (getattr(self, f) for f in self.__dataclass_fields__)
-        return PairSet(*(None if column is None else column[:count] for column in columns))
+        """The first `count` pairs (the templates, shared by every pair, whole)."""
+        shared = ("templates", "template_azimuth_deg")
+        columns = {f: getattr(self, f) for f in self.__dataclass_fields__}
+        return PairSet(**{
+            f: column if column is None or f in shared else column[:count] for f, column in columns.items()
+        })  # fmt: skip
 
 
 def evaluation_groups(
@@ -283,6 +293,7 @@ def _stack_pairs(group: str, dataset: ViewPairDataset, first_seed: int) -> PairS
         if (index + 1) % _LOAD_LOG_EVERY == 0:
             logger.info("%s: loaded %d/%d pairs", group, loaded, len(dataset))
     references, has_reference = input_depression_views(dataset)
+    templates, template_azimuth_deg, template_candidates = chip_templates(dataset)
     logger.info("%s: %d pairs from %d chips", group, len(dataset), len(dataset.records))
     return PairSet(
         inputs=torch.cat(columns["input"]),
@@ -297,7 +308,49 @@ def _stack_pairs(group: str, dataset: ViewPairDataset, first_seed: int) -> PairS
         target_depression_deg=torch.cat(columns["target_depression_deg"]).float(),
         has_reference=has_reference,
         references=references,
+        templates=templates,
+        template_azimuth_deg=template_azimuth_deg,
+        template_candidates=template_candidates,
     )
+
+
+def chip_templates(
+    dataset: ViewPairDataset, depression_tol_deg: float = 0.01
+) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
+    """The turntable each pair's view is read against (`sar_zero123.evaluation.template.read_chip_templates`):
+    the other chips of the target's vehicle (class and serial) at the target's depression, the target itself
+    left out.
+
+    Returns:
+        ``(chips (M, 1, S, S) normalised dB, their azimuths (M,) float64, candidates (N, M) bool)``, the
+        chips those of any pair; ``(None, None, None)`` where a pair has no other chip to be read against.
+    """
+    records = dataset.records
+    members: dict[tuple[str, str], list[int]] = {}
+    for index, record in enumerate(records):
+        members.setdefault((record.target_class, record.serial), []).append(index)
+    per_pair = []
+    for _, target in dataset.pairs:
+        chosen = records[int(target)]
+        depression = chosen.depression_deg
+        per_pair.append([
+            index for index in members[(chosen.target_class, chosen.serial)]
+            if index != target and abs(records[index].depression_deg - depression) <= depression_tol_deg
+        ])  # fmt: skip
+    if not per_pair or not all(per_pair):
+        return None, None, None
+    used = sorted({index for indices in per_pair for index in indices})
+    column = {index: k for k, index in enumerate(used)}
+    candidates = torch.zeros(len(per_pair), len(used), dtype=torch.bool)
+    for row, indices in enumerate(per_pair):
+        candidates[row, [column[index] for index in indices]] = True
+    size, crop = dataset.size, dataset.crop_size
+    chips = torch.stack([
+        dataset.scaling.normalize(torch.from_numpy(load_chip(records[i].path, size, crop))[None])
+        for i in used
+    ]).float()  # fmt: skip
+    azimuths = torch.tensor([records[i].azimuth_deg for i in used], dtype=torch.float64)
+    return chips, azimuths, candidates
 
 
 def input_depression_views(dataset: ViewPairDataset) -> tuple[torch.Tensor | None, torch.Tensor]:
@@ -546,6 +599,16 @@ def score(
         batch_size=batch_size,
         device=device,
     )
+    if pairs.templates is not None:  # the azimuth a footprint turned in place cannot fool
+        readings = read_chip_templates(
+            generated[:, 0].numpy(), pairs.templates[:, 0].numpy(), pairs.template_azimuth_deg.numpy(),
+            pairs.template_candidates.numpy(), pairs.target_azimuth_deg.numpy(), blur_sigma_px=BLUR_SIGMA_PX,
+        )  # fmt: skip
+        for name, values, scale in (("template_azimuth_error_deg", readings.azimuth_error_deg, 1.0),
+                                    ("front_back_right", readings.front_back_right, 100.0)):  # fmt: skip
+            values = torch.from_numpy(values.astype(np.float64)) * scale
+            scores[name] = values.mean().item()
+            scores[f"{name}_se"] = standard_error(values)
     if pairs.references is not None:
         mask = pairs.has_reference
         closer = closer_to_target_depression(

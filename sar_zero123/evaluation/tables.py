@@ -59,20 +59,25 @@ METRIC_LABELS = {
     "depression_error_deg": "Dep. err. (deg) ↓",
     "depression_overshoot_deg": "Dep. overshoot (deg)",
     "closer_to_target_depression": "Closer to target dep. ↑",
+    "template_azimuth_error_deg": "Template az. err. (deg) ↓",
+    "front_back_right": "Front/back right (%) ↑",
 }
 # columns only pairs with a depression change (and a depression regressor, for the error) give
 DEPRESSION_METRICS = ("depression_error_deg", "depression_overshoot_deg", "closer_to_target_depression")
+# columns of the template reading (the view against its vehicle's other chips), where the pairs have one
+TEMPLATE_METRICS = ("template_azimuth_error_deg", "front_back_right")
 GAP_LABELS = {
     "azimuth_gap_closed": "Az. gap closed ↑",
     "accuracy_gap_closed": "Acc. gap closed ↑",
     "depression_gap_closed": "Dep. gap closed ↑",
+    "template_gap_closed": "Template gap closed ↑",
 }
 
 
 def _format(metric: str, value: float | None) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "-"
-    if metric == "accuracy":
+    if metric in ("accuracy", "front_back_right", "template_azimuth_error_deg"):
         return f"{value:.1f}"
     if metric in ("azimuth_error_deg", "axis_error_deg", "depression_error_deg", "depression_overshoot_deg"):
         return f"{value:.1f}"
@@ -104,8 +109,12 @@ def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_pap
     appear when some row has them (a depression regressor, pairs with d_el != 0).
     """
     present = {key for groups in results.values() for values in groups.values() for key in values}
-    metrics = [*METRICS, *(m for m in DEPRESSION_METRICS if m in present)]
-    gaps = [key for key in GAP_LABELS if key != "depression_gap_closed" or "depression_error_deg" in present]
+    metrics = [*METRICS, *(m for m in (*TEMPLATE_METRICS, *DEPRESSION_METRICS) if m in present)]
+    optional_gaps = {
+        "depression_gap_closed": "depression_error_deg",
+        "template_gap_closed": "template_azimuth_error_deg",
+    }
+    gaps = [key for key in GAP_LABELS if key not in optional_gaps or optional_gaps[key] in present]
     labels = [METRIC_LABELS[m] for m in metrics] + [GAP_LABELS[key] for key in gaps]
     header = "| Method | Views | " + " | ".join(labels) + " | n |"
     lines = [header, "|" + " --- |" * (len(labels) + 3)]

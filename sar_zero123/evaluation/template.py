@@ -23,7 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-__all__ = ["TemplateReadings", "gap_closed", "read_templates", "summarise_readings"]
+__all__ = ["TemplateReadings", "gap_closed", "read_chip_templates", "read_templates", "summarise_readings"]
 
 
 def _normalised(images: np.ndarray, blur_sigma_px: float) -> np.ndarray:
@@ -107,6 +107,60 @@ def read_templates(
         azimuth_error_deg=error,
         front_back_right=error < 90.0,
         identity_kept=identity,
+    )
+
+
+def read_chip_templates(
+    views: np.ndarray,
+    templates: np.ndarray,
+    template_azimuth_deg: Sequence[float],
+    candidates: np.ndarray,
+    requested_azimuth_deg: Sequence[float],
+    blur_sigma_px: float = 1.5,
+) -> TemplateReadings:
+    """Read each view's azimuth off a data folder's own chips of its vehicle (real or simulated).
+
+    Where no renders of the true vehicle exist (real chips, a simulated data folder), its other chips at the
+    requested depression are the turntable: each view's reading is the azimuth of the candidate chip it
+    correlates with best (both blurred, Pearson). The evaluation leaves the target chip itself out, so the
+    true view reads its nearest neighbour's azimuth (the ceiling) and the input copy its own (the floor).
+    ``identity_kept`` is not read here (every template is the view's own vehicle): it is all True.
+
+    Args:
+        views: Generated views ``(N, S, S)``.
+        templates: Chips ``(M, S, S)``.
+        template_azimuth_deg: Each chip's azimuth (deg) ``(M,)``.
+        candidates: ``(N, M)`` bool: the chips each view may be read against (at least one per view).
+        requested_azimuth_deg: Each view's requested absolute azimuth (deg) ``(N,)``.
+        blur_sigma_px: Gaussian blur (pixels) of views and templates before they are correlated.
+
+    Raises:
+        ValueError: For shapes that do not match, or a view without a candidate chip.
+    """
+    views, templates = np.asarray(views), np.asarray(templates)
+    azimuths = np.asarray(template_azimuth_deg, dtype=np.float64)
+    candidates = np.asarray(candidates, dtype=bool)
+    requested = np.asarray(requested_azimuth_deg, dtype=np.float64)
+    if views.ndim != 3 or templates.ndim != 3 or templates.shape[1:] != views.shape[1:]:
+        raise ValueError(
+            f"views (N, S, S) and templates (M, S, S) must share S, got {views.shape} and {templates.shape}"
+        )
+    n, m = len(views), len(templates)
+    if azimuths.shape != (m,) or candidates.shape != (n, m) or requested.shape != (n,):
+        raise ValueError(
+            f"template_azimuth_deg ({m},), candidates ({n}, {m}) and requested_azimuth_deg ({n},) expected, "
+            f"got {azimuths.shape}, {candidates.shape} and {requested.shape}"
+        )
+    if n and not candidates.any(axis=1).all():
+        raise ValueError(f"candidates: view {int(np.argmin(candidates.any(axis=1)))} has no candidate chip")
+    correlation = _normalised(views, blur_sigma_px) @ _normalised(templates, blur_sigma_px).T  # (N, M)
+    matched = azimuths[np.argmax(np.where(candidates, correlation, -np.inf), axis=1)]
+    error = _angle_between(matched, requested)
+    return TemplateReadings(
+        matched_azimuth_deg=matched,
+        azimuth_error_deg=error,
+        front_back_right=error < 90.0,
+        identity_kept=np.ones(n, dtype=bool),
     )
 
 

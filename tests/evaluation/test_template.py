@@ -70,3 +70,61 @@ def test_shapes_that_do_not_match_are_refused(turntables):
         read_templates(views, turntables, GRID[:4], [0, 0], [0.0, 0.0])
     with pytest.raises(ValueError, match=r"vehicle: expected indices in \[0, 3\)"):
         read_templates(views, turntables, GRID, [0, 3], [0.0, 0.0])
+
+
+def test_chip_templates_read_each_view_against_its_candidate_chips_only(turntables):
+    """A data folder's own chips as the turntable: each view reads the azimuth of the candidate chip it
+    correlates best with (a double-loop reference), never a chip outside its candidates."""
+    from sar_zero123.evaluation.template import read_chip_templates
+
+    chips = turntables.reshape(-1, 10, 10)  # 24 chips: 3 vehicles x 8 azimuths
+    azimuths = np.tile(GRID, 3)
+    rng = np.random.default_rng(2)
+    views = chips[[1, 9, 20]] + 0.05 * rng.random((3, 10, 10))
+    candidates = np.zeros((3, 24), dtype=bool)
+    candidates[0, :8] = candidates[1, 8:16] = candidates[2, 16:] = True
+    candidates[1, 9] = False  # the view's own chip left out: it reads another
+    requested = np.array([45.0, 45.0, 180.0])
+    got = read_chip_templates(views, chips, azimuths, candidates, requested, blur_sigma_px=1.0)
+    for n in range(3):
+        view = gaussian_filter(views[n], 1.0).ravel()
+        corr = [np.corrcoef(view, gaussian_filter(chips[m], 1.0).ravel())[0, 1] for m in range(24)]
+        corr = np.where(candidates[n], corr, -np.inf)
+        assert got.matched_azimuth_deg[n] == azimuths[int(np.argmax(corr))]
+    assert got.matched_azimuth_deg[0] == 45.0 and got.matched_azimuth_deg[2] == 180.0
+    assert got.matched_azimuth_deg[1] != 45.0
+    np.testing.assert_allclose(got.azimuth_error_deg[[0, 2]], 0.0)
+    assert got.identity_kept.all()
+    with pytest.raises(ValueError, match="view 1 has no candidate chip"):
+        read_chip_templates(views, chips, azimuths, candidates & (np.arange(3) != 1)[:, None], requested)
+    with pytest.raises(ValueError, match=r"candidates \(3, 24\)"):
+        read_chip_templates(views, chips, azimuths, candidates[:, :5], requested)
+
+
+def test_the_evaluation_reads_each_pair_against_its_vehicles_other_chips_at_the_target_depression(tmp_path):
+    """`chip_templates`: per pair, the target's vehicle (class and serial) at its depression, the target
+    left out; the input copy then reads its own azimuth (the floor) and the true view a neighbour's."""
+    from chip_folders import write_chip_folder
+
+    from sar_zero123.data import load_index
+    from sar_zero123.data.view_pairs import ViewPairDataset
+    from sar_zero123.evaluation.protocol import chip_templates
+    from sar_zero123.evaluation.template import read_chip_templates
+
+    folder = write_chip_folder(tmp_path / "chips", azimuths_deg=tuple(range(0, 360, 30)), size=16)
+    records = load_index(folder)
+    pairs = ViewPairDataset(records, size=16, seed=0)
+    chips, azimuths, candidates = chip_templates(pairs)
+    assert candidates.shape == (len(pairs), len(chips)) and chips.shape[1:] == (1, 16, 16)
+    for row, (_, target) in enumerate(pairs.pairs):
+        chosen = records[target]
+        expected = sorted(
+            r.azimuth_deg for k, r in enumerate(records)
+            if k != target and (r.target_class, r.serial, r.depression_deg)
+            == (chosen.target_class, chosen.serial, chosen.depression_deg)
+        )  # fmt: skip
+        assert sorted(azimuths[candidates[row]].tolist()) == expected and len(expected) == 11
+    views = np.stack([pairs[i]["input"][0].numpy() for i in range(len(pairs))])
+    floor = read_chip_templates(views, chips[:, 0].numpy(), azimuths.numpy(), candidates.numpy(),
+                                [records[t].azimuth_deg for _, t in pairs.pairs])  # fmt: skip
+    np.testing.assert_allclose(floor.matched_azimuth_deg, [records[s].azimuth_deg for s, _ in pairs.pairs])

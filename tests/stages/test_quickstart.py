@@ -203,15 +203,18 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
         warnings.simplefilter("ignore")  # tiny sample counts: the Frechet distance warns about n <= D
         report = quickstart.main(["--output_dir", str(out), "--preset", "smoke"])
     text = report.read_text()
-    # with a depression regressor among the evaluators Table III has a Dep. err. column and its gap closed
-    paper_row = "| paper: PFM (lambda=4) | seen | 89.0 | 23.5 | - | 1.84 | 0.6720 | 0.7374 | - | - | - |"
+    # with a depression regressor among the evaluators Table III has a Dep. err. column and its gap closed;
+    # simulated pairs are read against their vehicle's other chips too (template azimuth, front/back)
+    paper_row = "| paper: PFM (lambda=4) | seen | 89.0 | 23.5 | - | 1.84 | 0.6720 | 0.7374 |" + " - |" * 5
+    assert "| Template az. err. (deg) ↓ | Front/back right (%) ↑ | Dep. err. (deg) ↓ |" in text
+    assert "| Dep. gap closed ↑ | Template gap closed ↑ | n |" in text
     # the preset's sampler reaches both evaluations and the report names it
     sampler = "2 DDIM steps, guidance 3.0, heading guidance 1.5, from the input at strength 0.5"
     assert f"## Table III ({sampler})" in text
     for folder in ("eval", "eval_depression"):
         sampled = json.loads((out / folder / "table3.json").read_text())
         assert (sampled["heading_guidance_scale"], sampled["strength"]) == (1.5, 0.5)
-    assert paper_row + "  |  |  |  |" in text
+    assert paper_row + "  |  |  |  |  |" in text
     # the depression table: 17 deg inputs asked for 30 deg; the from-scratch smoke model never saw d_el != 0
     assert "## Depression changes (17 deg inputs, targets at 30 deg)" in text
     assert "| Closer to target dep. ↑ |" in text and "never trained on these depression changes" in text
