@@ -135,7 +135,11 @@ def _table_lines(eval_dir: Path, table3: dict[str, Any]) -> list[str]:
         "`input copy (floor)` returns the input view unchanged (a generator that ignores the pose); "
         "`real target (ceiling)` scores the true target view and `VAE round trip (ceiling)` the target "
         "encoded and decoded by the VAE, the best a latent model with this VAE can do. A model must beat the "
-        "floor on azimuth error; `Az. gap closed` is the fraction of the floor-to-VAE-ceiling gap it closes.",
+        "floor on azimuth error; `Az. gap closed` is the fraction of the floor-to-VAE-ceiling gap it closes. "
+        "`Template az. err.` reads each view's azimuth off its vehicle's other chips at the requested "
+        "depression (the best-correlating chip's azimuth, the target itself left out: the real target reads "
+        "its nearest neighbour's), which a footprint turned in place cannot fool; `Front/back right` counts "
+        "the readings within 90 deg of the request.",
         "",
         (eval_dir / "table3.md").read_text(),
         "## Table IV (azimuth error of generated views under each evaluator backbone)",
