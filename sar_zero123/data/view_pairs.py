@@ -220,7 +220,7 @@ class ViewPairDataset(Dataset):
         return {name: torch.from_numpy(np.ascontiguousarray(value)) for name, value in fields.items()}
 
     @functools.cached_property
-    def _object_members(self) -> dict[tuple[str, str], list[int]]:
+    def object_members(self) -> dict[tuple[str, str], list[int]]:
         """Record indices of each object's chips, at every depression."""
         members: dict[tuple[str, str], list[int]] = defaultdict(list)
         for i, record in enumerate(self.records):
@@ -237,7 +237,7 @@ class ViewPairDataset(Dataset):
         source, target = (self.records[i] for i in self.pairs[index])
         if abs(target.depression_deg - source.depression_deg) < _DEPRESSION_TOL_DEG:
             return None
-        for i in self._object_members[source.object_id]:
+        for i in self.object_members[source.object_id]:
             record = self.records[i]
             if (
                 abs(record.depression_deg - source.depression_deg) < _DEPRESSION_TOL_DEG

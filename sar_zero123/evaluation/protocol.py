@@ -326,15 +326,12 @@ def chip_templates(
         chips those of any pair; ``(None, None, None)`` where a pair has no other chip to be read against.
     """
     records = dataset.records
-    members: dict[tuple[str, str], list[int]] = {}
-    for index, record in enumerate(records):
-        members.setdefault((record.target_class, record.serial), []).append(index)
     per_pair = []
     for _, target in dataset.pairs:
         chosen = records[int(target)]
         depression = chosen.depression_deg
         per_pair.append([
-            index for index in members[(chosen.target_class, chosen.serial)]
+            index for index in dataset.object_members[chosen.object_id]
             if index != target and abs(records[index].depression_deg - depression) <= depression_tol_deg
         ])  # fmt: skip
     if not per_pair or not all(per_pair):
@@ -344,11 +341,7 @@ def chip_templates(
     candidates = torch.zeros(len(per_pair), len(used), dtype=torch.bool)
     for row, indices in enumerate(per_pair):
         candidates[row, [column[index] for index in indices]] = True
-    size, crop = dataset.size, dataset.crop_size
-    chips = torch.stack([
-        dataset.scaling.normalize(torch.from_numpy(load_chip(records[i].path, size, crop))[None])
-        for i in used
-    ]).float()  # fmt: skip
+    chips = torch.stack([_normalised_chip(dataset, i) for i in used]).float()
     azimuths = torch.tensor([records[i].azimuth_deg for i in used], dtype=torch.float64)
     return chips, azimuths, candidates
 
@@ -368,9 +361,14 @@ def input_depression_views(dataset: ViewPairDataset) -> tuple[torch.Tensor | Non
     views = torch.zeros(len(dataset), 1, dataset.size, dataset.size)
     for i, index in enumerate(indices):
         if index is not None:
-            magnitude = load_chip(dataset.records[index].path, dataset.size, dataset.crop_size)
-            views[i] = dataset.scaling.normalize(torch.from_numpy(magnitude)[None])
+            views[i] = _normalised_chip(dataset, index)
     return views, found
+
+
+def _normalised_chip(dataset: ViewPairDataset, index: int) -> torch.Tensor:
+    """Record ``index`` of ``dataset`` read as its pairs' chips are: ``(1, S, S)`` normalised dB."""
+    magnitude = load_chip(dataset.records[index].path, dataset.size, dataset.crop_size)
+    return dataset.scaling.normalize(torch.from_numpy(magnitude)[None])
 
 
 def check_pipeline_scaling(pipeline_dir: str | os.PathLike, evaluators: Evaluators) -> None:
@@ -600,8 +598,9 @@ def score(
         device=device,
     )
     if pairs.templates is not None:  # the azimuth a footprint turned in place cannot fool
+        views = generated[:, 0].detach().cpu().numpy()
         readings = read_chip_templates(
-            generated[:, 0].numpy(), pairs.templates[:, 0].numpy(), pairs.template_azimuth_deg.numpy(),
+            views, pairs.templates[:, 0].numpy(), pairs.template_azimuth_deg.numpy(),
             pairs.template_candidates.numpy(), pairs.target_azimuth_deg.numpy(), blur_sigma_px=BLUR_SIGMA_PX,
         )  # fmt: skip
         for name, values, scale in (("template_azimuth_error_deg", readings.azimuth_error_deg, 1.0),
