@@ -37,14 +37,25 @@ from sar_zero123.data.datasets import load_chip
 from sar_zero123.data.images import load_magnitude
 from sar_zero123.data.index import load_index
 from sar_zero123.domain import naming_write_errors, to_decibels
+from sar_zero123.sim.corpus import corpus_vehicle_seed
+from sar_zero123.sim.procedural import make_procedural_target
 from sar_zero123.sim.proxy import PROXY_FIRST_SEED, ProxyBank
 
-__all__ = ["PROXIES_FILE", "PROXIES_RECORD", "load_corpus_proxies", "write_corpus_proxies"]
+__all__ = [
+    "ORACLE_INDEX",
+    "PROXIES_FILE",
+    "PROXIES_RECORD",
+    "corpus_proxies_have_oracle",
+    "load_corpus_proxies",
+    "write_corpus_proxies",
+]
 
 #: The proxies' tensors, beside the corpus's ``index.csv``.
 PROXIES_FILE = "proxies.safetensors"
 #: Their record (bank, candidates, the chips in index order), written last.
 PROXIES_RECORD = "proxies.json"
+#: The bank index of the oracle candidate, the vehicle itself (write_corpus_proxies(oracle=True)).
+ORACLE_INDEX = -1
 _MAX_CANDIDATES = 8
 
 
@@ -66,16 +77,19 @@ def _vehicle_proxies(args: tuple) -> tuple[np.ndarray, np.ndarray]:
 
     The bank is fitted to the vehicle's first chip at its pose; the ``K`` best bank vehicles are rendered at
     every chip's pose."""
-    bank_args, candidates, fit_chip, poses = args
+    bank_args, candidates, fit_chip, poses, oracle_seed = args
     bank = _bank(*bank_args)
     azimuth, depression = poses[0]
     scores = bank.scores(to_decibels(fit_chip.astype(np.float64)), azimuth, depression)
     best = np.argsort(-scores, kind="stable")[:candidates]
     size = fit_chip.shape[-1]
-    chips = np.stack(
-        [np.stack([bank.render(int(k), az, el, size) for k in best]) for az, el in poses]
-    ).astype(np.float16)
-    return chips, best.astype(np.int32)
+    renders = [[bank.render(int(k), az, el, size) for k in best] for az, el in poses]
+    if oracle_seed is not None:  # the vehicle itself, rendered as the bank renders: a perfect proxy
+        vehicle = make_procedural_target(oracle_seed)
+        for row, (az, el) in zip(renders, poses, strict=True):
+            row.append(bank.render_target(vehicle, az, el, size))
+        best = np.append(best, ORACLE_INDEX)
+    return np.stack([np.stack(row) for row in renders]).astype(np.float16), best.astype(np.int32)
 
 
 def write_corpus_proxies(
@@ -90,6 +104,7 @@ def write_corpus_proxies(
     size: int | None = None,
     num_workers: int = 1,
     progress: bool = True,
+    oracle: bool = False,
 ) -> Path:
     """Fit and render every corpus vehicle's proxies (see the module docstring); returns the record's path.
 
@@ -106,6 +121,10 @@ def write_corpus_proxies(
             chips as they are, which must then be square and of one size (a simulated corpus).
         num_workers: Processes fitting vehicles in parallel.
         progress: Print a line every 200 vehicles.
+        oracle: Also keep, as the last candidate (bank index :data:`ORACLE_INDEX`), the vehicle itself
+            rendered as the bank renders (a simulated corpus only: its serials name its procedural seeds,
+            :func:`~sar_zero123.sim.corpus.corpus_vehicle_seed`): the perfect proxy a training step may
+            give, so that the UNet learns when a proxy is to be trusted.
 
     Returns:
         The path of the record (:data:`PROXIES_RECORD`) in ``out_dir``.
@@ -148,9 +167,11 @@ def write_corpus_proxies(
                 f"{chip.shape}"
             )
         poses = [(records[n].azimuth_deg, records[n].depression_deg) for n in members]
-        jobs.append((bank_args, int(candidates), chip, poses))
-    chips = np.zeros((len(records), candidates, size, size), dtype=np.float16)
-    bank_index = np.zeros((len(records), candidates), dtype=np.int32)
+        seed = corpus_vehicle_seed(records[members[0]].serial) if oracle else None
+        jobs.append((bank_args, int(candidates), chip, poses, seed))
+    kept_candidates = candidates + int(oracle)
+    chips = np.zeros((len(records), kept_candidates, size, size), dtype=np.float16)
+    bank_index = np.zeros((len(records), kept_candidates), dtype=np.int32)
     with ProcessPoolExecutor(max_workers=num_workers, initializer=_one_thread_each) as pool:
         for done, (members, (vehicle_chips, best)) in enumerate(
             zip(vehicles.values(), pool.map(_vehicle_proxies, jobs, chunksize=4), strict=True), 1
@@ -162,6 +183,7 @@ def write_corpus_proxies(
     record = {
         "bank": dict(zip(("num_vehicles", "first_seed", "blur_sigma_px", "render_seed"), bank_args)),
         "candidates": int(candidates),
+        "oracle": bool(oracle),
         "fit": "each vehicle's first chip in the index, at its azimuth and depression",
         "size": size,
         "paths": paths,
@@ -183,6 +205,15 @@ def write_corpus_proxies(
             Path(tmp).unlink(missing_ok=True)
             raise
     return write_json_atomic(record, out / PROXIES_RECORD)  # last: the proxies are complete
+
+
+def corpus_proxies_have_oracle(
+    corpus_dir: str | os.PathLike[str], proxies_dir: str | os.PathLike[str] | None = None
+) -> bool:
+    """Whether a corpus's proxies keep the oracle as their last candidate (``oracle=True`` above)."""
+    folder = Path(corpus_dir) if proxies_dir is None else Path(proxies_dir)
+    record = folder / PROXIES_RECORD
+    return record.is_file() and json.loads(record.read_text()).get("oracle") is True
 
 
 def load_corpus_proxies(

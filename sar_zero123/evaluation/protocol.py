@@ -47,7 +47,7 @@ from sar_zero123.evaluation.evaluators import (
     score_views,
     standard_error,
 )
-from sar_zero123.evaluation.template import read_chip_templates
+from sar_zero123.evaluation.template import read_chip_templates, turned_and_kept
 from sar_zero123.model.build import same_weights
 from sar_zero123.model.conditioning import encode_condition_latents, takes_proxy
 from sar_zero123.model.pipeline import SARZero123Pipeline
@@ -584,7 +584,7 @@ def score(
         batch_size: Views per evaluator call.
         device: Where the evaluators run.
     """
-    scores = score_views(
+    scores, per_sample = score_views(
         generated,
         pairs.targets,
         pairs.labels,
@@ -596,6 +596,7 @@ def score(
         paper_scoring_size=paper_scoring_size,
         batch_size=batch_size,
         device=device,
+        return_per_sample=True,
     )
     if pairs.templates is not None:  # the azimuth a footprint turned in place cannot fool
         views = generated[:, 0].detach().cpu().numpy()
@@ -603,8 +604,11 @@ def score(
             views, pairs.templates[:, 0].numpy(), pairs.template_azimuth_deg.numpy(),
             pairs.template_candidates.numpy(), pairs.target_azimuth_deg.numpy(), blur_sigma_px=BLUR_SIGMA_PX,
         )  # fmt: skip
+        kept = per_sample["accuracy"].numpy() > 0  # the classifier keeps the view's class
+        joint = turned_and_kept(readings.azimuth_error_deg, kept)
         for name, values, scale in (("template_azimuth_error_deg", readings.azimuth_error_deg, 1.0),
-                                    ("front_back_right", readings.front_back_right, 100.0)):  # fmt: skip
+                                    ("front_back_right", readings.front_back_right, 100.0),
+                                    ("turned_and_kept", joint, 100.0)):  # fmt: skip
             values = torch.from_numpy(values.astype(np.float64)) * scale
             scores[name] = values.mean().item()
             scores[f"{name}_se"] = standard_error(values)

@@ -61,11 +61,12 @@ METRIC_LABELS = {
     "closer_to_target_depression": "Closer to target dep. ↑",
     "template_azimuth_error_deg": "Template az. err. (deg) ↓",
     "front_back_right": "Front/back right (%) ↑",
+    "turned_and_kept": "Turned and kept (%) ↑",
 }
 # columns only pairs with a depression change (and a depression regressor, for the error) give
 DEPRESSION_METRICS = ("depression_error_deg", "depression_overshoot_deg", "closer_to_target_depression")
 # columns of the template reading (the view against its vehicle's other chips), where the pairs have one
-TEMPLATE_METRICS = ("template_azimuth_error_deg", "front_back_right")
+TEMPLATE_METRICS = ("template_azimuth_error_deg", "front_back_right", "turned_and_kept")
 GAP_LABELS = {
     "azimuth_gap_closed": "Az. gap closed ↑",
     "accuracy_gap_closed": "Acc. gap closed ↑",
@@ -77,7 +78,7 @@ GAP_LABELS = {
 def _format(metric: str, value: float | None) -> str:
     if value is None or (isinstance(value, float) and math.isnan(value)):
         return "-"
-    if metric in ("accuracy", "front_back_right", "template_azimuth_error_deg"):
+    if metric in ("accuracy", "front_back_right", "template_azimuth_error_deg", "turned_and_kept"):
         return f"{value:.1f}"
     if metric in ("azimuth_error_deg", "axis_error_deg", "depression_error_deg", "depression_overshoot_deg"):
         return f"{value:.1f}"

@@ -8,7 +8,10 @@ grid azimuth is the view's reading. Per view:
 
 - ``azimuth_error_deg``: the reading's angular distance to the requested azimuth, in [0, 180];
 - ``front_back_right``: the reading lies nearer the request than the request turned by 180 deg;
-- ``identity_kept``: over every candidate vehicle's turntable, the best match is the true vehicle's.
+- ``identity_kept``: over every candidate vehicle's turntable, the best match is the true vehicle's;
+- ``turned_and_kept`` (:func:`turned_and_kept`): the view keeps its vehicle (here its identity, in Table III
+  the classifier's class) and reads within :data:`TURNED_WITHIN_DEG` of the request. The input copy keeps
+  every vehicle and turns none; a view counts only as the right vehicle, turned.
 
 ``gap_closed`` places a row's mean azimuth error between a floor (the input copied as the view) and a
 ceiling (the true view with another speckle draw) on the same pairs: 0 at the floor, 1 at the ceiling.
@@ -23,7 +26,18 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.ndimage import gaussian_filter
 
-__all__ = ["TemplateReadings", "gap_closed", "read_chip_templates", "read_templates", "summarise_readings"]
+__all__ = [
+    "TURNED_WITHIN_DEG",
+    "TemplateReadings",
+    "gap_closed",
+    "read_chip_templates",
+    "read_templates",
+    "summarise_readings",
+    "turned_and_kept",
+]
+
+#: A view is turned when its template reading lies within this many degrees of the request.
+TURNED_WITHIN_DEG = 30.0
 
 
 def _normalised(images: np.ndarray, blur_sigma_px: float) -> np.ndarray:
@@ -181,6 +195,20 @@ def _mean_se(values: np.ndarray) -> tuple[float, float]:
     return float(x.mean()), se
 
 
+def turned_and_kept(
+    azimuth_error_deg: np.ndarray, kept: np.ndarray, within_deg: float = TURNED_WITHIN_DEG
+) -> np.ndarray:
+    """Per view: it keeps its vehicle (``kept``) and its template azimuth error is at most ``within_deg``.
+
+    Shape:
+        ``(N,)``, ``(N,)`` -> ``(N,)`` bool.
+    """
+    error, kept = np.asarray(azimuth_error_deg, dtype=np.float64), np.asarray(kept, dtype=bool)
+    if error.shape != kept.shape:
+        raise ValueError(f"kept: expected one value per view {error.shape}, got {kept.shape}")
+    return kept & (error <= within_deg)
+
+
 def summarise_readings(
     readings: TemplateReadings, floor: TemplateReadings | None = None, ceiling: TemplateReadings | None = None
 ) -> dict[str, float]:
@@ -188,11 +216,14 @@ def summarise_readings(
 
     Returns:
         ``n``, ``azimuth_error_deg`` (+ ``_se``), ``front_back_right`` (+ ``_se``), ``identity_kept``
-        (+ ``_se``) and, given both bounds, ``gap_closed``.
+        (+ ``_se``), ``turned_and_kept`` (+ ``_se``; identity kept and turned) and, given both bounds,
+        ``gap_closed``.
     """
     summary: dict[str, float] = {"n": int(len(readings.azimuth_error_deg))}
     for name in ("azimuth_error_deg", "front_back_right", "identity_kept"):
         summary[name], summary[f"{name}_se"] = _mean_se(getattr(readings, name))
+    joint = turned_and_kept(readings.azimuth_error_deg, readings.identity_kept)
+    summary["turned_and_kept"], summary["turned_and_kept_se"] = _mean_se(joint)
     if floor is not None and ceiling is not None:
         summary["gap_closed"] = gap_closed(
             summary["azimuth_error_deg"],

@@ -230,6 +230,11 @@ class PoseProjection(ModelMixin, ConfigMixin):
         trained_estimator: The SHA-256 of the azimuth estimator the UNet was trained beside
             (:func:`~sar_zero123.model.orientation.estimator_weights_digest`), or ``None`` (unknown); a
             pipeline refuses another estimator.
+        reference_layers: ``0``: the UNet's self-attentions see only the view being generated (every
+            pipeline saved before the field existed). ``n > 0``: each of the UNet's ``n`` self-attentions
+            also attends to the input view's own features (:mod:`sar_zero123.model.reference_attention`),
+            weighted by ``tanh`` of its gate in ``reference_gates`` (``(n,)``, zero at the start: a warm
+            start computes exactly what the model did without it).
 
     Raises:
         ValueError: If ``in_features <= 4``, ``out_features < 1``, a range is not ``[min, max]``,
@@ -248,8 +253,15 @@ class PoseProjection(ModelMixin, ConfigMixin):
         rotation_sign: int = SIMULATOR_ROTATION_SIGN,
         trained_vae: dict[str, Any] | None = None,
         trained_estimator: str | None = None,
+        reference_layers: int = 0,
     ) -> None:
         super().__init__()
+        if (
+            isinstance(reference_layers, bool)
+            or int(reference_layers) != reference_layers
+            or reference_layers < 0
+        ):
+            raise ValueError(f"`reference_layers` must be an integer >= 0, got {reference_layers!r}")
         if spatial_pose not in SPATIAL_POSE_MODES:
             raise ValueError(f"`spatial_pose` must be one of {SPATIAL_POSE_MODES}, got {spatial_pose!r}")
         if rotation_sign not in (-1, 1):
@@ -269,6 +281,8 @@ class PoseProjection(ModelMixin, ConfigMixin):
             self.projection.weight.copy_(torch.eye(out_features, in_features))
             self.projection.weight[:, in_features - POSE_DIM :].zero_()
             self.projection.bias.zero_()
+        if reference_layers:
+            self.reference_gates = torch.nn.Parameter(torch.zeros(int(reference_layers)))
 
     @property
     def image_embed_dim(self) -> int:

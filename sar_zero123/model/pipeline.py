@@ -9,6 +9,7 @@ unconditional branches in one batched UNet call.
 
 from __future__ import annotations
 
+import contextlib
 import inspect
 import logging
 import numbers
@@ -56,6 +57,14 @@ from sar_zero123.model.conditioning import (
 from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
 from sar_zero123.model.orientation import AzimuthEstimator, estimator_weights_digest, target_view_features
 from sar_zero123.model.proxy import check_proxy_settings, draft_target_views
+from sar_zero123.model.reference_attention import (
+    attending_to_reference,
+    check_reference_layers,
+    input_reference,
+    own_pose,
+    reference_weights,
+    uses_reference,
+)
 from sar_zero123.model.sampler import (
     MAX_GUIDANCE_SCALE,
     SAMPLER_DEFAULTS,
@@ -225,6 +234,7 @@ class SARZero123Pipeline(DiffusionPipeline):
                 f"{unet.config.out_channels}: the unet and the vae come from different models"
             )
         check_vae_image_size(vae, unet)
+        check_reference_layers(unet, pose_projection)
         check_vae_signature(vae.config, getattr(pose_projection.config, "trained_vae", None))
         trained_estimator = getattr(pose_projection.config, "trained_estimator", None)
         if trained_estimator is not None and azimuth_estimator is not None:
@@ -835,6 +845,12 @@ class SARZero123Pipeline(DiffusionPipeline):
         unet_condition = unet_condition_latents(
             condition_latents, guided_pose, self.pose_projection, proxy_latents
         )
+        reference = contextlib.nullcontext()
+        if uses_reference(self.pose_projection):  # once per call: the input's own features
+            reference = self._input_reference(
+                image_embeds, pose, branch, condition_latents[-num_samples:], proxy_latents,
+                num_images_per_prompt, branches, do_classifier_free_guidance,
+            )  # fmt: skip
 
         # 3. timesteps
         self.scheduler.set_timesteps(int(num_inference_steps), device=device)
@@ -871,7 +887,7 @@ class SARZero123Pipeline(DiffusionPipeline):
 
         # 5. denoising loop: one UNet call per step with [unconditional; conditional] stacked
         self._num_timesteps = len(timesteps)
-        with self.progress_bar(total=len(timesteps)) as progress_bar:
+        with self.progress_bar(total=len(timesteps)) as progress_bar, reference:
             for step_index, timestep in enumerate(timesteps):
                 model_input = torch.cat([latents] * branches) if branches > 1 else latents
                 model_input = self.scheduler.scale_model_input(model_input, timestep)
@@ -915,6 +931,43 @@ class SARZero123Pipeline(DiffusionPipeline):
         if not return_dict:
             return (output,)
         return SARZero123PipelineOutput(images=output)
+
+    def _input_reference(
+        self,
+        image_embeds: torch.Tensor,
+        pose: torch.Tensor,
+        branch: Callable[[torch.Tensor], tuple[torch.Tensor, torch.Tensor | None]],
+        condition_latents: torch.Tensor,
+        proxy_latents: torch.Tensor | None,
+        num_images_per_prompt: int,
+        branches: int,
+        do_classifier_free_guidance: bool,
+    ) -> contextlib.AbstractContextManager:
+        """The reference pass (:mod:`..reference_attention`) and the context in which every branch but the
+        null attends to its input's features.
+
+        Args:
+            condition_latents: One per output sample, the real inputs' (not the null).
+            proxy_latents: The branches' proxy pairs (their first half: the proxy at the input's pose).
+        """
+        own = own_pose(pose)
+        tokens = self.pose_projection(image_embeds, own.to(image_embeds.device))
+        tokens = tokens.repeat_interleave(num_images_per_prompt, dim=0).to(condition_latents.dtype)
+        own_sample_pose, own_labels = branch(own)
+        proxy_at_input = None
+        if proxy_latents is not None:
+            proxy_at_input = proxy_latents[-condition_latents.shape[0] :, : condition_latents.shape[1]]
+        features = input_reference(
+            self.unet, self.pose_projection, condition_latents, own_sample_pose, tokens, own_labels,
+            self.vae.config.scaling_factor, proxy_at_input,
+        )  # fmt: skip
+        num_samples = condition_latents.shape[0]
+        rows = torch.arange(num_samples, device=condition_latents.device).repeat(branches)
+        keep = torch.ones(branches * num_samples, dtype=torch.bool)
+        if do_classifier_free_guidance:  # the null runs without the reference
+            keep[:num_samples] = False
+        weights = reference_weights(self.pose_projection, keep).detach()
+        return attending_to_reference(self.unet, features, rows, weights)
 
     @torch.no_grad()
     def _proxy_drafts(

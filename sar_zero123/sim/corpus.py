@@ -34,6 +34,7 @@ __all__ = [
     "DEFAULT_CLUTTER_DB_SPREAD",
     "VALIDATION_CLASS",
     "check_corpus_options",
+    "corpus_vehicle_seed",
     "corpus_views",
     "write_prior_corpus",
 ]
@@ -64,6 +65,18 @@ def corpus_views(
     return azimuth, np.round(depression, 4)
 
 
+def corpus_vehicle_seed(serial: str) -> int:
+    """The procedural seed of a corpus vehicle from its serial (``proc00042`` -> 42, as written here).
+
+    Raises:
+        ValueError: If ``serial`` is not a corpus vehicle's.
+    """
+    digits = serial[4:] if isinstance(serial, str) and serial.startswith("proc") else ""
+    if len(digits) < 5 or not digits.isascii() or not digits.isdigit():
+        raise ValueError(f"serial: expected a corpus vehicle's 'procNNNNN', got {serial!r}")
+    return int(digits)
+
+
 def _one_thread_each() -> None:
     """Keep each rendering process's BLAS and FFT work on one thread: N processes on N cores, not N x N
     threads (each chip's spectrum is a complex matrix product, which BLAS would spread over every core)."""
@@ -76,7 +89,7 @@ def _write_vehicle(args: tuple) -> list[tuple[str, ...]]:
     """Render and save one vehicle's chips (skipping finished ones); returns its index rows."""
     out, vehicle, class_name, seed, views, depression_range, mstar_fraction, size, spread = args
     target = make_procedural_target(vehicle)
-    serial = f"proc{vehicle:05d}"
+    serial = f"proc{vehicle:05d}"  # corpus_vehicle_seed reads it back
     azimuths, depressions = corpus_views(seed, vehicle, views, depression_range, mstar_fraction)
     folder = Path(out) / "chips" / serial
     folder.mkdir(parents=True, exist_ok=True)

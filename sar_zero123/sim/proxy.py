@@ -239,8 +239,18 @@ class ProxyBank:
         by ``shift_px`` ``(rows, columns)``, a fit's shift onto its chip's target (the target's place in the
         scene does not turn with its heading).
         """
+        return self.render_target(self.target(index), azimuth_deg, depression_deg, size, shift_px)
+
+    def render_target(
+        self,
+        target: Target,
+        azimuth_deg: float,
+        depression_deg: float,
+        size: int = 64,
+        shift_px: tuple[int, int] = (0, 0),
+    ) -> np.ndarray:
+        """Any vehicle rendered as the bank renders its own (:meth:`render`): a perfect proxy of it."""
         generator = np.random.default_rng(self.render_seed)
-        target = self.target(index)
         chip = render_chip(target, float(azimuth_deg) % 360.0, float(depression_deg), size, generator)
         return np.roll(chip, tuple(int(v) for v in shift_px), axis=(0, 1)) if any(shift_px) else chip
 

@@ -43,10 +43,11 @@ from sar_zero123.data import (
     subsample_objects,
     train_validation_pairs,
 )
-from sar_zero123.data.corpus_proxies import load_corpus_proxies
+from sar_zero123.data.corpus_proxies import corpus_proxies_have_oracle, load_corpus_proxies
 from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.model.build import load_sar_zero123, record_trained_pose_ranges
 from sar_zero123.model.conditioning import SPATIAL_POSE_MODES, takes_proxy, vae_signature, widen_for_proxy
+from sar_zero123.model.reference_attention import enable_reference_attention, uses_reference
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.checkpoints import (
     RESUME_MAY_DIFFER,
@@ -156,6 +157,9 @@ class FinetuneConfig(LossSettings):
     # sar_zero123.model.conditioning.unet_condition_latents); None: zero-1-to-3's condition latent alone
     spatial_pose: str | None = None
     proxies: str | None = None  # spatial_pose 'proxy': folder of data's proxies (None: data itself)
+    # every self-attention of the UNet also attends to the input view's own features (a reference pass;
+    # sar_zero123.model.reference_attention); a pipeline without it gains it with zero gates (a warm start)
+    reference_attention: bool = False
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
     # "normalized" and "stages" are departures from the paper (docs/results/history/pfm.md, section 10)
     pfm_features: PfmFeatures = "pooled"  # PFM's features: Eq. 20's pooled, unit length or all stages (LPIPS)
@@ -392,6 +396,8 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneIn
     )
     if config.spatial_pose == "proxy" and not takes_proxy(pipe.pose_projection):
         widen_for_proxy(pipe.unet, pipe.pose_projection)  # a warm start: zero weights on the proxy pair
+    if config.reference_attention and not uses_reference(pipe.pose_projection):
+        enable_reference_attention(pipe.unet, pipe.pose_projection)  # a warm start: every gate zero
     image_size = training_image_size(pipe, config.image_size)
     encoder = None
     if config.pfm_weight > 0:
@@ -481,6 +487,11 @@ def _prepare_training(
                     "(train/pretrain_prior.py writes both), got None (the built-in dataset has none)"
                 )
             paths = [record.path for record in train_dataset.records]
+            if config.proxy_oracle_prob > 0 and not corpus_proxies_have_oracle(config.data, config.proxies):
+                raise ValueError(
+                    f"proxy_oracle_prob: {config.proxy_oracle_prob} needs proxies written with the oracle "
+                    "(write_corpus_proxies(oracle=True); train/pretrain_prior.py --set proxy_oracle=true)"
+                )
             magnitudes = load_corpus_proxies(config.data, paths, config.proxies)
             proxies = train_dataset.scaling.normalize(magnitudes).float()
         cache = ChipLatentCache.encode(

@@ -47,6 +47,7 @@ from sar_zero123.stages.finetune import (
     run_finetune,
 )
 from sar_zero123.stages.vae import TrainVAEConfig, run_vae
+from sar_zero123.training.losses import LossSettings
 
 logger = logging.getLogger(__name__)
 
@@ -69,7 +70,8 @@ class PriorConfig:
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
         "num_validation_vehicles", "depression_range_deg", "mstar_fraction", "corpus_workers",
-        "proxy_bank_vehicles", "proxy_candidates", "vae_widths", "vae_norm_groups", "vae_steps",
+        "proxy_bank_vehicles", "proxy_candidates", "proxy_oracle_prob", "vae_widths", "vae_norm_groups",
+        "vae_steps",
         "vae_batch_size", "lr_scheduler", "lr_warmup_steps", "input_depression", "prediction_type",
         "snr_gamma", "checkpointing_steps", "mixed_precision",
     )  # fmt: skip
@@ -89,6 +91,8 @@ class PriorConfig:
     spatial_pose: str | None = None
     proxy_bank_vehicles: int = 250  # "proxy": the bank fitted to each corpus vehicle (data/corpus_proxies.py)
     proxy_candidates: int = 2  # "proxy": best-fitting bank vehicles kept per corpus vehicle (best, others)
+    proxy_oracle_prob: float = 0.0  # "proxy": share of pairs given the vehicle itself as proxy (LossSettings)
+    reference_attention: bool = False  # the UNet's self-attentions also attend to the input's own features
     vae: str | None = None  # an AutoencoderKL folder to use (e.g. the bundled prior's vae/); None trains one
     # with init, model_size, input_depression and prediction_type are that pipeline's own; spatial_pose is its
     # own, or "proxy" (widening a "rotated_input" init)
@@ -147,6 +151,7 @@ class PriorConfig:
                 f"proxy_candidates: at most proxy_bank_vehicles ({self.proxy_bank_vehicles}), got "
                 f"{self.proxy_candidates}"
             )
+        LossSettings(proxy_oracle_prob=self.proxy_oracle_prob)  # the field's owner checks it
         if self.init is not None:
             defaults = {item.name: item.default for item in dataclasses.fields(PriorConfig)}
             kept = ("model_size", "prediction_type", "input_depression")  # image_size sizes the corpus
@@ -285,6 +290,8 @@ def prior_base_config(config: PriorConfig, vae: Path, corpus: Path | None = None
         estimate_input_azimuth=True,
         **pose,
         proxies=None if corpus is None else _proxies_or_none(config, corpus),
+        proxy_oracle_prob=config.proxy_oracle_prob,
+        reference_attention=config.reference_attention,
         same_depression=False,
         snr_gamma=config.snr_gamma,
         pfm_weight=0.0,
@@ -406,8 +413,10 @@ def prior_proxies_folder(config: PriorConfig, corpus: Path) -> Path:
     if own.is_file():
         record = json.loads(own.read_text())
         bank = record.get("bank", {})
-        if bank.get("num_vehicles") == config.proxy_bank_vehicles and (
-            record.get("candidates") == config.proxy_candidates
+        if (
+            bank.get("num_vehicles") == config.proxy_bank_vehicles
+            and record.get("candidates") == config.proxy_candidates
+            and bool(record.get("oracle")) == (config.proxy_oracle_prob > 0)
         ):
             return corpus
     return Path(config.output_dir) / "proxies"
@@ -424,6 +433,7 @@ def _write_proxies(config: PriorConfig, corpus: Path, out: Path) -> None:
         num_vehicles=config.proxy_bank_vehicles,
         candidates=config.proxy_candidates,
         num_workers=config.corpus_workers,
+        oracle=config.proxy_oracle_prob > 0,
     )
 
 

@@ -648,7 +648,7 @@ class LossSettings:
     ADVANCED_FIELDS = (
         "pfm_min_snr", "pfm_fraction", "pfm_crop_size", "pfm_balance", "drop_image_prob", "drop_both_prob",
         "drop_latent_prob", "timestep_sampling", "timestep_logit_mean", "timestep_logit_std", "snr_gamma",
-        "azimuth_loss_weight", "proxy_runner_up_prob",
+        "azimuth_loss_weight", "proxy_runner_up_prob", "proxy_oracle_prob",
     )  # fmt: skip
 
     pfm_weight: float = 4.0  # lambda of Eq. (21) (paper: 4); 0 = plain zero-1-to-3 fine-tuning (no PFM)
@@ -671,11 +671,17 @@ class LossSettings:
     azimuth_loss_weight: float = 1.0  # weight of an azimuth estimator's loss on the input's known azimuth
     # a spatial_pose="proxy" model: share of the pairs given a runner-up proxy instead of the best fit
     proxy_runner_up_prob: float = 0.25
+    # share of the pairs given the vehicle itself as its proxy (proxies written with oracle=True), so that the
+    # UNet learns when to trust a proxy and when the input must supply what differs
+    proxy_oracle_prob: float = 0.0
 
     def __post_init__(self) -> None:
         check_minimum(self, "pfm_weight", "pfm_min_snr", "azimuth_loss_weight", minimum=0)
-        if not 0 <= self.proxy_runner_up_prob <= 1:
-            raise ValueError(f"proxy_runner_up_prob must be in [0, 1], got {self.proxy_runner_up_prob}")
+        proxy_probs = (self.proxy_runner_up_prob, self.proxy_oracle_prob)
+        if not (min(proxy_probs) >= 0 and sum(proxy_probs) <= 1):
+            raise ValueError(
+                f"proxy_runner_up_prob, proxy_oracle_prob must be >= 0 with sum <= 1, got {proxy_probs}"
+            )
         if not 0 < self.pfm_fraction <= 1:
             raise ValueError(f"pfm_fraction must be in (0, 1], got {self.pfm_fraction}")
         check_minimum(self, "pfm_crop_size", minimum=1, optional=True)

@@ -18,6 +18,7 @@ benchmarks and tests import them from here.
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
 from collections.abc import Sequence
@@ -41,6 +42,13 @@ from sar_zero123.model.conditioning import (
     vae_input,
 )
 from sar_zero123.model.orientation import azimuth_estimation_loss, target_view_features
+from sar_zero123.model.reference_attention import (
+    attending_to_reference,
+    input_reference,
+    own_pose,
+    reference_weights,
+    uses_reference,
+)
 from sar_zero123.training.losses import (
     TRAINED_PREDICTION_TYPES,
     LossOutput,
@@ -347,10 +355,13 @@ def chosen_proxy_latents(
     pose_projection: torch.nn.Module,
     runner_up_prob: float,
     generator: torch.Generator | None = None,
+    oracle_prob: float = 0.0,
 ) -> torch.Tensor | None:
     """Each pair's proxy pair for a ``spatial_pose="proxy"`` model: the best-fitted candidate, or with
     probability ``runner_up_prob`` one of the runners-up (uniformly), so that the UNet learns to transfer the
-    proxy's change onto the input rather than to copy an exact proxy (one draw from ``generator``).
+    proxy's change onto the input rather than to copy an exact proxy (one draw from ``generator``). With
+    ``oracle_prob > 0`` the last candidate is the vehicle itself (proxies written with ``oracle=True``), given
+    with that probability: a proxy sometimes to be trusted.
 
     Returns:
         ``(B, 2C, h, w)`` (``batch["proxy_latents"]`` is ``(B, K, 2C, h, w)``), or ``None`` for another model.
@@ -368,9 +379,15 @@ def chosen_proxy_latents(
         )
     proxies = batch["proxy_latents"]
     size, candidates = proxies.shape[:2]
+    fitted = candidates - int(oracle_prob > 0)  # the fitted candidates come first, the oracle last
+    if fitted < 1:
+        raise ValueError("batch: proxy_oracle_prob > 0 needs the fitted proxies and the oracle (K >= 2)")
     u = torch.rand(size, generator=generator)
-    pick = torch.randint(1, max(candidates, 2), (size,), generator=generator)
-    choice = torch.where((u < runner_up_prob) & (candidates > 1), pick, torch.zeros_like(pick))
+    pick = torch.randint(1, max(fitted, 2), (size,), generator=generator)
+    runner_up = (u >= oracle_prob) & (u < oracle_prob + runner_up_prob) & (fitted > 1)
+    choice = torch.where(runner_up, pick, torch.zeros_like(pick))
+    if oracle_prob > 0:
+        choice = torch.where(u < oracle_prob, torch.full_like(pick, candidates - 1), choice)
     return proxies[torch.arange(size), choice.to(proxies.device)].float()
 
 
@@ -524,16 +541,19 @@ def compute_losses(
         batch, vae=vae, image_encoder=image_encoder, generator=generator,
         input_depression=uses_input_depression(pose_projection),
     )  # fmt: skip
-    proxy_latents = chosen_proxy_latents(batch, pose_projection, settings.proxy_runner_up_prob, generator)
+    proxy_latents = chosen_proxy_latents(
+        batch, pose_projection, settings.proxy_runner_up_prob, generator, settings.proxy_oracle_prob
+    )
     if proxy_latents is not None:
         proxy_latents = proxy_latents.to(condition_latents.device)
-    target_features = azimuth_loss = None
+    target_features = azimuth_loss = estimate = None
     if azimuth_estimator is not None:
         if "input_azimuth_deg" not in batch:
             raise ValueError("batch: an azimuth estimator is trained on `input_azimuth_deg`, which it lacks")
         estimate = azimuth_estimator(condition_latents)  # before CFG dropout: like the pose, never dropped
         azimuth_loss = azimuth_estimation_loss(estimate, batch["input_azimuth_deg"])
         target_features = target_view_features(estimate, pose)
+    input_latents = condition_latents
     # 2. classifier-free-guidance dropout
     if apply_dropout:
         tokens, condition_latents = dropped_conditioning(
@@ -542,6 +562,18 @@ def compute_losses(
         )  # fmt: skip
     else:
         tokens = pose_projection(image_embeds, pose)  # (B, 1, C)
+    reference = contextlib.nullcontext()
+    if uses_reference(pose_projection):  # the input's own features; a dropped condition latent drops them
+        own = own_pose(pose)
+        own_features = None if estimate is None else target_view_features(estimate, own)
+        features = input_reference(
+            unet, pose_projection, input_latents, own, pose_projection(image_embeds, own),
+            pose_class_labels(unet, own, own_features), vae.config.scaling_factor,
+            None if proxy_latents is None else proxy_latents[:, : input_latents.shape[1]],
+        )  # fmt: skip
+        keep = condition_latents.flatten(1).abs().amax(dim=1) > 0  # (B,): False where dropout zeroed it
+        rows = torch.arange(input_latents.shape[0], device=input_latents.device)
+        reference = attending_to_reference(unet, features, rows, reference_weights(pose_projection, keep))
     # 3. forward diffusion and prediction
     noise = torch.randn(latents.shape, generator=generator).to(latents.device)
     # drawn even when replaced, so that the generator's later draws do not depend on it
@@ -558,14 +590,15 @@ def compute_losses(
         )
     timesteps = timesteps.to(latents.device)
     x_t = noise_scheduler.add_noise(latents, noise, timesteps)
-    model_output = unet(
-        torch.cat(
-            [x_t, unet_condition_latents(condition_latents, pose, pose_projection, proxy_latents)], dim=1
-        ),
-        timesteps,
-        encoder_hidden_states=tokens,
-        class_labels=pose_class_labels(unet, pose, target_features),
-    ).sample
+    with reference:
+        model_output = unet(
+            torch.cat(
+                [x_t, unet_condition_latents(condition_latents, pose, pose_projection, proxy_latents)], dim=1
+            ),
+            timesteps,
+            encoder_hidden_states=tokens,
+            class_labels=pose_class_labels(unet, pose, target_features),
+        ).sample
     # 4. Eq. (21), L_simple optionally Min-SNR weighted
     weights = None
     if settings.snr_gamma is not None:

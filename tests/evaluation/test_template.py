@@ -6,7 +6,13 @@ import numpy as np
 import pytest
 from scipy.ndimage import gaussian_filter
 
-from sar_zero123.evaluation.template import gap_closed, read_templates, summarise_readings
+from sar_zero123.evaluation.template import (
+    TURNED_WITHIN_DEG,
+    gap_closed,
+    read_templates,
+    summarise_readings,
+    turned_and_kept,
+)
 
 GRID = np.arange(0.0, 360.0, 45.0)  # 8 grid azimuths
 
@@ -60,6 +66,18 @@ def test_gap_closed_and_the_summary(turntables):
     assert summary["n"] == 2 and summary["azimuth_error_deg"] == pytest.approx(180.0)
     assert summary["gap_closed"] == 0.0 and summary["front_back_right"] == 0.0
     assert summary["identity_kept"] == 1.0 and summary["identity_kept_se"] == 0.0
+    assert summary["turned_and_kept"] == 0.0  # the input copy keeps its vehicle and turns none
+    assert summarise_readings(ceiling)["turned_and_kept"] == 1.0
+
+
+def test_turned_and_kept_needs_both_the_vehicle_and_the_turn():
+    error = np.array([0.0, 30.0, 30.5, 5.0, 179.0])
+    kept = np.array([True, True, True, False, True])
+    np.testing.assert_array_equal(turned_and_kept(error, kept), [True, True, False, False, False])
+    assert TURNED_WITHIN_DEG == 30.0
+    np.testing.assert_array_equal(turned_and_kept(error, kept, within_deg=180.0), kept)
+    with pytest.raises(ValueError, match="kept: expected one value per view"):
+        turned_and_kept(error, kept[:2])
 
 
 def test_shapes_that_do_not_match_are_refused(turntables):

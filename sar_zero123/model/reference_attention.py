@@ -1,0 +1,276 @@
+"""Reference attention: every self-attention of the UNet also attends to the input view's own features.
+
+A zero-1-to-3 UNet cross-attends to one token, so the input's appearance reaches a place of the generated
+view only through the condition latents concatenated at the input's own pose, carried there by
+convolutions. Reference attention (Zero123++'s mechanism, with IP-Adapter's decoupled, gated form) makes
+the input reachable from every place of the view, by content:
+
+1. a **reference pass** runs the same UNet on the input view asked for itself (``d_az = d_el = 0``, the
+   clean input latent at timestep 0) and keeps the input of each self-attention (:func:`reference_features`;
+   once per call, whatever the number of denoising steps);
+2. in the **target pass** each self-attention adds ``tanh(g_l) * Attn(Q, K_ref, V_ref)``, its queries
+   against the keys and values of the kept features, through the layer's own projections
+   (:func:`attending_to_reference`). The gates ``g_l`` live in the pose projection
+   (``reference_gates``, zero at a warm start: the model then computes exactly what it did without them).
+
+Rows whose condition is the classifier-free-guidance null get weight 0: the unconditional branch runs
+without the reference, as in Zero123++.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Iterator
+
+import torch
+import torch.nn.functional as F
+from diffusers.models.attention_processor import Attention, AttnProcessor2_0
+
+from sar_zero123.model.conditioning import unet_condition_latents
+
+__all__ = [
+    "attending_to_reference",
+    "check_reference_layers",
+    "enable_reference_attention",
+    "input_reference",
+    "own_pose",
+    "reference_features",
+    "reference_layers",
+    "reference_weights",
+    "uses_reference",
+]
+
+
+class _ReferenceState:
+    """What the processors of one UNet share: the mode and, while reading, the kept features and weights."""
+
+    def __init__(self) -> None:
+        self.mode = "off"  # "off" | "write" | "read"
+        self.features: list[torch.Tensor | None] = []
+        self.rows: torch.Tensor | None = None
+        self.weights: torch.Tensor | None = None  # (N, layers)
+
+
+class ReferenceAttnProcessor:
+    """A self-attention's processor: diffusers' own attention, plus, while reading, the gated attention to
+    the reference features of the same layer (see the module docstring)."""
+
+    def __init__(self, layer: int, state: _ReferenceState) -> None:
+        self.layer = layer
+        self.state = state
+        self.base = AttnProcessor2_0()
+
+    def __call__(
+        self,
+        attn: Attention,
+        hidden_states: torch.Tensor,
+        encoder_hidden_states: torch.Tensor | None = None,
+        attention_mask: torch.Tensor | None = None,
+        temb: torch.Tensor | None = None,
+        **kwargs,
+    ) -> torch.Tensor:
+        output = self.base(attn, hidden_states, encoder_hidden_states, attention_mask, temb, **kwargs)
+        state = self.state
+        if state.mode == "write":
+            state.features[self.layer] = hidden_states
+        elif state.mode == "read":
+            reference = state.features[self.layer].index_select(0, state.rows)  # (N, L_ref, C)
+            weight = state.weights[:, self.layer].to(output.dtype)[:, None, None]  # (N, 1, 1)
+            output = output + weight * _attend(attn, hidden_states, reference) / attn.rescale_output_factor
+        return output
+
+
+def _attend(attn: Attention, hidden_states: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+    """``Attn(Q(hidden_states), K(reference), V(reference))`` through the layer's projections, its output
+    projection without the bias (the layer's own attention already adds it once).
+
+    Shape:
+        ``(N, L, C)``, ``(N, L_ref, C)`` -> ``(N, L, C)``.
+    """
+    batch, _, _ = hidden_states.shape
+    heads = attn.heads
+    query = attn.to_q(hidden_states)
+    key, value = attn.to_k(reference), attn.to_v(reference)
+    head_dim = key.shape[-1] // heads
+    query, key, value = (x.view(batch, -1, heads, head_dim).transpose(1, 2) for x in (query, key, value))
+    if attn.norm_q is not None:
+        query = attn.norm_q(query)
+    if attn.norm_k is not None:
+        key = attn.norm_k(key)
+    mixed = F.scaled_dot_product_attention(query, key, value)  # (N, heads, L, head_dim)
+    mixed = mixed.transpose(1, 2).reshape(batch, -1, heads * head_dim).to(query.dtype)
+    return attn.to_out[1](F.linear(mixed, attn.to_out[0].weight))
+
+
+def reference_layers(unet: torch.nn.Module) -> list[Attention]:
+    """The UNet's self-attentions (each transformer block's ``attn1``), in module order.
+
+    Raises:
+        ValueError: If a self-attention takes a 4-d input or adds its own residual (not a transformer
+            block's; reference attention is defined on token sequences).
+    """
+    unet = getattr(unet, "module", unet)
+    layers = [m for name, m in unet.named_modules() if name.endswith("attn1") and isinstance(m, Attention)]
+    for layer in layers:
+        if layer.residual_connection or layer.spatial_norm is not None or layer.group_norm is not None:
+            raise ValueError("unet: reference attention needs transformer-block self-attentions")
+    return layers
+
+
+def _state(unet: torch.nn.Module) -> _ReferenceState:
+    """The UNet's shared state, its processors installed on first use (idempotent)."""
+    unet = getattr(unet, "module", unet)
+    state = getattr(unet, "_reference_state", None)
+    if state is None:
+        state = _ReferenceState()
+        layers = reference_layers(unet)
+        state.features = [None] * len(layers)
+        for index, layer in enumerate(layers):
+            layer.set_processor(ReferenceAttnProcessor(index, state))
+        unet._reference_state = state
+    return state
+
+
+def uses_reference(pose_projection: torch.nn.Module) -> bool:
+    """Whether a (possibly DDP-wrapped) pose projection records reference attention."""
+    config = getattr(pose_projection, "module", pose_projection).config
+    return int(getattr(config, "reference_layers", 0) or 0) > 0
+
+
+def enable_reference_attention(unet: torch.nn.Module, pose_projection: torch.nn.Module) -> None:
+    """Give a model reference attention in place, computing exactly what it did (every gate zero).
+
+    Raises:
+        ValueError: If the model already has it.
+    """
+    if uses_reference(pose_projection):
+        raise ValueError("pose_projection: this model already has reference attention (reference_layers > 0)")
+    count = len(reference_layers(unet))
+    weight = pose_projection.projection.weight
+    pose_projection.reference_gates = torch.nn.Parameter(
+        torch.zeros(count, dtype=weight.dtype, device=weight.device)
+    )
+    pose_projection.register_to_config(reference_layers=count)
+
+
+def check_reference_layers(unet: torch.nn.Module, pose_projection: torch.nn.Module) -> None:
+    """Refuse a pose projection whose gates do not match the UNet's self-attentions.
+
+    Raises:
+        ValueError: Naming both counts.
+    """
+    if not uses_reference(pose_projection):
+        return
+    count = len(reference_layers(unet))
+    recorded = int(getattr(pose_projection, "module", pose_projection).config.reference_layers)
+    if recorded != count:
+        raise ValueError(
+            f"pose_projection: reference_layers={recorded} gates, but the UNet has {count} self-attentions"
+        )
+
+
+@torch.no_grad()
+def reference_features(unet: torch.nn.Module, model_input: torch.Tensor, **unet_kwargs) -> list[torch.Tensor]:
+    """The reference pass: the input of every self-attention while the UNet runs on ``model_input``.
+
+    Args:
+        unet: The UNet (possibly DDP-wrapped).
+        model_input: ``[the input's scaled latent, its condition latents at the input's own pose]``.
+        **unet_kwargs: The UNet's other arguments (``timestep``, ``encoder_hidden_states``,
+            ``class_labels``).
+
+    Returns:
+        One ``(B, L_l, C_l)`` tensor per self-attention (:func:`reference_layers`).
+    """
+    state = _state(unet)
+    state.mode = "write"
+    try:
+        unet(model_input, **unet_kwargs)
+        return list(state.features)
+    finally:
+        state.mode = "off"
+        state.features = [None] * len(state.features)
+
+
+def reference_weights(pose_projection: torch.nn.Module, keep: torch.Tensor) -> torch.Tensor:
+    """Each row's weight of each layer's reference attention: ``tanh(g_l)`` where ``keep``, else 0.
+
+    Shape:
+        ``keep`` ``(N,)`` bool -> ``(N, layers)``.
+    """
+    gates = getattr(pose_projection, "module", pose_projection).reference_gates
+    return torch.tanh(gates)[None, :] * keep.to(gates.device, gates.dtype)[:, None]
+
+
+@contextlib.contextmanager
+def attending_to_reference(
+    unet: torch.nn.Module, features: list[torch.Tensor], rows: torch.Tensor, weights: torch.Tensor
+) -> Iterator[None]:
+    """Within the block, the UNet's self-attentions also attend to ``features``.
+
+    Args:
+        features: From :func:`reference_features`, ``B_ref`` rows.
+        rows: ``(N,)`` the reference row of each row of the UNet's batch.
+        weights: ``(N, layers)`` from :func:`reference_weights`.
+
+    Raises:
+        ValueError: If the counts or shapes disagree.
+    """
+    state = _state(unet)
+    if len(features) != len(state.features) or weights.shape != (rows.shape[0], len(state.features)):
+        raise ValueError(
+            f"reference: expected {len(state.features)} layers' features and weights (N, "
+            f"{len(state.features)}), got {len(features)} and {tuple(weights.shape)}"
+        )
+    state.mode, state.features, state.rows, state.weights = "read", list(features), rows, weights
+    try:
+        yield
+    finally:
+        state.mode, state.rows, state.weights = "off", None, None
+        state.features = [None] * len(state.features)
+
+
+def own_pose(pose: torch.Tensor) -> torch.Tensor:
+    """The pose of a view asked for itself: ``d_az = d_el = 0``, the fourth entry (the input's depression,
+    where the model takes it) kept.
+
+    Shape:
+        ``(B, 1, 4)`` -> ``(B, 1, 4)``.
+    """
+    own = pose.clone()
+    own[..., 0], own[..., 1], own[..., 2] = 0.0, 0.0, 1.0
+    return own
+
+
+def input_reference(
+    unet: torch.nn.Module,
+    pose_projection: torch.nn.Module,
+    condition_latents: torch.Tensor,
+    own: torch.Tensor,
+    tokens: torch.Tensor,
+    class_labels: torch.Tensor | None,
+    scaling_factor: float,
+    proxy_at_input: torch.Tensor | None = None,
+) -> list[torch.Tensor]:
+    """The reference pass of step 1 (module docstring): the UNet on each input view asked for itself.
+
+    Args:
+        condition_latents: The inputs' unscaled latents (never the classifier-free-guidance null).
+        own: :func:`own_pose` of the request's pose.
+        tokens: ``pose_projection(image_embeds, own)``, the inputs' own-pose tokens.
+        class_labels: The UNet's class labels at the own pose (``pose_class_labels``), or ``None``.
+        scaling_factor: The VAE's; the clean input latent scaled as a target latent is, at timestep 0.
+        proxy_at_input: For a ``spatial_pose="proxy"`` UNet: the proxy's latent at the input's pose
+            ``(B, C, h, w)``, its request's proxy too (the view asked for itself).
+
+    Shape:
+        ``(B, C, h, w)``, ``(B, 1, 4)``, ``(B, 1, D)`` -> a list of ``(B, L_l, C_l)``.
+    """
+    proxy = None if proxy_at_input is None else torch.cat([proxy_at_input, proxy_at_input], dim=1)
+    condition = unet_condition_latents(condition_latents, own, pose_projection, proxy)
+    sample = condition_latents * scaling_factor
+    timestep = torch.zeros(condition_latents.shape[0], dtype=torch.long, device=condition_latents.device)
+    return reference_features(
+        unet, torch.cat([sample, condition], dim=1), timestep=timestep, encoder_hidden_states=tokens,
+        class_labels=class_labels,
+    )  # fmt: skip
