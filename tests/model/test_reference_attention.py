@@ -172,11 +172,13 @@ def test_a_training_step_trains_the_gates_and_drops_the_reference_with_the_laten
     assert grad is not None and grad.shape == (len(reference_layers(pipe.unet)),)
     assert float(grad.abs().min()) > 0
     pipe.pose_projection.reference_gates.grad = None
+    only_latent_dropped = LossSettings(
+        pfm_weight=0.0, drop_image_prob=0.0, drop_both_prob=0.0, drop_latent_prob=1.0
+    )
     dropped = compute_losses(
         batch, unet=pipe.unet, pose_projection=pipe.pose_projection, vae=pipe.vae,
         image_encoder=ImageEmbedder(pipe.image_encoder), encoder=None, noise_scheduler=pipe.scheduler,
-        generator=torch.Generator().manual_seed(0),
-        loss_settings=LossSettings(pfm_weight=0.0, drop_image_prob=0.0, drop_both_prob=0.0, drop_latent_prob=1.0),
+        generator=torch.Generator().manual_seed(0), loss_settings=only_latent_dropped,
     )  # fmt: skip
     dropped.loss.mean().backward()  # every condition latent dropped: no row sees the reference
     assert float(pipe.pose_projection.reference_gates.grad.abs().max()) == 0.0
