@@ -49,7 +49,7 @@ from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretraine
 from sar_zero123.config import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.domain import to_decibels
-from sar_zero123.evaluation.template import summarise_readings
+from sar_zero123.evaluation.template import summarise_readings, turned_and_kept
 from sar_zero123.model.pipeline import SAMPLER_DEFAULTS
 from sar_zero123.model.proxy import PROXY_FIELDS, check_proxy_settings, draft_target_views, proxy_bank
 from sar_zero123.sim import render_chip
@@ -235,6 +235,7 @@ def run(
     consensus: tuple[int, float] | None = None,
     refine: tuple[int, Sequence[float]] | None = None,
     retrieval: tuple[str, Sequence[int], int] | None = None,
+    compare: Sequence[str] = (),
 ) -> dict:
     """Every row's template readings on the same pairs; see the module docstring."""
     scaling = DecibelScaling.from_dict(json.loads((resolve_pretrained(pipeline) / SCALING_FILE).read_text()))
@@ -307,6 +308,34 @@ def run(
         return np.concatenate(out), time.perf_counter() - begin
 
     start = "from noise" if proxy_strength >= 1.0 else f"from the proxy at {proxy_strength:g}"
+    if compare:  # each pipeline's plain call and its perfect proxy from noise, paired with the first
+        pairs_of_rows, shares = [], {}
+        for number, name in enumerate([pipeline, *compare]):
+            model = pipe if number == 0 else SARZero123Pipeline.from_pretrained(name)
+            model.set_progress_bar_config(disable=True)
+            own = {**SAMPLER_DEFAULTS, **(model.config.sampler or {})}
+            own_strength = float(own["proxy_strength"] or own["strength"])
+            own_heading = float(own["heading_guidance_scale"])
+            plain, perfect = f"{name}, its plain call (fitted proxy)", f"{name}, perfect proxy, from noise"
+            add(plain, *sample(model, fitted, fitted[:, 1], own_strength, own_heading))
+            add(perfect, *sample(model, oracle, None, 1.0, own_heading))
+            if number:
+                pairs_of_rows += [(plain, f"{pipeline}, its plain call (fitted proxy)"),
+                                  (perfect, f"{pipeline}, perfect proxy, from noise")]  # fmt: skip
+        comparisons = paired_differences(readings, pairs_of_rows)
+        per_view = {"identity_kept": lambda r: r.identity_kept,
+                    "turned_and_kept": lambda r: turned_and_kept(r.azimuth_error_deg, r.identity_kept)}
+        for first, second in pairs_of_rows:  # the shares' paired differences on the same pairs
+            for share, values in per_view.items():
+                diff = values(readings[first]).astype(float) - values(readings[second]).astype(float)
+                se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
+                shares[f"{first} - {second}: {share}"] = {"mean": float(diff.mean()), "se": se}
+                print(f"paired: {first} - {second}: {share} {diff.mean():+.1%} ± {se:.1%}")
+        return {"benchmark": "proxy_prior_views (identity)", "pipelines": [str(pipeline), *compare],
+                "pairs_per_class": pairs_per_class, "seed": seed, "proxy": proxy,
+                "paired_azimuth_error_differences": comparisons, "paired_share_differences": shares,
+                "rows": rows,
+                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
     if retrieval is not None:  # the exhaustive fit against the learned shortlist of each size
         name, sizes = retrieval[0], [int(k) for k in retrieval[1]]
         same_fit, fit_seconds_per_chip = {}, {"exhaustive": _fit_seconds(proxy, sim, 8)}
@@ -512,6 +541,13 @@ def main(argv: Sequence[str] | None = None) -> dict:
         help="only the proxy alone from the exhaustive fit and from a learned shortlist (a name or "
         "folder) of each size, and the recorded sampler from the exhaustive fit and from the first size",
     )
+    parser.add_argument(
+        "--compare",
+        nargs="+",
+        default=[],
+        help="only each pipeline's plain call (fitted proxy) and its perfect proxy from noise, the first "
+        "--pipeline, then these, paired with it",
+    )
     parser.add_argument("--out", default="proxy_prior_views.json", help="output JSON")
     args = parser.parse_args(argv)
     if args.consensus is not None and not (args.consensus[0] >= 1 and args.consensus[1] > 0):
@@ -534,7 +570,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
                  batch_size=args.batch_size, seed=args.seed, workers=args.workers, headings=args.headings,
                  fits=args.fits, steps_sweep=args.steps, shortlist=args.shortlist,
                  bank_size=args.bank_size,
-                 consensus=consensus, refine=refine, retrieval=retrieval)  # fmt: skip
+                 consensus=consensus, refine=refine, retrieval=retrieval,
+                 compare=args.compare)  # fmt: skip
     write_json_atomic(record, Path(args.out))
     print(format_table(record))
     return record

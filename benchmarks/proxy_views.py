@@ -256,15 +256,17 @@ def run(
 
 def format_table(record: dict) -> str:
     lines = [
-        "| row | template azimuth error (deg) | gap closed | front/back right | identity kept |",
-        "| --- | --- | --- | --- | --- |",
+        "| row | template azimuth error (deg) ↓ | gap closed ↑ | front/back right ↑ | identity kept ↑ "
+        "| turned and kept ↑ |",
+        "| --- | --- | --- | --- | --- | --- |",
     ]
     for name, r in record["rows"].items():
         lines.append(
             f"| {name} | {r['azimuth_error_deg']:.1f} ± {r['azimuth_error_deg_se']:.1f} | "
             f"{r['gap_closed']:.0%} | "
             f"{r['front_back_right']:.0%} ± {r['front_back_right_se']:.0%} | "
-            f"{r['identity_kept']:.0%} ± {r['identity_kept_se']:.0%} |"
+            f"{r['identity_kept']:.0%} ± {r['identity_kept_se']:.0%} | "
+            f"{r['turned_and_kept']:.0%} ± {r['turned_and_kept_se']:.0%} |"
         )
     return "\n".join(lines)
 

@@ -459,6 +459,41 @@ class SARZero123Pipeline(DiffusionPipeline):
             )
         return batch
 
+    def _check_proxy_views(self, proxy_views: Any, images: torch.Tensor, proxy_model: bool) -> torch.Tensor:
+        """``proxy_views`` checked as ``image`` is: a real tensor or array of normalised dB views, one set per
+        input, of the input's size.
+
+        Returns:
+            ``(B, 2 | 3, H, W)`` float32 on the CPU.
+
+        Raises:
+            ValueError: Naming ``proxy_views`` and what was expected.
+        """
+        if not proxy_model:
+            raise ValueError(
+                "`proxy_views`: this pipeline's UNet takes no proxy (pose_projection.config.spatial_pose="
+                f"{getattr(self.pose_projection.config, 'spatial_pose', None)!r}); leave it out"
+            )
+        expected = (images.shape[0], 2, *images.shape[-2:])
+        what = (
+            f"`proxy_views` must be real normalised dB views in [0, 1] of shape {expected}: each input's "
+            "proxy at the input's pose, then at the requested pose (and, as a third, at the flipped heading "
+            "d_az + 180 for heading guidance)"
+        )
+        if isinstance(proxy_views, np.ndarray):
+            proxy_views = torch.from_numpy(proxy_views)
+        if not isinstance(proxy_views, torch.Tensor):
+            raise ValueError(f"{what}; got a {type(proxy_views).__name__}")
+        if proxy_views.is_complex() or proxy_views.dtype == torch.bool or proxy_views.is_meta:
+            raise ValueError(f"{what}; got a {proxy_views.dtype} tensor")
+        shape = tuple(proxy_views.shape)
+        if shape not in (expected, (expected[0], 3, *expected[2:])):
+            raise ValueError(f"{what}; got shape {shape}")
+        views = proxy_views.detach().to("cpu", torch.float32)
+        if not torch.isfinite(views).all() or float(views.min()) < 0.0 or float(views.max()) > 1.0:
+            raise ValueError(f"{what}; got values outside [0, 1] or not finite")
+        return views
+
     def _check_inputs(
         self,
         num_inference_steps: int,
@@ -700,8 +735,9 @@ class SARZero123Pipeline(DiffusionPipeline):
             proxy_views: For a ``spatial_pose="proxy"`` pipeline only: each input's proxy given instead of
                 fitted, ``(B, 2, H, W)`` normalised dB (at the input's pose, then at the requested pose; every
                 guidance branch takes them), or ``(B, 3, H, W)`` with the proxy at ``d_az + 180`` third (the
-                heading contrast's, as a fitted proxy gives it). An evaluation passes the true vehicle here
-                to bound what a perfect proxy gives, or proxies it fitted once in parallel.
+                heading contrast's, as a fitted proxy gives it). No fit runs then: the view at the request
+                is also the draft a ``start_from="proxy"`` call starts from. An evaluation passes the true
+                vehicle here to bound what a perfect proxy gives, or proxies it fitted once in parallel.
 
         Returns:
             :class:`SARZero123PipelineOutput`, or ``(images,)`` when ``return_dict`` is False.
@@ -739,9 +775,15 @@ class SARZero123Pipeline(DiffusionPipeline):
         pose = self._pose_with_depression(pose, d_el, input_depression_deg)
         if input_azimuth_deg is not None:  # checked whether or not this call's start uses it
             input_azimuth_deg = _per_input_angles(input_azimuth_deg, "input_azimuth_deg", batch_size)
+        proxy_model = takes_proxy(self.pose_projection)
+        if proxy_views is not None:
+            proxy_views = self._check_proxy_views(proxy_views, images, proxy_model)
         start_images = None
         if start_image is None and start_from == "proxy" and denoising_steps < num_inference_steps:
-            start_image = self._proxy_drafts(images, d_az, d_el, input_azimuth_deg, input_depression_deg)
+            if proxy_views is not None:  # the given proxy at the request: no fit runs
+                start_image = proxy_views[:, 1:2]
+            else:
+                start_image = self._proxy_drafts(images, d_az, d_el, input_azimuth_deg, input_depression_deg)
         if start_image is not None and denoising_steps < num_inference_steps:
             start_images = self.preprocess_image(start_image)
             if start_images.shape[0] != batch_size or start_images.shape[-2:] != images.shape[-2:]:
@@ -749,25 +791,6 @@ class SARZero123Pipeline(DiffusionPipeline):
                     f"`start_image` must be one draft per input image of the input's size "
                     f"{(batch_size, *images.shape[-2:])}, got {tuple(start_images.shape)}"
                 )
-        proxy_model = takes_proxy(self.pose_projection)
-        if proxy_views is not None and not proxy_model:
-            raise ValueError(
-                "`proxy_views`: this pipeline's UNet takes no proxy (pose_projection.config.spatial_pose="
-                f"{getattr(self.pose_projection.config, 'spatial_pose', None)!r}); leave it out"
-            )
-        if proxy_model:
-            if proxy_views is not None:
-                proxy_views = torch.as_tensor(proxy_views)
-                expected = (batch_size, 2, *images.shape[-2:])
-                shape = tuple(proxy_views.shape)
-                if shape not in (expected, (batch_size, 3, *images.shape[-2:])) or not torch.isfinite(
-                    proxy_views
-                ).all():
-                    raise ValueError(
-                        f"`proxy_views` must be finite normalised dB views {expected}: each input's proxy at "
-                        "the input's pose, then at the requested pose (and, as a third, at the flipped "
-                        f"heading d_az + 180 for heading guidance); got {shape}"
-                    )
         num_samples = batch_size * num_images_per_prompt
         generators = generator if isinstance(generator, list) else [generator]
         if generator is not None and not all(isinstance(g, torch.Generator) for g in generators):

@@ -487,12 +487,15 @@ def _prepare_training(
                     "(train/pretrain_prior.py writes both), got None (the built-in dataset has none)"
                 )
             paths = [record.path for record in train_dataset.records]
-            if config.proxy_oracle_prob > 0 and not corpus_proxies_have_oracle(config.data, config.proxies):
+            has_oracle = corpus_proxies_have_oracle(config.data, config.proxies)
+            if config.proxy_oracle_prob > 0 and not has_oracle:
                 raise ValueError(
                     f"proxy_oracle_prob: {config.proxy_oracle_prob} needs proxies written with the oracle "
-                    "(write_corpus_proxies(oracle=True); train/pretrain_prior.py --set proxy_oracle=true)"
+                    "(sar_zero123.data.corpus_proxies.write_corpus_proxies(oracle=True))"
                 )
             magnitudes = load_corpus_proxies(config.data, paths, config.proxies)
+            if has_oracle and config.proxy_oracle_prob == 0:  # the fitted candidates only
+                magnitudes = magnitudes[:, :-1]
             proxies = train_dataset.scaling.normalize(magnitudes).float()
         cache = ChipLatentCache.encode(
             load_chip_images(train_dataset), vae, frozen_tower, proxy_images=proxies

@@ -416,7 +416,7 @@ def prior_proxies_folder(config: PriorConfig, corpus: Path) -> Path:
         if (
             bank.get("num_vehicles") == config.proxy_bank_vehicles
             and record.get("candidates") == config.proxy_candidates
-            and bool(record.get("oracle")) == (config.proxy_oracle_prob > 0)
+            and (record.get("oracle") is True or config.proxy_oracle_prob == 0)
         ):
             return corpus
     return Path(config.output_dir) / "proxies"

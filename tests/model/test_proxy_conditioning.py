@@ -173,7 +173,7 @@ def _proxy_pipeline() -> SARZero123Pipeline:
     return SARZero123Pipeline(**pipe.components, proxy=PROXY)
 
 
-def test_a_proxy_pipeline_fits_its_proxy_and_needs_the_input_pose(tmp_path: Path) -> None:
+def test_a_proxy_pipeline_fits_its_proxy_and_needs_the_input_pose(tmp_path: Path, monkeypatch) -> None:
     pipe = _proxy_pipeline()
     size = pipe.default_image_size
     image = torch.rand(1, 1, size, size)
@@ -197,8 +197,23 @@ def test_a_proxy_pipeline_fits_its_proxy_and_needs_the_input_pose(tmp_path: Path
     other = pipe(image, 90.0, 0.0, input_depression_deg=17.0, proxy_views=views.flip(1),
                  generator=torch.Generator().manual_seed(0), **kwargs).images  # fmt: skip
     assert np.abs(other - given).max() > 1e-3  # the proxy pair reaches the output
-    with pytest.raises(ValueError, match=r"proxy_views` must be finite normalised dB views \(1, 2, "):
-        pipe(image, 90.0, 0.0, input_depression_deg=17.0, proxy_views=views[:, :1], **kwargs)
+    for bad, why in ((views[:, :1], "got shape"), (views * 50.0, "outside"), (views - 20.0, "outside"),
+                     (views.to(torch.complex64), "complex64"), ("proxy.npy", "got a str")):  # fmt: skip
+        with pytest.raises(ValueError, match=rf"proxy_views` must be real normalised dB views.*{why}"):
+            pipe(image, 90.0, 0.0, input_depression_deg=17.0, proxy_views=bad, **kwargs)
+    # given views are used as they are, the start draft too: no fit runs, the azimuth given or not
+    def no_fit(*args, **kwargs):
+        raise AssertionError("a fit ran although proxy_views were given")
+
+    with monkeypatch.context() as patched:
+        patched.setattr(SARZero123Pipeline, "_proxy_drafts", no_fit)
+        drafted = pipe(image, 90.0, 0.0, input_depression_deg=17.0, input_azimuth_deg=40.0, proxy_views=views,
+                       strength=0.5, start_from="proxy", generator=torch.Generator().manual_seed(0),
+                       **kwargs).images  # fmt: skip
+    drafted_from_views = pipe(image, 90.0, 0.0, input_depression_deg=17.0, proxy_views=views, strength=0.5,
+                              start_image=views[:, 1:2], generator=torch.Generator().manual_seed(0),
+                              **kwargs).images  # fmt: skip
+    np.testing.assert_array_equal(drafted, drafted_from_views)
     plain = build_sar_zero123("tiny", seed=0)
     with pytest.raises(ValueError, match="takes no proxy"):
         plain(image, 90.0, proxy_views=views, **kwargs)
