@@ -144,6 +144,10 @@ def _fit(
     return matches[best].index, headings[best] % 360.0, matches[best].shift_px
 
 
+#: A chip whose values span no more than this (normalised dB) holds nothing a proxy could be fitted to.
+_FLAT_RANGE = 1e-6
+
+
 def draft_target_views(
     images: torch.Tensor,
     input_azimuth_deg: torch.Tensor,
@@ -170,7 +174,8 @@ def draft_target_views(
         as fitted ``(B,)`` (the given one, or that + 180 where ``resolve_heading`` turned it).
 
     Raises:
-        ValueError: For a target depression outside (0, 90) deg.
+        ValueError: For a target depression outside (0, 90) deg, or a chip with no structure to fit (every
+            pixel the same value: a blank, saturated or cropped-away scene matches every vehicle equally).
     """
     proxy = check_proxy_settings(proxy)
     # the bank's own arguments alone where no learned shortlist is recorded: one cached bank per settings,
@@ -181,6 +186,12 @@ def draft_target_views(
     scaling = DecibelScaling(min_db=float(proxy["min_db"]), max_db=float(proxy["max_db"]))
     chips = images.detach().float().mean(dim=1).cpu().numpy()  # (B, H, W), any affine map of decibels
     size = chips.shape[-1]
+    flat = [k for k, chip in enumerate(chips) if float(chip.max() - chip.min()) <= _FLAT_RANGE]
+    if flat:
+        raise ValueError(
+            f"image: input {flat[0]} has no structure to fit a simulator proxy to (every pixel "
+            f"{float(chips[flat[0]].flat[0]):.4g}); give a chip with its target in it"
+        )
     drafts, fitted = [], []
     for k, chip in enumerate(chips):
         azimuth, depression = float(input_azimuth_deg[k]), float(input_depression_deg[k])

@@ -656,6 +656,10 @@ def test_the_proxy_start_is_the_simulator_draft_at_the_requested_pose(tmp_path):
             **kwargs)  # fmt: skip
     with pytest.raises(ValueError, match=r"`input_azimuth_deg` must be finite"):  # checked though unused
         run(pipe, images, input_azimuth_deg=float("nan"), **kwargs)
+    for value in (0.0, 0.5, 1.0):  # a chip with no structure matches every vehicle equally: refused
+        flat = torch.cat([images[:1], torch.full_like(images[:1], value)])
+        with pytest.raises(ValueError, match=rf"image: input 1 has no structure .*every pixel {value:g}\)"):
+            run(pipe, flat, start_from="proxy", input_azimuth_deg=10.0, input_depression_deg=17.0, **kwargs)
     plain = SARZero123Pipeline(**get_dummy_components())
     with pytest.raises(ValueError, match=r"records no proxy settings"):
         run(plain, images, start_from="proxy", input_azimuth_deg=10.0, input_depression_deg=17.0, **kwargs)
