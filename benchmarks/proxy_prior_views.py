@@ -25,6 +25,9 @@ vehicle's other sides where one view leaves them open. ``--refine K S`` runs onl
 proxy prior's recorded sampler, from the best fit and from that fit refined by rendering and comparing: the
 best fit, or each of the K best, stretched along its length and its width by every pair of the factors S
 (its scatterers and solids scaled), and the stretch that correlates best with the input kept.
+``--compare P ...`` runs, for ``--pipeline`` and each ``P``, only the plain call (the fitted proxy, the
+recorded sampler), the fitted proxy from noise and a perfect proxy from noise, with the paired differences
+of the azimuth error, identity and turned-and-kept shares against ``--pipeline``.
 ``--fits`` keeps the fits (about 6 minutes on 2 cores) for a re-run on the same pairs.
 """
 
@@ -318,6 +321,7 @@ def run(
             own_heading = float(own["heading_guidance_scale"])
             plain, perfect = f"{name}, its plain call (fitted proxy)", f"{name}, perfect proxy, from noise"
             add(plain, *sample(model, fitted, fitted[:, 1], own_strength, own_heading))
+            add(f"{name}, fitted proxy, from noise", *sample(model, fitted, None, 1.0, own_heading))
             add(perfect, *sample(model, oracle, None, 1.0, own_heading))
             if number:
                 pairs_of_rows += [(plain, f"{pipeline}, its plain call (fitted proxy)"),
@@ -545,8 +549,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
         "--compare",
         nargs="+",
         default=[],
-        help="only each pipeline's plain call (fitted proxy) and its perfect proxy from noise, the first "
-        "--pipeline, then these, paired with it",
+        help="only each pipeline's plain call (fitted proxy), the fitted and the perfect proxy from noise, "
+        "the first --pipeline, then these, paired with it",
     )
     parser.add_argument("--out", default="proxy_prior_views.json", help="output JSON")
     args = parser.parse_args(argv)
