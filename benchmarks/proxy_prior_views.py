@@ -335,10 +335,13 @@ def run(
                 se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
                 shares[f"{first} - {second}: {share}"] = {"mean": float(diff.mean()), "se": se}
                 print(f"paired: {first} - {second}: {share} {diff.mean():+.1%} ± {se:.1%}")
+        views = {name: {"azimuth_error_deg": np.round(r.azimuth_error_deg, 2).tolist(),
+                        "identity_kept": r.identity_kept.astype(int).tolist()}
+                 for name, r in readings.items()}  # fmt: skip
         return {"benchmark": "proxy_prior_views (identity)", "pipelines": [str(pipeline), *compare],
                 "pairs_per_class": pairs_per_class, "seed": seed, "proxy": proxy,
                 "paired_azimuth_error_differences": comparisons, "paired_share_differences": shares,
-                "rows": rows,
+                "rows": rows, "per_view": views,
                 "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
     if retrieval is not None:  # the exhaustive fit against the learned shortlist of each size
         name, sizes = retrieval[0], [int(k) for k in retrieval[1]]
