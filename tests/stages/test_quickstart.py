@@ -205,8 +205,9 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     text = report.read_text()
     # with a depression regressor among the evaluators Table III has a Dep. err. column and its gap closed;
     # simulated pairs are read against their vehicle's other chips too (template azimuth, front/back)
-    paper_row = "| paper: PFM (lambda=4) | seen | 89.0 | 23.5 | - | 1.84 | 0.6720 | 0.7374 |" + " - |" * 5
-    assert "| Template az. err. (deg) ↓ | Front/back right (%) ↑ | Dep. err. (deg) ↓ |" in text
+    paper_row = "| paper: PFM (lambda=4) | seen | 89.0 | 23.5 | - | 1.84 | 0.6720 | 0.7374 |" + " - |" * 6
+    assert ("| Template az. err. (deg) ↓ | Front/back right (%) ↑ | Turned and kept (%) ↑ "
+            "| Dep. err. (deg) ↓ |") in text
     assert "| Dep. gap closed ↑ | Template gap closed ↑ | n |" in text
     # the preset's sampler reaches both evaluations and the report names it
     sampler = "2 DDIM steps, guidance 3.0, heading guidance 1.5, from the input at strength 0.5"

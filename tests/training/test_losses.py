@@ -557,7 +557,7 @@ def test_the_finetune_config_inherits_every_loss_setting_once_and_passes_each_th
                "drop_both_prob": 0.1,
                "drop_latent_prob": 0.1, "timestep_sampling": "logit_normal", "timestep_logit_mean": 0.3,
                "timestep_logit_std": 0.7, "snr_gamma": 2.0, "azimuth_loss_weight": 0.5,
-               "proxy_runner_up_prob": 0.5}  # fmt: skip
+               "proxy_runner_up_prob": 0.5, "proxy_oracle_prob": 0.25}  # fmt: skip
     assert set(changed) == set(names)
     config = FinetuneConfig(encoder="enc", **changed)
     settings = config.loss_settings()
