@@ -21,6 +21,8 @@ import dataclasses
 import hashlib
 import inspect
 import json
+import math
+import numbers
 import os
 import re
 import sys
@@ -34,6 +36,7 @@ from typing import Any, TypeVar
 import yaml
 
 from sar_zero123.domain import naming_write_errors
+from sar_zero123.yaml_data import read_yaml
 
 ConfigT = TypeVar("ConfigT")
 
@@ -90,8 +93,18 @@ def _unwrap_optional(annotation: Any) -> tuple[Any, bool]:
     return annotation, False
 
 
+def finite_float(text: str) -> float:
+    """A float flag's value: any number but NaN and the infinities (``float`` reads ``"1e999"`` as inf)."""
+    value = float(text)
+    if not math.isfinite(value):
+        raise ValueError(f"expected a finite number, got {text!r}")
+    return value
+
+
 def _scalar_parser(annotation: Any, name: str) -> Any:
-    if annotation in (int, float, str):
+    if annotation is float:
+        return finite_float
+    if annotation in (int, str):
         return annotation
     if annotation is Path:
         return str
@@ -132,16 +145,66 @@ def _add_field(parser: argparse.ArgumentParser, field: dataclasses.Field, annota
         parser.add_argument(*flags, type=scalar, **kwargs)
 
 
-def _coerce(value: Any, annotation: Any) -> Any:
-    """Coerce a YAML/JSON/CLI value to the field's declared container type."""
-    inner, _ = _unwrap_optional(annotation)
+def _coerce(name: str, value: Any, annotation: Any) -> Any:
+    """A flag's, ``--set``'s or ``--config`` file's value as the field's declared type takes it: checked
+    (a number finite, a bool a bool, a name one of its choices, a list's items each), a list given to a
+    tuple field as a tuple and an int given to a float field as a float.
+
+    Raises:
+        ValueError: ``"<name>: expected <type>, got <value>"`` for a value of another type.
+    """
+    inner, optional = _unwrap_optional(annotation)
     if value is None:
-        return None
-    if typing.get_origin(inner) is tuple and isinstance(value, (list, tuple)):
-        return tuple(value)
-    if typing.get_origin(inner) is list and isinstance(value, (list, tuple)):
-        return list(value)
+        if optional:
+            return None
+        raise ValueError(f"{name}: expected {_kind(inner)}, got None")
+    origin = typing.get_origin(inner)
+    if origin in (list, tuple, Sequence, typing.Sequence):
+        args = [a for a in typing.get_args(inner) if a is not Ellipsis]
+        if not isinstance(value, (list, tuple)):
+            raise ValueError(
+                f"{name}: expected a list of {_kind(args[0] if args else str)}, got {_short(value)}"
+            )
+        items = [_coerce(name, item, args[0]) for item in value] if args else list(value)
+        return tuple(items) if origin is tuple else items
+    return _coerce_scalar(name, value, inner)
+
+
+def _coerce_scalar(name: str, value: Any, kind: Any) -> Any:
+    if typing.get_origin(kind) is typing.Literal:
+        if value not in typing.get_args(kind) or isinstance(value, bool):
+            raise ValueError(f"{name}: expected one of {list(typing.get_args(kind))}, got {_short(value)}")
+        return value
+    if kind is bool:
+        ok = isinstance(value, bool)
+    elif kind is int:
+        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif kind is float:
+        ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
+        value = float(value) if ok else value
+    elif kind in (str, Path):
+        ok = isinstance(value, str)
+    else:  # a type the flags do not parse (a field set only from code): passed on as given
+        ok = True
+    if not ok:
+        raise ValueError(f"{name}: expected {_kind(kind)}, got {_short(value)}")
     return value
+
+
+def _kind(kind: Any) -> str:
+    names = {
+        bool: "true or false",
+        int: "an integer",
+        float: "a finite number",
+        str: "a name",
+        Path: "a path",
+    }
+    return names.get(kind, getattr(kind, "__name__", str(kind)))
+
+
+def _short(value: Any) -> str:
+    text = repr(value)
+    return text if len(text) <= 80 else f"{text[:77]}..."
 
 
 def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
@@ -158,10 +221,10 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
         values = read_json(path, what="a JSON mapping of config values")
     else:
         try:
-            with path.open() as handle:
-                values = yaml.safe_load(handle)
-        except (yaml.YAMLError, UnicodeDecodeError) as error:
+            text = path.read_text(encoding="utf-8")
+        except UnicodeDecodeError as error:
             raise ValueError(f"--config {str(path)!r}: not valid YAML ({error})") from None
+        values = read_yaml(text, f"--config {str(path)!r}")
     if values is None:
         return {}
     if not isinstance(values, dict):
@@ -374,7 +437,7 @@ def parse_config(
         values.update(file_values)
     values.update(namespace)
     values.update(_set_values(set_pairs, cls, hints, names))
-    values = {name: _coerce(value, hints[name]) for name, value in values.items()}
+    values = {name: _coerce(name, value, hints[name]) for name, value in values.items()}
     config = cls(**values)
     for name in OUTPUT_DIR_FIELDS:
         if hasattr(config, name) and getattr(config, name) is not None:
@@ -406,15 +469,19 @@ def check_minimum(
         optional: Accept ``None``.
 
     Raises:
-        ValueError: ``"<name> must be >= <minimum>[ or None], got <value>"`` (``>`` with ``strict``); NaN
-            fails every check, ``None`` every check without ``optional``.
+        ValueError: ``"<name> must be >= <minimum>[ or None], got <value>"`` (``>`` with ``strict``; "a
+            finite number >= ..." for an infinity); NaN, infinities, booleans and non-numbers fail every
+            check, ``None`` every check without ``optional``.
     """
     for name in names:
         value = getattr(config, name)
         if value is None and optional:
             continue
-        if value is None or not (value > minimum if strict else value >= minimum):
-            bound = f"{'>' if strict else '>='} {minimum}{' or None' if optional else ''}"
+        bound = f"{'>' if strict else '>='} {minimum}{' or None' if optional else ''}"
+        number = isinstance(value, numbers.Real) and not isinstance(value, bool)
+        if number and math.isinf(value):
+            raise ValueError(f"{name} must be a finite number {bound}, got {value}")
+        if not number or not (value > minimum if strict else value >= minimum):
             raise ValueError(f"{name} must be {bound}, got {value}")
 
 

@@ -143,6 +143,12 @@ class Ranges:
         ({"rate": 0.0}, ("rate",), {"minimum": 0, "strict": True}, "rate must be > 0, got 0.0"),
         ({"rate": float("nan")}, ("rate",), {"minimum": 0}, "rate must be >= 0, got nan"),
         ({"limit": 0}, ("limit",), {"minimum": 1, "optional": True}, "limit must be >= 1 or None, got 0"),
+        # an infinity is no setting (a learning rate of 1e999 trains to NaN), nor is a boolean or a name
+        ({"rate": float("inf")}, ("rate",), {"minimum": 0}, "rate must be a finite number >= 0, got inf"),
+        ({"limit": float("-inf")}, ("limit",), {"minimum": 1, "optional": True},
+         "limit must be a finite number >= 1 or None, got -inf"),
+        ({"steps": True}, ("steps",), {"minimum": 0}, "steps must be >= 0, got True"),
+        ({"steps": "3"}, ("steps",), {"minimum": 0}, "steps must be >= 0, got 3"),
         # both bad: the first named is reported
         ({"steps": 0, "rate": -1.0}, ("rate", "steps"), {"minimum": 0}, "rate must be >= 0, got -1.0"),
     ],
@@ -253,3 +259,49 @@ def test_settings_without_a_flag_take_set_and_config_and_are_listed_at_the_end_o
     assert "--learning_rate" in flags and "--set FIELD=VALUE" in flags and "--max_steps" not in flags
     assert "  max_steps (default: 10): optimisation steps" in settings
     assert "  mode (default: 'a'): a choice" in settings
+
+
+@dataclass
+class Typed:
+    seed: int = 0
+    rate: float = 0.1
+    d_az: list[float] = field(default_factory=lambda: [30.0])
+    domain: Literal["normalized_db", "linear"] = "normalized_db"
+    flag: bool = False
+    name: str | None = None
+
+
+@pytest.mark.parametrize(
+    ("text", "message"),
+    [
+        ("seed: '0'\n", "seed: expected an integer, got '0'"),
+        ("seed: 1.5\n", "seed: expected an integer, got 1.5"),
+        ("seed: true\n", "seed: expected an integer, got True"),
+        ("rate: .inf\n", "rate: expected a finite number, got inf"),
+        ("rate: abc\n", "rate: expected a finite number, got 'abc'"),
+        ("d_az: 60\n", "d_az: expected a list of a finite number, got 60"),
+        ("d_az: [true, false]\n", "d_az: expected a finite number, got True"),
+        ("domain: decibel\n", r"domain: expected one of \['normalized_db', 'linear'\], got 'decibel'"),
+        ("flag: 1\n", "flag: expected true or false, got 1"),
+        ("name: 12345\n", "name: expected a name, got 12345"),
+    ],
+)
+def test_config_file_values_are_type_checked_by_field(tmp_path: Path, text: str, message: str) -> None:
+    path = tmp_path / "config.yaml"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=f"^{message}$"):
+        parse_config(Typed, ["--config", str(path)])
+
+
+def test_typed_values_pass_through_and_float_flags_are_finite(tmp_path: Path) -> None:
+    path = tmp_path / "config.yaml"
+    path.write_text("seed: 3\nrate: 1\nd_az: [60, 90.5]\ndomain: linear\nflag: true\nname: null\n")
+    config = parse_config(Typed, ["--config", str(path)])
+    assert (config.seed, config.rate, config.d_az, config.domain, config.flag, config.name) == (
+        3, 1.0, [60.0, 90.5], "linear", True, None
+    )  # fmt: skip
+    assert type(config.rate) is float and all(type(v) is float for v in config.d_az)
+    with pytest.raises(SystemExit):  # argparse: "argument --rate: invalid finite_float value: '1e999'"
+        parse_config(Typed, ["--rate", "1e999"])
+    with pytest.raises(ValueError, match="not a value of rate"):
+        parse_config(Typed, ["--set", "rate=inf"])

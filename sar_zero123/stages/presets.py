@@ -21,8 +21,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import yaml
-
 from sar_zero123.data.splits import OOD_INTERVAL_WIDTH_DEG, check_protocol, ood_validation_intervals
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import downsampling_factor
@@ -36,6 +34,7 @@ from sar_zero123.training.losses import (
     LossSettings,
     check_prediction_type,
 )
+from sar_zero123.yaml_data import read_yaml
 
 __all__ = [
     "DEFAULT_PRESET", "MAX_EVAL_N", "PRESETS", "QUICKSTART_FLAG_ALIASES", "RECIPE_DIR", "RECIPE_STAGES",
@@ -333,7 +332,7 @@ def _is_a(value: Any, kind: type) -> bool:
     if isinstance(value, bool):
         return kind is bool
     if kind is float:
-        return isinstance(value, int | float)
+        return isinstance(value, int | float) and math.isfinite(value)  # YAML reads .inf and 1e999 as inf
     return isinstance(value, kind)
 
 
@@ -376,9 +375,10 @@ def _recipe_values(recipe: str, seen: tuple[str, ...] = ()) -> dict[str, Any]:
         raise ValueError(f"recipe: the chain of extends {' -> '.join([*seen, recipe])} loops or is too deep")
     path = _recipe_file(recipe)
     try:
-        data = yaml.safe_load(path.read_text(encoding="utf-8"))  # data only: never a tag that builds objects
-    except (yaml.YAMLError, UnicodeDecodeError) as error:
-        raise ValueError(f"recipe {recipe!r}: not a YAML file ({error})") from None
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as error:
+        raise ValueError(f"recipe {recipe!r}: not valid YAML ({error})") from None
+    data = read_yaml(text, f"recipe {recipe!r}")  # data only: no tags, aliases, deep nesting or repeats
     if not isinstance(data, dict):
         kind = type(data).__name__
         raise ValueError(f"recipe {recipe!r}: expected a mapping of stages to fields, got {kind}")

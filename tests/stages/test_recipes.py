@@ -72,8 +72,19 @@ def test_a_recipe_file_of_ones_own_extends_a_bundled_one(tmp_path: Path) -> None
         ("finetune:\n  finetune_steps: 3\n", "no value for"),
         ("- a\n- b\n", "expected a mapping of stages to fields, got list"),
         ("extends: default\nfinetune: 3\n", "finetune must map fields to values"),
-        ("!!python/object/apply:os.system ['echo owned']\n", "not a YAML file"),
-        ("extends: default\nfinetune: {finetune_steps: [1\n", "not a YAML file"),
+        ("!!python/object/apply:os.system ['echo owned']\n", "not valid YAML"),
+        ("extends: default\nfinetune: {finetune_steps: [1\n", "not valid YAML"),
+        # an infinity is no setting (YAML reads .inf and 1e999 so): refused before any stage runs
+        (
+            "extends: default\nfinetune:\n  finetune_learning_rate: .inf\n",
+            "finetune_learning_rate takes float",
+        ),
+        (
+            "extends: default\nevaluators:\n  evaluator_learning_rate: 1e999\n",
+            "evaluator_learning_rate takes",
+        ),
+        ("extends: default\nmodel:\n  snr_gamma: .inf\n", r"snr_gamma takes float \| None, got inf"),
+        ("extends: default\nfinetune:\n  finetune_steps: 2\n  finetune_steps: 5000000\n", "given twice"),
     ],
 )
 def test_a_bad_recipe_is_refused_by_name_before_any_stage(tmp_path: Path, text: str, match: str) -> None:
