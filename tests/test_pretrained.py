@@ -65,7 +65,7 @@ def test_anything_else_is_returned_as_a_path_unchanged(path):
 
 def test_an_unknown_bundled_name_is_refused_listing_the_bundled_ones(tmp_path, monkeypatch):
     message = (
-        r"'sar-zero123/nope': no bundled pipeline of that name and no such folder; "
+        r"'sar-zero123/nope': no bundled pipeline of that name; "
         r"bundled: \['sar-zero123/sim-prior', 'sar-zero123/sim-prior-proxy', "
         r"'sar-zero123/sim-prior-rotated'\]"
     )
@@ -73,8 +73,10 @@ def test_an_unknown_bundled_name_is_refused_listing_the_bundled_ones(tmp_path, m
         with pytest.raises(FileNotFoundError, match=message):  # never a model-hub lookup
             load("sar-zero123/nope")
     monkeypatch.chdir(tmp_path)
-    (tmp_path / "sar-zero123" / "nope").mkdir(parents=True)  # an existing folder of that name is a path
-    assert resolve_pretrained("sar-zero123/nope") == Path("sar-zero123/nope")
+    (tmp_path / "sar-zero123" / "nope").mkdir(parents=True)  # a folder of that name is a path only as ./...
+    with pytest.raises(FileNotFoundError, match=r"\(a local folder: \./sar-zero123/nope\)"):
+        resolve_pretrained("sar-zero123/nope")
+    assert resolve_pretrained("./sar-zero123/nope") == Path("sar-zero123/nope")
 
 
 def test_missing_weights_raise_naming_the_name(tmp_path, monkeypatch):
@@ -102,15 +104,28 @@ def test_name_loads_the_registered_pipeline(tiny_prior, monkeypatch):
     _assert_same_weights(load_sar_zero123(pretrained=SIM_PRIOR), saved)
 
 
-def test_existing_folder_spelled_like_the_name_wins(tiny_prior, tmp_path, monkeypatch):
+def test_a_bundled_name_always_means_the_bundled_weights(tiny_prior, tmp_path, monkeypatch):
+    """A folder ./sar-zero123/sim-prior in the working directory never replaces the bundled pipeline; it is
+    used only when given as a path."""
     registry, saved = tiny_prior
     monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "empty_registry")  # no bundled weights
     monkeypatch.chdir(tmp_path)
     (tmp_path / "sar-zero123").mkdir()
     (tmp_path / "sar-zero123" / "sim-prior").symlink_to(registry / "sim_prior", target_is_directory=True)
-    assert not is_bundled_name(SIM_PRIOR)
-    assert resolve_pretrained(SIM_PRIOR) == Path("sar-zero123/sim-prior")
-    _assert_same_weights(SARZero123Pipeline.from_pretrained(SIM_PRIOR), saved)
+    assert is_bundled_name(SIM_PRIOR) and not is_bundled_name("./sar-zero123/sim-prior")
+    with pytest.raises(FileNotFoundError, match="its weights are missing from this install"):
+        resolve_pretrained(SIM_PRIOR)
+    with pytest.raises(FileNotFoundError, match=r"no bundled pipeline of that name.*\(a local folder: \./"):
+        resolve_pretrained("sar-zero123/sim-prio")
+    assert resolve_pretrained("./sar-zero123/sim-prior") == Path("sar-zero123/sim-prior")
+    from sar_zero123.pretrained import PROXY_RETRIEVAL, resolve_retrieval
+
+    (tmp_path / "sar-zero123" / "proxy-retrieval").mkdir()  # a local shortlist never replaces the bundled one
+    (tmp_path / "sar-zero123" / "proxy-retrieval" / "config.json").write_text("{}")
+    with pytest.raises(FileNotFoundError, match="empty_registry/proxy_retrieval"):  # the bundled one, absent
+        resolve_retrieval(PROXY_RETRIEVAL)
+    assert resolve_retrieval("./sar-zero123/proxy-retrieval") == Path("sar-zero123/proxy-retrieval")
+    _assert_same_weights(SARZero123Pipeline.from_pretrained("./sar-zero123/sim-prior"), saved)
 
 
 def _pearson(a: np.ndarray, b: np.ndarray) -> float:

@@ -57,7 +57,8 @@ PRETRAINED_DIR = Path(__file__).resolve().parent
 
 
 def is_bundled_name(name_or_path: str | os.PathLike) -> bool:
-    """Whether ``name_or_path`` is a registered name and no file or folder of that path exists.
+    """Whether ``name_or_path`` is a registered name (always the bundled weights: a local folder spelled
+    the same is used only when given as a path, ``./sar-zero123/sim-prior``).
 
     Args:
         name_or_path: A registered name or a path.
@@ -66,15 +67,15 @@ def is_bundled_name(name_or_path: str | os.PathLike) -> bool:
         True for a registered name that :func:`resolve_pretrained` maps to a bundled folder.
     """
     text = os.fspath(name_or_path)
-    return text in BUNDLED_PIPELINES and not Path(text).exists()
+    return text in BUNDLED_PIPELINES
 
 
 def resolve_pretrained(name_or_path: str | os.PathLike) -> Path:
     """The folder a registered name stands for; any other argument as a path, unchanged.
 
     Args:
-        name_or_path: A name of :data:`BUNDLED_PIPELINES` (e.g. :data:`SIM_PRIOR`) or a path. An
-            existing path is returned as itself even when it is spelled like a registered name.
+        name_or_path: A name of :data:`BUNDLED_PIPELINES` (e.g. :data:`SIM_PRIOR`), which always means
+            the bundled folder, or a path (a local folder spelled like a name: ``./sar-zero123/...``).
 
     Returns:
         The bundled folder for a registered name, else ``Path(name_or_path)``.
@@ -85,10 +86,10 @@ def resolve_pretrained(name_or_path: str | os.PathLike) -> Path:
             registered and no existing path (the message lists the bundled names).
     """
     text = os.fspath(name_or_path)
-    if text.startswith(BUNDLED_NAMESPACE) and text not in BUNDLED_PIPELINES and not Path(text).exists():
+    if text.startswith(BUNDLED_NAMESPACE) and text not in BUNDLED_PIPELINES:
         bundled = sorted(BUNDLED_PIPELINES)
         raise FileNotFoundError(
-            f"{text!r}: no bundled pipeline of that name and no such folder; bundled: {bundled}"
+            f"{text!r}: no bundled pipeline of that name; bundled: {bundled} (a local folder: ./{text})"
         )
     if not is_bundled_name(name_or_path):
         return Path(name_or_path)
@@ -111,12 +112,12 @@ def resolve_retrieval(name_or_path: str | os.PathLike) -> Path:
             without the network's ``config.json`` (the message names what was looked for).
     """
     text = os.fspath(name_or_path)
-    if text in BUNDLED_RETRIEVAL and not Path(text).exists():
+    if text in BUNDLED_RETRIEVAL:  # always the bundled network (a local folder: ./sar-zero123/...)
         folder = PRETRAINED_DIR / BUNDLED_RETRIEVAL[text]
-    elif text.startswith(BUNDLED_NAMESPACE) and not Path(text).exists():
+    elif text.startswith(BUNDLED_NAMESPACE):
         raise FileNotFoundError(
-            f"{text!r}: no bundled retrieval of that name and no such folder; bundled: "
-            f"{sorted(BUNDLED_RETRIEVAL)}"
+            f"{text!r}: no bundled retrieval of that name; bundled: {sorted(BUNDLED_RETRIEVAL)} (a local "
+            f"folder: ./{text})"
         )
     else:
         folder = Path(text)
