@@ -15,7 +15,7 @@ import logging
 import numbers
 import os
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, Literal
@@ -1012,7 +1012,7 @@ class SARZero123Pipeline(DiffusionPipeline):
                 or azimuth is not given.
         """
         start = why.startswith("start_from")
-        proxy = getattr(self.config, "proxy", None)
+        proxy = _anchored_proxy(getattr(self.config, "proxy", None), self.config.get("_name_or_path"))
         if proxy is None:
             raise ValueError(
                 f"{why}: this pipeline records no proxy settings (pipe.config.proxy); build it with "
@@ -1209,6 +1209,21 @@ def same_depression_pose(pose: torch.Tensor) -> torch.Tensor:
 #: Files of a pipeline folder that loading may read (weights, configs, scaling): one that its manifest does
 #: not list is named in a warning.
 _SEALED_SUFFIXES = (".json", ".safetensors", ".bin", ".pt", ".pth", ".ckpt", ".pkl", ".py", ".msgpack")
+
+
+def _anchored_proxy(proxy: Mapping[str, Any] | None, folder: str | None) -> Mapping[str, Any] | None:
+    """A pipeline's proxy settings with a relative ``retrieval`` folder read against the pipeline's own
+    folder (where it was loaded from), never against the working directory; names and absolute paths as
+    recorded."""
+    retrieval = None if proxy is None else proxy.get("retrieval")
+    if (
+        not isinstance(retrieval, str)
+        or retrieval.startswith(BUNDLED_NAMESPACE)
+        or os.path.isabs(retrieval)
+        or not (isinstance(folder, str) and os.path.isdir(folder))
+    ):
+        return proxy
+    return {**proxy, "retrieval": os.path.join(folder, retrieval)}
 
 
 def _check_manifest(folder: str | os.PathLike, verify: bool) -> None:

@@ -443,7 +443,7 @@ def load_retrieval(folder: str | Path, bank: dict[str, Any] | None = None) -> Pr
     """
     from safetensors.torch import load_file
 
-    from sar_zero123.config import manifest_problem
+    from sar_zero123.config import MANIFEST_FILE, manifest_problem
 
     folder = Path(folder)
     for name in (_CONFIG, _WEIGHTS):
@@ -451,6 +451,8 @@ def load_retrieval(folder: str | Path, bank: dict[str, Any] | None = None) -> Pr
             raise FileNotFoundError(
                 f"retrieval: {folder / name} not found (a saved ProxyRetrievalNet folder)"
             )
+    if not (folder / MANIFEST_FILE).is_file():
+        logger.warning("retrieval %s has no %s: its weights are loaded unchecked", folder, MANIFEST_FILE)
     problem = manifest_problem(folder)
     if problem is not None:
         raise ValueError(f"retrieval: {problem}")
