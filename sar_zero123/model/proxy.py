@@ -21,7 +21,7 @@ import numpy as np
 import torch
 
 from sar_zero123.data import DecibelScaling
-from sar_zero123.sim.proxy import PROXY_FIRST_SEED, ProxyBank
+from sar_zero123.sim.proxy import MAX_RENDERED_BANK, PROXY_FIRST_SEED, ProxyBank
 
 __all__ = [
     "DATASET_SHORTLIST", "DEFAULT_PROXY", "PROXY_FIELDS", "check_proxy_settings", "draft_target_views",
@@ -87,6 +87,11 @@ def check_proxy_settings(proxy: Mapping[str, Any], name: str = "proxy") -> dict[
     except ValueError as error:
         raise ValueError(f"{name}.{error}") from None
     retrieval = proxy["retrieval"]
+    if retrieval is None and proxy["num_vehicles"] > MAX_RENDERED_BANK:
+        raise ValueError(
+            f"{name}.num_vehicles: a bank without a learned shortlist ({name}.retrieval) renders all "
+            f"its vehicles in each fit; expected at most {MAX_RENDERED_BANK:,}, got {proxy['num_vehicles']:,}"
+        )
     if retrieval is not None:
         if not isinstance(retrieval, str) or not retrieval:
             raise ValueError(f"{name}.retrieval: expected null or the name or folder of a learned shortlist, "

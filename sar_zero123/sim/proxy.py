@@ -38,6 +38,12 @@ __all__ = [
 #: (``write_prior_corpus`` numbers its vehicles from 0), so a bank vehicle is never a training vehicle.
 PROXY_FIRST_SEED = 1_000_000
 _MAX_BANK = 100_000
+#: Largest bank fitted without a learned shortlist: each fit renders every vehicle, so its time grows with
+#: the bank; a larger bank needs a ``retrieval``.
+MAX_RENDERED_BANK = 10_000
+#: Largest fit blur: a quarter of a 64-pixel chip (a wider blur leaves no structure to fit, and its filter
+#: grows with it).
+MAX_BLUR_SIGMA_PX = 16.0
 #: A shortlisting bank renders every vehicle once per pose bucket of this many degrees (azimuth and
 #: depression) and keeps the renders for the chips near that pose.
 POSE_BUCKET_DEG = 5.0
@@ -192,8 +198,10 @@ class ProxyBank:
             raise ValueError(f"num_vehicles: expected an integer in [1, {_MAX_BANK}], got {num_vehicles!r}")
         if isinstance(first_seed, bool) or int(first_seed) != first_seed or first_seed < 0:
             raise ValueError(f"first_seed: expected an integer >= 0, got {first_seed!r}")
-        if not (np.isfinite(blur_sigma_px) and blur_sigma_px >= 0.0):
-            raise ValueError(f"blur_sigma_px: expected a finite value >= 0, got {blur_sigma_px!r}")
+        if not (np.isfinite(blur_sigma_px) and 0.0 <= blur_sigma_px <= MAX_BLUR_SIGMA_PX):
+            raise ValueError(
+                f"blur_sigma_px: expected a value in [0, {MAX_BLUR_SIGMA_PX:g}] pixels, got {blur_sigma_px!r}"
+            )
         if isinstance(render_seed, bool) or int(render_seed) != render_seed or render_seed < 0:
             raise ValueError(f"render_seed: expected an integer >= 0, got {render_seed!r}")
         self.num_vehicles = int(num_vehicles)

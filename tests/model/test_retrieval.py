@@ -159,3 +159,23 @@ def test_a_retrieval_folder_without_manifest_warns_and_a_relative_one_is_read_in
         assert _anchored_proxy({**proxy, "retrieval": kept}, str(tmp_path / "pipe"))["retrieval"] == kept
     assert _anchored_proxy(proxy, None) is proxy  # built in code: as given
     assert _anchored_proxy(None, str(tmp_path)) is None
+
+
+def test_fit_settings_are_bounded_before_any_render():
+    from sar_zero123.sim.proxy import MAX_BLUR_SIGMA_PX, MAX_RENDERED_BANK
+
+    with pytest.raises(ValueError, match=r"proxy.num_vehicles: a bank without a learned shortlist"):
+        check_proxy_settings({**DEFAULT_PROXY, "num_vehicles": MAX_RENDERED_BANK + 1, "retrieval": None})
+    big = {
+        **DEFAULT_PROXY,
+        "num_vehicles": 100_000,
+        "shortlist": 64,
+        "retrieval": "sar-zero123/proxy-retrieval",
+    }
+    assert check_proxy_settings(big)["num_vehicles"] == 100_000  # a learned shortlist renders 64 of them
+    for blur in (1e6, MAX_BLUR_SIGMA_PX + 0.5, float("inf"), -1.0):
+        with pytest.raises(ValueError, match=r"proxy.blur_sigma_px: expected a value in \[0, 16\] pixels"):
+            check_proxy_settings({**DEFAULT_PROXY, "blur_sigma_px": blur})
+    assert (
+        check_proxy_settings({**DEFAULT_PROXY, "blur_sigma_px": MAX_BLUR_SIGMA_PX})["blur_sigma_px"] == 16.0
+    )
