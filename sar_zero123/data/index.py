@@ -97,6 +97,8 @@ class ChipRecord:
 
 def _parse_float(value: str, column: str, where: str) -> float:
     try:
+        if "_" in value:  # Python reads "3_0" as 30; a CSV number has no digit separators
+            raise ValueError(value)
         number = float(value)
     except ValueError:
         raise ValueError(f"{where}: column '{column}' must be a number, got {value!r}") from None
@@ -109,6 +111,8 @@ def _parse_optional_int(value: str | None, column: str, where: str) -> int | Non
     if value is None or value == "":
         return None
     try:
+        if "_" in value:  # Python reads "6_4" as 64; a CSV number has no digit separators
+            raise ValueError(value)
         return int(value)
     except ValueError:
         raise ValueError(f"{where}: column '{column}' must be an integer, got {value!r}") from None

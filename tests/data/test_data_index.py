@@ -84,6 +84,8 @@ def test_missing_chip_file(tmp_path: Path) -> None:
         ("a.npy,T72,,132,17,nan,,", "column 'azimuth_deg' must be finite"),
         ("a.npy,T72,,132,high,3,,", "column 'depression_deg' must be a number, got 'high'"),
         ("a.npy,T72,,132,17,3,4.5,", "column 'height' must be an integer"),
+        ("a.npy,T72,,132,17,3_0,,", "column 'azimuth_deg' must be a number, got '3_0'"),  # not 30
+        ("a.npy,T72,,132,17,30,6_4,", "column 'height' must be an integer, got '6_4'"),
         ("a.npy,T72,,132,17,3", "expected 8 fields"),
     ],
 )
