@@ -494,7 +494,8 @@ def check_output_dir(path: str | os.PathLike, field: str = "output_dir") -> Path
     lies outside the installed ``sar_zero123`` package (its bundled pipelines; a reinstall would lose it).
 
     Raises:
-        NotADirectoryError: naming ``field``, the path and the file in the way.
+        NotADirectoryError: naming ``field``, the path and the file (or dangling link) in the way.
+        PermissionError: naming ``field``, for a folder (or the nearest existing parent) not writable.
         ValueError: naming ``field``, for a folder inside the package.
     """
     path = Path(path)
@@ -505,10 +506,21 @@ def check_output_dir(path: str | os.PathLike, field: str = "output_dir") -> Path
             "beside its bundled pipelines; name a folder outside it"
         )
     for candidate in (path, *path.parents):
+        if candidate.is_symlink() and not candidate.exists():
+            where = "is" if candidate == path else f"is inside {str(candidate)!r}, which is"
+            raise NotADirectoryError(
+                f"{field}: {str(path)!r} {where} a link to {os.readlink(candidate)!r}, which does not exist; "
+                "expected a folder to write into"
+            )
         if candidate.exists():
             if not candidate.is_dir():
                 where = "is a file" if candidate == path else f"is inside {str(candidate)!r}, which is a file"
                 raise NotADirectoryError(f"{field}: {str(path)!r} {where}; expected a folder to write into")
+            if not os.access(candidate, os.W_OK | os.X_OK):
+                where = "" if candidate == path else f" (in {str(candidate)!r})"
+                raise PermissionError(
+                    f"{field}: {str(path)!r} cannot be written{where}; name a writable folder"
+                )
             break
     return path
 
@@ -593,7 +605,14 @@ def save_config(config: Any, directory: str | os.PathLike, name: str = "config.j
 
 #: What a command raises when it refuses its input (a bad field, a missing file, a folder holding other
 #: work): at the command line one line names it, without a traceback (``--traceback`` shows one).
-REFUSALS = (ValueError, FileNotFoundError, FileExistsError, NotADirectoryError, IsADirectoryError)
+REFUSALS = (
+    ValueError,
+    FileNotFoundError,
+    FileExistsError,
+    NotADirectoryError,
+    IsADirectoryError,
+    PermissionError,
+)
 #: The exit status of a refused command (argparse's for a bad flag).
 REFUSED = 2
 TRACEBACK_FLAG = "--traceback"

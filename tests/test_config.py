@@ -218,6 +218,15 @@ def test_an_output_folder_inside_the_installed_package_is_refused(tmp_path: Path
     assert check_output_dir(tmp_path / "views") == tmp_path / "views"
 
 
+def test_a_dangling_link_as_output_folder_is_refused_before_any_work(tmp_path: Path) -> None:
+    (tmp_path / "out").symlink_to(tmp_path / "gone")
+    with pytest.raises(NotADirectoryError, match=r"output_dir: .*out' is a link to .*gone', which does not"):
+        check_output_dir(tmp_path / "out")
+    with pytest.raises(NotADirectoryError, match=r"is inside .*out', which is a link to"):
+        check_output_dir(tmp_path / "out" / "views")
+    assert not (tmp_path / "gone").exists()
+
+
 @dataclass
 class AdvancedConfig(DemoConfig):
     """A command with settings that are not flags."""
