@@ -177,8 +177,8 @@ def _coerce_scalar(name: str, value: Any, kind: Any) -> Any:
         return value
     if kind is bool:
         ok = isinstance(value, bool)
-    elif kind is int:
-        ok = isinstance(value, int) and not isinstance(value, bool)
+    elif kind is int:  # within int64: what torch and numpy take as a seed or a size
+        ok = isinstance(value, int) and not isinstance(value, bool) and -(2**63) <= value < 2**63
     elif kind is float:
         ok = isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value)
         value = float(value) if ok else value
@@ -194,7 +194,7 @@ def _coerce_scalar(name: str, value: Any, kind: Any) -> Any:
 def _kind(kind: Any) -> str:
     names = {
         bool: "true or false",
-        int: "an integer",
+        int: "an integer within int64",
         float: "a finite number",
         str: "a name",
         Path: "a path",

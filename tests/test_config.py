@@ -283,9 +283,10 @@ class Typed:
 @pytest.mark.parametrize(
     ("text", "message"),
     [
-        ("seed: '0'\n", "seed: expected an integer, got '0'"),
-        ("seed: 1.5\n", "seed: expected an integer, got 1.5"),
-        ("seed: true\n", "seed: expected an integer, got True"),
+        ("seed: '0'\n", "seed: expected an integer within int64, got '0'"),
+        ("seed: 1.5\n", "seed: expected an integer within int64, got 1.5"),
+        ("seed: true\n", "seed: expected an integer within int64, got True"),
+        ("seed: 18446744073709551616\n", "seed: expected an integer within int64, got 18446744073709551616"),
         ("rate: .inf\n", "rate: expected a finite number, got inf"),
         ("rate: abc\n", "rate: expected a finite number, got 'abc'"),
         ("d_az: 60\n", "d_az: expected a list of a finite number, got 60"),
@@ -314,3 +315,5 @@ def test_typed_values_pass_through_and_float_flags_are_finite(tmp_path: Path) ->
         parse_config(Typed, ["--rate", "1e999"])
     with pytest.raises(ValueError, match="not a value of rate"):
         parse_config(Typed, ["--set", "rate=inf"])
+    with pytest.raises(ValueError, match="seed: expected an integer within int64, got 18446744073709551616"):
+        parse_config(Typed, ["--seed", "18446744073709551616"])
