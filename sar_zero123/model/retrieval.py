@@ -4,8 +4,9 @@ An exhaustive fit (:class:`~sar_zero123.sim.proxy.ProxyBank`) renders every bank
 about 2.4 s for 1,000 vehicles on one core: most of a proxy view's cost. :class:`ProxyRetrievalNet` reads the
 chip (blurred, 2 x 2 pooled, standardised, and a copy turned to the vehicle's frame) and its pose, and gives
 one logit per bank vehicle, trained to match the softmax of each vehicle's correlation with the chip at that
-pose (:func:`retrieval_loss`). A fit then renders only the ``shortlist`` vehicles it ranks best and scores
-them exactly as the exhaustive fit does, in a few dozen renders.
+pose (:func:`retrieval_loss`, in :func:`sar_zero123.training.retrieval.train_retrieval`). A fit then renders
+only the ``shortlist`` vehicles it ranks best and scores them exactly as the exhaustive fit does, in a few
+dozen renders.
 
 Its training chips (:func:`make_retrieval_data`) are procedural vehicles never in a prior corpus nor the
 named test vehicles: half the bank's own vehicles, half others (seeds from :data:`RETRIEVAL_FIRST_SEED`),
@@ -43,7 +44,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "RETRIEVAL_FIRST_SEED", "RETRIEVAL_TOP", "ProxyRetrievalNet", "load_retrieval", "make_retrieval_data",
-    "retrieval_inputs", "retrieval_loss", "save_retrieval", "shortlist_recall", "train_retrieval",
+    "retrieval_inputs", "retrieval_loss", "save_retrieval", "shortlist_recall",
 ]  # fmt: skip
 
 #: First procedural seed of the training vehicles that are not bank vehicles: above the default bank's
@@ -290,7 +291,6 @@ def turntable_similarity(
     return (torch.einsum("upd,vpd->uv", features, features[: bank.num_vehicles]) / len(azimuths)).numpy()
 
 
-
 def make_retrieval_data(
     bank: ProxyBank,
     depressions: Sequence[float],
@@ -343,76 +343,6 @@ def make_retrieval_data(
         data["top_index"] = top.indices.numpy().astype(np.int16)
         data["top_score"] = top.values.numpy().astype(np.float32)
     return data
-
-
-def train_retrieval(
-    data: dict[str, np.ndarray],
-    bank: dict[str, Any],
-    steps: int,
-    batch_size: int = 256,
-    learning_rate: float = 2e-3,
-    temperature: float = 0.01,
-    seed: int = 0,
-    held_out_share: float = 0.05,
-    log_every: int = 250,
-    init: ProxyRetrievalNet | None = None,
-) -> tuple[ProxyRetrievalNet, dict[int, float]]:
-    """Train a :class:`ProxyRetrievalNet` on :func:`make_retrieval_data`'s chips (AdamW, 200 warm-up steps,
-    cosine decay; :func:`retrieval_loss`), a seeded ``held_out_share`` of them kept out, from ``init``'s
-    weights where given.
-
-    Returns:
-        ``(net, recall)``: the network in eval mode, and the share of held-out chips whose bucket's best
-        vehicle it ranks within its first 1, 8, 32, 64 and 128 (:func:`shortlist_recall`).
-
-    Raises:
-        ValueError: For fewer chips than a batch, or a non-positive step count, batch or temperature.
-    """
-    n = len(data["azimuth"])
-    if not (steps >= 1 and batch_size >= 1 and temperature > 0 and 0 < held_out_share < 1):
-        raise ValueError(
-            f"steps, batch_size, temperature, held_out_share: expected >= 1, >= 1, > 0 and in (0, 1), got "
-            f"{steps}, {batch_size}, {temperature}, {held_out_share}"
-        )
-    held_count = max(1, int(n * held_out_share))
-    if n - held_count < batch_size:
-        raise ValueError(
-            f"batch_size: expected at most the {n - held_count} training chips, got {batch_size}"
-        )
-    torch.manual_seed(seed)
-    order = np.random.default_rng(seed).permutation(n)
-    held, train = order[:held_count], order[held_count:]
-    tensors = {k: torch.from_numpy(np.asarray(v)) for k, v in data.items()}
-    net = ProxyRetrievalNet(bank)
-    if init is not None:  # continue from a trained network of the same bank and sizes
-        if init.config() != net.config():
-            raise ValueError(f"init: expected a network of {net.config()}, got {init.config()}")
-        net.load_state_dict(init.state_dict())
-    net.train()
-    optimizer = torch.optim.AdamW(net.parameters(), lr=learning_rate, weight_decay=1e-4)
-    schedule = torch.optim.lr_scheduler.LambdaLR(
-        optimizer, lambda s: min(1.0, (s + 1) / 200) * 0.5 * (1 + math.cos(math.pi * min(s, steps) / steps))
-    )
-    rng = np.random.default_rng(seed + 1)
-    for step in range(steps):
-        batch = torch.from_numpy(rng.choice(train, batch_size, replace=False))
-        logits = net(
-            tensors["inputs"][batch].float(), tensors["azimuth"][batch], tensors["depression"][batch]
-        )
-        loss = retrieval_loss(logits, tensors["top_index"][batch], tensors["top_score"][batch], temperature)
-        optimizer.zero_grad(set_to_none=True)
-        loss.backward()
-        optimizer.step()
-        schedule.step()
-        if log_every and (step % log_every == 0 or step == steps - 1):
-            logger.info("step %d: loss %.3f", step, loss.item())
-    net.eval()
-    with torch.no_grad():
-        rows = torch.from_numpy(held)
-        logits = net(tensors["inputs"][rows].float(), tensors["azimuth"][rows], tensors["depression"][rows])
-        ranked = torch.argsort(logits, dim=1, descending=True, stable=True).numpy()
-    best = np.asarray(data["top_index"])[held, 0].astype(np.int64)
-    return net, shortlist_recall(ranked, best, (1, 8, 32, 64, 128))
 
 
 def save_retrieval(net: ProxyRetrievalNet, folder: str | Path, extra: dict[str, Any] | None = None) -> Path:

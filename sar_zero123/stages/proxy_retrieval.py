@@ -3,7 +3,7 @@
 ``sar-zero123-proxy-retrieval`` (``python train/train_proxy_retrieval.py``) parses its flags into
 :class:`ProxyRetrievalConfig` and calls :func:`run_proxy_retrieval`: the training chips
 (:func:`~sar_zero123.model.retrieval.make_retrieval_data`, cached in ``data.npz``), the network
-(:func:`~sar_zero123.model.retrieval.train_retrieval`) written to ``retrieval/`` (sealed), and its held-out
+(:func:`~sar_zero123.training.retrieval.train_retrieval`) written to ``retrieval/`` (sealed), and its held-out
 recall in ``metrics.json``. A pipeline uses it through its proxy settings (``"shortlist": 64, "retrieval":
 "<output_dir>/retrieval"``); the bundled one is ``sar-zero123/proxy-retrieval``.
 """
@@ -20,10 +20,11 @@ import numpy as np
 
 from sar_zero123.config import write_json_atomic
 from sar_zero123.model.proxy import DEFAULT_PROXY
-from sar_zero123.model.retrieval import load_retrieval, make_retrieval_data, save_retrieval, train_retrieval
+from sar_zero123.model.retrieval import load_retrieval, make_retrieval_data, save_retrieval
 from sar_zero123.runs.folder import StageTimer, finish_run
 from sar_zero123.runs.stage import open_stage_folder
 from sar_zero123.sim.proxy import ProxyBank
+from sar_zero123.training.retrieval import train_retrieval
 
 logger = logging.getLogger(__name__)
 
