@@ -120,7 +120,20 @@ def check_component_folder(folder: str | os.PathLike, name: str, component_class
 COMPONENT_LIBRARIES = ("diffusers", "transformers", "sar_zero123")
 
 
+#: Component modules that no longer exist -> the module that defines their classes now. A folder naming one
+#: is refused in one line that says what to write instead.
+REMOVED_COMPONENT_MODULES = {
+    "sar_zero123.conditioning": "sar_zero123.model.conditioning",
+    "sar_zero123.orientation": "sar_zero123.model.orientation",
+}
+
+
 def _import_class(library: str, class_name: str, name: str, index_path: Path) -> type:
+    if library in REMOVED_COMPONENT_MODULES:
+        raise ValueError(
+            f"{index_path}: component '{name}' is listed as {library}.{class_name}, a module that was "
+            f'removed; write "{REMOVED_COMPONENT_MODULES[library]}" in its place (weights load unchanged)'
+        )
     if not isinstance(library, str) or library.split(".")[0] not in COMPONENT_LIBRARIES:
         raise ValueError(
             f"{index_path}: component '{name}' is listed as {library}.{class_name}; a component must come "

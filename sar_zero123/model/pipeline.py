@@ -14,7 +14,6 @@ import inspect
 import logging
 import numbers
 import os
-import sys
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -1339,14 +1338,3 @@ def _to_pil(array: np.ndarray) -> list[PIL.Image.Image]:
 # `trust_remote_code` or code copied into the folder.
 if getattr(diffusers, SARZero123Pipeline.__name__, None) is None:
     setattr(diffusers, SARZero123Pipeline.__name__, SARZero123Pipeline)
-
-#: Module paths that pipelines saved before the package was grouped into wings (``model/``, ``training/``,
-#: ``evaluation/``) name in their ``model_index.json`` -> the module that defines those components now.
-MOVED_COMPONENT_MODULES = {
-    "sar_zero123.conditioning": PoseProjection.__module__,
-    "sar_zero123.orientation": AzimuthEstimator.__module__,
-}
-# diffusers imports each component's module by the name model_index.json gives, so such a folder loads
-# only if the old names answer with the moved modules.
-for _old, _new in MOVED_COMPONENT_MODULES.items():
-    sys.modules.setdefault(_old, sys.modules[_new])

@@ -182,8 +182,16 @@ def test_ddim_guided_sampling_matches_the_original_zero123_equations(pipe):
     steps, scale = 5, 3.0
     images = dummy_images(batch_size=2)
     noise = torch.randn(2, 4, 16, 16, generator=torch.Generator().manual_seed(9))
-    output = run(pipe, images, d_az=[30.0, 120.0], d_el=[0.0, 4.0], latents=noise, generator=None,
-                 num_inference_steps=steps, guidance_scale=scale)
+    output = run(
+        pipe,
+        images,
+        d_az=[30.0, 120.0],
+        d_el=[0.0, 4.0],
+        latents=noise,
+        generator=None,
+        num_inference_steps=steps,
+        guidance_scale=scale,
+    )
     pose = torch.tensor([[[0.0, 0.5, 3**0.5 / 2, 0.0]], [[4 * torch.pi / 180, 3**0.5 / 2, -0.5, 0.0]]])
     expected = _naive_guided_ddim(pipe, noise, images, pose, steps, steps - 1, scale)  # 801, 601, ..., 1
     torch.testing.assert_close(output, expected, atol=1e-5, rtol=0)
@@ -495,19 +503,22 @@ def test_save_pretrained_from_pretrained_round_trip(pipe, tmp_path):
     assert torch.equal(run(generic), reference)
 
 
-def test_folder_saved_under_the_old_module_paths_still_loads(pipe, tmp_path):
-    # model_index.json of a pipeline saved before the package was grouped into wings
-    reference = run(pipe)
+def test_a_folder_naming_a_removed_module_is_refused_naming_its_replacement(pipe, tmp_path):
     pipe.save_pretrained(tmp_path)
     index_path = tmp_path / "model_index.json"
     model_index = json.loads(index_path.read_text())
     model_index["pose_projection"] = ["sar_zero123.conditioning", "PoseProjection"]
     index_path.write_text(json.dumps(model_index))
     (tmp_path / "manifest.json").unlink()  # folders of that time had none
-    loaded = SARZero123Pipeline.from_pretrained(tmp_path)
-    loaded.set_progress_bar_config(disable=True)
-    assert type(loaded.pose_projection) is PoseProjection
-    assert torch.equal(run(loaded), reference)
+    with pytest.raises(
+        ValueError,
+        match=r"'pose_projection' is listed as sar_zero123.conditioning.PoseProjection, "
+        r"a module that was removed; write \"sar_zero123.model.conditioning\" in its place",
+    ):
+        SARZero123Pipeline.from_pretrained(tmp_path)
+    model_index["pose_projection"] = ["sar_zero123.model.conditioning", "PoseProjection"]
+    index_path.write_text(json.dumps(model_index))
+    assert type(SARZero123Pipeline.from_pretrained(tmp_path).pose_projection) is PoseProjection
 
 
 # ---------------------------------------------------------------------------------- factory
