@@ -4,11 +4,11 @@
     python benchmarks/gpu_mstar_pfm.py crops --data ../shared/data/mstar --out .gpu/mstar64
     # on the GPU (benchmarks/gpu_mstar_session.sh installs the wheels first)
     python3 benchmarks/gpu_mstar_pfm.py run --data .gpu/mstar64 --out OUT --work /tmp/work \\
-        --budget_minutes 9 --override finetune_batch_size=256 mixed_precision=bf16
+        --budget_minutes 9 --set finetune_batch_size=256 mixed_precision=bf16
 
-``run`` is the quickstart's chain (``train/quickstart.py --preset mstar-prior --protocol ood-T72``): every
+``run`` is the quickstart's chain (``train/quickstart.py --recipe mstar-prior --protocol ood-T72``): every
 stage's config exactly as the quickstart plans it (:func:`sar_zero123.stages.quickstart.plan_stages`, with
-``--preset`` and ``--override`` applied), then four changes that fit it into one call of the device:
+``--recipe`` and ``--set`` applied), then four changes that fit it into one call of the device:
 
 * SimCLR stops at ``--simclr_minutes`` (``max_train_minutes``) if its steps take longer;
 * the fine-tunes (and a preset's base model) share what is left of ``--budget_minutes`` equally
@@ -99,15 +99,15 @@ def write_crops(data: str | Path, out: str | Path, image_size: int = 64, every: 
 def _gpu_plans(args: argparse.Namespace) -> list[StagePlan]:
     """The quickstart's stages for this data and preset, in the order this call runs them."""
     config = QuickstartConfig(
-        output_dir=args.work, recipe=args.preset, data=args.data, protocol=args.protocol,
-        lambdas=args.lambdas, seed=args.seed, set=args.override,
+        output_dir=args.work, recipe=args.recipe, data=args.data, protocol=args.protocol,
+        lambdas=args.lambdas, seed=args.seed, set=args.set,
     )  # fmt: skip
     plans = {plan.name: plan for plan in plan_stages(config)}
     finetunes = [name for name in plans if name.startswith("finetune ")]
     order = [n for n in ("simclr", "vae", "evaluators", "base model", *finetunes, "evaluate") if n in plans]
     unknown = sorted(set(plans) - set(order))
     if unknown:  # a preset that simulates data or renders a corpus is not this call's
-        raise ValueError(f"preset {args.preset!r} plans stages this call does not run: {unknown}")
+        raise ValueError(f"recipe {args.recipe!r} plans stages this call does not run: {unknown}")
     return [plans[name] for name in order]
 
 
@@ -148,7 +148,7 @@ def run(args: argparse.Namespace) -> dict[str, Any]:
     out.mkdir(parents=True, exist_ok=True)
     plans = _gpu_plans(args)
     trainings = [plan for plan in plans if isinstance(plan.config, FinetuneConfig)]
-    results: dict[str, Any] = {"argv": sys.argv[1:], "preset": args.preset, "overrides": args.override,
+    results: dict[str, Any] = {"argv": sys.argv[1:], "recipe": args.recipe, "set": args.set,
                                "budget_minutes": args.budget_minutes, "stages": {}}  # fmt: skip
     for plan in plans:
         minutes = None
@@ -186,10 +186,10 @@ def build_parser() -> argparse.ArgumentParser:
     call.add_argument("--data", required=True, help="chip folder (the crops above)")
     call.add_argument("--out", required=True, help="results.json and table3.md")
     call.add_argument("--work", required=True, help="run folders of the stages")
-    call.add_argument("--preset", default="mstar-prior", choices=sorted(PRESETS))
+    call.add_argument("--recipe", default="mstar-prior", choices=sorted(PRESETS))
     call.add_argument("--protocol", default="ood-T72")
     call.add_argument("--lambdas", nargs="+", type=float, default=[0.0, 4.0])
-    call.add_argument("--override", nargs="*", default=[], help="preset fields, as train/quickstart.py's")
+    call.add_argument("--set", nargs="*", default=[], help="recipe fields, as train/quickstart.py's")
     call.add_argument("--budget_minutes", type=float, default=9.0)
     call.add_argument("--simclr_minutes", type=float, default=1.5)
     call.add_argument("--eval_reserve_minutes", type=float, default=1.0)

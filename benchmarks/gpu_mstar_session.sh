@@ -21,8 +21,8 @@ source benchmarks/gpu_wheels.sh "${1:-.whl}" || exit 1
 LOG=$OUT/session.log
 nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv >"$LOG" 2>&1
 MINUTES=$(awk -v s="$((LIMIT - ($(date +%s) - T0) - 20))" 'BEGIN { printf "%.2f", (s > 0 ? s : 0) / 60 }')
-python3 benchmarks/gpu_mstar_pfm.py run --data "$DATA" --out "$OUT" --work /tmp/work_mstar --preset "$PRESET" \
-    --budget_minutes "$MINUTES" --eval_reserve_minutes 2 --override "finetune_batch_size=$BATCH" mixed_precision=bf16 \
+python3 benchmarks/gpu_mstar_pfm.py run --data "$DATA" --out "$OUT" --work /tmp/work_mstar --recipe "$PRESET" \
+    --budget_minutes "$MINUTES" --eval_reserve_minutes 2 --set "finetune_batch_size=$BATCH" mixed_precision=bf16 \
     >>"$LOG" 2>&1
 echo "gpu_mstar_pfm rc=$? at $(( $(date +%s) - T0 )) s" | tee -a "$LOG"
 tail -n 40 "$LOG"

@@ -197,9 +197,9 @@ def render_eval_data(folder: Path, seed: int) -> Path:
     """The named vehicles at every 5 deg of azimuth, docs/results/history/prior.md's command (section 5)."""
     if (folder / "index.csv").is_file():
         return folder
-    command = [sys.executable, "-m", "sar_zero123.sim", "--out", str(folder), "--classes", *EVAL_CLASSES,
-               "--instances", "1", "--azimuth-step", "5", "--depressions", *EVAL_DEPRESSIONS, "--size", "64",
-               "--seed", str(seed)]  # fmt: skip
+    command = [sys.executable, "train/simulate.py", "--out", str(folder), "--classes", *EVAL_CLASSES,
+               "--instances", "1", "--azimuth_step_deg", "5", "--depressions_deg", *EVAL_DEPRESSIONS,
+               "--size", "64", "--seed", str(seed)]  # fmt: skip
     subprocess.run(command, check=True)
     return folder
 

@@ -152,8 +152,7 @@ def main() -> None:
     data = TMP / "data"
     run(
         [
-            "-m",
-            "sar_zero123.sim",
+            "train/simulate.py",
             "--out",
             str(data),
             "--classes",

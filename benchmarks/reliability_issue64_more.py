@@ -104,7 +104,7 @@ def main() -> None:  # noqa: PLR0915 - one case after another
     Image.fromarray((rng.random((64, 64)) * 80 + 20 * np.eye(64)).astype(np.uint8)).save(chip)
     data = TMP / "data"
     sim = ["--classes", "TANK", "APC", "--instances", "1", "--azimuth_step_deg", "60", "--size", "64"]
-    run(["-m", "sar_zero123.sim", "--out", str(data), *sim, "--depressions_deg", "15", "17"])
+    run(["train/simulate.py", "--out", str(data), *sim, "--depressions_deg", "15", "17"])
 
     def data_copy(name: str) -> Path:
         shutil.copytree(data, TMP / name)

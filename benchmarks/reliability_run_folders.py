@@ -184,7 +184,7 @@ def overwrite_cases(folders: Folders) -> None:
         [*finetune, "--restart"],
         facts=lambda: {"moved_aside": len(list(TMP.glob("ft.replaced-*")))},
     )
-    sim = ["-m", "sar_zero123.sim", "--out", str(TMP / "sim"), "--instances", "1", "--azimuth-step", "30",
+    sim = ["train/simulate.py", "--out", str(TMP / "sim"), "--instances", "1", "--azimuth_step_deg", "30",
            "--size", "16"]  # fmt: skip
     run([*sim, "--classes", "TANK", "APC", "TRUCK", "DOZER"])
     case(

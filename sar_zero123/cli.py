@@ -19,6 +19,7 @@ from __future__ import annotations
 import importlib
 import json
 import logging
+import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -45,7 +46,7 @@ COMMANDS: tuple[Command, ...] = (
     Command("sar-zero123-quickstart", "python train/quickstart.py", "quickstart",
             "sar_zero123.stages.presets:QuickstartConfig", "quickstart",
             "every stage end to end on the simulator (or real chips), with a report"),
-    Command("sar-zero123-simulate", "python -m sar_zero123.sim", "simulate",
+    Command("sar-zero123-simulate", "python train/simulate.py", "simulate",
             "sar_zero123.stages.simulate:SimulateConfig", "simulate", "simulate a dataset of SAR chips"),
     Command("sar-zero123-simclr", "python train/pretrain_simclr.py", "simclr",
             "sar_zero123.stages.simclr:PretrainSimCLRConfig", "simclr",
@@ -93,20 +94,27 @@ def config_class(command: Command) -> type:
 def quickstart(argv: Sequence[str] | None = None) -> Path:
     """``sar-zero123-quickstart``: runs the whole chain; returns the path of ``report.md``."""
     from sar_zero123.config import parse_config
-    from sar_zero123.stages.presets import QUICKSTART_FLAG_ALIASES, QuickstartConfig
+    from sar_zero123.stages.presets import QuickstartConfig
     from sar_zero123.stages.quickstart import run_quickstart
 
     logging.basicConfig(level=logging.INFO, format=_LOG_FORMAT)
-    report = run_quickstart(parse_config(QuickstartConfig, argv, aliases=QUICKSTART_FLAG_ALIASES))
+    report = run_quickstart(parse_config(QuickstartConfig, argv))
     print(f"report: {report}")
     return report
 
 
-def simulate(argv: Sequence[str] | None = None) -> int:
-    """``sar-zero123-simulate``: simulates a dataset folder; returns the exit status."""
-    from sar_zero123.sim.__main__ import main
+def simulate(argv: Sequence[str] | None = None) -> Path:
+    """``sar-zero123-simulate``: simulates a dataset folder; returns it."""
+    from sar_zero123.config import parse_config
+    from sar_zero123.stages.simulate import SimulateConfig, run_simulate
 
-    return main(argv, prog="sar-zero123-simulate")
+    start = time.perf_counter()
+    out = run_simulate(parse_config(SimulateConfig, argv))
+    with open(out / "index.csv") as handle:
+        n_chips = sum(1 for _ in handle) - 1
+    print(f"{out / 'index.csv'}: {n_chips} chips ({time.perf_counter() - start:.1f} s)")
+    print(out)  # the output folder, the last line on stdout as for every command
+    return out
 
 
 def simclr(argv: Sequence[str] | None = None) -> dict[str, Any]:

@@ -345,7 +345,6 @@ def parse_config(
     argv: Sequence[str] | None = None,
     *,
     prog: str | None = None,
-    aliases: Mapping[str, str] | None = None,
 ) -> ConfigT:
     """Build a config dataclass from ``--config FILE`` and command-line flags.
 
@@ -358,8 +357,6 @@ def parse_config(
         cls: a dataclass whose fields all have defaults.
         argv: the arguments (without the program name); ``None`` reads ``sys.argv``.
         prog: the command's name in usage lines (``None``: the script's file name).
-        aliases: older flag names of fields (``{"--azimuth-step": "azimuth_step_deg"}``), still accepted
-            and not shown in ``--help``.
 
     Returns:
         An instance of ``cls`` (its ``__post_init__`` has validated it).
@@ -415,19 +412,12 @@ def parse_config(
         flag = token.partition("=")[0].lstrip("-").replace("-", "_")
         if token.startswith("--") and flag in removed:
             raise ValueError(f"--{flag} was removed: {removed[flag].reason}")
-    if aliases:
-        unknown_targets = sorted(set(aliases.values()) - names)
-        if unknown_targets:
-            raise TypeError(f"aliases name fields {unknown_targets} that {cls.__name__} does not have")
-        argv = _rename_flags(sys.argv[1:] if argv is None else argv, aliases)
     namespace = vars(parser.parse_args(argv))
     config_path = namespace.pop("config")
     set_pairs = namespace.pop("_set", [])
     values: dict[str, Any] = {}
     if config_path is not None:
         file_values = drop_removed_fields(cls, read_config_file(config_path), f"--config {config_path!r}")
-        renamed: Mapping[str, str] = getattr(cls, "RENAMED_FIELDS", {})  # a file written under older names
-        file_values = {renamed.get(name, name): value for name, value in file_values.items()}
         known = {f.name for f in fields}
         unknown = sorted(set(file_values) - known)
         if unknown:
@@ -443,17 +433,6 @@ def parse_config(
         if hasattr(config, name) and getattr(config, name) is not None:
             check_output_dir(getattr(config, name), name)
     return config
-
-
-def _rename_flags(argv: Sequence[str], aliases: Mapping[str, str]) -> list[str]:
-    """``argv`` with each older flag (``--old`` or ``--old=value``) renamed to its field's flag."""
-    renamed = []
-    for token in argv:
-        flag, equals, value = token.partition("=")
-        if flag in aliases:
-            token = f"--{aliases[flag]}{equals}{value}"
-        renamed.append(token)
-    return renamed
 
 
 def check_minimum(

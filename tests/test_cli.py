@@ -124,15 +124,13 @@ def test_resume_is_the_latest_checkpoint_for_training_stages():
         assert parse_config(config, extra).resume_from_checkpoint is None
 
 
-def test_simulate_takes_its_fields_with_underscores_dashes_and_its_older_flags(tmp_path, capsys):
-    from sar_zero123.sim.__main__ import OLDER_FLAGS
-
-    new = ["--azimuth_step_deg", "120", "--depressions_deg", "17", "--azimuth-jitter-deg", "0"]
-    old = ["--azimuth-step", "120", "--depressions", "17", "--azimuth-jitter=0"]
-    configs = [
-        parse_config(SimulateConfig, [*flags, "--out", "x"], aliases=OLDER_FLAGS) for flags in (new, old)
-    ]
+def test_simulate_takes_its_fields_with_underscores_or_dashes_and_refuses_its_first_flags():
+    new = ["--azimuth_step_deg", "120", "--depressions_deg", "17", "--set", "azimuth_jitter_deg=0"]
+    dashed = ["--azimuth-step-deg", "120", "--depressions-deg", "17"]
+    configs = [parse_config(SimulateConfig, [*flags, "--out", "x"]) for flags in (new, dashed)]
     assert configs[0] == configs[1]
     assert (configs[0].azimuth_step_deg, configs[0].depressions_deg) == (120.0, [17.0])
-    with pytest.raises(TypeError, match=r"aliases name fields \['nope'\]"):
-        parse_config(SimulateConfig, [], aliases={"--x": "nope"})
+    for old, replacement in (("--azimuth-step", "--azimuth_step_deg"), ("--depressions", "--depressions_deg"),
+                             ("--azimuth-jitter=0", "azimuth_jitter_deg")):  # fmt: skip
+        with pytest.raises(ValueError, match=f"was removed: it is now {replacement}"):
+            parse_config(SimulateConfig, [old, "17", "--out", "x"])

@@ -21,6 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from sar_zero123.config import RemovedField
 from sar_zero123.data.splits import OOD_INTERVAL_WIDTH_DEG, check_protocol, ood_validation_intervals
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import downsampling_factor
@@ -37,9 +38,8 @@ from sar_zero123.training.losses import (
 from sar_zero123.yaml_data import read_yaml
 
 __all__ = [
-    "DEFAULT_PRESET", "MAX_EVAL_N", "PRESETS", "QUICKSTART_FLAG_ALIASES", "RECIPE_DIR", "RECIPE_STAGES",
-    "RENAMED_QUICKSTART_FIELDS", "Preset", "QuickstartConfig", "apply_overrides", "load_recipe",
-    "recipe_names",
+    "DEFAULT_PRESET", "MAX_EVAL_N", "PRESETS", "RECIPE_DIR", "RECIPE_STAGES", "Preset", "QuickstartConfig",
+    "apply_overrides", "load_recipe", "recipe_names",
 ]  # fmt: skip
 
 logger = logging.getLogger(__name__)
@@ -425,12 +425,6 @@ PRESETS: dict[str, Preset] = {name: load_recipe(name) for name in recipe_names()
 DEFAULT_PRESET = PRESETS["default"]
 
 
-#: Older flags of the quickstart, still accepted (not shown in ``--help``).
-QUICKSTART_FLAG_ALIASES = {"--preset": "recipe", "--override": "set"}
-#: Record fields of quickstart folders written before recipes were files, and the fields that replaced them.
-RENAMED_QUICKSTART_FIELDS = {"preset": "recipe", "override": "set"}
-
-
 @dataclass
 class QuickstartConfig:
     """Simulate (or read `data`), pretrain SimCLR, fine-tune each lambda, train evaluators, evaluate."""
@@ -454,8 +448,12 @@ class QuickstartConfig:
     resume: bool = False
     restart: bool = False  # move an existing run in output_dir aside (never deleted) and start over
 
-    #: Fields of an older name: a ``--config`` file (a run folder's ``config.json``) may still use them.
-    RENAMED_FIELDS = RENAMED_QUICKSTART_FIELDS
+    #: Removed fields: a flag, a ``--config`` file or a run folder's ``config.json`` that sets one is refused
+    #: in one line naming the field that replaced it.
+    REMOVED_FIELDS = {
+        "preset": RemovedField(None, "it is now recipe (--recipe NAME)"),
+        "override": RemovedField(None, "it is now set (--set STAGE.FIELD=VALUE)"),
+    }
 
     def __post_init__(self) -> None:
         if self.resume and self.restart:

@@ -31,7 +31,7 @@ from sar_zero123.stages.corpus import CORPUS_FOLDER, CorpusConfig, run_corpus
 from sar_zero123.stages.evaluate import EVALUATE_MAY_DIFFER, EvaluateConfig, run_evaluate
 from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, run_evaluators
 from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
-from sar_zero123.stages.presets import RENAMED_QUICKSTART_FIELDS, Preset, QuickstartConfig
+from sar_zero123.stages.presets import Preset, QuickstartConfig
 from sar_zero123.stages.proxies import PROXIES_FOLDER, ProxiesConfig, run_proxies
 from sar_zero123.stages.report import write_report
 from sar_zero123.stages.simclr import PretrainSimCLRConfig, run_simclr
@@ -280,7 +280,7 @@ def run_quickstart(config: QuickstartConfig) -> Path:
         out, "quickstart", record, data=None if config.data is None else config.data, resume=config.resume,
         # the recipe's name and the --set items may differ: the preset.* values they give are compared
         restart=config.restart, may_differ=("output_dir", "resume", "restart", "recipe", "set",
-                                            *RENAMED_QUICKSTART_FIELDS),
+                                            *QuickstartConfig.REMOVED_FIELDS),
         may_extend=("lambdas",), resume_hint="--resume",
     )  # fmt: skip
     report = out / "report.md"

@@ -1,9 +1,9 @@
 """The simulate stage: a dataset folder of simulated chips, under the run-folder rule.
 
-``python -m sar_zero123.sim --out DIR`` parses its flags into :class:`SimulateConfig` and calls
-:func:`run_simulate`. The stage refuses a folder that holds another dataset (``simulate_dataset`` alone
-would replace its index and leave the old chips unlisted), continues one only with ``resume`` and moves
-one aside only with ``restart`` (:mod:`sar_zero123.runs.folder`).
+``sar-zero123-simulate --out DIR`` (``python train/simulate.py``) parses its flags into
+:class:`SimulateConfig` and calls :func:`run_simulate`. The stage refuses a folder that holds another
+dataset (``simulate_dataset`` alone would replace its index and leave the old chips unlisted), continues
+one only with ``resume`` and moves one aside only with ``restart`` (:mod:`sar_zero123.runs.folder`).
 """
 
 from __future__ import annotations
@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Literal
 
+from sar_zero123.config import RemovedField
 from sar_zero123.runs.folder import StageTimer, finish_run
 from sar_zero123.runs.stage import open_stage_folder
 from sar_zero123.sim.dataset import check_simulation_options, simulate_dataset
@@ -34,6 +35,12 @@ class SimulateConfig:
     ADVANCED_FIELDS = (
         "azimuth_jitter_deg", "normalization", "real_root", "procedural_sheet",
     )  # fmt: skip
+    #: Flags of the command's first parser: refused in one line naming the field that replaced each.
+    REMOVED_FIELDS = {
+        "azimuth_step": RemovedField(None, "it is now --azimuth_step_deg"),
+        "azimuth_jitter": RemovedField(None, "it is now azimuth_jitter_deg (--set azimuth_jitter_deg=...)"),
+        "depressions": RemovedField(None, "it is now --depressions_deg"),
+    }
 
     out: str = "runs/sim"  # output folder
     classes: list[str] = field(default_factory=lambda: list(TARGET_CLASSES))  # classes to simulate

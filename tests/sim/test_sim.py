@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
+from sar_zero123.cli import simulate as main
 from sar_zero123.sim import (
     INDEX_COLUMNS,
     PIXEL_SPACING_M,
@@ -23,7 +24,6 @@ from sar_zero123.sim import (
     simulate_dataset,
 )
 from sar_zero123.sim import dataset as dataset_module
-from sar_zero123.sim.__main__ import main
 from sar_zero123.sim.geometry import GroundGrid, shadow_mask, vehicle_to_ground
 from sar_zero123.sim.primitives import Box
 from sar_zero123.sim.scatterers import SURFACE, ScattererSet, aspect_gain
@@ -391,9 +391,9 @@ def test_round_trip_through_load_index(tmp_path):
 
 def test_cli_writes_folder_and_contact_sheet(tmp_path, capsys):
     out = tmp_path / "sim"
-    argv = f"--out {out} --classes TANK --instances 2 --azimuth-step 120 --depressions 17 --size 32"
+    argv = f"--out {out} --classes TANK --instances 2 --azimuth_step_deg 120 --depressions_deg 17 --size 32"
     argv += " --contact-sheet"
-    assert main(argv.split()) == 0
+    assert main(argv.split()).is_dir()
     assert len(_read_index(out)) == 2 * 3
     assert (out / "contact_sheet.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
     lines = capsys.readouterr().out.splitlines()
@@ -417,11 +417,9 @@ def test_contact_sheet_with_real_chips(tmp_path, mstar_root):
 
 def test_cli_refuses_a_folder_holding_another_dataset(tmp_path):
     """The simulate stage never replaces a dataset: other settings are refused, nothing on disk changes."""
-    from sar_zero123.sim.__main__ import main
-
     out = tmp_path / "data"
-    flags = ["--out", str(out), "--instances", "1", "--azimuth-step", "120", "--size", "16"]
-    assert main([*flags, "--classes", "TANK", "APC"]) == 0
+    flags = ["--out", str(out), "--instances", "1", "--azimuth_step_deg", "120", "--size", "16"]
+    assert main([*flags, "--classes", "TANK", "APC"]).is_dir()
     before = {p: p.read_bytes() for p in out.rglob("*") if p.is_file()}
     assert len(before) == 2 * 2 * 3 + 2  # chips, index.csv, run.json
     with pytest.raises(ValueError, match=r"classes: folder \['TANK', 'APC'\], this run \['TANK'\]"):
@@ -429,9 +427,9 @@ def test_cli_refuses_a_folder_holding_another_dataset(tmp_path):
     with pytest.raises(ValueError, match="already holds a finished simulate run.*--restart"):
         main([*flags, "--classes", "TANK", "APC"])
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
-    assert main([*flags, "--classes", "TANK", "APC", "--resume"]) == 0  # finished: kept as it is
+    assert main([*flags, "--classes", "TANK", "APC", "--resume"]).is_dir()  # finished: kept as it is
     assert {p: p.read_bytes() for p in out.rglob("*") if p.is_file()} == before
-    assert main([*flags, "--classes", "TANK", "--restart"]) == 0
+    assert main([*flags, "--classes", "TANK", "--restart"]).is_dir()
     (moved,) = tmp_path.glob("data.replaced-*")
     assert len((moved / "index.csv").read_text().splitlines()) == 1 + 12
     assert len((out / "index.csv").read_text().splitlines()) == 1 + 6

@@ -201,7 +201,7 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     out = tmp_path / "quickstart"
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # tiny sample counts: the Frechet distance warns about n <= D
-        report = quickstart.main(["--output_dir", str(out), "--preset", "smoke"])
+        report = quickstart.main(["--output_dir", str(out), "--recipe", "smoke"])
     text = report.read_text()
     # with a depression regressor among the evaluators Table III has a Dep. err. column and its gap closed;
     # simulated pairs are read against their vehicle's other chips too (template azimuth, front/back)
@@ -251,24 +251,24 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     # The same command again is refused (the run would be overwritten); --resume finds it finished.
     before = {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()}
     with pytest.raises(ValueError, match=r"already holds a finished quickstart run.*\(--resume\)"):
-        quickstart.main(["--output_dir", str(out), "--preset", "smoke"])
-    quickstart.main(["--output_dir", str(out), "--preset", "smoke", "--resume"])
+        quickstart.main(["--output_dir", str(out), "--recipe", "smoke"])
+    quickstart.main(["--output_dir", str(out), "--recipe", "smoke", "--resume"])
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()} == before
     # Another protocol, seed or preset value in the same folder is refused before any stage, each named:
     # its stages would be reused and the report would describe settings that did not make them.
     for flags, words in ((["--protocol", "ood-APC"], "protocol: folder None, this run 'ood-APC'"),
                          (["--seed", "3"], "seed: folder 0, this run 3"),
-                         (["--override", "base_steps=5"], "preset.base_steps: folder 2, this run 5"),
+                         (["--set", "base_steps=5"], "preset.base_steps: folder 2, this run 5"),
                          ):  # fmt: skip
         with pytest.raises(ValueError, match=words):
-            quickstart.main(["--output_dir", str(out), "--preset", "smoke", "--resume", *flags])
+            quickstart.main(["--output_dir", str(out), "--recipe", "smoke", "--resume", *flags])
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()} == before
     # A lambda sweep in the same folder trains only the new fine-tune, then evaluates all three (the old
     # evaluations are moved aside); every stage keeps its recorded time.
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         report = quickstart.main(
-            ["--output_dir", str(out), "--preset", "smoke", "--lambdas", "0", "4", "1", "--resume"]
+            ["--output_dir", str(out), "--recipe", "smoke", "--lambdas", "0", "4", "1", "--resume"]
         )
     text = report.read_text()
     timings = json.loads((out / "timings.json").read_text())
@@ -354,8 +354,8 @@ def test_quickstart_smoke_on_a_given_folder_with_the_extended_protocol(
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         report = quickstart.main(
-            ["--output_dir", str(out), "--preset", "smoke", "--data", str(data), "--protocol", "extended",
-             "--override", "base_steps=3"]
+            ["--output_dir", str(out), "--recipe", "smoke", "--data", str(data), "--protocol", "extended",
+             "--set", "base_steps=3"]
         )  # fmt: skip
     text = report.read_text()
     assert f"real chips from `{data}`" in text and "Protocol `extended`" in text
@@ -374,8 +374,8 @@ def test_quickstart_smoke_on_a_given_folder_with_the_extended_protocol(
     with warnings.catch_warnings(), caplog.at_level(logging.INFO):
         warnings.simplefilter("ignore")
         quickstart.main(
-            ["--output_dir", str(out), "--preset", "smoke", "--data", str(data), "--protocol", "extended",
-             "--override", "base_steps=3", "--resume"]
+            ["--output_dir", str(out), "--recipe", "smoke", "--data", str(data), "--protocol", "extended",
+             "--set", "base_steps=3", "--resume"]
         )  # fmt: skip
     assert "resumed from" in caplog.text and "checkpoint-2 at step 2" in caplog.text
     assert (base / "pipeline" / "unet" / "diffusion_pytorch_model.safetensors").read_bytes() == weights

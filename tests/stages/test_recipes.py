@@ -13,7 +13,6 @@ from sar_zero123.config import parse_config
 from sar_zero123.stages.presets import (
     MAX_RECIPE_BYTES,
     PRESETS,
-    QUICKSTART_FLAG_ALIASES,
     RECIPE_DIR,
     RECIPE_STAGES,
     Preset,
@@ -112,20 +111,16 @@ def test_recipe_files_are_bounded_and_named(tmp_path: Path) -> None:
     assert load_recipe(str(json_recipe)).eval_n == 64
 
 
-def test_the_older_flags_still_work(tmp_path: Path) -> None:
+def test_the_removed_flags_and_fields_are_refused_naming_their_replacement(tmp_path: Path) -> None:
     out = str(tmp_path / "run")
-    old_flags = ["--output_dir", out, "--preset", "smoke", "--override", "eval_n=8"]
-    new_flags = ["--output_dir", out, "--recipe", "smoke", "--set", "evaluate.eval_n=8"]
-    old = parse_config(QuickstartConfig, old_flags, aliases=QUICKSTART_FLAG_ALIASES)
-    new = parse_config(QuickstartConfig, new_flags, aliases=QUICKSTART_FLAG_ALIASES)
-    assert old.recipe == new.recipe == "smoke"
-    assert old.preset() == new.preset() == apply_overrides(PRESETS["smoke"], ["eval_n=8"])
-
-
-def test_an_old_quickstart_config_file_still_parses(tmp_path: Path) -> None:
-    old = tmp_path / "config.json"
-    written = {"output_dir": str(tmp_path / "r"), "preset": "smoke", "override": ["eval_n=8"], "seed": 0}
-    old.write_text(json.dumps(written))
-    config = parse_config(QuickstartConfig, ["--config", str(old)], aliases=QUICKSTART_FLAG_ALIASES)
-    assert (config.recipe, config.set) == ("smoke", ["eval_n=8"])
-    assert config.preset().eval_n == 8
+    with pytest.raises(ValueError, match=r"^--preset was removed: it is now recipe \(--recipe NAME\)$"):
+        parse_config(QuickstartConfig, ["--output_dir", out, "--preset", "smoke"])
+    with pytest.raises(ValueError, match=r"^--override was removed: it is now set \(--set STAGE.FIELD=VALUE"):
+        parse_config(QuickstartConfig, ["--output_dir", out, "--override", "eval_n=8"])
+    old = tmp_path / "config.json"  # a run folder's config.json written under the old names
+    old.write_text(json.dumps({"output_dir": str(tmp_path / "r"), "preset": "smoke", "seed": 0}))
+    with pytest.raises(ValueError, match=r"config.json': preset='smoke', but preset was removed: it is now"):
+        parse_config(QuickstartConfig, ["--config", str(old)])
+    flags = ["--output_dir", out, "--recipe", "smoke", "--set", "evaluate.eval_n=8"]
+    config = parse_config(QuickstartConfig, flags)
+    assert config.preset() == apply_overrides(PRESETS["smoke"], ["eval_n=8"])
