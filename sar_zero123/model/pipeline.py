@@ -55,7 +55,7 @@ from sar_zero123.model.conditioning import (
 )
 from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
 from sar_zero123.model.orientation import AzimuthEstimator, estimator_weights_digest, target_view_features
-from sar_zero123.model.proxy import check_proxy_settings, draft_target_views
+from sar_zero123.model.proxy import check_proxy_settings, draft_target_views, fit_scores
 from sar_zero123.model.reference_attention import (
     attending_to_reference,
     check_reference_layers,
@@ -110,9 +110,14 @@ class SARZero123PipelineOutput(BaseOutput):
             grouped by input image (all samples of input 0 first). A list of single-channel PIL images
             (``"pil"``), a float32 array ``(N, H, W, 1)`` (``"np"``), a tensor ``(N, 1, H, W)``
             (``"pt"``), or the final latents ``(N, 4, h, w)`` (``"latent"``).
+        proxy_fit_scores: Where a simulator proxy was fitted to the inputs, how well each fits its input
+            ``(B,)``: the blurred correlation in [-1, 1] of the fitted vehicle with the chip at its pose
+            (:func:`~sar_zero123.model.proxy.fit_scores`); ``None`` where no fit ran (``proxy_views`` given,
+            or a call that uses no proxy).
     """
 
     images: list[PIL.Image.Image] | np.ndarray | torch.Tensor
+    proxy_fit_scores: np.ndarray | None = None
 
 
 def _denoising_steps(strength: float, num_inference_steps: int) -> int:
@@ -777,12 +782,13 @@ class SARZero123Pipeline(DiffusionPipeline):
         proxy_model = takes_proxy(self.pose_projection)
         if proxy_views is not None:
             proxy_views = self._check_proxy_views(proxy_views, images, proxy_model)
-        start_images = None
+        start_images, fitted = None, proxy_model and proxy_views is None
         if start_image is None and start_from == "proxy" and denoising_steps < num_inference_steps:
             if proxy_views is not None:  # the given proxy at the request: no fit runs
                 start_image = proxy_views[:, 1:2]
             else:
                 start_image = self._proxy_drafts(images, d_az, d_el, input_azimuth_deg, input_depression_deg)
+                fitted = True
         if start_image is not None and denoising_steps < num_inference_steps:
             start_images = self.preprocess_image(start_image)
             if start_images.shape[0] != batch_size or start_images.shape[-2:] != images.shape[-2:]:
@@ -952,7 +958,12 @@ class SARZero123Pipeline(DiffusionPipeline):
         self.maybe_free_model_hooks()
         if not return_dict:
             return (output,)
-        return SARZero123PipelineOutput(images=output)
+        scores = None
+        if fitted:  # the fits this call ran, remembered by the proxy module: read back, not run again
+            depression = _per_input_angles(input_depression_deg, "input_depression_deg", batch_size)
+            proxy = _anchored_proxy(self.config.proxy, self.config.get("_name_or_path"))
+            scores = fit_scores(images, input_azimuth_deg, depression, proxy)
+        return SARZero123PipelineOutput(images=output, proxy_fit_scores=scores)
 
     def _input_reference(
         self,

@@ -25,7 +25,7 @@ from sar_zero123.sim.proxy import MAX_RENDERED_BANK, PROXY_FIRST_SEED, ProxyBank
 
 __all__ = [
     "DATASET_SHORTLIST", "DEFAULT_PROXY", "PROXY_FIELDS", "check_proxy_settings", "draft_target_views",
-    "proxy_bank", "with_shortlist",
+    "fit_scores", "proxy_bank", "with_shortlist",
 ]  # fmt: skip
 
 #: What a pipeline records of its proxy: the bank (:class:`ProxyBank`'s arguments), the decibel bounds of its
@@ -137,16 +137,16 @@ def _fit(
     azimuth_deg: float,
     depression_deg: float,
     resolve_heading: bool,
-) -> tuple[int, float, tuple[int, int]]:
-    """The bank vehicle fitted to one chip at its pose: ``(index, fitted azimuth, shift)``; remembered for
-    the last 1,024 chips and poses of the process (a fit costs one render per bank vehicle; the rows of an
+) -> tuple[int, float, tuple[int, int], float]:
+    """The bank vehicle fitted to one chip at its pose: ``(index, fitted azimuth, shift, score)``; remembered
+    for the last 1,024 chips and poses of the process (a fit costs one render per bank vehicle; the rows of an
     evaluation share their pairs' fits), at about 17 kB each for a 64 px chip."""
     bank = proxy_bank(*settings)
     chip = np.frombuffer(chip_bytes, dtype=np.float32).reshape(shape)
     headings = (azimuth_deg, azimuth_deg + 180.0) if resolve_heading else (azimuth_deg,)
     matches = [bank.retrieve(chip, azimuth, depression_deg) for azimuth in headings]
     best = max(range(len(headings)), key=lambda h: matches[h].score)  # the first heading wins a tie
-    return matches[best].index, headings[best] % 360.0, matches[best].shift_px
+    return matches[best].index, headings[best] % 360.0, matches[best].shift_px, float(matches[best].score)
 
 
 #: A chip whose values span no more than this (normalised dB) holds nothing a proxy could be fitted to.
@@ -191,12 +191,7 @@ def draft_target_views(
     scaling = DecibelScaling(min_db=float(proxy["min_db"]), max_db=float(proxy["max_db"]))
     chips = images.detach().float().mean(dim=1).cpu().numpy()  # (B, H, W), any affine map of decibels
     size = chips.shape[-1]
-    flat = [k for k, chip in enumerate(chips) if float(chip.max() - chip.min()) <= _FLAT_RANGE]
-    if flat:
-        raise ValueError(
-            f"image: input {flat[0]} has no structure to fit a simulator proxy to (every pixel "
-            f"{float(chips[flat[0]].flat[0]):.4g}); give a chip with its target in it"
-        )
+    _refuse_flat(chips)
     drafts, fitted = [], []
     for k, chip in enumerate(chips):
         azimuth, depression = float(input_azimuth_deg[k]), float(input_depression_deg[k])
@@ -208,11 +203,46 @@ def draft_target_views(
             )
         # many requests for one chip (generate, the demo's views and turntable) share one fit
         fit = _fit(settings, chip.tobytes(), chip.shape, azimuth, depression, resolve_heading)
-        index, fitted_azimuth, shift = fit
+        index, fitted_azimuth, shift, _ = fit
         render = bank.render(index, fitted_azimuth + float(d_az_deg[k]), target_depression, size, shift)
         drafts.append(scaling.normalize(render))
         fitted.append(fitted_azimuth)
     return torch.from_numpy(np.stack(drafts)[:, None].astype(np.float32)), np.asarray(fitted)
+
+
+def fit_scores(
+    images: torch.Tensor,
+    input_azimuth_deg: torch.Tensor,
+    input_depression_deg: torch.Tensor,
+    proxy: Mapping[str, Any],
+    resolve_heading: bool = False,
+) -> np.ndarray:
+    """How well each input's proxy fits it: the blurred correlation ``(B,)`` in [-1, 1] of the fitted bank
+    vehicle with the chip at its pose (:meth:`~sar_zero123.sim.proxy.ProxyBank.retrieve`), for the fits
+    :func:`draft_target_views` ran with the same arguments (remembered: no fit runs again).
+
+    Raises:
+        ValueError: As :func:`draft_target_views`, for a chip with no structure to fit.
+    """
+    proxy = check_proxy_settings(proxy)
+    fields = _FIT_FIELDS if proxy["retrieval"] is not None else _BANK_FIELDS
+    settings = tuple(proxy[key] for key in fields)
+    chips = images.detach().float().mean(dim=1).cpu().numpy()
+    _refuse_flat(chips)
+    poses = [(float(input_azimuth_deg[k]), float(input_depression_deg[k])) for k in range(len(chips))]
+    fits = [
+        _fit(settings, chip.tobytes(), chip.shape, *pose, resolve_heading) for chip, pose in zip(chips, poses)
+    ]
+    return np.asarray([fit[3] for fit in fits])
+
+
+def _refuse_flat(chips: np.ndarray) -> None:
+    flat = [k for k, chip in enumerate(chips) if float(chip.max() - chip.min()) <= _FLAT_RANGE]
+    if flat:
+        raise ValueError(
+            f"image: input {flat[0]} has no structure to fit a simulator proxy to (every pixel "
+            f"{float(chips[flat[0]].flat[0]):.4g}); give a chip with its target in it"
+        )
 
 
 def with_shortlist(

@@ -180,8 +180,9 @@ def test_a_proxy_pipeline_fits_its_proxy_and_needs_the_input_pose(tmp_path: Path
     kwargs = {"num_inference_steps": 2, "guidance_scale": 1.0, "output_type": "np"}
     with pytest.raises(ValueError, match="input_azimuth_deg.*spatial_pose='proxy' fits a simulator vehicle"):
         pipe(image, 90.0, 0.0, input_depression_deg=17.0, **kwargs)
-    fitted = pipe(image, 90.0, 0.0, input_depression_deg=17.0, input_azimuth_deg=40.0,
-                  generator=torch.Generator().manual_seed(0), **kwargs).images  # fmt: skip
+    out = pipe(image, 90.0, 0.0, input_depression_deg=17.0, input_azimuth_deg=40.0,
+               generator=torch.Generator().manual_seed(0), **kwargs)  # fmt: skip
+    fitted = out.images
     # the proxy pipeline is the same as handing it the proxy it fitted
     bank = ProxyBank(**BANK)
     from sar_zero123.data import DecibelScaling
@@ -189,11 +190,16 @@ def test_a_proxy_pipeline_fits_its_proxy_and_needs_the_input_pose(tmp_path: Path
     scaling = DecibelScaling(min_db=-60.0, max_db=0.0)
     chip = image[0, 0].double().numpy()
     index = int(np.argmax(bank.scores(chip, 40.0, 17.0)))
+    # and it says how well that vehicle fits: the best bank score for the chip at its pose
+    assert out.proxy_fit_scores.shape == (1,)
+    np.testing.assert_allclose(out.proxy_fit_scores, [bank.scores(chip, 40.0, 17.0).max()], atol=1e-6)
     views = torch.stack([scaling.normalize(torch.from_numpy(bank.render(index, az, 17.0, size))).float()
                          for az in (40.0, 130.0)])[None]  # fmt: skip
     given = pipe(image, 90.0, 0.0, input_depression_deg=17.0, proxy_views=views,
                  generator=torch.Generator().manual_seed(0), **kwargs).images  # fmt: skip
     np.testing.assert_allclose(fitted, given, atol=1e-5)
+    no_fit = pipe(image, 90.0, 0.0, input_depression_deg=17.0, proxy_views=views, **kwargs)
+    assert no_fit.proxy_fit_scores is None  # given views: no fit ran
     other = pipe(image, 90.0, 0.0, input_depression_deg=17.0, proxy_views=views.flip(1),
                  generator=torch.Generator().manual_seed(0), **kwargs).images  # fmt: skip
     assert np.abs(other - given).max() > 1e-3  # the proxy pair reaches the output
