@@ -264,7 +264,8 @@ def generate_views(
     depression_guidance_scale: float | None = None,
     start_from: str | None = None,
     input_azimuth_deg: float | None = None,
-) -> np.ndarray:
+    return_fit_score: bool = False,
+) -> np.ndarray | tuple[np.ndarray, float | None]:
     """All requested views of one chip in a single batched pipeline call (``train/evaluate.py``'s
     ``generate_pair_targets`` generates one view per view pair instead).
 
@@ -284,17 +285,19 @@ def generate_views(
             (``SARZero123Pipeline``).
         start_from: The draft a ``strength < 1`` call starts from (``SARZero123Pipeline``).
         input_azimuth_deg: The chip's absolute azimuth in degrees (the simulator proxy's fit).
+        return_fit_score: Also return how well the simulator proxy fits the chip (``None`` where none was
+            fitted; ``SARZero123PipelineOutput.proxy_fit_scores``).
 
         Every sampler argument given as ``None`` is the pipeline's recorded value (``pipe.config.sampler``).
 
     Returns:
-        Views in normalised dB, float32, shape ``(V, H, W)``.
+        Views in normalised dB, float32, shape ``(V, H, W)``; with ``return_fit_score``, ``(views, score)``.
     """
     num_views = len(d_az)
     d_el = list(d_el) * num_views if len(d_el) == 1 else list(d_el)
     images = torch.from_numpy(chip)[None, None].expand(num_views, -1, -1, -1)  # (V, 1, H, W)
     generators = [torch.Generator(pipe.device).manual_seed(seed + i) for i in range(num_views)]
-    views = pipe(
+    out = pipe(
         images,
         d_az=list(d_az),
         d_el=d_el,
@@ -308,8 +311,12 @@ def generate_views(
         input_azimuth_deg=input_azimuth_deg,
         generator=generators,
         output_type="np",
-    ).images
-    return views[..., 0]
+    )
+    views = out.images[..., 0]
+    if not return_fit_score:
+        return views
+    scores = out.proxy_fit_scores
+    return views, None if scores is None else float(scores[0])  # one chip: every view shares its fit
 
 
 def _save_png(array: np.ndarray, path: Path) -> None:
@@ -407,7 +414,9 @@ def main(argv: Sequence[str] | None = None) -> Path:
         depression_guidance_scale=config.depression_guidance_scale,
         start_from=config.start_from,
         input_azimuth_deg=input_azimuth_deg,
+        return_fit_score=True,
     )
+    views, fit_score = views
 
     # 2. the folder opened for real (an old one moved aside with --restart), the views written, the record
     folder = _open_output_dir(config, write=True)
@@ -429,7 +438,8 @@ def main(argv: Sequence[str] | None = None) -> Path:
         outputs += [f"{stem}.png", f"{stem}.npy"]
     _contact_sheet(chip, views, titles, out / "contact_sheet.png")
     scaling = _resolve_scaling(config.scaling_file, config.pipeline).to_dict()
-    write_json_atomic({"domain": VIEWS_DOMAIN, "scaling": scaling, "views": listed}, out / VIEWS_FILE)
+    record = {"domain": VIEWS_DOMAIN, "scaling": scaling, "views": listed, "proxy_fit_score": fit_score}
+    write_json_atomic(record, out / VIEWS_FILE)
     finish_run(folder, [*outputs, "contact_sheet.png", VIEWS_FILE], seconds=timer.seconds)
     return out
 
