@@ -12,7 +12,7 @@ fine-tuning of zero-shot models", CVPR 2022) interpolate a fine-tuned model with
 started from and keep most of the fine-tune's accuracy on its own data with much of the pretrained
 model's accuracy under distribution shift. Here the start is the multi-view prior, which turns vehicles it
 has never seen, and the fine-tune knows the task's vehicles; where the two meet on real MSTAR is measured in
-docs/results/history/mstar_prior.md, section 4d.
+docs/results/.
 
 The two pipelines must have one architecture: every component folder with weights in the fine-tune is
 also in the start, with the same config (``_``-prefixed bookkeeping keys aside), tensor names, shapes

@@ -15,8 +15,8 @@ reproduce the authors' scoring scripts: 8-bit 256 px views, torchmetrics' MS-SSI
 SSIM. The **corrected** ones below implement the stated definitions: one true 7x7 Gaussian window for every
 MS-SSIM term averaged over the valid region only (Wang et al. 2003), a centred 7x7 reflect-padded Kuan
 filter without rounding, and the same Gaussian window for the SSIM after it, at the generated resolution.
-Table III reports the paper-comparable values with the corrected ones beside them;
-docs/results/history/evaluation.md lists the measured differences on real MSTAR pairs.
+Table III reports the paper-comparable values with the corrected ones beside them (the measured
+differences on real MSTAR pairs: docs/results/).
 
 All image metrics take `(B, C, H, W)` tensors in [0, 1] (normalised dB, see `docs/ARCHITECTURE.md`) and
 return per-sample `(B,)` scores; callers take the mean.
@@ -25,8 +25,8 @@ Cross-checks (pinned in tests/evaluation/test_metrics.py): with a 9x9 window, si
 `skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.0, use_sample_covariance=False)` to
 1e-12, and the MS-SSIM contrast-structure terms equal torchmetrics' to 1e-5. The full `ms_ssim` is *not*
 torchmetrics' number even with a 9x9 window: torchmetrics averages the last scale's SSIM term over the whole
-reflect-padded map, which moves dissimilar pairs far more than near-identical ones (the differences on
-real pairs are in docs/results/history/evaluation.md). pytorch-msssim refuses 64x64 inputs with a 7x7 window.
+reflect-padded map, which moves dissimilar pairs far more than near-identical ones (measured in
+docs/results/). pytorch-msssim refuses 64x64 inputs with a 7x7 window.
 """
 
 from __future__ import annotations

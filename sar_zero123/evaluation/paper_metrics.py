@@ -24,7 +24,7 @@ in its text. Those scripts (public, `zero123/eval_metrics/` of AmirooR/noise-tol
 The functions here compute exactly that in float64 (tests/evaluation/test_paper_metrics.py checks them against
 torchmetrics, scikit-image and a per-pixel loop port of the findpeaks filter). The corrected variants
 (true 7 x 7 Gaussian windows, a centred reflect-padded Kuan filter, scored at the generated resolution)
-are in `sar_zero123.evaluation.metrics`; `docs/results/history/evaluation.md` lists the measured differences.
+are in `sar_zero123.evaluation.metrics` (the measured differences: docs/results/).
 """
 
 from __future__ import annotations

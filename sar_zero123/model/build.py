@@ -107,8 +107,7 @@ SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
     },
     # Faster CPU models for 64 px chips, with `small`'s VAE (one trained VAE folder fits all three):
     # UNets of about a third (`compact`) and a tenth (`micro`) of `small`'s parameters, so a CPU step sees
-    # more pairs per second (docs/results/history/learning.md, sections 1 and 7c). With
-    # `estimate_input_azimuth`, `micro` is the quickstart's model (learning.md, sections 4-7).
+    # more pairs per second. With `estimate_input_azimuth`, `micro` is the quickstart's model.
     "compact": {
         "image_size": 64,
         "vae": "small",

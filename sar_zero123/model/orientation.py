@@ -5,7 +5,7 @@ scratch must then read the input's azimuth ``a`` off the condition latent and ad
 its own layers; ``sin(a + d) = sin a cos d + cos a sin d`` is a product of two inputs, which additive
 conditioning learns slowly. An oracle ablation on the simulator shows it: a small UNet given the target's
 absolute azimuth learns to place views, while the same UNet given ``a`` and ``d_az`` as separate inputs
-stays near the input copy's error (``docs/results/history/learning.md``, section 4a).
+stays near the input copy's error.
 
 :class:`AzimuthEstimator` reads ``a`` from the condition latent (trained with the UNet and supervised by
 the input chip's known azimuth, :func:`azimuth_estimation_loss`), and :func:`turn_azimuth` adds ``d_az``
@@ -115,8 +115,7 @@ class AzimuthEstimator(ModelMixin, ConfigMixin):
     azimuth part is normalised to unit length and supervised (:func:`azimuth_estimation_loss`); the
     ``code_dim`` further outputs are a code of the input view (its class and appearance) that only the
     denoising loss trains. Without it, the UNet must read the object's identity from the condition latent
-    of a view at another azimuth, and its outputs follow the pose but lose the class
-    (``docs/results/history/learning.md``, sections 4a-4b).
+    of a view at another azimuth, and its outputs follow the pose but lose the class.
 
     Args:
         latent_channels: Channels of the VAE latent.

@@ -715,7 +715,7 @@ class SARZero123Pipeline(DiffusionPipeline):
                 pose projection's ``rotation_sign``): a first draft of the target view whose footprint lies
                 where the target's does, for the last denoising steps to correct (shadow and layover stay tied
                 to the range direction). Ignored at ``strength == 1``. Measured not to help on the quickstart
-                (docs/results/history/prior.md, "Where the held-out vehicle's class goes"). ``"proxy"``: each
+                (docs/results/). ``"proxy"``: each
                 input's simulator proxy (:mod:`sar_zero123.model.proxy`: the vehicle of the pipeline's
                 ``proxy`` bank that images most like the input at its pose) rendered at the requested pose,
                 a draft whose shadow, layover and front are the requested pose's; it needs

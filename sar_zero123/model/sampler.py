@@ -60,10 +60,9 @@ SAMPLER_DEFAULTS: dict[str, Any] = {
 
 #: What a pipeline exported by this project's training records (``export_finetuned``; a proxy model keeps its
 #: prior's whole sampler): 20 DDIM steps instead of zero-1-to-3's 50, which the library keeps for Objaverse
-#: checkpoints and the paper-comparable evaluation. On the quickstart's fine-tune (n = 256, docs/results/
-#: speed.md) 50 steps are never better: from noise 53.9 ± 3.6 deg against 53.4 ± 3.5 at 20 and 48.9 ± 3.4 at
-#: 5; 5 steps lean 2-5 points behind 20 in views nearer the requested depression (within a standard error),
-#: so 20, at 2.5 times 50's speed.
+#: checkpoints and the paper-comparable evaluation. On the quickstart's fine-tune 50 steps are not better
+#: than 20, and 5 lean behind 20 on depression requests, so 20, at a fraction of 50's time
+#: (measured in docs/results/speed.md).
 EXPORTED_SAMPLER: dict[str, Any] = {"num_inference_steps": 20}
 
 

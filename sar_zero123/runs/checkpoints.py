@@ -66,7 +66,7 @@ RESUME_MAY_DIFFER = (
     "num_validation_images",
     "validation_inference_steps",
     "num_workers",
-    "dataloader_num_workers",  # finetune_pfm's name for num_workers in checkpoints written before issue 12
+    "dataloader_num_workers",  # finetune_pfm's older name for num_workers, in older checkpoints
     "work_dir",
     "save_pipeline",
     "evaluators",  # finetune_pfm: validation-only pose-following check

@@ -98,7 +98,7 @@ def withdrawn_if_setup_fails(folder: RunFolder) -> Iterator[None]:
     """Around a stage's setup: a new run whose setup raises (a missing encoder, a protocol the data lacks, a
     batch the data cannot fill) leaves no record and nothing else it wrote there (the simulated data cache,
     ``logs/``), so the corrected command starts it instead of being refused for differing from a run that
-    never began (issue 39 item 11).
+    never began.
 
     Only a folder opened empty (``status == "new"``) is withdrawn: it was empty (or absent) when opened and
     its writer lock kept other processes out, so everything in it is this setup's. A continued run keeps

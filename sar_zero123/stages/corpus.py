@@ -3,7 +3,7 @@
 
 The quickstart runs it when its preset asks for rehearsal (``rehearsal_vehicles``): a small corpus rendered
 with the bundled priors' corpus options, whose pairs (across depressions) are mixed into every fine-tune so
-that it keeps the prior's depression requests (docs/results/history/prior.md, section 6, "Rehearsal"). Its
+that it keeps the prior's depression requests (measured in docs/usage/training.md's recipe table). Its
 vehicles are the procedural seeds ``0 .. num_vehicles - 1``, the first of the prior's own corpus: rehearsal
 shows the fine-tune vehicles the prior was trained on, never a named class.
 """

@@ -161,7 +161,7 @@ class FinetuneConfig(LossSettings):
     # sar_zero123.model.reference_attention); a pipeline without it gains it with zero gates (a warm start)
     reference_attention: bool = False
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
-    # "normalized" and "stages" are departures from the paper (docs/results/history/pfm.md, section 10)
+    # "normalized" and "stages" are departures from the paper
     pfm_features: PfmFeatures = "pooled"  # PFM's features: Eq. 20's pooled, unit length or all stages (LPIPS)
     # train only rank-r LoRA factors beside the frozen UNet weights (sar_zero123.training.lora), merged into a
     # plain UNet at export; None: every UNet weight trains (zero-1-to-3). The pose projection trains whole
@@ -210,27 +210,26 @@ class FinetuneConfig(LossSettings):
     #: Options measured to do nothing, removed (a config or run folder holding their old default reads as
     #: before; another value is refused with the reason).
     REMOVED_FIELDS = {
-        "pfm_start_step": RemovedField(0, "PFM switched on after 500 steps of L_simple alone kept the seen "
-                                       "class less often than PFM from the first step (44.5 against 55.9 %; "
-                                       "docs/results/history/pfm.md, section 8); PFM applies in every step"),
-        "pfm_stop_step": RemovedField(None, "PFM switched off after 300 steps damaged the seen classes as "
-                                      "much as 1,000 PFM steps (docs/results/history/pfm.md, section 6); PFM "
-                                      "applies in every step"),
+        "pfm_start_step": RemovedField(0, "PFM switched on after a stretch of L_simple alone kept the seen "
+                                       "class less often than PFM from the first step "
+                                       "(docs/results/history/pfm.md); PFM applies in every step"),
+        "pfm_stop_step": RemovedField(None, "PFM switched off early damaged the seen classes as much as "
+                                      "PFM throughout (docs/results/history/pfm.md); PFM applies in every "
+                                      "step"),
         "pfm_monotonic_q": RemovedField(0, "random monotonic maps before PFM's encoder changed nothing "
-                                        "measurable (docs/results/history/pfm.md, section 7); PFM compares "
-                                        "the images as Eq. 20 does"),
+                                        "measurable (docs/results/history/pfm.md); PFM compares the images "
+                                        "as Eq. 20 does"),
     }  # fmt: skip
 
     #: Research options kept beside the measured ones: settings without a flag (--set), listed at the end of
     #: --help with what was measured.
     EXPERIMENTAL_FIELDS = {
         "pfm_features": "unit-length features gave the lowest seen axis error, all stages (LPIPS-style) the "
-                        "lowest unseen SFD, neither beat lambda = 0 on seen accuracy "
-                        "(docs/results/history/pfm.md, section 10)",
-        "pfm_snr_gamma": "PFM weighted by SNR on every sample keeps the seen azimuth at lambda = 4 (78.5 % / "
-                         "49.0 deg against lambda = 0's 83.6 % / 50.7), no unseen gain (pfm.md, section 10)",
-        "lora_rank": "rank 8 keeps the prior's depression requests as a lower learning rate does, no better, "
-                     "at 1.5 times a full step's cost (docs/results/history/prior.md, section 6)",
+                        "lowest unseen SFD, neither beat lambda = 0 on seen accuracy",
+        "pfm_snr_gamma": "PFM weighted by SNR on every sample keeps the seen azimuth at lambda = 4 near "
+                         "lambda = 0's, no unseen gain",
+        "lora_rank": "a low rank keeps the prior's depression requests as a lower learning rate does, no "
+                     "better, at more than a full step's cost",
         "lora_alpha": "with lora_rank only",
         "lora_modules": "with lora_rank only",
     }  # fmt: skip

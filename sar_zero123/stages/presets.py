@@ -120,13 +120,12 @@ class Preset:
     # rehearsal (with a prior): a corpus of this many procedural vehicles, rendered with the prior's corpus
     # options into rehearsal/corpus (one vehicle held out as its validation class), whose pairs across
     # depressions make rehearsal_fraction of every fine-tune batch, so that the fine-tunes keep the prior's
-    # depression requests (docs/results/history/prior.md, section 6, "Rehearsal"); 0: the task's pairs only
+    # depression requests; 0: the task's pairs only
     rehearsal_vehicles: int
     rehearsal_fraction: float
     # the fine-tunes train rank-r LoRA factors beside the frozen UNet (finetune_pfm.py's --lora_rank, merged
-    # at export) instead of every UNet weight; None: every weight trains. Measured
-    # (docs/results/history/prior.md, section 6, "LoRA fine-tunes and the learning rate"): it keeps
-    # depression requests as a lower learning rate does, no better
+    # at export) instead of every UNet weight; None: every weight trains. It keeps depression requests as
+    # a lower learning rate does, no better
     finetune_lora_rank: int | None
     # how both evaluations sample (train/evaluate.py's --heading_guidance_scale and --strength): guidance
     # away from the flipped heading (0: off), and in (0, 1] the share of the steps sampled from the input's

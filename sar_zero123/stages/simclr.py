@@ -203,7 +203,7 @@ def run_simclr(config: PretrainSimCLRConfig) -> Path:
     """
     timer = StageTimer()
     output_dir = Path(config.output_dir)
-    # 1. the checkpoint to continue from (batch_size: the name before issue 12), then the run-folder rule
+    # 1. the checkpoint to continue from (batch_size: its name in older checkpoints), then the run-folder rule
     resume = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
     check_resume_config(resume, config, may_differ=("restart",), renamed={"batch_size": "global_batch_size"})
     folder = open_stage_folder(

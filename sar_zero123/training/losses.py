@@ -16,8 +16,8 @@ meaningful there:
    amplification ``1 / sqrt(SNR)`` by 15.8: every timestep of the paper's ``scaled_linear`` schedule
    (SNR(T-1) = 0.00468, amplification 14.6) keeps PFM, so the default is the paper's setting there, while
    schedules that reach far lower SNR (linear, cosine, zero terminal SNR) drop PFM exactly where their
-   x0 estimate would be amplified beyond anything the paper trained with. The measurements behind it
-   (gradient norms and x0 errors against t on real MSTAR latents) are in ``docs/results/history/pfm.md``.
+   x0 estimate would be amplified beyond anything the paper trained with (gradient norms and x0 errors
+   against t on real MSTAR latents: measured in ``docs/results/``).
 """
 
 from __future__ import annotations
@@ -42,7 +42,7 @@ from sar_zero123.model.conditioning import downsampling_factor
 MIN_ALPHA_CUMPROD = 2.0**-24
 
 #: Default SNR threshold below which PFM is skipped: amplification 1/sqrt(SNR) <= 15.8, which keeps every
-#: timestep of the paper's scaled_linear schedule (see module docstring and docs/results/history/pfm.md).
+#: timestep of the paper's scaled_linear schedule (see the module docstring).
 DEFAULT_PFM_MIN_SNR = 0.004
 
 #: What a diffusers scheduler's ``prediction_type`` may say the network predicts: the noise (zero-1-to-3,
@@ -281,8 +281,7 @@ class ProjectedFeatureEncoder(nn.Module):
     *mean* over the ``k`` outputs of the squared difference. With ``W`` from
     :func:`random_feature_projection` this is their PFM, whose lambda values the paper reports. Its
     expectation over the draw of ``W`` is ``||f(x0) - f(x0_hat)||^2 / (3 D)`` (each entry has variance
-    ``1 / (3 D)``), i.e. 1536x smaller than the 512-d form for ``D = 512``; one draw scatters around that
-    (measured ratios on real MSTAR latents: ``docs/results/history/pfm.md``).
+    ``1 / (3 D)``), i.e. 1536x smaller than the 512-d form for ``D = 512``; one draw scatters around that.
 
     The weight is a buffer: it moves with ``.to()``, is saved in ``state_dict`` and never trains.
     ``config`` is the wrapped encoder's (``image_size`` is read by :func:`pfm_loss`).
@@ -523,8 +522,7 @@ def pfm_loss(
     128 px chip), which cuts the decoder cost by ``(image_size / crop_size)**2``; the crop of the
     target and of the estimate are both resized to the encoder's input size, so the encoder cost stays.
     Decoding a latent window is not the centre of the full decode: the VAE's mid-block self-attention
-    sees only the window, which changes interior pixels as much as border ones (numbers in
-    ``docs/results/history/pfm.md``).
+    sees only the window, which changes interior pixels as much as border ones.
 
     Gradients flow through the frozen decoder and encoder into ``x0_hat_latents`` only.
 
@@ -604,7 +602,7 @@ def pfm_snr_weights(timesteps: torch.Tensor, scheduler, gamma: float) -> torch.T
     Not in the paper (Eq. 21 weights PFM alike at every t). PFM is a distance between functions of the
     target and of the one-step estimate x0_hat, whose error for a given noise-prediction error grows as
     ``1 / SNR(t)``: unweighted, the noisiest timesteps, where x0_hat is a blur, give PFM most of its
-    gradient (docs/results/history/pfm.md, section 6: 8-700 times L_simple's above t = 300).
+    gradient, many times L_simple's.
     Min-SNR-gamma (Hang et al., 2023) weights an x0-space loss by ``min(SNR, gamma)``; divided by ``gamma``
     the weight is 1 wherever ``SNR(t) >= gamma`` and falls in proportion to the SNR above, a smooth form of
     :func:`pfm_timestep_mask`'s hard threshold.
@@ -655,7 +653,7 @@ class LossSettings:
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
     pfm_fraction: float = 1.0  # fraction in (0, 1] of the eligible samples on which PFM is computed
     pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
-    # how lambda scales PFM (balanced_pfm_weight; docs/results/history/pfm.md, section 6): "none" weights
+    # how lambda scales PFM (balanced_pfm_weight): "none" weights
     # PFM as in Eq. (21); "adaptive": PFM's gradient at the network output is lambda times L_simple's in
     # every step
     pfm_balance: Literal["none", "adaptive"] = "none"  # "none": Eq. 21's fixed lambda; "adaptive": balanced
@@ -773,7 +771,7 @@ def total_loss(
             :func:`~sar_zero123.training.step.min_snr_weights`), applied before the sum.
         pfm_balance: ``"none"`` (Eq. 21 as written) or ``"adaptive"``: PFM is multiplied by
             :func:`balanced_pfm_weight` of this batch, so ``pfm_weight`` is the ratio of PFM's gradient to
-            L_simple's at the network output (a departure from the paper, ``docs/results/history/pfm.md``).
+            L_simple's at the network output (a departure from the paper).
         pfm_snr_gamma: ``gamma > 0``: each sample's PFM times :func:`pfm_snr_weights` (before the
             balance, so the adaptive scale sees the weighted term); None: Eq. 21's equal weight.
 
@@ -835,8 +833,8 @@ def balanced_pfm_weight(
     """The adaptive PFM scale ``||grad L_simple|| / ||grad PFM||``, both taken at the network output.
 
     Not in the paper: Eq. (21) weights PFM by a fixed lambda, so how hard PFM pulls depends on the encoder's
-    feature scale, the projection and the timestep (``docs/results/history/pfm.md``: at the bundled prior,
-    lambda = 4 gives PFM a gradient 5 times L_simple's below t = 500 and 700 times above t = 900). With this
+    feature scale, the projection and the timestep (at the bundled prior, a fixed lambda gives PFM a
+    gradient that grows many times over from the low to the high timesteps). With this
     scale, ``lambda * scale * PFM`` pulls the network output exactly lambda times as hard as L_simple in
     every batch, as VQGAN's adaptive weight balances its perceptual and adversarial terms (Esser et al.,
     2021, Eq. 7). The norms are taken at the network output rather than at a layer's weights: every PFM
