@@ -195,9 +195,14 @@ class Preset:
             raise ValueError(f"image_size must be >= 16, got {self.image_size}")
         if not 0.0 < self.azimuth_step_deg <= 360.0:
             raise ValueError(f"azimuth_step_deg must lie in (0, 360], got {self.azimuth_step_deg}")
-        if not 0.0 < self.pfm_fraction <= 1.0:
-            raise ValueError(f"pfm_fraction must lie in (0, 1], got {self.pfm_fraction}")
-        LossSettings(pfm_balance=self.pfm_balance, pfm_min_snr=self.pfm_min_snr)  # validated there, once
+        # the loss settings a recipe carries are validated by their owner, once
+        LossSettings(
+            **{
+                f.name: getattr(self, f.name)
+                for f in dataclasses.fields(LossSettings)
+                if hasattr(self, f.name)
+            }
+        )
         for name in ("finetune_learning_rate", "evaluator_learning_rate"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
@@ -220,9 +225,7 @@ class Preset:
             raise ValueError(f"schedulers must be distinct, got {self.schedulers!r}")
         unknown = sorted(set(self.schedulers) - set(SCHEDULERS))
         if not self.schedulers or unknown:
-            raise ValueError(
-                f"schedulers: choose from {sorted(SCHEDULERS)}, got {self.schedulers!r}"
-            )
+            raise ValueError(f"schedulers: choose from {sorted(SCHEDULERS)}, got {self.schedulers!r}")
         if any(not 0.0 < d < 90.0 for d in self.depression_targets_deg):
             raise ValueError(f"depression_targets_deg must lie in (0, 90), got {self.depression_targets_deg}")
         if self.lr_warmup_steps < 0:
@@ -232,12 +235,6 @@ class Preset:
         if self.mixed_precision not in ("no", "fp16", "bf16"):
             raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
         check_prediction_type(self.prediction_type, TRAINED_PREDICTION_TYPES)
-        if self.timestep_sampling not in ("uniform", "logit_normal"):
-            raise ValueError(
-                f"timestep_sampling must be 'uniform' or 'logit_normal', got {self.timestep_sampling!r}"
-            )
-        if self.snr_gamma is not None and self.snr_gamma <= 0:
-            raise ValueError(f"snr_gamma must be > 0 or None, got {self.snr_gamma}")
         steps = self.vae_decoder_steps
         if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
             raise ValueError(f"vae_decoder_steps must be an integer >= 0, got {steps!r}")
