@@ -14,7 +14,9 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -67,10 +69,12 @@ def main(argv: list[str] | None = None) -> dict:
     }
     seconds = time.perf_counter() - start
     quantiles = (0.0, 0.01, 0.05, 0.25, 0.5, 0.75, 0.95, 0.99, 1.0)
-    floors = [round(f, 2) for f in np.arange(0.0, 0.61, 0.05)]
+    floors = [round(float(f), 2) for f in np.arange(0.0, 0.61, 0.05)]
     result = {
-        "command": "python benchmarks/proxy_fit_floor.py " + " ".join(argv or []),
-        "device": f"{platform.processor() or platform.machine()}, {torch.get_num_threads()} torch threads",
+        "command": "python benchmarks/proxy_fit_floor.py " + " ".join(sys.argv[1:] if argv is None else argv),
+        "device": f"{platform.machine()} CPU, {os.cpu_count()} cores, {torch.get_num_threads()} torch "
+        f"threads, torch {torch.__version__}",
+        "date": time.strftime("%Y-%m-%d"),
         "n": args.n,
         "seconds_per_fit": seconds / (2 * args.n),
         "quantiles": {

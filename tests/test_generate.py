@@ -400,7 +400,7 @@ def test_a_plain_generate_uses_the_pipelines_recorded_sampler_and_its_proxy_with
     chip_png, tmp_path
 ):
     proxy = {"num_vehicles": 2, "first_seed": 1_000_000, "blur_sigma_px": 1.5, "render_seed": 0,
-             "min_db": -60.0, "max_db": 0.0}  # fmt: skip
+             "min_db": -60.0, "max_db": 0.0, "min_fit_score": -1.0}  # fmt: skip
     sampler = {"num_inference_steps": 4, "strength": 0.5, "start_from": "proxy"}
     folder = tmp_path / "pipeline"
     SARZero123Pipeline(**get_dummy_components(), sampler=sampler, proxy=proxy).save_pretrained(folder)

@@ -25,24 +25,28 @@ from sar_zero123.sim.proxy import MAX_RENDERED_BANK, PROXY_FIRST_SEED, ProxyBank
 
 __all__ = [
     "DATASET_SHORTLIST", "DEFAULT_PROXY", "PROXY_FIELDS", "check_proxy_settings", "draft_target_views",
-    "fit_scores", "proxy_bank", "with_shortlist",
+    "MIN_FIT_SCORE", "fit_scores", "proxy_bank", "with_shortlist",
 ]  # fmt: skip
 
+#: The fit score below which a chip holds no vehicle the simulator can fit: between the scores of real
+#: MSTAR vehicles and of their own clutter (``benchmarks/proxy_fit_floor.py``; docs/results/reliability.md).
+MIN_FIT_SCORE = 0.3
 #: What a pipeline records of its proxy: the bank (:class:`ProxyBank`'s arguments), the decibel bounds of its
 #: normalised dB domain (``decibel_scaling.json``) and its learned shortlist (``retrieval``: ``None``, or the
 #: name or folder of a :class:`~sar_zero123.model.retrieval.ProxyRetrievalNet` ranking that bank, whose
 #: ``shortlist`` best vehicles a fit renders; the bundled pipelines record ``sar-zero123/proxy-retrieval``
 #: with 64: the exhaustive fit's vehicle for 99 % of the named vehicles' inputs, docs/results/proxy.md).
+#: ``min_fit_score``: a chip whose best fit scores below it is refused (:data:`MIN_FIT_SCORE`).
 PROXY_FIELDS = (
     "num_vehicles", "first_seed", "blur_sigma_px", "render_seed", "max_shift_px", "shortlist", "min_db",
-    "max_db", "retrieval",
+    "max_db", "retrieval", "min_fit_score",
 )  # fmt: skip
 #: The fields that build the bank (:class:`ProxyBank`'s arguments, in order).
 _BANK_FIELDS = PROXY_FIELDS[:6]
 #: The fields :func:`proxy_bank` takes (the bank and its learned shortlist).
 _FIT_FIELDS = (*_BANK_FIELDS, "retrieval")
 #: Fields a record may leave out, and their values (records written before they existed).
-_PROXY_OPTIONAL = {"max_shift_px": 0, "shortlist": 0, "retrieval": None}
+_PROXY_OPTIONAL = {"max_shift_px": 0, "shortlist": 0, "retrieval": None, "min_fit_score": MIN_FIT_SCORE}
 #: The shortlist a dataset's fits use (``sar-zero123-augment``; :class:`ProxyBank`'s ``shortlist``): on the
 #: 256 turns of the named vehicles (docs/results/proxy.md, section 4) the proxy alone lands 41.3 deg from the
 #: request against 40.7 exhaustively, the proxy prior's views 34.5 against 33.8 deg, for 128 renders per
@@ -59,6 +63,7 @@ DEFAULT_PROXY: dict[str, Any] = {
     "min_db": -60.0,
     "max_db": 0.0,
     "retrieval": None,
+    "min_fit_score": MIN_FIT_SCORE,
 }
 
 
@@ -86,6 +91,9 @@ def check_proxy_settings(proxy: Mapping[str, Any], name: str = "proxy") -> dict[
         ProxyBank(*(proxy[key] for key in _BANK_FIELDS))
     except ValueError as error:
         raise ValueError(f"{name}.{error}") from None
+    floor = proxy["min_fit_score"]
+    if isinstance(floor, bool) or not isinstance(floor, int | float) or not -1.0 <= floor <= 1.0:
+        raise ValueError(f"{name}.min_fit_score: expected a correlation in [-1, 1], got {floor!r}")
     retrieval = proxy["retrieval"]
     if retrieval is None and proxy["num_vehicles"] > MAX_RENDERED_BANK:
         raise ValueError(
@@ -179,8 +187,9 @@ def draft_target_views(
         as fitted ``(B,)`` (the given one, or that + 180 where ``resolve_heading`` turned it).
 
     Raises:
-        ValueError: For a target depression outside (0, 90) deg, or a chip with no structure to fit (every
-            pixel the same value: a blank, saturated or cropped-away scene matches every vehicle equally).
+        ValueError: For a target depression outside (0, 90) deg, or a chip with no structure to fit: every
+            pixel the same value (a blank, saturated or cropped-away scene matches every vehicle equally), or
+            a best fit scoring below the settings' ``min_fit_score`` (clutter without a vehicle).
     """
     proxy = check_proxy_settings(proxy)
     # the bank's own arguments alone where no learned shortlist is recorded: one cached bank per settings,
@@ -203,7 +212,13 @@ def draft_target_views(
             )
         # many requests for one chip (generate, the demo's views and turntable) share one fit
         fit = _fit(settings, chip.tobytes(), chip.shape, azimuth, depression, resolve_heading)
-        index, fitted_azimuth, shift, _ = fit
+        index, fitted_azimuth, shift, score = fit
+        if score < proxy["min_fit_score"]:
+            raise ValueError(
+                f"image: input {k}: no simulator vehicle fits it (fit score {score:.3f}, below the floor "
+                f"{proxy['min_fit_score']} between real vehicles and clutter); give a chip with its target "
+                "in it, proxy_views, or a pipeline without a proxy"
+            )
         render = bank.render(index, fitted_azimuth + float(d_az_deg[k]), target_depression, size, shift)
         drafts.append(scaling.normalize(render))
         fitted.append(fitted_azimuth)

@@ -192,7 +192,7 @@ def test_a_proxy_pipeline_fits_a_datasets_chips_through_a_shortlist(data_dir, tm
     from sar_zero123.model.proxy import DATASET_SHORTLIST, with_shortlist
 
     proxy = {"num_vehicles": 3, "first_seed": 1_000_000, "blur_sigma_px": 1.5, "render_seed": 0,
-             "min_db": -60.0, "max_db": 0.0}  # fmt: skip
+             "min_db": -60.0, "max_db": 0.0, "min_fit_score": -1.0}  # fmt: skip
     folder = tmp_path / "proxy_pipeline"
     pipe = build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True)
     SARZero123Pipeline(**pipe.components, proxy=proxy,

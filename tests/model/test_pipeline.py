@@ -595,7 +595,8 @@ def test_a_start_image_equal_to_the_input_is_the_input_start_and_another_one_cha
 
 # ------------------------------------------------------------- recorded sampler and the simulator proxy
 SMALL_PROXY = {"num_vehicles": 3, "first_seed": 1_000_000, "blur_sigma_px": 1.5, "render_seed": 0,
-               "max_shift_px": 0, "min_db": -60.0, "max_db": 0.0}  # fmt: skip
+               "max_shift_px": 0, "min_db": -60.0, "max_db": 0.0,
+               "min_fit_score": -1.0}  # noise chips, which no vehicle fits  # fmt: skip
 
 
 def test_a_recorded_sampler_is_the_plain_calls_and_an_argument_overrides_it(tmp_path):

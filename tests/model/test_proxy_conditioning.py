@@ -32,7 +32,7 @@ from sar_zero123.sim.proxy import ProxyBank
 from sar_zero123.training.step import chosen_proxy_latents
 
 BANK = {"num_vehicles": 3, "first_seed": 1_000_000, "blur_sigma_px": 1.5, "render_seed": 0}
-PROXY = {**BANK, "max_shift_px": 0, "min_db": -60.0, "max_db": 0.0}
+PROXY = {**BANK, "max_shift_px": 0, "min_db": -60.0, "max_db": 0.0, "min_fit_score": -1.0}  # noise chips
 
 
 @pytest.fixture(scope="module")
@@ -207,6 +207,7 @@ def test_a_proxy_pipeline_fits_its_proxy_and_needs_the_input_pose(tmp_path: Path
                      (views.to(torch.complex64), "complex64"), ("proxy.npy", "got a str")):  # fmt: skip
         with pytest.raises(ValueError, match=rf"proxy_views` must be real normalised dB views.*{why}"):
             pipe(image, 90.0, 0.0, input_depression_deg=17.0, proxy_views=bad, **kwargs)
+
     # given views are used as they are, the start draft too: no fit runs, the azimuth given or not
     def no_fit(*args, **kwargs):
         raise AssertionError("a fit ran although proxy_views were given")
@@ -287,3 +288,32 @@ def test_a_proxy_fine_tune_widens_its_start_and_exports_a_proxy_pipeline(corpus:
                        pfm_weight=0.0)  # fmt: skip
     with pytest.raises(ValueError, match="spatial_pose: only for a model built from scratch"):
         FinetuneConfig(pretrained=str(tmp_path / "start"), spatial_pose="rotated_input", pfm_weight=0.0)
+
+
+def test_a_chip_no_vehicle_fits_is_refused_below_the_floor() -> None:
+    """Clutter alone (here: noise) scores far below a vehicle; under the default floor it is refused by name,
+    and a simulated vehicle at its pose passes."""
+    from sar_zero123.model.proxy import MIN_FIT_SCORE, draft_target_views, fit_scores
+
+    proxy = {**PROXY, "min_fit_score": MIN_FIT_SCORE}
+    size = 32
+    noise = torch.rand(1, 1, size, size, generator=torch.Generator().manual_seed(0))
+    pose = (torch.tensor([40.0]), torch.tensor([17.0]))
+    request = (torch.tensor([90.0]), torch.tensor([0.0]))
+    assert fit_scores(noise, *pose, proxy)[0] < MIN_FIT_SCORE
+    with pytest.raises(
+        ValueError,
+        match=rf"image: input 0: no simulator vehicle fits it \(fit score .*below the floor {MIN_FIT_SCORE}",
+    ):
+        draft_target_views(noise, *pose, *request, proxy)
+    bank = ProxyBank(**BANK)
+    from sar_zero123.data import DecibelScaling
+
+    vehicle = DecibelScaling(min_db=-60.0, max_db=0.0).normalize(bank.render(1, 40.0, 17.0, size))
+    chip = torch.from_numpy(np.asarray(vehicle, dtype=np.float32))[None, None]
+    assert fit_scores(chip, *pose, proxy)[0] > 0.9  # a bank vehicle fits itself
+    drafts, _ = draft_target_views(chip, *pose, *request, proxy)
+    assert drafts.shape == (1, 1, size, size)
+    for bad in (1.5, float("nan"), True, "0.3"):
+        with pytest.raises(ValueError, match=r"proxy.min_fit_score: expected a correlation in \[-1, 1\]"):
+            draft_target_views(chip, *pose, *request, {**proxy, "min_fit_score": bad})

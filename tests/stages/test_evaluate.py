@@ -454,7 +454,7 @@ def test_evaluate_from_the_proxy_gives_each_pairs_input_pose(tmp_path: Path, mon
     data = write_chip_folder(tmp_path / "data", azimuths_deg=tuple(range(0, 360, 60)), size=32)
     _evaluators(tmp_path / "evaluators")
     proxy = {"num_vehicles": 2, "first_seed": 1_000_000, "blur_sigma_px": 1.5, "render_seed": 0,
-             "min_db": -60.0, "max_db": 0.0}  # fmt: skip
+             "min_db": -60.0, "max_db": 0.0, "min_fit_score": -1.0}  # fmt: skip
     SARZero123Pipeline(**get_dummy_components(), proxy=proxy).save_pretrained(tmp_path / "pipe")
     calls: list[dict] = []
     call = SARZero123Pipeline.__call__
