@@ -685,9 +685,7 @@ class LossSettings:
         check_minimum(self, "pfm_crop_size", minimum=1, optional=True)
         if self.pfm_balance not in PFM_BALANCES:
             raise ValueError(f"pfm_balance must be one of {PFM_BALANCES}, got {self.pfm_balance!r}")
-        check_minimum(self, "pfm_snr_gamma", minimum=0, strict=True, optional=True)
-        if self.pfm_snr_gamma is not None and not math.isfinite(self.pfm_snr_gamma):
-            raise ValueError(f"pfm_snr_gamma must be finite or None, got {self.pfm_snr_gamma}")
+        check_minimum(self, "pfm_snr_gamma", minimum=0, strict=True, optional=True)  # finite, > 0, or None
         probs = (self.drop_image_prob, self.drop_both_prob, self.drop_latent_prob)
         if not (min(probs) >= 0 and sum(probs) <= 1):
             raise ValueError(

@@ -305,7 +305,7 @@ def test_total_loss_weights_l_simple_before_adding_lambda_pfm(vae, encoder) -> N
         ({"pfm_crop_size": 0}, r"pfm_crop_size must be >= 1 or None, got 0"),
         ({"pfm_balance": "vqgan"}, r"pfm_balance must be one of \('none', 'adaptive'\), got 'vqgan'"),
         ({"pfm_snr_gamma": 0.0}, r"pfm_snr_gamma must be > 0 or None, got 0.0"),
-        ({"pfm_snr_gamma": float("inf")}, r"pfm_snr_gamma must be finite or None, got inf"),
+        ({"pfm_snr_gamma": float("inf")}, r"pfm_snr_gamma must be a finite number > 0 or None, got inf"),
         ({"drop_image_prob": 0.6, "drop_both_prob": 0.6}, r"drop_image_prob, .* got \(0.6, 0.6, 0.05\)"),
         ({"timestep_sampling": "cosine"}, r"timestep_sampling must be 'uniform' or 'logit_normal'"),
         ({"timestep_sampling": "logit_normal", "timestep_logit_std": 0.0}, r"timestep_logit_std must be > 0"),
