@@ -33,6 +33,7 @@ from __future__ import annotations
 import csv
 import functools
 import io
+import logging
 import os
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
@@ -60,7 +61,7 @@ from sar_zero123.model.pipeline import (
     MAX_ABS_D_EL_DEG,
     SARZero123Pipeline,
 )
-from sar_zero123.model.proxy import DATASET_SHORTLIST, with_shortlist
+from sar_zero123.model.proxy import DATASET_SHORTLIST, fit_scores, with_shortlist
 from sar_zero123.model.sampler import SamplerSettings, scheduler_name
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar
@@ -73,6 +74,8 @@ from sar_zero123.runs.folder import (
 )
 from sar_zero123.runs.lock import is_lock_file, lock_output_folder, release_output_folder
 from sar_zero123.sim.dataset import write_index_atomic
+
+logger = logging.getLogger(__name__)
 
 __all__ = [
     "AUGMENT_FILE",
@@ -542,6 +545,22 @@ def augment_dataset(config: AugmentConfig) -> Path:
     config.apply_scheduler(pipe)
     size = pipe.default_image_size
     _check_chip_sizes([record for _, record in selected], size)
+    prepared_chip = _chip_loader(config.pipeline, config.scaling_file, size)
+    if getattr(pipe.config, "proxy", None) is not None:  # chips no simulator vehicle fits: skipped, counted
+        kept = _fitted_chips(pipe, selected, prepared_chip)
+        if len(kept) < len(selected):
+            kept_ids = {id(item) for item in kept}
+            skipped = [str(item[1].path) for item in selected if id(item) not in kept_ids]
+            logger.warning(
+                "skipped %d of %d chips: no simulator vehicle fits them (fit score below %s): %s",
+                len(skipped), len(selected), pipe.config.proxy["min_fit_score"], ", ".join(skipped[:5]),
+            )  # fmt: skip
+            if not kept:
+                raise ValueError(
+                    f"data: no selected chip holds a vehicle the simulator proxy fits ({skipped[0]})"
+                )
+            selected = kept
+            views = plan_views(selected, config.d_az, config.target_azimuths_deg, config.d_el)
     check_trained_ranges(pipe.pose_projection.config, config.d_el, [r.depression_deg for _, r in selected])
     out.mkdir(parents=True, exist_ok=True)
     if not resuming:
@@ -554,7 +573,6 @@ def augment_dataset(config: AugmentConfig) -> Path:
     pending = [batch for batch in batches if not all((out / view.path).is_file() for view in batch)]
     for folder in sorted({(out / view.path).parent for batch in pending for view in batch}):
         folder.mkdir(parents=True, exist_ok=True)
-    prepared_chip = _chip_loader(config.pipeline, config.scaling_file, size)
     speckle_sigma = config.speckle_sigma if config.speckle else None
     with progress_bar(total=sum(len(batch) for batch in pending), desc="augmenting", unit="view") as progress:
         for batch in pending:
@@ -576,7 +594,10 @@ def augment_dataset(config: AugmentConfig) -> Path:
                     continue
                 speckle = view_generator(config.seed, view.row_index, view.request_index, stream=1)
                 magnitude = _view_magnitude(
-                    image, scaling, speckle_sigma=speckle_sigma, speckle_looks=config.speckle_looks,
+                    image,
+                    scaling,
+                    speckle_sigma=speckle_sigma,
+                    speckle_looks=config.speckle_looks,
                     generator=speckle,
                 )
                 buffer = io.BytesIO()
@@ -593,6 +614,23 @@ def augment_dataset(config: AugmentConfig) -> Path:
     write_index_atomic(out, [row[: len(INDEX_COLUMNS)] for row in rows])
     release_output_folder(out)
     return out
+
+
+def _fitted_chips(
+    pipe: SARZero123Pipeline, selected: list, prepared_chip: Callable[[Path], np.ndarray]
+) -> list:
+    """The selected chips whose simulator proxy fit scores at least the pipeline's ``proxy.min_fit_score``
+    (the fits are remembered: generation does not run them again)."""
+    proxy = pipe.config.proxy
+    kept = []
+    for start in range(0, len(selected), 64):
+        chunk = selected[start : start + 64]
+        chips = torch.from_numpy(np.stack([prepared_chip(record.path) for _, record in chunk]))[:, None]
+        azimuth = torch.tensor([record.azimuth_deg for _, record in chunk])
+        depression = torch.tensor([record.depression_deg for _, record in chunk])
+        scores = fit_scores(chips, azimuth, depression, proxy)
+        kept += [item for item, score in zip(chunk, scores) if score >= proxy["min_fit_score"]]
+    return kept
 
 
 def _chip_loader(pipeline: str, scaling_file: str | None, size: int) -> Callable[[Path], np.ndarray]:
