@@ -46,24 +46,8 @@ def chip_png(tmp_path_factory):
 
 def test_main_writes_one_png_and_npy_per_view_and_a_contact_sheet(pipeline_dir, chip_png, tmp_path):
     out = tmp_path / "views"
-    argv = [
-        "--pipeline",
-        str(pipeline_dir),
-        "--image",
-        str(chip_png),
-        "--d-az",
-        "30",
-        "60",
-        "90",
-        "--d-el",
-        "0",
-        "--output_dir",
-        str(out),
-        "--num-inference-steps",
-        "2",
-        "--seed",
-        "4",
-    ]
+    argv = ["--pipeline", str(pipeline_dir), "--image", str(chip_png), "--d-az", "30", "60", "90",
+            "--d-el", "0", "--output_dir", str(out), "--num-inference-steps", "2", "--seed", "4"]
     assert main(argv) == out
     arrays = sorted(out.glob("view_*.npy"))
     pngs = sorted(out.glob("view_*.png"))
@@ -94,14 +78,8 @@ def test_main_writes_one_png_and_npy_per_view_and_a_contact_sheet(pipeline_dir, 
     chip = load_input_chip(config, 32)
     pipe = SARZero123Pipeline.from_pretrained(pipeline_dir)
     pipe.set_progress_bar_config(disable=True)
-    expected = pipe(
-        torch.from_numpy(chip)[None, None],
-        d_az=60.0,
-        d_el=0.0,
-        num_inference_steps=2,
-        generator=torch.Generator().manual_seed(5),
-        output_type="np",
-    ).images[0, ..., 0]
+    expected = pipe(torch.from_numpy(chip)[None, None], d_az=60.0, d_el=0.0, num_inference_steps=2,
+                    generator=torch.Generator().manual_seed(5), output_type="np").images[0, ..., 0]
     np.testing.assert_allclose(np.load(arrays[1]), expected, atol=1e-5)
 
 
@@ -185,10 +163,8 @@ def test_config_rejects_bad_values(fields, match):
         ({"depression_guidance_scale": 101.0}, r"depression_guidance_scale must lie in \[0, 100\]"),
         ({"strength": 0.0}, r"^strength must lie in \(0, 1\], got 0.0"),
         ({"strength": float("nan")}, r"^strength must lie in \(0, 1\], got nan"),
-        (
-            {"strength": 0.2, "num_inference_steps": 4},
-            r"^strength 0.2 x num_inference_steps 4 leaves no denoising step",
-        ),
+        ({"strength": 0.2, "num_inference_steps": 4},
+         r"^strength 0.2 x num_inference_steps 4 leaves no denoising step"),
         ({"start_from": "noise"}, r"^start_from must be one of \(.*'proxy'\), got 'noise'"),
         ({"input_azimuth": float("nan")}, r"input_azimuth must be a finite angle"),
     ],
@@ -260,9 +236,8 @@ def _run(tmp_path, name, *argv):
     return out, {p.name: np.load(p) for p in sorted(out.glob("view_*.npy"))}
 
 
-def test_default_pipeline_is_the_bundled_prior_with_17_deg_and_a_note(
-    registry_dir, chip_png, tmp_path, monkeypatch, capsys
-):
+def test_default_pipeline_is_the_bundled_prior_with_17_deg_and_a_note(registry_dir, chip_png, tmp_path,
+                                                                      monkeypatch, capsys):
     assert GenerateConfig(image="chip.png").pipeline == SIM_PRIOR_ROTATED
     # with the chip's azimuth known, the prior conditioned on a simulator proxy fitted to it
     assert GenerateConfig(image="chip.png", input_azimuth=30.0).pipeline == pretrained.SIM_PRIOR_PROXY
@@ -321,9 +296,8 @@ def test_depression_recorded_in_the_chip_file_is_used(registry_dir, tmp_path, ca
                                   given["view_00_daz+030.00_del+00.00.npy"])  # fmt: skip
 
 
-def test_input_depression_is_ignored_with_a_note_by_a_pipeline_without_it(
-    pipeline_dir, chip_png, tmp_path, capsys
-):
+def test_input_depression_is_ignored_with_a_note_by_a_pipeline_without_it(pipeline_dir, chip_png, tmp_path,
+                                                                            capsys):
     argv = ["--pipeline", str(pipeline_dir), "--image", str(chip_png), "--d-az", "30"]
     _, plain = _run(tmp_path, "plain", *argv)
     assert capsys.readouterr().out == ""
@@ -365,7 +339,6 @@ def test_output_dir_refuses_other_settings_returns_with_resume_and_moves_aside_w
     with pytest.raises(ValueError, match=same):
         main(argv)
     assert _snapshot(out) == before
-
     # --resume: the finished folder as it is; the pipeline is not even loaded
     def no_work(*args, **kwargs):
         raise AssertionError("a finished folder continued with --resume must not be worked on")
@@ -420,12 +393,10 @@ def test_a_plain_generate_uses_the_pipelines_recorded_sampler_and_its_proxy_with
         # views.json records how well the proxy fits the chip (the best bank score), where one was fitted
         score = json.loads((out / "views.json").read_text())["proxy_fit_score"]
         if azimuth:
-            bank = ProxyBank(
-                *(proxy[key] for key in ("num_vehicles", "first_seed", "blur_sigma_px", "render_seed"))
-            )
-            assert score == pytest.approx(
-                float(bank.scores(chip.astype(np.float64), 40.0, 17.0).max()), abs=1e-6
-            )
+            fields = ("num_vehicles", "first_seed", "blur_sigma_px", "render_seed")
+            bank = ProxyBank(*(proxy[k] for k in fields))
+            best = float(bank.scores(chip.astype(np.float64), 40.0, 17.0).max())
+            assert score == pytest.approx(best, abs=1e-6)
         else:
             assert score is None
 

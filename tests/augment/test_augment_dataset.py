@@ -55,21 +55,8 @@ def data_dir(tmp_path_factory):
 
 
 def run_args(data_dir, pipeline_dir, out, *extra):
-    return [
-        "--data",
-        str(data_dir),
-        "--pipeline",
-        str(pipeline_dir),
-        "--out",
-        str(out),
-        "--d_az",
-        *D_AZ,
-        "--d_el",
-        "2",
-        "--num_inference_steps",
-        "2",
-        *extra,
-    ]
+    return ["--data", str(data_dir), "--pipeline", str(pipeline_dir), "--out", str(out), "--d_az", *D_AZ,
+            "--d_el", "2", "--num_inference_steps", "2", *extra]
 
 
 @pytest.fixture(scope="module")
@@ -110,10 +97,8 @@ def test_output_is_a_dataset_with_one_row_per_chip_and_request(augmented, data_d
         assert view.shape == (32, 32) and view.dtype == np.float32
         assert 0.0 <= view.min() and view.max() <= 1.0
     # hand-computed wraps: 270 + 90 -> 0 and 0 - 90 -> 270
-    pairs = {
-        (sources[row["source_path"]].azimuth_deg, float(row["d_az_deg"])): float(row["azimuth_deg"])
-        for row in provenance
-    }
+    pairs = {(sources[row["source_path"]].azimuth_deg, float(row["d_az_deg"])): float(row["azimuth_deg"])
+             for row in provenance}
     assert pairs[(270.0, 90.0)] == 0.0 and pairs[(0.0, -90.0)] == 270.0
     assert sorted({float(row["d_az_deg"]) for row in provenance}) == [-90.0, 90.0]
     assert json.loads((augmented / AUGMENT_FILE).read_text())["d_az"] == [-90.0, 90.0]
@@ -123,26 +108,9 @@ def test_output_is_a_dataset_with_one_row_per_chip_and_request(augmented, data_d
 
 def test_target_azimuths_selection_and_real_rows(data_dir, pipeline_dir, tmp_path):
     out = tmp_path / "out"
-    main(
-        [
-            "--data",
-            str(data_dir),
-            "--pipeline",
-            str(pipeline_dir),
-            "--out",
-            str(out),
-            "--target_azimuths_deg",
-            "10",
-            "350",
-            "--classes",
-            "TANK",
-            "--max_chips_per_class",
-            "2",
-            "--num_inference_steps",
-            "1",
-            "--include_real",
-        ]
-    )
+    main(["--data", str(data_dir), "--pipeline", str(pipeline_dir), "--out", str(out),
+          "--target_azimuths_deg", "10", "350", "--classes", "TANK", "--max_chips_per_class", "2",
+          "--num_inference_steps", "1", "--include_real"])
     records = load_index(out)  # real rows by absolute path, views relative
     provenance = read_csv(out / PROVENANCE_FILE)
     real = [row for row in provenance if row["generated"] == "0"]
@@ -204,16 +172,9 @@ def test_strength_starts_from_the_chip_and_is_recorded(augmented, data_dir, pipe
         chip_config = GenerateConfig(pipeline=str(pipeline_dir), image=str(data_dir / row["source_path"]))
         chip = torch.from_numpy(load_input_chip(chip_config, pipe.default_image_size))[None, None]
         row_index, request = (int(part[1:]) for part in Path(row["path"]).stem.split("_")[-2:])
-        expected = pipe(
-            chip,
-            d_az=float(row["d_az_deg"]),
-            d_el=float(row["d_el_deg"]),
-            input_depression_deg=17.0,
-            num_inference_steps=4,
-            strength=0.25,
-            generator=view_generator(0, row_index, request),
-            output_type="np",
-        ).images[0, ..., 0]
+        expected = pipe(chip, d_az=float(row["d_az_deg"]), d_el=float(row["d_el_deg"]),
+                        input_depression_deg=17.0, num_inference_steps=4, strength=0.25,
+                        generator=view_generator(0, row_index, request), output_type="np").images[0, ..., 0]
         view = scaling.normalize(np.load(kept / row["path"]).astype(np.float64))
         np.testing.assert_allclose(view, expected, atol=1e-4)
         assert np.abs(view - scaling.normalize(np.load(clean / row["path"]).astype(np.float64))).max() > 1e-3
@@ -347,9 +308,8 @@ def test_refuses_to_resume_onto_a_pipeline_whose_weights_changed(augmented, data
 
 
 @pytest.mark.parametrize(("d_el", "field"), [("6", "trained_d_el_deg"), ("4", "trained_depression_deg")])
-def test_refuses_d_el_outside_the_trained_ranges_before_generating(
-    data_dir, pipeline_dir, tmp_path, d_el, field
-):
+def test_refuses_d_el_outside_the_trained_ranges_before_generating(data_dir, pipeline_dir, tmp_path, d_el,
+                                                                   field):
     out = tmp_path / "out"
     with pytest.raises(ValueError, match=rf"^d_el: .*pose_projection\.config\.{field}"):
         main([*run_args(data_dir, pipeline_dir, out), "--d_el", d_el])
@@ -357,14 +317,8 @@ def test_refuses_d_el_outside_the_trained_ranges_before_generating(
 
 
 def test_refuses_chips_smaller_than_the_pipeline_or_off_its_scaling(pipeline_dir, tmp_path):
-    small = simulate_dataset(
-        tmp_path / "small",
-        classes=("TANK",),
-        instances=1,
-        azimuth_step_deg=180,
-        depressions_deg=(17.0,),
-        size=16,
-    )
+    small = simulate_dataset(tmp_path / "small", classes=("TANK",), instances=1, azimuth_step_deg=180,
+                             depressions_deg=(17.0,), size=16)
     with pytest.raises(ValueError, match=r"^data: 2 chip\(s\) are smaller than the pipeline's 32 px"):
         main(run_args(small, pipeline_dir, tmp_path / "a"))
     # an index that claims the 16 px chips are 64 px is not believed: the files are read
@@ -375,14 +329,8 @@ def test_refuses_chips_smaller_than_the_pipeline_or_off_its_scaling(pipeline_dir
     with pytest.raises(ValueError, match=claimed):
         main(run_args(small, pipeline_dir, tmp_path / "a2"))
     assert not (tmp_path / "a2").exists()
-    chips = simulate_dataset(
-        tmp_path / "chips",
-        classes=("TANK",),
-        instances=1,
-        azimuth_step_deg=180,
-        depressions_deg=(17.0,),
-        size=32,
-    )
+    chips = simulate_dataset(tmp_path / "chips", classes=("TANK",), instances=1, azimuth_step_deg=180,
+                             depressions_deg=(17.0,), size=32)
     scaling = tmp_path / "scaling.json"  # clutter lies far below -10 dB: most pixels clip
     scaling.write_text(json.dumps(DecibelScaling(min_db=-10.0, max_db=0.0).to_dict()))
     with pytest.raises(ValueError, match=r"^data: chip .* outside the scaling's dB range"):
@@ -412,9 +360,8 @@ def test_speckle_looks_adds_log_speckle_to_the_views(augmented, data_dir, pipeli
     for path in paths:
         row, request = (int(part[1:]) for part in path.stem.split("_")[-2:])
         clean = torch.from_numpy(scaling.normalize(np.load(augmented / path).astype(np.float64)))[None, None]
-        expected = readd_speckle(
-            clean.float(), scaling.max_db - scaling.min_db, 1, view_generator(0, row, request, stream=1)
-        )[0, 0].numpy()
+        expected = readd_speckle(clean.float(), scaling.max_db - scaling.min_db, 1,
+                                 view_generator(0, row, request, stream=1))[0, 0].numpy()
         speckled = scaling.normalize(np.load(out / path).astype(np.float64))
         np.testing.assert_allclose(speckled, expected, atol=2e-3)
         assert np.abs(speckled - clean[0, 0].numpy()).mean() > 0.01
@@ -426,21 +373,14 @@ def test_speckle_looks_adds_log_speckle_to_the_views(augmented, data_dir, pipeli
 
 
 def test_plan_and_selection_by_hand():
-    records = [
-        ChipRecord(
-            path=f"/d/{c}{k}.npy", target_class=c, serial="s", depression_deg=17.0, azimuth_deg=90.0 * k
-        )
-        for c in ("A", "B")
-        for k in range(4)
-    ]
+    records = [ChipRecord(path=f"/d/{c}{k}.npy", target_class=c, serial="s", depression_deg=17.0,
+                          azimuth_deg=90.0 * k) for c in ("A", "B") for k in range(4)]
     # B's chips are rows 4-7; 3 of 4 evenly spaced: positions round(0, 1.5, 3) = 0, 2, 3
     assert [row for row, _ in select_records(records, classes=["B"], max_chips_per_class=3)] == [4, 6, 7]
     assert [row for row, _ in select_records(records, depressions_deg=[15.0, 17.0])] == list(range(8))
     views = plan_views([(3, records[3])], d_az=[100.0], d_el=[0.0, -2.0])
     assert [(v.azimuth_deg, v.d_el_deg, v.depression_deg, v.request_index) for v in views] == [
-        (10.0, 0.0, 17.0, 0),
-        (10.0, -2.0, 15.0, 1),
-    ]
+        (10.0, 0.0, 17.0, 0), (10.0, -2.0, 15.0, 1)]
     assert views[1].path.as_posix() == "views/A/A3_r000003_v001.npy"
     with pytest.raises(ValueError, match="^classes: "):
         select_records(records, classes=["C"])
@@ -479,14 +419,9 @@ def test_depression_guidance_reaches_each_view_and_is_recorded(data_dir, tmp_pat
         written = scaling.normalize(np.load(out / row["path"]).astype(np.float64))
         for guidance in (2.0, 0.0):  # the guided view is the one written; the unguided one differs
             expected = pipe(
-                chip,
-                d_az=float(row["d_az_deg"]),
-                d_el=float(row["d_el_deg"]),
-                input_depression_deg=17.0,
-                num_inference_steps=2,
-                depression_guidance_scale=guidance,
-                generator=view_generator(0, row_index, request),
-                output_type="np",
+                chip, d_az=float(row["d_az_deg"]), d_el=float(row["d_el_deg"]), input_depression_deg=17.0,
+                num_inference_steps=2, depression_guidance_scale=guidance,
+                generator=view_generator(0, row_index, request), output_type="np",
             ).images[0, ..., 0]
             distance = np.abs(written - expected).max()
             assert distance < 1e-4 if guidance else distance > 1e-3
