@@ -113,8 +113,7 @@ def simulate(argv: Sequence[str] | None = None) -> Path:
     with open(out / "index.csv") as handle:
         n_chips = sum(1 for _ in handle) - 1
     print(f"{out / 'index.csv'}: {n_chips} chips ({time.perf_counter() - start:.1f} s)")
-    print(out)  # the output folder, the last line on stdout as for every command
-    return out
+    return out  # printed last by the console script, as every command's folder
 
 
 def simclr(argv: Sequence[str] | None = None) -> dict[str, Any]:
