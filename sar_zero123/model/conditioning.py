@@ -235,6 +235,13 @@ class PoseProjection(ModelMixin, ConfigMixin):
             also attends to the input view's own features (:mod:`sar_zero123.model.reference_attention`),
             weighted by ``tanh`` of its gate in ``reference_gates`` (``(n,)``, zero at the start: a warm
             start computes exactly what the model did without it).
+        input_token_layers: ``0``: the UNet's cross-attentions see only the pose token (every pipeline saved
+            before the field existed). ``n > 0``: each of its ``n`` cross-attentions also attends to the
+            input's latent as one token per place (:mod:`sar_zero123.model.input_tokens`), weighted by
+            ``tanh`` of its gate in ``token_gates`` (zero at the start), the tokens made by
+            ``token_projection``.
+        input_token_channels: The latent channels the token projection takes (with
+            ``input_token_layers > 0``).
 
     Raises:
         ValueError: If ``in_features <= 4``, ``out_features < 1``, a range is not ``[min, max]``,
@@ -254,8 +261,21 @@ class PoseProjection(ModelMixin, ConfigMixin):
         trained_vae: dict[str, Any] | None = None,
         trained_estimator: str | None = None,
         reference_layers: int = 0,
+        input_token_layers: int = 0,
+        input_token_channels: int = 0,
     ) -> None:
         super().__init__()
+        for name, value in (
+            ("input_token_layers", input_token_layers),
+            ("input_token_channels", input_token_channels),
+        ):
+            if isinstance(value, bool) or int(value) != value or value < 0:
+                raise ValueError(f"`{name}` must be an integer >= 0, got {value!r}")
+        if bool(input_token_layers) != bool(input_token_channels):
+            raise ValueError(
+                "`input_token_layers` and `input_token_channels` must both be 0 or both positive, got "
+                f"{input_token_layers} and {input_token_channels}"
+            )
         if (
             isinstance(reference_layers, bool)
             or int(reference_layers) != reference_layers
@@ -283,6 +303,14 @@ class PoseProjection(ModelMixin, ConfigMixin):
             self.projection.bias.zero_()
         if reference_layers:
             self.reference_gates = torch.nn.Parameter(torch.zeros(int(reference_layers)))
+        if input_token_layers:
+            self.add_input_tokens(int(input_token_layers), int(input_token_channels))
+
+    def add_input_tokens(self, layers: int, latent_channels: int) -> None:
+        """Create the input tokens' projection and their ``layers`` zero gates (the caller records the
+        config: :func:`~sar_zero123.model.input_tokens.enable_input_tokens`)."""
+        self.token_projection = torch.nn.Linear(token_feature_dim(latent_channels), self.config.out_features)
+        self.token_gates = torch.nn.Parameter(torch.zeros(layers))
 
     @property
     def image_embed_dim(self) -> int:
@@ -318,6 +346,16 @@ class PoseProjection(ModelMixin, ConfigMixin):
             )
         features = torch.cat([image_embeds, pose.to(image_embeds)], dim=-1)  # (B, 1, D + 4)
         return self.projection(features.to(self.projection.weight.dtype))
+
+
+#: Octaves of the Fourier features of an input token's two positions (:mod:`sar_zero123.model.input_tokens`).
+TOKEN_FREQUENCIES = 4
+
+
+def token_feature_dim(latent_channels: int) -> int:
+    """Size of one input token's features before the projection: the latent, two positions' Fourier
+    features (2 coordinates x sin/cos x :data:`TOKEN_FREQUENCIES` each) and the pose."""
+    return int(latent_channels) + 2 * 4 * TOKEN_FREQUENCIES + POSE_DIM
 
 
 def match_channels(images: torch.Tensor, channels: int) -> torch.Tensor:

@@ -53,6 +53,7 @@ from sar_zero123.model.conditioning import (
     takes_proxy,
     unet_condition_latents,
 )
+from sar_zero123.model.input_tokens import check_token_layers, input_token_context
 from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
 from sar_zero123.model.orientation import AzimuthEstimator, estimator_weights_digest, target_view_features
 from sar_zero123.model.proxy import check_proxy_settings, draft_target_views, fit_scores
@@ -239,6 +240,7 @@ class SARZero123Pipeline(DiffusionPipeline):
             )
         check_vae_image_size(vae, unet)
         check_reference_layers(unet, pose_projection)
+        check_token_layers(unet, pose_projection)
         check_vae_signature(vae.config, getattr(pose_projection.config, "trained_vae", None))
         trained_estimator = getattr(pose_projection.config, "trained_estimator", None)
         if trained_estimator is not None and azimuth_estimator is not None:
@@ -873,6 +875,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         unet_condition = unet_condition_latents(
             condition_latents, guided_pose, self.pose_projection, proxy_latents
         )
+        input_tokens = input_token_context(self.unet, self.pose_projection, condition_latents, guided_pose)
         reference = contextlib.nullcontext()
         if uses_reference(self.pose_projection):  # once per call: the input's own features
             reference = self._input_reference(
@@ -915,7 +918,7 @@ class SARZero123Pipeline(DiffusionPipeline):
 
         # 5. denoising loop: one UNet call per step with [unconditional; conditional] stacked
         self._num_timesteps = len(timesteps)
-        with self.progress_bar(total=len(timesteps)) as progress_bar, reference:
+        with self.progress_bar(total=len(timesteps)) as progress_bar, reference, input_tokens:
             for step_index, timestep in enumerate(timesteps):
                 model_input = torch.cat([latents] * branches) if branches > 1 else latents
                 model_input = self.scheduler.scale_model_input(model_input, timestep)

@@ -29,6 +29,7 @@ from diffusers.models.attention_processor import Attention, AttnProcessor2_0
 from sar_zero123.model.conditioning import unet_condition_latents
 
 __all__ = [
+    "attend_extra",
     "attending_to_reference",
     "check_reference_layers",
     "enable_reference_attention",
@@ -76,11 +77,12 @@ class ReferenceAttnProcessor:
         elif state.mode == "read":
             reference = state.features[self.layer].index_select(0, state.rows)  # (N, L_ref, C)
             weight = state.weights[:, self.layer].to(output.dtype)[:, None, None]  # (N, 1, 1)
-            output = output + weight * _attend(attn, hidden_states, reference) / attn.rescale_output_factor
+            extra = attend_extra(attn, hidden_states, reference)
+            output = output + weight * extra / attn.rescale_output_factor
         return output
 
 
-def _attend(attn: Attention, hidden_states: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
+def attend_extra(attn: Attention, hidden_states: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
     """``Attn(Q(hidden_states), K(reference), V(reference))`` through the layer's projections, its output
     projection without the bias (the layer's own attention already adds it once).
 

@@ -47,6 +47,7 @@ from sar_zero123.data.corpus_proxies import corpus_proxies_have_oracle, load_cor
 from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.model.build import load_sar_zero123, record_trained_pose_ranges
 from sar_zero123.model.conditioning import SPATIAL_POSE_MODES, takes_proxy, vae_signature, widen_for_proxy
+from sar_zero123.model.input_tokens import enable_input_tokens, uses_input_tokens
 from sar_zero123.model.reference_attention import enable_reference_attention, uses_reference
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.checkpoints import (
@@ -160,6 +161,9 @@ class FinetuneConfig(LossSettings):
     # every self-attention of the UNet also attends to the input view's own features (a reference pass;
     # sar_zero123.model.reference_attention); a pipeline without it gains it with zero gates (a warm start)
     reference_attention: bool = False
+    # every cross-attention of the UNet also attends to the input's latent, one token per place
+    # (sar_zero123.model.input_tokens); a pipeline without them gains them with zero gates (a warm start)
+    input_tokens: bool = False
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
     # "normalized" and "stages" are departures from the paper
     pfm_features: PfmFeatures = "pooled"  # PFM's features: Eq. 20's pooled, unit length or all stages (LPIPS)
@@ -397,6 +401,8 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneIn
         widen_for_proxy(pipe.unet, pipe.pose_projection)  # a warm start: zero weights on the proxy pair
     if config.reference_attention and not uses_reference(pipe.pose_projection):
         enable_reference_attention(pipe.unet, pipe.pose_projection)  # a warm start: every gate zero
+    if config.input_tokens and not uses_input_tokens(pipe.pose_projection):
+        enable_input_tokens(pipe.unet, pipe.pose_projection, pipe.vae.config.latent_channels)
     image_size = training_image_size(pipe, config.image_size)
     encoder = None
     if config.pfm_weight > 0:

@@ -93,6 +93,7 @@ class PriorConfig:
     proxy_candidates: int = 2  # "proxy": best-fitting bank vehicles kept per corpus vehicle (best, others)
     proxy_oracle_prob: float = 0.0  # "proxy": share of pairs given the vehicle itself as proxy (LossSettings)
     reference_attention: bool = False  # the UNet's self-attentions also attend to the input's own features
+    input_tokens: bool = False  # the UNet's cross-attentions also attend to the input's latent, by place
     vae: str | None = None  # an AutoencoderKL folder to use (e.g. the bundled prior's vae/); None trains one
     # with init, model_size, input_depression and prediction_type are that pipeline's own; spatial_pose is its
     # own, or "proxy" (widening a "rotated_input" init)
@@ -292,6 +293,7 @@ def prior_base_config(config: PriorConfig, vae: Path, corpus: Path | None = None
         proxies=None if corpus is None else _proxies_or_none(config, corpus),
         proxy_oracle_prob=config.proxy_oracle_prob,
         reference_attention=config.reference_attention,
+        input_tokens=config.input_tokens,
         same_depression=False,
         snr_gamma=config.snr_gamma,
         pfm_weight=0.0,

@@ -41,6 +41,7 @@ from sar_zero123.model.conditioning import (
     unet_condition_latents,
     vae_input,
 )
+from sar_zero123.model.input_tokens import input_token_context
 from sar_zero123.model.orientation import azimuth_estimation_loss, target_view_features
 from sar_zero123.model.reference_attention import (
     attending_to_reference,
@@ -574,6 +575,7 @@ def compute_losses(
         keep = condition_latents.flatten(1).abs().amax(dim=1) > 0  # (B,): False where dropout zeroed it
         rows = torch.arange(input_latents.shape[0], device=input_latents.device)
         reference = attending_to_reference(unet, features, rows, reference_weights(pose_projection, keep))
+    input_tokens = input_token_context(unet, pose_projection, condition_latents, pose)
     # 3. forward diffusion and prediction
     noise = torch.randn(latents.shape, generator=generator).to(latents.device)
     # drawn even when replaced, so that the generator's later draws do not depend on it
@@ -590,7 +592,7 @@ def compute_losses(
         )
     timesteps = timesteps.to(latents.device)
     x_t = noise_scheduler.add_noise(latents, noise, timesteps)
-    with reference:
+    with reference, input_tokens:
         model_output = unet(
             torch.cat(
                 [x_t, unet_condition_latents(condition_latents, pose, pose_projection, proxy_latents)], dim=1

@@ -1,0 +1,260 @@
+"""Input tokens: every cross-attention of the UNet also attends to the input view's latent, place by place.
+
+A zero-1-to-3 UNet cross-attends to one token, so each cross-attention adds the same vector at every place
+of the view. Input tokens (IP-Adapter Plus's spatial tokens, in its decoupled and gated form) give the
+cross-attentions something to look up: each place ``p`` of the input's latent becomes a token
+
+    ``token_projection([latent(p), fourier(p), fourier(R(-a) p), pose])``
+
+where ``R(-a) p`` is where ``p`` lands when the vehicle turns by ``a = rotation_sign * d_az`` (the turn
+:func:`~sar_zero123.model.conditioning.rotate_condition_latents` applies) and ``fourier`` the sines and
+cosines of a position at :data:`TOKEN_FREQUENCIES` octaves. Each cross-attention ``l`` then adds
+``tanh(g_l) * Attn(Q, K(tokens), V(tokens))`` through its own projections. The gates ``g_l``
+(``token_gates``) and the token projection live in the pose projection; the gates start at zero, so a warm
+start computes exactly what the model did without tokens. No extra UNet pass is needed, unlike reference
+attention (:mod:`sar_zero123.model.reference_attention`), with which it combines.
+
+Rows whose condition latent is zero (the classifier-free-guidance null, and a dropped condition in
+training) get weight 0: the null sees no input.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import math
+from collections.abc import Iterator
+
+import torch
+from diffusers.models.attention_processor import Attention, AttnProcessor2_0
+
+from sar_zero123.model.conditioning import POSE_DIM, TOKEN_FREQUENCIES, token_feature_dim
+from sar_zero123.model.reference_attention import attend_extra
+
+__all__ = [
+    "TOKEN_FREQUENCIES",
+    "attending_to_input_tokens",
+    "check_token_layers",
+    "enable_input_tokens",
+    "input_token_context",
+    "input_token_features",
+    "token_feature_dim",
+    "token_layers",
+    "uses_input_tokens",
+]
+
+
+def _fourier(positions: torch.Tensor) -> torch.Tensor:
+    """``[sin(pi 2^k x), cos(pi 2^k x)]`` over the last axis' coordinates. ``(..., 2) -> (..., 4F)``."""
+    scales = math.pi * 2.0 ** torch.arange(TOKEN_FREQUENCIES, dtype=positions.dtype, device=positions.device)
+    angles = (positions[..., None] * scales).flatten(-2)  # (..., 2F)
+    return torch.cat([angles.sin(), angles.cos()], dim=-1)
+
+
+def input_token_features(latents: torch.Tensor, pose: torch.Tensor, rotation_sign: int) -> torch.Tensor:
+    """Each latent place's token features (module docstring), before the projection.
+
+    Positions are the places' centres in normalised coordinates (x right, y down, in ``(-1, 1)``, the
+    convention of ``F.affine_grid`` with ``align_corners=False``); a place at ``p`` lands at
+    ``(cos a x + sin a y, -sin a x + cos a y)`` when the view turns by ``a = rotation_sign * d_az``, the
+    inverse of :func:`~sar_zero123.model.conditioning.rotate_condition_latents`'s sampling map.
+
+    Args:
+        latents: The (unscaled) input latents.
+        pose: Pose vectors from :func:`~sar_zero123.model.conditioning.embed_pose`, one per latent.
+        rotation_sign: ``+1`` or ``-1``, the data's convention (``PoseProjection.config.rotation_sign``).
+
+    Shape:
+        ``(B, C, h, w)``, ``(B, 1, 4)`` -> ``(B, h * w, token_feature_dim(C))``, places in row-major order.
+
+    Raises:
+        ValueError: If the shapes do not match or ``rotation_sign`` is not +-1.
+    """
+    if rotation_sign not in (-1, 1):
+        raise ValueError(f"`rotation_sign` must be +1 or -1, got {rotation_sign!r}")
+    if latents.ndim != 4 or pose.shape != (latents.shape[0], 1, POSE_DIM):
+        raise ValueError(
+            f"`latents` must be (B, C, h, w) and `pose` (B, 1, {POSE_DIM}), got {tuple(latents.shape)} and "
+            f"{tuple(pose.shape)}"
+        )
+    batch, channels, height, width = latents.shape
+    dtype, device = torch.float32, latents.device
+    ys = (torch.arange(height, dtype=dtype, device=device) + 0.5) * (2.0 / height) - 1.0
+    xs = (torch.arange(width, dtype=dtype, device=device) + 0.5) * (2.0 / width) - 1.0
+    y, x = torch.meshgrid(ys, xs, indexing="ij")
+    places = torch.stack([x.flatten(), y.flatten()], dim=-1)  # (L, 2)
+    pose = pose.to(device=device, dtype=dtype)
+    sin, cos = rotation_sign * pose[:, 0, 1, None], pose[:, 0, 2, None]  # (B, 1)
+    landed = torch.stack(
+        [cos * places[:, 0] + sin * places[:, 1], -sin * places[:, 0] + cos * places[:, 1]], dim=-1
+    )  # (B, L, 2)
+    content = latents.to(dtype).flatten(2).transpose(1, 2)  # (B, L, C)
+    return torch.cat(
+        [
+            content,
+            _fourier(places).expand(batch, -1, -1),
+            _fourier(landed),
+            pose.expand(-1, height * width, -1),
+        ],
+        dim=-1,
+    )
+
+
+class _TokenState:
+    """What the processors of one UNet share: while reading, the tokens and each row's weights."""
+
+    def __init__(self, layers: int) -> None:
+        self.layers = layers
+        self.tokens: torch.Tensor | None = None  # (N, L, D)
+        self.weights: torch.Tensor | None = None  # (N, layers)
+
+
+class InputTokenAttnProcessor:
+    """A cross-attention's processor: diffusers' own attention, plus, while reading, the gated attention to
+    the input tokens (module docstring)."""
+
+    def __init__(self, layer: int, state: _TokenState) -> None:
+        self.layer = layer
+        self.state = state
+        self.base = AttnProcessor2_0()
+
+    def __call__(
+        self,
+        attn: Attention,
+        hidden_states: torch.Tensor,
+        encoder_hidden_states: torch.Tensor | None = None,
+        attention_mask: torch.Tensor | None = None,
+        temb: torch.Tensor | None = None,
+        **kwargs,
+    ) -> torch.Tensor:
+        output = self.base(attn, hidden_states, encoder_hidden_states, attention_mask, temb, **kwargs)
+        state = self.state
+        if state.tokens is not None:
+            weight = state.weights[:, self.layer].to(output.dtype)[:, None, None]  # (N, 1, 1)
+            tokens = state.tokens.to(hidden_states.dtype)
+            output = output + weight * attend_extra(attn, hidden_states, tokens) / attn.rescale_output_factor
+        return output
+
+
+def token_layers(unet: torch.nn.Module) -> list[Attention]:
+    """The UNet's cross-attentions (each transformer block's ``attn2``), in module order.
+
+    Raises:
+        ValueError: If a cross-attention takes a 4-d input or adds its own residual.
+    """
+    unet = getattr(unet, "module", unet)
+    layers = [m for name, m in unet.named_modules() if name.endswith("attn2") and isinstance(m, Attention)]
+    for layer in layers:
+        if layer.residual_connection or layer.spatial_norm is not None or layer.group_norm is not None:
+            raise ValueError("unet: input tokens need transformer-block cross-attentions")
+    return layers
+
+
+def _state(unet: torch.nn.Module) -> _TokenState:
+    """The UNet's shared state, its processors installed on first use (idempotent)."""
+    unet = getattr(unet, "module", unet)
+    state = getattr(unet, "_input_token_state", None)
+    if state is None:
+        layers = token_layers(unet)
+        state = _TokenState(len(layers))
+        for index, layer in enumerate(layers):
+            layer.set_processor(InputTokenAttnProcessor(index, state))
+        unet._input_token_state = state
+    return state
+
+
+def uses_input_tokens(pose_projection: torch.nn.Module) -> bool:
+    """Whether a (possibly DDP-wrapped) pose projection records input tokens."""
+    config = getattr(pose_projection, "module", pose_projection).config
+    return int(getattr(config, "input_token_layers", 0) or 0) > 0
+
+
+def enable_input_tokens(
+    unet: torch.nn.Module, pose_projection: torch.nn.Module, latent_channels: int
+) -> None:
+    """Give a model input tokens in place, computing exactly what it did (every gate zero).
+
+    The token projection starts as ``torch.nn.Linear``'s default draw, which only the gates' growth lets
+    through.
+
+    Raises:
+        ValueError: If the model already has them, or ``latent_channels < 1``.
+    """
+    if uses_input_tokens(pose_projection):
+        raise ValueError("pose_projection: this model already has input tokens (input_token_layers > 0)")
+    if isinstance(latent_channels, bool) or int(latent_channels) != latent_channels or latent_channels < 1:
+        raise ValueError(f"`latent_channels` must be a positive integer, got {latent_channels!r}")
+    count = len(token_layers(unet))
+    weight = pose_projection.projection.weight
+    pose_projection.add_input_tokens(count, int(latent_channels))
+    pose_projection.to(device=weight.device, dtype=weight.dtype)
+    pose_projection.register_to_config(input_token_layers=count, input_token_channels=int(latent_channels))
+
+
+def check_token_layers(unet: torch.nn.Module, pose_projection: torch.nn.Module) -> None:
+    """Refuse a pose projection whose token gates do not match the UNet's cross-attentions.
+
+    Raises:
+        ValueError: Naming both counts.
+    """
+    if not uses_input_tokens(pose_projection):
+        return
+    count = len(token_layers(unet))
+    recorded = int(getattr(pose_projection, "module", pose_projection).config.input_token_layers)
+    if recorded != count:
+        raise ValueError(
+            f"pose_projection: input_token_layers={recorded} gates, but the UNet has {count} cross-attentions"
+        )
+
+
+@contextlib.contextmanager
+def attending_to_input_tokens(
+    unet: torch.nn.Module, tokens: torch.Tensor, weights: torch.Tensor
+) -> Iterator[None]:
+    """Within the block, the UNet's cross-attentions also attend to ``tokens``.
+
+    Args:
+        tokens: ``(N, L, D)``, one row per row of the UNet's batch, ``D`` its cross-attention width.
+        weights: ``(N, layers)``, each row's weight of each layer's token attention.
+
+    Raises:
+        ValueError: If the shapes disagree.
+    """
+    state = _state(unet)
+    if tokens.ndim != 3 or weights.shape != (tokens.shape[0], state.layers):
+        raise ValueError(
+            f"input tokens: expected tokens (N, L, D) and weights (N, {state.layers}), got "
+            f"{tuple(tokens.shape)} and {tuple(weights.shape)}"
+        )
+    state.tokens, state.weights = tokens, weights
+    try:
+        yield
+    finally:
+        state.tokens = state.weights = None
+
+
+def input_token_context(
+    unet: torch.nn.Module,
+    pose_projection: torch.nn.Module,
+    condition_latents: torch.Tensor,
+    pose: torch.Tensor,
+) -> contextlib.AbstractContextManager:
+    """The context in which the UNet's cross-attentions attend to each row's input tokens, or a null context
+    for a model without them.
+
+    Args:
+        condition_latents: Each row's (unscaled, possibly dropped, i.e. zeroed) input latent; a zero row
+            gets weight 0.
+        pose: Each row's pose (:func:`~sar_zero123.model.conditioning.embed_pose`).
+
+    Shape:
+        ``(N, C, h, w)``, ``(N, 1, 4)``.
+    """
+    if not uses_input_tokens(pose_projection):
+        return contextlib.nullcontext()
+    projection = getattr(pose_projection, "module", pose_projection)
+    features = input_token_features(condition_latents, pose, projection.config.rotation_sign)
+    tokens = projection.token_projection(features.to(projection.token_projection.weight.dtype))  # (N, L, D)
+    keep = condition_latents.flatten(1).abs().amax(dim=1) > 0  # (N,)
+    gates = torch.tanh(projection.token_gates)
+    weights = gates[None, :] * keep.to(gates.device, gates.dtype)[:, None]  # (N, layers)
+    return attending_to_input_tokens(unet, tokens.to(condition_latents.dtype), weights)
