@@ -23,7 +23,9 @@ DESCRIPTION = "Do generated views help a classifier that has few real views?"
 
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     """Parses the flags, runs every selected arm into ``--out`` and prints the table; returns the summary."""
-    parser = argparse.ArgumentParser(description=DESCRIPTION)
+    parser = argparse.ArgumentParser(
+        prog="python -m sar_zero123.augmentation_benefit", description=DESCRIPTION
+    )
     defaults = AugmentationBenefitConfig()
     comments = field_comments(AugmentationBenefitConfig)  # each field's comment in the source, as its help
     for name, value in asdict(defaults).items():
