@@ -1,2 +1,3 @@
-"""Benchmarks and one-off measurements, each runnable as `python benchmarks/<name>.py`; tests import them
-as `benchmarks.<name>` (the repository root is on pytest's `pythonpath`)."""
+"""Benchmarks and one-off measurements, each runnable as `python benchmarks/<name>.py` (sharing `_common`);
+what they measure is library code, tested where it lives. The GPU session scripts (`gpu_prior`,
+`gpu_mstar_pfm`) are still imported by their tests as `benchmarks.<name>`."""

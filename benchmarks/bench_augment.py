@@ -12,13 +12,13 @@ import json
 import os
 import platform
 import sys
-import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import torch
 
-from sar_zero123.augment import PRESETS, augment_batch
+from sar_zero123.augment import PRESETS
+from sar_zero123.augment.throughput import time_preset
 from sar_zero123.config import config_to_dict, parse_config, write_json_atomic
 from sar_zero123.data import DecibelScaling
 
@@ -60,38 +60,17 @@ def _cpu_name() -> str:
     return platform.processor() or platform.machine()
 
 
-def _synchronize(device: torch.device) -> None:
-    if device.type == "cuda":
-        torch.cuda.synchronize(device)
-
-
-def time_preset(
-    magnitude: torch.Tensor, preset: str, generator: torch.Generator, repeats: int, warmup: int
-) -> list[float]:
-    """Wall-clock seconds of ``repeats`` calls of ``augment_batch`` after ``warmup`` calls."""
-    scaling = DecibelScaling()
-    for _ in range(warmup):
-        augment_batch(magnitude, preset, scaling, generator)
-    seconds = []
-    for _ in range(repeats):
-        _synchronize(magnitude.device)
-        start = time.perf_counter()
-        augment_batch(magnitude, preset, scaling, generator)
-        _synchronize(magnitude.device)
-        seconds.append(time.perf_counter() - start)
-    return seconds
-
-
 def main(argv: list[str] | None = None) -> dict:
     config = parse_config(BenchConfig, argv)
     device = torch.device(config.device)
     generator = torch.Generator(device=device).manual_seed(config.seed)
     shape = (config.batch_size, 1, config.size, config.size)
     magnitude = torch.rand(shape, generator=generator, device=device) ** 4
+    scaling = DecibelScaling()
     load_before = os.getloadavg()[0] if hasattr(os, "getloadavg") else None
     results = {}
     for preset in config.preset_names:
-        seconds = sorted(time_preset(magnitude, preset, generator, config.repeats, config.warmup))
+        seconds = sorted(time_preset(magnitude, preset, scaling, generator, config.repeats, config.warmup))
         median = seconds[len(seconds) // 2]
         results[preset] = {
             "images_per_s": config.batch_size / median,

@@ -14,13 +14,13 @@ import os
 for _var in ("OMP_NUM_THREADS", "OPENBLAS_NUM_THREADS", "MKL_NUM_THREADS"):
     os.environ.setdefault(_var, "1")
 
-import argparse  # noqa: E402
 import json  # noqa: E402
 import platform  # noqa: E402
 import tempfile  # noqa: E402
 import time  # noqa: E402
 
 import numpy as np  # noqa: E402
+from _common import script_parser  # noqa: E402
 
 from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip, simulate_dataset  # noqa: E402
 
@@ -70,7 +70,7 @@ def compare_statistics(real_root: str, depression_deg: float, per_class: int = 2
 
 def main(argv: list[str] | None = None) -> dict:
     """Run the benchmark, print and write a JSON summary; returns it."""
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--size", type=int, default=128)
     parser.add_argument("--chips-per-class", type=int, default=72, help="azimuths per class (evenly spaced)")
     parser.add_argument("--depression", type=float, default=17.0)

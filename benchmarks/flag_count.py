@@ -9,11 +9,12 @@ with ``--set FIELD=VALUE`` or a ``--config`` file, listed at the end of ``--help
 
 from __future__ import annotations
 
-import argparse
 import contextlib
 import io
 import re
 from pathlib import Path
+
+from _common import script_parser
 
 from sar_zero123 import cli, config
 from sar_zero123.config import write_json_atomic
@@ -33,7 +34,7 @@ def listed_flags(command: cli.Command) -> list[str]:
 
 
 def main() -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--out", default="flag_count.json", help="output JSON")
     args = parser.parse_args()
     rows = {}

@@ -14,7 +14,6 @@ one); the medians are reported.
 
 from __future__ import annotations
 
-import argparse
 import statistics
 import sys
 import time
@@ -24,6 +23,8 @@ import numpy as np
 import torch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+
+from _common import script_parser
 
 from sar_zero123 import SIM_PRIOR_PROXY, SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained  # noqa: E402
 from sar_zero123.config import write_json_atomic  # noqa: E402
@@ -152,7 +153,7 @@ def split(pipeline: str, batch: int, repeats: int, with_azimuth: bool) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--batch", type=int, default=8, help="chips per call")
     parser.add_argument("--repeats", type=int, default=3, help="timed calls per row (after one warm-up)")
     parser.add_argument("--out", type=Path, required=True, help="JSON of the results")

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _common import script_parser
 from scipy.ndimage import gaussian_filter
 
 from sar_zero123 import SIM_PRIOR, SARZero123Pipeline, resolve_pretrained
@@ -37,7 +38,7 @@ def pearson(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--pipeline", default=SIM_PRIOR, help="pipeline folder or bundled name")
     parser.add_argument("--classes", nargs="+", default=["TANK", "TRUCK", "AAGUN"], help="named vehicles")
     parser.add_argument("--input_azimuth_deg", type=float, default=30.0, help="azimuth of every input")

@@ -11,13 +11,13 @@ for that turn. Prints each fit's correlation.
 
 from __future__ import annotations
 
-import argparse
 import csv
 from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import torch
+from _common import script_parser
 from matplotlib.figure import Figure
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
@@ -29,7 +29,7 @@ DEPRESSION_DEG, SIZE, TURN_DEG = 17.0, 64, 90.0
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--mstar", required=True, help="MSTAR folder with index.csv")
     parser.add_argument("--out", default="proxy_contact_sheet.png", help="output PNG")
     args = parser.parse_args(argv)

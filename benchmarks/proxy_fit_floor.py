@@ -11,7 +11,6 @@ candidate floor, the share of vehicle chips it would refuse and of clutter chips
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import os
@@ -22,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _common import script_parser
 
 from sar_zero123 import SIM_PRIOR_PROXY, resolve_pretrained
 from sar_zero123.config import write_json_atomic
@@ -39,7 +39,7 @@ def crops(magnitude: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--mstar", type=Path, required=True, help="MSTAR folder with index.csv")
     parser.add_argument("--out", type=Path, required=True, help="JSON file to write")
     parser.add_argument("--n", type=int, default=128, help="chips (each gives a vehicle and a clutter crop)")

@@ -21,10 +21,7 @@ recorded sampler with the input's azimuth, and from noise. Writes JSON.
 
 from __future__ import annotations
 
-import argparse
 import csv
-import os
-import platform
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -32,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _common import cpu_device, device_record, script_parser
 from threadpoolctl import threadpool_limits
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
@@ -195,7 +193,7 @@ def run(
                       f"{rows[row]['same_fit_as_exhaustive']:.0%}", flush=True)  # fmt: skip
         return {"benchmark": "proxy_mstar_depression (issue 61: learned shortlist)", "retrieval": name,
                 "proxy": exhaustive, "per_class": per_class, "seed": seed, "rows": rows,
-                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
+                "device": cpu_device()}  # fmt: skip
     if consensus is not None:  # the proxy alone only: the best fit against the consensus of the k best
         k, temperature = consensus
         shift = max(drafts)
@@ -216,7 +214,7 @@ def run(
         return {"benchmark": "proxy_mstar_depression (issue 61: consensus proxy)",
                 "consensus": [k, temperature], "proxy": pipe.config.proxy, "per_class": per_class,
                 "seed": seed, "rows": rows,
-                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
+                "device": cpu_device()}  # fmt: skip
     views_at_three_poses = drafts[recorded_shift]
     proxies = views_at_three_poses[:, 1]
 
@@ -273,14 +271,13 @@ def run(
         "per_class": per_class,
         "max_azimuth_gap_deg": max_gap,
         "seed": seed,
-        "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}",
-        "platform": platform.platform(),
+        **device_record(),
         "rows": rows,
     }
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--mstar", required=True, help="MSTAR folder with index.csv (17 deg inputs)")
     parser.add_argument("--eoc1", required=True, help="EOC-1 folder with index.csv (the 30 deg chips)")
     parser.add_argument("--per_class", type=int, default=64, help="pairs per class (4 classes)")

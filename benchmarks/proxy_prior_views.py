@@ -33,11 +33,8 @@ of the azimuth error, identity and turned-and-kept shares against ``--pipeline``
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
-import os
-import platform
 import sys
 import time
 from collections.abc import Sequence
@@ -46,6 +43,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _common import cpu_device, device_record, script_parser
 from threadpoolctl import threadpool_limits
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
@@ -342,7 +340,7 @@ def run(
                 "pairs_per_class": pairs_per_class, "seed": seed, "proxy": proxy,
                 "paired_azimuth_error_differences": comparisons, "paired_share_differences": shares,
                 "rows": rows, "per_view": views,
-                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
+                "device": cpu_device()}  # fmt: skip
     if retrieval is not None:  # the exhaustive fit against the learned shortlist of each size
         name, sizes = retrieval[0], [int(k) for k in retrieval[1]]
         same_fit, fit_seconds_per_chip = {}, {"exhaustive": _fit_seconds(proxy, sim, 8)}
@@ -369,7 +367,7 @@ def run(
                 "retrieval": name, "pairs_per_class": pairs_per_class, "seed": seed, "proxy": proxy,
                 "same_fit_as_exhaustive": same_fit, "fit_seconds_per_chip": fit_seconds_per_chip,
                 "paired_azimuth_error_differences": comparisons, "rows": rows,
-                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
+                "device": cpu_device()}  # fmt: skip
     if refine is not None:  # the best fit against its stretches refined by rendering and comparing
         k, factors = int(refine[0]), [float(f) for f in refine[1]]
         begin = time.perf_counter()
@@ -387,7 +385,7 @@ def run(
         return {"benchmark": "proxy_prior_views (issue 61: refined proxy)", "pipeline": str(pipeline),
                 "recorded_sampler": recorded, "refine": {"k": k, "factors": factors}, "seed": seed,
                 "proxy": proxy, "paired_azimuth_error_differences": comparisons, "rows": rows,
-                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
+                "device": cpu_device()}  # fmt: skip
     if consensus is not None:  # the best fit against the consensus of the k best, through both samplers
         k, temperature = int(consensus[0]), float(consensus[1])
         begin = time.perf_counter()
@@ -413,7 +411,7 @@ def run(
         return {"benchmark": "proxy_prior_views (issue 61: consensus proxy)", "pipeline": str(pipeline),
                 "baseline": str(baseline), "recorded_sampler": recorded, "consensus": [k, temperature],
                 "seed": seed, "proxy": proxy, "paired_azimuth_error_differences": comparisons, "rows": rows,
-                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
+                "device": cpu_device()}  # fmt: skip
     if steps_sweep:  # the recorded sampler at other step counts only, paired with its own step count
         add(f"proxy prior, its recorded sampler ({start}, heading {heading:g})",
             *sample(pipe, fitted, fitted[:, 1], proxy_strength, heading))  # fmt: skip
@@ -438,7 +436,7 @@ def run(
         return {"benchmark": "proxy_prior_views (issue 63: step counts)", "pipeline": str(pipeline),
                 "recorded_sampler": recorded, "steps": list(steps_sweep), "seed": seed, "proxy": proxy,
                 "paired_azimuth_error_differences": comparisons, "rows": rows,
-                "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}"}  # fmt: skip
+                "device": cpu_device()}  # fmt: skip
     name = f"{baseline}, its recorded sampler, input azimuth given (from its proxy at {base_strength:g}, "
     add(name + f"heading {base_heading:g})", *sample(base, None, fitted[:, 1], base_strength, base_heading))
     add(f"proxy prior, its recorded sampler ({start}, heading {heading:g})",
@@ -477,14 +475,13 @@ def run(
         "recorded_sampler": recorded,
         "proxy": proxy,
         "seed": seed,
-        "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}",
-        "platform": platform.platform(),
+        **device_record(),
         "rows": rows,
     }
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--pipeline", required=True, help="a spatial_pose='proxy' pipeline folder or name")
     parser.add_argument("--baseline", default=SIM_PRIOR_ROTATED, help="the pipeline to compare with")
     parser.add_argument("--pairs_per_class", type=int, default=32, help="pairs per named vehicle (8)")

@@ -13,9 +13,6 @@ median of ``--repeats`` calls, each on a fresh chip (so that every call fits), o
 
 from __future__ import annotations
 
-import argparse
-import os
-import platform
 import statistics
 import time
 from collections.abc import Sequence
@@ -23,6 +20,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _common import device_record, script_parser
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
 from sar_zero123.config import write_json_atomic
@@ -31,7 +29,7 @@ from sar_zero123.sim import make_target, render_chip
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--views", type=int, default=3, help="views of the chip per call")
     parser.add_argument("--repeats", type=int, default=3, help="calls per timing (median)")
     parser.add_argument("--proxy_pipeline", default=None,
@@ -78,8 +76,7 @@ def main(argv: Sequence[str] | None = None) -> dict:
         "seconds_per_view": {name: value / args.views for name, value in seconds.items()},
         "first_proxy_call_seconds": first_proxy_call,
         "torch_threads": torch.get_num_threads(),
-        "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}",
-        "platform": platform.platform(),
+        **device_record(),
     }
     write_json_atomic(record, Path(args.out))
     for name, value in seconds.items():

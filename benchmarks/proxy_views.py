@@ -28,10 +28,7 @@ ceiling, front/back right, identity kept, seconds) and prints a table.
 
 from __future__ import annotations
 
-import argparse
 import json
-import os
-import platform
 import time
 from collections.abc import Sequence
 from concurrent.futures import ProcessPoolExecutor
@@ -39,6 +36,7 @@ from pathlib import Path
 
 import numpy as np
 import torch
+from _common import device_record, script_parser
 from threadpoolctl import threadpool_limits
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
@@ -247,8 +245,7 @@ def run(
         "template_grid_deg": 5.0,
         "num_inference_steps": num_inference_steps,
         "seed": seed,
-        "device": f"CPU, {os.cpu_count()} cores, torch {torch.__version__}",
-        "platform": platform.platform(),
+        **device_record(),
         "input_azimuth_estimate": estimate,
         "rows": rows,
     }
@@ -272,7 +269,7 @@ def format_table(record: dict) -> str:
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--pipeline", default=SIM_PRIOR_ROTATED, help="pipeline folder or bundled name")
     parser.add_argument(
         "--pairs_per_class", type=int, default=32, help="pairs per named vehicle (8 vehicles)"

@@ -5,10 +5,9 @@
 
 On a GPU every operator is at least one kernel launch, a few microseconds of host time whatever the batch:
 a step that launches thousands of operators is bound by the host when the model is small. The script
-counts the ``aten::`` operator calls of one forward and backward (:func:`~sar_zero123.training.step.
-compute_losses` on a batch of cached encodings, as a prior's training step runs it) and of one step of the
-fine-tune's optimiser (:func:`~sar_zero123.training.finetuning.finetuning_optimizer`), with
-``torch.profiler``, then times ``--steps`` whole steps.
+counts the ``aten::`` operator calls of one forward and backward and of one optimiser step of a prior's
+training step (:func:`sar_zero123.training.step_profile.prior_training_step`, counted by
+:func:`~sar_zero123.training.step_profile.count_operators`), then times ``--steps`` whole steps.
 ``--compile`` times the same step with the UNet compiled (``torch.compile``, inductor), the first step
 (the compilation) apart. It writes the counts and times as JSON.
 """
@@ -16,25 +15,20 @@ fine-tune's optimiser (:func:`~sar_zero123.training.finetuning.finetuning_optimi
 from __future__ import annotations
 
 import argparse
-import itertools
 import time
 from collections.abc import Sequence
 from typing import Any
 
 import torch
-from diffusers import DDPMScheduler
-from torch.profiler import ProfilerActivity, profile
+from _common import script_parser, synchronize
 
-from sar_zero123 import resolve_pretrained
 from sar_zero123.config import write_json_atomic
-from sar_zero123.model.pipeline import SARZero123Pipeline
-from sar_zero123.training.finetuning import finetuning_optimizer
-from sar_zero123.training.losses import LossSettings
-from sar_zero123.training.step import ChipLatentCache, ImageEmbedder, compute_losses, micro_batch_generator
+from sar_zero123.pretrained import resolve_pretrained
+from sar_zero123.training.step_profile import count_operators, prior_training_step
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--pipeline", default="sar-zero123/sim-prior-rotated", help="bundled name or folder")
     parser.add_argument("--batch_size", type=int, default=64)
     parser.add_argument("--steps", type=int, default=5, help="timed steps after one warm-up step")
@@ -51,65 +45,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     return parser.parse_args(argv)
 
 
-def training_step(args: argparse.Namespace) -> tuple[Any, Any, torch.optim.Optimizer]:
-    """``(forward_backward, optimizer_step, optimizer)`` of the pipeline's training step on one batch."""
-    device = torch.device(args.device)
-    pipe = SARZero123Pipeline.from_pretrained(resolve_pretrained(args.pipeline)).to(device)
-    generator = torch.Generator().manual_seed(args.seed)
-    size = pipe.vae.config.sample_size
-    images = torch.randn(args.batch_size, 1, size, size, generator=generator).to(device)
-    cache = ChipLatentCache.encode(images, pipe.vae, pipe.image_encoder)
-    angles = (torch.rand(args.batch_size, generator=generator, dtype=torch.float64) - 0.5) * 300.0
-    cache = cache.to(device)
-    batch = {
-        "input": images, "target": images, "d_az_deg": angles, "d_el_deg": torch.zeros_like(angles),
-        "input_depression_deg": torch.full_like(angles, 17.0), "input_azimuth_deg": torch.zeros_like(angles),
-        "input_latent_mean": cache.latent_mean, "target_latent_mean": cache.latent_mean,
-        "target_latent_logvar": cache.latent_logvar, "input_image_embeds": cache.image_embeds,
-    }  # fmt: skip
-    unet = torch.compile(pipe.unet, mode=args.compile) if args.compile else pipe.unet
-    optimizer = finetuning_optimizer(
-        pipe.unet, pipe.pose_projection, azimuth_estimator=pipe.azimuth_estimator, learning_rate=1e-4
-    )  # the fine-tune's and the prior's optimiser
-    if args.loop_optimizer:
-        for group in optimizer.param_groups:
-            group.update(fused=False, foreach=False)
-    kwargs = {"unet": unet, "pose_projection": pipe.pose_projection, "vae": pipe.vae,
-              "image_encoder": ImageEmbedder(pipe.image_encoder), "encoder": None,
-              "noise_scheduler": DDPMScheduler.from_config(pipe.scheduler.config),
-              "loss_settings": LossSettings(pfm_weight=0.0),  # a prior's loss: lambda = 0
-              "azimuth_estimator": pipe.azimuth_estimator}  # fmt: skip
-    step_index = itertools.count()
-
-    def forward_backward() -> None:
-        with torch.autocast(device.type, dtype=torch.bfloat16, enabled=args.bf16):
-            losses = compute_losses(
-                batch, generator=micro_batch_generator(args.seed, next(step_index), 0), **kwargs
-            )
-        losses.loss.mean().backward()
-
-    def optimizer_step() -> None:
-        optimizer.step()
-        optimizer.zero_grad(set_to_none=True)
-
-    return forward_backward, optimizer_step, optimizer
-
-
-def count_operators(function: Any) -> int:
-    """``aten::`` operator calls of one call of ``function``."""
-    with profile(activities=[ProfilerActivity.CPU]) as prof:
-        function()
-    return sum(event.count for event in prof.key_averages() if event.key.startswith("aten::"))
-
-
-def synchronize(device: str) -> None:
-    if torch.device(device).type == "cuda":
-        torch.cuda.synchronize()
-
-
 def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     args = parse_args(argv)
-    forward_backward, optimizer_step, _ = training_step(args)
+    forward_backward, optimizer_step, _ = prior_training_step(
+        resolve_pretrained(args.pipeline), batch_size=args.batch_size, device=args.device, bf16=args.bf16,
+        compile_mode=args.compile, loop_optimizer=args.loop_optimizer, seed=args.seed,
+    )  # fmt: skip
     start = time.perf_counter()
     forward_backward()  # the warm-up (and, with --compile, the compilation)
     optimizer_step()

@@ -22,7 +22,6 @@ a fine-tune caches its latents (the frozen VAE and image tower run once per chip
 
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import statistics
@@ -31,6 +30,7 @@ from pathlib import Path
 
 import torch
 import torch.nn.functional as F
+from _common import script_parser
 from torch.utils.flop_counter import FlopCounterMode
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline
@@ -157,7 +157,7 @@ def profile_step(pipeline: str, batch: int) -> dict:
 
 
 def main(argv: list[str] | None = None) -> dict:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument("--pipeline", default=SIM_PRIOR_ROTATED, help="the pipeline whose UNet is trained")
     parser.add_argument("--batch_sizes", type=int, nargs="+", default=[16, 64])
     parser.add_argument("--variants", nargs="+",

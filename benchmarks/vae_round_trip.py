@@ -15,45 +15,23 @@ prints a Markdown table.
 
 from __future__ import annotations
 
-import argparse
 import json
 import time
 from pathlib import Path
 
 import torch
+from _common import script_parser
 
 from sar_zero123.augment import readd_speckle
 from sar_zero123.config import write_json_atomic
 from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.evaluation.protocol import INPUT_COPY, REAL_TARGET, build_pair_sets, score
-from sar_zero123.model.vae import load_pretrained_vae, reconstruct
-
-COLUMNS = (("accuracy", "Acc. (%)", 1), ("azimuth_error_deg", "Az. err. (deg)", 1), ("sfd", "SFD", 2),
-           ("ms_ssim", "MS-SSIM", 4), ("kuan_ssim", "Kuan+SSIM", 4))  # fmt: skip
-
-
-def round_trip(vae: torch.nn.Module, images: torch.Tensor, batch_size: int) -> torch.Tensor:
-    """Each image encoded (posterior mode) and decoded, in [0, 1]. Shape: ``(N, 1, S, S)`` -> same."""
-    return torch.cat(
-        [reconstruct(vae, images[i : i + batch_size]) for i in range(0, len(images), batch_size)]
-    )
-
-
-def markdown(rows: dict[str, dict[str, dict[str, float]]]) -> str:
-    lines = ["| VAE | views | " + " | ".join(title for _, title, _ in COLUMNS) + " | n |",
-             "| --- | --- |" + " --- |" * (len(COLUMNS) + 1)]  # fmt: skip
-    for name, groups in rows.items():
-        for group, values in groups.items():
-            cells = []
-            for key, _, digits in COLUMNS:
-                se = values.get(f"{key}_se")
-                cells.append(f"{values[key]:.{digits}f}" + (f" ± {se:.{digits}f}" if se else ""))
-            lines.append(f"| {name} | {group} | " + " | ".join(cells) + f" | {int(values['n'])} |")
-    return "\n".join(lines) + "\n"
+from sar_zero123.evaluation.tables import vae_round_trip_markdown
+from sar_zero123.model.vae import load_pretrained_vae, reconstruct_in_batches
 
 
 def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser = script_parser(__doc__)
     parser.add_argument(
         "--vae", nargs="+", required=True, help="AutoencoderKL, pipeline folders or bundled names"
     )
@@ -88,7 +66,7 @@ def main() -> None:
     for name, path in zip(args.names, args.vae):
         vae = load_pretrained_vae(path).eval()
         start = time.perf_counter()
-        views = {group: round_trip(vae, p.targets, args.batch_size) for group, p in pairs.items()}
+        views = {group: reconstruct_in_batches(vae, p.targets, args.batch_size) for group, p in pairs.items()}
         seconds[name] = time.perf_counter() - start
         rows[name] = {group: score(views[group], p, evaluators, **scoring) for group, p in pairs.items()}
         if args.speckle_looks is not None:
@@ -104,7 +82,7 @@ def main() -> None:
          "pairs": {group: len(p) for group, p in pairs.items()}},
         out,
     )  # fmt: skip
-    print(markdown(rows))
+    print(vae_round_trip_markdown(rows))
 
 
 if __name__ == "__main__":

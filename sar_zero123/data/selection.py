@@ -1,4 +1,5 @@
-"""Seeded selections of chip records: a subset for quick runs, a train/test hold-out.
+"""Selections of chip records: a seeded subset for quick runs, a train/test hold-out, chips at one
+depression, evenly spaced in azimuth or in a sector, and seeded cross-validation folds.
 
 Two subset draws exist because recorded runs depend on them: :func:`select_chips` (numpy, the SimCLR
 stage's ``max_train_chips``) and :func:`subsample` (torch, the evaluators' ``max_train_chips``).
@@ -6,12 +7,23 @@ stage's ``max_train_chips``) and :func:`subsample` (torch, the evaluators' ``max
 
 from __future__ import annotations
 
+from collections.abc import Sequence
+
 import numpy as np
 import torch
 
 from .index import ChipRecord
 
-__all__ = ["hold_out", "select_chips", "subsample"]
+__all__ = [
+    "at_depression",
+    "circular_distance_deg",
+    "cv_folds",
+    "hold_out",
+    "keep_evenly_spaced",
+    "keep_sector",
+    "select_chips",
+    "subsample",
+]
 
 
 def select_chips(records: list[ChipRecord], max_chips: int | None, seed: int) -> list[ChipRecord]:
@@ -48,3 +60,57 @@ def hold_out(
     test = set(order[:count])
     train = [record for i, record in enumerate(records) if i not in test]
     return train, [records[i] for i in sorted(test)]
+
+
+def at_depression(records: Sequence[ChipRecord], depression_deg: float) -> list[ChipRecord]:
+    """The records within 0.01 deg of a depression."""
+    return [r for r in records if abs(r.depression_deg - depression_deg) < 0.01]
+
+
+def circular_distance_deg(a: float, b: float) -> float:
+    """Smallest angle between two azimuths in degrees, in [0, 180]."""
+    d = abs(a - b) % 360.0
+    return min(d, 360.0 - d)
+
+
+def keep_evenly_spaced(records: Sequence[ChipRecord], k: int) -> list[ChipRecord]:
+    """Per class, the `k` chips nearest to the azimuths ``i * 360 / k`` (each chip once), in record order.
+
+    Raises:
+        ValueError: If a class has fewer than `k` chips.
+    """
+    kept: set[int] = set()
+    for name in sorted({r.target_class for r in records}):
+        members = [i for i, r in enumerate(records) if r.target_class == name]
+        if len(members) < k:
+            raise ValueError(f"class {name} has {len(members)} chips, fewer than k={k}")
+        for i in range(k):
+            grid_deg = i * 360.0 / k
+            free = [j for j in members if j not in kept]
+            kept.add(min(free, key=lambda j: circular_distance_deg(records[j].azimuth_deg, grid_deg)))
+    return [records[i] for i in sorted(kept)]
+
+
+def keep_sector(records: Sequence[ChipRecord], sector_deg: float) -> list[ChipRecord]:
+    """The chips with azimuth in ``[0, sector_deg)``."""
+    return [r for r in records if r.azimuth_deg < sector_deg]
+
+
+def cv_folds(records: Sequence[ChipRecord], folds: int, seed: int = 0) -> list[int]:
+    """A fold index in ``[0, folds)`` per record: each class's records in a seeded random order, dealt
+    round-robin, so every fold holds each class in proportion.
+
+    Raises:
+        ValueError: If `folds` is below 2 or a class has fewer records than folds.
+    """
+    if folds < 2:
+        raise ValueError(f"folds must be >= 2, got {folds}")
+    assignment = [0] * len(records)
+    rng = np.random.default_rng(seed)
+    for name in sorted({r.target_class for r in records}):
+        members = [i for i, r in enumerate(records) if r.target_class == name]
+        if len(members) < folds:
+            raise ValueError(f"class {name} has {len(members)} chips, fewer than {folds} folds")
+        for position, j in enumerate(rng.permutation(len(members))):
+            assignment[members[j]] = position % folds
+    return assignment

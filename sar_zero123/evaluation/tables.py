@@ -34,6 +34,7 @@ __all__ = [
     "speed_markdown",
     "table3_markdown",
     "table4_markdown",
+    "vae_round_trip_markdown",
 ]
 
 # ms_ssim / kuan_ssim are paper-comparable (the authors' calls); the *_corrected columns sit beside them.
@@ -317,4 +318,31 @@ def speed_markdown(rows: list[dict[str, Any]], device: str, memory: str = "resid
             f"{'-' if memory_mib is None else f'{memory_mib:.0f}'} | {'yes' if row.get('pareto') else ''} | "
             f"{row['n']} |"
         )
+    return "\n".join(lines) + "\n"
+
+
+#: The columns of :func:`vae_round_trip_markdown`: metric key, title, digits.
+VAE_ROUND_TRIP_COLUMNS = (
+    ("accuracy", "Acc. (%)", 1), ("azimuth_error_deg", "Az. err. (deg)", 1), ("sfd", "SFD", 2),
+    ("ms_ssim", "MS-SSIM", 4), ("kuan_ssim", "Kuan+SSIM", 4),
+)  # fmt: skip
+
+
+def vae_round_trip_markdown(rows: dict[str, dict[str, dict[str, float]]]) -> str:
+    """One line per VAE (row) and pair group: each metric, ``± se`` where a standard error is recorded, and n.
+
+    Args:
+        rows: Row name -> group (``seen``, ``unseen``) -> :func:`~sar_zero123.evaluation.protocol.score`'s
+            metrics, with ``<metric>_se`` where known and ``n``.
+    """
+    columns = VAE_ROUND_TRIP_COLUMNS
+    lines = ["| VAE | views | " + " | ".join(title for _, title, _ in columns) + " | n |",
+             "| --- | --- |" + " --- |" * (len(columns) + 1)]  # fmt: skip
+    for name, groups in rows.items():
+        for group, values in groups.items():
+            cells = []
+            for key, _, digits in columns:
+                se = values.get(f"{key}_se")
+                cells.append(f"{values[key]:.{digits}f}" + (f" ± {se:.{digits}f}" if se else ""))
+            lines.append(f"| {name} | {group} | " + " | ".join(cells) + f" | {int(values['n'])} |")
     return "\n".join(lines) + "\n"

@@ -18,7 +18,13 @@ from sar_zero123.model.conditioning import encode_condition_latents, vae_input
 from sar_zero123.model.loading import load_component
 from sar_zero123.pretrained import resolve_pretrained
 
-__all__ = ["latent_scaling_factor", "load_pretrained_vae", "new_sar_vae", "reconstruct"]
+__all__ = [
+    "latent_scaling_factor",
+    "load_pretrained_vae",
+    "new_sar_vae",
+    "reconstruct",
+    "reconstruct_in_batches",
+]
 
 
 def new_sar_vae(
@@ -70,6 +76,13 @@ def reconstruct(vae: AutoencoderKL, images: torch.Tensor) -> torch.Tensor:
     """Posterior-mode reconstruction in normalised dB, clipped to [0, 1]. Shape: ``(B, 1, S, S)``."""
     latents = encode_condition_latents(vae, images)
     return signed_to_unit(vae.decode(latents).sample.float()).clamp(0.0, 1.0)
+
+
+def reconstruct_in_batches(vae: AutoencoderKL, images: torch.Tensor, batch_size: int) -> torch.Tensor:
+    """:func:`reconstruct` over ``batch_size`` images at a time. Shape: ``(N, 1, S, S)`` -> same."""
+    return torch.cat(
+        [reconstruct(vae, images[i : i + batch_size]) for i in range(0, len(images), batch_size)]
+    )
 
 
 @torch.no_grad()

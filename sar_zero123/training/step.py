@@ -527,7 +527,7 @@ def compute_losses(
     ``azimuth_estimator`` (``sar_zero123.model.orientation``) reads the input's azimuth from its condition
     latent; turned by ``d_az`` it enters the UNet's timestep embedding, and ``azimuth_loss_weight`` times its
     loss against ``batch["input_azimuth_deg"]`` joins the loss. ``timesteps`` (``(B,)`` integers) replaces
-    the sampled ones, for diagnostics at chosen noise levels (``benchmarks/pfm_balance.py``).
+    the sampled ones, for diagnostics at chosen noise levels.
 
     Raises:
         ValueError: If the model has an azimuth estimator and the batch has no ``input_azimuth_deg``, or

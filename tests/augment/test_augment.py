@@ -12,7 +12,6 @@ import scipy.ndimage
 import scipy.stats
 import torch
 
-from benchmarks import bench_augment
 from sar_zero123.augment import (
     PRESETS,
     AugmentationPreset,
@@ -400,14 +399,3 @@ def test_plot_augmentations_writes_both_figures(tmp_path: Path) -> None:
         with Image.open(path) as image:
             assert image.size[0] > 50 and image.size[1] > 50
     assert json.loads((out / "plot_augmentations_config.json").read_text())["num_chips"] == 2
-
-
-def test_bench_augment_writes_json(tmp_path: Path) -> None:
-    out = tmp_path / "bench.json"
-    argv = ["--out", str(out), "--batch_size", "2", "--size", "16", "--repeats", "2", "--warmup", "0"]
-    bench_augment.main([*argv, "--presets", "monotonic,simclr-full"])
-    report = json.loads(out.read_text())
-    assert set(report["results"]) == {"monotonic", "simclr-full"}
-    assert all(row["images_per_s"] > 0 for row in report["results"].values())
-    with pytest.raises(ValueError, match="presets"):
-        bench_augment.main(["--out", str(out), "--presets", "rotate"])

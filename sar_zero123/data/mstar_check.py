@@ -1,15 +1,14 @@
-"""Checks the data layer on the real MSTAR chips: split counts and raw-vs-JPEG agreement.
+"""Checks of the data layer on the real MSTAR chips: split counts and raw-vs-JPEG agreement.
 
-Usage::
+    python -m sar_zero123.data.mstar_check --data ../shared/data/mstar --output docs/results/data/data.json
 
-    python benchmarks/check_mstar_data.py --data ../shared/data/mstar --output docs/results/data/data.json
+:func:`check_mstar_data` returns (and the command prints and writes) a JSON report:
 
-Prints a JSON report and writes it to ``--output``:
-
-* chip counts of every protocol (``extended``, ``soc``, ``ood-T72`` for seeds 0-4) next to the paper's;
-* ``read_mstar_raw`` on ``raw/HB03787.002`` against its JPEG copy ``chips/17deg/BMP2/HB03787.002.jpeg``:
-  the JPEGs map each chip's magnitude linearly to 0-255 (brightest pixel near 255), so
-  ``raw / raw.max()`` and ``pixel / 255`` should agree up to JPEG compression error;
+* chip counts of every protocol (``extended``, ``soc``, ``ood-T72`` for seeds 0-4) next to the paper's
+  (:data:`PAPER_COUNTS`);
+* :func:`~sar_zero123.data.read_mstar_raw` on :data:`RAW_CHIP` against its JPEG copy :data:`JPEG_CHIP`: the
+  JPEGs map each chip's magnitude linearly to 0-255 (brightest pixel near 255), so ``raw / raw.max()`` and
+  ``pixel / 255`` agree up to JPEG compression error;
 * the raw-folder index of ``raw/`` (read-only: scanned, not cached), the global decibel bounds of the
   extended training JPEGs, and the cost of building view pairs and reading chips.
 """
@@ -22,43 +21,62 @@ import shutil
 import tempfile
 import time
 import warnings
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 from scipy.ndimage import uniform_filter
 
-from sar_zero123.data import (
-    ChipDataset,
-    DecibelScaling,
-    ViewPairDataset,
-    load_index,
-    load_magnitude,
-    ood_validation_intervals,
-    read_mstar_raw,
-    split_records,
-    to_decibels,
-    wrap_azimuth_deg,
-)
+from sar_zero123.data.datasets import ChipDataset
+from sar_zero123.data.images import load_magnitude
+from sar_zero123.data.index import load_index
+from sar_zero123.data.mstar_raw import read_mstar_raw
+from sar_zero123.data.scaling import DecibelScaling
+from sar_zero123.data.splits import ood_validation_intervals, split_records
+from sar_zero123.data.view_pairs import ViewPairDataset, wrap_azimuth_deg
+from sar_zero123.domain import to_decibels
 
+__all__ = [
+    "JPEG_CHIP",
+    "PAPER_COUNTS",
+    "RAW_CHIP",
+    "check_datasets",
+    "check_mstar_data",
+    "check_raw_folder",
+    "check_raw_vs_jpeg",
+    "check_scaling",
+    "check_splits",
+    "main",
+]
+
+#: The paper's chip counts per protocol and split.
 PAPER_COUNTS = {
     "extended": {"train": 6059, "test": 5392},
     "soc": {"train": 2747, "test": 2425},
     "ood-T72": {"train": 5003, "test": 5850},
 }
+#: A raw MSTAR file of the folder and its JPEG copy, compared by :func:`check_raw_vs_jpeg`.
 RAW_CHIP = "raw/HB03787.002"
 JPEG_CHIP = "chips/17deg/BMP2/HB03787.002.jpeg"
 
 
-def correlation(a: np.ndarray, b: np.ndarray) -> float:
+def _correlation(a: np.ndarray, b: np.ndarray) -> float:
     """Pearson correlation of two images."""
     return float(np.corrcoef(a.ravel().astype(np.float64), b.ravel().astype(np.float64))[0, 1])
 
 
-def check_splits(data: Path) -> dict:
+def check_splits(data: Path) -> dict[str, Any]:
+    """Chip counts of the ``extended`` and ``soc`` protocols and of ``ood-T72`` for seeds 0-4, the paper's
+    counts beside them, the seed-0 validation intervals and the seconds :func:`load_index` took."""
     start = time.perf_counter()
     records = load_index(data)
     seconds = time.perf_counter() - start
-    report: dict = {"num_chips": len(records), "load_index_seconds": round(seconds, 3), "protocols": {}}
+    report: dict[str, Any] = {
+        "num_chips": len(records),
+        "load_index_seconds": round(seconds, 3),
+        "protocols": {},
+    }
     for protocol in ("extended", "soc"):
         splits = split_records(records, protocol)
         report["protocols"][protocol] = {name: len(split) for name, split in splits.items()}
@@ -70,7 +88,9 @@ def check_splits(data: Path) -> dict:
     return report
 
 
-def check_raw_vs_jpeg(data: Path) -> dict:
+def check_raw_vs_jpeg(data: Path) -> dict[str, Any]:
+    """:data:`RAW_CHIP` read raw against its JPEG copy :data:`JPEG_CHIP`: the raw header, correlations
+    (magnitude, 3x3 mean, normalised dB), the linear fit of JPEG on raw and the RMS difference."""
     chip = read_mstar_raw(data / RAW_CHIP)
     jpeg = load_magnitude(data / JPEG_CHIP)
     raw = chip.magnitude / chip.magnitude.max()  # per-chip linear normalisation, as the JPEG export did
@@ -89,9 +109,9 @@ def check_raw_vs_jpeg(data: Path) -> dict:
             "phase_range_rad": [float(chip.phase.min()), float(chip.phase.max())],
         },
         "jpeg_shape": list(jpeg.shape),
-        "correlation_normalised_magnitude": correlation(raw, jpeg),
-        "correlation_after_3x3_mean": correlation(uniform_filter(raw, 3), uniform_filter(jpeg, 3)),
-        "correlation_normalised_db": correlation(scaling.normalize(raw), scaling.normalize(jpeg)),
+        "correlation_normalised_magnitude": _correlation(raw, jpeg),
+        "correlation_after_3x3_mean": _correlation(uniform_filter(raw, 3), uniform_filter(jpeg, 3)),
+        "correlation_normalised_db": _correlation(scaling.normalize(raw), scaling.normalize(jpeg)),
         "linear_fit_jpeg_vs_raw": {"slope": float(slope), "intercept": float(intercept)},
         "rms_difference": float(np.sqrt(np.mean((jpeg - raw) ** 2))),
         "argmax_raw": [int(i) for i in np.unravel_index(raw.argmax(), raw.shape)],
@@ -99,8 +119,9 @@ def check_raw_vs_jpeg(data: Path) -> dict:
     }
 
 
-def check_raw_folder(data: Path) -> dict:
-    # The shared folder is read-only: index it in place (not cached), then in a writable copy (cached).
+def check_raw_folder(data: Path) -> dict[str, Any]:
+    """The records :func:`load_index` reads from ``data/raw``: in place (a read-only folder is scanned, not
+    cached; the warning it gives) and in a writable copy (cached as ``index.csv``), which must agree."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         in_place = load_index(data / "raw")
@@ -129,7 +150,9 @@ def check_raw_folder(data: Path) -> dict:
     }
 
 
-def check_scaling(data: Path) -> dict:
+def check_scaling(data: Path) -> dict[str, Any]:
+    """The decibel bounds :meth:`DecibelScaling.fit` finds on the extended training chips, the unit-magnitude
+    default beside them, and the seconds the fit took."""
     train = split_records(load_index(data), "extended")["train"]
     start = time.perf_counter()
     fitted = DecibelScaling.fit(train)
@@ -140,7 +163,9 @@ def check_scaling(data: Path) -> dict:
     }
 
 
-def check_datasets(data: Path) -> dict:
+def check_datasets(data: Path) -> dict[str, Any]:
+    """The view pairs of the extended training chips (count, build seconds, ``d_az`` statistics) and the
+    milliseconds :class:`ChipDataset` takes per 128 px item."""
     train = split_records(load_index(data), "extended")["train"]
     start = time.perf_counter()
     pairs = ViewPairDataset(train, size=128, max_d_az_deg=None, same_depression=True, seed=0)
@@ -162,23 +187,40 @@ def check_datasets(data: Path) -> dict:
     }
 
 
-def main(argv: list[str] | None = None) -> dict:
+def check_mstar_data(data: str | Path) -> dict[str, Any]:
+    """Every check of this module on one MSTAR folder (an ``index.csv`` of JPEG chips beside ``raw/``).
+
+    Args:
+        data: The folder (e.g. ``../shared/data/mstar``).
+
+    Returns:
+        ``{"data", "splits", "raw_vs_jpeg", "raw_folder_index", "scaling", "datasets"}``.
+
+    Raises:
+        FileNotFoundError: If the folder has no ``index.csv``.
+    """
+    data = Path(data)
+    if not (data / "index.csv").is_file():
+        raise FileNotFoundError(f"no MSTAR index at {data / 'index.csv'}; pass --data")
+    return {
+        "data": str(data.resolve()),
+        "splits": check_splits(data),
+        "raw_vs_jpeg": check_raw_vs_jpeg(data),
+        "raw_folder_index": check_raw_folder(data),
+        "scaling": check_scaling(data),
+        "datasets": check_datasets(data),
+    }
+
+
+def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
+    """``python -m sar_zero123.data.mstar_check``: prints the report and writes it to ``--output``."""
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--data", type=Path, default=Path("../shared/data/mstar"), help="MSTAR folder")
     parser.add_argument(
         "--output", type=Path, default=Path("docs/results/data/data.json"), help="JSON report"
     )
     args = parser.parse_args(argv)
-    if not (args.data / "index.csv").is_file():
-        raise FileNotFoundError(f"no MSTAR index at {args.data / 'index.csv'}; pass --data")
-    report = {
-        "data": str(args.data.resolve()),
-        "splits": check_splits(args.data),
-        "raw_vs_jpeg": check_raw_vs_jpeg(args.data),
-        "raw_folder_index": check_raw_folder(args.data),
-        "scaling": check_scaling(args.data),
-        "datasets": check_datasets(args.data),
-    }
+    report = check_mstar_data(args.data)
     text = json.dumps(report, indent=2)
     print(text)
     args.output.parent.mkdir(parents=True, exist_ok=True)

@@ -1,4 +1,4 @@
-"""Tests for ``benchmarks/augmentation_benefit.py`` on a tiny simulated dataset and the tiny pipeline."""
+"""``python -m sar_zero123.augmentation_benefit`` on a tiny simulated dataset and the tiny pipeline."""
 
 from __future__ import annotations
 
@@ -7,21 +7,16 @@ import json
 import pytest
 import torch
 
-from benchmarks.augmentation_benefit import (
-    BenchmarkConfig,
+from sar_zero123 import SARZero123Pipeline
+from sar_zero123.augmentation_benefit import (
+    AugmentationBenefitConfig,
     add_paired_gains,
     check_settings,
-    circular_distance_deg,
-    cv_folds,
-    fill_offsets_deg,
-    keep_evenly_spaced,
-    keep_sector,
-    main,
     paired_gain,
-    random_shift,
     real_baseline,
 )
-from sar_zero123 import SARZero123Pipeline
+from sar_zero123.augmentation_benefit.__main__ import main
+from sar_zero123.augmentation_benefit.generators import fill_offsets_deg
 from sar_zero123.config import field_comments
 from sar_zero123.data import SCALING_FILE, ChipRecord, DecibelScaling, load_index
 from sar_zero123.model.build import build_sar_zero123
@@ -45,50 +40,26 @@ def tiny_pipeline(tmp_path) -> str:
     return str(tmp_path / "pipeline")
 
 
-def test_keep_evenly_spaced_picks_the_chip_nearest_each_grid_azimuth():
-    # every 10 deg, two classes; K = 4 wants 0, 90, 180, 270: 359 is nearer to 0 than 10 is (wrap)
-    records = [record(c, a) for c in ("A", "B") for a in [359.0, *range(10, 359, 10)]]
-    kept = keep_evenly_spaced(records, 4)
-    assert sorted(r.azimuth_deg for r in kept if r.target_class == "A") == [90.0, 180.0, 270.0, 359.0]
-    assert len(kept) == 8
-    with pytest.raises(ValueError, match="fewer than k"):
-        keep_evenly_spaced(records[:3], 4)
-    assert [r.azimuth_deg for r in keep_sector(records[:12], 90.0)] == [10.0 * i for i in range(1, 9)]
-
-
 def test_fill_offsets_place_views_evenly_from_the_nearer_chip():
     assert fill_offsets_deg(30.0, 3) == [7.5, 15.0, -7.5]
     assert fill_offsets_deg(7.5, 1) == [3.75]
-    assert circular_distance_deg(350.0, 10.0) == 20.0
-
-
-def test_random_shift_moves_each_image_within_the_bound():
-    images = torch.arange(2 * 16 * 16, dtype=torch.float32).reshape(2, 1, 16, 16)
-    shifted = random_shift(images, 2, torch.Generator().manual_seed(0))
-    assert shifted.shape == images.shape
-    # the centre 12 x 12 of a shifted image is a window of the original, offset by at most 2 px
-    for original, moved in zip(images, shifted):
-        centre = moved[0, 2:14, 2:14]
-        windows = [original[0, dy : dy + 12, dx : dx + 12] for dy in range(5) for dx in range(5)]
-        found = [window for window in windows if torch.equal(window, centre)]
-        assert len(found) == 1
 
 
 def test_config_refuses_bad_fields():
     with pytest.raises(ValueError, match="ks"):
-        BenchmarkConfig(ks=[1])
+        AugmentationBenefitConfig(ks=[1])
     with pytest.raises(ValueError, match="views_per_chip"):
-        BenchmarkConfig(views_per_chip=0)
+        AugmentationBenefitConfig(views_per_chip=0)
     with pytest.raises(ValueError, match="speckle_looks"):
-        BenchmarkConfig(speckle_looks=0)
+        AugmentationBenefitConfig(speckle_looks=0)
     with pytest.raises(ValueError, match="strength"):
-        BenchmarkConfig(strength=1.0)
+        AugmentationBenefitConfig(strength=1.0)
     with pytest.raises(ValueError, match="eoc1_ks must hold values >= 2"):
-        BenchmarkConfig(eoc1_ks=[1])
+        AugmentationBenefitConfig(eoc1_ks=[1])
     with pytest.raises(ValueError, match="rehearsal_data: the EOC-1 arms ask for views at another"):
-        BenchmarkConfig(eoc1_data="eoc1")
+        AugmentationBenefitConfig(eoc1_data="eoc1")
     with pytest.raises(ValueError, match="rehearsal_data"):
-        BenchmarkConfig(eoc1_data="eoc1", rehearsal_data="corpus", rehearsal_fraction=0.0)
+        AugmentationBenefitConfig(eoc1_data="eoc1", rehearsal_data="corpus", rehearsal_fraction=0.0)
 
 
 def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
@@ -220,7 +191,7 @@ def test_paired_gains_are_seed_by_seed_differences():
 
 
 def test_check_settings_takes_a_missing_setting_as_its_default_and_names_a_changed_one(tmp_path):
-    config = BenchmarkConfig(data="d", out=str(tmp_path))
+    config = AugmentationBenefitConfig(data="d", out=str(tmp_path))
     check_settings(config, tmp_path)
     record = json.loads((tmp_path / "settings.json").read_text())
     assert record["finetune_steps"] == 3000 and "ks" not in record  # arm selection is not recorded
@@ -229,23 +200,9 @@ def test_check_settings_takes_a_missing_setting_as_its_default_and_names_a_chang
     (tmp_path / "settings.json").write_text(json.dumps(record))
     check_settings(config, tmp_path)
     with pytest.raises(ValueError, match=r"max_shift_px: 4 -> 2"):
-        check_settings(BenchmarkConfig(data="d", out=str(tmp_path), max_shift_px=2), tmp_path)
+        check_settings(AugmentationBenefitConfig(data="d", out=str(tmp_path), max_shift_px=2), tmp_path)
     with pytest.raises(ValueError, match=r"finetune_steps: 3000 -> 1000"):
-        check_settings(BenchmarkConfig(data="d", out=str(tmp_path), finetune_steps=1000), tmp_path)
-
-
-def test_cv_folds_deal_each_class_evenly_and_need_two_folds():
-    records = [record(c, float(a)) for c in ("A", "B") for a in range(7)]
-    folds = cv_folds(records, 3, seed=1)
-    for name in ("A", "B"):
-        labels = [f for r, f in zip(records, folds) if r.target_class == name]
-        counts = sorted(labels.count(k) for k in range(3))
-        assert counts == [2, 2, 3]
-    assert folds == cv_folds(records, 3, seed=1) and folds != cv_folds(records, 3, seed=2)
-    with pytest.raises(ValueError, match="folds must be >= 2"):
-        cv_folds(records, 1)
-    with pytest.raises(ValueError, match="class A has 7 chips, fewer than 8 folds"):
-        cv_folds(records, 8)
+        check_settings(AugmentationBenefitConfig(data="d", out=str(tmp_path), finetune_steps=1000), tmp_path)
 
 
 def test_eoc1_arms_train_at_17_deg_test_at_the_other_depression_and_pair_with_their_controls(tmp_path):
@@ -329,6 +286,6 @@ def test_help_gives_every_field_its_comment(capsys):
         main(["--help"])
     assert done.value.code == 0
     text = " ".join(capsys.readouterr().out.split())
-    comments = field_comments(BenchmarkConfig)
-    assert set(comments) == set(BenchmarkConfig.__dataclass_fields__)  # every field has words
+    comments = field_comments(AugmentationBenefitConfig)
+    assert set(comments) == set(AugmentationBenefitConfig.__dataclass_fields__)  # every field has words
     assert "classifier seeds per arm" in text and "kept 17 deg chips per class" in text
