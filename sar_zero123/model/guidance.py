@@ -57,13 +57,14 @@ def same_depression_pose(pose: torch.Tensor) -> torch.Tensor:
 
 
 def contrast_branches(
-    pose: torch.Tensor, heading_guidance_scale: float, depression_guidance_scale: float
+    pose: torch.Tensor, heading_scale: float, depression_scale: float
 ) -> list[tuple[str, float, torch.Tensor]]:
-    """The contrast branches a call runs, as ``(kind, scale, pose)``: ``"heading"``, then ``"depression"``,
-    each where its scale is positive and its pose differs from the request's."""
+    """The contrast branches a call runs, as ``(kind, scale, pose)``: ``"heading"`` (the flipped heading's
+    weight ``heading_scale``), then ``"depression"`` (the input depression's, ``depression_scale``), each
+    where its weight is positive and its pose differs from the request's."""
     candidates = (
-        ("heading", heading_guidance_scale, flipped_heading_pose(pose)),
-        ("depression", depression_guidance_scale, same_depression_pose(pose)),
+        ("heading", heading_scale, flipped_heading_pose(pose)),
+        ("depression", depression_scale, same_depression_pose(pose)),
     )
     return [c for c in candidates if c[1] > 0.0 and not torch.equal(c[2], pose)]
 

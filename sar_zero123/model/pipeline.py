@@ -6,11 +6,9 @@ posterior mode of the input chip (8 channels); cross-attention sees one token,
 projected token and the condition latent as the unconditional input and runs conditional and
 unconditional branches in one batched UNet call.
 
-``__call__`` runs in numbered stages that delegate, as diffusers' Stable Diffusion pipeline does:
-:meth:`check_inputs`, :meth:`prepare_condition` (every guidance branch's encodings, :mod:`.guidance`),
-:meth:`prepare_timesteps`, :meth:`prepare_latents`, :meth:`denoise`, :meth:`decode`. The checks live in
-:mod:`.view_request` and :mod:`.pipeline_checks`; loading, saving and the recorded settings in
-:mod:`.pipeline_loading`.
+``__call__`` runs in numbered stages that delegate, as diffusers' Stable Diffusion pipeline does (checks in
+:mod:`.view_request` and :mod:`.pipeline_checks`, the guidance branches in :mod:`.guidance`; loading, saving
+and the recorded settings in :mod:`.pipeline_loading`).
 """
 
 from __future__ import annotations
@@ -55,7 +53,13 @@ from sar_zero123.model.pipeline_checks import (
 )
 from sar_zero123.model.pipeline_loading import PipelineLoadingMixin, anchored_proxy, check_recorded_settings
 from sar_zero123.model.proxy import fit_scores, proxy_drafts, proxy_latents
-from sar_zero123.model.sampler import SAMPLER_DEFAULTS, START_FROM, check_sampler_start, resolve_sampler
+from sar_zero123.model.sampler import (
+    SAMPLER_DEFAULTS,
+    START_FROM,
+    _check_contrast_scales,
+    check_sampler_start,
+    resolve_sampler,
+)
 from sar_zero123.model.view_request import (
     MAX_ABS_D_AZ_DEG,
     MAX_ABS_D_EL_DEG,
@@ -229,6 +233,8 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
         (:func:`.pipeline_checks.check_call_arguments`)."""
         check_call_arguments(sampler, num_images_per_prompt, output_type, callback_on_step_end_tensor_inputs,
                              self._callback_tensor_inputs, self.scheduler)  # fmt: skip
+        scales = sampler["heading_guidance_scale"], sampler["depression_guidance_scale"]
+        _check_contrast_scales(*scales, "`{}`")
 
     def prepare_start_images(
         self, request: ViewRequest, start_image: ImageInput | None, start_from: str, image_to_image: bool
@@ -265,11 +271,7 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
         return start_images, fitted
 
     def prepare_condition(
-        self,
-        request: ViewRequest,
-        sampler: Mapping[str, Any],
-        num_images_per_prompt: int,
-        device: torch.device,
+        self, request: ViewRequest, sampler: dict[str, Any], num_images_per_prompt: int, device: torch.device
     ) -> GuidedCondition:
         """What the UNet is conditioned on at every step, for every guidance branch: the inputs' CLIP
         embeddings and latents (encoded once per input image, then repeated per sample), each branch's
@@ -536,8 +538,7 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
                  "strength": strength, "heading_guidance_scale": heading_guidance_scale,
                  "depression_guidance_scale": depression_guidance_scale,
                  "start_from": start_from}  # fmt: skip
-        recorded = getattr(self.config, "sampler", None)
-        sampler = resolve_sampler(given, recorded, input_azimuth_given=input_azimuth_deg is not None)
+        sampler = resolve_sampler(given, getattr(self.config, "sampler", None), input_azimuth_deg is not None)
         self.check_inputs(sampler, num_images_per_prompt, output_type, callback_on_step_end_tensor_inputs)
         num_inference_steps = sampler["num_inference_steps"]
         denoising_steps = min(int(num_inference_steps * sampler["strength"]), int(num_inference_steps))

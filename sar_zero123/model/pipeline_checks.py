@@ -26,7 +26,7 @@ from sar_zero123.model.conditioning import (
 )
 from sar_zero123.model.orientation import estimator_weights_digest
 from sar_zero123.model.reference_attention import check_reference_layers
-from sar_zero123.model.sampler import MAX_GUIDANCE_SCALE, START_FROM, _check_contrast_scales, _check_strength
+from sar_zero123.model.sampler import MAX_GUIDANCE_SCALE, START_FROM, _check_strength
 
 __all__ = [
     "OUTPUT_TYPES", "ImageInput", "callback_latents", "check_call_arguments", "check_components",
@@ -264,7 +264,6 @@ def check_call_arguments(
     _check_strength(sampler["strength"], {"num_inference_steps": num_inference_steps})
     if sampler["start_from"] not in START_FROM:
         raise ValueError(f"`start_from` must be one of {START_FROM}, got {sampler['start_from']!r}")
-    _check_contrast_scales(sampler["heading_guidance_scale"], sampler["depression_guidance_scale"], "`{}`")
 
 
 def check_generators(
