@@ -30,7 +30,7 @@ from sar_zero123.model.reference_attention import (
 
 __all__ = [
     "Branch", "BranchEncoder", "GuidedCondition", "contrast_branches", "flipped_heading_pose",
-    "guided_condition", "same_depression_pose",
+    "guided_condition", "reference_context", "same_depression_pose",
 ]  # fmt: skip
 
 
@@ -84,7 +84,7 @@ class BranchEncoder:
     """The pose-dependent part of the condition, for any pose of the call's inputs.
 
     Args:
-        image_embeds: The inputs' CLIP embeddings, once per input ``(B, E)``.
+        image_embeds: The inputs' CLIP embeddings, once per input ``(B, 1, E)``.
         estimate: The azimuth estimator's reading of each input, where the UNet takes it, else ``None``.
         num_images_per_prompt: Output samples per input; each branch is repeated to one row per sample.
         dtype: The UNet's dtype, which every branch input takes.
@@ -218,7 +218,7 @@ def guided_condition(
             torch.cat([branch.pose for branch in branches]),
             encoder.pose_projection,
             proxy_latents,
-        ),  # fmt: skip
+        ),
         input_latents=input_latents,
         request=request,
         guidance_scale=guidance_scale,
