@@ -29,7 +29,7 @@ from _common import script_parser
 from sar_zero123 import SIM_PRIOR_PROXY, SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained  # noqa: E402
 from sar_zero123.config import write_json_atomic  # noqa: E402
 from sar_zero123.data import SCALING_FILE, DecibelScaling  # noqa: E402
-from sar_zero123.model import pipeline as pipeline_module  # noqa: E402
+from sar_zero123.model import proxy as proxy_module  # noqa: E402
 from sar_zero123.model.proxy import _fit as proxy_fits  # noqa: E402
 from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip  # noqa: E402
 
@@ -49,7 +49,7 @@ class Timer:
         for name, module in modules.items():
             if module is not None:
                 self._hook(name, module)
-        self._draft = pipeline_module.draft_target_views
+        self._draft = proxy_module.draft_target_views
 
         def timed_draft(*args, **kwargs):
             begin = time.perf_counter()
@@ -58,7 +58,7 @@ class Timer:
             finally:
                 self.seconds["proxy"] += time.perf_counter() - begin
 
-        pipeline_module.draft_target_views = timed_draft
+        proxy_module.draft_target_views = timed_draft
 
     def _hook(self, name: str, module: torch.nn.Module) -> None:
         starts: list[float] = []
@@ -85,7 +85,7 @@ class Timer:
     def close(self) -> None:
         for handle in self._handles:
             handle.remove()
-        pipeline_module.draft_target_views = self._draft
+        proxy_module.draft_target_views = self._draft
 
 
 @torch.no_grad()

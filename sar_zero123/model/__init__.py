@@ -1,6 +1,9 @@
 """The model: the SAR zero-1-to-3 pipeline and what it is built from.
 
 - :mod:`~sar_zero123.model.pipeline`: ``SARZero123Pipeline``, novel views in numbered stages.
+- :mod:`~sar_zero123.model.pipeline_loading`, :mod:`~sar_zero123.model.pipeline_checks`,
+  :mod:`~sar_zero123.model.view_request`, :mod:`~sar_zero123.model.guidance`: its loading and recorded
+  settings, its checks, a call's request, and the guidance branches of its UNet call.
 - :mod:`~sar_zero123.model.conditioning`: the pose vector (``embed_pose``), ``PoseProjection``, image
   and latent conditioning.
 - :mod:`~sar_zero123.model.orientation`: the estimated absolute azimuth (``AzimuthEstimator``).

@@ -20,7 +20,8 @@ from sar_zero123.data import ViewPairDataset
 from sar_zero123.model.conditioning import POSE_DIM, PoseProjection, condition_channels, downsampling_factor
 from sar_zero123.model.loading import PIPELINE_SETTINGS, load_component
 from sar_zero123.model.orientation import AZIMUTH_DIM, AzimuthEstimator
-from sar_zero123.model.pipeline import SARZero123Pipeline, check_vae_image_size
+from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.pipeline_checks import check_vae_image_size
 from sar_zero123.model.zero123_checkpoints import (
     SD_VAE_SCALING_FACTOR,
     ZERO123_SCHEDULER_CONFIG,
@@ -387,7 +388,7 @@ def check_vae_fits(vae: AutoencoderKL, pipe: SARZero123Pipeline, name: str = "va
 
     Raises:
         ValueError: If the latent channels or the downsampling factor differ from ``pipe.vae``'s, or the VAE
-            was built for another chip size (:func:`~sar_zero123.model.pipeline.check_vae_image_size`).
+            was built for another chip size (:func:`~sar_zero123.model.pipeline_checks.check_vae_image_size`).
     """
     new_factor = downsampling_factor(vae.config.block_out_channels)
     old_factor = pipe.vae_scale_factor

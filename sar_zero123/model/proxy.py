@@ -14,18 +14,20 @@ from __future__ import annotations
 
 import functools
 import math
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from typing import Any
 
 import numpy as np
 import torch
 
 from sar_zero123.data import DecibelScaling
+from sar_zero123.model.conditioning import as_angle_tensor, encode_condition_latents, proxy_pair_latents
+from sar_zero123.model.view_request import Angles, ViewRequest, per_input_angles
 from sar_zero123.sim.proxy import MAX_RENDERED_BANK, PROXY_FIRST_SEED, ProxyBank
 
 __all__ = [
     "DATASET_SHORTLIST", "DEFAULT_PROXY", "PROXY_FIELDS", "check_proxy_settings", "draft_target_views",
-    "MIN_FIT_SCORE", "fit_scores", "proxy_bank", "with_shortlist",
+    "MIN_FIT_SCORE", "fit_scores", "proxy_bank", "proxy_drafts", "proxy_latents", "with_shortlist",
 ]  # fmt: skip
 
 #: The fit score below which a chip holds no vehicle the simulator can fit: between the scores of real
@@ -271,3 +273,108 @@ def with_shortlist(
     if checked["shortlist"]:
         return checked
     return check_proxy_settings({**checked, "shortlist": min(shortlist, checked["num_vehicles"])})
+
+
+# ------------------------------------------------------------------------------- a pipeline call's proxy
+def proxy_drafts(
+    images: torch.Tensor,
+    d_az: Angles,
+    d_el: Angles,
+    input_azimuth_deg: torch.Tensor | None,
+    input_depression_deg: Angles | None,
+    proxy: Mapping[str, Any] | None,
+    why: str = "start_from='proxy'",
+) -> torch.Tensor:
+    """Each input's simulator proxy at the requested pose, for a pipeline call (``start_from="proxy"``, or
+    the proxy pair of a ``spatial_pose="proxy"`` UNet, ``why`` naming which).
+
+    Args:
+        input_azimuth_deg: One checked azimuth per input
+            (:func:`~sar_zero123.model.view_request.per_input_angles`), or ``None``.
+        proxy: The pipeline's proxy settings (``pipe.config.proxy``), or ``None`` where it records none.
+
+    Returns:
+        ``(B, 1, H, W)`` float32 in [0, 1] (:func:`draft_target_views`).
+
+    Raises:
+        ValueError: Naming what to pass, where the pipeline records no proxy, or the input's depression
+            or azimuth is not given.
+    """
+    start = why.startswith("start_from")
+    if proxy is None:
+        raise ValueError(
+            f"{why}: this pipeline records no proxy settings (pipe.config.proxy); build it with "
+            "proxy=sar_zero123.model.proxy.DEFAULT_PROXY" + (", or start from 'input'" if start else "")
+        )
+    batch_size = images.shape[0]
+    if input_depression_deg is None:
+        raise ValueError(
+            f"`input_depression_deg`: {why} fits a simulator vehicle at the input's pose; give the "
+            "input chip's depression in degrees (its metadata)" + (", or start from 'input'" if start else "")
+        )
+    depression = per_input_angles(input_depression_deg, "input_depression_deg", batch_size)
+    if input_azimuth_deg is None:
+        # an estimated azimuth is no substitute: the bundled estimator is far off on unseen vehicles, and
+        # fitting the heading to it turns the proxy wrong more often (docs/results/proxy.md)
+        raise ValueError(
+            f"`input_azimuth_deg`: {why} fits a simulator vehicle at the input's pose; give each "
+            "input chip's absolute azimuth in degrees (its metadata, or an estimate you trust)"
+            + (", or start from 'input'" if start else "")
+        )
+    d_az_values = as_angle_tensor(d_az, "d_az").expand(batch_size)
+    d_el_values = as_angle_tensor(d_el, "d_el").expand(batch_size)
+    drafts, _ = draft_target_views(images, input_azimuth_deg, depression, d_az_values, d_el_values, proxy)
+    return drafts
+
+
+@torch.no_grad()
+def proxy_latents(
+    vae: torch.nn.Module,
+    request: ViewRequest,
+    contrast_kinds: Sequence[str],
+    proxy: Mapping[str, Any] | None,
+    device: torch.device,
+) -> torch.Tensor:
+    """The proxy pair of the request and of each contrast branch, for a ``spatial_pose="proxy"`` UNet.
+
+    Each input's proxy is fitted once and rendered at the input's pose and at each branch's request: the
+    request itself, then each contrast's (``"heading"``: ``d_az + 180``; ``"depression"``: ``d_el = 0``), so
+    that a contrast branch sees its own proxy. Given ``request.proxy_views`` (each input's proxy at its pose
+    and at the request), every branch takes them.
+
+    Returns:
+        ``(1 + len(contrast_kinds), B, 2C, h, w)``, unscaled latents.
+    """
+    if request.proxy_views is not None:
+        views = request.proxy_views.to(device=device, dtype=torch.float32)
+        pair = proxy_pair_latents(vae, views[:, :1], views[:, 1:2])
+        flipped = pair
+        if views.shape[1] == 3:  # the proxy at the flipped heading, for the heading contrast
+            flipped = proxy_pair_latents(vae, views[:, :1], views[:, 2:3])
+        return torch.stack([pair] + [flipped if kind == "heading" else pair for kind in contrast_kinds])
+    batch_size = request.batch_size
+    d_az_values = as_angle_tensor(request.d_az, "d_az").expand(batch_size)
+    d_el_values = as_angle_tensor(request.d_el, "d_el").expand(batch_size)
+    zeros = torch.zeros_like(d_el_values)
+    requests = [(torch.zeros_like(d_az_values), zeros), (d_az_values, d_el_values)]  # input pose, request
+    for kind in contrast_kinds:
+        requests.append((d_az_values + 180.0, d_el_values) if kind == "heading" else (d_az_values, zeros))
+    # one call, each chip's requests side by side: one fit per chip however large the batch (the fit
+    # cache keeps the last 1,024), and one VAE encoding of every render
+    count = len(requests)
+    d_az_all = torch.stack([az for az, _ in requests], dim=1).reshape(-1)  # (B * R,), chip-major
+    d_el_all = torch.stack([el for _, el in requests], dim=1).reshape(-1)
+    input_depression_deg = request.input_depression_deg
+    if input_depression_deg is not None:
+        depression = per_input_angles(input_depression_deg, "input_depression_deg", batch_size)
+        input_depression_deg = depression.repeat_interleave(count)
+    input_azimuth_deg = request.input_azimuth_deg
+    if input_azimuth_deg is not None:
+        input_azimuth_deg = input_azimuth_deg.repeat_interleave(count)
+    drafts = proxy_drafts(
+        request.images.repeat_interleave(count, dim=0), d_az_all, d_el_all, input_azimuth_deg,
+        input_depression_deg, proxy, "spatial_pose='proxy'",
+    )  # fmt: skip
+    latents = encode_condition_latents(vae, drafts.to(device))
+    latents = latents.reshape(batch_size, count, *latents.shape[1:])
+    return torch.stack([torch.cat([latents[:, 0], latents[:, r]], dim=1) for r in range(1, count)])

@@ -415,7 +415,7 @@ def test_a_pipeline_folder_loads_only_as_it_was_saved(pipe, tmp_path, caplog):
         folder = changed(name, edit)
         with pytest.raises(ValueError, match=rf"pipeline '.*{name}': .*{words}.*verify_manifest=False"):
             SARZero123Pipeline.from_pretrained(folder)
-    caplog.set_level("WARNING", logger="sar_zero123.model.pipeline")
+    caplog.set_level("WARNING", logger="sar_zero123.model.pipeline_loading")
     loaded = SARZero123Pipeline.from_pretrained(tmp_path / "zeroed", verify_manifest=False)
     assert "loaded with verify_manifest=False although" in caplog.text
     assert loaded.unet.conv_in.weight.shape == pipe.unet.conv_in.weight.shape

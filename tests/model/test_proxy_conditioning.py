@@ -18,6 +18,7 @@ from sar_zero123.data.corpus_proxies import (
     write_corpus_proxies,
 )
 from sar_zero123.domain import to_decibels
+from sar_zero123.model import proxy as proxy_module
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.conditioning import (
     condition_channels,
@@ -213,7 +214,7 @@ def test_a_proxy_pipeline_fits_its_proxy_and_needs_the_input_pose(tmp_path: Path
         raise AssertionError("a fit ran although proxy_views were given")
 
     with monkeypatch.context() as patched:
-        patched.setattr(SARZero123Pipeline, "_proxy_drafts", no_fit)
+        patched.setattr(proxy_module, "draft_target_views", no_fit)
         drafted = pipe(image, 90.0, 0.0, input_depression_deg=17.0, input_azimuth_deg=40.0, proxy_views=views,
                        strength=0.5, start_from="proxy", generator=torch.Generator().manual_seed(0),
                        **kwargs).images  # fmt: skip
@@ -234,13 +235,13 @@ def test_a_proxy_pipeline_fits_its_proxy_and_needs_the_input_pose(tmp_path: Path
 def test_heading_guidance_contrasts_with_the_proxy_at_the_flipped_heading(monkeypatch) -> None:
     pipe = _proxy_pipeline()
     seen = []
-    original = SARZero123Pipeline._proxy_drafts
+    original = proxy_module.proxy_drafts
 
-    def spy(self, images, d_az, d_el, *args, **kwargs):
+    def spy(images, d_az, d_el, *args, **kwargs):
         seen.append([torch.as_tensor(a, dtype=torch.float64).reshape(-1).tolist() for a in (d_az, d_el)])
-        return original(self, images, d_az, d_el, *args, **kwargs)
+        return original(images, d_az, d_el, *args, **kwargs)
 
-    monkeypatch.setattr(SARZero123Pipeline, "_proxy_drafts", spy)
+    monkeypatch.setattr(proxy_module, "proxy_drafts", spy)
     size = pipe.default_image_size
     pipe(torch.rand(2, 1, size, size), [30.0, -90.0], 0.0, input_depression_deg=17.0, input_azimuth_deg=10.0,
          num_inference_steps=1, guidance_scale=2.0, heading_guidance_scale=1.0, output_type="np")  # fmt: skip

@@ -140,7 +140,7 @@ def test_training_chips_carry_the_banks_pooled_correlations_as_targets():
 def test_a_retrieval_folder_without_manifest_warns_and_a_relative_one_is_read_in_the_pipeline(
     tmp_path, caplog, monkeypatch
 ):
-    from sar_zero123.model.pipeline import _anchored_proxy
+    from sar_zero123.model.pipeline_loading import anchored_proxy
     from sar_zero123.model.retrieval import load_retrieval
 
     save_retrieval(tiny_net(), tmp_path / "pipe" / "retrieval")
@@ -150,15 +150,15 @@ def test_a_retrieval_folder_without_manifest_warns_and_a_relative_one_is_read_in
     assert "has no manifest.json: its weights are loaded unchecked" in caplog.text
     proxy = {**DEFAULT_PROXY, "shortlist": 2, "retrieval": "retrieval"}
     monkeypatch.chdir(tmp_path)  # the working directory never anchors a pipeline's own relative path
-    anchored = _anchored_proxy(proxy, str(tmp_path / "pipe"))
+    anchored = anchored_proxy(proxy, str(tmp_path / "pipe"))
     assert anchored["retrieval"] == str(tmp_path / "pipe" / "retrieval")
     assert {k: v for k, v in anchored.items() if k != "retrieval"} == {
         k: v for k, v in proxy.items() if k != "retrieval"
     }
     for kept in ("sar-zero123/proxy-retrieval", str(tmp_path / "abs"), None):
-        assert _anchored_proxy({**proxy, "retrieval": kept}, str(tmp_path / "pipe"))["retrieval"] == kept
-    assert _anchored_proxy(proxy, None) is proxy  # built in code: as given
-    assert _anchored_proxy(None, str(tmp_path)) is None
+        assert anchored_proxy({**proxy, "retrieval": kept}, str(tmp_path / "pipe"))["retrieval"] == kept
+    assert anchored_proxy(proxy, None) is proxy  # built in code: as given
+    assert anchored_proxy(None, str(tmp_path)) is None
 
 
 def test_fit_settings_are_bounded_before_any_render():

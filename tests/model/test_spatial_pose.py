@@ -16,12 +16,9 @@ from sar_zero123.model.conditioning import (
     rotate_condition_latents,
     unet_condition_latents,
 )
-from sar_zero123.model.pipeline import (
-    SARZero123Pipeline,
-    check_sampler_start,
-    flipped_heading_pose,
-    same_depression_pose,
-)
+from sar_zero123.model.guidance import flipped_heading_pose, same_depression_pose
+from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.sampler import check_sampler_start
 
 
 def latents(batch: int = 2, channels: int = 4, side: int = 8) -> torch.Tensor:

@@ -1,0 +1,231 @@
+"""Loading and saving a :class:`~sar_zero123.model.pipeline.SARZero123Pipeline`, and what it records.
+
+:class:`PipelineLoadingMixin` gives the pipeline its ``from_pretrained`` (a bundled name resolved, a local
+folder checked against its ``manifest.json`` and each component's files named before diffusers reads
+them), its ``save_pretrained`` (the folder sealed by a manifest) and ``from_zero123`` (an Objaverse
+zero-1-to-3 checkpoint). :func:`check_recorded_settings` checks what ``model_index.json`` records beside the
+weights: the sampler measured best for them, the simulator proxy's settings and the weights' lineage.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any, TypeVar
+
+import torch
+
+from sar_zero123.config import MANIFEST_FILE, manifest_problem, unlisted_files, write_manifest
+from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
+from sar_zero123.model.proxy import check_proxy_settings
+from sar_zero123.model.sampler import SAMPLER_DEFAULTS, START_FROM, SamplerSettings, _check_strength
+from sar_zero123.model.zero123_checkpoints import load_zero123_components
+from sar_zero123.pretrained import BUNDLED_NAMESPACE, BUNDLED_PIPELINES, is_bundled_name, resolve_pretrained
+
+__all__ = ["PipelineLoadingMixin", "anchored_proxy", "check_recorded_settings"]
+
+logger = logging.getLogger(__name__)
+
+PipelineType = TypeVar("PipelineType", bound="PipelineLoadingMixin")
+
+#: Files of a pipeline folder that loading may read (weights, configs, scaling): one that its manifest does
+#: not list is named in a warning.
+_SEALED_SUFFIXES = (".json", ".safetensors", ".bin", ".pt", ".pth", ".ckpt", ".pkl", ".py", ".msgpack")
+
+
+class PipelineLoadingMixin:
+    """``from_pretrained``, ``save_pretrained`` and ``from_zero123`` of a pipeline; listed before
+    ``DiffusionPipeline`` among its bases, whose own loading and saving it wraps."""
+
+    @classmethod
+    def from_pretrained(
+        cls: type[PipelineType], pretrained_model_name_or_path: str | os.PathLike, **kwargs: Any
+    ) -> PipelineType:
+        """diffusers' ``from_pretrained``, after resolving the name of a pipeline bundled with the package.
+
+        Args:
+            pretrained_model_name_or_path: A registered name such as ``"sar-zero123/sim-prior"``
+                (:data:`sar_zero123.pretrained.SIM_PRIOR`), a ``save_pretrained`` folder, or anything
+                else diffusers loads (passed on unchanged; an existing path wins over a name).
+            **kwargs: diffusers' loading options (``torch_dtype``, ...), and ``verify_manifest`` (default
+                True): a local folder's files must match the ``manifest.json`` that :meth:`save_pretrained`
+                wrote; ``False`` loads a changed folder anyway, with a logged warning naming what differs.
+                A folder without a manifest (written before manifests existed) loads with a warning.
+
+        Returns:
+            The pipeline.
+
+        Raises:
+            FileNotFoundError: For a registered name whose weights are missing from this install, an
+                unknown name under ``"sar-zero123/"`` (listing the bundled ones), or a
+                folder without ``model_index.json`` or missing a component's folder, config or weights;
+                the message names the component, the file expected and the folder.
+            ValueError: For a folder whose JSON is invalid (naming the file), a component whose files
+                do not load (a config that does not fit its weights, a truncated weight file), naming it,
+                or a file that differs from the folder's ``manifest.json`` (changed, truncated or missing),
+                naming it, unless ``verify_manifest=False``. A weight or config added since is named in a
+                warning.
+        """
+        if isinstance(pretrained_model_name_or_path, str | os.PathLike) and (
+            is_bundled_name(pretrained_model_name_or_path)
+            or os.fspath(pretrained_model_name_or_path).startswith(BUNDLED_NAMESPACE)
+        ):  # a bundled name, or a refusal listing them (never a hub lookup of an unknown bundled name)
+            pretrained_model_name_or_path = resolve_pretrained(pretrained_model_name_or_path)
+        folder = pretrained_model_name_or_path
+        verify_manifest = kwargs.pop("verify_manifest", True)
+        if isinstance(folder, str | os.PathLike) and not os.path.isdir(folder):
+            _refuse_a_missing_local_name(os.fspath(folder))
+        if not (isinstance(folder, str | os.PathLike) and os.path.isdir(folder)):
+            return super().from_pretrained(folder, **kwargs)  # type: ignore[misc]
+        # 1. a local folder: every file it was saved with is checked against its manifest (a changed weight,
+        # config or scaling would load and give other views), then each component's files, naming the
+        # component, before diffusers reads them (diffusers names a fallback `.bin` file or the folder)
+        _check_manifest(folder, verify_manifest)
+        components = check_pipeline_folder(folder, given=kwargs)
+        try:
+            return super().from_pretrained(folder, **kwargs)  # type: ignore[misc]
+        except (OSError, ValueError, RuntimeError, TypeError, KeyError):
+            # 2. the files are there but something does not load: say which component
+            find_failing_component(folder, components)
+            raise
+
+    def save_pretrained(self, save_directory: str | os.PathLike, **kwargs: Any) -> None:
+        """diffusers' ``save_pretrained``, then ``manifest.json`` (written last, atomically): the size and
+        SHA-256 of every file of the folder, which :meth:`from_pretrained` checks before loading.
+
+        A writer that adds a file to the folder afterwards (a ``decibel_scaling.json``) seals it again with
+        :func:`sar_zero123.config.write_manifest`.
+        """
+        super().save_pretrained(save_directory, **kwargs)  # type: ignore[misc]
+        write_manifest(save_directory)
+
+    @classmethod
+    def from_zero123(
+        cls: type[PipelineType],
+        path: str | Path,
+        use_ema: bool = True,
+        image_encoder_path: str | Path | None = None,
+        torch_dtype: torch.dtype | None = None,
+        **conversion: Any,
+    ) -> PipelineType:
+        """Load an Objaverse zero-1-to-3 checkpoint (diffusers folder, threestudio folder, or LDM file).
+
+        See :func:`sar_zero123.model.zero123_checkpoints.load_zero123_components` for the accepted layouts.
+
+        Args:
+            path: A diffusers folder (``cc_projection`` or ``clip_camera_projection``) or an LDM
+                ``.ckpt`` / ``.safetensors`` state dict.
+            use_ema: For LDM files holding ``model_ema.*``, load the EMA UNet weights.
+            image_encoder_path: Folder of a ``CLIPVisionModelWithProjection`` (and optionally its
+                ``CLIPImageProcessor``) for LDM files; ignored for folders that ship one.
+            torch_dtype: Optional dtype for all modules.
+            **conversion: LDM files only: ``unet_config``, ``vae_config``, ``image_encoder_config``
+                overrides and ``weights_only`` (see ``load_zero123_components``).
+
+        Returns:
+            The pipeline in eval mode, with a DDIM scheduler for LDM files.
+        """
+        components = load_zero123_components(
+            path, use_ema=use_ema, image_encoder_path=image_encoder_path, **conversion
+        )
+        pipe = cls(**components)
+        if torch_dtype is not None:
+            pipe.to(dtype=torch_dtype)  # type: ignore[attr-defined]
+        return pipe
+
+
+def check_recorded_settings(
+    sampler: dict[str, Any] | None, proxy: dict[str, Any] | None, lineage: dict[str, Any] | None
+) -> dict[str, Any] | None:
+    """Refuse what a pipeline records beside its weights (``model_index.json``) where a call could not use it:
+    a sampler (:data:`~sar_zero123.model.sampler.SAMPLER_DEFAULTS`' keys) out of what a call may ask for, a
+    start from the proxy without proxy settings, invalid proxy settings, or a lineage that is not strings.
+
+    Returns:
+        The proxy settings, checked and completed (:func:`~sar_zero123.model.proxy.check_proxy_settings`),
+        or ``None``.
+
+    Raises:
+        ValueError: Naming the record and the field.
+    """
+    if sampler is not None:
+        if not isinstance(sampler, dict) or set(sampler) - set(SAMPLER_DEFAULTS):
+            raise ValueError(f"`sampler` must be a dict of some of {list(SAMPLER_DEFAULTS)}, got {sampler!r}")
+        if sampler.get("start_from", "input") not in START_FROM:
+            raise ValueError(
+                f"`sampler.start_from` must be one of {START_FROM}, got {sampler['start_from']!r}"
+            )
+        try:  # each recorded value within what a call may ask for (steps, guidance, strength)
+            SamplerSettings(**{key: value for key, value in sampler.items() if key != "proxy_strength"})
+        except (TypeError, ValueError) as error:
+            raise ValueError(f"`sampler` (recorded in model_index.json): {error}") from None
+        if sampler.get("proxy_strength") is not None:
+            _check_strength(sampler["proxy_strength"], {}, "sampler.proxy_")
+        if sampler.get("start_from") == "proxy" and proxy is None:
+            raise ValueError("`sampler.start_from` is 'proxy', but the pipeline records no `proxy` settings")
+    if proxy is not None:
+        proxy = check_proxy_settings(proxy)
+    if lineage is not None and not (
+        isinstance(lineage, dict) and all(isinstance(v, str | None) for v in lineage.values())
+    ):
+        raise ValueError(f"`lineage` must be a dict of strings (where the weights began), got {lineage}")
+    return proxy
+
+
+def anchored_proxy(proxy: Mapping[str, Any] | None, folder: str | None) -> Mapping[str, Any] | None:
+    """A pipeline's proxy settings with a relative ``retrieval`` folder read against the pipeline's own
+    folder (where it was loaded from), never against the working directory; names and absolute paths as
+    recorded."""
+    retrieval = None if proxy is None else proxy.get("retrieval")
+    if (
+        not isinstance(retrieval, str)
+        or retrieval.startswith(BUNDLED_NAMESPACE)
+        or os.path.isabs(retrieval)
+        or not (isinstance(folder, str) and os.path.isdir(folder))
+    ):
+        return proxy
+    return {**proxy, "retrieval": os.path.join(folder, retrieval)}
+
+
+def _check_manifest(folder: str | os.PathLike, verify: bool) -> None:
+    """Refuse (``verify``) or warn about a pipeline folder whose files differ from its ``manifest.json``."""
+    if not (Path(folder) / MANIFEST_FILE).is_file():
+        logger.warning(
+            "pipeline %s has no %s (saved before manifests): its files are loaded unchecked; "
+            "save it again with save_pretrained to seal it", folder, MANIFEST_FILE,
+        )  # fmt: skip
+        return
+    added = [name for name in unlisted_files(folder) if name.endswith(_SEALED_SUFFIXES)]
+    if added:  # files beside the sealed ones (a scaling written after save_pretrained): loaded, named
+        logger.warning("pipeline %s: %s not in its %s (added after it was saved)", folder, added,
+                       MANIFEST_FILE)  # fmt: skip
+    problem = manifest_problem(folder)
+    if problem is None:
+        return
+    if verify:
+        raise ValueError(
+            f"pipeline {os.fspath(folder)!r}: {problem}. A pipeline's files are loaded only as they were "
+            "saved; pass verify_manifest=False to load it anyway"
+        )
+    logger.warning("pipeline %s loaded with verify_manifest=False although %s", folder, problem)
+
+
+def _refuse_a_missing_local_name(text: str) -> None:
+    """Refuse, listing the bundled pipelines, a name that is meant as a local folder or a bundled pipeline but
+    is neither (a hub lookup would answer with a network error naming neither).
+
+    Raises:
+        FileNotFoundError: For a path-like name (``./x``, ``../x``, ``/x``, ``~/x``), a bundled name in
+            another case (``SAR-ZERO123/sim-prior``) or without its namespace (``sim-prior-rotated``).
+    """
+    bundled = sorted(BUNDLED_PIPELINES)
+    listing = f"the bundled pipelines are {bundled}"
+    short_names = {name.split("/")[-1] for name in bundled}
+    if text.lower().startswith(BUNDLED_NAMESPACE.lower()) or text in short_names:
+        matches = [name for name in bundled if name.lower() == text.lower() or name.endswith("/" + text)]
+        hint = f"did you mean {matches[0]!r}? " if matches else ""
+        raise FileNotFoundError(f"{text!r} is neither a pipeline folder nor a bundled name: {hint}{listing}")
+    if text.startswith(("./", "../", "/", "~", ".\\")) or text in (".", ".."):
+        raise FileNotFoundError(f"{text!r}: no such pipeline folder (a save_pretrained folder); {listing}")
