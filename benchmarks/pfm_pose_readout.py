@@ -38,6 +38,7 @@ from sar_zero123.evaluation.evaluators import load_evaluators, resize_for_evalua
 from sar_zero123.evaluation.probes import FeatureSet, extract_features, run_probes  # noqa: E402
 from sar_zero123.evaluation.protocol import build_pair_sets, generate_pair_targets  # noqa: E402
 from sar_zero123.model.pipeline import SARZero123Pipeline  # noqa: E402
+from sar_zero123.model.sampler import SamplerSettings  # noqa: E402
 from sar_zero123.training.losses import random_feature_projection  # noqa: E402
 
 
@@ -134,8 +135,8 @@ def main(argv=None) -> dict:
         pipe.set_progress_bar_config(disable=True)
         for group, pair_set in pairs.items():
             images, _ = generate_pair_targets(
-                pipe, pair_set, num_inference_steps=args.num_inference_steps,
-                guidance_scale=args.guidance_scale, batch_size=16, device=device,
+                pipe, pair_set, batch_size=16, device=device, sampler=SamplerSettings(
+                    num_inference_steps=args.num_inference_steps, guidance_scale=args.guidance_scale),
             )  # fmt: skip
             add_rows(name, group, encode(encoder, images, pair_set.labels, pair_set.target_azimuth_deg))
     result = {"args": {k: str(v) if isinstance(v, Path) else v for k, v in vars(args).items()},

@@ -22,6 +22,7 @@ import torch
 from sar_zero123.evaluation.evaluators import load_evaluators, resize_for_evaluator
 from sar_zero123.evaluation.protocol import build_pair_sets, generate_pair_targets
 from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.sampler import SamplerSettings
 
 
 def main() -> None:
@@ -54,8 +55,8 @@ def main() -> None:
             )  # fmt: skip
         for group, pair_set in pairs.items():
             images, _ = generate_pair_targets(
-                pipe, pair_set, num_inference_steps=args.num_inference_steps,
-                guidance_scale=args.guidance_scale, batch_size=16, device=device,
+                pipe, pair_set, batch_size=16, device=device, sampler=SamplerSettings(
+                    num_inference_steps=args.num_inference_steps, guidance_scale=args.guidance_scale),
             )  # fmt: skip
             with torch.no_grad():
                 views = resize_for_evaluator(images, evaluators.image_size)

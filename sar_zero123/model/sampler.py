@@ -110,6 +110,11 @@ class SamplerSettings:
             depression_guidance_scale=self.depression_guidance_scale, start_from=self.start_from,
         )  # fmt: skip
 
+    def sampler_settings(self) -> SamplerSettings:
+        """These settings alone, as the library's sampling functions take them (a command's config inherits
+        the fields; this drops its others)."""
+        return SamplerSettings(**{item.name: getattr(self, item.name) for item in fields(SamplerSettings)})
+
     def sampler_arguments(self) -> dict[str, Any]:
         """The pipeline call's sampler arguments: every field but ``scheduler`` (``None``: recorded)."""
         names = [item.name for item in fields(SamplerSettings) if item.name != "scheduler"]

@@ -60,6 +60,18 @@ def test_a_field_left_none_is_the_recorded_value_then_the_librarys() -> None:
     }  # fmt: skip
 
 
+def test_a_command_config_passes_its_sampler_whole_and_nothing_else() -> None:
+    config = EvaluateConfig(pipeline=["p"], num_inference_steps=4, strength=0.5, scheduler="euler")
+    settings = config.sampler_settings()
+    assert type(settings) is SamplerSettings  # the command's other fields stay behind
+    assert dataclasses.asdict(settings) == {
+        "num_inference_steps": 4, "scheduler": "euler", "guidance_scale": None,
+        "heading_guidance_scale": None, "depression_guidance_scale": None, "strength": 0.5,
+        "start_from": None,
+    }  # fmt: skip
+    assert settings.sampler_arguments() == config.sampler_arguments()
+
+
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
