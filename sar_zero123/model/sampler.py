@@ -190,7 +190,6 @@ def check_sampler_start(
     strength: float | None,
     heading_guidance_scale: float | None,
     steps: Mapping[str, int | None],
-    prefix: str = "",
     depression_guidance_scale: float | None = 0.0,
     start_from: str | None = "input",
 ) -> None:
@@ -198,18 +197,17 @@ def check_sampler_start(
     ``depression_guidance_scale`` outside [0, ``MAX_GUIDANCE_SCALE``], ``strength`` outside (0, 1], a
     ``strength`` that leaves no denoising step of one of the ``steps`` (field name: step count), or a
     ``start_from`` not in :data:`START_FROM`. A ``None`` (a field left to the pipeline's recorded sampler) is
-    checked by the pipeline at the call instead. Every message names the field as ``prefix`` + its name (the
-    quickstart preset's ``eval_`` fields).
+    checked by the pipeline at the call instead. Every message names the field.
 
     Raises:
         ValueError: On any of the above.
     """
     scales = (heading_guidance_scale, depression_guidance_scale)
-    _check_contrast_scales(*(0.0 if scale is None else scale for scale in scales), prefix + "{}")
+    _check_contrast_scales(*(0.0 if scale is None else scale for scale in scales), "{}")
     if strength is not None:
-        _check_strength(strength, {name: count for name, count in steps.items() if count is not None}, prefix)
+        _check_strength(strength, {name: count for name, count in steps.items() if count is not None})
     if start_from is not None and start_from not in START_FROM:
-        raise ValueError(f"{prefix}start_from must be one of {START_FROM}, got {start_from!r}")
+        raise ValueError(f"start_from must be one of {START_FROM}, got {start_from!r}")
 
 
 def _check_contrast_scales(heading: float, depression: float, name_format: str) -> None:
