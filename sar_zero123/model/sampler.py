@@ -27,8 +27,8 @@ from diffusers import (
 
 __all__ = [
     "EXPORTED_SAMPLER", "MAX_GUIDANCE_SCALE", "MAX_INFERENCE_STEPS", "SAMPLER_DEFAULTS", "SCHEDULERS",
-    "START_FROM", "SamplerSettings", "check_sampler_start", "resolve_sampler", "scheduler_name",
-    "set_scheduler",
+    "START_FROM", "SamplerSettings", "check_sampler_start", "describe_sampler", "resolve_sampler",
+    "scheduler_name", "set_scheduler",
 ]  # fmt: skip
 
 #: Larger guidance scales overflow the guided noise estimate (NaN images); zero-1-to-3 samples with 3.
@@ -162,6 +162,20 @@ def resolve_sampler(
         # a recorded strength runs at least one step of a call's own step count (0.3 x 2 steps: 1 step)
         values["strength"] = min(1.0, max(values["strength"], (1.0 + 1e-9) / steps))
     return values
+
+
+def describe_sampler(values: Mapping[str, Any]) -> str:
+    """A sampler in words, for a report: ``values`` are the sampler fields a command recorded (an evaluation's
+    ``table3.json``), e.g. "20 DDIM steps, guidance 3.0, heading guidance 1.5, from the input at strength 0.8"
+    (heading guidance named only when on, the start only below strength 1)."""
+    text = f"{values['num_inference_steps']} DDIM steps, guidance {values['guidance_scale']}"
+    heading = values.get("heading_guidance_scale") or 0.0
+    if heading:
+        text += f", heading guidance {heading}"
+    strength = values.get("strength", 1.0)
+    if strength < 1.0:
+        text += f", from the {values.get('start_from', 'input').replace('_', ' ')} at strength {strength}"
+    return text
 
 
 def set_scheduler(pipe: Any, name: str) -> None:

@@ -134,9 +134,9 @@ REMOVED_RECIPE_FIELDS: dict[str, str] = {
     "evaluator_epochs": "evaluators.epochs and evaluators.probe_epochs",
     "evaluator_learning_rate": "evaluators.learning_rate", "eval_n": "evaluate.n",
     "eval_steps": "evaluate.sampler.num_inference_steps",
-    "eval_heading_guidance_scale": "evaluate.sampler.heading_guidance_scale",
-    "eval_strength": "evaluate.sampler.strength", "eval_start_from": "evaluate.sampler.start_from",
-    "eval_depression_guidance_scale": "evaluate.sampler.depression_guidance_scale",
+    # eval_strength, eval_start_from and the two contrast guidances' eval_ fields
+    **{f"eval_{name}": f"evaluate.sampler.{name}" for name in _SAMPLER_FIELDS
+       if name not in ("num_inference_steps", "scheduler", "guidance_scale")},
     "eval_speckle_looks": "evaluate.speckle_looks", "depression_targets_deg": "shared.depression_targets_deg",
     "speed_steps": "evaluate.steps", "speed_n": "evaluate.speed_n", "schedulers": "evaluate.schedulers",
     "checkpointing_steps": "shared.checkpointing_steps", "mixed_precision": "shared.mixed_precision",

@@ -13,6 +13,7 @@ from typing import Any
 
 import torch
 
+from sar_zero123.model.sampler import describe_sampler
 from sar_zero123.stages.presets import QuickstartConfig, Recipe
 
 __all__ = ["write_report"]
@@ -125,13 +126,7 @@ def _evaluator_lines(evaluator_metrics: dict[str, Any]) -> list[str]:
 
 def _table_lines(eval_dir: Path, table3: dict[str, Any]) -> list[str]:
     """The Table III and Table IV sections, from the evaluation stage's Markdown tables."""
-    sampler = f"{table3['num_inference_steps']} DDIM steps, guidance {table3['guidance_scale']}"
-    heading = table3.get("heading_guidance_scale") or 0.0
-    if heading:
-        sampler += f", heading guidance {heading}"
-    strength = table3.get("strength", 1.0)
-    if strength < 1.0:
-        sampler += f", from the {table3.get('start_from', 'input').replace('_', ' ')} at strength {strength}"
+    sampler = describe_sampler(table3)
     return [
         "",
         f"## Table III ({sampler})",
