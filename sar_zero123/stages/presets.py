@@ -13,6 +13,7 @@ config from them before anything runs.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import math
 import typing
 from collections.abc import Mapping, Sequence
@@ -164,6 +165,7 @@ def removed_recipe_field(name: str) -> str | None:
     return f"{name} was removed: it is now {REMOVED_RECIPE_FIELDS[bare]}"
 
 
+@functools.cache
 def _hints(section: str) -> dict[str, Any]:
     """The fields a section may set, with their types (``sampler.``-prefixed for a sampler's)."""
     cls = RECIPE_SECTIONS[section]
@@ -280,7 +282,7 @@ class Recipe:
     sections: Mapping[str, Mapping[str, Any]]  # section -> field (``sampler.FIELD``) -> value
 
     def __post_init__(self) -> None:
-        self.shared  # noqa: B018  (the shared settings are checked when the recipe is)
+        SharedSettings(**self.sections["shared"])  # the shared settings are checked with the recipe
 
     @property
     def shared(self) -> SharedSettings:
