@@ -76,7 +76,7 @@ class DemoConfig(SamplerSettings):
     """
 
     pipeline: str = SIM_PRIOR_ROTATED  # bundled name or pipeline folder
-    host: str = "127.0.0.1"  # address to bind (default: this machine only)
+    host: str = "127.0.0.1"  # address to bind (127.0.0.1: this machine only)
     port: int = 7860  # port
     share: bool = False  # also open a public gradio.live link
     device: str = "cpu"  # torch device
