@@ -4,7 +4,7 @@
     python benchmarks/gpu_mstar_pfm.py crops --data ../shared/data/mstar --out .gpu/mstar64
     # on the GPU (benchmarks/gpu_mstar_session.sh installs the wheels first)
     python3 benchmarks/gpu_mstar_pfm.py run --data .gpu/mstar64 --out OUT --work /tmp/work \\
-        --budget_minutes 9 --set finetune_batch_size=256 mixed_precision=bf16
+        --budget_minutes 9 --set finetune.train_batch_size=256 shared.mixed_precision=bf16
 
 ``run`` is the quickstart's chain (``train/quickstart.py --recipe mstar-prior --protocol ood-T72``): every
 stage's config exactly as the quickstart plans it (:func:`sar_zero123.stages.quickstart.plan_stages`, with
@@ -48,7 +48,7 @@ from sar_zero123.data.index import load_index, write_index
 from sar_zero123.stages.evaluate import EvaluateConfig
 from sar_zero123.stages.evaluators import TrainEvaluatorsConfig
 from sar_zero123.stages.finetune import FinetuneConfig
-from sar_zero123.stages.presets import PRESETS, QuickstartConfig
+from sar_zero123.stages.presets import RECIPES, QuickstartConfig
 from sar_zero123.stages.quickstart import StagePlan, plan_stages
 from sar_zero123.stages.simclr import PretrainSimCLRConfig
 from sar_zero123.stages.vae import TrainVAEConfig
@@ -186,7 +186,7 @@ def build_parser() -> argparse.ArgumentParser:
     call.add_argument("--data", required=True, help="chip folder (the crops above)")
     call.add_argument("--out", required=True, help="results.json and table3.md")
     call.add_argument("--work", required=True, help="run folders of the stages")
-    call.add_argument("--recipe", default="mstar-prior", choices=sorted(PRESETS))
+    call.add_argument("--recipe", default="mstar-prior", choices=sorted(RECIPES))
     call.add_argument("--protocol", default="ood-T72")
     call.add_argument("--lambdas", nargs="+", type=float, default=[0.0, 4.0])
     call.add_argument("--set", nargs="*", default=[], help="recipe fields, as train/quickstart.py's")

@@ -577,18 +577,7 @@ def augment_dataset(config: AugmentConfig) -> Path:
     with progress_bar(total=sum(len(batch) for batch in pending), desc="augmenting", unit="view") as progress:
         for batch in pending:
             chips = np.stack([prepared_chip(view.record.path) for view in batch])  # (B, S, S)
-            images = _generate(
-                pipe,
-                chips,
-                batch,
-                num_inference_steps=config.num_inference_steps,
-                guidance_scale=config.guidance_scale,
-                seed=config.seed,
-                strength=config.strength,
-                heading_guidance_scale=config.heading_guidance_scale,
-                depression_guidance_scale=config.depression_guidance_scale,
-                start_from=config.start_from,
-            )
+            images = _generate(pipe, chips, batch, sampler=config.sampler_settings(), seed=config.seed)
             for view, image in zip(batch, images):
                 if (out / view.path).is_file():  # written before a kill, from this same batch
                     continue
@@ -653,17 +642,12 @@ def _generate(
     chips: np.ndarray,
     batch: Sequence[ViewRequest],
     *,
-    num_inference_steps: int | None,
-    guidance_scale: float | None,
+    sampler: SamplerSettings,
     seed: int,
-    strength: float | None = None,
-    heading_guidance_scale: float | None = None,
-    depression_guidance_scale: float | None = None,
-    start_from: str | None = None,
 ) -> np.ndarray:
-    """One pipeline call for a batch of views: ``(B, S, S)`` normalised dB from ``(B, S, S)`` chips; a sampler
-    argument given as ``None`` is the pipeline's recorded value. Each chip's index pose (azimuth, depression)
-    fits the simulator proxy of a pipeline that records one."""
+    """One pipeline call for a batch of views: ``(B, S, S)`` normalised dB from ``(B, S, S)`` chips; a
+    ``sampler`` field left ``None`` is the pipeline's recorded value. Each chip's index pose (azimuth,
+    depression) fits the simulator proxy of a pipeline that records one."""
     has_proxy = getattr(pipe.config, "proxy", None) is not None
     takes_depression = getattr(pipe.pose_projection.config, "input_depression", False) or has_proxy
     return pipe(
@@ -671,15 +655,10 @@ def _generate(
         d_az=[view.d_az_deg for view in batch],
         d_el=[view.d_el_deg for view in batch],
         input_depression_deg=[view.record.depression_deg for view in batch] if takes_depression else None,
-        num_inference_steps=num_inference_steps,
-        guidance_scale=guidance_scale,
         generator=[view_generator(seed, view.row_index, view.request_index) for view in batch],
         output_type="np",
-        strength=strength,
-        heading_guidance_scale=heading_guidance_scale,
-        depression_guidance_scale=depression_guidance_scale,
-        start_from=start_from,
         input_azimuth_deg=[view.record.azimuth_deg for view in batch] if has_proxy else None,
+        **sampler.sampler_arguments(),
     ).images[..., 0]
 
 

@@ -19,9 +19,9 @@ are plain functions of numpy arrays, tested without a browser.
 
 from __future__ import annotations
 
-import argparse
 import os
 import re
+import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -31,14 +31,18 @@ import numpy as np
 import torch
 
 from sar_zero123.augment_dataset import check_trained_ranges
+from sar_zero123.config import REFUSED, parse_config
 from sar_zero123.data import DecibelScaling
 from sar_zero123.generate import GenerateConfig, load_input_chip
-from sar_zero123.model.pipeline import SAMPLER_DEFAULTS, SARZero123Pipeline
-from sar_zero123.model.sampler import SCHEDULERS, SamplerSettings
+from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.sampler import SamplerSettings
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip
 
-__all__ = ["MAX_QUEUED", "MAX_UPLOAD_BYTES", "TURNTABLE_VIEWS", "DemoModel", "build_demo", "main"]
+__all__ = [
+    "MAX_QUEUED", "MAX_UPLOAD_BYTES", "TURNTABLE_VIEWS", "DemoConfig", "DemoModel", "build_demo", "main",
+    "parse_args",
+]  # fmt: skip
 
 #: The page's fonts: the system's own, so that the browser fetches nothing from the web.
 LOCAL_FONTS = ("system-ui", "sans-serif")
@@ -63,42 +67,46 @@ class Chip:
     seed: int = 0  # the simulator's clutter and speckle seed
 
 
+@dataclass
+class DemoConfig(SamplerSettings):
+    """Serve a local web page that generates novel views of a chip with a saved SARZero123Pipeline.
+
+    The sampler's fields (:class:`~sar_zero123.model.sampler.SamplerSettings`) are inherited: each left unset
+    takes the value the pipeline records as measured best for it, else the library's.
+    """
+
+    pipeline: str = SIM_PRIOR_ROTATED  # bundled name or pipeline folder
+    host: str = "127.0.0.1"  # address to bind (127.0.0.1: this machine only)
+    port: int = 7860  # port
+    share: bool = False  # also open a public gradio.live link
+    device: str = "cpu"  # torch device
+
+    def __post_init__(self) -> None:
+        super().__post_init__()  # the sampler's fields, validated where they are declared
+        if isinstance(self.port, bool) or not 0 < self.port < 65536:
+            raise ValueError(f"port must lie in [1, 65535], got {self.port}")
+
+
 class DemoModel:
     """The pipeline and what the page asks of it.
 
     Args:
         pipeline: A bundled pipeline's name or a ``save_pretrained`` folder.
-        num_inference_steps: Denoising steps of every view.
-        guidance_scale: Classifier-free guidance weight.
-        heading_guidance_scale: Guidance away from the flipped heading (0: off).
+        sampler: How every view is sampled (``None``: the pipeline's recorded sampler). Each field left
+            ``None`` is the pipeline's recorded value (``pipe.config.sampler``); its ``scheduler`` swaps the
+            pipeline's. A simulated chip's azimuth is known, so a pipeline that records a proxy start starts
+            from the proxy.
         device: Torch device.
-        depression_guidance_scale: Guidance away from the input's depression (0: off; requests with
-            ``d_el == 0`` are unchanged).
-        scheduler: One of :data:`~sar_zero123.model.sampler.SCHEDULERS` (``None``: the pipeline's own).
-
-        Each sampler argument left ``None`` is the pipeline's recorded value (``pipe.config.sampler``). A
-        simulated chip's azimuth is known, so a pipeline that records a proxy start starts from the proxy.
     """
 
     def __init__(
-        self,
-        pipeline: str = SIM_PRIOR_ROTATED,
-        num_inference_steps: int | None = None,
-        guidance_scale: float | None = None,
-        heading_guidance_scale: float | None = None,
-        device: str = "cpu",
-        depression_guidance_scale: float | None = None,
-        scheduler: str | None = None,
+        self, pipeline: str = SIM_PRIOR_ROTATED, sampler: SamplerSettings | None = None, device: str = "cpu"
     ) -> None:
-        sampler = SamplerSettings(
-            num_inference_steps=num_inference_steps, scheduler=scheduler, guidance_scale=guidance_scale,
-            heading_guidance_scale=heading_guidance_scale,
-            depression_guidance_scale=depression_guidance_scale,
-        )  # fmt: skip
+        self.sampler = SamplerSettings() if sampler is None else sampler.sampler_settings()
         self.name = pipeline
         self.pipe = SARZero123Pipeline.from_pretrained(pipeline).to(device)
         self.pipe.set_progress_bar_config(disable=True)
-        sampler.apply_scheduler(self.pipe)
+        self.sampler.apply_scheduler(self.pipe)
         self.size = self.pipe.default_image_size
         scaling_file = resolve_pretrained(pipeline) / "decibel_scaling.json"
         self.scaling = (
@@ -106,12 +114,8 @@ class DemoModel:
             if scaling_file.is_file()
             else DecibelScaling.for_unit_magnitude()
         )
-        recorded = {**SAMPLER_DEFAULTS, **(self.pipe.config.sampler or {})}
-        steps = recorded["num_inference_steps"] if num_inference_steps is None else num_inference_steps
-        self.num_inference_steps = steps  # the page says how many
-        self.guidance_scale = guidance_scale
-        self.heading_guidance_scale = heading_guidance_scale
-        self.depression_guidance_scale = depression_guidance_scale
+        # the page says how many steps
+        self.num_inference_steps = self.sampler.resolved(self.pipe.config.sampler)["num_inference_steps"]
         config = self.pipe.pose_projection.config
         self.needs_depression = bool(getattr(config, "input_depression", False))
         self.trained_depression_deg = getattr(config, "trained_depression_deg", None) or [1.0, 89.0]
@@ -172,10 +176,8 @@ class DemoModel:
             image, d_az=[float(a) for a in d_az], d_el=[float(d_el)] * len(d_az),
             # with its azimuth (simulated chips), a pipeline that records a proxy start starts from the proxy
             input_depression_deg=chip.depression_deg if self.needs_depression or chip.azimuth_deg is not None
-            else None, input_azimuth_deg=chip.azimuth_deg,
-            num_inference_steps=self.num_inference_steps, guidance_scale=self.guidance_scale,
-            heading_guidance_scale=self.heading_guidance_scale,
-            depression_guidance_scale=self.depression_guidance_scale, generator=generator, output_type="np",
+            else None, input_azimuth_deg=chip.azimuth_deg, generator=generator, output_type="np",
+            **self.sampler.sampler_arguments(),
         )  # fmt: skip
         return np.clip(output.images[..., 0], 0.0, 1.0).astype(np.float32)
 
@@ -266,33 +268,14 @@ def build_demo(model: DemoModel) -> Any:
     return demo
 
 
-def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
-    parser = argparse.ArgumentParser(prog="python -m sar_zero123.demo", description=__doc__.splitlines()[0])
-    parser.add_argument("--pipeline", default=SIM_PRIOR_ROTATED, help="bundled name or pipeline folder")
-    parser.add_argument("--host", default="127.0.0.1", help="address to bind (default: this machine only)")
-    parser.add_argument("--port", type=int, default=7860, help="port (default 7860)")
-    parser.add_argument("--share", action="store_true", help="also open a public gradio.live link")
-    # the sampler: each flag left out is the pipeline's recorded value (pipe.config.sampler)
-    parser.add_argument("--num_inference_steps", "--num-inference-steps", type=int, default=None)
-    parser.add_argument("--guidance_scale", "--guidance-scale", type=float, default=None)
-    parser.add_argument("--heading_guidance_scale", "--heading-guidance-scale", type=float, default=None)
-    parser.add_argument(
-        "--depression_guidance_scale", "--depression-guidance-scale", type=float, default=None
-    )
-    parser.add_argument("--scheduler", choices=sorted(SCHEDULERS), default=None)
-    parser.add_argument("--device", default="cpu")
-    args = parser.parse_args(argv)
-    if not 0 < args.port < 65536:
-        parser.error(f"--port must lie in [1, 65535], got {args.port}")
-    try:  # the sampler's flags, checked where they are declared
-        SamplerSettings(
-            num_inference_steps=args.num_inference_steps, scheduler=args.scheduler,
-            guidance_scale=args.guidance_scale, heading_guidance_scale=args.heading_guidance_scale,
-            depression_guidance_scale=args.depression_guidance_scale,
-        )  # fmt: skip
-    except ValueError as error:
-        parser.error(f"--{error}")
-    return args
+def parse_args(argv: Sequence[str] | None = None) -> DemoConfig:
+    """The demo's flags (``--pipeline``, ``--host``, ``--port``, ``--share``, ``--device`` and the sampler's),
+    parsed and checked as every command's are (:func:`~sar_zero123.config.parse_config`).
+
+    Raises:
+        ValueError: Naming the flag, for a bad value.
+    """
+    return parse_config(DemoConfig, argv, prog="sar-zero123-demo")
 
 
 #: What the served page may load from outside this machine: nothing. Tags gradio's page template adds that
@@ -334,15 +317,17 @@ def local_app(demo: Any) -> Any:
 
 
 def main(argv: Sequence[str] | None = None) -> None:
-    """Serve the page until interrupted."""
+    """Serve the page until interrupted; a bad flag is refused in one line (exit status 2)."""
+    try:
+        args = parse_args(argv)
+    except ValueError as error:
+        print(f"sar-zero123-demo: error: {error}", file=sys.stderr)
+        raise SystemExit(REFUSED) from None
     try:
         import gradio  # noqa: F401
     except ImportError:
         raise SystemExit("the demo needs gradio: pip install -e '.[demo]'") from None
-    args = parse_args(argv)
-    model = DemoModel(args.pipeline, args.num_inference_steps, args.guidance_scale,
-                      args.heading_guidance_scale, args.device, args.depression_guidance_scale,
-                      args.scheduler)  # fmt: skip
+    model = DemoModel(args.pipeline, args.sampler_settings(), args.device)
     demo = build_demo(model)
     if args.share:  # a public link is gradio's own server (and contacts gradio's share servers by design)
         demo.launch(server_name=args.host, server_port=args.port, share=True, max_file_size=MAX_UPLOAD_BYTES,

@@ -255,14 +255,10 @@ def generate_views(
     chip: np.ndarray,
     d_az: Sequence[float],
     d_el: Sequence[float],
-    num_inference_steps: int | None,
-    guidance_scale: float | None,
+    sampler: SamplerSettings,
     seed: int,
+    *,
     input_depression_deg: float | None = None,
-    heading_guidance_scale: float | None = None,
-    strength: float | None = None,
-    depression_guidance_scale: float | None = None,
-    start_from: str | None = None,
     input_azimuth_deg: float | None = None,
     return_fit_score: bool = False,
 ) -> np.ndarray | tuple[np.ndarray, float | None]:
@@ -270,25 +266,18 @@ def generate_views(
     ``generate_pair_targets`` generates one view per view pair instead).
 
     Args:
-        pipe: The pipeline.
+        pipe: The pipeline (its scheduler as ``sampler.apply_scheduler`` left it).
         chip: Normalised dB input, shape ``(H, W)``.
         d_az: Azimuth deltas in degrees, one per view.
         d_el: Depression deltas in degrees, 1 or one per view.
-        num_inference_steps: Denoising steps.
-        guidance_scale: Classifier-free guidance weight.
+        sampler: How the pipeline samples (:class:`~sar_zero123.model.sampler.SamplerSettings`; a field left
+            ``None`` is the pipeline's recorded value, ``pipe.config.sampler``).
         seed: View ``i`` is sampled with ``torch.Generator().manual_seed(seed + i)``.
         input_depression_deg: The chip's absolute depression in degrees, for a pipeline whose pose
             carries it (``pose_projection.config.input_depression``).
-        heading_guidance_scale: Weight of guidance away from the flipped heading (``SARZero123Pipeline``).
-        strength: Share of the steps run from the chip's own noised latent (1: from noise).
-        depression_guidance_scale: Weight of guidance away from the input's depression
-            (``SARZero123Pipeline``).
-        start_from: The draft a ``strength < 1`` call starts from (``SARZero123Pipeline``).
         input_azimuth_deg: The chip's absolute azimuth in degrees (the simulator proxy's fit).
         return_fit_score: Also return how well the simulator proxy fits the chip (``None`` where none was
             fitted; ``SARZero123PipelineOutput.proxy_fit_scores``).
-
-        Every sampler argument given as ``None`` is the pipeline's recorded value (``pipe.config.sampler``).
 
     Returns:
         Views in normalised dB, float32, shape ``(V, H, W)``; with ``return_fit_score``, ``(views, score)``.
@@ -302,15 +291,10 @@ def generate_views(
         d_az=list(d_az),
         d_el=d_el,
         input_depression_deg=input_depression_deg,
-        num_inference_steps=num_inference_steps,
-        guidance_scale=guidance_scale,
-        heading_guidance_scale=heading_guidance_scale,
-        depression_guidance_scale=depression_guidance_scale,
-        strength=strength,
-        start_from=start_from,
         input_azimuth_deg=input_azimuth_deg,
         generator=generators,
         output_type="np",
+        **sampler.sampler_arguments(),
     )
     views = out.images[..., 0]
     if not return_fit_score:
@@ -405,14 +389,9 @@ def main(argv: Sequence[str] | None = None) -> Path:
         chip,
         config.d_az,
         config.d_el,
-        config.num_inference_steps,
-        config.guidance_scale,
+        config.sampler_settings(),
         config.seed,
         input_depression_deg=input_depression_deg,
-        heading_guidance_scale=config.heading_guidance_scale,
-        strength=config.strength,
-        depression_guidance_scale=config.depression_guidance_scale,
-        start_from=config.start_from,
         input_azimuth_deg=input_azimuth_deg,
         return_fit_score=True,
     )

@@ -16,13 +16,15 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from sar_zero123.demo import MAX_UPLOAD_BYTES, TURNTABLE_VIEWS, DemoModel, parse_args, to_uint8
+from sar_zero123.demo import MAX_UPLOAD_BYTES, TURNTABLE_VIEWS, DemoModel, main, parse_args, to_uint8
+from sar_zero123.model.sampler import SamplerSettings
+from sar_zero123.pretrained import SIM_PRIOR_ROTATED
 from sar_zero123.sim import make_target, render_chip
 
 
 @pytest.fixture(scope="module")
 def model() -> DemoModel:
-    return DemoModel(num_inference_steps=2)
+    return DemoModel(sampler=SamplerSettings(num_inference_steps=2))
 
 
 def test_a_simulated_vehicle_its_views_and_its_truth(model):
@@ -45,26 +47,33 @@ def test_a_simulated_vehicle_its_views_and_its_truth(model):
     assert np.abs(from_noise - views).max() > 1e-2
     unguided_level = model.views(unknown, [0.0, 45.0], 0.0, seed=3)[1]
     # depression guidance reaches the pipeline: a depression request moves, a level one does not
-    model.depression_guidance_scale = 3.0
+    model.sampler = dataclasses.replace(model.sampler, depression_guidance_scale=3.0)
     try:
         level = model.views(unknown, [0.0, 45.0], 0.0, seed=3)[1]
         np.testing.assert_allclose(level, unguided_level, atol=2e-3)
         assert np.abs(model.views(unknown, [60.0, -30.0], 10.0, seed=3) - from_noise).max() > 1e-3
     finally:
-        model.depression_guidance_scale = None
+        model.sampler = dataclasses.replace(model.sampler, depression_guidance_scale=None)
 
 
 def test_the_command_with_no_options_leaves_the_sampler_to_the_pipeline_and_refuses_bad_values(capsys):
     args = parse_args([])
-    assert (args.num_inference_steps, args.guidance_scale, args.heading_guidance_scale) == (None, None, None)
-    assert parse_args(["--num_inference_steps", "7"]).num_inference_steps == 7
+    assert args.sampler_settings() == SamplerSettings()  # every sampler field left to the pipeline
+    assert (args.pipeline, args.host, args.port, args.share) == (SIM_PRIOR_ROTATED, "127.0.0.1", 7860, False)
+    assert parse_args(["--num-inference-steps", "7", "--start_from", "proxy"]).sampler_settings() == (
+        SamplerSettings(num_inference_steps=7, start_from="proxy")
+    )
     expected = ("num_inference_steps must be an integer in [1, 1,000], got 0",
-                "heading_guidance_scale must lie in [0, 100], got nan")  # fmt: skip
-    for bad, message in zip((["--num_inference_steps", "0"], ["--heading_guidance_scale", "nan"]), expected):
-        with pytest.raises(SystemExit) as done:
+                "heading_guidance_scale must lie in [0, 100], got -1.0",
+                "port must lie in [1, 65535], got 0")  # fmt: skip
+    bad_flags = (["--num_inference_steps", "0"], ["--heading_guidance_scale", "-1"], ["--port", "0"])
+    for bad, message in zip(bad_flags, expected):
+        with pytest.raises(ValueError, match=re.escape(message)):
             parse_args(bad)
+        with pytest.raises(SystemExit) as done:  # the command refuses it in one line
+            main(bad)
         assert done.value.code == 2
-        assert f"error: --{message}" in capsys.readouterr().err
+        assert capsys.readouterr().err == f"sar-zero123-demo: error: {message}\n"
 
 
 def test_bad_uploads_and_requests_are_refused_with_a_message(model, tmp_path):

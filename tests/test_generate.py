@@ -25,8 +25,14 @@ from sar_zero123.generate import (
 )
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.sampler import SamplerSettings
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED
 from sar_zero123.sim.proxy import ProxyBank
+
+
+def sampler(steps: int, **fields: float) -> SamplerSettings:
+    """A sampler of ``steps`` steps at zero-1-to-3's guidance scale 3, the rest as given."""
+    return SamplerSettings(num_inference_steps=steps, guidance_scale=3.0, **fields)
 
 
 @pytest.fixture(scope="module")
@@ -100,7 +106,7 @@ def test_strength_and_heading_guidance_reach_the_pipeline(pipeline_dir, chip_png
                         strength=0.5, heading_guidance_scale=1.5, generator=generator,
                         output_type="np").images[0, ..., 0]  # fmt: skip
         np.testing.assert_allclose(np.load(sorted(out.glob("view_*.npy"))[index]), expected, atol=1e-5)
-    from_noise = generate_views(pipe, chip, [30.0], [0.0], 4, 3.0, 2, heading_guidance_scale=1.5)
+    from_noise = generate_views(pipe, chip, [30.0], [0.0], sampler(4, heading_guidance_scale=1.5), 2)
     assert np.abs(from_noise[0] - np.load(sorted(out.glob("view_*.npy"))[0])).max() > 1e-3
 
 
@@ -116,10 +122,10 @@ def test_depression_guidance_reaches_the_pipeline(chip_png, tmp_path):
           "--depression_guidance_scale", "2"])  # fmt: skip
     assert json.loads((out / "config.json").read_text())["depression_guidance_scale"] == 2.0
     chip = load_input_chip(GenerateConfig(pipeline=str(tmp_path / "pipeline"), image=str(chip_png)), 32)
-    expected = generate_views(pipe, chip, [30.0], [-5.0], 3, 3.0, 1, depression_guidance_scale=2.0)
+    expected = generate_views(pipe, chip, [30.0], [-5.0], sampler(3, depression_guidance_scale=2.0), 1)
     written = np.load(sorted(out.glob("view_*.npy"))[0])
     np.testing.assert_allclose(written, expected[0], atol=1e-5)
-    unguided = generate_views(pipe, chip, [30.0], [-5.0], 3, 3.0, 1)
+    unguided = generate_views(pipe, chip, [30.0], [-5.0], sampler(3), 1)
     assert np.abs(written - unguided[0]).max() > 1e-3
 
 
@@ -273,10 +279,10 @@ def test_input_depression_reaches_the_pipeline(registry_dir, chip_png, tmp_path)
     pipe = SARZero123Pipeline.from_pretrained(folder)
     pipe.set_progress_bar_config(disable=True)
     chip = load_input_chip(GenerateConfig(pipeline=str(folder), image=str(chip_png)), 32)
-    views = generate_views(pipe, chip, [30.0, 90.0], [0.0, 10.0], 2, 3.0, 0, input_depression_deg=40.0)
+    views = generate_views(pipe, chip, [30.0, 90.0], [0.0, 10.0], sampler(2), 0, input_depression_deg=40.0)
     np.testing.assert_allclose(views[1], at_40["view_01_daz+090.00_del+10.00.npy"], atol=1e-5)
     with pytest.raises(ValueError, match=r"`input_depression_deg`: this pipeline's pose carries"):
-        generate_views(pipe, chip, [30.0], [0.0], 1, 3.0, 0)
+        generate_views(pipe, chip, [30.0], [0.0], sampler(1), 0)
 
 
 def test_depression_recorded_in_the_chip_file_is_used(registry_dir, tmp_path, capsys):

@@ -55,7 +55,7 @@ def test_the_call_runs_the_quickstart_stages_with_its_budget_in_its_order(tmp_pa
     args = gpu_mstar_pfm.build_parser().parse_args([
         "run", "--data", str(data), "--out", str(tmp_path / "out"), "--work", str(tmp_path / "work"),
         "--recipe", "smoke", "--protocol", "ood-B",
-        "--set", "finetune_batch_size=8", "lr_scheduler=constant",
+        "--set", "finetune.train_batch_size=8", "finetune.lr_scheduler=constant",
         "--simclr_minutes", "0.5", "--eval_batch_size", "4",
     ])  # fmt: skip
     plans = gpu_mstar_pfm._gpu_plans(args)
@@ -75,7 +75,7 @@ def test_the_call_runs_the_quickstart_stages_with_its_budget_in_its_order(tmp_pa
     assert isinstance(evaluate, EvaluateConfig) and evaluate.steps == [] and evaluate.eval_batch_size == 4
     assert evaluate.pipeline == [str(tmp_path / "work" / f"finetune_lambda{w}" / "pipeline") for w in (0, 4)]
     # a decaying schedule would be spread over the unbounded steps: refused, naming the stage
-    args.set = ["finetune_batch_size=8", "lr_scheduler=cosine"]
+    args.set = ["finetune.train_batch_size=8", "finetune.lr_scheduler=cosine"]
     cosine = gpu_mstar_pfm._gpu_plans(args)[5]
     with pytest.raises(ValueError, match="finetune lambda=4: lr_scheduler 'cosine' would decay"):
         gpu_mstar_pfm._with_budget(cosine, args, 1.25)

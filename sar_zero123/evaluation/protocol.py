@@ -395,15 +395,10 @@ def generate_pair_targets(
     pipe: SARZero123Pipeline,
     pairs: PairSet,
     *,
-    num_inference_steps: int | None,
-    guidance_scale: float | None,
+    sampler: SamplerSettings,
     batch_size: int,
     device: torch.device,
     desc: str = "generating",
-    heading_guidance_scale: float | None = None,
-    strength: float | None = None,
-    start_from: str | None = None,
-    depression_guidance_scale: float | None = None,
 ) -> tuple[torch.Tensor, float]:
     """Generates the target view of every pair (seeded per pair), in batches, timing the pipeline calls.
 
@@ -412,8 +407,7 @@ def generate_pair_targets(
     each pair's input depression; a call that uses a simulator proxy (``start_from="proxy"``, or a
     ``spatial_pose="proxy"`` UNet) gets each input's depression and azimuth (its metadata), so that the
     pipeline fits the proxy itself. Each batch logs a progress line (``desc``), outside the timed calls.
-    ``strength`` and ``start_from`` are the pipeline's (image-to-image sampling; 1 starts from noise), as are
-    the two contrast guidances (``heading_guidance_scale``, ``depression_guidance_scale``); a sampler argument
+    ``sampler`` is how the pipeline samples (its scheduler as ``sampler.apply_scheduler`` left it); a field
     ``None`` is the pipeline's recorded value (:class:`~sar_zero123.model.sampler.SamplerSettings`).
 
     Returns:
@@ -422,7 +416,7 @@ def generate_pair_targets(
     device = torch.device(device)
     outputs, seconds = [], 0.0
     recorded = getattr(pipe.config, "sampler", None)
-    start = SamplerSettings(start_from=start_from).resolved(recorded)["start_from"]
+    start = sampler.resolved(recorded)["start_from"]
     uses_proxy = start == "proxy" or takes_proxy(pipe.pose_projection)
     takes_depression = uses_proxy or getattr(pipe.pose_projection.config, "input_depression", False)
     for start in range(0, len(pairs), batch_size):
@@ -439,14 +433,9 @@ def generate_pair_targets(
             d_el=pairs.d_el_deg[start:stop].to(device),
             input_depression_deg=depression,
             input_azimuth_deg=azimuth,
-            num_inference_steps=num_inference_steps,
-            guidance_scale=guidance_scale,
-            heading_guidance_scale=heading_guidance_scale,
-            depression_guidance_scale=depression_guidance_scale,
-            strength=strength,
-            start_from=start_from,
             generator=generators,
             output_type="pt",
+            **sampler.sampler_arguments(),
         ).images
         if device.type == "cuda":
             torch.cuda.synchronize(device)

@@ -27,8 +27,8 @@ from diffusers import (
 
 __all__ = [
     "EXPORTED_SAMPLER", "MAX_GUIDANCE_SCALE", "MAX_INFERENCE_STEPS", "SAMPLER_DEFAULTS", "SCHEDULERS",
-    "START_FROM", "SamplerSettings", "check_sampler_start", "resolve_sampler", "scheduler_name",
-    "set_scheduler",
+    "START_FROM", "SamplerSettings", "check_sampler_start", "describe_sampler", "resolve_sampler",
+    "scheduler_name", "set_scheduler",
 ]  # fmt: skip
 
 #: Larger guidance scales overflow the guided noise estimate (NaN images); zero-1-to-3 samples with 3.
@@ -110,6 +110,11 @@ class SamplerSettings:
             depression_guidance_scale=self.depression_guidance_scale, start_from=self.start_from,
         )  # fmt: skip
 
+    def sampler_settings(self) -> SamplerSettings:
+        """These settings alone, as the library's sampling functions take them (a command's config inherits
+        the fields; this drops its others)."""
+        return SamplerSettings(**{item.name: getattr(self, item.name) for item in fields(SamplerSettings)})
+
     def sampler_arguments(self) -> dict[str, Any]:
         """The pipeline call's sampler arguments: every field but ``scheduler`` (``None``: recorded)."""
         names = [item.name for item in fields(SamplerSettings) if item.name != "scheduler"]
@@ -159,6 +164,20 @@ def resolve_sampler(
     return values
 
 
+def describe_sampler(values: Mapping[str, Any]) -> str:
+    """A sampler in words, for a report: ``values`` are the sampler fields a command recorded (an evaluation's
+    ``table3.json``), e.g. "20 DDIM steps, guidance 3.0, heading guidance 1.5, from the input at strength 0.8"
+    (heading guidance named only when on, the start only below strength 1)."""
+    text = f"{values['num_inference_steps']} DDIM steps, guidance {values['guidance_scale']}"
+    heading = values.get("heading_guidance_scale") or 0.0
+    if heading:
+        text += f", heading guidance {heading}"
+    strength = values.get("strength", 1.0)
+    if strength < 1.0:
+        text += f", from the {values.get('start_from', 'input').replace('_', ' ')} at strength {strength}"
+    return text
+
+
 def set_scheduler(pipe: Any, name: str) -> None:
     """Swaps the pipeline's sampler for one of :data:`SCHEDULERS`, keeping the noise schedule.
 
@@ -185,7 +204,6 @@ def check_sampler_start(
     strength: float | None,
     heading_guidance_scale: float | None,
     steps: Mapping[str, int | None],
-    prefix: str = "",
     depression_guidance_scale: float | None = 0.0,
     start_from: str | None = "input",
 ) -> None:
@@ -193,18 +211,17 @@ def check_sampler_start(
     ``depression_guidance_scale`` outside [0, ``MAX_GUIDANCE_SCALE``], ``strength`` outside (0, 1], a
     ``strength`` that leaves no denoising step of one of the ``steps`` (field name: step count), or a
     ``start_from`` not in :data:`START_FROM`. A ``None`` (a field left to the pipeline's recorded sampler) is
-    checked by the pipeline at the call instead. Every message names the field as ``prefix`` + its name (the
-    quickstart preset's ``eval_`` fields).
+    checked by the pipeline at the call instead. Every message names the field.
 
     Raises:
         ValueError: On any of the above.
     """
     scales = (heading_guidance_scale, depression_guidance_scale)
-    _check_contrast_scales(*(0.0 if scale is None else scale for scale in scales), prefix + "{}")
+    _check_contrast_scales(*(0.0 if scale is None else scale for scale in scales), "{}")
     if strength is not None:
-        _check_strength(strength, {name: count for name, count in steps.items() if count is not None}, prefix)
+        _check_strength(strength, {name: count for name, count in steps.items() if count is not None})
     if start_from is not None and start_from not in START_FROM:
-        raise ValueError(f"{prefix}start_from must be one of {START_FROM}, got {start_from!r}")
+        raise ValueError(f"start_from must be one of {START_FROM}, got {start_from!r}")
 
 
 def _check_contrast_scales(heading: float, depression: float, name_format: str) -> None:

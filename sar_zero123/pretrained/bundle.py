@@ -1,6 +1,6 @@
 """Make a bundled pipeline folder from a trained one: float16 weights, the measured sampler recorded.
 
-    python -m sar_zero123.pretrained.bundle PIPELINE NAME --sampler '{"heading_guidance_scale": 3.0}'
+    python -m sar_zero123.pretrained.bundle PIPELINE NAME --sampler '{"strength": 0.5, "start_from": "proxy"}'
 
 copies the ``save_pretrained`` folder ``PIPELINE`` (a prior stage's ``base/pipeline``) to
 ``sar_zero123/pretrained/NAME``, with every ``*.safetensors`` tensor of a floating dtype cast to float16

@@ -25,7 +25,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -492,12 +492,6 @@ def _score_speckled(
     results.setdefault(f"{row} + speckle", {})[group] = scores
 
 
-def _sampler(config: EvaluateConfig) -> dict[str, Any]:
-    """How every row samples (:func:`generate_pair_targets`' arguments besides the step count; ``None``: the
-    pipeline's recorded value)."""
-    arguments = config.sampler_arguments()
-    del arguments["num_inference_steps"]
-    return {**arguments, "batch_size": config.eval_batch_size}
 
 
 def _score_pipelines(
@@ -514,8 +508,8 @@ def _score_pipelines(
         results[name], generated[name] = {}, {}
         for group, pairs in pair_sets.items():
             images, seconds = generate_pair_targets(
-                pipe, pairs, num_inference_steps=config.num_inference_steps, device=device,
-                desc=f"{name} {group}", **_sampler(config),
+                pipe, pairs, sampler=config.sampler_settings(), batch_size=config.eval_batch_size,
+                device=device, desc=f"{name} {group}",
             )  # fmt: skip
             generated[name][group] = images
             scores = score(images, pairs, evaluators, **_scoring(config, device))
@@ -584,15 +578,17 @@ def _speed_sweep(
         for scheduler in config.schedulers:
             set_scheduler(pipe, scheduler)
             # a warm-up call, so one-time costs (allocation, kernel selection) do not count
+            warm_up = SamplerSettings(num_inference_steps=1, guidance_scale=config.guidance_scale)
             generate_pair_targets(
-                pipe, pairs.subset(1), num_inference_steps=1, guidance_scale=config.guidance_scale,
-                batch_size=1, device=device, desc=f"{name} {scheduler} warm-up",
+                pipe, pairs.subset(1), sampler=warm_up, batch_size=1, device=device,
+                desc=f"{name} {scheduler} warm-up",
             )  # fmt: skip
             for steps in config.steps:
                 with UNetImageCount(pipe) as unet_count, PeakMemory(device) as memory:
+                    sampler = replace(config.sampler_settings(), num_inference_steps=steps)
                     images, seconds = generate_pair_targets(
-                        pipe, pairs, num_inference_steps=steps, device=device,
-                        desc=f"{name} {scheduler} {steps} steps", **_sampler(config),
+                        pipe, pairs, sampler=sampler, batch_size=config.eval_batch_size, device=device,
+                        desc=f"{name} {scheduler} {steps} steps",
                     )  # fmt: skip
                 scores = score(images, pairs, evaluators, **_scoring(config, device))
                 rows.append({

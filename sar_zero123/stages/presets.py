@@ -1,295 +1,149 @@
-"""The quickstart's presets: the sizes of each end-to-end run, and the run's own config.
+"""The quickstart's recipes, and the run's own config.
 
-:class:`Preset` holds every size of one run (data, SimCLR, VAE, base model, fine-tunes, evaluators,
-evaluation); :data:`PRESETS` names the shipped ones; :class:`QuickstartConfig` is what the user chooses
-(a preset, overrides of its fields, the data, the protocol, the PFM weights, the seed). Every field is
-checked when the preset is built, in the preset's own names, so a bad ``--set`` fails before the
-first stage. :func:`~sar_zero123.stages.quickstart.run_quickstart` runs them.
+A recipe (``sar_zero123/recipes/<name>.yaml``, or a file of one's own) is a few sections named after the
+quickstart's stages (:data:`RECIPE_SECTIONS`), each holding fields of that stage's own config class, merged
+onto that class's defaults: a small file of differences, as nanoGPT's and k-diffusion's config files are.
+The ``shared`` section (:class:`SharedSettings`) holds what spans the stages (chip size, prior, precision).
+A sampling stage names its sampler's fields in a nested ``sampler`` section. :class:`QuickstartConfig` is
+what the user chooses (a recipe, ``--set SECTION.FIELD=VALUE`` items, the data, the protocol, the PFM
+weights, the seed); :func:`~sar_zero123.stages.quickstart.plan_stages` builds, and so checks, every stage's
+config from them before anything runs.
 """
 
 from __future__ import annotations
 
-import ast
 import dataclasses
-import json
-import logging
+import functools
 import math
-import types
 import typing
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Literal
 
-from sar_zero123.config import RemovedField
+from sar_zero123.config import RemovedField, _coerce, _set_value
 from sar_zero123.data.splits import OOD_INTERVAL_WIDTH_DEG, check_protocol, ood_validation_intervals
-from sar_zero123.model.build import SAR_ZERO123_SIZES
-from sar_zero123.model.conditioning import downsampling_factor
-from sar_zero123.model.pipeline import START_FROM, check_sampler_start
-from sar_zero123.model.sampler import SCHEDULERS
-from sar_zero123.pretrained import resolve_pretrained
-from sar_zero123.sim import TARGET_CLASSES
-from sar_zero123.stages.evaluate import MAX_EVALUATION_PAIRS, MAX_SWEEP_STEP_COUNTS
-from sar_zero123.training.losses import (
-    TRAINED_PREDICTION_TYPES,
-    LossSettings,
-    check_prediction_type,
-)
+from sar_zero123.model.sampler import SamplerSettings
+from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
+from sar_zero123.stages.corpus import CorpusConfig
+from sar_zero123.stages.evaluate import EvaluateConfig
+from sar_zero123.stages.evaluators import TrainEvaluatorsConfig
+from sar_zero123.stages.finetune import FinetuneConfig
+from sar_zero123.stages.simclr import PretrainSimCLRConfig
+from sar_zero123.stages.simulate import SimulateConfig
+from sar_zero123.stages.vae import TrainVAEConfig
 from sar_zero123.yaml_data import read_yaml
 
 __all__ = [
-    "DEFAULT_PRESET", "MAX_EVAL_N", "PRESETS", "RECIPE_DIR", "RECIPE_STAGES", "Preset", "QuickstartConfig",
-    "apply_overrides", "load_recipe", "recipe_names",
+    "DEFAULT_RECIPE", "RECIPES", "RECIPE_DIR", "RECIPE_SECTIONS", "REMOVED_RECIPE_FIELDS", "QuickstartConfig",
+    "Recipe", "SharedSettings", "apply_overrides", "load_recipe", "recipe_names",
 ]  # fmt: skip
-
-logger = logging.getLogger(__name__)
-
-#: Most evaluation pairs a preset may ask for (the evaluation stage's own bound).
-MAX_EVAL_N = MAX_EVALUATION_PAIRS
 
 
 @dataclass(frozen=True)
-class Preset:
-    """Every setting of one quickstart run, by stage (:data:`RECIPE_STAGES`): a recipe file's values merged
-    onto the default recipe's (:func:`load_recipe`; ``sar_zero123/recipes/default.yaml`` sets them all)."""
+class SharedSettings:
+    """What spans the quickstart's stages (a recipe's ``shared`` section): each stage that has the field gets
+    this value, and which optional stages run.
 
-    classes: tuple[str, ...]  # simulated classes; the last one is held out (unseen)
-    instances: int  # simulated objects per class
-    azimuth_step_deg: float  # azimuth grid of the simulator
-    model_size: str  # build_sar_zero123 size fine-tuned from scratch
-    image_size: int  # chip side in pixels
-    encoder_cifar_stem: bool  # 3x3 stride-1 stem (reference) or the 4x-downsampling ImageNet stem (faster)
-    encoder_depths: tuple[int, ...]  # ResNet blocks per stage (SimCLR encoder and evaluators)
-    encoder_widths: tuple[int, ...]  # ResNet stage widths
-    simclr_steps: int  # SimCLR optimisation steps
-    simclr_batch_size: int  # SimCLR chips per step
-    vae_widths: tuple[int, ...]  # VAE block widths (3 blocks: 16x16 latents of a 64 px chip)
-    vae_norm_groups: int  # GroupNorm groups of the VAE (divides every width)
-    vae_steps: int  # VAE optimisation steps
-    vae_batch_size: int  # chips per VAE step
-    estimate_input_azimuth: bool  # the SAR-sized pose path (build_sar_zero123(estimate_input_azimuth=True))
-    base_steps: int  # lambda = 0 steps of the base model both fine-tunes start from
-    finetune_steps: int  # fine-tuning steps per lambda, from the base model
-    finetune_batch_size: int  # pairs per fine-tuning step
-    finetune_learning_rate: float  # AdamW learning rate of the UNet (from scratch: higher than the paper's)
-    pfm_fraction: float  # share of the PFM-eligible samples of a batch that get PFM (unbiased, cheaper)
-    pfm_projection_dim: int | None  # 10: the authors' 512->10 projection, so lambda = 4 means the paper's 4
-    evaluator_epochs: int  # epochs of the scratch classifier and regressor
-    evaluator_learning_rate: float  # AdamW peak learning rate of the evaluators
-    eval_n: int  # evaluation samples (half seen, half unseen)
-    eval_steps: int  # DDIM steps for Tables III/IV
-    speed_steps: tuple[int, ...]  # step counts of the speed/error sweep
-    speed_n: int  # samples per speed/error point
-    schedulers: tuple[str, ...]  # samplers of the speed/error sweep
-    lr_scheduler: str  # diffusers LR schedule of the base model and of each fine-tune
-    lr_warmup_steps: int  # its warm-up steps (each stage)
-    ema_decay: float | None  # EMA of the exported UNet (None: the last weights)
-    train_image_encoder: bool  # train the (random) CLIP tower with the UNet
-    # the base model's training target and loss weighting (finetune_pfm.py's fields of the same names; the
-    # fine-tunes inherit the prediction type from the base model's scheduler)
-    prediction_type: str  # "epsilon" (zero-1-to-3, the paper) or "v_prediction"
-    snr_gamma: float | None  # Min-SNR-gamma weighting of L_simple in every stage (None: unweighted)
-    timestep_sampling: str  # training t density of every stage: "uniform" or "logit_normal"
-    timestep_logit_mean: float  # logit_normal: mean of logit(t / T) (> 0 favours high noise)
-    # every training stage (SimCLR, VAE, base model, fine-tunes) saves a resumable checkpoint every this
-    # many steps and keeps the last two; a re-run resumes an interrupted stage from its newest intact one
-    checkpointing_steps: int
-    # accelerate mixed precision of every training stage ("bf16" on a recent GPU); the evaluation samples
-    # in float32 either way
-    mixed_precision: str
-    # a pretrained pipeline (a bundled name such as "sar-zero123/sim-prior", or a folder) that every fine-tune
-    # starts from, as the paper fine-tunes zero-1-to-3: its VAE is kept and no base model is trained
-    # (vae_* and base_steps unused); None trains the VAE and a base model from scratch
-    prior: str | None
-    # target depressions of a second Table III from 17 deg inputs (d_el = target - 17) on a simulated set
-    # at 17 deg and these depressions, with a depression regressor among the evaluators; () skips it
-    depression_targets_deg: tuple[float, ...]
-    # with a prior: fine-tune its VAE's decoder alone (the encoder, hence the latents the prior's UNet knows,
-    # kept) this many steps on the training chips, with vae_feature_loss_weight times the feature loss through
-    # the SimCLR encoder, before the fine-tunes, which then decode with it; 0 keeps the prior's VAE
-    vae_decoder_steps: int
-    vae_feature_loss_weight: float
-    # the evaluation also scores every view and VAE round trip with speckle re-added (readd_speckle with this
-    # many looks: 1 for MSTAR), as rows "<row> + speckle"; None: not
-    eval_speckle_looks: int | None
-    # how lambda scales PFM in the lambda > 0 fine-tunes (finetune_pfm.py's --pfm_balance: "none" is Eq. 21's
-    # fixed weight, "adaptive" makes PFM pull lambda times as hard as L_simple) and where PFM applies
-    # (--pfm_min_snr: PFM only where SNR(t) >= this)
-    pfm_balance: str
-    pfm_min_snr: float
-    # rehearsal (with a prior): a corpus of this many procedural vehicles, rendered with the prior's corpus
-    # options into rehearsal/corpus (one vehicle held out as its validation class), whose pairs across
-    # depressions make rehearsal_fraction of every fine-tune batch, so that the fine-tunes keep the prior's
-    # depression requests; 0: the task's pairs only
-    rehearsal_vehicles: int
-    rehearsal_fraction: float
-    # the fine-tunes train rank-r LoRA factors beside the frozen UNet (finetune_pfm.py's --lora_rank, merged
-    # at export) instead of every UNet weight; None: every weight trains. It keeps depression requests as
-    # a lower learning rate does, no better
-    finetune_lora_rank: int | None
-    # how both evaluations sample (train/evaluate.py's --heading_guidance_scale and --strength): guidance
-    # away from the flipped heading (0: off), and in (0, 1] the share of the steps sampled from the input's
-    # noised latent (1: from noise)
-    eval_heading_guidance_scale: float
-    eval_strength: float
-    # what eval_strength < 1 starts from (train/evaluate.py's --start_from): "input", "turned_input", or
-    # "proxy", a simulator vehicle fitted to each input at its pose from index.csv and re-rendered at the
-    # request
-    eval_start_from: str
-    # guidance away from the input's depression (train/evaluate.py's --depression_guidance_scale; 0: off):
-    # changes only requests with d_el != 0, the depression evaluation's
-    eval_depression_guidance_scale: float
+    Raises:
+        ValueError: Naming the field, for a value out of range or a stage that needs a prior without one.
+        FileNotFoundError: For a ``prior`` that is not a pipeline folder.
+    """
 
-    def _check_image_size(self) -> None:
-        """The prior exists and the chips fit its VAE and UNet (or ``model_size``'s): checked before any
-        stage, since the fine-tunes would refuse them only after SimCLR and the VAE."""
+    image_size: int = 64  # chip side in pixels of every stage
+    # a pretrained pipeline (a bundled name or a folder) every fine-tune starts from, as the paper fine-tunes
+    # zero-1-to-3: its VAE is kept and neither the vae nor the base section is used; None trains a VAE and a
+    # base model from scratch
+    prior: str | None = SIM_PRIOR_ROTATED
+    mixed_precision: Literal["no", "fp16", "bf16"] = "no"  # accelerate mixed precision, every training stage
+    # every training stage saves a resumable checkpoint every this many steps and keeps the last two
+    checkpointing_steps: int = 1000
+    # target depressions of a second Table III from 17 deg inputs on a simulated set at 17 deg and these
+    # depressions, with a depression regressor among the evaluators; () skips it
+    depression_targets_deg: tuple[float, ...] = (10.0, 30.0, 45.0)
+    # with a prior: fine-tune its VAE's decoder alone (the vae_decoder section) before the fine-tunes, which
+    # then decode with it
+    decoder_fine_tune: bool = False
+    # with a prior: render a corpus of procedural vehicles (the corpus section) whose pairs make
+    # finetune.rehearsal_fraction of every fine-tune batch
+    rehearsal: bool = False
+
+    def __post_init__(self) -> None:
+        if isinstance(self.image_size, bool) or self.image_size < 16:
+            raise ValueError(f"shared.image_size must be >= 16, got {self.image_size}")
+        if isinstance(self.checkpointing_steps, bool) or self.checkpointing_steps < 1:
+            raise ValueError(f"shared.checkpointing_steps must be >= 1, got {self.checkpointing_steps}")
+        if any(not 0.0 < d < 90.0 for d in self.depression_targets_deg):
+            raise ValueError(
+                f"shared.depression_targets_deg must lie in (0, 90), got {self.depression_targets_deg}"
+            )
+        for name in ("decoder_fine_tune", "rehearsal"):
+            if getattr(self, name) and self.prior is None:
+                raise ValueError(f"shared.{name}: needs a prior (shared.prior) to fine-tune from")
         if self.prior is not None:
             folder = resolve_pretrained(self.prior)  # an unknown bundled name is refused there
             if not (folder / "model_index.json").is_file():
                 raise FileNotFoundError(
-                    f"prior: {self.prior!r} is not a pipeline folder (no model_index.json)"
+                    f"shared.prior: {self.prior!r} is not a pipeline folder (no model_index.json)"
                 )
-            widths = [
-                json.loads((folder / part / "config.json").read_text())["block_out_channels"]
-                for part in ("vae", "unet")
-            ]
-            source = f"the prior {self.prior!r}"
-        else:
-            spec = SAR_ZERO123_SIZES[self.model_size]
-            widths = [spec["vae"]["block_out_channels"], spec["unet"]["block_out_channels"]]
-            source = f"model_size {self.model_size!r}"
-        multiple = downsampling_factor(widths[0]) * downsampling_factor(widths[1])
-        if self.image_size % multiple:
-            raise ValueError(
-                f"image_size must be a multiple of {multiple} for {source} (VAE x UNet downsampling), "
-                f"got {self.image_size}"
-            )
-
-    def __post_init__(self) -> None:
-        # every field checked here, in the preset's own names, so that a bad --set fails before the
-        # first stage instead of when its stage starts
-        counts = ("instances", "simclr_steps", "simclr_batch_size", "vae_steps", "vae_batch_size",
-                  "base_steps", "finetune_steps", "finetune_batch_size", "evaluator_epochs", "eval_steps",
-                  "speed_n", "checkpointing_steps")  # fmt: skip
-        for name in counts:
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, int) or value < 1:
-                raise ValueError(f"{name} must be an integer >= 1, got {value!r}")
-        rank = self.finetune_lora_rank
-        if rank is not None and (isinstance(rank, bool) or not isinstance(rank, int) or rank < 1):
-            raise ValueError(f"finetune_lora_rank must be None or an integer >= 1, got {rank!r}")
-        if self.eval_n < 4:
-            raise ValueError(f"eval_n must be >= 4 (two seen and two unseen pairs), got {self.eval_n}")
-        if self.eval_n > MAX_EVAL_N:
-            raise ValueError(f"eval_n must be <= {MAX_EVAL_N}, got {self.eval_n}")
-        if len(self.classes) < 2 or len(set(self.classes)) != len(self.classes):
-            raise ValueError(f"classes must name at least two distinct classes, got {self.classes!r}")
-        unknown = sorted(set(self.classes) - set(TARGET_CLASSES))
-        if unknown:
-            raise ValueError(f"classes: unknown {unknown}; simulator classes are {list(TARGET_CLASSES)}")
-        if self.model_size not in SAR_ZERO123_SIZES:
-            raise ValueError(
-                f"model_size must be one of {sorted(SAR_ZERO123_SIZES)}, got {self.model_size!r}"
-            )
-        if self.image_size < 16:
-            raise ValueError(f"image_size must be >= 16, got {self.image_size}")
-        if not 0.0 < self.azimuth_step_deg <= 360.0:
-            raise ValueError(f"azimuth_step_deg must lie in (0, 360], got {self.azimuth_step_deg}")
-        # the loss settings a recipe carries are validated by their owner, once
-        LossSettings(
-            **{
-                f.name: getattr(self, f.name)
-                for f in dataclasses.fields(LossSettings)
-                if hasattr(self, f.name)
-            }
-        )
-        for name in ("finetune_learning_rate", "evaluator_learning_rate"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be > 0, got {getattr(self, name)}")
-        if not self.encoder_depths or len(self.encoder_depths) != len(self.encoder_widths):
-            raise ValueError(
-                f"encoder_depths {self.encoder_depths} and encoder_widths {self.encoder_widths} must be "
-                "non-empty and of one length"
-            )
-        steps = self.speed_steps
-        if not steps or min(steps) < 1 or len(set(steps)) != len(steps):
-            raise ValueError(f"speed_steps must be distinct step counts >= 1, got {self.speed_steps}")
-        if len(self.speed_steps) > MAX_SWEEP_STEP_COUNTS:
-            raise ValueError(f"speed_steps: at most {MAX_SWEEP_STEP_COUNTS} step counts, got {len(steps)}")
-        if self.speed_n > self.eval_n // 2:
-            raise ValueError(
-                f"speed_n must be <= eval_n // 2 = {self.eval_n // 2} (the speed sweep samples seen pairs), "
-                f"got {self.speed_n}"
-            )
-        if len(set(self.schedulers)) != len(self.schedulers):
-            raise ValueError(f"schedulers must be distinct, got {self.schedulers!r}")
-        unknown = sorted(set(self.schedulers) - set(SCHEDULERS))
-        if not self.schedulers or unknown:
-            raise ValueError(f"schedulers: choose from {sorted(SCHEDULERS)}, got {self.schedulers!r}")
-        if any(not 0.0 < d < 90.0 for d in self.depression_targets_deg):
-            raise ValueError(f"depression_targets_deg must lie in (0, 90), got {self.depression_targets_deg}")
-        if self.lr_warmup_steps < 0:
-            raise ValueError(f"lr_warmup_steps must be >= 0, got {self.lr_warmup_steps}")
-        if self.ema_decay is not None and not 0.0 <= self.ema_decay < 1.0:
-            raise ValueError(f"ema_decay must lie in [0, 1) or be None, got {self.ema_decay}")
-        if self.mixed_precision not in ("no", "fp16", "bf16"):
-            raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
-        check_prediction_type(self.prediction_type, TRAINED_PREDICTION_TYPES)
-        steps = self.vae_decoder_steps
-        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 0:
-            raise ValueError(f"vae_decoder_steps must be an integer >= 0, got {steps!r}")
-        if steps and self.prior is None:
-            raise ValueError(
-                "vae_decoder_steps: fine-tunes a prior's decoder; set prior, or train a VAE (vae_steps)"
-            )
-        if not self.vae_feature_loss_weight >= 0:
-            raise ValueError(f"vae_feature_loss_weight must be >= 0, got {self.vae_feature_loss_weight}")
-        self._check_image_size()
-        vehicles = self.rehearsal_vehicles
-        if isinstance(vehicles, bool) or not isinstance(vehicles, int) or vehicles < 0 or vehicles == 1:
-            raise ValueError(
-                f"rehearsal_vehicles must be 0 (no rehearsal) or an integer >= 2, got {vehicles!r}"
-            )
-        if vehicles and self.prior is None:
-            raise ValueError("rehearsal_vehicles: rehearses a prior's corpus in its fine-tunes; set prior")
-        if not 0.0 < self.rehearsal_fraction < 1.0:
-            raise ValueError(f"rehearsal_fraction must lie in (0, 1), got {self.rehearsal_fraction}")
-        check_sampler_start(self.eval_strength, self.eval_heading_guidance_scale,
-                            {"eval_steps": self.eval_steps, "speed_steps": min(self.speed_steps)},
-                            prefix="eval_",
-                            depression_guidance_scale=self.eval_depression_guidance_scale)  # fmt: skip
-        if self.eval_start_from not in START_FROM:
-            raise ValueError(f"eval_start_from must be one of {START_FROM}, got {self.eval_start_from!r}")
-        looks = self.eval_speckle_looks
-        if looks is not None and (isinstance(looks, bool) or not isinstance(looks, int) or looks < 1):
-            raise ValueError(f"eval_speckle_looks must be an integer >= 1 or None, got {looks!r}")
-        if any(width % self.vae_norm_groups for width in self.vae_widths):
-            raise ValueError(
-                f"vae_norm_groups {self.vae_norm_groups} must divide each of vae_widths {self.vae_widths}"
-            )
 
 
-#: The bundled recipes (``sar_zero123/recipes/<name>.yaml``): small, diffable YAML files of per-stage values,
-#: each merged onto the recipe it ``extends`` (``default`` holds every field).
-RECIPE_DIR = Path(__file__).resolve().parents[1] / "recipes"
-#: Every :class:`Preset` field under the stage it sizes: a recipe's sections, and ``--set STAGE.FIELD=VALUE``.
-RECIPE_STAGES: dict[str, tuple[str, ...]] = {
-    "data": ("classes", "instances", "azimuth_step_deg", "image_size"),
-    "simclr": ("encoder_cifar_stem", "encoder_depths", "encoder_widths", "simclr_steps", "simclr_batch_size"),
-    "vae": ("vae_widths", "vae_norm_groups", "vae_steps", "vae_batch_size", "vae_decoder_steps",
-            "vae_feature_loss_weight"),
-    "model": ("prior", "model_size", "estimate_input_azimuth", "base_steps", "prediction_type", "snr_gamma",
-              "timestep_sampling", "timestep_logit_mean", "train_image_encoder"),
-    "finetune": ("finetune_steps", "finetune_batch_size", "finetune_learning_rate", "lr_scheduler",
-                 "lr_warmup_steps", "ema_decay", "pfm_fraction", "pfm_projection_dim", "pfm_balance",
-                 "pfm_min_snr", "rehearsal_vehicles", "rehearsal_fraction", "finetune_lora_rank"),
-    "evaluators": ("evaluator_epochs", "evaluator_learning_rate"),
-    "evaluate": ("eval_n", "eval_steps", "eval_heading_guidance_scale", "eval_strength", "eval_start_from",
-                 "eval_depression_guidance_scale", "eval_speckle_looks", "depression_targets_deg",
-                 "speed_steps", "speed_n", "schedulers"),
-    "run": ("checkpointing_steps", "mixed_precision"),
+#: A recipe's sections: the quickstart's stages, each by the config class whose fields it holds. ``base`` (the
+#: base model a run without a prior trains) is merged onto ``finetune``'s values; ``evaluate`` configures both
+#: evaluations.
+RECIPE_SECTIONS: dict[str, type] = {
+    "shared": SharedSettings,
+    "simulate": SimulateConfig,
+    "simclr": PretrainSimCLRConfig,
+    "vae": TrainVAEConfig,
+    "vae_decoder": TrainVAEConfig,
+    "corpus": CorpusConfig,
+    "finetune": FinetuneConfig,
+    "base": FinetuneConfig,
+    "evaluators": TrainEvaluatorsConfig,
+    "evaluate": EvaluateConfig,
+}
+#: A sampling stage's sampler fields, named ``SECTION.sampler.FIELD`` (a nested section).
+SAMPLER_SECTION = "sampler"
+_SAMPLER_FIELDS = tuple(item.name for item in dataclasses.fields(SamplerSettings))
+#: Recipe fields that were removed, each with what replaced it: a recipe, ``--set`` item or run folder that
+#: names one is refused in one line naming its replacement.
+REMOVED_RECIPE_FIELDS: dict[str, str] = {
+    "classes": "simulate.classes", "instances": "simulate.instances",
+    "azimuth_step_deg": "simulate.azimuth_step_deg", "image_size": "shared.image_size",
+    "encoder_cifar_stem": "simclr.cifar_stem and evaluators.cifar_stem",
+    "encoder_depths": "simclr.depths and evaluators.depths",
+    "encoder_widths": "simclr.hidden_sizes (embedding_size: its first) and evaluators.hidden_sizes",
+    "simclr_steps": "simclr.max_train_steps", "simclr_batch_size": "simclr.global_batch_size",
+    "vae_widths": "vae.block_out_channels", "vae_norm_groups": "vae.norm_num_groups",
+    "vae_steps": "vae.max_train_steps",
+    "vae_batch_size": "vae.train_batch_size and vae_decoder.train_batch_size",
+    "vae_decoder_steps": "vae_decoder.max_train_steps, with shared.decoder_fine_tune=true",
+    "vae_feature_loss_weight": "vae_decoder.feature_loss_weight", "prior": "shared.prior",
+    "model_size": "base.size", "estimate_input_azimuth": "base.estimate_input_azimuth",
+    "base_steps": "base.max_train_steps", "prediction_type": "base.prediction_type",
+    "snr_gamma": "finetune.snr_gamma", "timestep_sampling": "finetune.timestep_sampling",
+    "timestep_logit_mean": "finetune.timestep_logit_mean",
+    "train_image_encoder": "finetune.train_image_encoder",
+    "finetune_steps": "finetune.max_train_steps", "finetune_batch_size": "finetune.train_batch_size",
+    "finetune_learning_rate": "finetune.learning_rate", "lr_scheduler": "finetune.lr_scheduler",
+    "lr_warmup_steps": "finetune.lr_warmup_steps", "ema_decay": "finetune.use_ema and finetune.ema_decay",
+    "pfm_fraction": "finetune.pfm_fraction", "pfm_projection_dim": "finetune.pfm_projection_dim",
+    "pfm_balance": "finetune.pfm_balance", "pfm_min_snr": "finetune.pfm_min_snr",
+    "rehearsal_vehicles": "corpus.num_vehicles, with shared.rehearsal=true",
+    "rehearsal_fraction": "finetune.rehearsal_fraction", "finetune_lora_rank": "finetune.lora_rank",
+    "evaluator_epochs": "evaluators.epochs and evaluators.probe_epochs",
+    "evaluator_learning_rate": "evaluators.learning_rate", "eval_n": "evaluate.n",
+    "eval_steps": "evaluate.sampler.num_inference_steps",
+    # eval_strength, eval_start_from and the two contrast guidances' eval_ fields
+    **{f"eval_{name}": f"evaluate.sampler.{name}" for name in _SAMPLER_FIELDS
+       if name not in ("num_inference_steps", "scheduler", "guidance_scale")},
+    "eval_speckle_looks": "evaluate.speckle_looks", "depression_targets_deg": "shared.depression_targets_deg",
+    "speed_steps": "evaluate.steps", "speed_n": "evaluate.speed_n", "schedulers": "evaluate.schedulers",
+    "checkpointing_steps": "shared.checkpointing_steps", "mixed_precision": "shared.mixed_precision",
 }  # fmt: skip
-_STAGE_OF = {name: stage for stage, names in RECIPE_STAGES.items() for name in names}
+#: The bundled recipes: small YAML files of per-stage values, each merged onto the recipe it ``extends``.
+RECIPE_DIR = Path(__file__).resolve().parents[1] / "recipes"
 #: A recipe file is a few kilobytes; a larger one is not a recipe.
 MAX_RECIPE_BYTES = 64 * 1024
 #: Most recipes in one chain of ``extends``.
@@ -302,38 +156,56 @@ def recipe_names() -> list[str]:
     return sorted(path.stem for path in RECIPE_DIR.glob("*.yaml"))
 
 
-def _typed(name: str, value: Any) -> Any:
-    """``value`` as field ``name`` of :class:`Preset` takes it (a list becomes a tuple, an int a float).
+def removed_recipe_field(name: str) -> str | None:
+    """The one-line refusal for a removed recipe field (``preset.NAME``, ``STAGE.NAME`` or ``NAME``), or
+    ``None`` for a name :data:`REMOVED_RECIPE_FIELDS` does not list."""
+    bare = name.rpartition(".")[2]
+    if bare not in REMOVED_RECIPE_FIELDS:
+        return None
+    return f"{name} was removed: it is now {REMOVED_RECIPE_FIELDS[bare]}"
+
+
+@functools.cache
+def _hints(section: str) -> dict[str, Any]:
+    """The fields a section may set, with their types (``sampler.``-prefixed for a sampler's)."""
+    cls = RECIPE_SECTIONS[section]
+    hints = typing.get_type_hints(cls)
+    names = [item.name for item in dataclasses.fields(cls) if item.init]
+    if issubclass(cls, SamplerSettings):
+        return {(f"{SAMPLER_SECTION}.{n}" if n in _SAMPLER_FIELDS else n): hints[n] for n in names}
+    return {name: hints[name] for name in names}
+
+
+def _typed(section: str, name: str, value: Any) -> Any:
+    """``value`` as ``section``'s field ``name`` (``sampler.FIELD`` for a sampler field) takes it.
 
     Raises:
-        ValueError: Naming the field, for a value of another type.
+        ValueError: Naming ``section.name``, for an unknown or removed field, or a value of another type.
     """
-    annotation = typing.get_type_hints(Preset)[name]
-    union = typing.get_origin(annotation) in (typing.Union, types.UnionType)
-    allowed = typing.get_args(annotation) if union else (annotation,)
-    if value is None and type(None) in allowed:
-        return None
-    for kind in allowed:
-        if typing.get_origin(kind) is tuple:
-            item = typing.get_args(kind)[0]
-            if isinstance(value, list | tuple) and all(_is_a(v, item) for v in value):
-                return tuple(float(v) if item is float else v for v in value)
-        elif kind is not type(None) and _is_a(value, kind):
-            return float(value) if kind is float else value
-    raise ValueError(f"{name} takes {_type_name(annotation)}, got {value!r}")
+    hints = _hints(section)
+    if name not in hints:
+        removed = removed_recipe_field(f"{section}.{name}")
+        if removed is not None and name not in _SAMPLER_FIELDS:
+            raise ValueError(removed)
+        if f"{SAMPLER_SECTION}.{name}" in hints:
+            raise ValueError(f"{section}.{name}: a sampler field; name it {section}.{SAMPLER_SECTION}.{name}")
+        raise ValueError(f"{section}.{name} is not a field of {section}; its fields are {sorted(hints)}")
+    return _coerce(f"{section}.{name}", value, hints[name])
 
 
-def _is_a(value: Any, kind: type) -> bool:
-    """``value`` is a ``kind`` (a bool is not a number; an int is a float)."""
-    if isinstance(value, bool):
-        return kind is bool
-    if kind is float:
-        return isinstance(value, int | float) and math.isfinite(value)  # YAML reads .inf and 1e999 as inf
-    return isinstance(value, kind)
-
-
-def _type_name(annotation: Any) -> str:
-    return str(annotation).replace("typing.", "").replace("<class '", "").replace("'>", "")
+def _section_values(where: str, section: str, values: Any) -> dict[str, Any]:
+    """A recipe section's mapping, typed; a nested sampler section flattened to ``sampler.FIELD`` keys."""
+    if not isinstance(values, dict):
+        raise ValueError(f"{where}: {section} must map fields to values, got {values!r}")
+    typed: dict[str, Any] = {}
+    for name, value in values.items():
+        nested = f"{SAMPLER_SECTION}.{_SAMPLER_FIELDS[0]}" in _hints(section)
+        if name == SAMPLER_SECTION and nested and isinstance(value, dict):
+            for inner, item in value.items():
+                typed[f"{SAMPLER_SECTION}.{inner}"] = _typed(section, f"{SAMPLER_SECTION}.{inner}", item)
+        else:
+            typed[name] = _typed(section, name, value)
+    return typed
 
 
 def _recipe_file(recipe: str) -> Path:
@@ -359,13 +231,13 @@ def _recipe_file(recipe: str) -> Path:
     return path
 
 
-def _recipe_values(recipe: str, seen: tuple[str, ...] = ()) -> dict[str, Any]:
-    """Every field a recipe sets, merged onto the recipes it extends (a recipe's own values win).
+def _recipe_values(recipe: str, seen: tuple[str, ...] = ()) -> dict[str, dict[str, Any]]:
+    """Every section's values a recipe sets, merged onto the recipes it extends (a recipe's own values win).
 
     Raises:
-        ValueError: Naming the recipe, for a file that is not a mapping of stages to fields, an unknown stage
-            or field, a field under another stage than its own, a field given twice, or a chain of
-            ``extends`` that loops or is deeper than :data:`MAX_RECIPE_DEPTH`.
+        ValueError: Naming the recipe, for a file that is not a mapping of sections to fields, an unknown
+            section or field, a removed one (naming its replacement), a value of another type, or a chain
+            of ``extends`` that loops or is deeper than :data:`MAX_RECIPE_DEPTH`.
     """
     if recipe in seen or len(seen) >= MAX_RECIPE_DEPTH:
         raise ValueError(f"recipe: the chain of extends {' -> '.join([*seen, recipe])} loops or is too deep")
@@ -377,48 +249,155 @@ def _recipe_values(recipe: str, seen: tuple[str, ...] = ()) -> dict[str, Any]:
     data = read_yaml(text, f"recipe {recipe!r}")  # data only: no tags, aliases, deep nesting or repeats
     if not isinstance(data, dict):
         kind = type(data).__name__
-        raise ValueError(f"recipe {recipe!r}: expected a mapping of stages to fields, got {kind}")
+        raise ValueError(f"recipe {recipe!r}: expected a mapping of sections to fields, got {kind}")
     data = dict(data)
     parent = data.pop("extends", None)
     if parent is not None and (not isinstance(parent, str) or parent not in recipe_names()):
         names = ", ".join(recipe_names())
         raise ValueError(f"recipe {recipe!r}: extends must name a bundled recipe ({names}), got {parent!r}")
-    values: dict[str, Any] = {}
-    for stage, section in data.items():
-        if stage not in RECIPE_STAGES:
-            raise ValueError(f"recipe {recipe!r}: unknown stage {stage!r}; stages are {list(RECIPE_STAGES)}")
-        if not isinstance(section, dict):
-            raise ValueError(f"recipe {recipe!r}: {stage} must map fields to values, got {section!r}")
-        for name, value in section.items():
-            if _STAGE_OF.get(name) != stage:
-                where = f"; it belongs under {_STAGE_OF[name]}" if name in _STAGE_OF else ""
-                raise ValueError(f"recipe {recipe!r}: {stage}.{name} is not a field of {stage}{where}")
-            values[name] = _typed(name, value)
+    values: dict[str, dict[str, Any]] = {}
+    for section, mapping in data.items():
+        if section not in RECIPE_SECTIONS:
+            names = mapping if isinstance(mapping, dict) else {}
+            removed = [message for name in names if (message := removed_recipe_field(f"{section}.{name}"))]
+            if removed:
+                raise ValueError(f"recipe {recipe!r}: {removed[0]}")
+            raise ValueError(
+                f"recipe {recipe!r}: unknown section {section!r}; sections are {list(RECIPE_SECTIONS)}"
+            )
+        try:
+            values[section] = _section_values(f"recipe {recipe!r}", section, mapping)
+        except ValueError as error:
+            raise ValueError(f"recipe {recipe!r}: {error}") from None
     base = _recipe_values(parent, (*seen, recipe)) if parent is not None else {}
-    return {**base, **values}
+    return {name: {**base.get(name, {}), **values.get(name, {})} for name in RECIPE_SECTIONS}
 
 
-def load_recipe(recipe: str) -> Preset:
-    """The :class:`Preset` of a bundled recipe (by name) or a recipe file (by path), checked.
+@dataclass(frozen=True)
+class Recipe:
+    """A resolved recipe: each section's values (the differences from its config class's defaults) and the
+    shared settings they give."""
+
+    name: str  # the recipe's name or file
+    sections: Mapping[str, Mapping[str, Any]]  # section -> field (``sampler.FIELD``) -> value
+
+    def __post_init__(self) -> None:
+        SharedSettings(**self.sections["shared"])  # the shared settings are checked with the recipe
+
+    @property
+    def shared(self) -> SharedSettings:
+        """The ``shared`` section, checked."""
+        return SharedSettings(**self.sections["shared"])
+
+    def value(self, section: str, name: str) -> Any:
+        """The value ``section`` gives ``name`` (``sampler.FIELD`` too): the recipe's, else its class's
+        default (``base`` falls back on ``finetune``)."""
+        values = self.sections[section]
+        if name in values:
+            return values[name]
+        if section == "base" and name in self.sections["finetune"]:
+            return self.sections["finetune"][name]
+        item = {f.name: f for f in dataclasses.fields(RECIPE_SECTIONS[section])}[name.rpartition(".")[2]]
+        return item.default if item.default is not dataclasses.MISSING else item.default_factory()  # type: ignore[misc]
+
+    def stage_values(self, section: str, without: Sequence[str] = (), **plumbing: Any) -> dict[str, Any]:
+        """The keyword arguments of ``section``'s config: its recipe values (``base``: ``finetune``'s, then
+        its own) but those ``without`` names (left at their defaults), and ``plumbing``, what the quickstart
+        itself sets (paths, seed, the shared settings).
+
+        Raises:
+            ValueError: For a recipe value the quickstart sets itself (naming the field and what sets it).
+        """
+        own = self.sections[section]
+        if section == "base":
+            own = {**self.sections["finetune"], **own}
+        values = {name.rpartition(".")[2]: value for name, value in own.items()}
+        values = {name: value for name, value in values.items() if name not in without}
+        taken = sorted(set(values) & set(plumbing))
+        if taken:
+            raise ValueError(
+                f"{section}.{taken[0]} is set by the quickstart itself (from shared, the run's folder or its "
+                "flags); leave it out of the recipe"
+            )
+        return {**values, **plumbing}
+
+    def to_dict(self) -> dict[str, dict[str, Any]]:
+        """The sections the recipe sets, as written to ``recipe.json`` (sampler fields nested)."""
+        out: dict[str, dict[str, Any]] = {}
+        for section, values in self.sections.items():
+            nested: dict[str, Any] = {}
+            for name, value in values.items():
+                head, dot, inner = name.partition(".")
+                if dot:
+                    nested.setdefault(head, {})[inner] = value
+                else:
+                    nested[name] = list(value) if isinstance(value, tuple) else value
+            if nested:
+                out[section] = nested
+        return out
+
+    def flat(self) -> dict[str, Any]:
+        """Every value the recipe sets, one key per field (``SECTION.FIELD``), and every shared setting."""
+        shared = {f"shared.{k}": v for k, v in dataclasses.asdict(self.shared).items()}
+        return {**shared, **{f"{section}.{name}": value for section, values in self.sections.items()
+                             if section != "shared" for name, value in values.items()}}  # fmt: skip
+
+
+def load_recipe(recipe: str) -> Recipe:
+    """The :class:`Recipe` of a bundled recipe (by name) or a recipe file (by path), its shared settings
+    checked (a stage's own fields are checked when :func:`~sar_zero123.stages.quickstart.plan_stages` builds
+    its config).
 
     Raises:
-        FileNotFoundError: For an unknown name or a missing file.
-        ValueError: Naming the recipe and field, for anything :func:`_recipe_values` or :class:`Preset`
-            refuses, or a recipe that leaves a field unset (extend ``default``, which sets them all).
+        FileNotFoundError: For an unknown name, a missing file or a missing prior.
+        ValueError: Naming the recipe and field, for anything :func:`_recipe_values` or
+            :class:`SharedSettings` refuses.
     """
-    values = _recipe_values(recipe)
-    missing = [f.name for f in dataclasses.fields(Preset) if f.name not in values]
-    if missing:
-        raise ValueError(f"recipe {recipe!r}: no value for {missing}; add extends: default")
+    sections = _recipe_values(recipe)
     try:
-        return Preset(**values)
-    except ValueError as error:
+        return Recipe(recipe, sections)
+    except (ValueError, TypeError) as error:
         raise ValueError(f"recipe {recipe!r}: {error}") from None
 
 
-#: The bundled recipes, loaded: each a checked :class:`Preset`.
-PRESETS: dict[str, Preset] = {name: load_recipe(name) for name in recipe_names()}
-DEFAULT_PRESET = PRESETS["default"]
+def apply_overrides(recipe: Recipe, overrides: Sequence[str]) -> Recipe:
+    """``recipe`` with the ``SECTION.FIELD=VALUE`` items of ``overrides`` set (``SECTION.sampler.FIELD`` for
+    a sampler field; ``VALUE`` as ``--set`` reads it: a number, a name, ``true``/``false``, ``none``, a list
+    as ``[8, 16]`` or ``8,16``); the shared settings are checked again.
+
+    Raises:
+        ValueError: Naming the item, for a missing ``=`` or section, an unknown or removed field (naming its
+            replacement), or a value of another type than the field's.
+    """
+    sections = {name: dict(values) for name, values in recipe.sections.items()}
+    for item in overrides:
+        key, separator, text = item.partition("=")
+        section, dot, name = key.strip().partition(".")
+        if not separator or not dot or section not in RECIPE_SECTIONS:
+            removed = removed_recipe_field(key.strip())
+            if removed is not None:
+                raise ValueError(f"set: {removed} (in {item!r})")
+            raise ValueError(
+                f"set: expected SECTION.FIELD=VALUE with SECTION one of {', '.join(RECIPE_SECTIONS)}; "
+                f"got {item!r}"
+            )
+        hints = _hints(section)
+        try:
+            if name not in hints:
+                _typed(section, name, None)  # refuses the name, naming a removed field's replacement
+        except ValueError as error:
+            raise ValueError(f"set: {error} (in {item!r})") from None
+        value = _set_value(text.strip().strip("'\""), hints[name], key)  # its refusal names the item
+        sections[section][name] = _typed(section, name, value)
+    try:
+        return Recipe(recipe.name, sections)
+    except (ValueError, TypeError) as error:
+        raise ValueError(f"set: {error}") from None
+
+
+#: The bundled recipes, loaded.
+RECIPES: dict[str, Recipe] = {name: load_recipe(name) for name in recipe_names()}
+DEFAULT_RECIPE = RECIPES["default"]
 
 
 @dataclass
@@ -436,8 +415,9 @@ class QuickstartConfig:
     # a re-run in the same folder with more values trains only the new ones
     lambdas: list[float] = field(default_factory=lambda: [0.0, 4.0])
     seed: int = 0  # seed of every stage
-    # recipe fields replaced for this run, [STAGE.]FIELD=VALUE with a Python literal (finetune.finetune_steps=
-    # 3000, lr_scheduler=cosine, vae_widths=16,32,64); the run's preset.json records the result
+    # recipe fields replaced for this run, SECTION.FIELD=VALUE (finetune.max_train_steps=3000,
+    # finetune.lr_scheduler=cosine, vae.block_out_channels=16,32,64, evaluate.sampler.strength=1); the
+    # run's recipe.json records the result
     set: list[str] = field(default_factory=list)
     # continue this folder: an interrupted run resumes each stage, a finished one is kept, and more --lambdas
     # train only the new fine-tunes (then every lambda is evaluated again on the same pairs)
@@ -448,7 +428,7 @@ class QuickstartConfig:
     #: in one line naming the field that replaced it.
     REMOVED_FIELDS = {
         "preset": RemovedField(None, "it is now recipe (--recipe NAME)"),
-        "override": RemovedField(None, "it is now set (--set STAGE.FIELD=VALUE)"),
+        "override": RemovedField(None, "it is now set (--set SECTION.FIELD=VALUE)"),
     }
 
     def __post_init__(self) -> None:
@@ -460,14 +440,14 @@ class QuickstartConfig:
             raise FileNotFoundError(f"data: expected a chip folder, got {self.data}")
         if self.data is not None and self.protocol is None:
             raise ValueError("protocol: give 'extended' or 'ood-<CLASS>' with --data (e.g. ood-T72)")
-        preset = self.preset()  # a bad recipe or --set fails before any stage
+        recipe = self.resolved_recipe()  # a bad recipe or --set fails before any stage
         if self.data is None and (self.protocol is None or self.protocol.startswith("ood-")):
-            _check_simulated_validation_split(preset.azimuth_step_deg, self.seed)
+            _check_simulated_validation_split(recipe.value("simulate", "azimuth_step_deg"), self.seed)
         if self.protocol is not None and check_protocol(self.protocol) == "soc":
             # evaluate.py pairs seen/unseen views by `extended` or `ood-*`: fail here, not after training
             raise ValueError("protocol: the quickstart evaluates 'extended' or 'ood-<CLASS>', got 'soc'")
 
-    def preset(self) -> Preset:
+    def resolved_recipe(self) -> Recipe:
         """The run's settings: the recipe with ``set``'s values (each checked)."""
         return apply_overrides(load_recipe(self.recipe), self.set)
 
@@ -483,33 +463,20 @@ def _check_simulated_validation_split(azimuth_step_deg: float, seed: int) -> Non
             f"seed: the ood protocol's validation split holds the azimuths of {len(intervals)} "
             f"{OOD_INTERVAL_WIDTH_DEG:g}-deg intervals drawn with --seed {seed} (starting at {starts} deg), "
             f"and no simulated chip lies in them with azimuth_step_deg={azimuth_step_deg:g}: choose another "
-            f"--seed, or a finer grid (--set azimuth_step_deg={OOD_INTERVAL_WIDTH_DEG:g} always works)"
+            f"--seed, or a finer grid (--set simulate.azimuth_step_deg={OOD_INTERVAL_WIDTH_DEG:g} always "
+            "works)"
         )
 
 
-def apply_overrides(preset: Preset, overrides: Sequence[str]) -> Preset:
-    """`preset` with the `[STAGE.]FIELD=VALUE` items of `overrides` replaced (`VALUE` a Python literal; a bare
-    word is a string; a list becomes a tuple); the preset's own checks run on the result.
+def refuse_old_record(record: Mapping[str, Any] | None, where: str) -> None:
+    """Refuse a quickstart run folder written with the removed recipe fields (its record's ``preset.*``
+    values), in one line naming the first field and its replacement.
 
     Raises:
-        ValueError: naming the item, for an unknown field, a stage the field is not under, a missing ``=``,
-            or a value of another type than the field's (an int is accepted for a float field).
+        ValueError: For such a record.
     """
-    changes: dict[str, Any] = {}
-    for item in overrides:
-        key, separator, text = item.partition("=")
-        stage, dot, name = key.rpartition(".")
-        if not separator or name not in _STAGE_OF or (dot and _STAGE_OF[name] != stage):
-            raise ValueError(
-                f"set: expected [STAGE.]FIELD=VALUE with FIELD one of {sorted(_STAGE_OF)} under its stage "
-                f"({', '.join(RECIPE_STAGES)}); got {item!r}"
-            )
-        try:
-            value = ast.literal_eval(text)
-        except (ValueError, SyntaxError):
-            value = text  # a bare word: lr_scheduler=cosine
-        try:
-            changes[name] = _typed(name, value)
-        except ValueError as error:
-            raise ValueError(f"set: {error} (in {item!r})") from None
-    return dataclasses.replace(preset, **changes)
+    old = sorted(key for key in (record or {}).get("config", {}) if key.startswith("preset."))
+    if old:
+        message = removed_recipe_field(old[0]) or f"{old[0]} was removed"
+        raise ValueError(f"{where}: a run of the old recipe fields ({message}); --restart moves it aside")
+

@@ -1,10 +1,12 @@
 """The quickstart: every stage of the method end to end, as the README's main command runs it.
 
-:func:`plan_stages` builds the typed config of every stage from a :class:`~sar_zero123.stages.presets.Preset`
-before anything runs, so a setting a stage refuses fails first, named in the preset's terms.
-:func:`run_quickstart` then applies the run-folder rule to the run's folder (its record holds the
-quickstart's settings and the preset's values), runs each stage (each under its own rule, continued with
-``resume``) and writes ``report.md`` from what the stages left on disk (:mod:`sar_zero123.stages.report`).
+:func:`plan_stages` builds the typed config of every stage from its recipe section
+(:class:`~sar_zero123.stages.presets.Recipe`: the section's values merged onto the stage config's defaults,
+plus what the quickstart sets itself: paths, seed, the shared settings) before anything runs, so a setting a
+stage refuses fails first, naming the stage. :func:`run_quickstart` then applies the run-folder rule to the
+run's folder (its record holds the quickstart's settings and the recipe's values), runs each stage (each
+under its own rule, continued with ``resume``) and writes ``report.md`` from what the stages left on disk
+(:mod:`sar_zero123.stages.report`).
 """
 
 from __future__ import annotations
@@ -12,13 +14,14 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 from sar_zero123.config import config_to_dict, save_config, write_json_atomic
 from sar_zero123.model.build import SAR_ZERO123_SIZES
+from sar_zero123.model.conditioning import downsampling_factor
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.folder import (
     field_defaults,
@@ -27,21 +30,31 @@ from sar_zero123.runs.folder import (
     run_differences,
 )
 from sar_zero123.runs.stage import open_stage_folder
-from sar_zero123.stages.corpus import CORPUS_FOLDER, CorpusConfig, run_corpus
+from sar_zero123.stages.corpus import CORPUS_FOLDER, run_corpus
 from sar_zero123.stages.evaluate import EVALUATE_MAY_DIFFER, EvaluateConfig, run_evaluate
-from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, run_evaluators
-from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
-from sar_zero123.stages.presets import Preset, QuickstartConfig
+from sar_zero123.stages.evaluators import run_evaluators
+from sar_zero123.stages.finetune import run_finetune
+from sar_zero123.stages.presets import (
+    RECIPE_SECTIONS,
+    QuickstartConfig,
+    Recipe,
+    SharedSettings,
+    refuse_old_record,
+)
 from sar_zero123.stages.proxies import PROXIES_FOLDER, ProxiesConfig, run_proxies
 from sar_zero123.stages.report import write_report
-from sar_zero123.stages.simclr import PretrainSimCLRConfig, run_simclr
+from sar_zero123.stages.simclr import run_simclr
 from sar_zero123.stages.simulate import SimulateConfig, run_simulate
-from sar_zero123.stages.vae import TrainVAEConfig, run_vae
+from sar_zero123.stages.vae import run_vae
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["StagePlan", "plan_stages", "run_quickstart"]
 
+#: The evaluation's speed/error sweep, run once, in the azimuth evaluation.
+SPEED_SWEEP = ("steps", "schedulers", "speed_n")
+#: The resolved recipe a run folder holds (each section's values the recipe sets).
+RECIPE_FILE = "recipe.json"
 #: Fields of an evaluation that a run with more ``--lambdas`` changes: the evaluation is then redone.
 _PIPELINE_FIELDS = ("pipeline", "pipeline_names", "lambdas")
 
@@ -60,18 +73,19 @@ class StagePlan:
         return Path(config.out if isinstance(config, SimulateConfig) else config.output_dir)
 
 
-def _build(stage: str, cls: type, **values: Any) -> Any:
-    """``cls(**values)``, with a refusal naming the quickstart stage whose config refused the preset."""
+def _build(stage: str, section: str, recipe: Recipe, without: Sequence[str] = (), **plumbing: Any) -> Any:
+    """The config of one stage: its recipe section's values (but those ``without`` names) and ``plumbing``
+    (what the quickstart sets), with a refusal naming the quickstart stage whose config refused them."""
     try:
-        return cls(**values)
+        return RECIPE_SECTIONS[section](**recipe.stage_values(section, without, **plumbing))
     except (ValueError, TypeError) as error:
         raise ValueError(
-            f"the {stage} stage refuses this recipe (check --recipe and --set): {error}"
+            f"the {stage} stage refuses this recipe (check --recipe and --set {section}.FIELD): {error}"
         ) from error
 
 
-def _protocol(config: QuickstartConfig, preset: Preset) -> str:
-    return config.protocol or f"ood-{preset.classes[-1]}"
+def _protocol(config: QuickstartConfig, recipe: Recipe) -> str:
+    return config.protocol or f"ood-{recipe.value('simulate', 'classes')[-1]}"
 
 
 def _takes_proxy(prior: str | None) -> bool:
@@ -82,93 +96,88 @@ def _takes_proxy(prior: str | None) -> bool:
     return config.is_file() and json.loads(config.read_text()).get("spatial_pose") == "proxy"
 
 
-def _training_stages(config: QuickstartConfig, preset: Preset, out: Path) -> list[StagePlan]:
+def _check_image_size(shared: SharedSettings, model_size: str) -> None:
+    """The chips fit the prior's VAE and UNet (or ``base.size``'s): checked before any stage, since the
+    fine-tunes would refuse them only after SimCLR and the VAE."""
+    if shared.prior is not None:
+        folder = resolve_pretrained(shared.prior)
+        widths = [json.loads((folder / part / "config.json").read_text())["block_out_channels"]
+                  for part in ("vae", "unet")]  # fmt: skip
+        source = f"the prior {shared.prior!r}"
+    else:
+        spec = SAR_ZERO123_SIZES[model_size]
+        widths = [spec["vae"]["block_out_channels"], spec["unet"]["block_out_channels"]]
+        source = f"base.size {model_size!r}"
+    multiple = downsampling_factor(widths[0]) * downsampling_factor(widths[1])
+    if shared.image_size % multiple:
+        raise ValueError(
+            f"shared.image_size must be a multiple of {multiple} for {source} (VAE x UNet downsampling), "
+            f"got {shared.image_size}"
+        )
+
+
+def _training_stages(config: QuickstartConfig, recipe: Recipe, out: Path) -> list[StagePlan]:
     """SimCLR; the VAE and base model without a prior; the rehearsal corpus; one fine-tune per lambda."""
+    shared = recipe.shared
     data = str(out / "data" if config.data is None else Path(config.data))
-    protocol = _protocol(config, preset)
-    common = {"data": data, "seed": config.seed, "image_size": preset.image_size, "protocol": protocol,
-              "mixed_precision": preset.mixed_precision,
-              "checkpointing_steps": preset.checkpointing_steps, "checkpoints_total_limit": 2,
+    common = {"data": data, "seed": config.seed, "image_size": shared.image_size,
+              "protocol": _protocol(config, recipe), "mixed_precision": shared.mixed_precision,
+              "checkpointing_steps": shared.checkpointing_steps, "checkpoints_total_limit": 2,
               "resume_from_checkpoint": "latest", "report_to": "none"}  # fmt: skip
     simclr_dir = out / "simclr"
-    plans = [StagePlan("simclr", _build(
-        "simclr", PretrainSimCLRConfig, **common, output_dir=str(simclr_dir), preset="speckle+monotonic",
-        cifar_stem=preset.encoder_cifar_stem, depths=list(preset.encoder_depths),
-        hidden_sizes=list(preset.encoder_widths), embedding_size=preset.encoder_widths[0],
-        global_batch_size=preset.simclr_batch_size, max_train_steps=preset.simclr_steps, epochs=10_000,
-    ), run_simclr)]  # fmt: skip
+    plans = [StagePlan("simclr", _build("simclr", "simclr", recipe, **common, output_dir=str(simclr_dir)),
+                       run_simclr)]  # fmt: skip
     vae_dir = out / "vae" / "vae"
-    if preset.prior is None:
-        shape = SAR_ZERO123_SIZES[preset.model_size]["vae"]
+    model_size = recipe.value("base", "size")
+    if shared.prior is None:  # the VAE of the base model's size
+        shape = SAR_ZERO123_SIZES[model_size]["vae"]
         plans.append(StagePlan("vae", _build(
-            "vae", TrainVAEConfig, **common, output_dir=str(out / "vae"),
-            block_out_channels=list(preset.vae_widths), layers_per_block=shape["layers_per_block"],
-            latent_channels=shape["latent_channels"], norm_num_groups=preset.vae_norm_groups,
-            train_batch_size=preset.vae_batch_size, max_train_steps=preset.vae_steps, learning_rate=1e-3,
-            num_eval_images=16,
+            "vae", "vae", recipe, **common, output_dir=str(out / "vae"),
+            layers_per_block=shape["layers_per_block"], latent_channels=shape["latent_channels"],
         ), run_vae))  # fmt: skip
 
-    if preset.prior is not None and preset.vae_decoder_steps:  # the prior's decoder adapted to these chips
+    if shared.decoder_fine_tune:  # the prior's decoder adapted to these chips
         vae_dir = out / "vae_decoder" / "vae"
+        weighted = recipe.value("vae_decoder", "feature_loss_weight")
         plans.append(StagePlan("vae decoder", _build(
-            "vae decoder", TrainVAEConfig, **common, output_dir=str(out / "vae_decoder"),
-            pretrained=preset.prior, train_encoder=False, feature_loss_weight=preset.vae_feature_loss_weight,
-            feature_encoder=str(simclr_dir / "encoder") if preset.vae_feature_loss_weight else None,
-            train_batch_size=preset.vae_batch_size, max_train_steps=preset.vae_decoder_steps,
-            learning_rate=1e-4, num_eval_images=16,
+            "vae decoder", "vae_decoder", recipe, **common, output_dir=str(out / "vae_decoder"),
+            pretrained=shared.prior, feature_encoder=str(simclr_dir / "encoder") if weighted else None,
         ), run_vae))  # fmt: skip
 
     proxies_dir = out / "proxies"
-    if _takes_proxy(preset.prior):  # each training chip's simulator proxies, the fine-tunes' condition
-        plans.append(StagePlan("proxies", _build(
-            "proxies", ProxiesConfig, data=data, output_dir=str(proxies_dir), image_size=preset.image_size,
+    if _takes_proxy(shared.prior):  # each training chip's simulator proxies, the fine-tunes' condition
+        plans.append(StagePlan("proxies", ProxiesConfig(
+            data=data, output_dir=str(proxies_dir), image_size=shared.image_size,
         ), run_proxies))  # fmt: skip
 
     rehearsal_dir = out / "rehearsal"
-    if preset.rehearsal_vehicles:
+    if shared.rehearsal:
         plans.append(StagePlan("rehearsal corpus", _build(
-            "rehearsal corpus", CorpusConfig, output_dir=str(rehearsal_dir),
-            num_vehicles=preset.rehearsal_vehicles, num_validation_vehicles=1, size=preset.image_size,
+            "rehearsal corpus", "corpus", recipe, output_dir=str(rehearsal_dir), size=shared.image_size,
             seed=config.seed,
         ), run_corpus))  # fmt: skip
 
-    def finetune(name: str, run_dir: Path, steps: int, weight: float, pretrained: str | None) -> StagePlan:
-        values: dict[str, Any] = {
-            **common, "output_dir": str(run_dir), "pfm_weight": weight, "pfm_fraction": preset.pfm_fraction,
-            "encoder": str(simclr_dir / "encoder"), "train_batch_size": preset.finetune_batch_size,
-            "max_train_steps": steps, "learning_rate": preset.finetune_learning_rate,
-            "lr_scheduler": preset.lr_scheduler, "lr_warmup_steps": preset.lr_warmup_steps,
-            "use_ema": preset.ema_decay is not None, "train_image_encoder": preset.train_image_encoder,
-            "timestep_sampling": preset.timestep_sampling, "timestep_logit_mean": preset.timestep_logit_mean,
-            "validation_steps": 0, "snr_gamma": preset.snr_gamma,
-            "pfm_projection_dim": preset.pfm_projection_dim, "pfm_balance": preset.pfm_balance,
-            "pfm_min_snr": preset.pfm_min_snr, "lora_rank": preset.finetune_lora_rank,
-        }  # fmt: skip
-        if preset.ema_decay is not None:
-            values["ema_decay"] = preset.ema_decay
-        if preset.rehearsal_vehicles:  # (a prior's fine-tunes) the whole rendered corpus, no subsample
-            values.update(rehearsal_data=str(rehearsal_dir / CORPUS_FOLDER), rehearsal_max_chips=None,
-                          rehearsal_fraction=preset.rehearsal_fraction)  # fmt: skip
-        if preset.prior is None or preset.vae_decoder_steps:
-            values["vae"] = str(vae_dir)
-        if _takes_proxy(preset.prior):
-            values["proxies"] = str(proxies_dir / PROXIES_FOLDER)
-        if pretrained is None:
-            values.update(size=preset.model_size, estimate_input_azimuth=preset.estimate_input_azimuth,
-                          prediction_type=preset.prediction_type)  # fmt: skip
-        else:
-            values["pretrained"] = pretrained
-        return StagePlan(name, _build(name, FinetuneConfig, **values), run_finetune)
+    def finetune(name: str, section: str, run_dir: Path, weight: float, pretrained: str | None) -> StagePlan:
+        plumbing: dict[str, Any] = {**common, "output_dir": str(run_dir), "pfm_weight": weight,
+                                    "encoder": str(simclr_dir / "encoder")}  # fmt: skip
+        if shared.rehearsal:  # (a prior's fine-tunes) the whole rendered corpus, no subsample
+            plumbing.update(rehearsal_data=str(rehearsal_dir / CORPUS_FOLDER), rehearsal_max_chips=None)
+        if shared.prior is None or shared.decoder_fine_tune:
+            plumbing["vae"] = str(vae_dir)
+        if _takes_proxy(shared.prior):
+            plumbing["proxies"] = str(proxies_dir / PROXIES_FOLDER)
+        if pretrained is not None:
+            plumbing["pretrained"] = pretrained
+        return StagePlan(name, _build(name, section, recipe, **plumbing), run_finetune)
 
-    if preset.prior is None:
-        plans.append(finetune("base model", out / "base", preset.base_steps, 0.0, None))
+    if shared.prior is None:
+        plans.append(finetune("base model", "base", out / "base", 0.0, None))
         base = str(out / "base" / "pipeline")
     else:  # the paper's regime: every fine-tune starts from one pretrained multi-view prior
-        base = str(resolve_pretrained(preset.prior))
+        base = str(resolve_pretrained(shared.prior))
     for weight in config.lambdas:
-        name = f"lambda={weight:g}"
-        plans.append(finetune(f"finetune {name}", out / f"finetune_lambda{weight:g}", preset.finetune_steps,
-                              weight, base))  # fmt: skip
+        name = f"finetune lambda={weight:g}"
+        plans.append(finetune(name, "finetune", out / f"finetune_lambda{weight:g}", weight, base))
     return plans
 
 
@@ -176,26 +185,30 @@ def plan_stages(config: QuickstartConfig) -> list[StagePlan]:
     """Every stage of the run with its typed config, in order; builds (and so validates) all of them.
 
     Raises:
-        ValueError: Naming the stage that refuses a setting of the preset (or its overrides).
+        ValueError: Naming the stage that refuses a setting of the recipe (or its ``--set`` items).
     """
-    preset = config.preset()
+    recipe = config.resolved_recipe()
+    shared = recipe.shared
+    _check_image_size(shared, recipe.value("base", "size"))
     out = Path(config.output_dir)
     data = out / "data" if config.data is None else Path(config.data)
     depression_data = out / "data_depression"
-    with_depressions = config.data is None and bool(preset.depression_targets_deg)
+    with_depressions = config.data is None and bool(shared.depression_targets_deg)
     plans: list[StagePlan] = []
     if config.data is None:  # 15 and 17 deg as MSTAR; views at other depressions for the depression table
+        classes = recipe.value("simulate", "classes")
+        if len(classes) < 2 or len(set(classes)) != len(classes):  # the last one is held out
+            raise ValueError(f"simulate.classes must name at least two distinct classes, got {classes!r}")
         simulated = [("simulate", data, [15.0, 17.0])]
         if with_depressions:
-            depressions = sorted({17.0, *preset.depression_targets_deg})
+            depressions = sorted({17.0, *shared.depression_targets_deg})
             simulated.append(("simulate depressions", depression_data, depressions))
         for name, folder, depressions in simulated:
             plans.append(StagePlan(name, _build(
-                name, SimulateConfig, out=str(folder), classes=list(preset.classes),
-                instances=preset.instances, azimuth_step_deg=preset.azimuth_step_deg,
-                depressions_deg=depressions, size=preset.image_size, seed=config.seed, resume=True,
+                name, "simulate", recipe, out=str(folder), depressions_deg=depressions,
+                size=shared.image_size, seed=config.seed, resume=True,
             ), run_simulate))  # fmt: skip
-    plans += _training_stages(config, preset, out)
+    plans += _training_stages(config, recipe, out)
     pipelines = {
         plan.name[len("finetune ") :]: str(Path(plan.config.output_dir) / "pipeline")
         for plan in plans
@@ -204,33 +217,25 @@ def plan_stages(config: QuickstartConfig) -> list[StagePlan]:
     simclr_dir = out / "simclr"
     evaluator_dir = out / "evaluators"
     plans.append(StagePlan("evaluators", _build(
-        "evaluators", TrainEvaluatorsConfig, output_dir=str(evaluator_dir), data=str(data),
+        "evaluators", "evaluators", recipe, output_dir=str(evaluator_dir), data=str(data),
         depression_data=str(depression_data) if with_depressions else None, seed=config.seed,
-        image_size=preset.image_size, mixed_precision=preset.mixed_precision,
-        cifar_stem=preset.encoder_cifar_stem, depths=list(preset.encoder_depths),
-        hidden_sizes=list(preset.encoder_widths), epochs=preset.evaluator_epochs,
-        probe_epochs=preset.evaluator_epochs, learning_rate=preset.evaluator_learning_rate,
-        train_batch_size=32, simclr_encoders=[str(simclr_dir)], resume=True,
+        image_size=shared.image_size, mixed_precision=shared.mixed_precision,
+        simclr_encoders=[str(simclr_dir)], resume=True,
     ), run_evaluators))  # fmt: skip
     evaluation = {
         "pipeline": list(pipelines.values()), "pipeline_names": list(pipelines),
         "lambdas": list(config.lambdas), "evaluators": str(evaluator_dir),
-        "protocol": _protocol(config, preset), "n": preset.eval_n, "num_inference_steps": preset.eval_steps,
-        "guidance_scale": 3.0, "heading_guidance_scale": preset.eval_heading_guidance_scale,
-        "depression_guidance_scale": preset.eval_depression_guidance_scale,
-        "strength": preset.eval_strength, "start_from": preset.eval_start_from,
-        "crop_size": min(64, preset.image_size),
-        "eval_batch_size": 8, "seed": config.seed, "resume": True, "speckle_looks": preset.eval_speckle_looks,
+        "protocol": _protocol(config, recipe), "crop_size": min(64, shared.image_size), "seed": config.seed,
+        "resume": True,
     }  # fmt: skip
     plans.append(StagePlan("evaluate", _build(
-        "evaluate", EvaluateConfig, **evaluation, data=str(data), output_dir=str(out / "eval"),
-        steps=list(preset.speed_steps), schedulers=list(preset.schedulers), speed_n=preset.speed_n,
+        "evaluate", "evaluate", recipe, **evaluation, data=str(data), output_dir=str(out / "eval"),
     ), run_evaluate))  # fmt: skip
     if with_depressions:  # depression requests from 17 deg inputs, same evaluators
         plans.append(StagePlan("evaluate depressions", _build(
-            "evaluate depressions", EvaluateConfig, **evaluation, data=str(depression_data),
-            output_dir=str(out / "eval_depression"), same_depression=False, input_depression_deg=17.0,
-            target_depressions_deg=list(preset.depression_targets_deg),
+            "evaluate depressions", "evaluate", recipe, without=SPEED_SWEEP, **evaluation,
+            data=str(depression_data), output_dir=str(out / "eval_depression"), same_depression=False,
+            input_depression_deg=17.0, target_depressions_deg=list(shared.depression_targets_deg),
             outside_trained_range=True,  # a from-scratch model never saw d_el != 0: score it anyway
         ), run_evaluate))  # fmt: skip
     return plans
@@ -269,16 +274,18 @@ def run_quickstart(config: QuickstartConfig) -> Path:
     """Runs (or continues, with ``config.resume``) the whole chain; returns the path of ``report.md``.
 
     Raises:
-        ValueError: For a preset a stage refuses (before any work), or a folder holding other work.
+        ValueError: For a recipe a stage refuses (before any work), or a folder holding other work (one
+            of the old recipe fields: naming the field and its replacement).
     """
-    preset = config.preset()
+    recipe = config.resolved_recipe()
     plans = plan_stages(config)  # every stage's config checked before any work
     out = Path(config.output_dir)
-    # the preset's values one by one, so that a refusal names the field that differs
-    record = {**config_to_dict(config), **{f"preset.{k}": v for k, v in dataclasses.asdict(preset).items()}}
+    refuse_old_record(read_run_record(out) if out.is_dir() else None, f"output_dir: {str(out)!r}")
+    # the recipe's values one by one, so that a refusal names the field that differs
+    record = {**config_to_dict(config), **{f"recipe.{k}": v for k, v in recipe.flat().items()}}
     folder = open_stage_folder(
         out, "quickstart", record, data=None if config.data is None else config.data, resume=config.resume,
-        # the recipe's name and the --set items may differ: the preset.* values they give are compared
+        # the recipe's name and the --set items may differ: the recipe.* values they give are compared
         restart=config.restart, may_differ=("output_dir", "resume", "restart", "recipe", "set",
                                             *QuickstartConfig.REMOVED_FIELDS),
         may_extend=("lambdas",), resume_hint="--resume",
@@ -286,7 +293,7 @@ def run_quickstart(config: QuickstartConfig) -> Path:
     report = out / "report.md"
     if folder.status == "new":
         save_config(config, out)
-        write_json_atomic(dataclasses.asdict(preset), out / "preset.json")
+        write_json_atomic(recipe.to_dict(), out / RECIPE_FILE)
     timings: dict[str, dict[str, Any]] = {}
     for plan in plans:  # a finished stage returns at once; one whose outputs are gone is continued
         ran = _run_stage(plan)
@@ -297,9 +304,9 @@ def run_quickstart(config: QuickstartConfig) -> Path:
         return report
     save_config(config, out)  # with more --lambdas, the record's and config.json's lambdas grow
     write_json_atomic(timings, out / "timings.json")
-    protocol = _protocol(config, preset)
+    protocol = _protocol(config, recipe)
     held_out = protocol[len("ood-") :] if protocol.startswith("ood-") else None
-    report = write_report(out, preset, config, held_out, timings)
+    report = write_report(out, recipe, config, held_out, timings)
     total = sum(t["seconds"] for t in timings.values())
     finish_run(folder, ["report.md"], seconds=total - float(folder.record.get("seconds", 0.0)))
     return report

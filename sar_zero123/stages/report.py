@@ -13,13 +13,14 @@ from typing import Any
 
 import torch
 
-from sar_zero123.stages.presets import Preset, QuickstartConfig
+from sar_zero123.model.sampler import describe_sampler
+from sar_zero123.stages.presets import QuickstartConfig, Recipe
 
 __all__ = ["write_report"]
 
 
 def write_report(
-    out: Path, preset: Preset, config: QuickstartConfig, held_out: str | None, timings: dict[str, Any]
+    out: Path, recipe: Recipe, config: QuickstartConfig, held_out: str | None, timings: dict[str, Any]
 ) -> Path:
     """`report.md`: setup, evaluator quality, Table III, Table IV, speed/error, figures, timings.
 
@@ -30,26 +31,28 @@ def write_report(
     eval_dir = out / "eval"
     table3 = json.loads((eval_dir / "table3.json").read_text())
     evaluator_metrics = json.loads((out / "evaluators" / "metrics.json").read_text())["models"]
-    lines = _setup_lines(preset, config, held_out, timings)
+    lines = _setup_lines(recipe, config, held_out, timings)
     lines += _evaluator_lines(evaluator_metrics)
     lines += _table_lines(eval_dir, table3)
     lines += _speed_lines(eval_dir)
     lines += _view_lines(eval_dir, config.lambdas)
-    lines += _depression_lines(out / "eval_depression", preset.depression_targets_deg)
+    lines += _depression_lines(out / "eval_depression", recipe.shared.depression_targets_deg)
     lines += _timing_lines(timings)
     report = out / "report.md"
     report.write_text("\n".join(lines) + "\n")
     return report
 
 
-def _data_sentence(preset: Preset, config: QuickstartConfig) -> str:
+def _data_sentence(recipe: Recipe, config: QuickstartConfig) -> str:
     """The setup's data sentence: the simulated classes and grid, or the given folder."""
+    size = recipe.shared.image_size
     if config.data is None:
+        classes, instances = recipe.value("simulate", "classes"), recipe.value("simulate", "instances")
         return (
-            f"Data: simulator classes {list(preset.classes)} ({preset.instances} object each, azimuth step "
-            f"{preset.azimuth_step_deg:g} deg, 15 and 17 deg depression, {preset.image_size} px). "
+            f"Data: simulator classes {list(classes)} ({instances} object each, azimuth step "
+            f"{recipe.value('simulate', 'azimuth_step_deg'):g} deg, 15 and 17 deg depression, {size} px). "
         )
-    return f"Data: `{config.data}`, {preset.image_size} px centre crops. "
+    return f"Data: `{config.data}`, {size} px centre crops. "
 
 
 def _protocol_sentence(held_out: str | None) -> str:
@@ -66,31 +69,33 @@ def _protocol_sentence(held_out: str | None) -> str:
     )
 
 
-def _starting_model(preset: Preset) -> str:
+def _starting_model(recipe: Recipe) -> str:
     """What the fine-tunes start from: a base model trained from scratch, or the pretrained prior."""
-    if preset.prior is None:
-        return f"a `{preset.model_size}` model trained from scratch for {preset.base_steps} steps (lambda 0)"
-    return f"the pretrained multi-view prior `{preset.prior}` (procedural simulated vehicles)"
+    prior = recipe.shared.prior
+    if prior is None:
+        size, steps = recipe.value("base", "size"), recipe.value("base", "max_train_steps")
+        return f"a `{size}` model trained from scratch for {steps} steps (lambda 0)"
+    return f"the pretrained multi-view prior `{prior}` (procedural simulated vehicles)"
 
 
 def _setup_lines(
-    preset: Preset, config: QuickstartConfig, held_out: str | None, timings: dict[str, Any]
+    recipe: Recipe, config: QuickstartConfig, held_out: str | None, timings: dict[str, Any]
 ) -> list[str]:
-    """The title and the setup paragraphs: preset, seed, device, total stage time, data and protocol."""
+    """The title and the setup paragraphs: recipe, seed, device, total stage time, data and protocol."""
     device = "CUDA " + torch.cuda.get_device_name() if torch.cuda.is_available() else "CPU"
     total = sum(t["seconds"] for t in timings.values())
     data_kind = "simulated data" if config.data is None else f"real chips from `{config.data}`"
-    data_line = _data_sentence(preset, config)
+    data_line = _data_sentence(recipe, config)
     protocol_line = _protocol_sentence(held_out)
-    start = _starting_model(preset)
+    start = _starting_model(recipe)
     return [
         "# sar_zero123 quickstart report",
         "",
         f"Recipe `{config.recipe}`, seed {config.seed}, device {device} ({torch.get_num_threads()} threads), "
         f"{total / 60:.1f} min of stage time in all. **CPU quick-run numbers on {data_kind}**: {start}, "
-        f"then fine-tuned for {preset.finetune_steps} steps with each lambda (PFM on "
-        f"{preset.pfm_fraction:g} of the eligible samples, features projected to "
-        f"{preset.pfm_projection_dim} dimensions as the authors "
+        f"then fine-tuned for {recipe.value('finetune', 'max_train_steps')} steps with each lambda (PFM on "
+        f"{recipe.value('finetune', 'pfm_fraction'):g} of the eligible samples, features projected to "
+        f"{recipe.value('finetune', 'pfm_projection_dim')} dimensions as the authors "
         "did), not the paper's zero-1-to-3 fine-tune (Objaverse initialisation, 20,000 iterations, real "
         "MSTAR); compare the rows with each other, not with the paper.",
         "",
@@ -121,13 +126,7 @@ def _evaluator_lines(evaluator_metrics: dict[str, Any]) -> list[str]:
 
 def _table_lines(eval_dir: Path, table3: dict[str, Any]) -> list[str]:
     """The Table III and Table IV sections, from the evaluation stage's Markdown tables."""
-    sampler = f"{table3['num_inference_steps']} DDIM steps, guidance {table3['guidance_scale']}"
-    heading = table3.get("heading_guidance_scale") or 0.0
-    if heading:
-        sampler += f", heading guidance {heading}"
-    strength = table3.get("strength", 1.0)
-    if strength < 1.0:
-        sampler += f", from the {table3.get('start_from', 'input').replace('_', ' ')} at strength {strength}"
+    sampler = describe_sampler(table3)
     return [
         "",
         f"## Table III ({sampler})",

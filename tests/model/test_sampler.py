@@ -12,6 +12,7 @@ from sar_zero123.model.sampler import (
     SAMPLER_DEFAULTS,
     SCHEDULERS,
     SamplerSettings,
+    describe_sampler,
     resolve_sampler,
     scheduler_name,
     set_scheduler,
@@ -58,6 +59,27 @@ def test_a_field_left_none_is_the_recorded_value_then_the_librarys() -> None:
         "num_inference_steps": None, "guidance_scale": 2.0, "heading_guidance_scale": None,
         "depression_guidance_scale": None, "strength": None, "start_from": None,
     }  # fmt: skip
+
+
+def test_a_recorded_sampler_is_described_in_words() -> None:
+    plain = {"num_inference_steps": 50, "guidance_scale": 3.0, "heading_guidance_scale": 0.0, "strength": 1.0}
+    assert describe_sampler(plain) == "50 DDIM steps, guidance 3.0"
+    guided = {**plain, "num_inference_steps": 20, "heading_guidance_scale": 1.5, "strength": 0.8,
+              "start_from": "turned_input"}  # fmt: skip
+    expected = "20 DDIM steps, guidance 3.0, heading guidance 1.5, from the turned input at strength 0.8"
+    assert describe_sampler(guided) == expected
+
+
+def test_a_command_config_passes_its_sampler_whole_and_nothing_else() -> None:
+    config = EvaluateConfig(pipeline=["p"], num_inference_steps=4, strength=0.5, scheduler="euler")
+    settings = config.sampler_settings()
+    assert type(settings) is SamplerSettings  # the command's other fields stay behind
+    assert dataclasses.asdict(settings) == {
+        "num_inference_steps": 4, "scheduler": "euler", "guidance_scale": None,
+        "heading_guidance_scale": None, "depression_guidance_scale": None, "strength": 0.5,
+        "start_from": None,
+    }  # fmt: skip
+    assert settings.sampler_arguments() == config.sampler_arguments()
 
 
 @pytest.mark.parametrize(

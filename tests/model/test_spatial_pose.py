@@ -208,5 +208,5 @@ def test_depression_guidance_adds_the_pull_away_from_the_input_depression(monkey
     assert not torch.allclose(mixed[1], level[1])
     with pytest.raises(ValueError, match=r"`depression_guidance_scale` must lie in \[0, 100\], got -1.0"):
         sample(depression_guidance_scale=-1.0)
-    with pytest.raises(ValueError, match=r"eval_depression_guidance_scale must lie in \[0, 100\], got nan"):
-        check_sampler_start(1.0, 0.0, {"steps": 20}, "eval_", depression_guidance_scale=float("nan"))
+    with pytest.raises(ValueError, match=r"^depression_guidance_scale must lie in \[0, 100\], got nan"):
+        check_sampler_start(1.0, 0.0, {"steps": 20}, depression_guidance_scale=float("nan"))

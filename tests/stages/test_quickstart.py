@@ -1,4 +1,4 @@
-"""Smoke test of the README main command: train/quickstart.py with the "smoke" preset."""
+"""Smoke test of the README main command: train/quickstart.py with the "smoke" recipe."""
 
 from __future__ import annotations
 
@@ -11,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from sar_zero123.config import config_to_dict
 from sar_zero123.sim import simulate_dataset
 from train import quickstart
 
@@ -36,35 +37,39 @@ def test_every_stage_config_is_built_before_any_work(tmp_path: Path) -> None:
     paper = by_name["finetune lambda=4"]
     assert (paper.pfm_balance, paper.pfm_min_snr) == ("none", 0.004)
     balanced = quickstart.plan_stages(quickstart.QuickstartConfig(
-        output_dir=str(out), recipe="smoke", set=["pfm_balance=adaptive", "pfm_min_snr=2.0"]))
+        output_dir=str(out), recipe="smoke",
+        set=["finetune.pfm_balance=adaptive", "finetune.pfm_min_snr=2.0"]))
     tuned = {plan.name: plan.config for plan in balanced}["finetune lambda=4"]
     assert (tuned.pfm_balance, tuned.pfm_min_snr) == ("adaptive", 2.0)
-    for stage in ("evaluate", "evaluate depressions"):  # the preset's sampler, in both evaluations
+    for stage in ("evaluate", "evaluate depressions"):  # the recipe's sampler, in both evaluations
         assert (by_name[stage].heading_guidance_scale, by_name[stage].strength) == (1.5, 0.5)
     guided = quickstart.plan_stages(quickstart.QuickstartConfig(
-        output_dir=str(out), recipe="smoke", set=["eval_depression_guidance_scale=3"]))
+        output_dir=str(out), recipe="smoke", set=["evaluate.sampler.depression_guidance_scale=3"]))
     for plan in guided:
         if plan.name.startswith("evaluate"):
             assert plan.config.depression_guidance_scale == 3.0
     assert not out.exists()
-    # refused in the preset's own field names, before any stage (the override is checked at parse time)
-    for item, words in (("base_steps=0", "base_steps must be an integer >= 1, got 0"),
-                        ("eval_n=0", "eval_n must be >= 4"), ("model_size=huge", "model_size must be one of"),
-                        ("classes=()", "classes must name at least two distinct classes"),
-                        ("speed_n=100", "speed_n must be <= eval_n // 2 = 2"),
-                        ("eval_strength=0", "eval_strength must lie in \\(0, 1\\]"),
-                        ("eval_strength=0.4", "eval_strength 0.4 x eval_steps 2 leaves no denoising step"),
-                        ("eval_heading_guidance_scale=-1",
-                         "eval_heading_guidance_scale must lie in"),
-                        ("eval_depression_guidance_scale=101",
-                         "eval_depression_guidance_scale must lie in")):  # fmt: skip
+    # refused by the stage config that owns the field, naming the stage, before any stage runs
+    for item, words in (("base.max_train_steps=0", "base model stage .*max_train_steps must be >= 1, got 0"),
+                        ("evaluate.n=2", "evaluate stage .*n must be >= 4 for an ood protocol"),
+                        ("base.size=huge", "not a value of base.size \\(expected one of \\['tiny'"),
+                        ("simulate.classes=APC", "simulate.classes must name at least two distinct classes"),
+                        ("evaluate.speed_n=100", "speed_n must be <= the 2 seen pairs"),
+                        ("evaluate.sampler.strength=0", "strength must lie in \\(0, 1\\]"),
+                        ("evaluate.sampler.strength=0.4",
+                         "strength 0.4 x num_inference_steps 2 leaves no denoising step"),
+                        ("evaluate.sampler.heading_guidance_scale=-1", "heading_guidance_scale must lie in"),
+                        ("evaluate.sampler.depression_guidance_scale=101",
+                         "depression_guidance_scale must lie in")):  # fmt: skip
         with pytest.raises(ValueError, match=words):
-            quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", set=[item])
+            quickstart.plan_stages(
+                quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", set=[item])
+            )
     assert not out.exists()
 
 
 def _planned(out: Path, override: list[str]) -> tuple[list[str], dict]:
-    """The smoke preset with ``override`` planned into ``out``: the stages between SimCLR and the
+    """The smoke recipe with ``override`` planned into ``out``: the stages between SimCLR and the
     evaluators, and every stage's config by name."""
     plans = quickstart.plan_stages(
         quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", set=override)
@@ -74,11 +79,12 @@ def _planned(out: Path, override: list[str]) -> tuple[list[str], dict]:
 
 
 def test_a_prior_with_a_decoder_fine_tune_plans_the_decoder_before_the_fine_tunes(tmp_path: Path) -> None:
-    """vae_decoder_steps > 0 adds the "vae decoder" stage (the prior's decoder alone, the SimCLR encoder's
-    feature loss); every fine-tune decodes with it, and eval_speckle_looks reaches the evaluation."""
+    """shared.decoder_fine_tune adds the "vae decoder" stage (the prior's decoder alone, the SimCLR encoder's
+    feature loss); every fine-tune decodes with it, and evaluate.speckle_looks reaches the evaluation."""
     out = tmp_path / "run"
-    override = ["prior=sar-zero123/sim-prior", "vae_decoder_steps=3", "vae_feature_loss_weight=0.5",
-                "eval_speckle_looks=1", "image_size=64"]  # fmt: skip
+    override = ["shared.prior=sar-zero123/sim-prior", "shared.decoder_fine_tune=true",
+                "vae_decoder.max_train_steps=3", "vae_decoder.feature_loss_weight=0.5",
+                "evaluate.speckle_looks=1", "shared.image_size=64"]  # fmt: skip
     between, by_name = _planned(out, override)
     assert between == ["vae decoder", "finetune lambda=0", "finetune lambda=4"]
     decoder = by_name["vae decoder"]
@@ -87,33 +93,37 @@ def test_a_prior_with_a_decoder_fine_tune_plans_the_decoder_before_the_fine_tune
     assert decoder.max_train_steps == 3
     assert by_name["finetune lambda=4"].vae == str(out / "vae_decoder" / "vae")
     assert by_name["evaluate"].speckle_looks == 1
-    with pytest.raises(ValueError, match="vae_decoder_steps: fine-tunes a prior's decoder"):
-        quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", set=["vae_decoder_steps=3"])
-    with pytest.raises(ValueError, match="eval_speckle_looks must be an integer >= 1"):
-        quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", set=["eval_speckle_looks=0"])
+    with pytest.raises(ValueError, match="shared.decoder_fine_tune: needs a prior"):
+        quickstart.QuickstartConfig(
+            output_dir=str(out), recipe="smoke", set=["shared.decoder_fine_tune=true"]
+        )
+    with pytest.raises(ValueError, match="speckle_looks must be an integer >= 1"):
+        quickstart.plan_stages(
+            quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", set=["evaluate.speckle_looks=0"])
+        )
     assert not out.exists()
 
 
 def test_finetune_lora_rank_reaches_every_fine_tune_and_is_checked(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    for override, rank in (([], None), (["finetune_lora_rank=8"], 8), (["finetune_lora_rank=None"], None)):
+    for override, rank in (([], None), (["finetune.lora_rank=8"], 8), (["finetune.lora_rank=None"], None)):
         plans = quickstart.plan_stages(
             quickstart.QuickstartConfig(output_dir=str(out), recipe="default", set=override)
         )
         ranks = {plan.name: plan.config.lora_rank for plan in plans if plan.name.startswith("finetune")}
         assert ranks == {"finetune lambda=0": rank, "finetune lambda=4": rank}
-    for item in ("finetune_lora_rank=0", "finetune_lora_rank=True"):
-        with pytest.raises(ValueError, match="finetune_lora_rank (must be None or an integer >= 1|takes)"):
-            quickstart.QuickstartConfig(output_dir=str(out), set=[item])
+    for item in ("finetune.lora_rank=0", "finetune.lora_rank=True"):
+        with pytest.raises(ValueError, match="lora_rank( must be >= 1 or None|=True: not a value)"):
+            quickstart.plan_stages(quickstart.QuickstartConfig(output_dir=str(out), set=[item]))
     assert not out.exists()
 
 
 def test_rehearsal_vehicles_plan_a_corpus_stage_that_every_fine_tune_rehearses(tmp_path: Path) -> None:
-    """rehearsal_vehicles > 0 (with a prior) renders a corpus before the fine-tunes, each of which mixes
-    its whole training split into rehearsal_fraction of every batch; the corpus stage runs resumably."""
+    """shared.rehearsal (with a prior) renders a corpus before the fine-tunes, each of which mixes its
+    whole training split into finetune.rehearsal_fraction of every batch; the corpus stage runs resumably."""
     out = tmp_path / "run"
-    override = ["prior=sar-zero123/sim-prior", "image_size=64", "rehearsal_vehicles=3",
-                "rehearsal_fraction=0.5"]  # fmt: skip
+    prior = ["shared.prior=sar-zero123/sim-prior", "shared.image_size=64", "shared.rehearsal=true"]
+    override = [*prior, "corpus.num_vehicles=3", "finetune.rehearsal_fraction=0.5"]
     between, by_name = _planned(out, override)
     assert between == ["rehearsal corpus", "finetune lambda=0", "finetune lambda=4"]
     corpus = by_name["rehearsal corpus"]
@@ -123,14 +133,15 @@ def test_rehearsal_vehicles_plan_a_corpus_stage_that_every_fine_tune_rehearses(t
         assert finetune.rehearsal_data == str(out / "rehearsal" / "corpus")
         assert (finetune.rehearsal_fraction, finetune.rehearsal_max_chips) == (0.5, None)
     assert not out.exists()  # planned before the corpus exists: the fine-tune checks it when it runs
-    refusals = (("rehearsal_vehicles=1", r"rehearsal_vehicles must be 0 \(no rehearsal\) or an"),
-                ("rehearsal_fraction=1.0", r"rehearsal_fraction must lie in \(0, 1\), got 1.0"))  # fmt: skip
+    refusals = (("corpus.num_vehicles=1", r"num_vehicles: expected an integer >= 2, got 1"),
+                ("finetune.rehearsal_fraction=1.0",
+                 r"rehearsal_fraction must lie in \[0, 1\), got 1.0"))  # fmt: skip
     for item, words in refusals:
         with pytest.raises(ValueError, match=words):
-            prior = ["prior=sar-zero123/sim-prior", "image_size=64"]
-            quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", set=[*prior, item])
-    with pytest.raises(ValueError, match="rehearsal_vehicles: rehearses a prior's corpus"):
-        quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", set=["rehearsal_vehicles=3"])
+            config = quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", set=[*prior, item])
+            quickstart.plan_stages(config)
+    with pytest.raises(ValueError, match="shared.rehearsal: needs a prior"):
+        quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", set=["shared.rehearsal=true"])
     # the stage: the corpus lands in output_dir/corpus; the same command again finds it finished
     from sar_zero123.data import load_index
     from sar_zero123.stages import CorpusConfig, run_corpus
@@ -154,10 +165,11 @@ def test_rehearsal_vehicles_plan_a_corpus_stage_that_every_fine_tune_rehearses(t
 
 def test_a_proxy_prior_plans_a_proxies_stage_that_every_fine_tune_conditions_on(tmp_path: Path) -> None:
     """A prior whose UNet takes the simulator proxy: a proxies stage (the data's vehicles fitted, read only)
-    before the fine-tunes, each of which reads its proxies; the evaluations start where eval_start_from says.
+    before the fine-tunes, each of which reads its proxies; the evaluations start where their sampler says.
     The stage writes the proxies into its own folder and a second run finds them finished."""
     out = tmp_path / "run"
-    override = ["prior=sar-zero123/sim-prior-proxy", "image_size=64", "eval_start_from='proxy'"]
+    override = ["shared.prior=sar-zero123/sim-prior-proxy", "shared.image_size=64",
+                "evaluate.sampler.start_from='proxy'"]
     between, by_name = _planned(out, override)
     assert between == ["proxies", "finetune lambda=0", "finetune lambda=4"]
     stage = by_name["proxies"]
@@ -170,9 +182,11 @@ def test_a_proxy_prior_plans_a_proxies_stage_that_every_fine_tune_conditions_on(
     rotated = quickstart.plan_stages(quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke"))
     assert "proxies" not in [plan.name for plan in rotated]
     assert all(getattr(plan.config, "proxies", None) is None for plan in rotated)
-    words = r"eval_start_from must be one of \('input', 'turned_input', 'proxy'\)"
+    words = r"evaluate.sampler.start_from \(expected one of \['input', 'turned_input', 'proxy'\]"
     with pytest.raises(ValueError, match=words):
-        quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", set=["eval_start_from='noise'"])
+        quickstart.QuickstartConfig(
+            output_dir=str(out), recipe="smoke", set=["evaluate.sampler.start_from=noise"]
+        )
     # the stage, on a two-vehicle folder: read only, the proxies in its own folder, finished on a second run
     from chip_folders import write_chip_folder
 
@@ -209,7 +223,7 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     assert ("| Template az. err. (deg) ↓ | Front/back right (%) ↑ | Turned and kept (%) ↑ "
             "| Dep. err. (deg) ↓ |") in text
     assert "| Dep. gap closed ↑ | Template gap closed ↑ | n |" in text
-    # the preset's sampler reaches both evaluations and the report names it
+    # the recipe's sampler reaches both evaluations and the report names it
     sampler = "2 DDIM steps, guidance 3.0, heading guidance 1.5, from the input at strength 0.5"
     assert f"## Table III ({sampler})" in text
     for folder in ("eval", "eval_depression"):
@@ -233,7 +247,7 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     timings = json.loads((out / "timings.json").read_text())
     stages = {"simulate", "simclr", "finetune lambda=0", "finetune lambda=4", "evaluators", "evaluate"}
     assert stages | {"simulate depressions", "evaluate depressions"} <= set(timings)
-    # the preset's optional training settings reach every fine-tune
+    # the recipe's optional training settings reach every fine-tune
     for stage in ("base", "finetune_lambda0", "finetune_lambda4"):
         settings = json.loads((out / stage / "config.json").read_text())
         assert (settings["lr_scheduler"], settings["lr_warmup_steps"]) == ("cosine", 1)
@@ -254,11 +268,12 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
         quickstart.main(["--output_dir", str(out), "--recipe", "smoke"])
     quickstart.main(["--output_dir", str(out), "--recipe", "smoke", "--resume"])
     assert {p: p.stat().st_mtime_ns for p in out.rglob("*") if p.is_file()} == before
-    # Another protocol, seed or preset value in the same folder is refused before any stage, each named:
+    # Another protocol, seed or recipe value in the same folder is refused before any stage, each named:
     # its stages would be reused and the report would describe settings that did not make them.
     for flags, words in ((["--protocol", "ood-APC"], "protocol: folder None, this run 'ood-APC'"),
                          (["--seed", "3"], "seed: folder 0, this run 3"),
-                         (["--set", "base_steps=5"], "preset.base_steps: folder 2, this run 5"),
+                         (["--set", "base.max_train_steps=5"],
+                          "recipe.base.max_train_steps: folder 2, this run 5"),
                          ):  # fmt: skip
         with pytest.raises(ValueError, match=words):
             quickstart.main(["--output_dir", str(out), "--recipe", "smoke", "--resume", *flags])
@@ -290,58 +305,82 @@ def test_quickstart_config_checks_data_and_protocol(tmp_path: Path) -> None:
         quickstart.QuickstartConfig(data=str(tmp_path), protocol="soc")
     with pytest.raises(ValueError, match="lambdas must be distinct values >= 0"):
         quickstart.QuickstartConfig(lambdas=[0.0, 0.0])
-    assert set(quickstart.PRESETS) == {"default", "scratch", "long", "mstar", "mstar-prior", "smoke", "proxy",
+    assert set(quickstart.RECIPES) == {"default", "scratch", "long", "mstar", "mstar-prior", "smoke", "proxy",
                                        "rehearsal", "gentle"}  # fmt: skip
 
 
-def test_overrides_replace_preset_fields_with_typed_literals() -> None:
-    default = dataclasses.replace(quickstart.PRESETS["default"])
-    preset = quickstart.apply_overrides(
-        quickstart.PRESETS["default"],
-        ["base_steps=4321", "lr_scheduler=cosine", "vae_widths=[8, 16, 32]", "ema_decay=0.999",
-         "finetune_learning_rate=1", "classes=('APC', 'TANK')"],
+def test_the_default_recipe_plans_the_settings_each_stage_ran_with_before_recipes_had_sections() -> None:
+    """Every stage of the quickstart with no options gets the values it got from the 52-field preset (the
+    plans recorded before recipes became sections of stage fields, in tests/data)."""
+    import sar_zero123
+
+    package = str(Path(sar_zero123.__file__).resolve().parent)
+    recorded = json.loads((Path(__file__).parents[1] / "data" / "quickstart_default_plan.json").read_text())
+    plans = quickstart.plan_stages(quickstart.QuickstartConfig(output_dir="runs/quickstart"))
+    planned = {
+        plan.name: {"class": type(plan.config).__name__,
+                    "config": json.loads(json.dumps(config_to_dict(plan.config)).replace(package, "<pkg>"))}
+        for plan in plans
+    }  # fmt: skip
+    assert sorted(planned) == sorted(recorded)
+    for name, plan in planned.items():
+        assert plan == recorded[name], name
+
+
+def test_set_items_replace_recipe_fields_with_typed_values() -> None:
+    default = quickstart.RECIPES["default"]
+    recipe = quickstart.apply_overrides(
+        default,
+        ["base.max_train_steps=4321", "finetune.lr_scheduler=cosine", "vae.block_out_channels=[8, 16, 32]",
+         "finetune.ema_decay=0.999", "finetune.learning_rate=1", "simulate.classes=APC,TANK"],
     )  # fmt: skip
-    assert (preset.base_steps, preset.lr_scheduler, preset.vae_widths) == (4321, "cosine", (8, 16, 32))
-    assert (preset.ema_decay, preset.classes) == (0.999, ("APC", "TANK"))
-    assert preset.finetune_learning_rate == 1.0 and isinstance(preset.finetune_learning_rate, float)
-    assert quickstart.PRESETS["default"] == default  # the preset itself is unchanged
+    assert recipe.value("base", "max_train_steps") == 4321
+    assert recipe.value("vae", "block_out_channels") == (8, 16, 32)
+    assert recipe.value("finetune", "ema_decay") == 0.999
+    assert recipe.value("simulate", "classes") == ["APC", "TANK"]
+    rate = recipe.value("finetune", "learning_rate")
+    assert rate == 1.0 and isinstance(rate, float)
+    assert recipe.value("base", "lr_scheduler") == "cosine"  # the base model is a fine-tune of lambda 0
+    assert quickstart.RECIPES["default"] == default  # the recipe itself is unchanged
     for item, message in [
-        ("nope=1", "FIELD one of"),
-        ("base_steps", "FIELD one of"),
-        ("base_steps=1.5", "base_steps takes int, got 1.5"),
-        ("estimate_input_azimuth=1", "estimate_input_azimuth takes bool, got 1"),
-        ("classes=APC", r"classes takes tuple\[str, ...\], got 'APC'"),
-        ("vae.base_steps=3000", "under its stage"),
-        ("vae_widths=12,24,36", "vae_norm_groups 8 must divide"),
-        ("mixed_precision=fp8", "mixed_precision must be 'no', 'fp16' or 'bf16', got 'fp8'"),
-        ("prediction_type=sample", "prediction_type must be 'epsilon' or 'v_prediction', got 'sample'"),
-        ("timestep_sampling=beta", "timestep_sampling must be 'uniform' or 'logit_normal', got 'beta'"),
-        ("snr_gamma=0", "snr_gamma must be > 0 or None, got 0"),
-        ("pfm_balance=auto", r"pfm_balance must be one of \('none', 'adaptive'\), got 'auto'"),
-        ("pfm_min_snr=-1.0", "pfm_min_snr must be >= 0"),
+        ("nope=1", "expected SECTION.FIELD=VALUE"),
+        ("base.max_train_steps", "expected SECTION.FIELD=VALUE"),
+        ("base.max_train_steps=1.5", "not a value of base.max_train_steps"),
+        ("base.estimate_input_azimuth=1", "not a value of base.estimate_input_azimuth"),
+        ("vae.base_steps=3000", "vae.base_steps was removed: it is now base.max_train_steps"),
+        ("shared.mixed_precision=fp8", "not a value of shared.mixed_precision"),
+        ("base.prediction_type=sample", "not a value of base.prediction_type"),
+        ("finetune.timestep_sampling=beta", "not a value of finetune.timestep_sampling"),
+        ("finetune.pfm_balance=auto", "not a value of finetune.pfm_balance"),
     ]:
         with pytest.raises(ValueError, match=message):
-            quickstart.apply_overrides(quickstart.PRESETS["default"], [item])
-    with pytest.raises(ValueError, match="set: base_steps"):  # refused when the command is parsed
-        quickstart.QuickstartConfig(set=["base_steps=many"])
+            quickstart.apply_overrides(default, [item])
+    with pytest.raises(ValueError, match="base.max_train_steps=many"):  # refused when the command is parsed
+        quickstart.QuickstartConfig(set=["base.max_train_steps=many"])
 
 
 def test_a_missing_prior_and_an_image_size_the_models_refuse_fail_before_any_stage() -> None:
-    preset = quickstart.PRESETS["default"]
-    message = r"image_size must be a multiple of 16 for the prior 'sar-zero123/sim-prior-rotated' "
+    message = r"shared.image_size must be a multiple of 16 for the prior 'sar-zero123/sim-prior-rotated' "
     with pytest.raises(ValueError, match=message + r"\(VAE x UNet downsampling\), got 30"):
-        quickstart.apply_overrides(preset, ["image_size=30"])
-    with pytest.raises(FileNotFoundError, match=r"prior: '/nonexistent' is not a pipeline folder"):
-        quickstart.apply_overrides(preset, ["prior='/nonexistent'"])
-    with pytest.raises(ValueError, match=r"multiple of 16 for model_size 'micro'"):
-        quickstart.apply_overrides(quickstart.PRESETS["scratch"], ["image_size=40"])
+        quickstart.plan_stages(quickstart.QuickstartConfig(set=["shared.image_size=30"]))
+    with pytest.raises(FileNotFoundError, match=r"shared.prior: '/nonexistent' is not a pipeline folder"):
+        quickstart.QuickstartConfig(set=["shared.prior='/nonexistent'"])
+    with pytest.raises(ValueError, match=r"multiple of 16 for base.size 'micro'"):
+        quickstart.plan_stages(quickstart.QuickstartConfig(recipe="scratch", set=["shared.image_size=40"]))
+    with pytest.raises(ValueError, match=r"the vae stage refuses .*norm_num_groups=12 must divide every"):
+        quickstart.plan_stages(quickstart.QuickstartConfig(recipe="scratch", set=["vae.norm_num_groups=12"]))
 
 
-def test_presets_vae_groups_divide_the_widths() -> None:
-    with pytest.raises(ValueError, match=r"vae_norm_groups 12 must divide each of vae_widths \(16, 32, 64\)"):
-        dataclasses.replace(quickstart.DEFAULT_PRESET, vae_norm_groups=12)
-    for preset in quickstart.PRESETS.values():  # GroupNorm needs it, and the VAE stage would fail late
-        assert all(width % preset.vae_norm_groups == 0 for width in preset.vae_widths)
+def test_a_run_folder_of_the_old_recipe_fields_is_refused_naming_the_replacement(tmp_path: Path) -> None:
+    out = tmp_path / "run"
+    out.mkdir()
+    record = {"format": 1, "stage": "quickstart", "config": {"recipe": "smoke", "preset.base_steps": 2,
+              "preset.classes": ["TANK", "APC", "TRUCK"]}, "finished": True}  # fmt: skip
+    (out / "run.json").write_text(json.dumps(record))
+    words = (r"^output_dir: '.*run': a run of the old recipe fields \(preset.base_steps was removed: it is "
+             r"now base.max_train_steps\); --restart moves it aside$")
+    with pytest.raises(ValueError, match=words):
+        quickstart.main(["--output_dir", str(out), "--recipe", "smoke", "--resume"])
 
 
 @pytest.mark.slow
@@ -355,16 +394,16 @@ def test_quickstart_smoke_on_a_given_folder_with_the_extended_protocol(
         warnings.simplefilter("ignore")
         report = quickstart.main(
             ["--output_dir", str(out), "--recipe", "smoke", "--data", str(data), "--protocol", "extended",
-             "--set", "base_steps=3"]
+             "--set", "base.max_train_steps=3"]
         )  # fmt: skip
     text = report.read_text()
     assert f"real chips from `{data}`" in text and "Protocol `extended`" in text
     assert "| lambda=0 | seen |" in text and "| lambda=0 | unseen |" not in text
     assert "simulate" not in json.loads((out / "timings.json").read_text())
     assert not (out / "data").exists()
-    assert json.loads((out / "preset.json").read_text())["base_steps"] == 3
+    assert json.loads((out / "recipe.json").read_text())["base"]["max_train_steps"] == 3
     assert json.loads((out / "base" / "train_state.json").read_text())["global_step"] == 3
-    # Interrupted after step 2 of the base stage: the re-run resumes from checkpoint-2 (the preset keeps the
+    # Interrupted after step 2 of the base stage: the re-run resumes from checkpoint-2 (the recipe keeps the
     # last two) and exports the same weights as the uninterrupted run; every later stage is reused.
     base = out / "base"
     assert sorted(path.name for path in base.glob("checkpoint-*")) == ["checkpoint-2", "checkpoint-3"]
@@ -375,7 +414,7 @@ def test_quickstart_smoke_on_a_given_folder_with_the_extended_protocol(
         warnings.simplefilter("ignore")
         quickstart.main(
             ["--output_dir", str(out), "--recipe", "smoke", "--data", str(data), "--protocol", "extended",
-             "--set", "base_steps=3", "--resume"]
+             "--set", "base.max_train_steps=3", "--resume"]
         )  # fmt: skip
     assert "resumed from" in caplog.text and "checkpoint-2 at step 2" in caplog.text
     assert (base / "pipeline" / "unet" / "diffusion_pytorch_model.safetensors").read_bytes() == weights
@@ -384,10 +423,11 @@ def test_quickstart_smoke_on_a_given_folder_with_the_extended_protocol(
 
 
 def test_a_seed_whose_validation_split_misses_the_simulated_grid_is_refused_first(tmp_path: Path) -> None:
-    """Issue 39: `--preset smoke --seed 1` failed after simulation and SimCLR with an empty 'val' split."""
+    """`--recipe smoke --seed 1` would fail after simulation and SimCLR with an empty 'val' split."""
     out = tmp_path / "run"
     with pytest.raises(ValueError, match=r"--seed 1 .* azimuth_step_deg=60: choose another --seed, or a fin"):
         quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", seed=1)
     assert not out.exists()
-    quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", seed=1, set=["azimuth_step_deg=3"])
+    finer = ["simulate.azimuth_step_deg=3"]
+    quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", seed=1, set=finer)
     quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", seed=1, protocol="extended")
