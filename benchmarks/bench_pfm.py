@@ -45,12 +45,8 @@ sys.path.insert(0, str(ROOT))
 
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig  # noqa: E402
 from sar_zero123.model.conditioning import downsampling_factor, encode_condition_latents  # noqa: E402
-from sar_zero123.training.losses import (  # noqa: E402
-    LossSettings,
-    estimate_x0,
-    pfm_loss,
-    signal_to_noise_ratio,
-)
+from sar_zero123.training.losses import LossSettings, estimate_x0, signal_to_noise_ratio  # noqa: E402
+from sar_zero123.training.pfm import pfm_loss  # noqa: E402
 from sar_zero123.training.step import ImageEmbedder, compute_losses  # noqa: E402
 
 #: lambda = 4 variants: (overrides of the fine-tuning config, frozen-module options).

@@ -38,7 +38,7 @@ from sar_zero123.evaluation.evaluators import load_evaluators, resize_for_evalua
 from sar_zero123.evaluation.probes import FeatureSet, extract_features, run_probes  # noqa: E402
 from sar_zero123.evaluation.protocol import build_pair_sets, generate_pair_targets  # noqa: E402
 from sar_zero123.model.pipeline import SARZero123Pipeline  # noqa: E402
-from sar_zero123.training.losses import random_feature_projection  # noqa: E402
+from sar_zero123.training.pfm import random_feature_projection  # noqa: E402
 
 
 def parse_args(argv=None) -> argparse.Namespace:

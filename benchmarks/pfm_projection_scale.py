@@ -26,12 +26,8 @@ sys.path.insert(0, str(ROOT))
 from sar_zero123.data import signed_to_unit  # noqa: E402
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig  # noqa: E402
 from sar_zero123.model.conditioning import encode_condition_latents  # noqa: E402
-from sar_zero123.training.losses import (  # noqa: E402
-    encode_target_features,
-    estimate_x0,
-    pfm_loss,
-    project_encoder_features,
-)
+from sar_zero123.training.losses import estimate_x0  # noqa: E402
+from sar_zero123.training.pfm import encode_target_features, pfm_loss, project_encoder_features  # noqa: E402
 
 
 def real_chips(data: str, image_size: int, num_images: int) -> torch.Tensor:
