@@ -7,7 +7,8 @@ Each variant runs :func:`sar_zero123.training.step.compute_losses` + backward + 
 random 64 px chips (lambda = 0, no CFG dropout) and reports the median step time after warm-up:
 
 - ``encode``: the VAE (and CLIP tower) encode both chips of every pair at every step (before caching).
-- ``cached``: frozen encodings from :class:`~sar_zero123.training.step.ChipLatentCache` (the default now).
+- ``cached``: frozen encodings from :class:`~sar_zero123.training.latent_cache.ChipLatentCache` (the default
+  now).
 - ``cached+bf16``: cached, the UNet forward under ``torch.autocast("cpu", torch.bfloat16)``.
 - ``cached+channels_last``: cached, the UNet in channels-last memory format.
 - ``cached+compile``: cached, the UNet wrapped in ``torch.compile`` (inductor; needs a C++ compiler on a
@@ -31,8 +32,9 @@ import torch
 from diffusers import DDPMScheduler
 
 from sar_zero123.model.build import build_sar_zero123
+from sar_zero123.training.latent_cache import ChipLatentCache
 from sar_zero123.training.losses import LossSettings
-from sar_zero123.training.step import ChipLatentCache, ImageEmbedder, compute_losses
+from sar_zero123.training.step import ImageEmbedder, compute_losses
 
 VARIANTS = ("encode", "cached", "cached+bf16", "cached+channels_last", "cached+compile")
 DEFAULT_VARIANTS = VARIANTS[:4]  # torch.compile only on request: minutes of compiling per size

@@ -39,15 +39,10 @@ from sar_zero123.config import write_json_atomic  # noqa: E402
 from sar_zero123.data.view_pairs import train_validation_pairs  # noqa: E402
 from sar_zero123.model.build import load_sar_zero123  # noqa: E402
 from sar_zero123.training.finetuning import finetuning_modules, training_image_size  # noqa: E402
+from sar_zero123.training.latent_cache import CachedViewPairs, ChipLatentCache, load_chip_images  # noqa: E402
 from sar_zero123.training.losses import DEFAULT_PFM_MIN_SNR, LossSettings  # noqa: E402
 from sar_zero123.training.pfm import load_pfm_encoder  # noqa: E402
-from sar_zero123.training.step import (  # noqa: E402
-    CachedViewPairs,
-    ChipLatentCache,
-    compute_losses,
-    load_chip_images,
-    micro_batch_generator,
-)
+from sar_zero123.training.step import compute_losses, micro_batch_generator  # noqa: E402
 
 
 def parse_args(argv=None) -> argparse.Namespace:

@@ -29,8 +29,9 @@ from sar_zero123 import resolve_pretrained
 from sar_zero123.config import write_json_atomic
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.training.finetuning import finetuning_optimizer
+from sar_zero123.training.latent_cache import ChipLatentCache
 from sar_zero123.training.losses import LossSettings
-from sar_zero123.training.step import ChipLatentCache, ImageEmbedder, compute_losses, micro_batch_generator
+from sar_zero123.training.step import ImageEmbedder, compute_losses, micro_batch_generator
 
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:

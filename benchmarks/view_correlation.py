@@ -20,7 +20,7 @@ import torch
 import torch.nn.functional as F
 
 from sar_zero123.data import ViewPairDataset, load_index
-from sar_zero123.training.step import load_chip_images
+from sar_zero123.training.latent_cache import load_chip_images
 
 BINS_DEG = ((4, 6), (9, 11), (14, 16), (29, 31), (44, 46), (89, 91), (134, 136), (179, 181))
 
