@@ -17,7 +17,7 @@ from pathlib import Path
 import torch
 
 from sar_zero123.data import SCALING_FILE, DecibelScaling, load_chip, load_index, split_records
-from sar_zero123.evaluation.evaluators import azimuth_error_deg
+from sar_zero123.evaluation.metrics import azimuth_error_deg
 from sar_zero123.model.conditioning import encode_condition_latents
 from sar_zero123.model.orientation import azimuth_deg
 from sar_zero123.model.pipeline import SARZero123Pipeline

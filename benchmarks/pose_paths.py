@@ -36,12 +36,9 @@ import torch.nn.functional as F
 from diffusers import AutoencoderKL, DDIMScheduler, DDPMScheduler, UNet2DConditionModel
 
 from sar_zero123.data import SCALING_FILE, DecibelScaling, load_chip, load_index, signed_to_unit
-from sar_zero123.evaluation.evaluators import (
-    Evaluators,
-    azimuth_error_deg,
-    load_evaluators,
-    resize_for_evaluator,
-)
+from sar_zero123.evaluation.evaluators import Evaluators, load_evaluators
+from sar_zero123.evaluation.metrics import azimuth_error_deg
+from sar_zero123.evaluation.scoring import resize_for_evaluator
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import embed_pose, vae_input
 from sar_zero123.model.orientation import (

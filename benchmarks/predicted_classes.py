@@ -19,8 +19,9 @@ from pathlib import Path
 
 import torch
 
-from sar_zero123.evaluation.evaluators import load_evaluators, resize_for_evaluator
+from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.evaluation.protocol import build_pair_sets, generate_pair_targets
+from sar_zero123.evaluation.scoring import resize_for_evaluator
 from sar_zero123.model.pipeline import SARZero123Pipeline
 
 

@@ -33,7 +33,7 @@ import torch
 
 from sar_zero123.augment import readd_speckle
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
-from sar_zero123.evaluation.evaluators import Evaluators, blur_views, load_evaluators
+from sar_zero123.evaluation.evaluators import Evaluators, load_evaluators
 from sar_zero123.evaluation.protocol import (
     INPUT_COPY,
     MIN_SPEED_PAIRS,
@@ -57,6 +57,7 @@ from sar_zero123.evaluation.protocol import (
     set_scheduler,
     vae_round_trip,
 )
+from sar_zero123.evaluation.scoring import blur_views
 from sar_zero123.evaluation.tables import (
     plot_lambda_sweep,
     plot_speed_error,
@@ -465,8 +466,8 @@ def blurred_target_row(sigma_px: float) -> str:
 
 
 def blurred(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
-    """Views ``(N, 1, H, W)`` in [0, 1] blurred by :func:`~sar_zero123.evaluation.evaluators.blur_views` (the
-    blur of :func:`~sar_zero123.evaluation.evaluators.closer_to_target_depression`), in float64."""
+    """Views ``(N, 1, H, W)`` in [0, 1] blurred by :func:`~sar_zero123.evaluation.scoring.blur_views` (the
+    blur of :func:`~sar_zero123.evaluation.scoring.closer_to_target_depression`), in float64."""
     array = blur_views(images.double().cpu().numpy(), sigma_px)
     return torch.from_numpy(array).to(images.dtype).clamp(0.0, 1.0)
 
