@@ -378,7 +378,7 @@ def main() -> None:  # noqa: PLR0915 - one case after another
         with open(crashed / "checkpoint-1" / victim, "wb") as handle:
             pickle.dump(_Payload(), handle)
         if reseal:
-            python(f"from sar_zero123.runs.checkpoints import write_manifest; "
+            python(f"from sar_zero123.runs.manifest import write_manifest; "
                    f"write_manifest({str(crashed / 'checkpoint-1')!r})")  # fmt: skip
         sealed = "its manifest sealed again over it" if reseal else "its manifest as it was"
         case(

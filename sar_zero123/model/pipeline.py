@@ -34,7 +34,6 @@ from diffusers.utils import BaseOutput
 from diffusers.utils.torch_utils import randn_tensor
 from transformers import CLIPVisionModelWithProjection
 
-from sar_zero123.config import MANIFEST_FILE, manifest_problem, unlisted_files, write_manifest
 from sar_zero123.domain import signed_to_unit
 from sar_zero123.model.conditioning import (
     POSE_DIM,
@@ -78,6 +77,7 @@ from sar_zero123.model.sampler import (
 from sar_zero123.model.zero123_checkpoints import CLIPImageProcessor, load_zero123_components
 from sar_zero123.pretrained import BUNDLED_NAMESPACE, BUNDLED_PIPELINES, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar as _progress_bar
+from sar_zero123.runs.manifest import MANIFEST_FILE, manifest_problem, unlisted_files, write_manifest
 
 __all__ = [
     "SCHEDULERS",
@@ -364,7 +364,7 @@ class SARZero123Pipeline(DiffusionPipeline):
         SHA-256 of every file of the folder, which :meth:`from_pretrained` checks before loading.
 
         A writer that adds a file to the folder afterwards (a ``decibel_scaling.json``) seals it again with
-        :func:`sar_zero123.config.write_manifest`.
+        :func:`sar_zero123.runs.manifest.write_manifest`.
         """
         super().save_pretrained(save_directory, **kwargs)
         write_manifest(save_directory)

@@ -330,10 +330,10 @@ def make_retrieval_data(
 
 def save_retrieval(net: ProxyRetrievalNet, folder: str | Path, extra: dict[str, Any] | None = None) -> Path:
     """Write ``config.json`` and ``model.safetensors`` (float16) to ``folder``, sealed last by its
-    ``manifest.json`` (:func:`~sar_zero123.config.write_manifest`)."""
+    ``manifest.json`` (:func:`~sar_zero123.runs.manifest.write_manifest`)."""
     from safetensors.torch import save_file
 
-    from sar_zero123.config import write_manifest
+    from sar_zero123.runs.manifest import write_manifest
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -356,7 +356,7 @@ def load_retrieval(folder: str | Path, bank: dict[str, Any] | None = None) -> Pr
     """
     from safetensors.torch import load_file
 
-    from sar_zero123.config import MANIFEST_FILE, manifest_problem
+    from sar_zero123.runs.manifest import MANIFEST_FILE, manifest_problem
 
     folder = Path(folder)
     for name in (_CONFIG, _WEIGHTS):

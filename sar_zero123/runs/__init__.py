@@ -7,6 +7,7 @@
   withdrawal of a run whose setup failed (``withdrawn_if_setup_fails``).
 - :mod:`~sar_zero123.runs.launch`: starting a training run (``start_run``) and checks of its batches.
 - :mod:`~sar_zero123.runs.checkpoints`: crash-safe checkpoints, resuming and ending a run (``end_run``).
+- :mod:`~sar_zero123.runs.manifest`: sealed folders (``manifest.json``: size and SHA-256 of every file).
 
 Nothing is imported here, so that a light module (``runs.folder``) does not load accelerate or torch.
 """
