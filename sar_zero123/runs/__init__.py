@@ -1,7 +1,8 @@
 """Runs: where a stage writes, and how it starts, checkpoints, resumes and finishes.
 
 - :mod:`~sar_zero123.runs.folder`: the run-folder rule every stage and command applies before any work
-  (``open_run_folder``, ``finish_run``, ``move_aside``).
+  (``open_run_folder``, ``finish_run``).
+- :mod:`~sar_zero123.runs.restart`: the one restart rule (``check_restart_target``, ``move_aside``).
 - :mod:`~sar_zero123.runs.lock`: one writer per output folder.
 - :mod:`~sar_zero123.runs.stage`: the rule under ``accelerate launch`` (``open_stage_folder``) and the
   withdrawal of a run whose setup failed (``withdrawn_if_setup_fails``).
