@@ -5,6 +5,7 @@
 - :mod:`~sar_zero123.evaluation.evaluators`: the classifier and azimuth regressor that score views.
 - :mod:`~sar_zero123.evaluation.scoring`: scoring generated views and pose following with them.
 - :mod:`~sar_zero123.evaluation.protocol`: the Table III protocol (pairs, generation, scoring).
+- :mod:`~sar_zero123.evaluation.speed`: speed against error over pipelines, schedulers and step counts.
 - :mod:`~sar_zero123.evaluation.tables`: the protocol's results as tables.
 - :mod:`~sar_zero123.evaluation.probes`: frozen-feature probes of a SAR encoder.
 
