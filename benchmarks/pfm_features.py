@@ -26,8 +26,9 @@ sys.path.insert(0, str(ROOT))
 from sar_zero123.config import write_json_atomic  # noqa: E402
 from sar_zero123.data import ChipDataset, load_index, split_records  # noqa: E402
 from sar_zero123.encoder import SAREncoder  # noqa: E402
-from sar_zero123.evaluation.probes import FeatureSet, extract_features, run_probes  # noqa: E402
+from sar_zero123.evaluation.probes import FeatureSet, extract_features  # noqa: E402
 from sar_zero123.training.pfm import random_feature_projection  # noqa: E402
+from sar_zero123.training.probes import run_probes  # noqa: E402
 
 
 def parse_args(argv=None) -> argparse.Namespace:

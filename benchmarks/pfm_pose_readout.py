@@ -35,11 +35,12 @@ from sar_zero123.config import write_json_atomic  # noqa: E402
 from sar_zero123.data import ChipDataset, load_index, split_records  # noqa: E402
 from sar_zero123.encoder import SAREncoder  # noqa: E402
 from sar_zero123.evaluation.evaluators import load_evaluators  # noqa: E402
-from sar_zero123.evaluation.probes import FeatureSet, extract_features, run_probes  # noqa: E402
+from sar_zero123.evaluation.probes import FeatureSet, extract_features  # noqa: E402
 from sar_zero123.evaluation.protocol import build_pair_sets, generate_pair_targets  # noqa: E402
 from sar_zero123.evaluation.scoring import resize_for_evaluator  # noqa: E402
 from sar_zero123.model.pipeline import SARZero123Pipeline  # noqa: E402
 from sar_zero123.training.pfm import random_feature_projection  # noqa: E402
+from sar_zero123.training.probes import run_probes  # noqa: E402
 
 
 def parse_args(argv=None) -> argparse.Namespace:

@@ -7,7 +7,8 @@
 - :mod:`~sar_zero123.evaluation.protocol`: the Table III protocol (pairs, generation, scoring).
 - :mod:`~sar_zero123.evaluation.speed`: speed against error over pipelines, schedulers and step counts.
 - :mod:`~sar_zero123.evaluation.tables`: the protocol's results as tables.
-- :mod:`~sar_zero123.evaluation.probes`: frozen-feature probes of a SAR encoder.
+- :mod:`~sar_zero123.evaluation.probes`: frozen features of a SAR encoder and the 1-NN probe (the trained
+  probes: :mod:`sar_zero123.training.probes`).
 
 Nothing is imported here, so that importing one module does not load the others.
 """
