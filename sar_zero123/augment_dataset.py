@@ -67,12 +67,11 @@ from sar_zero123.pretrained import SIM_PRIOR_ROTATED, is_bundled_name, resolve_p
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import (
     check_options_folder,
-    check_restart_target,
     content_identity,
     field_defaults,
-    move_aside,
 )
 from sar_zero123.runs.lock import is_lock_file, lock_output_folder, release_output_folder
+from sar_zero123.runs.restart import check_restart_target, move_aside
 from sar_zero123.sim.dataset import write_index_atomic
 
 logger = logging.getLogger(__name__)

@@ -11,7 +11,9 @@ for all of them:
   ``--resume_from_checkpoint latest``) and moves it aside with ``--restart``; any other use of a folder
   holding a run is refused, naming each difference (:mod:`sar_zero123.runs.folder`).
 
-:data:`COMMANDS` is the table the README's command table and a test are checked against.
+:data:`COMMANDS` is the table the README's command table and a test are checked against; each command
+function (``cli.finetune(argv=None)``, ...) is generated from its row: ``run(parse_config(config, argv))``,
+then what the command prints and returns (:data:`_REPORTS`; by default the folder its stage returned).
 """
 
 from __future__ import annotations
@@ -20,7 +22,7 @@ import importlib
 import json
 import logging
 import time
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -32,7 +34,8 @@ _LOG_FORMAT = "%(asctime)s %(levelname)s %(message)s"
 
 @dataclass(frozen=True)
 class Command:
-    """One entry point: its console script, the other way to run it, its stage and its config class."""
+    """One entry point: its console script, the other way to run it, its stage, its config class and what it
+    calls; the command function of this module named ``function`` is generated from it (:func:`_command`)."""
 
     script: str  # the console script (pyproject.toml [project.scripts])
     also: str  # the same command as a train/ script or a module
@@ -40,133 +43,102 @@ class Command:
     config: str  # "module:Class" of the config dataclass whose fields are the flags
     function: str  # the function in this module the console script calls
     summary: str  # what it does, for the command table
+    run: str  # "module:function" it calls: a stage's run_<stage>(config), or a module's own main(argv)
+    # logging.basicConfig's format, set before the flags are parsed; None: logging left as it is
+    log_format: str | None = None
 
+
+_NAMED_LOG_FORMAT = "%(asctime)s %(levelname)s %(name)s: %(message)s"
 
 COMMANDS: tuple[Command, ...] = (
     Command("sar-zero123-quickstart", "python train/quickstart.py", "quickstart",
             "sar_zero123.stages.presets:QuickstartConfig", "quickstart",
-            "every stage end to end on the simulator (or real chips), with a report"),
+            "every stage end to end on the simulator (or real chips), with a report",
+            "sar_zero123.stages.quickstart:run_quickstart", _LOG_FORMAT),
     Command("sar-zero123-simulate", "python train/simulate.py", "simulate",
-            "sar_zero123.stages.simulate:SimulateConfig", "simulate", "simulate a dataset of SAR chips"),
+            "sar_zero123.stages.simulate:SimulateConfig", "simulate", "simulate a dataset of SAR chips",
+            "sar_zero123.stages.simulate:run_simulate"),
     Command("sar-zero123-simclr", "python train/pretrain_simclr.py", "simclr",
             "sar_zero123.stages.simclr:PretrainSimCLRConfig", "simclr",
-            "SimCLR pretraining of the SAR encoder (PFM's feature extractor)"),
+            "SimCLR pretraining of the SAR encoder (PFM's feature extractor)",
+            "sar_zero123.stages.simclr:run_simclr"),
     Command("sar-zero123-vae", "python train/train_vae.py", "vae", "sar_zero123.stages.vae:TrainVAEConfig",
-            "vae", "train a VAE on SAR chips"),
+            "vae", "train a VAE on SAR chips", "sar_zero123.stages.vae:run_vae"),
     Command("sar-zero123-prior", "python train/pretrain_prior.py", "prior",
             "sar_zero123.stages.prior:PriorConfig", "prior",
-            "the multi-view prior: procedural corpus, VAE, UNet"),
+            "the multi-view prior: procedural corpus, VAE, UNet", "sar_zero123.stages.prior:run_prior"),
     Command("sar-zero123-finetune", "python train/finetune_pfm.py", "finetune",
             "sar_zero123.stages.finetune:FinetuneConfig", "finetune",
-            "fine-tune a pipeline with L_simple + lambda PFM"),
+            "fine-tune a pipeline with L_simple + lambda PFM", "sar_zero123.stages.finetune:run_finetune"),
     Command("sar-zero123-evaluators", "python train/train_evaluators.py", "evaluators",
             "sar_zero123.stages.evaluators:TrainEvaluatorsConfig", "evaluators",
-            "the evaluation classifier and azimuth / depression regressors"),
+            "the evaluation classifier and azimuth / depression regressors",
+            "sar_zero123.stages.evaluators:run_evaluators", _LOG_FORMAT),
     Command("sar-zero123-evaluate", "python train/evaluate.py", "evaluate",
             "sar_zero123.stages.evaluate:EvaluateConfig", "evaluate",
-            "Table III / IV, views, speed against error"),
+            "Table III / IV, views, speed against error", "sar_zero123.stages.evaluate:run_evaluate",
+            _LOG_FORMAT),
     Command("sar-zero123-table1", "python train/table1.py", "table1",
             "sar_zero123.stages.table1:Table1Config", "table1",
-            "Table I: augmentations for the SimCLR encoder"),
+            "Table I: augmentations for the SimCLR encoder", "sar_zero123.stages.table1:run_table1",
+            _NAMED_LOG_FORMAT),
     Command("sar-zero123-synth-to-real", "python train/synth_to_real.py", "synth_to_real",
             "sar_zero123.stages.synth_to_real:SynthToRealConfig", "synth_to_real",
-            "Table II: classifiers trained on simulated chips, tested on real ones"),
+            "Table II: classifiers trained on simulated chips, tested on real ones",
+            "sar_zero123.stages.synth_to_real:run_synth_to_real", _NAMED_LOG_FORMAT),
     Command("sar-zero123-generate", "python -m sar_zero123.generate", "generate",
-            "sar_zero123.generate:GenerateConfig", "generate", "novel views of one chip"),
+            "sar_zero123.generate:GenerateConfig", "generate", "novel views of one chip",
+            "sar_zero123.generate:main"),
     Command("sar-zero123-augment", "python -m sar_zero123.augment_dataset", "augment",
             "sar_zero123.augment_dataset:AugmentConfig", "augment",
-            "a dataset plus generated views of its chips"),
+            "a dataset plus generated views of its chips", "sar_zero123.augment_dataset:main"),
     Command("sar-zero123-proxy-retrieval", "python train/train_proxy_retrieval.py", "proxy_retrieval",
             "sar_zero123.stages.proxy_retrieval:ProxyRetrievalConfig", "proxy_retrieval",
-            "the learned shortlist of the simulator proxy's fit"),
+            "the learned shortlist of the simulator proxy's fit",
+            "sar_zero123.stages.proxy_retrieval:run_proxy_retrieval"),
     Command("sar-zero123-interpolate", "python -m sar_zero123.interpolate", "interpolate",
             "sar_zero123.interpolate:InterpolateConfig", "interpolate",
-            "a fine-tuned pipeline's weights mixed with its prior's (WiSE-FT)"),
+            "a fine-tuned pipeline's weights mixed with its prior's (WiSE-FT)",
+            "sar_zero123.interpolate:main"),
 )  # fmt: skip
 
 
 def config_class(command: Command) -> type:
     """The config dataclass of ``command`` (imported on demand)."""
-    module, name = command.config.split(":")
+    return _imported(command.config)
+
+
+def _imported(target: str) -> Any:
+    """The object ``"module:name"`` names, its module imported on demand (so ``--help`` loads little)."""
+    module, name = target.split(":")
     return getattr(importlib.import_module(module), name)
 
 
-def quickstart(argv: Sequence[str] | None = None) -> Path:
-    """``sar-zero123-quickstart``: runs the whole chain; returns the path of ``report.md``."""
-    from sar_zero123.config import parse_config
-    from sar_zero123.stages.presets import QuickstartConfig
-    from sar_zero123.stages.quickstart import run_quickstart
-
-    logging.basicConfig(level=logging.INFO, format=_LOG_FORMAT)
-    report = run_quickstart(parse_config(QuickstartConfig, argv))
+# What a command prints and returns once its stage has run, from the folder the stage returned (and the
+# seconds since the command started); a command without one returns the folder.
+def _quickstart_report(report: Path, seconds: float) -> Path:
     print(f"report: {report}")
     return report
 
 
-def simulate(argv: Sequence[str] | None = None) -> Path:
-    """``sar-zero123-simulate``: simulates a dataset folder; returns it."""
-    from sar_zero123.config import parse_config
-    from sar_zero123.stages.simulate import SimulateConfig, run_simulate
-
-    start = time.perf_counter()
-    out = run_simulate(parse_config(SimulateConfig, argv))
+def _simulate_report(out: Path, seconds: float) -> Path:
     with open(out / "index.csv") as handle:
         n_chips = sum(1 for _ in handle) - 1
-    print(f"{out / 'index.csv'}: {n_chips} chips ({time.perf_counter() - start:.1f} s)")
+    print(f"{out / 'index.csv'}: {n_chips} chips ({seconds:.1f} s)")
     return out  # printed last by the console script, as every command's folder
 
 
-def simclr(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """``sar-zero123-simclr``: SimCLR pretraining; returns the metrics written to ``metrics.json``."""
-    from sar_zero123.config import parse_config
-    from sar_zero123.stages.simclr import PretrainSimCLRConfig, run_simclr
+def _json_report(name: str) -> Callable[[Path, float], Any]:
+    """Prints the run folder (the last line on stdout, as for every command) and returns its file ``name``."""
 
-    output_dir = run_simclr(parse_config(PretrainSimCLRConfig, argv))
-    print(output_dir)  # the run folder, the last line on stdout as for every command
-    return json.loads((output_dir / "metrics.json").read_text())
+    def report(folder: Path, seconds: float) -> Any:
+        print(folder)
+        return json.loads((folder / name).read_text())
 
-
-def vae(argv: Sequence[str] | None = None) -> Path:
-    """``sar-zero123-vae``: trains (or resumes) a VAE; returns its run folder."""
-    from sar_zero123.config import parse_config
-    from sar_zero123.stages.vae import TrainVAEConfig, run_vae
-
-    return run_vae(parse_config(TrainVAEConfig, argv))
+    return report
 
 
-def proxy_retrieval(argv: Sequence[str] | None = None) -> Path:
-    """``sar-zero123-proxy-retrieval``: trains the learned shortlist of the proxy fit; returns its folder."""
-    from sar_zero123.config import parse_config
-    from sar_zero123.stages.proxy_retrieval import ProxyRetrievalConfig, run_proxy_retrieval
-
-    return run_proxy_retrieval(parse_config(ProxyRetrievalConfig, argv))
-
-
-def prior(argv: Sequence[str] | None = None) -> Path:
-    """``sar-zero123-prior``: corpus, VAE and UNet of the prior (each resumable); returns its pipeline."""
-    from sar_zero123.config import parse_config
-    from sar_zero123.stages.prior import PriorConfig, run_prior
-
-    return run_prior(parse_config(PriorConfig, argv))
-
-
-def finetune(argv: Sequence[str] | None = None) -> Path:
-    """``sar-zero123-finetune``: fine-tunes (or resumes) a pipeline; returns its run folder."""
-    from sar_zero123.config import parse_config
-    from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
-
-    return run_finetune(parse_config(FinetuneConfig, argv))
-
-
-def evaluators(argv: Sequence[str] | None = None) -> dict[str, dict[str, float]]:
-    """``sar-zero123-evaluators``: trains the evaluator models; returns ``{name: test metrics}`` as written
-    to ``metrics.json`` (and prints them)."""
-    from sar_zero123.config import parse_config
-    from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, run_evaluators
-
-    config = parse_config(TrainEvaluatorsConfig, argv)
-    logging.basicConfig(level=logging.INFO, format=_LOG_FORMAT)
-    folder = run_evaluators(config)
+def _evaluators_report(folder: Path, seconds: float) -> dict[str, dict[str, float]]:
     results = json.loads((folder / "metrics.json").read_text())["models"]
     for name, metrics in results.items():
         summary = ", ".join(
@@ -177,63 +149,52 @@ def evaluators(argv: Sequence[str] | None = None) -> dict[str, dict[str, float]]
     return results
 
 
-def evaluate(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """``sar-zero123-evaluate``: the evaluation; returns ``{"table3": ..., "speed_error": [...]}`` as written
-    to disk (and prints Table III)."""
-    from sar_zero123.config import parse_config
-    from sar_zero123.stages.evaluate import EvaluateConfig, load_evaluation, run_evaluate
+def _evaluate_report(folder: Path, seconds: float) -> dict[str, Any]:
+    from sar_zero123.stages.evaluate import load_evaluation
 
-    config = parse_config(EvaluateConfig, argv)
-    logging.basicConfig(level=logging.INFO, format=_LOG_FORMAT)
-    folder = run_evaluate(config)
     print((folder / "table3.md").read_text())
     print(folder)
     return load_evaluation(folder)
 
 
-def table1(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """``sar-zero123-table1``: builds Table I; returns the dict written to ``table1.json``."""
-    from sar_zero123.config import parse_config
-    from sar_zero123.stages.table1 import Table1Config, run_table1
-
-    config = parse_config(Table1Config, argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    folder = run_table1(config)
-    print(folder)
-    return json.loads((folder / "table1.json").read_text())
-
-
-def synth_to_real(argv: Sequence[str] | None = None) -> dict[str, Any]:
-    """``sar-zero123-synth-to-real``: builds Table II; returns the dict written to ``table2.json``."""
-    from sar_zero123.config import parse_config
-    from sar_zero123.stages.synth_to_real import SynthToRealConfig, run_synth_to_real
-
-    config = parse_config(SynthToRealConfig, argv)
-    logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(name)s: %(message)s")
-    folder = run_synth_to_real(config)
-    print(folder)
-    return json.loads((folder / "table2.json").read_text())
+_REPORTS: dict[str, tuple[Callable[[Path, float], Any], str]] = {
+    "quickstart": (_quickstart_report, "the path of ``report.md``"),
+    "simulate": (_simulate_report, "the dataset folder"),
+    "simclr": (_json_report("metrics.json"), "the metrics written to ``metrics.json``"),
+    "evaluators": (_evaluators_report, "``{name: test metrics}`` as written to ``metrics.json``"),
+    "evaluate": (_evaluate_report, '``{"table3": ..., "speed_error": [...]}`` as written to disk'),
+    "table1": (_json_report("table1.json"), "the dict written to ``table1.json``"),
+    "synth_to_real": (_json_report("table2.json"), "the dict written to ``table2.json``"),
+}
 
 
-def generate(argv: Sequence[str] | None = None) -> Path:
-    """``sar-zero123-generate``: novel views of one chip; returns the output folder."""
-    from sar_zero123.generate import main
+def _command(command: Command) -> Callable[[Sequence[str] | None], Any]:
+    """The command function of ``command``: ``run(parse_config(config, argv))`` (a module's ``main(argv)``
+    as it is), then what :data:`_REPORTS` prints and returns, else the folder the run returned."""
+    report, returns = _REPORTS.get(command.function, (None, "its folder"))
 
-    return main(argv)
+    def function(argv: Sequence[str] | None = None) -> Any:
+        from sar_zero123.config import parse_config
+
+        run = _imported(command.run)
+        if command.run.endswith(":main"):  # the module's own entry point parses its flags
+            return run(argv)
+        config = config_class(command)
+        start = time.perf_counter()
+        if command.log_format is not None:
+            logging.basicConfig(level=logging.INFO, format=command.log_format)
+        result = run(parse_config(config, argv))
+        return result if report is None else report(result, time.perf_counter() - start)
+
+    function.__name__ = function.__qualname__ = command.function
+    function.__module__ = __name__
+    function.__doc__ = f"``{command.script}``: {command.summary}; returns {returns}."
+    return function
 
 
-def augment(argv: Sequence[str] | None = None) -> Path:
-    """``sar-zero123-augment``: a dataset plus generated views; returns the output folder."""
-    from sar_zero123.augment_dataset import main
-
-    return main(argv)
-
-
-def interpolate(argv: Sequence[str] | None = None) -> Path:
-    """``sar-zero123-interpolate``: a fine-tune's weights mixed with its prior's; returns the pipeline."""
-    from sar_zero123.interpolate import main
-
-    return main(argv)
+for _entry in COMMANDS:  # cli.finetune(argv=None), ...: one function per command
+    globals()[_entry.function] = _command(_entry)
+del _entry
 
 
 class _ConsoleScripts:

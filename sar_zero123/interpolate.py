@@ -39,15 +39,10 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from sar_zero123.config import (
-    manifest_problem,
-    naming_write_errors,
-    parse_config,
-    write_json_atomic,
-    write_manifest,
-)
+from sar_zero123.config import naming_write_errors, parse_config, write_json_atomic
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.folder import StageTimer, content_identity, finish_run, weights_identity
+from sar_zero123.runs.manifest import manifest_problem, write_manifest
 from sar_zero123.runs.stage import open_stage_folder
 
 __all__ = [

@@ -134,3 +134,25 @@ def test_simulate_takes_its_fields_with_underscores_or_dashes_and_refuses_its_fi
                              ("--azimuth-jitter=0", "azimuth_jitter_deg")):  # fmt: skip
         with pytest.raises(ValueError, match=f"was removed: it is now {replacement}"):
             parse_config(SimulateConfig, [old, "17", "--out", "x"])
+
+
+def test_a_generated_command_runs_its_rows_stage_on_the_parsed_flags_then_its_report(
+    monkeypatch, tmp_path, capsys
+):
+    """``cli.<function>`` is built from its COMMANDS row: the stage its ``run`` names gets the config parsed
+    from argv, and the command returns what the stage returned (a folder) or what its report reads there."""
+    from sar_zero123.stages import table1, vae
+
+    runs = {command.function: command.run for command in cli.COMMANDS}
+    assert runs["vae"] == "sar_zero123.stages.vae:run_vae"
+    seen = []
+    monkeypatch.setattr(vae, "run_vae", lambda config: seen.append(config) or tmp_path)
+    assert cli.vae(["--output_dir", str(tmp_path / "vae"), "--seed", "3"]) == tmp_path
+    assert type(seen[0]) is TrainVAEConfig
+    assert (seen[0].output_dir, seen[0].seed) == (str(tmp_path / "vae"), 3)
+    (tmp_path / "table1.json").write_text('{"rows": [1, 2]}')
+    monkeypatch.setattr(table1, "run_table1", lambda config: tmp_path)
+    assert cli.table1(["--output_dir", str(tmp_path / "t1")]) == {"rows": [1, 2]}  # its report: table1.json
+    assert capsys.readouterr().out.splitlines()[-1] == str(tmp_path)  # the folder, printed last
+    assert cli.table1.__name__ == "table1"
+    assert cli.table1.__doc__.startswith("``sar-zero123-table1``: Table I")

@@ -31,8 +31,9 @@ from sar_zero123.data import (
     load_magnitude,
 )
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
-from sar_zero123.evaluation.evaluators import MAX_POSE_REQUESTS, SARClassifier, load_evaluator, pose_following
+from sar_zero123.evaluation.evaluators import SARClassifier, load_evaluator
 from sar_zero123.evaluation.metrics import azimuth_error_deg
+from sar_zero123.evaluation.scoring import MAX_POSE_REQUESTS, pose_following
 from sar_zero123.generate import MAX_VIEWS, GenerateConfig, load_input_chip
 from sar_zero123.generate import main as generate_main
 from sar_zero123.model.build import build_sar_zero123

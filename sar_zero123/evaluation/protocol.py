@@ -4,7 +4,7 @@ Pairs are two views of one object (input, target) with their relative pose (d_az
 ``ood-<CLASS>`` protocol half the pairs come from the seen classes (the extended test split, 15 deg,
 without the held-out class) and half from the unseen class (every chip of it); with ``extended`` all pairs
 are seen. Every pipeline generates the target view of the same pairs with the same per-pair generator
-seeds, and :func:`score` scores it with the metrics of :func:`sar_zero123.evaluation.evaluators.score_views`.
+seeds, and :func:`score` scores it with the metrics of :func:`sar_zero123.evaluation.scoring.score_views`.
 
 Reference rows bound what a generator can score: the input copied as the output (:data:`INPUT_COPY`, a
 generator that ignores the pose: the floor), the true target (:data:`REAL_TARGET`) and the target through
@@ -43,10 +43,8 @@ from sar_zero123.data import (
 from sar_zero123.evaluation.evaluators import (
     Evaluators,
     check_class_names,
-    closer_to_target_depression,
-    score_views,
-    standard_error,
 )
+from sar_zero123.evaluation.scoring import closer_to_target_depression, score_views, standard_error
 from sar_zero123.evaluation.template import read_chip_templates, turned_and_kept
 from sar_zero123.model.build import same_weights
 from sar_zero123.model.conditioning import encode_condition_latents, takes_proxy

@@ -17,12 +17,12 @@ from typing import Any, TypeVar
 
 import torch
 
-from sar_zero123.config import MANIFEST_FILE, manifest_problem, unlisted_files, write_manifest
 from sar_zero123.model.loading import check_pipeline_folder, find_failing_component
 from sar_zero123.model.proxy import check_proxy_settings
 from sar_zero123.model.sampler import SAMPLER_DEFAULTS, START_FROM, SamplerSettings, _check_strength
 from sar_zero123.model.zero123_checkpoints import load_zero123_components
 from sar_zero123.pretrained import BUNDLED_NAMESPACE, BUNDLED_PIPELINES, is_bundled_name, resolve_pretrained
+from sar_zero123.runs.manifest import MANIFEST_FILE, manifest_problem, unlisted_files, write_manifest
 
 __all__ = ["PipelineLoadingMixin", "anchored_proxy", "check_recorded_settings"]
 

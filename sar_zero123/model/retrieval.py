@@ -4,9 +4,9 @@ An exhaustive fit (:class:`~sar_zero123.sim.proxy.ProxyBank`) renders every bank
 about 2.4 s for 1,000 vehicles on one core: most of a proxy view's cost. :class:`ProxyRetrievalNet` reads the
 chip (blurred, 2 x 2 pooled, standardised, and a copy turned to the vehicle's frame) and its pose, and gives
 one logit per bank vehicle, trained to match the softmax of each vehicle's correlation with the chip at that
-pose (:func:`retrieval_loss`, in :func:`sar_zero123.training.retrieval.train_retrieval`). A fit then renders
-only the ``shortlist`` vehicles it ranks best and scores them exactly as the exhaustive fit does, in a few
-dozen renders.
+pose (:func:`~sar_zero123.training.retrieval.retrieval_loss`, in
+:func:`~sar_zero123.training.retrieval.train_retrieval`). A fit then renders only the ``shortlist`` vehicles
+it ranks best and scores them exactly as the exhaustive fit does, in a few dozen renders.
 
 Its training chips (:func:`make_retrieval_data`) are procedural vehicles never in a prior corpus nor the
 named test vehicles: half the bank's own vehicles, half others (seeds from :data:`RETRIEVAL_FIRST_SEED`),
@@ -44,7 +44,7 @@ logger = logging.getLogger(__name__)
 
 __all__ = [
     "RETRIEVAL_FIRST_SEED", "RETRIEVAL_TOP", "ProxyRetrievalNet", "load_retrieval", "make_retrieval_data",
-    "retrieval_inputs", "retrieval_loss", "save_retrieval", "shortlist_recall",
+    "retrieval_inputs", "save_retrieval",
 ]  # fmt: skip
 
 #: First procedural seed of the training vehicles that are not bank vehicles: above the default bank's
@@ -161,23 +161,6 @@ class ProxyRetrievalNet(nn.Module):
                                   float(self.bank["blur_sigma_px"]))  # fmt: skip
         logits = self(inputs, torch.tensor([float(azimuth_deg)]), torch.tensor([float(depression_deg)]))[0]
         return torch.argsort(logits, descending=True, stable=True).numpy()
-
-
-def retrieval_loss(
-    logits: torch.Tensor, top_index: torch.Tensor, top_score: torch.Tensor, temperature: float
-) -> torch.Tensor:
-    """Cross-entropy of the logits against each chip's soft target: the softmax of its ``RETRIEVAL_TOP`` best
-    bank correlations over ``temperature`` (the other vehicles weigh nothing)."""
-    target = torch.softmax(top_score.float() / temperature, dim=1)
-    log_p = torch.log_softmax(logits.float(), dim=1).gather(1, top_index.long())
-    return -(target * log_p).sum(dim=1).mean()
-
-
-def shortlist_recall(ranked: np.ndarray, best: np.ndarray, ks: Sequence[int]) -> dict[int, float]:
-    """Share of chips whose exhaustive best (``best`` ``(N,)``) is among the first ``k`` of ``ranked``
-    ``(N, V)``, for each ``k``."""
-    position = np.argmax(ranked == best[:, None], axis=1)
-    return {int(k): float(np.mean(position < k)) for k in ks}
 
 
 def _bucket_chips(args: tuple) -> dict[str, np.ndarray]:
@@ -347,10 +330,10 @@ def make_retrieval_data(
 
 def save_retrieval(net: ProxyRetrievalNet, folder: str | Path, extra: dict[str, Any] | None = None) -> Path:
     """Write ``config.json`` and ``model.safetensors`` (float16) to ``folder``, sealed last by its
-    ``manifest.json`` (:func:`~sar_zero123.config.write_manifest`)."""
+    ``manifest.json`` (:func:`~sar_zero123.runs.manifest.write_manifest`)."""
     from safetensors.torch import save_file
 
-    from sar_zero123.config import write_manifest
+    from sar_zero123.runs.manifest import write_manifest
 
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
@@ -373,7 +356,7 @@ def load_retrieval(folder: str | Path, bank: dict[str, Any] | None = None) -> Pr
     """
     from safetensors.torch import load_file
 
-    from sar_zero123.config import MANIFEST_FILE, manifest_problem
+    from sar_zero123.runs.manifest import MANIFEST_FILE, manifest_problem
 
     folder = Path(folder)
     for name in (_CONFIG, _WEIGHTS):

@@ -24,7 +24,7 @@ from typing import Any
 
 from safetensors.torch import load_file, save_file
 
-from sar_zero123.config import write_manifest
+from sar_zero123.runs.manifest import write_manifest
 
 __all__ = ["bundle_pipeline"]
 

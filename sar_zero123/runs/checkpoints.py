@@ -39,15 +39,9 @@ from accelerate import Accelerator
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
-from sar_zero123.config import (  # noqa: F401 (MANIFEST_FILE, write_manifest: this module's names too)
-    MANIFEST_FILE,
-    config_to_dict,
-    manifest_problem,
-    naming_write_errors,
-    write_json_atomic,
-    write_manifest,
-)
+from sar_zero123.config import config_to_dict, naming_write_errors, write_json_atomic
 from sar_zero123.runs.folder import field_defaults
+from sar_zero123.runs.manifest import manifest_problem, write_manifest
 
 logger = logging.getLogger(__name__)
 

@@ -25,7 +25,7 @@ from __future__ import annotations
 import json
 import logging
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -33,35 +33,28 @@ import torch
 
 from sar_zero123.augment import readd_speckle
 from sar_zero123.config import check_minimum, save_config, write_json_atomic
-from sar_zero123.evaluation.evaluators import Evaluators, blur_views, load_evaluators
+from sar_zero123.evaluation.evaluators import Evaluators, load_evaluators
 from sar_zero123.evaluation.protocol import (
     INPUT_COPY,
-    MIN_SPEED_PAIRS,
     PAPER_TABLE3,
     REAL_TARGET,
     SCHEDULERS,
-    SPEED_ERROR_SCORES,
     VAE_ROUND_TRIP,
     PairSet,
-    PeakMemory,
-    UNetImageCount,
     add_gap_closed,
     build_pair_sets,
     check_pipeline_scaling,
     d_el_counts,
-    device_name,
     generate_pair_targets,
-    pareto_front,
     same_weights,
     score,
-    set_scheduler,
     vae_round_trip,
 )
+from sar_zero123.evaluation.scoring import blur_views
+from sar_zero123.evaluation.speed import speed_error_rows, write_speed_error
 from sar_zero123.evaluation.tables import (
     plot_lambda_sweep,
-    plot_speed_error,
     plot_views,
-    speed_markdown,
     table3_markdown,
     table4_markdown,
 )
@@ -380,9 +373,16 @@ def run_evaluate(config: EvaluateConfig) -> Path:
         plot_lambda_sweep(sweep, dict(zip(pipes, config.lambdas)), folder.path / "lambda_sweep.png")
         outputs.append("lambda_sweep.png")
 
-    # 4. speed against error (seen pairs); the run is finished only once its last output is written
+    # 4. speed against error (the first speed_n seen pairs); the run is finished only once its last output
+    # is written
     if config.steps:
-        outputs += _speed_sweep(config, folder.path, pipes, pair_sets["seen"], evaluators, device)
+        seen = pair_sets["seen"].subset(config.speed_n or len(pair_sets["seen"]))
+        rows = speed_error_rows(
+            pipes, seen, evaluators, schedulers=config.schedulers, steps=config.steps,
+            guidance_scale=config.guidance_scale, sampler=config.sampler_settings(),
+            batch_size=config.eval_batch_size, scoring=_scoring(config, device), device=device,
+        )  # fmt: skip
+        outputs += write_speed_error(rows, folder.path, device, num_pairs=len(seen))
     finish_run(
         folder, outputs, seconds=timer.seconds,
         results={"rows": list(results), "pairs": {group: len(p) for group, p in pair_sets.items()},
@@ -465,8 +465,8 @@ def blurred_target_row(sigma_px: float) -> str:
 
 
 def blurred(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
-    """Views ``(N, 1, H, W)`` in [0, 1] blurred by :func:`~sar_zero123.evaluation.evaluators.blur_views` (the
-    blur of :func:`~sar_zero123.evaluation.evaluators.closer_to_target_depression`), in float64."""
+    """Views ``(N, 1, H, W)`` in [0, 1] blurred by :func:`~sar_zero123.evaluation.scoring.blur_views` (the
+    blur of :func:`~sar_zero123.evaluation.scoring.closer_to_target_depression`), in float64."""
     array = blur_views(images.double().cpu().numpy(), sigma_px)
     return torch.from_numpy(array).to(images.dtype).clamp(0.0, 1.0)
 
@@ -559,55 +559,3 @@ def _write_tables(
     write_json_atomic(results, output_dir / "table4.json")
     (output_dir / "table4.md").write_text(table4_markdown(results))
     return ["table3.json", "table3.md", "table4.json", "table4.md"]
-
-
-def _speed_sweep(
-    config: EvaluateConfig,
-    output_dir: Path,
-    pipes: dict[str, SARZero123Pipeline],
-    seen: PairSet,
-    evaluators: Evaluators,
-    device: torch.device,
-) -> list[str]:
-    """Azimuth error and accuracy against images/s for every (pipeline, scheduler, step count), on the
-    first ``speed_n`` seen pairs; writes ``speed_error.{json,md,png}`` and returns their names."""
-    pairs = seen.subset(config.speed_n or len(seen))
-    rows: list[dict[str, Any]] = []
-    for name, pipe in pipes.items():
-        original = pipe.scheduler
-        for scheduler in config.schedulers:
-            set_scheduler(pipe, scheduler)
-            # a warm-up call, so one-time costs (allocation, kernel selection) do not count
-            warm_up = SamplerSettings(num_inference_steps=1, guidance_scale=config.guidance_scale)
-            generate_pair_targets(
-                pipe, pairs.subset(1), sampler=warm_up, batch_size=1, device=device,
-                desc=f"{name} {scheduler} warm-up",
-            )  # fmt: skip
-            for steps in config.steps:
-                with UNetImageCount(pipe) as unet_count, PeakMemory(device) as memory:
-                    sampler = replace(config.sampler_settings(), num_inference_steps=steps)
-                    images, seconds = generate_pair_targets(
-                        pipe, pairs, sampler=sampler, batch_size=config.eval_batch_size, device=device,
-                        desc=f"{name} {scheduler} {steps} steps",
-                    )  # fmt: skip
-                scores = score(images, pairs, evaluators, **_scoring(config, device))
-                rows.append({
-                    "pipeline": name, "scheduler": scheduler, "steps": steps, "n": len(pairs),
-                    "batch_size": config.eval_batch_size, "images_per_s": len(pairs) / seconds,
-                    "unet_evaluations_per_image": unet_count.samples / len(pairs),
-                    "peak_memory_mib": memory.peak_mib,
-                    **{key: scores[key] for key in SPEED_ERROR_SCORES},
-                })  # fmt: skip
-                logger.info("speed %s", json.dumps(rows[-1]))
-        pipe.scheduler = original
-    for row, on_front in zip(rows, pareto_front(rows), strict=True):
-        row["pareto"] = on_front
-    memory_kind = "max allocated (CUDA)" if device.type == "cuda" else "resident set size (CPU)"
-    write_json_atomic(
-        {"device": str(device), "device_name": device_name(device), "peak_memory": memory_kind,
-         "indicative": len(pairs) < MIN_SPEED_PAIRS, "rows": rows},
-        output_dir / "speed_error.json",
-    )  # fmt: skip
-    (output_dir / "speed_error.md").write_text(speed_markdown(rows, device_name(device), memory_kind))
-    plot_speed_error(rows, output_dir / "speed_error.png")
-    return ["speed_error.json", "speed_error.md", "speed_error.png"]

@@ -41,8 +41,8 @@ from sar_zero123.evaluation.evaluators import (
     AzimuthRegressor,
     DepressionRegressor,
     SARClassifier,
-    score_on_split,
 )
+from sar_zero123.evaluation.scoring import score_on_split
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.training.evaluators import EvaluatorTraining, train_model, training_loss

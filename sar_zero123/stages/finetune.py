@@ -75,22 +75,15 @@ from sar_zero123.training.finetuning import (
     train_finetune_steps,
     training_image_size,
 )
-from sar_zero123.training.lora import LoraModules, check_lora_settings
-from sar_zero123.training.losses import (
-    TRAINED_PREDICTION_TYPES,
-    LossSettings,
-    PfmFeatures,
-    check_pfm_crop_size,
-    check_pfm_features,
-    check_prediction_type,
-    load_pfm_encoder,
-)
-from sar_zero123.training.step import (
+from sar_zero123.training.latent_cache import (
     CachedViewPairs,
     ChipLatentCache,
     collate_pairs,
     load_chip_images,
 )
+from sar_zero123.training.lora import LoraModules, check_lora_settings
+from sar_zero123.training.losses import TRAINED_PREDICTION_TYPES, LossSettings, check_prediction_type
+from sar_zero123.training.pfm import PfmFeatures, check_pfm_crop_size, check_pfm_features, load_pfm_encoder
 
 logger = logging.getLogger(__name__)
 

@@ -4,7 +4,7 @@
 every preset the stage trains (or takes, with ``encoders``) a SimCLR encoder with
 :func:`~sar_zero123.stages.simclr.run_simclr` under ``<output_dir>/<preset>/``, extracts frozen features of
 the train and test splits (no augmentation) and runs the linear classifier, MLP azimuth regressor, 1-NN
-classifier and 1-NN azimuth regressor (:mod:`sar_zero123.evaluation.probes`). It writes ``table1.json`` and
+classifier and 1-NN azimuth regressor (:mod:`sar_zero123.training.probes`). It writes ``table1.json`` and
 ``table1.md`` (measured rows next to the paper's) and, when both ``simclr-full`` and ``speckle+monotonic``
 are run, ``tsne.png``: a t-SNE of the test features coloured by class and by azimuth, like the paper's
 Fig. 6.
@@ -31,11 +31,12 @@ from sar_zero123.config import check_minimum, save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, prepare_splits
 from sar_zero123.data.splits import check_protocol
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig, resolve_encoder_dir
-from sar_zero123.evaluation.probes import FeatureSet, extract_features, run_probes
+from sar_zero123.evaluation.probes import FeatureSet, extract_features
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.stages.evaluators import model_identity
 from sar_zero123.stages.simclr import PretrainSimCLRConfig, run_simclr, select_chips
+from sar_zero123.training.probes import run_probes
 
 logger = logging.getLogger(__name__)
 

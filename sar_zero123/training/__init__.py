@@ -1,7 +1,8 @@
 """Training: the step, its losses and the parts of a fine-tuning run around it (the training math).
 
 - :mod:`~sar_zero123.training.step`: the zero-1-to-3 training step (``compute_losses``) and its batches.
-- :mod:`~sar_zero123.training.losses`: x0 estimate (Eq. 19), L_simple, PFM and Eq. 21 (``LossSettings``).
+- :mod:`~sar_zero123.training.losses`: x0 estimate (Eq. 19), L_simple, Eq. 21 (``LossSettings``).
+- :mod:`~sar_zero123.training.pfm`: Projected Feature Matching (Eq. 20) and its frozen feature encoders.
 - :mod:`~sar_zero123.training.finetuning`: the parts of a fine-tuning run around the step.
 - :mod:`~sar_zero123.training.validation`: validation pairs, samples and pose following during training.
 

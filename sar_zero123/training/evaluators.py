@@ -1,5 +1,5 @@
 """Training one evaluator model (classifier, azimuth or depression regressor, or a probe): AdamW with
-cosine decay, resumable epoch checkpoints, then its test metrics (:func:`~sar_zero123.evaluation.evaluators.
+cosine decay, resumable epoch checkpoints, then its test metrics (:func:`~sar_zero123.evaluation.scoring.
 score_on_split`) and ``save_pretrained``. Used by the evaluators stage (:mod:`sar_zero123.stages.evaluators`).
 """
 
@@ -23,8 +23,8 @@ from sar_zero123.evaluation.evaluators import (
     azimuth_regression_loss,
     depression_regression_loss,
     load_evaluator,
-    score_on_split,
 )
+from sar_zero123.evaluation.scoring import score_on_split
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.checkpoints import load_checkpoint, resolve_resume_checkpoint, save_checkpoint
 from sar_zero123.runs.launch import start_run

@@ -30,7 +30,7 @@ from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
 from diffusers.training_utils import EMAModel
 from torch.utils.data import DataLoader, Dataset
 
-from sar_zero123.config import naming_write_errors, write_json_atomic, write_manifest
+from sar_zero123.config import naming_write_errors, write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.model.conditioning import PoseProjection, takes_proxy
 from sar_zero123.model.orientation import estimator_weights_digest
@@ -45,6 +45,7 @@ from sar_zero123.runs.checkpoints import (
     save_checkpoint,
 )
 from sar_zero123.runs.launch import all_out_of_time
+from sar_zero123.runs.manifest import write_manifest
 from sar_zero123.training.lora import LoraModules, add_lora, merged_unet
 from sar_zero123.training.losses import LossOutput
 from sar_zero123.training.step import (

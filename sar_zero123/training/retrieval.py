@@ -1,19 +1,39 @@
-"""Training of the proxy fit's learned shortlist (:class:`~sar_zero123.model.retrieval.ProxyRetrievalNet`)."""
+"""Training of the proxy fit's learned shortlist (:class:`~sar_zero123.model.retrieval.ProxyRetrievalNet`):
+its loss, its held-out recall and the loop."""
 
 from __future__ import annotations
 
 import logging
 import math
+from collections.abc import Sequence
 from typing import Any
 
 import numpy as np
 import torch
 
-from sar_zero123.model.retrieval import ProxyRetrievalNet, retrieval_loss, shortlist_recall
+from sar_zero123.model.retrieval import ProxyRetrievalNet
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["train_retrieval"]
+__all__ = ["retrieval_loss", "shortlist_recall", "train_retrieval"]
+
+
+def retrieval_loss(
+    logits: torch.Tensor, top_index: torch.Tensor, top_score: torch.Tensor, temperature: float
+) -> torch.Tensor:
+    """Cross-entropy of the logits against each chip's soft target: the softmax of its
+    :data:`~sar_zero123.model.retrieval.RETRIEVAL_TOP` best bank correlations over ``temperature`` (the other
+    vehicles weigh nothing)."""
+    target = torch.softmax(top_score.float() / temperature, dim=1)
+    log_p = torch.log_softmax(logits.float(), dim=1).gather(1, top_index.long())
+    return -(target * log_p).sum(dim=1).mean()
+
+
+def shortlist_recall(ranked: np.ndarray, best: np.ndarray, ks: Sequence[int]) -> dict[int, float]:
+    """Share of chips whose exhaustive best (``best`` ``(N,)``) is among the first ``k`` of ``ranked``
+    ``(N, V)``, for each ``k``."""
+    position = np.argmax(ranked == best[:, None], axis=1)
+    return {int(k): float(np.mean(position < k)) for k in ks}
 
 
 def train_retrieval(

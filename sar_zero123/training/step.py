@@ -1,4 +1,4 @@
-"""The zero-1-to-3 training step: CFG dropout, cached frozen encodings, losses (Eq. 21).
+"""The zero-1-to-3 training step: CFG dropout, frozen encodings, losses (Eq. 21).
 
 The fine-tune stage (:mod:`sar_zero123.stages.finetune`) only assembles a run around these pieces;
 benchmarks and tests import them from here.
@@ -8,10 +8,8 @@ benchmarks and tests import them from here.
 - :class:`ImageEmbedder`: the CLIP tower as a module whose ``forward`` includes the preprocessing, so
   that ``accelerate.prepare`` (DDP, autocast) covers it when the tower is trained.
 - :func:`cfg_dropout_masks` / :func:`dropped_conditioning`: zero-1-to-3's classifier-free-guidance dropout.
-- :class:`ChipLatentCache` / :class:`CachedViewPairs`: the frozen VAE's posterior (mean and log-variance)
-  and the frozen CLIP embedding of every chip, computed once. The VAE never changes during fine-tuning,
-  so encoding two chips per pair per step repeats the same work; the cache keeps the posterior *sample*
-  of the target latent random per step (drawn from the cached mean and log-variance).
+- the cached frozen encodings the step reads when the VAE and tower are frozen are
+  :mod:`sar_zero123.training.latent_cache` (``ChipLatentCache``, ``CachedViewPairs``).
 - :func:`compute_losses`: the per-sample losses of one micro-batch, shaped by one
   :class:`~sar_zero123.training.losses.LossSettings`.
 """
@@ -22,19 +20,15 @@ import contextlib
 import dataclasses
 import math
 from collections.abc import Sequence
-from dataclasses import dataclass
 
 import numpy as np
 import torch
 from diffusers import AutoencoderKL, DDPMScheduler
 from diffusers.training_utils import compute_density_for_timestep_sampling, compute_snr
-from torch.utils.data import Dataset, default_collate
 from transformers import CLIPVisionModelWithProjection
 
-from sar_zero123.data import ViewPairDataset, load_chip
 from sar_zero123.model.conditioning import (
     embed_pose,
-    encode_condition_latents,
     encode_image_embeddings,
     pose_class_labels,
     takes_proxy,
@@ -60,9 +54,6 @@ from sar_zero123.training.losses import (
 )
 
 __all__ = [
-    "CachedViewPairs",
-    "collate_pairs",
-    "ChipLatentCache",
     "ImageEmbedder",
     "cfg_dropout_masks",
     "compute_losses",
@@ -132,177 +123,6 @@ def cfg_dropout_masks(
     drop_both = (u >= drop_image_prob) & (u < drop_image_prob + drop_both_prob)
     drop_latent = (u >= drop_image_prob + drop_both_prob) & (u < sum(probs))
     return drop_image, drop_both, drop_latent
-
-
-# ------------------------------------------------------------------------------------- latent cache
-@dataclass
-class ChipLatentCache:
-    """Frozen encodings of every chip of a split, computed once before fine-tuning.
-
-    Attributes:
-        images: Normalised dB chips ``(N, 1, S, S)`` (the CLIP tower's input when it is trained, and the
-            PFM target).
-        latent_mean: VAE posterior mean ``(N, C, h, w)``, unscaled (the condition latent is this mode).
-        latent_logvar: VAE posterior log-variance ``(N, C, h, w)``.
-        image_embeds: Frozen CLIP embeddings ``(N, 1, D)``, or ``None`` when the tower is trained.
-        scaling_factor: ``vae.config.scaling_factor`` (multiplies the target latent only).
-        proxy_latents: For a ``spatial_pose="proxy"`` model: the posterior modes of each chip's simulator
-            proxies rendered at that chip's pose ``(N, K, C, h, w)`` (``K`` candidates per chip,
-            :mod:`sar_zero123.data.corpus_proxies`), else ``None``.
-    """
-
-    images: torch.Tensor
-    latent_mean: torch.Tensor
-    latent_logvar: torch.Tensor
-    image_embeds: torch.Tensor | None
-    scaling_factor: float
-    proxy_latents: torch.Tensor | None = None
-
-    def to(self, device: torch.device | str) -> ChipLatentCache:
-        """The same encodings on ``device`` (a GPU-resident cache: batches are drawn without copies)."""
-        moved = {name: getattr(self, name).to(device) for name in ("images", "latent_mean", "latent_logvar")}
-        embeds = None if self.image_embeds is None else self.image_embeds.to(device)
-        proxies = None if self.proxy_latents is None else self.proxy_latents.to(device)
-        return dataclasses.replace(self, **moved, image_embeds=embeds, proxy_latents=proxies)
-
-    @classmethod
-    @torch.no_grad()
-    def encode(
-        cls,
-        images: torch.Tensor,
-        vae: AutoencoderKL,
-        image_encoder: CLIPVisionModelWithProjection | None = None,
-        batch_size: int = 64,
-        proxy_images: torch.Tensor | None = None,
-    ) -> ChipLatentCache:
-        """Encodes ``images`` (normalised dB, ``(N, 1, S, S)``) with the frozen VAE (and CLIP tower), and
-        ``proxy_images`` (normalised dB ``(N, K, S, S)``: each chip's ``K`` proxies at its pose) with the VAE.
-
-        Raises:
-            ValueError: If ``images`` is not a non-empty ``(N, 1, S, S)`` tensor of finite values, or
-                ``proxy_images`` not ``(N, K, S, S)`` finite values.
-        """
-        proxy_latents = None
-        if proxy_images is not None:
-            if (
-                proxy_images.ndim != 4
-                or proxy_images.shape[0] != images.shape[0]
-                or proxy_images.shape[-2:] != images.shape[-2:]
-                or not torch.isfinite(proxy_images).all()
-            ):
-                raise ValueError(
-                    f"proxy_images: expected finite (N, K, S, S) = ({images.shape[0]}, K, "
-                    f"{tuple(images.shape[-2:])}), got {tuple(proxy_images.shape)}"
-                )
-            flat = proxy_images.reshape(-1, 1, *proxy_images.shape[-2:])
-            modes = [
-                encode_condition_latents(vae, flat[start : start + batch_size]).float().cpu()
-                for start in range(0, flat.shape[0], batch_size)
-            ]
-            latents = torch.cat(modes)
-            proxy_latents = latents.reshape(*proxy_images.shape[:2], *latents.shape[1:])
-        if images.ndim != 4 or images.shape[0] == 0:
-            raise ValueError(
-                f"images must be a non-empty (N, C, S, S) tensor, got shape {tuple(images.shape)}"
-            )
-        if not torch.isfinite(images).all():
-            raise ValueError("images contain non-finite values")
-        means, logvars, embeds = [], [], []
-        for start in range(0, images.shape[0], batch_size):
-            chunk = images[start : start + batch_size]
-            posterior = vae.encode(vae_input(vae, chunk)).latent_dist
-            means.append(posterior.mean.float().cpu())
-            logvars.append(posterior.logvar.float().cpu())
-            if image_encoder is not None:
-                embeds.append(encode_image_embeddings(image_encoder, chunk).float().cpu())
-        return cls(
-            images=images.float().cpu(),
-            latent_mean=torch.cat(means),
-            latent_logvar=torch.cat(logvars),
-            image_embeds=torch.cat(embeds) if embeds else None,
-            scaling_factor=float(vae.config.scaling_factor),
-            proxy_latents=proxy_latents,
-        )
-
-
-def load_chip_images(pairs: ViewPairDataset) -> torch.Tensor:
-    """Every record of a pair dataset, read once and normalised as its items are.
-
-    Shape:
-        ``(len(pairs.records), 1, S, S)`` float32.
-    """
-    chips = [
-        pairs.scaling.normalize(torch.from_numpy(load_chip(record.path, pairs.size, pairs.crop_size))[None])
-        for record in pairs.records
-    ]
-    return torch.stack(chips).float()
-
-
-class CachedViewPairs(Dataset):
-    """The pairs of a :class:`ViewPairDataset` served from a :class:`ChipLatentCache` (no file reads).
-
-    Items hold the wrapped dataset's keys (``input``, ``target``, :meth:`ViewPairDataset.pair_fields`) plus
-    ``input_latent_mean``, ``target_latent_mean``, ``target_latent_logvar``, with a frozen tower
-    ``input_image_embeds`` and, with proxies in the cache, ``proxy_latents`` ``(K, 2C, h, w)`` (each
-    candidate proxy at the input's pose, then at the target's). :meth:`set_epoch` redraws the wrapped pair
-    list, so data order and pairs are those of the uncached dataset.
-    """
-
-    def __init__(self, pairs: ViewPairDataset, cache: ChipLatentCache) -> None:
-        if cache.images.shape[0] != len(pairs.records):
-            raise ValueError(
-                f"cache holds {cache.images.shape[0]} chips but the pair dataset has "
-                f"{len(pairs.records)} records"
-            )
-        self.pairs = pairs
-        self.cache = cache
-
-    def set_epoch(self, epoch: int) -> None:
-        self.pairs.set_epoch(epoch)
-
-    def __len__(self) -> int:
-        return len(self.pairs)
-
-    def __getitem__(self, index: int) -> dict:
-        source, target = (int(i) for i in self.pairs.pairs[index])
-        return self._encodings(source, target) | self.pairs.pair_fields(index)
-
-    def __getitems__(self, indices: list[int]) -> dict:
-        """A whole batch at once (the DataLoader's batched fetch; :func:`collate_pairs` passes it on).
-
-        The same values, dtypes and shapes as ``default_collate`` of the items, with one indexing per key
-        instead of a dictionary per pair, and on the cache's device: a GPU run fed pair by pair by
-        DataLoader workers (restarted every epoch) trained at about 5,300 pairs/s whatever the UNet's size.
-        """
-        pairs = torch.from_numpy(self.pairs.pairs[np.asarray(indices, dtype=np.int64)])
-        source, target = pairs.to(self.cache.images.device).unbind(1)  # a GPU-resident cache is indexed there
-        return self._encodings(source, target) | self.pairs.pair_fields_batch(indices)
-
-    def _encodings(self, source: int | torch.Tensor, target: int | torch.Tensor) -> dict:
-        """The cached chips and encodings of the input(s) ``source`` and target(s) ``target``."""
-        cache = self.cache
-        encodings = {
-            "input": cache.images[source],
-            "target": cache.images[target],
-            "input_latent_mean": cache.latent_mean[source],
-            "target_latent_mean": cache.latent_mean[target],
-            "target_latent_logvar": cache.latent_logvar[target],
-        }
-        if cache.image_embeds is not None:
-            encodings["input_image_embeds"] = cache.image_embeds[source]
-        if cache.proxy_latents is not None:  # (K, 2C, h, w) per pair: each candidate at both poses
-            encodings["proxy_latents"] = torch.cat(
-                [cache.proxy_latents[source], cache.proxy_latents[target]], dim=-3
-            )
-        return encodings
-
-
-def collate_pairs(batch: list[dict] | dict) -> dict:
-    """``default_collate`` for a list of pair items; a batch a dataset's ``__getitems__`` already stacked
-    (:meth:`CachedViewPairs.__getitems__`) passes through unchanged."""
-    if isinstance(batch, dict):
-        return batch
-    return default_collate(batch)
 
 
 # ------------------------------------------------------------------------------------------ the step
@@ -519,7 +339,8 @@ def compute_losses(
     target latent is scaled; with a spatial pose, also that latent turned by ``d_az``,
     :func:`~sar_zero123.model.conditioning.unet_condition_latents`) and cross-attends to
     ``pose_projection([CLIP image embedding, pose])``; cached encodings in ``batch``
-    (:class:`CachedViewPairs`) replace the VAE and a frozen ``image_encoder`` (an :class:`ImageEmbedder`).
+    (:class:`~sar_zero123.training.latent_cache.CachedViewPairs`) replace the VAE and a frozen
+    ``image_encoder`` (an :class:`ImageEmbedder`).
     ``loss_settings`` (:class:`~sar_zero123.training.losses.LossSettings`; ``None``:
     plain zero-1-to-3 without PFM) sets lambda of Eq. (21) and where PFM applies, the CFG dropout (skipped
     without ``apply_dropout``, as in validation), the timestep density (:func:`sample_timesteps`), the

@@ -21,8 +21,9 @@ from torch.profiler import ProfilerActivity, profile
 
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.training.finetuning import finetuning_optimizer
+from sar_zero123.training.latent_cache import ChipLatentCache
 from sar_zero123.training.losses import LossSettings
-from sar_zero123.training.step import ChipLatentCache, ImageEmbedder, compute_losses, micro_batch_generator
+from sar_zero123.training.step import ImageEmbedder, compute_losses, micro_batch_generator
 
 __all__ = ["count_operators", "prior_training_step"]
 

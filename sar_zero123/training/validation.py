@@ -23,7 +23,7 @@ from accelerate import Accelerator
 from diffusers import DDIMScheduler
 from diffusers.training_utils import EMAModel
 
-from sar_zero123.evaluation.evaluators import pose_following
+from sar_zero123.evaluation.scoring import pose_following
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.training.step import ImageEmbedder, compute_losses, conditioning_sensitivity
 

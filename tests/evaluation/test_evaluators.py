@@ -20,11 +20,11 @@ from sar_zero123.evaluation.evaluators import (
     DepressionRegressor,
     SARClassifier,
     azimuth_regression_loss,
-    closer_to_target_depression,
     depression_regression_loss,
     load_evaluator,
     load_evaluators,
 )
+from sar_zero123.evaluation.scoring import closer_to_target_depression
 from sar_zero123.runs.folder import read_run_record
 from sar_zero123.stages import evaluators as stage
 from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, hold_out, run_evaluators

@@ -1,4 +1,4 @@
-"""Tests for the frozen-feature probes of Table I."""
+"""Tests for the frozen-feature probes of Table I (evaluation.probes; the trained ones: training.probes)."""
 
 from __future__ import annotations
 
@@ -8,14 +8,8 @@ import pytest
 import torch
 
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
-from sar_zero123.evaluation.probes import (
-    FeatureSet,
-    extract_features,
-    linear_probe,
-    mlp_azimuth_probe,
-    nearest_neighbor_probe,
-    run_probes,
-)
+from sar_zero123.evaluation.probes import FeatureSet, extract_features, nearest_neighbor_probe
+from sar_zero123.training.probes import linear_probe, mlp_azimuth_probe, run_probes
 
 
 def clustered_set(n_per_class: int, generator: torch.Generator) -> FeatureSet:

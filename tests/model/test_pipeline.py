@@ -379,7 +379,7 @@ def test_a_pipeline_folder_loads_only_as_it_was_saved(pipe, tmp_path, caplog):
     warning."""
     import json
 
-    from sar_zero123.config import MANIFEST_FILE, file_sha256
+    from sar_zero123.runs.manifest import MANIFEST_FILE, file_sha256
 
     pipe.save_pretrained(tmp_path / "ok")
     listed = json.loads((tmp_path / "ok" / MANIFEST_FILE).read_text())["files"]

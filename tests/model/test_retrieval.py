@@ -1,4 +1,4 @@
-"""The learned shortlist of the proxy fit: inputs, loss, recall, saving, and a bank fitted through it."""
+"""The learned shortlist of the proxy fit: inputs, saving, and a bank fitted through it."""
 
 from __future__ import annotations
 
@@ -16,9 +16,7 @@ from sar_zero123.model.retrieval import (
     _bucket_chips,
     load_retrieval,
     retrieval_inputs,
-    retrieval_loss,
     save_retrieval,
-    shortlist_recall,
 )
 from sar_zero123.pretrained import resolve_retrieval
 from sar_zero123.sim.proxy import ProxyBank
@@ -44,20 +42,6 @@ def test_inputs_are_pooled_standardised_and_affine_invariant():
     expected = (torch.arange(4.0).view(2, 2) - 1.5) / torch.arange(4.0).std()
     torch.testing.assert_close(pooled, expected)
     assert torch.equal(retrieval_inputs(torch.full((1, 8, 8), 3.0), 0.0), torch.zeros(1, 4, 4))
-
-
-def test_loss_is_the_cross_entropy_against_the_tempered_softmax_of_the_scores():
-    logits = torch.tensor([[0.0, 1.0, 2.0, 3.0]])
-    index, score = torch.tensor([[3, 1]]), torch.tensor([[0.9, 0.8]])
-    target = torch.softmax(torch.tensor([90.0, 80.0]), 0)
-    log_p = torch.log_softmax(logits[0], 0)[[3, 1]]
-    expected = -(target * log_p).sum()
-    torch.testing.assert_close(retrieval_loss(logits, index, score, 0.01), expected)
-
-
-def test_recall_counts_the_best_within_the_first_k():
-    ranked = np.array([[2, 0, 1], [0, 1, 2], [1, 2, 0], [2, 1, 0]])
-    assert shortlist_recall(ranked, np.array([2, 1, 0, 0]), (1, 2, 3)) == {1: 0.25, 2: 0.5, 3: 1.0}
 
 
 def test_forward_shapes_and_a_full_turn_is_no_turn():

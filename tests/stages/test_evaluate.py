@@ -1,5 +1,5 @@
 """Tests for the evaluate stage (sar_zero123.stages.evaluate, train/evaluate.py), the Table III protocol and
-evaluators.score_views, on a tiny pipeline and fabricated chips."""
+scoring.score_views, on a tiny pipeline and fabricated chips."""
 
 from __future__ import annotations
 
@@ -23,7 +23,6 @@ from sar_zero123.evaluation.evaluators import (
     Evaluators,
     SARClassifier,
     load_evaluators,
-    score_views,
 )
 from sar_zero123.evaluation.protocol import (
     INPUT_COPY,
@@ -34,6 +33,7 @@ from sar_zero123.evaluation.protocol import (
     gap_closed,
     pareto_front,
 )
+from sar_zero123.evaluation.scoring import score_views
 from sar_zero123.evaluation.tables import table3_markdown
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.pipeline import SARZero123Pipeline

@@ -14,7 +14,7 @@ from PIL import Image
 
 from sar_zero123.data import ChipRecord, write_index
 from sar_zero123.encoder import SAREncoder
-from sar_zero123.runs.checkpoints import write_manifest
+from sar_zero123.runs.manifest import write_manifest
 from train import pretrain_simclr
 
 SCRIPT = Path(__file__).resolve().parents[2] / "train" / "pretrain_simclr.py"

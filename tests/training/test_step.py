@@ -1,4 +1,4 @@
-"""Tests of sar_zero123.training.step: cached encodings, the training step, sensitivity, loss buckets."""
+"""Tests of sar_zero123.training.step and training.latent_cache: cached encodings, the step, buckets."""
 
 from __future__ import annotations
 
@@ -9,15 +9,17 @@ from diffusers import DDPMScheduler
 from torch.utils.data import DataLoader, default_collate
 
 from sar_zero123.data import ChipRecord, ViewPairDataset
-from sar_zero123.training.losses import LossSettings
-from sar_zero123.training.step import (
+from sar_zero123.training.latent_cache import (
     CachedViewPairs,
     ChipLatentCache,
-    ImageEmbedder,
     collate_pairs,
+    load_chip_images,
+)
+from sar_zero123.training.losses import LossSettings
+from sar_zero123.training.step import (
+    ImageEmbedder,
     compute_losses,
     conditioning_sensitivity,
-    load_chip_images,
     min_snr_weights,
     timestep_bucket_losses,
 )

@@ -1,0 +1,115 @@
+"""Speed against error: the azimuth error and accuracy of every (pipeline, scheduler, step count) against the
+images per second it generates, its UNet evaluations per image and its peak memory, and the Pareto front of
+speed and error (``speed_error.{json,md,png}`` of the evaluate stage).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from collections.abc import Sequence
+from dataclasses import replace
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from sar_zero123.config import write_json_atomic
+from sar_zero123.evaluation.evaluators import Evaluators
+from sar_zero123.evaluation.protocol import (
+    MIN_SPEED_PAIRS,
+    SPEED_ERROR_SCORES,
+    PairSet,
+    PeakMemory,
+    UNetImageCount,
+    device_name,
+    generate_pair_targets,
+    pareto_front,
+    score,
+    set_scheduler,
+)
+from sar_zero123.evaluation.tables import plot_speed_error, speed_markdown
+from sar_zero123.model.sampler import SamplerSettings
+
+logger = logging.getLogger(__name__)
+
+__all__ = ["speed_error_rows", "write_speed_error"]
+
+
+def speed_error_rows(
+    pipes: dict[str, Any],
+    pairs: PairSet,
+    evaluators: Evaluators,
+    *,
+    schedulers: Sequence[str],
+    steps: Sequence[int],
+    guidance_scale: float | None,
+    sampler: SamplerSettings,
+    batch_size: int,
+    scoring: dict[str, Any],
+    device: torch.device,
+) -> list[dict[str, Any]]:
+    """Azimuth error and accuracy against images/s for every (pipeline, scheduler, step count) on ``pairs``,
+    each row marked ``pareto`` where no other row beats it on both speed and error.
+
+    Args:
+        pipes: The pipelines by row name (each one's scheduler is restored afterwards).
+        pairs: The pairs every row generates and is scored on.
+        evaluators: The evaluator models that score the views.
+        schedulers: The schedulers each pipeline samples with (``SCHEDULERS`` names).
+        steps: The step counts each (pipeline, scheduler) samples with.
+        guidance_scale: The guidance scale of the warm-up call (``None``: the pipeline's recorded value).
+        sampler: The sampler of every timed call; each row sets its own step count.
+        batch_size: Views per pipeline call.
+        scoring: :func:`~sar_zero123.evaluation.protocol.score`'s keyword arguments.
+        device: Where the pipelines run.
+
+    Returns:
+        One dict per (pipeline, scheduler, step count).
+    """
+    rows: list[dict[str, Any]] = []
+    for name, pipe in pipes.items():
+        original = pipe.scheduler
+        for scheduler in schedulers:
+            set_scheduler(pipe, scheduler)
+            # a warm-up call, so one-time costs (allocation, kernel selection) do not count
+            warm_up = SamplerSettings(num_inference_steps=1, guidance_scale=guidance_scale)
+            generate_pair_targets(
+                pipe, pairs.subset(1), sampler=warm_up, batch_size=1, device=device,
+                desc=f"{name} {scheduler} warm-up",
+            )  # fmt: skip
+            for num_steps in steps:
+                with UNetImageCount(pipe) as unet_count, PeakMemory(device) as memory:
+                    images, seconds = generate_pair_targets(
+                        pipe, pairs, sampler=replace(sampler, num_inference_steps=num_steps),
+                        batch_size=batch_size, device=device, desc=f"{name} {scheduler} {num_steps} steps",
+                    )  # fmt: skip
+                scores = score(images, pairs, evaluators, **scoring)
+                rows.append({
+                    "pipeline": name, "scheduler": scheduler, "steps": num_steps, "n": len(pairs),
+                    "batch_size": batch_size, "images_per_s": len(pairs) / seconds,
+                    "unet_evaluations_per_image": unet_count.samples / len(pairs),
+                    "peak_memory_mib": memory.peak_mib,
+                    **{key: scores[key] for key in SPEED_ERROR_SCORES},
+                })  # fmt: skip
+                logger.info("speed %s", json.dumps(rows[-1]))
+        pipe.scheduler = original
+    for row, on_front in zip(rows, pareto_front(rows), strict=True):
+        row["pareto"] = on_front
+    return rows
+
+
+def write_speed_error(
+    rows: list[dict[str, Any]], output_dir: Path, device: torch.device, *, num_pairs: int
+) -> list[str]:
+    """Writes ``speed_error.{json,md,png}`` of :func:`speed_error_rows`' rows into ``output_dir``; returns
+    their names. Fewer than ``MIN_SPEED_PAIRS`` pairs per row mark the sweep indicative."""
+    memory_kind = "max allocated (CUDA)" if device.type == "cuda" else "resident set size (CPU)"
+    write_json_atomic(
+        {"device": str(device), "device_name": device_name(device), "peak_memory": memory_kind,
+         "indicative": num_pairs < MIN_SPEED_PAIRS, "rows": rows},
+        output_dir / "speed_error.json",
+    )  # fmt: skip
+    (output_dir / "speed_error.md").write_text(speed_markdown(rows, device_name(device), memory_kind))
+    plot_speed_error(rows, output_dir / "speed_error.png")
+    return ["speed_error.json", "speed_error.md", "speed_error.png"]
