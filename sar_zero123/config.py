@@ -29,7 +29,7 @@ import sys
 import tempfile
 import types
 import typing
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
@@ -580,48 +580,6 @@ def read_json(path: str | os.PathLike, what: str = "JSON") -> Any:
 def save_config(config: Any, directory: str | os.PathLike, name: str = "config.json") -> Path:
     """Save the resolved config as JSON next to a run's outputs; returns the file path."""
     return write_json_atomic(config_to_dict(config), Path(directory) / name)
-
-
-#: What a command raises when it refuses its input (a bad field, a missing file, a folder holding other
-#: work): at the command line one line names it, without a traceback (``--traceback`` shows one).
-REFUSALS = (
-    ValueError,
-    FileNotFoundError,
-    FileExistsError,
-    NotADirectoryError,
-    IsADirectoryError,
-    PermissionError,
-)
-#: The exit status of a refused command (argparse's for a bad flag).
-REFUSED = 2
-TRACEBACK_FLAG = "--traceback"
-
-
-def run_command(function: Callable[[], Any], prog: str) -> int:
-    """Run a command-line entry point (``function()`` reads ``sys.argv``); returns its exit status.
-
-    0 once it returns, whatever it returns (a console script's launcher would print a returned folder and
-    exit 1); a returned path (the command's output folder or file) is printed on stdout as its last line,
-    for a shell to read (``out=$(sar-zero123-augment ... | tail -n 1)``). A refusal (:data:`REFUSALS`)
-    prints one line, ``<prog>: error: <message>``, on stderr and returns :data:`REFUSED`; ``--traceback``
-    anywhere on the command line (removed before the flags are parsed) lets it raise with its traceback
-    instead. Any other exception raises (a bug shows where it is), and ``SystemExit`` (``--help``, a bad
-    flag) passes through with its own code.
-    """
-    show_traceback = TRACEBACK_FLAG in sys.argv[1:]
-    if show_traceback:
-        sys.argv[1:] = [arg for arg in sys.argv[1:] if arg != TRACEBACK_FLAG]
-    try:
-        result = function()
-    except REFUSALS as error:
-        if show_traceback:
-            raise
-        message = " ".join(str(error).split()) or type(error).__name__
-        print(f"{prog}: error: {message} ({TRACEBACK_FLAG} shows where)", file=sys.stderr)
-        return REFUSED
-    if isinstance(result, Path):
-        print(result, flush=True)
-    return 0
 
 
 #: The file a sealed folder (a checkpoint, a pipeline) lists its other files in, with their sizes and SHA-256.

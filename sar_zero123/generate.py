@@ -429,7 +429,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
         progress_bar(list(zip(views, config.d_az, d_el)), desc="writing views", unit="view")
     ):
         stem = f"view_{index:02d}_daz{d_az_deg:+07.2f}_del{d_el_deg:+06.2f}"
-        with naming_write_errors(out / stem, "the run is not marked finished; free space and --restart"):
+        with naming_write_errors(out / stem, "the run is not marked finished (--resume redoes it)"):
             _save_png(view, out / f"{stem}.png")
             np.save(out / f"{stem}.npy", view.astype(np.float32))
         titles.append(f"d_az {d_az_deg:g}, d_el {d_el_deg:g}")
@@ -445,6 +445,6 @@ def main(argv: Sequence[str] | None = None) -> Path:
 
 
 if __name__ == "__main__":  # exit 0 on success; a refusal in one line (--traceback: in full)
-    from sar_zero123.config import run_command
+    from sar_zero123.runs.refusals import run_command
 
     raise SystemExit(run_command(main, "sar-zero123-generate"))
