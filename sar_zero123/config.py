@@ -35,7 +35,7 @@ from typing import Any, TypeVar
 
 import yaml
 
-from sar_zero123.domain import naming_write_errors
+from sar_zero123.domain import naming_write_errors, read_number
 from sar_zero123.yaml_data import read_yaml
 
 ConfigT = TypeVar("ConfigT")
@@ -94,23 +94,32 @@ def _unwrap_optional(annotation: Any) -> tuple[Any, bool]:
 
 
 def finite_float(text: str) -> float:
-    """A float flag's value: any number but NaN and the infinities (``float`` reads ``"1e999"`` as inf)."""
-    value = float(text)
+    """A float flag's value: any number but NaN and the infinities (``float`` reads ``"1e999"`` as inf),
+    written plainly (:func:`~sar_zero123.domain.read_number`: no ``"1_0"``, no non-ASCII digits)."""
+    value = read_number(text)
     if not math.isfinite(value):
         raise ValueError(f"expected a finite number, got {text!r}")
-    return value
+    return float(value)
+
+
+def integer(text: str) -> int:
+    """An integer flag's value, written plainly (:func:`~sar_zero123.domain.read_number`: ``int`` reads
+    ``"1_0"`` as 10)."""
+    return int(read_number(text, integer=True))
 
 
 def _scalar_parser(annotation: Any, name: str) -> Any:
     if annotation is float:
         return finite_float
-    if annotation in (int, str):
-        return annotation
+    if annotation is int:
+        return integer
+    if annotation is str:
+        return str
     if annotation is Path:
         return str
     if typing.get_origin(annotation) is typing.Literal:
         choices = typing.get_args(annotation)
-        return type(choices[0])
+        return integer if type(choices[0]) is int else type(choices[0])
     raise TypeError(f"config field {name!r}: unsupported type {annotation!r}")
 
 
@@ -465,7 +474,7 @@ def check_minimum(
 
 
 #: Config fields that name a folder a script writes into; :func:`parse_config` checks them first.
-OUTPUT_DIR_FIELDS = ("output_dir", "work_dir")
+OUTPUT_DIR_FIELDS = ("output_dir", "work_dir", "out")
 
 
 def check_output_dir(path: str | os.PathLike, field: str = "output_dir") -> Path:
