@@ -5,8 +5,9 @@ Every entry point (console scripts, ``train/`` scripts, ``python -m`` commands) 
 field, a missing file, a folder holding other work) prints ``<prog>: error: <message>`` and exits
 :data:`REFUSED`. One that the file system stops part-way (:data:`FILE_SYSTEM_ERRORS`: a full disk, a
 read-only folder) prints the same one line, what to do appended, and exits :data:`FILE_SYSTEM_FAILED`:
-the input was fine, and the command continues (``--resume``) once the disk is fixed. Anything else is a
-bug and raises with its traceback, as does any of these with ``--traceback`` on the command line.
+the input was fine, and the command continues (``--resume``) once the disk is fixed. A run that diverged
+(``FloatingPointError``, naming the setting) prints its line and exits :data:`DIVERGED`. Anything else is
+a bug and raises with its traceback, as does any of these with ``--traceback`` on the command line.
 """
 
 from __future__ import annotations
@@ -18,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
+    "DIVERGED",
     "FILE_SYSTEM_ERRORS",
     "FILE_SYSTEM_FAILED",
     "REFUSALS",
@@ -53,6 +55,9 @@ FILE_SYSTEM_ERRORS = {
 }
 #: The exit status of a command the file system stopped (sysexits' ``EX_IOERR``).
 FILE_SYSTEM_FAILED = 74
+#: The exit status of a run whose numbers stopped being finite (``FloatingPointError``: the message names the
+#: setting to change, as a diverged training or a sampler pushed past float range raise it).
+DIVERGED = 1
 TRACEBACK_FLAG = "--traceback"
 
 
@@ -65,7 +70,8 @@ def refusal_line(error: BaseException, prog: str) -> tuple[str, int] | None:
 
     Returns:
         ``("<prog>: error: <message> (--traceback shows where)", status)``: :data:`REFUSED` for a refusal,
-        :data:`FILE_SYSTEM_FAILED` for a file-system failure (what to do appended); ``None`` otherwise.
+        :data:`FILE_SYSTEM_FAILED` for a file-system failure (what to do appended), :data:`DIVERGED` for
+        numbers that stopped being finite; ``None`` otherwise.
     """
     message = " ".join(str(error).split()) or type(error).__name__
     if isinstance(error, OSError) and error.errno in FILE_SYSTEM_ERRORS:  # raised by the system, mid-work
@@ -73,6 +79,8 @@ def refusal_line(error: BaseException, prog: str) -> tuple[str, int] | None:
         message = f"{message}; {FILE_SYSTEM_ERRORS[error.errno]}"
     elif isinstance(error, REFUSALS):  # raised by the command's own checks (errno None), or a missing file
         status = REFUSED
+    elif isinstance(error, FloatingPointError):
+        status = DIVERGED
     else:
         return None
     return f"{prog}: error: {message} ({TRACEBACK_FLAG} shows where)", status
