@@ -149,6 +149,7 @@ def _add_field(parser: argparse.ArgumentParser, field: dataclasses.Field, annota
         def parse_optional(text: str, _scalar=scalar) -> Any:
             return None if text.lower() in ("none", "null") else _scalar(text)
 
+        parse_optional.__name__ = scalar.__name__  # argparse names it: "invalid finite_float value"
         parser.add_argument(*flags, type=parse_optional, **kwargs)
     else:
         parser.add_argument(*flags, type=scalar, **kwargs)
@@ -224,10 +225,12 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
         ValueError: if the file is not valid JSON/YAML (naming the file) or does not hold a mapping.
     """
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"--config: {str(path)!r} is a folder; expected a YAML or JSON file")
     if not path.is_file():
         raise FileNotFoundError(f"--config: no such file {str(path)!r}")
     if path.suffix == ".json":
-        values = read_json(path, what="a JSON mapping of config values")
+        values = _read_json_config(path)
     else:
         try:
             text = path.read_text(encoding="utf-8")
@@ -239,6 +242,29 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
     if not isinstance(values, dict):
         raise ValueError(f"--config {str(path)!r}: expected a mapping of field names to values")
     return values
+
+
+def _read_json_config(path: Path) -> Any:
+    """A JSON ``--config`` file read as :func:`~sar_zero123.yaml_data.read_yaml` reads YAML: a key given twice
+    refused (``json`` keeps the last), as is nesting too deep to parse."""
+
+    def unique(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+        keys = [key for key, _ in pairs]
+        repeated = sorted({key for key in keys if keys.count(key) > 1})
+        if repeated:
+            raise ValueError(f"--config {str(path)!r}: {repeated} given twice; give each field once")
+        return dict(pairs)
+
+    try:
+        return json.loads(path.read_text(encoding="utf-8"), object_pairs_hook=unique)
+    except RecursionError:
+        raise ValueError(f"--config {str(path)!r}: nested too deep to read") from None
+    except json.JSONDecodeError as error:
+        raise ValueError(
+            f"--config {str(path)!r}: invalid JSON at line {error.lineno} column {error.colno} ({error.msg})"
+        ) from None
+    except UnicodeDecodeError:
+        raise ValueError(f"--config {str(path)!r}: not a UTF-8 text file") from None
 
 
 @dataclasses.dataclass(frozen=True)

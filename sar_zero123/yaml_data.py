@@ -82,8 +82,9 @@ def read_yaml(text: str, where: str) -> Any:
         where: What it is, for messages (e.g. ``"recipe 'mine.yaml'"``).
 
     Raises:
-        ValueError: Naming ``where``, for text that is not YAML, an anchor or alias (``&``/``*``), nesting
-            deeper than :data:`MAX_YAML_DEPTH`, or a key given twice in one mapping.
+        ValueError: Naming ``where``, for text that is not YAML, an anchor or alias (``&``/``*``), a tag
+            no safe constructor reads (``!!python/...``), nesting deeper than :data:`MAX_YAML_DEPTH`, a key
+            given twice in one mapping, or a number in YAML 1.1's loose forms.
     """
     depth = 0
     try:

@@ -23,6 +23,7 @@ from typing import Any
 
 from sar_zero123.config import RemovedField
 from sar_zero123.data.splits import OOD_INTERVAL_WIDTH_DEG, check_protocol, ood_validation_intervals
+from sar_zero123.domain import read_number
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import downsampling_factor
 from sar_zero123.model.pipeline import START_FROM, check_sampler_start
@@ -475,9 +476,16 @@ class QuickstartConfig:
 def _check_simulated_validation_split(azimuth_step_deg: float, seed: int) -> None:
     """Refuse a seed whose ``ood-*`` validation intervals hold none of the simulated azimuths (``k * step``):
     the split would be empty and the run would fail after simulation and SimCLR."""
+    if not azimuth_step_deg > 0:  # the simulator's own check names it
+        return
     intervals = ood_validation_intervals(seed)
-    azimuths = [k * azimuth_step_deg for k in range(math.ceil(360.0 / azimuth_step_deg - 1e-9))]
-    if not any(start <= azimuth < end for azimuth in azimuths for start, end in intervals):
+    count = math.ceil(360.0 / azimuth_step_deg - 1e-9)
+
+    def holds_one(start: float, end: float) -> bool:  # the first k * step >= start, without listing them all
+        first = max(0, math.ceil(start / azimuth_step_deg) - 1)  # one lower: the division may round up
+        return any(k < count and start <= k * azimuth_step_deg < end for k in range(first, first + 3))
+
+    if not any(holds_one(start, end) for start, end in intervals):
         starts = ", ".join(f"{start:g}" for start, _ in intervals)
         raise ValueError(
             f"seed: the ood protocol's validation split holds the azimuths of {len(intervals)} "
@@ -485,6 +493,19 @@ def _check_simulated_validation_split(azimuth_step_deg: float, seed: int) -> Non
             f"and no simulated chip lies in them with azimuth_step_deg={azimuth_step_deg:g}: choose another "
             f"--seed, or a finer grid (--set azimuth_step_deg={OOD_INTERVAL_WIDTH_DEG:g} always works)"
         )
+
+
+def _check_plain_numbers(text: str) -> None:
+    """Refuse a number of a Python literal not written plainly (:func:`~sar_zero123.domain.read_number`):
+    ``literal_eval`` reads ``1_0`` as 10, ``0x10`` as 16 and ``1j`` as a complex number."""
+    try:
+        tree = ast.parse(text.strip(), mode="eval")
+    except SyntaxError:
+        return  # a bare word
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Constant) and type(node.value) in (int, float, complex):
+            written = ast.get_source_segment(text.strip(), node) or ""
+            read_number(written, integer=type(node.value) is int)
 
 
 def apply_overrides(preset: Preset, overrides: Sequence[str]) -> Preset:
@@ -509,6 +530,7 @@ def apply_overrides(preset: Preset, overrides: Sequence[str]) -> Preset:
         except (ValueError, SyntaxError):
             value = text  # a bare word: lr_scheduler=cosine
         try:
+            _check_plain_numbers(text)
             changes[name] = _typed(name, value)
         except ValueError as error:
             raise ValueError(f"set: {error} (in {item!r})") from None
