@@ -353,3 +353,20 @@ def test_a_hostile_quickstart_setting_is_refused_in_one_line_before_any_stage_ru
     assert ending.status == 2, ending
     assert re.search(line, ending.line), ending.line
     assert ending.line.startswith("sar-zero123-quickstart: error: ") and not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    ("bounds", "accepted"),
+    [((-1e30, 0.0), False), ((-60.0, 1e308), False), ((-1e308, 1e308), False), ((-61.0, 0.0), False),
+     ((-60.0, 0.0), True), ((-60.0, 24.4912), True)],
+)  # fmt: skip
+def test_proxy_decibel_bounds_past_any_view_are_refused_by_name(bounds, accepted):
+    """Issue 75: ``min_db`` -1e30 drew flat drafts, +-1e308 ended in "`image` contains NaN or inf"."""
+    from sar_zero123.model.proxy import DEFAULT_PROXY, check_proxy_settings
+
+    proxy = {**DEFAULT_PROXY, "min_db": bounds[0], "max_db": bounds[1]}
+    if accepted:
+        assert check_proxy_settings(proxy)["min_db"] == bounds[0]
+        return
+    with pytest.raises(ValueError, match=r"^proxy.min_db, proxy.max_db: expected decibels in \[-60, 770.6\]"):
+        check_proxy_settings(proxy)
