@@ -259,12 +259,13 @@ def _read_json_config(path: Path) -> Any:
         return json.loads(path.read_text(encoding="utf-8"), object_pairs_hook=unique)
     except RecursionError:
         raise ValueError(f"--config {str(path)!r}: nested too deep to read") from None
-    except json.JSONDecodeError as error:
+    except json.JSONDecodeError as error:  # worded as read_json words it
         raise ValueError(
-            f"--config {str(path)!r}: invalid JSON at line {error.lineno} column {error.colno} ({error.msg})"
+            f"{path}: invalid JSON at line {error.lineno} column {error.colno} ({error.msg}); expected a "
+            "JSON mapping of config values"
         ) from None
     except UnicodeDecodeError:
-        raise ValueError(f"--config {str(path)!r}: not a UTF-8 text file") from None
+        raise ValueError(f"{path}: not a UTF-8 text file; expected a JSON mapping of config values") from None
 
 
 @dataclasses.dataclass(frozen=True)
