@@ -380,6 +380,11 @@ def main(argv: Sequence[str] | None = None) -> Path:
             f"image_size: at most twice the pipeline's trained size {pipe.default_image_size} px "
             f"({2 * pipe.default_image_size}), got {size}; leave it out to use the trained size"
         )
+    if size % pipe.size_multiple:  # the VAE and the UNet halve it: named here, not as the pipeline's `image`
+        raise ValueError(
+            f"image_size: a multiple of {pipe.size_multiple} px for this pipeline (its VAE and UNet "
+            f"downsampling), got {size}; leave it out to use the trained size {pipe.default_image_size}"
+        )
     chip = load_input_chip(config, size)
     input_depression_deg = None
     if getattr(pipe.pose_projection.config, "input_depression", False):
