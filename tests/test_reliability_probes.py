@@ -3,10 +3,10 @@
 Each probe runs ``cli.console.<command>()`` on its argv in this process (as the installed launcher does,
 ``sys.exit(entry_point())``) against tiny inputs (a 32 px pipeline, a simulated dataset of 4 chips), and
 asserts its exit status and the one line it ends with: a refusal (2) names the field or file before any
-work; a file-system failure (74) names the path and what to do; a bad flag is argparse's (2). The cases are
-issue-75-style: loosely written numbers, values past any physical bound, YAML that says something other
-than it seems, output paths that cannot be folders, full and read-only disks. The probes of one kind that
-already have tests elsewhere are listed in ``docs/results/reliability.md`` with those tests.
+work; a file-system failure (74) names the path and what to do; a bad flag is argparse's (2). The kinds:
+loosely written numbers, values past any physical bound, YAML that says something other than it seems,
+output paths that cannot be folders, full and read-only disks. ``docs/results/reliability.md`` maps each
+reported case to its test, here or elsewhere.
 
 Run them: ``OMP_NUM_THREADS=1 python -m pytest -q -p no:xdist tests/test_reliability_probes.py``.
 """
@@ -178,7 +178,7 @@ PROBES: list[tuple[str, str, Argv, int, str]] = [
      lambda i: ["--output_dir", str(i["root"] / "p24"), "--chips_per_bucket", "1", "--depressions_deg", "17",
                 "--set", "batch_size=100000"], 2,
      r"error: batch_size: expected at most the 69 training chips of 1 depression\(s\) x 1 chips per bucket"),
-    # --- YAML that says something other than it seems (issue 75's kinds, for --config)
+    # --- YAML that says something other than it seems, for --config
     ("--config alias bomb (issue 75)", "generate",
      lambda i: _generate(i, "p25", "--config", _yaml(i, "p25.yaml", "a: &a [1, 1]\nd_az: [*a, *a]\n")), 2,
      r"YAML anchors and aliases \(& and \*\) are not read"),
@@ -306,8 +306,8 @@ def test_a_read_only_output_folder_is_refused_before_any_work(inputs, capsys):
         folder.chmod(0o755)
 
 
-#: (id, ``--set`` value or recipe text, a regex the refusal matches): quickstart settings and recipes (issue
-#: 75's own cases and more), refused while the stages are planned, before any runs.
+#: (id, ``--set`` value or recipe text, a regex the refusal matches): quickstart settings and recipes,
+#: refused while the stages are planned, before any runs.
 QUICKSTART_PROBES: list[tuple[str, str, str]] = [
     ("azimuth step 1e-9 (issue 75)", "data.azimuth_step_deg=1e-9",
      r"azimuth_step_deg=1e-09 .* would write .* chips, more than 200000"),
@@ -364,7 +364,7 @@ def test_a_hostile_quickstart_setting_is_refused_in_one_line_before_any_stage_ru
      ((-60.0, 0.0), True), ((-60.0, 24.4912), True)],
 )  # fmt: skip
 def test_proxy_decibel_bounds_past_any_view_are_refused_by_name(bounds, accepted):
-    """Issue 75: ``min_db`` -1e30 drew flat drafts, +-1e308 ended in "`image` contains NaN or inf"."""
+    """Decibels below zero magnitude's or above the largest float32's make every view flat (or NaN)."""
     from sar_zero123.model.proxy import DEFAULT_PROXY, check_proxy_settings
 
     proxy = {**DEFAULT_PROXY, "min_db": bounds[0], "max_db": bounds[1]}
