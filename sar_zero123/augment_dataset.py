@@ -72,6 +72,7 @@ from sar_zero123.runs.folder import (
     field_defaults,
     move_aside,
 )
+from sar_zero123.runs.launch import check_device
 from sar_zero123.runs.lock import is_lock_file, lock_output_folder, release_output_folder
 from sar_zero123.sim.dataset import write_index_atomic
 
@@ -155,6 +156,7 @@ class AugmentConfig(SamplerSettings):
 
     def __post_init__(self) -> None:
         super().__post_init__()  # the sampler's fields, validated where they are declared
+        check_device(self.device)
         if not self.data:
             raise ValueError("data: a dataset folder is required")
         if not self.out:

@@ -55,6 +55,7 @@ from sar_zero123.model.sampler import SamplerSettings
 from sar_zero123.pretrained import SIM_PRIOR_PROXY, SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import RunFolder, StageTimer, data_identity, finish_run
+from sar_zero123.runs.launch import check_device
 from sar_zero123.runs.stage import open_stage_folder
 
 __all__ = [
@@ -154,6 +155,7 @@ class GenerateConfig(SamplerSettings):
             raise ValueError(f"input_depression must lie in (0, 90) degrees, got {self.input_depression}")
         if self.resume and self.restart:
             raise ValueError("resume and restart: choose one (keep this folder's views, or move it aside)")
+        check_device(self.device)
 
 
 def _resolve_scaling(scaling_file: str | None, pipeline: str) -> DecibelScaling:
