@@ -70,6 +70,7 @@ from sar_zero123.runs.folder import (
     content_identity,
     field_defaults,
 )
+from sar_zero123.runs.launch import check_device
 from sar_zero123.runs.lock import is_lock_file, lock_output_folder, release_output_folder
 from sar_zero123.runs.restart import check_restart_target, move_aside
 from sar_zero123.sim.dataset import write_index_atomic
@@ -154,6 +155,7 @@ class AugmentConfig(SamplerSettings):
 
     def __post_init__(self) -> None:
         super().__post_init__()  # the sampler's fields, validated where they are declared
+        check_device(self.device)
         if not self.data:
             raise ValueError("data: a dataset folder is required")
         if not self.out:
@@ -729,6 +731,6 @@ def main(argv: Sequence[str] | None = None) -> Path:
 
 
 if __name__ == "__main__":  # exit 0 on success; a refusal in one line (--traceback: in full)
-    from sar_zero123.config import run_command
+    from sar_zero123.runs.refusals import run_command
 
     raise SystemExit(run_command(main, "sar-zero123-augment"))

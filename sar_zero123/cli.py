@@ -202,7 +202,7 @@ class _ConsoleScripts:
 
     Each command function returns its result to Python callers (a folder, a metrics dict); a console
     script's launcher passes what it calls to ``sys.exit``, which would print that value and exit 1. Here
-    each script runs its function (looked up when called) under :func:`sar_zero123.config.run_command`:
+    each script runs its function (looked up when called) under :func:`sar_zero123.runs.refusals.run_command`:
     exit 0 once it returns, a refusal in one line, ``sar-zero123-<command>: error: <message>``, exit 2
     (``--traceback``: raised in full). The ``train/`` scripts and ``python -m`` commands run the same way.
     """
@@ -212,7 +212,7 @@ class _ConsoleScripts:
             raise AttributeError(name)
 
         def script() -> int:
-            from sar_zero123.config import run_command
+            from sar_zero123.runs.refusals import run_command
 
             prog = next(command.script for command in COMMANDS if command.function == name)
             return run_command(globals()[name], prog)

@@ -28,13 +28,13 @@ import sys
 import tempfile
 import types
 import typing
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any, TypeVar
 
 import yaml
 
-from sar_zero123.domain import naming_write_errors
+from sar_zero123.domain import naming_write_errors, read_number
 from sar_zero123.yaml_data import read_yaml
 
 ConfigT = TypeVar("ConfigT")
@@ -93,23 +93,32 @@ def _unwrap_optional(annotation: Any) -> tuple[Any, bool]:
 
 
 def finite_float(text: str) -> float:
-    """A float flag's value: any number but NaN and the infinities (``float`` reads ``"1e999"`` as inf)."""
-    value = float(text)
+    """A float flag's value: any number but NaN and the infinities (``float`` reads ``"1e999"`` as inf),
+    written plainly (:func:`~sar_zero123.domain.read_number`: no ``"1_0"``, no non-ASCII digits)."""
+    value = read_number(text)
     if not math.isfinite(value):
         raise ValueError(f"expected a finite number, got {text!r}")
-    return value
+    return float(value)
+
+
+def integer(text: str) -> int:
+    """An integer flag's value, written plainly (:func:`~sar_zero123.domain.read_number`: ``int`` reads
+    ``"1_0"`` as 10)."""
+    return int(read_number(text, integer=True))
 
 
 def _scalar_parser(annotation: Any, name: str) -> Any:
     if annotation is float:
         return finite_float
-    if annotation in (int, str):
-        return annotation
+    if annotation is int:
+        return integer
+    if annotation is str:
+        return str
     if annotation is Path:
         return str
     if typing.get_origin(annotation) is typing.Literal:
         choices = typing.get_args(annotation)
-        return type(choices[0])
+        return integer if type(choices[0]) is int else type(choices[0])
     raise TypeError(f"config field {name!r}: unsupported type {annotation!r}")
 
 
@@ -139,6 +148,7 @@ def _add_field(parser: argparse.ArgumentParser, field: dataclasses.Field, annota
         def parse_optional(text: str, _scalar=scalar) -> Any:
             return None if text.lower() in ("none", "null") else _scalar(text)
 
+        parse_optional.__name__ = scalar.__name__  # argparse names it: "invalid finite_float value"
         parser.add_argument(*flags, type=parse_optional, **kwargs)
     else:
         parser.add_argument(*flags, type=scalar, **kwargs)
@@ -214,10 +224,12 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
         ValueError: if the file is not valid JSON/YAML (naming the file) or does not hold a mapping.
     """
     path = Path(path)
+    if path.is_dir():
+        raise IsADirectoryError(f"--config: {str(path)!r} is a folder; expected a YAML or JSON file")
     if not path.is_file():
         raise FileNotFoundError(f"--config: no such file {str(path)!r}")
     if path.suffix == ".json":
-        values = read_json(path, what="a JSON mapping of config values")
+        values = _read_json_config(path)
     else:
         try:
             text = path.read_text(encoding="utf-8")
@@ -229,6 +241,30 @@ def read_config_file(path: str | os.PathLike) -> dict[str, Any]:
     if not isinstance(values, dict):
         raise ValueError(f"--config {str(path)!r}: expected a mapping of field names to values")
     return values
+
+
+def _read_json_config(path: Path) -> Any:
+    """A JSON ``--config`` file read as :func:`~sar_zero123.yaml_data.read_yaml` reads YAML: a key given twice
+    refused (``json`` keeps the last), as is nesting too deep to parse."""
+
+    def unique(pairs: list[tuple[str, Any]]) -> dict[str, Any]:
+        keys = [key for key, _ in pairs]
+        repeated = sorted({key for key in keys if keys.count(key) > 1})
+        if repeated:
+            raise ValueError(f"--config {str(path)!r}: {repeated} given twice; give each field once")
+        return dict(pairs)
+
+    try:
+        return json.loads(path.read_text(encoding="utf-8"), object_pairs_hook=unique)
+    except RecursionError:
+        raise ValueError(f"--config {str(path)!r}: nested too deep to read") from None
+    except json.JSONDecodeError as error:  # worded as read_json words it
+        raise ValueError(
+            f"{path}: invalid JSON at line {error.lineno} column {error.colno} ({error.msg}); expected a "
+            "JSON mapping of config values"
+        ) from None
+    except UnicodeDecodeError:
+        raise ValueError(f"{path}: not a UTF-8 text file; expected a JSON mapping of config values") from None
 
 
 @dataclasses.dataclass(frozen=True)
@@ -464,7 +500,7 @@ def check_minimum(
 
 
 #: Config fields that name a folder a script writes into; :func:`parse_config` checks them first.
-OUTPUT_DIR_FIELDS = ("output_dir", "work_dir")
+OUTPUT_DIR_FIELDS = ("output_dir", "work_dir", "out")
 
 
 def check_output_dir(path: str | os.PathLike, field: str = "output_dir") -> Path:
@@ -581,43 +617,3 @@ def save_config(config: Any, directory: str | os.PathLike, name: str = "config.j
     return write_json_atomic(config_to_dict(config), Path(directory) / name)
 
 
-#: What a command raises when it refuses its input (a bad field, a missing file, a folder holding other
-#: work): at the command line one line names it, without a traceback (``--traceback`` shows one).
-REFUSALS = (
-    ValueError,
-    FileNotFoundError,
-    FileExistsError,
-    NotADirectoryError,
-    IsADirectoryError,
-    PermissionError,
-)
-#: The exit status of a refused command (argparse's for a bad flag).
-REFUSED = 2
-TRACEBACK_FLAG = "--traceback"
-
-
-def run_command(function: Callable[[], Any], prog: str) -> int:
-    """Run a command-line entry point (``function()`` reads ``sys.argv``); returns its exit status.
-
-    0 once it returns, whatever it returns (a console script's launcher would print a returned folder and
-    exit 1); a returned path (the command's output folder or file) is printed on stdout as its last line,
-    for a shell to read (``out=$(sar-zero123-augment ... | tail -n 1)``). A refusal (:data:`REFUSALS`)
-    prints one line, ``<prog>: error: <message>``, on stderr and returns :data:`REFUSED`; ``--traceback``
-    anywhere on the command line (removed before the flags are parsed) lets it raise with its traceback
-    instead. Any other exception raises (a bug shows where it is), and ``SystemExit`` (``--help``, a bad
-    flag) passes through with its own code.
-    """
-    show_traceback = TRACEBACK_FLAG in sys.argv[1:]
-    if show_traceback:
-        sys.argv[1:] = [arg for arg in sys.argv[1:] if arg != TRACEBACK_FLAG]
-    try:
-        result = function()
-    except REFUSALS as error:
-        if show_traceback:
-            raise
-        message = " ".join(str(error).split()) or type(error).__name__
-        print(f"{prog}: error: {message} ({TRACEBACK_FLAG} shows where)", file=sys.stderr)
-        return REFUSED
-    if isinstance(result, Path):
-        print(result, flush=True)
-    return 0

@@ -35,6 +35,7 @@ __all__ = [
     "from_decibels",
     "is_tensor",
     "naming_write_errors",
+    "read_number",
     "signed_to_unit",
     "to_decibels",
     "unit_to_signed",
@@ -137,6 +138,32 @@ def center_crop(image: Array, crop_size: int) -> Array:
     top = (height - crop_size) // 2
     left = (width - crop_size) // 2
     return image[..., top : top + crop_size, left : left + crop_size]
+
+
+#: A number as the package's text inputs write one (flags, ``--set``, ``index.csv``): ASCII digits, a sign, a
+#: decimal point, an exponent, or a name of an infinity or NaN (refused as such by the reader).
+_NUMBER_TEXT = re.compile(r"[+-]?(?:\d+\.?\d*|\.\d+)(?:e[+-]?\d+)?|[+-]?(?:inf|infinity|nan)", re.I | re.A)
+_INTEGER_TEXT = re.compile(r"[+-]?\d+", re.A)
+
+
+def read_number(text: str, integer: bool = False) -> float | int:
+    """The number ``text`` writes, read strictly: Python's ``float`` and ``int`` also read ``"3_0"`` as 30
+    (digit separators) and ``"\uff13\uff10"`` as 30 (non-ASCII digits), which no user means as a number.
+
+    Args:
+        text: The text (surrounding whitespace ignored).
+        integer: Read an integer (no decimal point or exponent).
+
+    Returns:
+        The ``int`` or ``float`` (possibly infinite or NaN: the caller names the field it refuses).
+
+    Raises:
+        ValueError: For any other text.
+    """
+    stripped = text.strip()
+    if not (_INTEGER_TEXT if integer else _NUMBER_TEXT).fullmatch(stripped):
+        raise ValueError(f"not {'an integer' if integer else 'a number'}: {text!r}")
+    return int(stripped) if integer else float(stripped)
 
 
 #: How torch.save's writer reports a failed write (a full disk), as a RuntimeError rather than an OSError.

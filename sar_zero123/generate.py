@@ -55,6 +55,7 @@ from sar_zero123.model.sampler import SamplerSettings
 from sar_zero123.pretrained import SIM_PRIOR_PROXY, SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import RunFolder, StageTimer, data_identity, finish_run
+from sar_zero123.runs.launch import check_device
 from sar_zero123.runs.stage import open_stage_folder
 
 __all__ = [
@@ -154,6 +155,7 @@ class GenerateConfig(SamplerSettings):
             raise ValueError(f"input_depression must lie in (0, 90) degrees, got {self.input_depression}")
         if self.resume and self.restart:
             raise ValueError("resume and restart: choose one (keep this folder's views, or move it aside)")
+        check_device(self.device)
 
 
 def _resolve_scaling(scaling_file: str | None, pipeline: str) -> DecibelScaling:
@@ -364,6 +366,11 @@ def main(argv: Sequence[str] | None = None) -> Path:
             f"image_size: at most twice the pipeline's trained size {pipe.default_image_size} px "
             f"({2 * pipe.default_image_size}), got {size}; leave it out to use the trained size"
         )
+    if size % pipe.size_multiple:  # the VAE and the UNet halve it: named here, not as the pipeline's `image`
+        raise ValueError(
+            f"image_size: a multiple of {pipe.size_multiple} px for this pipeline (its VAE and UNet "
+            f"downsampling), got {size}; leave it out to use the trained size {pipe.default_image_size}"
+        )
     chip = load_input_chip(config, size)
     input_depression_deg = None
     if getattr(pipe.pose_projection.config, "input_depression", False):
@@ -408,7 +415,7 @@ def main(argv: Sequence[str] | None = None) -> Path:
         progress_bar(list(zip(views, config.d_az, d_el)), desc="writing views", unit="view")
     ):
         stem = f"view_{index:02d}_daz{d_az_deg:+07.2f}_del{d_el_deg:+06.2f}"
-        with naming_write_errors(out / stem, "the run is not marked finished; free space and --restart"):
+        with naming_write_errors(out / stem, "the run is not marked finished (--resume redoes it)"):
             _save_png(view, out / f"{stem}.png")
             np.save(out / f"{stem}.npy", view.astype(np.float32))
         titles.append(f"d_az {d_az_deg:g}, d_el {d_el_deg:g}")
@@ -424,6 +431,6 @@ def main(argv: Sequence[str] | None = None) -> Path:
 
 
 if __name__ == "__main__":  # exit 0 on success; a refusal in one line (--traceback: in full)
-    from sar_zero123.config import run_command
+    from sar_zero123.runs.refusals import run_command
 
     raise SystemExit(run_command(main, "sar-zero123-generate"))

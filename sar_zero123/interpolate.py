@@ -285,6 +285,6 @@ def main(argv: Sequence[str] | None = None) -> Path:
 
 
 if __name__ == "__main__":  # exit 0 on success; a refusal in one line (--traceback: in full)
-    from sar_zero123.config import run_command
+    from sar_zero123.runs.refusals import run_command
 
     raise SystemExit(run_command(main, "sar-zero123-interpolate"))

@@ -3,13 +3,15 @@
 ``yaml.safe_load`` never builds objects, but it still expands anchors and aliases (a few hundred bytes of
 nested aliases grow to gigabytes), recurses once per nesting level (a deep file ends in ``RecursionError``)
 and keeps the last of two equal keys without a word (a repeated field or section silently loses the
-first). :func:`read_yaml` walks the file's parse events first, which costs memory and time linear in its
-size, and refuses any anchor or alias and nesting deeper than :data:`MAX_YAML_DEPTH`; the mapping
-constructor then refuses a key given twice. No library loader offers these three checks together.
+first). Its YAML 1.1 numbers are loose too: ``1_0`` is 10, ``1:30`` is 90 (base 60), ``0x1F`` is 31.
+:func:`read_yaml` walks the file's parse events first, which costs memory and time linear in its size, and
+refuses any anchor or alias and nesting deeper than :data:`MAX_YAML_DEPTH`; the constructors then refuse a
+key given twice and a number not written as a plain decimal. No library loader offers these checks together.
 """
 
 from __future__ import annotations
 
+import re
 from typing import Any
 
 import yaml
@@ -20,8 +22,19 @@ __all__ = ["MAX_YAML_DEPTH", "read_yaml"]
 MAX_YAML_DEPTH = 16
 
 
-class _RepeatedKey(ValueError):
-    """A mapping key given twice (raised by the loader, prefixed by :func:`read_yaml`)."""
+#: How a recipe writes a number: decimal digits, a sign, a point, an exponent; YAML's infinities and NaN
+#: (``.inf``, ``.nan``: refused by the number fields themselves).
+_PLAIN_INT = re.compile(r"[-+]?(?:0|[1-9][0-9]*)")
+_PLAIN_FLOAT = re.compile(
+    r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][-+]?[0-9]+)?|[-+]?\.(?:inf|Inf|INF)|\.(?:nan|NaN|NAN)"
+)
+#: A float YAML 1.1 reads as text (``1e-4``: an exponent without a point), read as the number it writes.
+_EXPONENT_FLOAT = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+\Z")
+
+
+class _Refused(ValueError):
+    """A mapping key given twice, or a loosely written number (raised by the loader, prefixed by
+    :func:`read_yaml`)."""
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -35,9 +48,30 @@ class _UniqueKeyLoader(yaml.SafeLoader):
             key = self.construct_object(key_node)
             if key in seen:
                 line = key_node.start_mark.line + 1
-                raise _RepeatedKey(f"{key!r} is given twice (line {line}); give each field and section once")
+                raise _Refused(f"{key!r} is given twice (line {line}); give each field and section once")
             seen.add(key)
         return super().construct_mapping(node, deep=deep)
+
+    def construct_yaml_int(self, node: yaml.ScalarNode) -> int:
+        return self._plain(node, _PLAIN_INT, super().construct_yaml_int(node))
+
+    def construct_yaml_float(self, node: yaml.ScalarNode) -> float:
+        return self._plain(node, _PLAIN_FLOAT, super().construct_yaml_float(node))
+
+    @staticmethod
+    def _plain(node: yaml.ScalarNode, pattern: re.Pattern[str], value: Any) -> Any:
+        if not pattern.fullmatch(node.value):
+            line = node.start_mark.line + 1
+            raise _Refused(
+                f"{node.value!r} (line {line}) is a number only in YAML 1.1's loose forms (read as "
+                f"{value!r}); write it as a plain decimal number, or quote it for text"
+            )
+        return value
+
+
+_UniqueKeyLoader.add_constructor("tag:yaml.org,2002:int", _UniqueKeyLoader.construct_yaml_int)
+_UniqueKeyLoader.add_constructor("tag:yaml.org,2002:float", _UniqueKeyLoader.construct_yaml_float)
+_UniqueKeyLoader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT_FLOAT, list("-+0123456789."))
 
 
 def read_yaml(text: str, where: str) -> Any:
@@ -48,8 +82,9 @@ def read_yaml(text: str, where: str) -> Any:
         where: What it is, for messages (e.g. ``"recipe 'mine.yaml'"``).
 
     Raises:
-        ValueError: Naming ``where``, for text that is not YAML, an anchor or alias (``&``/``*``), nesting
-            deeper than :data:`MAX_YAML_DEPTH`, or a key given twice in one mapping.
+        ValueError: Naming ``where``, for text that is not YAML, an anchor or alias (``&``/``*``), a tag
+            no safe constructor reads (``!!python/...``), nesting deeper than :data:`MAX_YAML_DEPTH`, a key
+            given twice in one mapping, or a number in YAML 1.1's loose forms.
     """
     depth = 0
     try:
@@ -67,7 +102,7 @@ def read_yaml(text: str, where: str) -> Any:
             elif isinstance(event, yaml.CollectionEndEvent):
                 depth -= 1
         return yaml.load(text, Loader=_UniqueKeyLoader)  # noqa: S506 - a SafeLoader subclass
-    except _RepeatedKey as error:
+    except _Refused as error:
         raise ValueError(f"{where}: {error}") from None
     except yaml.YAMLError as error:
         raise ValueError(f"{where}: not valid YAML ({_one_line(error)})") from None

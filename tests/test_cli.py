@@ -11,7 +11,8 @@ from pathlib import Path
 import pytest
 
 from sar_zero123 import cli
-from sar_zero123.config import REFUSED, advanced_fields, field_comments, parse_config
+from sar_zero123.config import advanced_fields, field_comments, parse_config
+from sar_zero123.runs.refusals import REFUSED
 from sar_zero123.stages.finetune import FinetuneConfig
 from sar_zero123.stages.simclr import PretrainSimCLRConfig
 from sar_zero123.stages.simulate import SimulateConfig

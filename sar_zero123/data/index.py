@@ -22,7 +22,7 @@ from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from sar_zero123.domain import INDEX_COLUMNS, INDEX_FILENAME
+from sar_zero123.domain import INDEX_COLUMNS, INDEX_FILENAME, read_number
 
 from .mstar_raw import is_mstar_raw, read_mstar_raw, target_class_from_type
 
@@ -97,9 +97,7 @@ class ChipRecord:
 
 def _parse_float(value: str, column: str, where: str) -> float:
     try:
-        if "_" in value:  # Python reads "3_0" as 30; a CSV number has no digit separators
-            raise ValueError(value)
-        number = float(value)
+        number = read_number(value)  # strictly: Python's float reads "3_0" as 30
     except ValueError:
         raise ValueError(f"{where}: column '{column}' must be a number, got {value!r}") from None
     if not math.isfinite(number):
@@ -111,9 +109,7 @@ def _parse_optional_int(value: str | None, column: str, where: str) -> int | Non
     if value is None or value == "":
         return None
     try:
-        if "_" in value:  # Python reads "6_4" as 64; a CSV number has no digit separators
-            raise ValueError(value)
-        return int(value)
+        return int(read_number(value, integer=True))  # strictly: Python's int reads "6_4" as 64
     except ValueError:
         raise ValueError(f"{where}: column '{column}' must be an integer, got {value!r}") from None
 

@@ -21,6 +21,7 @@ import numpy as np
 import torch
 
 from sar_zero123.data import DecibelScaling
+from sar_zero123.data.scaling import ZERO_MAGNITUDE_DB
 from sar_zero123.model.conditioning import as_angle_tensor, encode_condition_latents, proxy_pair_latents
 from sar_zero123.model.view_request import Angles, ViewRequest, per_input_angles
 from sar_zero123.sim.proxy import MAX_RENDERED_BANK, PROXY_FIRST_SEED, ProxyBank
@@ -69,6 +70,10 @@ DEFAULT_PROXY: dict[str, Any] = {
 }
 
 
+#: The decibels of the largest float32 magnitude: no view's decibels lie above them.
+MAX_FLOAT32_DB = 20.0 * math.log10(float(np.finfo(np.float32).max))
+
+
 def check_proxy_settings(proxy: Mapping[str, Any], name: str = "proxy") -> dict[str, Any]:
     """A pipeline's proxy settings, checked: exactly :data:`PROXY_FIELDS`, a valid bank, ``min_db < max_db``.
 
@@ -88,6 +93,11 @@ def check_proxy_settings(proxy: Mapping[str, Any], name: str = "proxy") -> dict[
     ) or not (bounds[0] < bounds[1]):
         raise ValueError(
             f"{name}.min_db, {name}.max_db: expected finite decibels with min < max, got {bounds}"
+        )
+    if not (ZERO_MAGNITUDE_DB <= bounds[0] and bounds[1] <= MAX_FLOAT32_DB):  # past them every view is flat
+        raise ValueError(
+            f"{name}.min_db, {name}.max_db: expected decibels in [{ZERO_MAGNITUDE_DB:g}, "
+            f"{MAX_FLOAT32_DB:.4g}] (zero magnitude's and the largest float32 magnitude's), got {bounds}"
         )
     try:
         ProxyBank(*(proxy[key] for key in _BANK_FIELDS))

@@ -33,6 +33,7 @@ from sar_zero123.config import config_to_dict
 
 __all__ = [
     "all_out_of_time",
+    "check_device",
     "check_distributed_launch",
     "check_global_batch",
     "check_replicas_agree",
@@ -42,6 +43,34 @@ __all__ = [
 ]
 
 logger = logging.getLogger(__name__)
+
+
+def check_device(device: str, field: str = "device") -> torch.device:
+    """The torch device ``device`` names, checked before any model loads: one this machine has and can
+    compute on (not ``meta``, which holds no data; not ``cuda`` without a CUDA device).
+
+    Raises:
+        ValueError: Naming ``field``, for text that is no device or a device this machine lacks.
+    """
+    try:
+        parsed = torch.device(device)
+    except (RuntimeError, TypeError):
+        raise ValueError(f"{field}: {device!r} is not a torch device (cpu, cuda, cuda:1, mps, ...)") from None
+    available = {
+        "cpu": 1,
+        "cuda": torch.cuda.device_count(),
+        "mps": int(torch.backends.mps.is_available()),
+        "xpu": torch.xpu.device_count() if hasattr(torch, "xpu") and torch.xpu.is_available() else 0,
+    }
+    if parsed.type not in available:
+        raise ValueError(f"{field}: {device!r} cannot compute here; expected one of {sorted(available)}")
+    count = available[parsed.type]
+    if count == 0 or (parsed.index is not None and parsed.index >= count):
+        raise ValueError(
+            f"{field}: {device!r}, but this machine has {count} {parsed.type} device(s); use cpu or one of "
+            "those it has"
+        )
+    return parsed
 
 
 def start_run(

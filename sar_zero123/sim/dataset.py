@@ -214,7 +214,7 @@ def simulate_dataset(
                     )
                     rel = Path("chips") / f"{_format_deg(depression)}deg" / class_name
                     rel = rel / f"{class_name}_{target.serial}_{k:04d}.npy"
-                    kept = "the index is written last: no reader sees this dataset"
+                    kept = "the index is written last: no reader sees this dataset (--resume redoes it)"
                     with naming_write_errors(out / rel, kept):
                         np.save(out / rel, chip)
                     rows.append(

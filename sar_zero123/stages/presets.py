@@ -455,9 +455,16 @@ class QuickstartConfig:
 def _check_simulated_validation_split(azimuth_step_deg: float, seed: int) -> None:
     """Refuse a seed whose ``ood-*`` validation intervals hold none of the simulated azimuths (``k * step``):
     the split would be empty and the run would fail after simulation and SimCLR."""
+    if not azimuth_step_deg > 0:  # the simulator's own check names it
+        return
     intervals = ood_validation_intervals(seed)
-    azimuths = [k * azimuth_step_deg for k in range(math.ceil(360.0 / azimuth_step_deg - 1e-9))]
-    if not any(start <= azimuth < end for azimuth in azimuths for start, end in intervals):
+    count = math.ceil(360.0 / azimuth_step_deg - 1e-9)
+
+    def holds_one(start: float, end: float) -> bool:  # the first k * step >= start, without listing them all
+        first = max(0, math.ceil(start / azimuth_step_deg) - 1)  # one lower: the division may round up
+        return any(k < count and start <= k * azimuth_step_deg < end for k in range(first, first + 3))
+
+    if not any(holds_one(start, end) for start, end in intervals):
         starts = ", ".join(f"{start:g}" for start, _ in intervals)
         raise ValueError(
             f"seed: the ood protocol's validation split holds the azimuths of {len(intervals)} "

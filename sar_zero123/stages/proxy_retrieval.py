@@ -14,17 +14,24 @@ import json
 import logging
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Literal
+from typing import Any, Literal
 
 import numpy as np
+import torch
 
 from sar_zero123.config import write_json_atomic
 from sar_zero123.model.proxy import DEFAULT_PROXY
-from sar_zero123.model.retrieval import load_retrieval, make_retrieval_data, save_retrieval
+from sar_zero123.model.retrieval import (
+    POSE_BUCKET_DEG,
+    ProxyRetrievalNet,
+    load_retrieval,
+    make_retrieval_data,
+    save_retrieval,
+)
 from sar_zero123.runs.folder import StageTimer, finish_run
 from sar_zero123.runs.stage import open_stage_folder
 from sar_zero123.sim.proxy import ProxyBank
-from sar_zero123.training.retrieval import train_retrieval
+from sar_zero123.training.retrieval import train_retrieval, training_chips
 
 logger = logging.getLogger(__name__)
 
@@ -74,12 +81,26 @@ class ProxyRetrievalConfig:
         for name in ("learning_rate", "temperature"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name}: expected a value > 0, got {getattr(self, name)!r}")
+        chips = len(self.depressions_deg) * round(360.0 / POSE_BUCKET_DEG) * self.chips_per_bucket
+        if self.batch_size > training_chips(chips):  # known before the chips are rendered
+            raise ValueError(
+                f"batch_size: expected at most the {training_chips(chips)} training chips of "
+                f"{len(self.depressions_deg)} depression(s) x {self.chips_per_bucket} chips per bucket, got "
+                f"{self.batch_size}"
+            )
+
+    def bank(self) -> dict[str, Any]:
+        """The settings of the proxy bank the network ranks: the default bank's, ``num_vehicles`` vehicles."""
+        bank = {**DEFAULT_PROXY, "num_vehicles": self.num_vehicles}
+        return {key: bank[key] for key in ("num_vehicles", "first_seed", "blur_sigma_px", "render_seed")}
 
 
 def run_proxy_retrieval(config: ProxyRetrievalConfig) -> Path:
     """Render the chips (or reuse ``data.npz`` made with the same settings), train, and write the network;
     returns its folder (``output_dir/retrieval``)."""
     timer = StageTimer()
+    bank = config.bank()
+    init = _start_network(config.init, bank)  # refused before the folder is opened or a chip rendered
     folder = open_stage_folder(
         config.output_dir, "proxy_retrieval", config, data=None, resume=config.resume, restart=config.restart,
         may_differ=("resume", "restart", "workers"), resume_hint="--resume",
@@ -88,8 +109,6 @@ def run_proxy_retrieval(config: ProxyRetrievalConfig) -> Path:
     if folder.finished:
         logger.info("%s already holds this network", folder.path)
         return out
-    bank = {**DEFAULT_PROXY, "num_vehicles": config.num_vehicles}
-    bank = {key: bank[key] for key in ("num_vehicles", "first_seed", "blur_sigma_px", "render_seed")}
     settings = {"bank": bank, "depressions_deg": config.depressions_deg, "target": config.target,
                 "chips_per_bucket": config.chips_per_bucket, "seed": config.seed,
                 "pool_vehicles": config.pool_vehicles if config.target == "turntable" else 0}  # fmt: skip
@@ -108,11 +127,6 @@ def run_proxy_retrieval(config: ProxyRetrievalConfig) -> Path:
         np.savez(partial, key=np.array(key), **data)
         partial.replace(data_file)
         logger.info("rendered %d training chips in %.0f s", len(data["azimuth"]), timer.seconds)
-    init = None
-    if config.init is not None:
-        from sar_zero123.pretrained import resolve_retrieval
-
-        init = load_retrieval(resolve_retrieval(config.init), bank)
     net, recall = train_retrieval(data, bank, config.steps, config.batch_size, config.learning_rate,
                                   config.temperature, config.seed, init=init)  # fmt: skip
     save_retrieval(net, out, {"training": {"chips": int(len(data["azimuth"])), "steps": config.steps,
@@ -124,3 +138,35 @@ def run_proxy_retrieval(config: ProxyRetrievalConfig) -> Path:
     logger.info("held-out recall of the bucket's best vehicle: %s", recall)
     finish_run(folder, ["retrieval", "metrics.json", "data.npz"], seconds=timer.seconds, results=metrics)
     return out
+
+
+def _start_network(init: str | None, bank: dict[str, Any]) -> ProxyRetrievalNet | None:
+    """The saved network ``init`` names (``None``: none), read whole and checked against ``bank`` and the
+    network this stage trains (:func:`~sar_zero123.training.retrieval.train_retrieval`'s), so that a
+    folder of another bank, other sizes or a truncated file is refused before any work.
+
+    Raises:
+        FileNotFoundError: Naming ``init``, for a folder without the network's files.
+        ValueError: Naming ``init``, for a file that differs from its manifest or cannot be read, another
+            bank, or other sizes.
+    """
+    if init is None:
+        return None
+    from safetensors import SafetensorError
+
+    from sar_zero123.pretrained import resolve_retrieval
+
+    with torch.random.fork_rng(devices=[]):  # building the networks leaves the global generator as it was
+        folder = resolve_retrieval(init)
+        try:
+            net = load_retrieval(folder, bank)
+        except FileNotFoundError as error:
+            raise FileNotFoundError(f"init: {error}") from None
+        except ValueError as error:
+            raise ValueError(f"init: {' '.join(str(error).split())}") from None
+        except SafetensorError as error:  # a truncated or corrupt file in a folder without a manifest
+            raise ValueError(f"init: the weights in {str(folder)!r} cannot be read ({error})") from None
+        trained = ProxyRetrievalNet(bank).config()
+    if net.config() != trained:
+        raise ValueError(f"init: {init!r} is a network of {net.config()}; this stage trains {trained}")
+    return net

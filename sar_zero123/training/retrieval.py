@@ -15,7 +15,16 @@ from sar_zero123.model.retrieval import ProxyRetrievalNet
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["retrieval_loss", "shortlist_recall", "train_retrieval"]
+__all__ = ["HELD_OUT_SHARE", "retrieval_loss", "shortlist_recall", "training_chips", "train_retrieval"]
+
+#: The share of the chips :func:`train_retrieval` keeps out of training to measure its recall on.
+HELD_OUT_SHARE = 0.05
+
+
+def training_chips(chips: int, held_out_share: float = HELD_OUT_SHARE) -> int:
+    """How many of ``chips`` :func:`train_retrieval` trains on (at least one is held out)."""
+    return chips - max(1, int(chips * held_out_share))
+
 
 
 def retrieval_loss(
@@ -44,7 +53,7 @@ def train_retrieval(
     learning_rate: float = 2e-3,
     temperature: float = 0.01,
     seed: int = 0,
-    held_out_share: float = 0.05,
+    held_out_share: float = HELD_OUT_SHARE,
     log_every: int = 250,
     init: ProxyRetrievalNet | None = None,
 ) -> tuple[ProxyRetrievalNet, dict[int, float]]:
@@ -66,7 +75,7 @@ def train_retrieval(
             f"steps, batch_size, temperature, held_out_share: expected >= 1, >= 1, > 0 and in (0, 1), got "
             f"{steps}, {batch_size}, {temperature}, {held_out_share}"
         )
-    held_count = max(1, int(n * held_out_share))
+    held_count = n - training_chips(n, held_out_share)
     if n - held_count < batch_size:
         raise ValueError(
             f"batch_size: expected at most the {n - held_count} training chips, got {batch_size}"

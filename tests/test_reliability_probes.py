@@ -1,0 +1,386 @@
+"""Hostile and careless inputs at the command line, each through a real command's console entry point.
+
+Each probe runs ``cli.console.<command>()`` on its argv in this process (as the installed launcher does,
+``sys.exit(entry_point())``) against tiny inputs (a 32 px pipeline, a simulated dataset of 4 chips), and
+asserts its exit status and the one line it ends with: a refusal (2) names the field or file before any
+work; a file-system failure (74) names the path and what to do; a bad flag is argparse's (2). The kinds:
+loosely written numbers, values past any physical bound, YAML that says something other than it seems,
+output paths that cannot be folders, full and read-only disks. ``docs/results/reliability.md`` maps each
+reported case to its test, here or elsewhere.
+
+Run them: ``OMP_NUM_THREADS=1 python -m pytest -q -p no:xdist tests/test_reliability_probes.py``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import errno
+import os
+import re
+import shutil
+import sys
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+import PIL.Image
+import pytest
+from dummies import get_dummy_components
+
+from sar_zero123 import cli
+from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.sim import simulate_dataset
+
+
+@dataclasses.dataclass
+class Ending:
+    status: int | str | None  # the exit status (argparse's SystemExit code included)
+    line: str  # the last line on stderr ("" when none)
+    out: str  # stdout
+
+
+def run_console(command: str, argv: list[str], capsys: pytest.CaptureFixture[str]) -> Ending:
+    """``command``'s console script on ``argv``, as its launcher runs it."""
+    saved = sys.argv
+    sys.argv = [f"sar-zero123-{command.replace('_', '-')}", *argv]
+    try:
+        status: int | str | None = getattr(cli.console, command)()
+    except SystemExit as done:  # argparse: a bad flag
+        status = done.code
+    finally:
+        sys.argv = saved
+    captured = capsys.readouterr()
+    lines = [line for line in captured.err.splitlines() if line.strip()]
+    return Ending(status, lines[-1] if lines else "", captured.out)
+
+
+@pytest.fixture(scope="module")
+def inputs(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path]:
+    root = tmp_path_factory.mktemp("probes")
+    pipeline = root / "pipeline"
+    SARZero123Pipeline(**get_dummy_components()).save_pretrained(pipeline)
+    chip = root / "chip.png"
+    pixels = np.random.default_rng(0).integers(0, 256, (40, 40), dtype=np.uint8)
+    PIL.Image.fromarray(pixels, mode="L").save(chip)
+    data = simulate_dataset(root / "data", classes=("TANK",), instances=1, azimuth_step_deg=90,
+                            depressions_deg=(17.0,), size=32)  # fmt: skip
+    (root / "a_file").write_text("not a folder")
+    (root / "dangling").symlink_to(root / "nowhere")
+    return {"root": root, "pipeline": pipeline, "chip": chip, "data": data}
+
+
+def _yaml(inputs: dict[str, Path], name: str, text: str) -> str:
+    path = inputs["root"] / name
+    path.write_bytes(text.encode() if isinstance(text, str) else text)
+    return str(path)
+
+
+def _index_with(inputs: dict[str, Path], name: str, column: str, value: str) -> str:
+    """A copy of the simulated dataset whose first row's ``column`` reads ``value``."""
+    folder = inputs["root"] / name
+    if not folder.exists():
+        shutil.copytree(inputs["data"], folder)
+        lines = (folder / "index.csv").read_text().splitlines()
+        header = lines[0].split(",")
+        row = lines[1].split(",")
+        row[header.index(column)] = value
+        (folder / "index.csv").write_text("\n".join([lines[0], ",".join(row), *lines[2:]]) + "\n")
+    return str(folder)
+
+
+def _generate(inputs: dict[str, Path], out: str, *extra: str) -> list[str]:
+    return ["--pipeline", str(inputs["pipeline"]), "--image", str(inputs["chip"]), "--d_az", "30",
+            "--num_inference_steps", "2", "--output_dir", str(inputs["root"] / out), *extra]  # fmt: skip
+
+
+def _simulate(inputs: dict[str, Path], out: str, *extra: str) -> list[str]:
+    return ["--out", str(inputs["root"] / out), "--classes", "TANK", "--instances", "1",
+            "--azimuth_step_deg", "180", "--depressions_deg", "17", "--size", "32", *extra]  # fmt: skip
+
+
+def _augment(inputs: dict[str, Path], out: str, *extra: str, data: str | None = None) -> list[str]:
+    return ["--data", data or str(inputs["data"]), "--pipeline", str(inputs["pipeline"]), "--out",
+            str(inputs["root"] / out), "--d_az", "90", "--num_inference_steps", "2", *extra]  # fmt: skip
+
+
+Argv = Callable[[dict[str, Path]], list[str]]
+DEEP_JSON = '{"seed": ' + "[" * 100_000 + "]" * 100_000 + "}"
+#: (id, command, argv, exit status, a regex the last stderr line matches).
+PROBES: list[tuple[str, str, Argv, int, str]] = [
+    # --- numbers written loosely: Python and YAML 1.1 read these as numbers nobody meant
+    ("flag integer with digit separators", "simulate", lambda i: _simulate(i, "p1", "--seed", "1_0"), 2,
+     r"argument --seed/?.*: invalid integer value: '1_0'"),
+    ("flag integer in full-width digits", "simulate",
+     lambda i: _simulate(i, "p2", "--size", "\uff13\uff12"), 2, r"argument --size: invalid integer value"),
+    ("flag float with digit separators", "generate", lambda i: _generate(i, "p3", "--d_az", "3_0"), 2,
+     r"argument --d_az/?.*: invalid finite_float value: '3_0'"),
+    ("--set float with digit separators", "simulate",
+     lambda i: _simulate(i, "p4", "--set", "azimuth_step_deg=1_80"), 2,
+     r"error: --set azimuth_step_deg=1_80: not a value of azimuth_step_deg \(not a number: '1_80'\)"),
+    ("--config YAML 1.1 integer 1_0", "simulate",
+     lambda i: _simulate(i, "p5", "--config", _yaml(i, "p5.yaml", "seed: 1_0\n")), 2,
+     r"error: --config .*p5.yaml.*'1_0' \(line 1\) is a number only in YAML 1.1's loose forms \(read as 10"),
+    ("--config YAML 1.1 hexadecimal", "simulate",
+     lambda i: _simulate(i, "p6", "--config", _yaml(i, "p6.yaml", "size: 0x20\n")), 2,
+     r"'0x20' \(line 1\) is a number only in YAML 1.1's loose forms \(read as 32\)"),
+    ("--config YAML 1.1 base 60", "simulate",
+     lambda i: _simulate(i, "p7", "--config", _yaml(i, "p7.yaml", "azimuth_jitter_deg: 1:30\n")), 2,
+     r"'1:30' \(line 1\) is a number only in YAML 1.1's loose forms \(read as 90\)"),
+    ("--config YAML 1.1 octal", "simulate",
+     lambda i: _simulate(i, "p8", "--config", _yaml(i, "p8.yaml", "instances: 017\n")), 2,
+     r"'017' \(line 1\) is a number only in YAML 1.1's loose forms \(read as 15\)"),
+    ("--config 1e2 is the number 100 (YAML 1.1 reads text)", "simulate",
+     lambda i: _simulate(i, "p9", "--config", _yaml(i, "p9.yaml", "azimuth_step_deg: 1e2\n")), 0, r"^$"),
+    ("--config float for an integer field", "generate",
+     lambda i: _generate(i, "p10", "--config", _yaml(i, "p10.yaml", "seed: 1e3\n")), 2,
+     r"error: seed: expected an integer within int64, got 1000.0"),
+    ("index azimuth in full-width digits", "augment",
+     lambda i: _augment(i, "p11", data=_index_with(i, "idx_fw", "azimuth_deg", "\uff13\uff10")), 2,
+     r"column 'azimuth_deg' must be a number, got '\uff13\uff10'"),
+    ("index height in full-width digits", "augment",
+     lambda i: _augment(i, "p12", data=_index_with(i, "idx_h", "height", "\uff13\uff12")), 2,
+     r"column 'height' must be an integer, got '\uff13\uff12'"),
+    ("index azimuth 3_0 (issue 75)", "augment",
+     lambda i: _augment(i, "p13", data=_index_with(i, "idx_us", "azimuth_deg", "3_0")), 2,
+     r"column 'azimuth_deg' must be a number, got '3_0'"),
+    # --- values past any physical or numeric bound, for other fields and commands
+    ("seed past int64 (issue 75)", "generate",
+     lambda i: _generate(i, "p14", "--seed", "18446744073709551616"), 2,
+     r"error: seed: expected an integer within int64, got 18446744073709551616"),
+    ("azimuth step 1e-9 (issue 75)", "simulate",
+     lambda i: _simulate(i, "p15", "--azimuth_step_deg", "1e-9"), 2,
+     r"azimuth_step_deg=1e-09 .* would write 3.6e\+11 chips, more than 200000"),
+    ("proxy-retrieval learning rate 1e999 (issue 75)", "proxy_retrieval",
+     lambda i: ["--output_dir", str(i["root"] / "p16"), "--set", "learning_rate=1e999"], 2,
+     r"--set learning_rate=1e999: not a value of learning_rate \(expected a finite number"),
+    ("simclr learning rate nan", "simclr", lambda i: ["--output_dir", str(i["root"] / "p17"),
+                                                      "--learning_rate", "nan"], 2,
+     r"argument --learning_rate/?.*: invalid finite_float value: 'nan'"),
+    ("vae learning rate inf by --set", "vae", lambda i: ["--output_dir", str(i["root"] / "p18"),
+                                                        "--set", "learning_rate=inf"], 2,
+     r"--set learning_rate=inf: not a value of learning_rate \(expected a finite number"),
+    ("finetune snr_gamma 1e999 by --config", "finetune",
+     lambda i: ["--output_dir", str(i["root"] / "p19"), "--config",
+                _yaml(i, "p19.yaml", "snr_gamma: 1e999\n")], 2,
+     r"error: snr_gamma: expected a finite number, got inf"),
+    ("evaluators seed past int64", "evaluators", lambda i: ["--output_dir", str(i["root"] / "p20"),
+                                                           "--seed", "99999999999999999999"], 2,
+     r"error: seed: expected an integer within int64, got 99999999999999999999"),
+    ("interpolate alpha nan", "interpolate", lambda i: ["--start", "x", "--finetuned", "y", "--output_dir",
+                                                       str(i["root"] / "p21"), "--alpha", "nan"], 2,
+     r"argument --alpha: invalid finite_float value: 'nan'"),
+    ("generate input azimuth nan by --config", "generate",
+     lambda i: _generate(i, "p22", "--config", _yaml(i, "p22.yaml", "input_azimuth: .nan\n")), 2,
+     r"error: input_azimuth: expected a finite number, got nan"),
+    ("generate guidance 1e999", "generate", lambda i: _generate(i, "p23", "--guidance_scale", "1e999"), 2,
+     r"argument --guidance_scale/--guidance-scale: invalid finite_float value: '1e999'"),
+    ("proxy-retrieval batch larger than its chips", "proxy_retrieval",
+     lambda i: ["--output_dir", str(i["root"] / "p24"), "--chips_per_bucket", "1", "--depressions_deg", "17",
+                "--set", "batch_size=100000"], 2,
+     r"error: batch_size: expected at most the 69 training chips of 1 depression\(s\) x 1 chips per bucket"),
+    # --- YAML that says something other than it seems, for --config
+    ("--config alias bomb (issue 75)", "generate",
+     lambda i: _generate(i, "p25", "--config", _yaml(i, "p25.yaml", "a: &a [1, 1]\nd_az: [*a, *a]\n")), 2,
+     r"YAML anchors and aliases \(& and \*\) are not read"),
+    ("--config nested 5,000 deep (issue 75)", "generate",
+     lambda i: _generate(i, "p26", "--config", _yaml(i, "p26.yaml", "d_az: " + "[" * 5000 + "]" * 5000)), 2,
+     r"nested deeper than 16 levels"),
+    ("--config key given twice (issue 75)", "simulate",
+     lambda i: _simulate(i, "p27", "--config", _yaml(i, "p27.yaml", "seed: 1\nseed: 2\n")), 2,
+     r"'seed' is given twice \(line 2\)"),
+    ("--config input_domain decibel (issue 75)", "generate",
+     lambda i: _generate(i, "p28", "--config", _yaml(i, "p28.yaml", "input_domain: decibel\n")), 2,
+     r"error: input_domain: expected one of \['magnitude', 'normalized_db'\], got 'decibel'"),
+    ("--config a Python tag", "simulate",
+     lambda i: _simulate(i, "p29", "--config",
+                         _yaml(i, "p29.yaml", "seed: !!python/object/apply:os.getpid []\n")), 2,
+     r"--config .*p29.yaml"),
+    ("--config a list, not a mapping", "simulate",
+     lambda i: _simulate(i, "p30", "--config", _yaml(i, "p30.yaml", "- seed\n- 1\n")), 2,
+     r"--config .*p30.yaml"),
+    ("--config not UTF-8", "simulate",
+     lambda i: _simulate(i, "p31", "--config", _yaml(i, "p31.yaml", b"seed: \xff\xfe\n")), 2,
+     r"--config .*p31.yaml"),
+    ("--config a folder", "simulate", lambda i: _simulate(i, "p32", "--config", str(i["root"])), 2,
+     r"--config: '.*probes\d*' is a folder; expected a YAML or JSON file"),
+    ("--config JSON key given twice", "simulate",
+     lambda i: _simulate(i, "p33", "--config", _yaml(i, "p33.json", '{"seed": 1, "seed": 2}')), 2,
+     r"--config '.*p33.json': \['seed'\] given twice; give each field once"),
+    ("--config JSON nested 100,000 deep", "simulate",
+     lambda i: _simulate(i, "p34", "--config", _yaml(i, "p34.json", DEEP_JSON)), 2,
+     r"--config '.*p34.json': nested too deep to read"),
+    ("--config JSON NaN", "simulate",
+     lambda i: _simulate(i, "p35", "--config", _yaml(i, "p35.json", '{"azimuth_jitter_deg": NaN}')), 2,
+     r"error: azimuth_jitter_deg: expected a finite number, got nan"),
+    # --- output paths that cannot be folders
+    ("generate output a dangling link (issue 75)", "generate", lambda i: _generate(i, "dangling"), 2,
+     r"output_dir: '.*dangling' is a link to '.*nowhere', which does not exist; expected a folder"),
+    ("generate output a file", "generate", lambda i: _generate(i, "a_file"), 2,
+     r"output_dir: '.*a_file' is a file; expected a folder to write into"),
+    ("simulate out a dangling link", "simulate", lambda i: _simulate(i, "dangling"), 2,
+     r"out: '.*dangling' is a link to '.*nowhere', which does not exist; expected a folder"),
+    ("simulate out inside a file", "simulate", lambda i: _simulate(i, "a_file/sub"), 2,
+     r"out: '.*a_file/sub' is inside '.*a_file', which is a file; expected a folder to write into"),
+    ("augment out a file", "augment", lambda i: _augment(i, "a_file"), 2,
+     r"out: '.*a_file' is a file; expected a folder to write into"),
+    ("augment out a dangling link", "augment", lambda i: _augment(i, "dangling"), 2,
+     r"out: '.*dangling' is a link to '.*nowhere', which does not exist"),
+    ("image_size off the pipeline's grid (issue 75: named `image`)", "generate",
+     lambda i: _generate(i, "p41", "--set", "image_size=10"), 2,
+     r"error: image_size: a multiple of 4 px for this pipeline \(its VAE and UNet downsampling\), got 10"),
+    ("generate on the meta device (issue 75)", "generate",
+     lambda i: _generate(i, "p42", "--set", "device=meta"), 2,
+     r"error: device: 'meta' cannot compute here; expected one of \['cpu', 'cuda', 'mps', 'xpu'\]"),
+    ("generate on a device name that is none", "generate",
+     lambda i: _generate(i, "p43", "--set", "device=nonsense"), 2,
+     r"error: device: 'nonsense' is not a torch device"),
+    ("generate on a CUDA device past the last (issue 75: cuda without a GPU)", "generate",
+     lambda i: _generate(i, "p44", "--set", "device=cuda:4096"), 2,
+     r"error: device: 'cuda:4096', but this machine has \d+ cuda device\(s\)"),
+    ("augment on the meta device", "augment", lambda i: _augment(i, "p45", "--set", "device=meta"), 2,
+     r"error: device: 'meta' cannot compute here"),
+    ("generate image a folder", "generate", lambda i: _generate(i, "p39", "--image", str(i["root"])), 2,
+     r"error: .*image"),
+    ("generate image missing", "generate",
+     lambda i: _generate(i, "p40", "--image", str(i["root"] / "no.png")), 2, r"error: .*no.png"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("command", "argv", "status", "line"), [p[1:] for p in PROBES],
+                         ids=[p[0] for p in PROBES])  # fmt: skip
+def test_a_hostile_input_ends_in_one_line_and_its_exit_status(inputs, capsys, command, argv, status, line):
+    args = argv(inputs)
+    ending = run_console(command, args, capsys)
+    assert ending.status == status, ending
+    assert re.search(line, ending.line), ending.line
+    out = Path(args[args.index("--output_dir" if "--output_dir" in args else "--out") + 1])
+    if status and out.name.startswith("p"):  # refused before any work: nothing written
+        assert not out.exists(), out
+
+
+#: Where each command writes its chips or views (the write point a full or read-only disk fails).
+WRITE_POINTS = {"generate": "numpy.save", "simulate": "numpy.save", "augment": "os.replace"}
+
+
+@pytest.mark.parametrize("command", sorted(WRITE_POINTS))
+@pytest.mark.parametrize(("code", "advice"), [(errno.ENOSPC, "free space on that disk"),
+                                              (errno.EROFS, "that file system is read-only")])  # fmt: skip
+def test_a_full_or_read_only_disk_part_way_ends_in_one_line_naming_the_path_and_the_run_continues(
+    inputs, capsys, monkeypatch, command, code, advice
+):
+    """The disk fails at the command's first chip or view (simulated: the tests may run as root, whom a
+    read-only folder does not stop): one line, exit 74, naming the file; once the disk is fixed, the same
+    command with ``--resume`` finishes."""
+    out = f"disk_{command}_{code}"
+    argv = {"generate": _generate, "simulate": _simulate, "augment": _augment}[command](inputs, out)
+    module, _, name = WRITE_POINTS[command].rpartition(".")
+    target = sys.modules[module]
+    real = getattr(target, name)
+    failing = {"armed": True}
+
+    def fail(*args, **kwargs):
+        written = str(args[1] if name == "replace" else args[0])
+        if failing["armed"] and written.endswith((".npy", ".png")):  # a chip or view, not a record
+            raise OSError(code, os.strerror(code))
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(target, name, fail)
+    ending = run_console(command, argv, capsys)
+    assert ending.status == 74, ending
+    folder = inputs["root"] / out
+    assert ending.line.startswith(f"sar-zero123-{command}: error: [Errno {code}] could not write '{folder}/")
+    assert f"{os.strerror(code)}; " in ending.line and advice in ending.line
+    assert ending.line.endswith("(--traceback shows where)")
+    failing["armed"] = False
+    resume = [] if command == "augment" else ["--resume"]  # augment resumes by default
+    again = run_console(command, [*argv, *resume], capsys)
+    assert again.status == 0, again
+    assert again.out.splitlines()[-1] == str(folder)
+
+
+def test_a_read_only_output_folder_is_refused_before_any_work(inputs, capsys):
+    """A real read-only folder (chmod), where the file system enforces it: not for root, whom it does not
+    stop (the simulated probe above covers that case)."""
+    folder = inputs["root"] / "read_only"
+    folder.mkdir()
+    folder.chmod(0o555)
+    try:
+        if os.access(folder, os.W_OK):
+            pytest.skip("running as a user whom chmod does not stop (root)")
+        for command, argv in (("generate", _generate(inputs, "read_only")),
+                              ("simulate", _simulate(inputs, "read_only")),
+                              ("augment", _augment(inputs, "read_only"))):  # fmt: skip
+            ending = run_console(command, argv, capsys)
+            expected = r"'.*read_only' cannot be written; name a writable folder"
+            assert ending.status == 2 and re.search(expected, ending.line), ending
+    finally:
+        folder.chmod(0o755)
+
+
+#: (id, ``--set`` value or recipe text, a regex the refusal matches): quickstart settings and recipes,
+#: refused while the stages are planned, before any runs.
+QUICKSTART_PROBES: list[tuple[str, str, str]] = [
+    ("azimuth step 1e-9 (issue 75)", "simulate.azimuth_step_deg=1e-9",
+     r"azimuth_step_deg=1e-09 .* would write .* chips, more than 200000"),
+    ("fine-tune learning rate 1e999 (issue 75)", "finetune.learning_rate=1e999",
+     r"--set finetune.learning_rate=1e999: not a value of finetune.learning_rate \(expected a finite number"),
+    ("timestep_logit_mean 1e999 (issue 75)", "finetune.timestep_logit_mean=1e999",
+     r"not a value of finetune.timestep_logit_mean \(expected a finite number, got '1e999'\)"),
+    ("fine-tune steps 1_0", "finetune.max_train_steps=1_0",
+     r"not a value of finetune.max_train_steps \(not an integer: '1_0'\)"),
+    ("VAE feature weight 0x10", "vae_decoder.feature_loss_weight=0x10",
+     r"not a value of vae_decoder.feature_loss_weight \(not a number: '0x10'\)"),
+    ("classes count as a complex number", "simulate.instances=1j", r"not an integer: '1j'"),
+    ("recipe repeating a key (issue 75)", "finetune:\n  finetune_steps: 2\n  finetune_steps: 5000000\n",
+     r"'finetune_steps' is given twice \(line 3\)"),
+    ("recipe repeating a section (issue 75)", "finetune:\n  finetune_steps: 2\nfinetune:\n  ema_decay: 0.9\n",
+     r"'finetune' is given twice \(line 3\)"),
+    ("recipe alias bomb (issue 75)", "x: &a [1]\ndata:\n  classes: [*a, *a]\n",
+     r"YAML anchors and aliases \(& and \*\) are not read"),
+    ("recipe nested 5,000 deep (issue 75)", "data:\n  classes: " + "[" * 5000 + "]" * 5000 + "\n",
+     r"nested deeper than 16 levels"),
+    ("recipe number in YAML 1.1's loose forms", "finetune:\n  finetune_steps: 1_000\n",
+     r"'1_000' \(line 2\) is a number only in YAML 1.1's loose forms \(read as 1000\)"),
+    ("recipe learning rate .inf", "evaluators:\n  evaluator_learning_rate: .inf\n",
+     r"evaluator_learning_rate"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("setting", "line"), [p[1:] for p in QUICKSTART_PROBES],
+                         ids=[p[0] for p in QUICKSTART_PROBES])  # fmt: skip
+def test_a_hostile_quickstart_setting_is_refused_in_one_line_before_any_stage_runs(
+    tmp_path, capsys, monkeypatch, setting, line
+):
+    import sar_zero123.stages.quickstart as quickstart
+
+    def plan_only(config):  # what run_quickstart does first; a probe never runs a stage
+        quickstart.plan_stages(config)
+        pytest.fail("the quickstart planned its stages: the setting was accepted")
+
+    monkeypatch.setattr(quickstart, "run_quickstart", plan_only)
+    if "\n" in setting:  # a recipe file
+        (tmp_path / "recipe.yaml").write_text(setting)
+        argv = ["--recipe", str(tmp_path / "recipe.yaml")]
+    else:
+        argv = ["--set", setting]
+    ending = run_console("quickstart", ["--output_dir", str(tmp_path / "run"), *argv], capsys)
+    assert ending.status == 2, ending
+    assert re.search(line, ending.line), ending.line
+    assert ending.line.startswith("sar-zero123-quickstart: error: ") and not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize(
+    ("bounds", "accepted"),
+    [((-1e30, 0.0), False), ((-60.0, 1e308), False), ((-1e308, 1e308), False), ((-61.0, 0.0), False),
+     ((-60.0, 0.0), True), ((-60.0, 24.4912), True)],
+)  # fmt: skip
+def test_proxy_decibel_bounds_past_any_view_are_refused_by_name(bounds, accepted):
+    """Decibels below zero magnitude's or above the largest float32's make every view flat (or NaN)."""
+    from sar_zero123.model.proxy import DEFAULT_PROXY, check_proxy_settings
+
+    proxy = {**DEFAULT_PROXY, "min_db": bounds[0], "max_db": bounds[1]}
+    if accepted:
+        assert check_proxy_settings(proxy)["min_db"] == bounds[0]
+        return
+    with pytest.raises(ValueError, match=r"^proxy.min_db, proxy.max_db: expected decibels in \[-60, 770.6\]"):
+        check_proxy_settings(proxy)
