@@ -31,12 +31,13 @@ import numpy as np
 import torch
 
 from sar_zero123.augment_dataset import check_trained_ranges
-from sar_zero123.config import REFUSED, parse_config
+from sar_zero123.config import parse_config
 from sar_zero123.data import DecibelScaling
 from sar_zero123.generate import GenerateConfig, load_input_chip
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.sampler import SamplerSettings
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
+from sar_zero123.runs.refusals import REFUSED
 from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip
 
 __all__ = [
