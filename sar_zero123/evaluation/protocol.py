@@ -47,9 +47,10 @@ from sar_zero123.evaluation.evaluators import (
 from sar_zero123.evaluation.scoring import closer_to_target_depression, score_views, standard_error
 from sar_zero123.evaluation.template import read_chip_templates, turned_and_kept
 from sar_zero123.model.build import same_weights
-from sar_zero123.model.conditioning import encode_condition_latents, takes_proxy
+from sar_zero123.model.conditioning import encode_condition_latents
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.sampler import SCHEDULERS, SamplerSettings, set_scheduler
+from sar_zero123.model.spatial_pose import takes_proxy
 
 logger = logging.getLogger(__name__)
 
