@@ -31,9 +31,9 @@ from sar_zero123.evaluation.protocol import (
     add_gap_closed,
     build_pair_sets,
     gap_closed,
-    pareto_front,
 )
 from sar_zero123.evaluation.scoring import score_views
+from sar_zero123.evaluation.speed import pareto_front
 from sar_zero123.evaluation.tables import table3_markdown
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.pipeline import SARZero123Pipeline
