@@ -40,7 +40,7 @@ from _common import device_record, script_parser
 from threadpoolctl import threadpool_limits
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.evaluation.template import read_templates, summarise_readings
 from sar_zero123.model.conditioning import embed_pose, encode_condition_latents

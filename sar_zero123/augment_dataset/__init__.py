@@ -53,14 +53,8 @@ from sar_zero123.augment_dataset.plan import (
     select_records,
     view_generator,
 )
-from sar_zero123.config import (
-    check_minimum,
-    check_output_dir,
-    config_to_dict,
-    parse_config,
-    read_json,
-    write_json_atomic,
-)
+from sar_zero123.config import check_minimum, check_output_dir, parse_config
+from sar_zero123.config.json_io import config_to_dict, read_json, write_json_atomic
 from sar_zero123.data import ChipRecord, DecibelScaling, load_index, load_magnitude
 from sar_zero123.domain import INDEX_COLUMNS, naming_write_errors
 from sar_zero123.generate import GenerateConfig, _resolve_scaling, load_input_chip

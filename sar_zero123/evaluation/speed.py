@@ -15,7 +15,7 @@ from typing import Any
 
 import torch
 
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.evaluation.evaluators import Evaluators
 from sar_zero123.evaluation.protocol import PairSet, generate_pair_targets, score, set_scheduler
 from sar_zero123.evaluation.tables import MIN_SPEED_PAIRS, plot_speed_error, speed_markdown

@@ -35,7 +35,8 @@ from diffusers import DDPMScheduler
 from diffusers.optimization import get_scheduler
 from torch.utils.data import DataLoader
 
-from sar_zero123.config import RemovedField, check_minimum, save_config, write_json_atomic
+from sar_zero123.config import RemovedField, check_minimum
+from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import (
     MixedPairs,
     ViewPairDataset,

@@ -14,7 +14,7 @@ import torch
 from chip_folders import TINY_ENCODER, write_chip_folder
 from dummies import get_dummy_components
 
-from sar_zero123.config import save_config, write_json_atomic
+from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import load_chip
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluation.evaluators import (
