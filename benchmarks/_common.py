@@ -2,7 +2,7 @@
 
 A script runs as ``python benchmarks/<name>.py``: its folder comes first on ``sys.path``, so it imports
 this module as ``_common``. The measuring itself is library code (``sar_zero123``); a script parses its
-flags, calls the library, and writes its record with ``sar_zero123.config.write_json_atomic``.
+flags, calls the library, and writes its record with ``sar_zero123.config.json_io.write_json_atomic``.
 """
 
 from __future__ import annotations

@@ -19,7 +19,8 @@ import torch
 
 from sar_zero123.augment import PRESETS
 from sar_zero123.augment.throughput import time_preset
-from sar_zero123.config import config_to_dict, parse_config, write_json_atomic
+from sar_zero123.config import parse_config
+from sar_zero123.config.json_io import config_to_dict, write_json_atomic
 from sar_zero123.data import DecibelScaling
 
 

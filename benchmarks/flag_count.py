@@ -17,7 +17,7 @@ from pathlib import Path
 from _common import script_parser
 
 from sar_zero123 import cli, config
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 
 #: The settings without a flag of a config class (none on a tree older than them: run with PYTHONPATH=<tree>).
 advanced_fields = getattr(config, "advanced_fields", lambda cls: {})

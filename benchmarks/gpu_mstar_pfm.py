@@ -42,7 +42,7 @@ from typing import Any
 import numpy as np
 from PIL import Image
 
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data.datasets import load_chip
 from sar_zero123.data.index import load_index, write_index
 from sar_zero123.stages.evaluate import EvaluateConfig

@@ -48,7 +48,7 @@ from typing import Any
 import torch
 
 from sar_zero123 import SIM_PRIOR, SIM_PRIOR_ROTATED, resolve_pretrained
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.sim.corpus import write_prior_corpus
 from sar_zero123.stages.evaluate import EvaluateConfig, load_evaluation, run_evaluate

@@ -31,7 +31,8 @@ import torch
 from _common import synchronize
 from diffusers import DDIMScheduler, DPMSolverMultistepScheduler, EulerDiscreteScheduler
 
-from sar_zero123.config import parse_config, write_json_atomic
+from sar_zero123.config import parse_config
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.conditioning import embed_pose
 from sar_zero123.model.pipeline import SARZero123Pipeline

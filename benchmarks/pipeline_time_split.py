@@ -27,7 +27,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from _common import script_parser
 
 from sar_zero123 import SIM_PRIOR_PROXY, SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained  # noqa: E402
-from sar_zero123.config import write_json_atomic  # noqa: E402
+from sar_zero123.config.json_io import write_json_atomic  # noqa: E402
 from sar_zero123.data import SCALING_FILE, DecibelScaling  # noqa: E402
 from sar_zero123.model import proxy as proxy_module  # noqa: E402
 from sar_zero123.model.proxy import _fit as proxy_fits  # noqa: E402

@@ -24,7 +24,7 @@ import torch
 from _common import script_parser
 
 from sar_zero123 import SIM_PRIOR_PROXY, resolve_pretrained
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling, load_magnitude
 from sar_zero123.model.proxy import fit_scores
 

@@ -33,10 +33,10 @@ from _common import cpu_device, device_record, script_parser
 from threadpoolctl import threadpool_limits
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling, load_chip
-from sar_zero123.model.conditioning import takes_proxy
 from sar_zero123.model.proxy import PROXY_FIELDS, draft_target_views, proxy_bank
+from sar_zero123.model.spatial_pose import takes_proxy
 from sar_zero123.sim.proxy import blurred_correlation
 
 CLASSES = ("2S1", "BRDM2", "T72", "ZSU234")

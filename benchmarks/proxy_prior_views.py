@@ -47,7 +47,7 @@ from _common import cpu_device, device_record, script_parser
 from threadpoolctl import threadpool_limits
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.domain import to_decibels
 from sar_zero123.evaluation.template import summarise_readings, turned_and_kept

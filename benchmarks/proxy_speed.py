@@ -23,7 +23,7 @@ import torch
 from _common import device_record, script_parser
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.sim import make_target, render_chip
 

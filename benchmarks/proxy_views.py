@@ -40,12 +40,13 @@ from _common import device_record, script_parser
 from threadpoolctl import threadpool_limits
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.evaluation.template import read_templates, summarise_readings
-from sar_zero123.model.conditioning import embed_pose, encode_condition_latents, rotate_condition_latents
+from sar_zero123.model.conditioning import embed_pose, encode_condition_latents
 from sar_zero123.model.orientation import azimuth_deg
 from sar_zero123.model.proxy import DEFAULT_PROXY, check_proxy_settings, draft_target_views
+from sar_zero123.model.spatial_pose import rotate_condition_latents
 from sar_zero123.sim import TARGET_CLASSES, make_target, render_chip
 
 INPUT_DEPRESSION_DEG = 17.0

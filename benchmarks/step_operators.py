@@ -22,7 +22,7 @@ from typing import Any
 import torch
 from _common import script_parser, synchronize
 
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.training.step_profile import count_operators, prior_training_step
 

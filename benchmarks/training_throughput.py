@@ -34,7 +34,7 @@ from _common import script_parser
 from torch.utils.flop_counter import FlopCounterMode
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 
 
 def _inputs(unet, batch: int, seed: int = 0) -> tuple[torch.Tensor, ...]:

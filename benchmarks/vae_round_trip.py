@@ -23,7 +23,7 @@ import torch
 from _common import script_parser
 
 from sar_zero123.augment import readd_speckle
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.evaluation.protocol import INPUT_COPY, REAL_TARGET, build_pair_sets, score
 from sar_zero123.evaluation.tables import vae_round_trip_markdown

@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from sar_zero123.augment_dataset import check_trained_ranges
+from sar_zero123.augment_dataset.plan import check_trained_ranges
 from sar_zero123.config import parse_config
 from sar_zero123.data import DecibelScaling
 from sar_zero123.generate import GenerateConfig, load_input_chip

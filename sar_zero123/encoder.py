@@ -26,7 +26,7 @@ from torch import nn
 from transformers import ResNetConfig, ResNetModel
 from transformers.models.resnet.modeling_resnet import ResNetConvLayer
 
-from sar_zero123.config import read_json
+from sar_zero123.config.json_io import read_json
 from sar_zero123.domain import unit_to_signed
 from sar_zero123.model.loading import load_weights_file
 

@@ -38,7 +38,8 @@ import PIL.Image
 import torch
 from matplotlib.figure import Figure
 
-from sar_zero123.config import naming_write_errors, parse_config, save_config, write_json_atomic
+from sar_zero123.config import parse_config
+from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import (
     SCALING_FILE,
     DecibelScaling,
@@ -50,6 +51,7 @@ from sar_zero123.data import (
 )
 from sar_zero123.data.mstar_raw import is_mstar_raw
 from sar_zero123.data.splits import TRAIN_DEPRESSION_DEG
+from sar_zero123.domain import naming_write_errors
 from sar_zero123.model.pipeline import MAX_ABS_D_EL_DEG, SARZero123Pipeline
 from sar_zero123.model.sampler import SamplerSettings
 from sar_zero123.pretrained import SIM_PRIOR_PROXY, SIM_PRIOR_ROTATED, resolve_pretrained

@@ -39,7 +39,9 @@ import torch
 from safetensors import safe_open
 from safetensors.torch import load_file, save_file
 
-from sar_zero123.config import naming_write_errors, parse_config, write_json_atomic
+from sar_zero123.config import parse_config
+from sar_zero123.config.json_io import write_json_atomic
+from sar_zero123.domain import naming_write_errors
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.folder import StageTimer, content_identity, finish_run, weights_identity
 from sar_zero123.runs.manifest import manifest_problem, write_manifest

@@ -12,16 +12,9 @@ from typing import Literal
 
 import pytest
 
-from sar_zero123.config import (
-    check_minimum,
-    check_output_dir,
-    field_comments,
-    naming_write_errors,
-    parse_config,
-    read_config_file,
-    save_config,
-    write_json_atomic,
-)
+from sar_zero123.config import check_minimum, check_output_dir, field_comments, parse_config, read_config_file
+from sar_zero123.config.json_io import save_config, write_json_atomic
+from sar_zero123.domain import naming_write_errors
 
 
 @dataclass

@@ -22,7 +22,8 @@ import numpy as np  # noqa: E402
 import torch  # noqa: E402
 
 from sar_zero123.augment import PRESETS, augment_batch, sample_monotonic_map  # noqa: E402
-from sar_zero123.config import parse_config, save_config  # noqa: E402
+from sar_zero123.config import parse_config  # noqa: E402
+from sar_zero123.config.json_io import save_config  # noqa: E402
 from sar_zero123.data import DecibelScaling, center_crop_resize, load_index, load_magnitude  # noqa: E402
 
 

@@ -17,7 +17,7 @@ from typing import Any
 
 import torch
 
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_index, signed_to_unit
 from sar_zero123.data.selection import at_depression, cv_folds, keep_evenly_spaced, keep_sector
 from sar_zero123.evaluation.evaluators import SARClassifier, load_evaluator

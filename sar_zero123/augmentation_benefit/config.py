@@ -7,7 +7,7 @@ import json
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED
 from sar_zero123.runs.folder import field_defaults
 

@@ -13,7 +13,7 @@ from pathlib import Path
 from typing import Any
 
 from sar_zero123.augment_dataset import AugmentConfig, augment_dataset
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data import ChipRecord, load_index
 from sar_zero123.stages import FinetuneConfig, run_finetune
 

@@ -32,7 +32,7 @@ import numpy as np
 import torch
 from safetensors.torch import load_file, save_file
 
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data.datasets import load_chip
 from sar_zero123.data.images import load_magnitude
 from sar_zero123.data.index import load_index

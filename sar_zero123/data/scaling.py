@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from sar_zero123.config import read_json
+from sar_zero123.config.json_io import read_json
 from sar_zero123.domain import DB_EPS, Array, from_decibels, to_decibels
 
 from .images import load_magnitude

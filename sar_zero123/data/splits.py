@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from sar_zero123.config import read_json
+from sar_zero123.config.json_io import read_json
 from sar_zero123.domain import INDEX_FILENAME
 
 from .index import ChipRecord, load_index

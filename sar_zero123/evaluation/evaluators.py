@@ -33,7 +33,7 @@ import torch
 from safetensors.torch import save_file
 from torch import nn
 
-from sar_zero123.config import read_json
+from sar_zero123.config.json_io import read_json
 from sar_zero123.data import DecibelScaling
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig
 from sar_zero123.model.loading import load_weights_file

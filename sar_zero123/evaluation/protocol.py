@@ -24,7 +24,6 @@ import time
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 import torch
@@ -47,9 +46,10 @@ from sar_zero123.evaluation.evaluators import (
 from sar_zero123.evaluation.scoring import closer_to_target_depression, score_views, standard_error
 from sar_zero123.evaluation.template import read_chip_templates, turned_and_kept
 from sar_zero123.model.build import same_weights
-from sar_zero123.model.conditioning import encode_condition_latents, takes_proxy
+from sar_zero123.model.conditioning import encode_condition_latents
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.sampler import SCHEDULERS, SamplerSettings, set_scheduler
+from sar_zero123.model.spatial_pose import takes_proxy
 
 logger = logging.getLogger(__name__)
 
@@ -67,7 +67,6 @@ __all__ = [
     "build_pair_sets",
     "check_pipeline_scaling",
     "d_el_counts",
-    "device_name",
     "evaluation_groups",
     "gap_closed",
     "generate_pair_targets",
@@ -443,97 +442,6 @@ def generate_pair_targets(
     return torch.cat(outputs), seconds
 
 
-#: Pairs per row below which a speed/error table is labelled indicative (its errors' standard errors are
-#: too wide to order the samplers).
-MIN_SPEED_PAIRS = 256
-#: The scores a speed/error row keeps, each beside its standard error.
-SPEED_ERROR_SCORES = ("azimuth_error_deg", "azimuth_error_deg_se", "accuracy", "accuracy_se", "ms_ssim",
-                      "ms_ssim_se")  # fmt: skip
-
-
-class UNetImageCount:
-    """Counts the samples the pipeline's UNet evaluates while active (a forward hook on ``pipe.unet``):
-    per generated image, the cost of a sampler in network evaluations, measured rather than assumed
-    (guidance's extra branches and a strength < 1 included)."""
-
-    def __init__(self, pipe: SARZero123Pipeline) -> None:
-        self.unet, self.samples, self._handle = pipe.unet, 0, None
-
-    def _count(self, module, args, kwargs) -> None:
-        sample = args[0] if args else kwargs["sample"]
-        self.samples += int(sample.shape[0])
-
-    def __enter__(self) -> UNetImageCount:
-        self._handle = self.unet.register_forward_pre_hook(self._count, with_kwargs=True)
-        return self
-
-    def __exit__(self, *exc) -> None:
-        self._handle.remove()
-
-
-class PeakMemory:
-    """The peak memory of the work done while active, in MiB: on CUDA the most allocated by torch
-    (``max_memory_allocated`` after a reset); on the CPU the process's resident set size, sampled every
-    ``interval_s`` by a thread (``/proc/self/statm``; where it is missing, the process's lifetime peak from
-    ``resource``)."""
-
-    def __init__(self, device: torch.device, interval_s: float = 0.005) -> None:
-        self.device, self.interval_s, self.peak_mib = torch.device(device), interval_s, float("nan")
-        self._stop = None
-        self._thread = None
-
-    @staticmethod
-    def _rss_mib() -> float:
-        try:
-            with open("/proc/self/statm") as handle:
-                pages = int(handle.read().split()[1])
-            return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
-        except (OSError, ValueError, IndexError):
-            import resource
-
-            return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: kB
-
-    def __enter__(self) -> PeakMemory:
-        import threading
-
-        if self.device.type == "cuda":
-            torch.cuda.reset_peak_memory_stats(self.device)
-            return self
-        self.peak_mib = self._rss_mib()
-        self._stop = threading.Event()
-
-        def sample() -> None:
-            while not self._stop.wait(self.interval_s):
-                self.peak_mib = max(self.peak_mib, self._rss_mib())
-
-        self._thread = threading.Thread(target=sample, daemon=True)
-        self._thread.start()
-        return self
-
-    def __exit__(self, *exc) -> None:
-        if self.device.type == "cuda":
-            self.peak_mib = torch.cuda.max_memory_allocated(self.device) / 2**20
-            return
-        self._stop.set()
-        self._thread.join()
-        self.peak_mib = max(self.peak_mib, self._rss_mib())
-
-
-def pareto_front(
-    rows: list[dict[str, Any]], speed: str = "images_per_s", error: str = "azimuth_error_deg"
-) -> list[bool]:
-    """Whether each row is on the front of speed (higher is better) against error (lower is better): no
-    other row is at least as fast and at least as accurate, and strictly better in one."""
-    return [
-        not any(
-            other[speed] >= row[speed] and other[error] <= row[error]
-            and (other[speed] > row[speed] or other[error] < row[error])
-            for other in rows
-        )
-        for row in rows
-    ]  # fmt: skip
-
-
 @torch.no_grad()
 def vae_round_trip(pipe: SARZero123Pipeline, images: torch.Tensor, batch_size: int, device) -> torch.Tensor:
     """Each view encoded (posterior mode) and decoded by the pipeline's VAE: the best a latent model with this
@@ -646,10 +554,3 @@ def d_el_counts(d_el_deg: torch.Tensor) -> dict[str, int]:
     """How many pairs ask for each depression change, keyed by the change in degrees (``"+13"``)."""
     values, counts = torch.unique(d_el_deg.double().round(decimals=3), return_counts=True)
     return {f"{value:+g}": int(count) for value, count in zip(values.tolist(), counts.tolist())}
-
-
-def device_name(device: torch.device) -> str:
-    """The GPU's name, or the CPU with its thread count (speed figures depend on both)."""
-    if device.type == "cuda":
-        return torch.cuda.get_device_name(device)
-    return f"CPU ({torch.get_num_threads()} threads)"

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import json
 import logging
+import os
 from collections.abc import Sequence
 from dataclasses import replace
 from pathlib import Path
@@ -14,26 +15,119 @@ from typing import Any
 
 import torch
 
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.evaluation.evaluators import Evaluators
-from sar_zero123.evaluation.protocol import (
-    MIN_SPEED_PAIRS,
-    SPEED_ERROR_SCORES,
-    PairSet,
-    PeakMemory,
-    UNetImageCount,
-    device_name,
-    generate_pair_targets,
-    pareto_front,
-    score,
-    set_scheduler,
-)
-from sar_zero123.evaluation.tables import plot_speed_error, speed_markdown
+from sar_zero123.evaluation.protocol import PairSet, generate_pair_targets, score, set_scheduler
+from sar_zero123.evaluation.tables import MIN_SPEED_PAIRS, plot_speed_error, speed_markdown
+from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.sampler import SamplerSettings
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["speed_error_rows", "write_speed_error"]
+__all__ = [
+    "SPEED_ERROR_SCORES",
+    "PeakMemory",
+    "UNetImageCount",
+    "device_name",
+    "pareto_front",
+    "speed_error_rows",
+    "write_speed_error",
+]
+
+
+#: The scores a speed/error row keeps, each beside its standard error.
+SPEED_ERROR_SCORES = ("azimuth_error_deg", "azimuth_error_deg_se", "accuracy", "accuracy_se", "ms_ssim",
+                      "ms_ssim_se")  # fmt: skip
+
+
+class UNetImageCount:
+    """Counts the samples the pipeline's UNet evaluates while active (a forward hook on ``pipe.unet``):
+    per generated image, the cost of a sampler in network evaluations, measured rather than assumed
+    (guidance's extra branches and a strength < 1 included)."""
+
+    def __init__(self, pipe: SARZero123Pipeline) -> None:
+        self.unet, self.samples, self._handle = pipe.unet, 0, None
+
+    def _count(self, module, args, kwargs) -> None:
+        sample = args[0] if args else kwargs["sample"]
+        self.samples += int(sample.shape[0])
+
+    def __enter__(self) -> UNetImageCount:
+        self._handle = self.unet.register_forward_pre_hook(self._count, with_kwargs=True)
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self._handle.remove()
+
+
+class PeakMemory:
+    """The peak memory of the work done while active, in MiB: on CUDA the most allocated by torch
+    (``max_memory_allocated`` after a reset); on the CPU the process's resident set size, sampled every
+    ``interval_s`` by a thread (``/proc/self/statm``; where it is missing, the process's lifetime peak from
+    ``resource``)."""
+
+    def __init__(self, device: torch.device, interval_s: float = 0.005) -> None:
+        self.device, self.interval_s, self.peak_mib = torch.device(device), interval_s, float("nan")
+        self._stop = None
+        self._thread = None
+
+    @staticmethod
+    def _rss_mib() -> float:
+        try:
+            with open("/proc/self/statm") as handle:
+                pages = int(handle.read().split()[1])
+            return pages * os.sysconf("SC_PAGE_SIZE") / 2**20
+        except (OSError, ValueError, IndexError):
+            import resource
+
+            return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024  # Linux: kB
+
+    def __enter__(self) -> PeakMemory:
+        import threading
+
+        if self.device.type == "cuda":
+            torch.cuda.reset_peak_memory_stats(self.device)
+            return self
+        self.peak_mib = self._rss_mib()
+        self._stop = threading.Event()
+
+        def sample() -> None:
+            while not self._stop.wait(self.interval_s):
+                self.peak_mib = max(self.peak_mib, self._rss_mib())
+
+        self._thread = threading.Thread(target=sample, daemon=True)
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc) -> None:
+        if self.device.type == "cuda":
+            self.peak_mib = torch.cuda.max_memory_allocated(self.device) / 2**20
+            return
+        self._stop.set()
+        self._thread.join()
+        self.peak_mib = max(self.peak_mib, self._rss_mib())
+
+
+def pareto_front(
+    rows: list[dict[str, Any]], speed: str = "images_per_s", error: str = "azimuth_error_deg"
+) -> list[bool]:
+    """Whether each row is on the front of speed (higher is better) against error (lower is better): no
+    other row is at least as fast and at least as accurate, and strictly better in one."""
+    return [
+        not any(
+            other[speed] >= row[speed] and other[error] <= row[error]
+            and (other[speed] > row[speed] or other[error] < row[error])
+            for other in rows
+        )
+        for row in rows
+    ]  # fmt: skip
+
+
+def device_name(device: torch.device) -> str:
+    """The GPU's name, or the CPU with its thread count (speed figures depend on both)."""
+    if device.type == "cuda":
+        return torch.cuda.get_device_name(device)
+    return f"CPU ({torch.get_num_threads()} threads)"
 
 
 def speed_error_rows(

@@ -16,7 +16,6 @@ import torch
 from sar_zero123.evaluation.protocol import (
     BLUR_SIGMA_PX,
     INPUT_COPY,
-    MIN_SPEED_PAIRS,
     PAPER_TABLE3,
     REAL_TARGET,
     VAE_ROUND_TRIP,
@@ -28,6 +27,7 @@ __all__ = [
     "GAP_LABELS",
     "METRICS",
     "METRIC_LABELS",
+    "MIN_SPEED_PAIRS",
     "plot_lambda_sweep",
     "plot_speed_error",
     "plot_views",
@@ -247,6 +247,11 @@ def plot_lambda_sweep(
     return path
 
 
+#: Pairs per row below which a speed/error table is labelled indicative (its errors' standard errors are
+#: too wide to order the samplers).
+MIN_SPEED_PAIRS = 256
+
+
 def plot_speed_error(rows: list[dict[str, Any]], path: Path) -> Path:
     """Azimuth error and accuracy against images/s (one standard error as bars), one line per (pipeline,
     scheduler), points labelled by steps; rows on the speed/azimuth-error Pareto front (``row["pareto"]``)
@@ -295,7 +300,7 @@ def plot_speed_error(rows: list[dict[str, Any]], path: Path) -> Path:
 def speed_markdown(rows: list[dict[str, Any]], device: str, memory: str = "resident set size") -> str:
     """Markdown speed/error table: each error beside its standard error, UNet evaluations per image, peak
     memory, and the Pareto front of speed against azimuth error; labelled indicative below
-    :data:`~sar_zero123.evaluation.protocol.MIN_SPEED_PAIRS` pairs."""
+    :data:`MIN_SPEED_PAIRS` pairs."""
     small = any(row["n"] < MIN_SPEED_PAIRS for row in rows)
     lines = [
         f"Device: {device}. Points use the seen pairs; images/s counts pipeline calls only; peak memory: "

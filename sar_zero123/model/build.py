@@ -17,11 +17,12 @@ from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
 from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
 
 from sar_zero123.data import ViewPairDataset
-from sar_zero123.model.conditioning import POSE_DIM, PoseProjection, condition_channels, downsampling_factor
+from sar_zero123.model.conditioning import POSE_DIM, PoseProjection, downsampling_factor
 from sar_zero123.model.loading import PIPELINE_SETTINGS, load_component
 from sar_zero123.model.orientation import AZIMUTH_DIM, AzimuthEstimator
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.pipeline_checks import check_vae_image_size
+from sar_zero123.model.spatial_pose import condition_channels
 from sar_zero123.model.zero123_checkpoints import (
     SD_VAE_SCALING_FACTOR,
     ZERO123_SCHEDULER_CONFIG,
@@ -250,7 +251,7 @@ def build_sar_zero123(
         input_depression: The pose's fourth entry is the input chip's absolute depression (Stable Zero123's
             convention; :class:`~sar_zero123.model.conditioning.PoseProjection`).
         spatial_pose: ``"rotated_input"``: the UNet also takes the input latent turned by the requested
-            azimuth change (:func:`~sar_zero123.model.conditioning.unet_condition_latents`; recorded in
+            azimuth change (:func:`~sar_zero123.model.spatial_pose.unet_condition_latents`; recorded in
             the pose projection's config); ``None``: zero-1-to-3's input.
 
     Returns:

@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 
 import torch
 
-from sar_zero123.model.conditioning import pose_class_labels, unet_condition_latents
+from sar_zero123.model.conditioning import pose_class_labels
 from sar_zero123.model.input_tokens import input_token_context
 from sar_zero123.model.orientation import target_view_features
 from sar_zero123.model.reference_attention import (
@@ -28,6 +28,7 @@ from sar_zero123.model.reference_attention import (
     reference_weights,
     uses_reference,
 )
+from sar_zero123.model.spatial_pose import unet_condition_latents
 
 __all__ = [
     "Branch", "BranchEncoder", "GuidedCondition", "contrast_branches", "flipped_heading_pose",
@@ -121,7 +122,7 @@ class GuidedCondition:
             ``(branches * N, 1, D)``.
         class_labels: The UNet's class labels, stacked alike, or ``None``.
         unet_condition: What the UNet concatenates to the noisy latent, stacked alike
-            (:func:`~sar_zero123.model.conditioning.unet_condition_latents`).
+            (:func:`~sar_zero123.model.spatial_pose.unet_condition_latents`).
         input_latents: Each output sample's input latent ``(N, C, h, w)``, unscaled: what an image-to-image
             call starts from.
         request: The request's branch (its per-sample pose turns a ``"turned_input"`` start).

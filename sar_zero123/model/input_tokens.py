@@ -7,7 +7,7 @@ cross-attentions something to look up: each place ``p`` of the input's latent be
     ``token_projection([latent(p), fourier(p), fourier(R(-a) p), pose])``
 
 where ``R(-a) p`` is where ``p`` lands when the vehicle turns by ``a = rotation_sign * d_az`` (the turn
-:func:`~sar_zero123.model.conditioning.rotate_condition_latents` applies) and ``fourier`` the sines and
+:func:`~sar_zero123.model.spatial_pose.rotate_condition_latents` applies) and ``fourier`` the sines and
 cosines of a position at :data:`TOKEN_FREQUENCIES` octaves. Each cross-attention ``l`` then adds
 ``tanh(g_l) * Attn(Q, K(tokens), V(tokens))`` through its own projections. The gates ``g_l``
 (``token_gates``) and the token projection live in the pose projection; the gates start at zero, so a warm
@@ -56,7 +56,7 @@ def input_token_features(latents: torch.Tensor, pose: torch.Tensor, rotation_sig
     Positions are the places' centres in normalised coordinates (x right, y down, in ``(-1, 1)``, the
     convention of ``F.affine_grid`` with ``align_corners=False``); a place at ``p`` lands at
     ``(cos a x + sin a y, -sin a x + cos a y)`` when the view turns by ``a = rotation_sign * d_az``, the
-    inverse of :func:`~sar_zero123.model.conditioning.rotate_condition_latents`'s sampling map.
+    inverse of :func:`~sar_zero123.model.spatial_pose.rotate_condition_latents`'s sampling map.
 
     Args:
         latents: The (unscaled) input latents.

@@ -25,7 +25,7 @@ from safetensors.torch import load_file
 from transformers import PreTrainedModel
 from transformers.image_processing_base import ImageProcessingMixin
 
-from sar_zero123.config import read_json
+from sar_zero123.config.json_io import read_json
 
 __all__ = [
     "PIPELINE_INDEX",

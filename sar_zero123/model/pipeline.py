@@ -36,8 +36,6 @@ from sar_zero123.model.conditioning import (
     encode_condition_latents,
     encode_image_embeddings,
     match_channels,
-    rotate_condition_latents,
-    takes_proxy,
 )
 from sar_zero123.model.guidance import BranchEncoder, GuidedCondition, contrast_branches, guided_condition
 from sar_zero123.model.orientation import AzimuthEstimator
@@ -60,6 +58,7 @@ from sar_zero123.model.sampler import (
     check_sampler_start,
     resolve_sampler,
 )
+from sar_zero123.model.spatial_pose import rotate_condition_latents, takes_proxy
 from sar_zero123.model.view_request import (
     MAX_ABS_D_AZ_DEG,
     MAX_ABS_D_EL_DEG,

@@ -18,16 +18,12 @@ import torch
 from diffusers import AutoencoderKL, UNet2DConditionModel
 from diffusers.schedulers.scheduling_utils import SchedulerMixin
 
-from sar_zero123.model.conditioning import (
-    POSE_DIM,
-    check_vae_signature,
-    condition_channels,
-    downsampling_factor,
-)
+from sar_zero123.model.conditioning import POSE_DIM, check_vae_signature, downsampling_factor
 from sar_zero123.model.input_tokens import check_token_layers
 from sar_zero123.model.orientation import estimator_weights_digest
 from sar_zero123.model.reference_attention import check_reference_layers
 from sar_zero123.model.sampler import MAX_GUIDANCE_SCALE, START_FROM, _check_strength
+from sar_zero123.model.spatial_pose import condition_channels
 
 __all__ = [
     "OUTPUT_TYPES", "ImageInput", "callback_latents", "check_call_arguments", "check_components",

@@ -22,7 +22,8 @@ import torch
 
 from sar_zero123.data import DecibelScaling
 from sar_zero123.data.scaling import ZERO_MAGNITUDE_DB
-from sar_zero123.model.conditioning import as_angle_tensor, encode_condition_latents, proxy_pair_latents
+from sar_zero123.model.conditioning import as_angle_tensor, encode_condition_latents
+from sar_zero123.model.spatial_pose import proxy_pair_latents
 from sar_zero123.model.view_request import Angles, ViewRequest, per_input_angles
 from sar_zero123.sim.proxy import MAX_RENDERED_BANK, PROXY_FIRST_SEED, ProxyBank
 

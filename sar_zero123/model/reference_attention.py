@@ -26,7 +26,7 @@ import torch
 import torch.nn.functional as F
 from diffusers.models.attention_processor import Attention, AttnProcessor2_0
 
-from sar_zero123.model.conditioning import unet_condition_latents
+from sar_zero123.model.spatial_pose import unet_condition_latents
 
 __all__ = [
     "attend_extra",

@@ -17,7 +17,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from sar_zero123.model.conditioning import as_angle_tensor, embed_pose, takes_proxy
+from sar_zero123.model.conditioning import as_angle_tensor, embed_pose
+from sar_zero123.model.spatial_pose import takes_proxy
 
 __all__ = [
     "MAX_ABS_D_AZ_DEG", "MAX_ABS_D_EL_DEG", "Angles", "ViewRequest", "broadcast_pose", "check_proxy_views",

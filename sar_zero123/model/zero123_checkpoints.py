@@ -40,7 +40,7 @@ try:  # transformers >= 5: the PIL backend, which is what `CLIPImageProcessor` r
 except ImportError:  # transformers 4.x
     from transformers import CLIPImageProcessor
 
-from sar_zero123.config import read_json
+from sar_zero123.config.json_io import read_json
 from sar_zero123.model.conditioning import POSE_DIM, PoseProjection
 from sar_zero123.model.loading import load_component
 

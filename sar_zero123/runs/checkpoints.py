@@ -39,7 +39,8 @@ from accelerate import Accelerator
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
-from sar_zero123.config import config_to_dict, naming_write_errors, write_json_atomic
+from sar_zero123.config.json_io import config_to_dict, write_json_atomic
+from sar_zero123.domain import naming_write_errors
 from sar_zero123.runs.folder import field_defaults
 from sar_zero123.runs.manifest import manifest_problem, write_manifest
 

@@ -37,13 +37,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any, Literal
 
-from sar_zero123.config import (
-    config_to_dict,
-    drop_removed_fields,
-    read_json,
-    removed_fields,
-    write_json_atomic,
-)
+from sar_zero123.config import drop_removed_fields, removed_fields
+from sar_zero123.config.json_io import config_to_dict, read_json, write_json_atomic
 from sar_zero123.runs.lock import is_lock_file, lock_output_folder, release_output_folder
 from sar_zero123.runs.restart import check_restart_target, move_aside
 

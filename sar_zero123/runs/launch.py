@@ -29,7 +29,7 @@ from accelerate.utils import (
     set_seed,
 )
 
-from sar_zero123.config import config_to_dict
+from sar_zero123.config.json_io import config_to_dict
 
 __all__ = [
     "all_out_of_time",

@@ -10,7 +10,7 @@ import json
 import os
 from pathlib import Path
 
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 
 __all__ = ["MANIFEST_FILE", "file_sha256", "manifest_problem", "unlisted_files", "write_manifest"]
 

@@ -32,7 +32,8 @@ from typing import Any
 import torch
 
 from sar_zero123.augment import readd_speckle
-from sar_zero123.config import check_minimum, save_config, write_json_atomic
+from sar_zero123.config import check_minimum
+from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.evaluation.evaluators import Evaluators, load_evaluators
 from sar_zero123.evaluation.protocol import (
     INPUT_COPY,

@@ -29,7 +29,8 @@ from typing import Any
 
 from accelerate.utils import set_seed
 
-from sar_zero123.config import check_minimum, save_config, write_json_atomic
+from sar_zero123.config import check_minimum
+from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_index, prepare_splits
 from sar_zero123.data.selection import hold_out, subsample
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig, resolve_encoder_dir

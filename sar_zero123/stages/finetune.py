@@ -35,7 +35,8 @@ from diffusers import DDPMScheduler
 from diffusers.optimization import get_scheduler
 from torch.utils.data import DataLoader
 
-from sar_zero123.config import RemovedField, check_minimum, save_config, write_json_atomic
+from sar_zero123.config import RemovedField, check_minimum
+from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import (
     MixedPairs,
     ViewPairDataset,
@@ -46,9 +47,10 @@ from sar_zero123.data import (
 from sar_zero123.data.corpus_proxies import corpus_proxies_have_oracle, load_corpus_proxies
 from sar_zero123.evaluation.evaluators import load_evaluators
 from sar_zero123.model.build import load_sar_zero123, record_trained_pose_ranges
-from sar_zero123.model.conditioning import SPATIAL_POSE_MODES, takes_proxy, vae_signature, widen_for_proxy
+from sar_zero123.model.conditioning import SPATIAL_POSE_MODES, vae_signature
 from sar_zero123.model.input_tokens import enable_input_tokens, uses_input_tokens
 from sar_zero123.model.reference_attention import enable_reference_attention, uses_reference
+from sar_zero123.model.spatial_pose import takes_proxy, widen_for_proxy
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.checkpoints import (
     RESUME_MAY_DIFFER,
@@ -148,7 +150,7 @@ class FinetuneConfig(LossSettings):
     # built sizes: the pose's 4th entry is the input chip's absolute depression (Stable Zero123's convention)
     input_depression: bool = False
     # built sizes: the UNet also takes the input latent turned by d_az in the image plane ("rotated_input",
-    # sar_zero123.model.conditioning.unet_condition_latents); None: zero-1-to-3's condition latent alone
+    # sar_zero123.model.spatial_pose.unet_condition_latents); None: zero-1-to-3's condition latent alone
     spatial_pose: str | None = None
     proxies: str | None = None  # spatial_pose 'proxy': folder of data's proxies (None: data itself)
     # every self-attention of the UNet also attends to the input view's own features (a reference pass;

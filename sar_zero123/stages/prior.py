@@ -32,7 +32,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sar_zero123.config import check_minimum, save_config, write_json_atomic
+from sar_zero123.config import check_minimum
+from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import train_validation_pairs
 from sar_zero123.data.corpus_proxies import PROXIES_RECORD, write_corpus_proxies
 from sar_zero123.model.build import SAR_ZERO123_SIZES

@@ -19,7 +19,7 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from sar_zero123.config import write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.model.proxy import DEFAULT_PROXY
 from sar_zero123.model.retrieval import (
     POSE_BUCKET_DEG,

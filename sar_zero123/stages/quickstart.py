@@ -19,7 +19,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from sar_zero123.config import config_to_dict, save_config, write_json_atomic
+from sar_zero123.config.json_io import config_to_dict, save_config, write_json_atomic
 from sar_zero123.model.build import SAR_ZERO123_SIZES
 from sar_zero123.model.conditioning import downsampling_factor
 from sar_zero123.pretrained import resolve_pretrained

@@ -37,7 +37,8 @@ from torch import nn
 from torch.utils.data import DataLoader
 
 from sar_zero123.augment import PRESETS, AugmentationPreset
-from sar_zero123.config import check_minimum, save_config, write_json_atomic
+from sar_zero123.config import check_minimum
+from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE, ChipDataset, DecibelScaling, prepare_splits
 from sar_zero123.data.selection import select_chips
 from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig

@@ -23,7 +23,8 @@ import torch
 from torch.utils.data import DataLoader
 
 from sar_zero123.augment import PRESETS
-from sar_zero123.config import check_minimum, save_config, write_json_atomic
+from sar_zero123.config import check_minimum
+from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_sample
 from sar_zero123.evaluation.evaluators import EVALUATOR_CONFIG_NAME, load_evaluator
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run

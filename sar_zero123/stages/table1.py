@@ -27,7 +27,8 @@ import numpy as np
 import torch
 
 from sar_zero123.augment import PRESETS
-from sar_zero123.config import check_minimum, save_config, write_json_atomic
+from sar_zero123.config import check_minimum
+from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, prepare_splits
 from sar_zero123.data.splits import check_protocol
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig, resolve_encoder_dir

@@ -22,7 +22,8 @@ from accelerate import Accelerator
 from diffusers import AutoencoderKL
 from torch.utils.data import DataLoader
 
-from sar_zero123.config import check_minimum, read_json, save_config, write_json_atomic
+from sar_zero123.config import check_minimum
+from sar_zero123.config.json_io import read_json, save_config, write_json_atomic
 from sar_zero123.data import (
     SCALING_FILE,
     ChipDataset,

@@ -30,13 +30,15 @@ from diffusers import AutoencoderKL, DDIMScheduler, UNet2DConditionModel
 from diffusers.training_utils import EMAModel
 from torch.utils.data import DataLoader, Dataset
 
-from sar_zero123.config import naming_write_errors, write_json_atomic
+from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
-from sar_zero123.model.conditioning import PoseProjection, takes_proxy
+from sar_zero123.domain import naming_write_errors
+from sar_zero123.model.conditioning import PoseProjection
 from sar_zero123.model.orientation import estimator_weights_digest
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.proxy import DEFAULT_PROXY
 from sar_zero123.model.sampler import EXPORTED_SAMPLER
+from sar_zero123.model.spatial_pose import takes_proxy
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.checkpoints import (
     check_finite_state,

@@ -27,14 +27,7 @@ from diffusers import AutoencoderKL, DDPMScheduler
 from diffusers.training_utils import compute_density_for_timestep_sampling, compute_snr
 from transformers import CLIPVisionModelWithProjection
 
-from sar_zero123.model.conditioning import (
-    embed_pose,
-    encode_image_embeddings,
-    pose_class_labels,
-    takes_proxy,
-    unet_condition_latents,
-    vae_input,
-)
+from sar_zero123.model.conditioning import embed_pose, encode_image_embeddings, pose_class_labels, vae_input
 from sar_zero123.model.input_tokens import input_token_context
 from sar_zero123.model.orientation import azimuth_estimation_loss, target_view_features
 from sar_zero123.model.reference_attention import (
@@ -44,6 +37,7 @@ from sar_zero123.model.reference_attention import (
     reference_weights,
     uses_reference,
 )
+from sar_zero123.model.spatial_pose import takes_proxy, unet_condition_latents
 from sar_zero123.training.losses import (
     TRAINED_PREDICTION_TYPES,
     LossOutput,
@@ -337,7 +331,7 @@ def compute_losses(
 
     The UNet sees ``[x_t, condition latent]`` (the unscaled VAE posterior mode of the input view; only the
     target latent is scaled; with a spatial pose, also that latent turned by ``d_az``,
-    :func:`~sar_zero123.model.conditioning.unet_condition_latents`) and cross-attends to
+    :func:`~sar_zero123.model.spatial_pose.unet_condition_latents`) and cross-attends to
     ``pose_projection([CLIP image embedding, pose])``; cached encodings in ``batch``
     (:class:`~sar_zero123.training.latent_cache.CachedViewPairs`) replace the VAE and a frozen
     ``image_encoder`` (an :class:`ImageEmbedder`).

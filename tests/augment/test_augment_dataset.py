@@ -20,10 +20,8 @@ from sar_zero123.augment_dataset import (
     PROVENANCE_FILE,
     AugmentConfig,
     main,
-    plan_views,
-    select_records,
-    view_generator,
 )
+from sar_zero123.augment_dataset.plan import plan_views, select_records, view_generator
 from sar_zero123.data import SCALING_FILE, ChipRecord, DecibelScaling, load_index
 from sar_zero123.generate import GenerateConfig, load_input_chip
 from sar_zero123.model.build import build_sar_zero123
@@ -443,7 +441,7 @@ def test_chips_no_simulator_vehicle_fits_are_skipped_and_counted(data_dir, tmp_p
         (folder / SCALING_FILE).write_text(json.dumps(DecibelScaling.for_unit_magnitude().to_dict()))
         return folder
 
-    from sar_zero123.augment_dataset import select_records
+    from sar_zero123.augment_dataset.plan import select_records
     from sar_zero123.data import load_index
 
     records = [record for _, record in select_records(load_index(data_dir), ["APC"], None, 2)]  # augment's

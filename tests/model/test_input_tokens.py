@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from sar_zero123.model.build import build_sar_zero123
-from sar_zero123.model.conditioning import PoseProjection, embed_pose, rotate_condition_latents
+from sar_zero123.model.conditioning import PoseProjection, embed_pose
 from sar_zero123.model.input_tokens import (
     attending_to_input_tokens,
     enable_input_tokens,
@@ -22,6 +22,7 @@ from sar_zero123.model.input_tokens import (
 )
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.reference_attention import enable_reference_attention
+from sar_zero123.model.spatial_pose import rotate_condition_latents
 from sar_zero123.training.losses import LossSettings
 from sar_zero123.training.step import ImageEmbedder, compute_losses
 

@@ -19,8 +19,9 @@ from diffusers import (
 from dummies import DUMMY_IMAGE_SIZE, dummy_images, get_dummy_components
 
 from sar_zero123.model.build import build_sar_zero123
-from sar_zero123.model.conditioning import PoseProjection, rotate_condition_latents
+from sar_zero123.model.conditioning import PoseProjection
 from sar_zero123.model.pipeline import SARZero123Pipeline, SARZero123PipelineOutput
+from sar_zero123.model.spatial_pose import rotate_condition_latents
 
 STEPS = 2
 

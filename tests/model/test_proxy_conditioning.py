@@ -20,14 +20,14 @@ from sar_zero123.data.corpus_proxies import (
 from sar_zero123.domain import to_decibels
 from sar_zero123.model import proxy as proxy_module
 from sar_zero123.model.build import build_sar_zero123
-from sar_zero123.model.conditioning import (
+from sar_zero123.model.conditioning import embed_pose
+from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.spatial_pose import (
     condition_channels,
-    embed_pose,
     takes_proxy,
     unet_condition_latents,
     widen_for_proxy,
 )
-from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.sim.corpus import write_prior_corpus
 from sar_zero123.sim.proxy import ProxyBank
 from sar_zero123.training.step import chosen_proxy_latents

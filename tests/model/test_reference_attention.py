@@ -17,7 +17,7 @@ from sar_zero123.data.corpus_proxies import (
     write_corpus_proxies,
 )
 from sar_zero123.model.build import build_sar_zero123
-from sar_zero123.model.conditioning import PoseProjection, widen_for_proxy
+from sar_zero123.model.conditioning import PoseProjection
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.reference_attention import (
     attending_to_reference,
@@ -27,6 +27,7 @@ from sar_zero123.model.reference_attention import (
     reference_weights,
     uses_reference,
 )
+from sar_zero123.model.spatial_pose import widen_for_proxy
 from sar_zero123.sim.corpus import corpus_vehicle_seed, write_prior_corpus
 from sar_zero123.sim.procedural import make_procedural_target
 from sar_zero123.sim.proxy import ProxyBank

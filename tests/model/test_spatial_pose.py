@@ -9,16 +9,15 @@ import torch
 from dummies import read_the_pose
 
 from sar_zero123.model.build import build_sar_zero123
-from sar_zero123.model.conditioning import (
-    PoseProjection,
-    condition_channels,
-    embed_pose,
-    rotate_condition_latents,
-    unet_condition_latents,
-)
+from sar_zero123.model.conditioning import PoseProjection, embed_pose
 from sar_zero123.model.guidance import flipped_heading_pose, same_depression_pose
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.sampler import check_sampler_start
+from sar_zero123.model.spatial_pose import (
+    condition_channels,
+    rotate_condition_latents,
+    unet_condition_latents,
+)
 
 
 def latents(batch: int = 2, channels: int = 4, side: int = 8) -> torch.Tensor:

@@ -262,7 +262,7 @@ def test_a_finished_record_whose_outputs_are_gone_is_unfinished(tmp_path):
 
 
 def test_an_options_folder_resumes_its_own_options_and_refuses_others(tmp_path):
-    from sar_zero123.config import write_json_atomic
+    from sar_zero123.config.json_io import write_json_atomic
     from sar_zero123.runs.folder import check_options_folder
 
     out = tmp_path / "out"

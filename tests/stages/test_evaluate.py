@@ -14,7 +14,7 @@ import torch
 from chip_folders import TINY_ENCODER, write_chip_folder
 from dummies import get_dummy_components
 
-from sar_zero123.config import save_config, write_json_atomic
+from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import load_chip
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluation.evaluators import (
@@ -31,9 +31,9 @@ from sar_zero123.evaluation.protocol import (
     add_gap_closed,
     build_pair_sets,
     gap_closed,
-    pareto_front,
 )
 from sar_zero123.evaluation.scoring import score_views
+from sar_zero123.evaluation.speed import pareto_front
 from sar_zero123.evaluation.tables import table3_markdown
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.pipeline import SARZero123Pipeline

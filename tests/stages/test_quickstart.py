@@ -11,7 +11,7 @@ from pathlib import Path
 
 import pytest
 
-from sar_zero123.config import config_to_dict
+from sar_zero123.config.json_io import config_to_dict
 from sar_zero123.sim import simulate_dataset
 from train import quickstart
 

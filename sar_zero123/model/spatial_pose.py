@@ -1,0 +1,176 @@
+"""The spatial pose modes: what the UNet sees of the input view besides its latent.
+
+zero-1-to-3 concatenates the input's latent alone to the noisy latent (``spatial_pose=None``). A
+``"rotated_input"`` model also sees that latent turned in the image plane by the requested azimuth change,
+a hint of where the target's footprint lies; a ``"proxy"`` model sees, on top of those two, the latents of
+the input's simulator proxy at the input's pose and at the requested pose. The mode is recorded in
+:class:`~sar_zero123.model.conditioning.PoseProjection`'s config; training and sampling build the UNet's
+input with the same :func:`unet_condition_latents`.
+"""
+
+from __future__ import annotations
+
+import torch
+import torch.nn.functional as F
+
+from sar_zero123.model.conditioning import POSE_DIM, SPATIAL_POSE_MODES, encode_condition_latents
+
+__all__ = [
+    "condition_channels",
+    "proxy_pair_latents",
+    "rotate_condition_latents",
+    "takes_proxy",
+    "unet_condition_latents",
+    "widen_for_proxy",
+]
+
+
+def condition_channels(spatial_pose: str | None, latent_channels: int) -> int:
+    """Channels of the UNet's condition input (:func:`unet_condition_latents`) for a spatial-pose mode.
+
+    Returns:
+        ``latent_channels`` for zero-1-to-3 (``None``), ``2 * latent_channels`` for ``"rotated_input"``,
+        ``4 * latent_channels`` for ``"proxy"`` (the input, it turned, the proxy at both poses).
+
+    Raises:
+        ValueError: If ``spatial_pose`` is not one of :data:`SPATIAL_POSE_MODES`.
+    """
+    if spatial_pose not in SPATIAL_POSE_MODES:
+        raise ValueError(f"`spatial_pose` must be one of {SPATIAL_POSE_MODES}, got {spatial_pose!r}")
+    return latent_channels * {None: 1, "rotated_input": 2, "proxy": 4}[spatial_pose]
+
+
+def takes_proxy(pose_projection: torch.nn.Module) -> bool:
+    """Whether the model's UNet takes the simulator proxy pair (``spatial_pose == "proxy"``)."""
+    config = getattr(pose_projection, "module", pose_projection).config
+    return getattr(config, "spatial_pose", None) == "proxy"
+
+
+def rotate_condition_latents(latents: torch.Tensor, pose: torch.Tensor, rotation_sign: int) -> torch.Tensor:
+    """The input latent turned about the chip centre by ``rotation_sign * d_az`` (bilinear, reflected border).
+
+    A vehicle turned by ``d_az`` in azimuth turns its ground footprint by the same angle in the image plane
+    (range and cross-range are the chip's axes), while its shadow and layover stay tied to the range
+    direction: the turned latent shows where the target's body lies, and the UNet corrects the rest. The
+    angle is read from the pose's ``sin d_az`` and ``cos d_az``
+    (:func:`~sar_zero123.model.conditioning.embed_pose`), so ``370 == 10``. The turn maps output
+    coordinates ``(x, y)`` (normalised, x right, y down) to the input's
+    ``(cos a x - sin a y, sin a x + cos a y)`` with ``a = rotation_sign * d_az`` (``F.affine_grid``).
+    Zeros turn to zeros, so the sampling null of classifier-free guidance stays null.
+
+    Args:
+        latents: Condition latents.
+        pose: Pose vectors from :func:`~sar_zero123.model.conditioning.embed_pose`.
+        rotation_sign: ``+1`` or ``-1``, the data's convention
+            (:class:`~sar_zero123.model.conditioning.PoseProjection`).
+
+    Shape:
+        latents ``(B, C, h, w)``, pose ``(B, 1, 4)`` -> ``(B, C, h, w)``.
+
+    Raises:
+        ValueError: If the shapes do not match or ``rotation_sign`` is not +-1.
+    """
+    if rotation_sign not in (-1, 1):
+        raise ValueError(f"`rotation_sign` must be +1 or -1, got {rotation_sign!r}")
+    if latents.ndim != 4 or pose.shape != (latents.shape[0], 1, POSE_DIM):
+        raise ValueError(
+            f"`latents` must be (B, C, h, w) and `pose` (B, 1, {POSE_DIM}), got {tuple(latents.shape)} and "
+            f"{tuple(pose.shape)}"
+        )
+    sin = rotation_sign * pose[:, 0, 1].to(device=latents.device, dtype=torch.float32)
+    cos = pose[:, 0, 2].to(device=latents.device, dtype=torch.float32)
+    zero = torch.zeros_like(sin)
+    rows = [torch.stack([cos, -sin, zero], -1), torch.stack([sin, cos, zero], -1)]
+    matrix = torch.stack(rows, 1)  # (B, 2, 3)
+    grid = F.affine_grid(matrix, list(latents.shape), align_corners=False)
+    turned = F.grid_sample(latents.float(), grid, padding_mode="reflection", align_corners=False)
+    return turned.to(latents.dtype)
+
+
+def unet_condition_latents(
+    condition_latents: torch.Tensor,
+    pose: torch.Tensor,
+    pose_projection: torch.nn.Module,
+    proxy_latents: torch.Tensor | None = None,
+) -> torch.Tensor:
+    """What the UNet concatenates to the noisy latent: the input latent; with
+    ``pose_projection.config.spatial_pose == "rotated_input"`` also the same latent turned by the requested
+    azimuth change (:func:`rotate_condition_latents`); with ``"proxy"`` also the proxy pair's latents.
+
+    Args:
+        condition_latents: The (possibly dropped, i.e. zeroed) unscaled input latents.
+        pose: Pose vectors from :func:`~sar_zero123.model.conditioning.embed_pose`, one per latent.
+        pose_projection: The model's :class:`~sar_zero123.model.conditioning.PoseProjection` (possibly
+            DDP-wrapped), which records the mode.
+        proxy_latents: For ``"proxy"`` only: the unscaled latents of the input's simulator proxy at the
+            input's pose and at the requested pose, stacked on channels (:func:`proxy_pair_latents`). Like
+            the pose, never dropped for classifier-free guidance.
+
+    Raises:
+        ValueError: If ``proxy_latents`` is missing for a proxy model, given to another, or of the wrong
+            shape.
+
+    Shape:
+        ``(B, C, h, w)``, ``(B, 1, 4)``, ``(B, 2C, h, w)`` -> ``(B, C | 2C | 4C, h, w)``.
+    """
+    config = getattr(pose_projection, "module", pose_projection).config
+    mode = getattr(config, "spatial_pose", None)
+    if (mode == "proxy") != (proxy_latents is not None):
+        raise ValueError(
+            "proxy_latents: a UNet with spatial_pose='proxy' takes the proxy pair's latents, any other none "
+            f"(this one: spatial_pose={mode!r}, proxy_latents "
+            f"{'given' if proxy_latents is not None else 'missing'})"
+        )
+    if mode is None:
+        return condition_latents
+    turned = rotate_condition_latents(condition_latents, pose, config.rotation_sign)
+    if mode == "rotated_input":
+        return torch.cat([condition_latents, turned], dim=1)
+    expected = (condition_latents.shape[0], 2 * condition_latents.shape[1], *condition_latents.shape[2:])
+    if tuple(proxy_latents.shape) != expected:
+        raise ValueError(f"proxy_latents: expected shape {expected}, got {tuple(proxy_latents.shape)}")
+    return torch.cat([condition_latents, turned, proxy_latents.to(condition_latents.dtype)], dim=1)
+
+
+def proxy_pair_latents(vae: torch.nn.Module, at_input: torch.Tensor, at_target: torch.Tensor) -> torch.Tensor:
+    """The proxy pair a ``"proxy"`` UNet takes: the unscaled VAE posterior modes of the proxy rendered at
+    the input's pose and at the requested pose (normalised dB, like the input), stacked on channels.
+
+    Shape:
+        ``(B, 1 | 3, H, W)`` twice -> ``(B, 2C, h, w)``.
+    """
+    return torch.cat(
+        [encode_condition_latents(vae, at_input), encode_condition_latents(vae, at_target)], dim=1
+    )
+
+
+def widen_for_proxy(unet: torch.nn.Module, pose_projection: torch.nn.Module) -> None:
+    """Turn a ``"rotated_input"`` model into a ``"proxy"`` one in place, computing exactly what it did.
+
+    The UNet's first convolution gains ``2 * latent_channels`` input channels for the proxy pair, their
+    weights zero (a warm start: before training, the proxy changes nothing), and the projection records
+    ``spatial_pose="proxy"``.
+
+    Raises:
+        ValueError: If the model is not a ``"rotated_input"`` one.
+    """
+    config = pose_projection.config
+    if getattr(config, "spatial_pose", None) != "rotated_input":
+        raise ValueError(
+            "spatial_pose: a proxy model widens a 'rotated_input' one (e.g. sar-zero123/sim-prior-rotated), "
+            f"got spatial_pose={getattr(config, 'spatial_pose', None)!r}"
+        )
+    old = unet.conv_in
+    latent_channels = unet.config.out_channels
+    extra = 2 * latent_channels
+    new = torch.nn.Conv2d(
+        old.in_channels + extra, old.out_channels, old.kernel_size, old.stride, old.padding,
+        dtype=old.weight.dtype, device=old.weight.device,
+    )  # fmt: skip
+    with torch.no_grad():
+        new.weight.zero_()
+        new.weight[:, : old.in_channels] = old.weight
+        new.bias.copy_(old.bias)
+    unet.conv_in = new
+    unet.register_to_config(in_channels=old.in_channels + extra)
+    pose_projection.register_to_config(spatial_pose="proxy")
