@@ -258,7 +258,7 @@ def run(
               f"{r['gap_closed']:.0%}, front/back {r['front_back_right']:.0%}, identity "
               f"{r['identity_kept']:.0%} ({seconds:.0f} s)", flush=True)  # fmt: skip
 
-    add("input copy (floor)", sim.inputs, 0.0)
+    add("input copy (unturned, keeps identity)", sim.inputs, 0.0)
     add("true view, another speckle draw (ceiling)", sim.truth, 0.0)
     proxy = check_proxy_settings(pipe.config.proxy)
     if bank_size is not None:  # another bank than the pipeline's (its first bank_size vehicles)

@@ -9,8 +9,8 @@ and a random azimuth, and the request turns it by ``d_az`` with ``60 <= |d_az| <
 each view's blurred correlation with its true vehicle's 17 deg renders on a 5 deg grid gives its azimuth;
 over all eight vehicles' renders, its identity. Rows, on the same pairs:
 
-- ``input copy (floor)``; ``input turned`` (the input rotated in the image plane by the request, as the
-  ``rotated_input`` condition turns it); ``true view, another speckle draw (ceiling)``;
+- ``input copy (unturned, keeps identity)``; ``input turned`` (the input rotated in the image plane by the
+  request, as the ``rotated_input`` condition turns it); ``true view, another speckle draw (ceiling)``;
 - ``proxy alone (bank N)``: the bank vehicle retrieved for the input
   (:class:`~sar_zero123.sim.proxy.ProxyBank`: rendered at the input's azimuth and depression, best blurred
   correlation) re-rendered at the request;
@@ -163,7 +163,7 @@ def run(
             flush=True,
         )
 
-    add("input copy (floor)", inputs, 0.0)
+    add("input copy (unturned, keeps identity)", inputs, 0.0)
     pose = embed_pose(d_az, [0.0] * len(d_az))
     turned = rotate_condition_latents(torch.from_numpy(inputs)[:, None], pose, SIM_ROTATION_SIGN)[
         :, 0

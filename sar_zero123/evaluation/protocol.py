@@ -115,7 +115,8 @@ PAPER_TABLE3 = {
         },
     },
 }
-INPUT_COPY = "input copy (floor)"  # the input view returned as the generated one: ignores the pose
+# the input view returned as the generated one: it ignores the pose (every class kept, nothing turned)
+INPUT_COPY = "input copy (unturned, keeps identity)"
 REAL_TARGET = "real target (ceiling)"  # the true target view: the best any generator can score
 VAE_ROUND_TRIP = "VAE round trip (ceiling)"  # the target encoded and decoded: the best for this VAE
 REFERENCE_ROWS = (INPUT_COPY, REAL_TARGET, VAE_ROUND_TRIP)

@@ -107,8 +107,8 @@ def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_pap
     """Markdown Table III: one row per (method, group), the paper's rows first when `include_paper`.
 
     Metrics carry ± their standard error; the gap columns give the fraction of the gap between the
-    input copy (floor) and the VAE round trip (ceiling) that each model closes. The depression columns
-    appear when some row has them (a depression regressor, pairs with d_el != 0).
+    input copy (unturned, keeps identity) and the VAE round trip (ceiling) that each model closes. The
+    depression columns appear when some row has them (a depression regressor, pairs with d_el != 0).
     """
     present = {key for groups in results.values() for values in groups.values() for key in values}
     metrics = [*METRICS, *(m for m in (*TEMPLATE_METRICS, *DEPRESSION_METRICS) if m in present)]

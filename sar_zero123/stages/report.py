@@ -131,7 +131,8 @@ def _table_lines(eval_dir: Path, table3: dict[str, Any]) -> list[str]:
         "",
         f"## Table III ({sampler})",
         "",
-        "`input copy (floor)` returns the input view unchanged (a generator that ignores the pose); "
+        "`input copy (unturned, keeps identity)` returns the input view unchanged (a generator that "
+        "ignores the pose: every class kept, nothing turned, the azimuth floor); "
         "`real target (ceiling)` scores the true target view and `VAE round trip (ceiling)` the target "
         "encoded and decoded by the VAE, the best a latent model with this VAE can do. A model must beat the "
         "floor on azimuth error; `Az. gap closed` is the fraction of the floor-to-VAE-ceiling gap it closes. "

@@ -154,7 +154,8 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path, monkeypatch, capl
                  "lambda4 euler 2 steps: 2/2 views generated"):  # fmt: skip
         assert line in caplog.text
     table3 = json.loads((out / "table3.json").read_text())["results"]
-    floor, target, round_trip = "input copy (floor)", "real target (ceiling)", "VAE round trip (ceiling)"
+    floor, target = "input copy (unturned, keeps identity)", "real target (ceiling)"
+    round_trip = "VAE round trip (ceiling)"
     assert set(table3) == {floor, target, round_trip, "lambda0", "lambda4"}  # both share one VAE: one row
     for group in ("seen", "unseen"):
         # the real target scored against itself: perfect structure; its regressor error is the regressor's own

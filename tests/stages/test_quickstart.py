@@ -238,7 +238,8 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
     depression = json.loads((out / "eval_depression" / "table3.json").read_text())
     assert depression["pairs_per_d_el_deg"]["seen"] == {"+13": 2}
     assert depression["outside_trained_range"]["lambda=0"]["trained_d_el_deg"] == [0.0, 0.0]
-    rows = ("| lambda=0 | seen |", "| lambda=4 | unseen |", "| input copy (floor) | seen |")
+    rows = ("| lambda=0 | seen |", "| lambda=4 | unseen |")
+    rows += ("| input copy (unturned, keeps identity) | seen |",)
     for row in (*rows, "| real target (ceiling) | seen |", "| VAE round trip (ceiling) | unseen |"):
         assert row in text
     assert "CPU quick-run numbers" in text and "## Speed against error" in text
