@@ -210,14 +210,12 @@ class FinetuneConfig(LossSettings):
     #: before; another value is refused with the reason).
     REMOVED_FIELDS = {
         "pfm_start_step": RemovedField(0, "PFM switched on after a stretch of L_simple alone kept the seen "
-                                       "class less often than PFM from the first step "
-                                       "(docs/results/history/pfm.md); PFM applies in every step"),
+                                       "class less often than PFM from the first step; PFM applies in "
+                                       "every step"),
         "pfm_stop_step": RemovedField(None, "PFM switched off early damaged the seen classes as much as "
-                                      "PFM throughout (docs/results/history/pfm.md); PFM applies in every "
-                                      "step"),
+                                      "PFM throughout; PFM applies in every step"),
         "pfm_monotonic_q": RemovedField(0, "random monotonic maps before PFM's encoder changed nothing "
-                                        "measurable (docs/results/history/pfm.md); PFM compares the images "
-                                        "as Eq. 20 does"),
+                                        "measurable; PFM compares the images as Eq. 20 does"),
     }  # fmt: skip
 
     #: Research options kept beside the measured ones: settings without a flag (--set), listed at the end of
