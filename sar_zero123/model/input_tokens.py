@@ -25,10 +25,10 @@ import math
 from collections.abc import Iterator
 
 import torch
-from diffusers.models.attention_processor import Attention, AttnProcessor2_0
+from diffusers.models.attention_processor import Attention
 
 from sar_zero123.model.conditioning import POSE_DIM, TOKEN_FREQUENCIES, token_feature_dim
-from sar_zero123.model.reference_attention import attend_extra
+from sar_zero123.model.reference_attention import GatedAttnProcessor, transformer_attentions
 
 __all__ = [
     "TOKEN_FREQUENCIES",
@@ -108,45 +108,24 @@ class _TokenState:
         self.weights: torch.Tensor | None = None  # (N, layers)
 
 
-class InputTokenAttnProcessor:
-    """A cross-attention's processor: diffusers' own attention, plus, while reading, the gated attention to
-    the input tokens (module docstring)."""
+class InputTokenAttnProcessor(GatedAttnProcessor):
+    """A cross-attention's processor: while reading, it also attends to the input tokens (module
+    docstring)."""
 
     def __init__(self, layer: int, state: _TokenState) -> None:
-        self.layer = layer
+        super().__init__(layer)
         self.state = state
-        self.base = AttnProcessor2_0()
 
-    def __call__(
-        self,
-        attn: Attention,
-        hidden_states: torch.Tensor,
-        encoder_hidden_states: torch.Tensor | None = None,
-        attention_mask: torch.Tensor | None = None,
-        temb: torch.Tensor | None = None,
-        **kwargs,
-    ) -> torch.Tensor:
-        output = self.base(attn, hidden_states, encoder_hidden_states, attention_mask, temb, **kwargs)
+    def extra(self, hidden_states: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
         state = self.state
-        if state.tokens is not None:
-            weight = state.weights[:, self.layer].to(output.dtype)[:, None, None]  # (N, 1, 1)
-            tokens = state.tokens.to(hidden_states.dtype)
-            output = output + weight * attend_extra(attn, hidden_states, tokens) / attn.rescale_output_factor
-        return output
+        if state.tokens is None:
+            return None
+        return state.weights[:, self.layer][:, None, None], state.tokens.to(hidden_states.dtype)  # (N, 1, 1)
 
 
 def token_layers(unet: torch.nn.Module) -> list[Attention]:
-    """The UNet's cross-attentions (each transformer block's ``attn2``), in module order.
-
-    Raises:
-        ValueError: If a cross-attention takes a 4-d input or adds its own residual.
-    """
-    unet = getattr(unet, "module", unet)
-    layers = [m for name, m in unet.named_modules() if name.endswith("attn2") and isinstance(m, Attention)]
-    for layer in layers:
-        if layer.residual_connection or layer.spatial_norm is not None or layer.group_norm is not None:
-            raise ValueError("unet: input tokens need transformer-block cross-attentions")
-    return layers
+    """The UNet's cross-attentions (each transformer block's ``attn2``), in module order."""
+    return transformer_attentions(unet, "attn2", "input tokens")
 
 
 def _state(unet: torch.nn.Module) -> _TokenState:

@@ -29,6 +29,7 @@ from diffusers.models.attention_processor import Attention, AttnProcessor2_0
 from sar_zero123.model.spatial_pose import unet_condition_latents
 
 __all__ = [
+    "GatedAttnProcessor",
     "attend_extra",
     "attending_to_reference",
     "check_reference_layers",
@@ -38,6 +39,7 @@ __all__ = [
     "reference_features",
     "reference_layers",
     "reference_weights",
+    "transformer_attentions",
     "uses_reference",
 ]
 
@@ -52,14 +54,17 @@ class _ReferenceState:
         self.weights: torch.Tensor | None = None  # (N, layers)
 
 
-class ReferenceAttnProcessor:
-    """A self-attention's processor: diffusers' own attention, plus, while reading, the gated attention to
-    the reference features of the same layer (see the module docstring)."""
+class GatedAttnProcessor:
+    """An attention's processor: diffusers' own attention, plus ``weight * Attn(Q, K(context), V(context))``
+    where :meth:`extra` gives a ``(weight, context)`` pair (reference attention, input tokens)."""
 
-    def __init__(self, layer: int, state: _ReferenceState) -> None:
+    def __init__(self, layer: int) -> None:
         self.layer = layer
-        self.state = state
         self.base = AttnProcessor2_0()
+
+    def extra(self, hidden_states: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``(weight (N, 1, 1), context (N, L', C))`` to attend to, or ``None``."""
+        raise NotImplementedError
 
     def __call__(
         self,
@@ -71,15 +76,30 @@ class ReferenceAttnProcessor:
         **kwargs,
     ) -> torch.Tensor:
         output = self.base(attn, hidden_states, encoder_hidden_states, attention_mask, temb, **kwargs)
+        extra = self.extra(hidden_states)
+        if extra is not None:
+            weight, context = extra
+            mixed = attend_extra(attn, hidden_states, context)
+            output = output + weight.to(output.dtype) * mixed / attn.rescale_output_factor
+        return output
+
+
+class ReferenceAttnProcessor(GatedAttnProcessor):
+    """A self-attention's processor: while writing, it keeps its input; while reading, it also attends to
+    the reference features of the same layer (see the module docstring)."""
+
+    def __init__(self, layer: int, state: _ReferenceState) -> None:
+        super().__init__(layer)
+        self.state = state
+
+    def extra(self, hidden_states: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor] | None:
         state = self.state
         if state.mode == "write":
             state.features[self.layer] = hidden_states
         elif state.mode == "read":
             reference = state.features[self.layer].index_select(0, state.rows)  # (N, L_ref, C)
-            weight = state.weights[:, self.layer].to(output.dtype)[:, None, None]  # (N, 1, 1)
-            extra = attend_extra(attn, hidden_states, reference)
-            output = output + weight * extra / attn.rescale_output_factor
-        return output
+            return state.weights[:, self.layer][:, None, None], reference  # (N, 1, 1)
+        return None
 
 
 def attend_extra(attn: Attention, hidden_states: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
@@ -104,19 +124,25 @@ def attend_extra(attn: Attention, hidden_states: torch.Tensor, reference: torch.
     return attn.to_out[1](F.linear(mixed, attn.to_out[0].weight))
 
 
-def reference_layers(unet: torch.nn.Module) -> list[Attention]:
-    """The UNet's self-attentions (each transformer block's ``attn1``), in module order.
+def transformer_attentions(unet: torch.nn.Module, name: str, purpose: str) -> list[Attention]:
+    """The UNet's transformer-block attentions named ``name`` (``"attn1"``: self-attention, ``"attn2"``:
+    cross-attention), in module order.
 
     Raises:
-        ValueError: If a self-attention takes a 4-d input or adds its own residual (not a transformer
-            block's; reference attention is defined on token sequences).
+        ValueError: If one takes a 4-d input or adds its own residual (not a transformer block's; ``purpose``
+            names what needs them).
     """
     unet = getattr(unet, "module", unet)
-    layers = [m for name, m in unet.named_modules() if name.endswith("attn1") and isinstance(m, Attention)]
+    layers = [m for key, m in unet.named_modules() if key.endswith(name) and isinstance(m, Attention)]
     for layer in layers:
         if layer.residual_connection or layer.spatial_norm is not None or layer.group_norm is not None:
-            raise ValueError("unet: reference attention needs transformer-block self-attentions")
+            raise ValueError(f"unet: {purpose} needs transformer-block attentions")
     return layers
+
+
+def reference_layers(unet: torch.nn.Module) -> list[Attention]:
+    """The UNet's self-attentions (each transformer block's ``attn1``), in module order."""
+    return transformer_attentions(unet, "attn1", "reference attention")
 
 
 def _state(unet: torch.nn.Module) -> _ReferenceState:
