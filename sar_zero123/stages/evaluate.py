@@ -69,6 +69,7 @@ from sar_zero123.runs.folder import (
     finish_run,
     read_run_record,
 )
+from sar_zero123.runs.launch import check_device
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.stages.evaluators import model_identity
 
@@ -161,6 +162,8 @@ class EvaluateConfig(SamplerSettings):
 
     def __post_init__(self) -> None:
         super().__post_init__()  # the sampler's fields, validated where they are declared
+        if self.device is not None:
+            check_device(self.device)
         self._check_pipelines()
         self._check_sizes()
         self._check_sweep()

@@ -602,3 +602,12 @@ def test_evaluate_takes_a_bundled_pipeline_by_its_name(tmp_path: Path) -> None:
     )  # fmt: skip
     with pytest.raises(ValueError, match="sim_prior_rotated expects decibel scaling"):
         stage.run_evaluate(config)
+
+
+def test_a_device_this_machine_cannot_compute_on_is_refused_at_the_config(tmp_path) -> None:
+    from sar_zero123.stages.evaluate import EvaluateConfig
+
+    with pytest.raises(ValueError, match=r"device: 'meta' cannot compute here"):
+        EvaluateConfig(output_dir=str(tmp_path / "eval"), device="meta")
+    with pytest.raises(ValueError, match=r"device: 'gpu0' is not a torch device"):
+        EvaluateConfig(output_dir=str(tmp_path / "eval"), device="gpu0")
