@@ -27,8 +27,9 @@ from collections.abc import Iterator
 import torch
 from diffusers.models.attention_processor import Attention
 
-from sar_zero123.model.conditioning import POSE_DIM, TOKEN_FREQUENCIES, token_feature_dim
+from sar_zero123.model.conditioning import TOKEN_FREQUENCIES, token_feature_dim
 from sar_zero123.model.reference_attention import GatedAttnProcessor, transformer_attentions
+from sar_zero123.model.spatial_pose import check_turn_inputs
 
 __all__ = [
     "TOKEN_FREQUENCIES",
@@ -69,13 +70,7 @@ def input_token_features(latents: torch.Tensor, pose: torch.Tensor, rotation_sig
     Raises:
         ValueError: If the shapes do not match or ``rotation_sign`` is not +-1.
     """
-    if rotation_sign not in (-1, 1):
-        raise ValueError(f"`rotation_sign` must be +1 or -1, got {rotation_sign!r}")
-    if latents.ndim != 4 or pose.shape != (latents.shape[0], 1, POSE_DIM):
-        raise ValueError(
-            f"`latents` must be (B, C, h, w) and `pose` (B, 1, {POSE_DIM}), got {tuple(latents.shape)} and "
-            f"{tuple(pose.shape)}"
-        )
+    check_turn_inputs(latents, pose, rotation_sign)
     batch, channels, height, width = latents.shape
     dtype, device = torch.float32, latents.device
     ys = (torch.arange(height, dtype=dtype, device=device) + 0.5) * (2.0 / height) - 1.0

@@ -16,6 +16,7 @@ import torch.nn.functional as F
 from sar_zero123.model.conditioning import POSE_DIM, SPATIAL_POSE_MODES, encode_condition_latents
 
 __all__ = [
+    "check_turn_inputs",
     "condition_channels",
     "proxy_pair_latents",
     "rotate_condition_latents",
@@ -46,6 +47,22 @@ def takes_proxy(pose_projection: torch.nn.Module) -> bool:
     return getattr(config, "spatial_pose", None) == "proxy"
 
 
+def check_turn_inputs(latents: torch.Tensor, pose: torch.Tensor, rotation_sign: int) -> None:
+    """Refuse latents and poses a turn by ``rotation_sign * d_az`` cannot take.
+
+    Raises:
+        ValueError: If ``latents`` is not ``(B, C, h, w)``, ``pose`` not ``(B, 1, 4)`` or ``rotation_sign``
+            not +-1.
+    """
+    if rotation_sign not in (-1, 1):
+        raise ValueError(f"`rotation_sign` must be +1 or -1, got {rotation_sign!r}")
+    if latents.ndim != 4 or pose.shape != (latents.shape[0], 1, POSE_DIM):
+        raise ValueError(
+            f"`latents` must be (B, C, h, w) and `pose` (B, 1, {POSE_DIM}), got {tuple(latents.shape)} and "
+            f"{tuple(pose.shape)}"
+        )
+
+
 def rotate_condition_latents(latents: torch.Tensor, pose: torch.Tensor, rotation_sign: int) -> torch.Tensor:
     """The input latent turned about the chip centre by ``rotation_sign * d_az`` (bilinear, reflected border).
 
@@ -70,13 +87,7 @@ def rotate_condition_latents(latents: torch.Tensor, pose: torch.Tensor, rotation
     Raises:
         ValueError: If the shapes do not match or ``rotation_sign`` is not +-1.
     """
-    if rotation_sign not in (-1, 1):
-        raise ValueError(f"`rotation_sign` must be +1 or -1, got {rotation_sign!r}")
-    if latents.ndim != 4 or pose.shape != (latents.shape[0], 1, POSE_DIM):
-        raise ValueError(
-            f"`latents` must be (B, C, h, w) and `pose` (B, 1, {POSE_DIM}), got {tuple(latents.shape)} and "
-            f"{tuple(pose.shape)}"
-        )
+    check_turn_inputs(latents, pose, rotation_sign)
     sin = rotation_sign * pose[:, 0, 1].to(device=latents.device, dtype=torch.float32)
     cos = pose[:, 0, 2].to(device=latents.device, dtype=torch.float32)
     zero = torch.zeros_like(sin)
