@@ -30,6 +30,7 @@ __all__ = [
     "DB_EPS",
     "INDEX_COLUMNS",
     "INDEX_FILENAME",
+    "MAX_IMAGE_SIZE",
     "Array",
     "center_crop",
     "from_decibels",
@@ -43,6 +44,10 @@ __all__ = [
 
 #: Added to magnitudes before the logarithm, so zero magnitude is -60 dB rather than -inf.
 DB_EPS = 1e-3
+
+#: The largest chip side in pixels a training stage resizes its chips to: a bound on what ``image_size``
+#: allocates, checked by the config before any chip is read or simulated.
+MAX_IMAGE_SIZE = 1024
 
 #: The file that lists a chip folder's chips, one row per chip.
 INDEX_FILENAME = "index.csv"

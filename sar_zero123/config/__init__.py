@@ -470,9 +470,15 @@ def parse_config(
 
 
 def check_minimum(
-    config: Any, *names: str, minimum: float, strict: bool = False, optional: bool = False
+    config: Any,
+    *names: str,
+    minimum: float,
+    strict: bool = False,
+    optional: bool = False,
+    maximum: float | None = None,
 ) -> None:
-    """Refuse the first field of ``names`` below ``minimum``: the range checks of ``__post_init__``.
+    """Refuse the first field of ``names`` below ``minimum`` (or above ``maximum``): the range checks of
+    ``__post_init__``. A maximum bounds what a setting makes the run allocate, checked before any work.
 
     Args:
         config: The config dataclass (``self`` in ``__post_init__``).
@@ -480,11 +486,13 @@ def check_minimum(
         minimum: The smallest allowed value.
         strict: Require ``value > minimum`` instead of ``>=``.
         optional: Accept ``None``.
+        maximum: The largest allowed value; ``None``: no upper bound.
 
     Raises:
         ValueError: ``"<name> must be >= <minimum>[ or None], got <value>"`` (``>`` with ``strict``; "a
             finite number >= ..." for an infinity); NaN, infinities, booleans and non-numbers fail every
-            check, ``None`` every check without ``optional``.
+            check, ``None`` every check without ``optional``; ``"<name> must be <= <maximum>, got <value>"``
+            above ``maximum``.
     """
     for name in names:
         value = getattr(config, name)
@@ -496,6 +504,8 @@ def check_minimum(
             raise ValueError(f"{name} must be a finite number {bound}, got {value}")
         if not number or not (value > minimum if strict else value >= minimum):
             raise ValueError(f"{name} must be {bound}, got {value}")
+        if maximum is not None and value > maximum:
+            raise ValueError(f"{name} must be <= {maximum}, got {value}")
 
 
 #: Config fields that name a folder a script writes into; :func:`parse_config` checks them first.

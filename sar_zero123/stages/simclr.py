@@ -41,6 +41,7 @@ from sar_zero123.config import check_minimum
 from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE, ChipDataset, DecibelScaling, prepare_splits
 from sar_zero123.data.selection import select_chips
+from sar_zero123.domain import MAX_IMAGE_SIZE
 from sar_zero123.encoder import ProjectionHead, SAREncoder, SAREncoderConfig
 from sar_zero123.runs.checkpoints import (
     RESUME_MAY_DIFFER,
@@ -123,7 +124,8 @@ class PretrainSimCLRConfig:
             raise ValueError(
                 f"global_batch_size must be >= 2 (NT-Xent needs negatives), got {self.global_batch_size}"
             )
-        check_minimum(self, "image_size", "epochs", "checkpointing_steps", "logging_steps", minimum=1)
+        check_minimum(self, "image_size", minimum=1, maximum=MAX_IMAGE_SIZE)
+        check_minimum(self, "epochs", "checkpointing_steps", "logging_steps", minimum=1)
         optional_counts = ("max_train_steps", "max_train_chips", "checkpoints_total_limit")
         check_minimum(self, *optional_counts, minimum=1, optional=True)
         check_minimum(self, "learning_rate", "temperature", minimum=0, strict=True)

@@ -31,6 +31,7 @@ from sar_zero123.config import check_minimum
 from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, prepare_splits
 from sar_zero123.data.splits import check_protocol
+from sar_zero123.domain import MAX_IMAGE_SIZE
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig, resolve_encoder_dir
 from sar_zero123.evaluation.probes import FeatureSet, extract_features
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
@@ -117,8 +118,8 @@ class Table1Config:
             raise ValueError(
                 f"encoders must name one folder per preset ({len(self.presets)}), got {len(self.encoders)}"
             )
-        counts = ("epochs", "image_size", "global_batch_size", "probe_epochs", "tsne_points")
-        check_minimum(self, *counts, minimum=1)
+        check_minimum(self, "image_size", minimum=1, maximum=MAX_IMAGE_SIZE)
+        check_minimum(self, "epochs", "global_batch_size", "probe_epochs", "tsne_points", minimum=1)
         check_minimum(self, "max_train_steps", "max_train_chips", "max_test_chips", minimum=1, optional=True)
         check_protocol(self.protocol)
         if self.resume and self.restart:

@@ -31,6 +31,7 @@ from sar_zero123.data import (
     check_protocol,
     prepare_splits,
 )
+from sar_zero123.domain import MAX_IMAGE_SIZE
 from sar_zero123.encoder import SAREncoder, resolve_encoder_dir
 from sar_zero123.evaluation.reconstruction import evaluate_reconstruction
 from sar_zero123.model.conditioning import downsampling_factor
@@ -126,6 +127,7 @@ class TrainVAEConfig:
                 f"norm_num_groups={self.norm_num_groups} must divide every block_out_channels "
                 f"{self.block_out_channels}"
             )
+        check_minimum(self, "image_size", minimum=1, maximum=MAX_IMAGE_SIZE)
         factor = downsampling_factor(self.block_out_channels)
         if self.image_size < factor or self.image_size % factor:
             raise ValueError(
