@@ -207,9 +207,9 @@ def test_evaluate_end_to_end_on_dummy_pipeline(tmp_path: Path, monkeypatch, capl
         evaluate.main(argv)
     with pytest.raises(ValueError, match="Differences: n: folder 4, this run 6"):
         evaluate.main([*argv, "--n", "6", "--resume"])
-    # --resume returns the finished run as it is (on any device), without loading a model
+    # --resume returns the finished run as it is (on another device setting), without loading a model
     monkeypatch.setattr(stage, "load_evaluators", _no_work)
-    resumed = evaluate.main([*argv, "--resume", "--device", "cuda"])
+    resumed = evaluate.main([*argv, "--resume", "--device", "cpu"])
     assert json.dumps(resumed, sort_keys=True) == json.dumps(result, sort_keys=True)
     assert _snapshot(out) == before
     # --restart moves the old run aside, untouched, and starts over
