@@ -341,6 +341,20 @@ def resume_step(accelerator: Accelerator, path: str | os.PathLike | None) -> int
     return step
 
 
+def _portable(value: Any) -> Any:
+    """A bundled component's resolved folder as its place inside the package, so that a run started in one
+    install or checkout resumes in another; any other value unchanged."""
+    if isinstance(value, str):
+        _, marker, tail = value.replace(os.sep, "/").rpartition(_BUNDLED_MARKER)
+        if marker:
+            return _BUNDLED_MARKER.lstrip("/") + tail
+    return value
+
+
+#: Where the bundled pipelines lie inside the installed package.
+_BUNDLED_MARKER = "/sar_zero123/pretrained/"
+
+
 def check_resume_config(
     path: str | os.PathLike | None,
     config: Any,
@@ -381,8 +395,8 @@ def check_resume_config(
             f"{type(config).__name__} run (another script's checkpoint)"
         )
     allowed = set(RESUME_MAY_DIFFER) | set(may_differ)
-    current = config_to_dict(config)
-    written = {(renamed or {}).get(name, name): value for name, value in state["config"].items()}
+    current = {name: _portable(value) for name, value in config_to_dict(config).items()}
+    written = {(renamed or {}).get(name, name): _portable(value) for name, value in state["config"].items()}
     defaults = field_defaults(config)
     written.update({name: defaults[name] for name in set(current) - set(written) if name in defaults})
     differences = [

@@ -235,6 +235,21 @@ def test_resume_config_compares_a_renamed_field_under_its_new_name(tmp_path: Pat
         check_resume_config(path, _Renamed())
 
 
+def test_resume_config_takes_a_bundled_folder_from_another_install(tmp_path: Path):
+    @dataclasses.dataclass
+    class _Config:  # noqa: N801 (the same script's config, with a bundled component)
+        pretrained: str = "/old/site-packages/sar_zero123/pretrained/sim_prior_proxy"
+
+    accelerator, model, optimizer = _setup()
+    path = save_checkpoint(accelerator, tmp_path, 1, config=_Config())
+    check_resume_config(path, _Config("/work/checkout/sar_zero123/pretrained/sim_prior_proxy"))
+    with pytest.raises(ValueError, match=r"pretrained: checkpoint 'sar_zero123/pretrained/sim_prior_proxy', "
+                       r"this run 'sar_zero123/pretrained/sim_prior'"):
+        check_resume_config(path, _Config("/work/checkout/sar_zero123/pretrained/sim_prior"))
+    with pytest.raises(ValueError, match=r"this run '/home/me/sim_prior_proxy'"):
+        check_resume_config(path, _Config("/home/me/sim_prior_proxy"))  # a folder of the user's own
+
+
 def test_check_resume_state_refuses_another_module_setting(tmp_path: Path):
     accelerator, model, optimizer = _setup()
     path = save_checkpoint(accelerator, tmp_path, 1, extra_state={"tower": True})
