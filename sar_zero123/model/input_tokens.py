@@ -28,7 +28,12 @@ import torch
 from diffusers.models.attention_processor import Attention
 
 from sar_zero123.model.conditioning import TOKEN_FREQUENCIES, token_feature_dim
-from sar_zero123.model.reference_attention import GatedAttnProcessor, transformer_attentions
+from sar_zero123.model.reference_attention import (
+    GatedAttnProcessor,
+    check_gate_count,
+    gate_count,
+    transformer_attentions,
+)
 from sar_zero123.model.spatial_pose import check_turn_inputs
 
 __all__ = [
@@ -138,8 +143,7 @@ def _state(unet: torch.nn.Module) -> _TokenState:
 
 def uses_input_tokens(pose_projection: torch.nn.Module) -> bool:
     """Whether a (possibly DDP-wrapped) pose projection records input tokens."""
-    config = getattr(pose_projection, "module", pose_projection).config
-    return int(getattr(config, "input_token_layers", 0) or 0) > 0
+    return gate_count(pose_projection, "input_token_layers") > 0
 
 
 def enable_input_tokens(
@@ -165,19 +169,8 @@ def enable_input_tokens(
 
 
 def check_token_layers(unet: torch.nn.Module, pose_projection: torch.nn.Module) -> None:
-    """Refuse a pose projection whose token gates do not match the UNet's cross-attentions.
-
-    Raises:
-        ValueError: Naming both counts.
-    """
-    if not uses_input_tokens(pose_projection):
-        return
-    count = len(token_layers(unet))
-    recorded = int(getattr(pose_projection, "module", pose_projection).config.input_token_layers)
-    if recorded != count:
-        raise ValueError(
-            f"pose_projection: input_token_layers={recorded} gates, but the UNet has {count} cross-attentions"
-        )
+    """Refuse a pose projection whose token gates do not match the UNet's cross-attentions."""
+    check_gate_count(unet, pose_projection, "input_token_layers", token_layers, "cross-attentions")
 
 
 @contextlib.contextmanager

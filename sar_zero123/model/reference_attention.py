@@ -20,7 +20,7 @@ without the reference, as in Zero123++.
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import torch
 import torch.nn.functional as F
@@ -32,8 +32,10 @@ __all__ = [
     "GatedAttnProcessor",
     "attend_extra",
     "attending_to_reference",
+    "check_gate_count",
     "check_reference_layers",
     "enable_reference_attention",
+    "gate_count",
     "input_reference",
     "own_pose",
     "reference_features",
@@ -159,10 +161,35 @@ def _state(unet: torch.nn.Module) -> _ReferenceState:
     return state
 
 
+def gate_count(pose_projection: torch.nn.Module, field: str) -> int:
+    """How many gated layers a (possibly DDP-wrapped) pose projection records in its config ``field``."""
+    config = getattr(pose_projection, "module", pose_projection).config
+    return int(getattr(config, field, 0) or 0)
+
+
+def check_gate_count(
+    unet: torch.nn.Module,
+    pose_projection: torch.nn.Module,
+    field: str,
+    layers: Callable[[torch.nn.Module], list[Attention]],
+    kind: str,
+) -> None:
+    """Refuse a pose projection whose gates (``field``) do not match the UNet's ``layers`` (``kind``).
+
+    Raises:
+        ValueError: Naming both counts.
+    """
+    recorded = gate_count(pose_projection, field)
+    if recorded <= 0:
+        return
+    count = len(layers(unet))
+    if recorded != count:
+        raise ValueError(f"pose_projection: {field}={recorded} gates, but the UNet has {count} {kind}")
+
+
 def uses_reference(pose_projection: torch.nn.Module) -> bool:
     """Whether a (possibly DDP-wrapped) pose projection records reference attention."""
-    config = getattr(pose_projection, "module", pose_projection).config
-    return int(getattr(config, "reference_layers", 0) or 0) > 0
+    return gate_count(pose_projection, "reference_layers") > 0
 
 
 def enable_reference_attention(unet: torch.nn.Module, pose_projection: torch.nn.Module) -> None:
@@ -182,19 +209,8 @@ def enable_reference_attention(unet: torch.nn.Module, pose_projection: torch.nn.
 
 
 def check_reference_layers(unet: torch.nn.Module, pose_projection: torch.nn.Module) -> None:
-    """Refuse a pose projection whose gates do not match the UNet's self-attentions.
-
-    Raises:
-        ValueError: Naming both counts.
-    """
-    if not uses_reference(pose_projection):
-        return
-    count = len(reference_layers(unet))
-    recorded = int(getattr(pose_projection, "module", pose_projection).config.reference_layers)
-    if recorded != count:
-        raise ValueError(
-            f"pose_projection: reference_layers={recorded} gates, but the UNet has {count} self-attentions"
-        )
+    """Refuse a pose projection whose gates do not match the UNet's self-attentions."""
+    check_gate_count(unet, pose_projection, "reference_layers", reference_layers, "self-attentions")
 
 
 @torch.no_grad()
