@@ -1,20 +1,16 @@
 """Reference attention: every self-attention of the UNet also attends to the input view's own features.
 
-A zero-1-to-3 UNet cross-attends to one token, so the input's appearance reaches a place of the generated
-view only through the condition latents concatenated at the input's own pose, carried there by
-convolutions. Reference attention (Zero123++'s mechanism, with IP-Adapter's decoupled, gated form) makes
-the input reachable from every place of the view, by content:
+A zero-1-to-3 UNet reaches the input's appearance only through the condition latents at the input's own
+pose, carried by convolutions. Reference attention (Zero123++'s mechanism in IP-Adapter's decoupled, gated
+form) makes it reachable from every place, by content:
 
-1. a **reference pass** runs the same UNet on the input view asked for itself (``d_az = d_el = 0``, the
-   clean input latent at timestep 0) and keeps the input of each self-attention (:func:`reference_features`;
-   once per call, whatever the number of denoising steps);
-2. in the **target pass** each self-attention adds ``tanh(g_l) * Attn(Q, K_ref, V_ref)``, its queries
-   against the keys and values of the kept features, through the layer's own projections
-   (:func:`attending_to_reference`). The gates ``g_l`` live in the pose projection
-   (``reference_gates``, zero at a warm start: the model then computes exactly what it did without them).
+1. a **reference pass** runs the UNet on the input asked for itself (``d_az = d_el = 0``, the clean input
+   latent at timestep 0), once per call, and keeps each self-attention's input (:func:`reference_features`);
+2. in the **target pass** each self-attention adds ``tanh(g_l) * Attn(Q, K_ref, V_ref)`` through its own
+   projections (:func:`attending_to_reference`). The gates ``reference_gates`` start at zero, so a warm
+   start computes exactly what the model did without them.
 
-Rows whose condition is the classifier-free-guidance null get weight 0: the unconditional branch runs
-without the reference, as in Zero123++.
+The classifier-free-guidance null gets weight 0, as in Zero123++.
 """
 
 from __future__ import annotations
@@ -57,8 +53,9 @@ class _ReferenceState:
 
 
 class GatedAttnProcessor:
-    """An attention's processor: diffusers' own attention, plus ``weight * Attn(Q, K(context), V(context))``
-    where :meth:`extra` gives a ``(weight, context)`` pair (reference attention, input tokens)."""
+    """Diffusers' own attention plus ``weight * Attn(Q, K(context), V(context))`` for the
+    ``(weight, context)`` that :meth:`extra` gives.
+    """
 
     def __init__(self, layer: int) -> None:
         self.layer = layer
@@ -87,8 +84,9 @@ class GatedAttnProcessor:
 
 
 class ReferenceAttnProcessor(GatedAttnProcessor):
-    """A self-attention's processor: while writing, it keeps its input; while reading, it also attends to
-    the reference features of the same layer (see the module docstring)."""
+    """A self-attention's processor: writing, it keeps its input; reading, it also attends to that layer's
+    reference features.
+    """
 
     def __init__(self, layer: int, state: _ReferenceState) -> None:
         super().__init__(layer)
@@ -105,8 +103,8 @@ class ReferenceAttnProcessor(GatedAttnProcessor):
 
 
 def attend_extra(attn: Attention, hidden_states: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
-    """``Attn(Q(hidden_states), K(reference), V(reference))`` through the layer's projections, its output
-    projection without the bias (the layer's own attention already adds it once).
+    """``Attn(Q(hidden_states), K(reference), V(reference))`` through the layer's projections, the output
+    projection without its bias (the layer's own attention adds it once).
 
     Shape:
         ``(N, L, C)``, ``(N, L_ref, C)`` -> ``(N, L, C)``.
@@ -127,12 +125,11 @@ def attend_extra(attn: Attention, hidden_states: torch.Tensor, reference: torch.
 
 
 def transformer_attentions(unet: torch.nn.Module, name: str, purpose: str) -> list[Attention]:
-    """The UNet's transformer-block attentions named ``name`` (``"attn1"``: self-attention, ``"attn2"``:
-    cross-attention), in module order.
+    """The UNet's transformer-block attentions named ``name`` (``"attn1"``: self, ``"attn2"``: cross), in
+    module order.
 
     Raises:
-        ValueError: If one takes a 4-d input or adds its own residual (not a transformer block's; ``purpose``
-            names what needs them).
+        ValueError: If one is not a transformer block's (``purpose`` names what needs them).
     """
     unet = getattr(unet, "module", unet)
     layers = [m for key, m in unet.named_modules() if key.endswith(name) and isinstance(m, Attention)]
@@ -218,10 +215,8 @@ def reference_features(unet: torch.nn.Module, model_input: torch.Tensor, **unet_
     """The reference pass: the input of every self-attention while the UNet runs on ``model_input``.
 
     Args:
-        unet: The UNet (possibly DDP-wrapped).
-        model_input: ``[the input's scaled latent, its condition latents at the input's own pose]``.
-        **unet_kwargs: The UNet's other arguments (``timestep``, ``encoder_hidden_states``,
-            ``class_labels``).
+        model_input: ``[the input's scaled latent, its condition latents at its own pose]``.
+        **unet_kwargs: ``timestep``, ``encoder_hidden_states``, ``class_labels``.
 
     Returns:
         One ``(B, L_l, C_l)`` tensor per self-attention (:func:`reference_layers`).
@@ -296,16 +291,16 @@ def input_reference(
     scaling_factor: float,
     proxy_at_input: torch.Tensor | None = None,
 ) -> list[torch.Tensor]:
-    """The reference pass of step 1 (module docstring): the UNet on each input view asked for itself.
+    """The reference pass (module docstring, step 1): the UNet on each input view asked for itself.
 
     Args:
-        condition_latents: The inputs' unscaled latents (never the classifier-free-guidance null).
+        condition_latents: The inputs' unscaled latents (never the guidance null).
         own: :func:`own_pose` of the request's pose.
-        tokens: ``pose_projection(image_embeds, own)``, the inputs' own-pose tokens.
-        class_labels: The UNet's class labels at the own pose (``pose_class_labels``), or ``None``.
-        scaling_factor: The VAE's; the clean input latent scaled as a target latent is, at timestep 0.
-        proxy_at_input: For a ``spatial_pose="proxy"`` UNet: the proxy's latent at the input's pose
-            ``(B, C, h, w)``, its request's proxy too (the view asked for itself).
+        tokens: ``pose_projection(image_embeds, own)``.
+        class_labels: The UNet's class labels at the own pose, or ``None``.
+        scaling_factor: The VAE's: the clean input latent is scaled as a target latent, at timestep 0.
+        proxy_at_input: A ``spatial_pose="proxy"`` UNet's proxy latent at the input's pose, also its
+            request's proxy.
 
     Shape:
         ``(B, C, h, w)``, ``(B, 1, 4)``, ``(B, 1, D)`` -> a list of ``(B, L_l, C_l)``.
