@@ -38,11 +38,7 @@ __all__ = [
 SpeckleMode = Literal["pixel", "level"]
 
 
-# ---------------------------------------------------------------------------------------------------
-# Random monotonic map (Algorithm 1)
-# ---------------------------------------------------------------------------------------------------
-
-
+# ------------------------------------------------------------------------ Random monotonic map (Algorithm 1)
 def sample_monotonic_map(
     batch_size: int,
     q: int = 512,
@@ -121,11 +117,7 @@ def random_monotonic(
     return apply_lookup_table(x, table)
 
 
-# ---------------------------------------------------------------------------------------------------
-# Rayleigh speckle (Eq. 17-18)
-# ---------------------------------------------------------------------------------------------------
-
-
+# ------------------------------------------------------------------------------ Rayleigh speckle (Eq. 17-18)
 def sample_rayleigh(
     shape: tuple[int, ...],
     sigma: float = 10.0,
@@ -208,11 +200,7 @@ def rayleigh_speckle(
     raise ValueError(f"`mode` must be 'pixel' or 'level', got {mode!r}")
 
 
-# ---------------------------------------------------------------------------------------------------
-# Additive Gaussian noise
-# ---------------------------------------------------------------------------------------------------
-
-
+# ----------------------------------------------------------------------------------- Additive Gaussian noise
 def additive_gaussian(
     x: torch.Tensor, std: float = 0.03, generator: torch.Generator | None = None
 ) -> torch.Tensor:
@@ -233,11 +221,7 @@ def additive_gaussian(
     return (x + std * noise).clamp(0.0, 1.0)
 
 
-# ---------------------------------------------------------------------------------------------------
-# Speckle re-added to a smooth (decoded) view
-# ---------------------------------------------------------------------------------------------------
-
-
+# --------------------------------------------------------------- Speckle re-added to a smooth (decoded) view
 def log_speckle_stats(looks: int) -> tuple[float, float]:
     """Mean and standard deviation, in dB, of ``10 log10 g`` for L-look speckle ``g ~ Gamma(L, 1/L)``.
 

@@ -47,11 +47,7 @@ class Scaling(Protocol):
     def normalize(self, magnitude: torch.Tensor) -> torch.Tensor: ...
 
 
-# ---------------------------------------------------------------------------------------------------
-# SimCLR baseline transforms (applied to normalised dB images in [0, 1])
-# ---------------------------------------------------------------------------------------------------
-
-
+# ------------------------------------ SimCLR baseline transforms (applied to normalised dB images in [0, 1])
 def random_resized_crop(
     x: torch.Tensor,
     scale: tuple[float, float] = (0.08, 1.0),
@@ -193,11 +189,7 @@ def _blur_matrix(kernel: torch.Tensor, n: int) -> torch.Tensor:
     return matrix.scatter_add_(2, source.expand(b, n, k), kernel[:, None, :].expand(b, n, k).contiguous())
 
 
-# ---------------------------------------------------------------------------------------------------
-# Presets (Table I rows) and the end-to-end batch augmentation
-# ---------------------------------------------------------------------------------------------------
-
-
+# ---------------------------------------------- Presets (Table I rows) and the end-to-end batch augmentation
 @dataclass(frozen=True)
 class AugmentationPreset:
     """Parameters of one augmentation pipeline; a stage is off when its switch value is 0 / None.

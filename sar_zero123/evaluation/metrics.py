@@ -41,11 +41,7 @@ _K1 = 0.01
 _K2 = 0.03
 
 
-# ---------------------------------------------------------------------------------------------------
-# Classifier / regressor based metrics
-# ---------------------------------------------------------------------------------------------------
-
-
+# ---------------------------------------------------------------------- Classifier / regressor based metrics
 def classification_accuracy(predictions: torch.Tensor, labels: torch.Tensor) -> float:
     """Fraction of samples whose predicted class (logits `(B, K)` arg-max, or indices `(B,)`) equals the
     label `(B,)`.
@@ -221,11 +217,7 @@ def _as_float64_matrix(features: torch.Tensor | np.ndarray, name: str) -> np.nda
     return features
 
 
-# ---------------------------------------------------------------------------------------------------
-# Structural similarity
-# ---------------------------------------------------------------------------------------------------
-
-
+# ------------------------------------------------------------------------------------- Structural similarity
 def _check_image_pair(x: torch.Tensor, y: torch.Tensor) -> None:
     for name, image in (("first image", x), ("second image", y)):
         if not isinstance(image, torch.Tensor):
@@ -379,11 +371,7 @@ def _prepare(
     return x.double(), y.double()
 
 
-# ---------------------------------------------------------------------------------------------------
-# Kuan filter
-# ---------------------------------------------------------------------------------------------------
-
-
+# ----------------------------------------------------------------------------------------------- Kuan filter
 def kuan_filter(image: torch.Tensor, window: int = 7, cu: float = 0.25) -> torch.Tensor:
     """Kuan adaptive speckle filter with a full square window and reflect-padded borders.
 
