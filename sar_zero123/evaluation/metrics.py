@@ -253,10 +253,11 @@ def gaussian_kernel_1d(kernel_size: int, sigma: float, dtype: torch.dtype = torc
     return kernel / kernel.sum()
 
 
-def _ssim_terms(
+def ssim_maps(
     x: torch.Tensor, y: torch.Tensor, kernel_1d: torch.Tensor, data_range: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-sample mean SSIM and mean contrast-structure term over the valid region (no padding)."""
+    """The SSIM and contrast-structure maps under a separable window, valid convolution only (pad first
+    for other borders). Shape: ``(B, C, H, W)`` -> twice ``(B, C, H - K + 1, W - K + 1)``."""
     channels = x.shape[1]
     size = kernel_1d.shape[0]
     window = kernel_1d.to(x)
@@ -275,7 +276,15 @@ def _ssim_terms(
     sigma_xy = blur(x * y) - mu_x * mu_y
     contrast_structure = (2.0 * sigma_xy + c2) / (sigma_xx + sigma_yy + c2)
     luminance = (2.0 * mu_x * mu_y + c1) / (mu_x**2 + mu_y**2 + c1)
-    return (luminance * contrast_structure).flatten(1).mean(1), contrast_structure.flatten(1).mean(1)
+    return luminance * contrast_structure, contrast_structure
+
+
+def _ssim_terms(
+    x: torch.Tensor, y: torch.Tensor, kernel_1d: torch.Tensor, data_range: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-sample mean SSIM and mean contrast-structure term over the valid region (no padding)."""
+    ssim_map, contrast_structure = ssim_maps(x, y, kernel_1d, data_range)
+    return ssim_map.flatten(1).mean(1), contrast_structure.flatten(1).mean(1)
 
 
 def ssim(

@@ -27,7 +27,13 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
-from sar_zero123.evaluation.metrics import CROP_SIZE, PAPER_MS_SSIM_BETAS, combine_scales, gaussian_kernel_1d
+from sar_zero123.evaluation.metrics import (
+    CROP_SIZE,
+    PAPER_MS_SSIM_BETAS,
+    combine_scales,
+    gaussian_kernel_1d,
+    ssim_maps,
+)
 
 PAPER_SCORING_SIZE = 256
 """Side in pixels of the images the authors scored (zero-1-to-3 resolution; 128 px chips resized to it)."""
@@ -179,24 +185,10 @@ def _torchmetrics_ssim_terms(
     x: torch.Tensor, y: torch.Tensor, kernel_1d: torch.Tensor, data_range: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-sample (SSIM over the whole reflect-padded map, contrast-structure over the valid region)."""
-    channels, size = x.shape[1], kernel_1d.shape[0]
-    pad = (size - 1) // 2
-    window = kernel_1d.to(x)
-    window_h = window.view(1, 1, size, 1).expand(channels, 1, size, 1)
-    window_w = window.view(1, 1, 1, size).expand(channels, 1, 1, size)
-
-    def blur(image: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(F.conv2d(image, window_h, groups=channels), window_w, groups=channels)
-
+    pad = (kernel_1d.shape[0] - 1) // 2
     x = F.pad(x, (pad, pad, pad, pad), mode="reflect")
     y = F.pad(y, (pad, pad, pad, pad), mode="reflect")
-    c1, c2 = (_K1 * data_range) ** 2, (_K2 * data_range) ** 2
-    mu_x, mu_y = blur(x), blur(y)
-    var_x = (blur(x * x) - mu_x**2).clamp_min(0.0)
-    var_y = (blur(y * y) - mu_y**2).clamp_min(0.0)
-    cov_xy = blur(x * y) - mu_x * mu_y
-    contrast_structure = (2.0 * cov_xy + c2) / (var_x + var_y + c2)
-    ssim_map = (2.0 * mu_x * mu_y + c1) / (mu_x**2 + mu_y**2 + c1) * contrast_structure
+    ssim_map, contrast_structure = ssim_maps(x, y, kernel_1d, data_range)
     valid = contrast_structure[..., pad:-pad, pad:-pad]
     return ssim_map.flatten(1).mean(1), valid.flatten(1).mean(1)
 
