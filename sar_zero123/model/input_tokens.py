@@ -26,6 +26,7 @@ from sar_zero123.model.reference_attention import (
     GatedAttnProcessor,
     check_gate_count,
     gate_count,
+    shared_state,
     transformer_attentions,
 )
 from sar_zero123.model.spatial_pose import check_turn_inputs
@@ -116,16 +117,7 @@ def token_layers(unet: torch.nn.Module) -> list[Attention]:
 
 
 def _state(unet: torch.nn.Module) -> _TokenState:
-    """The UNet's shared state, its processors installed on first use (idempotent)."""
-    unet = getattr(unet, "module", unet)
-    state = getattr(unet, "_input_token_state", None)
-    if state is None:
-        layers = token_layers(unet)
-        state = _TokenState(len(layers))
-        for index, layer in enumerate(layers):
-            layer.set_processor(InputTokenAttnProcessor(index, state))
-        unet._input_token_state = state
-    return state
+    return shared_state(unet, "_input_token_state", token_layers, _TokenState, InputTokenAttnProcessor)
 
 
 def uses_input_tokens(pose_projection: torch.nn.Module) -> bool:

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 from collections.abc import Callable, Iterator
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -37,6 +38,7 @@ __all__ = [
     "reference_features",
     "reference_layers",
     "reference_weights",
+    "shared_state",
     "transformer_attentions",
     "uses_reference",
 ]
@@ -45,9 +47,9 @@ __all__ = [
 class _ReferenceState:
     """What the processors of one UNet share: the mode and, while reading, the kept features and weights."""
 
-    def __init__(self) -> None:
+    def __init__(self, layers: int) -> None:
         self.mode = "off"  # "off" | "write" | "read"
-        self.features: list[torch.Tensor | None] = []
+        self.features: list[torch.Tensor | None] = [None] * layers
         self.rows: torch.Tensor | None = None
         self.weights: torch.Tensor | None = None  # (N, layers)
 
@@ -144,18 +146,28 @@ def reference_layers(unet: torch.nn.Module) -> list[Attention]:
     return transformer_attentions(unet, "attn1", "reference attention")
 
 
-def _state(unet: torch.nn.Module) -> _ReferenceState:
-    """The UNet's shared state, its processors installed on first use (idempotent)."""
+def shared_state(
+    unet: torch.nn.Module,
+    attribute: str,
+    layers: Callable[[torch.nn.Module], list[Attention]],
+    make_state: Callable[[int], Any],
+    processor: Callable[[int, Any], GatedAttnProcessor],
+) -> Any:
+    """The state a (possibly DDP-wrapped) UNet's ``layers`` share, kept as its ``attribute``: on first use
+    ``make_state(count)``, and each layer's ``processor(index, state)`` installed (idempotent)."""
     unet = getattr(unet, "module", unet)
-    state = getattr(unet, "_reference_state", None)
+    state = getattr(unet, attribute, None)
     if state is None:
-        state = _ReferenceState()
-        layers = reference_layers(unet)
-        state.features = [None] * len(layers)
-        for index, layer in enumerate(layers):
-            layer.set_processor(ReferenceAttnProcessor(index, state))
-        unet._reference_state = state
+        found = layers(unet)
+        state = make_state(len(found))
+        for index, layer in enumerate(found):
+            layer.set_processor(processor(index, state))
+        setattr(unet, attribute, state)
     return state
+
+
+def _state(unet: torch.nn.Module) -> _ReferenceState:
+    return shared_state(unet, "_reference_state", reference_layers, _ReferenceState, ReferenceAttnProcessor)
 
 
 def gate_count(pose_projection: torch.nn.Module, field: str) -> int:
