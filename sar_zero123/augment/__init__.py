@@ -1,15 +1,7 @@
-"""Augmentations for SAR chips (paper Sec. III, Table I), in two modules by the domain they act on.
-
-* :mod:`~sar_zero123.augment.codomain`: **co-domain** transforms of the *magnitude* in [0, 1] that change
-  only pixel values, never the geometry: the random monotonic map (Algorithm 1), Rayleigh speckle
-  (Eq. 17-18) and additive Gaussian noise.
-* :mod:`~sar_zero123.augment.views`: the **SimCLR baselines** on the *normalised dB* image (random
-  resized crop, flip, brightness/contrast jitter, Gaussian blur), the Table I presets (:data:`PRESETS`),
-  ``augment_batch`` (magnitude -> co-domain transforms -> normalised dB -> dB-domain transforms) and
-  ``simclr_views`` (the two views of a SimCLR positive pair).
-
-All are batched on ``(B, C, H, W)`` tensors, on any device, with an independent random draw per sample and
-an explicit ``generator``; every public name is importable from ``sar_zero123.augment``.
+"""Augmentations for SAR chips (paper Sec. III, Table I), by the domain they act on: :mod:`.codomain`
+(the magnitude's values: Algorithm 1, Eq. 17-18, Gaussian noise) and :mod:`.views` (the SimCLR baselines
+on normalised dB, the presets, ``augment_batch``, ``simclr_views``). Batched ``(B, C, H, W)`` on any device,
+one draw per sample, an explicit ``generator``; every public name is importable from here.
 """
 
 from .codomain import (

@@ -1,12 +1,8 @@
 """Co-domain augmentations of SAR magnitudes (paper Sec. III): they change pixel values, never geometry.
 
-All act on the *magnitude* in [0, 1], batched on ``(B, C, H, W)`` tensors with an independent draw per
-sample and an explicit ``generator``: the random monotonic map (Algorithm 1: :func:`sample_monotonic_map`,
-:func:`apply_lookup_table`, :func:`random_monotonic`), Rayleigh speckle (Eq. 17-18: :func:`sample_rayleigh`,
-:func:`speckle_magnitude`, :func:`rayleigh_speckle`) and additive Gaussian noise. The augmented magnitude
-is then mapped to normalised decibels by the dataset's ``DecibelScaling``
-(:func:`sar_zero123.augment.augment_batch`). :func:`readd_speckle` applies the speckle model to the smooth
-views a decoder returns, in normalised dB.
+All act on the magnitude in [0, 1], batched ``(B, C, H, W)``, one draw per sample, explicit ``generator``:
+the random monotonic map (Algorithm 1), Rayleigh speckle (Eq. 17-18) and additive Gaussian noise.
+:func:`readd_speckle` applies the speckle model to a decoder's smooth views, in normalised dB.
 """
 
 from __future__ import annotations
@@ -42,11 +38,7 @@ __all__ = [
 SpeckleMode = Literal["pixel", "level"]
 
 
-# ---------------------------------------------------------------------------------------------------
-# Random monotonic map (Algorithm 1)
-# ---------------------------------------------------------------------------------------------------
-
-
+# ------------------------------------------------------------------------ Random monotonic map (Algorithm 1)
 def sample_monotonic_map(
     batch_size: int,
     q: int = 512,
@@ -55,28 +47,16 @@ def sample_monotonic_map(
     device: torch.device | str = "cpu",
     dtype: torch.dtype = torch.float32,
 ) -> torch.Tensor:
-    """Sample random monotonic lookup tables, Algorithm 1 steps 1-3.
+    """Sample random monotonic lookup tables ``(B, Q)``, Algorithm 1 steps 1-3.
 
-    Each table holds the map's values on the Q uniform levels ``k / (Q - 1)``: Q-1 i.i.d. positive draws
-    ``r_i ~ U(0, 1]`` are prefixed with 0, cumulatively summed and divided by the total, so
-    ``T(0) = 0``, ``T(1) = 1`` and T is strictly increasing. With ``gamma > 0`` a random gamma curve is
-    composed on top, ``T -> T ** exp(alpha)`` with ``alpha ~ N(0, gamma)`` (``gamma`` is the standard
-    deviation of alpha), which keeps both end points and the monotonicity.
+    Values on the Q uniform levels ``k / (Q - 1)``: Q-1 i.i.d. draws ``r_i ~ U(0, 1]`` prefixed with 0,
+    cumulatively summed and divided by the total, so ``T(0) = 0``, ``T(1) = 1`` and T strictly increases.
+    With ``gamma > 0``, ``T -> T ** exp(alpha)`` with ``alpha ~ N(0, gamma)`` keeps both.
 
     Args:
-        batch_size: Number of independent tables B.
-        q: Number of lookup levels Q (>= 2). Larger Q gives a map closer to the identity and smoother at
-            any fixed scale coarser than ``1 / (Q - 1)``.
+        q: Lookup levels Q (>= 2); a larger Q is closer to the identity at scales coarser than
+            ``1 / (Q - 1)``.
         gamma: Standard deviation of the log-exponent alpha (>= 0); 0 disables the gamma curve.
-        generator: Source of randomness.
-        device: Device of the returned tables.
-        dtype: Floating dtype of the returned tables.
-
-    Returns:
-        Lookup tables, increasing along the last dimension.
-
-    Shape:
-        ``(B, Q)``.
 
     Raises:
         ValueError: If ``q < 2``, ``gamma < 0`` or ``batch_size < 1``.
@@ -101,15 +81,8 @@ def sample_monotonic_map(
 def apply_lookup_table(x: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
     """Apply one lookup table per sample by linear interpolation between its uniform levels (Alg. 1 step 4).
 
-    Args:
-        x: Images with values in [0, 1]; level ``k`` of the table sits at ``k / (Q - 1)``.
-        table: Per-sample tables of values on the Q uniform levels.
-
-    Returns:
-        ``T_b(x_b)`` for every sample b, same dtype and device as ``x``.
-
     Shape:
-        x: ``(B, C, H, W)``; table: ``(B, Q)``; output: ``(B, C, H, W)``.
+        x ``(B, C, H, W)`` in [0, 1], table ``(B, Q)`` -> ``(B, C, H, W)``, ``x``'s dtype and device.
 
     Raises:
         ValueError: If the table is not ``(B, Q)`` with ``Q >= 2`` and the batch size of ``x``.
@@ -118,9 +91,8 @@ def apply_lookup_table(x: torch.Tensor, table: torch.Tensor) -> torch.Tensor:
         raise ValueError(f"`table` must have shape (B={x.shape[0]}, Q>=2), got {tuple(table.shape)}")
     b, q = table.shape
     table = table.to(device=x.device, dtype=x.dtype).view(b, 1, 1, q)  # a (1 x Q) image per sample
-    # With align_corners=True, grid coordinate 2m - 1 lands on level m * (Q - 1), so bilinear
-    # grid_sampling of the table row is exactly linear interpolation between levels (and faster on CPU
-    # than two gathers: docs/results/augment.md, Throughput); the y coordinate is 0 on a one-pixel-high image.
+    # With align_corners=True, grid coordinate 2m - 1 lands on level m * (Q - 1): bilinear grid_sampling
+    # of the table row is exactly linear interpolation between levels (faster on CPU than two gathers).
     grid = F.pad(x.reshape(b, 1, -1, 1) * 2.0 - 1.0, (0, 1))  # (B, 1, N, 2)
     return F.grid_sample(table, grid, mode="bilinear", padding_mode="border", align_corners=True).view_as(x)
 
@@ -131,23 +103,11 @@ def random_monotonic(
     gamma: float = 0.0,
     generator: torch.Generator | None = None,
 ) -> torch.Tensor:
-    """Random monotonic map of the co-domain, Algorithm 1.
-
-    One map per sample (shared by its channels) is sampled with ``sample_monotonic_map`` independently
-    of the pixel values and applied through linear interpolation, so pixel order within an image is
-    preserved, 0 stays 0 and 1 stays 1.
-
-    Args:
-        x: Magnitudes in [0, 1].
-        q: Number of lookup levels Q (>= 2).
-        gamma: Standard deviation of the random gamma exponent's logarithm (>= 0); 0 disables it.
-        generator: Source of randomness.
-
-    Returns:
-        Mapped magnitudes in [0, 1].
+    """Random monotonic map of the co-domain, Algorithm 1: one map per sample (shared by its channels),
+    drawn independently of the pixels, so pixel order is preserved, 0 stays 0 and 1 stays 1.
 
     Shape:
-        ``(B, C, H, W)`` -> ``(B, C, H, W)``.
+        ``(B, C, H, W)`` magnitudes in [0, 1] -> the same.
 
     Raises:
         ValueError: If ``x`` is not a finite rank-4 tensor in [0, 1], ``q < 2`` or ``gamma < 0``.
@@ -157,11 +117,7 @@ def random_monotonic(
     return apply_lookup_table(x, table)
 
 
-# ---------------------------------------------------------------------------------------------------
-# Rayleigh speckle (Eq. 17-18)
-# ---------------------------------------------------------------------------------------------------
-
-
+# ------------------------------------------------------------------------------ Rayleigh speckle (Eq. 17-18)
 def sample_rayleigh(
     shape: tuple[int, ...],
     sigma: float = 10.0,
@@ -169,23 +125,10 @@ def sample_rayleigh(
     device: torch.device | str = "cpu",
     dtype: torch.dtype = torch.float32,
 ) -> torch.Tensor:
-    """Draw the multiplicative speckle ``eps ~ Rayleigh(sigma)``, Eq. (17).
+    """Draw the multiplicative speckle ``eps ~ Rayleigh(sigma)`` of shape ``shape``, Eq. (17).
 
-    Inverse-CDF sampling ``sigma * sqrt(-2 ln U)`` with ``U`` in (0, 1] (torch has no Rayleigh
-    distribution); mean ``sigma * sqrt(pi / 2)``, variance ``(4 - pi) / 2 * sigma ** 2``.
-
-    Args:
-        shape: Shape of the draw.
-        sigma: Rayleigh scale (> 0).
-        generator: Source of randomness.
-        device: Device of the result.
-        dtype: Floating dtype of the result.
-
-    Returns:
-        Non-negative Rayleigh samples.
-
-    Shape:
-        ``shape``.
+    Inverse-CDF sampling ``sigma * sqrt(-2 ln U)``, ``U`` in (0, 1] (torch has no Rayleigh); mean
+    ``sigma * sqrt(pi / 2)``, variance ``(4 - pi) / 2 * sigma ** 2``.
 
     Raises:
         ValueError: If ``sigma <= 0``.
@@ -200,21 +143,8 @@ def speckle_magnitude(
 ) -> torch.Tensor:
     """Speckled magnitude before normalisation, Eq. (18): ``lambda1 * m + lambda2 * m * eps``.
 
-    For a constant magnitude m and ``eps ~ Rayleigh(sigma)`` the result has mean
-    ``m * (lambda1 + lambda2 * sigma * sqrt(pi / 2))`` and variance
-    ``(lambda2 * m * sigma) ** 2 * (4 - pi) / 2``.
-
-    Args:
-        m: Magnitudes (any shape).
-        eps: Speckle, broadcastable to ``m``.
-        lambda1: Weight of the clean magnitude (>= 0).
-        lambda2: Weight of the speckle term (>= 0).
-
-    Returns:
-        The unnormalised speckled magnitude.
-
-    Shape:
-        Broadcast of ``m`` and ``eps``.
+    For constant m and ``eps ~ Rayleigh(sigma)``: mean ``m * (lambda1 + lambda2 * sigma * sqrt(pi / 2))``,
+    variance ``(lambda2 * m * sigma) ** 2 * (4 - pi) / 2``. The shape is ``m``'s and ``eps``'s broadcast.
 
     Raises:
         ValueError: If a lambda is negative or not finite.
@@ -236,30 +166,16 @@ def rayleigh_speckle(
 ) -> torch.Tensor:
     """Rayleigh speckle augmentation, Eq. (17)-(18), then per-sample min-max back to [0, 1].
 
-    ``mode="pixel"`` draws one ``eps`` per pixel as Eq. (17) states. ``mode="level"`` follows the
-    paper's reference implementation: ``eps`` is drawn per level of a Q-level lookup table, Eq. (18) is
-    applied to the table ``k / (Q - 1)``, the table is min-max normalised and applied by linear
-    interpolation. Level mode is a deterministic function of the pixel value within an image (equal
-    inputs give equal outputs, there is no spatial noise), and for large ``sigma`` that function is not
-    monotonic (Spearman 0.84 with the identity at sigma 10, Q 512); pixel mode is spatial multiplicative
-    speckle and does not depend on Q.
+    ``mode="pixel"`` draws one ``eps`` per pixel as Eq. (17) states. ``mode="level"`` follows the paper's
+    reference implementation: ``eps`` per level of a Q-level table ``k / (Q - 1)``, Eq. (18) on the table,
+    min-max normalised and applied by interpolation: a deterministic, for large ``sigma`` non-monotonic,
+    function of the pixel value with no spatial noise.
 
     Args:
-        x: Magnitudes in [0, 1].
-        sigma: Rayleigh scale of the speckle (> 0).
-        lambda1: Weight of the clean magnitude (>= 0).
-        lambda2: Weight of the speckle term (>= 0).
-        mode: ``"pixel"`` (Eq. 17) or ``"level"`` (reference implementation).
-        q: Number of lookup levels (>= 2), used by ``mode="level"`` only.
-        generator: Source of randomness.
-        normalize: If False, return Eq. (18) before min-max normalisation (pixel mode only; level mode
-            always normalises its table), for checking the speckle statistics.
-
-    Returns:
-        Speckled magnitudes, in [0, 1] when ``normalize`` is True.
+        normalize: False returns Eq. (18) before min-max normalisation (pixel mode only).
 
     Shape:
-        ``(B, C, H, W)`` -> ``(B, C, H, W)``.
+        ``(B, C, H, W)`` magnitudes in [0, 1] -> the same.
 
     Raises:
         ValueError: If ``x`` is not a finite rank-4 tensor in [0, 1], ``sigma <= 0``, a lambda is
@@ -284,28 +200,17 @@ def rayleigh_speckle(
     raise ValueError(f"`mode` must be 'pixel' or 'level', got {mode!r}")
 
 
-# ---------------------------------------------------------------------------------------------------
-# Additive Gaussian noise
-# ---------------------------------------------------------------------------------------------------
-
-
+# ----------------------------------------------------------------------------------- Additive Gaussian noise
 def additive_gaussian(
     x: torch.Tensor, std: float = 0.03, generator: torch.Generator | None = None
 ) -> torch.Tensor:
-    """Additive white Gaussian noise on the magnitude, clipped to [0, 1] (Table I row "Gaussian").
+    """Additive white Gaussian noise on the magnitude, ``clip(x + std * n, 0, 1)`` (Table I row "Gaussian").
 
-    Args:
-        x: Magnitudes in [0, 1].
-        std: Noise standard deviation in magnitude units (>= 0). The default 0.03 is about the median
-            clutter magnitude of the MSTAR chips (pixel / 255), so the noise visibly changes the
-            background in dB while barely touching the target's bright scatterers.
-        generator: Source of randomness.
-
-    Returns:
-        ``clip(x + std * n, 0, 1)`` with ``n ~ N(0, 1)`` per pixel.
+    The default ``std`` is about the median MSTAR clutter magnitude (pixel / 255): it changes the
+    background in dB while barely touching the bright scatterers.
 
     Shape:
-        ``(B, C, H, W)`` -> ``(B, C, H, W)``.
+        ``(B, C, H, W)`` magnitudes in [0, 1] -> the same.
 
     Raises:
         ValueError: If ``x`` is not a finite rank-4 tensor in [0, 1] or ``std < 0``.
@@ -316,11 +221,7 @@ def additive_gaussian(
     return (x + std * noise).clamp(0.0, 1.0)
 
 
-# ---------------------------------------------------------------------------------------------------
-# Speckle re-added to a smooth (decoded) view
-# ---------------------------------------------------------------------------------------------------
-
-
+# --------------------------------------------------------------- Speckle re-added to a smooth (decoded) view
 def log_speckle_stats(looks: int) -> tuple[float, float]:
     """Mean and standard deviation, in dB, of ``10 log10 g`` for L-look speckle ``g ~ Gamma(L, 1/L)``.
 
@@ -341,28 +242,20 @@ def log_speckle_stats(looks: int) -> tuple[float, float]:
 def readd_speckle(
     x: torch.Tensor, db_range: float, looks: int = 1, generator: torch.Generator | None = None
 ) -> torch.Tensor:
-    """Speckle re-added to smooth views in normalised dB: the co-domain speckle model of Eq. (17) applied to
-    the output of a decoder, which returns the speckle-free mean of what it was trained on.
+    """Speckle re-added to smooth views in normalised dB: Eq. (17)'s model on a decoder's output.
 
-    A decoder trained with a pixel loss in normalised dB regresses to the local mean of the log image, so
-    its views lack the speckle every real chip carries and that a classifier trained on real chips reads.
-    Each pixel gets an independent L-look intensity factor ``g ~ Gamma(L, 1/L)`` (single look: ``g =
-    Exp(1)``, a Rayleigh amplitude, as Eq. 17); in dB it is added after removing its mean
-    (:func:`log_speckle_stats`), so the view keeps its mean log brightness and gains the spread of speckle:
+    A decoder trained with a pixel loss regresses to the local mean of the log image, so its views lack
+    the speckle a classifier trained on real chips reads. Each pixel gets an L-look intensity factor
+    ``g ~ Gamma(L, 1/L)`` (single look: a Rayleigh amplitude), added in dB without its mean:
 
         x' = clip(x + (10 log10 g - E[10 log10 g]) / db_range, 0, 1)
 
     Args:
-        x: Views in normalised dB, in [0, 1].
-        db_range: ``max_db - min_db`` of the views' ``DecibelScaling`` (60.0087 for unit magnitudes).
-        looks: Number of independent looks L averaged (>= 1; MSTAR chips are single look).
-        generator: Source of randomness.
-
-    Returns:
-        The speckled views in normalised dB, in [0, 1].
+        db_range: ``max_db - min_db`` of the views' ``DecibelScaling``.
+        looks: Independent looks L (>= 1; MSTAR chips are single look).
 
     Shape:
-        ``(B, C, H, W)`` -> ``(B, C, H, W)``.
+        ``(B, C, H, W)`` in [0, 1] -> the same.
 
     Raises:
         ValueError: If ``x`` is not a finite rank-4 tensor in [0, 1], ``db_range <= 0`` or ``looks`` is not

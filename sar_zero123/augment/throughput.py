@@ -20,18 +20,8 @@ def time_preset(
     repeats: int,
     warmup: int,
 ) -> list[float]:
-    """Wall-clock seconds of ``repeats`` calls of ``augment_batch`` after ``warmup`` untimed calls.
-
-    Args:
-        magnitude: The batch ``(B, 1, H, W)`` in [0, 1] (the cost does not depend on its content).
-        preset: A name in ``PRESETS`` or an ``AugmentationPreset``.
-        scaling: Object with ``normalize(magnitude) -> normalised dB``.
-        generator: Every call's randomness, on the batch's device.
-        repeats: Timed calls.
-        warmup: Untimed calls before them.
-
-    Returns:
-        One duration per timed call; on a GPU each waits for the device before and after.
+    """Wall-clock seconds of ``repeats`` :func:`augment_batch` calls after ``warmup`` untimed ones (on a GPU
+    each waits for the device before and after).
 
     Raises:
         ValueError: As ``augment_batch`` does, for a bad batch or an unknown preset.

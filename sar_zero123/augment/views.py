@@ -1,11 +1,10 @@
 """SimCLR views: the baseline dB-domain transforms, the Table I presets and the augmented views.
 
-The **SimCLR baselines** (Table I rows ``simclr-full`` and ``simclr-jitter``) act on the *normalised dB*
-image: random resized crop, horizontal flip, brightness/contrast jitter and Gaussian blur, written in torch
-(``affine_grid``/``grid_sample`` and grouped ``conv2d``) because torchvision must not be installed next to
-the CPU torch build (see REFERENCE.md). :func:`augment_batch` runs a named preset (:data:`PRESETS`) end to
-end: magnitude -> co-domain transforms (:mod:`sar_zero123.augment.codomain`) -> normalised dB -> dB-domain
-transforms; :func:`simclr_views` draws the two views of a SimCLR positive pair.
+The SimCLR baselines (Table I rows ``simclr-full``, ``simclr-jitter``) act on the normalised dB image:
+random resized crop, flip, brightness/contrast jitter and Gaussian blur, in torch because torchvision must
+not be installed beside the CPU torch build (REFERENCE.md). :func:`augment_batch` runs a preset end to end
+(magnitude -> co-domain transforms -> normalised dB -> dB-domain transforms); :func:`simclr_views` draws
+a SimCLR positive pair.
 """
 
 from __future__ import annotations
@@ -48,11 +47,7 @@ class Scaling(Protocol):
     def normalize(self, magnitude: torch.Tensor) -> torch.Tensor: ...
 
 
-# ---------------------------------------------------------------------------------------------------
-# SimCLR baseline transforms (applied to normalised dB images in [0, 1])
-# ---------------------------------------------------------------------------------------------------
-
-
+# ------------------------------------ SimCLR baseline transforms (applied to normalised dB images in [0, 1])
 def random_resized_crop(
     x: torch.Tensor,
     scale: tuple[float, float] = (0.08, 1.0),
@@ -63,23 +58,12 @@ def random_resized_crop(
     """Random resized crop with random horizontal flip, resampled to the input size (SimCLR baseline).
 
     Per sample, an area fraction ``s ~ U(scale)`` and a log-uniform aspect ratio ``r`` give a crop of
-    ``sqrt(s * r)`` x ``sqrt(s / r)`` of the image width x height (each clipped to the full side instead of
-    torchvision's rejection sampling), placed uniformly inside the image, mirrored with probability
-    ``flip_p`` and resampled bilinearly in one ``affine_grid``/``grid_sample`` pass. The output is never
-    smaller than the crop, so no anti-aliasing is needed.
-
-    Args:
-        x: Images (any value range).
-        scale: Range of the crop's area fraction, within (0, 1].
-        ratio: Range of the crop's aspect ratio (width / height, relative to the image's), > 0.
-        flip_p: Probability of a horizontal flip.
-        generator: Source of randomness.
-
-    Returns:
-        Cropped, possibly flipped images of the input size.
+    ``sqrt(s * r)`` x ``sqrt(s / r)`` of width x height (clipped to the side instead of torchvision's
+    rejection sampling), placed uniformly, mirrored with probability ``flip_p``, resampled bilinearly in one
+    ``grid_sample`` pass (never shrinking, so no anti-aliasing).
 
     Shape:
-        ``(B, C, H, W)`` -> ``(B, C, H, W)``.
+        ``(B, C, H, W)`` (any value range) -> the same.
 
     Raises:
         ValueError: If ``x`` is not rank 4 or a parameter is out of range.
@@ -124,22 +108,11 @@ def color_jitter(
     """Random brightness then contrast jitter on [0, 1] images, applied with probability ``p`` (SimCLR).
 
     Brightness multiplies by ``b ~ U(max(0, 1 - brightness), 1 + brightness)``; contrast blends with the
-    sample's mean, ``c * x + (1 - c) * mean`` with ``c ~ U(max(0, 1 - contrast), 1 + contrast)``; each
-    step is clipped to [0, 1] as torchvision's ``ColorJitter`` does. Saturation and hue do not exist for
-    single-channel SAR images; the order is fixed (torchvision shuffles it).
-
-    Args:
-        x: Images in [0, 1].
-        brightness: Brightness jitter strength (>= 0).
-        contrast: Contrast jitter strength (>= 0).
-        p: Probability that a sample is jittered.
-        generator: Source of randomness.
-
-    Returns:
-        Jittered images in [0, 1].
+    sample's mean, ``c * x + (1 - c) * mean``, ``c ~ U(max(0, 1 - contrast), 1 + contrast)``; each step
+    clipped to [0, 1] as torchvision's ``ColorJitter``, in a fixed order (no saturation or hue for SAR).
 
     Shape:
-        ``(B, C, H, W)`` -> ``(B, C, H, W)``.
+        ``(B, C, H, W)`` -> the same.
 
     Raises:
         ValueError: If ``x`` is not rank 4 or a parameter is out of range.
@@ -165,24 +138,13 @@ def random_gaussian_blur(
     kernel_size: int | None = None,
     generator: torch.Generator | None = None,
 ) -> torch.Tensor:
-    """Gaussian blur with a random per-sample sigma, applied with probability ``p`` (SimCLR baseline).
+    """Gaussian blur with a random per-sample sigma ``~ U(sigma)`` pixels, applied with probability ``p``.
 
-    Separable blur with a different kernel for every sample, reflect padding at the borders, computed as
-    two batched products with banded matrices (torchvision's ``GaussianBlur`` cannot be used, and it
-    blurs one image at a time).
-
-    Args:
-        x: Images (any value range).
-        sigma: Range of the blur standard deviation in pixels, ``sigma ~ U(sigma)``, > 0.
-        p: Probability that a sample is blurred.
-        kernel_size: Odd kernel size; default is SimCLR's 10% of the shorter side, made odd (13 at 128).
-        generator: Source of randomness.
-
-    Returns:
-        Blurred images.
+    Separable, reflect-padded, one kernel per sample (:func:`_blur_matrix`). ``kernel_size`` defaults to
+    SimCLR's 10% of the shorter side, made odd.
 
     Shape:
-        ``(B, C, H, W)`` -> ``(B, C, H, W)``.
+        ``(B, C, H, W)`` -> the same.
 
     Raises:
         ValueError: If ``x`` is not rank 4, a parameter is out of range or the kernel does not fit.
@@ -213,9 +175,8 @@ def random_gaussian_blur(
 def _blur_matrix(kernel: torch.Tensor, n: int) -> torch.Tensor:
     """Banded matrices M with ``(M @ v)[i] = sum_k kernel[k] * v[reflect(i + k - K // 2)]``.
 
-    Blurring as ``M_rows @ X @ M_cols^T`` (one batched matmul per axis) handles a different kernel per
-    sample and is faster on CPU than a grouped ``conv2d`` with B groups (docs/results/augment.md);
-    reflect padding (edge pixel not repeated, like ``F.pad(mode="reflect")``) is folded into the matrix.
+    Blurring as ``M_rows @ X @ M_cols^T`` handles a kernel per sample, faster on CPU than a grouped
+    ``conv2d``; reflect padding (edge pixel not repeated) is folded into the matrix.
 
     Shape:
         kernel: ``(B, K)``; output: ``(B, n, n)``.
@@ -228,11 +189,7 @@ def _blur_matrix(kernel: torch.Tensor, n: int) -> torch.Tensor:
     return matrix.scatter_add_(2, source.expand(b, n, k), kernel[:, None, :].expand(b, n, k).contiguous())
 
 
-# ---------------------------------------------------------------------------------------------------
-# Presets (Table I rows) and the end-to-end batch augmentation
-# ---------------------------------------------------------------------------------------------------
-
-
+# ---------------------------------------------- Presets (Table I rows) and the end-to-end batch augmentation
 @dataclass(frozen=True)
 class AugmentationPreset:
     """Parameters of one augmentation pipeline; a stage is off when its switch value is 0 / None.
@@ -286,10 +243,8 @@ _SPECKLE = {"speckle_sigma": 10.0, "speckle_lambda1": 1.0, "speckle_lambda2": 1.
 _JITTER = {"jitter_p": 0.8, "brightness": 0.4, "contrast": 0.4, "blur_p": 0.5, "blur_sigma": (0.1, 2.0)}
 
 #: Table I rows. Co-domain settings follow the paper (sigma 10, lambda1 = lambda2 = 1, Q 512, Eq. (17) per
-#: pixel, always applied); ``speckle+monotonic-as-run`` is the setting of the authors' encoder checkpoint
-#: (level-mode speckle, Q 4096, applied with probability 0.95), the one behind the paper's numbers. The
-#: Gaussian std and the SimCLR baselines' strengths are this library's choices (SimCLR's CIFAR-strength
-#: jitter s = 0.5, torchvision's crop defaults, SimCLR's blur).
+#: pixel, always applied); ``speckle+monotonic-as-run`` is the authors' encoder checkpoint's (level-mode
+#: speckle, Q 4096, probability 0.95). The Gaussian std and the SimCLR strengths are this library's choices.
 PRESETS: dict[str, AugmentationPreset] = {
     "simclr-full": AugmentationPreset(crop_scale=(0.08, 1.0), flip_p=0.5, **_JITTER),
     "simclr-jitter": AugmentationPreset(**_JITTER),
@@ -298,8 +253,8 @@ PRESETS: dict[str, AugmentationPreset] = {
     "monotonic": AugmentationPreset(monotonic_q=512),
     "gaussian+monotonic": AugmentationPreset(gaussian_std=0.03, monotonic_q=512),
     "speckle+monotonic": AugmentationPreset(monotonic_q=512, **_SPECKLE),
-    # What the authors ran for their encoder (checkpoint path: Rayleigh eps 10, Q 4096, P 0.95, gamma 0):
-    # speckle on the lookup-table levels, and each chip left unaugmented with probability 0.05.
+    # The authors' encoder run: speckle on the lookup-table levels, each chip unaugmented with probability
+    # 0.05.
     "speckle+monotonic-as-run": AugmentationPreset(
         monotonic_q=4096, speckle_mode="level", speckle_q=4096, codomain_p=0.95, **_SPECKLE
     ),
@@ -322,23 +277,10 @@ def augment_batch(
     scaling: Scaling,
     generator: torch.Generator | None = None,
 ) -> torch.Tensor:
-    """Augment a batch of magnitude chips with a preset and return normalised-dB views.
+    """Augment magnitude chips ``(B, 1, H, W)`` in [0, 1] with a preset into normalised-dB views in [0, 1].
 
-    Co-domain stages (Gaussian, speckle, monotonic) act on the magnitude; ``scaling.normalize`` then maps
-    to normalised dB with the dataset-global bounds; geometric and jitter stages (SimCLR baselines) act
-    on the normalised dB image. The result is clipped to [0, 1].
-
-    Args:
-        magnitude: Magnitude chips in [0, 1] with one channel.
-        preset: A name in ``PRESETS`` or an ``AugmentationPreset``.
-        scaling: Object with ``normalize(magnitude) -> normalised dB`` (``sar_zero123.data.DecibelScaling``).
-        generator: Source of randomness.
-
-    Returns:
-        One augmented view per chip, normalised dB in [0, 1], on the input's device.
-
-    Shape:
-        ``(B, 1, H, W)`` -> ``(B, 1, H, W)``.
+    Co-domain stages act on the magnitude, ``scaling.normalize`` maps it to normalised dB (dataset-global
+    bounds), the SimCLR stages act on that.
 
     Raises:
         ValueError: If ``magnitude`` is not a finite ``(B, 1, H, W)`` tensor in [0, 1], the preset is
@@ -396,22 +338,8 @@ def simclr_views(
     scaling: Scaling,
     generator: torch.Generator | None = None,
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Two independently augmented views of every chip: the positive pairs of SimCLR's NT-Xent loss.
-
-    Args:
-        magnitude: Magnitude chips in [0, 1] with one channel.
-        preset: A name in ``PRESETS`` or an ``AugmentationPreset``.
-        scaling: Object with ``normalize(magnitude) -> normalised dB``.
-        generator: Source of randomness (the second view continues the first one's stream).
-
-    Returns:
-        ``(view1, view2)``, each normalised dB in [0, 1].
-
-    Shape:
-        ``(B, 1, H, W)`` -> two ``(B, 1, H, W)``.
-
-    Raises:
-        ValueError: As ``augment_batch``.
+    """Two independently augmented views of every chip (the second continues the first's random stream):
+    SimCLR's positive pairs. As :func:`augment_batch`, twice.
     """
     view1 = augment_batch(magnitude, preset, scaling, generator)
     view2 = augment_batch(magnitude, preset, scaling, generator)

@@ -1,22 +1,16 @@
 """Evaluator models that score generated views (paper Table III and Table IV).
 
-Two networks exist only to measure generated images; they are trained on real chips of every class
-(train split), so that on MSTAR-OOD the classifier still knows the held-out class:
+Trained on real chips of every class (train split), so on MSTAR-OOD the classifier knows the held-out one:
 
-* `SARClassifier`: a ResNet-18 (`SAREncoder`) trained from scratch plus a linear layer over the classes;
-  it gives the classification accuracy of generated views.
-* `AzimuthRegressor`: a ResNet-18 plus an MLP (256-256, sigmoid) predicting azimuth / 2pi; it gives the
-  azimuth error, and its pre-head features (the 512-d pooled ResNet feature) give SFD. With a frozen
-  SimCLR encoder and only the MLP trained it is a Table IV "probe".
-* `DepressionRegressor` (optional): the same body and MLP predicting depression / 90 deg, trained on chips
-  at many depressions; it gives the depression error of views generated for a depression change.
+* `SARClassifier`: a scratch ResNet-18 (`SAREncoder`) and a linear layer: the accuracy of views.
+* `AzimuthRegressor`: a ResNet-18 and an MLP (256-256, sigmoid) predicting azimuth / 2pi: the azimuth
+  error; its 512-d pooled features give SFD. On a frozen SimCLR encoder it is a Table IV probe.
+* `DepressionRegressor` (optional): the same predicting depression / 90 deg, trained on chips at many
+  depressions.
 
-The scoring with these models (`score_views`, `pose_following`, `score_on_split`) is
-`sar_zero123.evaluation.scoring`.
-
-Each model is saved as a folder with `evaluator.json` (kind, encoder config, class list, decibel scaling,
-head sizes) and `model.safetensors`. Loading checks the class list so that an evaluator trained on other
-classes is rejected with a clear error instead of silently scoring with mismatched labels.
+Each is saved as `evaluator.json` (kind, encoder config, classes, decibel scaling, head) and
+`model.safetensors`; loading refuses an evaluator trained on other classes. Scoring is
+:mod:`sar_zero123.evaluation.scoring`.
 """
 
 from __future__ import annotations
@@ -60,15 +54,10 @@ __all__ = [
 
 
 def check_class_names(saved: Sequence[str], expected: Sequence[str] | None, source: str) -> None:
-    """Rejects an evaluator whose class list differs from the data's.
-
-    Args:
-        saved: Class names the evaluator was trained with (label order).
-        expected: Class names of the data being scored (label order), or `None` to skip the check.
-        source: Where the evaluator came from, for the message.
+    """Rejects an evaluator whose class list (label order) differs from the data's (`None`: no check).
 
     Raises:
-        ValueError: If the lists differ (in content or order).
+        ValueError: If the lists differ (in content or order), naming ``source``.
     """
     if expected is not None and list(saved) != list(expected):
         raise ValueError(
@@ -80,18 +69,10 @@ def check_class_names(saved: Sequence[str], expected: Sequence[str] | None, sour
 def azimuth_regression_loss(predicted_fraction: torch.Tensor, azimuth_deg: torch.Tensor) -> torch.Tensor:
     """Circular regression loss `1 - cos(2pi (p - t))` on the sigmoid output `p` and target `t = az / 2pi`.
 
-    The paper regresses azimuth / 2pi with a sigmoid head; a plain squared error would treat 359 deg and
-    1 deg as 358 deg apart, so the periodic form is used (it equals `2 pi^2 (p - t)^2` for small errors).
-
-    Args:
-        predicted_fraction: Sigmoid outputs in (0, 1), read as azimuth / 360 deg.
-        azimuth_deg: True azimuths in degrees (any real value; taken modulo 360).
-
-    Returns:
-        Per-sample loss in [0, 2].
+    A squared error would put 359 and 1 deg 358 deg apart; this is `2 pi^2 (p - t)^2` for small errors.
 
     Shape:
-        `(B,)`, `(B,)` -> `(B,)`.
+        `(B,)`, `(B,)` degrees (any real value) -> `(B,)` in [0, 2].
     """
     target = torch.remainder(azimuth_deg, 360.0) / 360.0
     return 1.0 - torch.cos(2.0 * math.pi * (predicted_fraction - target))
@@ -100,20 +81,8 @@ def azimuth_regression_loss(predicted_fraction: torch.Tensor, azimuth_deg: torch
 def depression_regression_loss(
     predicted_fraction: torch.Tensor, depression_deg: torch.Tensor
 ) -> torch.Tensor:
-    """Squared error `(p - d / 90)^2` of the sigmoid output `p` against the depression `d` in degrees.
-
-    Depression is not periodic on (0, 90) deg, so a plain squared error fits where azimuth needs the
-    circular form of :func:`azimuth_regression_loss`.
-
-    Args:
-        predicted_fraction: Sigmoid outputs in (0, 1), read as depression / 90 deg.
-        depression_deg: True depressions in degrees.
-
-    Returns:
-        Per-sample loss.
-
-    Shape:
-        `(B,)`, `(B,)` -> `(B,)`.
+    """Squared error `(p - d / 90)^2` of the sigmoid output `p` against the depression `d` in degrees
+    (depression is not periodic on (0, 90)). `(B,)`, `(B,)` -> `(B,)`.
     """
     return (predicted_fraction - depression_deg / MAX_DEPRESSION_DEG) ** 2
 
@@ -143,30 +112,15 @@ class _Evaluator(nn.Module):
         return self.encoder.config.image_size
 
     def features(self, images: torch.Tensor) -> torch.Tensor:
-        """Pre-head features: the encoder's pooled 512-d ResNet feature.
-
-        Args:
-            images: Normalised dB chips in [0, 1].
-
-        Returns:
-            Features `(B, D)`.
-
-        Shape:
-            `(B, 1, S, S)` -> `(B, D)` with `S = image_size`.
-        """
+        """Pre-head features: the encoder's pooled ResNet feature. `(B, 1, S, S)` in [0, 1] -> `(B, D)`."""
         return self.encoder(images)
 
     def _head_config(self) -> dict[str, Any]:
         return {}
 
     def save_pretrained(self, directory: str | Path) -> Path:
-        """Writes `evaluator.json` (kind, encoder config, classes, scaling, head, metrics) and the weights.
-
-        Args:
-            directory: Target folder, created if needed.
-
-        Returns:
-            The folder.
+        """Writes `evaluator.json` (kind, encoder config, classes, scaling, head, metrics) and the weights to
+        ``directory`` (created), returned.
         """
         directory = Path(directory)
         directory.mkdir(parents=True, exist_ok=True)
@@ -185,12 +139,8 @@ class _Evaluator(nn.Module):
 
 
 class SARClassifier(_Evaluator):
-    """ResNet-18 classifier trained from scratch on real chips (Table III "Acc.").
-
-    Args:
-        encoder_config: Architecture of the ResNet-18 body.
-        class_names: Class names in label order.
-        scaling: Decibel scaling of the chips it was trained on (stored with the weights).
+    """ResNet-18 classifier trained from scratch on real chips (Table III "Acc."); ``scaling`` is its
+    training chips' decibel scaling, stored with the weights.
     """
 
     kind = "classifier"
@@ -211,22 +161,13 @@ class SARClassifier(_Evaluator):
         self.head = nn.Linear(self.encoder.feature_dim, len(self.class_names))
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        """Class logits.
-
-        Shape:
-            `(B, 1, S, S)` -> `(B, K)`.
-        """
+        """Class logits. `(B, 1, S, S)` -> `(B, K)`."""
         return self.head(self.features(images))
 
 
 class _MLPRegressor(_Evaluator):
-    """Shared parts of the regressors: the ResNet-18 body and an MLP head ending in a sigmoid.
-
-    Args:
-        encoder_config: Architecture of the ResNet-18 body.
-        class_names: Class names of the training data (stored to reject mismatched evaluation data).
-        scaling: Decibel scaling of the training chips.
-        hidden_sizes: MLP widths (256-256 in the paper).
+    """Shared parts of the regressors: the ResNet-18 body and an MLP head (``hidden_sizes``) ending in a
+    sigmoid.
     """
 
     def __init__(
@@ -252,47 +193,30 @@ class _MLPRegressor(_Evaluator):
         return {"hidden_sizes": self.hidden_sizes}
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
-        """The sigmoid output in (0, 1): the predicted angle as a fraction of its range.
-
-        Shape:
-            `(B, 1, S, S)` -> `(B,)`.
-        """
+        """The sigmoid output in (0, 1): the predicted angle as a fraction of its range. `(B, 1, S, S)` ->
+        `(B,)`."""
         return self.head(self.features(images)).squeeze(1)
 
 
 class AzimuthRegressor(_MLPRegressor):
-    """ResNet-18 + MLP azimuth regressor with sigmoid output = azimuth / 2pi (Table III "Az. err.", SFD).
-
-    Args: see `_MLPRegressor`.
-    """
+    """ResNet-18 + MLP azimuth regressor with sigmoid output = azimuth / 2pi (Table III "Az. err.", SFD)."""
 
     kind = "azimuth_regressor"
 
     def predict_azimuth_deg(self, images: torch.Tensor) -> torch.Tensor:
-        """Predicted azimuth in degrees, [0, 360).
-
-        Shape:
-            `(B, 1, S, S)` -> `(B,)`.
-        """
+        """Predicted azimuth in degrees, [0, 360). `(B, 1, S, S)` -> `(B,)`."""
         return torch.remainder(self(images) * 360.0, 360.0)
 
 
 class DepressionRegressor(_MLPRegressor):
-    """ResNet-18 + MLP depression regressor with sigmoid output = depression / 90 deg ("Dep. err.").
-
-    The bounded head keeps every prediction inside (0, 90) deg, the only depressions a chip can have.
-
-    Args: see `_MLPRegressor`.
+    """ResNet-18 + MLP depression regressor, sigmoid output = depression / 90 deg ("Dep. err."): every
+    prediction lies in (0, 90) deg, the only depressions a chip can have.
     """
 
     kind = "depression_regressor"
 
     def predict_depression_deg(self, images: torch.Tensor) -> torch.Tensor:
-        """Predicted depression in degrees, (0, 90).
-
-        Shape:
-            `(B, 1, S, S)` -> `(B,)`.
-        """
+        """Predicted depression in degrees, (0, 90). `(B, 1, S, S)` -> `(B,)`."""
         return self(images) * MAX_DEPRESSION_DEG
 
 
@@ -304,20 +228,13 @@ def load_evaluator(
     class_names: Sequence[str] | None = None,
     device: str | torch.device = "cpu",
 ) -> SARClassifier | AzimuthRegressor | DepressionRegressor:
-    """Loads an evaluator folder written by `save_pretrained`, in eval mode.
-
-    Args:
-        directory: Folder with `evaluator.json` and `model.safetensors`.
-        class_names: Class list of the data to score; a different saved list raises.
-        device: Device for the weights.
-
-    Returns:
-        The classifier or a regressor, in eval mode, with `metrics` restored.
+    """Loads an evaluator folder written by `save_pretrained`, in eval mode, with `metrics` restored.
 
     Raises:
         FileNotFoundError: If a file is missing.
-        ValueError: For an unknown kind or a class-list mismatch, an `evaluator.json` that is not valid
-            JSON or lacks a field, or weights that are unreadable or do not fit it (naming the file).
+        ValueError: For an unknown kind, a class list other than ``class_names``, an `evaluator.json` that
+            is not valid JSON or lacks a field, or weights that are unreadable or do not fit (naming the
+            file).
     """
     directory = Path(directory)
     for path in (directory / EVALUATOR_CONFIG_NAME, directory / EVALUATOR_WEIGHTS_NAME):
@@ -352,10 +269,9 @@ class Evaluators:
 
     Attributes:
         classifier: Scratch ResNet-18 classifier.
-        regressor: Scratch ResNet-18 + MLP azimuth regressor (its features give SFD).
-        probes: Extra azimuth regressors for Table IV (frozen SimCLR encoders + trained MLP), by name.
-        depression_regressor: Scratch ResNet-18 + MLP depression regressor, or None when the evaluators
-            were trained without chips at several depressions.
+        regressor: Scratch azimuth regressor (its features give SFD).
+        probes: Table IV azimuth regressors on frozen SimCLR encoders, by name.
+        depression_regressor: Or None where trained without chips at several depressions.
     """
 
     classifier: SARClassifier
@@ -385,17 +301,8 @@ def load_evaluators(
 ) -> Evaluators:
     """Loads `DIR/classifier`, `DIR/regressor`, every `DIR/probes/<name>` and `DIR/depression_regressor`.
 
-    The depression regressor is optional (folders written before it existed load with it None); it may
-    have been trained on another chip folder, so its class list is not checked, but its decibel scaling
-    must be the classifier's: it scores the same views.
-
-    Args:
-        directory: Output folder of `train/train_evaluators.py`.
-        class_names: Class list of the data to score (checked against every model).
-        device: Device for the weights.
-
-    Returns:
-        The evaluator set.
+    The depression regressor is optional and may come from another chip folder (its class list is not
+    checked), but its decibel scaling must be the classifier's: it scores the same views.
 
     Raises:
         FileNotFoundError: If the classifier or regressor is missing.

@@ -1,32 +1,21 @@
 """Metrics that score generated SAR views against their targets (paper Table III).
 
-Five numbers describe a generated view:
-
 * classification accuracy of a ResNet-18 classifier trained on real chips,
 * circular azimuth error of a ResNet-18 + MLP azimuth regressor,
-* SFD, the Frechet distance between the regressor's pre-head features of generated and real views,
-* MS-SSIM (3 scales, weights (0.0448, 0.3001, 0.1333), data range 1.0, Gaussian sigma 1.0) on the 64x64
-  centre crop,
+* SFD, the Frechet distance between that regressor's pre-head features of generated and real views,
+* MS-SSIM (3 scales, weights (0.0448, 0.3001, 0.1333), data range 1, Gaussian sigma 1) on the 64x64 crop,
 * Kuan+SSIM: a Kuan speckle filter on both images, then SSIM on the 64x64 centre crop.
 
-Two variants of the last two exist. The **paper-comparable** ones (`sar_zero123.evaluation.paper_metrics`)
-reproduce the authors' scoring scripts: 8-bit 256 px views, torchmetrics' MS-SSIM (a 9x9 window whatever
-`kernel_size` says), findpeaks' 6x6 truncated, rounded Kuan filter and scikit-image's default uniform-window
-SSIM. The **corrected** ones below implement the stated definitions: one true 7x7 Gaussian window for every
-MS-SSIM term averaged over the valid region only (Wang et al. 2003), a centred 7x7 reflect-padded Kuan
-filter without rounding, and the same Gaussian window for the SSIM after it, at the generated resolution.
-Table III reports the paper-comparable values with the corrected ones beside them (the measured
-differences on real MSTAR pairs: docs/results/).
+The **paper-comparable** MS-SSIM and Kuan+SSIM (:mod:`sar_zero123.evaluation.paper_metrics`) reproduce the
+authors' scripts (8-bit 256 px views, torchmetrics' 9x9-window MS-SSIM, findpeaks' 6x6 rounded Kuan,
+scikit-image's uniform-window SSIM). The **corrected** ones here implement the stated definitions: one
+true 7x7 Gaussian window averaged over the valid region (Wang et al. 2003), a centred 7x7 reflect-padded
+Kuan filter without rounding, at the generated resolution. Table III reports both.
 
-All image metrics take `(B, C, H, W)` tensors in [0, 1] (normalised dB, see `docs/ARCHITECTURE.md`) and
-return per-sample `(B,)` scores; callers take the mean.
-
-Cross-checks (pinned in tests/evaluation/test_metrics.py): with a 9x9 window, single-scale `ssim` equals
-`skimage.metrics.structural_similarity(gaussian_weights=True, sigma=1.0, use_sample_covariance=False)` to
-1e-12, and the MS-SSIM contrast-structure terms equal torchmetrics' to 1e-5. The full `ms_ssim` is *not*
-torchmetrics' number even with a 9x9 window: torchmetrics averages the last scale's SSIM term over the whole
-reflect-padded map, which moves dissimilar pairs far more than near-identical ones (measured in
-docs/results/). pytorch-msssim refuses 64x64 inputs with a 7x7 window.
+Image metrics take `(B, C, H, W)` in [0, 1] (normalised dB) and return per-sample `(B,)` scores. With a
+9x9 window `ssim` equals scikit-image's Gaussian SSIM and the contrast-structure terms torchmetrics'
+(tests/evaluation/test_metrics.py); the full `ms_ssim` differs from torchmetrics', which averages the last
+scale over the reflect-padded map.
 """
 
 from __future__ import annotations
@@ -52,23 +41,10 @@ _K1 = 0.01
 _K2 = 0.03
 
 
-# ---------------------------------------------------------------------------------------------------
-# Classifier / regressor based metrics
-# ---------------------------------------------------------------------------------------------------
-
-
+# ---------------------------------------------------------------------- Classifier / regressor based metrics
 def classification_accuracy(predictions: torch.Tensor, labels: torch.Tensor) -> float:
-    """Fraction of samples whose predicted class equals the label.
-
-    Args:
-        predictions: class logits `(B, K)` (the arg-max is taken) or predicted class indices `(B,)`.
-        labels: true class indices `(B,)`.
-
-    Returns:
-        Accuracy in [0, 1].
-
-    Shape:
-        predictions `(B, K)` or `(B,)`, labels `(B,)`.
+    """Fraction of samples whose predicted class (logits `(B, K)` arg-max, or indices `(B,)`) equals the
+    label `(B,)`.
 
     Raises:
         ValueError: if the batch sizes differ or the batch is empty, or class indices are not integers.
@@ -101,15 +77,10 @@ def axis_error_deg(
 ) -> torch.Tensor | float:
     """Azimuth error up to a front/back flip, ``min(e, 180 - e)`` with ``e = azimuth_error_deg``, in [0, 90].
 
-    A view whose footprint turned to the requested heading but whose front and back are swapped has an
-    azimuth error near 180 deg and an axis error near 0. Beside the azimuth error it says whether a
-    generator turns the body at all. For a random orientation the expected axis error is 45 deg.
-
-    Args and Raises: as :func:`azimuth_error_deg`.
-
-    Returns:
-        Per-sample error in [0, 90] degrees (a plain ``float`` for plain numbers:
-        ``axis_error_deg(190.0, 0.0) == 10.0``).
+    A view turned to the requested heading with front and back swapped has an azimuth error near 180 and
+    an axis error near 0: it says whether a generator turns the body at all (45 deg for random
+    orientations). Arguments, shapes and errors as :func:`azimuth_error_deg`;
+    ``axis_error_deg(190.0, 0.0) == 10.0``.
     """
     error = azimuth_error_deg(predicted_deg, target_deg)
     if isinstance(error, float):
@@ -120,23 +91,17 @@ def axis_error_deg(
 def azimuth_error_deg(
     predicted_deg: torch.Tensor | float | Sequence[float], target_deg: torch.Tensor | float | Sequence[float]
 ) -> torch.Tensor | float:
-    """Circular absolute azimuth error `min(|a - b|, 360 - |a - b|)` in degrees.
+    """Circular absolute azimuth error `min(|a - b|, 360 - |a - b|)` in [0, 180] degrees.
 
-    Args:
-        predicted_deg: predicted azimuths in degrees (any real values; they are taken modulo 360): a
-            tensor, a list or a plain number.
-        target_deg: true azimuths in degrees, broadcastable to `predicted_deg`.
-
-    Returns:
-        Per-sample error in [0, 180] degrees, same shape as the broadcast inputs; a plain `float` when both
-        inputs are plain numbers (`azimuth_error_deg(350.0, 10.0) == 20.0`).
+    Any real angles (modulo 360); a plain `float` when both inputs are plain numbers
+    (`azimuth_error_deg(350.0, 10.0) == 20.0`).
 
     Shape:
         `(B,)` -> `(B,)`; a scalar target broadcasts, other shapes must be equal.
 
     Raises:
-        ValueError: if the shapes differ (broadcasting `(B, 1)` against `(B,)` would compare every pair) or
-            a value is not finite.
+        ValueError: if the shapes differ (`(B, 1)` against `(B,)` would compare every pair) or a value is
+            not finite.
     """
     scalars = isinstance(predicted_deg, numbers.Real) and isinstance(target_deg, numbers.Real)
     # Numbers and lists become float64 tensors; a tensor keeps its dtype and device.
@@ -164,19 +129,12 @@ def frechet_distance_from_moments(
 
     `d^2 = ||mu_a - mu_b||^2 + tr(S_a) + tr(S_b) - 2 tr((S_a^{1/2} S_b S_a^{1/2})^{1/2})`.
 
-    The cross term is computed from the eigenvalues of the symmetric positive semi-definite matrix
-    `S_a^{1/2} S_b S_a^{1/2}` (same spectrum as `S_a S_b`), with round-off negatives clipped to zero. Unlike
-    `scipy.linalg.sqrtm(S_a @ S_b)` this never returns complex or NaN values for rank-deficient covariances
-    (fewer samples than dimensions), and needs no diagonal epsilon.
+    The cross term comes from the eigenvalues of the symmetric PSD `S_a^{1/2} S_b S_a^{1/2}`, round-off
+    negatives clipped: unlike `scipy.linalg.sqrtm(S_a @ S_b)` never complex or NaN for rank-deficient
+    covariances, and no diagonal epsilon.
 
-    Args:
-        mean_a: mean of the first Gaussian, `(D,)`.
-        covariance_a: covariance of the first Gaussian, `(D, D)`, symmetric positive semi-definite.
-        mean_b: mean of the second Gaussian, `(D,)`.
-        covariance_b: covariance of the second Gaussian, `(D, D)`.
-
-    Returns:
-        The squared Frechet distance (>= 0 up to round-off, clipped at 0).
+    Shape:
+        means `(D,)`, covariances `(D, D)`.
 
     Raises:
         ValueError: if the shapes do not agree.
@@ -205,25 +163,17 @@ def frechet_distance_from_moments(
 
 
 def frechet_distance(features_a: torch.Tensor | np.ndarray, features_b: torch.Tensor | np.ndarray) -> float:
-    """Frechet distance between the Gaussian fits of two feature sets (SFD in the paper's Table III).
+    """Frechet distance between the Gaussian fits of two feature sets `(N_a, D)`, `(N_b, D)` (SFD).
 
-    SFD uses the azimuth regressor's pre-head features of generated and of real target views. The value
-    depends strongly on the sample count, so compare numbers only at equal n.
-
-    Args:
-        features_a: `(N_a, D)` features, e.g. of generated views.
-        features_b: `(N_b, D)` features, e.g. of the real target views.
-
-    Returns:
-        The squared Frechet distance (float64 arithmetic).
+    The value depends strongly on the sample count: compare numbers only at equal n.
 
     Raises:
         ValueError: if either set has fewer than 2 samples, the feature sizes differ, or a value is not
             finite.
 
     Warns:
-        UserWarning: when a set has no more samples than feature dimensions (n <= D): the covariance is then
-            rank-deficient and the value is biased; the warning names n and D.
+        UserWarning: when a set has no more samples than dimensions (n <= D): the covariance is then
+            rank-deficient and the value biased.
     """
     a = _as_float64_matrix(features_a, "features_a")
     b = _as_float64_matrix(features_b, "features_b")
@@ -267,11 +217,7 @@ def _as_float64_matrix(features: torch.Tensor | np.ndarray, name: str) -> np.nda
     return features
 
 
-# ---------------------------------------------------------------------------------------------------
-# Structural similarity
-# ---------------------------------------------------------------------------------------------------
-
-
+# ------------------------------------------------------------------------------------- Structural similarity
 def _check_image_pair(x: torch.Tensor, y: torch.Tensor) -> None:
     for name, image in (("first image", x), ("second image", y)):
         if not isinstance(image, torch.Tensor):
@@ -307,10 +253,11 @@ def gaussian_kernel_1d(kernel_size: int, sigma: float, dtype: torch.dtype = torc
     return kernel / kernel.sum()
 
 
-def _ssim_terms(
+def ssim_maps(
     x: torch.Tensor, y: torch.Tensor, kernel_1d: torch.Tensor, data_range: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Per-sample mean SSIM and mean contrast-structure term over the valid region (no padding)."""
+    """The SSIM and contrast-structure maps under a separable window, valid convolution only (pad first
+    for other borders). Shape: ``(B, C, H, W)`` -> twice ``(B, C, H - K + 1, W - K + 1)``."""
     channels = x.shape[1]
     size = kernel_1d.shape[0]
     window = kernel_1d.to(x)
@@ -329,7 +276,15 @@ def _ssim_terms(
     sigma_xy = blur(x * y) - mu_x * mu_y
     contrast_structure = (2.0 * sigma_xy + c2) / (sigma_xx + sigma_yy + c2)
     luminance = (2.0 * mu_x * mu_y + c1) / (mu_x**2 + mu_y**2 + c1)
-    return (luminance * contrast_structure).flatten(1).mean(1), contrast_structure.flatten(1).mean(1)
+    return luminance * contrast_structure, contrast_structure
+
+
+def _ssim_terms(
+    x: torch.Tensor, y: torch.Tensor, kernel_1d: torch.Tensor, data_range: float
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Per-sample mean SSIM and mean contrast-structure term over the valid region (no padding)."""
+    ssim_map, contrast_structure = ssim_maps(x, y, kernel_1d, data_range)
+    return ssim_map.flatten(1).mean(1), contrast_structure.flatten(1).mean(1)
 
 
 def ssim(
@@ -344,18 +299,11 @@ def ssim(
     """Gaussian-window SSIM (Wang et al. 2004), averaged over the valid region of each image.
 
     Args:
-        x: generated images in [0, 1].
-        y: target images in [0, 1].
-        kernel_size: Gaussian window size (odd).
-        sigma: Gaussian window standard deviation.
-        data_range: dynamic range L of the images (`C1 = (0.01 L)^2`, `C2 = (0.03 L)^2`).
-        crop_size: score the centre `crop_size x crop_size` crop; `None` scores the whole image.
-
-    Returns:
-        Per-sample SSIM `(B,)` (float64), averaged over channels and pixels.
+        data_range: dynamic range L (`C1 = (0.01 L)^2`, `C2 = (0.03 L)^2`).
+        crop_size: score the centre `crop_size x crop_size` crop; `None` the whole image.
 
     Shape:
-        x, y `(B, C, H, W)` -> `(B,)`.
+        x (generated), y (target) `(B, C, H, W)` in [0, 1] -> `(B,)` float64.
 
     Raises:
         ValueError: for mismatched sizes, values outside [0, 1], or images smaller than the crop or window.
@@ -376,29 +324,14 @@ def ms_ssim(
     data_range: float = 1.0,
     crop_size: int | None = CROP_SIZE,
 ) -> torch.Tensor:
-    """Multi-scale SSIM with the paper's stated setting, corrected variant (Table III "MS-SSIM").
+    """Multi-scale SSIM with the paper's stated setting, corrected variant (Table III "MS-SSIM"; the
+    authors' call is :func:`~sar_zero123.evaluation.paper_metrics.paper_ms_ssim`).
 
-    The paper-comparable number (the authors' torchmetrics call) is
-    `sar_zero123.evaluation.paper_metrics.paper_ms_ssim`.
-
-    `MS-SSIM = l_M^{beta_M} * prod_{j=1..M} cs_j^{beta_j}` (Wang, Simoncelli and Bovik 2003), with 2x2 average
-    pooling between scales. Negative per-scale terms are clipped to 0 before the fractional powers (as
-    torchmetrics' `normalize="relu"` and pytorch-msssim do) so the result stays real.
-
-    Args:
-        x: generated images in [0, 1].
-        y: target images in [0, 1].
-        betas: per-scale exponents; the paper uses 3 scales `(0.0448, 0.3001, 0.1333)`.
-        kernel_size: Gaussian window size; the paper uses 7.
-        sigma: Gaussian standard deviation; the paper uses 1.0.
-        data_range: dynamic range of the images; 1.0 for normalised dB.
-        crop_size: centre crop scored (64 in the paper); `None` for the whole image.
-
-    Returns:
-        Per-sample MS-SSIM `(B,)` (float64); 1 for identical images.
+    `MS-SSIM = l_M^{beta_M} * prod_{j=1..M} cs_j^{beta_j}` (Wang, Simoncelli and Bovik 2003), 2x2 average
+    pooling between scales, negative terms clipped to 0 before the powers (torchmetrics' `normalize="relu"`).
 
     Shape:
-        x, y `(B, C, H, W)` -> `(B,)`.
+        x (generated), y (target) `(B, C, H, W)` in [0, 1] -> `(B,)` float64; 1 for identical images.
 
     Raises:
         ValueError: for mismatched sizes, values outside [0, 1], or images too small for the scales.
@@ -414,15 +347,11 @@ def ms_ssim(
 
 
 def combine_scales(x: torch.Tensor, y: torch.Tensor, betas: Sequence[float], ssim_terms) -> torch.Tensor:
-    """MS-SSIM's product over scales: contrast-structure terms at the finer scales, full SSIM at the coarsest,
-    each clamped at 0 and raised to its beta, with 2x average pooling between scales.
+    """MS-SSIM's product over scales: contrast-structure terms at the finer scales, full SSIM at the
+    coarsest, each clamped at 0 and raised to its beta (finest first), 2x average pooling between.
 
     Args:
-        x: First images (already cropped), float.
-        y: Second images, same shape.
-        betas: Per-scale exponents, finest first.
-        ssim_terms: ``(x, y) -> (ssim, contrast_structure)``, each ``(B,)``: the single-scale SSIM
-            (this module's Gaussian window, or the torchmetrics-equivalent one of ``paper_metrics``).
+        ssim_terms: ``(x, y) -> (ssim, contrast_structure)``, each ``(B,)``, at one scale.
 
     Shape:
         ``(B, C, H, W) -> (B,)``.
@@ -451,29 +380,19 @@ def _prepare(
     return x.double(), y.double()
 
 
-# ---------------------------------------------------------------------------------------------------
-# Kuan filter
-# ---------------------------------------------------------------------------------------------------
-
-
+# ----------------------------------------------------------------------------------------------- Kuan filter
 def kuan_filter(image: torch.Tensor, window: int = 7, cu: float = 0.25) -> torch.Tensor:
     """Kuan adaptive speckle filter with a full square window and reflect-padded borders.
 
-    For every pixel, with local mean `m` and local (population) variance `v` over the `window x window`
-    neighbourhood: `Ci^2 = v / m^2`, `W = (1 - Cu^2 / Ci^2) / (1 + Cu^2)` clipped to [0, 1], and
-    `out = m + W (pix - m)`. Homogeneous areas (`Ci <= Cu`) get the local mean, strong scatterers keep their
-    value. Where `v = 0` the output is the mean (which then equals the pixel). Borders are padded by
-    reflection without repeating the edge pixel (numpy/torch "reflect"); the output is not rounded.
-    Hand-written because the common Python implementation (findpeaks) uses a 6x6 effective window,
-    truncates borders and rounds its output.
+    With local mean `m` and population variance `v` over the window: `Ci^2 = v / m^2`,
+    `W = (1 - Cu^2 / Ci^2) / (1 + Cu^2)` clipped to [0, 1], `out = m + W (pix - m)` (the mean where
+    `v = 0`). Borders reflect without repeating the edge pixel; no rounding. Hand-written because findpeaks
+    uses a 6x6 effective window, truncates borders and rounds.
 
     Args:
         image: `(B, C, H, W)` or `(H, W)` non-negative image.
         window: odd window size; 7 in the paper.
-        cu: speckle coefficient of variation `Cu = 1/sqrt(ENL)`; 0.25 in the reference setting.
-
-    Returns:
-        Filtered image of the same shape and dtype.
+        cu: speckle coefficient of variation `Cu = 1/sqrt(ENL)`.
 
     Raises:
         ValueError: for an even or non-positive window, a window larger than the image, or negative `cu`.
@@ -515,28 +434,12 @@ def kuan_ssim(
     data_range: float = 1.0,
     crop_size: int | None = CROP_SIZE,
 ) -> torch.Tensor:
-    """Kuan+SSIM of Table III: Kuan-filter both images, then SSIM on the centre crop.
-
-    Corrected variant: the filter runs on the full images (so the crop sees no padded borders); SSIM uses
-    the same Gaussian window as `ms_ssim` (7, sigma 1.0). The authors' scripts instead filter the 8-bit crop
-    with findpeaks and score it with scikit-image's uniform-window defaults:
-    `sar_zero123.evaluation.paper_metrics.paper_kuan_ssim` reproduces that.
-
-    Args:
-        x: generated images in [0, 1].
-        y: target images in [0, 1].
-        window: Kuan window size.
-        cu: Kuan speckle coefficient of variation.
-        kernel_size: SSIM Gaussian window size.
-        sigma: SSIM Gaussian standard deviation.
-        data_range: dynamic range of the images.
-        crop_size: centre crop scored; `None` for the whole image.
-
-    Returns:
-        Per-sample Kuan+SSIM `(B,)` (float64).
+    """Kuan+SSIM of Table III, corrected variant: Kuan-filter both full images (the crop sees no padded
+    border), then :func:`ssim` on the centre crop (the authors' is
+    :func:`~sar_zero123.evaluation.paper_metrics.paper_kuan_ssim`).
 
     Shape:
-        x, y `(B, C, H, W)` -> `(B,)`.
+        x (generated), y (target) `(B, C, H, W)` in [0, 1] -> `(B,)` float64.
 
     Raises:
         ValueError: for mismatched sizes or values outside [0, 1].

@@ -1,30 +1,23 @@
 """Paper-comparable MS-SSIM and Kuan+SSIM: the authors' scoring calls, reproduced without their libraries.
 
-The paper's Table III numbers come from the authors' evaluation scripts, not from the metric definitions
-in its text. Those scripts (public, `zero123/eval_metrics/` of AmirooR/noise-tolerant-sar-synthesis):
+Table III's numbers come from the authors' scripts (`zero123/eval_metrics/` of
+AmirooR/noise-tolerant-sar-synthesis), not from the definitions in the text. They:
 
-1. read the generated and target views back from 8-bit PNG files. The views were 256 x 256: their data
-   module resizes every 128 px chip to 256 (`image_transforms.size: 256`, bilinear) and zero-1-to-3
-   decodes 32 x 32 latents to 256 px. Their public image writers quantise by truncation,
-   `(x * 255).astype(np.uint8)`; the script that wrote the scored files is not public.
-2. crop the centre 64 x 64 of those 256 px images, i.e. the central quarter of the field of view
-   (the central 32 x 32 pixels of a 128 px chip, upsampled two-fold);
+1. read 8-bit PNG views of 256 x 256 (128 px chips resized bilinearly; zero-1-to-3 decodes 32 x 32
+   latents to 256 px), quantised by truncation, `(x * 255).astype(np.uint8)`;
+2. crop the centre 64 x 64 (the central 32 x 32 pixels of a 128 px chip, upsampled two-fold);
 3. MS-SSIM: torchmetrics `MultiScaleStructuralSimilarityIndexMeasure(data_range=1.0, kernel_size=7,
-   sigma=1.0, betas=(0.0448, 0.3001, 0.1333))` on pixel / 255. With its default `gaussian_kernel=True`
-   torchmetrics ignores `kernel_size` and builds a 9 x 9 Gaussian from sigma (radius
-   `int(3.5 sigma + 0.5)`); its contrast-structure terms average the valid region while the last scale's
-   SSIM term averages the whole reflect-padded map; negative terms are clipped to 0 (`normalize="relu"`);
-4. Kuan+SSIM: the 0-255 image goes through findpeaks' `kuan_filter(win_size=7, cu=0.25)`, whose window
-   for pixel `(i, j)` is rows `i-3 .. i+2` and columns `j-3 .. j+2` (6 x 6, not centred), truncated at the
-   image borders (no padding), with a coefficient of variation from the population standard deviation
-   and an output rounded to an integer (half to even); then scikit-image's
-   `structural_similarity(data_range=255, win_size=7)` with its defaults: uniform 7 x 7 window, sample
-   covariance (`N / (N - 1)`), mean over the valid region.
+   sigma=1.0, betas=(0.0448, 0.3001, 0.1333))` on pixel / 255, which ignores `kernel_size` (a 9 x 9
+   Gaussian, radius `int(3.5 sigma + 0.5)`), averages the contrast-structure terms over the valid region
+   but the last scale's SSIM over the reflect-padded map, and clips negative terms (`normalize="relu"`);
+4. Kuan+SSIM: findpeaks' `kuan_filter(win_size=7, cu=0.25)` on the 0-255 image (window rows `i-3 .. i+2`,
+   columns `j-3 .. j+2`, truncated at the borders, population std, output rounded half to even), then
+   scikit-image's `structural_similarity(data_range=255, win_size=7)` (uniform window, sample covariance,
+   mean over the valid region).
 
-The functions here compute exactly that in float64 (tests/evaluation/test_paper_metrics.py checks them against
-torchmetrics, scikit-image and a per-pixel loop port of the findpeaks filter). The corrected variants
-(true 7 x 7 Gaussian windows, a centred reflect-padded Kuan filter, scored at the generated resolution)
-are in `sar_zero123.evaluation.metrics` (the measured differences: docs/results/).
+This module computes exactly that in float64 (tests/evaluation/test_paper_metrics.py checks it against
+torchmetrics, scikit-image and a loop port of findpeaks); the corrected variants are in
+:mod:`sar_zero123.evaluation.metrics`.
 """
 
 from __future__ import annotations
@@ -34,7 +27,13 @@ from collections.abc import Sequence
 import torch
 import torch.nn.functional as F
 
-from sar_zero123.evaluation.metrics import CROP_SIZE, PAPER_MS_SSIM_BETAS, combine_scales, gaussian_kernel_1d
+from sar_zero123.evaluation.metrics import (
+    CROP_SIZE,
+    PAPER_MS_SSIM_BETAS,
+    combine_scales,
+    gaussian_kernel_1d,
+    ssim_maps,
+)
 
 PAPER_SCORING_SIZE = 256
 """Side in pixels of the images the authors scored (zero-1-to-3 resolution; 128 px chips resized to it)."""
@@ -58,18 +57,9 @@ _K2 = 0.03
 def to_paper_scoring_images(
     images: torch.Tensor, *, scoring_size: int | None = PAPER_SCORING_SIZE, crop_size: int = CROP_SIZE
 ) -> torch.Tensor:
-    """The 8-bit centre crop the authors scored: resize to `scoring_size`, quantise, crop.
-
-    1. Channels are averaged to one grey channel (the authors read grey images).
-    2. Images whose side is not `scoring_size` are resized to it (bilinear, `align_corners=False`, as the
-       authors' torchvision `Resize` of their 128 px chips to 256; antialiased when shrinking).
-    3. Quantise to 8 bits by truncation, `floor(255 x)`, as the authors' image writers.
-    4. Centre `crop_size` crop.
-
-    Args:
-        images: Views in [0, 1] (normalised dB).
-        scoring_size: Side the images are resized to before the crop; `None` keeps the given size.
-        crop_size: Side of the centre crop (64 in the paper).
+    """The 8-bit centre crop the authors scored: grey channel (channels averaged), resized to
+    `scoring_size` (bilinear, `align_corners=False`, antialiased when shrinking; `None` keeps the size),
+    quantised `floor(255 x)`, centre `crop_size` crop.
 
     Returns:
         Float64 integer values in [0, 255].
@@ -124,22 +114,13 @@ def kuan_filter_findpeaks(
 ) -> torch.Tensor:
     """Kuan filter as findpeaks' `kuan_filter` computes it (the filter behind the paper's Kuan+SSIM).
 
-    With `o = win_size // 2`, the window of pixel `(i, j)` is rows `max(0, i - o) .. min(i + o, H) - 1` and
-    the same for columns: `2 o` pixels wide (6 for `win_size = 7`), one more above/left of the pixel than
-    below/right, and truncated at the borders. With window mean `m` and population coefficient of
-    variation `Ci = std / m`: `W = 0` where `Ci < Cu`, else `W = (1 - Cu^2 / Ci^2) / (1 + Cu^2)`;
-    `out = round(W pix + (1 - W) m)` (half to even). An all-zero window gives 0.
-
-    Args:
-        image: Non-negative image, on the 0-255 scale the authors used.
-        win_size: findpeaks' `win_size` (>= 3).
-        cu: Speckle coefficient of variation.
-
-    Returns:
-        Float64 integer-valued filtered image, same shape.
+    With `o = win_size // 2`, pixel `(i, j)`'s window is rows `max(0, i - o) .. min(i + o, H) - 1`, the same
+    for columns: `2 o` wide, not centred, truncated at the borders. With window mean `m` and population
+    `Ci = std / m`: `W = 0` where `Ci < Cu`, else `(1 - Cu^2 / Ci^2) / (1 + Cu^2)`;
+    `out = round(W pix + (1 - W) m)` (half to even); an all-zero window gives 0.
 
     Shape:
-        `(H, W)` or `(B, C, H, W)`.
+        `(H, W)` or `(B, C, H, W)` on the 0-255 scale -> the same, float64 integer-valued.
 
     Raises:
         ValueError: For `win_size < 3`, negative `cu` or values, or an image that is not 2-D or 4-D.
@@ -170,22 +151,11 @@ def ssim_uniform_window(
 ) -> torch.Tensor:
     """SSIM as scikit-image's `structural_similarity` computes it with its defaults.
 
-    Uniform `win_size x win_size` window, sample (co)variances (`N / (N - 1)`, N = win_size^2), constants
-    `C1 = (0.01 L)^2`, `C2 = (0.03 L)^2`, mean of the SSIM map over the valid region (scikit-image filters
-    with reflection and then drops `(win_size - 1) / 2` pixels at each border, which leaves exactly the
-    windows inside the image). No clipping of the variances, as in scikit-image.
-
-    Args:
-        x: First images.
-        y: Second images, same shape.
-        win_size: Odd window side.
-        data_range: Dynamic range L (255 for the authors' 0-255 images).
-
-    Returns:
-        Per-sample SSIM (float64), averaged over channels and pixels.
+    Uniform `win_size x win_size` window, sample (co)variances (`N / (N - 1)`), `C1 = (0.01 L)^2`,
+    `C2 = (0.03 L)^2`, the map's mean over the windows inside the image, no clipping of the variances.
 
     Shape:
-        `(B, C, H, W) -> (B,)`.
+        `(B, C, H, W) -> (B,)` float64.
 
     Raises:
         ValueError: For mismatched shapes, an even window, or images smaller than the window.
@@ -215,24 +185,10 @@ def _torchmetrics_ssim_terms(
     x: torch.Tensor, y: torch.Tensor, kernel_1d: torch.Tensor, data_range: float
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """Per-sample (SSIM over the whole reflect-padded map, contrast-structure over the valid region)."""
-    channels, size = x.shape[1], kernel_1d.shape[0]
-    pad = (size - 1) // 2
-    window = kernel_1d.to(x)
-    window_h = window.view(1, 1, size, 1).expand(channels, 1, size, 1)
-    window_w = window.view(1, 1, 1, size).expand(channels, 1, 1, size)
-
-    def blur(image: torch.Tensor) -> torch.Tensor:
-        return F.conv2d(F.conv2d(image, window_h, groups=channels), window_w, groups=channels)
-
+    pad = (kernel_1d.shape[0] - 1) // 2
     x = F.pad(x, (pad, pad, pad, pad), mode="reflect")
     y = F.pad(y, (pad, pad, pad, pad), mode="reflect")
-    c1, c2 = (_K1 * data_range) ** 2, (_K2 * data_range) ** 2
-    mu_x, mu_y = blur(x), blur(y)
-    var_x = (blur(x * x) - mu_x**2).clamp_min(0.0)
-    var_y = (blur(y * y) - mu_y**2).clamp_min(0.0)
-    cov_xy = blur(x * y) - mu_x * mu_y
-    contrast_structure = (2.0 * cov_xy + c2) / (var_x + var_y + c2)
-    ssim_map = (2.0 * mu_x * mu_y + c1) / (mu_x**2 + mu_y**2 + c1) * contrast_structure
+    ssim_map, contrast_structure = ssim_maps(x, y, kernel_1d, data_range)
     valid = contrast_structure[..., pad:-pad, pad:-pad]
     return ssim_map.flatten(1).mean(1), valid.flatten(1).mean(1)
 
@@ -247,23 +203,12 @@ def ms_ssim_torchmetrics(
 ) -> torch.Tensor:
     """MS-SSIM as torchmetrics computes it with `gaussian_kernel=True` (whatever `kernel_size` says).
 
-    Window: Gaussian of side `2 int(3.5 sigma + 0.5) + 1` (9 for sigma 1.0). Scales `1 .. M - 1` contribute
-    their contrast-structure mean over the valid region, the last scale its SSIM mean over the whole
-    reflect-padded map; each term is clipped at 0 and raised to its beta; 2 x 2 average pooling between
-    scales.
-
-    Args:
-        x: First images in [0, `data_range`].
-        y: Second images, same shape.
-        betas: Per-scale exponents.
-        sigma: Gaussian standard deviation.
-        data_range: Dynamic range.
-
-    Returns:
-        Per-sample MS-SSIM (float64).
+    A Gaussian window of side `2 int(3.5 sigma + 0.5) + 1`; scales `1 .. M - 1` give their
+    contrast-structure mean over the valid region, the last its SSIM mean over the reflect-padded map; each
+    clipped at 0 and raised to its beta; 2 x 2 average pooling between scales.
 
     Shape:
-        `(B, C, H, W) -> (B,)`.
+        `(B, C, H, W)` in [0, `data_range`] -> `(B,)` float64.
 
     Raises:
         ValueError: For mismatched shapes or images too small for the window at the coarsest scale.
@@ -285,20 +230,11 @@ def paper_ms_ssim(
     scoring_size: int | None = PAPER_SCORING_SIZE,
     crop_size: int = CROP_SIZE,
 ) -> torch.Tensor:
-    """Paper-comparable MS-SSIM (Table III): the authors' torchmetrics call on their 8-bit 64 x 64 crop.
-
-    Args:
-        x: Generated views in [0, 1].
-        y: Target views in [0, 1], same shape.
-        scoring_size: Side the views are resized to before cropping (256 as the authors'; `None` keeps the
-            given size).
-        crop_size: Centre crop side (64).
-
-    Returns:
-        Per-sample MS-SSIM (float64).
+    """Paper-comparable MS-SSIM (Table III): the authors' torchmetrics call on their 8-bit crop
+    (:func:`to_paper_scoring_images`).
 
     Shape:
-        `(B, C, H, W) -> (B,)`.
+        x (generated), y (target) `(B, C, H, W)` in [0, 1] -> `(B,)` float64.
 
     Raises:
         ValueError: For mismatched shapes or values outside [0, 1].
@@ -314,22 +250,11 @@ def paper_kuan_ssim(
     scoring_size: int | None = PAPER_SCORING_SIZE,
     crop_size: int = CROP_SIZE,
 ) -> torch.Tensor:
-    """Paper-comparable Kuan+SSIM (Table III): findpeaks' Kuan filter, then scikit-image's default SSIM.
-
-    The 8-bit crop (0-255) is filtered (the crop, not the whole image, as the authors did) and scored
-    with `data_range=255`.
-
-    Args:
-        x: Generated views in [0, 1].
-        y: Target views in [0, 1], same shape.
-        scoring_size: Side the views are resized to before cropping (256; `None` keeps the given size).
-        crop_size: Centre crop side (64).
-
-    Returns:
-        Per-sample Kuan+SSIM (float64).
+    """Paper-comparable Kuan+SSIM (Table III): findpeaks' Kuan filter on the 8-bit crop (not the whole
+    image, as the authors did), then scikit-image's default SSIM with `data_range=255`.
 
     Shape:
-        `(B, C, H, W) -> (B,)`.
+        x (generated), y (target) `(B, C, H, W)` in [0, 1] -> `(B,)` float64.
 
     Raises:
         ValueError: For mismatched shapes or values outside [0, 1].

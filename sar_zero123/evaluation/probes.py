@@ -1,13 +1,9 @@
 """Frozen-feature probes of a SAR encoder (Table I): the features, and the 1-NN class and azimuth probe.
 
-Probes train on frozen features of the train split without augmentation and report on the test
-split. Features are extracted once with `extract_features`; every probe then works on the small
-`(N, D)` feature matrices on any device. Results are plain dicts of Python floats so scripts can
-write them to JSON directly. The trained probes (linear, MLP azimuth) and `run_probes`, which runs all
-four, are `sar_zero123.training.probes`.
-
-Azimuth probes predict a number in [0, 1) read as azimuth / 360 deg (the paper's target
-azimuth / 2pi); the error is circular, min(|a - b|, 360 - |a - b|), in degrees.
+Probes train on frozen train-split features without augmentation and report on the test split; features
+are extracted once (:func:`extract_features`). Azimuth probes predict azimuth / 360 deg (the paper's
+azimuth / 2pi) and report the circular error in degrees. The trained probes are
+:mod:`sar_zero123.training.probes`.
 """
 from __future__ import annotations
 
@@ -37,9 +33,9 @@ class FeatureSet:
     """Frozen features of a split with their targets.
 
     Attributes:
-        features: Encoder features h = f(x), float32, shape (N, D).
-        labels: Class indices, int64, shape (N,).
-        azimuth_deg: Azimuths in degrees in [0, 360), float32, shape (N,).
+        features: Encoder features, float32 ``(N, D)``.
+        labels: Class indices, int64 ``(N,)``.
+        azimuth_deg: Azimuths in [0, 360), float32 ``(N,)``.
     """
 
     features: torch.Tensor
@@ -72,16 +68,10 @@ def extract_features(
     batch_size: int = 256,
     num_workers: int = 0,
 ) -> FeatureSet:
-    """Encodes a dataset with a frozen encoder, batched on the encoder's device.
-
-    The encoder runs in eval mode (BatchNorm running statistics) and its previous mode is restored.
+    """Encodes a dataset with a frozen encoder in eval mode (its mode restored), batched on its device.
 
     Args:
-        encoder: The SAR encoder.
-        dataset: Items are dicts with `"image"` (1, S, S) normalised dB, `"label"` and `"azimuth_deg"`
-            (as `sar_zero123.data.ChipDataset` returns them).
-        batch_size: Images per forward pass.
-        num_workers: DataLoader workers reading the files.
+        dataset: Items are dicts with `"image"` (1, S, S) normalised dB, `"label"` and `"azimuth_deg"`.
 
     Returns:
         Features, labels and azimuths on the CPU, in dataset order.
@@ -115,19 +105,14 @@ def nearest_neighbor_probe(
     metric: NeighborMetric = "cosine",
     chunk_size: int = 1024,
 ) -> dict[str, float]:
-    """1-NN classification and 1-NN azimuth regression in feature space (Table I, "1-NN" columns).
-
-    Each test sample takes the class and the azimuth of its nearest train sample.
+    """1-NN classification and azimuth regression in feature space (Table I, "1-NN" columns).
 
     Args:
-        train: Reference features.
-        test: Query features.
-        metric: `"cosine"` (largest cosine similarity) or `"euclidean"` (smallest L2 distance).
-        chunk_size: Test samples per distance block (bounds memory at chunk_size x N_train).
+        metric: `"cosine"` (largest similarity) or `"euclidean"` (smallest distance).
+        chunk_size: Test samples per distance block (memory is chunk_size x N_train).
 
     Returns:
-        `{"accuracy": percent, "azimuth_error_deg": mean circular error,
-        "azimuth_error_median_deg": median}`.
+        `{"accuracy": percent, "azimuth_error_deg": mean circular error, "azimuth_error_median_deg"}`.
 
     Raises:
         ValueError: For an unknown `metric`, `chunk_size` < 1, or differing feature dimensions.

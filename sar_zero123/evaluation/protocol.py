@@ -1,17 +1,11 @@
 """The Table III protocol: evaluation pairs, generated targets, their scores, the floor and the ceilings.
 
-Pairs are two views of one object (input, target) with their relative pose (d_az, d_el). With an
-``ood-<CLASS>`` protocol half the pairs come from the seen classes (the extended test split, 15 deg,
-without the held-out class) and half from the unseen class (every chip of it); with ``extended`` all pairs
-are seen. Every pipeline generates the target view of the same pairs with the same per-pair generator
-seeds, and :func:`score` scores it with the metrics of :func:`sar_zero123.evaluation.scoring.score_views`.
-
-Reference rows bound what a generator can score: the input copied as the output (:data:`INPUT_COPY`, a
-generator that ignores the pose: the floor), the true target (:data:`REAL_TARGET`) and the target through
-the pipeline's VAE (:data:`VAE_ROUND_TRIP`: the ceiling of a latent model). :func:`gap_closed` gives the
-fraction of the floor-to-ceiling gap a model closes. The tables and figures are in
-:mod:`sar_zero123.evaluation.tables`; the stage that runs it all is
-:func:`sar_zero123.stages.evaluate.run_evaluate`.
+Pairs are two views of one object with their relative pose. An ``ood-<CLASS>`` protocol draws half from
+the seen classes (the extended test split, 15 deg, without the held-out class) and half from every chip of
+the unseen class; ``extended`` only seen pairs. Every pipeline answers the same pairs with the same
+per-pair seeds. Reference rows bound the scores: :data:`INPUT_COPY` (ignores the pose: the floor),
+:data:`REAL_TARGET` and :data:`VAE_ROUND_TRIP` (the ceiling of a latent model); :func:`gap_closed` is the
+fraction of the floor-to-ceiling gap a model closes.
 """
 
 from __future__ import annotations
@@ -179,16 +173,12 @@ def evaluation_groups(
     """Every chip of the data, and the chips each group ("seen", and "unseen" for ood) draws pairs from.
 
     The paper's groups: seen = the extended test split (15 deg) without the held-out class, unseen = every
-    chip of the held-out class. Pairs chosen by depression (``by_depression``) need chips at other
-    depressions than the extended split's 17 and 15 deg: there, seen = every chip of the seen classes, at
-    every depression.
+    chip of the held-out class. With ``by_depression`` seen is every seen-class chip at every depression.
 
     Args:
         data: Data folder with ``index.csv``; ``None`` simulates the built-in dataset into ``work_dir``.
         protocol: ``"extended"`` or ``"ood-<CLASS>"``.
-        work_dir: Cache of the simulated dataset.
         seed: Seed of the splits (and of the simulator).
-        by_depression: Whether pairs are chosen by their depressions.
     """
     if by_depression and data is not None:
         records = load_index(data)
@@ -223,16 +213,12 @@ def build_pair_sets(
     """Samples the seen (and unseen) pairs of the protocol with the evaluators' scaling and classes.
 
     An ``ood`` protocol splits ``n`` into ``n - n // 2`` seen and ``n // 2`` unseen pairs. Each pair has its
-    own generator seed, so a sample's noise does not depend on the batch it is generated in.
+    own generator seed, so its noise does not depend on its batch.
 
     Args:
-        evaluators: The evaluator set (its classes and decibel scaling define labels and inputs).
-        data: Data folder with ``index.csv``; ``None`` simulates the built-in dataset.
+        data: Data folder with ``index.csv``; ``None`` simulates the built-in dataset into ``work_dir``.
         protocol: ``"extended"`` or ``"ood-<CLASS>"``.
-        n: Pairs in all.
         image_size: Chip side fed to the pipelines.
-        work_dir: Cache of the simulated dataset.
-        seed: Seed of the pair draw and of the generator seeds.
         same_depression: Pair views at one depression only.
         input_depression_deg: Only inputs at this depression (``None``: any).
         target_depressions_deg: Only targets at one of these depressions (``None``: any).
@@ -244,8 +230,8 @@ def build_pair_sets(
         ``{"seen": PairSet, "unseen": PairSet}`` (``"seen"`` only for ``extended``).
 
     Raises:
-        ValueError: If the evaluators know other classes than the data; if a group's chips admit fewer
-            distinct pairs than it needs (draws would repeat pairs and overstate the sample size).
+        ValueError: If the evaluators know other classes than the data, or a group's chips admit fewer
+            distinct pairs than it needs.
     """
     by_depression = input_depression_deg is not None or target_depressions_deg is not None
     records, groups = evaluation_groups(data, protocol, work_dir, seed=seed, by_depression=by_depression)
@@ -315,13 +301,12 @@ def _stack_pairs(group: str, dataset: ViewPairDataset, first_seed: int) -> PairS
 def chip_templates(
     dataset: ViewPairDataset, depression_tol_deg: float = 0.01
 ) -> tuple[torch.Tensor | None, torch.Tensor | None, torch.Tensor | None]:
-    """The turntable each pair's view is read against (`sar_zero123.evaluation.template.read_chip_templates`):
-    the other chips of the target's vehicle (class and serial) at the target's depression, the target itself
-    left out.
+    """The turntable each pair's view is read against (:func:`~.template.read_chip_templates`): the other
+    chips of the target's vehicle (class and serial) at the target's depression.
 
     Returns:
-        ``(chips (M, 1, S, S) normalised dB, their azimuths (M,) float64, candidates (N, M) bool)``, the
-        chips those of any pair; ``(None, None, None)`` where a pair has no other chip to be read against.
+        ``(chips (M, 1, S, S) normalised dB, their azimuths (M,) float64, candidates (N, M) bool)``;
+        ``(None, None, None)`` where a pair has no other chip.
     """
     records = dataset.records
     per_pair = []
@@ -345,12 +330,11 @@ def chip_templates(
 
 
 def input_depression_views(dataset: ViewPairDataset) -> tuple[torch.Tensor | None, torch.Tensor]:
-    """For each pair with d_el != 0: the true view at its target azimuth but its input's depression
-    (`ViewPairDataset.target_at_input_depression`: same object, azimuth within 0.01 deg).
+    """For each pair with d_el != 0: the true view at its target azimuth and its input's depression.
 
     Returns:
         ``(views (N, 1, S, S) normalised dB, zeros where missing, or None where every view is missing;
-        found (N,) bool, False for pairs with d_el = 0 or without such a view)``.
+        found (N,) bool)``.
     """
     indices = [dataset.target_at_input_depression(i) for i in range(len(dataset))]
     found = torch.tensor([index is not None for index in indices], dtype=torch.bool)
@@ -400,13 +384,9 @@ def generate_pair_targets(
 ) -> tuple[torch.Tensor, float]:
     """Generates the target view of every pair (seeded per pair), in batches, timing the pipeline calls.
 
-    Not :func:`sar_zero123.generate.generate_views`, which generates several views of one chip. A pipeline
-    whose pose carries the input's absolute depression (``pose_projection.config.input_depression``) gets
-    each pair's input depression; a call that uses a simulator proxy (``start_from="proxy"``, or a
-    ``spatial_pose="proxy"`` UNet) gets each input's depression and azimuth (its metadata), so that the
-    pipeline fits the proxy itself. Each batch logs a progress line (``desc``), outside the timed calls.
-    ``sampler`` is how the pipeline samples (its scheduler as ``sampler.apply_scheduler`` left it); a field
-    ``None`` is the pipeline's recorded value (:class:`~sar_zero123.model.sampler.SamplerSettings`).
+    A pipeline whose pose carries the input's depression gets each pair's; a call that uses a proxy gets
+    each input's depression and azimuth, so the pipeline fits the proxy itself. ``sampler`` fields left
+    ``None`` are the pipeline's recorded values. Each batch logs a line (``desc``) outside the timing.
 
     Returns:
         ``(images (N, 1, S, S) on CPU, seconds spent in the pipeline)``.
@@ -445,8 +425,9 @@ def generate_pair_targets(
 
 @torch.no_grad()
 def vae_round_trip(pipe: SARZero123Pipeline, images: torch.Tensor, batch_size: int, device) -> torch.Tensor:
-    """Each view encoded (posterior mode) and decoded by the pipeline's VAE: the best a latent model with this
-    VAE can return. Shape: ``(N, 1, S, S)`` in [0, 1] -> same, on the CPU."""
+    """Each view encoded (posterior mode) and decoded by the pipeline's VAE, the best a latent model with
+    this VAE can return. ``(N, 1, S, S)`` in [0, 1] -> same, on the CPU.
+    """
     outputs = []
     for start in range(0, images.shape[0], batch_size):
         chunk = images[start : start + batch_size].to(device)
@@ -466,19 +447,14 @@ def score(
     batch_size: int,
     device,
 ) -> dict[str, float]:
-    """Table III/IV metrics of a generated set (see `score_views`), and for the pairs with a depression
-    change and a true view at the target azimuth and the input's depression, the fraction of generated
-    views closer to the requested depression's truth (`closer_to_target_depression`, with its standard
-    error and `closer_to_target_depression_n`, the pairs it counts).
+    """Table III/IV metrics of a generated set ``(N, 1, S, S)`` (:func:`~.scoring.score_views`), and for pairs
+    with a depression change and a true view at the input's depression, the fraction of views closer to the
+    requested depression's truth (``closer_to_target_depression``, its standard error and ``_n``).
 
     Args:
-        generated: ``(N, 1, S, S)`` views in [0, 1], one per pair.
-        pairs: The pairs they answer.
-        evaluators: The evaluator set.
         crop_size: Centre crop for MS-SSIM and Kuan+SSIM.
         paper_scoring_size: Side before the paper-comparable crop (``None``: the generated side).
         batch_size: Views per evaluator call.
-        device: Where the evaluators run.
     """
     scores, per_sample = score_views(
         generated,
@@ -524,11 +500,8 @@ def gap_closed(
 ) -> float:
     """Fraction of the floor-to-ceiling gap a model closes, ``(floor - model) / (floor - ceiling)``.
 
-    1 means the model scores like the ceiling (VAE round trip of the real target), 0 like the floor (the
-    input copied as the output), below 0 worse than the floor. NaN where the floor is not worse than the
-    ceiling by more than ``gap_se`` (the standard error of their difference): no gap to close, or one the
-    pairs do not resolve, whose fraction would be noise divided by noise (accuracy, for instance, when the
-    input copy keeps the class and the VAE round trip keeps it about as often).
+    1: like the ceiling, 0: like the floor, below 0: worse. NaN where the floor is not worse than the
+    ceiling by more than ``gap_se`` (their difference's standard error): no gap the pairs resolve.
     """
     gap = ceiling - floor if higher_is_better else floor - ceiling
     if not gap > max(gap_se, 1e-9):

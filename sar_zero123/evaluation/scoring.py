@@ -1,8 +1,6 @@
-"""Scoring with the evaluator models (:mod:`sar_zero123.evaluation.evaluators`): the metrics of generated
-views (paper Table III and Table IV, :func:`score_views`), how well a pipeline follows a requested azimuth
-(:func:`pose_following`), a trained evaluator's own test metrics (:func:`score_on_split`), and
-:func:`closer_to_target_depression`, which compares a generated view with two true views without any
-trained model.
+"""Scoring with the evaluator models: the metrics of generated views (Tables III and IV,
+:func:`score_views`), pose following (:func:`pose_following`), an evaluator's own test metrics
+(:func:`score_on_split`), and :func:`closer_to_target_depression`, which needs no trained model.
 """
 
 from __future__ import annotations
@@ -52,11 +50,7 @@ def resize_for_evaluator(images: torch.Tensor, size: int) -> torch.Tensor:
 
 
 def standard_error(values: torch.Tensor) -> float:
-    """Standard error of the mean of per-sample values: sample standard deviation / sqrt(n); NaN for n < 2.
-
-    Shape:
-        `(N,)` -> scalar.
-    """
+    """Standard error of the mean: sample standard deviation / sqrt(n); NaN for n < 2. `(N,)` -> scalar."""
     n = values.numel()
     return values.double().std(correction=1).item() / math.sqrt(n) if n > 1 else float("nan")
 
@@ -79,49 +73,31 @@ def score_views(
 ) -> dict[str, float] | tuple[dict[str, float], dict[str, torch.Tensor]]:
     """All five Table III metrics of generated views against their targets, plus Table IV errors.
 
-    Accuracy: the classifier's prediction on the generated view against the object's class. Azimuth error:
-    the regressor's prediction on the generated view against the target view's true azimuth (circular).
-    SFD: Frechet distance between the regressor's pre-head features of generated and of target views.
-    MS-SSIM and Kuan+SSIM: generated against target on the centre crop. `ms_ssim` and `kuan_ssim` are the
-    paper-comparable values (`sar_zero123.evaluation.paper_metrics`: the authors' calls on 8-bit views resized
-    to `paper_scoring_size`); `ms_ssim_corrected` and `kuan_ssim_corrected` are the corrected variants
-    (`sar_zero123.evaluation.metrics`) at the generated resolution. Depression error (with
-    `target_depression_deg` and a depression regressor among the evaluators): |predicted - true depression of
-    the target view|. Depression overshoot (with `input_depression_deg` too, over the pairs whose target
-    depression differs from the input's): the predicted minus the true target depression, signed along the
-    request, `(predicted - target) * sign(target - input)`. Above 0 the view went past the requested
-    depression, below 0 it stopped short of it (at `-|target - input|` it stayed at the input's depression),
-    which the unsigned error cannot tell apart.
+    Accuracy: the classifier on the view against the object's class. Azimuth error: the regressor on the
+    view against the target's true azimuth (circular). SFD: Frechet distance of the regressor's features of
+    generated and target views. `ms_ssim` and `kuan_ssim` are the paper-comparable values on 8-bit views
+    resized to `paper_scoring_size`; `*_corrected` the corrected variants at the generated resolution.
+    Depression error (a depression regressor and `target_depression_deg`): |predicted - true|. Depression
+    overshoot (with `input_depression_deg`, over pairs with a depression change):
+    `(predicted - target) * sign(target - input)`: above 0 past the request, below 0 short of it (at
+    `-|target - input|` it stayed at the input's), which the unsigned error cannot tell apart.
 
     Args:
-        generated: Generated views in [0, 1].
-        targets: The real target views in [0, 1], same shape.
-        labels: Class indices of the objects (in `evaluators.class_names` order).
-        target_azimuth_deg: True azimuth of each target view in degrees.
-        evaluators: The evaluator set (classifier, regressor, probes, optional depression regressor).
-        target_depression_deg: True depression of each target view in degrees; gives
-            `depression_error_deg` when the evaluators have a depression regressor.
-        input_depression_deg: Depression of each input view in degrees; with `target_depression_deg`
-            gives `depression_overshoot_deg` (see above) and its `_n`, the pairs it counts.
-        crop_size: Centre crop for MS-SSIM and Kuan+SSIM (64 in the paper; `None` only for the corrected
-            variants, the paper-comparable ones then use 64).
-        paper_scoring_size: Side the views are resized to before the paper-comparable crop (256, the
-            authors' resolution; `None` scores them at the generated resolution).
+        labels: Class indices (in `evaluators.class_names` order).
+        target_azimuth_deg: True azimuth of each target view.
+        crop_size: Centre crop for MS-SSIM and Kuan+SSIM (`None` only for the corrected variants).
+        paper_scoring_size: Side before the paper-comparable crop (`None`: the generated resolution).
         batch_size: Images per evaluator forward pass.
-        device: Device of the evaluator models.
 
     Returns:
-        `{"accuracy": %, "azimuth_error_deg", "axis_error_deg" (up to a front/back flip), "sfd", "ms_ssim",
-        "kuan_ssim", "ms_ssim_corrected",
-        "kuan_ssim_corrected", "n",
-        "azimuth_error_deg/<regressor>"..., "depression_error_deg", "depression_overshoot_deg" (see above),
-        "predicted/<class>"...}` with the means over the samples, and `<metric>_se`, the standard error of
-        each mean. `predicted/<class>` is the share of views (%) the classifier gives each of its classes,
-        so that a view that loses its class shows where it went. With `return_per_sample`, also each view's
-        terms of those means, `(N,)` float64 tensors by metric (`accuracy`: 100 where the class is kept).
+        `{"accuracy": %, "azimuth_error_deg", "axis_error_deg", "sfd", "ms_ssim", "kuan_ssim",
+        "ms_ssim_corrected", "kuan_ssim_corrected", "n", "azimuth_error_deg/<regressor>"...,
+        "depression_error_deg", "depression_overshoot_deg", "predicted/<class>"...}` means, and
+        `<metric>_se`. `predicted/<class>` is the share of views (%) given each class, showing where a lost
+        class went. With `return_per_sample`, also each view's terms `(N,)` float64 by metric.
 
     Shape:
-        generated, targets `(N, 1, H, W)`; labels, target_azimuth_deg, target_depression_deg `(N,)`.
+        generated, targets `(N, 1, H, W)` in [0, 1]; labels, target_azimuth_deg, target_depression_deg `(N,)`.
 
     Raises:
         ValueError: For mismatched sizes or counts, or images outside [0, 1].
@@ -223,18 +199,10 @@ def closer_to_target_depression(
 ) -> torch.Tensor:
     """Whether each blurred generated view correlates more with the requested depression's truth.
 
-    A view generated for a depression change `d_el != 0` should look like the target view (target azimuth,
-    target depression) more than like the view at the target azimuth but the input's depression, which is
-    what a model that turns the azimuth and ignores `d_el` returns. All three views are blurred with a
-    Gaussian of `sigma_px` pixels first, so that speckle-scale detail, which no generator can reproduce,
-    does not decide the comparison; the Pearson correlation of the generated view with each truth decides
-    it. A constant view correlates 0 with anything.
-
-    Args:
-        generated: Generated views.
-        targets: True views at the target azimuth and target depression.
-        input_depression_views: True views at the target azimuth and the input's depression.
-        sigma_px: Standard deviation of the Gaussian blur in pixels.
+    A view for a change `d_el != 0` should look like the target (target azimuth and depression) more than
+    like the view at the target azimuth and the input's depression, which a model ignoring `d_el` returns.
+    All three are blurred by `sigma_px` first, so speckle that no generator can reproduce does not decide;
+    Pearson correlation decides (a constant view correlates 0).
 
     Returns:
         `(N,)` bool: `corr(generated, targets) > corr(generated, input_depression_views)` (ties: False).
@@ -293,21 +261,13 @@ def pose_following(
 ) -> dict[str, Any]:
     """Does a pipeline's output turn with the requested pose? One input view, several ``d_az``.
 
-    The regressor reads the azimuth of each generated view; a model that follows the pose returns views at
-    ``input_azimuth_deg + d_az`` (error near the regressor's own), one that ignores it returns the input's
-    azimuth for every request (error near the mean ``|d_az|`` of the request list, here the floor).
+    The regressor reads each view's azimuth; a model that follows the pose returns ``input_azimuth_deg +
+    d_az``, one that ignores it the input's azimuth (error near the mean ``|d_az|``: the floor). Every
+    request uses the same seed, so only the pose differs.
 
     Args:
-        pipe: A :class:`~sar_zero123.model.pipeline.SARZero123Pipeline`.
         image: The input view ``(1, 1, S, S)`` in [0, 1].
-        input_azimuth_deg: Its true azimuth.
-        regressor: The evaluator azimuth regressor.
-        d_az_deg: Requested azimuth changes.
-        num_inference_steps: Sampler steps.
-        guidance_scale: Classifier-free guidance weight.
-        seed: Seed of the generator of every request (the same noise for each, so only the pose differs).
-        input_depression_deg: The input view's depression, for a pipeline whose pose carries it
-            (``pose_projection.config.input_depression``).
+        input_depression_deg: For a pipeline whose pose carries it.
 
     Returns:
         ``{"requested_deg", "predicted_deg", "error_deg" (per request), "mean_error_deg", "floor_deg"}``.

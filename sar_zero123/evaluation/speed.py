@@ -1,6 +1,5 @@
-"""Speed against error: the azimuth error and accuracy of every (pipeline, scheduler, step count) against the
-images per second it generates, its UNet evaluations per image and its peak memory, and the Pareto front of
-speed and error (``speed_error.{json,md,png}`` of the evaluate stage).
+"""Speed against error for every (pipeline, scheduler, step count): images per second, UNet evaluations per
+image, peak memory, the errors and their Pareto front (``speed_error.{json,md,png}``).
 """
 
 from __future__ import annotations
@@ -41,9 +40,9 @@ SPEED_ERROR_SCORES = ("azimuth_error_deg", "azimuth_error_deg_se", "accuracy", "
 
 
 class UNetImageCount:
-    """Counts the samples the pipeline's UNet evaluates while active (a forward hook on ``pipe.unet``):
-    per generated image, the cost of a sampler in network evaluations, measured rather than assumed
-    (guidance's extra branches and a strength < 1 included)."""
+    """Counts the samples the pipeline's UNet evaluates while active (a forward hook): a sampler's cost
+    per image, measured (guidance branches and strength included).
+    """
 
     def __init__(self, pipe: SARZero123Pipeline) -> None:
         self.unet, self.samples, self._handle = pipe.unet, 0, None
@@ -61,10 +60,9 @@ class UNetImageCount:
 
 
 class PeakMemory:
-    """The peak memory of the work done while active, in MiB: on CUDA the most allocated by torch
-    (``max_memory_allocated`` after a reset); on the CPU the process's resident set size, sampled every
-    ``interval_s`` by a thread (``/proc/self/statm``; where it is missing, the process's lifetime peak from
-    ``resource``)."""
+    """Peak memory in MiB of the work done while active: CUDA's ``max_memory_allocated``; on the CPU the
+    resident set size sampled every ``interval_s`` (else the process's lifetime peak from ``resource``).
+    """
 
     def __init__(self, device: torch.device, interval_s: float = 0.005) -> None:
         self.device, self.interval_s, self.peak_mib = torch.device(device), interval_s, float("nan")
@@ -148,18 +146,10 @@ def speed_error_rows(
 
     Args:
         pipes: The pipelines by row name (each one's scheduler is restored afterwards).
-        pairs: The pairs every row generates and is scored on.
-        evaluators: The evaluator models that score the views.
-        schedulers: The schedulers each pipeline samples with (``SCHEDULERS`` names).
-        steps: The step counts each (pipeline, scheduler) samples with.
-        guidance_scale: The guidance scale of the warm-up call (``None``: the pipeline's recorded value).
-        sampler: The sampler of every timed call; each row sets its own step count.
-        batch_size: Views per pipeline call.
+        schedulers: ``SCHEDULERS`` names each pipeline samples with.
+        guidance_scale: The warm-up call's (``None``: the pipeline's recorded value).
+        sampler: Every timed call's; each row sets its own step count.
         scoring: :func:`~sar_zero123.evaluation.protocol.score`'s keyword arguments.
-        device: Where the pipelines run.
-
-    Returns:
-        One dict per (pipeline, scheduler, step count).
     """
     rows: list[dict[str, Any]] = []
     for name, pipe in pipes.items():

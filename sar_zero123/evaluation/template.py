@@ -1,21 +1,18 @@
 """Template-matched readings of generated views: an azimuth that a footprint turned in place cannot fool.
 
-The evaluators' regressor reads a view's azimuth from learned features, which a view whose body lies on
-the right axis can satisfy with its front and back swapped. Where the true vehicle is known (the
-simulator), the pixels can be asked instead: each view is correlated (both blurred, Pearson) with the true
-vehicle's renders on an azimuth grid at the requested depression (its *turntable*), and the best-matching
+A learned regressor can be satisfied by a body on the right axis with front and back swapped. Where the
+true vehicle is known, each view is correlated (both blurred, Pearson, blind to any affine map of
+decibels) with its renders on an azimuth grid at the requested depression (its *turntable*); the best
 grid azimuth is the view's reading. Per view:
 
 - ``azimuth_error_deg``: the reading's angular distance to the requested azimuth, in [0, 180];
 - ``front_back_right``: the reading lies nearer the request than the request turned by 180 deg;
 - ``identity_kept``: over every candidate vehicle's turntable, the best match is the true vehicle's;
-- ``turned_and_kept`` (:func:`turned_and_kept`): the view keeps its vehicle (here its identity, in Table III
-  the classifier's class) and reads within :data:`TURNED_WITHIN_DEG` of the request. The input copy keeps
-  every vehicle and turns none; a view counts only as the right vehicle, turned.
+- ``turned_and_kept``: the view keeps its vehicle and reads within :data:`TURNED_WITHIN_DEG` of the
+  request (the input copy keeps every vehicle and turns none).
 
-``gap_closed`` places a row's mean azimuth error between a floor (the input copied as the view) and a
-ceiling (the true view with another speckle draw) on the same pairs: 0 at the floor, 1 at the ceiling.
-The images may be in any affine map of decibels (normalised dB): Pearson correlation does not see it.
+``gap_closed`` places a row's mean error between a floor (the input copy) and a ceiling (the true view
+with another speckle draw): 0 at the floor, 1 at the ceiling.
 """
 
 from __future__ import annotations
@@ -78,15 +75,11 @@ def read_templates(
 
     Args:
         views: Generated views ``(N, S, S)``.
-        turntables: Every candidate vehicle's renders ``(V, K, S, S)`` at ``turntable_azimuths_deg``, at the
-            requested depression (one depression for all views: score each depression separately).
-        turntable_azimuths_deg: The ``K`` grid azimuths (deg).
+        turntables: Every candidate vehicle's renders ``(V, K, S, S)`` at ``turntable_azimuths_deg`` and the
+            requested depression (one for all views).
         vehicle: Each view's true vehicle, an index into ``turntables`` ``(N,)``.
-        requested_azimuth_deg: Each view's requested absolute azimuth (deg) ``(N,)``.
-        blur_sigma_px: Gaussian blur (pixels) of views and templates before they are correlated.
-
-    Returns:
-        :class:`TemplateReadings`.
+        requested_azimuth_deg: Each view's requested absolute azimuth ``(N,)``.
+        blur_sigma_px: Gaussian blur of views and templates before they are correlated.
 
     Raises:
         ValueError: For shapes that do not match, or a vehicle index outside ``[0, V)``.
@@ -134,19 +127,16 @@ def read_chip_templates(
 ) -> TemplateReadings:
     """Read each view's azimuth off a data folder's own chips of its vehicle (real or simulated).
 
-    Where no renders of the true vehicle exist (real chips, a simulated data folder), its other chips at the
-    requested depression are the turntable: each view's reading is the azimuth of the candidate chip it
-    correlates with best (both blurred, Pearson). The evaluation leaves the target chip itself out, so the
-    true view reads its nearest neighbour's azimuth (the ceiling) and the input copy its own (the floor).
-    ``identity_kept`` is not read here (every template is the view's own vehicle): it is all True.
+    Without renders of the true vehicle, its other chips at the requested depression are the turntable:
+    the reading is the azimuth of the candidate chip correlating best. With the target chip left out, the
+    true view reads its nearest neighbour's azimuth (the ceiling), the input copy its own (the floor).
+    ``identity_kept`` is all True (every template is the view's vehicle).
 
     Args:
         views: Generated views ``(N, S, S)``.
-        templates: Chips ``(M, S, S)``.
-        template_azimuth_deg: Each chip's azimuth (deg) ``(M,)``.
+        templates: Chips ``(M, S, S)`` and their azimuths ``template_azimuth_deg`` ``(M,)``.
         candidates: ``(N, M)`` bool: the chips each view may be read against (at least one per view).
-        requested_azimuth_deg: Each view's requested absolute azimuth (deg) ``(N,)``.
-        blur_sigma_px: Gaussian blur (pixels) of views and templates before they are correlated.
+        requested_azimuth_deg: Each view's requested absolute azimuth ``(N,)``.
 
     Raises:
         ValueError: For shapes that do not match, or a view without a candidate chip.

@@ -1,7 +1,5 @@
-"""Named model sizes: :data:`SAR_ZERO123_SIZES` and :func:`build_sar_zero123`, randomly initialised
-:class:`~sar_zero123.model.pipeline.SARZero123Pipeline` s from ``tiny`` (unit tests) to ``zero123`` (the
-Objaverse zero-1-to-3 shapes). The zero-1-to-3 constants they share with loaded checkpoints (noise
-schedule, VAE scaling factor, CLIP preprocessing) live in :mod:`sar_zero123.model.zero123_checkpoints`.
+"""Named model sizes (:data:`SAR_ZERO123_SIZES`, :func:`build_sar_zero123`), from ``tiny`` (unit tests) to
+``zero123`` (the Objaverse zero-1-to-3 shapes), and replacing a pipeline's VAE.
 """
 
 from __future__ import annotations
@@ -74,8 +72,7 @@ SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
             "projection_dim": 16,
         },
     },
-    # A useful CPU model for 64 px SAR chips (64-128 px work): 1-channel VAE with two downsamplings
-    # (64 px -> 16x16x4 latents), a three-level UNet, and a small ViT trained from scratch on SAR.
+    # 64 px CPU model: 1-channel VAE (64 px -> 16x16x4 latents), three-level UNet, small ViT from scratch.
     "small": {
         "image_size": 64,
         "vae": {
@@ -107,9 +104,8 @@ SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
             "projection_dim": 256,
         },
     },
-    # Faster CPU models for 64 px chips, with `small`'s VAE (one trained VAE folder fits all three):
-    # UNets of about a third (`compact`) and a tenth (`micro`) of `small`'s parameters, so a CPU step sees
-    # more pairs per second. With `estimate_input_azimuth`, `micro` is the quickstart's model.
+    # Faster CPU models with `small`'s VAE: UNets of about a third (`compact`) and a tenth (`micro`) of
+    # `small`'s parameters.
     "compact": {
         "image_size": 64,
         "vae": "small",
@@ -154,8 +150,7 @@ SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
             "projection_dim": 64,
         },
     },
-    # A GPU-sized prior for 64 px chips (11 M UNet parameters with the pose paths), with `small`'s latent
-    # shape (one trained VAE folder fits it too) and `compact`'s image encoder: too slow to train on a CPU.
+    # A GPU-sized prior with `small`'s latent shape and `compact`'s image encoder.
     "medium": {
         "image_size": 64,
         "vae": "small",
@@ -170,8 +165,7 @@ SAR_ZERO123_SIZES: dict[str, dict[str, Any]] = {
         },
         "image_encoder": "compact",
     },
-    # Exactly the Objaverse zero-1-to-3 shapes: SD 1.x UNet with 8 input channels, SD VAE,
-    # CLIP ViT-L/14 image tower (768-d embeddings), Linear(772, 768); 256 px -> 32x32x4 latents.
+    # The Objaverse zero-1-to-3 shapes: SD 1.x UNet (8 inputs), SD VAE, CLIP ViT-L/14, Linear(772, 768).
     "zero123": {
         "image_size": 256,
         "vae": {
@@ -224,35 +218,21 @@ def build_sar_zero123(
 ) -> SARZero123Pipeline:
     """Build a randomly initialised :class:`SARZero123Pipeline` of a named size.
 
-    Each component is initialised from ``torch.manual_seed(seed)`` inside ``torch.random.fork_rng``, so
-    the result depends only on ``seed`` and the global RNG state is left untouched.
-
-    Sizes (parameter counts in ``docs/results/pipeline.md``):
-
-    - ``"tiny"``: 32 px, for unit tests, well under 1 M parameters.
-    - ``"small"``: 64 px SAR chips (64-128 px work) on a CPU; 1-channel VAE, 16x16x4 latents.
-    - ``"compact"``, ``"micro"``: ``small``'s VAE with a narrower UNet and image encoder (faster on a CPU).
-    - ``"medium"``: ``small``'s VAE with a wider UNet than ``compact``'s, for priors trained on a GPU.
-    - ``"zero123"``: exactly the Objaverse zero-1-to-3 shapes at 256 px (load real weights with
-      :meth:`SARZero123Pipeline.from_zero123`).
+    Each component is initialised from ``torch.manual_seed(seed)`` inside ``torch.random.fork_rng``: the
+    result depends only on ``seed`` and the global RNG state is left untouched.
 
     Args:
-        size: One of ``"tiny"``, ``"small"``, ``"compact"``, ``"micro"``, ``"medium"``, ``"zero123"``.
-        image_size: Chip size in pixels; defaults to the size's own. Sets the VAE and UNet
-            ``sample_size`` (the networks themselves are size-agnostic).
+        size: A key of :data:`SAR_ZERO123_SIZES` (``"zero123"``: load real weights with
+            :meth:`SARZero123Pipeline.from_zero123`).
+        image_size: Chip size in pixels (the VAE's and UNet's ``sample_size``); defaults to the size's own.
         seed: Initialisation seed.
-        pose_in_time_embedding: Also add a learned projection of the pose vector to the UNet's timestep
-            embedding (``class_embed_type="projection"``, see
-            :func:`~sar_zero123.model.conditioning.pose_class_labels`); recorded in the UNet config.
+        pose_in_time_embedding: Also add a projection of the pose to the UNet's timestep embedding
+            (:func:`~sar_zero123.model.conditioning.pose_class_labels`).
         estimate_input_azimuth: Also build an :class:`~sar_zero123.model.orientation.AzimuthEstimator`
-            and give the UNet's timestep embedding the target's estimated azimuth after the pose (implies
-            ``pose_in_time_embedding``): the SAR-sized absolute-pose path (``sar_zero123.model.orientation``).
-        input_code_dim: With ``estimate_input_azimuth``, the size of the estimator's input-view code.
-        input_depression: The pose's fourth entry is the input chip's absolute depression (Stable Zero123's
-            convention; :class:`~sar_zero123.model.conditioning.PoseProjection`).
-        spatial_pose: ``"rotated_input"``: the UNet also takes the input latent turned by the requested
-            azimuth change (:func:`~sar_zero123.model.spatial_pose.unet_condition_latents`; recorded in
-            the pose projection's config); ``None``: zero-1-to-3's input.
+            whose estimate follows the pose there (implies ``pose_in_time_embedding``).
+        input_code_dim: The estimator's input-view code size.
+        input_depression: The pose's fourth entry is the input's absolute depression.
+        spatial_pose: The pose projection's ``spatial_pose`` (``None``: zero-1-to-3's input).
 
     Returns:
         The pipeline (float32, CPU) with a zero-1-to-3 DDIM scheduler.
@@ -335,23 +315,14 @@ def load_sar_zero123(
     """The pipeline a run starts from: a saved or zero-1-to-3 checkpoint, or a new model of a named size.
 
     Args:
-        pretrained: A ``save_pretrained`` folder (``model_index.json``), the name of a bundled pipeline
-            (``"sar-zero123/sim-prior"``, :func:`sar_zero123.pretrained.resolve_pretrained`), any
-            zero-1-to-3 layout (:meth:`SARZero123Pipeline.from_zero123`), or ``None`` to
-            :func:`build_sar_zero123`.
-        size, image_size, seed, pose_in_time_embedding, estimate_input_azimuth, input_code_dim,
-            input_depression, spatial_pose: For ``pretrained=None``, see
-            :func:`build_sar_zero123`.
-        prediction_type: Replace the scheduler's prediction type (only meaningful for a new model: a
-            checkpoint keeps the one it was trained with).
+        pretrained: A ``save_pretrained`` folder, a bundled pipeline's name, any zero-1-to-3 layout, or
+            ``None`` to :func:`build_sar_zero123` (with ``size`` ... ``spatial_pose``).
+        prediction_type: Replace the scheduler's prediction type (meaningful for a new model only).
         vae: An ``AutoencoderKL`` folder replacing the pipeline's VAE (:func:`replace_vae`).
 
-    Returns:
-        The pipeline (float32, CPU).
-
     Raises:
-        FileNotFoundError: If ``pretrained`` or ``vae`` does not exist, or ``pretrained`` names a bundled
-            pipeline whose weights are missing from this install.
+        FileNotFoundError: If ``pretrained`` or ``vae`` does not exist, or a bundled pipeline's weights
+            are missing from this install.
         ValueError: If the VAE does not fit the UNet (:func:`check_vae_fits`).
     """
     if pretrained is None:
@@ -380,16 +351,11 @@ def load_sar_zero123(
 
 
 def check_vae_fits(vae: AutoencoderKL, pipe: SARZero123Pipeline, name: str = "vae") -> None:
-    """Refuse a VAE that cannot replace ``pipe.vae``: the UNet needs its latent channels and its size.
-
-    Args:
-        vae: The candidate autoencoder.
-        pipe: The pipeline whose UNet it must serve.
-        name: What the VAE is called in the message (a flag, a path).
+    """Refuse a VAE that cannot replace ``pipe.vae`` (``name`` in the message).
 
     Raises:
         ValueError: If the latent channels or the downsampling factor differ from ``pipe.vae``'s, or the VAE
-            was built for another chip size (:func:`~sar_zero123.model.pipeline_checks.check_vae_image_size`).
+            was built for another chip size.
     """
     new_factor = downsampling_factor(vae.config.block_out_channels)
     old_factor = pipe.vae_scale_factor
@@ -404,18 +370,16 @@ def check_vae_fits(vae: AutoencoderKL, pipe: SARZero123Pipeline, name: str = "va
 def replace_vae(
     pipe: SARZero123Pipeline, path: str | os.PathLike, *, same_latents: bool = False
 ) -> SARZero123Pipeline:
-    """``pipe`` with the ``AutoencoderKL`` saved in ``path`` (``train/train_vae.py``) as its VAE.
+    """``pipe`` with the ``AutoencoderKL`` saved in ``path`` as its VAE.
 
-    With ``same_latents`` the new VAE must encode exactly as the old one (the same encoder weights and
-    latent scaling factor: a decoder fine-tuned alone, ``train_vae.py --pretrained ... --no-train_encoder``),
-    so that a trained UNet keeps the latents it was trained on and only the decoding changes.
+    With ``same_latents`` the new VAE must encode exactly as the old one (a decoder fine-tuned alone), so a
+    trained UNet keeps its latents and only the decoding changes.
 
     Raises:
-        FileNotFoundError: If ``path`` holds no ``AutoencoderKL`` ``config.json`` (a ``train_vae.py`` run
-            folder holds its VAE in the ``vae`` subfolder: the message says so) or no weights (naming
-            the file expected).
-        ValueError: If the weights do not load, the VAE does not fit (:func:`check_vae_fits`), or, with
-            ``same_latents``, it encodes differently.
+        FileNotFoundError: If ``path`` holds no ``AutoencoderKL`` ``config.json`` (the message points a run
+            folder to its ``vae`` subfolder) or no weights.
+        ValueError: If the weights do not load, the VAE does not fit, or, with ``same_latents``, it
+            encodes differently.
     """
     path = Path(path)
     config_file = path / "config.json"
@@ -436,7 +400,6 @@ def replace_vae(
     if same_latents:
         check_same_latents(vae, pipe.vae, name=f"vae: {str(path)!r}")
     # `pipe.components`, not `from_pipe`: that casts every module to one dtype (float32 by default)
-    # the recorded sampler, proxy settings and lineage travel with the weights
     recorded = {name: getattr(pipe.config, name, None) for name in PIPELINE_SETTINGS}
     return SARZero123Pipeline(**{**pipe.components, "vae": vae.eval()}, **recorded)
 
@@ -475,11 +438,9 @@ def same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:
 def record_trained_pose_ranges(pose_projection: PoseProjection, pairs: ViewPairDataset) -> tuple[list, list]:
     """Widen the pose projection's recorded training ranges to cover ``pairs`` (saved with its config).
 
-    ``trained_depression_deg`` becomes the union of its current range and the depressions of the pairs'
-    chips; ``trained_d_el_deg`` the union with every depression change those chips can pair into (the pairs
-    are redrawn each epoch): ``[low - high, high - low]`` across depressions, ``[0, 0]`` for pairs at one
-    depression. Both are widened outward to a multiple of 0.1 deg. A pipeline refuses requests outside them
-    (:meth:`SARZero123Pipeline.__call__`), and a fine-tune of a pretrained prior keeps the prior's ranges.
+    ``trained_depression_deg`` takes the union with the pairs' depressions; ``trained_d_el_deg`` with every
+    change those chips can pair into (pairs are redrawn each epoch): ``[low - high, high - low]``. Both
+    widen outward to a multiple of 0.1 deg. A fine-tune of a prior thus keeps the prior's ranges.
 
     Returns:
         The new ``(trained_d_el_deg, trained_depression_deg)``.

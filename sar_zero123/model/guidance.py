@@ -1,14 +1,12 @@
 """The guidance branches of a sampling call, stacked into one batched UNet call per step, and their mix.
 
-A call runs up to four branches per output sample: zero-1-to-3's classifier-free null (zeros for the
-projected token and the condition latent; the pose is never dropped), the request itself, and one contrast
-branch per contrast guidance weight: the request with its heading flipped (:func:`flipped_heading_pose`) or
-at the input's own depression (:func:`same_depression_pose`). The guided noise estimate is
+Up to four branches per output sample: zero-1-to-3's classifier-free null (zero token and condition
+latent; the pose is never dropped), the request, and one contrast branch per contrast weight (the heading
+flipped, :func:`flipped_heading_pose`, or the input's own depression, :func:`same_depression_pose`):
 
     eps = eps_null + w * (eps_request - eps_null) + sum_k s_k * (eps_request - eps_contrast_k)
 
-(the null term only where guidance ``w > 1``). A contrast branch equal to the request (every ``d_el == 0``
-for the depression) adds exactly 0 and is not run.
+(the null term only where ``w > 1``). A contrast equal to the request adds exactly 0 and is not run.
 """
 
 from __future__ import annotations
@@ -37,22 +35,14 @@ __all__ = [
 
 
 def flipped_heading_pose(pose: torch.Tensor) -> torch.Tensor:
-    """The same pose with the azimuth change turned by 180 deg: ``sin d_az`` and ``cos d_az`` negated.
-
-    Shape:
-        ``(B, 1, 4)`` (:func:`embed_pose`) -> the same.
-    """
+    """The pose with the azimuth change turned by 180 deg (``sin``, ``cos`` negated). ``(B, 1, 4)``."""
     flipped = pose.clone()
     flipped[..., 1:3] = -flipped[..., 1:3]
     return flipped
 
 
 def same_depression_pose(pose: torch.Tensor) -> torch.Tensor:
-    """The same pose at the input's own depression: the depression change ``d_el`` (first entry) set to 0.
-
-    Shape:
-        ``(B, 1, 4)`` (:func:`embed_pose`) -> the same.
-    """
+    """The pose at the input's own depression (``d_el`` set to 0). ``(B, 1, 4)``."""
     same = pose.clone()
     same[..., 0] = 0.0
     return same
@@ -61,9 +51,9 @@ def same_depression_pose(pose: torch.Tensor) -> torch.Tensor:
 def contrast_branches(
     pose: torch.Tensor, heading_scale: float, depression_scale: float
 ) -> list[tuple[str, float, torch.Tensor]]:
-    """The contrast branches a call runs, as ``(kind, scale, pose)``: ``"heading"`` (the flipped heading's
-    weight ``heading_scale``), then ``"depression"`` (the input depression's, ``depression_scale``), each
-    where its weight is positive and its pose differs from the request's."""
+    """The contrast branches a call runs, ``(kind, scale, pose)``: ``"heading"`` then ``"depression"``,
+    each where its weight is positive and its pose differs from the request's.
+    """
     candidates = (
         ("heading", heading_scale, flipped_heading_pose(pose)),
         ("depression", depression_scale, same_depression_pose(pose)),
@@ -73,8 +63,9 @@ def contrast_branches(
 
 @dataclass
 class Branch:
-    """One guidance branch's inputs, one row per output sample: the cross-attention token ``(N, 1, D)``, the
-    pose ``(N, 1, 4)`` and the UNet's class labels (``None`` unless the UNet embeds the pose)."""
+    """One branch's inputs per output sample: token ``(N, 1, D)``, pose ``(N, 1, 4)``, class labels or
+    ``None``.
+    """
 
     tokens: torch.Tensor
     pose: torch.Tensor
@@ -88,8 +79,8 @@ class BranchEncoder:
     Args:
         image_embeds: The inputs' CLIP embeddings, once per input ``(B, 1, E)``.
         estimate: The azimuth estimator's reading of each input, where the UNet takes it, else ``None``.
-        num_images_per_prompt: Output samples per input; each branch is repeated to one row per sample.
-        dtype: The UNet's dtype, which every branch input takes.
+        num_images_per_prompt: Output samples per input; each branch gets one row per sample.
+        dtype: The UNet's dtype.
     """
 
     pose_projection: torch.nn.Module
@@ -100,8 +91,7 @@ class BranchEncoder:
     dtype: torch.dtype
 
     def branch(self, pose: torch.Tensor) -> Branch:
-        """The branch of ``pose`` ``(B, 1, 4)``, one per input: its token, per-sample pose and class labels
-        (with an estimator, the target's estimated azimuth follows the pose)."""
+        """The branch of ``pose`` ``(B, 1, 4)``: its token, per-sample pose and class labels."""
         repeats = self.num_images_per_prompt
         tokens = self.pose_projection(self.image_embeds, pose.to(self.image_embeds.device))
         tokens = tokens.repeat_interleave(repeats, dim=0).to(self.dtype)
@@ -115,23 +105,19 @@ class BranchEncoder:
 
 @dataclass
 class GuidedCondition:
-    """Everything the denoising loop hands the UNet at each step, for every branch at once.
+    """Everything the denoising loop hands the UNet at each step, every branch stacked
+    ``([null;] request; contrasts...)``.
 
     Args:
-        tokens: Cross-attention tokens, the branches stacked ``([null;] request; contrasts...)``
-            ``(branches * N, 1, D)``.
-        class_labels: The UNet's class labels, stacked alike, or ``None``.
-        unet_condition: What the UNet concatenates to the noisy latent, stacked alike
-            (:func:`~sar_zero123.model.spatial_pose.unet_condition_latents`).
-        input_latents: Each output sample's input latent ``(N, C, h, w)``, unscaled: what an image-to-image
-            call starts from.
-        request: The request's branch (its per-sample pose turns a ``"turned_input"`` start).
-        guidance_scale: Classifier-free guidance weight; the null branch runs where it is above 1.
-        contrast_scales: The weight of each contrast branch, in their order.
-        reference: The context within which the UNet attends to the inputs' own features (reference
-            attention), or one that changes nothing.
-        input_tokens: The context within which the UNet's cross-attentions attend to each branch's input
-            tokens (:mod:`~sar_zero123.model.input_tokens`; none for the null), or one that changes nothing.
+        tokens: Cross-attention tokens ``(branches * N, 1, D)``.
+        class_labels: The UNet's class labels, or ``None``.
+        unet_condition: What the UNet concatenates to the noisy latent.
+        input_latents: Each output sample's unscaled input latent ``(N, C, h, w)`` (an image-to-image start).
+        request: The request's branch (its pose turns a ``"turned_input"`` start).
+        guidance_scale: Classifier-free guidance weight; the null runs where it is above 1.
+        contrast_scales: Each contrast branch's weight, in order.
+        reference: The reference-attention context, or a null context.
+        input_tokens: The input-token context (none for the null), or a null context.
     """
 
     tokens: torch.Tensor
@@ -160,10 +146,8 @@ class GuidedCondition:
         return 1 + int(self.do_classifier_free_guidance) + len(self.contrast_scales)
 
     def guide(self, noise_pred: torch.Tensor) -> torch.Tensor:
-        """The guided noise estimate (module docstring) from the UNet's stacked prediction of every branch.
-
-        Shape:
-            ``(branches * N, C, h, w)`` -> ``(N, C, h, w)``.
+        """The guided noise estimate (module docstring) from the stacked prediction.
+        ``(branches * N, C, h, w) -> (N, C, h, w)``.
         """
         parts = list(noise_pred.chunk(self.branches))
         noise_contrasts = parts[len(parts) - len(self.contrast_scales) :]
@@ -191,15 +175,15 @@ def guided_condition(
 
     Args:
         pose: The request's pose, once per input ``(B, 1, 4)``.
-        contrasts: The contrast branches (:func:`contrast_branches`).
+        contrasts: :func:`contrast_branches`.
         input_latents: Each output sample's input latent ``(N, C, h, w)``, in the UNet's dtype.
-        proxy_latents: For a ``spatial_pose="proxy"`` UNet, the proxy pair of the request and of each
-            contrast, once per input ``(1 + len(contrasts), B, 2C, h, w)``; the null keeps the request's.
-        scaling_factor: The VAE's (the reference pass scales the clean input latent with it).
+        proxy_latents: A ``spatial_pose="proxy"`` UNet's proxy pairs, once per input
+            ``(1 + len(contrasts), B, 2C, h, w)``; the null keeps the request's.
+        scaling_factor: The VAE's (for the reference pass).
 
     Returns:
-        The stacked condition: the condition latent is zeros for the null and the input's for every other
-        branch, turned by each branch's pose where the model takes it spatially.
+        The condition: the null's condition latent is zeros, the others' the input's, turned by each
+        branch's pose where the model takes it spatially.
     """
     request = encoder.branch(pose)
     do_classifier_free_guidance = guidance_scale > 1.0
@@ -243,14 +227,13 @@ def reference_context(
     do_classifier_free_guidance: bool,
     scaling_factor: float,
 ) -> contextlib.AbstractContextManager:
-    """The reference pass (:mod:`~sar_zero123.model.reference_attention`) and the context in which every
-    branch but the null attends to its input's features.
+    """The reference pass and the context in which every branch but the null attends to its input's
+    features.
 
     Args:
         pose: The request's pose, once per input ``(B, 1, 4)``.
-        input_latents: One per output sample, the real inputs' (not the null).
-        proxy_latents: The stacked branches' proxy pairs (their first half: the proxy at the input's pose).
-        scaling_factor: The VAE's.
+        input_latents: One per output sample (the real inputs', not the null's).
+        proxy_latents: The stacked branches' proxy pairs (first half: the proxy at the input's pose).
     """
     own = encoder.branch(own_pose(pose))
     num_samples = input_latents.shape[0]

@@ -1,21 +1,15 @@
 """Input tokens: every cross-attention of the UNet also attends to the input view's latent, place by place.
 
-A zero-1-to-3 UNet cross-attends to one token, so each cross-attention adds the same vector at every place
-of the view. Input tokens (IP-Adapter Plus's spatial tokens, in its decoupled and gated form) give the
-cross-attentions something to look up: each place ``p`` of the input's latent becomes a token
+A zero-1-to-3 UNet cross-attends to one token, adding the same vector at every place. Input tokens
+(IP-Adapter Plus's spatial tokens, decoupled and gated) give each place ``p`` of the input's latent a token
 
     ``token_projection([latent(p), fourier(p), fourier(R(-a) p), pose])``
 
-where ``R(-a) p`` is where ``p`` lands when the vehicle turns by ``a = rotation_sign * d_az`` (the turn
-:func:`~sar_zero123.model.spatial_pose.rotate_condition_latents` applies) and ``fourier`` the sines and
-cosines of a position at :data:`TOKEN_FREQUENCIES` octaves. Each cross-attention ``l`` then adds
-``tanh(g_l) * Attn(Q, K(tokens), V(tokens))`` through its own projections. The gates ``g_l``
-(``token_gates``) and the token projection live in the pose projection; the gates start at zero, so a warm
-start computes exactly what the model did without tokens. No extra UNet pass is needed, unlike reference
-attention (:mod:`sar_zero123.model.reference_attention`), with which it combines.
-
-Rows whose condition latent is zero (the classifier-free-guidance null, and a dropped condition in
-training) get weight 0: the null sees no input.
+where ``R(-a) p`` is where ``p`` lands when the vehicle turns by ``a = rotation_sign * d_az`` and
+``fourier`` the sines and cosines at :data:`TOKEN_FREQUENCIES` octaves. Each cross-attention adds
+``tanh(g_l) * Attn(Q, K(tokens), V(tokens))``; the gates ``token_gates`` start at zero, so a warm start
+computes exactly what the model did. No extra UNet pass, unlike reference attention, with which it
+combines. Rows whose condition latent is zero (the guidance null, a dropped condition) get weight 0.
 """
 
 from __future__ import annotations
@@ -28,7 +22,13 @@ import torch
 from diffusers.models.attention_processor import Attention
 
 from sar_zero123.model.conditioning import TOKEN_FREQUENCIES, token_feature_dim
-from sar_zero123.model.reference_attention import GatedAttnProcessor, transformer_attentions
+from sar_zero123.model.reference_attention import (
+    GatedAttnProcessor,
+    check_gate_count,
+    gate_count,
+    shared_state,
+    transformer_attentions,
+)
 from sar_zero123.model.spatial_pose import check_turn_inputs
 
 __all__ = [
@@ -54,15 +54,9 @@ def _fourier(positions: torch.Tensor) -> torch.Tensor:
 def input_token_features(latents: torch.Tensor, pose: torch.Tensor, rotation_sign: int) -> torch.Tensor:
     """Each latent place's token features (module docstring), before the projection.
 
-    Positions are the places' centres in normalised coordinates (x right, y down, in ``(-1, 1)``, the
-    convention of ``F.affine_grid`` with ``align_corners=False``); a place at ``p`` lands at
-    ``(cos a x + sin a y, -sin a x + cos a y)`` when the view turns by ``a = rotation_sign * d_az``, the
-    inverse of :func:`~sar_zero123.model.spatial_pose.rotate_condition_latents`'s sampling map.
-
-    Args:
-        latents: The (unscaled) input latents.
-        pose: Pose vectors from :func:`~sar_zero123.model.conditioning.embed_pose`, one per latent.
-        rotation_sign: ``+1`` or ``-1``, the data's convention (``PoseProjection.config.rotation_sign``).
+    Positions are place centres in ``(-1, 1)`` (x right, y down, ``F.affine_grid``'s convention); ``p``
+    lands at ``(cos a x + sin a y, -sin a x + cos a y)``, the inverse of
+    :func:`~sar_zero123.model.spatial_pose.rotate_condition_latents`'s sampling map.
 
     Shape:
         ``(B, C, h, w)``, ``(B, 1, 4)`` -> ``(B, h * w, token_feature_dim(C))``, places in row-major order.
@@ -104,8 +98,7 @@ class _TokenState:
 
 
 class InputTokenAttnProcessor(GatedAttnProcessor):
-    """A cross-attention's processor: while reading, it also attends to the input tokens (module
-    docstring)."""
+    """A cross-attention's processor: while reading, it also attends to the input tokens."""
 
     def __init__(self, layer: int, state: _TokenState) -> None:
         super().__init__(layer)
@@ -124,31 +117,19 @@ def token_layers(unet: torch.nn.Module) -> list[Attention]:
 
 
 def _state(unet: torch.nn.Module) -> _TokenState:
-    """The UNet's shared state, its processors installed on first use (idempotent)."""
-    unet = getattr(unet, "module", unet)
-    state = getattr(unet, "_input_token_state", None)
-    if state is None:
-        layers = token_layers(unet)
-        state = _TokenState(len(layers))
-        for index, layer in enumerate(layers):
-            layer.set_processor(InputTokenAttnProcessor(index, state))
-        unet._input_token_state = state
-    return state
+    return shared_state(unet, "_input_token_state", token_layers, _TokenState, InputTokenAttnProcessor)
 
 
 def uses_input_tokens(pose_projection: torch.nn.Module) -> bool:
     """Whether a (possibly DDP-wrapped) pose projection records input tokens."""
-    config = getattr(pose_projection, "module", pose_projection).config
-    return int(getattr(config, "input_token_layers", 0) or 0) > 0
+    return gate_count(pose_projection, "input_token_layers") > 0
 
 
 def enable_input_tokens(
     unet: torch.nn.Module, pose_projection: torch.nn.Module, latent_channels: int
 ) -> None:
-    """Give a model input tokens in place, computing exactly what it did (every gate zero).
-
-    The token projection starts as ``torch.nn.Linear``'s default draw, which only the gates' growth lets
-    through.
+    """Give a model input tokens in place, computing exactly what it did (every gate zero; the token
+    projection keeps ``torch.nn.Linear``'s default draw).
 
     Raises:
         ValueError: If the model already has them, or ``latent_channels < 1``.
@@ -165,30 +146,16 @@ def enable_input_tokens(
 
 
 def check_token_layers(unet: torch.nn.Module, pose_projection: torch.nn.Module) -> None:
-    """Refuse a pose projection whose token gates do not match the UNet's cross-attentions.
-
-    Raises:
-        ValueError: Naming both counts.
-    """
-    if not uses_input_tokens(pose_projection):
-        return
-    count = len(token_layers(unet))
-    recorded = int(getattr(pose_projection, "module", pose_projection).config.input_token_layers)
-    if recorded != count:
-        raise ValueError(
-            f"pose_projection: input_token_layers={recorded} gates, but the UNet has {count} cross-attentions"
-        )
+    """Refuse a pose projection whose token gates do not match the UNet's cross-attentions."""
+    check_gate_count(unet, pose_projection, "input_token_layers", token_layers, "cross-attentions")
 
 
 @contextlib.contextmanager
 def attending_to_input_tokens(
     unet: torch.nn.Module, tokens: torch.Tensor, weights: torch.Tensor
 ) -> Iterator[None]:
-    """Within the block, the UNet's cross-attentions also attend to ``tokens``.
-
-    Args:
-        tokens: ``(N, L, D)``, one row per row of the UNet's batch, ``D`` its cross-attention width.
-        weights: ``(N, layers)``, each row's weight of each layer's token attention.
+    """Within the block, the UNet's cross-attentions also attend to ``tokens`` ``(N, L, D)``, each row's
+    layer weighted by ``weights`` ``(N, layers)``.
 
     Raises:
         ValueError: If the shapes disagree.
@@ -212,13 +179,8 @@ def input_token_context(
     condition_latents: torch.Tensor,
     pose: torch.Tensor,
 ) -> contextlib.AbstractContextManager:
-    """The context in which the UNet's cross-attentions attend to each row's input tokens, or a null context
-    for a model without them.
-
-    Args:
-        condition_latents: Each row's (unscaled, possibly dropped, i.e. zeroed) input latent; a zero row
-            gets weight 0.
-        pose: Each row's pose (:func:`~sar_zero123.model.conditioning.embed_pose`).
+    """The context in which the cross-attentions attend to each row's input tokens (a null context for a
+    model without them); a zero (dropped) condition latent row gets weight 0.
 
     Shape:
         ``(N, C, h, w)``, ``(N, 1, 4)``.

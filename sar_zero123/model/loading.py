@@ -1,11 +1,9 @@
 """Loading saved components with errors that name the component, the file expected and the folder.
 
-diffusers and transformers report a broken pipeline folder in their own terms: a missing
-``diffusion_pytorch_model.safetensors`` is reported as a missing ``.bin`` file (the fallback they tried
-last), a removed component folder as "no file named config.json" in the pipeline folder, and a config that
-does not match its weights as "Cannot load  because ..." with the name left blank. Here a folder is
-checked file by file before diffusers reads it (:func:`check_pipeline_folder`), and a load that still
-fails is traced to its component (:func:`load_component`, :func:`find_failing_component`).
+diffusers and transformers report a broken folder in their own terms (a missing safetensors file as a
+missing ``.bin``, a config that does not fit its weights with the name left blank). Here a folder is checked
+file by file before diffusers reads it (:func:`check_pipeline_folder`), and a load that still fails is
+traced to its component (:func:`load_component`, :func:`find_failing_component`).
 """
 
 from __future__ import annotations
@@ -40,9 +38,7 @@ __all__ = [
 
 #: The file ``DiffusionPipeline.save_pretrained`` writes: component name -> [library, class name].
 PIPELINE_INDEX = "model_index.json"
-#: Entries of :data:`PIPELINE_INDEX` that are a pipeline's recorded settings, not components: its
-#: measured-best sampler, its simulator proxy and what its weights started from
-#: (``SARZero123Pipeline(sampler=..., proxy=..., lineage=...)``).
+#: Entries of :data:`PIPELINE_INDEX` that are a pipeline's recorded settings, not components.
 PIPELINE_SETTINGS = ("sampler", "proxy", "lineage")
 # Weight file stems; each may end in .safetensors or .bin, carry a variant (`.fp16`) or be sharded (index).
 _WEIGHT_SUFFIXES = (".safetensors", ".bin", ".safetensors.index.json", ".bin.index.json")
@@ -57,12 +53,9 @@ _SHAPE_MISMATCH = re.compile(
 def expected_files(component_class: type) -> tuple[str | None, tuple[str, ...]]:
     """The config file and the weight file stems a ``from_pretrained`` folder of ``component_class`` holds.
 
-    Args:
-        component_class: A diffusers model or scheduler, a transformers model or image processor.
-
     Returns:
         ``(config_name, weight_stems)``, e.g. ``("config.json", ("diffusion_pytorch_model",))``; no stems
-        for classes without weights, and ``None`` for a class this module does not know.
+        for classes without weights, ``None`` for a class this module does not know.
     """
     if issubclass(component_class, ModelMixin):
         return component_class.config_name, ("diffusion_pytorch_model",)
@@ -80,12 +73,8 @@ def _describe(name: str, component_class: type) -> str:
 
 
 def check_component_folder(folder: str | os.PathLike, name: str, component_class: type) -> None:
-    """Refuse a component folder that lacks its config or its weights, or whose config is not JSON.
-
-    Args:
-        folder: The component's folder (``<pipeline>/<name>``).
-        name: The component's name (``"unet"``, ``"azimuth_estimator"``, ...), for the messages.
-        component_class: Its class (:func:`expected_files`).
+    """Refuse a component folder (``<pipeline>/<name>``) lacking its config or weights, or whose config is
+    not JSON.
 
     Raises:
         FileNotFoundError: If the folder, its config file or its weights are missing; the message names
@@ -115,8 +104,8 @@ def check_component_folder(folder: str | os.PathLike, name: str, component_class
             )
 
 
-#: The libraries a pipeline's components may come from: a ``model_index.json`` is data, and naming any other
-#: module would make loading import (run) it.
+#: The libraries a component may come from: ``model_index.json`` is data, and naming any other module
+#: would make loading import (run) it.
 COMPONENT_LIBRARIES = ("diffusers", "transformers", "sar_zero123")
 
 
@@ -151,16 +140,14 @@ def check_pipeline_folder(folder: str | os.PathLike, given: Collection[str] = ()
     """Check a ``save_pretrained`` pipeline folder file by file before diffusers loads it.
 
     Args:
-        folder: The pipeline folder.
         given: Components passed to ``from_pretrained`` as objects (their folders are not read).
 
     Returns:
-        Component name -> class, for every component :data:`PIPELINE_INDEX` lists (``None`` entries,
-        absent optional components, are left out).
+        Component name -> class, for every non-``None`` component :data:`PIPELINE_INDEX` lists.
 
     Raises:
         FileNotFoundError: If :data:`PIPELINE_INDEX`, a listed component's folder, its config file or its
-            weights are missing; the message names the component, the file expected and the folder.
+            weights are missing, naming them.
         ValueError: If a JSON file is invalid (naming it) or a listed class cannot be imported.
     """
     folder = Path(folder)
@@ -213,22 +200,12 @@ def _explain(error: BaseException) -> str:
 
 
 def load_component(component_class: type, folder: str | os.PathLike, name: str, **kwargs: Any) -> Any:
-    """``component_class.from_pretrained(folder)``, with errors that name the component and the folder.
-
-    Args:
-        component_class: The class to load.
-        folder: The component's folder.
-        name: The component's name, for the messages.
-        **kwargs: Passed to ``from_pretrained``.
-
-    Returns:
-        The loaded component.
+    """``component_class.from_pretrained(folder, **kwargs)``, with errors that name the component ``name``.
 
     Raises:
-        FileNotFoundError: If the folder, its config or its weights are missing
-            (:func:`check_component_folder`).
+        FileNotFoundError: If the folder, its config or its weights are missing.
         ValueError: If the files are there but do not load (a config that does not fit its weights, a
-            truncated weight file); the message names the component and the folder.
+            truncated weight file), naming the component and the folder.
     """
     check_component_folder(folder, name, component_class)
     try:
@@ -240,17 +217,10 @@ def load_component(component_class: type, folder: str | os.PathLike, name: str, 
 
 
 def find_failing_component(folder: str | os.PathLike, components: Mapping[str, type]) -> None:
-    """Load each component of a pipeline folder on its own and raise for the first that fails.
-
-    Called after a whole-pipeline load failed, to say which component made it fail.
-
-    Args:
-        folder: The pipeline folder.
-        components: Component name -> class (:func:`check_pipeline_folder`).
+    """After a whole-pipeline load failed, load each component alone and raise for the first that fails.
 
     Raises:
-        ValueError: For the first component that does not load (:func:`load_component`); returns
-            normally when every component loads on its own.
+        ValueError: For the first component that does not load; returns when each loads alone.
     """
     for name, component_class in components.items():
         load_component(component_class, Path(folder) / name, name)
@@ -259,18 +229,11 @@ def find_failing_component(folder: str | os.PathLike, components: Mapping[str, t
 def load_weights_file(
     module: torch.nn.Module, path: str | os.PathLike, what: str, device: str | torch.device = "cpu"
 ) -> None:
-    """Load a ``.safetensors`` state dict into ``module`` (strictly), with errors that name the file.
-
-    Args:
-        module: The model, built from the config saved beside the weights.
-        path: The weight file.
-        what: What the weights belong to, for the messages (e.g. ``"the SAR encoder in '<folder>'"``).
-        device: Where the tensors are loaded.
+    """Load a ``.safetensors`` state dict into ``module`` strictly, with errors that name the file (``what``).
 
     Raises:
         FileNotFoundError: If ``path`` is not a file.
-        ValueError: If the file is not a readable safetensors file (truncated, corrupt), or its tensors
-            do not fit ``module`` (the config and the weights come from different models).
+        ValueError: If the file is not readable safetensors, or its tensors do not fit ``module``.
     """
     path = Path(path)
     if not path.is_file():

@@ -1,17 +1,11 @@
 """The input view's azimuth, estimated and turned by the requested pose: the SAR-sized absolute-pose path.
 
-zero-1-to-3 gives its UNet only the *relative* pose. To place the target view, a UNet trained from
-scratch must then read the input's azimuth ``a`` off the condition latent and add ``d_az`` to it inside
-its own layers; ``sin(a + d) = sin a cos d + cos a sin d`` is a product of two inputs, which additive
-conditioning learns slowly. An oracle ablation on the simulator shows it: a small UNet given the target's
-absolute azimuth learns to place views, while the same UNet given ``a`` and ``d_az`` as separate inputs
-stays near the input copy's error.
-
-:class:`AzimuthEstimator` reads ``a`` from the condition latent (trained with the UNet and supervised by
-the input chip's known azimuth, :func:`azimuth_estimation_loss`), and :func:`turn_azimuth` adds ``d_az``
-in closed form, so the UNet receives the target's estimated azimuth ``[sin(a + d), cos(a + d)]`` in its
-timestep embedding (:func:`~sar_zero123.model.conditioning.pose_class_labels`). The conditioning contract is
-unchanged: an input view and a relative pose; no absolute azimuth is needed at sampling time.
+zero-1-to-3 gives its UNet only the relative pose, so a UNet trained from scratch must read the input's
+azimuth ``a`` off the condition latent and form ``sin(a + d) = sin a cos d + cos a sin d``, a product that
+additive conditioning learns slowly. :class:`AzimuthEstimator` reads ``a`` from the condition latent
+(supervised by the input's known azimuth, :func:`azimuth_estimation_loss`) and :func:`turn_azimuth` adds
+``d_az`` in closed form, so the UNet's timestep embedding receives ``[sin(a + d), cos(a + d)]``. Sampling
+still needs only an input view and a relative pose.
 """
 
 from __future__ import annotations
@@ -40,19 +34,13 @@ AZIMUTH_DIM = 2
 
 
 def azimuth_vector(azimuth_deg: torch.Tensor | Sequence[float]) -> torch.Tensor:
-    """Azimuths in degrees as unit vectors ``[sin a, cos a]``.
-
-    Shape:
-        ``(B,)`` -> ``(B, 2)`` float32.
-    """
+    """Azimuths in degrees as unit vectors ``[sin a, cos a]``. ``(B,) -> (B, 2)`` float32."""
     radians = torch.as_tensor(azimuth_deg, dtype=torch.float64).reshape(-1) * (math.pi / 180.0)
     return torch.stack([torch.sin(radians), torch.cos(radians)], dim=-1).float()
 
 
 def azimuth_deg(vector: torch.Tensor) -> torch.Tensor:
-    """The azimuth in [0, 360) degrees of ``[sin a, cos a, ...]`` (the inverse of :func:`azimuth_vector`).
-
-    Only the first two entries are read, so an :class:`AzimuthEstimator`'s output (with its code) works.
+    """The azimuth in [0, 360) degrees of ``[sin a, cos a, ...]`` (only the first two entries are read).
 
     Shape:
         ``(B, >= 2)`` -> ``(B,)`` float64.
@@ -61,14 +49,8 @@ def azimuth_deg(vector: torch.Tensor) -> torch.Tensor:
 
 
 def turn_azimuth(vector: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
-    """Turns azimuth unit vectors by the pose's ``d_az``: ``[sin(a + d), cos(a + d)]``.
-
-    The angle-sum identities, with ``sin d`` and ``cos d`` read from slots 1 and 2 of the zero-1-to-3 pose
-    vector (:func:`~sar_zero123.model.conditioning.embed_pose`).
-
-    Args:
-        vector: ``[sin a, cos a]`` per sample (need not be exactly unit length).
-        pose: Pose vectors ``[d_el_rad, sin d_az, cos d_az, 0]``.
+    """Turns azimuth vectors ``[sin a, cos a]`` (not necessarily unit) by the pose's ``d_az`` with the
+    angle-sum identities: ``[sin(a + d), cos(a + d)]``.
 
     Shape:
         vector ``(B, 2)``, pose ``(B, 1, 4)`` -> ``(B, 2)``.
@@ -82,10 +64,6 @@ def turn_azimuth(vector: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
 def target_view_features(estimate: torch.Tensor, pose: torch.Tensor) -> torch.Tensor:
     """What the UNet's timestep embedding receives after the pose: the turned azimuth, then the input's code.
 
-    Args:
-        estimate: :class:`AzimuthEstimator` outputs ``[sin a, cos a, code...]``.
-        pose: Pose vectors ``[d_el_rad, sin d_az, cos d_az, 0]``.
-
     Shape:
         estimate ``(B, 2 + code_dim)``, pose ``(B, 1, 4)`` -> ``(B, 2 + code_dim)``.
     """
@@ -95,10 +73,8 @@ def target_view_features(estimate: torch.Tensor, pose: torch.Tensor) -> torch.Te
 def azimuth_estimation_loss(
     vector: torch.Tensor, azimuth_deg: torch.Tensor | Sequence[float]
 ) -> torch.Tensor:
-    """Per-sample ``1 - cos(a_hat - a)`` between estimated unit vectors and true azimuths.
-
-    0 for a perfect estimate, 2 for one off by 180 degrees; smooth everywhere (unlike an angle difference).
-    Only the first two entries of ``vector`` are read (an :class:`AzimuthEstimator`'s code is not supervised).
+    """Per-sample ``1 - cos(a_hat - a)``: 0 for a perfect estimate, 2 off by 180 degrees, smooth everywhere.
+    Only the first two entries of ``vector`` are read (the code is not supervised).
 
     Shape:
         vector ``(B, 2 + code_dim)``, azimuth_deg ``(B,)`` -> ``(B,)`` float32.
@@ -110,17 +86,10 @@ def azimuth_estimation_loss(
 class AzimuthEstimator(ModelMixin, ConfigMixin):
     """Small CNN reading the input view's azimuth ``[sin a, cos a]`` (and a code) from its condition latent.
 
-    Sized for SAR chip latents (16x16x4 for a 64 px chip): strided 3x3 convolutions, an adaptive pool to a
-    4x4 map (the layout of the target, not only its texture, tells its azimuth) and a linear head. The
-    azimuth part is normalised to unit length and supervised (:func:`azimuth_estimation_loss`); the
-    ``code_dim`` further outputs are a code of the input view (its class and appearance) that only the
-    denoising loss trains. Without it, the UNet must read the object's identity from the condition latent
-    of a view at another azimuth, and its outputs follow the pose but lose the class.
-
-    Args:
-        latent_channels: Channels of the VAE latent.
-        hidden_channels: Channels of the convolutions; each after the first halves the resolution.
-        code_dim: Size of the input-view code (0: the azimuth only).
+    Strided 3x3 convolutions (each after the first halves the resolution), an adaptive pool to 4x4 (the
+    target's layout, not only its texture, tells its azimuth) and a linear head. The azimuth part is
+    normalised and supervised; the ``code_dim`` further outputs, trained by the denoising loss only, carry
+    the input's class and appearance, which the UNet otherwise loses.
 
     Raises:
         ValueError: If ``latent_channels < 1``, ``hidden_channels`` is empty or not positive, or
@@ -166,9 +135,9 @@ class AzimuthEstimator(ModelMixin, ConfigMixin):
 
 
 def estimator_weights_digest(estimator: torch.nn.Module) -> str:
-    """SHA-256 of an azimuth estimator's weights (names and values at float16, so that a bundled copy stored
-    in float16 and the float32 weights it came from agree): the estimator a UNet was trained beside, recorded
-    in ``PoseProjection.config.trained_estimator`` and checked when a pipeline is assembled."""
+    """SHA-256 of an azimuth estimator's weights at float16 (so a bundled float16 copy and its float32
+    source agree), recorded in ``PoseProjection.config.trained_estimator``.
+    """
     digest = hashlib.sha256()
     for name, tensor in sorted(estimator.state_dict().items()):
         digest.update(name.encode() + b"\0")

@@ -1,14 +1,9 @@
 """`SARZero123Pipeline`: novel views of a SAR chip at a requested relative pose (zero-1-to-3 sampling).
 
-The sampler follows zero-1-to-3: the UNet input is the noisy latent concatenated with the unscaled VAE
-posterior mode of the input chip (8 channels); cross-attention sees one token,
-``PoseProjection([clip_image_embedding, pose])``; classifier-free guidance uses zeros for both the
-projected token and the condition latent as the unconditional input and runs conditional and
-unconditional branches in one batched UNet call.
-
-``__call__`` runs in numbered stages that delegate, as diffusers' Stable Diffusion pipeline does (checks in
-:mod:`.view_request` and :mod:`.pipeline_checks`, the guidance branches in :mod:`.guidance`; loading, saving
-and the recorded settings in :mod:`.pipeline_loading`).
+The UNet takes the noisy latent concatenated with the input's unscaled VAE posterior mode and
+cross-attends to one token, ``PoseProjection([clip_image_embedding, pose])``; classifier-free guidance
+zeroes both for the unconditional branch, all branches in one batched UNet call. ``__call__`` runs in
+numbered stages that delegate, as diffusers' Stable Diffusion pipeline does.
 """
 
 from __future__ import annotations
@@ -80,14 +75,11 @@ class SARZero123PipelineOutput(BaseOutput):
     """Output of :class:`SARZero123Pipeline`.
 
     Args:
-        images: Generated views in the normalised dB domain, ``B * num_images_per_prompt`` of them,
-            grouped by input image (all samples of input 0 first). A list of single-channel PIL images
-            (``"pil"``), a float32 array ``(N, H, W, 1)`` (``"np"``), a tensor ``(N, 1, H, W)``
-            (``"pt"``), or the final latents ``(N, 4, h, w)`` (``"latent"``).
-        proxy_fit_scores: Where a simulator proxy was fitted to the inputs, how well each fits its input
-            ``(B,)``: the blurred correlation in [-1, 1] of the fitted vehicle with the chip at its pose
-            (:func:`~sar_zero123.model.proxy.fit_scores`); ``None`` where no fit ran (``proxy_views`` given,
-            or a call that uses no proxy).
+        images: Normalised dB views, ``B * num_images_per_prompt``, grouped by input: single-channel PIL
+            images (``"pil"``), ``(N, H, W, 1)`` float32 (``"np"``), ``(N, 1, H, W)`` (``"pt"``) or the
+            final latents (``"latent"``).
+        proxy_fit_scores: ``(B,)`` each fitted proxy's score (:func:`~sar_zero123.model.proxy.fit_scores`),
+            or ``None`` where no fit ran.
     """
 
     images: list[PIL.Image.Image] | np.ndarray | torch.Tensor
@@ -98,27 +90,22 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
     """Novel-view synthesis of SAR chips with a zero-1-to-3 latent diffusion model.
 
     Args:
-        vae: Autoencoder; 1-channel (trained on SAR) or 3-channel (Stable Diffusion) input.
+        vae: Autoencoder taking 1 (SAR) or 3 (Stable Diffusion) channels.
         image_encoder: CLIP vision tower whose ``image_embeds`` condition the UNet.
-        unet: Denoiser with ``in_channels = 2 * vae.config.latent_channels`` (3 times with the pose
-            projection's ``spatial_pose="rotated_input"``).
-        scheduler: Any diffusers scheduler (DDIM, DPM-Solver++, Euler, ...).
+        unet: Denoiser taking the latent and the condition latents
+            (:func:`.pipeline_checks.check_components`).
+        scheduler: Any diffusers scheduler.
         pose_projection: Projection of ``[image_embeds, pose]`` to the cross-attention dimension.
-        feature_extractor: Optional CLIP image processor; only its ``image_mean`` / ``image_std`` are
-            used (preprocessing runs in torch, see :func:`encode_image_embeddings`).
-        azimuth_estimator: Optional :class:`~sar_zero123.model.orientation.AzimuthEstimator`, given exactly
-            when the UNet's timestep embedding takes the target's estimated azimuth after the pose.
-        sampler: The sampler measured best for these weights (a dict of :data:`SAMPLER_DEFAULTS`' keys):
-            every call argument left ``None`` takes it (saved in ``model_index.json``).
-        proxy: The simulator proxy's settings (:data:`~sar_zero123.model.proxy.PROXY_FIELDS`), for a start
-            from the proxy or a ``spatial_pose="proxy"`` UNet.
-        lineage: What the weights were trained from: ``{"start": name or path, "start_weights": SHA-256 of
-            its weight files}`` (:func:`~sar_zero123.runs.folder.weights_identity`), recorded by a fine-tune's
-            export and checked by ``interpolate``; ``None`` for weights of unknown origin.
+        feature_extractor: Optional CLIP image processor; only its ``image_mean`` / ``image_std`` are used.
+        azimuth_estimator: Given exactly when the UNet's timestep embedding takes the estimated azimuth.
+        sampler: The sampler measured best for these weights (keys of :data:`SAMPLER_DEFAULTS`), what a
+            call argument left ``None`` takes.
+        proxy: The simulator proxy's settings (:data:`~sar_zero123.model.proxy.PROXY_FIELDS`).
+        lineage: ``{"start": name or path, "start_weights": SHA-256}`` of what the weights were trained
+            from, or ``None``; ``interpolate`` checks it.
 
     Raises:
-        ValueError: If the component sizes do not fit together (:func:`~.pipeline_checks.check_components`),
-            or a recorded setting is invalid (:func:`~.pipeline_loading.check_recorded_settings`).
+        ValueError: If the components do not fit together or a recorded setting is invalid.
     """
 
     model_cpu_offload_seq = "image_encoder->pose_projection->unet->vae"
@@ -144,7 +131,6 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
         self.register_modules(vae=vae, image_encoder=image_encoder, unet=unet, scheduler=scheduler,
                               pose_projection=pose_projection, feature_extractor=feature_extractor,
                               azimuth_estimator=azimuth_estimator)  # fmt: skip
-        # the measured-best sampler, the proxy bank and the weights' origin travel with them
         self.register_to_config(
             sampler=None if sampler is None else dict(sampler), proxy=proxy,
             lineage=None if lineage is None else dict(lineage),
@@ -170,27 +156,15 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
 
     # ---------------------------------------------------------------------------- images and latents
     def preprocess_image(self, image: ImageInput) -> torch.Tensor:
-        """Validate and convert pipeline input images to a float32 batch ``(B, 1 | 3, H, W)`` on the CPU, in
-        the normalised dB domain, of a size the VAE and UNet can take (:func:`.pipeline_checks.image_batch`
-        says what is accepted and refused)."""
+        """Checked input images as a float32 CPU batch ``(B, 1 | 3, H, W)``
+        (:func:`.pipeline_checks.image_batch`)."""
         return image_batch(image, self.size_multiple, self.vae_scale_factor)
 
     def encode_conditioning(
         self, images: torch.Tensor, pose: torch.Tensor
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Cross-attention token and condition latent of a batch of input chips.
-
-        Args:
-            images: Normalised dB images in [0, 1].
-            pose: Pose vectors from :func:`embed_pose`.
-
-        Returns:
-            ``(tokens, condition_latents)``.
-
-        Shape:
-            - images: ``(B, 1 | 3, H, W)``; pose: ``(B, 1, 4)``
-            - tokens: ``(B, 1, cross_attention_dim)``; condition_latents: ``(B, 4, H / f, W / f)``
-        """
+        """Cross-attention token ``(B, 1, D)`` and condition latent ``(B, C, h, w)`` of input chips
+        ``(B, 1 | 3, H, W)``."""
         image_embeds, condition_latents = self._encode_images(images)
         return self.pose_projection(image_embeds, pose.to(image_embeds.device)), condition_latents
 
@@ -204,18 +178,7 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
         return image_embeds, encode_condition_latents(self.vae, images)
 
     def decode_latents(self, latents: torch.Tensor) -> torch.Tensor:
-        """Decode scaled latents to single-channel images in the normalised dB domain.
-
-        Args:
-            latents: Scaled latents (``z * vae.config.scaling_factor``).
-
-        Returns:
-            Images in [0, 1], float32; 3-channel VAE outputs are averaged to one channel.
-
-        Shape:
-            - latents: ``(N, 4, h, w)``
-            - Output: ``(N, 1, h * f, w * f)``
-        """
+        """Decode scaled latents ``(N, C, h, w)`` to single-channel images in [0, 1] ``(N, 1, H, W)``."""
         decoded = self.vae.decode(latents.to(self.vae.dtype) / self.vae.config.scaling_factor).sample
         images = signed_to_unit(decoded.float()).clamp(0.0, 1.0)
         return match_channels(images, 1)
@@ -228,8 +191,7 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
         output_type: str,
         callback_on_step_end_tensor_inputs: Sequence[str],
     ) -> None:
-        """Refuse a call's sampler values (:func:`.sampler.resolve_sampler`'s) and counts, naming the argument
-        (:func:`.pipeline_checks.check_call_arguments`)."""
+        """Refuse a call's resolved sampler values and counts, naming the argument."""
         check_call_arguments(sampler, num_images_per_prompt, output_type, callback_on_step_end_tensor_inputs,
                              self._callback_tensor_inputs, self.scheduler)  # fmt: skip
         scales = sampler["heading_guidance_scale"], sampler["depression_guidance_scale"]
@@ -239,11 +201,10 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
         self, request: ViewRequest, start_image: ImageInput | None, start_from: str, image_to_image: bool
     ) -> tuple[torch.Tensor | None, bool]:
         """The drafts an image-to-image call starts from: ``start_image``, else for ``start_from="proxy"``
-        each input's proxy at the request (given in ``proxy_views``, or fitted), checked as the input is.
+        each input's proxy at the request (given in ``proxy_views``, or fitted).
 
         Returns:
-            ``(start_images, fitted)``: the drafts ``(B, 1 | 3, H, W)``, or ``None`` where the call starts
-            from the input's latent or from pure noise; and whether the call fits a proxy.
+            ``(start_images (B, 1 | 3, H, W) or None, whether the call fits a proxy)``.
 
         Raises:
             ValueError: For drafts of another count or size than the inputs.
@@ -272,14 +233,10 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
     def prepare_condition(
         self, request: ViewRequest, sampler: dict[str, Any], num_images_per_prompt: int, device: torch.device
     ) -> GuidedCondition:
-        """What the UNet is conditioned on at every step, for every guidance branch: the inputs' CLIP
-        embeddings and latents (encoded once per input image, then repeated per sample), each branch's
-        token, class labels and pose, and for a ``spatial_pose="proxy"`` UNet each branch's proxy pair.
-
-        A new conditioning input enters here, as a field of the branches (:mod:`.guidance`).
+        """The UNet's condition at every step for every guidance branch: the inputs' encodings (once per
+        input, then repeated per sample), each branch's token, class labels, pose and proxy pair.
         """
         image_embeds, condition_latents = self._encode_images(request.images.to(device))  # for every branch
-        # Read once: `ModelMixin.dtype` walks every parameter of the UNet on each access.
         dtype = self.unet.dtype
         input_latents = condition_latents.repeat_interleave(num_images_per_prompt, dim=0).to(dtype)
         estimate = None
@@ -302,8 +259,7 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
     def prepare_timesteps(
         self, num_inference_steps: int, denoising_steps: int, device: torch.device
     ) -> torch.Tensor:
-        """The scheduler's timesteps for ``num_inference_steps``, of which an image-to-image call
-        (``denoising_steps < num_inference_steps``) runs the last ``denoising_steps`` only."""
+        """The scheduler's timesteps; an image-to-image call runs the last ``denoising_steps`` only."""
         self.scheduler.set_timesteps(int(num_inference_steps), device=device)
         timesteps = self.scheduler.timesteps
         if denoising_steps < num_inference_steps:  # strength < 1: the last denoising_steps only
@@ -325,10 +281,9 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
         image_to_image: bool,
         device: torch.device,
     ) -> torch.Tensor:
-        """The initial latents: pure noise (``latents``, else drawn from ``generator``) scaled by the
-        scheduler's ``init_noise_sigma``; for an image-to-image call, a draft's latent (``start_images``,
-        the input's own, or it turned by the request for ``start_from="turned_input"``) noised to the first
-        of ``timesteps`` with the scheduler's ``add_noise`` (SDEdit).
+        """The initial latents: noise scaled by ``init_noise_sigma``; for an image-to-image call, a draft's
+        latent (``start_images``, the input's, or it turned for ``start_from="turned_input"``) noised to the
+        first timestep (SDEdit).
 
         Raises:
             ValueError: For given ``latents`` of another shape than the samples' or not finite.
@@ -361,9 +316,9 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
         callback_on_step_end: Callable[..., dict] | PipelineCallback | MultiPipelineCallbacks | None,
         callback_on_step_end_tensor_inputs: Sequence[str],
     ) -> torch.Tensor:
-        """The denoising loop: one UNet call per step with every guidance branch stacked, their guided mix
-        (:meth:`GuidedCondition.guide <sar_zero123.model.guidance.GuidedCondition.guide>`), one scheduler
-        step, and the step callback."""
+        """The denoising loop: one UNet call per step with every guidance branch stacked, their guided mix,
+        one scheduler step, the step callback.
+        """
         # Stochastic schedulers (DDPM, Euler ancestral, SDE DPM-Solver) take the generator in `step`.
         accepts_generator = "generator" in inspect.signature(self.scheduler.step).parameters
         step_kwargs = {"generator": generator} if accepts_generator and generator is not None else {}
@@ -395,8 +350,7 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
         return latents
 
     def decode(self, latents: torch.Tensor, output_type: str, guidance_scale: float) -> Any:
-        """The final latents as ``output_type`` (single-channel normalised dB images, or the latents), never
-        NaN or inf (:func:`.pipeline_checks.check_finite_output` names the component at fault)."""
+        """The final latents as ``output_type``, never NaN or inf (the message names the component)."""
         names = ("unet", "vae", "image_encoder", "pose_projection", "azimuth_estimator")
         components = {name: getattr(self, name) for name in names}
         check_finite_output(latents, "latents", guidance_scale, components)
@@ -412,8 +366,7 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
         return [PIL.Image.fromarray((a[..., 0] * 255.0).round().astype(np.uint8), mode="L") for a in array]
 
     def progress_bar(self, iterable: Any = None, total: int | None = None) -> Any:
-        """The denoising loop's bar (``set_progress_bar_config`` applies): a live bar on a terminal, a line
-        per interval in a log (:func:`sar_zero123.progress.progress_bar`)."""
+        """The denoising loop's bar: live on a terminal, a line per interval in a log."""
         config = dict(getattr(self, "_progress_bar_config", {}))
         if iterable is not None:
             return _progress_bar(iterable, **config)
@@ -422,7 +375,7 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
         return _progress_bar(total=total, **config)
 
     def _proxy(self) -> Mapping[str, Any] | None:
-        """The recorded proxy settings, a relative learned shortlist read in the pipeline's own folder."""
+        """The recorded proxy settings, a relative shortlist path read in the pipeline's own folder."""
         return anchored_proxy(getattr(self.config, "proxy", None), self.config.get("_name_or_path"))
 
     @torch.no_grad()
@@ -454,85 +407,51 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
     ) -> SARZero123PipelineOutput | tuple:
         """Generate views of each input chip at ``(d_az, d_el)`` relative to it.
 
-        Args:
-            image: Input chip(s) in the normalised dB domain (see :meth:`preprocess_image`).
-            d_az: Azimuth delta in degrees (target - input); a scalar or one value per input image.
-                Any real value (370 == 10).
-            d_el: Depression delta in degrees (target - input); a scalar or one value per input image.
-            input_depression_deg: The input chip's absolute depression in degrees (a scalar or one value
-                per input image), from its metadata; required by a pipeline whose pose carries it
-                (``pose_projection.config.input_depression``), ignored otherwise. Requests outside the
-                ranges the pipeline was trained on (``trained_d_el_deg``, ``trained_depression_deg`` of
-                its pose projection) are refused.
-            num_inference_steps: Number of denoising steps.
-            guidance_scale: Classifier-free guidance weight; guidance is off when ``<= 1``.
+        A sampler argument left ``None`` (``num_inference_steps``, ``guidance_scale``, ``strength``,
+        ``heading_guidance_scale``, ``depression_guidance_scale``, ``start_from``) takes the pipeline's
+        recorded ``config.sampler``, else :data:`SAMPLER_DEFAULTS`. A recorded strength runs at least one
+        step; a given one is never changed.
 
-            Every sampler argument left ``None`` (``num_inference_steps``, ``guidance_scale``, ``strength``,
-            ``heading_guidance_scale``, ``depression_guidance_scale``, ``start_from``) takes the value the
-            pipeline records as measured best for it (``pipe.config.sampler``, saved in
-            ``model_index.json``), else the library's default (:data:`SAMPLER_DEFAULTS`: 50 steps, guidance
-            3, strength 1, no heading or depression guidance, start from the input). A pipeline may record
-            a ``proxy_strength`` for a start from the proxy, a nearer draft than the input. A recorded
-            strength runs at least one denoising step of the call's ``num_inference_steps``; a given one is
-            never changed.
+        Args:
+            image: Input chip(s), normalised dB (:meth:`preprocess_image`).
+            d_az: Azimuth delta in degrees (target - input), a scalar or one per input; 370 == 10.
+            d_el: Depression delta in degrees (target - input), a scalar or one per input.
+            input_depression_deg: Each input's absolute depression; required where the pose carries it.
+                Requests outside the trained ranges are refused.
+            num_inference_steps: Number of denoising steps.
+            guidance_scale: Classifier-free guidance weight; off when ``<= 1``.
             num_images_per_prompt: Samples per input image.
-            generator: One generator, or one per output sample (``B * num_images_per_prompt``).
-            latents: Optional initial noise ``(B * num_images_per_prompt, 4, h, w)``, unscaled by
-                ``init_noise_sigma`` (the scheduler's scaling is applied here).
+            generator: One generator, or one per output sample.
+            latents: Initial noise ``(B * num_images_per_prompt, C, h, w)``, before ``init_noise_sigma``.
             output_type: ``"pil"``, ``"np"``, ``"pt"`` or ``"latent"``.
             return_dict: Return a :class:`SARZero123PipelineOutput` instead of a tuple.
-            callback_on_step_end: Called as ``f(pipe, step, timestep, callback_kwargs)`` after each step;
-                may return a dict replacing entries of ``callback_kwargs`` (``"latents"``).
+            callback_on_step_end: ``f(pipe, step, timestep, callback_kwargs)`` after each step; may return
+                a dict replacing ``"latents"``.
             callback_on_step_end_tensor_inputs: Tensors passed in ``callback_kwargs``.
-            strength: In (0, 1]. Below 1, sampling starts from the input chip's own latent noised to the
-                ``int(num_inference_steps * strength)``-th last timestep, and runs only those steps
-                (SDEdit, as diffusers' image-to-image pipelines do): the view keeps more of the input,
-                which suits small pose changes. ``latents``, if given, is then the noise added. 1 (the
-                default) starts from pure noise.
-            heading_guidance_scale: Weight ``h >= 0`` of guidance away from the flipped heading: the
-                prediction gains ``h * (eps(d_az) - eps(d_az + 180))``, which pushes each view from the
-                same body axis with its front and back swapped (:func:`.guidance.flipped_heading_pose`). One
-                more UNet evaluation per step; 0 (the default) leaves sampling unchanged.
-            start_from: Which latent a call with ``strength < 1`` noises and starts from: ``"input"`` (the
-                default), the input chip's latent as it is, or ``"turned_input"``, the same latent turned in
-                the image plane by the requested azimuth change (:func:`rotate_condition_latents`, with the
-                pose projection's ``rotation_sign``): a first draft of the target view whose footprint lies
-                where the target's does, for the last denoising steps to correct (shadow and layover stay tied
-                to the range direction). Ignored at ``strength == 1``. Measured not to help on the quickstart
-                (docs/results/). ``"proxy"``: each
-                input's simulator proxy (:mod:`sar_zero123.model.proxy`: the vehicle of the pipeline's
-                ``proxy`` bank that images most like the input at its pose) rendered at the requested pose,
-                a draft whose shadow, layover and front are the requested pose's; it needs
-                ``input_depression_deg`` and ``input_azimuth_deg``. A pipeline that records ``"proxy"`` as its
-                start starts from the input when a call gives no ``input_azimuth_deg``.
-            depression_guidance_scale: Weight ``g >= 0`` of guidance away from the input's depression: the
-                prediction gains ``g * (eps(d_az, d_el) - eps(d_az, 0))``, which pushes each view from the
-                same request at the input's own depression (:func:`.guidance.same_depression_pose`), the
-                view a model that ignores ``d_el`` returns. Requests with ``d_el == 0`` are unchanged (both
-                branches are the same; a call whose every ``d_el`` is 0 runs no extra branch). Otherwise one
-                more UNet evaluation per step; 0 (the default) leaves sampling unchanged.
-            start_image: A first draft of each target view (one per input image, the input's size, normalised
-                dB) that a call with ``strength < 1`` noises and starts from instead of ``start_from``'s
-                latent: a simulator proxy re-rendered at the requested pose
-                (:class:`~sar_zero123.sim.proxy.ProxyBank`), whose shadow, layover and front are the
-                requested pose's, for the last denoising steps, conditioned on the input, to carry the
-                input's identity onto. Ignored at ``strength == 1``.
-            input_azimuth_deg: Each input chip's absolute azimuth in degrees (a scalar or one per input),
-                from its metadata (the MSTAR header, ``index.csv``, the simulator): where
-                ``start_from="proxy"`` fits the proxy, and a ``spatial_pose="proxy"`` pipeline needs it.
-            proxy_views: For a ``spatial_pose="proxy"`` pipeline only: each input's proxy given instead of
-                fitted, ``(B, 2, H, W)`` normalised dB (at the input's pose, then at the requested pose; every
-                guidance branch takes them), or ``(B, 3, H, W)`` with the proxy at ``d_az + 180`` third (the
-                heading contrast's, as a fitted proxy gives it). No fit runs then: the view at the request
-                is also the draft a ``start_from="proxy"`` call starts from. An evaluation passes the true
-                vehicle here to bound what a perfect proxy gives, or proxies it fitted once in parallel.
+            strength: In (0, 1]. Below 1, start from a draft's latent noised to the
+                ``int(num_inference_steps * strength)``-th last timestep and run only those steps (SDEdit);
+                ``latents`` is then the noise added.
+            heading_guidance_scale: ``h >= 0``: the prediction gains ``h * (eps(d_az) - eps(d_az + 180))``,
+                away from the flipped heading (one more UNet evaluation per step).
+            start_from: The draft at ``strength < 1``: ``"input"`` (its latent), ``"turned_input"`` (it
+                turned in the image plane by the request, :func:`rotate_condition_latents`) or ``"proxy"``
+                (each input's simulator proxy at the request; needs both absolute angles; a recorded
+                ``"proxy"`` falls back to the input without ``input_azimuth_deg``).
+            depression_guidance_scale: ``g >= 0``: the prediction gains ``g * (eps(d_az, d_el) -
+                eps(d_az, 0))``, away from what a model that ignores ``d_el`` returns; no extra branch when
+                every ``d_el`` is 0.
+            start_image: One normalised dB draft per input, of its size, started from at ``strength < 1``
+                instead of ``start_from``'s.
+            input_azimuth_deg: Each input's absolute azimuth in degrees, where the proxy is fitted.
+            proxy_views: A ``spatial_pose="proxy"`` pipeline's proxies given instead of fitted,
+                ``(B, 2, H, W)`` (at the input's pose, at the request) or ``(B, 3, H, W)`` (at
+                ``d_az + 180`` third); no fit runs.
 
         Returns:
             :class:`SARZero123PipelineOutput`, or ``(images,)`` when ``return_dict`` is False.
 
         Raises:
-            ValueError: For invalid images, angles, sizes, counts or generators (the message names the
-                argument).
+            ValueError: For invalid images, angles, sizes, counts or generators, naming the argument.
         """
         # 1. check inputs; a sampler argument left None is the pipeline's recorded value, else the library's
         if isinstance(callback_on_step_end, PipelineCallback | MultiPipelineCallbacks):
@@ -585,10 +504,7 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
         return SARZero123PipelineOutput(images=output, proxy_fit_scores=scores)
 
 
-# diffusers resolves the `_class_name` of model_index.json inside its own namespace
-# (`_get_pipeline_class` in diffusers 0.42), so a saved SAR pipeline would only load through
-# `SARZero123Pipeline.from_pretrained`. Registering the class there lets the generic
-# `DiffusionPipeline.from_pretrained(folder)` load it too, once `sar_zero123` is imported, without
-# `trust_remote_code` or code copied into the folder.
+# diffusers resolves model_index.json's `_class_name` in its own namespace; registering the class there
+# lets `DiffusionPipeline.from_pretrained(folder)` load a SAR pipeline without `trust_remote_code`.
 if getattr(diffusers, SARZero123Pipeline.__name__, None) is None:
     setattr(diffusers, SARZero123Pipeline.__name__, SARZero123Pipeline)

@@ -1,9 +1,7 @@
-"""What :class:`~sar_zero123.model.pipeline.SARZero123Pipeline` refuses at its boundary, in one line each.
-
-Components that do not fit together (channels, sizes, the VAE and the azimuth estimator the UNet was trained
-beside), call arguments out of range, input images of another rank, size or domain, generators and latents
-that do not fit the batch, a step callback that hands back something else than latents, and outputs that are
-not finite. Each message names the argument or component at fault.
+"""What :class:`~sar_zero123.model.pipeline.SARZero123Pipeline` refuses at its boundary, in one line each
+naming the argument or component at fault: components that do not fit together, call arguments out of
+range, input images of another rank, size or domain, generators and latents that do not fit the batch, a
+step callback that hands back something else than latents, and outputs that are not finite.
 """
 
 from __future__ import annotations
@@ -100,11 +98,8 @@ def check_components(
 
 def check_vae_image_size(vae: AutoencoderKL, unet: UNet2DConditionModel, name: str = "vae") -> None:
     """Refuse a VAE built for another chip size than the UNet: ``vae.config.sample_size`` (pixels) must be
-    ``unet.config.sample_size`` (latent pixels) times the VAE's downsampling factor.
-
-    The networks would run at any size, but the pipeline's default image size, the training resolution and
-    the evaluation all follow these two records, so a VAE copied in from another model would silently
-    change the size every view is made at.
+    ``unet.config.sample_size`` (latent pixels) times the VAE's downsampling factor, or a VAE copied in
+    from another model would silently change the size every view is made at.
 
     Raises:
         ValueError: Naming both sizes, if they differ.

@@ -1,10 +1,9 @@
 """Loading and saving a :class:`~sar_zero123.model.pipeline.SARZero123Pipeline`, and what it records.
 
-:class:`PipelineLoadingMixin` gives the pipeline its ``from_pretrained`` (a bundled name resolved, a local
-folder checked against its ``manifest.json`` and each component's files named before diffusers reads
-them), its ``save_pretrained`` (the folder sealed by a manifest) and ``from_zero123`` (an Objaverse
-zero-1-to-3 checkpoint). :func:`check_recorded_settings` checks what ``model_index.json`` records beside the
-weights: the sampler measured best for them, the simulator proxy's settings and the weights' lineage.
+:class:`PipelineLoadingMixin` gives the pipeline ``from_pretrained`` (bundled names resolved, a local folder
+checked against its ``manifest.json`` and file by file), ``save_pretrained`` (sealed by a manifest) and
+``from_zero123``. :func:`check_recorded_settings` checks what ``model_index.json`` records beside the
+weights: the measured-best sampler, the proxy settings and the lineage.
 """
 
 from __future__ import annotations
@@ -30,14 +29,14 @@ logger = logging.getLogger(__name__)
 
 PipelineType = TypeVar("PipelineType", bound="PipelineLoadingMixin")
 
-#: Files of a pipeline folder that loading may read (weights, configs, scaling): one that its manifest does
-#: not list is named in a warning.
+#: Files of a pipeline folder that loading may read: one its manifest does not list is named in a warning.
 _SEALED_SUFFIXES = (".json", ".safetensors", ".bin", ".pt", ".pth", ".ckpt", ".pkl", ".py", ".msgpack")
 
 
 class PipelineLoadingMixin:
-    """``from_pretrained``, ``save_pretrained`` and ``from_zero123`` of a pipeline; listed before
-    ``DiffusionPipeline`` among its bases, whose own loading and saving it wraps."""
+    """``from_pretrained``, ``save_pretrained`` and ``from_zero123``; listed before ``DiffusionPipeline``,
+    whose loading and saving it wraps.
+    """
 
     @classmethod
     def from_pretrained(
@@ -46,27 +45,18 @@ class PipelineLoadingMixin:
         """diffusers' ``from_pretrained``, after resolving the name of a pipeline bundled with the package.
 
         Args:
-            pretrained_model_name_or_path: A registered name such as ``"sar-zero123/sim-prior"``
-                (:data:`sar_zero123.pretrained.SIM_PRIOR`), a ``save_pretrained`` folder, or anything
-                else diffusers loads (passed on unchanged; an existing path wins over a name).
-            **kwargs: diffusers' loading options (``torch_dtype``, ...), and ``verify_manifest`` (default
-                True): a local folder's files must match the ``manifest.json`` that :meth:`save_pretrained`
-                wrote; ``False`` loads a changed folder anyway, with a logged warning naming what differs.
-                A folder without a manifest (written before manifests existed) loads with a warning.
-
-        Returns:
-            The pipeline.
+            pretrained_model_name_or_path: A bundled name such as ``"sar-zero123/sim-prior"``, a
+                ``save_pretrained`` folder, or anything else diffusers loads (an existing path wins).
+            **kwargs: diffusers' loading options, and ``verify_manifest`` (default True): a local folder's
+                files must match its ``manifest.json``; ``False`` loads a changed folder with a warning. A
+                folder without a manifest loads with a warning.
 
         Raises:
-            FileNotFoundError: For a registered name whose weights are missing from this install, an
-                unknown name under ``"sar-zero123/"`` (listing the bundled ones), or a
-                folder without ``model_index.json`` or missing a component's folder, config or weights;
-                the message names the component, the file expected and the folder.
-            ValueError: For a folder whose JSON is invalid (naming the file), a component whose files
-                do not load (a config that does not fit its weights, a truncated weight file), naming it,
-                or a file that differs from the folder's ``manifest.json`` (changed, truncated or missing),
-                naming it, unless ``verify_manifest=False``. A weight or config added since is named in a
-                warning.
+            FileNotFoundError: For a bundled name whose weights are missing, an unknown ``"sar-zero123/"``
+                name (listing the bundled ones), or a missing ``model_index.json`` or component folder,
+                config or weights, naming them.
+            ValueError: For invalid JSON, a component that does not load, or (unless
+                ``verify_manifest=False``) a file that differs from the manifest, naming it.
         """
         if isinstance(pretrained_model_name_or_path, str | os.PathLike) and (
             is_bundled_name(pretrained_model_name_or_path)
@@ -79,9 +69,8 @@ class PipelineLoadingMixin:
             _refuse_a_missing_local_name(os.fspath(folder))
         if not (isinstance(folder, str | os.PathLike) and os.path.isdir(folder)):
             return super().from_pretrained(folder, **kwargs)  # type: ignore[misc]
-        # 1. a local folder: every file it was saved with is checked against its manifest (a changed weight,
-        # config or scaling would load and give other views), then each component's files, naming the
-        # component, before diffusers reads them (diffusers names a fallback `.bin` file or the folder)
+        # 1. a local folder: its files against its manifest (a changed file would give other views), then
+        # each component's files, named before diffusers reads them
         _check_manifest(folder, verify_manifest)
         components = check_pipeline_folder(folder, given=kwargs)
         try:
@@ -93,10 +82,7 @@ class PipelineLoadingMixin:
 
     def save_pretrained(self, save_directory: str | os.PathLike, **kwargs: Any) -> None:
         """diffusers' ``save_pretrained``, then ``manifest.json`` (written last, atomically): the size and
-        SHA-256 of every file of the folder, which :meth:`from_pretrained` checks before loading.
-
-        A writer that adds a file to the folder afterwards (a ``decibel_scaling.json``) seals it again with
-        :func:`sar_zero123.config.write_manifest`.
+        SHA-256 of every file. A writer adding a file later seals the folder again (``write_manifest``).
         """
         super().save_pretrained(save_directory, **kwargs)  # type: ignore[misc]
         write_manifest(save_directory)
@@ -110,22 +96,12 @@ class PipelineLoadingMixin:
         torch_dtype: torch.dtype | None = None,
         **conversion: Any,
     ) -> PipelineType:
-        """Load an Objaverse zero-1-to-3 checkpoint (diffusers folder, threestudio folder, or LDM file).
-
-        See :func:`sar_zero123.model.zero123_checkpoints.load_zero123_components` for the accepted layouts.
-
-        Args:
-            path: A diffusers folder (``cc_projection`` or ``clip_camera_projection``) or an LDM
-                ``.ckpt`` / ``.safetensors`` state dict.
-            use_ema: For LDM files holding ``model_ema.*``, load the EMA UNet weights.
-            image_encoder_path: Folder of a ``CLIPVisionModelWithProjection`` (and optionally its
-                ``CLIPImageProcessor``) for LDM files; ignored for folders that ship one.
-            torch_dtype: Optional dtype for all modules.
-            **conversion: LDM files only: ``unet_config``, ``vae_config``, ``image_encoder_config``
-                overrides and ``weights_only`` (see ``load_zero123_components``).
+        """Load an Objaverse zero-1-to-3 checkpoint in any layout
+        (:func:`~sar_zero123.model.zero123_checkpoints.load_zero123_components`, which takes ``use_ema``,
+        ``image_encoder_path`` and the LDM-only ``**conversion`` overrides).
 
         Returns:
-            The pipeline in eval mode, with a DDIM scheduler for LDM files.
+            The pipeline in eval mode (``torch_dtype`` where given), with a DDIM scheduler for LDM files.
         """
         components = load_zero123_components(
             path, use_ema=use_ema, image_encoder_path=image_encoder_path, **conversion
@@ -139,13 +115,12 @@ class PipelineLoadingMixin:
 def check_recorded_settings(
     sampler: dict[str, Any] | None, proxy: dict[str, Any] | None, lineage: dict[str, Any] | None
 ) -> dict[str, Any] | None:
-    """Refuse what a pipeline records beside its weights (``model_index.json``) where a call could not use it:
-    a sampler (:data:`~sar_zero123.model.sampler.SAMPLER_DEFAULTS`' keys) out of what a call may ask for, a
-    start from the proxy without proxy settings, invalid proxy settings, or a lineage that is not strings.
+    """Refuse what ``model_index.json`` records beside the weights where a call could not use it: a
+    sampler out of a call's range, a proxy start without proxy settings, invalid proxy settings, or a
+    lineage that is not strings.
 
     Returns:
-        The proxy settings, checked and completed (:func:`~sar_zero123.model.proxy.check_proxy_settings`),
-        or ``None``.
+        The proxy settings, checked and completed, or ``None``.
 
     Raises:
         ValueError: Naming the record and the field.
@@ -176,8 +151,8 @@ def check_recorded_settings(
 
 def anchored_proxy(proxy: Mapping[str, Any] | None, folder: str | None) -> Mapping[str, Any] | None:
     """A pipeline's proxy settings with a relative ``retrieval`` folder read against the pipeline's own
-    folder (where it was loaded from), never against the working directory; names and absolute paths as
-    recorded."""
+    folder, never the working directory.
+    """
     retrieval = None if proxy is None else proxy.get("retrieval")
     if (
         not isinstance(retrieval, str)
@@ -213,12 +188,12 @@ def _check_manifest(folder: str | os.PathLike, verify: bool) -> None:
 
 
 def _refuse_a_missing_local_name(text: str) -> None:
-    """Refuse, listing the bundled pipelines, a name that is meant as a local folder or a bundled pipeline but
-    is neither (a hub lookup would answer with a network error naming neither).
+    """Refuse, listing the bundled pipelines, a name meant as a local folder or bundled pipeline that is
+    neither (a hub lookup would answer with a network error).
 
     Raises:
         FileNotFoundError: For a path-like name (``./x``, ``../x``, ``/x``, ``~/x``), a bundled name in
-            another case (``SAR-ZERO123/sim-prior``) or without its namespace (``sim-prior-rotated``).
+            another case or without its namespace.
     """
     bundled = sorted(BUNDLED_PIPELINES)
     listing = f"the bundled pipelines are {bundled}"

@@ -1,13 +1,9 @@
 """The simulator proxy of each input chip, as the pipeline builds it (analysis by synthesis).
 
-For each input chip, a procedural vehicle of a :class:`~sar_zero123.sim.proxy.ProxyBank` is fitted to it
-(rendered at the chip's azimuth and depression; best blurred correlation) and re-rendered at the requested
-pose, in the pipeline's normalised dB domain: a first draft of the target view whose shadow, layover and
-front are the requested pose's. The pipeline starts sampling from it (``start_from="proxy"``), conditioned
-on the input, so that the input brings the identity and the simulator the geometry.
-
-A pipeline records its proxy settings (:data:`PROXY_FIELDS`) in its ``model_index.json`` (``proxy``); the
-bank's vehicles are built once per process and settings (:func:`proxy_bank`).
+A :class:`~sar_zero123.sim.proxy.ProxyBank` vehicle is fitted to each chip at its pose (best blurred
+correlation) and re-rendered at the requested pose in normalised dB: a draft whose shadow, layover and
+front are the requested pose's. Sampling from it, conditioned on the input, lets the input bring the
+identity and the simulator the geometry. A pipeline records its settings (:data:`PROXY_FIELDS`).
 """
 
 from __future__ import annotations
@@ -32,15 +28,13 @@ __all__ = [
     "MIN_FIT_SCORE", "fit_scores", "proxy_bank", "proxy_drafts", "proxy_latents", "with_shortlist",
 ]  # fmt: skip
 
-#: The fit score below which a chip holds no vehicle the simulator can fit: between the scores of real
-#: MSTAR vehicles and of their own clutter (``benchmarks/proxy_fit_floor.py``; docs/results/reliability.md).
+#: The fit score below which a chip holds no vehicle the simulator can fit: between real MSTAR vehicles'
+#: scores and their own clutter's.
 MIN_FIT_SCORE = 0.3
-#: What a pipeline records of its proxy: the bank (:class:`ProxyBank`'s arguments), the decibel bounds of its
-#: normalised dB domain (``decibel_scaling.json``) and its learned shortlist (``retrieval``: ``None``, or the
-#: name or folder of a :class:`~sar_zero123.model.retrieval.ProxyRetrievalNet` ranking that bank, whose
-#: ``shortlist`` best vehicles a fit renders; the bundled pipelines record ``sar-zero123/proxy-retrieval``
-#: with 64: the exhaustive fit's vehicle for 99 % of the named vehicles' inputs, docs/results/proxy.md).
-#: ``min_fit_score``: a chip whose best fit scores below it is refused (:data:`MIN_FIT_SCORE`).
+#: What a pipeline records of its proxy: the bank (:class:`ProxyBank`'s arguments), the decibel bounds of
+#: its normalised dB domain, its learned shortlist (``retrieval``: ``None``, or the name or folder of a
+#: :class:`~sar_zero123.model.retrieval.ProxyRetrievalNet` for that bank, whose ``shortlist`` best vehicles
+#: a fit renders) and ``min_fit_score`` (a best fit scoring below it is refused).
 PROXY_FIELDS = (
     "num_vehicles", "first_seed", "blur_sigma_px", "render_seed", "max_shift_px", "shortlist", "min_db",
     "max_db", "retrieval", "min_fit_score",
@@ -51,12 +45,10 @@ _BANK_FIELDS = PROXY_FIELDS[:6]
 _FIT_FIELDS = (*_BANK_FIELDS, "retrieval")
 #: Fields a record may leave out, and their values (records written before they existed).
 _PROXY_OPTIONAL = {"max_shift_px": 0, "shortlist": 0, "retrieval": None, "min_fit_score": MIN_FIT_SCORE}
-#: The shortlist a dataset's fits use (``sar-zero123-augment``; :class:`ProxyBank`'s ``shortlist``): on the
-#: 256 turns of the named vehicles (docs/results/proxy.md, section 4) the proxy alone lands 41.3 deg from the
-#: request against 40.7 exhaustively, the proxy prior's views 34.5 against 33.8 deg, for 128 renders per
-#: chip instead of 1,000 once a pose bucket is rendered.
+#: The shortlist a dataset's fits use (``sar-zero123-augment``): near the exhaustive fit, for far fewer
+#: renders per chip.
 DATASET_SHORTLIST = 128
-#: The bank the bundled priors record (docs/results/proxy.md measures 250 against 1,000 vehicles).
+#: The bank the bundled priors record.
 DEFAULT_PROXY: dict[str, Any] = {
     "num_vehicles": 1000,
     "first_seed": PROXY_FIRST_SEED,
@@ -159,9 +151,9 @@ def _fit(
     depression_deg: float,
     resolve_heading: bool,
 ) -> tuple[int, float, tuple[int, int], float]:
-    """The bank vehicle fitted to one chip at its pose: ``(index, fitted azimuth, shift, score)``; remembered
-    for the last 1,024 chips and poses of the process (a fit costs one render per bank vehicle; the rows of an
-    evaluation share their pairs' fits), at about 17 kB each for a 64 px chip."""
+    """The bank vehicle fitted to one chip at its pose: ``(index, fitted azimuth, shift, score)``,
+    remembered for the process's last 1,024 chips and poses (an evaluation's rows share their pairs' fits).
+    """
     bank = proxy_bank(*settings)
     chip = np.frombuffer(chip_bytes, dtype=np.float32).reshape(shape)
     headings = (azimuth_deg, azimuth_deg + 180.0) if resolve_heading else (azimuth_deg,)
@@ -187,26 +179,23 @@ def draft_target_views(
 
     Args:
         images: Input chips in normalised dB ``(B, 1 | 3, H, W)`` (square).
-        input_azimuth_deg: Each chip's absolute azimuth (deg) ``(B,)``: from its metadata, or estimated.
-        input_depression_deg: Each chip's depression (deg) ``(B,)``.
-        d_az_deg: Requested azimuth changes (deg) ``(B,)``.
-        d_el_deg: Requested depression changes (deg) ``(B,)``.
+        input_azimuth_deg: Each chip's absolute azimuth ``(B,)``, from its metadata or estimated.
+        input_depression_deg: Each chip's depression ``(B,)``.
+        d_az_deg: Requested azimuth changes ``(B,)``.
+        d_el_deg: Requested depression changes ``(B,)``.
         proxy: The pipeline's proxy settings (:func:`check_proxy_settings`).
-        resolve_heading: Also fit each chip at its azimuth + 180 deg and keep the better of the two (an
-            estimated azimuth may be right up to its front and back; the simulator tells them apart).
+        resolve_heading: Also fit at azimuth + 180 and keep the better (an estimate may swap front and
+            back; the simulator tells them apart).
 
     Returns:
-        ``(drafts, fitted_azimuth_deg)``: drafts ``(B, 1, H, W)`` float32 in [0, 1], and each chip's azimuth
-        as fitted ``(B,)`` (the given one, or that + 180 where ``resolve_heading`` turned it).
+        ``(drafts (B, 1, H, W) float32 in [0, 1], fitted azimuth (B,))``.
 
     Raises:
-        ValueError: For a target depression outside (0, 90) deg, or a chip with no structure to fit: every
-            pixel the same value (a blank, saturated or cropped-away scene matches every vehicle equally), or
-            a best fit scoring below the settings' ``min_fit_score`` (clutter without a vehicle).
+        ValueError: For a target depression outside (0, 90) deg, or a chip with nothing to fit: every pixel
+            the same value, or a best fit scoring below ``min_fit_score`` (clutter without a vehicle).
     """
     proxy = check_proxy_settings(proxy)
-    # the bank's own arguments alone where no learned shortlist is recorded: one cached bank per settings,
-    # whichever caller asks for it
+    # the bank's own arguments where no shortlist is recorded: one cached bank per settings
     fields = _FIT_FIELDS if proxy["retrieval"] is not None else _BANK_FIELDS
     settings = tuple(proxy[key] for key in fields)
     bank = proxy_bank(*settings)
@@ -245,9 +234,8 @@ def fit_scores(
     proxy: Mapping[str, Any],
     resolve_heading: bool = False,
 ) -> np.ndarray:
-    """How well each input's proxy fits it: the blurred correlation ``(B,)`` in [-1, 1] of the fitted bank
-    vehicle with the chip at its pose (:meth:`~sar_zero123.sim.proxy.ProxyBank.retrieve`), for the fits
-    :func:`draft_target_views` ran with the same arguments (remembered: no fit runs again).
+    """How well each input's proxy fits it: the blurred correlation ``(B,)`` in [-1, 1] of the fitted
+    vehicle with the chip at its pose, for the fits :func:`draft_target_views` ran (remembered, not rerun).
 
     Raises:
         ValueError: As :func:`draft_target_views`, for a chip with no structure to fit.
@@ -296,20 +284,18 @@ def proxy_drafts(
     proxy: Mapping[str, Any] | None,
     why: str = "start_from='proxy'",
 ) -> torch.Tensor:
-    """Each input's simulator proxy at the requested pose, for a pipeline call (``start_from="proxy"``, or
-    the proxy pair of a ``spatial_pose="proxy"`` UNet, ``why`` naming which).
+    """Each input's simulator proxy at the requested pose, for a pipeline call (``why`` names which use).
 
     Args:
-        input_azimuth_deg: One checked azimuth per input
-            (:func:`~sar_zero123.model.view_request.per_input_angles`), or ``None``.
-        proxy: The pipeline's proxy settings (``pipe.config.proxy``), or ``None`` where it records none.
+        input_azimuth_deg: One checked azimuth per input, or ``None``.
+        proxy: ``pipe.config.proxy``, or ``None`` where it records none.
 
     Returns:
-        ``(B, 1, H, W)`` float32 in [0, 1] (:func:`draft_target_views`).
+        ``(B, 1, H, W)`` float32 in [0, 1].
 
     Raises:
-        ValueError: Naming what to pass, where the pipeline records no proxy, or the input's depression
-            or azimuth is not given.
+        ValueError: Naming what to pass, where the pipeline records no proxy, or an absolute angle is
+            missing.
     """
     start = why.startswith("start_from")
     if proxy is None:
@@ -325,8 +311,7 @@ def proxy_drafts(
         )
     depression = per_input_angles(input_depression_deg, "input_depression_deg", batch_size)
     if input_azimuth_deg is None:
-        # an estimated azimuth is no substitute: the bundled estimator is far off on unseen vehicles, and
-        # fitting the heading to it turns the proxy wrong more often (docs/results/proxy.md)
+        # an estimated azimuth is no substitute: the bundled estimator is far off on unseen vehicles
         raise ValueError(
             f"`input_azimuth_deg`: {why} fits a simulator vehicle at the input's pose; give each "
             "input chip's absolute azimuth in degrees (its metadata, or an estimate you trust)"
@@ -346,12 +331,9 @@ def proxy_latents(
     proxy: Mapping[str, Any] | None,
     device: torch.device,
 ) -> torch.Tensor:
-    """The proxy pair of the request and of each contrast branch, for a ``spatial_pose="proxy"`` UNet.
-
-    Each input's proxy is fitted once and rendered at the input's pose and at each branch's request: the
-    request itself, then each contrast's (``"heading"``: ``d_az + 180``; ``"depression"``: ``d_el = 0``), so
-    that a contrast branch sees its own proxy. Given ``request.proxy_views`` (each input's proxy at its pose
-    and at the request), every branch takes them.
+    """The proxy pair (at the input's pose, at the branch's request) of the request and of each
+    contrast branch (``"heading"``: ``d_az + 180``; ``"depression"``: ``d_el = 0``), one fit per input;
+    given ``request.proxy_views``, every branch takes them.
 
     Returns:
         ``(1 + len(contrast_kinds), B, 2C, h, w)``, unscaled latents.
@@ -370,8 +352,7 @@ def proxy_latents(
     requests = [(torch.zeros_like(d_az_values), zeros), (d_az_values, d_el_values)]  # input pose, request
     for kind in contrast_kinds:
         requests.append((d_az_values + 180.0, d_el_values) if kind == "heading" else (d_az_values, zeros))
-    # one call, each chip's requests side by side: one fit per chip however large the batch (the fit
-    # cache keeps the last 1,024), and one VAE encoding of every render
+    # one call, each chip's requests side by side: one fit per chip, one VAE encoding of every render
     count = len(requests)
     d_az_all = torch.stack([az for az, _ in requests], dim=1).reshape(-1)  # (B * R,), chip-major
     d_el_all = torch.stack([el for _, el in requests], dim=1).reshape(-1)

@@ -1,26 +1,23 @@
 """Reference attention: every self-attention of the UNet also attends to the input view's own features.
 
-A zero-1-to-3 UNet cross-attends to one token, so the input's appearance reaches a place of the generated
-view only through the condition latents concatenated at the input's own pose, carried there by
-convolutions. Reference attention (Zero123++'s mechanism, with IP-Adapter's decoupled, gated form) makes
-the input reachable from every place of the view, by content:
+A zero-1-to-3 UNet reaches the input's appearance only through the condition latents at the input's own
+pose, carried by convolutions. Reference attention (Zero123++'s mechanism in IP-Adapter's decoupled, gated
+form) makes it reachable from every place, by content:
 
-1. a **reference pass** runs the same UNet on the input view asked for itself (``d_az = d_el = 0``, the
-   clean input latent at timestep 0) and keeps the input of each self-attention (:func:`reference_features`;
-   once per call, whatever the number of denoising steps);
-2. in the **target pass** each self-attention adds ``tanh(g_l) * Attn(Q, K_ref, V_ref)``, its queries
-   against the keys and values of the kept features, through the layer's own projections
-   (:func:`attending_to_reference`). The gates ``g_l`` live in the pose projection
-   (``reference_gates``, zero at a warm start: the model then computes exactly what it did without them).
+1. a **reference pass** runs the UNet on the input asked for itself (``d_az = d_el = 0``, the clean input
+   latent at timestep 0), once per call, and keeps each self-attention's input (:func:`reference_features`);
+2. in the **target pass** each self-attention adds ``tanh(g_l) * Attn(Q, K_ref, V_ref)`` through its own
+   projections (:func:`attending_to_reference`). The gates ``reference_gates`` start at zero, so a warm
+   start computes exactly what the model did without them.
 
-Rows whose condition is the classifier-free-guidance null get weight 0: the unconditional branch runs
-without the reference, as in Zero123++.
+The classifier-free-guidance null gets weight 0, as in Zero123++.
 """
 
 from __future__ import annotations
 
 import contextlib
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
+from typing import Any
 
 import torch
 import torch.nn.functional as F
@@ -32,13 +29,16 @@ __all__ = [
     "GatedAttnProcessor",
     "attend_extra",
     "attending_to_reference",
+    "check_gate_count",
     "check_reference_layers",
     "enable_reference_attention",
+    "gate_count",
     "input_reference",
     "own_pose",
     "reference_features",
     "reference_layers",
     "reference_weights",
+    "shared_state",
     "transformer_attentions",
     "uses_reference",
 ]
@@ -47,16 +47,17 @@ __all__ = [
 class _ReferenceState:
     """What the processors of one UNet share: the mode and, while reading, the kept features and weights."""
 
-    def __init__(self) -> None:
+    def __init__(self, layers: int) -> None:
         self.mode = "off"  # "off" | "write" | "read"
-        self.features: list[torch.Tensor | None] = []
+        self.features: list[torch.Tensor | None] = [None] * layers
         self.rows: torch.Tensor | None = None
         self.weights: torch.Tensor | None = None  # (N, layers)
 
 
 class GatedAttnProcessor:
-    """An attention's processor: diffusers' own attention, plus ``weight * Attn(Q, K(context), V(context))``
-    where :meth:`extra` gives a ``(weight, context)`` pair (reference attention, input tokens)."""
+    """Diffusers' own attention plus ``weight * Attn(Q, K(context), V(context))`` for the
+    ``(weight, context)`` that :meth:`extra` gives.
+    """
 
     def __init__(self, layer: int) -> None:
         self.layer = layer
@@ -85,8 +86,9 @@ class GatedAttnProcessor:
 
 
 class ReferenceAttnProcessor(GatedAttnProcessor):
-    """A self-attention's processor: while writing, it keeps its input; while reading, it also attends to
-    the reference features of the same layer (see the module docstring)."""
+    """A self-attention's processor: writing, it keeps its input; reading, it also attends to that layer's
+    reference features.
+    """
 
     def __init__(self, layer: int, state: _ReferenceState) -> None:
         super().__init__(layer)
@@ -103,8 +105,8 @@ class ReferenceAttnProcessor(GatedAttnProcessor):
 
 
 def attend_extra(attn: Attention, hidden_states: torch.Tensor, reference: torch.Tensor) -> torch.Tensor:
-    """``Attn(Q(hidden_states), K(reference), V(reference))`` through the layer's projections, its output
-    projection without the bias (the layer's own attention already adds it once).
+    """``Attn(Q(hidden_states), K(reference), V(reference))`` through the layer's projections, the output
+    projection without its bias (the layer's own attention adds it once).
 
     Shape:
         ``(N, L, C)``, ``(N, L_ref, C)`` -> ``(N, L, C)``.
@@ -125,12 +127,11 @@ def attend_extra(attn: Attention, hidden_states: torch.Tensor, reference: torch.
 
 
 def transformer_attentions(unet: torch.nn.Module, name: str, purpose: str) -> list[Attention]:
-    """The UNet's transformer-block attentions named ``name`` (``"attn1"``: self-attention, ``"attn2"``:
-    cross-attention), in module order.
+    """The UNet's transformer-block attentions named ``name`` (``"attn1"``: self, ``"attn2"``: cross), in
+    module order.
 
     Raises:
-        ValueError: If one takes a 4-d input or adds its own residual (not a transformer block's; ``purpose``
-            names what needs them).
+        ValueError: If one is not a transformer block's (``purpose`` names what needs them).
     """
     unet = getattr(unet, "module", unet)
     layers = [m for key, m in unet.named_modules() if key.endswith(name) and isinstance(m, Attention)]
@@ -145,24 +146,59 @@ def reference_layers(unet: torch.nn.Module) -> list[Attention]:
     return transformer_attentions(unet, "attn1", "reference attention")
 
 
-def _state(unet: torch.nn.Module) -> _ReferenceState:
-    """The UNet's shared state, its processors installed on first use (idempotent)."""
+def shared_state(
+    unet: torch.nn.Module,
+    attribute: str,
+    layers: Callable[[torch.nn.Module], list[Attention]],
+    make_state: Callable[[int], Any],
+    processor: Callable[[int, Any], GatedAttnProcessor],
+) -> Any:
+    """The state a (possibly DDP-wrapped) UNet's ``layers`` share, kept as its ``attribute``: on first use
+    ``make_state(count)``, and each layer's ``processor(index, state)`` installed (idempotent)."""
     unet = getattr(unet, "module", unet)
-    state = getattr(unet, "_reference_state", None)
+    state = getattr(unet, attribute, None)
     if state is None:
-        state = _ReferenceState()
-        layers = reference_layers(unet)
-        state.features = [None] * len(layers)
-        for index, layer in enumerate(layers):
-            layer.set_processor(ReferenceAttnProcessor(index, state))
-        unet._reference_state = state
+        found = layers(unet)
+        state = make_state(len(found))
+        for index, layer in enumerate(found):
+            layer.set_processor(processor(index, state))
+        setattr(unet, attribute, state)
     return state
+
+
+def _state(unet: torch.nn.Module) -> _ReferenceState:
+    return shared_state(unet, "_reference_state", reference_layers, _ReferenceState, ReferenceAttnProcessor)
+
+
+def gate_count(pose_projection: torch.nn.Module, field: str) -> int:
+    """How many gated layers a (possibly DDP-wrapped) pose projection records in its config ``field``."""
+    config = getattr(pose_projection, "module", pose_projection).config
+    return int(getattr(config, field, 0) or 0)
+
+
+def check_gate_count(
+    unet: torch.nn.Module,
+    pose_projection: torch.nn.Module,
+    field: str,
+    layers: Callable[[torch.nn.Module], list[Attention]],
+    kind: str,
+) -> None:
+    """Refuse a pose projection whose gates (``field``) do not match the UNet's ``layers`` (``kind``).
+
+    Raises:
+        ValueError: Naming both counts.
+    """
+    recorded = gate_count(pose_projection, field)
+    if recorded <= 0:
+        return
+    count = len(layers(unet))
+    if recorded != count:
+        raise ValueError(f"pose_projection: {field}={recorded} gates, but the UNet has {count} {kind}")
 
 
 def uses_reference(pose_projection: torch.nn.Module) -> bool:
     """Whether a (possibly DDP-wrapped) pose projection records reference attention."""
-    config = getattr(pose_projection, "module", pose_projection).config
-    return int(getattr(config, "reference_layers", 0) or 0) > 0
+    return gate_count(pose_projection, "reference_layers") > 0
 
 
 def enable_reference_attention(unet: torch.nn.Module, pose_projection: torch.nn.Module) -> None:
@@ -182,19 +218,8 @@ def enable_reference_attention(unet: torch.nn.Module, pose_projection: torch.nn.
 
 
 def check_reference_layers(unet: torch.nn.Module, pose_projection: torch.nn.Module) -> None:
-    """Refuse a pose projection whose gates do not match the UNet's self-attentions.
-
-    Raises:
-        ValueError: Naming both counts.
-    """
-    if not uses_reference(pose_projection):
-        return
-    count = len(reference_layers(unet))
-    recorded = int(getattr(pose_projection, "module", pose_projection).config.reference_layers)
-    if recorded != count:
-        raise ValueError(
-            f"pose_projection: reference_layers={recorded} gates, but the UNet has {count} self-attentions"
-        )
+    """Refuse a pose projection whose gates do not match the UNet's self-attentions."""
+    check_gate_count(unet, pose_projection, "reference_layers", reference_layers, "self-attentions")
 
 
 @torch.no_grad()
@@ -202,10 +227,8 @@ def reference_features(unet: torch.nn.Module, model_input: torch.Tensor, **unet_
     """The reference pass: the input of every self-attention while the UNet runs on ``model_input``.
 
     Args:
-        unet: The UNet (possibly DDP-wrapped).
-        model_input: ``[the input's scaled latent, its condition latents at the input's own pose]``.
-        **unet_kwargs: The UNet's other arguments (``timestep``, ``encoder_hidden_states``,
-            ``class_labels``).
+        model_input: ``[the input's scaled latent, its condition latents at its own pose]``.
+        **unet_kwargs: ``timestep``, ``encoder_hidden_states``, ``class_labels``.
 
     Returns:
         One ``(B, L_l, C_l)`` tensor per self-attention (:func:`reference_layers`).
@@ -280,16 +303,16 @@ def input_reference(
     scaling_factor: float,
     proxy_at_input: torch.Tensor | None = None,
 ) -> list[torch.Tensor]:
-    """The reference pass of step 1 (module docstring): the UNet on each input view asked for itself.
+    """The reference pass (module docstring, step 1): the UNet on each input view asked for itself.
 
     Args:
-        condition_latents: The inputs' unscaled latents (never the classifier-free-guidance null).
+        condition_latents: The inputs' unscaled latents (never the guidance null).
         own: :func:`own_pose` of the request's pose.
-        tokens: ``pose_projection(image_embeds, own)``, the inputs' own-pose tokens.
-        class_labels: The UNet's class labels at the own pose (``pose_class_labels``), or ``None``.
-        scaling_factor: The VAE's; the clean input latent scaled as a target latent is, at timestep 0.
-        proxy_at_input: For a ``spatial_pose="proxy"`` UNet: the proxy's latent at the input's pose
-            ``(B, C, h, w)``, its request's proxy too (the view asked for itself).
+        tokens: ``pose_projection(image_embeds, own)``.
+        class_labels: The UNet's class labels at the own pose, or ``None``.
+        scaling_factor: The VAE's: the clean input latent is scaled as a target latent, at timestep 0.
+        proxy_at_input: A ``spatial_pose="proxy"`` UNet's proxy latent at the input's pose, also its
+            request's proxy.
 
     Shape:
         ``(B, C, h, w)``, ``(B, 1, 4)``, ``(B, 1, D)`` -> a list of ``(B, L_l, C_l)``.

@@ -1,22 +1,16 @@
 """A learned shortlist for the proxy fit: a small network that ranks a bank's vehicles for a chip at its pose.
 
-An exhaustive fit (:class:`~sar_zero123.sim.proxy.ProxyBank`) renders every bank vehicle at the chip's pose,
-about 2.4 s for 1,000 vehicles on one core: most of a proxy view's cost. :class:`ProxyRetrievalNet` reads the
-chip (blurred, 2 x 2 pooled, standardised, and a copy turned to the vehicle's frame) and its pose, and gives
-one logit per bank vehicle, trained to match the softmax of each vehicle's correlation with the chip at that
-pose (:func:`~sar_zero123.training.retrieval.retrieval_loss`, in
-:func:`~sar_zero123.training.retrieval.train_retrieval`). A fit then renders only the ``shortlist`` vehicles
-it ranks best and scores them exactly as the exhaustive fit does, in a few dozen renders.
+An exhaustive fit renders every bank vehicle at the chip's pose, most of a proxy view's cost.
+:class:`ProxyRetrievalNet` reads the chip (blurred, 2 x 2 pooled, standardised, and a copy turned to the
+vehicle's frame) and its pose and gives one logit per bank vehicle, trained toward the softmax of each
+vehicle's correlation with the chip (:func:`~sar_zero123.training.retrieval.train_retrieval`). A fit then
+renders and scores only its ``shortlist`` best.
 
-Its training chips (:func:`make_retrieval_data`) are procedural vehicles never in a prior corpus nor the
-named test vehicles: half the bank's own vehicles, half others (seeds from :data:`RETRIEVAL_FIRST_SEED`),
-rendered with clutter and speckle at random poses, and half of them remapped by the co-domain augmentation's
-random monotonic map (:func:`~sar_zero123.augment.codomain.random_monotonic`) so that a chip's intensity
-mapping does not decide; each chip's target is the bank's pooled correlations at the centre of its pose
-bucket (the bank's shortlist features), computed on the chip before the remap.
-
-The network is tied to one bank (its logits are that bank's vehicles): its config records the bank, and
-:func:`load_retrieval` refuses another bank.
+Training chips (:func:`make_retrieval_data`) are procedural vehicles in no prior corpus and no test set
+(half the bank's, half from :data:`RETRIEVAL_FIRST_SEED`), at random poses with clutter and speckle, half
+remapped by :func:`~sar_zero123.augment.codomain.random_monotonic` so the intensity mapping does not
+decide; targets are computed before the remap. The config records the bank; :func:`load_retrieval` refuses
+another.
 """
 
 from __future__ import annotations
@@ -47,13 +41,11 @@ __all__ = [
     "retrieval_inputs", "save_retrieval",
 ]  # fmt: skip
 
-#: First procedural seed of the training vehicles that are not bank vehicles: above the default bank's
-#: seeds (1,000,000 + its size) and every prior corpus's, so no training vehicle is a test vehicle.
+#: First seed of the training vehicles beyond the bank: above the default bank's and every prior corpus's.
 RETRIEVAL_FIRST_SEED = 2_000_000
 #: Bank vehicles kept per training chip as its soft target (the rest weigh nothing at the temperature used).
 RETRIEVAL_TOP = 64
-#: The rotation convention of the simulator's chips (``SIM_ROTATION_SIGN`` of the priors): a vehicle turned
-#: by ``a`` turns its footprint by ``-a`` in the image plane.
+#: The simulator chips' rotation convention: a vehicle turned by ``a`` turns its footprint by ``-a``.
 _ROTATION_SIGN = -1
 _CONFIG = "config.json"
 _WEIGHTS = "model.safetensors"
@@ -67,14 +59,11 @@ def _pose_features(azimuth_deg: torch.Tensor, depression_deg: torch.Tensor, harm
 
 
 def retrieval_inputs(chips: torch.Tensor, blur_sigma_px: float) -> torch.Tensor:
-    """Chips as the network reads them: blurred, 2 x 2 average-pooled, standardised per chip.
-
-    Args:
-        chips: ``(B, S, S)`` decibels or any affine map of them (normalised dB), ``S`` even.
-        blur_sigma_px: The bank's blur (pixels), applied before pooling.
+    """Chips ``(B, S, S)`` (``S`` even; any affine map of decibels) as the network reads them: blurred by
+    the bank's ``blur_sigma_px``, 2 x 2 average-pooled, standardised per chip (0 for a constant chip).
 
     Returns:
-        ``(B, S / 2, S / 2)`` float32, zero mean and unit variance per chip (0 for a constant chip).
+        ``(B, S / 2, S / 2)`` float32.
     """
     x = chips.float()[:, None]
     if blur_sigma_px > 0:
@@ -173,8 +162,8 @@ def _bucket_chips(args: tuple) -> dict[str, np.ndarray]:
     threadpool_limits(limits=1)
     bank = _bank(*bank_args)  # built once per worker process
     rng = np.random.default_rng(seed)
-    # pose targets: the bank's pooled correlations at the bucket's centre (V, size^2 / 4); turntable targets
-    # (pool > 0) are looked up by the caller from each chip's vehicle
+    # pose targets: the bank's pooled correlations at the bucket's centre; turntable targets (pool > 0)
+    # the caller looks up from each chip's vehicle
     features = None if pool else bank.bucket_features(azimuth, depression, size)
     chips, azimuths, depressions, top_index, top_score, vehicles = [], [], [], [], [], []
     generator = torch.Generator().manual_seed(int(rng.integers(2**62)))
@@ -256,12 +245,12 @@ def turntable_similarity(
     size: int = 64,
     workers: int = 2,
 ) -> np.ndarray:
-    """How alike each pool vehicle and each bank vehicle image from every side: the pooled correlation of
-    their renders at the same azimuth (a ``step_deg`` grid, at ``depression_deg``), averaged over the grid.
+    """How alike each pool vehicle and each bank vehicle image from every side: their renders' pooled
+    correlation at the same azimuth (a ``step_deg`` grid at ``depression_deg``), averaged.
 
     Returns:
-        ``(num_vehicles + pool, num_vehicles)`` float32: rows are the bank's vehicles, then ``pool``
-        procedural vehicles from :data:`TURNTABLE_POOL_SEED`; columns the bank's.
+        ``(num_vehicles + pool, num_vehicles)`` float32: rows the bank's vehicles then ``pool``
+        procedural ones from :data:`TURNTABLE_POOL_SEED`; columns the bank's.
     """
     azimuths = np.arange(0.0, 360.0, step_deg)
     bank_args = (bank.num_vehicles, bank.first_seed, bank.blur_sigma_px, bank.render_seed)
@@ -285,19 +274,17 @@ def make_retrieval_data(
     pool: int = 1500,
 ) -> dict[str, np.ndarray]:
     """Training chips for :class:`ProxyRetrievalNet`: ``chips_per_bucket`` in every azimuth bucket at each
-    depression bucket centre (module docstring), in ``workers`` processes.
+    depression bucket centre, in ``workers`` processes.
 
     Args:
-        target: ``"pose"``: each chip's target is the bank's pooled correlations with it at its pose bucket
-            (the network learns the exhaustive fit's ranking; chips of bank vehicles and of random procedural
-            ones). ``"turntable"``: its vehicle's :func:`turntable_similarity` to each bank vehicle (the
-            network learns which bank vehicles image like the chip's from every side; chips of the bank's
-            vehicles and of ``pool`` procedural ones).
+        target: ``"pose"``: the bank's pooled correlations with the chip at its pose bucket (the exhaustive
+            fit's ranking). ``"turntable"``: its vehicle's :func:`turntable_similarity` to each bank vehicle
+            (chips of the bank's vehicles and of ``pool`` procedural ones).
         pool: Procedural vehicles beyond the bank that the turntable targets cover.
 
     Returns:
-        ``inputs`` ``(N, S/2, S/2)`` float16 (:func:`retrieval_inputs`), ``azimuth``, ``depression``,
-        ``vehicle`` ``(N,)``, ``top_index`` ``(N, RETRIEVAL_TOP)`` int16 and ``top_score``.
+        ``inputs`` ``(N, S/2, S/2)`` float16, ``azimuth``, ``depression``, ``vehicle`` ``(N,)``,
+        ``top_index`` ``(N, RETRIEVAL_TOP)`` int16 and ``top_score``.
 
     Raises:
         ValueError: For another ``target``, or a bank too large for int16 indices.

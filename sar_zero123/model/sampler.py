@@ -1,13 +1,8 @@
 """How a pipeline samples, declared once: :class:`SamplerSettings`, the library's defaults and their checks.
 
-Every command that samples (``generate``, ``augment``, ``evaluate``, the demo) takes a
-:class:`SamplerSettings`: its configs inherit these fields, their flags, help and validation, as the
-fine-tune's config inherits :class:`~sar_zero123.training.losses.LossSettings`. A field left ``None`` takes
-the value the pipeline records as measured best for it (``pipe.config.sampler``, written by
-``save_pretrained`` and shown in a bundled prior's model card), else the library's (:data:`SAMPLER_DEFAULTS`),
-so that a command run with no sampler option gives the best views measured for its pipeline, and a new
-sampler option is declared here and read by :meth:`SARZero123Pipeline.__call__
-<sar_zero123.model.pipeline.SARZero123Pipeline.__call__>`.
+Every sampling command's config inherits :class:`SamplerSettings` (fields, flags, help, validation). A
+field left ``None`` takes the pipeline's recorded ``config.sampler``, else :data:`SAMPLER_DEFAULTS`, so a
+command with no sampler option samples as measured best for its pipeline.
 """
 
 from __future__ import annotations
@@ -35,8 +30,7 @@ __all__ = [
 MAX_GUIDANCE_SCALE = 100.0
 #: Most denoising steps per view (the noise schedules have 1,000 training timesteps).
 MAX_INFERENCE_STEPS = 1_000
-#: The samplers a command may name (``--scheduler``, the evaluation's sweep): each built from the pipeline's
-#: scheduler config, so that it keeps the noise schedule the model was trained with.
+#: The samplers a command may name, each built from the pipeline's scheduler config (its noise schedule).
 SCHEDULERS = {
     "ddim": (DDIMScheduler, {}),
     "dpmsolver++": (DPMSolverMultistepScheduler, {"algorithm_type": "dpmsolver++"}),
@@ -45,8 +39,8 @@ SCHEDULERS = {
 }
 #: What an image-to-image call (``strength < 1``) starts from (:meth:`SARZero123Pipeline.__call__`).
 START_FROM = ("input", "turned_input", "proxy")
-#: The sampler settings a pipeline may record as its defaults (``SARZero123Pipeline(sampler=...)``), and
-#: the library's defaults for those it does not record. An argument given to a call overrides both.
+#: The sampler settings a pipeline may record (``SARZero123Pipeline(sampler=...)``) and the library's
+#: defaults for the rest; a call's argument overrides both.
 SAMPLER_DEFAULTS: dict[str, Any] = {
     "num_inference_steps": 50,
     "guidance_scale": 3.0,
@@ -58,11 +52,9 @@ SAMPLER_DEFAULTS: dict[str, Any] = {
 }
 
 
-#: What a pipeline exported by this project's training records (``export_finetuned``; a proxy model keeps its
-#: prior's whole sampler): 20 DDIM steps instead of zero-1-to-3's 50, which the library keeps for Objaverse
-#: checkpoints and the paper-comparable evaluation. On the quickstart's fine-tune 50 steps are not better
-#: than 20, and 5 lean behind 20 on depression requests, so 20, at a fraction of 50's time
-#: (measured in docs/results/speed.md).
+#: What a pipeline exported by this project's training records (a proxy model keeps its prior's sampler):
+#: 20 DDIM steps, not zero-1-to-3's 50, which the library keeps for Objaverse checkpoints and the
+#: paper-comparable evaluation.
 EXPORTED_SAMPLER: dict[str, Any] = {"num_inference_steps": 20}
 
 
@@ -70,11 +62,8 @@ EXPORTED_SAMPLER: dict[str, Any] = {"num_inference_steps": 20}
 class SamplerSettings:
     """How a pipeline samples its views: the fields every sampling command's config inherits.
 
-    Each field left ``None`` takes the value the pipeline records as measured best for it
-    (``pipe.config.sampler``), else the library's (:data:`SAMPLER_DEFAULTS`: 50 steps, guidance 3, strength 1,
-    no heading or depression guidance, start from the input); ``scheduler`` ``None`` keeps the pipeline's
-    own scheduler. Each value is validated here, once; the field names are the commands' flags, so errors
-    name the user's flag.
+    A field left ``None`` takes the pipeline's recorded value, else :data:`SAMPLER_DEFAULTS`;
+    ``scheduler`` ``None`` keeps the pipeline's own. Field names are the flags, so errors name the flag.
 
     Raises:
         ValueError: Naming the first field out of range.
@@ -111,8 +100,7 @@ class SamplerSettings:
         )  # fmt: skip
 
     def sampler_settings(self) -> SamplerSettings:
-        """These settings alone, as the library's sampling functions take them (a command's config inherits
-        the fields; this drops its others)."""
+        """These settings alone, without a command config's other fields."""
         return SamplerSettings(**{item.name: getattr(self, item.name) for item in fields(SamplerSettings)})
 
     def sampler_arguments(self) -> dict[str, Any]:
@@ -121,8 +109,8 @@ class SamplerSettings:
         return {name: getattr(self, name) for name in names}
 
     def resolved(self, recorded: Mapping[str, Any] | None) -> dict[str, Any]:
-        """Every sampler value a call with these settings uses, given what a pipeline records (its
-        ``config.sampler``; :func:`resolve_sampler`), and the scheduler (``None``: the pipeline's own)."""
+        """Every sampler value a call uses given the pipeline's recorded ``config.sampler``, and the
+        scheduler."""
         return {"scheduler": self.scheduler, **resolve_sampler(self.sampler_arguments(), recorded)}
 
     def apply_scheduler(self, pipe: Any) -> None:
@@ -134,17 +122,11 @@ class SamplerSettings:
 def resolve_sampler(
     given: Mapping[str, Any], recorded: Mapping[str, Any] | None, input_azimuth_given: bool = True
 ) -> dict[str, Any]:
-    """The sampler a pipeline call runs: each argument ``given`` as ``None`` takes the pipeline's ``recorded``
-    value (its ``config.sampler``), else the library's (:data:`SAMPLER_DEFAULTS`). A recorded start from the
-    proxy falls back to the input when the call gives no input azimuth (the fit needs it); a start from the
-    proxy takes the recorded ``proxy_strength`` when no strength is given; a strength not given runs at least
-    one step of the call's step count. The one place these rules live (the pipeline call and the commands'
-    records use it).
+    """The sampler a pipeline call runs: the one place these rules live.
 
-    Args:
-        given: The call's sampler arguments (:data:`SAMPLER_DEFAULTS`' keys but ``proxy_strength``).
-        recorded: The pipeline's recorded sampler, or ``None``.
-        input_azimuth_given: Whether the call gives the input's azimuth.
+    An argument ``given`` as ``None`` takes the ``recorded`` value, else :data:`SAMPLER_DEFAULTS`'. A
+    recorded proxy start falls back to the input without an input azimuth; a proxy start takes the
+    recorded ``proxy_strength`` when no strength is given; a recorded strength runs at least one step.
 
     Returns:
         Every sampler argument's value (``proxy_strength`` excluded).
@@ -165,9 +147,9 @@ def resolve_sampler(
 
 
 def describe_sampler(values: Mapping[str, Any]) -> str:
-    """A sampler in words, for a report: ``values`` are the sampler fields a command recorded (an evaluation's
-    ``table3.json``), e.g. "20 DDIM steps, guidance 3.0, heading guidance 1.5, from the input at strength 0.8"
-    (heading guidance named only when on, the start only below strength 1)."""
+    """A sampler in words for a report, e.g. "20 DDIM steps, guidance 3.0, heading guidance 1.5, from the
+    input at strength 0.8" (heading guidance only when on, the start only below strength 1).
+    """
     text = f"{values['num_inference_steps']} DDIM steps, guidance {values['guidance_scale']}"
     heading = values.get("heading_guidance_scale") or 0.0
     if heading:
@@ -207,11 +189,11 @@ def check_sampler_start(
     depression_guidance_scale: float | None = 0.0,
     start_from: str | None = "input",
 ) -> None:
-    """Refuse, at a config's boundary, a sampler the pipeline cannot run: ``heading_guidance_scale`` or
-    ``depression_guidance_scale`` outside [0, ``MAX_GUIDANCE_SCALE``], ``strength`` outside (0, 1], a
-    ``strength`` that leaves no denoising step of one of the ``steps`` (field name: step count), or a
-    ``start_from`` not in :data:`START_FROM`. A ``None`` (a field left to the pipeline's recorded sampler) is
-    checked by the pipeline at the call instead. Every message names the field.
+    """Refuse, at a config's boundary, a sampler the pipeline cannot run, naming the field.
+
+    Contrast weights outside [0, ``MAX_GUIDANCE_SCALE``], ``strength`` outside (0, 1] or leaving no step
+    of one of ``steps`` (field name: step count), a ``start_from`` not in :data:`START_FROM`. ``None``
+    (left to the recorded sampler) is checked by the pipeline at the call.
 
     Raises:
         ValueError: On any of the above.
@@ -225,8 +207,7 @@ def check_sampler_start(
 
 
 def _check_contrast_scales(heading: float, depression: float, name_format: str) -> None:
-    """Both contrast guidance weights in [0, ``MAX_GUIDANCE_SCALE``]; the message names each field as
-    ``name_format.format(name)``.
+    """Both contrast weights in [0, ``MAX_GUIDANCE_SCALE``], each named ``name_format.format(name)``.
 
     Raises:
         ValueError: For a bool, NaN or a weight outside the range.

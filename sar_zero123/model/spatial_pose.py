@@ -1,11 +1,8 @@
 """The spatial pose modes: what the UNet sees of the input view besides its latent.
 
-zero-1-to-3 concatenates the input's latent alone to the noisy latent (``spatial_pose=None``). A
-``"rotated_input"`` model also sees that latent turned in the image plane by the requested azimuth change,
-a hint of where the target's footprint lies; a ``"proxy"`` model sees, on top of those two, the latents of
-the input's simulator proxy at the input's pose and at the requested pose. The mode is recorded in
-:class:`~sar_zero123.model.conditioning.PoseProjection`'s config; training and sampling build the UNet's
-input with the same :func:`unet_condition_latents`.
+``None`` (zero-1-to-3): the input's latent alone; ``"rotated_input"``: also that latent turned in the
+image plane by the requested azimuth change; ``"proxy"``: also the input's simulator proxy at the input's
+and the requested pose. Training and sampling build the UNet's input with :func:`unet_condition_latents`.
 """
 
 from __future__ import annotations
@@ -27,11 +24,7 @@ __all__ = [
 
 
 def condition_channels(spatial_pose: str | None, latent_channels: int) -> int:
-    """Channels of the UNet's condition input (:func:`unet_condition_latents`) for a spatial-pose mode.
-
-    Returns:
-        ``latent_channels`` for zero-1-to-3 (``None``), ``2 * latent_channels`` for ``"rotated_input"``,
-        ``4 * latent_channels`` for ``"proxy"`` (the input, it turned, the proxy at both poses).
+    """Channels of the UNet's condition input: ``1``, ``2`` or ``4`` times ``latent_channels``.
 
     Raises:
         ValueError: If ``spatial_pose`` is not one of :data:`SPATIAL_POSE_MODES`.
@@ -66,20 +59,10 @@ def check_turn_inputs(latents: torch.Tensor, pose: torch.Tensor, rotation_sign: 
 def rotate_condition_latents(latents: torch.Tensor, pose: torch.Tensor, rotation_sign: int) -> torch.Tensor:
     """The input latent turned about the chip centre by ``rotation_sign * d_az`` (bilinear, reflected border).
 
-    A vehicle turned by ``d_az`` in azimuth turns its ground footprint by the same angle in the image plane
-    (range and cross-range are the chip's axes), while its shadow and layover stay tied to the range
-    direction: the turned latent shows where the target's body lies, and the UNet corrects the rest. The
-    angle is read from the pose's ``sin d_az`` and ``cos d_az``
-    (:func:`~sar_zero123.model.conditioning.embed_pose`), so ``370 == 10``. The turn maps output
-    coordinates ``(x, y)`` (normalised, x right, y down) to the input's
-    ``(cos a x - sin a y, sin a x + cos a y)`` with ``a = rotation_sign * d_az`` (``F.affine_grid``).
-    Zeros turn to zeros, so the sampling null of classifier-free guidance stays null.
-
-    Args:
-        latents: Condition latents.
-        pose: Pose vectors from :func:`~sar_zero123.model.conditioning.embed_pose`.
-        rotation_sign: ``+1`` or ``-1``, the data's convention
-            (:class:`~sar_zero123.model.conditioning.PoseProjection`).
+    A vehicle turned in azimuth turns its footprint by the same angle in the image plane, while shadow and
+    layover stay tied to the range direction: the turned latent shows where the body lies, the UNet
+    corrects the rest. Output ``(x, y)`` (normalised, x right, y down) samples the input at
+    ``(cos a x - sin a y, sin a x + cos a y)``. Zeros turn to zeros, so the guidance null stays null.
 
     Shape:
         latents ``(B, C, h, w)``, pose ``(B, 1, 4)`` -> ``(B, C, h, w)``.
@@ -104,22 +87,14 @@ def unet_condition_latents(
     pose_projection: torch.nn.Module,
     proxy_latents: torch.Tensor | None = None,
 ) -> torch.Tensor:
-    """What the UNet concatenates to the noisy latent: the input latent; with
-    ``pose_projection.config.spatial_pose == "rotated_input"`` also the same latent turned by the requested
-    azimuth change (:func:`rotate_condition_latents`); with ``"proxy"`` also the proxy pair's latents.
+    """What the UNet concatenates to the noisy latent, by the pose projection's ``spatial_pose``.
 
     Args:
         condition_latents: The (possibly dropped, i.e. zeroed) unscaled input latents.
-        pose: Pose vectors from :func:`~sar_zero123.model.conditioning.embed_pose`, one per latent.
-        pose_projection: The model's :class:`~sar_zero123.model.conditioning.PoseProjection` (possibly
-            DDP-wrapped), which records the mode.
-        proxy_latents: For ``"proxy"`` only: the unscaled latents of the input's simulator proxy at the
-            input's pose and at the requested pose, stacked on channels (:func:`proxy_pair_latents`). Like
-            the pose, never dropped for classifier-free guidance.
+        proxy_latents: ``"proxy"`` only: :func:`proxy_pair_latents`; never dropped for guidance.
 
     Raises:
-        ValueError: If ``proxy_latents`` is missing for a proxy model, given to another, or of the wrong
-            shape.
+        ValueError: If ``proxy_latents`` is missing for a proxy model, given to another, or misshaped.
 
     Shape:
         ``(B, C, h, w)``, ``(B, 1, 4)``, ``(B, 2C, h, w)`` -> ``(B, C | 2C | 4C, h, w)``.
@@ -144,8 +119,7 @@ def unet_condition_latents(
 
 
 def proxy_pair_latents(vae: torch.nn.Module, at_input: torch.Tensor, at_target: torch.Tensor) -> torch.Tensor:
-    """The proxy pair a ``"proxy"`` UNet takes: the unscaled VAE posterior modes of the proxy rendered at
-    the input's pose and at the requested pose (normalised dB, like the input), stacked on channels.
+    """The unscaled VAE posterior modes of the proxy at the input's and at the requested pose, stacked.
 
     Shape:
         ``(B, 1 | 3, H, W)`` twice -> ``(B, 2C, h, w)``.
@@ -156,11 +130,8 @@ def proxy_pair_latents(vae: torch.nn.Module, at_input: torch.Tensor, at_target: 
 
 
 def widen_for_proxy(unet: torch.nn.Module, pose_projection: torch.nn.Module) -> None:
-    """Turn a ``"rotated_input"`` model into a ``"proxy"`` one in place, computing exactly what it did.
-
-    The UNet's first convolution gains ``2 * latent_channels`` input channels for the proxy pair, their
-    weights zero (a warm start: before training, the proxy changes nothing), and the projection records
-    ``spatial_pose="proxy"``.
+    """Turn a ``"rotated_input"`` model into a ``"proxy"`` one in place, computing exactly what it did (the
+    first convolution's new ``2 * latent_channels`` inputs start at zero).
 
     Raises:
         ValueError: If the model is not a ``"rotated_input"`` one.

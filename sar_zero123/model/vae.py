@@ -1,8 +1,5 @@
-"""The autoencoder of SAR chips: a 1-channel ``AutoencoderKL`` built for a chip size, loaded from a folder or
-a bundled pipeline, its reconstructions and its latent scaling factor.
-
-Trained by the VAE stage (:func:`sar_zero123.stages.vae.run_vae`, objective in
-:mod:`sar_zero123.training.vae`); scored by :mod:`sar_zero123.evaluation.reconstruction`.
+"""The SAR autoencoder: a 1-channel ``AutoencoderKL`` built for a chip size or loaded, its reconstructions
+and its latent scaling factor.
 """
 
 from __future__ import annotations

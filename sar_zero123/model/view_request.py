@@ -1,10 +1,6 @@
-"""What one pipeline call asks for, checked: the input chips and the relative pose of the views wanted.
-
-The angles arrive as scalars (one for the whole batch) or one per input chip, in degrees; they are checked
-here once, under the call's own argument names, and become the pose vector the model reads
-(:func:`~sar_zero123.model.conditioning.embed_pose`), with the input's depression in its fourth entry where
-the pipeline takes it. A request outside the ranges the pipeline was trained on (its pose projection's
-``trained_d_el_deg`` and ``trained_depression_deg``) is refused rather than extrapolated.
+"""What one pipeline call asks for, checked once under the call's own argument names: the input chips and
+the relative pose (scalars or one per chip, in degrees) as the pose vector the model reads. A request
+outside the pose projection's trained ranges is refused rather than extrapolated.
 """
 
 from __future__ import annotations

@@ -1,26 +1,18 @@
 """Loading Objaverse zero-1-to-3 checkpoints, and the zero-1-to-3 constants every model here shares.
 
-Three layouts are found in the wild (REFERENCE.md, "Checkpoint layouts in the wild"):
+Layouts (REFERENCE.md, "Checkpoint layouts in the wild"):
 
-(a) a diffusers folder in the ``kxic/zero123-*`` layout: ``model_index.json`` + ``vae/``, ``unet/``,
-    ``image_encoder/``, ``scheduler/``, ``feature_extractor/`` and ``cc_projection/``, whose
-    ``config.json`` stores no sizes (keys ``projection.weight`` / ``projection.bias``);
-(b) the threestudio layout, the same folder with ``clip_camera_projection/`` (keys ``proj.weight`` /
-    ``proj.bias``, config ``embedding_dim`` / ``additional_embeddings``);
-(c) the original Lightning/LDM state dict (``.ckpt`` or ``.safetensors``) with
-    ``model.diffusion_model.*``, ``first_stage_model.*``, ``cc_projection.weight|bias`` and optionally
-    ``model_ema.*`` (LitEma names: the module path with its dots removed) and the OpenAI CLIP model
-    ``cond_stage_model.model.*`` (its image tower is converted; a local encoder folder can replace it).
+(a) a diffusers folder in the ``kxic/zero123-*`` layout with ``cc_projection/`` (keys
+    ``projection.weight`` / ``projection.bias``, no sizes in its config);
+(b) threestudio's, the same with ``clip_camera_projection/`` (keys ``proj.weight`` / ``proj.bias``);
+(c) the Lightning/LDM state dict (``.ckpt`` / ``.safetensors``): ``model.diffusion_model.*``,
+    ``first_stage_model.*``, ``cc_projection.*``, optionally ``model_ema.*`` and the OpenAI CLIP model
+    ``cond_stage_model.model.*``;
 
-A folder saved by :meth:`SARZero123Pipeline.save_pretrained` (with ``pose_projection/``) loads too.
-Projection sizes are always read from the weight shapes. The UNet and VAE key renaming of layout (c)
-is diffusers' own single-file converters; only the EMA substitution and the architecture inference
-(which those converters take from the LDM yaml we do not have) are done here.
-
-The module returns components (:func:`load_zero123_components`); ``SARZero123Pipeline.from_zero123``
-assembles them, so this module does not import the pipeline. It also holds the constants that loaded
-and built models share: the noise schedule (:data:`ZERO123_SCHEDULER_CONFIG`), Stable Diffusion's VAE
-scaling factor and the CLIP image processor class.
+and this package's own ``save_pretrained`` folders. Projection sizes come from the weight shapes. Layout
+(c) is renamed by diffusers' single-file converters; the EMA substitution and the architecture inference
+(which they take from an LDM yaml) are done here. Components are returned, not a pipeline, so this module
+does not import the pipeline.
 """
 
 from __future__ import annotations
@@ -34,8 +26,7 @@ from diffusers.loaders.single_file_utils import convert_ldm_unet_checkpoint, con
 from safetensors.torch import load_file
 from transformers import CLIPVisionConfig, CLIPVisionModelWithProjection
 
-try:  # transformers >= 5: the PIL backend, which is what `CLIPImageProcessor` resolves to without
-    # torchvision (with a warning on every import); only its mean/std and config are used here.
+try:  # transformers >= 5: the PIL backend (no torchvision); only its mean/std and config are used
     from transformers import CLIPImageProcessorPil as CLIPImageProcessor
 except ImportError:  # transformers 4.x
     from transformers import CLIPImageProcessor
@@ -99,31 +90,20 @@ def load_zero123_components(
     image_encoder_config: dict[str, Any] | None = None,
     weights_only: bool = True,
 ) -> dict[str, Any]:
-    """The components of a :class:`~sar_zero123.model.pipeline.SARZero123Pipeline` from a zero-1-to-3
-    checkpoint in any supported layout (``SARZero123Pipeline.from_zero123`` assembles them).
+    """The keyword arguments of ``SARZero123Pipeline`` (``pose_projection`` in eval mode) from a
+    zero-1-to-3 checkpoint in any supported layout.
 
     Args:
-        path: A diffusers folder (layouts a, b, or this package's) or an LDM ``.ckpt`` /
-            ``.safetensors`` file (layout c).
-        use_ema: For LDM files that hold ``model_ema.*``, load the EMA UNet weights (as zero-1-to-3
-            samples); ignored otherwise.
-        image_encoder_path: Folder of a ``CLIPVisionModelWithProjection`` (CLIP ViT-L/14 image tower
-            for the Objaverse checkpoints) and optionally its ``CLIPImageProcessor``. Overrides a
-            folder's own ``image_encoder``; for LDM files it is needed only when the file holds no
-            OpenAI CLIP tower (``cond_stage_model.model.visual.*``), which is converted otherwise.
-        unet_config: LDM files only: ``UNet2DConditionModel`` config entries that override the
-            inferred/default ones (the head count and norm groups are not in the weights; defaults are
-            zero-1-to-3's ``attention_head_dim=8``, ``norm_num_groups=32``).
-        vae_config: LDM files only: ``AutoencoderKL`` config overrides (``norm_num_groups``,
-            ``scaling_factor``, ``sample_size``).
-        image_encoder_config: LDM files with an OpenAI CLIP tower only: ``CLIPVisionConfig``
-            overrides (the head count is not in the weights; OpenAI CLIP uses ``width // 64``).
-        weights_only: Passed to ``torch.load`` for ``.ckpt`` files. Keep True unless the file is trusted
-            and holds objects a weights-only unpickler refuses.
-
-    Returns:
-        The keyword arguments of ``SARZero123Pipeline``: ``vae``, ``image_encoder``, ``unet``,
-        ``scheduler``, ``pose_projection`` (in eval mode) and ``feature_extractor``.
+        path: A diffusers folder (layouts a, b, or this package's) or an LDM file (layout c).
+        use_ema: For LDM files holding ``model_ema.*``, load the EMA UNet (as zero-1-to-3 samples).
+        image_encoder_path: A ``CLIPVisionModelWithProjection`` folder (optionally with its processor)
+            overriding a folder's ``image_encoder``; for an LDM file needed only when it holds no OpenAI
+            CLIP tower.
+        unet_config: LDM only: ``UNet2DConditionModel`` overrides of the inferred config (head count and
+            norm groups are not in the weights).
+        vae_config: LDM only: ``AutoencoderKL`` config overrides.
+        image_encoder_config: LDM only: ``CLIPVisionConfig`` overrides (default heads: ``width // 64``).
+        weights_only: Passed to ``torch.load`` for ``.ckpt`` files; keep True unless the file is trusted.
 
     Raises:
         FileNotFoundError: If ``path`` does not exist.
@@ -147,14 +127,7 @@ def load_zero123_components(
 
 
 def load_ldm_state_dict(path: str | Path, weights_only: bool = True) -> dict[str, torch.Tensor]:
-    """Read the flat state dict of an LDM checkpoint (``.safetensors``, or a Lightning ``.ckpt``).
-
-    Args:
-        path: The checkpoint file.
-        weights_only: Passed to ``torch.load``.
-
-    Returns:
-        Parameter name -> tensor (the ``state_dict`` entry of a Lightning checkpoint).
+    """The flat state dict of an LDM checkpoint (a Lightning ``.ckpt``'s ``state_dict`` entry).
 
     Raises:
         ValueError: If the file holds no tensor state dict.
@@ -272,8 +245,7 @@ def _load_feature_extractor(folder: Path) -> CLIPImageProcessor | None:
 def _substitute_ema(state_dict: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
     """Replace ``model.diffusion_model.*`` by their ``model_ema.*`` copies.
 
-    LitEma stores ``model.diffusion_model.a.b`` as ``model_ema.diffusion_modelab`` (dots removed),
-    the naming diffusers' ``convert_ldm_unet_checkpoint(extract_ema=True)`` reads too; that converter
+    LitEma stores ``model.diffusion_model.a.b`` as ``model_ema.diffusion_modelab``; diffusers' converter
     only switches to EMA above 100 EMA keys, so the substitution is done here for any size.
     """
     substituted = dict(state_dict)
@@ -378,17 +350,9 @@ def convert_openai_clip_vision(
 ) -> CLIPVisionModelWithProjection:
     """The OpenAI CLIP image tower of an LDM checkpoint as a transformers ``CLIPVisionModelWithProjection``.
 
-    Written here because neither library ships it: diffusers' single-file code converts only CLIP
-    *text* towers and transformers' OpenAI-CLIP conversion is a repository script, not package code.
-    The mapping: ``conv1`` -> patch embedding, ``class_embedding``, ``positional_embedding``,
-    ``ln_pre``/``ln_post`` -> pre/post layer norms, each ``resblocks.i`` (fused ``attn.in_proj`` split into
-    q/k/v, ``out_proj``, ``ln_1``/``ln_2``, ``mlp.c_fc``/``c_proj``), and ``proj`` (width, dim) -> the
-    transposed ``visual_projection``. OpenAI CLIP uses QuickGELU, LayerNorm eps 1e-5 and 64-d heads.
-
-    Args:
-        state_dict: The checkpoint's state dict.
-        prefix: Key prefix of the visual tower.
-        config_overrides: ``CLIPVisionConfig`` entries to override (e.g. ``num_attention_heads``).
+    Neither library ships this conversion (diffusers converts CLIP text towers only). ``conv1`` -> patch
+    embedding, ``ln_pre``/``ln_post``, each ``resblocks.i`` (fused ``attn.in_proj`` split into q/k/v), and
+    ``proj`` -> the transposed ``visual_projection``; QuickGELU, LayerNorm eps 1e-5, 64-d heads.
 
     Returns:
         The image tower in eval mode.
