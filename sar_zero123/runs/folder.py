@@ -378,8 +378,7 @@ def check_options_folder(
     Args:
         defaults: Field defaults, for a record that predates an option.
         identity_field: An option identifying an input's content, compared first (a record without it
-        matches);
-            ``identity_message(recorded, current)`` words its refusal.
+            matches); ``identity_message(recorded, current)`` words its refusal.
 
     Raises:
         ValueError: For a non-empty folder without ``record``, a record that is not a JSON object, a
