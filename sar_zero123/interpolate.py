@@ -142,6 +142,17 @@ def check_lineage(start: str | os.PathLike, start_dir: Path, tuned_dir: Path) ->
         )
 
 
+def _pipeline_dirs(start: str | os.PathLike, finetuned: str | os.PathLike) -> tuple[Path, Path]:
+    """The two pipeline folders, refused unless each holds a ``model_index.json``."""
+    start_dir, tuned_dir = resolve_pretrained(start), Path(finetuned)
+    for field_name, folder in (("start", start_dir), ("finetuned", tuned_dir)):
+        if not (folder / "model_index.json").is_file():
+            raise FileNotFoundError(
+                f"{field_name}: expected a pipeline folder with model_index.json, got {folder}"
+            )
+    return start_dir, tuned_dir
+
+
 def interpolate_pipelines(
     start: str | os.PathLike, finetuned: str | os.PathLike, alpha: float, output_dir: str | os.PathLike
 ) -> Path:
@@ -152,12 +163,7 @@ def interpolate_pipelines(
         ValueError: For an ``alpha`` outside [0, 1], an existing ``output_dir``, a start the fine-tune did
             not start from, or two pipelines of different architectures.
     """
-    start_dir, tuned_dir, out = resolve_pretrained(start), Path(finetuned), Path(output_dir)
-    for field_name, folder in (("start", start_dir), ("finetuned", tuned_dir)):
-        if not (folder / "model_index.json").is_file():
-            raise FileNotFoundError(
-                f"{field_name}: expected a pipeline folder with model_index.json, got {folder}"
-            )
+    (start_dir, tuned_dir), out = _pipeline_dirs(start, finetuned), Path(output_dir)
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"alpha must lie in [0, 1] (1: the fine-tune), got {alpha}")
     if out.exists():
@@ -234,12 +240,7 @@ def run_interpolate(config: InterpolateConfig) -> Path:
         ValueError: For a folder holding other work, or two pipelines of different architectures.
     """
     timer = StageTimer()
-    start_dir, tuned_dir = resolve_pretrained(config.start), Path(config.finetuned)
-    for field_name, folder in (("start", start_dir), ("finetuned", tuned_dir)):
-        if not (folder / "model_index.json").is_file():
-            raise FileNotFoundError(
-                f"{field_name}: expected a pipeline folder with model_index.json, got {folder}"
-            )
+    start_dir, tuned_dir = _pipeline_dirs(config.start, config.finetuned)
     for field_name, folder in (("start", start_dir), ("finetuned", tuned_dir)):
         check_readable(folder, field_name)  # before the folder is opened: a refusal leaves nothing behind
     plan = mix_plan(config.start, start_dir, tuned_dir)

@@ -115,9 +115,8 @@ def save_checkpoint(
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
     accelerator.wait_for_everyone()
-    # 2. every process writes its part; 3. the main process seals the folder (state, then the manifest
-    #    of every file, synced to disk) and renames it in one step. A failed write (disk full, a file-size
-    #    limit) removes the partial folder and names it; the earlier checkpoints are untouched.
+    # 2. every process writes its part; 3. the main process seals the folder (state, then the synced
+    #    manifest) and renames it. A failed write removes the partial folder; earlier ones are untouched.
     earlier = [path.name for path in list_checkpoints(output_dir)]
     kept = (
         f"the partial checkpoint was removed and {', '.join(earlier)} kept; free space and resume with "

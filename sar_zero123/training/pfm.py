@@ -80,8 +80,7 @@ class ProjectedFeatureEncoder(nn.Module):
 PfmFeatures = Literal["pooled", "normalized", "stages"]
 PFM_FEATURES: tuple[str, ...] = get_args(PfmFeatures)
 
-#: Added under the square root of the channel norms of :class:`StageFeatureEncoder` (LPIPS uses 1e-10):
-#: keeps the normalisation and its gradient finite where a ReLU map is zero at a position.
+#: Added under the square root of :class:`StageFeatureEncoder`'s channel norms: finite where a map is zero.
 _NORM_EPS = 1.0e-10
 
 
