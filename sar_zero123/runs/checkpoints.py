@@ -81,15 +81,13 @@ def save_checkpoint(
     extra_state: dict[str, Any] | None = None,
     config: Any | None = None,
 ) -> Path:
-    """Save the full training state atomically as ``output_dir/checkpoint-<step>``; call it on every process.
+    """Save the full training state atomically as ``output_dir/checkpoint-<step>`` (returned); call it on
+    every process.
 
     Args:
         total_limit: Keep at most this many checkpoints (oldest removed after a successful save).
         extra_state: JSON-serialisable script state stored in ``run_state.json``.
         config: The run's config dataclass, stored for :func:`check_resume_config`.
-
-    Returns:
-        The finished checkpoint folder.
 
     Raises:
         ValueError: If ``step`` is negative or ``total_limit`` is below 1.

@@ -425,16 +425,13 @@ def finish_run(
     results: Mapping[str, Any] | None = None,
     write: bool = True,
 ) -> dict[str, Any]:
-    """Mark a run finished, after checking that its outputs exist.
+    """Mark a run finished, after checking that its outputs exist; returns the updated record.
 
     Args:
         outputs: Files or folders the stage must have written, relative to the folder or absolute.
         seconds: Wall time of the stage; added to earlier sessions' time.
         results: Small JSON-able facts a report may quote.
         write: ``False`` on non-main processes.
-
-    Returns:
-        The updated record.
 
     Raises:
         FileNotFoundError: If an output is missing (the run is not marked finished).

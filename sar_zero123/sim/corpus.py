@@ -179,7 +179,7 @@ def write_prior_corpus(
     num_workers: int = 1,
     progress: bool = True,
 ) -> Path:
-    """Render the prior's corpus into ``out_dir`` (or finish an interrupted one); see the module docstring.
+    """Render the prior's corpus into ``out_dir`` (or finish an interrupted one) and return it as a ``Path``.
 
     Vehicles are the procedural seeds ``0 .. num_vehicles - 1``; the named
     :data:`~sar_zero123.sim.TARGET_CLASSES` are never in it.
@@ -191,9 +191,6 @@ def write_prior_corpus(
         size: Chip side in pixels.
         seed: Corpus seed (views, clutter, noise); the vehicles depend only on their own seed.
         clutter_db_spread: Per-chip clutter level spread (+- dB).
-
-    Returns:
-        ``out_dir`` as a :class:`~pathlib.Path`.
 
     Raises:
         ValueError: For an out-of-range option, a corpus over 400,000 chips, or a folder holding a corpus

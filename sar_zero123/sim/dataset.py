@@ -124,7 +124,7 @@ def simulate_dataset(
     calibration: float = CALIBRATION_AMPLITUDE,
     clutter_db_spread: float = 3.0,
 ) -> Path:
-    """Simulate every (class, instance, depression, azimuth) chip and write an image folder.
+    """Simulate every (class, instance, depression, azimuth) chip and write an image folder; returns it.
 
     Layout: ``<out_dir>/chips/<dep>deg/<CLASS>/<CLASS>_<serial>_<k>.npy`` (float32 magnitude in [0, 1])
     and ``<out_dir>/index.csv`` (:data:`INDEX_COLUMNS`, paths relative to ``out_dir``). An existing index is
@@ -140,9 +140,6 @@ def simulate_dataset(
             ``[-jitter/2, jitter/2)``.
         normalization: ``"peak"`` or ``"calibrated"`` (``sim.render.normalize_magnitude``).
         clutter_db_spread: Per-chip clutter level spread (+- dB), as the ground under real chips differs.
-
-    Returns:
-        ``out_dir`` as a :class:`~pathlib.Path`.
 
     Raises:
         ValueError: For an unknown class or an out-of-range argument (the message names it).

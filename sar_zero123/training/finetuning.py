@@ -219,10 +219,8 @@ def export_finetuned(
 
     The EMA weights of ``ema_pairs`` are copied into ``pipe``'s modules first and the sampler becomes a
     ``DDIMScheduler``; LoRA factors are merged, so the folder loads without ``peft``. ``lineage`` (what the
-    run started from) goes into ``model_index.json``. Call it on the main process after the last step.
-
-    Returns:
-        ``directory``.
+    run started from) goes into ``model_index.json``. Call it on the main process after the last step;
+    returns ``directory``.
 
     Raises:
         FloatingPointError: If a weight is not finite (nothing is written).

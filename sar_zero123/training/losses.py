@@ -36,10 +36,8 @@ TRAINED_PREDICTION_TYPES = ("epsilon", "v_prediction")
 def check_prediction_type(
     prediction_type: str, allowed: tuple[str, ...] = PREDICTION_TYPES, name: str = "prediction_type"
 ) -> str:
-    """The one check of a prediction type, wherever it is set or read; ``name`` is how the error names it.
-
-    Returns:
-        ``prediction_type``, unchanged.
+    """The one check of a prediction type, wherever it is set or read; returns it unchanged. ``name`` is how
+    the error names it.
 
     Raises:
         ValueError: If ``prediction_type`` is not one of ``allowed``.

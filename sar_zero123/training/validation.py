@@ -164,10 +164,7 @@ def run_validation(
     """One validation of a training run with the EMA weights swapped in; call it on the main process.
 
     Writes ``directory/step-<step>.png``, appends ``{"step": step, **logs}`` to ``directory/metrics.jsonl``
-    and logs to the run's trackers. ``kwargs`` go to :func:`validate_pairs`.
-
-    Returns:
-        The logged scalars.
+    and logs to the run's trackers. ``kwargs`` go to :func:`validate_pairs`. Returns the logged scalars.
     """
     with ema_weights(ema_pairs):
         logs, grid = validate_pairs(batch, **kwargs)
