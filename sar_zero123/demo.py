@@ -1,20 +1,13 @@
 """A local web page to look at novel views: ``python -m sar_zero123.demo`` or ``sar-zero123-demo`` (needs the
 ``[demo]`` extra).
 
-The user uploads a chip (PNG/JPEG/TIFF, ``.npy`` or an original MSTAR file) or picks a simulated vehicle,
-sets the azimuth and depression changes with sliders, and sees the generated view beside the input (and
-beside the simulator's truth for a simulated vehicle), plus a 360 deg turntable strip. The pipeline is a
-bundled prior (default ``sar-zero123/sim-prior-rotated``) or ``--pipeline DIR``.
+The user uploads a chip or picks a simulated vehicle, sets the pose changes with sliders, and sees the
+generated view beside the input (and the simulator's truth), plus a 360 deg turntable strip.
 
-Safe by default: the server binds to 127.0.0.1 unless ``--host`` says otherwise, never opens a public share
-link unless ``--share`` is given, takes uploads up to :data:`MAX_UPLOAD_BYTES`, runs one generation at a
-time with at most :data:`MAX_QUEUED` requests waiting, and answers a malformed upload or an out-of-range
-request with a message on the page (``gradio.Error``), never a stack trace. It contacts nothing outside the
-machine by default: gradio's analytics and version check are off and the page uses the system's fonts
-(:func:`build_demo`). A file uploaded switches the input to it.
-
-The page is a thin shell over :class:`DemoModel`, whose methods (chip loading, one view, the turntable)
-are plain functions of numpy arrays, tested without a browser.
+Safe by default: it binds to 127.0.0.1 unless ``--host`` says otherwise, opens a public link only with
+``--share``, bounds uploads and the queue, answers bad input with a message on the page, never a stack
+trace, and contacts nothing outside the machine (no analytics, version check or web fonts). The page is
+a thin shell over :class:`DemoModel`, plain functions of numpy arrays tested without a browser.
 """
 
 from __future__ import annotations
@@ -72,8 +65,7 @@ class Chip:
 class DemoConfig(SamplerSettings):
     """Serve a local web page that generates novel views of a chip with a saved SARZero123Pipeline.
 
-    The sampler's fields (:class:`~sar_zero123.model.sampler.SamplerSettings`) are inherited: each left unset
-    takes the value the pipeline records as measured best for it, else the library's.
+    Sampler fields left unset take the pipeline's recorded values, else the library's.
     """
 
     pipeline: str = SIM_PRIOR_ROTATED  # bundled name or pipeline folder
@@ -93,11 +85,8 @@ class DemoModel:
 
     Args:
         pipeline: A bundled pipeline's name or a ``save_pretrained`` folder.
-        sampler: How every view is sampled (``None``: the pipeline's recorded sampler). Each field left
-            ``None`` is the pipeline's recorded value (``pipe.config.sampler``); its ``scheduler`` swaps the
-            pipeline's. A simulated chip's azimuth is known, so a pipeline that records a proxy start starts
-            from the proxy.
-        device: Torch device.
+        sampler: How every view is sampled; a field left ``None`` is the pipeline's recorded value, and its
+            ``scheduler`` swaps the pipeline's.
     """
 
     def __init__(
@@ -127,9 +116,7 @@ class DemoModel:
         """An uploaded chip file as the pipeline's input.
 
         Raises:
-            ValueError: For a file that is too large, or that ``sar-zero123-generate`` would refuse
-                (:func:`~sar_zero123.generate.load_input_chip`: unreadable, not one 2-D channel, smaller
-                than 16 px, negative or non-finite magnitudes, mostly outside the pipeline's dB range).
+            ValueError: For a file that is too large, or that ``sar-zero123-generate`` would refuse.
         """
         path = Path(path)
         if path.stat().st_size > MAX_UPLOAD_BYTES:
@@ -196,8 +183,7 @@ def to_uint8(image: np.ndarray, scale: int = 4) -> np.ndarray:
 
 def build_demo(model: DemoModel) -> Any:
     """The page (a ``gradio.Blocks``) over ``model``; ``.launch()`` serves it. It contacts nothing outside
-    the machine: gradio's analytics and version check are off, and the theme uses the system's fonts
-    instead of fetching web fonts."""
+    the machine: no analytics, no version check, the system's fonts."""
     os.environ.setdefault("GRADIO_ANALYTICS_ENABLED", "False")  # read when gradio is imported
     import gradio as gr
 
@@ -270,8 +256,7 @@ def build_demo(model: DemoModel) -> Any:
 
 
 def parse_args(argv: Sequence[str] | None = None) -> DemoConfig:
-    """The demo's flags (``--pipeline``, ``--host``, ``--port``, ``--share``, ``--device`` and the sampler's),
-    parsed and checked as every command's are (:func:`~sar_zero123.config.parse_config`).
+    """The demo's flags, parsed and checked as every command's are (:func:`~sar_zero123.config.parse_config`).
 
     Raises:
         ValueError: Naming the flag, for a bad value.
@@ -289,16 +274,15 @@ _EXTERNAL_TAGS = (
 
 
 def strip_external_resources(html: str) -> str:
-    """``html`` without the tags that make a browser contact another host (links, scripts and preview
-    metadata whose address is absolute: ``http(s)://...``); the page's own relative ones are kept."""
+    """``html`` without the tags whose absolute ``http(s)://`` address makes a browser contact another
+    host."""
     for pattern in _EXTERNAL_TAGS:
         html = pattern.sub("", html)
     return html
 
 
 def local_app(demo: Any) -> Any:
-    """A FastAPI app serving ``demo`` whose HTML pages load nothing from outside the machine
-    (:func:`strip_external_resources` on every ``text/html`` response)."""
+    """A FastAPI app serving ``demo`` whose HTML pages load nothing from outside the machine."""
     import gradio as gr
     from fastapi import FastAPI, Request, Response
 

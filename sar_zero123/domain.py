@@ -1,11 +1,7 @@
 """The SAR domain's shared conventions: decibels, the signed and unit ranges, the centre crop, index.csv,
 and how a failed write is reported.
 
-Every wing meets these: the data layer reads chips into normalised dB, the simulator writes chips and
-their ``index.csv``, the encoder and the VAE take [-1, 1], the metrics and PFM score a centre crop. They
-live here, once, in a module that imports nothing from the rest of the package and does not import torch
-(the simulator is numpy only): a torch tensor is recognised only once torch has been imported by its
-owner.
+Imports nothing from the rest of the package and not torch (the simulator is numpy only).
 
 Conventions::
 
@@ -74,63 +70,38 @@ def is_tensor(value: Any) -> bool:
 
 
 def to_decibels(magnitude: Array) -> Array:
-    """Magnitude to decibels, ``20 * log10(m + 1e-3)`` (zero magnitude maps to -60 dB).
-
-    Args:
-        magnitude: Non-negative magnitudes (NumPy array or torch tensor).
-
-    Returns:
-        Decibels, same type, shape and floating dtype as the input.
-    """
+    """Magnitude to decibels, ``20 * log10(m + 1e-3)`` (zero magnitude maps to -60 dB); arrays or tensors,
+    same type, shape and floating dtype."""
     if is_tensor(magnitude):
         return 20.0 * (magnitude + DB_EPS).log10()
     return (20.0 * np.log10(np.asarray(magnitude) + DB_EPS)).astype(np.result_type(magnitude, np.float32))
 
 
 def from_decibels(decibels: Array) -> Array:
-    """Inverse of :func:`to_decibels`: ``10 ** (db / 20) - 1e-3``.
-
-    Args:
-        decibels: Decibel values (NumPy array or torch tensor).
-
-    Returns:
-        Magnitudes, same type and shape as the input.
-    """
+    """Inverse of :func:`to_decibels`: ``10 ** (db / 20) - 1e-3``; arrays or tensors."""
     if is_tensor(decibels):
         return 10.0 ** (decibels / 20.0) - DB_EPS
     return (np.power(10.0, np.asarray(decibels) / 20.0) - DB_EPS).astype(np.result_type(decibels, np.float32))
 
 
 def unit_to_signed(x: Array) -> Array:
-    """Normalised dB in [0, 1] -> [-1, 1], the input range of the VAE and of the SAR encoder's ResNet.
-
-    Inverse of :func:`signed_to_unit`; elementwise, any shape.
-    """
+    """Normalised dB in [0, 1] -> [-1, 1], the input range of the VAE and of the SAR encoder's ResNet."""
     return x * 2.0 - 1.0
 
 
 def signed_to_unit(x: Array) -> Array:
-    """[-1, 1] (a VAE's decoded image) -> normalised dB in [0, 1]; no clipping.
-
-    Inverse of :func:`unit_to_signed`; elementwise, any shape.
-    """
+    """[-1, 1] (a VAE's decoded image) -> normalised dB in [0, 1]; no clipping."""
     return (x + 1.0) / 2.0
 
 
 def center_crop(image: Array, crop_size: int) -> Array:
-    """Cuts the central ``crop_size x crop_size`` square (the target sits at the chip centre).
+    """Cuts the central ``crop_size x crop_size`` square (the target sits at the chip centre); the package's
+    one centre crop, for arrays and tensors.
 
-    The one centre crop of the package: chips on load, the metrics' 64x64 scoring window, PFM's crop and
-    its latent window. NumPy arrays and torch tensors alike.
+    For an odd margin the extra row/column is dropped at the end.
 
-    For an odd margin the extra row/column is dropped at the end, so a 129x128 chip loses its last row.
-
-    Args:
-        image: Image (array or tensor) of shape (..., H, W) with H, W >= crop_size.
-        crop_size: Side of the square.
-
-    Returns:
-        The crop (a view). Shape: (..., crop_size, crop_size).
+    Shape:
+        ``(..., H, W) -> (..., crop_size, crop_size)`` (a view).
 
     Raises:
         ValueError: If the image is smaller than ``crop_size`` or ``crop_size`` < 1.
@@ -152,15 +123,11 @@ _INTEGER_TEXT = re.compile(r"[+-]?\d+", re.A)
 
 
 def read_number(text: str, integer: bool = False) -> float | int:
-    """The number ``text`` writes, read strictly: Python's ``float`` and ``int`` also read ``"3_0"`` as 30
-    (digit separators) and ``"\uff13\uff10"`` as 30 (non-ASCII digits), which no user means as a number.
-
-    Args:
-        text: The text (surrounding whitespace ignored).
-        integer: Read an integer (no decimal point or exponent).
+    """The number ``text`` writes, read strictly: Python also reads ``"3_0"`` and non-ASCII digits as 30,
+    which no user means.
 
     Returns:
-        The ``int`` or ``float`` (possibly infinite or NaN: the caller names the field it refuses).
+        The ``int`` (with ``integer``) or ``float``, possibly infinite or NaN for the caller to refuse.
 
     Raises:
         ValueError: For any other text.
@@ -180,16 +147,11 @@ _TORCH_WRITER_FAILURE = re.compile(
 @contextmanager
 def naming_write_errors(path: Any, kept: str) -> Iterator[None]:
     """Around a write: a failed write (disk full, a file-size limit, a read-only folder) is raised as an
-    ``OSError`` that names ``path`` and says what was kept, instead of the bare error of the layer below
-    (``[Errno 28] No space left on device``, safetensors' ``I/O error``), which names neither. Nested, the
-    outermost names its ``path`` and ``kept`` and the innermost file in brackets.
-
-    Args:
-        path: The file or folder being written.
-        kept: What the failure left intact, for the message (e.g. "the previous index is unchanged").
+    ``OSError`` naming ``path`` and what was ``kept``, instead of a bare ``[Errno 28]`` naming neither.
+    Nested, the outermost names its ``path`` and the innermost file in brackets.
 
     Raises:
-        OSError: With the original ``errno`` (``None`` for safetensors) and the original error chained.
+        OSError: With the original ``errno`` (``None`` for safetensors), the original error chained.
     """
     try:
         yield

@@ -1,14 +1,9 @@
 """The SAR encoder f: a ResNet-18 on normalised-dB chips, its SimCLR projection head and NT-Xent.
 
-The encoder is pretrained with SimCLR on co-domain augmented views (Table I) and then frozen: its
-512-d pooled feature h = f(x) is the feature space of the Projected Feature Matching loss (Eq. 20)
-and the backbone of the evaluation classifier and azimuth regressor.
-
-The body is transformers' `ResNetModel` (basic blocks, depths (2, 2, 2, 2), widths 64-512). For
-128x128 SAR chips the reference setting swaps its ImageNet stem (7x7 stride-2 convolution plus
-max-pool, a 4x downsampling) for a CIFAR-style stem (3x3 stride-1 convolution, no pooling), which
-keeps the small target's scattering centres resolved; the backbone then has 11,168,832 parameters
-for 3 input channels and 11,167,680 for 1 input channel.
+Pretrained with SimCLR on co-domain augmented views (Table I), then frozen: its 512-d pooled feature
+h = f(x) is the feature space of PFM (Eq. 20) and the backbone of the evaluation models. The body is
+transformers' ``ResNetModel``; the reference setting swaps its ImageNet stem (4x downsampling) for a
+CIFAR-style 3x3 stride-1 stem without pooling, which keeps a small target's scattering centres resolved.
 """
 
 from __future__ import annotations
@@ -36,17 +31,10 @@ WEIGHTS_NAME = "model.safetensors"
 
 @dataclass
 class SAREncoderConfig:
-    """Architecture of the SAR encoder.
+    """Architecture of the SAR encoder (``forward`` rejects chips of another ``image_size``).
 
-    Args:
-        image_size: Side of the square input chips in pixels; `forward` rejects other sizes.
-        in_channels: Input channels of the first convolution (1 for SAR magnitude; 3 to mirror RGB
-            backbones, in which case 1-channel input is replicated to 3).
-        cifar_stem: Use the 3x3 stride-1 stem without max-pool instead of the 7x7 stride-2 + max-pool
-            ImageNet stem.
-        depths: Basic blocks per stage.
-        hidden_sizes: Channels per stage; the last one is the feature dimension.
-        embedding_size: Channels of the stem.
+    With ``in_channels=3`` (mirroring RGB backbones) 1-channel input is replicated to 3; the last of
+    ``hidden_sizes`` is the feature dimension.
     """
 
     image_size: int = 128  # side of the square input chip in pixels
@@ -77,7 +65,7 @@ class SAREncoderConfig:
             )
 
     def to_dict(self) -> dict:
-        """Returns the configuration as a JSON-serialisable dict."""
+        """The configuration as a JSON-serialisable dict."""
         out = dataclasses.asdict(self)
         out["depths"] = list(self.depths)
         out["hidden_sizes"] = list(self.hidden_sizes)
@@ -85,16 +73,13 @@ class SAREncoderConfig:
 
     @classmethod
     def from_dict(cls, values: dict) -> SAREncoderConfig:
-        """Builds a configuration from `to_dict` output, ignoring unknown keys (e.g. `model_type`)."""
+        """A configuration from ``to_dict`` output, ignoring unknown keys (e.g. ``model_type``)."""
         names = {f.name for f in dataclasses.fields(cls)}
         return cls(**{k: v for k, v in values.items() if k in names})
 
 
 class SAREncoder(nn.Module):
     """ResNet-18 SAR encoder returning the pooled feature h = f(x).
-
-    Args:
-        config: Architecture; defaults to the reference setting (`SAREncoderConfig()`).
 
     Example:
         >>> encoder = SAREncoder(SAREncoderConfig(image_size=64))
@@ -139,21 +124,16 @@ class SAREncoder(nn.Module):
         return next(self.parameters()).dtype
 
     def forward(self, x: torch.Tensor) -> torch.Tensor:
-        """Encodes chips into pooled features.
+        """Encodes normalised-dB chips into pooled features h = f(x), differentiable in ``x``.
 
-        Args:
-            x: Chips in normalised decibels, [0, 1] (the project's model-input domain). Values are
-                not range-checked here so that decoded images slightly outside [0, 1] still pass.
-
-        Returns:
-            The pooled feature h = f(x); differentiable with respect to `x`.
+        Values are not range-checked, so decoded images slightly outside [0, 1] still pass.
 
         Shape:
             x: (B, C, image_size, image_size) with C == in_channels, or C == 1 when in_channels == 3.
             output: (B, feature_dim).
 
         Raises:
-            ValueError: If `x` has the wrong rank, channel count or spatial size, or is not floating.
+            ValueError: If ``x`` has the wrong rank, channel count or spatial size, or is not floating.
         """
         x = self._checked_input(x)
         # Zero-centre the [0, 1] normalised dB so the stem sees a symmetric input range.
@@ -162,12 +142,6 @@ class SAREncoder(nn.Module):
 
     def stage_features(self, x: torch.Tensor) -> list[torch.Tensor]:
         """The feature maps at the end of each ResNet stage, before pooling (for LPIPS-style distances).
-
-        Args:
-            x: Chips in normalised decibels, as for :meth:`forward`.
-
-        Returns:
-            One map per stage, ``hidden_sizes[i]`` channels each; the last one pooled is :meth:`forward`.
 
         Shape:
             x: (B, C, image_size, image_size); output ``i``: (B, hidden_sizes[i], H_i, W_i).
@@ -196,16 +170,10 @@ class SAREncoder(nn.Module):
         return x
 
     def save_pretrained(self, save_directory: str | Path) -> Path:
-        """Writes `config.json` and `model.safetensors` into `save_directory`.
+        """Writes ``config.json`` and ``model.safetensors`` into ``save_directory``; returns it.
 
-        Hand-written instead of diffusers' `ModelMixin` so that the folder holds exactly these two
-        files and a missing folder never falls through to a Hub download.
-
-        Args:
-            save_directory: Target folder, created if needed.
-
-        Returns:
-            The folder path.
+        Hand-written instead of diffusers' ``ModelMixin`` so the folder holds exactly these two files and a
+        missing folder never falls through to a Hub download.
         """
         directory = Path(save_directory)
         directory.mkdir(parents=True, exist_ok=True)
@@ -217,19 +185,12 @@ class SAREncoder(nn.Module):
 
     @classmethod
     def from_pretrained(cls, pretrained_path: str | Path, device: str | torch.device = "cpu") -> SAREncoder:
-        """Loads an encoder written by `save_pretrained`, in eval mode.
-
-        Args:
-            pretrained_path: Folder holding `config.json` and `model.safetensors`.
-            device: Device to load the weights onto.
-
-        Returns:
-            The encoder, in eval mode (BatchNorm uses its running statistics).
+        """Loads an encoder written by ``save_pretrained``, in eval mode.
 
         Raises:
             FileNotFoundError: If the folder or one of its two files is missing.
-            ValueError: If `config.json` is not valid JSON or not a valid config, or the weights are
-                unreadable or do not fit the config; the message names the file.
+            ValueError: If ``config.json`` is not a valid config, or the weights are unreadable or do not fit
+                it; the message names the file.
         """
         directory = Path(pretrained_path)
         for path in (directory / CONFIG_NAME, directory / WEIGHTS_NAME):
@@ -248,15 +209,8 @@ class SAREncoder(nn.Module):
 def resolve_encoder_dir(path: str | Path, field: str = "encoder") -> Path:
     """The folder holding a saved encoder: ``path`` itself or ``path/encoder`` (a SimCLR run folder).
 
-    Args:
-        path: An encoder folder or the output folder of ``train/pretrain_simclr.py``.
-        field: The option name reported in the error.
-
-    Returns:
-        The folder with ``config.json`` and ``model.safetensors``.
-
     Raises:
-        FileNotFoundError: If neither ``path`` nor ``path/encoder`` holds both files.
+        FileNotFoundError: If neither holds both files (naming ``field``).
     """
     path = Path(path)
     for candidate in (path, path / "encoder"):
@@ -268,13 +222,7 @@ def resolve_encoder_dir(path: str | Path, field: str = "encoder") -> Path:
 
 
 class ProjectionHead(nn.Module):
-    """SimCLR projection head g: Linear - ReLU - Linear (512-512-128 in the reference setting).
-
-    Args:
-        in_dim: Feature dimension of the encoder.
-        hidden_dim: Hidden width.
-        out_dim: Dimension of the projection z = g(h) on which NT-Xent is computed.
-    """
+    """SimCLR projection head g: Linear - ReLU - Linear (512-512-128 in the reference setting)."""
 
     def __init__(self, in_dim: int = 512, hidden_dim: int = 512, out_dim: int = 128) -> None:
         super().__init__()
@@ -286,27 +234,15 @@ class ProjectionHead(nn.Module):
         )
 
     def forward(self, h: torch.Tensor) -> torch.Tensor:
-        """Projects features.
-
-        Args:
-            h: Encoder features.
-
-        Returns:
-            Projections z.
-
-        Shape:
-            h: (B, in_dim). output: (B, out_dim).
-        """
+        """Projects features: (B, in_dim) -> (B, out_dim)."""
         return self.net(h)
 
 
 class _GatherRows(torch.autograd.Function):
     """Differentiable all-gather of equal-sized (N, D) blocks into (W * N, D), rank order.
 
-    Written here because torch's public differentiable gather (``torch.distributed.nn.functional``) is
-    deprecated in favour of a private module. The backward pass sums the incoming gradient over the
-    processes and keeps this process's rows (a reduce-scatter), so a row receives the gradient of every
-    process's loss.
+    torch's public differentiable gather is deprecated. The backward sums the gradient over the processes
+    and keeps this process's rows (a reduce-scatter).
     """
 
     @staticmethod
@@ -331,31 +267,21 @@ def nt_xent_loss(
 
     With u = normalise(cat(z1, z2)) and s_ij = u_i . u_j / temperature, the anchor loss is
     l(i, j) = -log(exp(s_ij) / sum_{k != i} exp(s_ik)) where j is the other view of i. The loss of
-    pair n is (l(n, n+N) + l(n+N, n)) / 2, so the mean over pairs is the usual SimCLR objective
-    averaged over all 2N anchors. Collapsed embeddings give log(2N - 1) for every pair.
+    pair n is (l(n, n+N) + l(n+N, n)) / 2. Collapsed embeddings give log(2N - 1) for every pair.
 
-    With ``gather_distributed`` inside an initialised process group of W processes, each holding N
-    pairs, every local anchor is contrasted with the 2NW projections of all processes (gathered with
-    gradients), as in SimCLR's global-batch objective. The per-pair losses then equal those of a
-    single process holding the whole global batch, and the gradients that data-parallel averaging
-    produces equal that process's gradients.
-    Outside a process group (or with W = 1) it is the local loss.
-
-    Args:
-        z1: Projections of the first views.
-        z2: Projections of the second views (row n pairs with row n of `z1`).
-        temperature: Softmax temperature tau (0.5 in the reference setting).
-        gather_distributed: Draw negatives from every process of the default process group.
+    With ``gather_distributed`` in a process group of W processes, every local anchor is contrasted with the
+    2NW projections of all processes (gathered with gradients), so the losses and averaged gradients equal
+    those of one process holding the whole global batch.
 
     Returns:
-        Per-pair loss of the local pairs, computed in float32 (also under autocast).
+        Per-pair loss of the local pairs, in float32 (also under autocast).
 
     Shape:
         z1, z2: (N, D) with N >= 1 and N x processes >= 2. output: (N,).
 
     Raises:
-        ValueError: If shapes differ or are not (N, D), `temperature` is not positive, fewer than 2
-            pairs are contrasted, or (when gathering) the processes hold different numbers of pairs.
+        ValueError: If shapes differ or are not (N, D), ``temperature`` is not positive, fewer than 2 pairs
+            are contrasted, or (when gathering) the processes hold different numbers of pairs.
     """
     if z1.ndim != 2 or z1.shape != z2.shape:
         raise ValueError(f"z1 and z2 must both be (N, D), got {tuple(z1.shape)} and {tuple(z2.shape)}")

@@ -6,23 +6,14 @@ Example::
     python -m sar_zero123.generate --pipeline runs/pfm/pipeline --image chip.png \\
         --d-az 30 60 90 --d-el 0 --output_dir views/
 
-writes, for each requested view ``i``, ``view_{i}_daz{d_az}_del{d_el}.png`` (8-bit, normalised dB) and the
-float32 array ``.npy`` (H, W) in the normalised dB domain, plus ``input.png``, ``contact_sheet.png`` and the
-resolved ``config.json``; ``views.json`` lists the views with their requests and says what the arrays hold
-(:data:`VIEWS_DOMAIN`, the dB scaling). The output folder follows :mod:`sar_zero123.runs.folder`: one that
-holds views made with other settings or from another input file is refused before any work, naming each
-difference; ``--resume`` returns a finished folder with the same settings as it is (and redoes an unfinished
-one), ``--restart`` moves an old folder aside; a bad input chip is refused before anything is written.
-The chip is read with :func:`sar_zero123.data.load_magnitude`
-(8-bit images as pixel/255), centre-cropped/resized to the pipeline's size and mapped to normalised dB
-with the pipeline folder's ``decibel_scaling.json`` (``DecibelScaling.to_dict``) when present, else
-``--scaling_file`` or the unit-magnitude default. ``--pipeline`` defaults to the bundled prior measured
-best for the chip: with its absolute azimuth known (``--input_azimuth``, a raw MSTAR header) the one
-conditioned on a simulator proxy fitted to it (:data:`sar_zero123.pretrained.SIM_PRIOR_PROXY`), else the one
-that also sees the input turned by ``d_az`` (:data:`sar_zero123.pretrained.SIM_PRIOR_ROTATED`). A pipeline
-whose pose carries the input chip's absolute depression gets ``--input_depression``, else the depression
-the chip file records (:func:`chip_depression_deg`), else :data:`DEFAULT_INPUT_DEPRESSION_DEG` with a
-printed note.
+writes, for each view ``i``, ``view_{i}_daz{d_az}_del{d_el}.png`` (8-bit) and ``.npy`` (float32 (H, W)),
+both normalised dB, plus ``input.png``, ``contact_sheet.png``, ``config.json`` and ``views.json`` (the
+requests and what the arrays hold). The folder follows :mod:`sar_zero123.runs.folder`; a bad chip is
+refused before anything is written. The chip is mapped to normalised dB with the pipeline's
+``decibel_scaling.json``, else ``--scaling_file`` or the unit-magnitude default. ``--pipeline`` defaults
+to the bundled prior for the chip: the proxy one when its absolute azimuth is known, else the rotated one.
+A pipeline whose pose carries the input's absolute depression takes ``--input_depression``, else the
+chip file's, else :data:`DEFAULT_INPUT_DEPRESSION_DEG` with a printed note.
 """
 
 from __future__ import annotations
@@ -97,8 +88,7 @@ GENERATE_MAY_DIFFER = ("output_dir", "resume", "restart")
 class GenerateConfig(SamplerSettings):
     """Generate novel views of one SAR chip with a saved SARZero123Pipeline.
 
-    The sampler's fields (:class:`~sar_zero123.model.sampler.SamplerSettings`) are inherited: each left unset
-    takes the value the pipeline records as measured best for it (its model card), else the library's.
+    Sampler fields left unset take the pipeline's recorded values, else the library's.
     """
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
@@ -170,17 +160,9 @@ def _resolve_scaling(scaling_file: str | None, pipeline: str) -> DecibelScaling:
 def load_input_chip(config: GenerateConfig, size: int) -> np.ndarray:
     """The input chip as float32 ``(size, size)`` normalised dB in [0, 1].
 
-    Args:
-        config: The run configuration (``image``, ``input_domain``, ``scaling_file``, ``pipeline``).
-        size: Side the pipeline takes.
-
-    Returns:
-        The chip.
-
     Raises:
         ValueError: If a ``normalized_db`` chip lies outside [0, 1], a magnitude is negative or not finite,
-            or more than :data:`MAX_CLIPPED_FRACTION` of the pixels leave the dB range (a warning with
-            the fraction when fewer do).
+            or more than :data:`MAX_CLIPPED_FRACTION` of the pixels leave the dB range (fewer: a warning).
     """
     chip = center_crop_resize(load_magnitude(config.image), size=size, name=f"image {config.image!r}")
     if config.input_domain == "magnitude":
@@ -205,16 +187,8 @@ def load_input_chip(config: GenerateConfig, size: int) -> np.ndarray:
 
 
 def chip_depression_deg(path: str | Path) -> float | None:
-    """The depression angle a chip file records, if it records one.
-
-    Args:
-        path: A chip file :func:`~sar_zero123.data.load_magnitude` reads.
-
-    Returns:
-        An original MSTAR file's ``DesiredDepression`` (:func:`~sar_zero123.data.read_mstar_raw`), the
-        elevation in a SAMPLE file name (:func:`~sar_zero123.data.parse_sample_name`), or ``None`` for
-        files that carry no depression (images, ``.npy``).
-    """
+    """The depression a chip file records: a raw MSTAR file's ``DesiredDepression``, the elevation in a SAMPLE
+    file name, or ``None`` (images, ``.npy``)."""
     path = Path(path)
     if path.is_file() and is_mstar_raw(path):
         return read_mstar_raw(path).depression_deg
@@ -225,9 +199,8 @@ def chip_depression_deg(path: str | Path) -> float | None:
 
 
 def chip_azimuth_deg(path: str | Path) -> float | None:
-    """The absolute azimuth a chip file records, if it records one: an original MSTAR file's ``TargetAz``
-    (:func:`~sar_zero123.data.read_mstar_raw`), else ``None`` (images, ``.npy``, SAMPLE names, whose azimuth
-    is a bin centre)."""
+    """The absolute azimuth a raw MSTAR file records (``TargetAz``), else ``None`` (a SAMPLE name's azimuth is
+    a bin centre)."""
     path = Path(path)
     if path.is_file() and is_mstar_raw(path):
         return read_mstar_raw(path).azimuth_deg
@@ -235,17 +208,8 @@ def chip_azimuth_deg(path: str | Path) -> float | None:
 
 
 def resolve_input_depression(image: str | Path, input_depression: float | None) -> tuple[float, str]:
-    """The input chip's absolute depression for a pipeline whose pose carries it, and where it came from.
-
-    Args:
-        image: The chip file.
-        input_depression: The depression given on the command line (degrees), or ``None``.
-
-    Returns:
-        ``(depression_deg, source)``: ``input_depression`` when given (``"given"``), else the file's own
-        (:func:`chip_depression_deg`, ``"file"``), else :data:`DEFAULT_INPUT_DEPRESSION_DEG`
-        (``"default"``).
-    """
+    """``(depression_deg, source)`` of the input chip: ``input_depression`` (``"given"``), else the file's
+    (``"file"``), else :data:`DEFAULT_INPUT_DEPRESSION_DEG` (``"default"``)."""
     if input_depression is not None:
         return float(input_depression), "given"
     recorded = chip_depression_deg(image)
@@ -266,25 +230,19 @@ def generate_views(
     input_azimuth_deg: float | None = None,
     return_fit_score: bool = False,
 ) -> np.ndarray | tuple[np.ndarray, float | None]:
-    """All requested views of one chip in a single batched pipeline call (``train/evaluate.py``'s
-    ``generate_pair_targets`` generates one view per view pair instead).
+    """All requested views of one chip in a single batched pipeline call.
 
     Args:
-        pipe: The pipeline (its scheduler as ``sampler.apply_scheduler`` left it).
-        chip: Normalised dB input, shape ``(H, W)``.
-        d_az: Azimuth deltas in degrees, one per view.
-        d_el: Depression deltas in degrees, 1 or one per view.
-        sampler: How the pipeline samples (:class:`~sar_zero123.model.sampler.SamplerSettings`; a field left
-            ``None`` is the pipeline's recorded value, ``pipe.config.sampler``).
+        chip: Normalised dB input ``(H, W)``.
+        d_el: Depression deltas in degrees, 1 or one per ``d_az``.
+        sampler: A field left ``None`` is the pipeline's recorded value.
         seed: View ``i`` is sampled with ``torch.Generator().manual_seed(seed + i)``.
-        input_depression_deg: The chip's absolute depression in degrees, for a pipeline whose pose
-            carries it (``pose_projection.config.input_depression``).
-        input_azimuth_deg: The chip's absolute azimuth in degrees (the simulator proxy's fit).
-        return_fit_score: Also return how well the simulator proxy fits the chip (``None`` where none was
-            fitted; ``SARZero123PipelineOutput.proxy_fit_scores``).
+        input_depression_deg: The chip's absolute depression, for a pipeline whose pose carries it.
+        input_azimuth_deg: The chip's absolute azimuth (the simulator proxy's fit).
+        return_fit_score: Also return the proxy's fit score (``None`` where none was fitted).
 
     Returns:
-        Views in normalised dB, float32, shape ``(V, H, W)``; with ``return_fit_score``, ``(views, score)``.
+        Views in normalised dB, float32 ``(V, H, W)``; with ``return_fit_score``, ``(views, score)``.
     """
     num_views = len(d_az)
     d_el = list(d_el) * num_views if len(d_el) == 1 else list(d_el)
@@ -325,13 +283,7 @@ def _contact_sheet(chip: np.ndarray, views: np.ndarray, titles: list[str], path:
 
 
 def _open_output_dir(config: GenerateConfig, write: bool) -> RunFolder:
-    """The run-folder rule on ``output_dir``; the input chip file is identified by its SHA-256.
-
-    Raises:
-        FileNotFoundError: If ``image`` is not a file.
-        ValueError: If the folder holds other work (each difference named), or views of these settings
-            without ``resume`` or ``restart``.
-    """
+    """The run-folder rule on ``output_dir``; the input chip file is identified by its SHA-256."""
     if not Path(config.image).is_file():
         raise FileNotFoundError(f"image: {config.image!r} is not a file")
     return open_stage_folder(
@@ -342,13 +294,7 @@ def _open_output_dir(config: GenerateConfig, write: bool) -> RunFolder:
 
 
 def main(argv: Sequence[str] | None = None) -> Path:
-    """Command-line entry point (``python -m sar_zero123.generate``).
-
-    Args:
-        argv: Arguments without the program name; ``None`` reads ``sys.argv``.
-
-    Returns:
-        The output folder (with ``--resume``, a finished one as it is).
+    """Command-line entry point; returns the output folder (with ``--resume``, a finished one as it is).
 
     Raises:
         ValueError: Before anything is written, for a folder holding other work or a bad input chip.

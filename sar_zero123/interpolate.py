@@ -5,24 +5,15 @@ Example::
     python -m sar_zero123.interpolate --start sar-zero123/sim-prior-rotated \\
         --finetuned runs/mstar/finetune_lambda0/pipeline --alpha 0.85 --output_dir runs/mstar/wise0.85
 
-writes ``output_dir/pipeline``, a pipeline whose trained weights are ``(1 - alpha) * start + alpha *
-finetuned``, tensor by tensor, and whose every other file (configs, scheduler, scaling) is the fine-tuned
-pipeline's. ``alpha = 1`` is the fine-tune, ``alpha = 0`` the start's weights. Wortsman et al. ("Robust
-fine-tuning of zero-shot models", CVPR 2022) interpolate a fine-tuned model with the pretrained one it
-started from and keep most of the fine-tune's accuracy on its own data with much of the pretrained
-model's accuracy under distribution shift. Here the start is the multi-view prior, which turns vehicles it
-has never seen, and the fine-tune knows the task's vehicles; where the two meet on real MSTAR is measured in
-docs/results/.
+writes ``output_dir/pipeline``, whose trained weights are ``(1 - alpha) * start + alpha * finetuned``,
+tensor by tensor, and whose other files are the fine-tune's. Wortsman et al. (CVPR 2022) show such a mix
+keeps most of the fine-tune's accuracy and much of the start's robustness to distribution shift; here
+the start is the multi-view prior, which turns vehicles it has never seen.
 
-The two pipelines must have one architecture: every component folder with weights in the fine-tune is
-also in the start, with the same config (``_``-prefixed bookkeeping keys aside), tensor names, shapes
-and dtypes; anything else is refused by name and leaves nothing behind. Integer tensors (counters) are
-taken from the fine-tune. The pipeline is written under a temporary name and renamed into place, so an
-interrupted call leaves no half-mixed pipeline; ``output_dir`` follows the run-folder rule
-(:mod:`sar_zero123.runs.folder`), its record naming both pipelines by their weights' SHA-256.
-
-Hand-written because no library mixes two diffusers pipeline folders file by file; the tensors are read
-and written with ``safetensors``.
+The two must have one architecture (same components, configs, tensor names, shapes and dtypes); anything
+else is refused by name and leaves nothing behind. Integer tensors are the fine-tune's. The pipeline is
+written under a temporary name and renamed into place. Hand-written because no library mixes two
+diffusers pipeline folders file by file.
 """
 
 from __future__ import annotations
@@ -77,11 +68,11 @@ class InterpolateConfig:
 def interpolate_state(
     start: dict[str, torch.Tensor], finetuned: dict[str, torch.Tensor], alpha: float, name: str = "weights"
 ) -> dict[str, torch.Tensor]:
-    """``(1 - alpha) * start + alpha * finetuned`` for every floating tensor (computed in float32, stored in
-    the fine-tune's dtype); other tensors are the fine-tune's.
+    """``(1 - alpha) * start + alpha * finetuned`` for every floating tensor (in float32, stored in the
+    fine-tune's dtype); other tensors are the fine-tune's.
 
     Raises:
-        ValueError: Naming ``name`` and the first tensor the two lack in common or differ in shape or dtype.
+        ValueError: Naming ``name`` and the first tensor missing from one or differing in shape or dtype.
     """
     missing = sorted(set(start) ^ set(finetuned))
     if missing:
@@ -107,8 +98,8 @@ _RECORD_KEYS = ("trained_estimator",)
 
 
 def _architecture(config_file: Path) -> dict | None:
-    """A component's config without the bookkeeping keys diffusers and transformers add (``_name_or_path``,
-    ``_diffusers_version``...) and without :data:`_RECORD_KEYS`; ``None`` where it has no ``config.json``."""
+    """A component's config without diffusers' and transformers' ``_`` bookkeeping keys and
+    :data:`_RECORD_KEYS`; ``None`` where it has no ``config.json``."""
     if not config_file.is_file():
         return None
     config = json.loads(config_file.read_text())
@@ -119,8 +110,7 @@ def check_readable(folder: Path, field_name: str) -> None:
     """Refuse a pipeline folder whose files differ from its manifest, or whose weights do not read.
 
     Raises:
-        ValueError: Naming ``field_name`` and the file (a truncated or changed file, a header that does not
-            parse).
+        ValueError: Naming ``field_name`` and the file.
     """
     problem = manifest_problem(folder)
     if problem is not None:
@@ -136,13 +126,8 @@ def check_readable(folder: Path, field_name: str) -> None:
 
 
 def check_lineage(start: str | os.PathLike, start_dir: Path, tuned_dir: Path) -> None:
-    """Refuse a ``start`` other than the pipeline the fine-tune started from, where the fine-tune's
-    ``model_index.json`` records that (``lineage``: the SHA-256 of the start's weights,
-    :func:`~sar_zero123.runs.folder.weights_identity`).
-
-    Raises:
-        ValueError: Naming both, when the weights differ.
-    """
+    """Refuse a ``start`` other than the pipeline the fine-tune started from, where its ``model_index.json``
+    records the start's weights' SHA-256 (``lineage``)."""
     index = json.loads((tuned_dir / "model_index.json").read_text())
     lineage = index.get("lineage") if isinstance(index, dict) else None
     started = lineage.get("start_weights") if isinstance(lineage, dict) else None
@@ -157,6 +142,17 @@ def check_lineage(start: str | os.PathLike, start_dir: Path, tuned_dir: Path) ->
         )
 
 
+def _pipeline_dirs(start: str | os.PathLike, finetuned: str | os.PathLike) -> tuple[Path, Path]:
+    """The two pipeline folders, refused unless each holds a ``model_index.json``."""
+    start_dir, tuned_dir = resolve_pretrained(start), Path(finetuned)
+    for field_name, folder in (("start", start_dir), ("finetuned", tuned_dir)):
+        if not (folder / "model_index.json").is_file():
+            raise FileNotFoundError(
+                f"{field_name}: expected a pipeline folder with model_index.json, got {folder}"
+            )
+    return start_dir, tuned_dir
+
+
 def interpolate_pipelines(
     start: str | os.PathLike, finetuned: str | os.PathLike, alpha: float, output_dir: str | os.PathLike
 ) -> Path:
@@ -164,16 +160,10 @@ def interpolate_pipelines(
 
     Raises:
         FileNotFoundError: If either pipeline folder lacks ``model_index.json``.
-        ValueError: For an ``alpha`` outside [0, 1], an existing ``output_dir``, a start the fine-tune did not
-            start from (:func:`check_lineage`), or two pipelines of different architectures (naming the
-            component and what differs).
+        ValueError: For an ``alpha`` outside [0, 1], an existing ``output_dir``, a start the fine-tune did
+            not start from, or two pipelines of different architectures.
     """
-    start_dir, tuned_dir, out = resolve_pretrained(start), Path(finetuned), Path(output_dir)
-    for field_name, folder in (("start", start_dir), ("finetuned", tuned_dir)):
-        if not (folder / "model_index.json").is_file():
-            raise FileNotFoundError(
-                f"{field_name}: expected a pipeline folder with model_index.json, got {folder}"
-            )
+    (start_dir, tuned_dir), out = _pipeline_dirs(start, finetuned), Path(output_dir)
     if not 0.0 <= alpha <= 1.0:
         raise ValueError(f"alpha must lie in [0, 1] (1: the fine-tune), got {alpha}")
     if out.exists():
@@ -182,13 +172,12 @@ def interpolate_pipelines(
 
 
 def mix_plan(start: str | os.PathLike, start_dir: Path, tuned_dir: Path) -> list[tuple[Path, Path]]:
-    """Every weight file of the fine-tune with the start's file it is mixed with, ``(relative path, start's
-    file)``, after checking that the fine-tune began from this start (:func:`check_lineage`) and that each
-    component's config matches (tensors are checked as they are mixed).
+    """``(relative path, start's file)`` of every weight file of the fine-tune, after checking its lineage and
+    that each component's config matches (tensors are checked as they are mixed).
 
     Raises:
-        ValueError: Naming the component, for a start the fine-tune did not begin from, a weight file the
-            start lacks, configs of another architecture, or a fine-tune without weights.
+        ValueError: Naming the component, for a wrong start, a weight file the start lacks, configs of
+            another architecture, or a fine-tune without weights.
     """
     check_lineage(start, start_dir, tuned_dir)
     plan: list[tuple[Path, Path]] = []
@@ -234,9 +223,8 @@ def _write_mix(plan: list[tuple[Path, Path]], tuned_dir: Path, alpha: float, out
 
 
 def _forget_trained_estimator(folder: Path) -> None:
-    """The mix's azimuth estimator is neither run's: its pose projection's record of the estimator the UNet
-    was trained beside (``trained_estimator``) is cleared, so that the mix loads as a pipeline of unknown
-    estimator origin."""
+    """The mix's azimuth estimator is neither run's: clear its ``trained_estimator`` record, so the mix loads
+    as a pipeline of unknown estimator origin."""
     config_file = folder / "pose_projection" / "config.json"
     if config_file.is_file():
         config = json.loads(config_file.read_text())
@@ -252,12 +240,7 @@ def run_interpolate(config: InterpolateConfig) -> Path:
         ValueError: For a folder holding other work, or two pipelines of different architectures.
     """
     timer = StageTimer()
-    start_dir, tuned_dir = resolve_pretrained(config.start), Path(config.finetuned)
-    for field_name, folder in (("start", start_dir), ("finetuned", tuned_dir)):
-        if not (folder / "model_index.json").is_file():
-            raise FileNotFoundError(
-                f"{field_name}: expected a pipeline folder with model_index.json, got {folder}"
-            )
+    start_dir, tuned_dir = _pipeline_dirs(config.start, config.finetuned)
     for field_name, folder in (("start", start_dir), ("finetuned", tuned_dir)):
         check_readable(folder, field_name)  # before the folder is opened: a refusal leaves nothing behind
     plan = mix_plan(config.start, start_dir, tuned_dir)

@@ -1,9 +1,8 @@
 """Progress bars that suit where they are written: a live bar on a terminal, one line per interval in a log.
 
-``tqdm`` redraws its bar with carriage returns. In a file (``nohup ... > log``) that is thousands of
-overwritten segments on one line, which neither ``tail`` nor ``grep`` reads. :func:`progress_bar` is ``tqdm``
-(same arguments) on a terminal; elsewhere it writes a plain line at most every
-:data:`LOG_INTERVAL_S` seconds, and the last state at the end. ``TQDM_DISABLE=1`` still silences both.
+``tqdm`` redraws with carriage returns, which a log file turns into one unreadable line; elsewhere than a
+terminal :func:`progress_bar` writes a plain line every :data:`LOG_INTERVAL_S` seconds and the last
+state. ``TQDM_DISABLE=1`` silences both.
 """
 
 from __future__ import annotations

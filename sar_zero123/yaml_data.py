@@ -1,12 +1,10 @@
 """YAML read as plain data, bounded: the one reader of recipes and ``--config`` files.
 
-``yaml.safe_load`` never builds objects, but it still expands anchors and aliases (a few hundred bytes of
-nested aliases grow to gigabytes), recurses once per nesting level (a deep file ends in ``RecursionError``)
-and keeps the last of two equal keys without a word (a repeated field or section silently loses the
-first). Its YAML 1.1 numbers are loose too: ``1_0`` is 10, ``1:30`` is 90 (base 60), ``0x1F`` is 31.
-:func:`read_yaml` walks the file's parse events first, which costs memory and time linear in its size, and
-refuses any anchor or alias and nesting deeper than :data:`MAX_YAML_DEPTH`; the constructors then refuse a
-key given twice and a number not written as a plain decimal. No library loader offers these checks together.
+``yaml.safe_load`` still expands aliases (a few hundred bytes grow to gigabytes), recurses per nesting
+level, keeps the last of two equal keys silently and reads YAML 1.1's loose numbers (``1:30`` is 90).
+:func:`read_yaml` walks the parse events first (linear cost), refusing anchors, aliases and nesting deeper
+than :data:`MAX_YAML_DEPTH`; the constructors refuse a repeated key and a number not written as a plain
+decimal.
 """
 
 from __future__ import annotations
@@ -33,8 +31,7 @@ _EXPONENT_FLOAT = re.compile(r"[-+]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)[eE][-+]?[0-9]+\
 
 
 class _Refused(ValueError):
-    """A mapping key given twice, or a loosely written number (raised by the loader, prefixed by
-    :func:`read_yaml`)."""
+    """A mapping key given twice, or a loosely written number."""
 
 
 class _UniqueKeyLoader(yaml.SafeLoader):
@@ -77,14 +74,9 @@ _UniqueKeyLoader.add_implicit_resolver("tag:yaml.org,2002:float", _EXPONENT_FLOA
 def read_yaml(text: str, where: str) -> Any:
     """The data of a YAML document: scalars, lists and mappings only.
 
-    Args:
-        text: The document.
-        where: What it is, for messages (e.g. ``"recipe 'mine.yaml'"``).
-
     Raises:
-        ValueError: Naming ``where``, for text that is not YAML, an anchor or alias (``&``/``*``), a tag
-            no safe constructor reads (``!!python/...``), nesting deeper than :data:`MAX_YAML_DEPTH`, a key
-            given twice in one mapping, or a number in YAML 1.1's loose forms.
+        ValueError: Naming ``where``, for text that is not YAML, an anchor or alias, a tag no safe constructor
+            reads, nesting deeper than :data:`MAX_YAML_DEPTH`, a repeated key, or a loose YAML 1.1 number.
     """
     depth = 0
     try:

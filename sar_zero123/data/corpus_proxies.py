@@ -1,20 +1,13 @@
 """Simulator proxies of a prior corpus's vehicles: what a proxy-conditioned UNet trains with.
 
-A UNet with ``spatial_pose="proxy"`` (:mod:`sar_zero123.model.conditioning`) sees, beside the input chip, a
-simulator vehicle fitted to it (:class:`~sar_zero123.sim.proxy.ProxyBank`) rendered at the input's pose and
-at the requested pose. To train it, every corpus vehicle gets its proxies as the pipeline would fit them:
-:func:`write_corpus_proxies` fits the bank to one of the vehicle's chips (its first view, at that view's
-azimuth and depression; the bank's seeds are never a corpus's, so a vehicle is never its own proxy), keeps
-the ``candidates`` best-scoring bank vehicles (the best, and runners-up that a training step sometimes
-gives instead: a proxy is never exact), and renders each at the pose of every chip of the vehicle.
+A ``spatial_pose="proxy"`` UNet sees, beside the input chip, a simulator vehicle fitted to it rendered at
+the input's and the requested pose. Each corpus vehicle gets its proxies as the pipeline would fit them:
+the bank (whose seeds are never a corpus's) is fitted to the vehicle's first view, the ``candidates``
+best bank vehicles are kept (runners-up: a proxy is never exact) and rendered at every chip's pose.
 
-The proxies lie in a folder of their own (by default beside the corpus's index; the prior stage writes
-them into its own output folder, never into a corpus it was given). ``proxies.safetensors`` holds
-``chips`` ``(N, K, S, S)``, float16 peak-normalised magnitudes (chip ``n`` of the index, candidate ``k``),
-and ``bank_index`` ``(N, K)``. ``proxies.json``, written last through an atomic rename, records the bank,
-the candidates and every chip's path in index order, so a reader can check it describes this corpus. A
-killed run leaves no partial file under either name; a re-run starts over (about 10 minutes for 2,000
-vehicles with a 250-vehicle bank on two cores).
+``proxies.safetensors`` holds ``chips`` ``(N, K, S, S)``, float16 peak-normalised magnitudes, and
+``bank_index`` ``(N, K)``; ``proxies.json``, written last and atomically, records the bank, the candidates
+and every chip's path in index order. A killed run leaves no partial file.
 """
 
 from __future__ import annotations
@@ -73,10 +66,8 @@ def _one_thread_each() -> None:
 
 
 def _vehicle_proxies(args: tuple) -> tuple[np.ndarray, np.ndarray]:
-    """One vehicle's proxies: ``(chips (V, K, S, S) float16, bank indices (K,))``.
-
-    The bank is fitted to the vehicle's first chip at its pose; the ``K`` best bank vehicles are rendered at
-    every chip's pose."""
+    """One vehicle's proxies ``(chips (V, K, S, S) float16, bank indices (K,))``: the bank fitted to its first
+    chip, the ``K`` best rendered at every chip's pose."""
     bank_args, candidates, fit_chip, poses, oracle_seed = args
     bank = _bank(*bank_args)
     azimuth, depression = poses[0]
@@ -109,25 +100,14 @@ def write_corpus_proxies(
     """Fit and render every corpus vehicle's proxies (see the module docstring); returns the record's path.
 
     Args:
-        out_dir: Where :data:`PROXIES_FILE` and :data:`PROXIES_RECORD` go (created); ``None``: ``corpus_dir``.
-        corpus_dir: A prior corpus (:func:`~sar_zero123.sim.corpus.write_prior_corpus`) or any image folder
-            with an ``index.csv`` whose chips carry azimuths and depressions.
-        num_vehicles, first_seed, blur_sigma_px, render_seed: The :class:`ProxyBank` (a smaller bank than
-            the pipeline's fits a little worse: a UNet trained on it learns not to copy its proxy).
+        corpus_dir: A prior corpus or any image folder whose ``index.csv`` gives azimuths and depressions.
+        out_dir: Where :data:`PROXIES_FILE` and :data:`PROXIES_RECORD` go; ``None``: ``corpus_dir``.
+        num_vehicles, first_seed, blur_sigma_px, render_seed: The :class:`ProxyBank`.
         candidates: Best-scoring bank vehicles kept per corpus vehicle (1-8).
-        size: Side of the chips the proxies are fitted to and rendered at: each chip is read as a
-            fine-tune reads it (:func:`~sar_zero123.data.datasets.load_chip`: a centre crop keeping the
-            pixel spacing, so real MSTAR chips of 128 to 193 pixels fit at their 0.2 m). ``None``: the
-            chips as they are, which must then be square and of one size (a simulated corpus).
-        num_workers: Processes fitting vehicles in parallel.
-        progress: Print a line every 200 vehicles.
-        oracle: Also keep, as the last candidate (bank index :data:`ORACLE_INDEX`), the vehicle itself
-            rendered as the bank renders (a simulated corpus only: its serials name its procedural seeds,
-            :func:`~sar_zero123.sim.corpus.corpus_vehicle_seed`): the perfect proxy a training step may
-            give, so that the UNet learns when a proxy is to be trusted.
-
-    Returns:
-        The path of the record (:data:`PROXIES_RECORD`) in ``out_dir``.
+        size: Chip side, each chip read as a fine-tune reads it (a centre crop keeping the pixel spacing);
+            ``None``: the chips as they are, which must be square and of one size.
+        oracle: Also keep as the last candidate (:data:`ORACLE_INDEX`) the vehicle itself, rendered as the
+            bank renders (a simulated corpus only), so that the UNet learns when to trust a proxy.
 
     Raises:
         FileNotFoundError: If ``corpus_dir`` has no ``index.csv``.
@@ -223,11 +203,7 @@ def load_corpus_proxies(
 ) -> torch.Tensor:
     """The proxies of the given chips of a corpus, in their order: ``(N, K, S, S)`` float32 magnitudes.
 
-    Args:
-        corpus_dir: The corpus folder.
-        chip_paths: Chips of that corpus (absolute, or relative to it), e.g. a pair dataset's records.
-        proxies_dir: The folder holding :data:`PROXIES_FILE` and :data:`PROXIES_RECORD`; ``None``: the
-            corpus folder.
+    ``chip_paths`` are absolute or relative to the corpus; ``proxies_dir`` defaults to the corpus folder.
 
     Raises:
         FileNotFoundError: If the corpus has no proxies (naming the command that writes them).

@@ -17,10 +17,8 @@ __all__ = ["ChipDataset", "load_chip", "resolve_class_names"]
 
 
 def resolve_class_names(records: Sequence[ChipRecord], class_names: Sequence[str] | None) -> list[str]:
-    """Class names that define the labels: given explicitly, or the sorted classes of ``records``.
-
-    Passing the names of the training set keeps labels stable on a split that lacks some classes
-    (e.g. the MSTAR-OOD test split holds only T72).
+    """Class names that define the labels: given, or the sorted classes of ``records``. The training set's
+    names keep labels stable on a split lacking some classes (the MSTAR-OOD test split holds only T72).
 
     Raises:
         ValueError: If ``records`` is empty, names repeat, or a record's class is not among the names.
@@ -49,17 +47,14 @@ class ChipDataset(Dataset):
     """Chips as model inputs.
 
     Each item is ``{"image": (1, S, S) float32 normalised dB, "label": int, "azimuth_deg": float,
-    "depression_deg": float}`` plus ``"magnitude": (1, S, S) float32`` when ``return_magnitude``
-    (for co-domain augmentations, which act on magnitude before the dB transform).
+    "depression_deg": float}`` plus ``"magnitude": (1, S, S) float32`` when ``return_magnitude`` (co-domain
+    augmentations act on magnitude).
 
     Args:
-        records: The chips.
-        size: Output side S in pixels (see :func:`~sar_zero123.data.center_crop_resize`).
-        scaling: Decibel bounds; default :meth:`DecibelScaling.for_unit_magnitude` (8-bit images and
-            simulator chips). Pass a fitted scaling for raw MSTAR magnitudes.
-        return_magnitude: Also return the cropped magnitude.
+        scaling: Decibel bounds; default :meth:`DecibelScaling.for_unit_magnitude`. Pass a fitted scaling
+            for raw MSTAR magnitudes.
         class_names: Names defining the labels (default: sorted classes of ``records``).
-        crop_size: Side of the centre crop before resizing (default: see ``center_crop_resize``).
+        crop_size: Side of the centre crop before resizing to ``size``.
 
     Raises:
         ValueError: If ``records`` is empty, ``size`` < 1 or ``class_names`` misses a class.

@@ -28,12 +28,9 @@ from .mstar_raw import is_mstar_raw, read_mstar_raw
 __all__ = ["IMAGE_SUFFIXES", "MAX_CHIP_PIXELS", "MIN_CHIP_SIZE", "center_crop_resize", "load_magnitude"]
 
 IMAGE_SUFFIXES = (".jpeg", ".jpg", ".png", ".tif", ".tiff", ".bmp")
-#: Smallest side (pixels) of an image taken as a chip: below it an image is an icon or a mistake, and
-#: upsampling it would invent the chip (MSTAR chips are 128 to 193 px; the tiny model takes 32 px).
+#: Smallest side (pixels) of an image taken as a chip: upsampling a smaller one would invent the chip.
 MIN_CHIP_SIZE = 16
-#: Most pixels a chip file may declare (4096 x 4096): checked from the file's header before any pixel is
-#: decoded, so that a file claiming a huge image (a 20,000 px PNG, an ``.npy`` header of 100,000 x 100,000)
-#: is refused instead of allocating gigabytes. MSTAR chips are 128 to 193 px.
+#: Most pixels a chip file may declare, checked from its header so a huge claim allocates nothing.
 MAX_CHIP_PIXELS = 4096 * 4096
 # Keys of the complex image in SAMPLE .mat files, in order of preference.
 _MAT_IMAGE_KEYS = ("complex_img", "complex_img_unshifted")
@@ -111,8 +108,8 @@ def _load_image_file(path: Path) -> np.ndarray:
 
 
 def _load_mat(path: Path) -> np.ndarray:
-    """A SAMPLE ``.mat`` chip: its variables listed first (names, shapes, types: nothing decoded), the image
-    variable checked for its size and for holding numbers, then only that variable read."""
+    """A SAMPLE ``.mat`` chip: its variables listed first (nothing decoded), the image variable checked for
+    its size and for holding numbers, then only that variable read."""
     from scipy.io import loadmat, whosmat
     from scipy.io.matlab import MatReadError
 
@@ -141,22 +138,13 @@ def _load_mat(path: Path) -> np.ndarray:
 
 
 def load_magnitude(path: str | Path) -> np.ndarray:
-    """Reads a chip file as float32 magnitude.
-
-    Args:
-        path: A JPEG/PNG/TIFF image, a ``.npy`` array, a SAMPLE ``.mat`` file or an original MSTAR file.
-
-    Returns:
-        Magnitude image (see the module table for the convention of each file kind).
-
-    Shape:
-        (H, W).
+    """Reads a chip file as float32 magnitude (H, W), by the module table's convention for its kind.
 
     Raises:
         FileNotFoundError: If ``path`` does not exist.
-        ValueError: If the file cannot be read (truncated or corrupt; the message names it), declares more
-            than :data:`MAX_CHIP_PIXELS` pixels (refused from its header, before decoding), is not a
-            single-channel 2-D image, or holds negative or non-finite magnitudes.
+        ValueError: If the file cannot be read (naming it), declares more than :data:`MAX_CHIP_PIXELS` pixels
+            (refused from its header), is not a single-channel 2-D image, or holds negative or non-finite
+            magnitudes.
     """
     path = Path(path)
     if not path.is_file():
@@ -189,27 +177,16 @@ def load_magnitude(path: str | Path) -> np.ndarray:
 def center_crop_resize(
     image: np.ndarray, size: int = 128, crop_size: int | None = None, name: str = "image"
 ) -> np.ndarray:
-    """Centre-crops a chip to a square and resizes it to ``size x size``.
+    """Centre-crops a chip (H, W) to a square and resizes it to float32 ``(size, size)``.
 
     With ``crop_size=None`` the crop keeps the pixel spacing whenever possible: a chip at least ``size``
-    pixels on each side is cropped to ``size`` with no resampling (MSTAR chips of 128 to 193 pixels all
-    keep their 0.2 m pixels); a smaller chip is cropped to its shorter side and upsampled. An explicit
-    ``crop_size`` crops that square and resizes it to ``size`` (bilinear, anti-aliased when shrinking).
-    An image with a side below :data:`MIN_CHIP_SIZE` (or below ``size``, when that is smaller) is not a
-    chip and is refused rather than upsampled.
-
-    Args:
-        image: Magnitude image. Shape: (H, W).
-        size: Output side in pixels.
-        crop_size: Side of the central square to cut before resizing; ``None`` = ``min(size, H, W)``.
-        name: What the image is called in error messages (its file).
-
-    Returns:
-        Float32 image. Shape: (size, size).
+    pixels on each side is cropped to ``size`` with no resampling; a smaller chip is cropped to its shorter
+    side and upsampled. An explicit ``crop_size`` crops that square and resizes it (bilinear, anti-aliased
+    when shrinking). An image with a side below :data:`MIN_CHIP_SIZE` (or ``size``, if smaller) is refused.
 
     Raises:
         ValueError: If ``image`` is not 2-D or too small to be a chip, ``size`` < 1, or ``crop_size``
-            exceeds the image.
+            exceeds the image; ``name`` is the image in the message.
     """
     if image.ndim != 2:
         raise ValueError(f"{name} must have shape (H, W), got {image.shape}")

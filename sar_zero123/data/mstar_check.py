@@ -2,15 +2,9 @@
 
     python -m sar_zero123.data.mstar_check --data ../shared/data/mstar --output docs/results/data/data.json
 
-:func:`check_mstar_data` returns (and the command prints and writes) a JSON report:
-
-* chip counts of every protocol (``extended``, ``soc``, ``ood-T72`` for seeds 0-4) next to the paper's
-  (:data:`PAPER_COUNTS`);
-* :func:`~sar_zero123.data.read_mstar_raw` on :data:`RAW_CHIP` against its JPEG copy :data:`JPEG_CHIP`: the
-  JPEGs map each chip's magnitude linearly to 0-255 (brightest pixel near 255), so ``raw / raw.max()`` and
-  ``pixel / 255`` agree up to JPEG compression error;
-* the raw-folder index of ``raw/`` (read-only: scanned, not cached), the global decibel bounds of the
-  extended training JPEGs, and the cost of building view pairs and reading chips.
+The report holds the chip counts of every protocol beside the paper's, a raw MSTAR chip against its JPEG
+copy (the JPEGs map each chip's magnitude linearly to 0-255, so ``raw / raw.max()`` and ``pixel / 255``
+agree up to compression error), the raw-folder index, the global dB bounds, and view-pair and reading costs.
 """
 
 from __future__ import annotations
@@ -67,8 +61,8 @@ def _correlation(a: np.ndarray, b: np.ndarray) -> float:
 
 
 def check_splits(data: Path) -> dict[str, Any]:
-    """Chip counts of the ``extended`` and ``soc`` protocols and of ``ood-T72`` for seeds 0-4, the paper's
-    counts beside them, the seed-0 validation intervals and the seconds :func:`load_index` took."""
+    """Chip counts of ``extended``, ``soc`` and ``ood-T72`` (seeds 0-4) beside the paper's, the seed-0
+    validation intervals and the seconds :func:`load_index` took."""
     start = time.perf_counter()
     records = load_index(data)
     seconds = time.perf_counter() - start
@@ -120,8 +114,8 @@ def check_raw_vs_jpeg(data: Path) -> dict[str, Any]:
 
 
 def check_raw_folder(data: Path) -> dict[str, Any]:
-    """The records :func:`load_index` reads from ``data/raw``: in place (a read-only folder is scanned, not
-    cached; the warning it gives) and in a writable copy (cached as ``index.csv``), which must agree."""
+    """The records :func:`load_index` reads from ``data/raw`` in place (read-only: scanned, not cached) and in
+    a writable copy (cached as ``index.csv``), which must agree."""
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         in_place = load_index(data / "raw")
@@ -151,8 +145,8 @@ def check_raw_folder(data: Path) -> dict[str, Any]:
 
 
 def check_scaling(data: Path) -> dict[str, Any]:
-    """The decibel bounds :meth:`DecibelScaling.fit` finds on the extended training chips, the unit-magnitude
-    default beside them, and the seconds the fit took."""
+    """The dB bounds :meth:`DecibelScaling.fit` finds on the extended training chips, the unit default, the
+    time."""
     train = split_records(load_index(data), "extended")["train"]
     start = time.perf_counter()
     fitted = DecibelScaling.fit(train)
@@ -189,9 +183,6 @@ def check_datasets(data: Path) -> dict[str, Any]:
 
 def check_mstar_data(data: str | Path) -> dict[str, Any]:
     """Every check of this module on one MSTAR folder (an ``index.csv`` of JPEG chips beside ``raw/``).
-
-    Args:
-        data: The folder (e.g. ``../shared/data/mstar``).
 
     Returns:
         ``{"data", "splits", "raw_vs_jpeg", "raw_folder_index", "scaling", "datasets"}``.

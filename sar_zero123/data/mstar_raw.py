@@ -14,13 +14,10 @@ An MSTAR chip file is an ASCII header followed by binary data::
     [EndofPhoenixHeader]
     <rows*cols big-endian float32 magnitude><rows*cols big-endian float32 phase>
 
-``PhoenixHeaderLength`` counts the bytes of the ASCII header from the start of the file (which begins with
-a newline in the public release); a non-zero ``native_header_length``
-announces a second (binary) header between the Phoenix header and the pixels. Some releases store
-only the magnitude plane; the phase is then ``None``.
-
-No maintained Python package reads this format (readers in the wild fold or truncate the azimuth),
-so it is parsed here with ``numpy.frombuffer``.
+``PhoenixHeaderLength`` counts the header's bytes from the file's start; a non-zero
+``native_header_length`` announces a second, binary header before the pixels. Some releases store only
+the magnitude plane. No maintained Python package reads this format (readers in the wild fold or
+truncate the azimuth).
 """
 
 from __future__ import annotations
@@ -63,14 +60,12 @@ class MSTARChip:
     """One chip read from an original MSTAR file.
 
     Attributes:
-        magnitude: Float32 magnitude, as stored (not normalised). Shape (H, W).
-        phase: Float32 phase in radians, or ``None`` when the file holds only magnitude. Shape (H, W).
-        header: Every ``key= value`` field of the Phoenix header, values as strings.
-        target_type: ``TargetType`` (e.g. ``"bmp2_tank"``).
-        serial: ``TargetSerNum`` (e.g. ``"c21"``).
-        azimuth_deg: ``TargetAz`` in degrees, in [0, 360), neither folded nor rounded.
-        depression_deg: ``DesiredDepression`` in degrees (the nominal 15 or 17 of the protocols);
-            the measured value is in ``header["MeasuredDepression"]``.
+        magnitude: Float32 magnitude as stored, (H, W).
+        phase: Float32 phase in radians, (H, W), or ``None`` when the file holds only magnitude.
+        header: Every ``key= value`` field of the Phoenix header, as strings.
+        azimuth_deg: ``TargetAz`` in [0, 360), neither folded nor rounded.
+        depression_deg: ``DesiredDepression`` (the protocols' nominal 15 or 17; the measured value is
+            ``header["MeasuredDepression"]``).
     """
 
     magnitude: np.ndarray
@@ -88,16 +83,8 @@ class MSTARChip:
 
 
 def target_class_from_type(target_type: str) -> str:
-    """Maps an MSTAR ``TargetType`` to the class name used by the protocols.
-
-    The class is the part before the first underscore, upper-cased, without hyphens:
-    ``bmp2_tank -> BMP2``, ``zsu23-4_gun -> ZSU234``, ``2s1_gun -> 2S1``, ``slicey -> SLICEY``.
-
-    Args:
-        target_type: The header's ``TargetType`` value.
-
-    Returns:
-        The class name.
+    """Maps an MSTAR ``TargetType`` to the protocols' class name: the part before the first underscore,
+    upper-cased, without hyphens (``bmp2_tank -> BMP2``, ``zsu23-4_gun -> ZSU234``).
 
     Raises:
         ValueError: If ``target_type`` is empty.
@@ -139,13 +126,7 @@ def _header_number(header: dict[str, str], key: str, path: Path, kind: type = fl
 
 
 def read_mstar_header(path: str | Path) -> dict[str, str]:
-    """Reads only the Phoenix header of an MSTAR file.
-
-    Args:
-        path: The MSTAR file.
-
-    Returns:
-        Every header field as a string, keyed by its name.
+    """Reads only the Phoenix header of an MSTAR file, every field as a string.
 
     Raises:
         FileNotFoundError: If ``path`` does not exist.
@@ -168,22 +149,14 @@ def read_mstar_header(path: str | Path) -> dict[str, str]:
 def read_mstar_raw(path: str | Path) -> MSTARChip:
     """Reads an MSTAR chip: Phoenix header, then big-endian float32 magnitude and phase.
 
-    Args:
-        path: The MSTAR file (e.g. ``HB03787.002``).
-
-    Returns:
-        The chip with its magnitude, phase (or ``None``), full header and typed labels.
-
     Shape:
         ``magnitude`` and ``phase``: (NumberOfRows, NumberOfColumns).
 
     Raises:
         FileNotFoundError: If ``path`` does not exist.
-        ValueError: If the header lacks a required field or a field is malformed, the file length is
-            not the header lengths plus exactly one or two planes of ``NumberOfRows x NumberOfColumns``
-            float32 values (a cut file, a missing part of the phase plane, an edited size or header
-            length), the magnitude is negative or not finite, ``TargetAz`` lies outside [0, 360) or
-            ``DesiredDepression`` outside (0, 90).
+        ValueError: If a required header field is missing or malformed, the file length is not the headers
+            plus exactly one or two planes, the magnitude is negative or not finite, ``TargetAz`` lies outside
+            [0, 360) or ``DesiredDepression`` outside (0, 90).
     """
     # 1. header
     path = Path(path)

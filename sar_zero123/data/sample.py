@@ -5,13 +5,10 @@ Layout of the public release::
     png_images/{decibel,qpm}/{real,synth}/<class>/<name>.png
     mat_files/{real,synth}/<class>/<name>.mat        # keys complex_img, azimuth, elevation, ...
 
-with names such as ``2s1_real_A_elevDeg_015_azCenter_010_22_serial_b01.png``: class ``2s1``, kind
-``real``/``synth``, elevation 15 deg, azimuth 10.22 deg, serial ``b01``. A measured chip and its
-synthetic twin share class, elevation, azimuth and serial; :func:`load_sample` pairs them on exactly that.
-
-PNG variants: ``decibel`` holds normalised dB images and ``qpm`` quarter-power magnitude images, both
-8-bit, read as pixel/255 by :func:`~sar_zero123.data.load_magnitude`; ``mat`` holds the complex image,
-read as its modulus.
+with names such as ``2s1_real_A_elevDeg_015_azCenter_010_22_serial_b01.png`` (class ``2s1``, elevation
+15 deg, azimuth 10.22 deg, serial ``b01``). A measured chip and its synthetic twin share class, elevation,
+azimuth and serial; :func:`load_sample` pairs them on exactly that. The PNGs are 8-bit (read as pixel/255),
+the ``.mat`` complex image is read as its modulus.
 """
 
 from __future__ import annotations
@@ -40,14 +37,8 @@ class SamplePair:
 
 
 def parse_sample_name(path: str | Path) -> tuple[str, ChipRecord]:
-    """Parses a SAMPLE file name into its kind and chip record.
-
-    Args:
-        path: File such as ``.../2s1_real_A_elevDeg_015_azCenter_010_22_serial_b01.png``.
-
-    Returns:
-        ``(kind, record)`` with kind ``"real"`` or ``"synth"``; ``record.target_class`` is the upper-cased
-        class (``"2S1"``), ``depression_deg`` the elevation, ``azimuth_deg`` e.g. 10.22.
+    """Parses a SAMPLE file name into ``(kind, record)``, kind ``"real"`` or ``"synth"``; the class is
+    upper-cased (``"2S1"``) and the elevation is the depression.
 
     Raises:
         ValueError: If the name does not follow the SAMPLE pattern or the azimuth lies outside [0, 360).
@@ -81,14 +72,8 @@ def _format_dir(root: Path, image_format: str, kind: str) -> Path:
 
 
 def load_sample(root: str | Path, image_format: str = "qpm") -> list[SamplePair]:
-    """Lists the measured/synthetic pairs of a SAMPLE folder.
-
-    Args:
-        root: The SAMPLE folder (holding ``png_images/`` and/or ``mat_files/``).
-        image_format: ``"qpm"`` or ``"decibel"`` (PNG variants) or ``"mat"`` (complex ``.mat`` files).
-
-    Returns:
-        Pairs sorted by (class, serial, elevation, azimuth). Chips without a twin are left out.
+    """The measured/synthetic pairs of a SAMPLE folder, sorted by (class, serial, elevation, azimuth); chips
+    without a twin are left out. ``image_format``: ``"qpm"``, ``"decibel"`` (PNG) or ``"mat"``.
 
     Raises:
         FileNotFoundError: If the folder of real or synthetic chips for the format does not exist.

@@ -1,13 +1,10 @@
-"""Decibel scaling: magnitude -> decibels -> [0, 1] with dataset-global bounds.
-
-Every model of the project sees "normalised dB" images::
+"""Decibel scaling: magnitude -> decibels -> [0, 1] with dataset-global bounds::
 
     db = 20 * log10(m + 1e-3)                 # to_decibels; zero magnitude is -60 dB
     x  = (db - min_db) / (max_db - min_db)    # DecibelScaling.normalize, in [0, 1]
 
-with one ``(min_db, max_db)`` for the whole dataset (not per image), so relative brightness between
-chips survives. The bounds are stored (``to_dict``) with every run so a trained model and its
-pipeline normalise identically.
+One ``(min_db, max_db)`` for the whole dataset, so relative brightness between chips survives; the bounds
+are stored with every run so a model and its pipeline normalise identically.
 """
 
 from __future__ import annotations
@@ -46,10 +43,10 @@ MSTAR_RAW_MAX_DB = 24.4912
 
 
 def check_magnitude(magnitude: Array, name: str = "magnitude") -> None:
-    """Magnitudes are finite and >= 0 (a negative one has no decibel value: NaN).
+    """Refuse magnitudes that are not finite and >= 0 (a negative one has no decibel value).
 
     Raises:
-        ValueError: naming ``name``, how many values are bad and the smallest one.
+        ValueError: Naming ``name``, how many values are bad and the smallest one.
     """
     if isinstance(magnitude, torch.Tensor):
         values = magnitude.detach()
@@ -69,16 +66,10 @@ def check_magnitude(magnitude: Array, name: str = "magnitude") -> None:
 
 @dataclass(frozen=True)
 class DecibelScaling:
-    """Min-max normalisation of decibels with dataset-global bounds.
+    """Min-max normalisation of decibels with dataset-global bounds (``min_db`` -> 0, ``max_db`` -> 1).
 
-    The default bounds fit magnitudes already normalised to [0, 1] (8-bit images read as pixel/255 and
-    the built-in simulator): ``min_db = -60`` (zero magnitude) and ``max_db = 20*log10(1 + 1e-3)``.
-    For calibrated raw MSTAR magnitudes use :meth:`for_mstar_raw` (max 24.4912 dB, the value of the
-    paper's reference implementation) or :meth:`fit` on the training chips.
-
-    Attributes:
-        min_db: Decibel value mapped to 0.
-        max_db: Decibel value mapped to 1.
+    The defaults fit magnitudes in [0, 1] (8-bit images read as pixel/255, the simulator). For calibrated
+    raw MSTAR use :meth:`for_mstar_raw` (the paper's reference bound) or :meth:`fit` on the training chips.
     """
 
     min_db: float = ZERO_MAGNITUDE_DB
@@ -102,8 +93,8 @@ class DecibelScaling:
 
     @classmethod
     def from_choice(cls, choice: str, records: Iterable[Any] = ()) -> DecibelScaling:
-        """The bounds a training script's ``--scaling`` names: ``"unit"`` (:meth:`for_unit_magnitude`),
-        ``"mstar_raw"`` (:meth:`for_mstar_raw`) or ``"fit"`` (:meth:`fit` on ``records``).
+        """The bounds a training script's ``--scaling`` names: ``"unit"``, ``"mstar_raw"`` or ``"fit"`` (on
+        ``records``).
 
         Raises:
             ValueError: For another choice, or ``"fit"`` without records.
@@ -118,18 +109,11 @@ class DecibelScaling:
 
     @classmethod
     def fit(cls, data: Iterable[Any]) -> DecibelScaling:
-        """Finds the global decibel bounds of a dataset.
-
-        Args:
-            data: Magnitude arrays/tensors, or :class:`~sar_zero123.data.ChipRecord` objects (their
-                files are read with :func:`~sar_zero123.data.load_magnitude`).
-
-        Returns:
-            Scaling with ``min_db``/``max_db`` = the smallest/largest decibel value over all pixels.
+        """The smallest and largest decibel value over all pixels of ``data`` (magnitude arrays or
+        ChipRecords).
 
         Raises:
-            ValueError: If ``data`` is empty, a magnitude is negative or not finite, or all pixels
-                have the same value.
+            ValueError: If ``data`` is empty, a magnitude is negative or not finite, or all pixels are equal.
         """
         low, high, count = math.inf, -math.inf, 0
         for item in data:
@@ -149,17 +133,11 @@ class DecibelScaling:
         return cls(min_db=float(to_decibels(np.float64(low))), max_db=float(to_decibels(np.float64(high))))
 
     def normalize(self, magnitude: Array, clip: bool = True) -> Array:
-        """Magnitude to normalised decibels.
-
-        Args:
-            magnitude: Non-negative magnitudes (NumPy array or torch tensor).
-            clip: Clamp the result to [0, 1] (values outside the fitted bounds would otherwise leave it).
-
-        Returns:
-            ``(to_decibels(m) - min_db) / (max_db - min_db)``, same type and shape.
+        """``(to_decibels(m) - min_db) / (max_db - min_db)``, clamped to [0, 1] with ``clip``; arrays or
+        tensors.
 
         Raises:
-            ValueError: If a magnitude is negative or not finite (decibels of it are NaN).
+            ValueError: If a magnitude is negative or not finite.
         """
         check_magnitude(magnitude)
         x = (to_decibels(magnitude) - self.min_db) / (self.max_db - self.min_db)
@@ -168,14 +146,8 @@ class DecibelScaling:
         return x
 
     def denormalize(self, x: Array) -> Array:
-        """Normalised decibels back to magnitude (inverse of :meth:`normalize` inside the bounds).
-
-        Args:
-            x: Normalised decibels (NumPy array or torch tensor), nominally in [0, 1].
-
-        Returns:
-            ``from_decibels(min_db + x * (max_db - min_db))``, same type and shape.
-        """
+        """``from_decibels(min_db + x * (max_db - min_db))``, the inverse of :meth:`normalize` inside the
+        bounds."""
         return from_decibels(self.min_db + x * (self.max_db - self.min_db))
 
     def to_dict(self) -> dict[str, float]:
@@ -211,11 +183,11 @@ class DecibelScaling:
 
     @classmethod
     def from_file(cls, path: str | os.PathLike) -> DecibelScaling:
-        """Reads a scaling saved as JSON by :meth:`to_dict` (a run's or pipeline's :data:`SCALING_FILE`).
+        """Reads a scaling saved as JSON by :meth:`to_dict`.
 
         Raises:
             FileNotFoundError: If ``path`` is not a file.
-            ValueError: If the file is not JSON or not a valid scaling; the message names the file.
+            ValueError: If the file is not a valid scaling; the message names the file.
         """
         values = read_json(path, what="a decibel scaling {'min_db': ..., 'max_db': ...}")
         try:

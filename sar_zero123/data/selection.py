@@ -1,9 +1,6 @@
-"""Selections of chip records: a seeded subset for quick runs, a train/test hold-out, chips at one
-depression, evenly spaced in azimuth or in a sector, and seeded cross-validation folds.
-
-Two subset draws exist because recorded runs depend on them: :func:`select_chips` (numpy, the SimCLR
-stage's ``max_train_chips``) and :func:`subsample` (torch, the evaluators' ``max_train_chips``).
-"""
+"""Selections of chip records: seeded subsets, a hold-out, one depression, even azimuth spacing, a sector,
+cross-validation folds. Two subset draws exist because recorded runs depend on each: :func:`select_chips`
+(numpy, SimCLR) and :func:`subsample` (torch, the evaluators)."""
 
 from __future__ import annotations
 
@@ -27,10 +24,8 @@ __all__ = [
 
 
 def select_chips(records: list[ChipRecord], max_chips: int | None, seed: int) -> list[ChipRecord]:
-    """A seeded random subset of `max_chips` records in index order (all of them when None).
-
-    A random subset rather than the first N keeps every class present in quick runs.
-    """
+    """A seeded random subset of ``max_chips`` records in index order (all when None): random rather than the
+    first N, so quick runs keep every class."""
     if max_chips is None or max_chips >= len(records):
         return list(records)
     keep = np.random.default_rng(seed).choice(len(records), size=max_chips, replace=False)

@@ -1,13 +1,12 @@
 """Train/validation/test protocols of the paper (MSTAR extended, MSTAR SOC, MSTAR-OOD).
 
-* ``"extended"``: train = 17 deg depression, test = 15 deg, every serial (MSTAR: 6,059 / 5,392).
-* ``"soc"``: the same with BMP2 restricted to serial 9563 and T72 to serial 132 (2,747 / 2,425);
-  other classes keep all serials (on the simulator, whose classes differ, ``soc`` equals ``extended``).
-* ``"ood-<CLASS>"`` (paper: ``"ood-T72"``): test = every chip of the held-out class at every
-  depression; from the other classes, the chips whose azimuth falls into one of 12 randomly chosen
-  3-degree intervals form ``"val"``; the rest is ``"train"``. The intervals are taken on the absolute
-  azimuth: interval k covers [3k, 3k + 3) degrees, k in 0..119, 12 distinct k drawn without replacement
-  by ``numpy.random.default_rng(seed)``. The same intervals apply to every class and depression.
+* ``"extended"``: train = 17 deg depression, test = 15 deg, every serial.
+* ``"soc"``: the same with BMP2 restricted to serial 9563 and T72 to serial 132 (on the simulator, whose
+  classes differ, it equals ``extended``).
+* ``"ood-<CLASS>"`` (paper: ``"ood-T72"``): test = every chip of the held-out class at every depression;
+  of the other classes, chips whose absolute azimuth falls into one of 12 intervals [3k, 3k + 3),
+  k drawn without replacement from 0..119 by ``numpy.random.default_rng(seed)``, form ``"val"``; the rest
+  is ``"train"``.
 """
 
 from __future__ import annotations
@@ -55,11 +54,6 @@ def ood_validation_intervals(
     seed: int = 0, num_intervals: int = OOD_NUM_INTERVALS, width_deg: float = OOD_INTERVAL_WIDTH_DEG
 ) -> list[tuple[float, float]]:
     """The azimuth intervals removed from training as the MSTAR-OOD validation split.
-
-    Args:
-        seed: Seed of ``numpy.random.default_rng``.
-        num_intervals: How many intervals.
-        width_deg: Width of each interval; 360 must be a multiple of it.
 
     Returns:
         Sorted half-open intervals ``(start_deg, end_deg)`` = [k * width, (k + 1) * width).
@@ -110,18 +104,11 @@ def _resolve_class(records: Sequence[ChipRecord], name: str) -> str:
 
 
 def check_protocol(protocol: str, field: str = "protocol") -> str:
-    """Validates a protocol name before any data is read (scripts call it in their config).
-
-    Args:
-        protocol: ``"extended"``, ``"soc"`` or ``"ood-<CLASS>"``.
-        field: The option name reported in the error.
-
-    Returns:
-        ``protocol`` unchanged.
+    """Validates a protocol name before any data is read; returns it. Whether the held-out class exists is
+    checked by :func:`split_records`, which sees the data.
 
     Raises:
-        ValueError: If the name is none of the above (whether the held-out class exists is checked
-            by :func:`split_records`, which sees the data).
+        ValueError: Naming ``field``, if the name is not ``"extended"``, ``"soc"`` or ``"ood-<CLASS>"``.
     """
     if protocol in ("extended", "soc") or (protocol.startswith("ood-") and len(protocol) > len("ood-")):
         return protocol
@@ -129,13 +116,9 @@ def check_protocol(protocol: str, field: str = "protocol") -> str:
 
 
 def split_records(records: Sequence[ChipRecord], protocol: str, seed: int = 0) -> dict[str, list[ChipRecord]]:
-    """Splits chips by one of the paper's protocols (see the module docstring).
+    """Splits chips by one of the paper's protocols (see the module docstring), deterministic in ``seed``.
 
-    Args:
-        records: All chips (e.g. from :func:`~sar_zero123.data.load_index`).
-        protocol: ``"extended"``, ``"soc"`` or ``"ood-<CLASS>"`` (class name as in the records; matched
-            case-insensitively when unambiguous).
-        seed: Seed of the random validation intervals (``ood-*`` only); splits are deterministic in it.
+    The ``ood-<CLASS>`` name matches the records' class case-insensitively when unambiguous.
 
     Returns:
         ``{"train": [...], "test": [...]}``, plus ``"val"`` for ``ood-*``; records keep their input order.
@@ -182,22 +165,12 @@ def prepare_splits(
 ) -> dict[str, list[ChipRecord]]:
     """Loads a dataset (or simulates the built-in one) and splits it.
 
-    Args:
-        data: A data folder for :func:`~sar_zero123.data.load_index`, or ``None`` for the built-in
-            simulated dataset, written to ``work_dir / "sim_data"`` and reused while its index exists
-            and was made with the same ``seed`` and ``sim_kwargs`` (recorded in ``sim_options.json``).
-        protocol: See :func:`split_records`.
-        work_dir: Folder for the simulated dataset (only used when ``data`` is ``None``).
-        seed: Seed of the split and of the simulator.
-        **sim_kwargs: Passed to ``sar_zero123.sim.simulate_dataset`` (``classes``, ``instances``,
-            ``azimuth_step_deg``, ``depressions_deg``, ``size``).
-
-    Returns:
-        The splits, as :func:`split_records` returns them.
+    With ``data=None`` the built-in dataset is simulated into ``work_dir / "sim_data"`` and reused while it
+    was made with the same ``seed`` and ``sim_kwargs`` (``sar_zero123.sim.simulate_dataset``'s), recorded in
+    ``sim_options.json``.
 
     Raises:
-        ValueError: If ``sim_kwargs`` are given together with ``data``; see also :func:`load_index` and
-            :func:`split_records`.
+        ValueError: If ``sim_kwargs`` are given together with ``data``, or as :func:`split_records`.
     """
     if data is None:
         root = Path(work_dir) / "sim_data"

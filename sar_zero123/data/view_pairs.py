@@ -1,13 +1,10 @@
-"""``ViewPairDataset``: two views of the same object and their relative pose.
-
-A pair is (input chip, target chip) of the same physical object, i.e. the same ``target_class`` and
-``serial``; the model learns to turn the input into the target given::
+"""``ViewPairDataset``: two views of the same object (``target_class`` and ``serial``) and their relative
+pose::
 
     d_az_deg = wrap(target azimuth - input azimuth)   in (-180, 180]
     d_el_deg = target depression - input depression
 
-The pair list is drawn once from ``seed`` (and the epoch, see :meth:`ViewPairDataset.set_epoch`) when
-the dataset is built, so every DataLoader worker sees the same pairs and a run is reproducible.
+The pair list is drawn once from ``seed`` and the epoch, so every DataLoader worker sees the same pairs.
 """
 
 from __future__ import annotations
@@ -32,14 +29,7 @@ __all__ = ["ViewPairDataset", "subsample_objects", "wrap_azimuth_deg"]
 
 
 def wrap_azimuth_deg(angle_deg: float | np.ndarray) -> float | np.ndarray:
-    """Wraps an angle difference to (-180, 180] degrees (so -180 becomes +180).
-
-    Args:
-        angle_deg: Angle(s) in degrees.
-
-    Returns:
-        The equivalent angle(s) in (-180, 180].
-    """
+    """Wraps an angle difference in degrees to (-180, 180] (so -180 becomes +180)."""
     wrapped = 180.0 - np.mod(180.0 - np.asarray(angle_deg, dtype=np.float64), 360.0)
     # np.mod(-1e-14, 360) rounds to 360.0, which would give exactly -180
     wrapped = np.where(wrapped <= -180.0, wrapped + 360.0, wrapped)
@@ -57,30 +47,18 @@ class ViewPairDataset(Dataset):
 
     Each item is ``{"input": (1, S, S), "target": (1, S, S)`` float32 normalised dB, ``"d_az_deg"``
     in (-180, 180], ``"d_el_deg"``, ``"label"``, ``"input_azimuth_deg"``, ``"target_azimuth_deg"``,
-    ``"input_depression_deg"``, ``"target_depression_deg"}`` (floats), plus ``"input_magnitude"`` and
-    ``"target_magnitude"`` (1, S, S) when ``return_magnitude``. (torch's default collate turns the
-    float entries into float64 tensors and the label into int64.)
+    ``"input_depression_deg"``, ``"target_depression_deg"}``, plus ``"input_magnitude"`` and
+    ``"target_magnitude"`` (1, S, S) when ``return_magnitude``.
 
-    Sampling: every input chip with at least one admissible partner (same object, not itself, within
-    ``max_d_az_deg``, same depression if ``same_depression``, input and target at the depressions asked
-    for) contributes ``pairs_per_chip`` pairs, the targets drawn uniformly from its partners; or, with
-    ``num_pairs``, that many pairs with the input chip drawn uniformly from the admissible ones.
+    Every input chip with an admissible partner (same object, not itself, within ``max_d_az_deg``, the
+    depressions asked for, matched within 0.5 deg) gives ``pairs_per_chip`` pairs with targets drawn
+    uniformly from its partners; or, with ``num_pairs``, that many pairs with uniformly drawn inputs.
 
     Args:
-        records: The chips.
-        size: Output side S in pixels.
         scaling: Decibel bounds (default :meth:`DecibelScaling.for_unit_magnitude`).
-        max_d_az_deg: Largest |d_az| in degrees (``None``: any).
-        same_depression: Pair only chips at the same depression (else also across depressions).
-        input_depressions_deg: Only input chips at one of these depressions (``None``: any); matched
-            within the nominal tolerance of the protocols (0.5 deg).
-        target_depressions_deg: Only target chips at one of these depressions (``None``: any).
-        seed: Seed of the pair list.
-        pairs_per_chip: Pairs per admissible input chip (ignored when ``num_pairs`` is set).
-        num_pairs: Fixed number of pairs per epoch.
+        same_depression: Pair only chips at the same depression.
         class_names: Names defining the labels (default: sorted classes of ``records``).
-        return_magnitude: Also return the magnitudes.
-        crop_size: Side of the centre crop before resizing.
+        crop_size: Side of the centre crop before resizing to ``size``.
 
     Raises:
         ValueError: For a bad option or when no chip has an admissible partner.
@@ -156,11 +134,8 @@ class ViewPairDataset(Dataset):
         return result
 
     def set_epoch(self, epoch: int) -> None:
-        """Redraws the pair list for an epoch (deterministic in ``(seed, epoch)``).
-
-        Call it before iterating; DataLoader workers started afterwards (``persistent_workers=False``)
-        see the new list.
-        """
+        """Redraws the pair list for an epoch (deterministic in ``(seed, epoch)``); call it before
+        iterating."""
         rng = np.random.default_rng([self.seed, epoch])
         # Admissible inputs in record order, with their partner sets.
         candidates: dict[int, np.ndarray] = {}
@@ -182,8 +157,8 @@ class ViewPairDataset(Dataset):
 
     @property
     def num_admissible_pairs(self) -> int:
-        """How many distinct (input, target) pairs the records admit: the most a draw can hold without
-        repeating one (``num_pairs`` draws with replacement)."""
+        """How many distinct (input, target) pairs the records admit (``num_pairs`` draws with
+        replacement)."""
         return sum(int(allowed.sum()) for _, allowed in self._groups)
 
     def pair_fields(self, index: int) -> dict[str, Any]:
@@ -200,11 +175,7 @@ class ViewPairDataset(Dataset):
 
     def pair_fields_batch(self, indices: Sequence[int]) -> dict[str, torch.Tensor]:
         """:meth:`pair_fields` of several items at once, as ``default_collate`` would stack them (float64
-        angles, int64 labels): the same values, without a Python dictionary per pair.
-
-        Shape:
-            every value ``(len(indices),)``.
-        """
+        angles, int64 labels), each ``(len(indices),)``."""
         pairs = self.pairs[np.asarray(indices, dtype=np.int64)]
         azimuths, depressions, labels = self._record_arrays
         source, target = pairs[:, 0], pairs[:, 1]
@@ -228,12 +199,8 @@ class ViewPairDataset(Dataset):
         return members
 
     def target_at_input_depression(self, index: int, azimuth_tol_deg: float = 0.01) -> int | None:
-        """The record index of the view pair ``index`` would have as target without its depression change.
-
-        That is the chip of the same object at the target's azimuth (within ``azimuth_tol_deg``) and the
-        input's depression (within the nominal 0.5 deg); ``None`` where the records hold no such chip or
-        where the target itself is at the input's depression.
-        """
+        """The record of the same object at pair ``index``'s target azimuth (within ``azimuth_tol_deg``) and
+        its input's depression; ``None`` where there is none or the target is already at that depression."""
         source, target = (self.records[i] for i in self.pairs[index])
         if abs(target.depression_deg - source.depression_deg) < _DEPRESSION_TOL_DEG:
             return None
@@ -264,17 +231,9 @@ class ViewPairDataset(Dataset):
 class MixedPairs(Dataset):
     """A task's training pairs with rehearsal pairs mixed in, so that a fine-tune keeps what its prior knows.
 
-    The mix holds every task pair plus ``round(len(task) * fraction / (1 - fraction))`` rehearsal slots, so
-    a shuffled batch draws a ``fraction`` share of rehearsal pairs on average. Each epoch maps the slots to
-    a fresh seeded permutation of the rehearsal pairs (:meth:`set_epoch`, which also redraws both datasets'
-    pairs), so the same seed gives the same data order and a resumed run sees the same pairs. Items keep
-    their dataset's keys, which must agree (two :class:`ViewPairDataset` s, cached or not).
-
-    Args:
-        task: The fine-tune's own pairs.
-        rehearsal: Pairs of the prior's data (e.g. its procedural corpus, across depressions).
-        fraction: Share of rehearsal pairs in [0, 1).
-        seed: Seed of the slot permutations.
+    Every task pair plus ``round(len(task) * fraction / (1 - fraction))`` rehearsal slots, so a shuffled batch
+    holds a ``fraction`` share on average. Each epoch maps the slots to a fresh seeded permutation of the
+    rehearsal pairs, so a resumed run sees the same pairs. Both datasets' items must have the same keys.
 
     Raises:
         ValueError: If ``fraction`` is outside [0, 1) or either dataset is empty.
@@ -313,12 +272,11 @@ class MixedPairs(Dataset):
 
 
 def subsample_objects(records: Sequence[ChipRecord], max_chips: int, seed: int = 0) -> list[ChipRecord]:
-    """Whole objects, drawn in a seeded random order while their chips fit in `max_chips`, in record order.
-
-    An object's chips are kept together so that its pairs survive; every record is kept when they all fit.
+    """Whole objects, drawn in a seeded order while their chips fit in ``max_chips``, kept in record order (an
+    object's chips stay together so its pairs survive).
 
     Raises:
-        ValueError: If `max_chips` is below 1.
+        ValueError: If ``max_chips`` is below 1.
     """
     if max_chips < 1:
         raise ValueError(f"max_chips must be >= 1, got {max_chips}")
@@ -350,20 +308,14 @@ def train_validation_pairs(
 ) -> tuple[ViewPairDataset, ViewPairDataset, DecibelScaling]:
     """Training and validation view pairs of a protocol's splits, and the dB scaling both use.
 
-    Validation pairs come from the first split in which some chip has a partner view: seen classes at
-    held-out azimuths (the ood protocols' ``val``), else ``test``, else ``train``.
+    Validation pairs come from the first split in which some chip has a partner view: ``val`` (seen classes
+    at held-out azimuths), else ``test``, else ``train``.
 
     Args:
         data: Dataset folder with ``index.csv``; ``None`` simulates the built-in dataset into ``work_dir``.
         protocol: ``extended``, ``soc`` or ``ood-<CLASS>`` (:func:`prepare_splits`).
-        work_dir: Where a simulated dataset is cached.
-        image_size: Chip side in pixels.
-        scaling: ``"unit"``, ``"mstar_raw"`` or ``"fit"`` (:meth:`DecibelScaling.from_choice`, fitted on
-            the training split).
-        max_d_az_deg: Largest ``|d_az|`` of a pair; ``None``: any.
-        num_validation_pairs: Fixed validation pairs drawn (with seed ``seed + 1``).
-        seed: Seed of the splits and of the training pairs.
-        same_depression: Pair only chips at one depression (``False``: also across depressions).
+        scaling: ``"unit"``, ``"mstar_raw"`` or ``"fit"`` (fitted on the training split).
+        num_validation_pairs: Fixed validation pairs drawn with seed ``seed + 1``.
 
     Returns:
         ``(train_pairs, validation_pairs, scaling)``.

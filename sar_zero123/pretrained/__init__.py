@@ -6,10 +6,8 @@ Example::
 
     pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR)  # "sar-zero123/sim-prior"
 
-A registered name resolves to a ``save_pretrained`` folder next to this file, shipped as package data
-(``pyproject.toml``). A path that exists on disk always wins over a name spelled the same, so a local
-folder called ``sar-zero123/sim-prior`` still loads as that folder. ``README.md`` here lists the
-bundled pipelines; each one's model card sits beside it (``sim_prior.md``).
+A registered name resolves to a ``save_pretrained`` folder next to this file, shipped as package data;
+``README.md`` here lists them, each with its model card.
 """
 
 from __future__ import annotations
@@ -57,33 +55,18 @@ PRETRAINED_DIR = Path(__file__).resolve().parent
 
 
 def is_bundled_name(name_or_path: str | os.PathLike) -> bool:
-    """Whether ``name_or_path`` is a registered name (always the bundled weights: a local folder spelled
-    the same is used only when given as a path, ``./sar-zero123/sim-prior``).
-
-    Args:
-        name_or_path: A registered name or a path.
-
-    Returns:
-        True for a registered name that :func:`resolve_pretrained` maps to a bundled folder.
-    """
+    """Whether ``name_or_path`` is a registered name, which always means the bundled weights (a local folder
+    spelled the same loads only as a path, ``./sar-zero123/sim-prior``)."""
     text = os.fspath(name_or_path)
     return text in BUNDLED_PIPELINES
 
 
 def resolve_pretrained(name_or_path: str | os.PathLike) -> Path:
-    """The folder a registered name stands for; any other argument as a path, unchanged.
-
-    Args:
-        name_or_path: A name of :data:`BUNDLED_PIPELINES` (e.g. :data:`SIM_PRIOR`), which always means
-            the bundled folder, or a path (a local folder spelled like a name: ``./sar-zero123/...``).
-
-    Returns:
-        The bundled folder for a registered name, else ``Path(name_or_path)``.
+    """The bundled folder a registered name stands for; any other argument as a ``Path``, unchanged.
 
     Raises:
-        FileNotFoundError: For a registered name whose folder has no ``model_index.json`` (the weights
-            are missing from this install), or a name under :data:`BUNDLED_NAMESPACE` that is not
-            registered and no existing path (the message lists the bundled names).
+        FileNotFoundError: For a registered name whose folder has no ``model_index.json``, or an unregistered
+            name under :data:`BUNDLED_NAMESPACE` that is no existing path (listing the bundled names).
     """
     text = os.fspath(name_or_path)
     if text.startswith(BUNDLED_NAMESPACE) and text not in BUNDLED_PIPELINES:
@@ -108,8 +91,8 @@ def resolve_retrieval(name_or_path: str | os.PathLike) -> Path:
     """The folder of a learned proxy shortlist: a registered name (:data:`PROXY_RETRIEVAL`) or a path.
 
     Raises:
-        FileNotFoundError: For a name under :data:`BUNDLED_NAMESPACE` that is not registered, or a folder
-            without the network's ``config.json`` (the message names what was looked for).
+        FileNotFoundError: For an unregistered name under :data:`BUNDLED_NAMESPACE`, or a folder without the
+            network's ``config.json``.
     """
     text = os.fspath(name_or_path)
     if text in BUNDLED_RETRIEVAL:  # always the bundled network (a local folder: ./sar-zero123/...)

@@ -2,14 +2,11 @@
 
     python -m sar_zero123.pretrained.bundle PIPELINE NAME --sampler '{"strength": 0.5, "start_from": "proxy"}'
 
-copies the ``save_pretrained`` folder ``PIPELINE`` (a prior stage's ``base/pipeline``) to
-``sar_zero123/pretrained/NAME``, with every ``*.safetensors`` tensor of a floating dtype cast to float16
-(half the package's bytes; a pipeline loads them as float32, so the bundled views are those of the rounded
-weights: measure the bundled folder, not the run's), no ``_name_or_path`` (a path of the training machine)
-in any ``config.json``, and ``model_index.json``'s ``sampler`` set to the given
-fields (merged over what the folder records). The folder is written beside its final name and renamed into
-place; an existing ``NAME`` is refused. Registering the name (``BUNDLED_PIPELINES``) and its model card are
-left to the developer.
+copies ``PIPELINE`` to ``sar_zero123/pretrained/NAME`` with floating ``*.safetensors`` tensors cast to
+float16 (a pipeline loads them as float32, so measure the bundled folder, not the run's), no
+``_name_or_path`` in any ``config.json``, and ``model_index.json``'s ``sampler`` merged with the given
+fields. It is written beside its final name and renamed into place; an existing ``NAME`` is refused.
+Registering the name and its model card are left to the developer.
 """
 
 from __future__ import annotations

@@ -1,24 +1,13 @@
 """Crash-safe training checkpoints on top of ``accelerate``'s ``save_state`` / ``load_state``.
 
-``Accelerator.save_state`` writes model, optimizer, LR scheduler, sampler, gradient scaler,
-registered objects (e.g. an EMA model) and every process's RNG states into one folder, but it
-writes in place: a kill in the middle leaves a folder that looks like a checkpoint and is not.
-Here every checkpoint is written to ``checkpoint-<step>.tmp`` and renamed to ``checkpoint-<step>``
-only when all processes have finished writing (a directory rename is atomic on POSIX file
-systems), so ``--resume_from_checkpoint latest`` never picks up a half-written one. The folder holds
-``run_state.json`` with the step, the run's config and any script state (epoch, samples seen, ...), and
-``manifest.json``, written last, with the size and SHA-256 of every other file: a checkpoint damaged
-after it was sealed (a partial copy, a disk that lost unsynced data) is found by :func:`verify_checkpoint`,
-and ``latest`` falls back to the newest checkpoint that verifies, logging the ones it skipped.
+``save_state`` writes in place, so a kill mid-write leaves a folder that looks like a checkpoint. Here each
+checkpoint is written to ``checkpoint-<step>.tmp`` and renamed (atomic on POSIX) once every process has
+written; ``manifest.json``, written last, holds every file's size and SHA-256, so a checkpoint damaged
+after sealing is found and ``latest`` falls back to the newest one that verifies.
 
-Divergence guards: :func:`check_finite_step` stops a run on a non-finite loss or gradient norm, and
-:func:`save_checkpoint` refuses to write non-finite weights (:func:`check_finite_state`).
-Resume guards: :func:`check_resume_config` refuses to resume with settings that change the run,
-:func:`check_resume_state` with a setting that changes which modules a checkpoint holds.
-Resumed data order: :func:`resumable_batches` draws the micro-batches an uninterrupted run would draw.
-
-Multi-node runs need ``output_dir`` on a file system shared by all nodes, as accelerate does.
-:func:`end_run` ends a run without the process-group teardown deadlock described there.
+Guards: non-finite losses or weights stop a run before they are saved; a resume with settings that
+change the run, or past its last step, is refused; :func:`resumable_batches` replays the data order.
+Multi-node runs need ``output_dir`` on a shared file system, as accelerate does.
 """
 
 from __future__ import annotations
@@ -92,25 +81,17 @@ def save_checkpoint(
     extra_state: dict[str, Any] | None = None,
     config: Any | None = None,
 ) -> Path:
-    """Save the full training state atomically as ``output_dir/checkpoint-<step>``.
-
-    Must be called on every process (``save_state`` gathers per-process RNG states). Nothing is written
-    when a prepared model or registered object holds a NaN or infinite value.
+    """Save the full training state atomically as ``output_dir/checkpoint-<step>`` (returned); call it on
+    every process.
 
     Args:
-        accelerator: the run's accelerator (models, optimizers, schedulers already prepared).
-        output_dir: the run folder.
-        step: global optimisation step; names the checkpoint.
-        total_limit: keep at most this many checkpoints (oldest removed after a successful save).
+        total_limit: Keep at most this many checkpoints (oldest removed after a successful save).
         extra_state: JSON-serialisable script state stored in ``run_state.json``.
-        config: the run's config dataclass, stored in ``run_state.json`` for :func:`check_resume_config`.
-
-    Returns:
-        The path of the finished checkpoint folder.
+        config: The run's config dataclass, stored for :func:`check_resume_config`.
 
     Raises:
-        ValueError: if ``step`` is negative or ``total_limit`` is below 1.
-        FloatingPointError: if the training state holds non-finite values (the run diverged).
+        ValueError: If ``step`` is negative or ``total_limit`` is below 1.
+        FloatingPointError: If the training state holds non-finite values (nothing is written).
     """
     if step < 0:
         raise ValueError(f"step must be >= 0, got {step}")
@@ -132,9 +113,8 @@ def save_checkpoint(
         shutil.rmtree(tmp, ignore_errors=True)
         tmp.mkdir(parents=True)
     accelerator.wait_for_everyone()
-    # 2. every process writes its part; 3. the main process seals the folder (state, then the manifest
-    #    of every file, synced to disk) and renames it in one step. A failed write (disk full, a file-size
-    #    limit) removes the partial folder and names it; the earlier checkpoints are untouched.
+    # 2. every process writes its part; 3. the main process seals the folder (state, then the synced
+    #    manifest) and renames it. A failed write removes the partial folder; earlier ones are untouched.
     earlier = [path.name for path in list_checkpoints(output_dir)]
     kept = (
         f"the partial checkpoint was removed and {', '.join(earlier)} kept; free space and resume with "
@@ -165,17 +145,10 @@ def save_checkpoint(
 
 
 def verify_checkpoint(path: str | os.PathLike, check_hashes: bool = True) -> str | None:
-    """Why a checkpoint folder cannot be resumed, or ``None`` when it is complete and intact.
+    """Why a checkpoint cannot be resumed (naming the file), or ``None`` when it is complete and intact.
 
-    A checkpoint written before manifests existed (no ``manifest.json``) passes when it has its
-    ``run_state.json``.
-
-    Args:
-        path: the checkpoint folder.
-        check_hashes: also compare SHA-256 digests (reads every byte), not only the sizes.
-
-    Returns:
-        ``None``, or a sentence naming the file and what is wrong with it.
+    ``check_hashes`` also compares SHA-256 digests, not only sizes. A checkpoint without ``manifest.json``
+    passes when it has its ``run_state.json``.
     """
     path = Path(path)
     if not path.is_dir():
@@ -186,22 +159,15 @@ def verify_checkpoint(path: str | os.PathLike, check_hashes: bool = True) -> str
 
 
 def resolve_resume_checkpoint(output_dir: str | os.PathLike, value: str | None) -> Path | None:
-    """Turn ``--resume_from_checkpoint`` into a checkpoint folder.
+    """Turn ``--resume_from_checkpoint`` (``None``, ``"latest"`` or a folder) into a checkpoint folder.
 
-    Args:
-        output_dir: the run folder searched by ``"latest"``.
-        value: ``None`` (start fresh), ``"latest"`` (the newest complete checkpoint in
-            ``output_dir`` that passes :func:`verify_checkpoint`, skipping damaged newer ones with a
-            logged warning; ``None`` when there is no checkpoint yet, so a first run and a restarted
-            run can share one command line), or a path to a checkpoint folder.
-
-    Returns:
-        The checkpoint folder, or ``None`` to start from scratch.
+    ``"latest"`` is the newest checkpoint that verifies, skipping damaged newer ones with a warning, and
+    ``None`` when there is none yet, so a first and a restarted run share one command line.
 
     Raises:
-        FileNotFoundError: if an explicit path is not a complete checkpoint, or ``latest`` finds
-            checkpoints but none that verifies (starting over would silently discard them).
-        ValueError: if an explicit checkpoint fails :func:`verify_checkpoint`.
+        FileNotFoundError: If an explicit path is not a complete checkpoint, or ``latest`` finds checkpoints
+            but none that verifies (starting over would silently discard them).
+        ValueError: If an explicit checkpoint fails :func:`verify_checkpoint`.
     """
     if value is None or value == "":
         return None
@@ -246,18 +212,11 @@ def read_run_state(path: str | os.PathLike) -> dict[str, Any]:
 
 
 def check_resume_steps(path: str | os.PathLike | None, max_train_steps: int, field: str = "max_train_steps"):
-    """Refuse to resume a checkpoint already past the run's last step, before the folder's record changes.
-
-    A resume with ``max_train_steps`` below the checkpoint's step would train nothing, export the later
-    checkpoint's weights and record the lower value, misdescribing the run.
-
-    Args:
-        path: The checkpoint to resume (:func:`resolve_resume_checkpoint`), or ``None`` (a fresh run).
-        max_train_steps: The run's last optimisation step.
-        field: The flag's name, for the message.
+    """Refuse to resume a checkpoint already past the run's last step, before the folder's record changes:
+    such a run would train nothing and misrecord ``max_train_steps``.
 
     Raises:
-        ValueError: If the checkpoint's step exceeds ``max_train_steps`` (naming both).
+        ValueError: Naming both steps.
     """
     if path is None:
         return
@@ -275,10 +234,8 @@ def load_checkpoint(accelerator: Accelerator, path: str | os.PathLike) -> dict[s
 
     Raises:
         FileNotFoundError: If the checkpoint has no ``run_state.json``.
-        ValueError: If a pickled file of the checkpoint (a registered object's state, the optimiser's, the
-            random states) holds more than tensors and plain values (a pickle that could run code, or one
-            accelerate would skip unsaid; :func:`_refuse_code_in_pickles`).
-        RuntimeError: If accelerate cannot load it (the message names the folder and the files present).
+        ValueError: If a pickled file holds more than tensors and plain values.
+        RuntimeError: If accelerate cannot load it (naming the folder and the files present).
     """
     state = read_run_state(path)
     _refuse_code_in_pickles(path)
@@ -301,15 +258,11 @@ _PICKLED_STATE = ("custom_checkpoint_*.pkl", "random_states_*.pkl", "optimizer*.
 
 
 def _refuse_code_in_pickles(path: str | os.PathLike) -> None:
-    """Refuse a checkpoint whose pickled files (:data:`_PICKLED_STATE`: registered objects' states such as an
-    EMA's, the optimiser's and scheduler's, the random states) hold more than tensors and plain values.
+    """Refuse a checkpoint whose pickled files hold more than tensors and plain values.
 
-    accelerate unpickles registered objects' states with ``weights_only=False``, so a crafted one would run
-    code on resume; it reads the others with ``weights_only=True`` but skips random states it cannot read
-    with no more than a log line (a resume that is silently not the same run), and an unreadable optimiser
-    state surfaces as a raw unpickling error. Each file is read here first with ``weights_only=True``
-    (accelerate's own loader, numpy arrays allowed), which refuses any other object before calling it. A
-    checkpoint is data.
+    accelerate unpickles registered objects' states with ``weights_only=False`` (a crafted one runs code) and
+    skips unreadable random states with a log line (a resume that is silently not the same run); reading each
+    file first with ``weights_only=True`` refuses both. A checkpoint is data.
 
     Raises:
         ValueError: Naming the file.
@@ -328,12 +281,7 @@ def _refuse_code_in_pickles(path: str | os.PathLike) -> None:
 
 
 def resume_step(accelerator: Accelerator, path: str | os.PathLike | None) -> int:
-    """The optimisation step a run starts at: 0 for a fresh run (``path`` is ``None``), else the step of
-    the checkpoint it restores (:func:`load_checkpoint`, logged).
-
-    Raises:
-        FileNotFoundError, RuntimeError: From :func:`load_checkpoint`.
-    """
+    """The step a run starts at: 0 for a fresh run (``path`` is ``None``), else the restored checkpoint's."""
     if path is None:
         return 0
     step = int(load_checkpoint(accelerator, path)["step"])
@@ -361,26 +309,16 @@ def check_resume_config(
     may_differ: Iterable[str] = (),
     renamed: Mapping[str, str] | None = None,
 ) -> None:
-    """Refuse to resume a checkpoint with settings that change the run.
+    """Refuse to resume a checkpoint with settings that change the run; call it before writing
+    ``config.json``.
 
-    Compares ``config`` with the config stored in the checkpoint's ``run_state.json`` by
-    :func:`save_checkpoint`. Fields in :data:`RESUME_MAY_DIFFER` and ``may_differ`` may change (e.g.
-    where checkpoints go); any other difference would leave the restored optimiser, model or data
-    order disagreeing with the ``config.json`` the run writes. Call it before writing ``config.json``.
-    A checkpoint without a stored config (older runs) is accepted with a warning. A field the checkpoint's
-    config lacks (added to the code since it was written) counts as its default: a new field's default keeps
-    the behaviour of the code before it, so only a run that sets it otherwise is refused.
-
-    Args:
-        path: the checkpoint folder (``None``: a fresh run, nothing to check).
-        config: this run's config dataclass.
-        may_differ: further field names that may change for this script.
-        renamed: old field name -> this config's name, for fields renamed since checkpoints were written
-            (a checkpoint's value under the old name is compared under the new one).
+    Fields in :data:`RESUME_MAY_DIFFER` and ``may_differ`` may change. A checkpoint without a stored config is
+    accepted with a warning; a field its config lacks counts as its default. ``renamed`` maps an old field
+    name to this config's.
 
     Raises:
-        ValueError: listing every differing field with the checkpoint's and this run's value, or
-            naming the other script whose checkpoint this is.
+        ValueError: Listing every differing field with both values, or naming the other script whose
+            checkpoint this is.
     """
     if path is None:
         return
@@ -415,14 +353,8 @@ def check_resume_config(
 def check_resume_state(path: str | os.PathLike | None, name: str, value: Any, default: Any = None) -> None:
     """Refuse a checkpoint whose ``run_state.json`` records another ``name`` than this run's ``value``.
 
-    For a setting that decides which modules a checkpoint holds (and so which files ``load_state``
-    expects); checked from the run state, so also for checkpoints that store no config.
-
-    Args:
-        path: The checkpoint folder (``None``: a fresh run, nothing to check).
-        name: The key in ``extra_state`` that :func:`save_checkpoint` stored.
-        value: This run's value.
-        default: The value of a checkpoint that stores no ``name`` (written before it was stored).
+    For a setting that decides which modules a checkpoint holds; read from the run state, so it also covers
+    checkpoints without a config. ``default`` is the value of one that stores no ``name``.
 
     Raises:
         ValueError: Naming the checkpoint and the value it was written with.
@@ -446,18 +378,9 @@ def resumable_batches(
 ) -> Iterator[tuple[int, int, Any]]:
     """Micro-batches ``start`` to ``stop - 1`` of a run that repeats ``loader`` epoch after epoch.
 
-    Micro-batch ``i`` is batch ``i % len(loader)`` of epoch ``i // len(loader)``. Each epoch first calls
-    ``set_epoch(epoch)`` on ``datasets`` (e.g. ``ViewPairDataset``'s pairs) and on ``loader`` (accelerate's
-    seedable sampler: the order is a function of the seed and the epoch), and a run resumed in the middle of
-    an epoch skips that epoch's first batches with ``accelerator.skip_first_batches``. A run resumed at
-    ``start`` therefore sees the same batches as an uninterrupted one.
-
-    Args:
-        accelerator: The run's accelerator.
-        loader: The prepared training data loader.
-        start: Index of the first micro-batch (``0``, or the resumed step times the accumulation steps).
-        stop: One past the last micro-batch index.
-        datasets: Datasets whose content depends on the epoch.
+    Micro-batch ``i`` is batch ``i % len(loader)`` of epoch ``i // len(loader)``; each epoch calls
+    ``set_epoch`` on ``datasets`` and ``loader``, and a resume mid-epoch skips that epoch's first batches, so
+    a resumed run sees the batches of an uninterrupted one.
 
     Yields:
         ``(index, epoch, batch)``.
@@ -477,18 +400,12 @@ def resumable_batches(
 
 # --------------------------------------------------------------------------------------- divergence
 def check_finite_step(step: int, **values: float | torch.Tensor) -> None:
-    """Stop a diverging run: raise when a value of a training step (loss, gradient norm) is not finite.
+    """Stop a diverging run: raise when a named value of a training step (loss, gradient norm) is not finite.
 
-    Call it with values that are equal on every process (gathered or reduced), so that every process
-    raises together and none waits in a collective. Raising before the next checkpoint means no NaN
-    weights are saved or exported.
-
-    Args:
-        step: the optimisation step, for the message.
-        **values: named scalars (Python numbers or one-element tensors).
+    Pass values equal on every process, so all raise together and none waits in a collective.
 
     Raises:
-        FloatingPointError: naming the step and each non-finite value.
+        FloatingPointError: Naming the step and each non-finite value.
     """
     bad = {name: float(value) for name, value in values.items() if not math.isfinite(float(value))}
     if bad:
@@ -512,14 +429,10 @@ def _nonfinite_entries(value: Any, prefix: str) -> Iterable[str]:
 
 
 def check_finite_state(objects: dict[str, Any], what: str) -> None:
-    """Refuse to write weights that hold NaN or infinite values.
-
-    Args:
-        objects: named modules or objects with a ``state_dict()`` (EMA models), or tensors.
-        what: what was about to be written, for the message (``"checkpoint-40"``, ``"pipeline"``).
+    """Refuse to write weights (modules, ``state_dict`` holders or tensors) that hold NaN or infinite values.
 
     Raises:
-        FloatingPointError: naming up to five non-finite entries.
+        FloatingPointError: Naming ``what`` and up to five non-finite entries.
     """
     bad: list[str] = []
     for name, obj in objects.items():
@@ -535,21 +448,15 @@ def check_finite_state(objects: dict[str, Any], what: str) -> None:
 
 
 def end_run(accelerator: Accelerator) -> int:
-    """End a run: drop accelerate's references to the prepared objects, then end the trackers and
-    destroy the process group (``Accelerator.end_training``). Call it on every process, after deleting
-    the script's own references to prepared (data-parallel wrapped) models.
+    """End a run on every process, after the script dropped its own references to prepared models.
 
-    Why not just ``end_training``: a DDP wrapper's Reducer holds the process group. If the wrapper
-    outlives ``destroy_process_group``, the Reducer later drops the last reference, and gloo's
-    destructor joins its worker threads while holding the GIL; a worker that is still freeing a
-    finished collective's tensors needs the GIL, so both wait forever (pytorch/pytorch#56297). It hung
-    about 1 run in 10 of two-process CPU runs here, after all work was done. Released while the group is
-    still registered, the wrappers only decrement its count, and ``destroy_process_group`` frees it
-    through a binding that releases the GIL.
+    Plain ``end_training`` can deadlock: a DDP wrapper outliving ``destroy_process_group`` lets gloo's
+    destructor join its threads while holding the GIL (pytorch/pytorch#56297). Dropping accelerate's
+    references first lets the group be freed through a binding that releases the GIL.
 
     Returns:
-        How many ``DistributedDataParallel`` wrappers were still referenced after accelerate's were
-        dropped (0 when the caller released its own; a warning is logged otherwise).
+        How many ``DistributedDataParallel`` wrappers were still referenced (0 unless the caller kept one;
+        a warning is logged otherwise).
     """
     accelerator.free_memory()  # clears accelerate's lists of prepared objects and runs gc.collect()
     survivors = sum(issubclass(type(item), DistributedDataParallel) for item in gc.get_objects())

@@ -1,26 +1,17 @@
 """One rule for run folders, shared by every stage: nothing is overwritten, nothing is misdescribed.
 
-A stage (simulate, SimCLR, VAE, fine-tune, evaluators, evaluate, ...) writes into one folder. The folder
-holds ``run.json``, the record of what made it: the stage, its resolved config, the identity of its data,
-its seed (a config field), the code version, and whether it finished. :func:`open_run_folder` applies the
-rule before any work:
+A folder holds ``run.json``, the record of what made it: the stage, its resolved config, its data's
+identity, the code version, and whether it finished. :func:`open_run_folder` applies the rule first:
 
-* an absent or empty folder starts a new run (``run.json`` written at once, ``finished: false``);
-* a folder whose record has another stage, another config or other data is refused, naming each
-  difference: reusing it would replace or misdescribe finished work;
-* a folder with the same record is continued only when asked (``resume=True``: a script's
-  ``--resume_from_checkpoint``, the quickstart's re-run); some fields may then change (``may_extend``, e.g.
-  ``max_train_steps`` of a constant-LR run), and the record keeps what changed;
-* starting over is explicit (``restart=True``): the old folder is moved aside to
-  ``<name>.replaced-<UTC time>``, never deleted;
-* a non-empty folder without a record is refused: it is not a run of this stage (or was written by a
-  version before the rule), and nothing in it should be mixed with a new run;
-* one writer at a time: the folder's exclusive lock (:mod:`sar_zero123.runs.lock`) is taken
-  before anything else, and a second process is refused, naming the first.
+* an absent or empty folder starts a new run;
+* a record of another stage, config or data is refused, naming each difference;
+* the same record is continued only when asked (``resume=True``); ``may_extend`` fields may then change;
+* starting over is explicit (``restart=True``): the old folder is moved aside, never deleted;
+* a non-empty folder without a record is refused: it is not a run of this stage;
+* one writer at a time: the folder's lock (:mod:`sar_zero123.runs.lock`) is taken before anything else.
 
-:func:`finish_run` marks the run finished once its last output exists, with the seconds the stage took;
-a stage is done only then. Reports read those records (:func:`read_run_record`), never an assumption.
-Every write is atomic (``write_json_atomic``), so a kill leaves the previous record intact.
+:func:`finish_run` marks the run finished once its outputs exist; reports read those records. Every write
+is atomic, so a kill leaves the previous record intact.
 """
 
 from __future__ import annotations
@@ -70,9 +61,8 @@ class RunFolder:
     """An opened run folder.
 
     Attributes:
-        path: The folder.
-        status: ``"new"`` (empty before), ``"continued"`` (same record, resumed, not finished) or
-            ``"finished"`` (same record, resumed, already finished: a stage may skip its work).
+        status: ``"new"``, ``"continued"`` (same record, resumed) or ``"finished"`` (same record, resumed,
+            already finished: a stage may skip its work).
         record: The record as written in ``run.json``.
     """
 
@@ -86,10 +76,8 @@ class RunFolder:
 
 
 def code_version() -> str:
-    """The package version, and the git commit of its checkout where there is one (read, not run).
-
-    Recorded, never compared: a run continued by a newer version of the code says so in its record.
-    """
+    """The package version, and the git commit of its checkout where there is one (read, not run); recorded,
+    never compared."""
     from sar_zero123 import __version__
 
     version = __version__
@@ -114,9 +102,8 @@ def code_version() -> str:
 def data_identity(data: str | os.PathLike | None) -> dict[str, Any]:
     """What a run read, so that the same folder name with other contents is not taken for the same data.
 
-    A folder with ``index.csv``: the SHA-256 of the index (chip paths, classes and poses). Any other folder
-    (a raw MSTAR tree): the SHA-256 of its sorted relative file names and sizes. ``None``: the built-in
-    simulator, identified by the config's own settings.
+    A folder with ``index.csv``: the index's SHA-256. Any other folder (raw MSTAR): the SHA-256 of its sorted
+    relative file names and sizes. ``None``: the built-in simulator, identified by the config.
 
     Raises:
         FileNotFoundError: If ``data`` is given and does not exist.
@@ -141,22 +128,14 @@ def data_identity(data: str | os.PathLike | None) -> dict[str, Any]:
 
 
 def content_identity(path: str | os.PathLike) -> str:
-    """SHA-256 over a folder's (or file's) relative file names and bytes: the weights themselves, so that a
-    model folder replaced in place (same names, other weights) is told apart whatever its files' times.
-
-    Raises:
-        FileNotFoundError: If ``path`` does not exist.
-    """
+    """SHA-256 over a folder's (or file's) relative file names and bytes, so a model replaced in place is told
+    apart."""
     return _files_digest(Path(path))
 
 
 def _files_digest(root: Path, suffixes: tuple[str, ...] | None = None) -> str:
-    """SHA-256 over the relative names and bytes of the files under ``root`` (those ending in ``suffixes``
-    only, when given), or of ``root`` itself when it is a file.
-
-    Raises:
-        FileNotFoundError: If ``root`` does not exist.
-    """
+    """SHA-256 over the relative names and bytes of the files under ``root`` (ending in ``suffixes``, when
+    given), or of ``root`` itself when it is a file."""
     if not root.exists():
         raise FileNotFoundError(f"{str(root)!r} does not exist")
     files = [root] if not root.is_dir() else sorted(
@@ -177,12 +156,8 @@ WEIGHT_SUFFIXES = (".safetensors", ".bin", ".ckpt", ".pt", ".pth")
 
 
 def weights_identity(path: str | os.PathLike) -> str:
-    """SHA-256 over a model folder's weight files (names and bytes; :data:`WEIGHT_SUFFIXES`), or over a
-    checkpoint file: what a fine-tune started from, whatever model card or config text changes beside it.
-
-    Raises:
-        FileNotFoundError: If ``path`` does not exist.
-    """
+    """SHA-256 over a model folder's weight files (:data:`WEIGHT_SUFFIXES`) or a checkpoint file: what a
+    fine-tune started from, whatever text changes beside it."""
     return _files_digest(Path(path), WEIGHT_SUFFIXES)
 
 
@@ -209,8 +184,8 @@ def _as_dict(config: Any) -> dict[str, Any]:
 
 
 def field_defaults(config: Any) -> dict[str, Any]:
-    """The defaults of a dataclass config's fields (an instance or the class), as a record holds them (JSON
-    types); ``{}`` for anything else."""
+    """The defaults of a dataclass config's fields as a record holds them (JSON types); ``{}`` for anything
+    else."""
     if not dataclasses.is_dataclass(config):
         return {}
     defaults = {}
@@ -238,8 +213,7 @@ def run_differences(
 ) -> list[str]:
     """Every difference between a folder's record and a new run, as ``"field: folder X, this run Y"``.
 
-    A field the record lacks counts as its value in ``defaults``: a folder written before the field existed
-    was made with the field's default.
+    A field the record lacks counts as its value in ``defaults`` (the folder predates the field).
     """
     if record.get("stage") != stage:
         return [f"stage: folder {record.get('stage')!r}, this run {stage!r}"]
@@ -273,26 +247,18 @@ def open_run_folder(
     """Apply the run-folder rule to ``path`` before a stage does any work (see the module docstring).
 
     Args:
-        path: The stage's output folder.
-        stage: The stage's name (``"finetune"``, ``"vae"``, ...): a folder of another stage is refused.
+        stage: The stage's name: a folder of another stage is refused.
         config: The stage's resolved config (a dataclass or a mapping).
-        data: The data folder the stage reads (``None``: the built-in simulator), or an identity already
-            computed by :func:`data_identity`.
-        resume: Continue a folder with the same record (and check nothing but ``may_extend`` changed).
-        restart: Move an existing non-empty folder aside first, then start a new run.
+        data: The data folder the stage reads (``None``: the built-in simulator), or a :func:`data_identity`.
         may_differ: Fields that never change what a folder holds (where logs go, how often to print).
-        may_extend: Fields that may change when continuing (``resume=True``), e.g. ``max_train_steps``.
-        write: Write the record (``False`` on non-main processes of a distributed launch: they check only).
-        flag_hint: The user's name for ``path``, used in messages.
-        resume_hint: How the user continues a run of this stage (``--resume``, ...), used in messages.
-
-    Returns:
-        The opened :class:`RunFolder`.
+        may_extend: Fields that may change when continuing, e.g. ``max_train_steps``.
+        write: Write the record (``False`` on non-main processes: they check only).
+        flag_hint: The user's name for ``path``, for messages.
+        resume_hint: How the user continues a run of this stage, for messages.
 
     Raises:
-        ValueError: If ``resume`` and ``restart`` are both set; if the folder is not empty and has no
-            record; if its record differs (every difference named); if it has the same record and neither
-            ``resume`` nor ``restart`` is set (the run would be overwritten).
+        ValueError: If ``resume`` and ``restart`` are both set; if the folder is not empty and has no record;
+            if its record differs; if it has the same record and neither is set.
     """
     if resume and restart:
         raise ValueError(
@@ -406,19 +372,13 @@ def check_options_folder(
     identity_message: Callable[[Any, Any], str] | None = None,
     flag_hint: str = "out",
 ) -> bool:
-    """The rule for a folder whose record is the options file ``record`` (``augment.json``) rather than
-    ``run.json``: whether ``out`` holds this run already (a resume), refusing any other non-empty folder.
+    """Whether ``out`` holds this run already, for a folder whose record is the options file ``record``
+    (``augment.json``) rather than ``run.json``; any other non-empty folder is refused.
 
     Args:
-        out: The output folder.
-        options: The options that decide the output, as the record holds them.
-        record: The options file's name inside ``out``.
-        what: The run's name in messages (``"augmentation"``).
-        defaults: Field defaults: a record written before an option existed was made with its default.
-        identity_field: An option identifying an input's content (a weights digest), compared first; a record
-            without it is taken to match (written before the digest was recorded).
-        identity_message: The message for a differing ``identity_field``, given (recorded, current).
-        flag_hint: The user's name for ``out``.
+        defaults: Field defaults, for a record that predates an option.
+        identity_field: An option identifying an input's content, compared first (a record without it
+            matches); ``identity_message(recorded, current)`` words its refusal.
 
     Raises:
         ValueError: For a non-empty folder without ``record``, a record that is not a JSON object, a
@@ -465,20 +425,16 @@ def finish_run(
     results: Mapping[str, Any] | None = None,
     write: bool = True,
 ) -> dict[str, Any]:
-    """Mark a run finished, after checking that its outputs exist.
+    """Mark a run finished, after checking that its outputs exist; returns the updated record.
 
     Args:
-        folder: The opened folder (or its path).
         outputs: Files or folders the stage must have written, relative to the folder or absolute.
-        seconds: Wall time of the stage; added to the time of earlier sessions of the same run.
-        results: Small JSON-able facts a report may quote (e.g. the final step).
+        seconds: Wall time of the stage; added to earlier sessions' time.
+        results: Small JSON-able facts a report may quote.
         write: ``False`` on non-main processes.
 
-    Returns:
-        The updated record.
-
     Raises:
-        FileNotFoundError: If an output is missing (the run is then not marked finished).
+        FileNotFoundError: If an output is missing (the run is not marked finished).
         ValueError: If the folder holds no record.
     """
     path = folder.path if isinstance(folder, RunFolder) else Path(folder)

@@ -1,15 +1,6 @@
-"""Starting a training run under ``accelerate``, the same way in every script.
-
-Each script in ``train/`` that trains under accelerate calls :func:`start_run` first: it builds the
-``Accelerator`` (mixed precision, tracker, gradient accumulation, seedable data order, logging folder),
-refuses a multi-process launch that accelerate did not turn into a distributed run (N processes that
-would overwrite each other's checkpoints), sets up logging and seeds every RNG. :func:`tracker_hparams`
-turns a config into the hyperparameters a tracker accepts, :func:`check_global_batch` refuses a split
-smaller than one global batch, and :func:`check_replicas_agree` compares the trained weights of
-data-parallel replicas at the end of a run. Saving, resuming and ending a run are in
-:mod:`sar_zero123.runs.checkpoints`; per-step generators in
-:func:`sar_zero123.training.step.micro_batch_generator`.
-"""
+"""Starting a training run under ``accelerate``, the same way in every script, and the launch's checks:
+a multi-process launch that is not distributed, a split smaller than a global batch, and replicas whose
+weights disagree at the end."""
 
 from __future__ import annotations
 
@@ -46,8 +37,8 @@ logger = logging.getLogger(__name__)
 
 
 def check_device(device: str, field: str = "device") -> torch.device:
-    """The torch device ``device`` names, checked before any model loads: one this machine has and can
-    compute on (not ``meta``, which holds no data; not ``cuda`` without a CUDA device).
+    """The torch device ``device`` names, checked before any model loads: one this machine has and can compute
+    on (not ``meta``; not ``cuda`` without a CUDA device).
 
     Raises:
         ValueError: Naming ``field``, for text that is no device or a device this machine lacks.
@@ -86,18 +77,11 @@ def start_run(
 
     Args:
         output_dir: The run folder; trackers log under ``output_dir/logs``. ``None``: no tracker folder.
-        seed: Passed to ``accelerate.utils.set_seed`` (Python, NumPy and torch on every device).
-        mixed_precision: ``"no"``, ``"fp16"`` or ``"bf16"``.
-        report_to: An accelerate tracker (``"tensorboard"``, ...); ``None`` or ``"none"``: no tracker.
-        gradient_accumulation_steps: Micro-batches per optimisation step (``accelerator.accumulate``);
-            the data loader's length does not end an accumulation cycle, so a resumed run that skips
-            batches keeps the cycles of an uninterrupted one.
-        seedable_sampler: Make a prepared data loader's shuffled order a function of the seed and the
-            epoch (``set_epoch``), which a resumed run continues exactly. ``False`` keeps the loader's own
-            generator (scripts that resume at epoch boundaries only).
-
-    Returns:
-        The accelerator.
+        report_to: An accelerate tracker; ``None`` or ``"none"``: no tracker.
+        gradient_accumulation_steps: Micro-batches per step; the loader's end does not end a cycle, so a
+            resumed run keeps the cycles of an uninterrupted one.
+        seedable_sampler: Make a prepared loader's order a function of the seed and the epoch, which a resume
+            continues exactly; ``False`` keeps the loader's own generator.
 
     Raises:
         RuntimeError: From :func:`check_distributed_launch`.
@@ -129,9 +113,8 @@ def start_run(
 def check_distributed_launch(accelerator: Accelerator) -> None:
     """Refuse a multi-process launch that accelerate did not turn into a distributed run.
 
-    ``accelerate launch --multi_gpu --num_processes N`` on a machine without GPUs starts N processes that
-    each believe they are alone (and overwrite each other's checkpoints) unless ``ACCELERATE_USE_CPU=true``
-    is set, which selects gloo data parallelism on CPU.
+    Without GPUs, ``accelerate launch --multi_gpu`` starts processes that each believe they are alone (and
+    overwrite each other's checkpoints) unless ``ACCELERATE_USE_CPU=true`` selects gloo.
 
     Raises:
         RuntimeError: If ``WORLD_SIZE > 1`` but accelerate runs a single process.
@@ -154,20 +137,12 @@ def check_global_batch(
     """Refuse a training split smaller than one optimisation step's examples.
 
     A ``drop_last`` loader yields ``num_examples // (batch_size x processes)`` micro-batches per epoch: none
-    when the split is smaller than one global batch, and fewer than one optimisation step when
-    ``gradient_accumulation_steps`` exceeds that count (each step would then take several epochs, and a
-    large value leaves the run at step 0 for hours).
-
-    Args:
-        num_examples: Size of the training split.
-        batch_size: Examples per process per micro-batch.
-        num_processes: ``accelerator.num_processes``.
-        what: What an example is called in the message (``"pairs"``, ``"chips"``).
-        gradient_accumulation_steps: Micro-batches per optimisation step.
+    for a split below one global batch, and fewer than one step when ``gradient_accumulation_steps`` exceeds
+    them.
 
     Raises:
         ValueError: ``"data: <N> training <what>, fewer than a global batch of <batch_size x processes>"``,
-            or naming ``gradient_accumulation_steps`` and its bound, the micro-batches of one epoch.
+            or naming ``gradient_accumulation_steps`` and its bound.
     """
     global_batch = batch_size * num_processes
     if num_examples < global_batch:
@@ -182,11 +157,8 @@ def check_global_batch(
 
 
 def tracker_hparams(config: Any) -> dict[str, int | float | str | bool]:
-    """Every field of a config dataclass as a tracker hyperparameter (TensorBoard takes only scalars).
-
-    Returns:
-        Field name -> value; ``None``, lists and paths become their ``str``.
-    """
+    """Every field of a config dataclass as a tracker hyperparameter; ``None``, lists and paths become
+    ``str``."""
     return {
         name: value if isinstance(value, (int, float, str, bool)) else str(value)
         for name, value in config_to_dict(config).items()
@@ -208,15 +180,10 @@ def weights_digest(modules: list[torch.nn.Module]) -> torch.Tensor:
 
 
 def check_replicas_agree(accelerator: Accelerator, modules: list[torch.nn.Module]) -> list[int]:
-    """Gather every process's :func:`weights_digest` of its trained modules; call it on every process.
+    """Gather every process's :func:`weights_digest` of its unwrapped trained modules; call it on every
+    process.
 
-    Data-parallel replicas start equal and apply the same averaged gradients, so their weights must be
-    bitwise equal at the end; a difference means a process trained on something else (a bug, a broken
-    all-reduce). One SHA-256 pass over the weights: about 1 s per GB on a CPU core.
-
-    Args:
-        accelerator: The run's accelerator.
-        modules: The trained modules, unwrapped (``accelerator.unwrap_model``).
+    Data-parallel replicas apply the same averaged gradients, so their weights must end bitwise equal.
 
     Returns:
         The digests, one per process in process order.
@@ -231,11 +198,8 @@ def check_replicas_agree(accelerator: Accelerator, modules: list[torch.nn.Module
 
 
 def all_out_of_time(accelerator: Accelerator, deadline: float) -> bool:
-    """Whether any process has passed ``deadline`` (every process then stops at the same step).
-
-    One process reads its clock alone; several agree through a reduction (a synchronisation with the device,
-    which their gradient all-reduce makes anyway).
-    """
+    """Whether any process has passed ``deadline``, agreed through a reduction so all stop at the same
+    step."""
     if accelerator.num_processes == 1:
         return time.monotonic() >= deadline
     late = torch.tensor([float(time.monotonic() >= deadline)], device=accelerator.device)

@@ -1,17 +1,10 @@
 """One writer per output folder: an exclusive lock taken before a stage or command touches the folder.
 
-Two runs started together into the same folder would otherwise both pass the run-folder checks (the
-folder is empty for both) and interleave their files. :func:`lock_output_folder` takes an exclusive,
-non-blocking ``flock`` on ``<parent>/.<name>.lock``, beside the folder rather than in it, so that the
-folder's own contents (and the checks of whether it is empty) are untouched, and ``--restart``, which moves
-the folder aside, keeps the lock on the name. The holder writes who it is (process id, host, command, UTC
-start) into the lock file; a second writer is refused with a ``ValueError`` that names it.
-
-The operating system drops the lock when the holder exits, however it exits (a kill included), so a
-crashed run never leaves a stale lock behind. A process may lock the same folder again (re-entrant);
-:func:`release_output_folder` releases it early (:func:`~sar_zero123.runs.folder.finish_run`
-does, once the run is finished). Hand-written because ``filelock``, the usual library, truncates the lock
-file when a contender opens it, which erases the holder's name that the refusal must give.
+Two runs started together into one empty folder would both pass the run-folder checks and interleave
+their files. :func:`lock_output_folder` takes a non-blocking ``flock`` on ``<parent>/.<name>.lock``, beside
+the folder so its contents stay untouched and ``--restart`` keeps the lock on the name; the holder writes
+who it is, so a second writer is refused naming it. The OS drops the lock however the holder exits (no
+stale locks). Hand-written because ``filelock`` truncates the lock file when a contender opens it.
 """
 
 from __future__ import annotations
@@ -41,8 +34,8 @@ def lock_path(folder: str | os.PathLike) -> Path:
 
 
 def is_lock_file(path: str | os.PathLike) -> bool:
-    """Whether `path` is named like a lock file of a sibling folder (``.<name>.lock``): emptiness checks
-    skip it, since a killed writer leaves its (unlocked) file behind."""
+    """Whether ``path`` is named like a sibling's lock file: emptiness checks skip it, since a killed writer
+    leaves its (unlocked) file behind."""
     name = Path(path).name
     return name.startswith(".") and name.endswith(".lock")
 
@@ -59,17 +52,12 @@ def _holder(fd: int) -> str:
 
 
 def lock_output_folder(folder: str | os.PathLike, flag_hint: str = "output_dir") -> None:
-    """Takes the exclusive writer lock of `folder` for this process, or refuses a second writer.
+    """Takes the exclusive writer lock of ``folder`` for this process, or refuses a second writer.
 
-    Creates the folder's parent if needed (not the folder). Nothing happens where the lock is already
-    held by this process, or where the platform has no ``fcntl``.
-
-    Args:
-        folder: The output folder a stage or command is about to check and write.
-        flag_hint: The user's name for it, used in the message.
+    Creates the folder's parent (not the folder). Re-entrant; a no-op without ``fcntl``.
 
     Raises:
-        ValueError: Naming `flag_hint`, the folder and the holder, if another process holds the lock.
+        ValueError: Naming ``flag_hint``, the folder and the holder, if another process holds the lock.
     """
     folder = Path(folder).resolve()
     if fcntl is None or folder in _HELD:

@@ -1,7 +1,5 @@
-"""Sealed folders: a folder (a checkpoint, a pipeline, a bundled prior) lists its other files in
-:data:`MANIFEST_FILE` with their sizes and SHA-256 (:func:`write_manifest`), and a reader checks the folder
-against it before trusting it (:func:`manifest_problem`, :func:`unlisted_files`).
-"""
+"""Sealed folders: a folder lists its other files with their sizes and SHA-256 in :data:`MANIFEST_FILE`, and a
+reader checks the folder against it before trusting it."""
 
 from __future__ import annotations
 
@@ -34,8 +32,8 @@ def _sealed_files(folder: Path) -> list[Path]:
 
 
 def write_manifest(folder: str | os.PathLike) -> Path:
-    """Write :data:`MANIFEST_FILE` (atomically, last): the size in bytes and SHA-256 of every other file under
-    ``folder``; :func:`manifest_problem` checks the folder against it."""
+    """Write :data:`MANIFEST_FILE` (atomically, last): the size and SHA-256 of every other file under
+    ``folder``."""
     folder = Path(folder)
     files = {
         path.relative_to(folder).as_posix(): {"bytes": path.stat().st_size, "sha256": file_sha256(path)}
@@ -45,15 +43,8 @@ def write_manifest(folder: str | os.PathLike) -> Path:
 
 
 def manifest_problem(folder: str | os.PathLike, check_hashes: bool = True) -> str | None:
-    """Why ``folder`` does not match its :data:`MANIFEST_FILE`, or ``None`` when it does (or has none).
-
-    Args:
-        folder: A folder sealed by :func:`write_manifest`.
-        check_hashes: Also compare SHA-256 digests (reads every byte), not only the sizes.
-
-    Returns:
-        ``None``, or a sentence naming the file and what is wrong with it.
-    """
+    """Why ``folder`` does not match its :data:`MANIFEST_FILE` (naming the file), or ``None`` when it does or
+    has none; ``check_hashes`` also compares digests, not only sizes."""
     folder = Path(folder)
     manifest_file = folder / MANIFEST_FILE
     if not manifest_file.is_file():
@@ -82,8 +73,8 @@ def manifest_problem(folder: str | os.PathLike, check_hashes: bool = True) -> st
 
 
 def unlisted_files(folder: str | os.PathLike) -> list[str]:
-    """The files under ``folder`` (relative POSIX paths) that its :data:`MANIFEST_FILE` does not list (added
-    after it was sealed); ``[]`` for a folder without a valid manifest."""
+    """The files under ``folder`` (relative POSIX paths) its manifest does not list; ``[]`` without a valid
+    one."""
     folder = Path(folder)
     try:
         listed = set(json.loads((folder / MANIFEST_FILE).read_text())["files"])

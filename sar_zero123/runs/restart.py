@@ -1,8 +1,5 @@
-"""The one restart rule: ``--restart`` moves a folder aside (:func:`move_aside`, to
-``<name>.replaced-<UTC time>``, never deleted) only after :func:`check_restart_target` found that it holds
-none of the run's inputs and lies inside none of them nor inside the package (its bundled pipelines), for
-run folders (:func:`~sar_zero123.runs.folder.open_run_folder`) and ``augment``'s options folders alike.
-"""
+"""The one restart rule: ``--restart`` moves a folder aside (never deleted) only when it holds none of the
+run's inputs and lies inside none of them nor inside the package, for run and options folders alike."""
 from __future__ import annotations
 
 import logging
@@ -22,8 +19,8 @@ _OUTPUT_FIELDS = ("output_dir", "work_dir", "out")
 
 
 def _named_inputs(identity: Mapping[str, Any], config: Mapping[str, Any]) -> list[tuple[str, Any]]:
-    """``(name, value)`` of every input a run may read: the data paths of ``identity`` and every config
-    field but the outputs (values that name no existing path are left to the callers to skip)."""
+    """``(name, value)`` of every input a run may read: the data paths of ``identity`` and every config field
+    but the outputs."""
     named: list[tuple[str, Any]] = [
         (key, value.get("path")) for key, value in identity.items() if isinstance(value, Mapping)
     ]
@@ -49,8 +46,7 @@ def _inputs_inside(folder: Path, identity: Mapping[str, Any], config: Mapping[st
 
 
 def _inputs_holding(folder: Path, identity: Mapping[str, Any], config: Mapping[str, Any]) -> list[str]:
-    """The inputs (:func:`_named_inputs`) that are ``folder`` or hold it, and the package's own folder (its
-    bundled pipelines) where it holds ``folder``: moving ``folder`` aside would move part of them."""
+    """The inputs that are ``folder`` or hold it, and the package's own folder where it holds ``folder``."""
     import sar_zero123
 
     root = folder.resolve()
@@ -68,12 +64,11 @@ def _inputs_holding(folder: Path, identity: Mapping[str, Any], config: Mapping[s
 def check_restart_target(
     path: Path, identity: Mapping[str, Any], config: Mapping[str, Any], flag_hint: str = "output_dir"
 ) -> None:
-    """Refuse to move ``path`` aside (``--restart``) when it holds one of the run's inputs, or lies inside one
-    of them or inside the package (its bundled pipelines): the inputs are the data paths of ``identity`` and
-    every config field but the outputs that names an existing path.
+    """Refuse to move ``path`` aside when it holds one of the run's inputs, or lies inside one of them or
+    inside the package (its bundled pipelines).
 
     Raises:
-        ValueError: Naming ``flag_hint``, the folder and the inputs, either way round.
+        ValueError: Naming ``flag_hint``, the folder and the inputs.
     """
     inside = _inputs_inside(path, identity, config)
     if inside:

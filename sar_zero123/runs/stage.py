@@ -1,10 +1,5 @@
-"""The run-folder rule (:mod:`sar_zero123.runs.folder`) as every stage and command applies it, on one
-process or under ``accelerate launch``.
-
-:func:`open_stage_folder` opens a stage's folder before any work: with several processes every one checks
-the folder as it is, so that all refuse together, then the main process writes the record.
-:func:`withdrawn_if_setup_fails` keeps a run that never began from blocking its corrected command.
-"""
+"""The run-folder rule as every stage and command applies it, on one process or under ``accelerate launch``,
+and the withdrawal of a run whose setup failed."""
 
 from __future__ import annotations
 
@@ -27,12 +22,8 @@ __all__ = ["launch_state", "open_stage_folder", "withdrawn_if_setup_fails"]
 
 
 def launch_state() -> PartialState:
-    """The launch's process state, before (or after) the stage's ``Accelerator`` exists.
-
-    Made the way ``Accelerator`` makes it: ``accelerate launch --multi_gpu`` on CPU sets
-    ``ACCELERATE_USE_CPU``, without which a bare ``PartialState()`` would set up a one-process run that
-    the ``Accelerator`` then inherits.
-    """
+    """The launch's process state, made as ``Accelerator`` makes it: without ``ACCELERATE_USE_CPU`` (set by
+    ``accelerate launch --multi_gpu`` on CPU) a bare ``PartialState()`` would set up a one-process run."""
     return PartialState(cpu=parse_flag_from_env("ACCELERATE_USE_CPU"))
 
 
@@ -51,29 +42,18 @@ def open_stage_folder(
     write: bool = True,
 ) -> RunFolder:
     """The prologue of every stage and command: :func:`~sar_zero123.runs.folder.open_run_folder` on every
-    process of a launch (one process outside ``accelerate launch``); the main process writes.
+    process of a launch; the main process writes.
 
-    With several processes, each first checks the folder as it is on disk (nothing written), so a refusal
-    stops every process before any waits in a collective; then the main process opens it for real (writing
-    the record, moving an old run aside with ``restart``) while the others wait.
+    With several processes each first checks the folder as it is on disk, so a refusal stops every process
+    before any waits in a collective; then the main process opens it for real while the others wait.
 
     Args:
-        path: The stage's output folder.
-        stage: The stage's name, recorded and compared.
-        config: The stage's config dataclass.
-        data: The identity of each data input (``{"data": data_identity(config.data)}``), or the data
-            folder itself (``None``: the built-in simulator).
-        resume: Continue a folder with the same record.
-        restart: Move an existing run aside first.
-        may_differ: Fields that never change what the folder holds.
-        may_extend: Fields that may change when continuing.
-        resume_hint: How the user continues a run of this stage, used in messages.
-        flag_hint: The user's name for ``path`` (``"out"``), used in messages.
-        write: ``False`` checks the folder on every process and writes nothing (a command that opens it
-            for real only once its inputs are ready).
+        data: The identity of each data input (``{"data": data_identity(config.data)}``), or the data folder
+            itself (``None``: the built-in simulator).
+        write: ``False`` checks the folder on every process and writes nothing.
 
     Returns:
-        The opened folder (the main process's view: on the others, the check's).
+        The opened folder (on non-main processes, the check's view).
 
     Raises:
         ValueError: From ``open_run_folder``, naming the folder and each difference.
@@ -95,14 +75,11 @@ def open_stage_folder(
 
 @contextmanager
 def withdrawn_if_setup_fails(folder: RunFolder) -> Iterator[None]:
-    """Around a stage's setup: a new run whose setup raises (a missing encoder, a protocol the data lacks, a
-    batch the data cannot fill) leaves no record and nothing else it wrote there (the simulated data cache,
-    ``logs/``), so the corrected command starts it instead of being refused for differing from a run that
-    never began.
+    """Around a stage's setup: a new run whose setup raises leaves nothing it wrote, so the corrected command
+    starts it instead of being refused for differing from a run that never began.
 
-    Only a folder opened empty (``status == "new"``) is withdrawn: it was empty (or absent) when opened and
-    its writer lock kept other processes out, so everything in it is this setup's. A continued run keeps
-    everything.
+    Only a folder opened empty is withdrawn (its lock kept other writers out, so all in it is this setup's);
+    a continued run keeps everything.
     """
     try:
         yield

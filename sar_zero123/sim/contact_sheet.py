@@ -59,23 +59,10 @@ def contact_sheet(
     real_classes: Sequence[str] = _REAL_CLASSES,
     dpi: int = 100,
 ) -> Path:
-    """Write a PNG grid of simulated chips (one row per class), shown in dB like SAR viewers.
+    """Write a PNG grid of simulated chips (one row per class, one column per azimuth), shown in dB.
 
-    Args:
-        path: Output PNG path.
-        classes: Simulated classes; None for all.
-        azimuths_deg: One column per azimuth.
-        depression_deg: Depression of all chips.
-        size: Chip size (real chips are centre-cropped to it).
-        seed: Seed of the clutter.
-        instance: Target instance shown.
-        real_root: Optional MSTAR-style image folder (``index.csv`` + 8-bit chips); its chips
-            nearest each azimuth are added below the simulated rows.
-        real_classes: Real classes shown (those present in ``real_root``).
-        dpi: Resolution of the PNG (one chip is about 1.5 inch wide).
-
-    Returns:
-        The PNG path.
+    ``real_root`` (an MSTAR-style image folder) adds rows of its ``real_classes`` chips nearest each azimuth,
+    centre-cropped to ``size``. Returns the PNG path.
 
     Raises:
         ValueError: For more than :data:`MAX_SHEET_COLUMNS` azimuths (or none) or :data:`MAX_SHEET_CELLS`
@@ -151,21 +138,8 @@ def procedural_contact_sheet(
     columns: int = 8,
     dpi: int = 100,
 ) -> Path:
-    """Write a PNG grid of procedural vehicles (:func:`~sar_zero123.sim.procedural.make_procedural_target`):
-    each vehicle at one azimuth and each depression side by side, so that silhouettes and shadows compare.
-
-    Args:
-        path: Output PNG path.
-        seeds: Procedural vehicle seeds shown.
-        depressions_deg: Depressions shown per vehicle (adjacent cells).
-        azimuth_deg: Azimuth of every chip.
-        size: Chip size in pixels.
-        seed: Seed of the clutter.
-        columns: Vehicles per row.
-        dpi: Resolution of the PNG.
-
-    Returns:
-        The PNG path.
+    """Write a PNG grid of procedural vehicles, each at one azimuth and each of ``depressions_deg`` side by
+    side, so that silhouettes and shadows compare; returns the PNG path.
 
     Raises:
         ValueError: For a sheet wider than :data:`MAX_SHEET_COLUMNS` cells or with more than

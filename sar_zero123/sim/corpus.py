@@ -1,17 +1,13 @@
 """The multi-view prior's training corpus: procedural vehicles at random azimuths and depressions.
 
-``write_prior_corpus`` renders ``views_per_vehicle`` chips of each of ``num_vehicles`` procedural vehicles
-(:func:`~sar_zero123.sim.procedural.make_procedural_target`), each at a uniform random azimuth and at a
-depression drawn from ``depression_range_deg`` (a share of them at MSTAR's 15 and 17 deg), and writes an
-image folder with the MSTAR-style ``index.csv`` every reader of the package takes. Any two chips of one
-vehicle make a training pair, so depression changes span the whole range. The last
-``num_validation_vehicles`` vehicles get the class :data:`VALIDATION_CLASS`, so the ``ood-PROCVAL``
-protocol trains on the others and validates on unseen vehicles.
+``write_prior_corpus`` renders ``views_per_vehicle`` chips of each procedural vehicle at uniform random
+azimuths and depressions from ``depression_range_deg`` (a share at MSTAR's 15 and 17 deg) into an image
+folder with an MSTAR-style ``index.csv``; any two chips of one vehicle make a training pair. The last
+``num_validation_vehicles`` get :data:`VALIDATION_CLASS`, for the ``ood-PROCVAL`` protocol.
 
-Chips are float16 magnitudes in [0, 1] (half the disk of float32; the dB conversion of a float16 chip
-differs from the float32 one by < 0.01 dB above the -60 dB floor). The folder is resumable: chips are
-written through a temporary file and an atomic rename, finished ones are kept on a re-run, and the index
-is written last; a folder written with other options is refused, naming each difference.
+Chips are float16 magnitudes in [0, 1] (half the disk; the dB error is negligible above the floor).
+Resumable: chips are written atomically, finished ones kept, the index written last; a folder written
+with other options is refused, naming each difference.
 """
 
 from __future__ import annotations
@@ -78,8 +74,7 @@ def corpus_vehicle_seed(serial: str) -> int:
 
 
 def _one_thread_each() -> None:
-    """Keep each rendering process's BLAS and FFT work on one thread: N processes on N cores, not N x N
-    threads (each chip's spectrum is a complex matrix product, which BLAS would spread over every core)."""
+    """One BLAS/FFT thread per rendering process: N processes on N cores, not N x N threads."""
     from threadpoolctl import threadpool_limits
 
     threadpool_limits(limits=1)
@@ -184,27 +179,18 @@ def write_prior_corpus(
     num_workers: int = 1,
     progress: bool = True,
 ) -> Path:
-    """Render the prior's corpus into ``out_dir`` (or finish an interrupted one); see the module docstring.
+    """Render the prior's corpus into ``out_dir`` (or finish an interrupted one) and return it as a ``Path``.
 
-    Vehicles are the procedural seeds ``0 .. num_vehicles - 1``; the last ``num_validation_vehicles`` of
-    them are :data:`VALIDATION_CLASS`. The named classes of :data:`~sar_zero123.sim.TARGET_CLASSES` are
-    never in the corpus.
+    Vehicles are the procedural seeds ``0 .. num_vehicles - 1``; the named
+    :data:`~sar_zero123.sim.TARGET_CLASSES` are never in it.
 
     Args:
-        out_dir: Output folder (created).
         num_vehicles: Procedural vehicles, validation ones included.
-        views_per_vehicle: Chips per vehicle.
-        num_validation_vehicles: Vehicles held out as the validation class.
         depression_range_deg: ``(low, high)`` of the uniform depression draw, within (0, 90).
-        mstar_fraction: Share of the views put at 15 or 17 deg instead (MSTAR's depressions).
-        size: Chip side in pixels (64 at the simulator's 0.2 m spacing covers 12.9 m).
+        mstar_fraction: Share of the views put at 15 or 17 deg instead.
+        size: Chip side in pixels.
         seed: Corpus seed (views, clutter, noise); the vehicles depend only on their own seed.
-        clutter_db_spread: Per-chip clutter level spread (+- dB), as in ``simulate_dataset``.
-        num_workers: Processes rendering vehicles in parallel.
-        progress: Print a line every 100 vehicles.
-
-    Returns:
-        ``out_dir`` as a :class:`~pathlib.Path` (read it with ``sar_zero123.data.load_index``).
+        clutter_db_spread: Per-chip clutter level spread (+- dB).
 
     Raises:
         ValueError: For an out-of-range option, a corpus over 400,000 chips, or a folder holding a corpus

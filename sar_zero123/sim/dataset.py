@@ -28,18 +28,8 @@ __all__ = [
 def chip_generator(
     seed: int, class_name: str, instance: int, depression_deg: float, index: int
 ) -> np.random.Generator:
-    """Independent random stream of one chip, so a chip does not depend on which others are made.
-
-    Args:
-        seed: Dataset seed (>= 0).
-        class_name: Target class.
-        instance: Target instance.
-        depression_deg: Depression angle (deg); hundredths of a degree enter the key.
-        index: Azimuth index of the chip on the grid.
-
-    Returns:
-        A numpy generator seeded from all five.
-    """
+    """Independent random stream of one chip, seeded from all five arguments (hundredths of a degree of the
+    depression), so a chip does not depend on which others are made."""
     key = [
         int(seed),
         zlib.crc32(class_name.encode()),
@@ -134,34 +124,22 @@ def simulate_dataset(
     calibration: float = CALIBRATION_AMPLITUDE,
     clutter_db_spread: float = 3.0,
 ) -> Path:
-    """Simulate every (class, instance, depression, azimuth) chip and write an image folder.
+    """Simulate every (class, instance, depression, azimuth) chip and write an image folder; returns it.
 
-    Layout: ``<out_dir>/chips/<dep>deg/<CLASS>/<CLASS>_<serial>_<k>.npy`` (float32 magnitude in
-    [0, 1]) and ``<out_dir>/index.csv`` with the columns of the MSTAR index
-    (``path,target_class,target_type,serial,depression_deg,azimuth_deg,height,width``; ``path``
-    relative to ``out_dir``). Any existing index is removed first and the new one is written last,
-    through a temporary file and ``os.replace``, so an interrupted run never leaves an index that
-    lists missing or stale chips. Each chip has its own random stream (:func:`chip_generator`):
-    the same seed gives the same bytes, whatever subset of classes is simulated.
+    Layout: ``<out_dir>/chips/<dep>deg/<CLASS>/<CLASS>_<serial>_<k>.npy`` (float32 magnitude in [0, 1])
+    and ``<out_dir>/index.csv`` (:data:`INDEX_COLUMNS`, paths relative to ``out_dir``). An existing index is
+    removed first and the new one written last and atomically, so an interrupted run never leaves an index
+    listing missing chips. Each chip has its own random stream: the same seed gives the same bytes, whatever
+    subset of classes is simulated.
 
     Args:
-        out_dir: Output folder (created).
         classes: Classes to simulate; None for all of :data:`TARGET_CLASSES`.
         instances: Instances (serials ``sim00``, ``sim01``, ...) per class.
         azimuth_step_deg: Azimuth grid step; azimuths ``k * step`` in [0, 360).
-        depressions_deg: Depression angles (deg), one folder each.
-        size: Chip size in pixels.
-        seed: Dataset seed (>= 0).
-        azimuth_jitter_deg: If > 0, each azimuth is moved by a seeded uniform offset in
-            ``[-jitter/2, jitter/2)`` so that not all chips sit on the grid (wrapped to [0, 360)).
-        normalization: ``"peak"`` (like the MSTAR JPEGs) or ``"calibrated"``; see
-            :func:`~sar_zero123.sim.render.normalize_magnitude`.
-        calibration: Amplitude mapped to 1 when ``normalization="calibrated"``.
-        clutter_db_spread: Clutter level varies per chip uniformly within +- this (dB), as the
-            ground under real chips differs.
-
-    Returns:
-        ``out_dir`` as a :class:`~pathlib.Path` (pass it to ``sar_zero123.data.load_index``).
+        azimuth_jitter_deg: If > 0, each azimuth moves by a seeded uniform offset in
+            ``[-jitter/2, jitter/2)``.
+        normalization: ``"peak"`` or ``"calibrated"`` (``sim.render.normalize_magnitude``).
+        clutter_db_spread: Per-chip clutter level spread (+- dB), as the ground under real chips differs.
 
     Raises:
         ValueError: For an unknown class or an out-of-range argument (the message names it).
@@ -237,11 +215,7 @@ def simulate_dataset(
 
 def write_index_atomic(out_dir: str | os.PathLike[str], rows: Sequence[Sequence[str]]) -> Path:
     """Write ``out_dir/index.csv`` (:data:`INDEX_COLUMNS`, then ``rows``) through a temporary file and
-    ``os.replace``, so that a reader never sees a half-written index.
-
-    Returns:
-        The index path.
-    """
+    ``os.replace``, so a reader never sees a half-written index; returns its path."""
     index_path = Path(out_dir) / INDEX_FILENAME
     with naming_write_errors(index_path, "the previous index, if any, is unchanged"):
         fd, tmp = tempfile.mkstemp(prefix=".index-", suffix=".csv.tmp", dir=out_dir)

@@ -3,25 +3,17 @@
 Coordinates (all in metres):
 
 - vehicle frame ``(u, v, z)``: ``u`` towards the nose, ``v`` to the left, ``z`` up;
-- ground frame ``(x, y, z)``: ``x`` cross-range (image columns, left to right), ``y`` ground range
-  increasing away from the radar, ``z`` up. The radar is far away in the ``-y`` direction, looking
-  down at the depression angle ``psi``.
+- ground frame ``(x, y, z)``: ``x`` cross-range (image columns), ``y`` ground range increasing away from
+  the radar, which is far away in the ``-y`` direction looking down at the depression angle ``psi``.
 
-Target azimuth ``phi`` is the azimuth of the radar seen from the target, counter-clockwise (seen
-from above) from the nose. At ``phi = 0`` the nose points at the radar and the hull's long axis
-runs along range; at ``phi = 90`` the radar sees the left side (broadside). With the radar at the
-bottom of the image this reproduces the MSTAR chips' look: at 30 deg the long axis runs from lower
-left to upper right, at 120 deg from upper left to lower right.
+Target azimuth ``phi`` is the azimuth of the radar seen from the target, counter-clockwise (from above)
+from the nose: at ``phi = 0`` the nose points at the radar, at ``phi = 90`` it sees the left side. With
+the radar at the image's bottom this reproduces the MSTAR chips' look.
 
-The chip is a slant-plane image like MSTAR's: columns are cross-range ``x``, rows are slant range
-``r = y cos(psi) - z sin(psi)`` (the distance along the line of sight, up to a constant) with the
-radar at the **bottom** (near range at the last row, far range at the first row). A scatterer at
-height ``h`` is therefore imaged ``h sin(psi)`` closer to the radar in slant range than a ground
-point at the same ``(x, y)`` (layover); projected to the ground plane (divide by ``cos(psi)``) this
-is the familiar ``h tan(psi)`` shift. A ground point is in radar shadow when the line from it
-towards the radar, rising ``tan(psi)`` metres per metre of ground range travelled towards the
-radar, passes through the target; an object of height ``h`` casts a shadow ``h / tan(psi)`` long on
-the ground behind it (``h cos(psi) / tan(psi)`` in slant range).
+The chip is a slant-plane image like MSTAR's: rows are slant range ``r = y cos(psi) - z sin(psi)`` with
+near range at the last row. A scatterer at height ``h`` is imaged ``h sin(psi)`` closer in slant range
+than the ground below it (layover); an object of height ``h`` casts a ground shadow ``h / tan(psi)``
+long behind it.
 """
 
 from __future__ import annotations
@@ -36,17 +28,10 @@ __all__ = ["vehicle_to_ground", "slant_range", "GroundGrid", "shadow_mask", "occ
 
 
 def vehicle_to_ground(points: np.ndarray, azimuth_deg: float) -> np.ndarray:
-    """Rotate vehicle-frame points into the ground frame for a target azimuth.
+    """Rotate vehicle-frame points ``(..., 3)`` into the ground frame for a target azimuth.
 
     The nose direction in the ground frame is ``(-sin phi, -cos phi)`` and the left direction
     ``(cos phi, -sin phi)``, so the radar (at ``-y``) sits at azimuth ``phi`` in the vehicle frame.
-
-    Args:
-        points: ``(..., 3)`` vehicle-frame ``(u, v, z)``.
-        azimuth_deg: Target azimuth ``phi`` (deg).
-
-    Returns:
-        ``(..., 3)`` ground-frame ``(x, y, z)``.
     """
     phi = np.deg2rad(azimuth_deg)
     u, v, z = points[..., 0], points[..., 1], points[..., 2]
@@ -64,15 +49,8 @@ def slant_range(y: np.ndarray, z: np.ndarray, depression_deg: float) -> np.ndarr
 class GroundGrid:
     """The ground under the chip, sampled so that ground cell ``(k, j)`` is image pixel ``(S-1-k, j)``.
 
-    Cross-range samples are ``pixel_spacing_m`` apart; ground-range samples ``pixel_spacing_m /
-    cos(psi)`` apart, so that a ground point (``z = 0``) of row ``k`` has slant range ``(k - c) *
-    pixel_spacing_m`` with ``c = (S - 1) / 2``. Row ``k`` increases with ground range (away from the
-    radar), i.e. it is the image row counted from the bottom.
-
-    Args:
-        size: Chip size ``S`` in pixels.
-        pixel_spacing_m: Pixel spacing of the slant-plane image (m).
-        depression_deg: Depression angle (deg).
+    Cross-range samples are ``pixel_spacing_m`` apart, ground-range samples ``pixel_spacing_m / cos(psi)``,
+    so a ground point of row ``k`` has slant range ``(k - c) * pixel_spacing_m`` with ``c = (S - 1) / 2``.
     """
 
     def __init__(self, size: int, pixel_spacing_m: float, depression_deg: float) -> None:
@@ -89,23 +67,15 @@ class GroundGrid:
     ) -> tuple[np.ndarray, np.ndarray]:
         """Running bounds of the solids in front of each ground cell, for shadow and occlusion.
 
-        A ray from a point at height ``z`` above ground cell ``y`` towards the radar is at height
-        ``z + (y - y') tan(psi)`` above an earlier cell ``y' < y``; it hits a convex solid with
-        bottom ``b(y')`` and top ``t(y')`` there iff ``b(y') + y' tan(psi) <= z + y tan(psi) <=
-        t(y') + y' tan(psi)``. Per primitive we keep the running maximum of ``t + y' tan(psi)`` and
-        the running minimum of ``b + y' tan(psi)`` over ``y' <= y``.
-
-        Only the cells that can see a solid in front are computed: columns within ``radius_m`` of
-        the centre, rows from ``-radius_m`` to the far edge (the shadow runs to the far edge).
-
-        Args:
-            primitives: The target's solids (vehicle frame).
-            azimuth_deg: Target azimuth (deg).
-            radius_m: Radius around the target centre that contains every solid (m).
+        A ray towards the radar from height ``z`` above cell ``y`` is at height ``z + (y - y') tan(psi)``
+        above an earlier cell ``y'``; it hits a convex solid with bottom ``b(y')`` and top ``t(y')`` there iff
+        ``b(y') + y' tan(psi) <= z + y tan(psi) <= t(y') + y' tan(psi)``. Per primitive we keep the running
+        maximum of ``t + y' tan(psi)`` and minimum of ``b + y' tan(psi)`` over ``y' <= y``, only for the cells
+        within ``radius_m`` of the centre that can see a solid in front.
 
         Returns:
-            ``(upper, lower)``, each ``(P, S, S)`` float32 indexed ``[primitive, k, j]``; ``-inf`` /
-            ``+inf`` where no part of that primitive lies in front.
+            ``(upper, lower)``, each ``(P, S, S)`` float32 indexed ``[primitive, k, j]``; ``-inf`` / ``+inf``
+            where no part of that primitive lies in front.
         """
         upper = np.full((len(primitives), self.size, self.size), -np.inf, dtype=np.float32)
         lower = np.full_like(upper, np.inf)
@@ -130,16 +100,8 @@ class GroundGrid:
 
 
 def shadow_mask(grid: GroundGrid, upper: np.ndarray, lower: np.ndarray) -> np.ndarray:
-    """Ground cells hidden from the radar (radar shadow, including the ground under the target).
-
-    Args:
-        grid: The ground grid.
-        upper: Running upper bounds from :meth:`GroundGrid.bounds`.
-        lower: Running lower bounds from :meth:`GroundGrid.bounds`.
-
-    Returns:
-        ``(S, S)`` boolean mask indexed like the **image** (row 0 = far range).
-    """
+    """Ground cells hidden from the radar, including the ground under the target: ``(S, S)`` boolean indexed
+    like the **image** (row 0 = far range)."""
     q = (grid.y * grid.tan_psi)[None, :, None]  # ground point: z = 0
     # 1 mm slack: the bounds are float32 and the first cell of a footprint sits exactly on them
     hidden = np.any((upper >= q - 1e-3) & (lower <= q + 1e-3), axis=0)
@@ -149,20 +111,11 @@ def shadow_mask(grid: GroundGrid, upper: np.ndarray, lower: np.ndarray) -> np.nd
 def occluded(
     grid: GroundGrid, upper: np.ndarray, lower: np.ndarray, points: np.ndarray, margin_cells: int = 2
 ) -> np.ndarray:
-    """Whether scatterers are hidden from the radar by the target's solids.
+    """Whether scatterers ``(N, 3)`` (ground frame) are hidden from the radar by the target's solids:
+    ``(N,)``.
 
-    Only solids at least ``margin_cells`` ground cells nearer the radar are tested, so a point on a
-    surface does not occlude itself.
-
-    Args:
-        grid: The ground grid.
-        upper: Running upper bounds from :meth:`GroundGrid.bounds`.
-        lower: Running lower bounds from :meth:`GroundGrid.bounds`.
-        points: ``(N, 3)`` ground-frame positions.
-        margin_cells: Ground cells skipped in front of each point.
-
-    Returns:
-        ``(N,)`` boolean, True where the line of sight is blocked.
+    Only solids at least ``margin_cells`` ground cells nearer the radar count, so a point on a surface does
+    not occlude itself.
     """
     j = np.rint(points[:, 0] / grid.dx + (grid.size - 1) / 2).astype(np.int64)
     k = np.rint(points[:, 1] / grid.dy + (grid.size - 1) / 2).astype(np.int64) - margin_cells

@@ -1,21 +1,16 @@
 """SAR image formation: band-limited, Taylor-weighted point-spread function and coherent summation.
 
-A spotlight SAR image is the inverse Fourier transform of the scene's reflectivity spectrum over
-the collected band, weighted by a window that trades resolution for sidelobe level. We form it that
-way: every scattering centre contributes ``a * exp(-2 pi i (k_r p_r + k_c p_c) / S)`` to the in-band
-DFT bins (``p`` its fractional pixel position), ground clutter and receiver noise enter as complex
-white Gaussian fields, and one inverse FFT gives the complex image. Because all returns add as
-complex numbers before the magnitude is taken, speckle on the target and in the clutter comes
-from the physics (interference of returns within a resolution cell) rather than from a noise
-model; clutter amplitude is Rayleigh because a linear filter of a circular complex Gaussian field
-is circular complex Gaussian.
+A spotlight SAR image is the inverse Fourier transform of the scene's reflectivity spectrum over the
+collected band, weighted by a window. Every scattering centre contributes
+``a * exp(-2 pi i (k_r p_r + k_c p_c) / S)`` to the in-band DFT bins, clutter and noise enter as complex
+white Gaussian fields, and one inverse FFT gives the complex image. Since returns add as complex numbers
+before the magnitude, speckle comes from the physics, not a noise model; clutter is Rayleigh because a
+linear filter of a circular complex Gaussian field stays one.
 
-Defaults follow MSTAR: X band (9.6 GHz), 0.3047 m (1 ft) nominal resolution on 0.2021 m pixels,
--35 dB Taylor weighting (``nbar = 4``) in both dimensions. "Nominal resolution" is the inverse of the
-collected bandwidth (``c / 2B`` in range, ``lambda / (2 * aperture angle)`` in cross-range); the
-Taylor weighting widens the -3 dB width of the impulse response to ``1.18 x`` that, 0.36 m. Of the two
-conventions (nominal resolution or -3 dB width at 0.3 m), this one reproduces the one-pixel intensity
-autocorrelation of real MSTAR clutter (docs/results/sim.md, "Realism checks").
+Defaults follow MSTAR: X band (9.6 GHz), 0.3047 m (1 ft) nominal resolution (the inverse of the
+bandwidth) on 0.2021 m pixels, -35 dB Taylor weighting (``nbar = 4``), which widens the -3 dB width to
+``1.18 x`` the nominal resolution. This convention reproduces the one-pixel intensity autocorrelation of
+real MSTAR clutter.
 """
 
 from __future__ import annotations
@@ -48,10 +43,9 @@ class PointSpreadFunction:
     """Separable, band-limited PSF on an ``S``-point DFT grid.
 
     Attributes:
-        size: Image size ``S``.
         bins: ``(K,)`` signed DFT bin indices inside the band (``-K/2 .. K/2``).
-        response: ``(K,)`` frequency response on those bins, scaled so that a unit point scatterer
-            at a pixel centre images to a peak of exactly 1.
+        response: ``(K,)`` frequency response on those bins, scaled so a unit point scatterer at a pixel
+            centre images to a peak of exactly 1.
     """
 
     size: int
@@ -62,22 +56,13 @@ class PointSpreadFunction:
     def build(
         size: int, pixel_spacing_m: float = PIXEL_SPACING_M, resolution_m: float = RESOLUTION_M
     ) -> PointSpreadFunction:
-        """PSF with a given nominal resolution on a given pixel grid.
+        """PSF with a nominal resolution (m, 1 / bandwidth) on a pixel grid.
 
-        The occupied fraction of the DFT band is ``pixel / resolution``; the -3 dB width of the
-        weighted impulse response is ``TAYLOR_BROADENING * resolution``.
-
-        Args:
-            size: Image size in pixels.
-            pixel_spacing_m: Pixel spacing (m).
-            resolution_m: Nominal resolution, the inverse of the bandwidth (m); must be at least
-                ``pixel_spacing_m`` so the band fits on the grid.
-
-        Returns:
-            The PSF.
+        The band occupies ``pixel / resolution`` of the DFT grid; the -3 dB width of the weighted impulse
+        response is ``TAYLOR_BROADENING * resolution``.
 
         Raises:
-            ValueError: If the resolution is finer than the grid can carry.
+            ValueError: If the resolution is finer than the pixel spacing (the band would not fit).
         """
         fraction = pixel_spacing_m / resolution_m
         if not 0.0 < fraction <= 1.0:
@@ -99,9 +84,8 @@ class PointSpreadFunction:
 def _phase_ramps(bins: np.ndarray, positions: np.ndarray, size: int) -> np.ndarray:
     """``exp(-2 pi i k p / S)`` for consecutive bins ``k`` and positions ``p``, as complex64 ``(K, N)``.
 
-    Built by a running product of the one-bin phasor from the first bin on (one ``exp`` per
-    scatterer instead of one per bin and scatterer; the ``exp`` dominated the render time). In
-    complex128 the accumulated rounding over a few hundred bins stays below 1e-13.
+    A running product of the one-bin phasor: one ``exp`` per scatterer instead of per bin and scatterer
+    (the ``exp`` dominated the render time); in complex128 the rounding stays below 1e-13.
     """
     step = np.exp(-2j * np.pi * positions / size)  # (N,)
     ramps = np.empty((len(bins), len(positions)), dtype=np.complex128)
@@ -120,19 +104,13 @@ def form_image(
     """Coherently sum point scatterers and a background field through the PSF.
 
     Args:
-        psf: The point-spread function.
-        rows: ``(N,)`` fractional row positions of the scatterers.
-        cols: ``(N,)`` fractional column positions.
-        amplitudes: ``(N,)`` complex amplitudes (magnitude times ``exp(i phase)``).
-        background: Optional ``(S, S)`` complex field (clutter and noise, one sample per pixel,
-            white); it is filtered by the same PSF.
+        rows: ``(N,)`` fractional row positions of the scatterers; ``cols`` likewise.
+        amplitudes: ``(N,)`` complex amplitudes.
+        background: Optional ``(S, S)`` complex white field (clutter and noise), filtered by the same PSF.
 
     Returns:
-        ``(S, S)`` complex128 image (computed in single precision); an isolated unit scatterer at a
-        pixel centre has peak 1.
-
-    Shape:
-        Scatterer spectrum: ``(K, N) @ (N, K) -> (K, K)`` on the in-band bins.
+        ``(S, S)`` complex128 image (computed in single precision); an isolated unit scatterer at a pixel
+        centre has peak 1.
     """
     size = psf.size
     spectrum = np.zeros((size, size), dtype=np.complex64)

@@ -1,12 +1,8 @@
 """3-D solid primitives that simulated targets are built from.
 
-Every primitive lives in the *vehicle frame*: ``u`` forward (towards the nose), ``v`` to the left,
-``z`` up, metres, origin at the vehicle centre on the ground. A primitive knows two things:
-
-- its footprint on the ground with the bottom and top height of the solid above each ground
-  point (``footprint``), which the renderer uses for radar shadow and self-occlusion;
-- the scattering centres on its surfaces, edges and corners (``scatterers``), see
-  :mod:`sar_zero123.sim.scatterers`.
+Every primitive lives in the *vehicle frame*: ``u`` forward, ``v`` to the left, ``z`` up, metres, origin
+at the vehicle centre on the ground. Its ``footprint`` (bottom and top height above each ground point)
+gives radar shadow and self-occlusion; its scattering centres are :mod:`sar_zero123.sim.scatterers`.
 """
 
 from __future__ import annotations
@@ -29,16 +25,10 @@ def _to_local(
 
 @dataclass(frozen=True)
 class Box:
-    """Axis-aligned (in its own yawed frame) rectangular solid.
+    """Rectangular solid, axis-aligned in its own frame, yawed by ``yaw_deg`` (counter-clockwise) about z.
 
-    Attributes:
-        center_u: Footprint centre along the vehicle's forward axis (m).
-        center_v: Footprint centre along the vehicle's left axis (m).
-        length: Extent along the primitive's own forward axis (m).
-        width: Extent across it (m).
-        z_bottom: Height of the bottom face above the ground (m).
-        height: Vertical extent (m).
-        yaw_deg: Rotation of the primitive about z relative to the vehicle, counter-clockwise.
+    Lengths and heights in metres; ``center_u``, ``center_v`` place the footprint's centre in the vehicle
+    frame, ``z_bottom`` lifts the bottom face off the ground.
     """
 
     center_u: float
@@ -54,16 +44,8 @@ class Box:
         return np.full_like(s, self.z_bottom + self.height)
 
     def footprint(self, u: np.ndarray, v: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Ground footprint with the solid's bottom and top height above each point.
-
-        Args:
-            u: Vehicle-frame forward coordinates of ground points (m).
-            v: Vehicle-frame left coordinates, same shape as ``u``.
-
-        Returns:
-            ``(inside, bottom, top)``: boolean mask and heights (m), all shaped like ``u``;
-            heights are only meaningful where ``inside``.
-        """
+        """Ground footprint of vehicle-frame points ``(u, v)`` (m): ``(inside, bottom, top)``, all shaped like
+        ``u``; the heights (m) mean something only where ``inside``."""
         s, t = _to_local(u, v, self.center_u, self.center_v, self.yaw_deg)
         inside = (np.abs(s) <= self.length / 2) & (np.abs(t) <= self.width / 2)
         return inside, np.full_like(u, self.z_bottom), self.top_at(s)
@@ -86,15 +68,7 @@ class Wedge(Box):
 
 @dataclass(frozen=True)
 class VerticalCylinder:
-    """Cylinder with a vertical axis (turrets, masts, fuel drums).
-
-    Attributes:
-        center_u: Axis position along the vehicle's forward axis (m).
-        center_v: Axis position along the vehicle's left axis (m).
-        radius: Radius (m).
-        z_bottom: Height of the bottom disc (m).
-        height: Length of the axis (m).
-    """
+    """Cylinder with a vertical axis at ``(center_u, center_v)`` (turrets, masts, fuel drums), metres."""
 
     center_u: float
     center_v: float
@@ -110,16 +84,8 @@ class VerticalCylinder:
 
 @dataclass(frozen=True)
 class HorizontalCylinder:
-    """Cylinder with a horizontal axis (gun barrels, wheel axles).
-
-    Attributes:
-        center_u: Centre of the axis along the vehicle's forward axis (m).
-        center_v: Centre of the axis along the vehicle's left axis (m).
-        radius: Radius (m).
-        z_center: Height of the axis above the ground (m).
-        length: Length of the axis (m).
-        yaw_deg: Direction of the axis, counter-clockwise from the vehicle's forward axis.
-    """
+    """Cylinder with a horizontal axis at height ``z_center`` (gun barrels, wheel axles), metres; ``yaw_deg``
+    turns the axis counter-clockwise from the vehicle's forward axis."""
 
     center_u: float
     center_v: float

@@ -1,15 +1,10 @@
 """A seeded family of distinct procedural vehicles: the multi-view prior's corpus.
 
-The eight named classes of :mod:`sar_zero123.sim.targets` are hand-built; this module draws vehicles
-from ranges that cover MSTAR-like ground vehicles instead: hull length and width, tracks or 2-4 wheel
-axles, a sloped or blunt nose, and a superstructure among a round or box turret (front, centre or rear,
-yawed, with one, two or four barrels or none), a cab with an open bed, a canvas cover, a tall shelter
-or a radar plate, a low engine deck with a blade or crane arm, plus antennas, stowage and bright
-details. The same primitives, scattering physics, clutter and point-spread function as the named
-classes are used, so a procedural vehicle images like one of them; it is never one of them (the
-named classes are the prior's unseen test vehicles).
-
-``make_procedural_target(seed)`` is deterministic in ``seed`` and independent of every other seed.
+Unlike the eight hand-built classes of :mod:`sar_zero123.sim.targets`, vehicles are drawn from ranges
+covering MSTAR-like ground vehicles: hull sizes, tracks or 2-4 axles, sloped or blunt noses, turrets,
+cabs with beds, covers, shelters, radar plates, blades or cranes, antennas, stowage and details. The same
+physics images them, so a procedural vehicle looks like a named one but is never one (the named classes
+are the prior's unseen test vehicles). ``make_procedural_target(seed)`` is independent of every other seed.
 """
 
 from __future__ import annotations
@@ -306,17 +301,10 @@ def _fittings(
 
 
 def procedural_parts(seed: int) -> tuple[list[Primitive], int]:
-    """The solids of procedural vehicle ``seed`` and its number of bright details.
+    """``(primitives, detail_count)`` of procedural vehicle ``seed``, from one numpy stream keyed by it.
 
-    Every helper draws from the same numpy stream, in a fixed order (running gear, hull, superstructure,
-    fittings, detail count); changing that order changes every procedural vehicle, and with them the
-    prior's training corpus.
-
-    Args:
-        seed: Vehicle seed (>= 0).
-
-    Returns:
-        ``(primitives, detail_count)``, drawn from one numpy stream keyed by ``seed``.
+    The helpers draw in a fixed order (running gear, hull, superstructure, fittings, detail count);
+    changing it changes every procedural vehicle, and with them the prior's training corpus.
     """
     rng = np.random.default_rng([PROCEDURAL_SEED_KEY, int(seed)])
     tracked = rng.uniform() < 0.55
@@ -344,15 +332,12 @@ def procedural_parts(seed: int) -> tuple[list[Primitive], int]:
 
 
 def make_procedural_target(seed: int) -> Target:
-    """Procedural vehicle number ``seed``: deterministic in ``seed``, independent of every other seed.
-
-    Args:
-        seed: Vehicle seed (an integer >= 0); thousands of seeds give visibly different vehicles.
+    """Procedural vehicle number ``seed`` (an integer >= 0), deterministic in it and independent of every
+    other.
 
     Returns:
         A :class:`~sar_zero123.sim.targets.Target` with ``class_name`` :data:`PROCEDURAL_CLASS`,
-        ``instance = seed`` and serial ``proc<seed>``; render it with
-        :func:`~sar_zero123.sim.render_chip` like a named target.
+        ``instance = seed`` and serial ``proc<seed>``.
 
     Raises:
         ValueError: If ``seed`` is not an integer >= 0.

@@ -1,17 +1,12 @@
 """Analysis by synthesis: a simulator vehicle that images like a given chip, re-rendered at another pose.
 
-A generator that has never seen a vehicle cannot know where its front is; the simulator can, for any
-vehicle it holds. A :class:`ProxyBank` is a fixed family of procedural vehicles
-(:func:`~sar_zero123.sim.procedural.make_procedural_target`, seeds from ``first_seed``, by default far from
-every prior corpus's seeds). :meth:`ProxyBank.retrieve` renders each of them at the input chip's own
-azimuth and depression and keeps the one whose render correlates best with the chip (both blurred, so
-that speckle does not decide; Pearson correlation in decibels, so any affine map of decibels, such as the
-pipeline's normalised dB, scores the same). :meth:`ProxyBank.render` then draws that vehicle at any pose:
-its shadow, layover and lit faces move as the simulator's physics says, which is what a footprint turned
-in the image plane cannot show.
-
-The proxy brings the geometry of a view; the input chip must bring the identity. Rendering one 64 px chip
-takes about 2-3 ms on one core, so a retrieval over ``num_vehicles`` vehicles costs that many renders.
+A generator that has never seen a vehicle cannot know where its front is; the simulator can. A
+:class:`ProxyBank` is a fixed family of procedural vehicles (seeds far from every prior corpus's).
+:meth:`ProxyBank.retrieve` renders each at the chip's own pose and keeps the one whose render correlates
+best with the chip (both blurred, so speckle does not decide; Pearson in decibels, so any affine map of
+them scores the same). :meth:`ProxyBank.render` draws it at any pose: shadow, layover and lit faces move
+as the physics says, which a footprint turned in the image plane cannot show. The proxy brings the
+geometry of a view; the input chip must bring the identity.
 """
 
 from __future__ import annotations
@@ -52,12 +47,7 @@ _MAX_POSE_BUCKETS = 64
 
 
 def blurred_correlation(chip: np.ndarray, renders: np.ndarray, blur_sigma_px: float) -> np.ndarray:
-    """Pearson correlation of one image with each of a stack, both blurred by a Gaussian first.
-
-    Args:
-        chip: The image ``(S, S)`` (decibels, or any affine map of them).
-        renders: Images to compare it with ``(N, S, S)``, in the same domain up to an affine map.
-        blur_sigma_px: Gaussian blur (pixels) applied to every image first; 0 disables it.
+    """Pearson correlation of one image ``(S, S)`` with each of a stack ``(N, S, S)``, all blurred first.
 
     Returns:
         ``(N,)`` float64 correlations in [-1, 1] (0 for a constant image).
@@ -86,18 +76,11 @@ def blurred_correlation(chip: np.ndarray, renders: np.ndarray, blur_sigma_px: fl
 def shifted_correlation(
     chip: np.ndarray, renders: np.ndarray, blur_sigma_px: float, max_shift_px: int
 ) -> tuple[np.ndarray, np.ndarray]:
-    """The best Pearson correlation of a blurred image with each blurred render shifted by up to
-    ``max_shift_px`` pixels along each axis (circular shifts), and the shift that gives it.
+    """The best Pearson correlation of a blurred image with each blurred render circularly shifted by up to
+    ``max_shift_px`` along each axis, and that shift.
 
-    A real chip's target need not sit at the chip's centre; a render shifted onto it is compared fairly. A
-    circular shift keeps an image's mean and norm, so the Pearson correlation at every shift is one
-    cross-correlation of the mean-free images (by FFT) over the two norms.
-
-    Args:
-        chip: The image ``(S, S)``.
-        renders: ``(N, S, S)``.
-        blur_sigma_px: Gaussian blur (pixels) applied to every image first.
-        max_shift_px: Largest shift along each axis (0: :func:`blurred_correlation`).
+    A real chip's target need not sit at its centre. A circular shift keeps an image's mean and norm, so every
+    shift's correlation is one FFT cross-correlation of the mean-free images over the two norms.
 
     Returns:
         ``(scores, shifts)``: ``(N,)`` correlations and ``(N, 2)`` integer ``(rows, columns)`` shifts; a
@@ -138,10 +121,10 @@ class ProxyMatch:
     """The bank vehicle retrieved for one chip.
 
     Attributes:
-        index: Its position in the bank (``0 <= index < num_vehicles``).
+        index: Its position in the bank.
         seed: Its procedural seed (``first_seed + index``).
         score: Its blurred correlation with the chip.
-        shift_px: ``(rows, columns)`` by which its renders are rolled to lie over the chip's target.
+        shift_px: ``(rows, columns)`` by which its renders are rolled onto the chip's target.
     """
 
     index: int
@@ -154,24 +137,15 @@ class ProxyBank:
     """A family of procedural vehicles to fit to a chip (:meth:`retrieve`) and re-render (:meth:`render`).
 
     Args:
-        num_vehicles: Vehicles in the bank (>= 1): more vehicles fit a chip better and cost one render
-            each per retrieval.
+        num_vehicles: Vehicles in the bank: more fit a chip better and cost one render each per fit.
         first_seed: Procedural seed of vehicle 0; vehicle ``k`` is ``first_seed + k``.
-        blur_sigma_px: Gaussian blur (pixels) of chip and renders before they are correlated.
-        render_seed: Seed of the clutter drawn under every proxy render, so that a proxy is the same bytes
-            on every call.
-        max_shift_px: Largest shift (pixels, each axis) of a render onto the chip's target in the fit
-            (:func:`shifted_correlation`); 0 compares the chips as they lie.
-        shortlist: 0 fits exhaustively: every vehicle rendered at the chip's exact pose. ``k > 0`` fits in
-            two stages: every vehicle rendered once at the centre of the chip's pose bucket
-            (:data:`POSE_BUCKET_DEG`; kept for the next chips near that pose), the ``k`` best by a coarse
-            correlation (blurred, 2 x 2 pooled) rendered again at the exact pose and scored as the
-            exhaustive fit scores them; the others score ``-inf``. Over a dataset, whose chips share a few
-            dozen pose buckets, a fit then costs ``k`` renders instead of ``num_vehicles``.
-        retrieval: A learned shortlist for this bank
-            (:class:`~sar_zero123.model.retrieval.ProxyRetrievalNet`): with ``shortlist = k > 0`` the ``k``
-            vehicles it ranks best for the chip at its pose are rendered and scored, and no pose bucket is
-            rendered, so that one chip's fit costs ``k`` renders.
+        render_seed: Seed of the clutter under every render, so a proxy is the same bytes on every call.
+        max_shift_px: Largest shift per axis of a render onto the chip's target (:func:`shifted_correlation`).
+        shortlist: 0 fits exhaustively at the chip's exact pose. ``k > 0``: every vehicle is rendered once per
+            pose bucket (:data:`POSE_BUCKET_DEG`, kept), the ``k`` best by a coarse correlation are rendered
+            at the exact pose and scored; the others score ``-inf``.
+        retrieval: A learned shortlist for this bank (``model.retrieval.ProxyRetrievalNet``): with
+            ``shortlist = k`` its ``k`` best-ranked vehicles are scored, and no pose bucket is rendered.
 
     Raises:
         ValueError: Naming the argument, for a size outside [1, 100000], a negative seed or blur, or a
@@ -243,9 +217,8 @@ class ProxyBank:
     ) -> np.ndarray:
         """Bank vehicle ``index`` at a pose: a peak-normalised magnitude chip ``(size, size)`` in [0, 1].
 
-        The clutter under it is drawn from ``render_seed`` (the same bytes on every call); the chip is rolled
-        by ``shift_px`` ``(rows, columns)``, a fit's shift onto its chip's target (the target's place in the
-        scene does not turn with its heading).
+        The clutter is drawn from ``render_seed``; the chip is rolled by a fit's ``shift_px`` (the target's
+        place in the scene does not turn with its heading).
         """
         return self.render_target(self.target(index), azimuth_deg, depression_deg, size, shift_px)
 
@@ -269,17 +242,12 @@ class ProxyBank:
         depression_deg: float,
         exclude: Sequence[int] = (),
     ) -> np.ndarray:
-        """Every bank vehicle's blurred correlation with a chip, each rendered at the chip's pose (shifted
-        onto the chip's target by up to ``max_shift_px``; :meth:`scores_and_shifts` also gives the shifts).
+        """Every bank vehicle's blurred correlation ``(num_vehicles,)`` with a chip, each rendered at the
+        chip's pose and shifted onto its target.
 
         Args:
-            chip_decibels: The chip ``(S, S)`` in decibels or any affine map of them (normalised dB).
-            azimuth_deg: The chip's absolute azimuth (deg).
-            depression_deg: The chip's depression (deg), in (0, 90).
+            chip_decibels: The chip ``(S, S)`` in decibels or any affine map of them.
             exclude: Bank indices never to retrieve (scored ``-inf``): a leave-one-out draw.
-
-        Returns:
-            ``(num_vehicles,)`` float64 correlations.
 
         Raises:
             ValueError: For a chip that is not square, 2-D and finite.
@@ -320,8 +288,8 @@ class ProxyBank:
         return scores, shifts
 
     def coarse_features(self, images: np.ndarray) -> np.ndarray:
-        """Blurred, 2 x 2 average-pooled, mean-free, unit-norm images ``(N, S * S / 4)`` float32: their dot
-        products are the Pearson correlations of the pooled images (any affine map of decibels alike)."""
+        """Blurred, 2 x 2 pooled, mean-free, unit-norm images ``(N, S * S / 4)`` float32, whose dot products
+        are the pooled images' Pearson correlations."""
         images = np.asarray(images, dtype=np.float64)
         if self.blur_sigma_px > 0:
             images = gaussian_filter(images, (0.0, self.blur_sigma_px, self.blur_sigma_px))

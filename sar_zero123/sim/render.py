@@ -29,12 +29,10 @@ __all__ = [
 ]
 
 # Fixed calibration for normalization="calibrated": the amplitude mapped to 1 (a unit scatterer
-# images to 1/4). It lies above the 99th percentile of the default dataset's chip peaks, so only rare
-# broadside flashes clip (distribution and clipped share: docs/results/sim.md, "Calibrated normalisation").
+# images to 1/4), above nearly every chip peak, so only rare broadside flashes clip.
 CALIBRATION_AMPLITUDE = 4.0
-# Clutter and receiver-noise power per pixel relative to a unit scatterer's peak power (dB). With
-# these, peak-normalised chips have the median level of the MSTAR chips (docs/results/sim.md) and
-# shadows sit about 12 dB below the clutter.
+# Clutter and receiver-noise power per pixel relative to a unit scatterer's peak power (dB): peak-normalised
+# chips then have the MSTAR chips' median level.
 CLUTTER_DB = -29.5
 NOISE_DB = -42.0
 _MIN_GAIN = 1e-4  # scatterers weaker than this (relative to their peak) are skipped
@@ -78,26 +76,19 @@ def render_scene(
     clutter_db: float = CLUTTER_DB,
     noise_db: float = NOISE_DB,
 ) -> Scene:
-    """Render the complex slant-plane image of a target on a clutter background.
+    """Render the complex slant-plane image of a target (None: clutter only) on a clutter background.
 
     Stages: (1) place the target at the pose; (2) shadow and occlusion from its solids; (3)
     aspect-dependent scatterer amplitudes with the two-way phase ``-4 pi r / lambda`` of their slant
-    range ``r`` (layover included); (4) Rayleigh clutter (complex Gaussian) on the visible ground
-    plus receiver noise everywhere; (5) coherent summation through the PSF (:func:`form_image`).
+    range ``r`` (layover included); (4) Rayleigh clutter on the visible ground plus receiver noise
+    everywhere; (5) coherent summation through the PSF (:func:`form_image`).
 
     Args:
-        target: The target, or None for clutter only.
         azimuth_deg: Target azimuth (deg); any finite value, used modulo 360.
-        depression_deg: Depression angle (deg), in (0, 90).
-        size: Image size in pixels (square).
         generator: Source of the clutter and noise; None draws fresh entropy.
-        pixel_spacing_m: Pixel spacing (m).
-        resolution_m: Nominal resolution, 1 / bandwidth (m); the -3 dB width is 1.18 x this.
+        resolution_m: Nominal resolution, 1 / bandwidth (m).
         clutter_db: Mean clutter power per pixel relative to a unit scatterer's peak power (dB).
         noise_db: Mean receiver-noise power per pixel, same reference (dB).
-
-    Returns:
-        The complex scene with its shadow mask.
 
     Raises:
         ValueError: For a non-finite azimuth, a depression outside (0, 90) or a bad size.
@@ -153,17 +144,10 @@ def normalize_magnitude(
     normalization: Literal["peak", "calibrated"] = "peak",
     calibration: float = CALIBRATION_AMPLITUDE,
 ) -> np.ndarray:
-    """Map a magnitude image to [0, 1].
+    """Map a magnitude image ``(S, S)`` to float32 [0, 1].
 
-    Args:
-        magnitude: ``(S, S)`` non-negative magnitudes.
-        normalization: ``"peak"`` divides by the chip's maximum, like the MSTAR JPEGs (brightest
-            pixel = 1, absolute brightness across chips lost); ``"calibrated"`` divides by the fixed
-            ``calibration`` and clips at 1, so brightness is comparable across chips.
-        calibration: Amplitude mapped to 1 when ``normalization="calibrated"``.
-
-    Returns:
-        ``(S, S)`` float32 in [0, 1].
+    ``"peak"`` divides by the chip's maximum, like the MSTAR JPEGs (absolute brightness lost);
+    ``"calibrated"`` divides by the fixed ``calibration`` and clips at 1, so brightness compares across chips.
 
     Raises:
         ValueError: For an unknown ``normalization`` or a non-positive ``calibration``.
@@ -194,26 +178,10 @@ def render_chip(
     clutter_db: float = CLUTTER_DB,
     noise_db: float = NOISE_DB,
 ) -> np.ndarray:
-    """Render a normalised magnitude chip of a target, centred, radar at the bottom.
+    """Render a normalised magnitude chip ``(size, size)`` of a target, centred, radar at the bottom.
 
-    See :func:`render_scene` for the physics and :func:`normalize_magnitude` for the mapping to
-    [0, 1].
-
-    Args:
-        target: The target (:func:`~sar_zero123.sim.make_target`).
-        azimuth_deg: Target azimuth (deg).
-        depression_deg: Depression angle (deg).
-        size: Chip size in pixels.
-        generator: Source of clutter and noise; the same generator state gives the same bytes.
-        normalization: ``"peak"`` (default, like MSTAR JPEGs) or ``"calibrated"``.
-        calibration: Amplitude mapped to 1 for ``"calibrated"``.
-        pixel_spacing_m: Pixel spacing (m).
-        resolution_m: Nominal resolution, 1 / bandwidth (m); the -3 dB width is 1.18 x this.
-        clutter_db: Mean clutter power relative to a unit scatterer (dB).
-        noise_db: Mean receiver-noise power relative to a unit scatterer (dB).
-
-    Returns:
-        ``(size, size)`` float32 magnitude in [0, 1].
+    See :func:`render_scene` for the physics and its arguments, :func:`normalize_magnitude` for the mapping
+    to [0, 1]. The same generator state gives the same bytes.
 
     Raises:
         ValueError: For bad pose, size or normalization arguments.

@@ -1,21 +1,17 @@
 """Scattering centres of the simulated targets and their aspect-dependent strength.
 
-A target's radar signature is modelled as a set of point scattering centres on its surfaces,
-edges and corners (the standard attributed-scattering-centre view of vehicle SAR signatures):
+A target's signature is a set of point scattering centres (the attributed-scattering-centre view):
 
-- ``DIHEDRAL``: the fold between a vertical face and the ground (or the deck it stands on). A
-  dihedral retro-reflects over all elevations, so its return survives the 15-17 deg depression of
-  MSTAR, but only near broadside of the face in azimuth: this is the "broadside flash".
-- ``CURVED``: the specular line of a horizontal cylinder (gun barrel, axle), lit when the radar
-  looks perpendicular to its axis.
+- ``DIHEDRAL``: the fold between a vertical face and the ground or deck; it retro-reflects over all
+  elevations, but only near broadside of the face in azimuth (the "broadside flash").
+- ``CURVED``: the specular line of a horizontal cylinder, lit perpendicular to its axis.
 - ``EDGE``: diffraction from top edges, weaker and broader in aspect.
-- ``CORNER``: corners and small concave details (hatches, tools, stowage), bright over a wide cone.
+- ``CORNER``: corners and small concave details, bright over a wide cone.
 - ``SURFACE``: weak diffuse points on top surfaces with random amplitude and phase (texture).
 
-A flat face of length ``L`` is sampled as points spaced well below the resolution, so that their
-coherent sum (:mod:`sar_zero123.sim.imaging`) behaves like the face: all in phase and bright at
-broadside, interfering (speckle-like) off broadside. The azimuth lobe below adds the aperture
-integration of the flash that point sampling alone does not capture.
+A face is sampled as points spaced well below the resolution, so their coherent sum behaves like the
+face (bright at broadside, speckle-like off it); the azimuth lobe adds the aperture integration of the
+flash that point sampling alone misses.
 """
 
 from __future__ import annotations
@@ -50,10 +46,8 @@ _POINT_SPACING_M = 0.25  # face and barrel sampling, below the 0.3 m resolution
 _EDGE_SPACING_M = 0.5
 _SURFACE_DENSITY_PER_M2 = 20.0
 _FOLD_TO_GROUND_BELOW_M = 0.8  # faces starting lower than this form a dihedral with the ground
-# Amplitudes (unit: a scatterer of amplitude 1 images to a peak of 1). Relative strengths follow
-# the usual ordering (dihedrals and concave details > edges > diffuse surface); the diffuse level
-# and the detail strength were set so that peak-normalised chips match the MSTAR dB statistics in
-# docs/results/sim.md.
+# Amplitudes (a scatterer of amplitude 1 images to a peak of 1): dihedrals and concave details > edges >
+# diffuse surface; the diffuse and detail levels match peak-normalised chips to MSTAR's dB statistics.
 _SURFACE_AMPLITUDE = 0.17  # Rayleigh scale of the diffuse top-surface points
 _EDGE_AMPLITUDE = 0.25
 _CONVEX_CORNER_AMPLITUDE = 0.5
@@ -66,13 +60,11 @@ class ScattererSet:
 
     Attributes:
         position: ``(N, 3)`` positions (m).
-        normal_az_deg: ``(N,)`` azimuth of the direction of strongest return, counter-clockwise
-            from the vehicle's nose (deg).
-        normal_el_deg: ``(N,)`` elevation of that direction above the horizon (deg).
-        lobe_az_deg: ``(N,)`` width of the azimuth lobe (the first null of its ``sinc``, see
-            :func:`aspect_gain`); ``inf`` for isotropic scatterers.
-        lobe_el_deg: ``(N,)`` width of the elevation lobe, likewise.
-        amplitude: ``(N,)`` peak amplitude (linear, arbitrary but common units).
+        normal_az_deg: ``(N,)`` azimuth of the strongest return, counter-clockwise from the nose (deg).
+        normal_el_deg: ``(N,)`` its elevation above the horizon (deg).
+        lobe_az_deg: ``(N,)`` azimuth lobe width (first null, :func:`aspect_gain`); ``inf``: isotropic.
+        lobe_el_deg: ``(N,)`` elevation lobe width, likewise.
+        amplitude: ``(N,)`` peak amplitude (linear).
         phase: ``(N,)`` intrinsic phase (rad), added to the two-way propagation phase.
         kind: ``(N,)`` one of ``DIHEDRAL``, ``CURVED``, ``EDGE``, ``CORNER``, ``SURFACE``.
     """
@@ -133,32 +125,20 @@ class ScattererSet:
 def sinc_envelope(x: np.ndarray) -> np.ndarray:
     """``|sinc(x)|`` on the main lobe (``|x| <= 1/2``), its sidelobe envelope ``1 / (pi |x|)`` beyond.
 
-    A flat face's return over aspect is ``sinc``-shaped, but the image integrates it over the
-    synthetic aperture (about one lobe width), which fills the nulls: what remains is the
-    envelope. Both pieces equal ``2 / pi`` at ``|x| = 1/2``, so the curve is continuous and
-    decreasing.
+    The image integrates a face's sinc-shaped return over about one lobe of aperture, filling the nulls;
+    both pieces equal ``2 / pi`` at ``|x| = 1/2``.
     """
     ax = np.abs(x)
     return np.where(ax <= 0.5, np.abs(np.sinc(x)), 1.0 / (np.pi * np.maximum(ax, 0.5)))
 
 
 def aspect_gain(scatterers: ScattererSet, radar_az_deg: float, depression_deg: float) -> np.ndarray:
-    """Amplitude factor of each scatterer seen from a radar at the given aspect.
+    """Amplitude factor ``(N,)`` in [0, 1] of each scatterer seen from a radar at the given aspect.
 
-    ``gain = g(d_az / lobe_az) * g(d_el / lobe_el)`` with ``g`` = :func:`sinc_envelope`, ``d_az`` the
-    wrapped angle between the radar's azimuth (in the vehicle frame) and the scatterer's normal and
-    ``d_el`` the angle between the radar's elevation (= depression) and the normal's elevation.
-    Scatterers that face away (``|d_az| >= 90 deg``) return nothing unless they are isotropic in
-    azimuth (``lobe_az = inf``).
-
-    Args:
-        scatterers: Scattering centres in the vehicle frame.
-        radar_az_deg: Azimuth of the radar seen from the target, counter-clockwise from the nose;
-            equals the target azimuth of the chip.
-        depression_deg: Depression angle of the radar (deg).
-
-    Returns:
-        ``(N,)`` float64 gains in [0, 1].
+    ``gain = g(d_az / lobe_az) * g(d_el / lobe_el)`` with ``g`` = :func:`sinc_envelope`, ``d_az`` the wrapped
+    angle between the radar's azimuth (the chip's target azimuth) and the normal, ``d_el`` between the
+    depression and the normal's elevation. Scatterers facing away (``|d_az| >= 90 deg``) return nothing
+    unless isotropic in azimuth.
     """
     d_az = (radar_az_deg - scatterers.normal_az_deg + 180.0) % 360.0 - 180.0
     d_el = depression_deg - scatterers.normal_el_deg
@@ -318,16 +298,9 @@ def _horizontal_cylinder_scatterers(cyl: HorizontalCylinder, rng: np.random.Gene
 
 
 def primitive_scatterers(primitive: Primitive, rng: np.random.Generator) -> ScattererSet:
-    """Scattering centres on one primitive's faces, edges, corners and top surface.
+    """Scattering centres on one primitive's faces, edges, corners and top surface (vehicle frame).
 
-    Args:
-        primitive: A :class:`Box`, :class:`Wedge`, :class:`VerticalCylinder` or
-            :class:`HorizontalCylinder` in the vehicle frame.
-        rng: Source of the random phases and the diffuse-surface points (seeded per target
-            instance, so a target is deterministic).
-
-    Returns:
-        The primitive's scatterers.
+    ``rng`` draws the random phases and diffuse points, seeded per target instance.
 
     Raises:
         TypeError: For an unknown primitive type.
@@ -344,20 +317,9 @@ def primitive_scatterers(primitive: Primitive, rng: np.random.Generator) -> Scat
 def detail_scatterers(
     primitives: list[Primitive], count: int, rng: np.random.Generator, strength: float = _DETAIL_AMPLITUDE
 ) -> ScattererSet:
-    """Small bright concave details (hatches, tools, lights, stowage) on top surfaces.
-
-    They give each instance its own pattern of bright points, as real vehicles of one class differ
-    by equipment. Positions are drawn on the top faces of the ``Box`` primitives.
-
-    Args:
-        primitives: The target's primitives.
-        count: Number of details.
-        rng: Instance random generator.
-        strength: Typical amplitude (uniform in ``[0.3, 1] * strength``).
-
-    Returns:
-        ``count`` ``CORNER`` scatterers (fewer if the target has no boxes).
-    """
+    """``count`` small bright ``CORNER`` details on the top faces of the ``Box`` primitives (fewer without
+    boxes), amplitudes uniform in ``[0.3, 1] * strength``: each instance its own pattern of bright points,
+    as real vehicles of one class differ by equipment."""
     boxes = [p for p in primitives if isinstance(p, Box)]
     if not boxes or count <= 0:
         return ScattererSet.build(np.zeros((0, 3)), 0.0, 0.0, 1.0, 1.0, 0.0, 0.0, CORNER)

@@ -1,12 +1,7 @@
-"""Procedural vehicle-like target classes.
-
-Each class is a few 3-D primitives with clearly different shapes (a tank with a round turret and
-a long barrel, a tracked carrier with a long sloped nose, an open-bed truck, a bulldozer with a
-front blade, a self-propelled gun with a box turret at the rear, a radar truck with a large
-antenna plate, an anti-aircraft gun with four barrels, a wheeled scout car). Instances of a class
-differ slightly (dimensions, turret and antenna yaw, stowage, details), deterministically from
-``(class_name, instance)``.
-"""
+"""Procedural vehicle-like target classes: each a few 3-D primitives of clearly different shapes (tank,
+tracked carrier, open-bed truck, bulldozer, self-propelled gun, radar truck, anti-aircraft gun, scout car).
+Instances differ slightly (dimensions, yaws, stowage, details), deterministically from ``(class_name,
+instance)``."""
 
 from __future__ import annotations
 
@@ -27,10 +22,7 @@ class Target:
     """A simulated target: its solid shape and its scattering centres (vehicle frame).
 
     Attributes:
-        class_name: One of :data:`TARGET_CLASSES`.
-        instance: Instance number within the class (>= 0).
         primitives: Solids that cast shadow and occlude.
-        scatterers: Scattering centres.
         radius_m: Radius of a vertical cylinder about the centre that contains the target (m).
     """
 
@@ -219,15 +211,7 @@ _DETAILS_PER_CLASS = {
 
 
 def make_target(class_name: str, instance: int = 0) -> Target:
-    """Build a target of a class; deterministic for ``(class_name, instance)``.
-
-    Args:
-        class_name: One of :data:`TARGET_CLASSES` (case-insensitive).
-        instance: Instance number (>= 0); instances of one class differ slightly in dimensions,
-            turret/antenna/blade yaw, stowage and bright details.
-
-    Returns:
-        The target with its primitives and scattering centres.
+    """Build a target of a class (case-insensitive); deterministic for ``(class_name, instance)``.
 
     Raises:
         ValueError: If ``class_name`` is unknown or ``instance`` is negative.

@@ -1,6 +1,5 @@
-"""Training one evaluator model (classifier, azimuth or depression regressor, or a probe): AdamW with
-cosine decay, resumable epoch checkpoints, then its test metrics (:func:`~sar_zero123.evaluation.scoring.
-score_on_split`) and ``save_pretrained``. Used by the evaluators stage (:mod:`sar_zero123.stages.evaluators`).
+"""Training one evaluator model (classifier, azimuth or depression regressor, or a probe): AdamW with cosine
+decay, resumable epoch checkpoints, then its test metrics and ``save_pretrained``.
 """
 
 from __future__ import annotations
@@ -68,8 +67,7 @@ def training_loss(
 ) -> torch.Tensor:
     """Mean training loss of a batch: cross-entropy, circular azimuth or depression squared error.
 
-    `model` is what runs the forward pass (maybe a data-parallel wrapper), `evaluator` the bare model whose
-    kind picks the loss.
+    ``model`` runs the forward (maybe a data-parallel wrapper); the bare ``evaluator``'s kind picks the loss.
     """
     outputs = model(batch["image"])
     if isinstance(evaluator, SARClassifier):
@@ -89,10 +87,10 @@ def train_model(
     epochs: int,
     seed: int,
 ) -> dict[str, float]:
-    """Trains one evaluator (its trainable parameters), saves it to `stage_dir` and returns test metrics.
+    """Trains one evaluator, saves it to ``stage_dir`` and returns its test metrics.
 
-    A finished model (its `evaluator.json` exists) is loaded instead of retrained; an interrupted one
-    resumes from its latest epoch checkpoint (``training.resume_from_checkpoint``).
+    A finished model (its ``evaluator.json`` exists) is loaded instead; an interrupted one resumes from its
+    latest epoch checkpoint.
     """
     if (stage_dir / EVALUATOR_CONFIG_NAME).is_file():
         logger.info("%s already trained; skipping", stage_dir)

@@ -36,10 +36,9 @@ def train_classifier(
     max_shift_px: int,
     seed: int,
 ) -> SARClassifier:
-    """The benchmark's classifier trained `steps` AdamW steps (cosine to 0) on random shifts of the chips.
+    """The benchmark's classifier trained ``steps`` AdamW steps (cosine to 0) on random shifts of the chips.
 
-    Every arm trains for the same number of steps, so that an arm with more chips does not also get more
-    compute. The ResNet is the quickstart's evaluator (stages of one block, widths 16-128, no CIFAR stem).
+    Every arm trains the same number of steps, so an arm with more chips gets no more compute.
     """
     torch.manual_seed(seed)
     encoder_config = SAREncoderConfig(

@@ -1,17 +1,6 @@
-"""The parts of a zero-1-to-3 fine-tuning run around its training step (:mod:`sar_zero123.training.step`).
-
-The fine-tune stage (:mod:`sar_zero123.stages.finetune`) assembles a run from these, each with explicit
-arguments:
-
-- :func:`training_image_size`: the chip side a run trains at (the model's own unless given).
-- :func:`finetuning_modules`: which modules train and in which dtype: the UNet, the pose projection and
-  (when asked) the CLIP tower in float32, the frozen VAE and tower in the mixed-precision dtype.
-- :func:`ema_models`: EMA copies of the UNet and of a trained tower, averaged over the same steps.
-- :func:`finetuning_optimizer`: AdamW over zero-1-to-3's parameter groups (the pose projection at 10x
-  the learning rate).
-- :func:`step_logs`: the scalars of one optimisation step, gathered from every process.
-- :func:`export_finetuned`: the complete pipeline with the EMA weights, a DDIM scheduler and the
-  ``DecibelScaling`` it expects, saved in float32.
+"""The parts of a zero-1-to-3 fine-tuning run around its training step (:mod:`sar_zero123.training.step`):
+which modules train and in which dtype, their EMA copies, the optimizer, the logged scalars, the loop and
+the export of the finished pipeline.
 """
 
 from __future__ import annotations
@@ -104,27 +93,19 @@ def finetuning_modules(
 ) -> tuple[AutoencoderKL, ImageEmbedder, UNet2DConditionModel, PoseProjection]:
     """``pipe``'s modules set up for fine-tuning (in place): frozen ones cast, trained ones in float32.
 
-    zero-1-to-3 keeps the CLIP tower frozen; ``train_image_encoder`` trains it too (float32 master
-    weights), for models built from scratch whose tower is random.
+    zero-1-to-3 keeps the CLIP tower frozen; ``train_image_encoder`` trains it too, for models built from
+    scratch whose tower is random.
 
     Args:
-        pipe: The pipeline the run starts from (:func:`sar_zero123.model.build.load_sar_zero123`).
-        device: Where the frozen modules (and a trained tower) go.
         weight_dtype: dtype of the frozen modules (:func:`mixed_precision_dtype`).
-        train_image_encoder: Train the CLIP tower with the UNet.
-        gradient_checkpointing: Checkpoint the UNet's activations.
-        lora_rank: Train only LoRA factors of this rank in the UNet, its weights frozen
-            (:func:`~sar_zero123.training.lora.add_lora`); ``None``: every UNet weight trains. The pose
-            projection trains whole.
+        lora_rank: Train only LoRA factors of this rank in the UNet (``training.lora.add_lora``); ``None``:
+            every UNet weight trains. The pose projection trains whole.
         lora_alpha: The LoRA scale numerator (``None``: ``lora_rank``).
-        lora_modules: The UNet layers with LoRA factors (``"all"`` or ``"attention"``).
 
     Returns:
-        ``(vae, image_embedder, unet, pose_projection)``, ``pipe``'s own modules: the VAE frozen in
-        ``weight_dtype`` on ``device``; the CLIP tower in an :class:`ImageEmbedder`, trained in float32 or
-        frozen in ``weight_dtype``; the UNet, the pose projection (and an azimuth estimator,
-        ``pipe.azimuth_estimator``) trained, float32, in train mode (left where they are for
-        ``accelerate.prepare``).
+        ``(vae, image_embedder, unet, pose_projection)``, ``pipe``'s own modules: the VAE frozen on
+        ``device``, the tower in an :class:`ImageEmbedder`, the UNet and pose projection (and an azimuth
+        estimator) in float32 train mode, left where they are for ``accelerate.prepare``.
     """
     vae = pipe.vae.to(device, dtype=weight_dtype).eval().requires_grad_(False)
     if train_image_encoder:
@@ -153,20 +134,13 @@ def ema_models(
     *,
     decay: float,
 ) -> list[tuple[EMAModel, torch.nn.Module]]:
-    """EMA copies of the UNet and, when it is trained (``image_embedder`` given), of the CLIP tower, on
-    the accelerator's device and registered for its checkpoints (in this order: the checkpoint file names).
+    """EMA copies of the UNet and of a trained CLIP tower, registered for the accelerator's checkpoints.
 
-    The exported UNet is the EMA one, so a trained tower that conditions it is averaged over the same steps.
-
-    Args:
-        accelerator: The run's accelerator.
-        unet: The trained UNet (not the prepared wrapper: its parameters are the same tensors).
-        image_embedder: The trained tower, or ``None`` when it is frozen.
-        decay: EMA decay.
+    The tower is averaged over the same steps as the EMA UNet it conditions. Pass the UNet itself, not the
+    prepared wrapper (its parameters are the same tensors).
 
     Returns:
-        ``(ema, module)`` pairs, UNet first: step each with ``ema.step(module.parameters())``; the form
-        :func:`~sar_zero123.training.validation.ema_weights` and :func:`export_finetuned` take.
+        ``(ema, module)`` pairs, UNet first (the checkpoint file order).
     """
     ema_unet = EMAModel(
         unet.parameters(), decay=decay, model_cls=UNet2DConditionModel, model_config=unet.config
@@ -190,13 +164,9 @@ def finetuning_optimizer(
     weight_decay: float = 1e-2,
     azimuth_estimator: torch.nn.Module | None = None,
 ) -> torch.optim.AdamW:
-    """AdamW over zero-1-to-3's parameter groups: the UNet, a trained tower (``image_embedder``) and an
-    azimuth estimator at ``learning_rate``, the pose projection at ``pose_lr_multiplier`` times it
-    (zero-1-to-3: 10x). Frozen parameters (a LoRA fine-tune's UNet weights) are left out.
-
-    The fused implementation (one kernel per step on a GPU, vectorised on a CPU): a step of the micro
-    prior's 330 tensors takes 4 ms on a 2-core CPU against 24 ms for torch's default loop, about 12 % of a
-    training step (``python benchmarks/step_operators.py --batch_size 16 --device cpu``).
+    """AdamW over zero-1-to-3's parameter groups: the pose projection at ``pose_lr_multiplier`` times
+    ``learning_rate`` (zero-1-to-3: 10x), everything else trained at ``learning_rate``; frozen parameters
+    are left out. Fused: one kernel per step, far faster than torch's default loop on a CPU too.
     """
 
     def trained(module: torch.nn.Module) -> list[torch.nn.Parameter]:
@@ -218,16 +188,9 @@ def step_logs(
 ) -> dict[str, float]:
     """The scalars of one optimisation step, means over every process's samples (call it on all).
 
-    Args:
-        accelerator: The run's accelerator (gathers the per-sample losses).
-        losses: The last micro-batch's :class:`~sar_zero123.training.losses.LossOutput`, with its timesteps.
-        learning_rate: The UNet's current learning rate.
-        num_train_timesteps: ``T`` of the noise schedule, for the per-quarter L_simple.
-
     Returns:
-        ``train/loss``, ``train/loss_simple``, ``train/loss_pfm``, ``lr`` and ``train/loss_simple_<quarter>``
-        (:func:`~sar_zero123.training.step.timestep_bucket_losses`), and ``train/pfm_scale`` with an adaptive
-        PFM balance.
+        ``train/loss``, ``train/loss_simple``, ``train/loss_pfm``, ``lr``, ``train/loss_simple_<quarter>``
+        and, with an adaptive PFM balance, ``train/pfm_scale``.
     """
     denoising = accelerator.gather(losses.denoising.detach())
     logs = {
@@ -254,22 +217,10 @@ def export_finetuned(
 ) -> Path:
     """``save_pretrained`` of the fine-tuned pipeline (float32) plus the ``DecibelScaling`` it expects.
 
-    ``pipe`` holds the trained modules (:func:`finetuning_modules` trains ``pipe``'s own objects); the EMA
-    weights of ``ema_pairs`` are copied into them first, and the sampler is a ``DDIMScheduler`` on
-    ``pipe``'s schedule. LoRA factors are merged into a plain UNet
-    (:func:`~sar_zero123.training.lora.merged_unet`): the folder loads without ``peft``. Call it on the main
-    process after the last step.
-
-    Args:
-        directory: The pipeline folder to write.
-        pipe: The pipeline the run started from, with its trained modules.
-        scaling: The dB scaling of the training data (written as ``decibel_scaling.json``).
-        ema_pairs: ``(ema, module)`` pairs from :func:`ema_models` (empty without EMA).
-        lineage: What the run started from (``SARZero123Pipeline``'s ``lineage``), recorded in
-            ``model_index.json``; ``None`` for a model built from scratch.
-
-    Returns:
-        ``directory``.
+    The EMA weights of ``ema_pairs`` are copied into ``pipe``'s modules first and the sampler becomes a
+    ``DDIMScheduler``; LoRA factors are merged, so the folder loads without ``peft``. ``lineage`` (what the
+    run started from) goes into ``model_index.json``. Call it on the main process after the last step;
+    returns ``directory``.
 
     Raises:
         FloatingPointError: If a weight is not finite (nothing is written).
@@ -348,9 +299,9 @@ class FinetuneTrainer:
 def train_finetune_steps(
     config: Any, accelerator: Accelerator, inputs: FinetuneInputs, trainer: FinetuneTrainer
 ) -> int:
-    """The fine-tune's training loop from ``trainer.global_step`` to ``config.max_train_steps``; returns the
-    last step (``config``: a ``FinetuneConfig``; its loss settings per step, checkpoints, ``logging_steps``,
-    validation and ``max_train_minutes``)."""
+    """The fine-tune's training loop (``config``: a ``FinetuneConfig``) from ``trainer.global_step`` to
+    ``config.max_train_steps``; returns the last step.
+    """
     output_dir = Path(config.output_dir)
     global_step = trainer.global_step
     trainable = [parameter for module in trainer.trained_modules for parameter in module.parameters()]

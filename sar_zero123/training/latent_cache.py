@@ -1,9 +1,7 @@
 """Cached frozen encodings of a fine-tune's chips: :class:`ChipLatentCache` and :class:`CachedViewPairs`.
 
-The frozen VAE's posterior (mean and log-variance) and the frozen CLIP embedding of every chip, computed
-once. The VAE never changes during fine-tuning, so encoding two chips per pair per step repeats the same
-work; the cache keeps the posterior *sample* of the target latent random per step (the step draws it from
-the cached mean and log-variance, :func:`~sar_zero123.training.step.encode_batch`).
+The VAE and a frozen CLIP tower never change during fine-tuning, so each chip is encoded once; the target
+latent stays a fresh posterior sample per step, drawn from the cached mean and log-variance.
 """
 
 from __future__ import annotations
@@ -28,15 +26,13 @@ class ChipLatentCache:
     """Frozen encodings of every chip of a split, computed once before fine-tuning.
 
     Attributes:
-        images: Normalised dB chips ``(N, 1, S, S)`` (the CLIP tower's input when it is trained, and the
-            PFM target).
+        images: Normalised dB chips ``(N, 1, S, S)`` (a trained tower's input, and the PFM target).
         latent_mean: VAE posterior mean ``(N, C, h, w)``, unscaled (the condition latent is this mode).
         latent_logvar: VAE posterior log-variance ``(N, C, h, w)``.
         image_embeds: Frozen CLIP embeddings ``(N, 1, D)``, or ``None`` when the tower is trained.
         scaling_factor: ``vae.config.scaling_factor`` (multiplies the target latent only).
-        proxy_latents: For a ``spatial_pose="proxy"`` model: the posterior modes of each chip's simulator
-            proxies rendered at that chip's pose ``(N, K, C, h, w)`` (``K`` candidates per chip,
-            :mod:`sar_zero123.data.corpus_proxies`), else ``None``.
+        proxy_latents: For a ``spatial_pose="proxy"`` model, the posterior modes of each chip's ``K``
+            simulator proxies at its pose ``(N, K, C, h, w)``, else ``None``.
     """
 
     images: torch.Tensor
@@ -63,12 +59,11 @@ class ChipLatentCache:
         batch_size: int = 64,
         proxy_images: torch.Tensor | None = None,
     ) -> ChipLatentCache:
-        """Encodes ``images`` (normalised dB, ``(N, 1, S, S)``) with the frozen VAE (and CLIP tower), and
-        ``proxy_images`` (normalised dB ``(N, K, S, S)``: each chip's ``K`` proxies at its pose) with the VAE.
+        """Encodes ``images`` ``(N, 1, S, S)`` with the frozen VAE (and CLIP tower), and ``proxy_images``
+        ``(N, K, S, S)`` with the VAE; both normalised dB.
 
         Raises:
-            ValueError: If ``images`` is not a non-empty ``(N, 1, S, S)`` tensor of finite values, or
-                ``proxy_images`` not ``(N, K, S, S)`` finite values.
+            ValueError: If either is empty, of the wrong shape or not finite.
         """
         proxy_latents = None
         if proxy_images is not None:
@@ -129,11 +124,9 @@ def load_chip_images(pairs: ViewPairDataset) -> torch.Tensor:
 class CachedViewPairs(Dataset):
     """The pairs of a :class:`ViewPairDataset` served from a :class:`ChipLatentCache` (no file reads).
 
-    Items hold the wrapped dataset's keys (``input``, ``target``, :meth:`ViewPairDataset.pair_fields`) plus
-    ``input_latent_mean``, ``target_latent_mean``, ``target_latent_logvar``, with a frozen tower
-    ``input_image_embeds`` and, with proxies in the cache, ``proxy_latents`` ``(K, 2C, h, w)`` (each
-    candidate proxy at the input's pose, then at the target's). :meth:`set_epoch` redraws the wrapped pair
-    list, so data order and pairs are those of the uncached dataset.
+    Items hold the wrapped dataset's keys plus ``input_latent_mean``, ``target_latent_mean``,
+    ``target_latent_logvar``, with a frozen tower ``input_image_embeds`` and with proxies ``proxy_latents``
+    ``(K, 2C, h, w)``. :meth:`set_epoch` redraws the wrapped pair list, so the pairs are the uncached ones.
     """
 
     def __init__(self, pairs: ViewPairDataset, cache: ChipLatentCache) -> None:
@@ -156,11 +149,8 @@ class CachedViewPairs(Dataset):
         return self._encodings(source, target) | self.pairs.pair_fields(index)
 
     def __getitems__(self, indices: list[int]) -> dict:
-        """A whole batch at once (the DataLoader's batched fetch; :func:`collate_pairs` passes it on).
-
-        The same values, dtypes and shapes as ``default_collate`` of the items, with one indexing per key
-        instead of a dictionary per pair, and on the cache's device: a GPU run fed pair by pair by
-        DataLoader workers (restarted every epoch) trained at about 5,300 pairs/s whatever the UNet's size.
+        """A whole batch at once, as ``default_collate`` of the items would give, with one indexing per
+        key and on the cache's device (per-pair fetching bottlenecks a GPU run).
         """
         pairs = torch.from_numpy(self.pairs.pairs[np.asarray(indices, dtype=np.int64)])
         source, target = pairs.to(self.cache.images.device).unbind(1)  # a GPU-resident cache is indexed there
@@ -186,8 +176,7 @@ class CachedViewPairs(Dataset):
 
 
 def collate_pairs(batch: list[dict] | dict) -> dict:
-    """``default_collate`` for a list of pair items; a batch a dataset's ``__getitems__`` already stacked
-    (:meth:`CachedViewPairs.__getitems__`) passes through unchanged."""
+    """``default_collate`` of pair items; a batch that ``__getitems__`` stacked passes through."""
     if isinstance(batch, dict):
         return batch
     return default_collate(batch)

@@ -1,14 +1,9 @@
 """Low-rank fine-tunes of the UNet (LoRA, Hu et al. 2021) through ``peft``, merged away at export.
 
-A fine-tune that moves every UNet weight can overwrite what the prior knew (a vehicle it was not fine-tuned
-on, depression changes the fine-tune's pairs lack); one that trains only a low-rank update ``B A`` beside
-each frozen weight moves less of it. :func:`add_lora` freezes the UNet and gives the chosen layers trainable
-LoRA factors (``peft``'s ``LoraConfig`` through diffusers' ``add_adapter``; ``B`` starts at zero, so the
-first step's model is the prior itself); :func:`merged_unet` folds ``W + (alpha / r) B A`` back into plain
-layers, so the exported pipeline is an ordinary ``UNet2DConditionModel`` that loads without ``peft``.
-
-Written by hand here is only the choice of layers (:func:`lora_target_modules`): peft's ``"all-linear"``
-shortcut skips the convolutions, which hold most of a small SAR UNet's weights.
+Training only a low-rank update ``B A`` beside each frozen weight moves less of what the prior knew.
+``B`` starts at zero, so the first step's model is the prior; :func:`merged_unet` folds
+``W + (alpha / r) B A`` back into plain layers. The layers are chosen here because peft's ``"all-linear"``
+skips the convolutions, which hold most of a small SAR UNet's weights.
 """
 
 from __future__ import annotations
@@ -32,11 +27,8 @@ _ATTENTION_PROJECTIONS = ("to_q", "to_k", "to_v", "to_out.0")
 
 
 def check_lora_settings(rank: int | None, alpha: float | None = None, modules: str = "all") -> None:
-    """Refuse a LoRA rank below 1, a scale numerator ``alpha <= 0`` or an unknown layer set (``None`` rank:
-    no LoRA). The one check of the fine-tune's config and :func:`add_lora`.
-
-    Raises:
-        ValueError: Naming the field (``lora_rank``, ``lora_alpha``, ``lora_modules``) and what it takes.
+    """The one check of the LoRA settings: a rank below 1, ``alpha <= 0`` or an unknown layer set is refused
+    (``None`` rank: no LoRA).
     """
     if rank is not None and (isinstance(rank, bool) or not rank >= 1):
         raise ValueError(f"lora_rank must be >= 1 or None, got {rank}")
@@ -67,19 +59,13 @@ def add_lora(
 ) -> list[torch.nn.Parameter]:
     """Freeze ``unet`` and add trainable LoRA factors of rank ``rank`` to its ``modules`` (in place).
 
-    Args:
-        unet: The UNet to fine-tune (float32: its factors take its dtype).
-        rank: The rank ``r`` of every update ``B A``.
-        alpha: The update's scale numerator (``W + (alpha / r) B A``); ``None``: ``rank`` (scale 1).
-        modules: Which layers (:func:`lora_target_modules`).
+    ``alpha`` is the update's scale numerator (``W + (alpha / r) B A``; ``None``: ``rank``).
 
     Returns:
-        The trainable factors (``B`` zero, ``A`` Kaiming-uniform: peft's default initialisation), so the
-        UNet's output is unchanged until the first step.
+        The trainable factors (``B`` zero, ``A`` Kaiming-uniform), so the output is unchanged until a step.
 
     Raises:
-        ValueError: For a setting :func:`check_lora_settings` refuses, or a UNet that already has LoRA
-            factors.
+        ValueError: For a setting :func:`check_lora_settings` refuses, or a UNet that already has LoRA.
     """
     from peft import LoraConfig  # imported here: only LoRA fine-tunes need peft
 
@@ -102,10 +88,8 @@ def has_lora(unet: torch.nn.Module) -> bool:
 
 
 def merged_unet(unet: UNet2DConditionModel) -> UNet2DConditionModel:
-    """A plain copy of ``unet`` with every LoRA update folded into its weights (``unet`` is left as it is).
-
-    The copy has the state-dict keys of a UNet built from ``unet.config``: an exported pipeline loads without
-    ``peft``. A UNet without LoRA layers is returned itself.
+    """A plain copy of ``unet`` with every LoRA update folded into its weights (``unet`` is left as it is), so
+    an exported pipeline loads without ``peft``. A UNet without LoRA layers is returned itself.
     """
     if not has_lora(unet):
         return unet

@@ -1,24 +1,11 @@
-"""Training losses: the x0 estimate (Eq. 19), L_simple, which samples get Projected Feature Matching and the
-total loss (Eq. 21) of "Noise-Tolerant Novel-View SAR Synthesis via Denoising Diffusion". PFM itself (Eq. 20)
-and its frozen feature encoders are :mod:`sar_zero123.training.pfm`.
+"""Training losses: the x0 estimate (Eq. 19), L_simple, where PFM applies and the total loss (Eq. 21).
+PFM itself (Eq. 20) and its frozen encoders are :mod:`sar_zero123.training.pfm`. Losses are ``(B,)``.
 
-All losses are per sample, shape ``(B,)``; the training script takes the mean.
-
-Numerical safety of the x0 estimate. For epsilon prediction, Eq. (19) divides by ``sqrt(abar_t)``; the
-amplification ``sqrt(1 / abar_t - 1) = 1 / sqrt(SNR(t))`` applied to the noise-prediction error is 14.6
-at t = T - 1 for the Stable Diffusion ``scaled_linear`` schedule, 157 for ``linear``, 2e4 for
-``squaredcos_cap_v2`` and infinite for zero-terminal-SNR schedules. Two mechanisms keep PFM
-meaningful there:
-
-1. :func:`estimate_x0` computes in float32 and floors ``abar_t`` at ``2**-24`` (the value diffusers'
-   ``EulerDiscreteScheduler`` substitutes for a zero terminal ``abar``), so the estimate is always finite.
-2. :func:`total_loss` computes PFM only for samples whose ``SNR(t) >= pfm_min_snr``
-   (:func:`pfm_timestep_mask`); the others are trained by L_simple alone. The default, 0.004, bounds the
-   amplification ``1 / sqrt(SNR)`` by 15.8: every timestep of the paper's ``scaled_linear`` schedule
-   (SNR(T-1) = 0.00468, amplification 14.6) keeps PFM, so the default is the paper's setting there, while
-   schedules that reach far lower SNR (linear, cosine, zero terminal SNR) drop PFM exactly where their
-   x0 estimate would be amplified beyond anything the paper trained with (gradient norms and x0 errors
-   against t on real MSTAR latents: measured in ``docs/results/``).
+For epsilon prediction Eq. (19) divides by ``sqrt(abar_t)``, amplifying the noise-prediction error by
+``1 / sqrt(SNR(t))``, which is unbounded on zero-terminal-SNR schedules. :func:`estimate_x0` therefore
+floors ``abar_t`` at ``2**-24`` (diffusers' EulerDiscreteScheduler's value), and :func:`total_loss` computes
+PFM only where ``SNR(t) >= pfm_min_snr``; the default keeps every timestep of the paper's ``scaled_linear``
+schedule and drops PFM only where other schedules go far noisier.
 """
 
 from __future__ import annotations
@@ -34,16 +21,13 @@ from torch import nn
 from sar_zero123.config import check_minimum
 from sar_zero123.training.pfm import pfm_loss
 
-#: Floor on ``abar_t`` in the epsilon-prediction x0 estimate (diffusers' EulerDiscreteScheduler uses the same
-#: value for zero-terminal-SNR schedules); keeps ``1 / sqrt(abar_t)`` at most 4096.
+#: Floor on ``abar_t`` in the epsilon x0 estimate; keeps ``1 / sqrt(abar_t)`` at most 4096.
 MIN_ALPHA_CUMPROD = 2.0**-24
 
-#: Default SNR threshold below which PFM is skipped: amplification 1/sqrt(SNR) <= 15.8, which keeps every
-#: timestep of the paper's scaled_linear schedule (see the module docstring).
+#: SNR below which PFM is skipped; keeps every timestep of the paper's scaled_linear schedule.
 DEFAULT_PFM_MIN_SNR = 0.004
 
-#: What a diffusers scheduler's ``prediction_type`` may say the network predicts: the noise (zero-1-to-3,
-#: the paper), the velocity, or the clean latent itself.
+#: What a diffusers scheduler's ``prediction_type`` may be (the paper: epsilon).
 PREDICTION_TYPES = ("epsilon", "v_prediction", "sample")
 #: The prediction types a model of this package is trained with.
 TRAINED_PREDICTION_TYPES = ("epsilon", "v_prediction")
@@ -52,18 +36,11 @@ TRAINED_PREDICTION_TYPES = ("epsilon", "v_prediction")
 def check_prediction_type(
     prediction_type: str, allowed: tuple[str, ...] = PREDICTION_TYPES, name: str = "prediction_type"
 ) -> str:
-    """The one check of a prediction type, wherever it is set or read (configs, Eq. (19), L_simple, min-SNR).
-
-    Args:
-        prediction_type: The value to check.
-        allowed: The values accepted here (:data:`PREDICTION_TYPES` or :data:`TRAINED_PREDICTION_TYPES`).
-        name: How the error names the setting (a config field, ``scheduler.config.prediction_type``).
-
-    Returns:
-        ``prediction_type``, unchanged.
+    """The one check of a prediction type, wherever it is set or read; returns it unchanged. ``name`` is how
+    the error names it.
 
     Raises:
-        ValueError: If ``prediction_type`` is not one of ``allowed``, naming ``name`` and the choices.
+        ValueError: If ``prediction_type`` is not one of ``allowed``.
     """
     if prediction_type not in allowed:
         choices = " or ".join(f"{value!r}" for value in allowed)
@@ -76,15 +53,8 @@ def check_prediction_type(
 def append_dims(values: torch.Tensor, target_ndim: int) -> torch.Tensor:
     """Append trailing singleton dimensions so per-sample values broadcast against a batch tensor.
 
-    Args:
-        values: Per-sample values.
-        target_ndim: Number of dimensions of the tensor to broadcast against.
-
-    Returns:
-        ``values`` viewed with ``target_ndim - values.ndim`` trailing singleton dimensions.
-
     Shape:
-        ``(B,) -> (B, 1, ..., 1)``.
+        ``(B,) -> (B, 1, ..., 1)`` with ``target_ndim`` dimensions.
 
     Raises:
         ValueError: If ``values`` already has more than ``target_ndim`` dimensions.
@@ -108,14 +78,7 @@ def _alphas_cumprod_at(scheduler, timesteps: torch.Tensor) -> torch.Tensor:
 
 
 def signal_to_noise_ratio(scheduler, timesteps: torch.Tensor) -> torch.Tensor:
-    """SNR(t) = abar_t / (1 - abar_t) of a diffusers scheduler.
-
-    Args:
-        scheduler: A diffusers noise scheduler with ``alphas_cumprod``.
-        timesteps: Integer timesteps.
-
-    Returns:
-        Float32 SNR per timestep (``inf`` at abar_t = 1, ``0`` at a zero terminal SNR).
+    """SNR(t) = abar_t / (1 - abar_t) of a diffusers scheduler, float32 (``inf`` at abar_t = 1).
 
     Shape:
         ``(B,) -> (B,)``.
@@ -136,18 +99,9 @@ def estimate_x0(
     """One-step estimate of the clean latent from the network output, Eq. (19).
 
     ``epsilon``: ``x0 = x_t / sqrt(abar_t) - sqrt(1 / abar_t - 1) * eps`` with ``abar_t`` floored at
-    :data:`MIN_ALPHA_CUMPROD`; ``v_prediction``: ``x0 = sqrt(abar_t) * x_t - sqrt(1 - abar_t) * v``
-    (finite for every t); ``sample``: the output is the estimate. Computed in float32 and returned in
-    the dtype of ``model_output`` so gradients reach the network in its own precision.
-
-    Args:
-        x_t: Noisy latents the network saw.
-        model_output: Network prediction, interpreted by ``scheduler.config.prediction_type``.
-        timesteps: Integer training timesteps, one per sample.
-        scheduler: A diffusers noise scheduler (``alphas_cumprod``, ``config.prediction_type``).
-
-    Returns:
-        The x0 estimate.
+    :data:`MIN_ALPHA_CUMPROD`; ``v_prediction``: ``x0 = sqrt(abar_t) * x_t - sqrt(1 - abar_t) * v``;
+    ``sample``: the output itself. Computed in float32, returned in ``model_output``'s dtype so gradients
+    reach the network in its own precision.
 
     Shape:
         ``x_t``, ``model_output``: ``(B, C, h, w)``; ``timesteps``: ``(B,)``; returns ``(B, C, h, w)``.
@@ -176,22 +130,10 @@ def estimate_x0(
 
 def denoising_target(latents: torch.Tensor, noise: torch.Tensor, timesteps: torch.Tensor,
                      scheduler) -> torch.Tensor:
-    """Regression target of L_simple for the scheduler's prediction type.
-
-    Args:
-        latents: Clean (scaled) latents x0.
-        noise: The Gaussian noise added to make x_t.
-        timesteps: Integer timesteps.
-        scheduler: A diffusers noise scheduler.
-
-    Returns:
-        ``noise`` (epsilon), ``scheduler.get_velocity(latents, noise, timesteps)`` (v) or ``latents``.
+    """Regression target of L_simple: the noise (epsilon), the velocity (v) or the latents (sample).
 
     Shape:
         ``(B, C, h, w)``.
-
-    Raises:
-        ValueError: On an unknown prediction type.
     """
     prediction_type = check_prediction_type(
         scheduler.config.prediction_type, name="scheduler.config.prediction_type"
@@ -206,13 +148,6 @@ def denoising_target(latents: torch.Tensor, noise: torch.Tensor, timesteps: torc
 def denoising_loss(model_output: torch.Tensor, target: torch.Tensor) -> torch.Tensor:
     """L_simple: per-sample mean squared error between network output and target, in float32.
 
-    Args:
-        model_output: Network prediction.
-        target: Regression target (see :func:`denoising_target`).
-
-    Returns:
-        Per-sample loss.
-
     Shape:
         ``(B, ...) -> (B,)``.
 
@@ -224,8 +159,7 @@ def denoising_loss(model_output: torch.Tensor, target: torch.Tensor) -> torch.Te
     return F.mse_loss(model_output.float(), target.float(), reduction="none").flatten(1).mean(dim=1)
 
 
-#: How lambda of Eq. (21) scales PFM: ``"none"`` is the paper's fixed weight; ``"adaptive"`` rescales PFM each
-#: step so that its gradient at the network output is lambda times L_simple's (:func:`balanced_pfm_weight`).
+#: How lambda of Eq. (21) scales PFM: the paper's fixed weight, or :func:`balanced_pfm_weight`.
 PFM_BALANCES = ("none", "adaptive")
 
 #: Upper bound of the adaptive rescaling (VQGAN bounds its adaptive weight the same way).
@@ -234,16 +168,7 @@ MAX_PFM_BALANCE = 1.0e4
 
 def pfm_timestep_mask(timesteps: torch.Tensor, scheduler,
                       min_snr: float = DEFAULT_PFM_MIN_SNR) -> torch.Tensor:
-    """Samples whose timestep is informative enough for PFM: ``SNR(t) >= min_snr``.
-
-    Args:
-        timesteps: Integer timesteps.
-        scheduler: A diffusers noise scheduler.
-        min_snr: SNR threshold; ``0`` keeps every timestep (the paper's setting, finite thanks to the
-            ``abar_t`` floor of :func:`estimate_x0`).
-
-    Returns:
-        Boolean mask.
+    """Samples whose timestep is informative enough for PFM: ``SNR(t) >= min_snr`` (0 keeps every one).
 
     Shape:
         ``(B,) -> (B,)``.
@@ -257,26 +182,13 @@ def pfm_timestep_mask(timesteps: torch.Tensor, scheduler,
 
 
 def pfm_snr_weights(timesteps: torch.Tensor, scheduler, gamma: float) -> torch.Tensor:
-    """Per-sample weights ``min(SNR(t), gamma) / gamma`` of PFM: Min-SNR-gamma for a loss on x0, scaled to 1.
+    """Per-sample PFM weights ``min(SNR(t), gamma) / gamma``: Min-SNR-gamma for a loss on x0, scaled to 1.
 
-    Not in the paper (Eq. 21 weights PFM alike at every t). PFM is a distance between functions of the
-    target and of the one-step estimate x0_hat, whose error for a given noise-prediction error grows as
-    ``1 / SNR(t)``: unweighted, the noisiest timesteps, where x0_hat is a blur, give PFM most of its
-    gradient, many times L_simple's.
-    Min-SNR-gamma (Hang et al., 2023) weights an x0-space loss by ``min(SNR, gamma)``; divided by ``gamma``
-    the weight is 1 wherever ``SNR(t) >= gamma`` and falls in proportion to the SNR above, a smooth form of
-    :func:`pfm_timestep_mask`'s hard threshold.
-
-    Args:
-        timesteps: Integer timesteps.
-        scheduler: A diffusers noise scheduler.
-        gamma: ``> 0``; the SNR from which PFM has its full weight (5 as Min-SNR-5 of L_simple).
-
-    Returns:
-        Float32 weights in ``[0, 1]``.
+    Not in the paper. x0_hat's error grows as ``1 / SNR(t)``, so unweighted the noisiest timesteps, where
+    x0_hat is a blur, dominate PFM's gradient; this is a smooth form of :func:`pfm_timestep_mask`.
 
     Shape:
-        ``(B,) -> (B,)``.
+        ``(B,) -> (B,)``, float32 in ``[0, 1]``.
 
     Raises:
         ValueError: If ``gamma`` is not positive and finite.
@@ -288,14 +200,9 @@ def pfm_snr_weights(timesteps: torch.Tensor, scheduler, gamma: float) -> torch.T
 
 @dataclass
 class LossSettings:
-    """Everything that shapes the loss of a training step, declared once: the fine-tune's config is a
-    ``LossSettings`` (``FinetuneConfig`` inherits these fields, their flags and defaults), and
-    ``FinetuneConfig.loss_settings`` copies them into the plain ``LossSettings`` passed whole to
-    :func:`~sar_zero123.training.step.compute_losses`.
+    """Everything that shapes the loss of a training step, declared once and passed whole to
+    :func:`~sar_zero123.training.step.compute_losses`; ``FinetuneConfig`` inherits these fields.
 
-    Covers lambda of Eq. (21) and where PFM applies, zero-1-to-3's CFG dropout, the timestep density, the
-    Min-SNR weighting of L_simple and the weight of the azimuth estimator's loss. Each value is validated
-    here, once; the field names are the config's (and the command line's), so errors name the user's flag.
     The defaults are the paper's (lambda = 4); ``LossSettings(pfm_weight=0.0)`` is zero-1-to-3's loss.
 
     Raises:
@@ -313,11 +220,7 @@ class LossSettings:
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
     pfm_fraction: float = 1.0  # fraction in (0, 1] of the eligible samples on which PFM is computed
     pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
-    # how lambda scales PFM (balanced_pfm_weight): "none" weights
-    # PFM as in Eq. (21); "adaptive": PFM's gradient at the network output is lambda times L_simple's in
-    # every step
     pfm_balance: Literal["none", "adaptive"] = "none"  # "none": Eq. 21's fixed lambda; "adaptive": balanced
-    # pfm_snr_weights, a departure from Eq. 21 (None: the paper's equal weight at every t)
     pfm_snr_gamma: float | None = None  # PFM per sample times min(SNR(t), gamma) / gamma; None: equal weight
     drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
     drop_both_prob: float = 0.05  # CFG dropout: projected token and condition latent (the sampling null)
@@ -365,19 +268,14 @@ class LossOutput:
     """Per-sample losses of one training step (all ``(B,)`` float32).
 
     Attributes:
-        loss: ``denoising + pfm_weight * pfm`` (Eq. 21, :func:`total_loss`), plus the weighted azimuth loss
-            of a model with an azimuth estimator.
-        denoising: L_simple (Min-SNR weighted when the step asks for it).
-        pfm: L_PFM, zero where it was not computed (lambda = 0, SNR below the threshold, or outside the
-            sampled fraction); sampled entries are scaled by ``B_eligible / B_sampled`` so the batch mean
-            stays unbiased.
+        loss: ``denoising + pfm_weight * pfm`` (Eq. 21), plus the weighted azimuth loss if any.
+        denoising: L_simple (Min-SNR weighted when asked).
+        pfm: L_PFM, zero where not computed; sampled entries are scaled by ``B_eligible / B_sampled`` so the
+            batch mean stays unbiased.
         pfm_mask: Where PFM was computed.
-        timesteps: The sampled timesteps, when the caller records them (for per-timestep logging).
-        azimuth: The input-azimuth estimation loss
-            (:func:`~sar_zero123.model.orientation.azimuth_estimation_loss`) when the model has an azimuth
-            estimator, already included in ``loss`` with its weight.
-        pfm_scale: With ``pfm_balance="adaptive"``, the step's :func:`balanced_pfm_weight` (a 0-d tensor;
-            ``loss`` is then ``denoising + pfm_weight * pfm_scale * pfm``).
+        timesteps: The sampled timesteps, when the caller records them.
+        azimuth: The input-azimuth estimation loss of a model with an azimuth estimator.
+        pfm_scale: With ``pfm_balance="adaptive"``, the step's :func:`balanced_pfm_weight` (0-d).
     """
 
     loss: torch.Tensor
@@ -408,40 +306,25 @@ def total_loss(
     pfm_balance: str = "none",
     pfm_snr_gamma: float | None = None,
 ) -> LossOutput:
-    """L = L_simple + lambda * L_PFM, Eq. (21); ``pfm_weight = 0`` is plain zero-1-to-3 fine-tuning and
-    skips every PFM computation (no decode, no encoder pass). The only place Eq. (21) is assembled.
+    """L = L_simple + lambda * L_PFM, Eq. (21), the only place it is assembled.
+
+    ``pfm_weight = 0`` is plain zero-1-to-3 fine-tuning and skips every PFM computation.
 
     Args:
-        model_output: Network prediction.
         target: L_simple target (:func:`denoising_target`).
-        x_t: Noisy latents the network saw.
-        timesteps: Integer timesteps.
-        scheduler: The training noise scheduler.
-        pfm_weight: lambda >= 0 (the paper's best is 4).
-        target_images: Real target views, normalised dB; required when ``pfm_weight > 0``.
-        vae: Frozen VAE; required when ``pfm_weight > 0``.
-        encoder: Frozen SAR encoder; required when ``pfm_weight > 0``.
-        pfm_min_snr: PFM only where ``SNR(t) >= pfm_min_snr`` (:func:`pfm_timestep_mask`).
-        pfm_fraction: Fraction in (0, 1] of the eligible samples on which PFM is computed (at least one).
-        crop_size: Optional centre crop in pixels for PFM (see :func:`~sar_zero123.training.pfm.pfm_loss`).
-        generator: Draws the PFM subset when ``pfm_fraction < 1``.
-        denoising_weights: Optional per-sample weights of L_simple (Min-SNR-gamma,
-            :func:`~sar_zero123.training.step.min_snr_weights`), applied before the sum.
-        pfm_balance: ``"none"`` (Eq. 21 as written) or ``"adaptive"``: PFM is multiplied by
-            :func:`balanced_pfm_weight` of this batch, so ``pfm_weight`` is the ratio of PFM's gradient to
-            L_simple's at the network output (a departure from the paper).
-        pfm_snr_gamma: ``gamma > 0``: each sample's PFM times :func:`pfm_snr_weights` (before the
-            balance, so the adaptive scale sees the weighted term); None: Eq. 21's equal weight.
-
-    Returns:
-        A :class:`LossOutput` of per-sample tensors (``denoising`` already weighted).
+        target_images: Real target views, normalised dB; with ``vae`` and ``encoder``, needed when
+            ``pfm_weight > 0``.
+        pfm_fraction: Fraction in (0, 1] of the eligible samples given PFM (at least one), drawn with
+            ``generator``.
+        denoising_weights: Optional per-sample weights of L_simple (Min-SNR-gamma).
+        pfm_balance: ``"none"`` (Eq. 21) or ``"adaptive"`` (:func:`balanced_pfm_weight`; not in the paper).
+        pfm_snr_gamma: Weights PFM by :func:`pfm_snr_weights` before the balance; None: Eq. 21's equal weight.
 
     Shape:
         ``model_output``, ``target``, ``x_t``: ``(B, C, h, w)``; ``timesteps``: ``(B,)``; outputs ``(B,)``.
 
     Raises:
-        ValueError: If ``pfm_weight < 0``, ``pfm_fraction`` is outside (0, 1], ``pfm_balance`` is unknown, or
-            PFM inputs are missing.
+        ValueError: On a bad ``pfm_weight``, ``pfm_fraction`` or ``pfm_balance``, or missing PFM inputs.
     """
     if pfm_balance not in PFM_BALANCES:
         raise ValueError(f"pfm_balance must be one of {PFM_BALANCES}, got {pfm_balance!r}")
@@ -490,25 +373,13 @@ def balanced_pfm_weight(
 ) -> torch.Tensor:
     """The adaptive PFM scale ``||grad L_simple|| / ||grad PFM||``, both taken at the network output.
 
-    Not in the paper: Eq. (21) weights PFM by a fixed lambda, so how hard PFM pulls depends on the encoder's
-    feature scale, the projection and the timestep (at the bundled prior, a fixed lambda gives PFM a
-    gradient that grows many times over from the low to the high timesteps). With this
-    scale, ``lambda * scale * PFM`` pulls the network output exactly lambda times as hard as L_simple in
-    every batch, as VQGAN's adaptive weight balances its perceptual and adversarial terms (Esser et al.,
-    2021, Eq. 7). The norms are taken at the network output rather than at a layer's weights: every PFM
-    gradient passes through the output, so one backward pass through the decoder and encoder serves both
-    the norm and the update.
-
-    Args:
-        grad_simple: Gradient of the batch-mean L_simple (as weighted in training) at the network output.
-        grad_pfm: Gradient of the batch-mean PFM at the network output.
-        max_weight: Upper bound of the scale.
+    Not in the paper: with a fixed lambda, PFM's pull depends on the encoder's feature scale and the
+    timestep; with this scale ``lambda * scale * PFM`` pulls exactly lambda times as hard as L_simple, as
+    VQGAN's adaptive weight (Esser et al., 2021, Eq. 7). Taken at the output, not a layer's weights, so one
+    backward pass serves both the norm and the update.
 
     Returns:
         A detached float32 0-d tensor in ``[0, max_weight]``; 0 where PFM has no gradient.
-
-    Shape:
-        ``grad_simple``, ``grad_pfm``: ``(B, C, h, w)``; returns ``()``.
 
     Raises:
         ValueError: If the shapes differ or ``max_weight`` is not positive.
@@ -529,10 +400,8 @@ def balanced_pfm_weight(
 def _balanced_pfm(model_output, target, denoising_weights, pfm_of) -> tuple[torch.Tensor, torch.Tensor]:
     """PFM per sample with its gradient attached to ``model_output``, and :func:`balanced_pfm_weight`.
 
-    PFM and both gradients are computed once, on a detached copy of the output (so this also works under
-    ``torch.no_grad``, as in validation); PFM's gradient then reaches the network through a surrogate whose
-    value is PFM and whose gradient at ``model_output`` is PFM's (each sample's PFM depends on its own
-    output only: the frozen decoder and encoder run in eval mode).
+    Computed once on a detached copy (so it works under ``torch.no_grad``); the gradient reaches the
+    network through a surrogate whose value is PFM and whose gradient is PFM's.
     """
     with torch.enable_grad():
         leaf = model_output.detach().requires_grad_(True)

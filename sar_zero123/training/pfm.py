@@ -1,10 +1,8 @@
-"""Projected Feature Matching, Eq. (20): the frozen SAR encoder ``f`` of PFM and the distance
-``||f(x0) - f(D(x0_hat))||^2`` (:func:`pfm_loss`).
+"""Projected Feature Matching, Eq. (20): the frozen SAR encoder ``f`` and ``||f(x0) - f(D(x0_hat))||^2``.
 
-:func:`load_pfm_encoder` loads ``f`` for a fine-tune: the pooled feature of Eq. (20), optionally followed by
-the authors' random projection (:class:`ProjectedFeatureEncoder`), or, departing from the paper, that
-feature normalised (:class:`NormalizedFeatureEncoder`) or every stage's map (:class:`StageFeatureEncoder`).
-Eq. (21) assembles PFM with L_simple in :func:`~sar_zero123.training.losses.total_loss`.
+``f`` is the pooled feature of Eq. (20), optionally followed by the authors' random projection, or, departing
+from the paper, that feature normalised or every stage's map. Eq. (21) is
+:func:`~sar_zero123.training.losses.total_loss`.
 """
 
 from __future__ import annotations
@@ -33,20 +31,11 @@ def random_feature_projection(in_features: int, out_features: int = PAPER_PFM_PR
     """Weights of the authors' PFM projection: a freshly initialised ``nn.Linear(in, out)`` weight.
 
     The reference implementation applies the encoder's ``fc`` layer, absent from its checkpoint and so left
-    at PyTorch's default initialisation, ``U(-1/sqrt(in), 1/sqrt(in))``, before the distance. The bias
-    cancels in a difference of features and is omitted. Drawn from a CPU generator seeded with ``seed``:
-    same seed, same bytes.
-
-    Args:
-        in_features: Encoder feature size (512 for ResNet-18).
-        out_features: Projected size (10 in the paper's runs).
-        seed: Seed of the draw.
-
-    Returns:
-        Float32 weight.
+    at PyTorch's default ``U(-1/sqrt(in), 1/sqrt(in))``. The bias cancels in a difference and is omitted.
+    Drawn from a CPU generator seeded with ``seed``: same seed, same bytes.
 
     Shape:
-        ``(out_features, in_features)``.
+        ``(out_features, in_features)``, float32.
 
     Raises:
         ValueError: If a size is not positive.
@@ -63,19 +52,9 @@ def random_feature_projection(in_features: int, out_features: int = PAPER_PFM_PR
 class ProjectedFeatureEncoder(nn.Module):
     """A frozen SAR encoder followed by a frozen random projection: the paper-comparable PFM features.
 
-    ``forward`` returns ``W f(x) / sqrt(k)`` for the ``(k, D)`` weight ``W``, so that the squared L2
-    distance of :func:`pfm_loss` equals the authors' ``mse_loss`` of the projected features, i.e. the
-    *mean* over the ``k`` outputs of the squared difference. With ``W`` from
-    :func:`random_feature_projection` this is their PFM, whose lambda values the paper reports. Its
-    expectation over the draw of ``W`` is ``||f(x0) - f(x0_hat)||^2 / (3 D)`` (each entry has variance
-    ``1 / (3 D)``), i.e. 1536x smaller than the 512-d form for ``D = 512``; one draw scatters around that.
-
-    The weight is a buffer: it moves with ``.to()``, is saved in ``state_dict`` and never trains.
-    ``config`` is the wrapped encoder's (``image_size`` is read by :func:`pfm_loss`).
-
-    Args:
-        encoder: The frozen SAR encoder (``forward((B, 1, S, S)) -> (B, D)``).
-        weight: ``(k, D)`` projection.
+    ``forward`` returns ``W f(x) / sqrt(k)`` for the ``(k, D)`` weight ``W``, so the squared L2 distance of
+    :func:`pfm_loss` equals the authors' ``mse_loss`` of the projected features, the scale their lambda
+    values assume. The weight is a buffer: it moves with ``.to()``, is saved and never trains.
     """
 
     def __init__(self, encoder: nn.Module, weight: torch.Tensor) -> None:
@@ -101,17 +80,12 @@ class ProjectedFeatureEncoder(nn.Module):
 PfmFeatures = Literal["pooled", "normalized", "stages"]
 PFM_FEATURES: tuple[str, ...] = get_args(PfmFeatures)
 
-#: Added under the square root of the channel norms of :class:`StageFeatureEncoder` (LPIPS uses 1e-10):
-#: keeps the normalisation and its gradient finite where a ReLU map is zero at a position.
+#: Added under the square root of :class:`StageFeatureEncoder`'s channel norms: finite where a map is zero.
 _NORM_EPS = 1.0e-10
 
 
 def check_pfm_features(features: str, projection_dim: int | None = None) -> None:
-    """Refuse an unknown ``pfm_features`` name, or the random projection of other than pooled features.
-
-    Raises:
-        ValueError: Naming the field (``pfm_features`` or ``pfm_projection_dim``) and what is expected.
-    """
+    """Refuse an unknown ``pfm_features`` name, or the random projection of other than pooled features."""
     if features not in PFM_FEATURES:
         raise ValueError(f"pfm_features must be one of {PFM_FEATURES}, got {features!r}")
     if projection_dim is not None and features != "pooled":
@@ -128,12 +102,8 @@ def _unit_along_channels(features: torch.Tensor) -> torch.Tensor:
 class NormalizedFeatureEncoder(nn.Module):
     """A frozen SAR encoder whose pooled feature is divided by its L2 norm (a departure from Eq. 20).
 
-    SimCLR's loss compares features by their cosine only (NT-Xent on normalised projections), so the
-    length of ``f(x)`` is not something the encoder was trained to make meaningful. With unit features
-    ``||u - v||^2 = 2 - 2 cos(u, v)``: PFM then matches the direction of the target's feature alone.
-
-    Args:
-        encoder: The frozen SAR encoder (``forward((B, 1, S, S)) -> (B, D)``).
+    SimCLR trains only the features' direction (NT-Xent compares cosines); with unit features
+    ``||u - v||^2 = 2 - 2 cos(u, v)``.
     """
 
     def __init__(self, encoder: nn.Module) -> None:
@@ -149,15 +119,8 @@ class StageFeatureEncoder(nn.Module):
     """Every stage's feature map, LPIPS-style (Zhang et al., 2018, Eq. 1 with unit weights): a departure
     from Eq. 20, which matches only the last stage, pooled.
 
-    Each stage's map is normalised to unit length along its channels at every position and divided by
-    ``sqrt(H_i W_i)``, and the stages are concatenated, so that the squared distance :func:`pfm_loss` takes
-    of two outputs is ``sum_i mean_(h, w) ||u_i(h, w) - v_i(h, w)||^2``: LPIPS without its learned channel
-    weights (which need human judgements no SAR data set has). Unlike the pooled feature, the maps keep
-    *where* the features are, so the distance sees a turned footprint even where a pooled feature would
-    not.
-
-    Args:
-        encoder: A frozen :class:`~sar_zero123.encoder.SAREncoder` (``stage_features``).
+    Each map is unit-normalised along channels and divided by ``sqrt(H_i W_i)``, so the squared distance is
+    ``sum_i mean_(h, w) ||u_i - v_i||^2``. The maps keep where features are, so a turned footprint shows.
     """
 
     def __init__(self, encoder: nn.Module) -> None:
@@ -176,11 +139,7 @@ class StageFeatureEncoder(nn.Module):
 
 
 def pfm_feature_encoder(encoder: nn.Module, features: str) -> nn.Module:
-    """``encoder`` returning the features named by ``features`` (one of :data:`PFM_FEATURES`), frozen.
-
-    Raises:
-        ValueError: For an unknown name.
-    """
+    """``encoder`` returning the features named by ``features`` (one of :data:`PFM_FEATURES`), frozen."""
     check_pfm_features(features)
     if features == "pooled":
         return encoder
@@ -189,8 +148,7 @@ def pfm_feature_encoder(encoder: nn.Module, features: str) -> nn.Module:
 
 
 def project_encoder_features(encoder: nn.Module, projection_dim: int | None, *, seed: int = 0) -> nn.Module:
-    """``encoder`` unchanged when ``projection_dim`` is None, else wrapped in a seeded
-    :class:`ProjectedFeatureEncoder` (the paper-comparable PFM with ``projection_dim = 10``)."""
+    """``encoder``, wrapped in a seeded ProjectedFeatureEncoder unless ``projection_dim`` is None."""
     if projection_dim is None:
         return encoder
     weight = random_feature_projection(encoder.feature_dim, projection_dim, seed=seed)
@@ -201,21 +159,15 @@ def load_pfm_encoder(
     path: str | Path, *, image_size: int, projection_dim: int | None = None, seed: int = 0,
     features: str = "pooled",
 ) -> nn.Module:
-    """The frozen SAR encoder ``f`` of Eq. (20), checked against the training resolution; with
-    ``projection_dim`` followed by the seeded random projection (:func:`project_encoder_features`), with
-    ``features`` other than ``"pooled"`` returning those features (:func:`pfm_feature_encoder`).
+    """The frozen SAR encoder ``f`` of Eq. (20) from a ``SAREncoder.save_pretrained`` folder.
 
-    Args:
-        path: A ``SAREncoder.save_pretrained`` folder (``train/pretrain_simclr.py``'s ``encoder/``).
-        image_size: The chip side the diffusion model trains on.
-        projection_dim: ``None`` (full features) or ``k`` (the paper-comparable projection).
-        seed: Seed of the projection.
-        features: One of :data:`PFM_FEATURES`; only ``"pooled"`` takes a projection.
+    ``projection_dim`` adds the seeded random projection; ``features`` other than ``"pooled"`` selects
+    those features (they take no projection).
 
     Raises:
         FileNotFoundError: If the folder or its files are missing.
-        ValueError: If the encoder was trained at another resolution, or a projection is asked of other
-            than pooled features.
+        ValueError: If the encoder was trained at another resolution than ``image_size``, or a projection is
+            asked of other than pooled features.
     """
     check_pfm_features(features, projection_dim)
     encoder = SAREncoder.from_pretrained(path)
@@ -253,16 +205,8 @@ def encode_target_features(target_images: torch.Tensor, encoder: nn.Module, *,
                            crop_size: int | None = None) -> torch.Tensor:
     """Frozen-encoder features h = f(x0) of the real target views (no gradient).
 
-    Args:
-        target_images: Target views, normalised dB in [0, 1].
-        encoder: Frozen SAR encoder (``forward((B, 1, S, S)) -> (B, D)``, ``config.image_size``).
-        crop_size: Optional centre crop in pixels (before the resize to ``encoder.config.image_size``).
-
-    Returns:
-        Float32 features.
-
     Shape:
-        ``(B, 1, H, W) -> (B, D)``.
+        ``(B, 1, H, W)`` normalised dB in [0, 1] -> ``(B, D)`` float32.
     """
     images = center_crop(target_images, crop_size) if crop_size is not None else target_images
     images = unit_to_signed(images)  # to the VAE's [-1, 1] so both branches share one mapping
@@ -275,12 +219,6 @@ def check_pfm_crop_size(
     crop_size: int, *, image_size: int, vae_scale_factor: int, name: str = "crop_size"
 ) -> None:
     """Refuse a PFM centre crop whose latent window is not centred on whole latent pixels.
-
-    Args:
-        crop_size: Side of the centre crop in pixels.
-        image_size: Side of the images in pixels.
-        vae_scale_factor: The VAE's downsampling factor (pixels per latent pixel).
-        name: What the crop size is called in the message (a flag, an argument).
 
     Raises:
         ValueError: Unless ``0 < crop_size <= image_size`` and ``image_size - crop_size`` is a multiple of
@@ -302,32 +240,22 @@ def pfm_loss(
 ) -> torch.Tensor:
     """Projected Feature Matching, Eq. (20): ``||f(x0) - f(D(x0_hat))||^2`` per sample.
 
-    ``x0_hat`` is divided by ``vae.config.scaling_factor`` and decoded by the frozen VAE; the decoded image
-    (VAE domain [-1, 1]) is averaged to one channel, mapped to normalised dB ``(x + 1) / 2`` and resized to
-    the encoder's input size; ``f`` is the encoder's pooled feature. With ``crop_size`` only the latent
-    window covering the centre ``crop_size`` pixels is decoded (the paper scores the 64x64 centre of a
-    128 px chip), which cuts the decoder cost by ``(image_size / crop_size)**2``; the crop of the
-    target and of the estimate are both resized to the encoder's input size, so the encoder cost stays.
-    Decoding a latent window is not the centre of the full decode: the VAE's mid-block self-attention
-    sees only the window, which changes interior pixels as much as border ones.
-
-    Gradients flow through the frozen decoder and encoder into ``x0_hat_latents`` only.
+    ``x0_hat`` is unscaled and decoded by the frozen VAE; the decode ([-1, 1]) is averaged to one channel,
+    mapped to normalised dB and resized to the encoder's input. With ``crop_size`` only the latent window
+    of the centre crop is decoded (cheaper by ``(image_size / crop_size)**2``); that is not the centre of
+    the full decode, since the VAE's mid-block attention sees only the window. Gradients reach
+    ``x0_hat_latents`` only.
 
     Args:
-        x0_hat_latents: Scaled x0 estimate from :func:`~sar_zero123.training.losses.estimate_x0`.
-        target_images: Real target views, normalised dB in [0, 1] (the same chips the latents encode).
-        vae: Frozen ``AutoencoderKL`` (eval mode, no gradients).
-        encoder: Frozen SAR encoder with ``config.image_size`` (eval mode, no gradients).
-        crop_size: Optional side in pixels of the centre crop; ``image_size - crop_size`` must be a
-            multiple of twice the VAE downsampling factor.
+        x0_hat_latents: Scaled x0 estimate (:func:`~sar_zero123.training.losses.estimate_x0`).
+        target_images: Real target views, normalised dB in [0, 1].
+        vae: Frozen ``AutoencoderKL`` in eval mode.
+        encoder: Frozen SAR encoder with ``config.image_size``, in eval mode.
         target_features: Optional precomputed :func:`encode_target_features` output.
-
-    Returns:
-        Float32 per-sample squared L2 feature distance.
 
     Shape:
         ``x0_hat_latents``: ``(B, 4, h, w)``; ``target_images``: ``(B, 1, H, W)`` with
-        ``H = h * factor``; returns ``(B,)``.
+        ``H = h * factor``; returns ``(B,)`` float32.
 
     Raises:
         ValueError: On frozen-module violations, mismatched batch or sizes, or a bad ``crop_size``.

@@ -1,6 +1,5 @@
 """The trained frozen-feature probes of a SAR encoder (Table I): a linear classifier and an MLP azimuth
-regressor fitted on the train split's frozen features (mini-batch Adam, :func:`_fit`), and
-:func:`run_probes`, which runs them with the 1-NN probe of :mod:`sar_zero123.evaluation.probes`.
+regressor, and :func:`run_probes`, which adds the 1-NN probe of :mod:`sar_zero123.evaluation.probes`.
 """
 
 from __future__ import annotations
@@ -87,22 +86,13 @@ def linear_probe(
 ) -> dict[str, float]:
     """Linear classifier on standardised frozen features (Table I, classification, "MLP" column).
 
-    Args:
-        train: Features the probe is fitted on.
-        test: Features it is scored on.
-        num_classes: Number of classes (default: 1 + the largest label in either set).
-        epochs: Passes over the train features (Adam, cosine learning-rate decay).
-        batch_size: Features per step.
-        lr: Adam learning rate.
-        weight_decay: Adam L2 penalty.
-        generator: Source of the initialisation and the shuffling.
+    Trained with Adam and cosine learning-rate decay; ``num_classes`` defaults to 1 + the largest label.
 
     Returns:
-        `{"accuracy": percent of test samples classified correctly}`.
+        ``{"accuracy": percent of test samples classified correctly}``.
 
     Raises:
-        ValueError: For non-positive `epochs`, `batch_size`, `lr`, negative `weight_decay`, or
-            feature dimensions that differ between the sets.
+        ValueError: For bad optimisation arguments or feature dimensions that differ between the sets.
     """
     _check_training_args(epochs, batch_size, lr, weight_decay)
     check_same_dim(train, test)
@@ -139,29 +129,15 @@ def mlp_azimuth_probe(
 ) -> dict[str, float]:
     """Two-layer MLP azimuth regressor with sigmoid output = azimuth / 2pi (Table I, azimuth, "MLP").
 
-    The network is Linear(D, hidden) - ReLU - Linear(hidden, 1) - sigmoid. With `loss="circular"`
-    (default) it minimises 1 - cos(2pi(p - t)), which treats 359 deg and 1 deg as 2 deg apart; the
-    paper's plain regression (`loss="mse"`) penalises that pair as 358 deg apart and so pulls
-    predictions for near-north chips towards 180 deg. Either way a scalar sigmoid output must jump
-    from 1 to 0 at north, so chips within a few degrees of 0/360 remain the hardest for this probe.
-
-    Args:
-        train: Features the probe is fitted on.
-        test: Features it is scored on.
-        hidden_dim: Hidden width (256 in the paper).
-        loss: `"circular"` or `"mse"` on the [0, 1) target.
-        epochs: Passes over the train features (Adam, cosine learning-rate decay).
-        batch_size: Features per step.
-        lr: Adam learning rate.
-        weight_decay: Adam L2 penalty.
-        generator: Source of the initialisation and the shuffling.
+    ``loss="circular"`` minimises 1 - cos(2pi(p - t)), so 359 deg and 1 deg are 2 deg apart; the paper's
+    ``"mse"`` counts them 358 deg apart and pulls near-north chips towards 180 deg.
 
     Returns:
-        `{"azimuth_error_deg": mean circular error, "azimuth_error_median_deg": median}` on test.
+        ``{"azimuth_error_deg": mean circular error, "azimuth_error_median_deg": median}`` on test.
 
     Raises:
-        ValueError: For an unknown `loss`, `hidden_dim` < 1, bad optimisation arguments or
-            feature dimensions that differ between the sets.
+        ValueError: For an unknown ``loss``, ``hidden_dim`` < 1, bad optimisation arguments or feature
+            dimensions that differ between the sets.
     """
     _check_training_args(epochs, batch_size, lr, weight_decay)
     check_same_dim(train, test)
@@ -193,19 +169,12 @@ def run_probes(
     generator: torch.Generator | None = None,
     probe_kwargs: Mapping[str, Mapping[str, Any]] | None = None,
 ) -> dict[str, float]:
-    """All four probes of Table I on one pair of feature sets.
-
-    Args:
-        train: Train-split features (no augmentation).
-        test: Test-split features.
-        num_classes: Passed to `linear_probe`.
-        epochs: Epochs of the two trained probes.
-        generator: Source of randomness of the trained probes.
-        probe_kwargs: Extra keyword arguments per probe, keyed `"linear"`, `"mlp"`, `"knn"`.
+    """All four probes of Table I on one pair of feature sets; ``probe_kwargs`` keyed ``"linear"``, ``"mlp"``,
+    ``"knn"``.
 
     Returns:
-        `{"linear_accuracy", "mlp_azimuth_error_deg", "knn_accuracy", "knn_azimuth_error_deg"}`
-        (accuracies in percent, errors in degrees) plus the two medians.
+        ``{"linear_accuracy", "mlp_azimuth_error_deg", "knn_accuracy", "knn_azimuth_error_deg"}`` (percent,
+        degrees) plus the two medians.
     """
     extra = {key: dict(value) for key, value in (probe_kwargs or {}).items()}
     unknown = sorted(set(extra) - {"linear", "mlp", "knn"})

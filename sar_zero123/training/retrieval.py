@@ -30,9 +30,9 @@ def training_chips(chips: int, held_out_share: float = HELD_OUT_SHARE) -> int:
 def retrieval_loss(
     logits: torch.Tensor, top_index: torch.Tensor, top_score: torch.Tensor, temperature: float
 ) -> torch.Tensor:
-    """Cross-entropy of the logits against each chip's soft target: the softmax of its
-    :data:`~sar_zero123.model.retrieval.RETRIEVAL_TOP` best bank correlations over ``temperature`` (the other
-    vehicles weigh nothing)."""
+    """Cross-entropy of the logits against each chip's soft target: the softmax over ``temperature`` of its
+    :data:`~sar_zero123.model.retrieval.RETRIEVAL_TOP` best bank correlations (the others weigh nothing).
+    """
     target = torch.softmax(top_score.float() / temperature, dim=1)
     log_p = torch.log_softmax(logits.float(), dim=1).gather(1, top_index.long())
     return -(target * log_p).sum(dim=1).mean()
@@ -57,13 +57,12 @@ def train_retrieval(
     log_every: int = 250,
     init: ProxyRetrievalNet | None = None,
 ) -> tuple[ProxyRetrievalNet, dict[int, float]]:
-    """Train a :class:`ProxyRetrievalNet` on :func:`make_retrieval_data`'s chips (AdamW, 200 warm-up steps,
-    cosine decay; :func:`retrieval_loss`), a seeded ``held_out_share`` of them kept out, from ``init``'s
-    weights where given.
+    """Train a ProxyRetrievalNet on :func:`make_retrieval_data`'s chips (AdamW, warm-up, cosine decay),
+    a seeded ``held_out_share`` kept out, from ``init``'s weights where given.
 
     Returns:
-        ``(net, recall)``: the network in eval mode, and the share of held-out chips whose bucket's best
-        vehicle it ranks within its first 1, 8, 32, 64 and 128 (:func:`shortlist_recall`).
+        ``(net, recall)``: the network in eval mode, and the held-out :func:`shortlist_recall` at 1, 8, 32, 64
+        and 128.
 
     Raises:
         ValueError: For fewer chips than a batch, or a non-positive step count, batch or temperature.

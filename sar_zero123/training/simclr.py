@@ -1,7 +1,4 @@
-"""The SimCLR training loop (Eq. 17-18 co-domain views, NT-Xent) over chips held on the device: each step's
-batch and augmentation draw depend only on (seed, step), so a resumed run continues the same sequence.
-Used by the SimCLR stage (:func:`sar_zero123.stages.simclr.run_simclr`), which passes its config.
-"""
+"""The SimCLR training loop (Eq. 17-18 co-domain views, NT-Xent) over chips held on the device."""
 
 from __future__ import annotations
 
@@ -57,11 +54,12 @@ def train_simclr_steps(
     chips: SimCLRChips,
     step: int,
 ) -> SimCLRLoopStats:
-    """Steps ``step`` to ``chips.max_steps`` with ``config``'s (a ``PretrainSimCLRConfig``) seed, batch,
-    augmentation, temperature, logging and checkpoint settings. Each step's batch and augmentation draw
-    depend only on (seed, step), so a resumed run continues the same sequence without storing generator
-    states. With ``config.max_train_minutes`` every process stops at the first step past that many minutes
-    (the step count reached is ``stats.step``)."""
+    """Steps ``step`` to ``chips.max_steps`` of a ``PretrainSimCLRConfig``.
+
+    Each step's batch and augmentation draw depend only on (seed, step), so a resumed run continues the same
+    sequence without stored generator states. With ``config.max_train_minutes`` every process stops at the
+    first step past that time.
+    """
     augmentation = config.augmentation()
     local_batch = config.global_batch_size // accelerator.num_processes
     rank = accelerator.process_index

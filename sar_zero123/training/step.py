@@ -1,17 +1,8 @@
-"""The zero-1-to-3 training step: CFG dropout, frozen encodings, losses (Eq. 21).
+"""The zero-1-to-3 training step: per-micro-batch randomness, CFG dropout, frozen encodings, losses (Eq. 21).
 
-The fine-tune stage (:mod:`sar_zero123.stages.finetune`) only assembles a run around these pieces;
-benchmarks and tests import them from here.
-
-- :func:`micro_batch_generator`: every random draw of one micro-batch from a pure function of
-  ``(seed, micro-batch index, process index)``, which makes resuming bitwise exact.
-- :class:`ImageEmbedder`: the CLIP tower as a module whose ``forward`` includes the preprocessing, so
-  that ``accelerate.prepare`` (DDP, autocast) covers it when the tower is trained.
-- :func:`cfg_dropout_masks` / :func:`dropped_conditioning`: zero-1-to-3's classifier-free-guidance dropout.
-- the cached frozen encodings the step reads when the VAE and tower are frozen are
-  :mod:`sar_zero123.training.latent_cache` (``ChipLatentCache``, ``CachedViewPairs``).
-- :func:`compute_losses`: the per-sample losses of one micro-batch, shaped by one
-  :class:`~sar_zero123.training.losses.LossSettings`.
+The fine-tune stage only assembles a run around these pieces. Every random draw of a micro-batch comes
+from :func:`micro_batch_generator`, which makes resuming bitwise exact; cached frozen encodings are
+:mod:`sar_zero123.training.latent_cache`.
 """
 
 from __future__ import annotations
@@ -70,16 +61,11 @@ def micro_batch_generator(seed: int, batch_index: int, process_index: int) -> to
 class ImageEmbedder(torch.nn.Module):
     """The CLIP image tower as one module whose forward is :func:`encode_image_embeddings`.
 
-    ``accelerate.prepare`` (DDP, FSDP, autocast) only acts on what runs through a prepared module's
-    ``forward``; the library's preprocessing reads the tower's ``config``, ``device`` and ``dtype``, which
-    a DDP wrapper hides. Wrapping the tower here lets the preprocessing run inside the prepared forward.
-
-    Args:
-        image_encoder: The CLIP vision tower with projection.
+    ``accelerate.prepare`` (DDP, autocast) acts only on a prepared module's ``forward``, and the preprocessing
+    reads the tower's ``config``, ``device`` and ``dtype``, which a DDP wrapper hides: so it runs in here.
 
     Shape:
-        - images: ``(B, 1 | 3, H, W)`` normalised dB in [0, 1]
-        - Output: ``(B, 1, projection_dim)``
+        ``(B, 1 | 3, H, W)`` normalised dB in [0, 1] -> ``(B, 1, projection_dim)``.
     """
 
     def __init__(self, image_encoder: CLIPVisionModelWithProjection) -> None:
@@ -130,13 +116,12 @@ def encode_batch(
 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, torch.Tensor]:
     """The conditioning and the diffusion target of a pair batch, from its cached encodings or the models.
 
-    With ``input_depression`` the pose's fourth entry is the input chip's absolute depression
-    (``batch["input_depression_deg"]``, :func:`~sar_zero123.model.conditioning.embed_pose`).
+    With ``input_depression`` the pose's fourth entry is the input chip's absolute depression.
 
     Returns:
         ``(latents, condition_latents, image_embeds, pose)``: the scaled posterior sample of the target
-        (a fresh draw from ``generator``), the unscaled posterior mode of the input, the CLIP embedding of
-        the input (differentiable when the tower is trained) and the pose vector (Eq. 9), all float32.
+        (drawn from ``generator``), the unscaled posterior mode of the input, its CLIP embedding and the
+        pose vector (Eq. 9), all float32.
 
     Shape:
         ``(B, C, h, w)``, ``(B, C, h, w)``, ``(B, 1, D)``, ``(B, 1, 4)``.
@@ -173,17 +158,14 @@ def chosen_proxy_latents(
     oracle_prob: float = 0.0,
 ) -> torch.Tensor | None:
     """Each pair's proxy pair for a ``spatial_pose="proxy"`` model: the best-fitted candidate, or with
-    probability ``runner_up_prob`` one of the runners-up (uniformly), so that the UNet learns to transfer the
-    proxy's change onto the input rather than to copy an exact proxy (one draw from ``generator``). With
-    ``oracle_prob > 0`` the last candidate is the vehicle itself (proxies written with ``oracle=True``), given
-    with that probability: a proxy sometimes to be trusted.
+    probability ``runner_up_prob`` a runner-up, so that the UNet learns to transfer the proxy's change rather
+    than copy it; with ``oracle_prob`` the vehicle itself (the last candidate, written with ``oracle=True``).
 
     Returns:
-        ``(B, 2C, h, w)`` (``batch["proxy_latents"]`` is ``(B, K, 2C, h, w)``), or ``None`` for another model.
+        ``(B, 2C, h, w)`` from ``batch["proxy_latents"]`` ``(B, K, 2C, h, w)``, or ``None`` for another model.
 
     Raises:
-        ValueError: If a proxy model's batch has no ``proxy_latents`` (a corpus without proxies, or uncached
-            pairs).
+        ValueError: If a proxy model's batch has no ``proxy_latents``.
     """
     if not takes_proxy(pose_projection):
         return None
@@ -227,16 +209,12 @@ def conditioning_sensitivity(
 ) -> dict[str, float]:
     """How much the UNet's prediction depends on the pose and on the input view.
 
-    At each timestep, the relative L2 change ``||f(c') - f(c)|| / ||f(c)||`` of the prediction on the same
-    noisy target latents when (a) every ``d_az`` turns by 180 degrees (``pose_t<t>``) and (b) the input views
-    (condition latent and image embedding) are swapped between pairs, the pose kept (``input_t<t>``). A
-    model that ignores its conditioning scores ~0 on both; one that follows the pose, clearly above 0.
-
-    Shape:
-        a pair batch of ``B >= 2``.
+    At each timestep, the relative L2 change of the prediction on the same noisy latents when every ``d_az``
+    turns by 180 degrees (``pose_t<t>``) and when the input views are swapped between pairs (``input_t<t>``).
+    A model that ignores its conditioning scores ~0 on both.
 
     Raises:
-        ValueError: If the batch holds fewer than two pairs (the input swap needs two).
+        ValueError: If the batch holds fewer than two pairs.
     """
     if batch["input"].shape[0] < 2:
         raise ValueError("conditioning_sensitivity needs a batch of at least 2 pairs")
@@ -288,9 +266,6 @@ def dropped_conditioning(
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The UNet's conditioning after zero-1-to-3's CFG dropout (:func:`cfg_dropout_masks`, one draw).
 
-    Dropping the image embedding keeps the pose in the projected token; dropping "both" zeroes the token and
-    the condition latent, the pipeline's sampling null; dropping the latent zeroes the condition latent.
-
     Returns:
         ``(tokens, condition_latents)``.
 
@@ -329,24 +304,16 @@ def compute_losses(
 ) -> LossOutput:
     """Per-sample losses of one micro-batch (zero-1-to-3 conditioning, CFG dropout, Eq. 21).
 
-    The UNet sees ``[x_t, condition latent]`` (the unscaled VAE posterior mode of the input view; only the
-    target latent is scaled; with a spatial pose, also that latent turned by ``d_az``,
-    :func:`~sar_zero123.model.spatial_pose.unet_condition_latents`) and cross-attends to
-    ``pose_projection([CLIP image embedding, pose])``; cached encodings in ``batch``
-    (:class:`~sar_zero123.training.latent_cache.CachedViewPairs`) replace the VAE and a frozen
-    ``image_encoder`` (an :class:`ImageEmbedder`).
-    ``loss_settings`` (:class:`~sar_zero123.training.losses.LossSettings`; ``None``:
-    plain zero-1-to-3 without PFM) sets lambda of Eq. (21) and where PFM applies, the CFG dropout (skipped
-    without ``apply_dropout``, as in validation), the timestep density (:func:`sample_timesteps`), the
-    Min-SNR weighting of L_simple (:func:`min_snr_weights`) and the azimuth loss weight. An
-    ``azimuth_estimator`` (``sar_zero123.model.orientation``) reads the input's azimuth from its condition
-    latent; turned by ``d_az`` it enters the UNet's timestep embedding, and ``azimuth_loss_weight`` times its
-    loss against ``batch["input_azimuth_deg"]`` joins the loss. ``timesteps`` (``(B,)`` integers) replaces
-    the sampled ones, for diagnostics at chosen noise levels.
+    The UNet sees ``[x_t, condition latent]`` (the input's unscaled posterior mode) and cross-attends to
+    ``pose_projection([CLIP image embedding, pose])``; cached encodings in ``batch`` replace the VAE and a
+    frozen ``image_encoder``. ``loss_settings`` (``None``: zero-1-to-3 without PFM) sets everything about the
+    loss; CFG dropout is skipped without ``apply_dropout`` (validation). An ``azimuth_estimator`` reads the
+    input's azimuth from its condition latent, feeds the UNet's timestep embedding and adds its weighted loss
+    against ``batch["input_azimuth_deg"]``. ``timesteps`` replaces the sampled ones, for diagnostics.
 
     Raises:
-        ValueError: If the model has an azimuth estimator and the batch has no ``input_azimuth_deg``, or
-            ``timesteps`` does not hold one integer timestep per sample.
+        ValueError: If an azimuth estimator's batch has no ``input_azimuth_deg``, or ``timesteps`` is not
+            one integer per sample.
 
     Shape:
         ``batch["input"]``, ``batch["target"]``: ``(B, 1, S, S)``; outputs ``(B,)``.
@@ -439,10 +406,9 @@ def compute_losses(
 def min_snr_weights(noise_scheduler: DDPMScheduler, timesteps: torch.Tensor, gamma: float) -> torch.Tensor:
     """Min-SNR-gamma loss weights (Hang et al., 2023), as diffusers' training examples apply them.
 
-    The L_simple of epsilon prediction weighs each sample's x0 error by SNR(t), so nearly all of the loss
-    sits at low noise (fine detail: here, speckle) and almost none at high noise, where the layout of the
-    target view (its pose) is decided. Min-SNR caps that weight at ``gamma``:
-    ``min(SNR, gamma) / SNR`` for epsilon, ``min(SNR, gamma) / (SNR + 1)`` for v prediction.
+    Epsilon L_simple weighs each sample's x0 error by SNR(t), so the loss sits at low noise (speckle) and
+    barely at high noise, where the pose is decided. Min-SNR caps it: ``min(SNR, gamma) / SNR`` for epsilon,
+    ``min(SNR, gamma) / (SNR + 1)`` for v prediction.
 
     Raises:
         ValueError: If ``gamma <= 0`` or the prediction type is not epsilon or v_prediction.
@@ -475,10 +441,8 @@ def sample_timesteps(
 ) -> torch.Tensor:
     """Training timesteps: uniform (DDPM's L_simple), or logit-normal (diffusers' SD3 density).
 
-    ``"logit_normal"`` draws ``u = sigmoid(N(logit_mean, logit_std))`` with
-    :func:`diffusers.training_utils.compute_density_for_timestep_sampling` and takes ``t = floor(u T)``:
-    ``logit_mean > 0`` spends more of the batch at high noise, where the coarse layout (and so the pose)
-    of the target is decided and a model that ignores its conditioning pays most.
+    ``"logit_normal"`` takes ``t = floor(u T)`` with ``u = sigmoid(N(logit_mean, logit_std))``;
+    ``logit_mean > 0`` spends more of the batch at high noise, where the pose of the target is decided.
 
     Raises:
         ValueError: For an unknown ``sampling`` or ``logit_std <= 0``.
@@ -501,11 +465,7 @@ def sample_timesteps(
 def timestep_bucket_losses(
     losses: torch.Tensor, timesteps: torch.Tensor, num_train_timesteps: int, num_buckets: int = 4
 ) -> dict[str, float]:
-    """Mean per-sample loss in equal timestep buckets, for logging where the model learns.
-
-    Returns:
-        ``{"t000-249": value, ...}`` for the buckets that hold at least one sample.
-    """
+    """Mean per-sample loss in equal timestep buckets that hold a sample: ``{"t000-249": value, ...}``."""
     width = math.ceil(num_train_timesteps / num_buckets)
     result = {}
     for k in range(num_buckets):

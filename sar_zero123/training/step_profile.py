@@ -1,11 +1,6 @@
 """One training step of a pipeline's prior, as two calls to profile: the forward and backward, and the
-optimiser's step.
-
-On a GPU every operator is at least one kernel launch, a few microseconds of host time whatever the batch:
-a step that launches thousands of operators is bound by the host when the model is small.
-:func:`prior_training_step` builds the step a prior trains with (:func:`~sar_zero123.training.step.
-compute_losses` on a batch of cached encodings, lambda = 0, the fine-tune's optimiser) on random chips;
-:func:`count_operators` counts the ``aten::`` operator calls of one call.
+optimiser's step. A small model's step on a GPU is bound by the host's kernel launches, so
+:func:`count_operators` counts the ``aten::`` calls.
 """
 
 from __future__ import annotations
@@ -38,20 +33,17 @@ def prior_training_step(
     loop_optimizer: bool = False,
     seed: int = 0,
 ) -> tuple[Callable[[], None], Callable[[], None], torch.optim.Optimizer]:
-    """The training step of a pipeline's prior on one batch of random chips.
+    """The training step of a pipeline's prior (lambda = 0, the fine-tune's optimiser) on random chips.
 
     Args:
-        pipeline: A saved pipeline folder (``resolve_pretrained`` finds a bundled one's).
-        batch_size: Pairs in the batch.
-        device: Where the step runs.
-        bf16: Autocast the forward and backward to bfloat16 (a GPU run's).
+        pipeline: A saved pipeline folder.
+        bf16: Autocast the forward and backward to bfloat16.
         compile_mode: ``torch.compile`` the UNet with this mode (None: eager).
         loop_optimizer: torch's for-loop AdamW instead of the fine-tune's fused one.
-        seed: The chips', the poses' and every micro-batch's draws.
 
     Returns:
-        ``(forward_backward, optimizer_step, optimizer)``: each call of ``forward_backward`` draws its own
-        micro-batch generator and accumulates gradients; ``optimizer_step`` steps and zeroes them.
+        ``(forward_backward, optimizer_step, optimizer)``: each ``forward_backward`` draws its own micro-batch
+        generator and accumulates gradients; ``optimizer_step`` steps and zeroes them.
     """
     device = torch.device(device)
     pipe = SARZero123Pipeline.from_pretrained(pipeline).to(device)

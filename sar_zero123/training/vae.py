@@ -1,8 +1,4 @@
-"""The VAE's training objective (reconstruction + KL, plus an optional feature loss in a frozen SAR encoder)
-and its training loop.
-
-Used by the VAE stage (:func:`sar_zero123.stages.vae.run_vae`); the model is :mod:`sar_zero123.model.vae`.
-"""
+"""The VAE's training objective (reconstruction + KL, plus an optional SAR feature loss) and its loop."""
 
 from __future__ import annotations
 
@@ -27,9 +23,6 @@ __all__ = ["FeatureLoss", "VAEObjective", "train_vae_steps"]
 class FeatureLoss(torch.nn.Module):
     """Squared distance of L2-normalised pooled features of a frozen SAR encoder, per sample: a perceptual
     loss for SAR chips, as LPIPS compares frozen VGG features for RGB images.
-
-    Args:
-        encoder: A ``SAREncoder`` (frozen here); its ``image_size`` must be the chips'.
     """
 
     def __init__(self, encoder: SAREncoder) -> None:
@@ -42,8 +35,9 @@ class FeatureLoss(torch.nn.Module):
         return self
 
     def forward(self, reconstruction: torch.Tensor, images: torch.Tensor) -> torch.Tensor:
-        """Per-sample loss of ``reconstruction`` against ``images``, both normalised dB in [0, 1] (in [0, 2]:
-        the distance of unit vectors). Shape: ``(B, 1, S, S), (B, 1, S, S) -> (B,)``."""
+        """Per-sample loss in [0, 2] of ``reconstruction`` against ``images`` (normalised dB).
+        Shape: ``(B, 1, S, S), (B, 1, S, S) -> (B,)``.
+        """
         with torch.no_grad():
             target = F.normalize(self.encoder(images).float(), dim=1)
         features = F.normalize(self.encoder(reconstruction).float(), dim=1)
@@ -54,11 +48,8 @@ class VAEObjective(torch.nn.Module):
     """``forward`` = per-sample VAE losses, so that data-parallel wrappers see one forward call.
 
     Args:
-        vae: The autoencoder being trained (1 input channel).
         kl_weight: Weight of the KL term (per-sample sum over latent elements).
         reconstruction_loss: ``"l1"`` or ``"l2"`` on the [-1, 1] images.
-        feature_loss: A :class:`FeatureLoss` added to the total with ``feature_loss_weight``; None: none.
-        feature_loss_weight: Its weight (>= 0).
     """
 
     def __init__(
@@ -79,14 +70,10 @@ class VAEObjective(torch.nn.Module):
     def forward(
         self, images: torch.Tensor, generator: torch.Generator | None = None
     ) -> tuple[torch.Tensor, torch.Tensor]:
-        """Per-sample ``(total, reconstruction)`` losses.
-
-        Args:
-            images: Chips, normalised dB in [0, 1].
-            generator: Draws the posterior sample.
+        """Per-sample ``(total, reconstruction)`` losses; ``generator`` draws the posterior sample.
 
         Shape:
-            ``(B, 1, S, S) -> ((B,), (B,))``.
+            ``(B, 1, S, S)`` normalised dB ``-> ((B,), (B,))``.
         """
         pixels = unit_to_signed(images)
         posterior = self.vae.encode(pixels).latent_dist
@@ -107,9 +94,9 @@ def train_vae_steps(
     train_loader: DataLoader,
     global_step: int,
 ) -> int:
-    """Steps ``global_step`` to ``config.max_train_steps`` (``config``: a ``TrainVAEConfig``; posterior
-    samples from a generator seeded per step and process: resumable), checkpointing every
-    ``config.checkpointing_steps``; returns the last step."""
+    """Steps ``global_step`` to ``config.max_train_steps`` of a ``TrainVAEConfig``, checkpointing; returns the
+    last step. Posterior samples come from a generator seeded per step and process, so a run resumes exactly.
+    """
     output_dir = Path(config.output_dir)
     progress = progress_bar(
         total=config.max_train_steps,

@@ -1,9 +1,5 @@
 """Validation of a fine-tuning run: what the model generates for fixed pairs, and whether it uses its
 conditioning.
-
-:func:`validate_pairs` returns the numbers and the ``input | generated | target`` grid of one validation
-batch; :func:`run_validation` runs it with EMA weights swapped in (:func:`ema_weights`) and writes and
-logs the results.
 """
 
 from __future__ import annotations
@@ -45,8 +41,9 @@ def make_grid(inputs: torch.Tensor, generated: torch.Tensor, targets: torch.Tens
 
 @contextmanager
 def ema_weights(pairs: Sequence[tuple[EMAModel | None, torch.nn.Module]]) -> Iterator[None]:
-    """Inside the block each module holds its EMA weights (pairs whose EMA is ``None`` are skipped);
-    afterwards its own weights again, also when the block raises."""
+    """Inside the block each module holds its EMA weights (``None`` EMAs skipped); afterwards, even on an
+    exception, its own.
+    """
     swapped = [(ema, module) for ema, module in pairs if ema is not None]
     for ema, module in swapped:
         ema.store(module.parameters())
@@ -72,23 +69,14 @@ def validate_pairs(
 ) -> tuple[dict[str, float], np.ndarray]:
     """Losses, samples and conditioning checks of one validation batch, the modules in eval mode.
 
-    1. the losses without CFG dropout (:func:`~sar_zero123.training.step.compute_losses`);
-    2. DDIM samples of every pair, from ``torch.Generator().manual_seed(seed)``;
-    3. is the conditioning used? the prediction change under a 180 deg turn and an input swap
-       (:func:`~sar_zero123.training.step.conditioning_sensitivity`) and, with ``regressor``, the regressed
-       azimuth of views generated for several d_az against the requested one (``pose_following``).
+    1. the losses without CFG dropout; 2. DDIM samples of every pair from ``seed``; 3. the prediction change
+    under a 180 deg turn and an input swap and, with ``regressor``, the regressed azimuth of views generated
+    for several d_az against the requested one (``pose_following``).
 
     Args:
-        batch: View pairs (``input``, ``target``, ``d_az_deg``, ``d_el_deg``, ``input_azimuth_deg``).
-        pipe: The pipeline whose ``unet``, ``pose_projection`` and ``image_encoder`` are being trained
-            (unwrapped); its scheduler is replaced by DDIM for sampling.
-        image_embedder: The :class:`~sar_zero123.training.step.ImageEmbedder` around ``pipe.image_encoder``.
-        loss_kwargs: The frozen parts and loss settings of ``compute_losses`` (``vae``, ``encoder``,
-            ``noise_scheduler``, ``pfm_weight``, ...).
-        seed: Seed of the loss draws and of the samples.
-        num_inference_steps: DDIM steps of the samples.
-        guidance_scale: Classifier-free guidance weight of the samples.
-        regressor: An azimuth regressor (``train/train_evaluators.py``) for the pose-following check.
+        pipe: The pipeline being trained (unwrapped modules); its scheduler is replaced by DDIM for sampling.
+        loss_kwargs: The frozen parts and loss settings of ``compute_losses``.
+        regressor: An azimuth regressor for the pose-following check.
 
     Returns:
         ``(logs, grid)``: ``validation/...`` scalars and the ``input | generated | target`` rows.
@@ -173,23 +161,10 @@ def run_validation(
     ema_pairs: Sequence[tuple[EMAModel | None, torch.nn.Module]] = (),
     **kwargs: Any,
 ) -> dict[str, float]:
-    """One validation of a training run, written and logged; call it on the main process.
+    """One validation of a training run with the EMA weights swapped in; call it on the main process.
 
-    :func:`validate_pairs` with the EMA weights swapped in (:func:`ema_weights`); writes
-    ``directory/step-<step>.png`` (the grid), appends ``{"step": step, **logs}`` to
-    ``directory/metrics.jsonl``, logs the scalars to the run's trackers and the grid to TensorBoard when
-    that tracker is active.
-
-    Args:
-        accelerator: The run's accelerator (its trackers).
-        directory: Folder of the grids and ``metrics.jsonl``.
-        step: The optimisation step (file name and log step).
-        batch: The validation pairs.
-        ema_pairs: ``(ema, module)`` pairs for :func:`ema_weights`.
-        **kwargs: The keyword arguments of :func:`validate_pairs` (``pipe``, ``image_embedder``, ...).
-
-    Returns:
-        The logged scalars.
+    Writes ``directory/step-<step>.png``, appends ``{"step": step, **logs}`` to ``directory/metrics.jsonl``
+    and logs to the run's trackers. ``kwargs`` go to :func:`validate_pairs`. Returns the logged scalars.
     """
     with ema_weights(ema_pairs):
         logs, grid = validate_pairs(batch, **kwargs)
