@@ -51,7 +51,7 @@ from sar_zero123.data import (
 )
 from sar_zero123.data.mstar_raw import is_mstar_raw
 from sar_zero123.data.splits import TRAIN_DEPRESSION_DEG
-from sar_zero123.domain import naming_write_errors
+from sar_zero123.domain import MAX_IMAGE_SIZE, naming_write_errors
 from sar_zero123.model.pipeline import MAX_ABS_D_EL_DEG, SARZero123Pipeline
 from sar_zero123.model.sampler import SamplerSettings
 from sar_zero123.pretrained import SIM_PRIOR_PROXY, SIM_PRIOR_ROTATED, resolve_pretrained
@@ -63,7 +63,6 @@ from sar_zero123.runs.stage import open_stage_folder
 __all__ = [
     "DEFAULT_INPUT_DEPRESSION_DEG",
     "GENERATE_MAY_DIFFER",
-    "MAX_IMAGE_SIZE",
     "MAX_VIEWS",
     "GenerateConfig",
     "chip_azimuth_deg",
@@ -81,8 +80,6 @@ MAX_CLIPPED_FRACTION = 0.5
 DEFAULT_INPUT_DEPRESSION_DEG = TRAIN_DEPRESSION_DEG
 #: Most views one call generates: they are sampled as one batch and shown as one contact-sheet row.
 MAX_VIEWS = 64
-#: Largest ``image_size``: 4x the zero-1-to-3 resolution (the allocations grow with its square).
-MAX_IMAGE_SIZE = 1024
 #: What each view's ``.npy`` (and ``.png``) holds, as ``views.json`` says beside them.
 VIEWS_DOMAIN = (
     "normalised dB in [0, 1] (float32 .npy; the .png is the same at 8 bits): dB = min_db + value * (max_db - "

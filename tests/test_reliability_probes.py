@@ -519,3 +519,21 @@ def test_proxy_decibel_bounds_past_any_view_are_refused_by_name(bounds, accepted
         return
     with pytest.raises(ValueError, match=r"^proxy.min_db, proxy.max_db: expected decibels in \[-60, 770.6\]"):
         check_proxy_settings(proxy)
+
+
+def test_the_largest_chip_side_is_declared_once_in_domain():
+    """``MAX_IMAGE_SIZE`` has one declaration (``domain.py``); every stage and command that bounds a chip side
+    imports it, so the bound cannot drift between them."""
+    import sar_zero123
+    import sar_zero123.domain as domain
+    import sar_zero123.generate as generate
+    import sar_zero123.stages.evaluate as evaluate
+    import sar_zero123.stages.evaluators as evaluators
+
+    root = Path(sar_zero123.__file__).parent
+    declared = sorted(path.relative_to(root).as_posix() for path in root.rglob("*.py")
+                      if re.search(r"^MAX_IMAGE_SIZE\s*[:=]", path.read_text(), re.MULTILINE))  # fmt: skip
+    assert declared == ["domain.py"]
+    assert domain.MAX_IMAGE_SIZE == 1024
+    for module in (generate, evaluate, evaluators):
+        assert module.MAX_IMAGE_SIZE == domain.MAX_IMAGE_SIZE and "MAX_IMAGE_SIZE" not in module.__all__
