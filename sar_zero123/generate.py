@@ -27,6 +27,7 @@ printed note.
 
 from __future__ import annotations
 
+import numbers
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -282,8 +283,16 @@ def generate_views(
 
     Returns:
         Views in normalised dB, float32, shape ``(V, H, W)``; with ``return_fit_score``, ``(views, score)``.
+
+    Raises:
+        ValueError: Naming ``seed``, for a seed that is not an integer or whose views' seeds leave int64.
     """
     num_views = len(d_az)
+    if isinstance(seed, bool | np.bool_) or not isinstance(seed, numbers.Integral):
+        kind = type(seed).__name__
+        raise ValueError(f"`seed` must be an integer (view i uses seed + i), got {kind} {seed!r}")
+    if not -(2**63) <= seed <= 2**63 - num_views:  # torch.Generator.manual_seed takes 64-bit seeds
+        raise ValueError(f"`seed` + view index must lie within int64 for {num_views} view(s), got {seed}")
     d_el = list(d_el) * num_views if len(d_el) == 1 else list(d_el)
     images = torch.from_numpy(chip)[None, None].expand(num_views, -1, -1, -1)  # (V, 1, H, W)
     generators = [torch.Generator(pipe.device).manual_seed(seed + i) for i in range(num_views)]
@@ -381,8 +390,12 @@ def main(argv: Sequence[str] | None = None) -> Path:
             )
         elif source == "file":
             print(f"note: input depression {input_depression_deg:g} deg, read from {config.image!r}")
-    elif config.input_depression is not None:
-        print("note: this pipeline's pose does not take the input's depression; ignoring --input_depression")
+    else:  # a depression given or recorded bounds the target depression only (the pose does not take it)
+        input_depression_deg, source = resolve_input_depression(config.image, config.input_depression)
+        input_depression_deg = None if source == "default" else input_depression_deg
+        if config.input_depression is not None:
+            print("note: this pipeline's pose does not take the input's depression; --input_depression only "
+                  "bounds the target depression (input + d_el) to (0, 90) deg")  # fmt: skip
     input_azimuth_deg = config.input_azimuth
     if input_azimuth_deg is None:
         input_azimuth_deg = chip_azimuth_deg(config.image)
