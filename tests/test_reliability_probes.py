@@ -325,9 +325,9 @@ PROBES: list[tuple[str, str, Argv, int, str]] = [
      r"error: num_vehicles must be >= 2, got -1"),
     ("simulate a class that is a path", "simulate",
      lambda i: [*_simulate(i, "p72"), "--classes", "../x"], 2,
-     r"error: classes: unknown or empty \['TANK', '../X'\]; expected names from \('TANK', "),
+     r"error: classes: \['../X'\] not among the simulator's classes \['TANK', 'APC', .*'SCOUT'\] \(--"),
     ("simulate an empty class name", "simulate", lambda i: [*_simulate(i, "p73"), "--classes", ""], 2,
-     r"error: classes: unknown or empty \['TANK', ''\]"),
+     r"error: classes: \[''\] not among the simulator's classes \['TANK', 'APC', "),
     ("simulate a class given twice", "simulate",
      lambda i: [*_simulate(i, "p74"), "--classes", "TANK", "TANK"],
      2, r"error: classes: duplicate names in \['TANK', 'TANK', 'TANK'\] \(each would be written twice\)"),
@@ -479,6 +479,10 @@ QUICKSTART_PROBES: list[tuple[str, str, str]] = [
      r"'1_000' \(line 2\) is a number only in YAML 1.1's loose forms \(read as 1000\)"),
     ("recipe learning rate .inf", "evaluators:\n  evaluator_learning_rate: .inf\n",
      r"evaluator_learning_rate"),
+    ("a class the simulator lacks", "simulate.classes=['NOPE', 'TANK']",
+     r"classes: \['NOPE'\] not among the simulator's classes \['TANK', 'APC', 'TRUCK', .*'SCOUT'\]"),
+    ("one class (the last is held out)", "simulate.classes=APC",
+     r"must name at least two distinct classes, got \['APC'\]; expected names from \['TANK', 'APC', "),
 ]  # fmt: skip
 
 
