@@ -379,6 +379,9 @@ PROBES: list[tuple[str, str, Argv, int, str]] = [
      r"error: max_chips_per_class must be >= 1 or None, got -1"),
     ("augment a class the data lacks", "augment", lambda i: _augment(i, "p95", "--classes", "NOPE"), 2,
      r"error: classes: \['NOPE'\] not in the dataset, which lists \['TANK'\]"),
+    ("augment an index row climbing out of its folder", "augment",
+     lambda i: _augment(i, "p97", data=_index_with(i, "idx_dotdot", "path", "../chip.png")), 2,
+     r"error: .*idx_dotdot/index.csv:2: column 'path' '../chip.png' leads out of the data folder"),
 ]  # fmt: skip
 
 
