@@ -55,6 +55,7 @@ from sar_zero123.data.splits import TRAIN_DEPRESSION_DEG
 from sar_zero123.domain import MAX_IMAGE_SIZE, naming_write_errors
 from sar_zero123.model.pipeline import MAX_ABS_D_EL_DEG, SARZero123Pipeline
 from sar_zero123.model.sampler import SamplerSettings
+from sar_zero123.model.view_request import check_target_depression
 from sar_zero123.pretrained import SIM_PRIOR_PROXY, SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import RunFolder, StageTimer, data_identity, finish_run
@@ -391,8 +392,10 @@ def main(argv: Sequence[str] | None = None) -> Path:
         elif source == "file":
             print(f"note: input depression {input_depression_deg:g} deg, read from {config.image!r}")
     else:  # a depression given or recorded bounds the target depression only (the pose does not take it)
-        input_depression_deg, source = resolve_input_depression(config.image, config.input_depression)
-        input_depression_deg = None if source == "default" else input_depression_deg
+        depression, source = resolve_input_depression(config.image, config.input_depression)
+        if source != "default":
+            d_el = torch.tensor(config.d_el, dtype=torch.float64)
+            check_target_depression(torch.full_like(d_el, depression), d_el)
         if config.input_depression is not None:
             print("note: this pipeline's pose does not take the input's depression; --input_depression only "
                   "bounds the target depression (input + d_el) to (0, 90) deg")  # fmt: skip

@@ -653,7 +653,8 @@ def test_valid_edge_values_of_a_call_still_sample(counted_pipe, kwargs):
 
 def test_generate_refuses_a_target_depression_past_the_horizon_from_a_depression_it_was_given(inputs, capsys):
     """The dummy pipeline's pose does not take the input's depression; a given one still bounds the target
-    (40 + 60 = 100 deg), through the pipeline's own pose check, before the folder is opened."""
+    (40 + 60 = 100 deg) by the shared pose check (``view_request.check_target_depression``), before the
+    pipeline is called or the folder opened."""
     argv = _generate(inputs, "p96", "--d_el", "60", "--input_depression", "40")
     ending = run_console("generate", argv, capsys)
     assert ending.status == 2, ending
