@@ -41,8 +41,9 @@ __all__ = [
 #: Added to magnitudes before the logarithm, so zero magnitude is -60 dB rather than -inf.
 DB_EPS = 1e-3
 
-#: The largest chip side in pixels a training stage resizes its chips to: a bound on what ``image_size``
-#: allocates, checked by the config before any chip is read or simulated.
+#: The largest chip side in pixels any stage or command works at (4x the zero-1-to-3 resolution; the
+#: allocations grow with its square): a bound on what ``image_size`` and the scoring sizes allocate,
+#: checked by each config before any chip is read or simulated.
 MAX_IMAGE_SIZE = 1024
 
 #: The file that lists a chip folder's chips, one row per chip.

@@ -18,6 +18,7 @@ chip file's, else :data:`DEFAULT_INPUT_DEPRESSION_DEG` with a printed note.
 
 from __future__ import annotations
 
+import numbers
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -42,9 +43,10 @@ from sar_zero123.data import (
 )
 from sar_zero123.data.mstar_raw import is_mstar_raw
 from sar_zero123.data.splits import TRAIN_DEPRESSION_DEG
-from sar_zero123.domain import naming_write_errors
+from sar_zero123.domain import MAX_IMAGE_SIZE, naming_write_errors
 from sar_zero123.model.pipeline import MAX_ABS_D_EL_DEG, SARZero123Pipeline
 from sar_zero123.model.sampler import SamplerSettings
+from sar_zero123.model.view_request import check_target_depression
 from sar_zero123.pretrained import SIM_PRIOR_PROXY, SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import RunFolder, StageTimer, data_identity, finish_run
@@ -54,7 +56,6 @@ from sar_zero123.runs.stage import open_stage_folder
 __all__ = [
     "DEFAULT_INPUT_DEPRESSION_DEG",
     "GENERATE_MAY_DIFFER",
-    "MAX_IMAGE_SIZE",
     "MAX_VIEWS",
     "GenerateConfig",
     "chip_azimuth_deg",
@@ -72,8 +73,6 @@ MAX_CLIPPED_FRACTION = 0.5
 DEFAULT_INPUT_DEPRESSION_DEG = TRAIN_DEPRESSION_DEG
 #: Most views one call generates: they are sampled as one batch and shown as one contact-sheet row.
 MAX_VIEWS = 64
-#: Largest ``image_size``: 4x the zero-1-to-3 resolution (the allocations grow with its square).
-MAX_IMAGE_SIZE = 1024
 #: What each view's ``.npy`` (and ``.png``) holds, as ``views.json`` says beside them.
 VIEWS_DOMAIN = (
     "normalised dB in [0, 1] (float32 .npy; the .png is the same at 8 bits): dB = min_db + value * (max_db - "
@@ -243,8 +242,16 @@ def generate_views(
 
     Returns:
         Views in normalised dB, float32 ``(V, H, W)``; with ``return_fit_score``, ``(views, score)``.
+
+    Raises:
+        ValueError: Naming ``seed``, for a seed that is not an integer or whose views' seeds leave int64.
     """
     num_views = len(d_az)
+    if isinstance(seed, bool | np.bool_) or not isinstance(seed, numbers.Integral):
+        kind = type(seed).__name__
+        raise ValueError(f"`seed` must be an integer (view i uses seed + i), got {kind} {seed!r}")
+    if not -(2**63) <= seed <= 2**63 - num_views:  # torch.Generator.manual_seed takes 64-bit seeds
+        raise ValueError(f"`seed` + view index must lie within int64 for {num_views} view(s), got {seed}")
     d_el = list(d_el) * num_views if len(d_el) == 1 else list(d_el)
     images = torch.from_numpy(chip)[None, None].expand(num_views, -1, -1, -1)  # (V, 1, H, W)
     generators = [torch.Generator(pipe.device).manual_seed(seed + i) for i in range(num_views)]
@@ -330,8 +337,14 @@ def main(argv: Sequence[str] | None = None) -> Path:
             )
         elif source == "file":
             print(f"note: input depression {input_depression_deg:g} deg, read from {config.image!r}")
-    elif config.input_depression is not None:
-        print("note: this pipeline's pose does not take the input's depression; ignoring --input_depression")
+    else:  # a depression given or recorded bounds the target depression only (the pose does not take it)
+        depression, source = resolve_input_depression(config.image, config.input_depression)
+        if source != "default":
+            d_el = torch.tensor(config.d_el, dtype=torch.float64)
+            check_target_depression(torch.full_like(d_el, depression), d_el)
+        if config.input_depression is not None:
+            print("note: this pipeline's pose does not take the input's depression; --input_depression only "
+                  "bounds the target depression (input + d_el) to (0, 90) deg")  # fmt: skip
     input_azimuth_deg = config.input_azimuth
     if input_azimuth_deg is None:
         input_azimuth_deg = chip_azimuth_deg(config.image)

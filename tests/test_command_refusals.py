@@ -164,7 +164,7 @@ def test_augment_restart_into_a_link_to_its_own_data_is_refused_and_moves_nothin
 
 
 @pytest.mark.parametrize("outside", ["absolute", "relative"])
-def test_augment_reads_a_chip_its_index_names_outside_the_folder_and_writes_only_under_out(
+def test_augment_reads_an_absolute_chip_path_refuses_one_climbing_out_and_writes_only_under_out(
     monkeypatch, capsys, augment_inputs, tmp_path, outside
 ):
     pipeline, original = augment_inputs
@@ -178,6 +178,16 @@ def test_augment_reads_a_chip_its_index_names_outside_the_folder_and_writes_only
     (data / "index.csv").write_text("\n".join([lines[0], ",".join(first), *lines[2:]]) + "\n")
     before, secret_bytes = set(tmp_path.rglob("*")), secret.read_bytes()
     out = tmp_path / "out"
+    if outside == "relative":  # a relative path is read under the folder, never above it
+        message = refusal(monkeypatch, capsys, "augment", *augment_args(pipeline, data, out))
+        assert message == (
+            f"{data / 'index.csv'}:2: column 'path' '../secret.npy' leads out of the data folder {data}; a "
+            "relative path must stay inside it"
+        )
+        release_output_folder(out)  # what the command's process does at exit: its lock file goes
+        assert set(tmp_path.rglob("*")) == before and secret.read_bytes() == secret_bytes
+        return
+    # an absolute path names its file outright (augment lists the real chips it keeps in place so)
     status, printed, _ = run_console(monkeypatch, capsys, "augment", *augment_args(pipeline, data, out))
     assert status == 0 and printed[-1] == str(out)
     written = {path for path in set(tmp_path.rglob("*")) - before if path != out}

@@ -302,13 +302,17 @@ def test_depression_recorded_in_the_chip_file_is_used(registry_dir, tmp_path, ca
                                   given["view_00_daz+030.00_del+00.00.npy"])  # fmt: skip
 
 
-def test_input_depression_is_ignored_with_a_note_by_a_pipeline_without_it(pipeline_dir, chip_png, tmp_path,
+def test_input_depression_only_bounds_the_target_on_a_pipeline_without_it(pipeline_dir, chip_png, tmp_path,
                                                                             capsys):
+    """The views are those of a call without it; a target past (0, 90) deg is refused (see
+    test_reliability_probes)."""
     argv = ["--pipeline", str(pipeline_dir), "--image", str(chip_png), "--d-az", "30"]
     _, plain = _run(tmp_path, "plain", *argv)
     assert capsys.readouterr().out == ""
     _, given = _run(tmp_path, "given", *argv, "--input_depression", "40")
-    assert "ignoring --input_depression" in capsys.readouterr().out
+    assert "--input_depression only bounds the target depression (input + d_el) to (0, 90) deg" in (
+        capsys.readouterr().out
+    )
     name = "view_00_daz+030.00_del+00.00.npy"
     np.testing.assert_array_equal(plain[name], given[name])
 

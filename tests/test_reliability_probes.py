@@ -25,6 +25,7 @@ from pathlib import Path
 import numpy as np
 import PIL.Image
 import pytest
+import torch
 from dummies import get_dummy_components
 
 from sar_zero123 import cli
@@ -324,9 +325,9 @@ PROBES: list[tuple[str, str, Argv, int, str]] = [
      r"error: num_vehicles must be >= 2, got -1"),
     ("simulate a class that is a path", "simulate",
      lambda i: [*_simulate(i, "p72"), "--classes", "../x"], 2,
-     r"error: classes: unknown or empty \['TANK', '../X'\]; expected names from \('TANK', "),
+     r"error: classes: \['../X'\] not among the simulator's classes \['TANK', 'APC', .*'SCOUT'\] \(--"),
     ("simulate an empty class name", "simulate", lambda i: [*_simulate(i, "p73"), "--classes", ""], 2,
-     r"error: classes: unknown or empty \['TANK', ''\]"),
+     r"error: classes: \[''\] not among the simulator's classes \['TANK', 'APC', "),
     ("simulate a class given twice", "simulate",
      lambda i: [*_simulate(i, "p74"), "--classes", "TANK", "TANK"],
      2, r"error: classes: duplicate names in \['TANK', 'TANK', 'TANK'\] \(each would be written twice\)"),
@@ -378,6 +379,9 @@ PROBES: list[tuple[str, str, Argv, int, str]] = [
      r"error: max_chips_per_class must be >= 1 or None, got -1"),
     ("augment a class the data lacks", "augment", lambda i: _augment(i, "p95", "--classes", "NOPE"), 2,
      r"error: classes: \['NOPE'\] not in the dataset, which lists \['TANK'\]"),
+    ("augment an index row climbing out of its folder", "augment",
+     lambda i: _augment(i, "p97", data=_index_with(i, "idx_dotdot", "path", "../chip.png")), 2,
+     r"error: .*idx_dotdot/index.csv:2: column 'path' '../chip.png' leads out of the data folder"),
 ]  # fmt: skip
 
 
@@ -478,6 +482,10 @@ QUICKSTART_PROBES: list[tuple[str, str, str]] = [
      r"'1_000' \(line 2\) is a number only in YAML 1.1's loose forms \(read as 1000\)"),
     ("recipe learning rate .inf", "evaluators:\n  evaluator_learning_rate: .inf\n",
      r"evaluator_learning_rate"),
+    ("a class the simulator lacks", "simulate.classes=['NOPE', 'TANK']",
+     r"classes: \['NOPE'\] not among the simulator's classes \['TANK', 'APC', 'TRUCK', .*'SCOUT'\]"),
+    ("one class (the last is held out)", "simulate.classes=APC",
+     r"must name at least two distinct classes, got \['APC'\]; expected names from \['TANK', 'APC', "),
 ]  # fmt: skip
 
 
@@ -519,3 +527,159 @@ def test_proxy_decibel_bounds_past_any_view_are_refused_by_name(bounds, accepted
         return
     with pytest.raises(ValueError, match=r"^proxy.min_db, proxy.max_db: expected decibels in \[-60, 770.6\]"):
         check_proxy_settings(proxy)
+
+
+def test_the_largest_chip_side_is_declared_once_in_domain():
+    """``MAX_IMAGE_SIZE`` has one declaration (``domain.py``); every stage and command that bounds a chip side
+    imports it, so the bound cannot drift between them."""
+    import sar_zero123
+    import sar_zero123.domain as domain
+    import sar_zero123.generate as generate
+    import sar_zero123.stages.evaluate as evaluate
+    import sar_zero123.stages.evaluators as evaluators
+
+    root = Path(sar_zero123.__file__).parent
+    declared = sorted(path.relative_to(root).as_posix() for path in root.rglob("*.py")
+                      if re.search(r"^MAX_IMAGE_SIZE\s*[:=]", path.read_text(), re.MULTILINE))  # fmt: skip
+    assert declared == ["domain.py"]
+    assert domain.MAX_IMAGE_SIZE == 1024
+    for module in (generate, evaluate, evaluators):
+        assert module.MAX_IMAGE_SIZE == domain.MAX_IMAGE_SIZE and "MAX_IMAGE_SIZE" not in module.__all__
+
+
+@pytest.fixture(scope="module")
+def counted_pipe() -> tuple[SARZero123Pipeline, dict[str, int]]:
+    """The tiny random pipeline, counting its UNet calls (a refusal comes before the first)."""
+    pipe = SARZero123Pipeline(**get_dummy_components())
+    pipe.set_progress_bar_config(disable=True)
+    calls = {"unet": 0}
+    forward = pipe.unet.forward
+
+    def counting(*args, **kwargs):
+        calls["unet"] += 1
+        return forward(*args, **kwargs)
+
+    pipe.unet.forward = counting
+    return pipe, calls
+
+
+LATENT = (1, 4, 16, 16)  # one sample of the 32 px dummy pipeline
+#: (id, call arguments, a regex the one-line ValueError matches): SARZero123Pipeline.__call__ refuses each
+#: before any UNet call, naming the argument and what it expected, as diffusers' check_inputs does.
+CALL_PROBES: list[tuple[str, dict, str]] = [
+    ("d_el 90 from a 17 deg input (target 107)", {"d_el": 90.0, "input_depression_deg": 17.0},
+     r"^`d_el` 90 from an input depression of 17 deg asks for a target depression of 107 deg; "
+     r"input_depression_deg \+ d_el must lie in \(0, 90\) degrees$"),
+    ("d_el -20 from a 17 deg input (target -3)", {"d_el": -20.0, "input_depression_deg": 17.0},
+     r"^`d_el` -20 from an input depression of 17 deg asks for a target depression of -3 deg"),
+    ("one of two targets at exactly 90", {"batch": 2, "d_el": [10.0, 50.0], "input_depression_deg": 40.0},
+     r"^`d_el` 50 from an input depression of 40 deg asks for a target depression of 90 deg"),
+    ("steps 0", {"num_inference_steps": 0}, r"^`num_inference_steps` must be an integer >= 1, got 0$"),
+    ("steps -1", {"num_inference_steps": -1}, r"^`num_inference_steps` must be an integer >= 1, got -1$"),
+    ("steps 1.5", {"num_inference_steps": 1.5}, r"^`num_inference_steps` must be an integer >= 1, got 1.5$"),
+    ("steps True", {"num_inference_steps": True},
+     r"^`num_inference_steps` must be an integer >= 1, got True$"),
+    ("steps 10**9", {"num_inference_steps": 10**9},
+     r"^`num_inference_steps` must be <= 1000 \(the scheduler's num_train_timesteps\), got 1000000000$"),
+    ("guidance nan", {"guidance_scale": float("nan")}, r"^`guidance_scale` must be finite, got nan$"),
+    ("guidance inf", {"guidance_scale": float("inf")}, r"^`guidance_scale` must be finite, got inf$"),
+    ("guidance negative", {"guidance_scale": -1.0},
+     r"^`guidance_scale` must be >= 0 \(<= 1 turns guidance off\), got -1.0$"),
+    ("guidance a str", {"guidance_scale": "3"}, r"^`guidance_scale` must be a real number, got str '3'$"),
+    ("guidance a bool", {"guidance_scale": True}, r"^`guidance_scale` must be a real number, got bool True$"),
+    ("strength 0", {"strength": 0.0}, r"^strength must lie in \(0, 1\], got 0.0$"),
+    ("strength -0.5", {"strength": -0.5}, r"^strength must lie in \(0, 1\], got -0.5$"),
+    ("strength 1.5", {"strength": 1.5}, r"^strength must lie in \(0, 1\], got 1.5$"),
+    ("strength nan", {"strength": float("nan")}, r"^strength must lie in \(0, 1\], got nan$"),
+    ("latents of another shape", {"latents": torch.zeros(1, 4, 8, 8)},
+     r"^`latents` must have shape \(1, 4, 16, 16\), got \(1, 4, 8, 8\)$"),
+    ("latents NaN", {"latents": torch.full(LATENT, float("nan"))}, r"^`latents` contains NaN or inf values$"),
+    ("latents int64", {"latents": torch.zeros(LATENT, dtype=torch.int64)},
+     r"^`latents` must be a floating-point tensor \(Gaussian noise\), got torch.int64$"),
+    ("latents bool", {"latents": torch.zeros(LATENT, dtype=torch.bool)},
+     r"^`latents` must be a floating-point tensor \(Gaussian noise\), got torch.bool$"),
+    ("latents complex", {"latents": torch.zeros(LATENT, dtype=torch.complex64)},
+     r"^`latents` must be a floating-point tensor \(Gaussian noise\), got torch.complex64$"),
+    ("latents a numpy array", {"latents": np.zeros(LATENT, np.float32)},
+     r"^`latents` must be a torch.Tensor of shape \(1, 4, 16, 16\), got ndarray$"),
+    ("two generators for one sample", {"generator": [torch.Generator(), torch.Generator()]},
+     r"^`generator` is a list of 2 generators; expected one per output sample, batch 1 x "
+     r"num_images_per_prompt 1 = 1$"),
+    ("no generators in a list", {"generator": []}, r"^`generator` is a list of 0 generators"),
+    ("a seed as the generator", {"generator": 0},
+     r"^`generator` must be a torch.Generator .*got 0; a seed s is torch.Generator\(\).manual_seed\(s\)$"),
+    ("a seed string as the generator", {"generator": "0"},
+     r"^`generator` must be a torch.Generator .*got '0'"),
+    ("images per prompt True", {"num_images_per_prompt": True},
+     r"^`num_images_per_prompt` must be an integer in \[1, 1,024\], got True$"),
+    ("images per prompt 10**6", {"num_images_per_prompt": 10**6},
+     r"^`num_images_per_prompt` must be an integer in \[1, 1,024\], got 1000000$"),
+]  # fmt: skip
+
+
+@pytest.mark.parametrize(("kwargs", "line"), [p[1:] for p in CALL_PROBES], ids=[p[0] for p in CALL_PROBES])
+def test_a_hostile_call_argument_is_refused_in_one_value_error_before_any_unet_call(
+    counted_pipe, kwargs, line
+):
+    pipe, calls = counted_pipe
+    calls["unet"] = 0
+    arguments = {"d_az": 30.0, "num_inference_steps": 2, "output_type": "np", **kwargs}
+    batch = arguments.pop("batch", 1)
+    with pytest.raises(ValueError) as refused:
+        pipe(torch.full((batch, 1, 32, 32), 0.5), **arguments)
+    assert re.search(line, str(refused.value)) and "\n" not in str(refused.value), refused.value
+    assert calls["unet"] == 0
+
+
+@pytest.mark.parametrize(
+    "kwargs",
+    [{"num_inference_steps": np.int64(2)}, {"num_images_per_prompt": np.int64(2)}, {"guidance_scale": 0.0},
+     {"guidance_scale": 1.0}, {"strength": 0.5}, {"strength": 1.0},
+     {"latents": torch.zeros(LATENT, dtype=torch.float64)},
+     {"latents": torch.zeros(LATENT, dtype=torch.float16)},
+     {"d_el": 72.0, "input_depression_deg": 17.0}, {"d_el": -16.5, "input_depression_deg": 17.0}],
+    ids=["steps np.int64", "images np.int64", "guidance 0", "guidance 1", "strength 0.5", "strength 1",
+         "latents float64", "latents float16", "target 89", "target 0.5"],
+)  # fmt: skip
+def test_valid_edge_values_of_a_call_still_sample(counted_pipe, kwargs):
+    pipe, calls = counted_pipe
+    calls["unet"] = 0
+    arguments = {"d_az": 30.0, "num_inference_steps": 2, "output_type": "np", **kwargs}
+    generator = torch.Generator().manual_seed(0)
+    images = pipe(torch.full((1, 1, 32, 32), 0.5), generator=generator, **arguments).images
+    assert images.shape == (arguments.get("num_images_per_prompt", 1), 32, 32, 1)
+    assert np.isfinite(images).all() and calls["unet"] >= 1
+
+
+def test_generate_refuses_a_target_depression_past_the_horizon_from_a_depression_it_was_given(inputs, capsys):
+    """The dummy pipeline's pose does not take the input's depression; a given one still bounds the target
+    (40 + 60 = 100 deg) by the shared pose check (``view_request.check_target_depression``), before the
+    pipeline is called or the folder opened."""
+    argv = _generate(inputs, "p96", "--d_el", "60", "--input_depression", "40")
+    ending = run_console("generate", argv, capsys)
+    assert ending.status == 2, ending
+    assert ending.line == (
+        "sar-zero123-generate: error: `d_el` 60 from an input depression of 40 deg asks for a target "
+        "depression of 100 deg; input_depression_deg + d_el must lie in (0, 90) degrees (--traceback shows "
+        "where)"
+    )
+    assert not (inputs["root"] / "p96").exists()
+
+
+@pytest.mark.parametrize(
+    ("seed", "line"),
+    [(1.5, r"^`seed` must be an integer \(view i uses seed \+ i\), got float 1.5$"),
+     (True, r"^`seed` must be an integer \(view i uses seed \+ i\), got bool True$"),
+     ("0", r"^`seed` must be an integer \(view i uses seed \+ i\), got str '0'$"),
+     (2**63 - 1, r"^`seed` \+ view index must lie within int64 for 2 view\(s\), got 9223372036854775807$")],
+)  # fmt: skip
+def test_generate_views_refuses_a_seed_that_is_no_int64_integer(counted_pipe, seed, line):
+    from sar_zero123.generate import generate_views
+    from sar_zero123.model.sampler import SamplerSettings
+
+    pipe, calls = counted_pipe
+    calls["unet"] = 0
+    chip = np.full((32, 32), 0.5, np.float32)
+    with pytest.raises(ValueError, match=line):
+        generate_views(pipe, chip, [0.0, 90.0], [0.0], SamplerSettings(num_inference_steps=1), seed)
+    assert calls["unet"] == 0

@@ -13,6 +13,7 @@ Two layouts are read by :func:`load_index`:
 from __future__ import annotations
 
 import csv
+import io
 import math
 import os
 import stat
@@ -114,10 +115,56 @@ def _parse_optional_int(value: str | None, column: str, where: str) -> int | Non
         raise ValueError(f"{where}: column '{column}' must be an integer, got {value!r}") from None
 
 
+def _index_text(index_path: Path) -> str:
+    """The index file as text, refused in one line where it is empty or not UTF-8.
+
+    utf-8-sig: spreadsheet programs save CSV with a byte-order mark, which would rename the first column.
+
+    Raises:
+        ValueError: Naming the file, and for a byte that is not UTF-8 its line and column.
+    """
+    data = index_path.read_bytes()
+    try:
+        text = data.decode("utf-8-sig")
+    except UnicodeDecodeError as error:
+        line = data.count(b"\n", 0, error.start) + 1
+        field = data[data.rfind(b"\n", 0, error.start) + 1 : error.start].count(b",")
+        header = data.split(b"\n", 1)[0].decode("utf-8-sig", "replace").strip().split(",")
+        column = f"column {header[field]!r}" if line > 1 and field < len(header) else "the header"
+        raise ValueError(
+            f"{index_path}:{line}: {column} holds the byte 0x{data[error.start]:02x}, which is not UTF-8; "
+            "save the index as UTF-8 text"
+        ) from None
+    if not text.strip():
+        expected = list(REQUIRED_COLUMNS)
+        raise ValueError(f"{index_path}: the file is empty; expected a header line with {expected}")
+    return text
+
+
+def _chip_path(root: Path, value: str, where: str) -> Path:
+    """A row's ``path`` as the file it names: relative paths are read under the data folder ``root`` and
+    never above it; an absolute path (how ``augment`` lists the real chips it keeps in place) as written.
+
+    Raises:
+        ValueError: Naming the file, the line and the column, for an empty path, a NUL byte, or a relative
+            path that climbs out of ``root`` with ``..``.
+    """
+    if not value or "\0" in value:
+        raise ValueError(f"{where}: column 'path' must name a chip file, got {value!r}")
+    if Path(value).is_absolute():
+        return root / value
+    relative = os.path.normpath(value)
+    if relative == os.pardir or relative.startswith(os.pardir + os.sep):
+        raise ValueError(
+            f"{where}: column 'path' {value!r} leads out of the data folder {root}; a relative path must "
+            "stay inside it"
+        )
+    return root / relative
+
+
 def _read_index_csv(index_path: Path) -> list[ChipRecord]:
     root = index_path.parent.resolve()
-    # utf-8-sig: spreadsheet programs save CSV with a byte-order mark, which would rename the first column
-    with open(index_path, newline="", encoding="utf-8-sig") as handle:
+    with io.StringIO(_index_text(index_path), newline="") as handle:
         reader = csv.DictReader(handle)
         columns = reader.fieldnames or []
         missing = [name for name in REQUIRED_COLUMNS if name not in columns]
@@ -137,7 +184,7 @@ def _read_index_csv(index_path: Path) -> list[ChipRecord]:
             where = f"{index_path}:{line_number}"
             if None in row or any(row[name] is None for name in columns):
                 raise ValueError(f"{where}: expected {len(columns)} fields, got a row of a different length")
-            path = root / row["path"]
+            path = _chip_path(root, row["path"], where)
             if path in first_line:
                 line, target_class = first_line[path]
                 what = (
@@ -283,10 +330,10 @@ def load_index(root: str | Path) -> list[ChipRecord]:
 
     Raises:
         FileNotFoundError: If ``root`` does not exist or a path in the index does not exist.
-        ValueError: If the index misses a required column or has an unknown one, a value is malformed
-            or out of range (azimuth outside [0, 360), depression outside (0, 90); the message names
-            the file and line), a chip file is listed twice
-            (or under two classes), or the folder holds no chips.
+        ValueError: If the index is empty or not UTF-8, misses a required column or has an unknown one, a
+            value is malformed or out of range (azimuth outside [0, 360), depression outside (0, 90), a
+            relative path that leads out of the folder; the message names the file, line and column), a
+            chip file is listed twice (or under two classes), or the folder holds no chips.
     """
     root = Path(root)
     if not root.is_dir():

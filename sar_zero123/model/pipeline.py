@@ -451,7 +451,8 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
             :class:`SARZero123PipelineOutput`, or ``(images,)`` when ``return_dict`` is False.
 
         Raises:
-            ValueError: For invalid images, angles, sizes, counts or generators, naming the argument.
+            ValueError: For invalid images, angles, sizes, counts, sampler values, generators or latents,
+                naming the argument, before any UNet call.
         """
         # 1. check inputs; a sampler argument left None is the pipeline's recorded value, else the library's
         if isinstance(callback_on_step_end, PipelineCallback | MultiPipelineCallbacks):
@@ -473,6 +474,10 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
             request, start_image, sampler["start_from"], image_to_image
         )
         check_generators(generator, request.batch_size, num_images_per_prompt)
+        if latents is not None:  # refused before any encoding or UNet call
+            height, width = (side // self.vae_scale_factor for side in images.shape[-2:])
+            num_samples = request.batch_size * num_images_per_prompt
+            check_latents(latents, (num_samples, self.vae.config.latent_channels, height, width))
         device = self._execution_device
 
         # 2. encode the condition of every guidance branch (once per input image, then repeated per sample)

@@ -24,10 +24,13 @@ from sar_zero123.model.sampler import MAX_GUIDANCE_SCALE, START_FROM, _check_str
 from sar_zero123.model.spatial_pose import condition_channels
 
 __all__ = [
-    "OUTPUT_TYPES", "ImageInput", "callback_latents", "check_call_arguments", "check_components",
-    "check_finite_output", "check_generators", "check_latents", "check_vae_image_size", "image_batch",
+    "MAX_IMAGES_PER_PROMPT", "OUTPUT_TYPES", "ImageInput", "callback_latents", "check_call_arguments",
+    "check_components", "check_finite_output", "check_generators", "check_latents", "check_vae_image_size",
+    "image_batch",
 ]  # fmt: skip
 
+#: Most samples per input image in one call: the call holds every sample's latents and conditions at once.
+MAX_IMAGES_PER_PROMPT = 1024
 ImageInput = PIL.Image.Image | np.ndarray | torch.Tensor | Sequence[PIL.Image.Image] | Sequence[np.ndarray]
 OUTPUT_TYPES = ("pil", "np", "pt", "latent")
 
@@ -222,11 +225,11 @@ def check_call_arguments(
         scheduler: The pipeline's; a call runs at most its ``num_train_timesteps`` steps.
 
     Raises:
-        TypeError: For a guidance scale that is not a real number.
-        ValueError: Naming the argument, for anything out of range.
+        ValueError: Naming the argument and what was expected, for a value of another type (a boolean
+            included) or out of range.
     """
     num_inference_steps, guidance_scale = sampler["num_inference_steps"], sampler["guidance_scale"]
-    if not isinstance(num_inference_steps, numbers.Integral) or num_inference_steps < 1:
+    if not _is_integer(num_inference_steps) or num_inference_steps < 1:
         raise ValueError(f"`num_inference_steps` must be an integer >= 1, got {num_inference_steps!r}")
     # more steps than the schedule has timesteps repeat timesteps (or hang a loop of millions of steps)
     max_steps = int(getattr(scheduler.config, "num_train_timesteps", 1000))
@@ -237,15 +240,20 @@ def check_call_arguments(
         )
     if isinstance(guidance_scale, bool) or not isinstance(guidance_scale, numbers.Real):
         kind = type(guidance_scale).__name__
-        raise TypeError(f"`guidance_scale` must be a real number, got {kind} {guidance_scale!r}")
+        raise ValueError(f"`guidance_scale` must be a real number, got {kind} {guidance_scale!r}")
     if not np.isfinite(guidance_scale):
         raise ValueError(f"`guidance_scale` must be finite, got {guidance_scale}")
     if guidance_scale > MAX_GUIDANCE_SCALE:  # the guided noise estimate overflows to NaN images
         raise ValueError(
             f"`guidance_scale` must be <= {MAX_GUIDANCE_SCALE} (zero-1-to-3 uses 3), got {guidance_scale}"
         )
-    if not isinstance(num_images_per_prompt, numbers.Integral) or num_images_per_prompt < 1:
-        raise ValueError(f"`num_images_per_prompt` must be an integer >= 1, got {num_images_per_prompt!r}")
+    if guidance_scale < 0.0:  # a negative weight guides towards the unconditional view
+        raise ValueError(f"`guidance_scale` must be >= 0 (<= 1 turns guidance off), got {guidance_scale}")
+    if not _is_integer(num_images_per_prompt) or not 1 <= num_images_per_prompt <= MAX_IMAGES_PER_PROMPT:
+        raise ValueError(
+            f"`num_images_per_prompt` must be an integer in [1, {MAX_IMAGES_PER_PROMPT:,}], got "
+            f"{num_images_per_prompt!r}"
+        )
     if output_type not in OUTPUT_TYPES:
         raise ValueError(f"`output_type` must be one of {OUTPUT_TYPES}, got {output_type!r}")
     unknown = [k for k in callback_on_step_end_tensor_inputs if k not in callback_tensor_inputs]
@@ -257,6 +265,11 @@ def check_call_arguments(
     _check_strength(sampler["strength"], {"num_inference_steps": num_inference_steps})
     if sampler["start_from"] not in START_FROM:
         raise ValueError(f"`start_from` must be one of {START_FROM}, got {sampler['start_from']!r}")
+
+
+def _is_integer(value: Any) -> bool:
+    """An integer (Python's or numpy's) that is not a boolean."""
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool | np.bool_)
 
 
 def check_generators(
@@ -281,12 +294,18 @@ def check_generators(
         )
 
 
-def check_latents(latents: torch.Tensor, shape: tuple[int, ...]) -> None:
-    """Given initial noise must have the samples' latent shape and be finite.
+def check_latents(latents: Any, shape: tuple[int, ...]) -> None:
+    """Given initial noise must be a floating-point tensor of the samples' latent shape, and finite.
 
     Raises:
         ValueError: Naming ``latents``.
     """
+    if not isinstance(latents, torch.Tensor):
+        raise ValueError(f"`latents` must be a torch.Tensor of shape {shape}, got {type(latents).__name__}")
+    if not latents.is_floating_point():  # an integer, boolean or complex draw is no Gaussian noise
+        raise ValueError(f"`latents` must be a floating-point tensor (Gaussian noise), got {latents.dtype}")
+    if latents.is_meta:
+        raise ValueError("`latents` is a tensor on the meta device, which holds no values")
     if tuple(latents.shape) != shape:
         raise ValueError(f"`latents` must have shape {shape}, got {tuple(latents.shape)}")
     if not torch.isfinite(latents).all():

@@ -94,6 +94,8 @@ class SamplerSettings:
             isinstance(scale, bool) or not (math.isfinite(scale) and scale <= MAX_GUIDANCE_SCALE)
         ):
             raise ValueError(f"guidance_scale must be finite and <= {MAX_GUIDANCE_SCALE:g}, got {scale!r}")
+        if scale is not None and scale < 0.0:  # a negative weight guides towards the unconditional view
+            raise ValueError(f"guidance_scale must be >= 0 (<= 1 turns guidance off), got {scale!r}")
         check_sampler_start(
             self.strength, self.heading_guidance_scale, {"num_inference_steps": steps},
             depression_guidance_scale=self.depression_guidance_scale, start_from=self.start_from,

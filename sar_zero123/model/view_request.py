@@ -1,6 +1,7 @@
 """What one pipeline call asks for, checked once under the call's own argument names: the input chips and
 the relative pose (scalars or one per chip, in degrees) as the pose vector the model reads. A request
 outside the pose projection's trained ranges is refused rather than extrapolated.
+A target depression (the input's plus ``d_el``) outside (0, 90) degrees is refused too.
 """
 
 from __future__ import annotations
@@ -18,7 +19,8 @@ from sar_zero123.model.spatial_pose import takes_proxy
 
 __all__ = [
     "MAX_ABS_D_AZ_DEG", "MAX_ABS_D_EL_DEG", "Angles", "ViewRequest", "broadcast_pose", "check_proxy_views",
-    "check_real_angles", "per_input_angles", "pose_with_depression", "view_request",
+    "check_real_angles", "check_target_depression", "per_input_angles", "pose_with_depression",
+    "view_request",
 ]  # fmt: skip
 
 #: A depression delta is the difference of two depression angles in [0, 90] degrees.
@@ -158,8 +160,9 @@ def pose_with_depression(
             ``trained_depression_deg``).
 
     Raises:
-        ValueError: naming the argument, for a missing, non-finite or mis-sized input depression, or a
-            ``d_el``, input depression or target depression outside the trained range.
+        ValueError: naming the argument, for a missing, non-finite or mis-sized input depression, a target
+            depression outside (0, 90) degrees (:func:`check_target_depression`), or a ``d_el``, input
+            depression or target depression outside the trained range.
     """
     batch_size = pose.shape[0]
     # on the CPU, as as_angle_tensor's angles: an evaluation's pair batch arrives on the accelerator
@@ -176,6 +179,7 @@ def pose_with_depression(
         if float(depression.min()) <= 0.0 or float(depression.max()) >= 90.0:
             raise ValueError(f"`input_depression_deg` must lie in (0, 90) degrees, got {depression.tolist()}")
         depression = depression.expand(batch_size)
+        check_target_depression(depression, d_el_values)
     elif getattr(config, "input_depression", False):
         raise ValueError(
             "`input_depression_deg`: this pipeline's pose carries the input chip's absolute depression "
@@ -206,6 +210,29 @@ def pose_with_depression(
     pose = pose.clone()
     pose[:, 0, 3] = torch.deg2rad(depression).to(pose.dtype)
     return pose
+
+
+def check_target_depression(input_depression_deg: torch.Tensor, d_el: torch.Tensor) -> None:
+    """Each view's target depression, ``input_depression_deg + d_el``, lies in (0, 90) degrees: a radar looks
+    down at a target on the ground, so no ``d_el`` may carry a view past the horizon or the nadir, whatever
+    ranges the pipeline records.
+
+    Args:
+        input_depression_deg: Each input's depression ``(B,)``, checked in (0, 90).
+        d_el: Each view's depression change ``(B,)``.
+
+    Raises:
+        ValueError: Naming ``d_el``, the input depression and the bound, for the first view outside it.
+    """
+    target = input_depression_deg + d_el
+    outside = ((target <= 0.0) | (target >= 90.0)).nonzero()
+    if len(outside):
+        k = int(outside[0])
+        raise ValueError(
+            f"`d_el` {float(d_el[k]):g} from an input depression of {float(input_depression_deg[k]):g} deg "
+            f"asks for a target depression of {float(target[k]):g} deg; input_depression_deg + d_el must lie "
+            "in (0, 90) degrees"
+        )
 
 
 def per_input_angles(value: Any, name: str, batch_size: int) -> torch.Tensor:

@@ -65,9 +65,11 @@ def check_simulation_options(
         ValueError: For an unknown class, a count below 1, an angle out of range, more chips than
             ``MAX_SIM_CHIPS``, a size above ``MAX_SIM_SIZE`` or more bytes than ``MAX_SIM_BYTES``.
     """
+    if not classes:
+        raise ValueError(f"classes: none given; expected names from {list(TARGET_CLASSES)}")
     unknown = [c for c in classes if c not in TARGET_CLASSES]
-    if not classes or unknown:
-        raise ValueError(f"classes: unknown or empty {list(classes)!r}; expected names from {TARGET_CLASSES}")
+    if unknown:
+        raise ValueError(f"classes: {unknown} not among the simulator's classes {list(TARGET_CLASSES)}")
     if int(instances) != instances or instances < 1:
         raise ValueError(f"instances: expected an integer >= 1, got {instances!r}")
     if not 0.0 < azimuth_step_deg <= 360.0:

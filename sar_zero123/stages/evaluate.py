@@ -34,6 +34,7 @@ import torch
 from sar_zero123.augment import readd_speckle
 from sar_zero123.config import check_minimum
 from sar_zero123.config.json_io import save_config, write_json_atomic
+from sar_zero123.domain import MAX_IMAGE_SIZE
 from sar_zero123.evaluation.evaluators import Evaluators, load_evaluators
 from sar_zero123.evaluation.protocol import (
     INPUT_COPY,
@@ -80,7 +81,6 @@ __all__ = [
     "MAX_EVALUATION_PAIRS",
     "MAX_EVAL_BATCH_SIZE",
     "MAX_FIGURE_PAIRS",
-    "MAX_IMAGE_SIZE",
     "MAX_INFERENCE_STEPS",
     "MAX_SWEEP_STEP_COUNTS",
     "EvaluateConfig",
@@ -97,8 +97,6 @@ MAX_SWEEP_STEP_COUNTS = 16
 MAX_FIGURE_PAIRS = 32
 #: Most pairs per pipeline call.
 MAX_EVAL_BATCH_SIZE = 1_024
-#: Largest chip side (pipeline input, scoring sizes), in pixels.
-MAX_IMAGE_SIZE = 1_024
 #: Blurred-target reference rows at most, and their largest blur (pixels).
 MAX_BLURRED_TARGETS, MAX_BLUR_SIGMA_PX = 8, 64.0
 #: Settings that never change what the folder holds: the device, where data is cached, how to reuse it.

@@ -33,6 +33,7 @@ from sar_zero123.config import check_minimum
 from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_index, prepare_splits
 from sar_zero123.data.selection import hold_out, subsample
+from sar_zero123.domain import MAX_IMAGE_SIZE
 from sar_zero123.encoder import SAREncoder, SAREncoderConfig, resolve_encoder_dir
 from sar_zero123.evaluation.evaluators import (
     CLASSIFIER_DIR,
@@ -53,7 +54,6 @@ logger = logging.getLogger(__name__)
 __all__ = [
     "EVALUATORS_MAY_DIFFER",
     "MAX_EPOCHS",
-    "MAX_IMAGE_SIZE",
     "EvaluatorTraining",
     "TrainEvaluatorsConfig",
     "hold_out",
@@ -69,8 +69,6 @@ Evaluator = SARClassifier | AzimuthRegressor | DepressionRegressor
 
 #: Most passes over the train split per model (a larger value is a typo, not a plan).
 MAX_EPOCHS = 10_000
-#: Largest chip side fed to the evaluators, in pixels (MSTAR chips are 128).
-MAX_IMAGE_SIZE = 1024
 #: Most chips per step.
 MAX_BATCH_SIZE = 4096
 #: Settings that never change what the folder holds: where data is cached, how it is loaded, how to resume.

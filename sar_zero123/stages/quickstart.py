@@ -30,6 +30,7 @@ from sar_zero123.runs.folder import (
     run_differences,
 )
 from sar_zero123.runs.stage import open_stage_folder
+from sar_zero123.sim.targets import TARGET_CLASSES
 from sar_zero123.stages.corpus import CORPUS_FOLDER, run_corpus
 from sar_zero123.stages.evaluate import EVALUATE_MAY_DIFFER, EvaluateConfig, run_evaluate
 from sar_zero123.stages.evaluators import run_evaluators
@@ -198,7 +199,10 @@ def plan_stages(config: QuickstartConfig) -> list[StagePlan]:
     if config.data is None:  # 15 and 17 deg as MSTAR; views at other depressions for the depression table
         classes = recipe.value("simulate", "classes")
         if len(classes) < 2 or len(set(classes)) != len(classes):  # the last one is held out
-            raise ValueError(f"simulate.classes must name at least two distinct classes, got {classes!r}")
+            raise ValueError(
+                f"simulate.classes must name at least two distinct classes, got {classes!r}; expected names "
+                f"from {list(TARGET_CLASSES)}"
+            )
         simulated = [("simulate", data, [15.0, 17.0])]
         if with_depressions:
             depressions = sorted({17.0, *shared.depression_targets_deg})

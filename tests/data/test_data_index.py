@@ -145,3 +145,67 @@ def test_a_class_name_that_is_a_path_is_refused_at_the_index(tmp_path: Path, nam
     absolute path in index.csv would write outside the output folder."""
     with pytest.raises(ValueError, match=r"target_class must be a plain name"):
         load_index(make_folder(tmp_path, [f'a.npy,"{name}",,1,17,0,4,4']))
+
+
+def _index(*rows: bytes) -> bytes:
+    return b"\n".join([HEADER.encode(), *rows]) + b"\n"
+
+
+@pytest.mark.parametrize(
+    ("text", "error", "match"),
+    [
+        (b"", ValueError, r"index.csv: the file is empty; expected a header line with \['path', "
+                          r"'target_class', 'serial', 'depression_deg', 'azimuth_deg'\]$"),
+        (b"\n\n", ValueError, r"index.csv: the file is empty"),
+        (_index(b"a.npy,T72,,132,17,1,,", b"b.npy,T72,,13\xff2,17,2,,"), ValueError,
+         r"index.csv:3: column 'serial' holds the byte 0xff, which is not UTF-8; save the index as UTF-8 "
+         r"text$"),
+        (b"pa\xe9th" + HEADER[4:].encode() + b"\n", ValueError,
+         r"index.csv:1: the header holds the byte 0xe9"),
+        (_index(b"../a.npy,T72,,132,17,1,,"), ValueError,
+         r"index.csv:2: column 'path' '../a.npy' leads out of the data folder .*; a relative path must "
+         r"stay inside it$"),
+        (_index(b"sub/../../a.npy,T72,,132,17,1,,"), ValueError,
+         r"index.csv:2: column 'path' 'sub/../../a.npy' leads out of the data folder"),
+        (_index(b"..,T72,,132,17,1,,"), ValueError, r"index.csv:2: column 'path' '..' leads out"),
+        (_index(b",T72,,132,17,1,,"), ValueError,
+         r"index.csv:2: column 'path' must name a chip file, got ''$"),
+        (_index(b"a\x00.npy,T72,,132,17,1,,"), ValueError,
+         r"index.csv:2: column 'path' must name a chip file, got 'a\\x00.npy'$"),
+        (_index(b"a.npy,T72,,132,17,1,,", b"sub/../a.npy,T72,,132,17,1,,"), ValueError,
+         r"index.csv:3: chip file 'sub/../a.npy' is listed twice \(also on line 2\)"),
+        (_index(b"a.npy,T72,,132,17,inf,,"), ValueError, r"column 'azimuth_deg' must be finite"),
+        (_index(b"a.npy,T72,,132,17,1e999,,"), ValueError, r"column 'azimuth_deg' must be finite"),
+        (_index(b"a.npy,T72,,132,17,1e308,,"), ValueError,
+         r"index.csv:2: column 'azimuth_deg' must lie in \[0, 360\), got 1e\+308"),
+        (_index(b"a.npy,T72,,132,nan,1,,"), ValueError, r"column 'depression_deg' must be finite"),
+        (_index(b"a.npy,T72,,132,-1e308,1,,"), ValueError,
+         r"index.csv:2: column 'depression_deg' must lie in \(0, 90\) degrees, got -1e\+308"),
+        (_index(b"/nonexistent/a.npy,T72,,132,17,1,,"), FileNotFoundError,
+         r"index.csv:2: chip file '/nonexistent/a.npy' does not exist"),
+    ],
+    ids=["empty", "blank-lines", "non-utf8-row", "non-utf8-header", "dotdot", "dotdot-nested", "parent",
+         "empty-path", "nul", "dup-normalised", "az-inf", "az-1e999", "az-huge", "dep-nan", "dep-huge",
+         "absolute-missing"],
+)  # fmt: skip
+def test_a_hostile_index_is_refused_in_one_line_naming_the_file_row_and_column(tmp_path, text, error, match):
+    make_folder(tmp_path, [])
+    (tmp_path / "sub").mkdir()
+    (tmp_path / "index.csv").write_bytes(text)
+    with pytest.raises(error, match=match) as refused:
+        load_index(tmp_path)
+    assert "\n" not in str(refused.value)
+
+
+def test_an_index_reads_inside_its_folder_and_absolute_paths_as_written(tmp_path: Path) -> None:
+    """``sub/../a.npy`` stays inside and is ``a.npy``; an absolute path (``augment`` lists the real chips it
+    keeps in place so) names its file outright; a byte-order mark is dropped."""
+    data, elsewhere = tmp_path / "data", tmp_path / "elsewhere"
+    data.mkdir()
+    elsewhere.mkdir()
+    np.save(elsewhere / "c.npy", np.zeros((4, 4), np.float32))
+    make_folder(data, ["sub/../a.npy,T72,,132,17,1,,", f"{elsewhere / 'c.npy'},T72,,132,17,2,,"])
+    text = (data / "index.csv").read_bytes()
+    (data / "index.csv").write_bytes(b"\xef\xbb\xbf" + text)
+    records = load_index(data)
+    assert [r.path for r in records] == [(data / "a.npy").resolve(), elsewhere / "c.npy"]

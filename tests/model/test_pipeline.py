@@ -341,7 +341,7 @@ def test_invalid_inputs_raise_value_errors_naming_the_argument(pipe, kwargs, mat
         ({"d_az": [10.0, "20"]}, TypeError, r"`d_az` must be a real number .*got str '20'"),
         ({"d_el": True}, TypeError, r"`d_el` must be a real number .*got bool"),
         ({"d_az": torch.tensor([1j, 2j])}, TypeError, r"`d_az` must hold real angles .*complex"),
-        ({"guidance_scale": "3"}, TypeError, r"`guidance_scale` must be a real number, got str '3'"),
+        ({"guidance_scale": "3"}, ValueError, r"`guidance_scale` must be a real number, got str '3'"),
         ({"guidance_scale": 1e30}, ValueError, r"`guidance_scale` must be <= 100"),
         ({"d_el": 400.0}, ValueError, r"`d_el` must lie in \[-90, 90\] degrees .*got 400"),
         ({"d_el": [0.0, -91.0]}, ValueError, r"`d_el` must lie in \[-90, 90\] degrees .*got 91"),
