@@ -289,8 +289,12 @@ def drop_removed_fields(config: Any, values: Mapping[str, Any], where: str) -> d
         ValueError: Naming ``where``, the field and why it went, for one set to another value.
     """
     removed = removed_fields(config)
+
+    def plain(value: Any) -> Any:  # a tuple default as JSON and YAML hold it
+        return [plain(item) for item in value] if isinstance(value, (list, tuple)) else value
+
     for name, item in removed.items():
-        if name in values and values[name] != item.default:
+        if name in values and plain(values[name]) != plain(item.default):
             raise ValueError(f"{where}: {name}={values[name]!r}, but {name} was removed: {item.reason}")
     return {name: value for name, value in values.items() if name not in removed}
 

@@ -87,8 +87,6 @@ def train_simclr_steps(
         chip_batch = chips.magnitude[index]
         view1, view2 = simclr_views(chip_batch, augmentation, chips.scaling, generator=aug_generator)
         views = torch.cat([view1, view2])  # (2B, 1, S, S): one pass, BatchNorm sees both views
-        if config.channels_last:
-            views = views.contiguous(memory_format=torch.channels_last)
         _synchronize(accelerator.device)
         augmented = time.perf_counter()
         z1, z2 = model(views).chunk(2)
