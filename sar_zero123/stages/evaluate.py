@@ -32,7 +32,7 @@ from typing import Any
 import torch
 
 from sar_zero123.augment import readd_speckle
-from sar_zero123.config import check_minimum
+from sar_zero123.config import RemovedField, check_minimum
 from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.evaluation.evaluators import Evaluators, load_evaluators
 from sar_zero123.evaluation.protocol import (
@@ -51,7 +51,7 @@ from sar_zero123.evaluation.protocol import (
     score,
     vae_round_trip,
 )
-from sar_zero123.evaluation.scoring import blur_views
+from sar_zero123.evaluation.scoring import PAPER_SCORING_SIZE, blur_views
 from sar_zero123.evaluation.speed import speed_error_rows, write_speed_error
 from sar_zero123.evaluation.tables import (
     plot_lambda_sweep,
@@ -102,7 +102,7 @@ MAX_IMAGE_SIZE = 1_024
 #: Blurred-target reference rows at most, and their largest blur (pixels).
 MAX_BLURRED_TARGETS, MAX_BLUR_SIGMA_PX = 8, 64.0
 #: Settings that never change what the folder holds: the device, where data is cached, how to reuse it.
-EVALUATE_MAY_DIFFER = ("resume", "restart", "device", "output_dir", "work_dir")
+EVALUATE_MAY_DIFFER = ("resume", "restart", "device", "output_dir")
 
 
 @dataclass
@@ -116,17 +116,23 @@ class EvaluateConfig(SamplerSettings):
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "work_dir", "same_depression", "input_depression_deg", "outside_trained_range", "max_d_az_deg",
+        "same_depression", "input_depression_deg", "outside_trained_range", "max_d_az_deg",
         "vae", "speckle_looks", "blurred_target_sigmas_px", "speed_n", "image_size", "chip_crop_size",
-        "crop_size", "paper_scoring_size", "eval_batch_size", "num_figure_pairs", "device",
+        "crop_size", "eval_batch_size", "num_figure_pairs", "device",
     )  # fmt: skip
+    #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
+    #: folder holding the old default reads as before; another value is refused with the reason.
+    REMOVED_FIELDS = {
+        "work_dir": RemovedField(None, "the simulated dataset is cached in output_dir"),
+        "paper_scoring_size": RemovedField(256, f"the paper-comparable metrics resize to the authors' "
+                                           f"{PAPER_SCORING_SIZE} px before their crop"),
+    }  # fmt: skip
 
     pipeline: list[str] = field(default_factory=list)  # SARZero123Pipeline folders (repeat the flag)
     pipeline_names: list[str] = field(default_factory=list)  # row labels (default: folder names)
     lambdas: list[float] = field(default_factory=list)  # PFM weight of each pipeline, for the Fig. 12 sweep
     evaluators: str = "runs/evaluators"  # output folder of train/train_evaluators.py
     data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
-    work_dir: str | None = None  # cache of the simulated dataset (default: output_dir)
     protocol: str = "extended"  # "extended" (seen only) or "ood-<CLASS>" (half seen, half unseen)
     same_depression: bool = True  # pair views at one depression; False also pairs across (d_el != 0)
     input_depression_deg: float | None = None  # only pairs whose input is at this depression (None: any)
@@ -151,7 +157,6 @@ class EvaluateConfig(SamplerSettings):
     image_size: int | None = None  # chip size fed to the pipelines (None: the pipeline's own)
     chip_crop_size: int | None = None  # centre crop of the chip files before resizing
     crop_size: int = 64  # centre crop for MS-SSIM and Kuan+SSIM (paper: 64)
-    paper_scoring_size: int | None = 256  # side before the paper-comparable 64 crop (authors: 256)
     eval_batch_size: int = 16  # pairs per pipeline call (and per VAE / evaluator call)
     num_figure_pairs: int = 4  # pairs per group shown in views.png
     output_dir: str = "runs/eval"  # where tables and figures go
@@ -213,15 +218,12 @@ class EvaluateConfig(SamplerSettings):
             ("num_figure_pairs", MAX_FIGURE_PAIRS),
             ("image_size", MAX_IMAGE_SIZE),
             ("crop_size", MAX_IMAGE_SIZE),
-            ("paper_scoring_size", MAX_IMAGE_SIZE),
         ):
             value = getattr(self, name)
             if value is not None and value > bound:
                 raise ValueError(f"{name} must be <= {bound:,}, got {value:,}")
-        if self.paper_scoring_size is not None and self.paper_scoring_size < self.crop_size:
-            raise ValueError(
-                f"paper_scoring_size must be >= crop_size or None, got {self.paper_scoring_size}"
-            )
+        if self.crop_size > PAPER_SCORING_SIZE:  # the paper-comparable crop lies within that side
+            raise ValueError(f"crop_size must be <= {PAPER_SCORING_SIZE}, got {self.crop_size}")
         # the Frechet distance (SFD) needs two views per group: checked here, before any model runs
         if self.protocol.startswith("ood-") and self.n < 4:
             raise ValueError(
@@ -291,7 +293,7 @@ def evaluation_pairs(config: EvaluateConfig, evaluators: Evaluators, image_size:
         protocol=config.protocol,
         n=config.n,
         image_size=image_size,
-        work_dir=config.work_dir if config.work_dir is not None else config.output_dir,
+        work_dir=config.output_dir,
         seed=config.seed,
         same_depression=config.same_depression,
         input_depression_deg=config.input_depression_deg,
@@ -425,7 +427,7 @@ def _scoring(config: EvaluateConfig, device: torch.device) -> dict[str, Any]:
     """The keyword arguments of :func:`~sar_zero123.evaluation.protocol.score` for this evaluation."""
     return {
         "crop_size": config.crop_size,
-        "paper_scoring_size": config.paper_scoring_size,
+        "paper_scoring_size": PAPER_SCORING_SIZE,
         "batch_size": max(config.eval_batch_size, 32),
         "device": device,
     }

@@ -79,7 +79,7 @@ DEPRESSION_TEST_FRACTION = 0.2
 CHECKPOINTING_EPOCHS = 5
 #: Settings that never change what the folder holds: where data is cached, how it is loaded, how to resume.
 EVALUATORS_MAY_DIFFER = (
-    "resume", "restart", "resume_from_checkpoint", "num_workers", "output_dir", "work_dir",
+    "resume", "restart", "resume_from_checkpoint", "num_workers", "output_dir",
 )  # fmt: skip
 
 
@@ -89,7 +89,7 @@ class TrainEvaluatorsConfig:
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "work_dir", "chip_crop_size", "cifar_stem", "depths", "hidden_sizes", "mlp_hidden_sizes",
+        "chip_crop_size", "cifar_stem", "depths", "hidden_sizes", "mlp_hidden_sizes",
         "probe_epochs", "weight_decay", "max_train_chips", "resume_from_checkpoint", "num_workers",
         "mixed_precision",
     )  # fmt: skip
@@ -99,6 +99,7 @@ class TrainEvaluatorsConfig:
         "depression_test_fraction": RemovedField(
             0.2, f"{DEPRESSION_TEST_FRACTION} of depression_data's chips are held out for its test error"
         ),
+        "work_dir": RemovedField(None, "the simulated dataset is cached in output_dir"),
         "checkpointing_epochs": RemovedField(
             5, f"a resumable checkpoint is saved every {CHECKPOINTING_EPOCHS} epochs"
         ),
@@ -107,7 +108,6 @@ class TrainEvaluatorsConfig:
     output_dir: str = "runs/evaluators"  # folder for classifier/, regressor/, probes/, metrics.json
     data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
     depression_data: str | None = None  # chip folder (index.csv) at many depressions: depression_regressor/
-    work_dir: str | None = None  # where the simulated dataset is cached (default: output_dir)
     scaling: str = "unit"  # decibel bounds: "unit" (8-bit images, simulator), "mstar_raw" or "fit"
     image_size: int = 128  # chip side in pixels fed to the evaluators
     chip_crop_size: int | None = None  # centre crop before resizing (None keeps the pixel spacing)
@@ -220,8 +220,7 @@ def run_evaluators(config: TrainEvaluatorsConfig) -> Path:
     # 2. data (the extended protocol's train split holds every class, the OOD class included) and the SimCLR
     # encoders; a new run whose setup fails leaves no record, so the corrected command is not refused
     with withdrawn_if_setup_fails(folder):
-        work_dir = Path(config.work_dir) if config.work_dir is not None else output_dir
-        splits = prepare_splits(config.data, "extended", work_dir, seed=config.seed)
+        splits = prepare_splits(config.data, "extended", output_dir, seed=config.seed)
         train_records = subsample(splits["train"], config.max_train_chips, config.seed)
         scaling = DecibelScaling.from_choice(config.scaling, train_records)
         class_names = sorted({r.target_class for r in splits["train"] + splits["test"]})

@@ -91,6 +91,8 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["FinetuneConfig", "check_lr_scheduler", "run_finetune"]
 
+#: AdamW's weight decay (torch's default).
+ADAM_WEIGHT_DECAY = 1e-2
 #: Schedulers whose learning rate does not depend on the step count: their runs may be extended.
 CONSTANT_LR_SCHEDULERS = ("constant", "constant_with_warmup")
 
@@ -116,7 +118,7 @@ class FinetuneConfig(LossSettings):
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
         "pose_in_time_embedding", "estimate_input_azimuth", "input_code_dim", "rehearsal_max_chips",
-        "input_depression", "pose_lr_multiplier", "adam_weight_decay", "lr_scheduler", "lr_warmup_steps",
+        "input_depression", "pose_lr_multiplier", "lr_scheduler", "lr_warmup_steps",
         "gradient_accumulation_steps", "max_grad_norm", "mixed_precision", "gradient_checkpointing",
         "train_image_encoder", "use_ema", "ema_decay", "prediction_type", "checkpointing_steps",
         "logging_steps", "checkpoints_total_limit", "validation_steps", "num_validation_images",
@@ -169,7 +171,6 @@ class FinetuneConfig(LossSettings):
     lora_modules: LoraModules = "all"  # with lora_rank: "all" Linear and Conv2d layers, or "attention" only
     learning_rate: float = 1e-4  # AdamW learning rate of the UNet (of its LoRA factors with lora_rank)
     pose_lr_multiplier: float = 10.0  # pose projection learning rate = this x learning_rate
-    adam_weight_decay: float = 1e-2  # AdamW weight decay
     lr_scheduler: str = "constant"  # diffusers scheduler name (constant, constant_with_warmup, cosine, ...)
     lr_warmup_steps: int = 0  # warm-up optimisation steps
     train_batch_size: int = 4  # pairs per process per micro-batch
@@ -216,6 +217,7 @@ class FinetuneConfig(LossSettings):
                                       "PFM throughout; PFM applies in every step"),
         "pfm_monotonic_q": RemovedField(0, "random monotonic maps before PFM's encoder changed nothing "
                                         "measurable; PFM compares the images as Eq. 20 does"),
+        "adam_weight_decay": RemovedField(1e-2, f"AdamW's weight decay is {ADAM_WEIGHT_DECAY:g}"),
     }  # fmt: skip
 
     #: Research options kept beside the measured ones: settings without a flag (--set), listed at the end of
@@ -514,7 +516,7 @@ def _prepare_training(
         azimuth_estimator=pipe.azimuth_estimator,
         learning_rate=config.learning_rate,
         pose_lr_multiplier=config.pose_lr_multiplier,
-        weight_decay=config.adam_weight_decay,
+        weight_decay=ADAM_WEIGHT_DECAY,
     )
     lr_scheduler = get_scheduler(
         config.lr_scheduler,

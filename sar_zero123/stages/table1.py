@@ -65,7 +65,7 @@ TSNE_PRESETS = ("simclr-full", "speckle+monotonic")
 FLOOR_ROW = "random init (floor)"
 COLUMNS = ("linear_accuracy", "mlp_azimuth_error_deg", "knn_accuracy", "knn_azimuth_error_deg")
 #: Settings that never change what the folder holds: where it is, where data is cached, how it is read.
-TABLE1_MAY_DIFFER = ("resume", "restart", "output_dir", "work_dir", "num_workers")
+TABLE1_MAY_DIFFER = ("resume", "restart", "output_dir", "num_workers")
 
 
 @dataclass
@@ -74,7 +74,7 @@ class Table1Config:
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "work_dir", "image_size", "global_batch_size", "cifar_stem", "hidden_sizes", "embedding_size",
+        "image_size", "global_batch_size", "cifar_stem", "hidden_sizes", "embedding_size",
         "mixed_precision", "max_train_chips", "probe_epochs", "tsne", "tsne_points", "num_workers",
     )  # fmt: skip
     #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
@@ -83,12 +83,12 @@ class Table1Config:
         "channels_last": RemovedField(False, "channels-last memory changed nothing measured; convolutions "
                                       "run in the default memory format"),
         "max_test_chips": RemovedField(None, "the probes are scored on every test chip"),
+        "work_dir": RemovedField(None, "the simulated dataset is cached in output_dir"),
     }  # fmt: skip
 
     output_dir: str = "runs/table1"  # one sub-folder per preset, plus table1.json, table1.md, tsne.png
     data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
     protocol: str = "extended"  # split protocol: encoders and probes train on "train", report on "test"
-    work_dir: str | None = None  # where the simulated dataset is cached (default: output_dir)
     presets: tuple[str, ...] = tuple(PRESETS)  # Table I rows to run
     encoders: list[str] = field(default_factory=list)  # existing encoder or run folders, one per preset
     epochs: int = 500  # SimCLR epochs per preset (paper: 500)
@@ -140,7 +140,7 @@ class Table1Config:
             output_dir=str(Path(self.output_dir) / preset),
             data=self.data,
             protocol=self.protocol,
-            work_dir=self.work_dir if self.work_dir is not None else self.output_dir,
+            work_dir=self.output_dir,  # every preset's run reads the one simulated dataset
             max_train_chips=self.max_train_chips,
             image_size=self.image_size,
             preset=preset,
@@ -333,11 +333,10 @@ def run_table1(config: Table1Config) -> Path:
         logger.info("%s already holds this table", folder.path)
         return folder.path
     output_dir = folder.path
-    work_dir = Path(config.work_dir) if config.work_dir is not None else output_dir
 
     # 2. probe data: train and test splits, no augmentation
     with withdrawn_if_setup_fails(folder):
-        train_set, test_set = _probe_sets(config, work_dir)
+        train_set, test_set = _probe_sets(config, output_dir)
     save_config(config, output_dir)
 
     # 3. an encoder per preset (given, or a SimCLR run under the preset's own folder), then the probes
