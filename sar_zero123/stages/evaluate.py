@@ -117,13 +117,15 @@ class EvaluateConfig(SamplerSettings):
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
         "same_depression", "input_depression_deg", "outside_trained_range", "max_d_az_deg",
-        "vae", "speckle_looks", "blurred_target_sigmas_px", "speed_n", "image_size", "chip_crop_size",
+        "vae", "speckle_looks", "blurred_target_sigmas_px", "speed_n", "image_size",
         "crop_size", "eval_batch_size", "num_figure_pairs", "device",
     )  # fmt: skip
     #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
     #: folder holding the old default reads as before; another value is refused with the reason.
     REMOVED_FIELDS = {
         "work_dir": RemovedField(None, "the simulated dataset is cached in output_dir"),
+        "chip_crop_size": RemovedField(None, "chips larger than image_size are centre-cropped to it (their "
+                                       "pixel spacing kept)"),
         "paper_scoring_size": RemovedField(256, f"the paper-comparable metrics resize to the authors' "
                                            f"{PAPER_SCORING_SIZE} px before their crop"),
     }  # fmt: skip
@@ -155,7 +157,6 @@ class EvaluateConfig(SamplerSettings):
     schedulers: list[str] = field(default_factory=list)  # speed/error sweep: ddim, dpmsolver++, euler, unipc
     speed_n: int | None = None  # samples per speed/error point, from the seen pairs (None: all of them)
     image_size: int | None = None  # chip size fed to the pipelines (None: the pipeline's own)
-    chip_crop_size: int | None = None  # centre crop of the chip files before resizing
     crop_size: int = 64  # centre crop for MS-SSIM and Kuan+SSIM (paper: 64)
     eval_batch_size: int = 16  # pairs per pipeline call (and per VAE / evaluator call)
     num_figure_pairs: int = 4  # pairs per group shown in views.png
@@ -210,7 +211,7 @@ class EvaluateConfig(SamplerSettings):
 
     def _check_sizes(self) -> None:
         check_minimum(self, "n", "eval_batch_size", "crop_size", minimum=1)
-        check_minimum(self, "image_size", "chip_crop_size", "speed_n", minimum=1, optional=True)
+        check_minimum(self, "image_size", "speed_n", minimum=1, optional=True)
         check_minimum(self, "num_figure_pairs", minimum=0)
         for name, bound in (
             ("n", MAX_EVALUATION_PAIRS),
@@ -299,7 +300,7 @@ def evaluation_pairs(config: EvaluateConfig, evaluators: Evaluators, image_size:
         input_depression_deg=config.input_depression_deg,
         target_depressions_deg=config.target_depressions_deg,
         max_d_az_deg=config.max_d_az_deg,
-        chip_crop_size=config.chip_crop_size,
+        chip_crop_size=None,
         evaluators_name=config.evaluators,
     )
 

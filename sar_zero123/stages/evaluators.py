@@ -75,6 +75,8 @@ MAX_IMAGE_SIZE = 1024
 MAX_BATCH_SIZE = 4096
 #: The share of ``depression_data``'s chips held out (seeded) for the depression regressor's test error.
 DEPRESSION_TEST_FRACTION = 0.2
+#: AdamW's weight decay for every model of the stage.
+ADAMW_WEIGHT_DECAY = 5e-4
 #: Each model saves a resumable checkpoint every this many epochs.
 CHECKPOINTING_EPOCHS = 5
 #: Settings that never change what the folder holds: where data is cached, how it is loaded, how to resume.
@@ -89,9 +91,8 @@ class TrainEvaluatorsConfig:
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "chip_crop_size", "cifar_stem", "depths", "hidden_sizes", "mlp_hidden_sizes",
-        "probe_epochs", "weight_decay", "max_train_chips", "resume_from_checkpoint", "num_workers",
-        "mixed_precision",
+        "cifar_stem", "depths", "hidden_sizes", "mlp_hidden_sizes", "probe_epochs", "max_train_chips",
+        "resume_from_checkpoint", "num_workers", "mixed_precision",
     )  # fmt: skip
     #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
     #: folder holding the old default reads as before; another value is refused with the reason.
@@ -100,6 +101,9 @@ class TrainEvaluatorsConfig:
             0.2, f"{DEPRESSION_TEST_FRACTION} of depression_data's chips are held out for its test error"
         ),
         "work_dir": RemovedField(None, "the simulated dataset is cached in output_dir"),
+        "chip_crop_size": RemovedField(None, "chips larger than image_size are centre-cropped to it (their "
+                                       "pixel spacing kept)"),
+        "weight_decay": RemovedField(5e-4, f"AdamW's weight decay is {ADAMW_WEIGHT_DECAY:g}"),
         "checkpointing_epochs": RemovedField(
             5, f"a resumable checkpoint is saved every {CHECKPOINTING_EPOCHS} epochs"
         ),
@@ -110,7 +114,6 @@ class TrainEvaluatorsConfig:
     depression_data: str | None = None  # chip folder (index.csv) at many depressions: depression_regressor/
     scaling: str = "unit"  # decibel bounds: "unit" (8-bit images, simulator), "mstar_raw" or "fit"
     image_size: int = 128  # chip side in pixels fed to the evaluators
-    chip_crop_size: int | None = None  # centre crop before resizing (None keeps the pixel spacing)
     cifar_stem: bool = True  # 3x3 stride-1 stem without max-pool (reference setting for SAR chips)
     depths: tuple[int, ...] = (2, 2, 2, 2)  # ResNet-18 blocks per stage
     hidden_sizes: tuple[int, ...] = (64, 128, 256, 512)  # ResNet-18 stage widths
@@ -119,7 +122,6 @@ class TrainEvaluatorsConfig:
     probe_epochs: int = 30  # passes for the MLP heads of the SimCLR probes
     train_batch_size: int = 64  # chips per process per step (also the scoring batch)
     learning_rate: float = 1e-3  # AdamW peak learning rate (cosine decay to 0)
-    weight_decay: float = 5e-4  # AdamW weight decay
     simclr_encoders: list[str] = field(default_factory=list)  # SimCLR encoder folders to probe (Table IV)
     max_train_chips: int | None = None  # subsample the train split (quick runs); None uses all
     resume_from_checkpoint: str | None = "latest"  # with resume: "latest", a checkpoint folder, or None
@@ -139,8 +141,8 @@ class TrainEvaluatorsConfig:
             if getattr(self, name) > bound:
                 raise ValueError(f"{name} must be <= {bound}, got {getattr(self, name)}")
         check_minimum(self, "learning_rate", minimum=0, strict=True)
-        check_minimum(self, "weight_decay", "num_workers", minimum=0)
-        check_minimum(self, "max_train_chips", "chip_crop_size", minimum=1, optional=True)
+        check_minimum(self, "num_workers", minimum=0)
+        check_minimum(self, "max_train_chips", minimum=1, optional=True)
         if len(self.mlp_hidden_sizes) == 0 or min(self.mlp_hidden_sizes) < 1:
             raise ValueError(f"mlp_hidden_sizes must be positive widths, got {self.mlp_hidden_sizes}")
         if self.mixed_precision not in ("no", "fp16", "bf16"):
@@ -157,7 +159,7 @@ class TrainEvaluatorsConfig:
         return EvaluatorTraining(
             batch_size=self.train_batch_size,
             learning_rate=self.learning_rate,
-            weight_decay=self.weight_decay,
+            weight_decay=ADAMW_WEIGHT_DECAY,
             checkpointing_epochs=CHECKPOINTING_EPOCHS,
             resume_from_checkpoint=self.resume_from_checkpoint,
             num_workers=self.num_workers,
@@ -285,14 +287,8 @@ def _depression_records(depression_data: str | None) -> list[ChipRecord] | None:
 def _chips(
     records: list[ChipRecord], config: TrainEvaluatorsConfig, scaling: DecibelScaling, class_names: list[str]
 ) -> ChipDataset:
-    """The evaluators' view of some chips: ``image_size`` px, ``chip_crop_size`` crop, ``scaling``."""
-    return ChipDataset(
-        records,
-        size=config.image_size,
-        scaling=scaling,
-        class_names=class_names,
-        crop_size=config.chip_crop_size,
-    )
+    """The evaluators' view of some chips: ``image_size`` px, ``scaling``."""
+    return ChipDataset(records, size=config.image_size, scaling=scaling, class_names=class_names)
 
 
 def _train_scratch_models(

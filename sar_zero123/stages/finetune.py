@@ -86,6 +86,7 @@ from sar_zero123.training.latent_cache import (
 from sar_zero123.training.lora import LoraModules, check_lora_settings
 from sar_zero123.training.losses import TRAINED_PREDICTION_TYPES, LossSettings, check_prediction_type
 from sar_zero123.training.pfm import PfmFeatures, check_pfm_crop_size, check_pfm_features, load_pfm_encoder
+from sar_zero123.training.step import MAX_GRAD_NORM
 
 logger = logging.getLogger(__name__)
 
@@ -119,7 +120,7 @@ class FinetuneConfig(LossSettings):
     ADVANCED_FIELDS = (
         "pose_in_time_embedding", "estimate_input_azimuth", "input_code_dim", "rehearsal_max_chips",
         "input_depression", "pose_lr_multiplier", "lr_scheduler", "lr_warmup_steps",
-        "gradient_accumulation_steps", "max_grad_norm", "mixed_precision", "gradient_checkpointing",
+        "gradient_accumulation_steps", "mixed_precision", "gradient_checkpointing",
         "train_image_encoder", "use_ema", "ema_decay", "prediction_type", "checkpointing_steps",
         "logging_steps", "checkpoints_total_limit", "validation_steps", "num_validation_images",
         "validation_inference_steps", "guidance_scale", "num_workers", "report_to", "save_pipeline",
@@ -179,7 +180,6 @@ class FinetuneConfig(LossSettings):
     # stop this session after this many minutes of training steps: checkpoint, export the pipeline at the step
     # reached, leave the run unfinished (the same command with --resume_from_checkpoint latest continues)
     max_train_minutes: float | None = None
-    max_grad_norm: float = 1.0  # gradient clipping norm (all trained parameters together)
     mixed_precision: Literal["no", "fp16", "bf16"] = "no"  # frozen VAE/encoders are cast to this dtype
     gradient_checkpointing: bool = False  # checkpoint UNet activations
     train_image_encoder: bool = False  # train the CLIP image tower too: use it when training from scratch
@@ -218,6 +218,7 @@ class FinetuneConfig(LossSettings):
         "pfm_monotonic_q": RemovedField(0, "random monotonic maps before PFM's encoder changed nothing "
                                         "measurable; PFM compares the images as Eq. 20 does"),
         "adam_weight_decay": RemovedField(1e-2, f"AdamW's weight decay is {ADAM_WEIGHT_DECAY:g}"),
+        "max_grad_norm": RemovedField(1.0, f"gradients are clipped to a norm of {MAX_GRAD_NORM}"),
     }  # fmt: skip
 
     #: Research options kept beside the measured ones: settings without a flag (--set), listed at the end of
@@ -240,7 +241,7 @@ class FinetuneConfig(LossSettings):
         if self.cache_on_device and not self.cache_latents:
             raise ValueError("cache_on_device: keeps the cached encodings on the device; needs cache_latents")
         check_protocol(self.protocol)
-        check_minimum(self, "learning_rate", "pose_lr_multiplier", "max_grad_norm", minimum=0, strict=True)
+        check_minimum(self, "learning_rate", "pose_lr_multiplier", minimum=0, strict=True)
         check_minimum(self, "lr_warmup_steps", "validation_steps", "num_workers", minimum=0)
         check_lr_scheduler(self.lr_scheduler)
         counts = ("train_batch_size", "gradient_accumulation_steps", "max_train_steps", "checkpointing_steps",

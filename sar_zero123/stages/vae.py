@@ -50,6 +50,7 @@ from sar_zero123.runs.checkpoints import (
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
 from sar_zero123.runs.launch import check_global_batch, start_run, tracker_hparams
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
+from sar_zero123.training.step import MAX_GRAD_NORM
 from sar_zero123.training.vae import FeatureLoss, VAEObjective, train_vae_steps
 
 logger = logging.getLogger(__name__)
@@ -78,7 +79,7 @@ class TrainVAEConfig:
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "block_out_channels", "layers_per_block", "latent_channels", "norm_num_groups", "max_grad_norm",
+        "block_out_channels", "layers_per_block", "latent_channels", "norm_num_groups",
         "mixed_precision", "checkpointing_steps", "checkpoints_total_limit", "num_eval_images", "report_to",
         "train_encoder", "feature_loss_weight", "feature_encoder",
     )  # fmt: skip
@@ -87,6 +88,7 @@ class TrainVAEConfig:
     REMOVED_FIELDS = {
         "reconstruction_loss": RemovedField("l1", "the pixel loss is L1 on [-1, 1] images"),
         "kl_weight": RemovedField(1e-6, f"the KL term's weight is {KL_WEIGHT:g}"),
+        "max_grad_norm": RemovedField(1.0, f"gradients are clipped to a norm of {MAX_GRAD_NORM}"),
         "num_scaling_batches": RemovedField(8, f"the latent scaling factor is estimated on {SCALING_BATCHES} "
                                             "training batches"),
     }  # fmt: skip
@@ -103,7 +105,6 @@ class TrainVAEConfig:
     learning_rate: float = 1e-4  # AdamW learning rate
     train_batch_size: int = 16  # chips per process per step
     max_train_steps: int = 2000  # optimisation steps
-    max_grad_norm: float = 1.0  # gradient clipping norm
     mixed_precision: Literal["no", "fp16", "bf16"] = "no"  # accelerate mixed precision
     checkpointing_steps: int = 500  # save a resumable checkpoint every this many steps
     checkpoints_total_limit: int | None = 2  # keep at most this many checkpoints
@@ -144,7 +145,7 @@ class TrainVAEConfig:
                 f"got {self.image_size}"
             )
         check_protocol(self.protocol)
-        check_minimum(self, "learning_rate", "max_grad_norm", minimum=0, strict=True)
+        check_minimum(self, "learning_rate", minimum=0, strict=True)
         check_minimum(
             self,
             "layers_per_block",

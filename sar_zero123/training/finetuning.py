@@ -51,6 +51,7 @@ from sar_zero123.runs.manifest import write_manifest
 from sar_zero123.training.lora import LoraModules, add_lora, merged_unet
 from sar_zero123.training.losses import LossOutput
 from sar_zero123.training.step import (
+    MAX_GRAD_NORM,
     ImageEmbedder,
     compute_losses,
     micro_batch_generator,
@@ -378,7 +379,7 @@ def train_finetune_steps(
             )
             accelerator.backward(losses.loss.mean())
             if accelerator.sync_gradients:
-                accelerator.clip_grad_norm_(trainable, config.max_grad_norm)
+                accelerator.clip_grad_norm_(trainable, MAX_GRAD_NORM)
             trainer.optimizer.step()
             trainer.lr_scheduler.step()
             trainer.optimizer.zero_grad(set_to_none=True)
