@@ -443,7 +443,7 @@ def parse_config(
             "--resume", dest="resume_from_checkpoint", action="store_const", const="latest",
             default=argparse.SUPPRESS,
             help="continue the run in the output folder from its newest intact checkpoint (the same as "
-            "--resume_from_checkpoint latest)",
+            "--set resume_from_checkpoint=latest)",
         )  # fmt: skip
     removed = removed_fields(cls)
     for token in sys.argv[1:] if argv is None else argv:

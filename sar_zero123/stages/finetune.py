@@ -124,7 +124,7 @@ class FinetuneConfig(LossSettings):
         "train_image_encoder", "use_ema", "ema_decay", "prediction_type", "checkpointing_steps",
         "logging_steps", "checkpoints_total_limit", "validation_steps", "num_validation_images",
         "validation_inference_steps", "guidance_scale", "num_workers", "report_to", "save_pipeline",
-        "cache_latents", "cache_on_device",
+        "cache_latents", "cache_on_device", "resume_from_checkpoint",
     )  # fmt: skip
 
     output_dir: str = "runs/finetune_pfm"  # run folder: checkpoints, logs, validation grids, final pipeline
@@ -178,7 +178,7 @@ class FinetuneConfig(LossSettings):
     gradient_accumulation_steps: int = 1  # micro-batches per optimisation step
     max_train_steps: int = 1000  # optimisation steps
     # stop this session after this many minutes of training steps: checkpoint, export the pipeline at the step
-    # reached, leave the run unfinished (the same command with --resume_from_checkpoint latest continues)
+    # reached, leave the run unfinished (the same command with --resume continues)
     max_train_minutes: float | None = None
     mixed_precision: Literal["no", "fp16", "bf16"] = "no"  # frozen VAE/encoders are cast to this dtype
     gradient_checkpointing: bool = False  # checkpoint UNet activations

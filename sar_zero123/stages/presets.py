@@ -207,7 +207,7 @@ def _section_values(where: str, section: str, values: Any) -> dict[str, Any]:
         raise ValueError(f"{where}: {section} must map fields to values, got {values!r}")
     typed: dict[str, Any] = {}
     # a removed field at the default its removal keeps reads as before (drop_removed_fields refuses others)
-    values = drop_removed_fields(RECIPE_SECTIONS[section], values, f"{where}: {section}")
+    values = drop_removed_fields(RECIPE_SECTIONS[section], values, section)
     for name, value in values.items():
         nested = f"{SAMPLER_SECTION}.{_SAMPLER_FIELDS[0]}" in _hints(section)
         if name == SAMPLER_SECTION and nested and isinstance(value, dict):

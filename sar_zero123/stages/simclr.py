@@ -73,7 +73,7 @@ class PretrainSimCLRConfig:
     ADVANCED_FIELDS = (
         "work_dir", "max_train_chips", "cifar_stem", "depths", "hidden_sizes", "embedding_size",
         "gather_negatives", "mixed_precision", "checkpointing_steps", "checkpoints_total_limit",
-        "logging_steps", "report_to", "num_workers",
+        "logging_steps", "report_to", "num_workers", "resume_from_checkpoint",
     )  # fmt: skip
     #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
     #: folder holding the old default reads as before; another value is refused with the reason.

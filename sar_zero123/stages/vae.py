@@ -81,6 +81,7 @@ class TrainVAEConfig:
     ADVANCED_FIELDS = (
         "block_out_channels", "layers_per_block", "latent_channels", "norm_num_groups",
         "mixed_precision", "checkpointing_steps", "checkpoints_total_limit", "num_eval_images", "report_to",
+        "resume_from_checkpoint",
         "train_encoder", "feature_loss_weight", "feature_encoder",
     )  # fmt: skip
     #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
