@@ -118,7 +118,7 @@ class FinetuneConfig(LossSettings):
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "pose_in_time_embedding", "estimate_input_azimuth", "input_code_dim", "rehearsal_max_chips",
+        "estimate_input_azimuth", "input_code_dim", "rehearsal_max_chips",
         "input_depression", "pose_lr_multiplier", "lr_scheduler", "lr_warmup_steps",
         "gradient_accumulation_steps", "mixed_precision", "gradient_checkpointing",
         "train_image_encoder", "use_ema", "ema_decay", "prediction_type", "checkpointing_steps",
@@ -132,7 +132,6 @@ class FinetuneConfig(LossSettings):
     # built when pretrained is None
     size: Literal["tiny", "micro", "compact", "small", "medium", "zero123"] = "small"
     image_size: int | None = None  # chip side in pixels; None uses the model's own
-    pose_in_time_embedding: bool = False  # built sizes: the pose also enters the UNet's timestep embedding
     # built sizes: an AzimuthEstimator reads the input's azimuth (and a code), turned by d_az it enters the
     # UNet's timestep embedding (sar_zero123.model.orientation)
     estimate_input_azimuth: bool = False
@@ -218,6 +217,10 @@ class FinetuneConfig(LossSettings):
         "pfm_monotonic_q": RemovedField(0, "random monotonic maps before PFM's encoder changed nothing "
                                         "measurable; PFM compares the images as Eq. 20 does"),
         "adam_weight_decay": RemovedField(1e-2, f"AdamW's weight decay is {ADAM_WEIGHT_DECAY:g}"),
+        "pose_in_time_embedding": RemovedField(
+            False, "the pose in the UNet's timestep embedding alone made no model built from scratch "
+            "follow the pose; estimate_input_azimuth does"
+        ),
         "max_grad_norm": RemovedField(1.0, f"gradients are clipped to a norm of {MAX_GRAD_NORM}"),
     }  # fmt: skip
 
@@ -385,7 +388,6 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneIn
         size=config.size,
         image_size=config.image_size,
         seed=config.seed,
-        pose_in_time_embedding=config.pose_in_time_embedding,
         estimate_input_azimuth=config.estimate_input_azimuth,
         input_code_dim=config.input_code_dim,
         prediction_type=config.prediction_type,

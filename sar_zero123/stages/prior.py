@@ -69,6 +69,8 @@ CORPUS_MSTAR_FRACTION = 0.25
 #: "proxy": the simulator bank fitted to each corpus vehicle, and the best-fitting ones kept per vehicle.
 PROXY_BANK_VEHICLES = 250
 PROXY_CANDIDATES = 2
+#: GroupNorm groups of the prior's VAE (each of vae_widths a multiple of it).
+VAE_NORM_GROUPS = 8
 
 
 @dataclass
@@ -77,7 +79,7 @@ class PriorConfig:
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "num_validation_vehicles", "corpus_workers", "proxy_oracle_prob", "vae_widths", "vae_norm_groups",
+        "num_validation_vehicles", "corpus_workers", "proxy_oracle_prob", "vae_widths",
         "vae_steps", "vae_batch_size", "lr_scheduler", "lr_warmup_steps", "input_depression",
         "prediction_type", "snr_gamma", "checkpointing_steps", "mixed_precision",
     )  # fmt: skip
@@ -89,6 +91,7 @@ class PriorConfig:
         "mstar_fraction": RemovedField(0.25, f"a share of {CORPUS_MSTAR_FRACTION} of the corpus views lie at "
                                        "MSTAR's 15/17 deg"),
         "proxy_bank_vehicles": RemovedField(250, f"the proxy bank holds {PROXY_BANK_VEHICLES} vehicles"),
+        "vae_norm_groups": RemovedField(8, f"the VAE's GroupNorm has {VAE_NORM_GROUPS} groups"),
         "proxy_candidates": RemovedField(2, f"{PROXY_CANDIDATES} best-fitting bank vehicles are kept per "
                                          "corpus vehicle"),
     }  # fmt: skip
@@ -112,7 +115,6 @@ class PriorConfig:
     # own, or "proxy" (widening a "rotated_input" init)
     init: str | None = None  # a prior (name or folder) to continue with its own VAE (warm start)
     vae_widths: list[int] = field(default_factory=lambda: [16, 32, 64])  # VAE block widths (16x16 latents)
-    vae_norm_groups: int = 8  # GroupNorm groups of the VAE
     vae_steps: int = 3000  # VAE optimisation steps
     vae_batch_size: int = 8  # chips per VAE step
     base_steps: int = 25000  # UNet optimisation steps (a constant lr_scheduler: a re-run may extend them)
@@ -249,7 +251,7 @@ def prior_vae_config(config: PriorConfig, corpus: Path) -> TrainVAEConfig:
         block_out_channels=tuple(config.vae_widths),
         layers_per_block=vae_shape["layers_per_block"],
         latent_channels=vae_shape["latent_channels"],
-        norm_num_groups=config.vae_norm_groups,
+        norm_num_groups=VAE_NORM_GROUPS,
         train_batch_size=config.vae_batch_size,
         max_train_steps=config.vae_steps,
         learning_rate=1e-3,
