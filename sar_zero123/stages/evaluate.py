@@ -116,7 +116,7 @@ class EvaluateConfig(SamplerSettings):
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "same_depression", "input_depression_deg", "outside_trained_range", "max_d_az_deg",
+        "same_depression", "input_depression_deg", "outside_trained_range",
         "vae", "speckle_looks", "blurred_target_sigmas_px", "speed_n", "image_size",
         "crop_size", "eval_batch_size", "num_figure_pairs", "device",
     )  # fmt: skip
@@ -126,6 +126,7 @@ class EvaluateConfig(SamplerSettings):
         "work_dir": RemovedField(None, "the simulated dataset is cached in output_dir"),
         "chip_crop_size": RemovedField(None, "chips larger than image_size are centre-cropped to it (their "
                                        "pixel spacing kept)"),
+        "max_d_az_deg": RemovedField(None, "every pair of views of one object is scored, any |d_az|"),
         "paper_scoring_size": RemovedField(256, f"the paper-comparable metrics resize to the authors' "
                                            f"{PAPER_SCORING_SIZE} px before their crop"),
     }  # fmt: skip
@@ -142,7 +143,6 @@ class EvaluateConfig(SamplerSettings):
     # evaluate requests outside a pipeline's trained d_el / depression range (its refusal lifted, listed in
     # table3.json): to measure how a model that never saw such requests answers them
     outside_trained_range: bool = False
-    max_d_az_deg: float | None = None  # largest |d_az| of a pair (None: any)
     n: int = 1000  # generated samples in total (split evenly between seen and unseen; at most 100,000)
     # an AutoencoderKL folder decoding for every pipeline instead of its own VAE; it must encode as theirs
     # (a decoder fine-tuned alone: train/train_vae.py --pretrained PIPELINE --no-train_encoder)
@@ -232,8 +232,6 @@ class EvaluateConfig(SamplerSettings):
             )
         if self.n < 2:
             raise ValueError(f"n must be >= 2 (the Frechet distance needs two views), got {self.n}")
-        if self.max_d_az_deg is not None and not 0.0 <= self.max_d_az_deg <= 180.0:
-            raise ValueError(f"max_d_az_deg must lie in [0, 180] degrees or be None, got {self.max_d_az_deg}")
 
     def _check_sweep(self) -> None:
         unknown = sorted(set(self.schedulers) - set(SCHEDULERS))
@@ -299,7 +297,6 @@ def evaluation_pairs(config: EvaluateConfig, evaluators: Evaluators, image_size:
         same_depression=config.same_depression,
         input_depression_deg=config.input_depression_deg,
         target_depressions_deg=config.target_depressions_deg,
-        max_d_az_deg=config.max_d_az_deg,
         chip_crop_size=None,
         evaluators_name=config.evaluators,
     )

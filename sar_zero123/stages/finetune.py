@@ -141,7 +141,6 @@ class FinetuneConfig(LossSettings):
     data: str | None = None  # dataset folder with index.csv; None simulates the built-in dataset
     protocol: str = "extended"  # split protocol: extended, soc or ood-<CLASS> (e.g. ood-T72)
     scaling: Literal["unit", "mstar_raw", "fit"] = "unit"  # dB bounds: unit magnitude, raw MSTAR, or fitted
-    max_d_az_deg: float | None = None  # largest |d_az| of a training pair in degrees; None: any
     same_depression: bool = True  # pair only chips at one depression; False also across (d_el != 0)
     # a prior corpus (write_prior_corpus, e.g. the prior's corpus/) whose pairs across depressions are mixed
     # into training (rehearsal), so that the fine-tune keeps what the prior knows; None: the task's pairs only
@@ -221,6 +220,7 @@ class FinetuneConfig(LossSettings):
             False, "the pose in the UNet's timestep embedding alone made no model built from scratch "
             "follow the pose; estimate_input_azimuth does"
         ),
+        "max_d_az_deg": RemovedField(None, "every pair of views of one object trains, whatever its |d_az|"),
         "max_grad_norm": RemovedField(1.0, f"gradients are clipped to a norm of {MAX_GRAD_NORM}"),
     }  # fmt: skip
 
@@ -417,7 +417,6 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneIn
         output_dir / "data",
         image_size=image_size,
         scaling=config.scaling,
-        max_d_az_deg=config.max_d_az_deg,
         num_validation_pairs=config.num_validation_images,
         seed=config.seed,
         same_depression=config.same_depression,
