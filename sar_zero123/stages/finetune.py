@@ -87,6 +87,7 @@ from sar_zero123.training.lora import LoraModules, check_lora_settings
 from sar_zero123.training.losses import TRAINED_PREDICTION_TYPES, LossSettings, check_prediction_type
 from sar_zero123.training.pfm import PfmFeatures, check_pfm_crop_size, check_pfm_features, load_pfm_encoder
 from sar_zero123.training.step import MAX_GRAD_NORM
+from sar_zero123.training.validation import VALIDATION_GUIDANCE_SCALE
 
 logger = logging.getLogger(__name__)
 
@@ -123,7 +124,7 @@ class FinetuneConfig(LossSettings):
         "gradient_accumulation_steps", "mixed_precision", "gradient_checkpointing",
         "train_image_encoder", "use_ema", "ema_decay", "prediction_type", "checkpointing_steps",
         "logging_steps", "checkpoints_total_limit", "validation_steps", "num_validation_images",
-        "validation_inference_steps", "guidance_scale", "num_workers", "report_to", "save_pipeline",
+        "validation_inference_steps", "num_workers", "report_to", "save_pipeline",
         "cache_latents", "cache_on_device", "resume_from_checkpoint",
     )  # fmt: skip
 
@@ -194,7 +195,6 @@ class FinetuneConfig(LossSettings):
     validation_steps: int = 500  # validation grid and losses every this many steps (0: never)
     num_validation_images: int = 4  # validation pairs (rows of the grid)
     validation_inference_steps: int = 20  # DDIM steps for validation samples
-    guidance_scale: float = 3.0  # CFG scale for validation samples
     num_workers: int = 0  # DataLoader workers
     report_to: str | None = "tensorboard"  # accelerate tracker; None disables logging
     seed: int = 0  # seed of initialisation, data order and every random draw
@@ -221,6 +221,8 @@ class FinetuneConfig(LossSettings):
             "follow the pose; estimate_input_azimuth does"
         ),
         "max_d_az_deg": RemovedField(None, "every pair of views of one object trains, whatever its |d_az|"),
+        "guidance_scale": RemovedField(3.0, "validation samples are guided at "
+                                       f"{VALIDATION_GUIDANCE_SCALE} (the sampling commands set their own)"),
         "max_grad_norm": RemovedField(1.0, f"gradients are clipped to a norm of {MAX_GRAD_NORM}"),
     }  # fmt: skip
 
@@ -347,12 +349,12 @@ def run_finetune(config: FinetuneConfig) -> Path:
     # the checkpoint's module list must match this run's
     check_resume_state(resume_path, "train_image_encoder", config.train_image_encoder, default=False)
     extendable = config.extendable_fields()
-    check_resume_config(resume_path, config, may_differ=("guidance_scale", "restart", *extendable))
+    check_resume_config(resume_path, config, may_differ=("restart", *extendable))
     check_resume_steps(resume_path, config.max_train_steps)
     folder = open_stage_folder(
         output_dir, "finetune", config, data={"data": data_identity(config.data)},
         resume=config.resume_from_checkpoint is not None, restart=config.restart,
-        may_differ=(*RESUME_MAY_DIFFER, "guidance_scale", "restart"), may_extend=extendable,
+        may_differ=(*RESUME_MAY_DIFFER, "restart"), may_extend=extendable,
     )  # fmt: skip
     if folder.finished:
         logger.info("%s: this fine-tune is finished; nothing to do", output_dir)

@@ -57,7 +57,7 @@ from sar_zero123.training.step import (
     micro_batch_generator,
     timestep_bucket_losses,
 )
-from sar_zero123.training.validation import run_validation
+from sar_zero123.training.validation import VALIDATION_GUIDANCE_SCALE, run_validation
 
 logger = logging.getLogger(__name__)
 
@@ -418,7 +418,7 @@ def train_finetune_steps(
                     loss_kwargs=trainer.loss_kwargs,
                     seed=config.seed,
                     num_inference_steps=config.validation_inference_steps,
-                    guidance_scale=config.guidance_scale,
+                    guidance_scale=VALIDATION_GUIDANCE_SCALE,
                     regressor=inputs.regressor,
                 )
             accelerator.wait_for_everyone()
