@@ -19,7 +19,6 @@ from typing import Any, Literal
 import numpy as np
 import torch
 
-from sar_zero123.config import RemovedField
 from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.model.proxy import DEFAULT_PROXY
 from sar_zero123.model.retrieval import (
@@ -38,19 +37,13 @@ logger = logging.getLogger(__name__)
 
 __all__ = ["ProxyRetrievalConfig", "run_proxy_retrieval"]
 
-#: AdamW's peak learning rate (a cosine decay follows).
-LEARNING_RATE = 2e-3
-
 
 @dataclass
 class ProxyRetrievalConfig:
     """Train the learned shortlist of the default proxy bank into ``output_dir/retrieval``."""
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
-    ADVANCED_FIELDS = ("batch_size", "temperature", "workers", "pool_vehicles")
-    #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
-    #: folder holding the old default reads as before; another value is refused with the reason.
-    REMOVED_FIELDS = {"learning_rate": RemovedField(2e-3, f"AdamW's peak learning rate is {LEARNING_RATE:g}")}
+    ADVANCED_FIELDS = ("batch_size", "learning_rate", "temperature", "workers", "pool_vehicles")
 
     output_dir: str = "runs/proxy_retrieval"  # run folder: data.npz, retrieval/, metrics.json
     target: Literal["pose", "turntable"] = "pose"  # rank as the fit at the chip's pose, or from every side
@@ -60,6 +53,7 @@ class ProxyRetrievalConfig:
     chips_per_bucket: int = 200  # training chips per 5 deg pose bucket
     steps: int = 6000  # optimiser steps
     batch_size: int = 256  # chips per step
+    learning_rate: float = 2e-3  # AdamW peak learning rate (cosine decay)
     temperature: float = 0.01  # softmax temperature of the targets (the bank's correlations)
     seed: int = 0  # chips, split and initialisation
     pool_vehicles: int = 1500  # procedural vehicles beyond the bank that turntable targets cover
@@ -84,8 +78,9 @@ class ProxyRetrievalConfig:
             from sar_zero123.pretrained import resolve_retrieval
 
             resolve_retrieval(self.init)
-        if not self.temperature > 0:
-            raise ValueError(f"temperature: expected a value > 0, got {self.temperature!r}")
+        for name in ("learning_rate", "temperature"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name}: expected a value > 0, got {getattr(self, name)!r}")
         chips = len(self.depressions_deg) * round(360.0 / POSE_BUCKET_DEG) * self.chips_per_bucket
         if self.batch_size > training_chips(chips):  # known before the chips are rendered
             raise ValueError(
@@ -132,7 +127,7 @@ def run_proxy_retrieval(config: ProxyRetrievalConfig) -> Path:
         np.savez(partial, key=np.array(key), **data)
         partial.replace(data_file)
         logger.info("rendered %d training chips in %.0f s", len(data["azimuth"]), timer.seconds)
-    net, recall = train_retrieval(data, bank, config.steps, config.batch_size, LEARNING_RATE,
+    net, recall = train_retrieval(data, bank, config.steps, config.batch_size, config.learning_rate,
                                   config.temperature, config.seed, init=init)  # fmt: skip
     save_retrieval(net, out, {"training": {"chips": int(len(data["azimuth"])), "steps": config.steps,
                                            "target": config.target, "init": config.init,
