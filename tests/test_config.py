@@ -310,3 +310,41 @@ def test_typed_values_pass_through_and_float_flags_are_finite(tmp_path: Path) ->
         parse_config(Typed, ["--set", "rate=inf"])
     with pytest.raises(ValueError, match="seed: expected an integer within int64, got 18446744073709551616"):
         parse_config(Typed, ["--seed", "18446744073709551616"])
+
+
+def test_a_run_folder_recording_a_removed_field_at_its_old_default_continues(tmp_path: Path) -> None:
+    """A folder written before a field became a constant resumes as it did; one recording another value is
+    refused in one line naming the field and why it went."""
+    from sar_zero123.cli import simulate
+
+    out = tmp_path / "data"
+    flags = ["--out", str(out), "--classes", "TANK", "--instances", "1", "--azimuth_step_deg", "120",
+             "--size", "16"]  # fmt: skip
+    assert simulate(flags).is_dir()
+    record_path = out / "run.json"
+    record = json.loads(record_path.read_text())
+    record["config"].update(procedural_sheet=0, real_root=None)  # as the folder was recorded before
+    record_path.write_text(json.dumps(record))
+    assert simulate([*flags, "--resume"]) == out
+    record["config"]["procedural_sheet"] = 3
+    record_path.write_text(json.dumps(record))
+    refused = r"procedural_sheet=3, but procedural_sheet was removed: that sheet is sar_zero123.sim"
+    with pytest.raises(ValueError, match=refused):
+        simulate([*flags, "--resume"])
+    with pytest.raises(ValueError, match=r"^--procedural_sheet was removed: that sheet is "):
+        simulate([*flags, "--procedural_sheet", "0"])
+
+
+def test_a_checkpoint_recording_a_removed_field_at_its_old_default_resumes(tmp_path: Path) -> None:
+    from sar_zero123.config.json_io import config_to_dict
+    from sar_zero123.runs.checkpoints import STATE_FILE, check_resume_config
+    from sar_zero123.stages.vae import TrainVAEConfig
+
+    config = TrainVAEConfig()
+    written = {**config_to_dict(config), "kl_weight": 1e-6, "reconstruction_loss": "l1"}  # before they went
+    (tmp_path / STATE_FILE).write_text(json.dumps({"config": written, "config_class": "TrainVAEConfig"}))
+    check_resume_config(tmp_path, config)
+    written["kl_weight"] = 0.5
+    (tmp_path / STATE_FILE).write_text(json.dumps({"config": written, "config_class": "TrainVAEConfig"}))
+    with pytest.raises(ValueError, match=r"kl_weight=0.5, but kl_weight was removed: the KL term"):
+        check_resume_config(tmp_path, config)

@@ -289,8 +289,12 @@ def drop_removed_fields(config: Any, values: Mapping[str, Any], where: str) -> d
         ValueError: Naming ``where``, the field and why it went, for one set to another value.
     """
     removed = removed_fields(config)
+
+    def plain(value: Any) -> Any:  # a tuple default as JSON and YAML hold it
+        return [plain(item) for item in value] if isinstance(value, (list, tuple)) else value
+
     for name, item in removed.items():
-        if name in values and values[name] != item.default:
+        if name in values and plain(values[name]) != plain(item.default):
             raise ValueError(f"{where}: {name}={values[name]!r}, but {name} was removed: {item.reason}")
     return {name: value for name, value in values.items() if name not in removed}
 
@@ -439,7 +443,7 @@ def parse_config(
             "--resume", dest="resume_from_checkpoint", action="store_const", const="latest",
             default=argparse.SUPPRESS,
             help="continue the run in the output folder from its newest intact checkpoint (the same as "
-            "--resume_from_checkpoint latest)",
+            "--set resume_from_checkpoint=latest)",
         )  # fmt: skip
     removed = removed_fields(cls)
     for token in sys.argv[1:] if argv is None else argv:

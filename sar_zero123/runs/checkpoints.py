@@ -28,6 +28,7 @@ from accelerate import Accelerator
 from torch.nn.parallel import DistributedDataParallel
 from torch.utils.data import DataLoader
 
+from sar_zero123.config import drop_removed_fields
 from sar_zero123.config.json_io import config_to_dict, write_json_atomic
 from sar_zero123.domain import naming_write_errors
 from sar_zero123.runs.folder import field_defaults
@@ -334,7 +335,10 @@ def check_resume_config(
         )
     allowed = set(RESUME_MAY_DIFFER) | set(may_differ)
     current = {name: _portable(value) for name, value in config_to_dict(config).items()}
-    written = {(renamed or {}).get(name, name): _portable(value) for name, value in state["config"].items()}
+    written = {(renamed or {}).get(name, name): value for name, value in state["config"].items()}
+    # a field removed since, at the default its removal keeps, changes nothing; another value is refused
+    written = drop_removed_fields(config, written, f"resume_from_checkpoint: {str(path)!r}")
+    written = {name: _portable(value) for name, value in written.items()}
     defaults = field_defaults(config)
     written.update({name: defaults[name] for name in set(current) - set(written) if name in defaults})
     differences = [

@@ -32,7 +32,7 @@ from typing import Any
 import torch
 
 from sar_zero123.augment import readd_speckle
-from sar_zero123.config import check_minimum
+from sar_zero123.config import RemovedField, check_minimum
 from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.domain import MAX_IMAGE_SIZE
 from sar_zero123.evaluation.evaluators import Evaluators, load_evaluators
@@ -52,7 +52,7 @@ from sar_zero123.evaluation.protocol import (
     score,
     vae_round_trip,
 )
-from sar_zero123.evaluation.scoring import blur_views
+from sar_zero123.evaluation.scoring import PAPER_SCORING_SIZE, blur_views
 from sar_zero123.evaluation.speed import speed_error_rows, write_speed_error
 from sar_zero123.evaluation.tables import (
     plot_lambda_sweep,
@@ -100,7 +100,7 @@ MAX_EVAL_BATCH_SIZE = 1_024
 #: Blurred-target reference rows at most, and their largest blur (pixels).
 MAX_BLURRED_TARGETS, MAX_BLUR_SIGMA_PX = 8, 64.0
 #: Settings that never change what the folder holds: the device, where data is cached, how to reuse it.
-EVALUATE_MAY_DIFFER = ("resume", "restart", "device", "output_dir", "work_dir")
+EVALUATE_MAY_DIFFER = ("resume", "restart", "device", "output_dir")
 
 
 @dataclass
@@ -114,17 +114,26 @@ class EvaluateConfig(SamplerSettings):
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "work_dir", "same_depression", "input_depression_deg", "outside_trained_range", "max_d_az_deg",
-        "vae", "speckle_looks", "blurred_target_sigmas_px", "speed_n", "image_size", "chip_crop_size",
-        "crop_size", "paper_scoring_size", "eval_batch_size", "num_figure_pairs", "device",
+        "same_depression", "input_depression_deg", "outside_trained_range",
+        "vae", "speckle_looks", "blurred_target_sigmas_px", "speed_n", "image_size",
+        "crop_size", "eval_batch_size", "num_figure_pairs", "device",
     )  # fmt: skip
+    #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
+    #: folder holding the old default reads as before; another value is refused with the reason.
+    REMOVED_FIELDS = {
+        "work_dir": RemovedField(None, "the simulated dataset is cached in output_dir"),
+        "chip_crop_size": RemovedField(None, "chips larger than image_size are centre-cropped to it (their "
+                                       "pixel spacing kept)"),
+        "max_d_az_deg": RemovedField(None, "every pair of views of one object is scored, any |d_az|"),
+        "paper_scoring_size": RemovedField(256, f"the paper-comparable metrics resize to the authors' "
+                                           f"{PAPER_SCORING_SIZE} px before their crop"),
+    }  # fmt: skip
 
     pipeline: list[str] = field(default_factory=list)  # SARZero123Pipeline folders (repeat the flag)
     pipeline_names: list[str] = field(default_factory=list)  # row labels (default: folder names)
     lambdas: list[float] = field(default_factory=list)  # PFM weight of each pipeline, for the Fig. 12 sweep
     evaluators: str = "runs/evaluators"  # output folder of train/train_evaluators.py
     data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
-    work_dir: str | None = None  # cache of the simulated dataset (default: output_dir)
     protocol: str = "extended"  # "extended" (seen only) or "ood-<CLASS>" (half seen, half unseen)
     same_depression: bool = True  # pair views at one depression; False also pairs across (d_el != 0)
     input_depression_deg: float | None = None  # only pairs whose input is at this depression (None: any)
@@ -132,7 +141,6 @@ class EvaluateConfig(SamplerSettings):
     # evaluate requests outside a pipeline's trained d_el / depression range (its refusal lifted, listed in
     # table3.json): to measure how a model that never saw such requests answers them
     outside_trained_range: bool = False
-    max_d_az_deg: float | None = None  # largest |d_az| of a pair (None: any)
     n: int = 1000  # generated samples in total (split evenly between seen and unseen; at most 100,000)
     # an AutoencoderKL folder decoding for every pipeline instead of its own VAE; it must encode as theirs
     # (a decoder fine-tuned alone: train/train_vae.py --pretrained PIPELINE --no-train_encoder)
@@ -147,9 +155,7 @@ class EvaluateConfig(SamplerSettings):
     schedulers: list[str] = field(default_factory=list)  # speed/error sweep: ddim, dpmsolver++, euler, unipc
     speed_n: int | None = None  # samples per speed/error point, from the seen pairs (None: all of them)
     image_size: int | None = None  # chip size fed to the pipelines (None: the pipeline's own)
-    chip_crop_size: int | None = None  # centre crop of the chip files before resizing
     crop_size: int = 64  # centre crop for MS-SSIM and Kuan+SSIM (paper: 64)
-    paper_scoring_size: int | None = 256  # side before the paper-comparable 64 crop (authors: 256)
     eval_batch_size: int = 16  # pairs per pipeline call (and per VAE / evaluator call)
     num_figure_pairs: int = 4  # pairs per group shown in views.png
     output_dir: str = "runs/eval"  # where tables and figures go
@@ -203,7 +209,7 @@ class EvaluateConfig(SamplerSettings):
 
     def _check_sizes(self) -> None:
         check_minimum(self, "n", "eval_batch_size", "crop_size", minimum=1)
-        check_minimum(self, "image_size", "chip_crop_size", "speed_n", minimum=1, optional=True)
+        check_minimum(self, "image_size", "speed_n", minimum=1, optional=True)
         check_minimum(self, "num_figure_pairs", minimum=0)
         for name, bound in (
             ("n", MAX_EVALUATION_PAIRS),
@@ -211,15 +217,12 @@ class EvaluateConfig(SamplerSettings):
             ("num_figure_pairs", MAX_FIGURE_PAIRS),
             ("image_size", MAX_IMAGE_SIZE),
             ("crop_size", MAX_IMAGE_SIZE),
-            ("paper_scoring_size", MAX_IMAGE_SIZE),
         ):
             value = getattr(self, name)
             if value is not None and value > bound:
                 raise ValueError(f"{name} must be <= {bound:,}, got {value:,}")
-        if self.paper_scoring_size is not None and self.paper_scoring_size < self.crop_size:
-            raise ValueError(
-                f"paper_scoring_size must be >= crop_size or None, got {self.paper_scoring_size}"
-            )
+        if self.crop_size > PAPER_SCORING_SIZE:  # the paper-comparable crop lies within that side
+            raise ValueError(f"crop_size must be <= {PAPER_SCORING_SIZE}, got {self.crop_size}")
         # the Frechet distance (SFD) needs two views per group: checked here, before any model runs
         if self.protocol.startswith("ood-") and self.n < 4:
             raise ValueError(
@@ -227,8 +230,6 @@ class EvaluateConfig(SamplerSettings):
             )
         if self.n < 2:
             raise ValueError(f"n must be >= 2 (the Frechet distance needs two views), got {self.n}")
-        if self.max_d_az_deg is not None and not 0.0 <= self.max_d_az_deg <= 180.0:
-            raise ValueError(f"max_d_az_deg must lie in [0, 180] degrees or be None, got {self.max_d_az_deg}")
 
     def _check_sweep(self) -> None:
         unknown = sorted(set(self.schedulers) - set(SCHEDULERS))
@@ -289,13 +290,12 @@ def evaluation_pairs(config: EvaluateConfig, evaluators: Evaluators, image_size:
         protocol=config.protocol,
         n=config.n,
         image_size=image_size,
-        work_dir=config.work_dir if config.work_dir is not None else config.output_dir,
+        work_dir=config.output_dir,
         seed=config.seed,
         same_depression=config.same_depression,
         input_depression_deg=config.input_depression_deg,
         target_depressions_deg=config.target_depressions_deg,
-        max_d_az_deg=config.max_d_az_deg,
-        chip_crop_size=config.chip_crop_size,
+        chip_crop_size=None,
         evaluators_name=config.evaluators,
     )
 
@@ -423,7 +423,7 @@ def _scoring(config: EvaluateConfig, device: torch.device) -> dict[str, Any]:
     """The keyword arguments of :func:`~sar_zero123.evaluation.protocol.score` for this evaluation."""
     return {
         "crop_size": config.crop_size,
-        "paper_scoring_size": config.paper_scoring_size,
+        "paper_scoring_size": PAPER_SCORING_SIZE,
         "batch_size": max(config.eval_batch_size, 32),
         "device": device,
     }

@@ -11,7 +11,7 @@ Evaluators always train on the train split of the ``extended`` protocol, i.e. re
 17 deg: for MSTAR-OOD the classifier must still know the held-out class (T72), as in the paper. They exist
 only to score generated images. The depression regressor needs chips at many depressions, which the
 protocols' splits (17 and 15 deg) lack: it trains on every chip of ``depression_data`` except a seeded,
-held-out ``depression_test_fraction`` of them, which give its test error.
+held-out :data:`DEPRESSION_TEST_FRACTION` of them, which give its test error.
 
 The folder follows :mod:`sar_zero123.runs.folder`: a folder holding other work is refused before any
 training, an unfinished run with the same settings is continued only with ``resume`` (each model already
@@ -29,7 +29,7 @@ from typing import Any
 
 from accelerate.utils import set_seed
 
-from sar_zero123.config import check_minimum
+from sar_zero123.config import RemovedField, check_minimum
 from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_index, prepare_splits
 from sar_zero123.data.selection import hold_out, subsample
@@ -71,9 +71,15 @@ Evaluator = SARClassifier | AzimuthRegressor | DepressionRegressor
 MAX_EPOCHS = 10_000
 #: Most chips per step.
 MAX_BATCH_SIZE = 4096
+#: The share of ``depression_data``'s chips held out (seeded) for the depression regressor's test error.
+DEPRESSION_TEST_FRACTION = 0.2
+#: AdamW's weight decay for every model of the stage.
+ADAMW_WEIGHT_DECAY = 5e-4
+#: Each model saves a resumable checkpoint every this many epochs.
+CHECKPOINTING_EPOCHS = 5
 #: Settings that never change what the folder holds: where data is cached, how it is loaded, how to resume.
 EVALUATORS_MAY_DIFFER = (
-    "resume", "restart", "resume_from_checkpoint", "num_workers", "output_dir", "work_dir",
+    "resume", "restart", "resume_from_checkpoint", "num_workers", "output_dir",
 )  # fmt: skip
 
 
@@ -83,19 +89,29 @@ class TrainEvaluatorsConfig:
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "depression_test_fraction", "work_dir", "chip_crop_size", "cifar_stem", "depths", "hidden_sizes",
-        "mlp_hidden_sizes", "probe_epochs", "weight_decay", "max_train_chips", "checkpointing_epochs",
+        "cifar_stem", "depths", "hidden_sizes", "mlp_hidden_sizes", "probe_epochs", "max_train_chips",
         "resume_from_checkpoint", "num_workers", "mixed_precision",
     )  # fmt: skip
+    #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
+    #: folder holding the old default reads as before; another value is refused with the reason.
+    REMOVED_FIELDS = {
+        "depression_test_fraction": RemovedField(
+            0.2, f"{DEPRESSION_TEST_FRACTION} of depression_data's chips are held out for its test error"
+        ),
+        "work_dir": RemovedField(None, "the simulated dataset is cached in output_dir"),
+        "chip_crop_size": RemovedField(None, "chips larger than image_size are centre-cropped to it (their "
+                                       "pixel spacing kept)"),
+        "weight_decay": RemovedField(5e-4, f"AdamW's weight decay is {ADAMW_WEIGHT_DECAY:g}"),
+        "checkpointing_epochs": RemovedField(
+            5, f"a resumable checkpoint is saved every {CHECKPOINTING_EPOCHS} epochs"
+        ),
+    }  # fmt: skip
 
     output_dir: str = "runs/evaluators"  # folder for classifier/, regressor/, probes/, metrics.json
     data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
     depression_data: str | None = None  # chip folder (index.csv) at many depressions: depression_regressor/
-    depression_test_fraction: float = 0.2  # share of depression_data's chips held out for its test error
-    work_dir: str | None = None  # where the simulated dataset is cached (default: output_dir)
     scaling: str = "unit"  # decibel bounds: "unit" (8-bit images, simulator), "mstar_raw" or "fit"
     image_size: int = 128  # chip side in pixels fed to the evaluators
-    chip_crop_size: int | None = None  # centre crop before resizing (None keeps the pixel spacing)
     cifar_stem: bool = True  # 3x3 stride-1 stem without max-pool (reference setting for SAR chips)
     depths: tuple[int, ...] = (2, 2, 2, 2)  # ResNet-18 blocks per stage
     hidden_sizes: tuple[int, ...] = (64, 128, 256, 512)  # ResNet-18 stage widths
@@ -104,10 +120,8 @@ class TrainEvaluatorsConfig:
     probe_epochs: int = 30  # passes for the MLP heads of the SimCLR probes
     train_batch_size: int = 64  # chips per process per step (also the scoring batch)
     learning_rate: float = 1e-3  # AdamW peak learning rate (cosine decay to 0)
-    weight_decay: float = 5e-4  # AdamW weight decay
     simclr_encoders: list[str] = field(default_factory=list)  # SimCLR encoder folders to probe (Table IV)
     max_train_chips: int | None = None  # subsample the train split (quick runs); None uses all
-    checkpointing_epochs: int = 5  # save a resumable checkpoint every this many epochs
     resume_from_checkpoint: str | None = "latest"  # with resume: "latest", a checkpoint folder, or None
     num_workers: int = 0  # DataLoader worker processes
     mixed_precision: str = "no"  # accelerate mixed precision: "no", "fp16" or "bf16"
@@ -118,19 +132,15 @@ class TrainEvaluatorsConfig:
     def __post_init__(self) -> None:
         if self.scaling not in ("unit", "mstar_raw", "fit"):
             raise ValueError(f"scaling must be 'unit', 'mstar_raw' or 'fit', got {self.scaling!r}")
-        counts = ("image_size", "epochs", "train_batch_size", "checkpointing_epochs", "probe_epochs")
+        counts = ("image_size", "epochs", "train_batch_size", "probe_epochs")
         check_minimum(self, *counts, minimum=1)
         for name, bound in (("image_size", MAX_IMAGE_SIZE), ("epochs", MAX_EPOCHS),
                             ("probe_epochs", MAX_EPOCHS), ("train_batch_size", MAX_BATCH_SIZE)):  # fmt: skip
             if getattr(self, name) > bound:
                 raise ValueError(f"{name} must be <= {bound}, got {getattr(self, name)}")
         check_minimum(self, "learning_rate", minimum=0, strict=True)
-        check_minimum(self, "weight_decay", "num_workers", minimum=0)
-        check_minimum(self, "max_train_chips", "chip_crop_size", minimum=1, optional=True)
-        if not 0.0 < self.depression_test_fraction < 1.0:
-            raise ValueError(
-                f"depression_test_fraction must lie in (0, 1), got {self.depression_test_fraction}"
-            )
+        check_minimum(self, "num_workers", minimum=0)
+        check_minimum(self, "max_train_chips", minimum=1, optional=True)
         if len(self.mlp_hidden_sizes) == 0 or min(self.mlp_hidden_sizes) < 1:
             raise ValueError(f"mlp_hidden_sizes must be positive widths, got {self.mlp_hidden_sizes}")
         if self.mixed_precision not in ("no", "fp16", "bf16"):
@@ -147,8 +157,8 @@ class TrainEvaluatorsConfig:
         return EvaluatorTraining(
             batch_size=self.train_batch_size,
             learning_rate=self.learning_rate,
-            weight_decay=self.weight_decay,
-            checkpointing_epochs=self.checkpointing_epochs,
+            weight_decay=ADAMW_WEIGHT_DECAY,
+            checkpointing_epochs=CHECKPOINTING_EPOCHS,
             resume_from_checkpoint=self.resume_from_checkpoint,
             num_workers=self.num_workers,
             mixed_precision=self.mixed_precision,
@@ -210,8 +220,7 @@ def run_evaluators(config: TrainEvaluatorsConfig) -> Path:
     # 2. data (the extended protocol's train split holds every class, the OOD class included) and the SimCLR
     # encoders; a new run whose setup fails leaves no record, so the corrected command is not refused
     with withdrawn_if_setup_fails(folder):
-        work_dir = Path(config.work_dir) if config.work_dir is not None else output_dir
-        splits = prepare_splits(config.data, "extended", work_dir, seed=config.seed)
+        splits = prepare_splits(config.data, "extended", output_dir, seed=config.seed)
         train_records = subsample(splits["train"], config.max_train_chips, config.seed)
         scaling = DecibelScaling.from_choice(config.scaling, train_records)
         class_names = sorted({r.target_class for r in splits["train"] + splits["test"]})
@@ -243,7 +252,7 @@ def run_evaluators(config: TrainEvaluatorsConfig) -> Path:
             config, depression_records, encoder_config, scaling, output_dir / DEPRESSION_REGRESSOR_DIR, seed
         )
         summary["depression_regressor_trained_on"] = (
-            f"{config.depression_data} except a held-out {config.depression_test_fraction:g} of its chips"
+            f"{config.depression_data} except a held-out {DEPRESSION_TEST_FRACTION:g} of its chips"
         )
 
     # 4. metrics.json, the last output
@@ -276,14 +285,8 @@ def _depression_records(depression_data: str | None) -> list[ChipRecord] | None:
 def _chips(
     records: list[ChipRecord], config: TrainEvaluatorsConfig, scaling: DecibelScaling, class_names: list[str]
 ) -> ChipDataset:
-    """The evaluators' view of some chips: ``image_size`` px, ``chip_crop_size`` crop, ``scaling``."""
-    return ChipDataset(
-        records,
-        size=config.image_size,
-        scaling=scaling,
-        class_names=class_names,
-        crop_size=config.chip_crop_size,
-    )
+    """The evaluators' view of some chips: ``image_size`` px, ``scaling``."""
+    return ChipDataset(records, size=config.image_size, scaling=scaling, class_names=class_names)
 
 
 def _train_scratch_models(
@@ -365,7 +368,7 @@ def _train_depression_regressor(
     The chips are normalised with the other evaluators' ``scaling``: the regressor scores the same views.
     """
     depressions = sorted({round(r.depression_deg, 3) for r in records})
-    train_records, test_records = hold_out(records, config.depression_test_fraction, seed)
+    train_records, test_records = hold_out(records, DEPRESSION_TEST_FRACTION, seed)
     train_records = subsample(train_records, config.max_train_chips, seed)
     class_names = sorted({r.target_class for r in records})
     train_set, test_set = (

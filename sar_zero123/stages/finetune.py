@@ -86,11 +86,15 @@ from sar_zero123.training.latent_cache import (
 from sar_zero123.training.lora import LoraModules, check_lora_settings
 from sar_zero123.training.losses import TRAINED_PREDICTION_TYPES, LossSettings, check_prediction_type
 from sar_zero123.training.pfm import PfmFeatures, check_pfm_crop_size, check_pfm_features, load_pfm_encoder
+from sar_zero123.training.step import MAX_GRAD_NORM
+from sar_zero123.training.validation import VALIDATION_GUIDANCE_SCALE
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["FinetuneConfig", "check_lr_scheduler", "run_finetune"]
 
+#: AdamW's weight decay (torch's default).
+ADAM_WEIGHT_DECAY = 1e-2
 #: Schedulers whose learning rate does not depend on the step count: their runs may be extended.
 CONSTANT_LR_SCHEDULERS = ("constant", "constant_with_warmup")
 
@@ -115,13 +119,13 @@ class FinetuneConfig(LossSettings):
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "pose_in_time_embedding", "estimate_input_azimuth", "input_code_dim", "rehearsal_max_chips",
-        "input_depression", "pose_lr_multiplier", "adam_weight_decay", "lr_scheduler", "lr_warmup_steps",
-        "gradient_accumulation_steps", "max_grad_norm", "mixed_precision", "gradient_checkpointing",
+        "estimate_input_azimuth", "input_code_dim", "rehearsal_max_chips",
+        "input_depression", "pose_lr_multiplier", "lr_scheduler", "lr_warmup_steps",
+        "gradient_accumulation_steps", "mixed_precision", "gradient_checkpointing",
         "train_image_encoder", "use_ema", "ema_decay", "prediction_type", "checkpointing_steps",
         "logging_steps", "checkpoints_total_limit", "validation_steps", "num_validation_images",
-        "validation_inference_steps", "guidance_scale", "num_workers", "report_to", "save_pipeline",
-        "cache_latents", "cache_on_device",
+        "validation_inference_steps", "num_workers", "report_to", "save_pipeline",
+        "cache_latents", "cache_on_device", "resume_from_checkpoint",
     )  # fmt: skip
 
     output_dir: str = "runs/finetune_pfm"  # run folder: checkpoints, logs, validation grids, final pipeline
@@ -129,7 +133,6 @@ class FinetuneConfig(LossSettings):
     # built when pretrained is None
     size: Literal["tiny", "micro", "compact", "small", "medium", "zero123"] = "small"
     image_size: int | None = None  # chip side in pixels; None uses the model's own
-    pose_in_time_embedding: bool = False  # built sizes: the pose also enters the UNet's timestep embedding
     # built sizes: an AzimuthEstimator reads the input's azimuth (and a code), turned by d_az it enters the
     # UNet's timestep embedding (sar_zero123.model.orientation)
     estimate_input_azimuth: bool = False
@@ -139,7 +142,6 @@ class FinetuneConfig(LossSettings):
     data: str | None = None  # dataset folder with index.csv; None simulates the built-in dataset
     protocol: str = "extended"  # split protocol: extended, soc or ood-<CLASS> (e.g. ood-T72)
     scaling: Literal["unit", "mstar_raw", "fit"] = "unit"  # dB bounds: unit magnitude, raw MSTAR, or fitted
-    max_d_az_deg: float | None = None  # largest |d_az| of a training pair in degrees; None: any
     same_depression: bool = True  # pair only chips at one depression; False also across (d_el != 0)
     # a prior corpus (write_prior_corpus, e.g. the prior's corpus/) whose pairs across depressions are mixed
     # into training (rehearsal), so that the fine-tune keeps what the prior knows; None: the task's pairs only
@@ -169,16 +171,14 @@ class FinetuneConfig(LossSettings):
     lora_modules: LoraModules = "all"  # with lora_rank: "all" Linear and Conv2d layers, or "attention" only
     learning_rate: float = 1e-4  # AdamW learning rate of the UNet (of its LoRA factors with lora_rank)
     pose_lr_multiplier: float = 10.0  # pose projection learning rate = this x learning_rate
-    adam_weight_decay: float = 1e-2  # AdamW weight decay
     lr_scheduler: str = "constant"  # diffusers scheduler name (constant, constant_with_warmup, cosine, ...)
     lr_warmup_steps: int = 0  # warm-up optimisation steps
     train_batch_size: int = 4  # pairs per process per micro-batch
     gradient_accumulation_steps: int = 1  # micro-batches per optimisation step
     max_train_steps: int = 1000  # optimisation steps
     # stop this session after this many minutes of training steps: checkpoint, export the pipeline at the step
-    # reached, leave the run unfinished (the same command with --resume_from_checkpoint latest continues)
+    # reached, leave the run unfinished (the same command with --resume continues)
     max_train_minutes: float | None = None
-    max_grad_norm: float = 1.0  # gradient clipping norm (all trained parameters together)
     mixed_precision: Literal["no", "fp16", "bf16"] = "no"  # frozen VAE/encoders are cast to this dtype
     gradient_checkpointing: bool = False  # checkpoint UNet activations
     train_image_encoder: bool = False  # train the CLIP image tower too: use it when training from scratch
@@ -195,7 +195,6 @@ class FinetuneConfig(LossSettings):
     validation_steps: int = 500  # validation grid and losses every this many steps (0: never)
     num_validation_images: int = 4  # validation pairs (rows of the grid)
     validation_inference_steps: int = 20  # DDIM steps for validation samples
-    guidance_scale: float = 3.0  # CFG scale for validation samples
     num_workers: int = 0  # DataLoader workers
     report_to: str | None = "tensorboard"  # accelerate tracker; None disables logging
     seed: int = 0  # seed of initialisation, data order and every random draw
@@ -216,6 +215,15 @@ class FinetuneConfig(LossSettings):
                                       "PFM throughout; PFM applies in every step"),
         "pfm_monotonic_q": RemovedField(0, "random monotonic maps before PFM's encoder changed nothing "
                                         "measurable; PFM compares the images as Eq. 20 does"),
+        "adam_weight_decay": RemovedField(1e-2, f"AdamW's weight decay is {ADAM_WEIGHT_DECAY:g}"),
+        "pose_in_time_embedding": RemovedField(
+            False, "the pose in the UNet's timestep embedding alone made no model built from scratch "
+            "follow the pose; estimate_input_azimuth does"
+        ),
+        "max_d_az_deg": RemovedField(None, "every pair of views of one object trains, whatever its |d_az|"),
+        "guidance_scale": RemovedField(3.0, "validation samples are guided at "
+                                       f"{VALIDATION_GUIDANCE_SCALE} (the sampling commands set their own)"),
+        "max_grad_norm": RemovedField(1.0, f"gradients are clipped to a norm of {MAX_GRAD_NORM}"),
     }  # fmt: skip
 
     #: Research options kept beside the measured ones: settings without a flag (--set), listed at the end of
@@ -238,7 +246,7 @@ class FinetuneConfig(LossSettings):
         if self.cache_on_device and not self.cache_latents:
             raise ValueError("cache_on_device: keeps the cached encodings on the device; needs cache_latents")
         check_protocol(self.protocol)
-        check_minimum(self, "learning_rate", "pose_lr_multiplier", "max_grad_norm", minimum=0, strict=True)
+        check_minimum(self, "learning_rate", "pose_lr_multiplier", minimum=0, strict=True)
         check_minimum(self, "lr_warmup_steps", "validation_steps", "num_workers", minimum=0)
         check_lr_scheduler(self.lr_scheduler)
         counts = ("train_batch_size", "gradient_accumulation_steps", "max_train_steps", "checkpointing_steps",
@@ -341,12 +349,12 @@ def run_finetune(config: FinetuneConfig) -> Path:
     # the checkpoint's module list must match this run's
     check_resume_state(resume_path, "train_image_encoder", config.train_image_encoder, default=False)
     extendable = config.extendable_fields()
-    check_resume_config(resume_path, config, may_differ=("guidance_scale", "restart", *extendable))
+    check_resume_config(resume_path, config, may_differ=("restart", *extendable))
     check_resume_steps(resume_path, config.max_train_steps)
     folder = open_stage_folder(
         output_dir, "finetune", config, data={"data": data_identity(config.data)},
         resume=config.resume_from_checkpoint is not None, restart=config.restart,
-        may_differ=(*RESUME_MAY_DIFFER, "guidance_scale", "restart"), may_extend=extendable,
+        may_differ=(*RESUME_MAY_DIFFER, "restart"), may_extend=extendable,
     )  # fmt: skip
     if folder.finished:
         logger.info("%s: this fine-tune is finished; nothing to do", output_dir)
@@ -382,7 +390,6 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneIn
         size=config.size,
         image_size=config.image_size,
         seed=config.seed,
-        pose_in_time_embedding=config.pose_in_time_embedding,
         estimate_input_azimuth=config.estimate_input_azimuth,
         input_code_dim=config.input_code_dim,
         prediction_type=config.prediction_type,
@@ -412,7 +419,6 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneIn
         output_dir / "data",
         image_size=image_size,
         scaling=config.scaling,
-        max_d_az_deg=config.max_d_az_deg,
         num_validation_pairs=config.num_validation_images,
         seed=config.seed,
         same_depression=config.same_depression,
@@ -514,7 +520,7 @@ def _prepare_training(
         azimuth_estimator=pipe.azimuth_estimator,
         learning_rate=config.learning_rate,
         pose_lr_multiplier=config.pose_lr_multiplier,
-        weight_decay=config.adam_weight_decay,
+        weight_decay=ADAM_WEIGHT_DECAY,
     )
     lr_scheduler = get_scheduler(
         config.lr_scheduler,

@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, Literal
 
-from sar_zero123.config import RemovedField, _coerce, _set_value
+from sar_zero123.config import RemovedField, _coerce, _set_value, drop_removed_fields, removed_fields
 from sar_zero123.data.splits import OOD_INTERVAL_WIDTH_DEG, check_protocol, ood_validation_intervals
 from sar_zero123.model.sampler import SamplerSettings
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, resolve_pretrained
@@ -162,7 +162,12 @@ def removed_recipe_field(name: str) -> str | None:
     bare = name.rpartition(".")[2]
     if bare not in REMOVED_RECIPE_FIELDS:
         return None
-    return f"{name} was removed: it is now {REMOVED_RECIPE_FIELDS[bare]}"
+    replacement = REMOVED_RECIPE_FIELDS[bare]
+    section, _, field_name = replacement.partition(" ")[0].partition(".")
+    gone = removed_fields(RECIPE_SECTIONS.get(section)).get(field_name)
+    if gone is not None:  # its replacement was removed since: say why
+        return f"{name} was removed: it became {section}.{field_name}, removed too: {gone.reason}"
+    return f"{name} was removed: it is now {replacement}"
 
 
 @functools.cache
@@ -183,6 +188,9 @@ def _typed(section: str, name: str, value: Any) -> Any:
         ValueError: Naming ``section.name``, for an unknown or removed field, or a value of another type.
     """
     hints = _hints(section)
+    gone = removed_fields(RECIPE_SECTIONS[section]).get(name)
+    if gone is not None:
+        raise ValueError(f"{section}.{name} was removed: {gone.reason}")
     if name not in hints:
         removed = removed_recipe_field(f"{section}.{name}")
         if removed is not None and name not in _SAMPLER_FIELDS:
@@ -198,6 +206,8 @@ def _section_values(where: str, section: str, values: Any) -> dict[str, Any]:
     if not isinstance(values, dict):
         raise ValueError(f"{where}: {section} must map fields to values, got {values!r}")
     typed: dict[str, Any] = {}
+    # a removed field at the default its removal keeps reads as before (drop_removed_fields refuses others)
+    values = drop_removed_fields(RECIPE_SECTIONS[section], values, section)
     for name, value in values.items():
         nested = f"{SAMPLER_SECTION}.{_SAMPLER_FIELDS[0]}" in _hints(section)
         if name == SAMPLER_SECTION and nested and isinstance(value, dict):

@@ -5,8 +5,8 @@ runs three stages in ``output_dir``, each resumable (a re-run of the same comman
 stopped):
 
 1. the corpus (:func:`sar_zero123.sim.corpus.write_prior_corpus`): ``num_vehicles`` procedural vehicles,
-   each at ``views_per_vehicle`` random azimuths and depressions in ``depression_range_deg``; the named
-   simulator classes are never in it (they are the prior's unseen test vehicles);
+   each at ``views_per_vehicle`` random azimuths and depressions in :data:`CORPUS_DEPRESSION_RANGE_DEG`;
+   the named simulator classes are never in it (they are the prior's unseen test vehicles);
 2. a VAE sized for the chip (:func:`~sar_zero123.stages.vae.run_vae`) on the corpus, in ``vae/`` (skipped when
    ``vae`` names an existing one, such as the bundled prior's);
 3. the UNet with its pose path (:func:`~sar_zero123.stages.finetune.run_finetune`, lambda = 0), in
@@ -32,7 +32,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from sar_zero123.config import check_minimum
+from sar_zero123.config import RemovedField, check_minimum
 from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import train_validation_pairs
 from sar_zero123.data.corpus_proxies import PROXIES_RECORD, write_corpus_proxies
@@ -63,6 +63,15 @@ __all__ = [
     "run_prior",
 ]
 
+#: The corpus's uniform depression draw (deg), and the share of its views put at MSTAR's 15/17 deg instead.
+CORPUS_DEPRESSION_RANGE_DEG = (10.0, 60.0)
+CORPUS_MSTAR_FRACTION = 0.25
+#: "proxy": the simulator bank fitted to each corpus vehicle, and the best-fitting ones kept per vehicle.
+PROXY_BANK_VEHICLES = 250
+PROXY_CANDIDATES = 2
+#: GroupNorm groups of the prior's VAE (each of vae_widths a multiple of it).
+VAE_NORM_GROUPS = 8
+
 
 @dataclass
 class PriorConfig:
@@ -70,28 +79,34 @@ class PriorConfig:
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "num_validation_vehicles", "depression_range_deg", "mstar_fraction", "corpus_workers",
-        "proxy_bank_vehicles", "proxy_candidates", "proxy_oracle_prob", "vae_widths", "vae_norm_groups",
-        "vae_steps",
-        "vae_batch_size", "lr_scheduler", "lr_warmup_steps", "input_depression", "prediction_type",
-        "snr_gamma", "checkpointing_steps", "mixed_precision",
+        "num_validation_vehicles", "corpus_workers", "proxy_oracle_prob", "vae_widths",
+        "vae_steps", "vae_batch_size", "lr_scheduler", "lr_warmup_steps", "input_depression",
+        "prediction_type", "snr_gamma", "checkpointing_steps", "mixed_precision",
     )  # fmt: skip
+    #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
+    #: folder holding the old default reads as before; another value is refused with the reason.
+    REMOVED_FIELDS = {
+        "depression_range_deg": RemovedField([10.0, 60.0], "the corpus's depressions are drawn in "
+                                             f"{CORPUS_DEPRESSION_RANGE_DEG} deg"),
+        "mstar_fraction": RemovedField(0.25, f"a share of {CORPUS_MSTAR_FRACTION} of the corpus views lie at "
+                                       "MSTAR's 15/17 deg"),
+        "proxy_bank_vehicles": RemovedField(250, f"the proxy bank holds {PROXY_BANK_VEHICLES} vehicles"),
+        "vae_norm_groups": RemovedField(8, f"the VAE's GroupNorm has {VAE_NORM_GROUPS} groups"),
+        "proxy_candidates": RemovedField(2, f"{PROXY_CANDIDATES} best-fitting bank vehicles are kept per "
+                                         "corpus vehicle"),
+    }  # fmt: skip
 
     output_dir: str = "runs/prior"  # run folder: corpus/, vae/, base/ (its pipeline/ is the prior)
     corpus: str | None = None  # an existing corpus folder to train on; None writes output_dir/corpus
     num_vehicles: int = 2000  # procedural vehicles in the corpus (validation ones included)
     views_per_vehicle: int = 24  # chips per vehicle
     num_validation_vehicles: int = 32  # vehicles held out as class PROCVAL (validation pairs)
-    depression_range_deg: list[float] = field(default_factory=lambda: [10.0, 60.0])  # corpus depressions
-    mstar_fraction: float = 0.25  # share of corpus views at MSTAR's 15/17 deg
     image_size: int = 64  # chip side in pixels
     corpus_workers: int = 2  # processes rendering the corpus
     model_size: str = "micro"  # build_sar_zero123 size of the UNet
     # the UNet also takes the input latent turned by d_az ("rotated_input"; FinetuneConfig.spatial_pose), and
     # with "proxy" also each chip's simulator proxy at both poses (a "rotated_input" init is widened)
     spatial_pose: str | None = None
-    proxy_bank_vehicles: int = 250  # "proxy": the bank fitted to each corpus vehicle (data/corpus_proxies.py)
-    proxy_candidates: int = 2  # "proxy": best-fitting bank vehicles kept per corpus vehicle (best, others)
     proxy_oracle_prob: float = 0.0  # "proxy": share of pairs given the vehicle itself as proxy (LossSettings)
     reference_attention: bool = False  # the UNet's self-attentions also attend to the input's own features
     input_tokens: bool = False  # the UNet's cross-attentions also attend to the input's latent, by place
@@ -100,7 +115,6 @@ class PriorConfig:
     # own, or "proxy" (widening a "rotated_input" init)
     init: str | None = None  # a prior (name or folder) to continue with its own VAE (warm start)
     vae_widths: list[int] = field(default_factory=lambda: [16, 32, 64])  # VAE block widths (16x16 latents)
-    vae_norm_groups: int = 8  # GroupNorm groups of the VAE
     vae_steps: int = 3000  # VAE optimisation steps
     vae_batch_size: int = 8  # chips per VAE step
     base_steps: int = 25000  # UNet optimisation steps (a constant lr_scheduler: a re-run may extend them)
@@ -138,20 +152,9 @@ class PriorConfig:
                 f"num_validation_vehicles must be below num_vehicles ({self.num_vehicles}): the others are "
                 f"the training vehicles, got {self.num_validation_vehicles}"
             )
-        depressions = self.depression_range_deg
-        if len(depressions) != 2 or not 0 < depressions[0] < depressions[1] < 90:
-            raise ValueError(
-                f"depression_range_deg must be two values 0 < low < high < 90, got {depressions}"
-            )
         if self.model_size not in SAR_ZERO123_SIZES:
             raise ValueError(
                 f"model_size must be one of {sorted(SAR_ZERO123_SIZES)}, got {self.model_size!r}"
-            )
-        check_minimum(self, "proxy_bank_vehicles", "proxy_candidates", minimum=1)
-        if self.proxy_candidates > self.proxy_bank_vehicles:
-            raise ValueError(
-                f"proxy_candidates: at most proxy_bank_vehicles ({self.proxy_bank_vehicles}), got "
-                f"{self.proxy_candidates}"
             )
         LossSettings(proxy_oracle_prob=self.proxy_oracle_prob)  # the field's owner checks it
         if self.init is not None:
@@ -248,7 +251,7 @@ def prior_vae_config(config: PriorConfig, corpus: Path) -> TrainVAEConfig:
         block_out_channels=tuple(config.vae_widths),
         layers_per_block=vae_shape["layers_per_block"],
         latent_channels=vae_shape["latent_channels"],
-        norm_num_groups=config.vae_norm_groups,
+        norm_num_groups=VAE_NORM_GROUPS,
         train_batch_size=config.vae_batch_size,
         max_train_steps=config.vae_steps,
         learning_rate=1e-3,
@@ -401,8 +404,8 @@ def _write_corpus(config: PriorConfig, corpus: Path) -> None:
         num_vehicles=config.num_vehicles,
         views_per_vehicle=config.views_per_vehicle,
         num_validation_vehicles=config.num_validation_vehicles,
-        depression_range_deg=tuple(config.depression_range_deg),
-        mstar_fraction=config.mstar_fraction,
+        depression_range_deg=CORPUS_DEPRESSION_RANGE_DEG,
+        mstar_fraction=CORPUS_MSTAR_FRACTION,
         size=config.image_size,
         seed=config.seed,
         num_workers=config.corpus_workers,
@@ -417,8 +420,8 @@ def prior_proxies_folder(config: PriorConfig, corpus: Path) -> Path:
         record = json.loads(own.read_text())
         bank = record.get("bank", {})
         if (
-            bank.get("num_vehicles") == config.proxy_bank_vehicles
-            and record.get("candidates") == config.proxy_candidates
+            bank.get("num_vehicles") == PROXY_BANK_VEHICLES
+            and record.get("candidates") == PROXY_CANDIDATES
             and (record.get("oracle") is True or config.proxy_oracle_prob == 0)
         ):
             return corpus
@@ -433,8 +436,8 @@ def _write_proxies(config: PriorConfig, corpus: Path, out: Path) -> None:
     write_corpus_proxies(
         corpus,
         out,
-        num_vehicles=config.proxy_bank_vehicles,
-        candidates=config.proxy_candidates,
+        num_vehicles=PROXY_BANK_VEHICLES,
+        candidates=PROXY_CANDIDATES,
         num_workers=config.corpus_workers,
         oracle=config.proxy_oracle_prob > 0,
     )

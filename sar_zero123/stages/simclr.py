@@ -37,7 +37,7 @@ from torch import nn
 from torch.utils.data import DataLoader
 
 from sar_zero123.augment import PRESETS, AugmentationPreset
-from sar_zero123.config import check_minimum
+from sar_zero123.config import RemovedField, check_minimum
 from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import SCALING_FILE, ChipDataset, DecibelScaling, prepare_splits
 from sar_zero123.data.selection import select_chips
@@ -54,11 +54,15 @@ from sar_zero123.runs.checkpoints import (
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
 from sar_zero123.runs.launch import start_run, tracker_hparams
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
-from sar_zero123.training.simclr import SimCLRChips, SimCLRLoopStats, train_simclr_steps
+from sar_zero123.training.simclr import NT_XENT_TEMPERATURE, SimCLRChips, SimCLRLoopStats, train_simclr_steps
 
 logger = logging.getLogger(__name__)
 
 __all__ = ["PretrainSimCLRConfig", "load_train_magnitudes", "run_simclr", "select_chips"]
+
+#: SGD's momentum and weight decay (the paper's).
+SGD_MOMENTUM = 0.9
+SGD_WEIGHT_DECAY = 5e-4
 
 
 @dataclass
@@ -67,12 +71,28 @@ class PretrainSimCLRConfig:
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "work_dir", "max_train_chips", "chip_crop_size", "speckle_lambda1", "speckle_lambda2",
-        "speckle_mode", "monotonic_gamma", "in_channels", "cifar_stem", "depths", "hidden_sizes",
-        "embedding_size", "projection_hidden_dim", "projection_dim", "temperature", "gather_negatives",
-        "momentum", "weight_decay", "mixed_precision", "channels_last", "checkpointing_steps",
-        "checkpoints_total_limit", "logging_steps", "report_to", "num_workers",
+        "work_dir", "max_train_chips", "cifar_stem", "depths", "hidden_sizes", "embedding_size",
+        "gather_negatives", "mixed_precision", "checkpointing_steps", "checkpoints_total_limit",
+        "logging_steps", "report_to", "num_workers", "resume_from_checkpoint",
     )  # fmt: skip
+    #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
+    #: folder holding the old default reads as before; another value is refused with the reason.
+    REMOVED_FIELDS = {
+        "speckle_lambda1": RemovedField(1.0, "lambda1 of Eq. (18) is the paper's 1 (the preset's own)"),
+        "speckle_lambda2": RemovedField(1.0, "lambda2 of Eq. (18) is the paper's 1 (the preset's own)"),
+        "speckle_mode": RemovedField("pixel", "the speckle is Eq. (17)'s, per pixel"),
+        "monotonic_gamma": RemovedField(0.0, "the monotonic map has no random gamma (Algorithm 1)"),
+        "in_channels": RemovedField(1, "the encoder reads one channel, the SAR magnitude"),
+        "projection_hidden_dim": RemovedField(512, "the projection head is SimCLR's 512-512-128"),
+        "projection_dim": RemovedField(128, "the projection head is SimCLR's 512-512-128"),
+        "chip_crop_size": RemovedField(None, "chips larger than image_size are centre-cropped to it (their "
+                                       "pixel spacing kept)"),
+        "temperature": RemovedField(0.5, f"NT-Xent's temperature is SimCLR's {NT_XENT_TEMPERATURE}"),
+        "momentum": RemovedField(0.9, f"SGD's momentum is {SGD_MOMENTUM}"),
+        "weight_decay": RemovedField(5e-4, f"SGD's weight decay is {SGD_WEIGHT_DECAY:g}"),
+        "channels_last": RemovedField(False, "channels-last memory changed nothing measured; convolutions "
+                                      "run in the default memory format"),
+    }  # fmt: skip
 
     output_dir: str = "runs/simclr"  # run folder: encoder/, checkpoints, logs, config.json, metrics.json
     data: str | None = None  # data folder with index.csv; None simulates the built-in dataset
@@ -80,22 +100,13 @@ class PretrainSimCLRConfig:
     work_dir: str | None = None  # where the simulated dataset is cached (default: output_dir)
     max_train_chips: int | None = None  # use a seeded random subset of N train chips (quick runs); None = all
     image_size: int = 128  # chip side in pixels (paper: 128)
-    chip_crop_size: int | None = None  # centre crop before resizing (None keeps the pixel spacing)
     preset: str = "speckle+monotonic"  # augmentation preset (Table I row)
     speckle_sigma: float = 10.0  # Rayleigh sigma of Eq. (17), for presets with speckle
-    speckle_lambda1: float = 1.0  # lambda1 of Eq. (18), for presets with speckle
-    speckle_lambda2: float = 1.0  # lambda2 of Eq. (18), for presets with speckle
-    speckle_mode: str = "pixel"  # "pixel" (Eq. 17) or "level" (reference code), for presets with speckle
     monotonic_q: int = 512  # lookup levels Q of Algorithm 1 and of the level-mode speckle table
-    monotonic_gamma: float = 0.0  # std of the random gamma's log-exponent, for presets with the map
-    in_channels: int = 1  # encoder input channels (1 = SAR magnitude)
     cifar_stem: bool = True  # 3x3 stride-1 stem without max-pool (reference setting)
     depths: tuple[int, ...] = (2, 2, 2, 2)  # ResNet-18 blocks per stage
     hidden_sizes: tuple[int, ...] = (64, 128, 256, 512)  # ResNet-18 stage widths
     embedding_size: int = 64  # stem width
-    projection_hidden_dim: int = 512  # projection head hidden width
-    projection_dim: int = 128  # projection head output width
-    temperature: float = 0.5  # NT-Xent temperature
     gather_negatives: bool = True  # multi-process: negatives from the whole global batch, not the sub-batch
     global_batch_size: int = 256  # chips per step over all processes, split evenly (two views each)
     epochs: int = 500  # passes over the train split
@@ -104,10 +115,7 @@ class PretrainSimCLRConfig:
     # still the steps', so a run stopped by the clock ends before its learning rate reaches 0
     max_train_minutes: float | None = None
     learning_rate: float = 0.06  # SGD peak learning rate (cosine annealing to 0)
-    momentum: float = 0.9  # SGD momentum
-    weight_decay: float = 5e-4  # SGD weight decay
     mixed_precision: str = "no"  # accelerate mixed precision: "no", "fp16" or "bf16"
-    channels_last: bool = False  # channels-last memory format (faster convolutions on GPUs)
     checkpointing_steps: int = 500  # save a resumable checkpoint every this many steps
     checkpoints_total_limit: int | None = 2  # keep at most this many checkpoints
     resume_from_checkpoint: str | None = None  # "latest", a checkpoint folder, or None
@@ -128,11 +136,8 @@ class PretrainSimCLRConfig:
         check_minimum(self, "epochs", "checkpointing_steps", "logging_steps", minimum=1)
         optional_counts = ("max_train_steps", "max_train_chips", "checkpoints_total_limit")
         check_minimum(self, *optional_counts, minimum=1, optional=True)
-        check_minimum(self, "learning_rate", "temperature", minimum=0, strict=True)
+        check_minimum(self, "learning_rate", minimum=0, strict=True)
         check_minimum(self, "max_train_minutes", minimum=0, strict=True, optional=True)
-        check_minimum(self, "weight_decay", minimum=0)
-        if not 0 <= self.momentum < 1:
-            raise ValueError(f"momentum must lie in [0, 1), got {self.momentum}")
         if self.mixed_precision not in ("no", "fp16", "bf16"):
             raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
         if self.report_to not in ("tensorboard", "none", None):
@@ -148,22 +153,18 @@ class PretrainSimCLRConfig:
         preset = PRESETS[self.preset]
         overrides: dict[str, Any] = {}
         if preset.speckle_sigma > 0:
-            overrides.update(
-                speckle_sigma=self.speckle_sigma,
-                speckle_lambda1=self.speckle_lambda1,
-                speckle_lambda2=self.speckle_lambda2,
-                speckle_mode=self.speckle_mode,
-                speckle_q=self.monotonic_q,
-            )
+            # Eq. (17) per pixel with lambda1 = lambda2 = 1 for every preset, the paper's
+            overrides.update(speckle_sigma=self.speckle_sigma, speckle_lambda1=1.0, speckle_lambda2=1.0,
+                             speckle_mode="pixel", speckle_q=self.monotonic_q)  # fmt: skip
         if preset.monotonic_q > 0:
-            overrides.update(monotonic_q=self.monotonic_q, monotonic_gamma=self.monotonic_gamma)
+            overrides.update(monotonic_q=self.monotonic_q, monotonic_gamma=0.0)
         return dataclasses.replace(preset, **overrides)
 
     def encoder_config(self) -> SAREncoderConfig:
         """Architecture of the encoder being trained."""
         return SAREncoderConfig(
             image_size=self.image_size,
-            in_channels=self.in_channels,
+            in_channels=1,
             cifar_stem=self.cifar_stem,
             depths=self.depths,
             hidden_sizes=self.hidden_sizes,
@@ -180,7 +181,7 @@ def load_train_magnitudes(config: PretrainSimCLRConfig, work_dir: Path) -> torch
     splits = prepare_splits(config.data, config.protocol, work_dir, seed=config.seed)
     records = select_chips(splits["train"], config.max_train_chips, config.seed)
     dataset = ChipDataset(
-        records, size=config.image_size, return_magnitude=True, crop_size=config.chip_crop_size
+        records, size=config.image_size, return_magnitude=True
     )
     loader = DataLoader(dataset, batch_size=256, shuffle=False, num_workers=config.num_workers)
     magnitude = torch.cat([batch["magnitude"] for batch in loader])
@@ -224,13 +225,10 @@ def run_simclr(config: PretrainSimCLRConfig) -> Path:
     with withdrawn_if_setup_fails(folder):
         chips = _load_chips(config, accelerator)
         encoder = SAREncoder(config.encoder_config())
-        head = ProjectionHead(encoder.feature_dim, config.projection_hidden_dim, config.projection_dim)
+        head = ProjectionHead(encoder.feature_dim, hidden_dim=512, out_dim=128)  # SimCLR's head
         model = nn.Sequential(encoder, head)
-        if config.channels_last:
-            model = model.to(memory_format=torch.channels_last)
         optimizer = torch.optim.SGD(
-            model.parameters(), lr=config.learning_rate, momentum=config.momentum,
-            weight_decay=config.weight_decay,
+            model.parameters(), lr=config.learning_rate, momentum=SGD_MOMENTUM, weight_decay=SGD_WEIGHT_DECAY,
         )  # fmt: skip
         # stepped once per optimiser step here (not prepared: there is no prepared dataloader)
         scheduler = torch.optim.lr_scheduler.CosineAnnealingLR(optimizer, T_max=chips.max_steps)

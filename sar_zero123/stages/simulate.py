@@ -21,10 +21,7 @@ from sar_zero123.sim.targets import TARGET_CLASSES
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["MAX_SHEET_VEHICLES", "SimulateConfig", "run_simulate"]
-
-#: Most procedural vehicles one contact sheet draws (two chips each).
-MAX_SHEET_VEHICLES = 512
+__all__ = ["SimulateConfig", "run_simulate"]
 
 
 @dataclass
@@ -33,14 +30,19 @@ class SimulateConfig:
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "azimuth_jitter_deg", "normalization", "real_root", "procedural_sheet",
+        "azimuth_jitter_deg", "normalization",
     )  # fmt: skip
-    #: Flags of the command's first parser: refused in one line naming the field that replaced each.
+    #: Removed fields: refused in one line naming what replaced each (a config or run folder holding the old
+    #: default of real_root or procedural_sheet reads as before).
     REMOVED_FIELDS = {
         "azimuth_step": RemovedField(None, "it is now --azimuth_step_deg"),
         "azimuth_jitter": RemovedField(None, "it is now azimuth_jitter_deg (--set azimuth_jitter_deg=...)"),
         "depressions": RemovedField(None, "it is now --depressions_deg"),
-    }
+        "real_root": RemovedField(None, "the contact sheet shows simulated chips only; MSTAR beside them is "
+                                  "sar_zero123.sim.contact_sheet.contact_sheet(real_root=...)"),
+        "procedural_sheet": RemovedField(0, "that sheet is "
+                                         "sar_zero123.sim.contact_sheet.procedural_contact_sheet(...)"),
+    }  # fmt: skip
 
     out: str = "runs/sim"  # output folder
     classes: list[str] = field(default_factory=lambda: list(TARGET_CLASSES))  # classes to simulate
@@ -52,8 +54,6 @@ class SimulateConfig:
     seed: int = 0  # dataset seed
     normalization: Literal["peak", "calibrated"] = "peak"  # per-chip peak or fixed calibration
     contact_sheet: bool = False  # also write out/contact_sheet.png
-    real_root: str | None = None  # MSTAR image folder to show beside the simulated chips on the sheet
-    procedural_sheet: int = 0  # also write out/procedural_sheet.png of procedural vehicles 0..N-1
     resume: bool = False  # an unfinished dataset with these settings is redone; a finished one is kept
     restart: bool = False  # move an existing folder at out aside (never deleted) and simulate anew
 
@@ -64,14 +64,6 @@ class SimulateConfig:
             self.classes, self.instances, self.azimuth_step_deg, self.depressions_deg, self.size, self.seed,
             self.azimuth_jitter_deg, self.normalization, 3.0,
         )  # fmt: skip
-        if not 0 <= self.procedural_sheet <= MAX_SHEET_VEHICLES:
-            raise ValueError(
-                f"procedural_sheet: expected 0 to {MAX_SHEET_VEHICLES} vehicles, got {self.procedural_sheet}"
-            )
-        if self.real_root is not None and not self.contact_sheet:
-            raise ValueError("real_root: only shown on the contact sheet; pass contact_sheet too")
-        if self.real_root is not None and not Path(self.real_root).is_dir():
-            raise FileNotFoundError(f"real_root: {self.real_root!r} is not a folder")
 
 
 def run_simulate(config: SimulateConfig) -> Path:
@@ -110,14 +102,8 @@ def run_simulate(config: SimulateConfig) -> Path:
             depression_deg=config.depressions_deg[-1],
             size=config.size,
             seed=config.seed,
-            real_root=config.real_root,
         )
         outputs.append("contact_sheet.png")
-    if config.procedural_sheet > 0:
-        from sar_zero123.sim.contact_sheet import procedural_contact_sheet
-
-        procedural_contact_sheet(out / "procedural_sheet.png", seeds=range(config.procedural_sheet))
-        outputs.append("procedural_sheet.png")
     with open(out / "index.csv") as handle:
         chips = sum(1 for _ in handle) - 1
     finish_run(folder, outputs, seconds=timer.seconds, results={"chips": chips})

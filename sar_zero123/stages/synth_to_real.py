@@ -23,13 +23,13 @@ import torch
 from torch.utils.data import DataLoader
 
 from sar_zero123.augment import PRESETS
-from sar_zero123.config import check_minimum
+from sar_zero123.config import RemovedField, check_minimum
 from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import ChipDataset, ChipRecord, DecibelScaling, load_sample
 from sar_zero123.evaluation.evaluators import EVALUATOR_CONFIG_NAME, load_evaluator
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
-from sar_zero123.training.synth_to_real import NO_AUGMENTATION, train_row
+from sar_zero123.training.synth_to_real import ADAMW_WEIGHT_DECAY, NO_AUGMENTATION, train_row
 
 logger = logging.getLogger(__name__)
 
@@ -53,8 +53,11 @@ class SynthToRealConfig:
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
         "image_size", "cifar_stem", "hidden_sizes", "embedding_size", "train_batch_size", "learning_rate",
-        "weight_decay", "mixed_precision", "num_workers",
+        "mixed_precision", "num_workers",
     )  # fmt: skip
+    #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
+    #: folder holding the old default reads as before; another value is refused with the reason.
+    REMOVED_FIELDS = {"weight_decay": RemovedField(5e-4, f"AdamW's weight decay is {ADAMW_WEIGHT_DECAY:g}")}
 
     sample: str | None = None  # SAMPLE folder (png_images/ and/or mat_files/); required
     image_format: str = "qpm"  # SAMPLE variant: "qpm", "decibel" (PNG) or "mat" (complex .mat)
@@ -67,7 +70,6 @@ class SynthToRealConfig:
     epochs: int = 30  # passes over the synthetic chips per row
     train_batch_size: int = 64  # chips per process per step
     learning_rate: float = 1e-3  # AdamW peak learning rate (cosine decay to 0)
-    weight_decay: float = 5e-4  # AdamW weight decay
     mixed_precision: str = "no"  # accelerate mixed precision: "no", "fp16" or "bf16"
     num_workers: int = 0  # DataLoader workers for reading the chips once
     seed: int = 0  # seeds initialisation, batch order and augmentations (the same for every row)
@@ -88,7 +90,6 @@ class SynthToRealConfig:
             raise ValueError(f"rows must be distinct (one classifier folder each), got {list(self.rows)}")
         check_minimum(self, "image_size", "epochs", "train_batch_size", minimum=1)
         check_minimum(self, "learning_rate", minimum=0, strict=True)
-        check_minimum(self, "weight_decay", minimum=0)
         if self.mixed_precision not in ("no", "fp16", "bf16"):
             raise ValueError(f"mixed_precision must be 'no', 'fp16' or 'bf16', got {self.mixed_precision!r}")
         if self.resume and self.restart:

@@ -22,7 +22,7 @@ from accelerate import Accelerator
 from diffusers import AutoencoderKL
 from torch.utils.data import DataLoader
 
-from sar_zero123.config import check_minimum
+from sar_zero123.config import RemovedField, check_minimum
 from sar_zero123.config.json_io import read_json, save_config, write_json_atomic
 from sar_zero123.data import (
     SCALING_FILE,
@@ -50,6 +50,7 @@ from sar_zero123.runs.checkpoints import (
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
 from sar_zero123.runs.launch import check_global_batch, start_run, tracker_hparams
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
+from sar_zero123.training.step import MAX_GRAD_NORM
 from sar_zero123.training.vae import FeatureLoss, VAEObjective, train_vae_steps
 
 logger = logging.getLogger(__name__)
@@ -66,6 +67,11 @@ __all__ = [
     "run_vae",
 ]
 
+#: Weight of the KL term (a per-sample sum over latent elements) beside the L1 pixel loss on [-1, 1] images.
+KL_WEIGHT = 1e-6
+#: Training batches the latent scaling factor is estimated on.
+SCALING_BATCHES = 8
+
 
 @dataclass
 class TrainVAEConfig:
@@ -74,10 +80,19 @@ class TrainVAEConfig:
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
         "block_out_channels", "layers_per_block", "latent_channels", "norm_num_groups",
-        "reconstruction_loss", "kl_weight", "max_grad_norm", "mixed_precision", "checkpointing_steps",
-        "checkpoints_total_limit", "num_eval_images", "num_scaling_batches", "report_to", "train_encoder",
-        "feature_loss_weight", "feature_encoder",
+        "mixed_precision", "checkpointing_steps", "checkpoints_total_limit", "num_eval_images", "report_to",
+        "resume_from_checkpoint",
+        "train_encoder", "feature_loss_weight", "feature_encoder",
     )  # fmt: skip
+    #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
+    #: folder holding the old default reads as before; another value is refused with the reason.
+    REMOVED_FIELDS = {
+        "reconstruction_loss": RemovedField("l1", "the pixel loss is L1 on [-1, 1] images"),
+        "kl_weight": RemovedField(1e-6, f"the KL term's weight is {KL_WEIGHT:g}"),
+        "max_grad_norm": RemovedField(1.0, f"gradients are clipped to a norm of {MAX_GRAD_NORM}"),
+        "num_scaling_batches": RemovedField(8, f"the latent scaling factor is estimated on {SCALING_BATCHES} "
+                                            "training batches"),
+    }  # fmt: skip
 
     output_dir: str = "runs/vae"  # run folder: checkpoints, logs, metrics.json, vae/
     data: str | None = None  # dataset folder with index.csv; None simulates the built-in dataset
@@ -88,19 +103,15 @@ class TrainVAEConfig:
     layers_per_block: int = 2  # ResNet blocks per level
     latent_channels: int = 4  # latent channels (4 for the zero-1-to-3 UNet)
     norm_num_groups: int = 32  # GroupNorm groups (must divide every width)
-    reconstruction_loss: Literal["l1", "l2"] = "l1"  # pixel loss on [-1, 1] images
-    kl_weight: float = 1e-6  # weight of the KL term (per-sample sum over latent elements)
     learning_rate: float = 1e-4  # AdamW learning rate
     train_batch_size: int = 16  # chips per process per step
     max_train_steps: int = 2000  # optimisation steps
-    max_grad_norm: float = 1.0  # gradient clipping norm
     mixed_precision: Literal["no", "fp16", "bf16"] = "no"  # accelerate mixed precision
     checkpointing_steps: int = 500  # save a resumable checkpoint every this many steps
     checkpoints_total_limit: int | None = 2  # keep at most this many checkpoints
     resume_from_checkpoint: str | None = None  # 'latest' or a checkpoint folder
     restart: bool = False  # move an existing run in output_dir aside (never deleted) and start over
     num_eval_images: int = 256  # test chips scored for PSNR/SSIM (fewer if the split is smaller)
-    num_scaling_batches: int = 8  # training batches used to estimate the latent scaling factor
     report_to: str | None = "tensorboard"  # accelerate tracker; None disables logging
     seed: int = 0  # seed of initialisation, data order and posterior samples
     # start from this VAE (an AutoencoderKL folder, a pipeline folder or a bundled pipeline name such as
@@ -135,8 +146,7 @@ class TrainVAEConfig:
                 f"got {self.image_size}"
             )
         check_protocol(self.protocol)
-        check_minimum(self, "kl_weight", minimum=0)
-        check_minimum(self, "learning_rate", "max_grad_norm", minimum=0, strict=True)
+        check_minimum(self, "learning_rate", minimum=0, strict=True)
         check_minimum(
             self,
             "layers_per_block",
@@ -145,7 +155,6 @@ class TrainVAEConfig:
             "max_train_steps",
             "checkpointing_steps",
             "num_eval_images",
-            "num_scaling_batches",
             minimum=1,
         )
         check_minimum(self, "checkpoints_total_limit", minimum=1, optional=True)
@@ -209,7 +218,7 @@ def run_vae(config: TrainVAEConfig) -> Path:
     with withdrawn_if_setup_fails(folder):
         scaling, train_dataset, test_dataset = _load_chips(config, accelerator)
         objective = VAEObjective(
-            build_vae(config).train(), config.kl_weight, config.reconstruction_loss,
+            build_vae(config).train(), KL_WEIGHT, "l1",
             _feature_loss(config), config.feature_loss_weight,
         )  # fmt: skip
         trained = [p for p in objective.parameters() if p.requires_grad]
@@ -293,7 +302,7 @@ def _export(
     """The latent scaling factor, test-split PSNR/SSIM and the saved model; on the main process."""
     output_dir = Path(config.output_dir)
     if config.train_encoder:  # a frozen encoder keeps its latents, hence their scaling factor
-        scaling_factor = latent_scaling_factor(model, train_loader, config.num_scaling_batches)
+        scaling_factor = latent_scaling_factor(model, train_loader, SCALING_BATCHES)
         model.register_to_config(scaling_factor=scaling_factor)
     metrics = evaluate_reconstruction(model, test_dataset, config.num_eval_images, config.train_batch_size)
     architecture = {key: model.config[key] for key in (

@@ -40,12 +40,13 @@ from sar_zero123.runs.manifest import write_manifest
 from sar_zero123.training.lora import LoraModules, add_lora, merged_unet
 from sar_zero123.training.losses import LossOutput
 from sar_zero123.training.step import (
+    MAX_GRAD_NORM,
     ImageEmbedder,
     compute_losses,
     micro_batch_generator,
     timestep_bucket_losses,
 )
-from sar_zero123.training.validation import run_validation
+from sar_zero123.training.validation import VALIDATION_GUIDANCE_SCALE, run_validation
 
 logger = logging.getLogger(__name__)
 
@@ -329,7 +330,7 @@ def train_finetune_steps(
             )
             accelerator.backward(losses.loss.mean())
             if accelerator.sync_gradients:
-                accelerator.clip_grad_norm_(trainable, config.max_grad_norm)
+                accelerator.clip_grad_norm_(trainable, MAX_GRAD_NORM)
             trainer.optimizer.step()
             trainer.lr_scheduler.step()
             trainer.optimizer.zero_grad(set_to_none=True)
@@ -368,7 +369,7 @@ def train_finetune_steps(
                     loss_kwargs=trainer.loss_kwargs,
                     seed=config.seed,
                     num_inference_steps=config.validation_inference_steps,
-                    guidance_scale=config.guidance_scale,
+                    guidance_scale=VALIDATION_GUIDANCE_SCALE,
                     regressor=inputs.regressor,
                 )
             accelerator.wait_for_everyone()

@@ -21,7 +21,10 @@ from sar_zero123.runs.launch import all_out_of_time
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["SimCLRChips", "SimCLRLoopStats", "simclr_throughput", "train_simclr_steps"]
+__all__ = ["NT_XENT_TEMPERATURE", "SimCLRChips", "SimCLRLoopStats", "simclr_throughput", "train_simclr_steps"]
+
+#: NT-Xent's temperature (SimCLR's, the paper's).
+NT_XENT_TEMPERATURE = 0.5
 
 
 @dataclass
@@ -85,13 +88,11 @@ def train_simclr_steps(
         chip_batch = chips.magnitude[index]
         view1, view2 = simclr_views(chip_batch, augmentation, chips.scaling, generator=aug_generator)
         views = torch.cat([view1, view2])  # (2B, 1, S, S): one pass, BatchNorm sees both views
-        if config.channels_last:
-            views = views.contiguous(memory_format=torch.channels_last)
         _synchronize(accelerator.device)
         augmented = time.perf_counter()
         z1, z2 = model(views).chunk(2)
         loss = nt_xent_loss(
-            z1, z2, temperature=config.temperature, gather_distributed=config.gather_negatives
+            z1, z2, temperature=NT_XENT_TEMPERATURE, gather_distributed=config.gather_negatives
         ).mean()
         optimizer.zero_grad(set_to_none=True)
         accelerator.backward(loss)

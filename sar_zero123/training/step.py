@@ -39,6 +39,7 @@ from sar_zero123.training.losses import (
 )
 
 __all__ = [
+    "MAX_GRAD_NORM",
     "ImageEmbedder",
     "cfg_dropout_masks",
     "compute_losses",
@@ -50,6 +51,9 @@ __all__ = [
     "sample_timesteps",
     "timestep_bucket_losses",
 ]
+
+#: Every training stage clips the norm of all its trained parameters' gradients, together, to this.
+MAX_GRAD_NORM = 1.0
 
 
 def micro_batch_generator(seed: int, batch_index: int, process_index: int) -> torch.Generator:

@@ -17,7 +17,10 @@ from sar_zero123.runs.launch import start_run
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["NO_AUGMENTATION", "train_row"]
+__all__ = ["ADAMW_WEIGHT_DECAY", "NO_AUGMENTATION", "train_row"]
+
+#: AdamW's weight decay for each row's classifier.
+ADAMW_WEIGHT_DECAY = 5e-4
 
 #: The row of Table II trained on the synthetic chips as they are.
 NO_AUGMENTATION = "none"
@@ -44,7 +47,7 @@ def train_row(
     )
     model = SARClassifier(encoder_config, class_names, scaling)
     optimizer = torch.optim.AdamW(
-        model.parameters(), lr=config.learning_rate, weight_decay=config.weight_decay
+        model.parameters(), lr=config.learning_rate, weight_decay=ADAMW_WEIGHT_DECAY
     )
     magnitude, labels = synth[0].to(device), synth[1].to(device)
     steps_per_epoch = -(-len(labels) // config.train_batch_size)

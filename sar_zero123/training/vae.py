@@ -15,7 +15,7 @@ from sar_zero123.domain import signed_to_unit, unit_to_signed
 from sar_zero123.encoder import SAREncoder
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.checkpoints import check_finite_step, resumable_batches, save_checkpoint
-from sar_zero123.training.step import micro_batch_generator
+from sar_zero123.training.step import MAX_GRAD_NORM, micro_batch_generator
 
 __all__ = ["FeatureLoss", "VAEObjective", "train_vae_steps"]
 
@@ -108,7 +108,7 @@ def train_vae_steps(
         generator = micro_batch_generator(config.seed, step, accelerator.process_index)
         total, reconstruction = objective(batch["image"], generator=generator)
         accelerator.backward(total.mean())
-        accelerator.clip_grad_norm_(objective.parameters(), config.max_grad_norm)
+        accelerator.clip_grad_norm_(objective.parameters(), MAX_GRAD_NORM)
         optimizer.step()
         optimizer.zero_grad(set_to_none=True)
         global_step = step + 1

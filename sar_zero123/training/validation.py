@@ -23,7 +23,10 @@ from sar_zero123.evaluation.scoring import pose_following
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.training.step import ImageEmbedder, compute_losses, conditioning_sensitivity
 
-__all__ = ["ema_weights", "make_grid", "run_validation", "validate_pairs"]
+__all__ = ["VALIDATION_GUIDANCE_SCALE", "ema_weights", "make_grid", "run_validation", "validate_pairs"]
+
+#: The classifier-free guidance weight of a fine-tune's validation samples.
+VALIDATION_GUIDANCE_SCALE = 3.0
 
 logger = logging.getLogger(__name__)
 

@@ -13,6 +13,7 @@ import torch
 from chip_folders import TINY_ENCODER, write_chip_folder
 from safetensors.torch import load_file
 
+from sar_zero123.config import parse_config
 from sar_zero123.data import ChipDataset, DecibelScaling, load_index
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluation.evaluators import (
@@ -214,8 +215,8 @@ def test_train_evaluators_trains_a_depression_regressor(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match=r"holds chips at depressions \[15.0\] deg; a depression regressor"):
         run_evaluators(config)
     assert not (tmp_path / "refused").exists()
-    with pytest.raises(ValueError, match=r"depression_test_fraction must lie in \(0, 1\)"):
-        TrainEvaluatorsConfig(depression_test_fraction=1.0)
+    with pytest.raises(ValueError, match=r"--set depression_test_fraction: \w+ was removed"):
+        parse_config(TrainEvaluatorsConfig, ["--set", "depression_test_fraction=0.5"])
     for name, value, bound in (("epochs", 100_000_000, "10000"), ("image_size", 100_000, "1024")):
         with pytest.raises(ValueError, match=f"{name} must be <= {bound}, got {value}"):
             TrainEvaluatorsConfig(**{name: value})

@@ -22,8 +22,6 @@ TINY_ARGS = [
     "--image_size", "16",
     "--hidden_sizes", "8", "8", "8", "8",
     "--embedding_size", "8",
-    "--projection_hidden_dim", "8",
-    "--projection_dim", "4",
     "--global_batch_size", "4",
     "--monotonic_q", "16",
 ]  # fmt: skip

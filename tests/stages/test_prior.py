@@ -270,8 +270,10 @@ def test_pretrain_prior_smoke_writes_a_pipeline_that_takes_depression(tmp_path: 
     refused = r"holds a prior run made with other settings.*seed: folder 0, this run 1\b"
     with pytest.raises(ValueError, match=refused):
         pretrain_prior.main([*longer, "--seed", "1"])
-    with pytest.raises(ValueError, match="depression_range_deg"):
-        pretrain_prior.PriorConfig(depression_range_deg=[50.0, 20.0])
+    with pytest.raises(ValueError, match=r"depression_range_deg=\[50.0, 20.0\], but depression_range_deg was "
+                       r"removed: the corpus's depressions are drawn in \(10.0, 60.0\) deg"):
+        (tmp_path / "old.json").write_text(json.dumps({"depression_range_deg": [50.0, 20.0]}))
+        pretrain_prior.main([*longer, "--config", str(tmp_path / "old.json")])
 
     # a warm start: the UNet stage continues this prior on another corpus, with its VAE and its settings
     # (--model_size micro is the init's to decide: ignored, the tiny pipeline stays tiny)

@@ -115,6 +115,11 @@ def test_a_recipe_file_of_ones_own_extends_a_bundled_one(tmp_path: Path) -> None
         ),
         ("extends: default\nevaluate:\n  eval_strength: 0.5\n", "it is now evaluate.sampler.strength"),
         ("extends: default\nmodel:\n  prior: null\n", "model.prior was removed: it is now shared.prior"),
+        # a stage field removed as a constant: refused at another value than the one it keeps
+        (
+            "extends: default\nsimclr:\n  momentum: 0.5\n",
+            r"^recipe '.*bad.yaml': simclr: momentum=0.5, but momentum was removed: SGD's momentum is 0.9$",
+        ),
     ],
 )
 def test_a_bad_recipe_is_refused_by_name_before_any_stage(tmp_path: Path, text: str, match: str) -> None:
@@ -139,6 +144,14 @@ def test_a_stage_refuses_its_own_fields_and_the_quickstarts_plumbing(tmp_path: P
         with pytest.raises(ValueError, match=words):
             plan_stages(QuickstartConfig(output_dir=out, recipe="smoke", set=[item]))
     assert not Path(out).exists()
+
+
+def test_a_recipe_setting_a_removed_field_to_the_value_it_keeps_reads_as_before(tmp_path: Path) -> None:
+    path = tmp_path / "old.yaml"
+    path.write_text("extends: default\nsimclr: {momentum: 0.9, depths: [1, 1]}\nvae: {kl_weight: 1.0e-6}\n")
+    recipe = load_recipe(str(path))
+    assert recipe.sections["simclr"] == {**RECIPES["default"].sections["simclr"], "depths": (1, 1)}
+    assert recipe.sections["vae"] == RECIPES["default"].sections["vae"]
 
 
 def test_recipe_files_are_bounded_and_named(tmp_path: Path) -> None:
@@ -173,6 +186,8 @@ def test_the_removed_flags_and_fields_are_refused_naming_their_replacement(tmp_p
                         ("nope=1", "expected SECTION.FIELD=VALUE with SECTION one of shared")):  # fmt: skip
         with pytest.raises(ValueError, match=f"^set: {words}"):
             parse_config(QuickstartConfig, ["--output_dir", out, "--set", item])
+    with pytest.raises(ValueError, match=r"^set: simclr.momentum was removed: SGD's momentum is 0.9 \(in "):
+        parse_config(QuickstartConfig, ["--output_dir", out, "--set", "simclr.momentum=0.9"])
     config = parse_config(
         QuickstartConfig, ["--output_dir", out, "--recipe", "smoke", "--set", "evaluate.n=8"]
     )

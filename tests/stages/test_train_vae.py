@@ -13,6 +13,7 @@ from diffusers import AutoencoderKL
 from safetensors.torch import load_file
 from skimage.metrics import peak_signal_noise_ratio
 
+from sar_zero123.config import parse_config
 from sar_zero123.data import ChipDataset, ChipRecord, load_index, write_index
 from train import train_vae
 
@@ -30,8 +31,6 @@ TINY = [
     "4",
     "--report_to",
     "none",
-    "--num_scaling_batches",
-    "2",
 ]
 
 
@@ -124,13 +123,19 @@ def test_objective_losses_per_sample(script) -> None:
     torch.testing.assert_close(reconstruction, expected, rtol=1e-5, atol=1e-6)
 
 
-def test_bad_config_names_the_field(script) -> None:
+def test_bad_config_names_the_field(script, tmp_path) -> None:
     with pytest.raises(ValueError, match="image_size"):
         script.TrainVAEConfig(image_size=30, block_out_channels=(8, 8, 8), norm_num_groups=4)
     with pytest.raises(ValueError, match="norm_num_groups"):
         script.TrainVAEConfig(block_out_channels=(8, 12), norm_num_groups=8)
-    with pytest.raises(ValueError, match="kl_weight"):
-        script.TrainVAEConfig(kl_weight=-1.0)
+    # a removed setting: a config file at its old default reads as before, another value is refused
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"kl_weight": 1e-6, "reconstruction_loss": "l1"}))
+    assert parse_config(script.TrainVAEConfig, ["--config", str(old)]) == script.TrainVAEConfig()
+    old.write_text(json.dumps({"kl_weight": -1.0}))
+    refused = "kl_weight=-1.0, but kl_weight was removed: the KL term's weight is 1e-06"
+    with pytest.raises(ValueError, match=refused):
+        parse_config(script.TrainVAEConfig, ["--config", str(old)])
     with pytest.raises(ValueError, match="protocol"):
         script.TrainVAEConfig(protocol="nope")
 
@@ -152,8 +157,8 @@ def test_resume_with_another_setting_is_refused(script, chips, tmp_path) -> None
     script.main([*argv, "--max_train_steps", "1"])  # resumed below to 2000 steps: allowed for a VAE
     AcceleratorState._reset_state(True)
     GradientState._reset_state()
-    with pytest.raises(ValueError, match=r"kl_weight: checkpoint 1e-06, this run 0.5"):
-        script.main([*argv, "--kl_weight", "0.5", "--resume_from_checkpoint", "latest"])
+    with pytest.raises(ValueError, match=r"learning_rate: checkpoint 0.0001, this run 0.5"):
+        script.main([*argv, "--learning_rate", "0.5", "--resume_from_checkpoint", "latest"])
 
 
 def test_reusing_a_finished_run_is_refused_and_more_steps_continue_it(script, chips, tmp_path) -> None:
