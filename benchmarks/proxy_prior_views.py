@@ -38,12 +38,11 @@ import json
 import sys
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import torch
-from _common import cpu_device, device_record, script_parser
+from _common import cpu_device, device_record, parallel_map, script_parser
 from threadpoolctl import threadpool_limits
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
@@ -59,7 +58,7 @@ from sar_zero123.sim.proxy import blurred_correlation
 from sar_zero123.sim.targets import Target
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `benchmarks`
-from benchmarks.proxy_views import INPUT_DEPRESSION_DEG, SimulatedPairs, format_table  # noqa: E402
+from benchmarks.proxy_views import INPUT_DEPRESSION_DEG, SimulatedPairs, format_table, print_row  # noqa: E402
 
 
 def _fitted(args: tuple) -> np.ndarray:
@@ -79,8 +78,7 @@ def fitted_views(
 ) -> np.ndarray:
     """Every input's fitted proxy at the three poses ``(N, 3, S, S)``, in ``workers`` processes."""
     jobs = [(proxy, im, float(a), float(d)) for im, a, d in zip(images, azimuths, d_az)]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        return np.stack(list(pool.map(_fitted, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
+    return np.stack(parallel_map(_fitted, jobs, workers))
 
 
 def paired_differences(readings: dict, pairs_of_rows: Sequence[tuple[str, str]]) -> dict[str, dict]:
@@ -126,8 +124,7 @@ def consensus_views(
 ) -> np.ndarray:
     """Every input's consensus proxy (:func:`_consensus`) at the three poses ``(N, 3, S, S)``."""
     jobs = [(proxy, im, float(a), float(d), k, temperature) for im, a, d in zip(images, azimuths, d_az)]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        return np.stack(list(pool.map(_consensus, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
+    return np.stack(parallel_map(_consensus, jobs, workers))
 
 
 def stretched(target: Target, length_scale: float, width_scale: float) -> Target:
@@ -198,9 +195,7 @@ def refined_views(
 ) -> np.ndarray:
     """Every input's proxies (:func:`_refined`) ``(3, N, 3, S, S)``: best fit, refined, refined among k."""
     jobs = [(proxy, im, float(a), float(d), k, tuple(factors)) for im, a, d in zip(images, azimuths, d_az)]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        out = np.stack(list(pool.map(_refined, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
-    return out.transpose(1, 0, 2, 3, 4)
+    return np.stack(parallel_map(_refined, jobs, workers)).transpose(1, 0, 2, 3, 4)
 
 
 def _fit_seconds(proxy: dict, sim: SimulatedPairs, chips: int) -> float:
@@ -253,10 +248,7 @@ def run(
     def add(name: str, views: np.ndarray, seconds: float) -> None:
         readings[name] = sim.read(views)
         rows[name] = summarise_readings(readings[name], floor, ceiling) | {"seconds": seconds}
-        r = rows[name]
-        print(f"{name}: err {r['azimuth_error_deg']:.1f} ± {r['azimuth_error_deg_se']:.1f}, gap "
-              f"{r['gap_closed']:.0%}, front/back {r['front_back_right']:.0%}, identity "
-              f"{r['identity_kept']:.0%} ({seconds:.0f} s)", flush=True)  # fmt: skip
+        print_row(name, rows[name])
 
     add("input copy (unturned, keeps identity)", sim.inputs, 0.0)
     add("true view, another speckle draw (ceiling)", sim.truth, 0.0)
@@ -488,70 +480,29 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--batch_size", type=int, default=32, help="views per pipeline call")
     parser.add_argument("--seed", type=int, default=0, help="pairs, clutter and sampling seed")
     parser.add_argument("--workers", type=int, default=2, help="processes fitting the proxies")
-    parser.add_argument(
-        "--headings",
-        nargs="+",
-        type=float,
-        default=[1.5, 3.0],
-        help="heading guidance weights of the rows from noise (0 is always one)",
-    )
-    parser.add_argument(
-        "--fits",
-        default=None,
-        help="an .npz to keep the proxy fits in (reused when the pairs and bank match)",
-    )
-    parser.add_argument(
-        "--steps",
-        nargs="+",
-        type=int,
-        default=[],
-        help="only the recorded sampler, at its own and at these step counts (paired)",
-    )
-    parser.add_argument(
-        "--shortlist",
-        type=int,
-        default=None,
-        help="fit in two stages, this many vehicles re-rendered at the exact pose",
-    )
-    parser.add_argument(
-        "--bank_size",
-        type=int,
-        default=None,
-        help="fit with a bank of this many vehicles (default: the pipeline's)",
-    )
-    parser.add_argument(
-        "--consensus",
-        nargs=2,
-        type=float,
-        default=None,
-        metavar=("K", "TEMPERATURE"),
-        help="only the proxy alone and both recorded samplers, from the best fit and from "
-        "the weighted mean of the K best fits' renders (weights exp(score / T))",
-    )
-    parser.add_argument(
-        "--refine",
-        nargs="+",
-        type=float,
-        default=None,
-        metavar="K_THEN_FACTORS",
-        help="only the proxy alone and the recorded sampler, from the best fit and from the "
-        "K best fits stretched along length and width by each pair of the factors",
-    )
-    parser.add_argument(
-        "--retrieval",
-        nargs="+",
-        default=None,
-        metavar="NAME_THEN_SIZES",
-        help="only the proxy alone from the exhaustive fit and from a learned shortlist (a name or "
-        "folder) of each size, and the recorded sampler from the exhaustive fit and from the first size",
-    )
-    parser.add_argument(
-        "--compare",
-        nargs="+",
-        default=[],
-        help="only each pipeline's plain call (fitted proxy), the fitted and the perfect proxy from noise, "
-        "the first --pipeline, then these, paired with it",
-    )
+    parser.add_argument("--headings", nargs="+", type=float, default=[1.5, 3.0],
+                        help="heading guidance weights of the rows from noise (0 is always one)")
+    parser.add_argument("--fits", default=None,
+                        help="an .npz to keep the proxy fits in (reused when the pairs and bank match)")
+    parser.add_argument("--steps", nargs="+", type=int, default=[],
+                        help="only the recorded sampler, at its own and at these step counts (paired)")
+    parser.add_argument("--shortlist", type=int, default=None,
+                        help="fit in two stages, this many vehicles re-rendered at the exact pose")
+    parser.add_argument("--bank_size", type=int, default=None,
+                        help="fit with a bank of this many vehicles (default: the pipeline's)")
+    parser.add_argument("--consensus", nargs=2, type=float, default=None, metavar=("K", "TEMPERATURE"),
+                        help="only the proxy alone and both recorded samplers, from the best fit and from "
+                        "the weighted mean of the K best fits' renders (weights exp(score / T))")
+    parser.add_argument("--refine", nargs="+", type=float, default=None, metavar="K_THEN_FACTORS",
+                        help="only the proxy alone and the recorded sampler, from the best fit and from the "
+                        "K best fits stretched along length and width by each pair of the factors")
+    parser.add_argument("--retrieval", nargs="+", default=None, metavar="NAME_THEN_SIZES",
+                        help="only the proxy alone from the exhaustive fit and from a learned shortlist (a "
+                        "name or folder) of each size, and the recorded sampler from the exhaustive fit and "
+                        "from the first size")
+    parser.add_argument("--compare", nargs="+", default=[],
+                        help="only each pipeline's plain call (fitted proxy), the fitted and the perfect "
+                        "proxy from noise, the first --pipeline, then these, paired with it")  # fmt: skip
     parser.add_argument("--out", default="proxy_prior_views.json", help="output JSON")
     args = parser.parse_args(argv)
     if args.consensus is not None and not (args.consensus[0] >= 1 and args.consensus[1] > 0):
@@ -572,10 +523,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
         retrieval = (args.retrieval[0], sizes, sizes[0])
     record = run(args.pipeline, baseline=args.baseline, pairs_per_class=args.pairs_per_class,
                  batch_size=args.batch_size, seed=args.seed, workers=args.workers, headings=args.headings,
-                 fits=args.fits, steps_sweep=args.steps, shortlist=args.shortlist,
-                 bank_size=args.bank_size,
-                 consensus=consensus, refine=refine, retrieval=retrieval,
-                 compare=args.compare)  # fmt: skip
+                 fits=args.fits, steps_sweep=args.steps, shortlist=args.shortlist, bank_size=args.bank_size,
+                 consensus=consensus, refine=refine, retrieval=retrieval, compare=args.compare)  # fmt: skip
     write_json_atomic(record, Path(args.out))
     print(format_table(record))
     return record
