@@ -11,12 +11,11 @@ nearest in azimuth, and its other 17 deg chip nearest in azimuth (a second look 
 *wins* when its blurred correlation (sigma 1.5 px) with the 30 deg chip exceeds that with the 17 deg one.
 Pairs whose references lie more than ``--max_azimuth_gap`` deg from the input's azimuth are left out.
 
-Rows: the input copy (unturned, keeps identity); the 30 deg chip itself (ceiling, 100 % by construction); the
-simulator proxy alone (the bank vehicle fitted to the input at its header pose, rendered at 30 deg); the
-bundled prior sampled from noise with no guidance (the library's sampler); its recorded sampler without the
-input's azimuth; and with it (from the proxy, at its recorded noise level and at 30 % and 70 %). With
-``--proxy_pipeline``, a proxy-conditioned prior (``spatial_pose="proxy"``) on the same pairs and fits: its
-recorded sampler with the input's azimuth, and from noise. Writes JSON.
+Rows: the input copy; the 30 deg chip (ceiling, 100 % by construction); the simulator proxy alone (the
+bank vehicle fitted to the input at its header pose, rendered at 30 deg); the bundled prior from noise with
+no guidance, with its recorded sampler without the input's azimuth, and with it (from the proxy, at its
+recorded noise level and others); with ``--proxy_pipeline``, a proxy-conditioned prior on the same fits.
+Writes JSON.
 """
 
 from __future__ import annotations

@@ -17,18 +17,9 @@ same views its plain call fits and renders itself. Rows, on the same pairs:
   remaining error sits.
 
 Writes JSON (per row: template azimuth error and its standard error, gap closed, front/back right,
-identity kept, seconds; the best proxy-prior row's paired error difference from the baseline and from the
-proxy alone, on the same pairs) and prints a table. ``--consensus K T`` runs only the proxy alone and both
-recorded samplers, from the best fit and from a consensus proxy: the weighted mean (weights
-``exp((score - best) / T)``) of the K best-fitting vehicles' renders, a posterior-mean estimate of the
-vehicle's other sides where one view leaves them open. ``--refine K S`` runs only the proxy alone and the
-proxy prior's recorded sampler, from the best fit and from that fit refined by rendering and comparing: the
-best fit, or each of the K best, stretched along its length and its width by every pair of the factors S
-(its scatterers and solids scaled), and the stretch that correlates best with the input kept.
-``--compare P ...`` runs, for ``--pipeline`` and each ``P``, only the plain call (the fitted proxy, the
-recorded sampler), the fitted proxy from noise and a perfect proxy from noise, with the paired differences
-of the azimuth error, identity and turned-and-kept shares against ``--pipeline``.
-``--fits`` keeps the fits (about 6 minutes on 2 cores) for a re-run on the same pairs.
+identity kept, seconds; the best proxy-prior row's paired error differences from the baseline and from the
+proxy alone) and prints a table. ``--consensus``, ``--refine``, ``--retrieval``, ``--compare`` and
+``--steps`` each run only their own rows (their ``--help``); ``--fits`` keeps the fits for a re-run.
 """
 
 from __future__ import annotations
@@ -114,14 +105,9 @@ def _consensus(args: tuple) -> np.ndarray:
 
 
 def consensus_views(
-    proxy: dict,
-    images: np.ndarray,
-    azimuths: Sequence[float],
-    d_az: Sequence[float],
-    k: int,
-    temperature: float,
-    workers: int,
-) -> np.ndarray:
+    proxy: dict, images: np.ndarray, azimuths: Sequence[float], d_az: Sequence[float], k: int,
+    temperature: float, workers: int,
+) -> np.ndarray:  # fmt: skip
     """Every input's consensus proxy (:func:`_consensus`) at the three poses ``(N, 3, S, S)``."""
     jobs = [(proxy, im, float(a), float(d), k, temperature) for im, a, d in zip(images, azimuths, d_az)]
     return np.stack(parallel_map(_consensus, jobs, workers))
@@ -185,14 +171,9 @@ def _refined(args: tuple) -> np.ndarray:
 
 
 def refined_views(
-    proxy: dict,
-    images: np.ndarray,
-    azimuths: Sequence[float],
-    d_az: Sequence[float],
-    k: int,
-    factors: Sequence[float],
-    workers: int,
-) -> np.ndarray:
+    proxy: dict, images: np.ndarray, azimuths: Sequence[float], d_az: Sequence[float], k: int,
+    factors: Sequence[float], workers: int,
+) -> np.ndarray:  # fmt: skip
     """Every input's proxies (:func:`_refined`) ``(3, N, 3, S, S)``: best fit, refined, refined among k."""
     jobs = [(proxy, im, float(a), float(d), k, tuple(factors)) for im, a, d in zip(images, azimuths, d_az)]
     return np.stack(parallel_map(_refined, jobs, workers)).transpose(1, 0, 2, 3, 4)
@@ -216,23 +197,12 @@ def _fit_seconds(proxy: dict, sim: SimulatedPairs, chips: int) -> float:
 
 
 def run(
-    pipeline: str,
-    *,
-    baseline: str = SIM_PRIOR_ROTATED,
-    pairs_per_class: int = 32,
-    batch_size: int = 32,
-    seed: int = 0,
-    workers: int = 2,
-    headings: Sequence[float] = (1.5, 3.0),
-    fits: str | None = None,
-    steps_sweep: Sequence[int] = (),
-    shortlist: int | None = None,
-    bank_size: int | None = None,
-    consensus: tuple[int, float] | None = None,
-    refine: tuple[int, Sequence[float]] | None = None,
-    retrieval: tuple[str, Sequence[int], int] | None = None,
-    compare: Sequence[str] = (),
-) -> dict:
+    pipeline: str, *, baseline: str = SIM_PRIOR_ROTATED, pairs_per_class: int = 32, batch_size: int = 32,
+    seed: int = 0, workers: int = 2, headings: Sequence[float] = (1.5, 3.0), fits: str | None = None,
+    steps_sweep: Sequence[int] = (), shortlist: int | None = None, bank_size: int | None = None,
+    consensus: tuple[int, float] | None = None, refine: tuple[int, Sequence[float]] | None = None,
+    retrieval: tuple[str, Sequence[int], int] | None = None, compare: Sequence[str] = (),
+) -> dict:  # fmt: skip
     """Every row's template readings on the same pairs; see the module docstring."""
     scaling = DecibelScaling.from_dict(json.loads((resolve_pretrained(pipeline) / SCALING_FILE).read_text()))
     pipe = SARZero123Pipeline.from_pretrained(pipeline)
@@ -387,18 +357,13 @@ def run(
         base_steps = int(base_recorded["num_inference_steps"])
         pairs_of_rows = [(f"proxy alone, {label}", next(n for n in rows if n.startswith("proxy alone (")))]
         for views, name in ((fitted, "the best fit"), (mean, label)):
-            add(
-                f"proxy prior, its recorded sampler, {name}",
-                *sample(pipe, views, views[:, 1], proxy_strength, heading),
-            )
-            add(
-                f"{baseline}, its recorded sampler, {name}",
-                *sample(base, None, views[:, 1], base_strength, base_heading, base_steps),
-            )
+            add(f"proxy prior, its recorded sampler, {name}",
+                *sample(pipe, views, views[:, 1], proxy_strength, heading))
+            add(f"{baseline}, its recorded sampler, {name}",
+                *sample(base, None, views[:, 1], base_strength, base_heading, base_steps))  # fmt: skip
         for model in ("proxy prior", baseline):
-            pairs_of_rows.append(
-                (f"{model}, its recorded sampler, {label}", f"{model}, its recorded sampler, the best fit")
-            )
+            pairs_of_rows.append((f"{model}, its recorded sampler, {label}",
+                                  f"{model}, its recorded sampler, the best fit"))  # fmt: skip
         comparisons = paired_differences(readings, pairs_of_rows)
         return {"benchmark": "proxy_prior_views (issue 61: consensus proxy)", "pipeline": str(pipeline),
                 "baseline": str(baseline), "recorded_sampler": recorded, "consensus": [k, temperature],
@@ -454,22 +419,12 @@ def run(
     recorded_row = next(n for n in rows if n.startswith("proxy prior, its recorded sampler"))
     firsts = dict.fromkeys((recorded_row, best))
     comparisons = paired_differences(readings, [(f, o) for f in firsts for o in (baseline_row, alone)])
-    return {
-        "benchmark": "proxy_prior_views (issue 61)",
-        "best_row": best,
-        "paired_azimuth_error_differences": comparisons,
-        "pipeline": str(pipeline),
-        "baseline": str(baseline),
-        "classes": sim.classes,
-        "pairs_per_class": pairs_per_class,
-        "d_az_range_deg": [60.0, 180.0],
-        "input_depression_deg": INPUT_DEPRESSION_DEG,
-        "recorded_sampler": recorded,
-        "proxy": proxy,
-        "seed": seed,
-        **device_record(),
-        "rows": rows,
-    }
+    return {"benchmark": "proxy_prior_views (issue 61)", "best_row": best,
+            "paired_azimuth_error_differences": comparisons, "pipeline": str(pipeline),
+            "baseline": str(baseline), "classes": sim.classes, "pairs_per_class": pairs_per_class,
+            "d_az_range_deg": [60.0, 180.0], "input_depression_deg": INPUT_DEPRESSION_DEG,
+            "recorded_sampler": recorded, "proxy": proxy, "seed": seed, **device_record(),
+            "rows": rows}  # fmt: skip
 
 
 def main(argv: Sequence[str] | None = None) -> dict:

@@ -7,20 +7,12 @@ On the simulator's eight named vehicles (never in a prior's corpus), each pair's
 and a random azimuth, and the request turns it by ``d_az`` with ``60 <= |d_az| <= 180`` deg (sign random),
 ``d_el = 0``. Every row's views are read by template matching (:mod:`sar_zero123.evaluation.template`):
 each view's blurred correlation with its true vehicle's 17 deg renders on a 5 deg grid gives its azimuth;
-over all eight vehicles' renders, its identity. Rows, on the same pairs:
-
-- ``input copy (unturned, keeps identity)``; ``input turned`` (the input rotated in the image plane by the
-  request, as the ``rotated_input`` condition turns it); ``true view, another speckle draw (ceiling)``;
-- ``proxy alone (bank N)``: the bank vehicle retrieved for the input
-  (:class:`~sar_zero123.sim.proxy.ProxyBank`: rendered at the input's azimuth and depression, best blurred
-  correlation) re-rendered at the request;
-- the pipeline from noise without heading guidance (the library's sampler at these steps), with heading
-  guidance 1.5 (the bundled prior's recorded sampler without the azimuth), and with heading guidance 1.5 from
-  the input noised to each ``--strengths`` level and to 80 %;
-- the pipeline started from the proxy's render at the request, noised to each ``--strengths`` level
-  (``start_image``), conditioned on the input as always, with and without heading guidance;
-- the same from an oracle proxy (the true vehicle at the request, another clutter draw): what a perfect fit
-  would give this sampler.
+over all eight vehicles' renders, its identity. Rows, on the same pairs: the input copy, the input turned
+in the image plane (as ``rotated_input`` turns it) and the true view (another speckle draw: the ceiling);
+the proxy alone (the bank vehicle fitted to the input, :class:`~sar_zero123.sim.proxy.ProxyBank`,
+re-rendered at the request); the pipeline from noise with and without heading guidance and from the input
+noised to each ``--strengths`` level and to 80 %; the pipeline from the proxy's render (``start_image``)
+and from an oracle proxy (the true vehicle, another clutter draw) noised to each ``--strengths`` level.
 
 Writes JSON (per row: mean template azimuth error and its standard error, gap closed between floor and
 ceiling, front/back right, identity kept, seconds) and prints a table.
