@@ -73,22 +73,16 @@ def main(argv: list[str] | None = None) -> dict:
     for preset in config.preset_names:
         seconds = sorted(time_preset(magnitude, preset, scaling, generator, config.repeats, config.warmup))
         median = seconds[len(seconds) // 2]
-        results[preset] = {
-            "images_per_s": config.batch_size / median,
-            "median_s_per_batch": median,
-            "min_s_per_batch": seconds[0],
-        }
+        results[preset] = {"images_per_s": config.batch_size / median, "median_s_per_batch": median,
+                           "min_s_per_batch": seconds[0]}  # fmt: skip
         print(f"{preset:>20s}: {config.batch_size / median:10.1f} images/s ({median * 1e3:.1f} ms per batch)")
     report = {
         "config": config_to_dict(config),
         "device": torch.cuda.get_device_name(device) if device.type == "cuda" else _cpu_name(),
-        "cpu_count": os.cpu_count(),
-        "torch_threads": torch.get_num_threads(),
+        "cpu_count": os.cpu_count(), "torch_threads": torch.get_num_threads(),
         # Other processes share the machine: the 1-minute load average says how contended it was.
         "load_average_1min": [load_before, os.getloadavg()[0] if hasattr(os, "getloadavg") else None],
-        "torch": torch.__version__,
-        "python": sys.version.split()[0],
-        "results": results,
+        "torch": torch.__version__, "python": sys.version.split()[0], "results": results,
     }
     write_json_atomic(report, Path(config.out))
     print(json.dumps({k: v["images_per_s"] for k, v in results.items()}, indent=1))

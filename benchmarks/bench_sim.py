@@ -1,7 +1,5 @@
 """Simulator throughput on one CPU core: chips per second of ``render_chip`` and ``simulate_dataset``.
 
-Usage::
-
     python benchmarks/bench_sim.py --size 128 --chips-per-class 72 --output bench_sim.json
 
 BLAS/OpenMP threads are pinned to 1 before numpy is imported, so the figure is per core.
@@ -76,11 +74,8 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--depression", type=float, default=17.0)
     parser.add_argument("--repeats", type=int, default=3, help="timed passes; the fastest pass is reported")
     parser.add_argument("--output", default="bench_sim.json")
-    parser.add_argument(
-        "--real-root",
-        default=None,
-        help="MSTAR image folder: also compare image statistics of sim and real chips",
-    )
+    parser.add_argument("--real-root", default=None,
+                        help="MSTAR image folder: also compare image statistics of sim and real chips")
     args = parser.parse_args(argv)
 
     # 1. target construction (once per class and instance in a dataset)
@@ -114,34 +109,23 @@ def main(argv: list[str] | None = None) -> dict:
     # 3. the dataset writer end to end (rendering + .npy files + index), one class
     with tempfile.TemporaryDirectory() as tmp:
         t0 = time.perf_counter()
-        simulate_dataset(
-            tmp,
-            classes=[TARGET_CLASSES[0]],
-            instances=1,
-            azimuth_step_deg=5.0,
-            depressions_deg=(17.0,),
-            size=args.size,
-        )
+        simulate_dataset(tmp, classes=[TARGET_CLASSES[0]], instances=1, azimuth_step_deg=5.0,
+                         depressions_deg=(17.0,), size=args.size)
         dataset_s = time.perf_counter() - t0
     n_dataset = int(np.ceil(360 / 5.0))
 
     result = {
-        "size": args.size,
-        "chips_timed": int(per_chip_ms.size),
+        "size": args.size, "chips_timed": int(per_chip_ms.size),
         "render_ms_mean": round(float(per_chip_ms.mean()), 3),
         "render_ms_median": round(float(np.median(per_chip_ms)), 3),
         "render_ms_p95": round(float(np.percentile(per_chip_ms, 95)), 3),
         "render_chips_per_s": round(float(1000 / per_chip_ms.mean()), 1),
-        "render_cpu_ms_mean": round(cpu_ms, 3),
-        "render_chips_per_cpu_s": round(1000 / cpu_ms, 1),
+        "render_cpu_ms_mean": round(cpu_ms, 3), "render_chips_per_cpu_s": round(1000 / cpu_ms, 1),
         "make_target_ms": round(make_target_ms, 2),
         "simulate_dataset_chips_per_s": round(n_dataset / dataset_s, 1),
-        "threads": os.environ["OMP_NUM_THREADS"],
-        "numpy": np.__version__,
-        "python": platform.python_version(),
-        "machine": platform.machine(),
-        "cpu_count": os.cpu_count(),
-    }
+        "threads": os.environ["OMP_NUM_THREADS"], "numpy": np.__version__,
+        "python": platform.python_version(), "machine": platform.machine(), "cpu_count": os.cpu_count(),
+    }  # fmt: skip
     if args.real_root is not None:
         result["image_statistics"] = compare_statistics(args.real_root, args.depression)
     print(json.dumps(result, indent=2))

@@ -1,14 +1,11 @@
 #!/usr/bin/env bash
-# One GPU call of at most ten minutes for issue 36 (docs/usage/gpus.md), run from the repository root:
+# One GPU call of at most ten minutes (docs/usage/gpus.md), from the repository root:
 #
 #     OUT=out LIMIT=555 [BATCH=256] [DATA=.gpu/mstar64] [PRESET=mstar-prior] bash benchmarks/gpu_mstar_session.sh [WHEELS]
 #
-# 1. installs the wheels the machine lacks (diffusers, importlib_metadata) from WHEELS (default .whl);
-# 2. runs benchmarks/gpu_mstar_pfm.py: the quickstart's PRESET stages on the MSTAR crops in DATA (written
-#    here beforehand by `python benchmarks/gpu_mstar_pfm.py crops`), lambda = 0 and lambda = 4 at BATCH pairs
-#    per step in bf16, in what is left of LIMIT seconds, Table III on ood-T72 (two minutes kept for it: on
-#    the CPU, scoring 800 pairs' paper-comparable metrics is most of the evaluation's time).
-# Everything lands in OUT: results.json, table3.md and one log.
+# installs the missing wheels, then runs gpu_mstar_pfm.py on the crops in DATA: lambda = 0 and 4 at BATCH
+# pairs per step in bf16 in what is left of LIMIT, two minutes kept for Table III. results.json, table3.md
+# and one log in OUT.
 set -u
 OUT=${OUT:?OUT must name the output folder}
 LIMIT=${LIMIT:-540}

@@ -1,23 +1,13 @@
 #!/usr/bin/env bash
-# One GPU call of at most ten minutes for issue 35 (docs/usage/gpus.md), run from the repository root:
+# One GPU call of at most ten minutes (docs/usage/gpus.md, "The prepared call"), from the repository root:
 #
 #     OUT=out LIMIT=540 [BATCH=256] [INIT=sar-zero123/sim-prior-rotated] [PROBE=1] [DECAY_STEPS=N] \
 #         bash benchmarks/gpu_session.sh [WHEELS [EVALUATORS]]
 #
-# 1. installs the wheels the machine lacks (diffusers, importlib_metadata) from WHEELS (default .whl);
-# 2. with PROBE=1, times one training step of the shippable `micro` prior, eager and compiled
-#    (benchmarks/step_operators.py at BATCH pairs, bf16), each under a time limit (about two minutes; measured
-#    on one H100 on 2026-11-27 at 1,024 pairs: docs/results/history/prior.md, section 6); without it, compiles
-#    without probing;
-# 3. trains the `rotated_input@micro` prior with benchmarks/gpu_prior.py in what is left of LIMIT seconds at
-#    BATCH pairs per step (default 256: a prior's optimiser steps, more than its pairs, decide how well it
-#    fine-tunes; docs/results/history/prior.md, section 6, "Steps or pairs"), starting from INIT's weights (default:
-#    the bundled CPU prior, 25,000 steps already; INIT=none trains from scratch), compiled (reduce-overhead)
-#    unless the probe failed; if that arm fails, once more uncompiled in what is left. With DECAY_STEPS=N the
-#    learning rate decays (cosine) to 0 at step N instead of staying constant: set N to the steps the budget
-#    fits at the probe's (or a past session's) steps/s (docs/results/history/prior.md, section 6, "A decaying
-#    learning rate for the warm start").
-# Everything lands in OUT: the step timings, gpu_prior's results.json and the pipeline's tar parts, one log.
+# installs the missing wheels; with PROBE=1 times one step of the `micro` prior eager and compiled
+# (step_operators.py); trains `rotated_input@micro` from INIT (none: from scratch) with gpu_prior.py in what
+# is left of LIMIT, compiled unless the probe failed (once more uncompiled if that fails), the learning rate
+# decaying to 0 at step DECAY_STEPS when given. Everything (timings, results.json, tar parts, log) in OUT.
 set -u
 OUT=${OUT:?OUT must name the output folder}
 LIMIT=${LIMIT:-540}

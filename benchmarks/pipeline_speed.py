@@ -5,8 +5,6 @@ zero-1-to-3 sampler (LDM DDIM, eta 0, 50 steps, guidance 3.0, conditional and un
 concatenated into one UNet call), reporting the speed ratio and the largest output difference (the two
 must agree: it checks the pipeline's scheduler/guidance wiring against the original equations).
 
-Examples::
-
     OMP_NUM_THREADS=1 python benchmarks/pipeline_speed.py --sizes tiny small --out bench.json
     python benchmarks/pipeline_speed.py --sizes zero123 --device cuda --dtype float16 --out gpu.json
 
@@ -29,19 +27,14 @@ from typing import Literal
 
 import torch
 from _common import synchronize
-from diffusers import DDIMScheduler, DPMSolverMultistepScheduler, EulerDiscreteScheduler
 
 from sar_zero123.config import parse_config
 from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.conditioning import embed_pose
 from sar_zero123.model.pipeline import SARZero123Pipeline
+from sar_zero123.model.sampler import SCHEDULERS, set_scheduler
 
-SCHEDULERS = {
-    "ddim": (DDIMScheduler, {}),
-    "dpmsolver++": (DPMSolverMultistepScheduler, {"algorithm_type": "dpmsolver++", "solver_order": 2}),
-    "euler": (EulerDiscreteScheduler, {}),
-}
 DTYPES = {"float32": torch.float32, "float16": torch.float16, "bfloat16": torch.bfloat16}
 
 
@@ -71,7 +64,6 @@ class BenchmarkConfig:
             raise ValueError(f"batch_size and repeats must be >= 1, got {self.batch_size}, {self.repeats}")
 
 
-# --------------------------------------------------------------------------------- measurement
 def _reset_peak_memory(device: torch.device) -> None:
     if device.type == "cuda":
         torch.cuda.reset_peak_memory_stats(device)
@@ -118,7 +110,6 @@ def _time_calls(functions: Sequence, device: torch.device, repeats: int) -> list
     return [(statistics.median(times), peak) for times, peak in zip(seconds, peaks)]
 
 
-# ---------------------------------------------------------------------------- reference sampler
 @torch.no_grad()
 def reference_zero123_sample(
     pipe: SARZero123Pipeline,
@@ -158,10 +149,9 @@ def reference_zero123_sample(
     return pipe.decode_latents(x)
 
 
-# ---------------------------------------------------------------------------------------- main
 def _parameter_counts(pipe: SARZero123Pipeline) -> dict[str, int]:
-    names = ("unet", "vae", "image_encoder", "pose_projection")
-    counts = {name: sum(p.numel() for p in getattr(pipe, name).parameters()) for name in names}
+    counts = {name: sum(p.numel() for p in getattr(pipe, name).parameters())
+              for name in ("unet", "vae", "image_encoder", "pose_projection")}
     counts["total"] = sum(counts.values())
     return counts
 
@@ -190,20 +180,18 @@ def benchmark_size(config: BenchmarkConfig, size: str) -> dict:
         timings = _time_calls([reference_call, pipeline_call], device, config.repeats)
         (reference_seconds, reference_memory), (pipeline_seconds, _) = timings
         result["reference_fp32_ddim50"] = {
-            "seconds_per_call": reference_seconds,
-            "images_per_second": config.batch_size / reference_seconds,
+            "seconds_per_call": reference_seconds, "images_per_second": config.batch_size / reference_seconds,
             "peak_memory_mib": reference_memory,
             "pipeline_fp32_images_per_second": config.batch_size / pipeline_seconds,
             "pipeline_fp32_speedup": reference_seconds / pipeline_seconds,  # interleaved with the reference
             "max_abs_difference": float((reference_call() - pipeline_call()).abs().max()),
-        }
+        }  # fmt: skip
 
     # 2. pipeline in the requested dtype against scheduler and steps
     if dtype != torch.float32:
         pipe.to(dtype=dtype)
     for scheduler_name in config.schedulers:
-        scheduler_class, options = SCHEDULERS[scheduler_name]
-        pipe.scheduler = scheduler_class.from_config(pipe.scheduler.config, **options)
+        set_scheduler(pipe, scheduler_name)
         for steps in config.steps:
             def call(steps: int = steps) -> None:
                 pipe(images, 30.0, 0.0, num_inference_steps=steps, guidance_scale=config.guidance_scale,
@@ -229,15 +217,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
         "date_utc": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "command": " ".join(["python benchmarks/pipeline_speed.py", *arguments]),
         "device": torch.cuda.get_device_name(device) if device.type == "cuda" else platform.machine(),
-        "cpu_threads": torch.get_num_threads(),
-        "cpu_count": os.cpu_count(),
-        "load_average_at_start": os.getloadavg(),
-        "torch": torch.__version__,
-        "dtype": config.dtype,
-        "batch_size": config.batch_size,
-        "guidance_scale": config.guidance_scale,
+        "cpu_threads": torch.get_num_threads(), "cpu_count": os.cpu_count(),
+        "load_average_at_start": os.getloadavg(), "torch": torch.__version__, "dtype": config.dtype,
+        "batch_size": config.batch_size, "guidance_scale": config.guidance_scale,
         "results": [benchmark_size(config, size) for size in config.sizes],
-    }
+    }  # fmt: skip
     write_json_atomic(report, config.out)
     return report
 

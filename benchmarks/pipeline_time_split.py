@@ -143,8 +143,7 @@ def split(pipeline: str, batch: int, repeats: int, with_azimuth: bool) -> dict:
         runs.append({"total_s": total, **{f"{k}_s": v for k, v in parts.items()}, "overhead_s": overhead,
                      "bare_unet_loop_s": bare, "unet_calls": len(timer.unet_calls),
                      "unet_evaluations_per_image": samples / batch})  # fmt: skip
-    keys = runs[0].keys()
-    median = {key: statistics.median(run[key] for run in runs) for key in keys}
+    median = {key: statistics.median(run[key] for run in runs) for key in runs[0]}
     median["total_over_bare_unet_loop"] = median["total_s"] / median["bare_unet_loop_s"]
     median["seconds_per_view"] = median["total_s"] / batch
     return {"pipeline": str(pipeline), "batch": batch, "input_azimuth_given": with_azimuth,
@@ -163,8 +162,8 @@ def main(argv: list[str] | None = None) -> dict:
         split(SIM_PRIOR_ROTATED, args.batch, args.repeats, with_azimuth=True),
         split(SIM_PRIOR_PROXY, args.batch, args.repeats, with_azimuth=True),
     ]
-    device = f"CPU, {torch.get_num_threads()} torch threads, torch {torch.__version__}"
-    result = {"device": device, "rows": rows}
+    result = {"device": f"CPU, {torch.get_num_threads()} torch threads, torch {torch.__version__}",
+              "rows": rows}
     write_json_atomic(result, args.out)
     for row in rows:
         m = row["median"]

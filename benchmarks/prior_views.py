@@ -49,18 +49,12 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
 
 
 def simulated_view(
-    target: Target,
-    azimuth_deg: float,
-    depression_deg: float,
-    size: int,
-    scaling: DecibelScaling,
+    target: Target, azimuth_deg: float, depression_deg: float, size: int, scaling: DecibelScaling,
     seed: Sequence[int],
 ) -> np.ndarray:
     """The simulator's normalised chip of ``target`` at one pose, its clutter drawn from ``seed``."""
-    rng = np.random.default_rng(seed)
-    return scaling.normalize(render_chip(target, azimuth_deg % 360.0, depression_deg, size, rng)).astype(
-        np.float32
-    )
+    chip = render_chip(target, azimuth_deg % 360.0, depression_deg, size, np.random.default_rng(seed))
+    return scaling.normalize(chip).astype(np.float32)
 
 
 def generate_views(
@@ -86,22 +80,19 @@ def generate_views(
         def view(azimuth: float, depression: float, stream: int, target=target, i=i) -> np.ndarray:
             return simulated_view(target, azimuth, depression, size, scaling, [args.seed, i, stream])
 
-        chip = view(args.input_azimuth_deg, input_depression, 0)
+        azimuth = args.input_azimuth_deg
+        chip = view(azimuth, input_depression, 0)
         d_az = [r[0] for r in REQUESTS]
         d_el = [r[1] for r in REQUESTS]
         generated = pipe(
-            torch.from_numpy(chip)[None, None].expand(len(REQUESTS), -1, -1, -1),
-            d_az=d_az,
-            d_el=d_el,
+            torch.from_numpy(chip)[None, None].expand(len(REQUESTS), -1, -1, -1), d_az=d_az, d_el=d_el,
             input_depression_deg=input_depression,
             input_azimuth_deg=args.input_azimuth_deg,  # known here: a recorded proxy start uses it
             num_inference_steps=args.num_inference_steps,
             generator=[torch.Generator().manual_seed(args.seed + k) for k in range(len(REQUESTS))],
             output_type="np",
-        ).images[..., 0]
-        truth = [
-            view(args.input_azimuth_deg + a, input_depression + e, 1 + k) for k, (a, e) in enumerate(REQUESTS)
-        ]
+        ).images[..., 0]  # fmt: skip
+        truth = [view(azimuth + a, input_depression + e, 1 + k) for k, (a, e) in enumerate(REQUESTS)]
         at_input = view(args.input_azimuth_deg, input_depression, 99)
         for k, (a, e) in enumerate(REQUESTS):
             blurred = [gaussian_filter(x, 1.5) for x in (generated[k], truth[k], at_input)]
@@ -120,15 +111,13 @@ def draw_views(rows: list[tuple[str, list[np.ndarray]]], out: Path) -> None:
     import matplotlib.pyplot as plt
 
     titles = ["input (17 deg)", *[f"d_az {a:+g}\nd_el {e:+g}" for a, e in REQUESTS]]
-    fig, axes = plt.subplots(
-        len(rows), len(titles), figsize=(1.3 * len(titles), 1.4 * len(rows)), squeeze=False
-    )
+    size = (1.3 * len(titles), 1.4 * len(rows))
+    fig, axes = plt.subplots(len(rows), len(titles), figsize=size, squeeze=False)
     for r, (label, images) in enumerate(rows):
         for c, image in enumerate(images):
             ax = axes[r, c]
             ax.imshow(image, cmap="gray", vmin=0.0, vmax=1.0)
-            ax.set_xticks([])
-            ax.set_yticks([])
+            ax.set_xticks([]), ax.set_yticks([])
             if r == 0:
                 ax.set_title(titles[c], fontsize=7)
             if c == 0:
@@ -141,14 +130,9 @@ def draw_views(rows: list[tuple[str, list[np.ndarray]]], out: Path) -> None:
 
 def write_record(args: argparse.Namespace, scores: dict[str, list[bool]], seconds: float, out: Path) -> None:
     """The scores as JSON beside the figure, and a line per request on stdout."""
-    record = {
-        "pipeline": str(args.pipeline),
-        "classes": args.classes,
-        "num_inference_steps": args.num_inference_steps,
-        "seconds": round(seconds, 1),
-        "device": "cuda" if torch.cuda.is_available() else "cpu",
-        "closer_to_requested_pose": scores,
-    }
+    record = {"pipeline": str(args.pipeline), "classes": args.classes,
+              "num_inference_steps": args.num_inference_steps, "seconds": round(seconds, 1),
+              "device": "cuda" if torch.cuda.is_available() else "cpu", "closer_to_requested_pose": scores}
     out.with_suffix(".json").write_text(json.dumps(record, indent=2) + "\n")
     for request, wins in scores.items():
         print(f"{request}: closer to the requested pose's truth in {sum(wins)}/{len(wins)}")

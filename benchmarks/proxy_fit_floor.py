@@ -61,12 +61,9 @@ def main(argv: list[str] | None = None) -> dict:
     azimuth = torch.tensor([p[0] for p in poses])
     depression = torch.tensor([p[1] for p in poses])
     start = time.perf_counter()
-    scores = {
-        name: fit_scores(
-            torch.from_numpy(np.stack(chips)[:, None].astype(np.float32)), azimuth, depression, proxy
-        )
-        for name, chips in (("vehicle", vehicles), ("clutter", clutter))
-    }
+    scores = {name: fit_scores(torch.from_numpy(np.stack(chips)[:, None].astype(np.float32)), azimuth,
+                               depression, proxy)
+              for name, chips in (("vehicle", vehicles), ("clutter", clutter))}  # fmt: skip
     seconds = time.perf_counter() - start
     quantiles = (0.0, 0.01, 0.05, 0.25, 0.5, 0.75, 0.95, 0.99, 1.0)
     floors = [round(float(f), 2) for f in np.arange(0.0, 0.61, 0.05)]
@@ -74,21 +71,13 @@ def main(argv: list[str] | None = None) -> dict:
         "command": "python benchmarks/proxy_fit_floor.py " + " ".join(sys.argv[1:] if argv is None else argv),
         "device": f"{platform.machine()} CPU, {os.cpu_count()} cores, {torch.get_num_threads()} torch "
         f"threads, torch {torch.__version__}",
-        "date": time.strftime("%Y-%m-%d"),
-        "n": args.n,
-        "seconds_per_fit": seconds / (2 * args.n),
+        "date": time.strftime("%Y-%m-%d"), "n": args.n, "seconds_per_fit": seconds / (2 * args.n),
         "quantiles": {
             name: dict(zip(map(str, quantiles), np.quantile(s, quantiles).round(4).tolist()))
             for name, s in scores.items()
         },  # fmt: skip
-        "floors": [
-            {
-                "floor": f,
-                "vehicle_refused": float(np.mean(scores["vehicle"] < f)),
-                "clutter_passed": float(np.mean(scores["clutter"] >= f)),
-            }
-            for f in floors
-        ],  # fmt: skip
+        "floors": [{"floor": f, "vehicle_refused": float(np.mean(scores["vehicle"] < f)),
+                    "clutter_passed": float(np.mean(scores["clutter"] >= f))} for f in floors],  # fmt: skip
     }
     write_json_atomic(result, args.out)
     for line in result["floors"]:

@@ -11,12 +11,11 @@ nearest in azimuth, and its other 17 deg chip nearest in azimuth (a second look 
 *wins* when its blurred correlation (sigma 1.5 px) with the 30 deg chip exceeds that with the 17 deg one.
 Pairs whose references lie more than ``--max_azimuth_gap`` deg from the input's azimuth are left out.
 
-Rows: the input copy (unturned, keeps identity); the 30 deg chip itself (ceiling, 100 % by construction); the
-simulator proxy alone (the bank vehicle fitted to the input at its header pose, rendered at 30 deg); the
-bundled prior sampled from noise with no guidance (the library's sampler); its recorded sampler without the
-input's azimuth; and with it (from the proxy, at its recorded noise level and at 30 % and 70 %). With
-``--proxy_pipeline``, a proxy-conditioned prior (``spatial_pose="proxy"``) on the same pairs and fits: its
-recorded sampler with the input's azimuth, and from noise. Writes JSON.
+Rows: the input copy; the 30 deg chip (ceiling, 100 % by construction); the simulator proxy alone (the
+bank vehicle fitted to the input at its header pose, rendered at 30 deg); the bundled prior from noise with
+no guidance, with its recorded sampler without the input's azimuth, and with it (from the proxy, at its
+recorded noise level and others); with ``--proxy_pipeline``, a proxy-conditioned prior on the same fits.
+Writes JSON.
 """
 
 from __future__ import annotations
@@ -24,12 +23,11 @@ from __future__ import annotations
 import csv
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import torch
-from _common import cpu_device, device_record, script_parser
+from _common import cpu_device, device_record, parallel_map, script_parser
 from threadpoolctl import threadpool_limits
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
@@ -158,9 +156,7 @@ def run(
 
     def fit(proxy: dict) -> np.ndarray:
         """Every input's proxy at 30 deg, by the pipeline's own code, in ``workers`` processes."""
-        jobs = [(proxy, image, a) for image, a in zip(inputs, azimuths)]
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            return np.stack(list(pool.map(_draft, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
+        return np.stack(parallel_map(_draft, [(proxy, im, a) for im, a in zip(inputs, azimuths)], workers))
 
     drafts: dict[int, np.ndarray] = {}
     recorded_shift = int(pipe.config.proxy.get("max_shift_px", 0))
@@ -181,9 +177,8 @@ def run(
                 learned = fit({**exhaustive, "max_shift_px": shift, "shortlist": int(k), "retrieval": name})
                 row = f"proxy alone, learned shortlist of {k} (shifts up to {shift} px)"
                 add(row, learned[:, 1], time.perf_counter() - begin)
-                diff = wins(learned[:, 1], at_30, at_17).astype(float) - wins(
-                    drafts[shift][:, 1], at_30, at_17
-                )
+                won = wins(learned[:, 1], at_30, at_17).astype(float)
+                diff = won - wins(drafts[shift][:, 1], at_30, at_17)
                 se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
                 same = np.all(learned[:, 0] == drafts[shift][:, 0], axis=(1, 2))
                 rows[row] |= {"paired_difference_from_exhaustive": float(diff.mean()),
@@ -200,9 +195,7 @@ def run(
         begin = time.perf_counter()
         jobs = [({**pipe.config.proxy, "max_shift_px": shift}, image, a, k, temperature)
                 for image, a in zip(inputs, azimuths)]  # fmt: skip
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            chunks = max(1, len(jobs) // (4 * workers))
-            mean = np.stack(list(pool.map(_consensus, jobs, chunksize=chunks)))
+        mean = np.stack(parallel_map(_consensus, jobs, workers))
         name = f"proxy alone, consensus of the {k} best (temperature {temperature:g}, shifts <= {shift} px)"
         add(name, mean, time.perf_counter() - begin)
         best = f"proxy alone (bank {pipe.config.proxy['num_vehicles']}, shifts up to {shift} px)"
@@ -236,18 +229,14 @@ def run(
             ).images[..., 0])  # fmt: skip
         return np.concatenate(views), time.perf_counter() - begin
 
-    add(
-        "bundled prior, library sampler (50 steps from noise)",
-        *sample(num_inference_steps=50, strength=1.0, heading_guidance_scale=0.0, start_from="input"),
-    )
+    add("bundled prior, library sampler (50 steps from noise)",
+        *sample(num_inference_steps=50, strength=1.0, heading_guidance_scale=0.0, start_from="input"))
     add("bundled prior, its recorded sampler, no input azimuth (from noise, heading guidance)", *sample())
     # the drafts above are the pipeline's own proxy starts (draft_target_views), made in parallel; a call
     # given start_image takes the strength it is given, so the recorded proxy_strength is passed here
     recorded = pipe.config.sampler["proxy_strength"]
-    add(
-        f"bundled prior, its recorded sampler, input azimuth given (from the proxy noised to {recorded:.0%})",
-        *sample(from_proxy=True, strength=recorded),
-    )
+    add(f"bundled prior, its recorded sampler, input azimuth given (from the proxy noised to {recorded:.0%})",
+        *sample(from_proxy=True, strength=recorded))
     for strength in sorted({0.3, 0.5, 0.7} - {recorded}):
         name = f"bundled prior, from the proxy noised to {strength:.0%}"
         add(name, *sample(from_proxy=True, strength=strength))
@@ -262,18 +251,10 @@ def run(
         proxies = drafts[shift][:, 1]
         name = f"bundled prior, from the proxy fitted with shifts up to {shift} px, noised to {recorded:.0%}"
         add(name, *sample(from_proxy=True, strength=recorded))
-    return {
-        "benchmark": "proxy_mstar_depression (issue 61)",
-        "pipeline": SIM_PRIOR_ROTATED,
-        "proxy_pipeline": proxy_pipeline,
-        "sampler": pipe.config.sampler,
-        "proxy": pipe.config.proxy,
-        "per_class": per_class,
-        "max_azimuth_gap_deg": max_gap,
-        "seed": seed,
-        **device_record(),
-        "rows": rows,
-    }
+    return {"benchmark": "proxy_mstar_depression (issue 61)", "pipeline": SIM_PRIOR_ROTATED,
+            "proxy_pipeline": proxy_pipeline, "sampler": pipe.config.sampler, "proxy": pipe.config.proxy,
+            "per_class": per_class, "max_azimuth_gap_deg": max_gap, "seed": seed, **device_record(),
+            "rows": rows}  # fmt: skip
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -284,26 +265,12 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--max_azimuth_gap", type=float, default=3.0, help="references' largest azimuth gap")
     parser.add_argument("--seed", type=int, default=0, help="pair draw and sampling seed")
     parser.add_argument("--workers", type=int, default=2, help="processes for the proxy fits")
-    parser.add_argument(
-        "--max_shifts_px",
-        nargs="*",
-        type=int,
-        default=[0],
-        help="also fit the proxy with shifts up to each of these (pixels)",
-    )
-    parser.add_argument(
-        "--proxy_pipeline",
-        default=None,
-        help="also a spatial_pose='proxy' pipeline (folder or name) on the same pairs",
-    )
-    parser.add_argument(
-        "--consensus",
-        nargs=2,
-        type=float,
-        default=None,
-        metavar=("K", "TEMPERATURE"),
-        help="only the proxies alone: the best fit and the weighted mean of the K best fits",
-    )
+    parser.add_argument("--max_shifts_px", nargs="*", type=int, default=[0],
+                        help="also fit the proxy with shifts up to each of these (pixels)")
+    parser.add_argument("--proxy_pipeline", default=None,
+                        help="also a spatial_pose='proxy' pipeline (folder or name) on the same pairs")
+    parser.add_argument("--consensus", nargs=2, type=float, default=None, metavar=("K", "TEMPERATURE"),
+                        help="only the proxies alone: the best fit and the weighted mean of the K best fits")
     parser.add_argument("--retrieval", nargs="+", default=None, metavar="NAME_THEN_SIZES",
                         help="only the proxy alone: the exhaustive fit against a learned shortlist (a name "
                         "or folder) of each size")  # fmt: skip
@@ -313,17 +280,11 @@ def main(argv: Sequence[str] | None = None) -> dict:
         if not (Path(getattr(args, name)) / "index.csv").is_file():
             raise FileNotFoundError(f"--{name}: no index.csv in {getattr(args, name)!r}")
     record = run(
-        Path(args.mstar),
-        Path(args.eoc1),
-        args.per_class,
-        args.max_azimuth_gap,
-        args.seed,
-        args.workers,
-        args.max_shifts_px,
-        args.proxy_pipeline,
+        Path(args.mstar), Path(args.eoc1), args.per_class, args.max_azimuth_gap, args.seed, args.workers,
+        args.max_shifts_px, args.proxy_pipeline,
         None if args.consensus is None else (int(args.consensus[0]), float(args.consensus[1])),
         None if args.retrieval is None else (args.retrieval[0], [int(k) for k in args.retrieval[1:]]),
-    )
+    )  # fmt: skip
     write_json_atomic(record, Path(args.out))
     return record
 

@@ -17,18 +17,9 @@ same views its plain call fits and renders itself. Rows, on the same pairs:
   remaining error sits.
 
 Writes JSON (per row: template azimuth error and its standard error, gap closed, front/back right,
-identity kept, seconds; the best proxy-prior row's paired error difference from the baseline and from the
-proxy alone, on the same pairs) and prints a table. ``--consensus K T`` runs only the proxy alone and both
-recorded samplers, from the best fit and from a consensus proxy: the weighted mean (weights
-``exp((score - best) / T)``) of the K best-fitting vehicles' renders, a posterior-mean estimate of the
-vehicle's other sides where one view leaves them open. ``--refine K S`` runs only the proxy alone and the
-proxy prior's recorded sampler, from the best fit and from that fit refined by rendering and comparing: the
-best fit, or each of the K best, stretched along its length and its width by every pair of the factors S
-(its scatterers and solids scaled), and the stretch that correlates best with the input kept.
-``--compare P ...`` runs, for ``--pipeline`` and each ``P``, only the plain call (the fitted proxy, the
-recorded sampler), the fitted proxy from noise and a perfect proxy from noise, with the paired differences
-of the azimuth error, identity and turned-and-kept shares against ``--pipeline``.
-``--fits`` keeps the fits (about 6 minutes on 2 cores) for a re-run on the same pairs.
+identity kept, seconds; the best proxy-prior row's paired error differences from the baseline and from the
+proxy alone) and prints a table. ``--consensus``, ``--refine``, ``--retrieval``, ``--compare`` and
+``--steps`` each run only their own rows (their ``--help``); ``--fits`` keeps the fits for a re-run.
 """
 
 from __future__ import annotations
@@ -38,12 +29,11 @@ import json
 import sys
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import torch
-from _common import cpu_device, device_record, script_parser
+from _common import cpu_device, device_record, parallel_map, script_parser
 from threadpoolctl import threadpool_limits
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
@@ -59,7 +49,7 @@ from sar_zero123.sim.proxy import blurred_correlation
 from sar_zero123.sim.targets import Target
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # the repository root, for `benchmarks`
-from benchmarks.proxy_views import INPUT_DEPRESSION_DEG, SimulatedPairs, format_table  # noqa: E402
+from benchmarks.proxy_views import INPUT_DEPRESSION_DEG, SimulatedPairs, format_table, print_row  # noqa: E402
 
 
 def _fitted(args: tuple) -> np.ndarray:
@@ -79,8 +69,7 @@ def fitted_views(
 ) -> np.ndarray:
     """Every input's fitted proxy at the three poses ``(N, 3, S, S)``, in ``workers`` processes."""
     jobs = [(proxy, im, float(a), float(d)) for im, a, d in zip(images, azimuths, d_az)]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        return np.stack(list(pool.map(_fitted, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
+    return np.stack(parallel_map(_fitted, jobs, workers))
 
 
 def paired_differences(readings: dict, pairs_of_rows: Sequence[tuple[str, str]]) -> dict[str, dict]:
@@ -116,18 +105,12 @@ def _consensus(args: tuple) -> np.ndarray:
 
 
 def consensus_views(
-    proxy: dict,
-    images: np.ndarray,
-    azimuths: Sequence[float],
-    d_az: Sequence[float],
-    k: int,
-    temperature: float,
-    workers: int,
-) -> np.ndarray:
+    proxy: dict, images: np.ndarray, azimuths: Sequence[float], d_az: Sequence[float], k: int,
+    temperature: float, workers: int,
+) -> np.ndarray:  # fmt: skip
     """Every input's consensus proxy (:func:`_consensus`) at the three poses ``(N, 3, S, S)``."""
     jobs = [(proxy, im, float(a), float(d), k, temperature) for im, a, d in zip(images, azimuths, d_az)]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        return np.stack(list(pool.map(_consensus, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
+    return np.stack(parallel_map(_consensus, jobs, workers))
 
 
 def stretched(target: Target, length_scale: float, width_scale: float) -> Target:
@@ -188,19 +171,12 @@ def _refined(args: tuple) -> np.ndarray:
 
 
 def refined_views(
-    proxy: dict,
-    images: np.ndarray,
-    azimuths: Sequence[float],
-    d_az: Sequence[float],
-    k: int,
-    factors: Sequence[float],
-    workers: int,
-) -> np.ndarray:
+    proxy: dict, images: np.ndarray, azimuths: Sequence[float], d_az: Sequence[float], k: int,
+    factors: Sequence[float], workers: int,
+) -> np.ndarray:  # fmt: skip
     """Every input's proxies (:func:`_refined`) ``(3, N, 3, S, S)``: best fit, refined, refined among k."""
     jobs = [(proxy, im, float(a), float(d), k, tuple(factors)) for im, a, d in zip(images, azimuths, d_az)]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        out = np.stack(list(pool.map(_refined, jobs, chunksize=max(1, len(jobs) // (4 * workers)))))
-    return out.transpose(1, 0, 2, 3, 4)
+    return np.stack(parallel_map(_refined, jobs, workers)).transpose(1, 0, 2, 3, 4)
 
 
 def _fit_seconds(proxy: dict, sim: SimulatedPairs, chips: int) -> float:
@@ -221,23 +197,12 @@ def _fit_seconds(proxy: dict, sim: SimulatedPairs, chips: int) -> float:
 
 
 def run(
-    pipeline: str,
-    *,
-    baseline: str = SIM_PRIOR_ROTATED,
-    pairs_per_class: int = 32,
-    batch_size: int = 32,
-    seed: int = 0,
-    workers: int = 2,
-    headings: Sequence[float] = (1.5, 3.0),
-    fits: str | None = None,
-    steps_sweep: Sequence[int] = (),
-    shortlist: int | None = None,
-    bank_size: int | None = None,
-    consensus: tuple[int, float] | None = None,
-    refine: tuple[int, Sequence[float]] | None = None,
-    retrieval: tuple[str, Sequence[int], int] | None = None,
-    compare: Sequence[str] = (),
-) -> dict:
+    pipeline: str, *, baseline: str = SIM_PRIOR_ROTATED, pairs_per_class: int = 32, batch_size: int = 32,
+    seed: int = 0, workers: int = 2, headings: Sequence[float] = (1.5, 3.0), fits: str | None = None,
+    steps_sweep: Sequence[int] = (), shortlist: int | None = None, bank_size: int | None = None,
+    consensus: tuple[int, float] | None = None, refine: tuple[int, Sequence[float]] | None = None,
+    retrieval: tuple[str, Sequence[int], int] | None = None, compare: Sequence[str] = (),
+) -> dict:  # fmt: skip
     """Every row's template readings on the same pairs; see the module docstring."""
     scaling = DecibelScaling.from_dict(json.loads((resolve_pretrained(pipeline) / SCALING_FILE).read_text()))
     pipe = SARZero123Pipeline.from_pretrained(pipeline)
@@ -253,10 +218,7 @@ def run(
     def add(name: str, views: np.ndarray, seconds: float) -> None:
         readings[name] = sim.read(views)
         rows[name] = summarise_readings(readings[name], floor, ceiling) | {"seconds": seconds}
-        r = rows[name]
-        print(f"{name}: err {r['azimuth_error_deg']:.1f} ± {r['azimuth_error_deg_se']:.1f}, gap "
-              f"{r['gap_closed']:.0%}, front/back {r['front_back_right']:.0%}, identity "
-              f"{r['identity_kept']:.0%} ({seconds:.0f} s)", flush=True)  # fmt: skip
+        print_row(name, rows[name])
 
     add("input copy (unturned, keeps identity)", sim.inputs, 0.0)
     add("true view, another speckle draw (ceiling)", sim.truth, 0.0)
@@ -395,18 +357,13 @@ def run(
         base_steps = int(base_recorded["num_inference_steps"])
         pairs_of_rows = [(f"proxy alone, {label}", next(n for n in rows if n.startswith("proxy alone (")))]
         for views, name in ((fitted, "the best fit"), (mean, label)):
-            add(
-                f"proxy prior, its recorded sampler, {name}",
-                *sample(pipe, views, views[:, 1], proxy_strength, heading),
-            )
-            add(
-                f"{baseline}, its recorded sampler, {name}",
-                *sample(base, None, views[:, 1], base_strength, base_heading, base_steps),
-            )
+            add(f"proxy prior, its recorded sampler, {name}",
+                *sample(pipe, views, views[:, 1], proxy_strength, heading))
+            add(f"{baseline}, its recorded sampler, {name}",
+                *sample(base, None, views[:, 1], base_strength, base_heading, base_steps))  # fmt: skip
         for model in ("proxy prior", baseline):
-            pairs_of_rows.append(
-                (f"{model}, its recorded sampler, {label}", f"{model}, its recorded sampler, the best fit")
-            )
+            pairs_of_rows.append((f"{model}, its recorded sampler, {label}",
+                                  f"{model}, its recorded sampler, the best fit"))  # fmt: skip
         comparisons = paired_differences(readings, pairs_of_rows)
         return {"benchmark": "proxy_prior_views (issue 61: consensus proxy)", "pipeline": str(pipeline),
                 "baseline": str(baseline), "recorded_sampler": recorded, "consensus": [k, temperature],
@@ -462,22 +419,12 @@ def run(
     recorded_row = next(n for n in rows if n.startswith("proxy prior, its recorded sampler"))
     firsts = dict.fromkeys((recorded_row, best))
     comparisons = paired_differences(readings, [(f, o) for f in firsts for o in (baseline_row, alone)])
-    return {
-        "benchmark": "proxy_prior_views (issue 61)",
-        "best_row": best,
-        "paired_azimuth_error_differences": comparisons,
-        "pipeline": str(pipeline),
-        "baseline": str(baseline),
-        "classes": sim.classes,
-        "pairs_per_class": pairs_per_class,
-        "d_az_range_deg": [60.0, 180.0],
-        "input_depression_deg": INPUT_DEPRESSION_DEG,
-        "recorded_sampler": recorded,
-        "proxy": proxy,
-        "seed": seed,
-        **device_record(),
-        "rows": rows,
-    }
+    return {"benchmark": "proxy_prior_views (issue 61)", "best_row": best,
+            "paired_azimuth_error_differences": comparisons, "pipeline": str(pipeline),
+            "baseline": str(baseline), "classes": sim.classes, "pairs_per_class": pairs_per_class,
+            "d_az_range_deg": [60.0, 180.0], "input_depression_deg": INPUT_DEPRESSION_DEG,
+            "recorded_sampler": recorded, "proxy": proxy, "seed": seed, **device_record(),
+            "rows": rows}  # fmt: skip
 
 
 def main(argv: Sequence[str] | None = None) -> dict:
@@ -488,70 +435,29 @@ def main(argv: Sequence[str] | None = None) -> dict:
     parser.add_argument("--batch_size", type=int, default=32, help="views per pipeline call")
     parser.add_argument("--seed", type=int, default=0, help="pairs, clutter and sampling seed")
     parser.add_argument("--workers", type=int, default=2, help="processes fitting the proxies")
-    parser.add_argument(
-        "--headings",
-        nargs="+",
-        type=float,
-        default=[1.5, 3.0],
-        help="heading guidance weights of the rows from noise (0 is always one)",
-    )
-    parser.add_argument(
-        "--fits",
-        default=None,
-        help="an .npz to keep the proxy fits in (reused when the pairs and bank match)",
-    )
-    parser.add_argument(
-        "--steps",
-        nargs="+",
-        type=int,
-        default=[],
-        help="only the recorded sampler, at its own and at these step counts (paired)",
-    )
-    parser.add_argument(
-        "--shortlist",
-        type=int,
-        default=None,
-        help="fit in two stages, this many vehicles re-rendered at the exact pose",
-    )
-    parser.add_argument(
-        "--bank_size",
-        type=int,
-        default=None,
-        help="fit with a bank of this many vehicles (default: the pipeline's)",
-    )
-    parser.add_argument(
-        "--consensus",
-        nargs=2,
-        type=float,
-        default=None,
-        metavar=("K", "TEMPERATURE"),
-        help="only the proxy alone and both recorded samplers, from the best fit and from "
-        "the weighted mean of the K best fits' renders (weights exp(score / T))",
-    )
-    parser.add_argument(
-        "--refine",
-        nargs="+",
-        type=float,
-        default=None,
-        metavar="K_THEN_FACTORS",
-        help="only the proxy alone and the recorded sampler, from the best fit and from the "
-        "K best fits stretched along length and width by each pair of the factors",
-    )
-    parser.add_argument(
-        "--retrieval",
-        nargs="+",
-        default=None,
-        metavar="NAME_THEN_SIZES",
-        help="only the proxy alone from the exhaustive fit and from a learned shortlist (a name or "
-        "folder) of each size, and the recorded sampler from the exhaustive fit and from the first size",
-    )
-    parser.add_argument(
-        "--compare",
-        nargs="+",
-        default=[],
-        help="only each pipeline's plain call (fitted proxy), the fitted and the perfect proxy from noise, "
-        "the first --pipeline, then these, paired with it",
-    )
+    parser.add_argument("--headings", nargs="+", type=float, default=[1.5, 3.0],
+                        help="heading guidance weights of the rows from noise (0 is always one)")
+    parser.add_argument("--fits", default=None,
+                        help="an .npz to keep the proxy fits in (reused when the pairs and bank match)")
+    parser.add_argument("--steps", nargs="+", type=int, default=[],
+                        help="only the recorded sampler, at its own and at these step counts (paired)")
+    parser.add_argument("--shortlist", type=int, default=None,
+                        help="fit in two stages, this many vehicles re-rendered at the exact pose")
+    parser.add_argument("--bank_size", type=int, default=None,
+                        help="fit with a bank of this many vehicles (default: the pipeline's)")
+    parser.add_argument("--consensus", nargs=2, type=float, default=None, metavar=("K", "TEMPERATURE"),
+                        help="only the proxy alone and both recorded samplers, from the best fit and from "
+                        "the weighted mean of the K best fits' renders (weights exp(score / T))")
+    parser.add_argument("--refine", nargs="+", type=float, default=None, metavar="K_THEN_FACTORS",
+                        help="only the proxy alone and the recorded sampler, from the best fit and from the "
+                        "K best fits stretched along length and width by each pair of the factors")
+    parser.add_argument("--retrieval", nargs="+", default=None, metavar="NAME_THEN_SIZES",
+                        help="only the proxy alone from the exhaustive fit and from a learned shortlist (a "
+                        "name or folder) of each size, and the recorded sampler from the exhaustive fit and "
+                        "from the first size")
+    parser.add_argument("--compare", nargs="+", default=[],
+                        help="only each pipeline's plain call (fitted proxy), the fitted and the perfect "
+                        "proxy from noise, the first --pipeline, then these, paired with it")  # fmt: skip
     parser.add_argument("--out", default="proxy_prior_views.json", help="output JSON")
     args = parser.parse_args(argv)
     if args.consensus is not None and not (args.consensus[0] >= 1 and args.consensus[1] > 0):
@@ -572,10 +478,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
         retrieval = (args.retrieval[0], sizes, sizes[0])
     record = run(args.pipeline, baseline=args.baseline, pairs_per_class=args.pairs_per_class,
                  batch_size=args.batch_size, seed=args.seed, workers=args.workers, headings=args.headings,
-                 fits=args.fits, steps_sweep=args.steps, shortlist=args.shortlist,
-                 bank_size=args.bank_size,
-                 consensus=consensus, refine=refine, retrieval=retrieval,
-                 compare=args.compare)  # fmt: skip
+                 fits=args.fits, steps_sweep=args.steps, shortlist=args.shortlist, bank_size=args.bank_size,
+                 consensus=consensus, refine=refine, retrieval=retrieval, compare=args.compare)  # fmt: skip
     write_json_atomic(record, Path(args.out))
     print(format_table(record))
     return record

@@ -6,9 +6,9 @@ The bundled prior's plain call on one simulated 64 px chip asked for ``--views``
 as ``sar-zero123-generate`` makes it), with its recorded sampler: without the input's azimuth (from noise)
 and with it (from the proxy: one fit of the chip against the bank, then one render per view); with
 ``--proxy_pipeline``, also a proxy-conditioned prior's plain call (one fit, then the proxy rendered at the
-input's pose and at each request and its flipped heading). The first
-call with the proxy also builds the bank's vehicles (once per process); it is timed apart. Each timing is the
-median of ``--repeats`` calls, each on a fresh chip (so that every call fits), on this process's threads.
+input's pose and at each request and its flipped heading). The first call with the proxy also builds the
+bank's vehicles (once per process); it is timed apart. Each timing is the median of ``--repeats`` calls,
+each on a fresh chip (so that every call fits), on this process's threads.
 """
 
 from __future__ import annotations
@@ -55,29 +55,21 @@ def main(argv: Sequence[str] | None = None) -> dict:
     first_proxy_call = call(0, input_azimuth_deg=30.0)  # builds the bank's vehicles
     seconds = {
         "without the azimuth (from noise)": statistics.median(call(1 + k) for k in range(args.repeats)),
-        "with the azimuth (from the proxy)": statistics.median(
-            call(1 + k, input_azimuth_deg=30.0) for k in range(args.repeats)
-        ),
-    }
+        "with the azimuth (from the proxy)": statistics.median(call(1 + k, input_azimuth_deg=30.0)
+                                                               for k in range(args.repeats)),
+    }  # fmt: skip
     if args.proxy_pipeline is not None:  # fits once, renders the proxy at the input's pose and each request
         other = SARZero123Pipeline.from_pretrained(args.proxy_pipeline)
         other.set_progress_bar_config(disable=True)
         name = f"{args.proxy_pipeline}, the proxy-conditioned prior (with the azimuth)"
-        seconds[name] = statistics.median(
-            call(100 + k, model=other, input_azimuth_deg=30.0) for k in range(args.repeats)  # fresh chips
-        )
-    record = {
-        "benchmark": "proxy_speed (issue 61)",
-        "pipeline": SIM_PRIOR_ROTATED,
-        "sampler": pipe.config.sampler,
-        "proxy": pipe.config.proxy,
-        "views_per_call": args.views,
-        "seconds_per_call": seconds,
-        "seconds_per_view": {name: value / args.views for name, value in seconds.items()},
-        "first_proxy_call_seconds": first_proxy_call,
-        "torch_threads": torch.get_num_threads(),
-        **device_record(),
-    }
+        seconds[name] = statistics.median(call(100 + k, model=other, input_azimuth_deg=30.0)  # fresh chips
+                                          for k in range(args.repeats))  # fmt: skip
+    record = {"benchmark": "proxy_speed (issue 61)", "pipeline": SIM_PRIOR_ROTATED,
+              "sampler": pipe.config.sampler, "proxy": pipe.config.proxy, "views_per_call": args.views,
+              "seconds_per_call": seconds,
+              "seconds_per_view": {name: value / args.views for name, value in seconds.items()},
+              "first_proxy_call_seconds": first_proxy_call, "torch_threads": torch.get_num_threads(),
+              **device_record()}  # fmt: skip
     write_json_atomic(record, Path(args.out))
     for name, value in seconds.items():
         print(f"{name}: {value:.2f} s per call of {args.views} views")

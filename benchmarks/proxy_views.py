@@ -7,20 +7,12 @@ On the simulator's eight named vehicles (never in a prior's corpus), each pair's
 and a random azimuth, and the request turns it by ``d_az`` with ``60 <= |d_az| <= 180`` deg (sign random),
 ``d_el = 0``. Every row's views are read by template matching (:mod:`sar_zero123.evaluation.template`):
 each view's blurred correlation with its true vehicle's 17 deg renders on a 5 deg grid gives its azimuth;
-over all eight vehicles' renders, its identity. Rows, on the same pairs:
-
-- ``input copy (unturned, keeps identity)``; ``input turned`` (the input rotated in the image plane by the
-  request, as the ``rotated_input`` condition turns it); ``true view, another speckle draw (ceiling)``;
-- ``proxy alone (bank N)``: the bank vehicle retrieved for the input
-  (:class:`~sar_zero123.sim.proxy.ProxyBank`: rendered at the input's azimuth and depression, best blurred
-  correlation) re-rendered at the request;
-- the pipeline from noise without heading guidance (the library's sampler at these steps), with heading
-  guidance 1.5 (the bundled prior's recorded sampler without the azimuth), and with heading guidance 1.5 from
-  the input noised to each ``--strengths`` level and to 80 %;
-- the pipeline started from the proxy's render at the request, noised to each ``--strengths`` level
-  (``start_image``), conditioned on the input as always, with and without heading guidance;
-- the same from an oracle proxy (the true vehicle at the request, another clutter draw): what a perfect fit
-  would give this sampler.
+over all eight vehicles' renders, its identity. Rows, on the same pairs: the input copy, the input turned
+in the image plane (as ``rotated_input`` turns it) and the true view (another speckle draw: the ceiling);
+the proxy alone (the bank vehicle fitted to the input, :class:`~sar_zero123.sim.proxy.ProxyBank`,
+re-rendered at the request); the pipeline from noise with and without heading guidance and from the input
+noised to each ``--strengths`` level and to 80 %; the pipeline from the proxy's render (``start_image``)
+and from an oracle proxy (the true vehicle, another clutter draw) noised to each ``--strengths`` level.
 
 Writes JSON (per row: mean template azimuth error and its standard error, gap closed between floor and
 ceiling, front/back right, identity kept, seconds) and prints a table.
@@ -31,12 +23,11 @@ from __future__ import annotations
 import json
 import time
 from collections.abc import Sequence
-from concurrent.futures import ProcessPoolExecutor
 from pathlib import Path
 
 import numpy as np
 import torch
-from _common import device_record, script_parser
+from _common import device_record, parallel_map, script_parser
 from threadpoolctl import threadpool_limits
 
 from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
@@ -84,8 +75,7 @@ def drafts_all(
 ) -> tuple[np.ndarray, np.ndarray]:
     """Every pair's proxy draft ``(N, S, S)`` and fitted azimuth ``(N,)``, in ``workers`` processes."""
     jobs = [(proxy, im, float(a), float(d), resolve_heading) for im, a, d in zip(images, azimuths, d_az)]
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        done = list(pool.map(_draft, jobs, chunksize=max(1, len(jobs) // (4 * workers))))
+    done = parallel_map(_draft, jobs, workers)
     return np.stack([d for d, _ in done]).astype(np.float32), np.array([a for _, a in done])
 
 
@@ -155,20 +145,12 @@ def run(
 
     def add(name: str, views: np.ndarray, seconds: float) -> None:
         rows[name] = summarise_readings(read(views), floor, ceiling) | {"seconds": seconds}
-        r = rows[name]
-        print(
-            f"{name}: err {r['azimuth_error_deg']:.1f} ± {r['azimuth_error_deg_se']:.1f}, "
-            f"gap {r['gap_closed']:.0%}, "
-            f"front/back {r['front_back_right']:.0%}, identity {r['identity_kept']:.0%} ({seconds:.0f} s)",
-            flush=True,
-        )
+        print_row(name, rows[name])
 
     add("input copy (unturned, keeps identity)", inputs, 0.0)
     pose = embed_pose(d_az, [0.0] * len(d_az))
-    turned = rotate_condition_latents(torch.from_numpy(inputs)[:, None], pose, SIM_ROTATION_SIGN)[
-        :, 0
-    ].numpy()
-    add("input turned", turned, 0.0)
+    turned = rotate_condition_latents(torch.from_numpy(inputs)[:, None], pose, SIM_ROTATION_SIGN)[:, 0]
+    add("input turned", turned.numpy(), 0.0)
     add("true view, another speckle draw (ceiling)", truth, 0.0)
 
     proxies: dict[str, np.ndarray] = {}
@@ -218,10 +200,8 @@ def run(
     add(f"{pipeline}, from noise, no heading guidance", *sample(None, 1.0, 0.0))
     add(f"{pipeline}, from noise, heading guidance {heading_guidance_scale:g}",
         *sample(None, 1.0, heading_guidance_scale))  # fmt: skip
-    add(
-        f"{pipeline}, heading guidance {heading_guidance_scale:g}, strength 0.8",
-        *sample(None, 0.8, heading_guidance_scale),
-    )
+    add(f"{pipeline}, heading guidance {heading_guidance_scale:g}, strength 0.8",
+        *sample(None, 0.8, heading_guidance_scale))  # fmt: skip
     best = proxies[str(max(bank_sizes))]
     for strength in strengths:
         for heading in (0.0, heading_guidance_scale):
@@ -236,20 +216,18 @@ def run(
         name = f"{pipeline} from an oracle proxy (the true vehicle), strength {strength:g}, "
         name += f"heading {heading_guidance_scale:g}"
         add(name, *sample(oracle, strength, heading_guidance_scale))
-    return {
-        "benchmark": "proxy_views (issue 61)",
-        "pipeline": str(pipeline),
-        "classes": sim.classes,
-        "pairs_per_class": pairs_per_class,
-        "d_az_range_deg": [60.0, 180.0],
-        "input_depression_deg": INPUT_DEPRESSION_DEG,
-        "template_grid_deg": 5.0,
-        "num_inference_steps": num_inference_steps,
-        "seed": seed,
-        **device_record(),
-        "input_azimuth_estimate": estimate,
-        "rows": rows,
-    }
+    return {"benchmark": "proxy_views (issue 61)", "pipeline": str(pipeline), "classes": sim.classes,
+            "pairs_per_class": pairs_per_class, "d_az_range_deg": [60.0, 180.0],
+            "input_depression_deg": INPUT_DEPRESSION_DEG, "template_grid_deg": 5.0,
+            "num_inference_steps": num_inference_steps, "seed": seed, **device_record(),
+            "input_azimuth_estimate": estimate, "rows": rows}  # fmt: skip
+
+
+def print_row(name: str, r: dict) -> None:
+    """One row's readings on stdout as it is done: error, gap closed, front/back, identity, seconds."""
+    print(f"{name}: err {r['azimuth_error_deg']:.1f} ± {r['azimuth_error_deg_se']:.1f}, gap "
+          f"{r['gap_closed']:.0%}, front/back {r['front_back_right']:.0%}, identity "
+          f"{r['identity_kept']:.0%} ({r['seconds']:.0f} s)", flush=True)  # fmt: skip
 
 
 def format_table(record: dict) -> str:
@@ -272,17 +250,10 @@ def format_table(record: dict) -> str:
 def main(argv: Sequence[str] | None = None) -> dict:
     parser = script_parser(__doc__)
     parser.add_argument("--pipeline", default=SIM_PRIOR_ROTATED, help="pipeline folder or bundled name")
-    parser.add_argument(
-        "--pairs_per_class", type=int, default=32, help="pairs per named vehicle (8 vehicles)"
-    )
+    parser.add_argument("--pairs_per_class", type=int, default=32, help="pairs per named vehicle (8)")
     parser.add_argument("--bank_sizes", nargs="+", type=int, default=[250, 1000], help="proxy bank sizes")
-    parser.add_argument(
-        "--strengths",
-        nargs="+",
-        type=float,
-        default=[0.3, 0.5],
-        help="noise levels the proxy start is noised to",
-    )
+    parser.add_argument("--strengths", nargs="+", type=float, default=[0.3, 0.5],
+                        help="noise levels the proxy start is noised to")  # fmt: skip
     parser.add_argument("--heading_guidance_scale", type=float, default=1.5, help="heading guidance weight")
     parser.add_argument("--num_inference_steps", type=int, default=20, help="DDIM steps")
     parser.add_argument("--batch_size", type=int, default=32, help="views per pipeline call")
@@ -296,8 +267,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
         raise ValueError(f"pairs_per_class must be >= 2, got {args.pairs_per_class}")
     record = run(
         args.pipeline, pairs_per_class=args.pairs_per_class, bank_sizes=args.bank_sizes,
-        strengths=args.strengths,
-        heading_guidance_scale=args.heading_guidance_scale, num_inference_steps=args.num_inference_steps,
+        strengths=args.strengths, heading_guidance_scale=args.heading_guidance_scale,
+        num_inference_steps=args.num_inference_steps,
         batch_size=args.batch_size, seed=args.seed, workers=args.workers, max_shift_px=args.max_shift_px,
     )  # fmt: skip
     write_json_atomic(record, Path(args.out))

@@ -35,11 +35,8 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     parser.add_argument("--bf16", action="store_true", help="autocast the step to bfloat16 (a GPU run's)")
     parser.add_argument("--compile", default=None, choices=["default", "reduce-overhead", "max-autotune"])
-    parser.add_argument(
-        "--loop_optimizer",
-        action="store_true",
-        help="torch's default for-loop AdamW instead of the fine-tune's fused one",
-    )
+    parser.add_argument("--loop_optimizer", action="store_true",
+                        help="torch's default for-loop AdamW instead of the fine-tune's fused one")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--out", default=None, help="JSON file of the counts and times")
     return parser.parse_args(argv)
@@ -56,10 +53,8 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     optimizer_step()
     synchronize(args.device)
     first = time.perf_counter() - start
-    counts = {
-        "forward_backward": count_operators(forward_backward),
-        "optimizer": count_operators(optimizer_step),
-    }
+    counts = {"forward_backward": count_operators(forward_backward),
+              "optimizer": count_operators(optimizer_step)}
     synchronize(args.device)
     start = time.perf_counter()
     for _ in range(args.steps):

@@ -2,22 +2,14 @@
 
     python benchmarks/training_throughput.py --out docs/results/data/training_throughput_cpu.json
 
-For the UNet every fine-tune and the prior train (the bundled prior's, ``sar-zero123/sim-prior-rotated``:
-the quickstart's model), at each batch size:
-
-* the FLOPs of one training step per sample (forward and backward, counted by
-  ``torch.utils.flop_counter.FlopCounterMode``: matrix products and convolutions);
-* steps/s and samples/s of a step (forward, MSE loss, backward, AdamW update) in float32, with
-  channels-last memory, with bf16 autocast, and compiled by ``torch.compile`` (inductor), the variants
-  timed in alternating rounds so that a slower or busier machine moment hits them alike; each is reported
-  as a ratio to float32 from the same rounds;
-* the achieved FLOP rate as a fraction of this device's measured GEMM rate (``torch.mm`` in float32 at the
-  model's own matrix sizes and at 2048 x 2048, the best of them);
-* where the time of a float32 step goes (``torch.profiler``: the ten most expensive operators, and the
-  share of convolutions and matrix products against everything else).
-
-The data are random latents of the model's shape: the cost of a step does not depend on the values, and
-a fine-tune caches its latents (the frozen VAE and image tower run once per chip, not per step).
+For the bundled prior's UNet (``sar-zero123/sim-prior-rotated``, the quickstart's model), at each batch size:
+the FLOPs of one training step per sample (``torch.utils.flop_counter.FlopCounterMode``); steps/s and
+samples/s of a step (forward, MSE, backward, AdamW) in float32, channels-last, bf16 autocast and
+``torch.compile``, timed in alternating rounds so that a busier machine moment hits them alike; the
+achieved FLOP rate as a fraction of this device's best ``torch.mm`` rate (at the model's matrix sizes and
+at 2048^2); and the ten most expensive operators of a float32 step (``torch.profiler``). The data are
+random latents of the model's shape: a step's cost does not depend on the values, and a fine-tune caches
+its latents.
 """
 
 from __future__ import annotations
@@ -106,7 +98,6 @@ def time_variants(pipeline: str, batch: int, variants: list[str], rounds: int, s
             unet = unet.to(memory_format=torch.channels_last)
         optimizer = torch.optim.AdamW(unet.parameters(), lr=1e-5)
         step = _step_function(unet, optimizer, variant)
-        compile_seconds = 0.0
         if variant == "torch.compile":
             step = torch.compile(step)
         sample, timesteps, hidden, labels = _inputs(unet, batch)
@@ -116,9 +107,8 @@ def time_variants(pipeline: str, batch: int, variants: list[str], rounds: int, s
         begin = time.perf_counter()
         for _ in range(2):  # warm-up (and compilation)
             step(sample, timesteps, hidden, labels, target)
-        compile_seconds = time.perf_counter() - begin
         runs[variant] = {"step": step, "args": (sample, timesteps, hidden, labels, target), "times": [],
-                         "warmup_s": compile_seconds}  # fmt: skip
+                         "warmup_s": time.perf_counter() - begin}  # fmt: skip
     for _ in range(rounds):
         for run in runs.values():
             begin = time.perf_counter()
@@ -150,10 +140,8 @@ def profile_step(pipeline: str, batch: int) -> dict:
     dense = ("conv", "mm", "addmm", "bmm", "matmul", "linear", "baddbmm", "mkldnn")
     dense_time = sum(e.self_cpu_time_total for e in events if any(d in e.key for d in dense))
     top = sorted(events, key=lambda e: -e.self_cpu_time_total)[:10]
-    return {
-        "dense_share": dense_time / total if total else float("nan"),
-        "top": [{"op": e.key, "share": e.self_cpu_time_total / total, "calls": e.count} for e in top],
-    }
+    return {"dense_share": dense_time / total if total else float("nan"),
+            "top": [{"op": e.key, "share": e.self_cpu_time_total / total, "calls": e.count} for e in top]}
 
 
 def main(argv: list[str] | None = None) -> dict:

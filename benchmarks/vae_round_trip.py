@@ -32,9 +32,7 @@ from sar_zero123.model.vae import load_pretrained_vae, reconstruct_in_batches
 
 def main() -> None:
     parser = script_parser(__doc__)
-    parser.add_argument(
-        "--vae", nargs="+", required=True, help="AutoencoderKL, pipeline folders or bundled names"
-    )
+    parser.add_argument("--vae", nargs="+", required=True, help="AutoencoderKL/pipeline folders, names")
     parser.add_argument("--names", nargs="+", required=True, help="one row name per --vae")
     parser.add_argument("--evaluators", required=True)
     parser.add_argument("--data", required=True)
@@ -77,11 +75,8 @@ def main() -> None:
                                          generator)  # fmt: skip
                 rows[f"{name} + speckle"][group] = score(speckled, p, evaluators, **scoring)
         print(f"{name}: {json.dumps(rows[name])}", flush=True)
-    write_json_atomic(
-        {"settings": vars(args), "rows": rows, "round_trip_seconds": seconds,
-         "pairs": {group: len(p) for group, p in pairs.items()}},
-        out,
-    )  # fmt: skip
+    write_json_atomic({"settings": vars(args), "rows": rows, "round_trip_seconds": seconds,
+                       "pairs": {group: len(p) for group, p in pairs.items()}}, out)  # fmt: skip
     print(vae_round_trip_markdown(rows))
 
 

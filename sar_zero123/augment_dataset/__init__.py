@@ -535,14 +535,15 @@ def _source_path(record: ChipRecord, data_root: Path) -> str:
         return str(record.path)
 
 
-def main(argv: Sequence[str] | None = None) -> Path:
-    """Command-line entry point (``python -m sar_zero123.augment_dataset``).
+def main(argv: Sequence[str] | None = None, prog: str | None = None) -> Path:
+    """Command-line entry point (``python -m sar_zero123.augment_dataset``, ``sar-zero123-augment``).
 
     Args:
         argv: Arguments without the program name; ``None`` reads ``sys.argv``.
+        prog: The command's name in usage lines (``None``: the script's file name).
 
     Returns:
         The output folder.
     """
-    return augment_dataset(parse_config(AugmentConfig, argv))
+    return augment_dataset(parse_config(AugmentConfig, argv, prog=prog))
 

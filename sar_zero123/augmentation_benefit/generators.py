@@ -15,11 +15,15 @@ from typing import Any
 from sar_zero123.augment_dataset import AugmentConfig, augment_dataset
 from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data import ChipRecord, load_index
+from sar_zero123.model.sampler import SamplerSettings
 from sar_zero123.stages import FinetuneConfig, run_finetune
 
 from .config import TEST_DEPRESSION_DEG, TRAIN_DEPRESSION_DEG, AugmentationBenefitConfig
 
-__all__ = ["build_generator", "fill_offsets_deg", "timed", "variant_suffix", "write_generator_data"]
+__all__ = [
+    "build_generator", "fill_offsets_deg", "generator_sampler", "timed", "variant_suffix",
+    "write_generator_data",
+]  # fmt: skip
 
 
 def fill_offsets_deg(gap_deg: float, views_per_chip: int) -> list[float]:
@@ -69,6 +73,17 @@ def timed(function: Any, *args: Any, **kwargs: Any) -> tuple[Any, dict[str, floa
     return result, {"wall_s": time.perf_counter() - wall, "cpu_s": time.process_time() - cpu}
 
 
+def generator_sampler(
+    config: AugmentationBenefitConfig, strength: float = 1.0, heading_guidance: float = 0.0,
+    depression_guidance: float = 0.0,
+) -> SamplerSettings:
+    """How a generator samples its views: the protocol's DDIM steps and guidance, then a variant's start
+    (`strength`) and contrast guidance weights."""
+    plain = SamplerSettings(num_inference_steps=config.num_inference_steps, scheduler="ddim",
+                            guidance_scale=config.guidance_scale, strength=strength)  # fmt: skip
+    return plain.with_contrasts(heading=heading_guidance, depression=depression_guidance)
+
+
 def build_generator(
     config: AugmentationBenefitConfig,
     trained_on: Sequence[ChipRecord],
@@ -112,11 +127,9 @@ def build_generator(
     if key not in times:
         _, times[key] = timed(augment_dataset, AugmentConfig(
             data=str(source_data), pipeline=str(folder / "finetune" / "pipeline"), out=str(views), d_az=d_az,
-            d_el=[d_el], depressions_deg=[TRAIN_DEPRESSION_DEG],
-            num_inference_steps=config.num_inference_steps, guidance_scale=config.guidance_scale,
-            scheduler="ddim", batch_size=16, seed=0,
-            speckle_looks=speckle_looks, strength=strength, heading_guidance_scale=heading_guidance,
-            depression_guidance_scale=depression_guidance,
+            d_el=[d_el], depressions_deg=[TRAIN_DEPRESSION_DEG], batch_size=16, seed=0,
+            speckle_looks=speckle_looks, **asdict(generator_sampler(config, strength, heading_guidance,
+                                                                    depression_guidance)),
         ))  # fmt: skip
         times[key]["views"] = len(load_index(views))
         write_json_atomic(times, timing_file)

@@ -22,12 +22,16 @@ from sar_zero123.evaluation.protocol import (
     PairSet,
 )
 
+#: What separates a value from its standard error in every table cell (the plus-minus sign).
+PLUS_MINUS = "\u00b1"
+
 __all__ = [
     "DEPRESSION_METRICS",
     "GAP_LABELS",
     "METRICS",
     "METRIC_LABELS",
     "MIN_SPEED_PAIRS",
+    "PLUS_MINUS",
     "plot_lambda_sweep",
     "plot_speed_error",
     "plot_views",
@@ -89,12 +93,12 @@ def _format(metric: str, value: float | None) -> str:
 
 
 def _cell(metric: str, values: dict[str, float]) -> str:
-    """A metric with its standard error when known (``43.8 ± 8.8``)."""
+    """A metric with its standard error when known (``<value> PLUS_MINUS <se>``)."""
     text = _format(metric, values.get(metric))
     se = values.get(f"{metric}_se")
     if text == "-" or se is None or math.isnan(se):
         return text
-    return f"{text} ± {_format(metric, se)}"
+    return f"{text} {PLUS_MINUS} {_format(metric, se)}"
 
 
 def _fraction(value: float | None) -> str:
@@ -106,9 +110,9 @@ def _fraction(value: float | None) -> str:
 def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_paper: bool) -> str:
     """Markdown Table III: one row per (method, group), the paper's rows first when `include_paper`.
 
-    Metrics carry ± their standard error; the gap columns give the fraction of the gap between the
-    input copy (unturned, keeps identity) and the VAE round trip (ceiling) that each model closes. The
-    depression columns appear when some row has them (a depression regressor, pairs with d_el != 0).
+    Metrics carry their standard error (after :data:`PLUS_MINUS`); the gap columns give the fraction of the
+    gap between the input copy (unturned, keeps identity) and the VAE round trip (ceiling) that each model
+    closes. The depression columns appear when some row has them (a depression regressor, d_el != 0 pairs).
     """
     present = {key for groups in results.values() for values in groups.values() for key in values}
     metrics = [*METRICS, *(m for m in (*TEMPLATE_METRICS, *DEPRESSION_METRICS) if m in present)]
@@ -134,7 +138,8 @@ def table3_markdown(results: dict[str, dict[str, dict[str, float]]], include_pap
         f"`{REAL_TARGET}` scores the true target view, `{VAE_ROUND_TRIP}` the target encoded and decoded by "
         'the pipeline\'s VAE. Gap closed = (floor - model) / (floor - VAE round trip); "no gap" where '
         "the floor scores at least as well as the ceiling, or within one standard error of their difference "
-        "(accuracy: the input copy keeps the class). ± is one standard error of the mean over the n pairs."
+        f"(accuracy: the input copy keeps the class). {PLUS_MINUS} is one standard error of the mean over "
+        "the n pairs."
     )
     lines.append(
         "MS-SSIM and Kuan+SSIM are paper-comparable (`sar_zero123.evaluation.paper_metrics`, the authors' "
@@ -318,8 +323,9 @@ def speed_markdown(rows: list[dict[str, Any]], device: str, memory: str = "resid
         lines.append(
             f"| {row['pipeline']} | {row['scheduler']} | {row['steps']} | {row['images_per_s']:.2f} | "
             f"{'-' if evaluations is None else f'{evaluations:.1f}'} | "
-            f"{row['azimuth_error_deg']:.1f} ± {row.get('azimuth_error_deg_se', float('nan')):.1f} | "
-            f"{row['accuracy']:.1f} ± {row.get('accuracy_se', float('nan')):.1f} | "
+            f"{row['azimuth_error_deg']:.1f} {PLUS_MINUS} "
+            f"{row.get('azimuth_error_deg_se', float('nan')):.1f} | "
+            f"{row['accuracy']:.1f} {PLUS_MINUS} {row.get('accuracy_se', float('nan')):.1f} | "
             f"{'-' if memory_mib is None else f'{memory_mib:.0f}'} | {'yes' if row.get('pareto') else ''} | "
             f"{row['n']} |"
         )
@@ -334,7 +340,7 @@ VAE_ROUND_TRIP_COLUMNS = (
 
 
 def vae_round_trip_markdown(rows: dict[str, dict[str, dict[str, float]]]) -> str:
-    """One line per VAE (row) and pair group: each metric, ``± se`` where a standard error is recorded, and n.
+    """One line per VAE (row) and pair group: each metric, its standard error where one is recorded, and n.
 
     Args:
         rows: Row name -> group (``seen``, ``unseen``) -> :func:`~sar_zero123.evaluation.protocol.score`'s
@@ -348,6 +354,6 @@ def vae_round_trip_markdown(rows: dict[str, dict[str, dict[str, float]]]) -> str
             cells = []
             for key, _, digits in columns:
                 se = values.get(f"{key}_se")
-                cells.append(f"{values[key]:.{digits}f}" + (f" ± {se:.{digits}f}" if se else ""))
+                cells.append(f"{values[key]:.{digits}f}" + (f" {PLUS_MINUS} {se:.{digits}f}" if se else ""))
             lines.append(f"| {name} | {group} | " + " | ".join(cells) + f" | {int(values['n'])} |")
     return "\n".join(lines) + "\n"

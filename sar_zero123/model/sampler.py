@@ -10,7 +10,7 @@ from __future__ import annotations
 import math
 import numbers
 from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 from typing import Any, Literal
 
 from diffusers import (
@@ -114,6 +114,14 @@ class SamplerSettings:
         """Every sampler value a call uses given the pipeline's recorded ``config.sampler``, and the
         scheduler."""
         return {"scheduler": self.scheduler, **resolve_sampler(self.sampler_arguments(), recorded)}
+
+    def with_contrasts(
+        self, heading: float | None = None, depression: float | None = None
+    ) -> SamplerSettings:
+        """A copy with the heading and the depression contrast guidance weights set (``None``: kept), for a
+        caller that names the contrasts rather than the fields (the augmentation-benefit variant arms)."""
+        values = {"heading_guidance_scale": heading, "depression_guidance_scale": depression}
+        return replace(self, **{name: value for name, value in values.items() if value is not None})
 
     def apply_scheduler(self, pipe: Any) -> None:
         """Swaps ``pipe``'s scheduler for ``scheduler`` (:func:`set_scheduler`); ``None`` keeps it."""

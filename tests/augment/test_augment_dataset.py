@@ -464,3 +464,13 @@ def test_chips_no_simulator_vehicle_fits_are_skipped_and_counted(data_dir, tmp_p
     assert "skipped 1 of 2 chips: no simulator vehicle fits them" in caplog.text
     with pytest.raises(ValueError, match="data: no selected chip holds a vehicle the simulator proxy fits"):
         main([*common, "--pipeline", str(proxy_pipeline(1.0)), "--out", str(tmp_path / "none")])
+
+
+def test_module_help_names_the_module_command():
+    import subprocess
+    import sys
+
+    command = [sys.executable, "-m", "sar_zero123.augment_dataset", "--help"]
+    done = subprocess.run(command, capture_output=True, text=True, check=False)
+    assert done.returncode == 0
+    assert done.stdout.startswith("usage: python -m sar_zero123.augment_dataset [-h]")

@@ -120,3 +120,14 @@ def test_scheduler_names_round_trip_and_keep_the_noise_schedule() -> None:
     assert scheduler_name(type(holder.scheduler).__name__, dict(holder.scheduler.config)) == "unipc"
     with pytest.raises(ValueError, match="scheduler must be one of"):
         set_scheduler(holder, "pndm")
+
+
+def test_with_contrasts_sets_the_named_contrast_weights_and_keeps_the_rest() -> None:
+    plain = SamplerSettings(num_inference_steps=10, scheduler="ddim", guidance_scale=3.0, strength=0.5)
+    guided = plain.with_contrasts(heading=2.0)
+    assert dataclasses.asdict(guided) == {**dataclasses.asdict(plain), "heading_guidance_scale": 2.0}
+    both = guided.with_contrasts(depression=1.5)
+    assert (both.heading_guidance_scale, both.depression_guidance_scale) == (2.0, 1.5)
+    assert plain.heading_guidance_scale is None  # a copy: the settings it came from are unchanged
+    with pytest.raises(ValueError, match=r"heading_guidance_scale must lie in \[0, 100\], got -1"):
+        plain.with_contrasts(heading=-1.0)
