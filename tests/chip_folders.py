@@ -6,6 +6,7 @@ import math
 from pathlib import Path
 
 import numpy as np
+from PIL import Image
 
 from sar_zero123.data import ChipRecord, write_index
 
@@ -54,5 +55,21 @@ def write_chip_folder(
                         width=size,
                     )
                 )
+    write_index(records, root)
+    return root
+
+
+def write_png_chip_folder(root: Path, size: tuple[int, int] = (20, 24)) -> Path:
+    """Two classes x two depressions x three 8-bit PNG chips of ``size`` (larger than a 16 px crop), with an
+    index.csv."""
+    rng = np.random.default_rng(0)
+    root.mkdir(parents=True)
+    records = []
+    for target_class in ("A", "B"):
+        for depression in (15.0, 17.0):
+            for i in range(3):
+                path = root / f"{target_class}_{int(depression)}_{i}.png"
+                Image.fromarray(rng.integers(0, 256, size=size, dtype=np.uint8)).save(path)
+                records.append(ChipRecord(path, target_class, f"s{i % 2}", depression, 120.0 * i + 7.5))
     write_index(records, root)
     return root

@@ -4,30 +4,15 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from PIL import Image
+from chip_folders import write_png_chip_folder
 
 from sar_zero123.data.crops import write_crops
 from sar_zero123.data.datasets import load_chip
-from sar_zero123.data.index import ChipRecord, load_index, write_index
-
-
-def _chips(root, size=(20, 24)):
-    """Two classes x two depressions of 8-bit PNG chips larger than the crop, with an index.csv."""
-    rng = np.random.default_rng(0)
-    root.mkdir(parents=True)
-    records = []
-    for target_class in ("A", "B"):
-        for depression in (15.0, 17.0):
-            for i in range(3):
-                path = root / f"{target_class}_{int(depression)}_{i}.png"
-                Image.fromarray(rng.integers(0, 256, size=size, dtype=np.uint8)).save(path)
-                records.append(ChipRecord(path, target_class, f"s{i % 2}", depression, 120.0 * i + 7.5))
-    write_index(records, root)
-    return root
+from sar_zero123.data.index import load_index
 
 
 def test_crops_are_the_pixels_the_stages_read_and_keep_every_record(tmp_path):
-    source = _chips(tmp_path / "source")
+    source = write_png_chip_folder(tmp_path / "source")
     write_crops(source, tmp_path / "crops", image_size=16)
     before, after = load_index(source), load_index(tmp_path / "crops")
     assert len(after) == len(before) == 12

@@ -9,12 +9,10 @@ import json
 import tarfile
 from pathlib import Path
 
-import numpy as np
 import pytest
 import torch
-from PIL import Image
+from chip_folders import write_png_chip_folder
 
-from sar_zero123.data.index import ChipRecord, write_index
 from sar_zero123.model.build import build_sar_zero123
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.stages.budget import (
@@ -104,23 +102,9 @@ def test_an_arm_starts_from_the_init_pipeline_and_refuses_another_condition_inpu
     assert init_pipeline("none", None, "global") is None
 
 
-def _chips(root, size=(20, 24)):
-    """Two classes x two depressions of 8-bit PNG chips, with an index.csv."""
-    rng = np.random.default_rng(0)
-    root.mkdir(parents=True)
-    records = []
-    for target_class in ("A", "B"):
-        for depression in (15.0, 17.0):
-            for i in range(3):
-                path = root / f"{target_class}_{int(depression)}_{i}.png"
-                Image.fromarray(rng.integers(0, 256, size=size, dtype=np.uint8)).save(path)
-                records.append(ChipRecord(path, target_class, f"s{i % 2}", depression, 120.0 * i + 7.5))
-    write_index(records, root)
-    return root
-
 
 def test_the_call_runs_the_quickstart_stages_with_its_budget_in_its_order(tmp_path):
-    data = _chips(tmp_path / "chips")
+    data = write_png_chip_folder(tmp_path / "chips")
     settings = ["finetune.train_batch_size=8", "finetune.lr_scheduler=constant"]
     config = QuickstartConfig(output_dir=str(tmp_path / "work"), recipe="smoke", data=str(data),
                               protocol="ood-B", lambdas=[0.0, 4.0], set=settings)  # fmt: skip
