@@ -1,23 +1,10 @@
-"""The evaluate stage: novel-view pipelines scored with the paper's protocol, in a run folder.
+"""The evaluate stage: novel-view pipelines scored with the paper's protocol
+(:mod:`sar_zero123.evaluation.protocol`), in a run folder.
 
-``python train/evaluate.py`` parses its flags into :class:`EvaluateConfig` and calls :func:`run_evaluate`.
-The protocol (pairs, generation, scores, floor and ceilings, gap closed) is
-:mod:`sar_zero123.evaluation.protocol`; the tables and figures :mod:`sar_zero123.evaluation.tables`.
-
-Depression requests (``input_depression_deg=17, target_depressions_deg=[10, 30, 45],
-same_depression=False``) pair 17 deg inputs with targets at 10, 30 and 45 deg (d_el = -7, +13, +28), drawn
-from every chip of the seen (and unseen) classes at every depression. With a depression regressor among the
-evaluators Table III gains ``Dep. err.`` and ``Dep. gap closed``; for pairs with d_el != 0 it gains
-``Closer to target dep.``.
-
-Outputs in ``output_dir``: ``table3.{json,md}`` (the paper's rows beside ours, with the floor and the
-ceilings), ``table4.{json,md}`` (azimuth error under every evaluator backbone), ``views.png`` (input | each
-pipeline | target, Fig. 7/8), ``lambda_sweep.png`` (with ``lambdas``, Fig. 12), and with
-``steps``/``schedulers``: ``speed_error.{json,md,png}`` (azimuth error and accuracy against images/s).
-
-The folder follows :mod:`sar_zero123.runs.folder`: one holding other work (another stage, other
-settings, other data, pipelines or evaluators changed since) is refused before any work; ``resume`` redoes an
-unfinished run with the same settings and returns a finished one as it is; ``restart`` moves an old run aside.
+Outputs: ``table3.{json,md}`` (the paper's rows beside ours, with the floor and the ceilings),
+``table4.{json,md}`` (azimuth error under every evaluator backbone), ``views.png`` (Fig. 7/8),
+``lambda_sweep.png`` (with ``lambdas``, Fig. 12), and with ``steps``/``schedulers``
+``speed_error.{json,md,png}``.
 """
 
 from __future__ import annotations
@@ -89,17 +76,13 @@ __all__ = [
     "run_evaluate",
 ]
 
-#: Most pairs in one evaluation (the paper scores 1,000; 100,000 is hours of generation on one GPU).
 MAX_EVALUATION_PAIRS = 100_000
-#: Most step counts in the speed/error sweep (each is a full generation per pipeline and scheduler).
-MAX_SWEEP_STEP_COUNTS = 16
-#: Most pairs per group shown in ``views.png``.
-MAX_FIGURE_PAIRS = 32
-#: Most pairs per pipeline call.
+MAX_SWEEP_STEP_COUNTS = 16  # each a full generation per pipeline and scheduler
+MAX_FIGURE_PAIRS = 32  # per group in views.png
 MAX_EVAL_BATCH_SIZE = 1_024
 #: Blurred-target reference rows at most, and their largest blur (pixels).
 MAX_BLURRED_TARGETS, MAX_BLUR_SIGMA_PX = 8, 64.0
-#: Settings that never change what the folder holds: the device, where data is cached, how to reuse it.
+#: Settings that never change what the folder holds.
 EVALUATE_MAY_DIFFER = ("resume", "restart", "device", "output_dir")
 
 
@@ -107,19 +90,15 @@ EVALUATE_MAY_DIFFER = ("resume", "restart", "device", "output_dir")
 class EvaluateConfig(SamplerSettings):
     """Score novel-view pipelines with the paper's protocol and write Tables III/IV and figures.
 
-    The sampler's fields (:class:`~sar_zero123.model.sampler.SamplerSettings`) are inherited: each left unset
-    takes the value each pipeline records as measured best for it (its model card), else the library's
-    (50 steps, guidance 3, from noise: zero-1-to-3's and the paper's); ``table3.json`` lists each row's.
+    The sampler's fields are inherited (:class:`~sar_zero123.model.sampler.SamplerSettings`); each left unset
+    takes the value each pipeline records, else the library's.
     """
 
-    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
         "same_depression", "input_depression_deg", "outside_trained_range",
         "vae", "speckle_looks", "blurred_target_sigmas_px", "speed_n", "image_size",
         "crop_size", "eval_batch_size", "num_figure_pairs", "device",
     )  # fmt: skip
-    #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
-    #: folder holding the old default reads as before; another value is refused with the reason.
     REMOVED_FIELDS = {
         "work_dir": RemovedField(None, "the simulated dataset is cached in output_dir"),
         "chip_crop_size": RemovedField(None, "chips larger than image_size are centre-cropped to it (their "
@@ -138,18 +117,14 @@ class EvaluateConfig(SamplerSettings):
     same_depression: bool = True  # pair views at one depression; False also pairs across (d_el != 0)
     input_depression_deg: float | None = None  # only pairs whose input is at this depression (None: any)
     target_depressions_deg: list[float] | None = None  # only pairs with targets at one of these (None: any)
-    # evaluate requests outside a pipeline's trained d_el / depression range (its refusal lifted, listed in
-    # table3.json): to measure how a model that never saw such requests answers them
+    # evaluate requests outside a pipeline's trained d_el / depression range (listed in table3.json)
     outside_trained_range: bool = False
     n: int = 1000  # generated samples in total (split evenly between seen and unseen; at most 100,000)
-    # an AutoencoderKL folder decoding for every pipeline instead of its own VAE; it must encode as theirs
-    # (a decoder fine-tuned alone: train/train_vae.py --pretrained PIPELINE --no-train_encoder)
+    # an AutoencoderKL folder decoding for every pipeline instead of its own VAE (it must encode as theirs)
     vae: str | None = None
-    # also score every generated view and VAE round trip with speckle re-added (readd_speckle with this many
-    # looks; MSTAR chips are single look: 1), as rows "<row> + speckle"; None: not
+    # also score every view with speckle of this many looks re-added, as rows "<row> + speckle"; None: not
     speckle_looks: int | None = None
-    # also score the real targets blurred by a Gaussian of each of these standard deviations (pixels), as
-    # rows "real target blurred <s> px": how much detail the evaluators need to read class and pose
+    # also score the real targets blurred by a Gaussian of each of these sigmas (pixels), as reference rows
     blurred_target_sigmas_px: list[float] = field(default_factory=list)
     steps: list[int] = field(default_factory=list)  # speed/error sweep: step counts (e.g. 10 20 50)
     schedulers: list[str] = field(default_factory=list)  # speed/error sweep: ddim, dpmsolver++, euler, unipc
@@ -165,7 +140,7 @@ class EvaluateConfig(SamplerSettings):
     restart: bool = False  # move an existing run in output_dir aside (never deleted) and start over
 
     def __post_init__(self) -> None:
-        super().__post_init__()  # the sampler's fields, validated where they are declared
+        super().__post_init__()
         if self.device is not None:
             check_device(self.device)
         self._check_pipelines()
@@ -221,9 +196,8 @@ class EvaluateConfig(SamplerSettings):
             value = getattr(self, name)
             if value is not None and value > bound:
                 raise ValueError(f"{name} must be <= {bound:,}, got {value:,}")
-        if self.crop_size > PAPER_SCORING_SIZE:  # the paper-comparable crop lies within that side
+        if self.crop_size > PAPER_SCORING_SIZE:
             raise ValueError(f"crop_size must be <= {PAPER_SCORING_SIZE}, got {self.crop_size}")
-        # the Frechet distance (SFD) needs two views per group: checked here, before any model runs
         if self.protocol.startswith("ood-") and self.n < 4:
             raise ValueError(
                 f"n must be >= 4 for an ood protocol (at least 2 seen and 2 unseen pairs), got {self.n}"
@@ -282,8 +256,7 @@ class EvaluateConfig(SamplerSettings):
 
 
 def evaluation_pairs(config: EvaluateConfig, evaluators: Evaluators, image_size: int) -> dict[str, PairSet]:
-    """The pairs of ``config``'s protocol (:func:`~sar_zero123.evaluation.protocol.build_pair_sets`): the
-    same pairs and seeds for every pipeline, and for every evaluation with the same settings."""
+    """The pairs of ``config``'s protocol: the same pairs and seeds for every pipeline and every run."""
     return build_pair_sets(
         evaluators,
         data=config.data,
@@ -318,18 +291,14 @@ def load_evaluation(folder: str | Path) -> dict[str, Any]:
 
 
 def run_evaluate(config: EvaluateConfig) -> Path:
-    """Score every pipeline of ``config`` on the protocol's pairs, with the floor and the ceilings, and write
-    Tables III/IV, the figures and the speed/error sweep into ``config.output_dir``; returns the folder.
-
-    With ``resume`` a finished run with the same settings is returned at once, without loading anything.
+    """Score every pipeline on the protocol's pairs and write the tables and figures; returns the folder.
 
     Raises:
-        ValueError: From :func:`~sar_zero123.runs.folder.open_run_folder`, for a folder holding
-            other work (nothing on disk is changed then); if the data cannot supply ``n`` distinct pairs.
+        ValueError: For a folder holding other work; if the data cannot supply ``n`` distinct pairs.
         FileNotFoundError: If the data, the evaluators or a pipeline folder does not exist.
     """
     timer = StageTimer()
-    # 1. the run-folder rule, before any work: the inputs are the data, the evaluators and the pipelines
+    # 1. the run-folder rule, before any work
     inputs = {
         "data": data_identity(config.data),
         "evaluators": model_identity(config.evaluators, "evaluators"),
@@ -349,8 +318,7 @@ def run_evaluate(config: EvaluateConfig) -> Path:
         return folder.path
     device = torch.device(config.device or ("cuda" if torch.cuda.is_available() else "cpu"))
 
-    # 2. models and pairs (the same pairs and seeds for every pipeline); a new run whose setup fails leaves
-    # no record, so that the corrected command is not refused for differing from a run that never began
+    # 2. models and pairs
     with withdrawn_if_setup_fails(folder):
         evaluators = load_evaluators(config.evaluators, device=device)
         pipes, lifted = _load_pipelines(config, evaluators, device)
@@ -375,8 +343,7 @@ def run_evaluate(config: EvaluateConfig) -> Path:
         plot_lambda_sweep(sweep, dict(zip(pipes, config.lambdas)), folder.path / "lambda_sweep.png")
         outputs.append("lambda_sweep.png")
 
-    # 4. speed against error (the first speed_n seen pairs); the run is finished only once its last output
-    # is written
+    # 4. speed against error (the first speed_n seen pairs)
     if config.steps:
         seen = pair_sets["seen"].subset(config.speed_n or len(pair_sets["seen"]))
         rows = speed_error_rows(
@@ -467,8 +434,7 @@ def blurred_target_row(sigma_px: float) -> str:
 
 
 def blurred(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
-    """Views ``(N, 1, H, W)`` in [0, 1] blurred by :func:`~sar_zero123.evaluation.scoring.blur_views` (the
-    blur of :func:`~sar_zero123.evaluation.scoring.closer_to_target_depression`), in float64."""
+    """Views ``(N, 1, H, W)`` in [0, 1] blurred by :func:`~sar_zero123.evaluation.scoring.blur_views`."""
     array = blur_views(images.double().cpu().numpy(), sigma_px)
     return torch.from_numpy(array).to(images.dtype).clamp(0.0, 1.0)
 
@@ -483,8 +449,7 @@ def _score_speckled(
     evaluators: Evaluators,
     device: torch.device,
 ) -> None:
-    """With ``speckle_looks``, the row ``"<row> + speckle"``: ``views`` with speckle re-added, scored. Every
-    row draws the same speckle (one seed), so rows differ by their views alone."""
+    """With ``speckle_looks``, the row ``"<row> + speckle"``; every row draws the same speckle (one seed)."""
     if config.speckle_looks is None:
         return
     scaling = evaluators.classifier.scaling
@@ -492,8 +457,6 @@ def _score_speckled(
     speckled = readd_speckle(views.cpu(), scaling.max_db - scaling.min_db, config.speckle_looks, generator)
     scores = score(speckled, pairs, evaluators, **_scoring(config, device))
     results.setdefault(f"{row} + speckle", {})[group] = scores
-
-
 
 
 def _score_pipelines(
@@ -545,7 +508,6 @@ def _write_tables(
         "protocol": config.protocol,
         "device": str(device),
         **config.sampler_arguments(),
-        # each row's sampler as it ran: the config's values, the rest each pipeline's recorded ones
         "samplers": {name: config.resolved(getattr(p.config, "sampler", None)) for name, p in pipes.items()},
         "results": results,
         "paper": PAPER_TABLE3,

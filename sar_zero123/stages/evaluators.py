@@ -1,21 +1,10 @@
 """The evaluators stage: the models that score generated views (Table III, Table IV), in a run folder.
 
-``python train/train_evaluators.py`` parses its flags into :class:`TrainEvaluatorsConfig` and calls
-:func:`run_evaluators`, which writes into ``output_dir``: ``classifier/`` (ResNet-18 from scratch, linear
-head), ``regressor/`` (ResNet-18 + MLP 256-256, sigmoid, azimuth / 2pi), optionally ``probes/<name>/``
-(frozen SimCLR encoder + MLP, Table IV) and ``depression_regressor/`` (ResNet-18 + MLP, sigmoid,
-depression / 90 deg; with ``depression_data``), and ``metrics.json`` with test accuracy, circular test
-azimuth error and test depression error.
-
-Evaluators always train on the train split of the ``extended`` protocol, i.e. real chips of ALL classes at
-17 deg: for MSTAR-OOD the classifier must still know the held-out class (T72), as in the paper. They exist
-only to score generated images. The depression regressor needs chips at many depressions, which the
-protocols' splits (17 and 15 deg) lack: it trains on every chip of ``depression_data`` except a seeded,
-held-out :data:`DEPRESSION_TEST_FRACTION` of them, which give its test error.
-
-The folder follows :mod:`sar_zero123.runs.folder`: a folder holding other work is refused before any
-training, an unfinished run with the same settings is continued only with ``resume`` (each model already
-saved is kept, an interrupted one resumes from its epoch checkpoint), and ``restart`` moves an old run aside.
+Writes ``classifier/`` (ResNet-18 from scratch), ``regressor/`` (ResNet-18 + MLP 256-256, azimuth / 2pi),
+optionally ``probes/<name>/`` (frozen SimCLR encoder + MLP, Table IV) and ``depression_regressor/``
+(depression / 90 deg), and ``metrics.json``. They train on the ``extended`` train split, every class: for
+MSTAR-OOD the classifier must still know the held-out class, as in the paper. The depression regressor
+trains on ``depression_data`` (the protocols' splits hold two depressions) but a held-out share.
 """
 
 from __future__ import annotations
@@ -44,40 +33,29 @@ from sar_zero123.evaluation.evaluators import (
     DepressionRegressor,
     SARClassifier,
 )
-from sar_zero123.evaluation.scoring import score_on_split
 from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
-from sar_zero123.training.evaluators import EvaluatorTraining, train_model, training_loss
+from sar_zero123.training.evaluators import EvaluatorTraining, train_model
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
     "EVALUATORS_MAY_DIFFER",
     "MAX_EPOCHS",
-    "EvaluatorTraining",
     "TrainEvaluatorsConfig",
-    "hold_out",
     "model_identity",
     "run_evaluators",
-    "score_on_split",
-    "subsample",
-    "train_model",
-    "training_loss",
 ]
 
 Evaluator = SARClassifier | AzimuthRegressor | DepressionRegressor
 
-#: Most passes over the train split per model (a larger value is a typo, not a plan).
 MAX_EPOCHS = 10_000
-#: Most chips per step.
 MAX_BATCH_SIZE = 4096
 #: The share of ``depression_data``'s chips held out (seeded) for the depression regressor's test error.
 DEPRESSION_TEST_FRACTION = 0.2
-#: AdamW's weight decay for every model of the stage.
 ADAMW_WEIGHT_DECAY = 5e-4
-#: Each model saves a resumable checkpoint every this many epochs.
-CHECKPOINTING_EPOCHS = 5
-#: Settings that never change what the folder holds: where data is cached, how it is loaded, how to resume.
+CHECKPOINTING_EPOCHS = 5  # each model's resumable checkpoint interval
+#: Settings that never change what the folder holds.
 EVALUATORS_MAY_DIFFER = (
     "resume", "restart", "resume_from_checkpoint", "num_workers", "output_dir",
 )  # fmt: skip
@@ -87,13 +65,10 @@ EVALUATORS_MAY_DIFFER = (
 class TrainEvaluatorsConfig:
     """Train the scratch ResNet-18 classifier, azimuth regressor (SimCLR probes, depression regressor)."""
 
-    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
         "cifar_stem", "depths", "hidden_sizes", "mlp_hidden_sizes", "probe_epochs", "max_train_chips",
         "resume_from_checkpoint", "num_workers", "mixed_precision",
     )  # fmt: skip
-    #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
-    #: folder holding the old default reads as before; another value is refused with the reason.
     REMOVED_FIELDS = {
         "depression_test_fraction": RemovedField(
             0.2, f"{DEPRESSION_TEST_FRACTION} of depression_data's chips are held out for its test error"
@@ -166,11 +141,8 @@ class TrainEvaluatorsConfig:
 
 
 def model_identity(path: str | os.PathLike, name: str) -> dict[str, Any]:
-    """What a model folder held when a stage read it: its files' names, sizes and modification times.
-
-    Recorded in a run folder beside :func:`~sar_zero123.runs.folder.data_identity`, so that a model
-    retrained in place (same folder name, new weights) is not taken for the one a finished run scored.
-    Nothing is read but the file listing.
+    """What a model folder held when a stage read it (files' names, sizes and modification times), so that a
+    model retrained in place is not taken for the one a finished run scored.
 
     Raises:
         FileNotFoundError: If ``path`` does not exist (naming the setting ``name``).
@@ -187,15 +159,12 @@ def model_identity(path: str | os.PathLike, name: str) -> dict[str, Any]:
     return {"path": str(root.resolve()), "files": len(files), "files_sha256": digest.hexdigest()}
 
 
-# ------------------------------------------------------------------------------------------ the stage
 def run_evaluators(config: TrainEvaluatorsConfig) -> Path:
     """Train the classifier, the azimuth regressor, the SimCLR probes and the depression regressor into
-    ``config.output_dir``; returns the folder (a finished one, with ``resume``, at once).
+    ``config.output_dir``; returns the folder.
 
     Raises:
-        ValueError: From :func:`~sar_zero123.runs.folder.open_run_folder`, for a folder holding
-            other work (nothing on disk is changed then); if ``depression_data`` holds chips at fewer than
-            two depressions (before any work).
+        ValueError: For a folder holding other work; if ``depression_data`` holds fewer than two depressions.
         FileNotFoundError: If ``data``, ``depression_data`` or a SimCLR encoder folder does not exist.
     """
     timer = StageTimer()
@@ -217,8 +186,7 @@ def run_evaluators(config: TrainEvaluatorsConfig) -> Path:
         return folder.path
     output_dir = folder.path
 
-    # 2. data (the extended protocol's train split holds every class, the OOD class included) and the SimCLR
-    # encoders; a new run whose setup fails leaves no record, so the corrected command is not refused
+    # 2. data (the extended train split: every class, the OOD class included) and the SimCLR encoders
     with withdrawn_if_setup_fails(folder):
         splits = prepare_splits(config.data, "extended", output_dir, seed=config.seed)
         train_records = subsample(splits["train"], config.max_train_chips, config.seed)
@@ -363,10 +331,7 @@ def _train_depression_regressor(
     stage_dir: Path,
     seed: int,
 ) -> dict[str, float]:
-    """Trains the depression regressor on ``records`` (all chips but a held-out share).
-
-    The chips are normalised with the other evaluators' ``scaling``: the regressor scores the same views.
-    """
+    """The depression regressor, trained on ``records`` but a held-out share (the evaluators' scaling)."""
     depressions = sorted({round(r.depression_deg, 3) for r in records})
     train_records, test_records = hold_out(records, DEPRESSION_TEST_FRACTION, seed)
     train_records = subsample(train_records, config.max_train_chips, seed)

@@ -1,25 +1,9 @@
-"""The fine-tune stage: a zero-1-to-3 style SAR novel-view model trained with Projected Feature Matching.
+"""The fine-tune stage: a zero-1-to-3 style SAR novel-view model trained with
+``L_simple + pfm_weight * L_PFM`` (Eq. 21); ``pfm_weight = 0`` is plain zero-1-to-3 fine-tuning.
 
-``train/finetune_pfm.py`` parses its flags into :class:`FinetuneConfig` and calls :func:`run_finetune`;
-other stages (the prior, the quickstart) build the config directly.
-
-Training follows zero-1-to-3 (the step: :func:`sar_zero123.training.step.compute_losses`; the run's parts:
-:mod:`sar_zero123.training.finetuning`): AdamW with the pose projection at 10x the learning rate, CFG dropout
-of 5% image embedding, 5% both, 5% condition latent, and the loss ``L_simple + pfm_weight * L_PFM`` (Eq. 21),
-whose settings travel as one :class:`~sar_zero123.training.losses.LossSettings`; ``pfm_weight = 0`` is plain
-zero-1-to-3 fine-tuning.
-
-The CLIP image tower is frozen, as in zero-1-to-3, which is right on top of a pretrained tower. The
-named ``size`` models start from a *random* tower, whose embedding would stay a random projection of
-the input chip; ``train_image_encoder`` trains it with the UNet (float32 master weights, same learning
-rate, in the EMA, the checkpoints and the exported pipeline).
-
-The run folder follows :mod:`sar_zero123.runs.folder`: a folder holding a run is continued only with
-``resume_from_checkpoint`` (a constant-LR run may then be extended with more ``max_train_steps``),
-started over only with ``restart`` (the old run moved aside), and refused otherwise, before any work.
-Resuming reaches bitwise the weights of an uninterrupted run with no RNG state beyond the step: the
-data order and the view pairs are functions of (seed, epoch) (``run_state.resumable_batches``), every
-random draw of a micro-batch one of (seed, micro-batch index, process index) (``micro_batch_generator``).
+The CLIP image tower is frozen as in zero-1-to-3; a built ``size`` starts from a random tower, which
+``train_image_encoder`` trains with the UNet. Resuming reaches bitwise the weights of an uninterrupted run:
+data order, pairs and every draw are functions of the seed and the step (``runs.checkpoints``).
 """
 
 from __future__ import annotations
@@ -100,8 +84,7 @@ CONSTANT_LR_SCHEDULERS = ("constant", "constant_with_warmup")
 
 
 def check_lr_scheduler(name: str) -> None:
-    """Refuse a learning-rate schedule that diffusers' ``get_scheduler`` does not know (at the config, not
-    after the model has loaded); ``piecewise_constant`` is left out, having no field for its step rules."""
+    """Refuse a schedule diffusers' ``get_scheduler`` does not know (``piecewise_constant`` has no field)."""
     from diffusers.optimization import SchedulerType
 
     names = [item.value for item in SchedulerType if item is not SchedulerType.PIECEWISE_CONSTANT]
@@ -113,11 +96,9 @@ def check_lr_scheduler(name: str) -> None:
 class FinetuneConfig(LossSettings):
     """Fine-tune a SAR zero-1-to-3 model with Projected Feature Matching.
 
-    The loss fields (``pfm_weight``, the CFG dropout, the timestep density, ...) are
-    :class:`~sar_zero123.training.losses.LossSettings`'s, inherited: declared, defaulted and validated there.
+    The loss fields are :class:`~sar_zero123.training.losses.LossSettings`'s, inherited.
     """
 
-    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
         "estimate_input_azimuth", "input_code_dim", "rehearsal_max_chips",
         "input_depression", "pose_lr_multiplier", "lr_scheduler", "lr_warmup_steps",
@@ -133,8 +114,7 @@ class FinetuneConfig(LossSettings):
     # built when pretrained is None
     size: Literal["tiny", "micro", "compact", "small", "medium", "zero123"] = "small"
     image_size: int | None = None  # chip side in pixels; None uses the model's own
-    # built sizes: an AzimuthEstimator reads the input's azimuth (and a code), turned by d_az it enters the
-    # UNet's timestep embedding (sar_zero123.model.orientation)
+    # built sizes: an AzimuthEstimator's reading of the input's azimuth, turned by d_az, enters the UNet
     estimate_input_azimuth: bool = False
     input_code_dim: int = 16  # with estimate_input_azimuth: size of the estimator's code of the input view
     vae: str | None = None  # AutoencoderKL folder (train/train_vae.py) replacing the pipeline's VAE
@@ -143,29 +123,22 @@ class FinetuneConfig(LossSettings):
     protocol: str = "extended"  # split protocol: extended, soc or ood-<CLASS> (e.g. ood-T72)
     scaling: Literal["unit", "mstar_raw", "fit"] = "unit"  # dB bounds: unit magnitude, raw MSTAR, or fitted
     same_depression: bool = True  # pair only chips at one depression; False also across (d_el != 0)
-    # a prior corpus (write_prior_corpus, e.g. the prior's corpus/) whose pairs across depressions are mixed
-    # into training (rehearsal), so that the fine-tune keeps what the prior knows; None: the task's pairs only
+    # a prior corpus whose pairs are mixed into training, so the fine-tune keeps the prior's; None: task only
     rehearsal_data: str | None = None
     rehearsal_fraction: float = 0.25  # with rehearsal_data: share of the training pairs drawn from it
-    # each rehearsal chip is encoded once before training, about 60 chips/s on 2 CPU cores
     rehearsal_max_chips: int | None = 4096  # rehearsal: whole vehicles up to this many chips; None: all
     # built sizes: the pose's 4th entry is the input chip's absolute depression (Stable Zero123's convention)
     input_depression: bool = False
-    # built sizes: the UNet also takes the input latent turned by d_az in the image plane ("rotated_input",
-    # sar_zero123.model.spatial_pose.unet_condition_latents); None: zero-1-to-3's condition latent alone
+    # built sizes: the UNet also takes the input latent turned by d_az ("rotated_input"); None: zero-1-to-3's
     spatial_pose: str | None = None
     proxies: str | None = None  # spatial_pose 'proxy': folder of data's proxies (None: data itself)
-    # every self-attention of the UNet also attends to the input view's own features (a reference pass;
-    # sar_zero123.model.reference_attention); a pipeline without it gains it with zero gates (a warm start)
+    # every self-attention also attends to the input's features (a reference pass; added with zero gates)
     reference_attention: bool = False
-    # every cross-attention of the UNet also attends to the input's latent, one token per place
-    # (sar_zero123.model.input_tokens); a pipeline without them gains them with zero gates (a warm start)
+    # every cross-attention also attends to the input's latent, a token per place (added with zero gates)
     input_tokens: bool = False
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
-    # "normalized" and "stages" are departures from the paper
     pfm_features: PfmFeatures = "pooled"  # PFM's features: Eq. 20's pooled, unit length or all stages (LPIPS)
-    # train only rank-r LoRA factors beside the frozen UNet weights (sar_zero123.training.lora), merged into a
-    # plain UNet at export; None: every UNet weight trains (zero-1-to-3). The pose projection trains whole
+    # train only rank-r LoRA factors of the UNet, merged at export; None: every UNet weight trains
     lora_rank: int | None = None
     lora_alpha: float | None = None  # with lora_rank: the update's scale is lora_alpha / lora_rank; None: 1
     lora_modules: LoraModules = "all"  # with lora_rank: "all" Linear and Conv2d layers, or "attention" only
@@ -176,8 +149,7 @@ class FinetuneConfig(LossSettings):
     train_batch_size: int = 4  # pairs per process per micro-batch
     gradient_accumulation_steps: int = 1  # micro-batches per optimisation step
     max_train_steps: int = 1000  # optimisation steps
-    # stop this session after this many minutes of training steps: checkpoint, export the pipeline at the step
-    # reached, leave the run unfinished (the same command with --resume continues)
+    # stop after this many minutes of steps: checkpoint, export, leave the run for --resume
     max_train_minutes: float | None = None
     mixed_precision: Literal["no", "fp16", "bf16"] = "no"  # frozen VAE/encoders are cast to this dtype
     gradient_checkpointing: bool = False  # checkpoint UNet activations
@@ -186,8 +158,7 @@ class FinetuneConfig(LossSettings):
     ema_decay: float = 0.9999  # EMA decay
     prediction_type: Literal["epsilon", "v_prediction"] | None = None  # built sizes only (None: epsilon)
     checkpointing_steps: int = 500  # save a resumable checkpoint every this many steps
-    # gather, log and check for finite values the step's losses every this many steps and at every checkpoint
-    # (each a host-device synchronisation: on a GPU it stalls the queue of kernels)
+    # log and check finite the losses every this many steps (each a host-device synchronisation)
     logging_steps: int = 10
     checkpoints_total_limit: int | None = None  # keep at most this many checkpoints
     resume_from_checkpoint: str | None = None  # 'latest' or a checkpoint folder
@@ -201,12 +172,9 @@ class FinetuneConfig(LossSettings):
     save_pipeline: bool = True  # save_pretrained the final SARZero123Pipeline into output_dir/pipeline
     evaluators: str | None = None  # train_evaluators.py folder: validation also checks pose following
     cache_latents: bool = True  # encode every training chip once with the frozen VAE (and frozen CLIP tower)
-    # keep that cache on the training device and draw batches there, in the main process (num_workers
-    # unused): for a GPU whose memory holds the corpus, where worker start-up each epoch bounds the steps/s
+    # keep that cache on the training device and draw batches there (num_workers unused)
     cache_on_device: bool = False
 
-    #: Options measured to do nothing, removed (a config or run folder holding their old default reads as
-    #: before; another value is refused with the reason).
     REMOVED_FIELDS = {
         "pfm_start_step": RemovedField(0, "PFM switched on after a stretch of L_simple alone kept the seen "
                                        "class less often than PFM from the first step; PFM applies in "
@@ -226,8 +194,6 @@ class FinetuneConfig(LossSettings):
         "max_grad_norm": RemovedField(1.0, f"gradients are clipped to a norm of {MAX_GRAD_NORM}"),
     }  # fmt: skip
 
-    #: Research options kept beside the measured ones: settings without a flag (--set), listed at the end of
-    #: --help with what was measured.
     EXPERIMENTAL_FIELDS = {
         "pfm_features": "unit-length features gave the lowest seen axis error, all stages (LPIPS-style) the "
                         "lowest unseen SFD, neither beat lambda = 0 on seen accuracy",
@@ -240,7 +206,7 @@ class FinetuneConfig(LossSettings):
     }  # fmt: skip
 
     def __post_init__(self) -> None:
-        super().__post_init__()  # the loss fields, validated where they are declared
+        super().__post_init__()
         if self.pfm_weight > 0 and self.encoder is None:
             raise ValueError("encoder: a frozen SAREncoder folder is required when pfm_weight > 0")
         if self.cache_on_device and not self.cache_latents:
@@ -272,7 +238,6 @@ class FinetuneConfig(LossSettings):
                 "input (pose_projection.config.spatial_pose)"
             )
         if self.spatial_pose == "proxy":
-            # the proxies are cached per chip beside the corpus (sar_zero123.data.corpus_proxies)
             for name, ok, expected in (
                 ("cache_latents", self.cache_latents, "True (the proxies are cached with the chips)"),
                 ("validation_steps", self.validation_steps == 0, "0 (validation pairs carry no proxies)"),
@@ -302,8 +267,7 @@ class FinetuneConfig(LossSettings):
             raise ValueError("restart: starts over; it cannot be combined with resume_from_checkpoint")
 
     def loss_settings(self) -> LossSettings:
-        """The settings of the training step's loss (validated by :class:`LossSettings`)."""
-        # built from LossSettings' own field names: a setting added there is read here without a copy
+        """The settings of the training step's loss."""
         names = [item.name for item in dataclasses.fields(LossSettings)]
         return LossSettings(**{name: getattr(self, name) for name in names})
 
@@ -313,8 +277,7 @@ class FinetuneConfig(LossSettings):
 
 
 def _lineage(config: FinetuneConfig) -> dict[str, str] | None:
-    """What the run's weights started from: the ``pretrained`` pipeline or checkpoint, by name and by the
-    SHA-256 of its weight files (``None`` for a model built from scratch)."""
+    """The ``pretrained`` start's name and weight digests (``None`` for a model built from scratch)."""
     if config.pretrained is None:
         return None
     start = resolve_pretrained(config.pretrained)
@@ -324,14 +287,9 @@ def _lineage(config: FinetuneConfig) -> dict[str, str] | None:
 def run_finetune(config: FinetuneConfig) -> Path:
     """Fine-tune (or continue, or extend) a run in ``config.output_dir``; returns the run folder.
 
-    The pipeline lands in ``output_dir/pipeline`` (``save_pipeline``); ``run.json`` records the run and is
-    marked finished once the last output exists. A finished run continued with the same settings does no
-    work.
-
     Raises:
-        ValueError: Before any work, for a folder holding another run, a finished or unfinished run of these
-            settings without ``resume_from_checkpoint`` or ``restart``, a checkpoint written with other
-            settings, or a data split smaller than one optimisation step.
+        ValueError: Before any work, for a folder the run-folder rule refuses, a checkpoint written with
+            other settings, or a data split smaller than one optimisation step.
         FileNotFoundError: For a missing model, encoder, VAE, data or rehearsal corpus folder.
         FloatingPointError: If training diverges (nothing non-finite is saved or exported).
     """
@@ -346,7 +304,6 @@ def run_finetune(config: FinetuneConfig) -> Path:
         )
     # 1. the checkpoint to continue from, compared with this run (reads only), then the run-folder rule
     resume_path = resolve_resume_checkpoint(output_dir, config.resume_from_checkpoint)
-    # the checkpoint's module list must match this run's
     check_resume_state(resume_path, "train_image_encoder", config.train_image_encoder, default=False)
     extendable = config.extendable_fields()
     check_resume_config(resume_path, config, may_differ=("restart", *extendable))
@@ -376,8 +333,7 @@ def run_finetune(config: FinetuneConfig) -> Path:
     if accelerator.is_main_process and global_step >= config.max_train_steps:  # else stopped by the clock
         finish_run(folder, outputs, seconds=timer.seconds, results={"final_step": global_step})
     accelerator.wait_for_everyone()
-    # no reference to a data-parallel wrapper (or a graph through one) may outlive the process group
-    trainer = None
+    trainer = None  # no data-parallel wrapper may outlive the process group
     end_run(accelerator)
     return output_dir
 
@@ -425,8 +381,7 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneIn
     )
     record_trained_pose_ranges(pipe.pose_projection, train_dataset)
     pipe.pose_projection.register_to_config(trained_vae=vae_signature(pipe.vae.config))  # refused if swapped
-    # the estimator trains with the UNet: the start's record no longer describes it (the export records anew)
-    pipe.pose_projection.register_to_config(trained_estimator=None)
+    pipe.pose_projection.register_to_config(trained_estimator=None)  # the estimator trains: recorded anew
     rehearsal = None
     if config.rehearsal_data is not None and config.rehearsal_fraction > 0:
         rehearsal, _, _ = train_validation_pairs(
@@ -562,12 +517,7 @@ def _export(
     trainer: FinetuneTrainer,
     global_step: int,
 ) -> list[str]:
-    """Replica check, then the complete pipeline (EMA weights in the UNet and a trained tower).
-
-    Returns:
-        The outputs written, relative to the run folder (for
-        :func:`~sar_zero123.runs.folder.finish_run`).
-    """
+    """Replica check, then the pipeline with EMA weights; returns the outputs relative to the run folder."""
     output_dir = Path(config.output_dir)
     accelerator.wait_for_everyone()
     unwrapped = [accelerator.unwrap_model(module) for module in trainer.trained_modules]

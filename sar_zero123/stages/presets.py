@@ -1,13 +1,9 @@
 """The quickstart's recipes, and the run's own config.
 
-A recipe (``sar_zero123/recipes/<name>.yaml``, or a file of one's own) is a few sections named after the
-quickstart's stages (:data:`RECIPE_SECTIONS`), each holding fields of that stage's own config class, merged
-onto that class's defaults: a small file of differences, as nanoGPT's and k-diffusion's config files are.
-The ``shared`` section (:class:`SharedSettings`) holds what spans the stages (chip size, prior, precision).
-A sampling stage names its sampler's fields in a nested ``sampler`` section. :class:`QuickstartConfig` is
-what the user chooses (a recipe, ``--set SECTION.FIELD=VALUE`` items, the data, the protocol, the PFM
-weights, the seed); :func:`~sar_zero123.stages.quickstart.plan_stages` builds, and so checks, every stage's
-config from them before anything runs.
+A recipe (``sar_zero123/recipes/<name>.yaml`` or a file) is a few sections named after the quickstart's
+stages (:data:`RECIPE_SECTIONS`), each holding fields of that stage's config class, merged onto its
+defaults; ``shared`` (:class:`SharedSettings`) spans the stages, a nested ``sampler`` section holds a
+sampling stage's sampler fields.
 """
 
 from __future__ import annotations
@@ -42,8 +38,7 @@ __all__ = [
 
 @dataclass(frozen=True)
 class SharedSettings:
-    """What spans the quickstart's stages (a recipe's ``shared`` section): each stage that has the field gets
-    this value, and which optional stages run.
+    """What spans the quickstart's stages (a recipe's ``shared`` section), and which optional stages run.
 
     Raises:
         ValueError: Naming the field, for a value out of range or a stage that needs a prior without one.
@@ -51,21 +46,17 @@ class SharedSettings:
     """
 
     image_size: int = 64  # chip side in pixels of every stage
-    # a pretrained pipeline (a bundled name or a folder) every fine-tune starts from, as the paper fine-tunes
-    # zero-1-to-3: its VAE is kept and neither the vae nor the base section is used; None trains a VAE and a
-    # base model from scratch
+    # the pipeline (bundled name or folder) every fine-tune starts from, its VAE kept (the vae and base
+    # sections unused); None trains a VAE and a base model from scratch
     prior: str | None = SIM_PRIOR_ROTATED
     mixed_precision: Literal["no", "fp16", "bf16"] = "no"  # accelerate mixed precision, every training stage
-    # every training stage saves a resumable checkpoint every this many steps and keeps the last two
+    # every training stage's resumable checkpoint interval (the last two kept)
     checkpointing_steps: int = 1000
-    # target depressions of a second Table III from 17 deg inputs on a simulated set at 17 deg and these
-    # depressions, with a depression regressor among the evaluators; () skips it
+    # target depressions of a second Table III from simulated 17 deg inputs; () skips it
     depression_targets_deg: tuple[float, ...] = (10.0, 30.0, 45.0)
-    # with a prior: fine-tune its VAE's decoder alone (the vae_decoder section) before the fine-tunes, which
-    # then decode with it
+    # with a prior: fine-tune its VAE's decoder (the vae_decoder section) first; the fine-tunes decode with it
     decoder_fine_tune: bool = False
-    # with a prior: render a corpus of procedural vehicles (the corpus section) whose pairs make
-    # finetune.rehearsal_fraction of every fine-tune batch
+    # with a prior: a procedural corpus (the corpus section) makes finetune.rehearsal_fraction of each batch
     rehearsal: bool = False
 
     def __post_init__(self) -> None:
@@ -88,9 +79,7 @@ class SharedSettings:
                 )
 
 
-#: A recipe's sections: the quickstart's stages, each by the config class whose fields it holds. ``base`` (the
-#: base model a run without a prior trains) is merged onto ``finetune``'s values; ``evaluate`` configures both
-#: evaluations.
+#: A recipe's sections, each by its config class; ``base`` (no prior) is merged onto ``finetune``.
 RECIPE_SECTIONS: dict[str, type] = {
     "shared": SharedSettings,
     "simulate": SimulateConfig,
@@ -106,8 +95,7 @@ RECIPE_SECTIONS: dict[str, type] = {
 #: A sampling stage's sampler fields, named ``SECTION.sampler.FIELD`` (a nested section).
 SAMPLER_SECTION = "sampler"
 _SAMPLER_FIELDS = tuple(item.name for item in dataclasses.fields(SamplerSettings))
-#: Recipe fields that were removed, each with what replaced it: a recipe, ``--set`` item or run folder that
-#: names one is refused in one line naming its replacement.
+#: Removed recipe fields and what replaced each (named when one is refused).
 REMOVED_RECIPE_FIELDS: dict[str, str] = {
     "classes": "simulate.classes", "instances": "simulate.instances",
     "azimuth_step_deg": "simulate.azimuth_step_deg", "image_size": "shared.image_size",
@@ -142,9 +130,7 @@ REMOVED_RECIPE_FIELDS: dict[str, str] = {
     "speed_steps": "evaluate.steps", "speed_n": "evaluate.speed_n", "schedulers": "evaluate.schedulers",
     "checkpointing_steps": "shared.checkpointing_steps", "mixed_precision": "shared.mixed_precision",
 }  # fmt: skip
-#: The bundled recipes: small YAML files of per-stage values, each merged onto the recipe it ``extends``.
 RECIPE_DIR = Path(__file__).resolve().parents[1] / "recipes"
-#: A recipe file is a few kilobytes; a larger one is not a recipe.
 MAX_RECIPE_BYTES = 64 * 1024
 #: Most recipes in one chain of ``extends``.
 MAX_RECIPE_DEPTH = 8
@@ -206,7 +192,6 @@ def _section_values(where: str, section: str, values: Any) -> dict[str, Any]:
     if not isinstance(values, dict):
         raise ValueError(f"{where}: {section} must map fields to values, got {values!r}")
     typed: dict[str, Any] = {}
-    # a removed field at the default its removal keeps reads as before (drop_removed_fields refuses others)
     values = drop_removed_fields(RECIPE_SECTIONS[section], values, section)
     for name, value in values.items():
         nested = f"{SAMPLER_SECTION}.{_SAMPLER_FIELDS[0]}" in _hints(section)
@@ -223,8 +208,7 @@ def _recipe_file(recipe: str) -> Path:
 
     Raises:
         FileNotFoundError: For a name that is neither a bundled recipe nor a file.
-        ValueError: For a file that is not ``.yaml``/``.yml``/``.json``, or larger than
-            :data:`MAX_RECIPE_BYTES`.
+        ValueError: For a file of another suffix, or larger than :data:`MAX_RECIPE_BYTES`.
     """
     if recipe in recipe_names():
         return RECIPE_DIR / f"{recipe}.yaml"
@@ -245,9 +229,8 @@ def _recipe_values(recipe: str, seen: tuple[str, ...] = ()) -> dict[str, dict[st
     """Every section's values a recipe sets, merged onto the recipes it extends (a recipe's own values win).
 
     Raises:
-        ValueError: Naming the recipe, for a file that is not a mapping of sections to fields, an unknown
-            section or field, a removed one (naming its replacement), a value of another type, or a chain
-            of ``extends`` that loops or is deeper than :data:`MAX_RECIPE_DEPTH`.
+        ValueError: Naming the recipe, for a bad file, section, field or value, or a chain of ``extends``
+            that loops or is deeper than :data:`MAX_RECIPE_DEPTH`.
     """
     if recipe in seen or len(seen) >= MAX_RECIPE_DEPTH:
         raise ValueError(f"recipe: the chain of extends {' -> '.join([*seen, recipe])} loops or is too deep")
@@ -256,7 +239,7 @@ def _recipe_values(recipe: str, seen: tuple[str, ...] = ()) -> dict[str, dict[st
         text = path.read_text(encoding="utf-8")
     except UnicodeDecodeError as error:
         raise ValueError(f"recipe {recipe!r}: not valid YAML ({error})") from None
-    data = read_yaml(text, f"recipe {recipe!r}")  # data only: no tags, aliases, deep nesting or repeats
+    data = read_yaml(text, f"recipe {recipe!r}")
     if not isinstance(data, dict):
         kind = type(data).__name__
         raise ValueError(f"recipe {recipe!r}: expected a mapping of sections to fields, got {kind}")
@@ -285,14 +268,13 @@ def _recipe_values(recipe: str, seen: tuple[str, ...] = ()) -> dict[str, dict[st
 
 @dataclass(frozen=True)
 class Recipe:
-    """A resolved recipe: each section's values (the differences from its config class's defaults) and the
-    shared settings they give."""
+    """A resolved recipe: each section's values (differences from its config class's defaults)."""
 
     name: str  # the recipe's name or file
     sections: Mapping[str, Mapping[str, Any]]  # section -> field (``sampler.FIELD``) -> value
 
     def __post_init__(self) -> None:
-        SharedSettings(**self.sections["shared"])  # the shared settings are checked with the recipe
+        SharedSettings(**self.sections["shared"])  # checked with the recipe
 
     @property
     def shared(self) -> SharedSettings:
@@ -311,12 +293,11 @@ class Recipe:
         return item.default if item.default is not dataclasses.MISSING else item.default_factory()  # type: ignore[misc]
 
     def stage_values(self, section: str, without: Sequence[str] = (), **plumbing: Any) -> dict[str, Any]:
-        """The keyword arguments of ``section``'s config: its recipe values (``base``: ``finetune``'s, then
-        its own) but those ``without`` names (left at their defaults), and ``plumbing``, what the quickstart
-        itself sets (paths, seed, the shared settings).
+        """The keyword arguments of ``section``'s config: its recipe values but ``without``, and
+        ``plumbing`` (what the quickstart itself sets).
 
         Raises:
-            ValueError: For a recipe value the quickstart sets itself (naming the field and what sets it).
+            ValueError: For a recipe value the quickstart sets itself.
         """
         own = self.sections[section]
         if section == "base":
@@ -354,9 +335,7 @@ class Recipe:
 
 
 def load_recipe(recipe: str) -> Recipe:
-    """The :class:`Recipe` of a bundled recipe (by name) or a recipe file (by path), its shared settings
-    checked (a stage's own fields are checked when :func:`~sar_zero123.stages.quickstart.plan_stages` builds
-    its config).
+    """The :class:`Recipe` of a bundled recipe (by name) or a recipe file (by path).
 
     Raises:
         FileNotFoundError: For an unknown name, a missing file or a missing prior.
@@ -371,13 +350,11 @@ def load_recipe(recipe: str) -> Recipe:
 
 
 def apply_overrides(recipe: Recipe, overrides: Sequence[str]) -> Recipe:
-    """``recipe`` with the ``SECTION.FIELD=VALUE`` items of ``overrides`` set (``SECTION.sampler.FIELD`` for
-    a sampler field; ``VALUE`` as ``--set`` reads it: a number, a name, ``true``/``false``, ``none``, a list
-    as ``[8, 16]`` or ``8,16``); the shared settings are checked again.
+    """``recipe`` with the ``SECTION.FIELD=VALUE`` items of ``overrides`` set (values as ``--set`` reads).
 
     Raises:
-        ValueError: Naming the item, for a missing ``=`` or section, an unknown or removed field (naming its
-            replacement), or a value of another type than the field's.
+        ValueError: Naming the item, for a missing ``=`` or section, an unknown or removed field, or a value
+            of another type than the field's.
     """
     sections = {name: dict(values) for name, values in recipe.sections.items()}
     for item in overrides:
@@ -405,7 +382,6 @@ def apply_overrides(recipe: Recipe, overrides: Sequence[str]) -> Recipe:
         raise ValueError(f"set: {error}") from None
 
 
-#: The bundled recipes, loaded.
 RECIPES: dict[str, Recipe] = {name: load_recipe(name) for name in recipe_names()}
 DEFAULT_RECIPE = RECIPES["default"]
 
@@ -415,27 +391,21 @@ class QuickstartConfig:
     """Simulate (or read `data`), pretrain SimCLR, fine-tune each lambda, train evaluators, evaluate."""
 
     output_dir: str = "runs/quickstart"  # run folder (every stage writes a subfolder; report.md at the top)
-    # a bundled recipe (sar_zero123/recipes: default, the bundled prior fine-tuned on the simulator; scratch;
-    # long; mstar, real data from scratch; mstar-prior, real data from the prior, the paper's regime; proxy;
-    # rehearsal; gentle; smoke, seconds) or a recipe file of your own (YAML, extends: default)
+    # a bundled recipe (sar_zero123/recipes: default, scratch, long, mstar, mstar-prior, proxy, rehearsal,
+    # gentle, smoke) or a recipe file of your own (YAML, extends: default)
     recipe: str = "default"
     data: str | None = None  # chip folder (index.csv or raw MSTAR files); None simulates the recipe's classes
     protocol: str | None = None  # "extended" or "ood-<CLASS>"; None = ood-<last simulated class>
-    # PFM weights fine-tuned from the base model and evaluated side by side (a lambda sweep: 0 1 4 16);
-    # a re-run in the same folder with more values trains only the new ones
+    # PFM weights fine-tuned and evaluated side by side; a re-run with more values trains only the new ones
     lambdas: list[float] = field(default_factory=lambda: [0.0, 4.0])
     seed: int = 0  # seed of every stage
     # recipe fields replaced for this run, SECTION.FIELD=VALUE (finetune.max_train_steps=3000,
-    # finetune.lr_scheduler=cosine, vae.block_out_channels=16,32,64, evaluate.sampler.strength=1); the
-    # run's recipe.json records the result
+    # evaluate.sampler.strength=1); recipe.json records the result
     set: list[str] = field(default_factory=list)
-    # continue this folder: an interrupted run resumes each stage, a finished one is kept, and more --lambdas
-    # train only the new fine-tunes (then every lambda is evaluated again on the same pairs)
+    # continue this folder: each stage resumes or is kept; more --lambdas train only the new fine-tunes
     resume: bool = False
     restart: bool = False  # move an existing run in output_dir aside (never deleted) and start over
 
-    #: Removed fields: a flag, a ``--config`` file or a run folder's ``config.json`` that sets one is refused
-    #: in one line naming the field that replaced it.
     REMOVED_FIELDS = {
         "preset": RemovedField(None, "it is now recipe (--recipe NAME)"),
         "override": RemovedField(None, "it is now set (--set SECTION.FIELD=VALUE)"),
@@ -454,7 +424,6 @@ class QuickstartConfig:
         if self.data is None and (self.protocol is None or self.protocol.startswith("ood-")):
             _check_simulated_validation_split(recipe.value("simulate", "azimuth_step_deg"), self.seed)
         if self.protocol is not None and check_protocol(self.protocol) == "soc":
-            # evaluate.py pairs seen/unseen views by `extended` or `ood-*`: fail here, not after training
             raise ValueError("protocol: the quickstart evaluates 'extended' or 'ood-<CLASS>', got 'soc'")
 
     def resolved_recipe(self) -> Recipe:
@@ -463,8 +432,7 @@ class QuickstartConfig:
 
 
 def _check_simulated_validation_split(azimuth_step_deg: float, seed: int) -> None:
-    """Refuse a seed whose ``ood-*`` validation intervals hold none of the simulated azimuths (``k * step``):
-    the split would be empty and the run would fail after simulation and SimCLR."""
+    """Refuse a seed whose ``ood-*`` validation intervals hold none of the simulated azimuths."""
     if not azimuth_step_deg > 0:  # the simulator's own check names it
         return
     intervals = ood_validation_intervals(seed)
@@ -486,12 +454,7 @@ def _check_simulated_validation_split(azimuth_step_deg: float, seed: int) -> Non
 
 
 def refuse_old_record(record: Mapping[str, Any] | None, where: str) -> None:
-    """Refuse a quickstart run folder written with the removed recipe fields (its record's ``preset.*``
-    values), in one line naming the first field and its replacement.
-
-    Raises:
-        ValueError: For such a record.
-    """
+    """Refuse a quickstart run folder whose record holds the removed ``preset.*`` fields, naming the first."""
     old = sorted(key for key in (record or {}).get("config", {}) if key.startswith("preset."))
     if old:
         message = removed_recipe_field(old[0]) or f"{old[0]} was removed"

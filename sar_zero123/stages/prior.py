@@ -1,24 +1,13 @@
 """The prior stage: the multi-view SAR prior pretrained on procedural simulated vehicles (the bundled prior).
 
-``train/pretrain_prior.py`` parses its flags into :class:`PriorConfig` and calls :func:`run_prior`, which
-runs three stages in ``output_dir``, each resumable (a re-run of the same command continues where it
-stopped):
+Three resumable stages in ``output_dir``:
 
-1. the corpus (:func:`sar_zero123.sim.corpus.write_prior_corpus`): ``num_vehicles`` procedural vehicles,
-   each at ``views_per_vehicle`` random azimuths and depressions in :data:`CORPUS_DEPRESSION_RANGE_DEG`;
-   the named simulator classes are never in it (they are the prior's unseen test vehicles);
-2. a VAE sized for the chip (:func:`~sar_zero123.stages.vae.run_vae`) on the corpus, in ``vae/`` (skipped when
-   ``vae`` names an existing one, such as the bundled prior's);
-3. the UNet with its pose path (:func:`~sar_zero123.stages.finetune.run_finetune`, lambda = 0), in
-   ``base/``: pairs of two views of one vehicle across depressions, the pose carrying the input's
-   absolute depression (Stable Zero123's fourth slot) and the SAR-sized estimated-azimuth path,
-   v prediction with Min-SNR weighting, latents cached once.
-
-The pipeline lands in ``output_dir/base/pipeline``; it records the d_el and depression ranges it was
-trained on, which it then enforces. The top folder follows the run-folder rule
-(:mod:`sar_zero123.runs.folder`): a re-run with the same settings continues it, other settings are
-refused naming each, ``restart`` moves it aside. A constant learning rate makes ``base_steps`` extendable: a
-re-run with more steps resumes the UNet from its last checkpoint and exports it again.
+1. the corpus (:func:`sar_zero123.sim.corpus.write_prior_corpus`): procedural vehicles at random azimuths
+   and depressions; the named simulator classes are never in it (they are the prior's unseen vehicles);
+2. a VAE on the corpus, in ``vae/`` (skipped when ``vae`` or ``init`` gives one);
+3. the UNet with its pose path (lambda = 0), in ``base/``: pairs across depressions, the input's absolute
+   depression in the pose (Stable Zero123's fourth slot), the estimated-azimuth path, v prediction with
+   Min-SNR weighting. Its pipeline, ``base/pipeline``, is the prior.
 """
 
 from __future__ import annotations
@@ -63,7 +52,7 @@ __all__ = [
     "run_prior",
 ]
 
-#: The corpus's uniform depression draw (deg), and the share of its views put at MSTAR's 15/17 deg instead.
+#: The corpus's uniform depression draw (deg), and the share of its views at MSTAR's 15/17 deg instead.
 CORPUS_DEPRESSION_RANGE_DEG = (10.0, 60.0)
 CORPUS_MSTAR_FRACTION = 0.25
 #: "proxy": the simulator bank fitted to each corpus vehicle, and the best-fitting ones kept per vehicle.
@@ -77,14 +66,11 @@ VAE_NORM_GROUPS = 8
 class PriorConfig:
     """Corpus, VAE and UNet of the multi-view prior (defaults: the bundled prior's recipe)."""
 
-    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
         "num_validation_vehicles", "corpus_workers", "proxy_oracle_prob", "vae_widths",
         "vae_steps", "vae_batch_size", "lr_scheduler", "lr_warmup_steps", "input_depression",
         "prediction_type", "snr_gamma", "checkpointing_steps", "mixed_precision",
     )  # fmt: skip
-    #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
-    #: folder holding the old default reads as before; another value is refused with the reason.
     REMOVED_FIELDS = {
         "depression_range_deg": RemovedField([10.0, 60.0], "the corpus's depressions are drawn in "
                                              f"{CORPUS_DEPRESSION_RANGE_DEG} deg"),
@@ -104,15 +90,12 @@ class PriorConfig:
     image_size: int = 64  # chip side in pixels
     corpus_workers: int = 2  # processes rendering the corpus
     model_size: str = "micro"  # build_sar_zero123 size of the UNet
-    # the UNet also takes the input latent turned by d_az ("rotated_input"; FinetuneConfig.spatial_pose), and
-    # with "proxy" also each chip's simulator proxy at both poses (a "rotated_input" init is widened)
+    # the UNet also takes the input latent turned by d_az ("rotated_input"), or also the proxies ("proxy")
     spatial_pose: str | None = None
     proxy_oracle_prob: float = 0.0  # "proxy": share of pairs given the vehicle itself as proxy (LossSettings)
     reference_attention: bool = False  # the UNet's self-attentions also attend to the input's own features
     input_tokens: bool = False  # the UNet's cross-attentions also attend to the input's latent, by place
     vae: str | None = None  # an AutoencoderKL folder to use (e.g. the bundled prior's vae/); None trains one
-    # with init, model_size, input_depression and prediction_type are that pipeline's own; spatial_pose is its
-    # own, or "proxy" (widening a "rotated_input" init)
     init: str | None = None  # a prior (name or folder) to continue with its own VAE (warm start)
     vae_widths: list[int] = field(default_factory=lambda: [16, 32, 64])  # VAE block widths (16x16 latents)
     vae_steps: int = 3000  # VAE optimisation steps
@@ -156,7 +139,7 @@ class PriorConfig:
             raise ValueError(
                 f"model_size must be one of {sorted(SAR_ZERO123_SIZES)}, got {self.model_size!r}"
             )
-        LossSettings(proxy_oracle_prob=self.proxy_oracle_prob)  # the field's owner checks it
+        LossSettings(proxy_oracle_prob=self.proxy_oracle_prob)
         if self.init is not None:
             defaults = {item.name: item.default for item in dataclasses.fields(PriorConfig)}
             kept = ("model_size", "prediction_type", "input_depression")  # image_size sizes the corpus
@@ -187,7 +170,7 @@ class PriorConfig:
                 f"corpus: {self.corpus} is not a prior corpus (no {CORPUS_OPTIONS_FILE}, which "
                 "write_prior_corpus writes); leave --corpus out to write one into output_dir/corpus"
             )
-        # the UNet needs the VAE's downsampling factor: a mismatch would be found only after the VAE stage
+        # the UNet needs the VAE's downsampling factor: refused before the VAE stage
         needed = downsampling_factor(SAR_ZERO123_SIZES[self.model_size]["vae"]["block_out_channels"])
         widths = self.vae_widths
         if self.init is not None:  # the pipeline's UNet and VAE already agree
@@ -202,7 +185,6 @@ class PriorConfig:
                 f"({needed.bit_length()} width levels), but {source} {list(widths)} downsamples by "
                 f"{downsampling_factor(widths)}"
             )
-        # pairs of one epoch are at most the training vehicles' chips: a larger batch never fits
         most_pairs = (self.num_vehicles - self.num_validation_vehicles) * self.views_per_vehicle
         if self.train_batch_size > most_pairs:
             raise ValueError(
@@ -210,7 +192,7 @@ class PriorConfig:
                 "corpus ((num_vehicles - num_validation_vehicles) x views_per_vehicle), hence its pairs per "
                 "epoch"
             )
-        # the two training stages' configs validate their own fields: refuse here, before the corpus
+        # the two training stages' configs validate their own fields, before the corpus
         out = Path(self.output_dir)
         try:
             prior_vae_config(self, out / "corpus")
@@ -313,15 +295,13 @@ def prior_base_config(config: PriorConfig, vae: Path, corpus: Path | None = None
 
 
 def run_prior(config: PriorConfig) -> Path:
-    """Run (or continue, or extend) the three stages in ``config.output_dir``; returns the prior's pipeline
-    folder (``output_dir/base/pipeline``).
+    """Run (or continue, or extend) the three stages; returns ``output_dir/base/pipeline``.
 
-    Under ``accelerate launch`` every process runs this function: the main one writes the corpus and the
-    records, the training stages share the work through their own ``Accelerator``.
+    Under ``accelerate launch`` the main process writes the corpus and the records; the training stages share
+    the work.
 
     Raises:
-        ValueError: Before any work, for a folder holding another run or this run with other settings
-            (each difference named).
+        ValueError: Before any work, for a folder holding another run or this run with other settings.
     """
     timer = StageTimer()
     state = launch_state()
@@ -346,7 +326,6 @@ def run_prior(config: PriorConfig) -> Path:
     corpus = Path(config.corpus) if config.corpus is not None else out / "corpus"
     with state.main_process_first():  # the others then find its index and skip the stage
         _stage("corpus", (corpus / "index.csv").is_file(), timings, lambda: _write_corpus(config, corpus))
-    # each corpus vehicle's simulator proxies, for a proxy-conditioned UNet (written last, atomically)
     if config.spatial_pose == "proxy":
         with state.main_process_first():
             proxies = prior_proxies_folder(config, corpus)
@@ -373,12 +352,8 @@ def run_prior(config: PriorConfig) -> Path:
 
 
 def check_corpus_pairs(config: PriorConfig, corpus: Path, num_processes: int = 1) -> int:
-    """The UNet stage's training pairs of ``corpus`` (its ``ood-PROCVAL`` training split: the training
-    vehicles' chips outside the validation azimuths), checked against one global batch before the VAE
-    stage; returns their number.
-
-    ``__post_init__`` bounds the batch by every training chip; the validation azimuths (12 intervals of 3
-    deg, about a tenth of the chips) are known only once the corpus's poses are.
+    """The number of the UNet stage's training pairs of ``corpus``, checked against one global batch before
+    the VAE stage (the validation azimuths are known only once the corpus's poses are).
 
     Raises:
         ValueError: If the pairs cannot fill one global batch, saying how to reuse the corpus written.
@@ -413,8 +388,7 @@ def _write_corpus(config: PriorConfig, corpus: Path) -> None:
 
 
 def prior_proxies_folder(config: PriorConfig, corpus: Path) -> Path:
-    """Where the corpus's proxies are: the corpus's own (read only) where they were written with this
-    bank and candidate count, else ``output_dir/proxies`` (written there, never into a given corpus)."""
+    """The corpus's own proxies where they match this bank and candidates, else ``output_dir/proxies``."""
     own = corpus / PROXIES_RECORD
     if own.is_file():
         record = json.loads(own.read_text())

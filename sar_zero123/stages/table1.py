@@ -1,18 +1,9 @@
 """The Table I stage: one SimCLR encoder per augmentation preset, scored by four frozen-feature probes.
 
-``python train/table1.py`` parses its flags into :class:`Table1Config` and calls :func:`run_table1`. For
-every preset the stage trains (or takes, with ``encoders``) a SimCLR encoder with
-:func:`~sar_zero123.stages.simclr.run_simclr` under ``<output_dir>/<preset>/``, extracts frozen features of
-the train and test splits (no augmentation) and runs the linear classifier, MLP azimuth regressor, 1-NN
-classifier and 1-NN azimuth regressor (:mod:`sar_zero123.training.probes`). It writes ``table1.json`` and
-``table1.md`` (measured rows next to the paper's) and, when both ``simclr-full`` and ``speckle+monotonic``
-are run, ``tsne.png``: a t-SNE of the test features coloured by class and by azimuth, like the paper's
-Fig. 6.
-
-The folder follows :mod:`sar_zero123.runs.folder`: a folder holding other work is refused before
-any work, naming each difference; an unfinished table with the same settings is continued only with
-``resume`` (each preset's SimCLR run, a run folder of its own, continues from its latest checkpoint or is
-taken as finished) and a finished one is then returned at once; ``restart`` moves an old table aside.
+Each preset's encoder is trained (or given, ``encoders``) under ``<output_dir>/<preset>/``; its frozen
+features feed the linear, MLP azimuth, 1-NN and 1-NN azimuth probes (:mod:`sar_zero123.training.probes`).
+Writes ``table1.json``, ``table1.md`` and, with ``simclr-full`` and ``speckle+monotonic``, ``tsne.png``
+(Fig. 6).
 """
 
 from __future__ import annotations
@@ -53,8 +44,7 @@ __all__ = [
     "run_table1",
 ]
 
-# Table I of the paper (REFERENCE.md): (MLP accuracy %, MLP azimuth error deg, 1-NN accuracy %,
-# 1-NN azimuth error deg) after 500 epochs at 128x128 on MSTAR. Rows not listed there are left blank.
+# Table I of the paper: (MLP accuracy %, MLP azimuth error deg, 1-NN accuracy %, 1-NN azimuth error deg)
 PAPER_TABLE1 = {
     "simclr-full": (98.7, 28.5, 99.6, 12.8),
     "speckle+monotonic": (98.7, 9.8, 99.7, 3.1),
@@ -64,7 +54,7 @@ TSNE_PRESETS = ("simclr-full", "speckle+monotonic")
 #: The floor row: an untrained encoder of the same architecture, probed the same way.
 FLOOR_ROW = "random init (floor)"
 COLUMNS = ("linear_accuracy", "mlp_azimuth_error_deg", "knn_accuracy", "knn_azimuth_error_deg")
-#: Settings that never change what the folder holds: where it is, where data is cached, how it is read.
+#: Settings that never change what the folder holds.
 TABLE1_MAY_DIFFER = ("resume", "restart", "output_dir", "num_workers")
 
 
@@ -72,13 +62,10 @@ TABLE1_MAY_DIFFER = ("resume", "restart", "output_dir", "num_workers")
 class Table1Config:
     """Table I: SimCLR encoders per augmentation preset, probed on frozen MSTAR features."""
 
-    #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
         "image_size", "global_batch_size", "cifar_stem", "hidden_sizes", "embedding_size",
         "mixed_precision", "max_train_chips", "probe_epochs", "tsne", "tsne_points", "num_workers",
     )  # fmt: skip
-    #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
-    #: folder holding the old default reads as before; another value is refused with the reason.
     REMOVED_FIELDS = {
         "channels_last": RemovedField(False, "channels-last memory changed nothing measured; convolutions "
                                       "run in the default memory format"),
@@ -133,9 +120,7 @@ class Table1Config:
                 self.simclr_config(preset)
 
     def simclr_config(self, preset: str) -> PretrainSimCLRConfig:
-        """The SimCLR run of one preset, in ``<output_dir>/<preset>``; continued from its latest checkpoint
-        (or taken as finished) when the table is resumed, new otherwise, since the table's folder was empty.
-        """
+        """The SimCLR run of one preset, in ``<output_dir>/<preset>`` (continued on resume)."""
         return PretrainSimCLRConfig(
             output_dir=str(Path(self.output_dir) / preset),
             data=self.data,
@@ -230,7 +215,7 @@ def plot_tsne(features: dict[str, FeatureSet], class_names: list[str], path: Pat
 
 
 def _given_encoders(config: Table1Config) -> list[Path]:
-    """The encoder folders of ``config.encoders`` (none: every preset is pretrained), checked before any work.
+    """The encoder folders of ``config.encoders``, checked before any work.
 
     Raises:
         FileNotFoundError: If a folder holds no saved encoder.
@@ -273,12 +258,7 @@ def _probe_rows(
     for index, preset in enumerate(config.presets):
         encoder_dir, pretrain = _encoder_for(config, preset, encoders[index] if encoders else None)
         encoder = SAREncoder.from_pretrained(encoder_dir, device=device)
-        train_features = extract_features(encoder, train_set, num_workers=config.num_workers)
-        test_features = extract_features(encoder, test_set, num_workers=config.num_workers)
-        generator = torch.Generator().manual_seed(config.seed)
-        probes = run_probes(
-            train_features, test_features, len(train_set.class_names), config.probe_epochs, generator
-        )
+        probes, test_features = _probe(config, encoder, train_set, test_set)
         rows[preset] = {**probes, "encoder": str(encoder_dir), "pretrain": pretrain}
         logger.info("%s: %s", preset, {k: round(v, 2) for k, v in probes.items()})
         if preset in TSNE_PRESETS:
@@ -297,26 +277,31 @@ def _floor_row(
     architecture: SAREncoderConfig,
     device: torch.device,
 ) -> dict[str, Any]:
-    """The probes on an untrained encoder (seeded PyTorch initialisation) of ``architecture``: what the
-    probes read from the chips through random convolutional features, which SimCLR must beat."""
+    """The probes on an untrained (seeded) encoder of ``architecture``: the floor SimCLR must beat."""
     torch.manual_seed(config.seed)
     encoder = SAREncoder(architecture).to(device).eval()
-    train_features = extract_features(encoder, train_set, num_workers=config.num_workers)
-    test_features = extract_features(encoder, test_set, num_workers=config.num_workers)
-    generator = torch.Generator().manual_seed(config.seed)
-    classes = len(train_set.class_names)
-    probes = run_probes(train_features, test_features, classes, config.probe_epochs, generator)
+    probes, _ = _probe(config, encoder, train_set, test_set)
     logger.info("%s: %s", FLOOR_ROW, {k: round(v, 2) for k, v in probes.items()})
     return {**probes, "encoder": "untrained", "architecture": architecture.to_dict(), "pretrain": None}
 
 
+def _probe(
+    config: Table1Config, encoder: SAREncoder, train_set: ChipDataset, test_set: ChipDataset
+) -> tuple[dict[str, float], FeatureSet]:
+    """The four probes on ``encoder``'s frozen features, and its test features."""
+    train_features = extract_features(encoder, train_set, num_workers=config.num_workers)
+    test_features = extract_features(encoder, test_set, num_workers=config.num_workers)
+    generator = torch.Generator().manual_seed(config.seed)
+    classes = len(train_set.class_names)
+    return run_probes(train_features, test_features, classes, config.probe_epochs, generator), test_features
+
+
 def run_table1(config: Table1Config) -> Path:
-    """Build Table I in ``config.output_dir``; returns the folder (a finished one, with ``resume``, at once).
+    """Build Table I in ``config.output_dir``; returns the folder.
 
     Raises:
-        ValueError: Before any work, from :func:`~sar_zero123.runs.folder.open_run_folder`, for a
-            folder holding other work (each difference named; nothing on disk is changed), or if an
-            encoder takes another chip size than ``image_size``.
+        ValueError: Before any work, for a folder holding other work, or if an encoder takes another chip
+            size than ``image_size``.
         FileNotFoundError: If ``data`` or an encoder folder does not exist.
     """
     timer = StageTimer()

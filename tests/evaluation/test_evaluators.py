@@ -15,6 +15,7 @@ from safetensors.torch import load_file
 
 from sar_zero123.config import parse_config
 from sar_zero123.data import ChipDataset, DecibelScaling, load_index
+from sar_zero123.data.selection import hold_out
 from sar_zero123.encoder import SAREncoderConfig
 from sar_zero123.evaluation.evaluators import (
     AzimuthRegressor,
@@ -28,7 +29,7 @@ from sar_zero123.evaluation.evaluators import (
 from sar_zero123.evaluation.scoring import closer_to_target_depression
 from sar_zero123.runs.folder import read_run_record
 from sar_zero123.stages import evaluators as stage
-from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, hold_out, run_evaluators
+from sar_zero123.stages.evaluators import TrainEvaluatorsConfig, run_evaluators
 from train import train_evaluators
 
 
