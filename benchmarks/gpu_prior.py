@@ -11,7 +11,7 @@
    ``--eval_reserve_minutes``, split evenly); an arm differs in its condition input and, as
    ``<input>@<size>``, its size; each comes back as ``OUT/<arm>.tar.part*``
    (:func:`~sar_zero123.stages.budget.pack_pipeline`; restore with ``cat OUT/<arm>.tar.part* | tar x`` and
-   a copy of ``sar_zero123/pretrained/sim_prior/vae``);
+   a copy of ``sar_zero123/pretrained/sim_prior_rotated/vae``);
 3. Table III of every arm beside ``--baselines`` on the same pairs: azimuth requests 17 -> 17 deg (n =
    ``--n``) and depression requests 17 -> 10/30/45 deg (n = 1.5 ``--n``).
 
@@ -36,7 +36,7 @@ import torch
 from _common import gpu_device, script_parser
 from diffusers import UNet2DConditionModel
 
-from sar_zero123 import SIM_PRIOR, SIM_PRIOR_ROTATED, resolve_pretrained
+from sar_zero123 import SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.sim.corpus import write_prior_corpus
 from sar_zero123.stages.budget import affordable_vehicles, arm_config, arm_label, pack_pipeline, parse_arm
@@ -79,7 +79,7 @@ def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
                         help="latents on the GPU, batches drawn there (FinetuneConfig.cache_on_device)")
     parser.add_argument("--n", type=int, default=256, help="azimuth pairs (depression pairs: 1.5 n)")
     parser.add_argument("--eval_batch_size", type=int, default=128, help="pairs per sampling call")
-    parser.add_argument("--baselines", nargs="*", default=[SIM_PRIOR, SIM_PRIOR_ROTATED],
+    parser.add_argument("--baselines", nargs="*", default=[SIM_PRIOR_ROTATED],
                         help="bundled priors (names or folders) scored beside the arms; none: only the arms")
     parser.add_argument("--compile", default=None, choices=["default", "reduce-overhead", "max-autotune"],
                         help="compile the trained modules with torch.compile (inductor) in this mode, as "
@@ -172,7 +172,7 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
     per_arm -= args.setup_minutes  # each arm's set-up (chips read, latents cached) and export
     if per_arm <= 0.2:
         raise ValueError(f"budget_minutes {args.budget_minutes}: no training time is left after the corpus")
-    vae = resolve_pretrained(SIM_PRIOR) / "vae"
+    vae = resolve_pretrained(SIM_PRIOR_ROTATED) / "vae"
     if args.compile:  # accelerate's own switch: every Accelerator made from here on compiles what it prepares
         os.environ.update(ACCELERATE_DYNAMO_BACKEND="inductor", ACCELERATE_DYNAMO_MODE=args.compile)
         # Static shapes. With mixed precision, accelerate wraps every prepared module's forward in one shared

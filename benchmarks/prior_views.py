@@ -24,7 +24,7 @@ import torch
 from _common import script_parser
 from scipy.ndimage import gaussian_filter
 
-from sar_zero123 import SIM_PRIOR, SARZero123Pipeline, resolve_pretrained
+from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.sim import Target, make_target, render_chip
 
@@ -39,7 +39,7 @@ def pearson(a: np.ndarray, b: np.ndarray) -> float:
 
 def parse_args(argv: Sequence[str] | None = None) -> argparse.Namespace:
     parser = script_parser(__doc__)
-    parser.add_argument("--pipeline", default=SIM_PRIOR, help="pipeline folder or bundled name")
+    parser.add_argument("--pipeline", default=SIM_PRIOR_ROTATED, help="pipeline folder or bundled name")
     parser.add_argument("--classes", nargs="+", default=["TANK", "TRUCK", "AAGUN"], help="named vehicles")
     parser.add_argument("--input_azimuth_deg", type=float, default=30.0, help="azimuth of every input")
     parser.add_argument("--num_inference_steps", type=int, default=20, help="DDIM steps")

@@ -1,8 +1,9 @@
 """sar_zero123: noise-tolerant novel-view SAR synthesis via denoising diffusion.
 
 Heavy submodules (diffusers, transformers) are imported lazily so that `import sar_zero123`
-and the data/simulator layers stay cheap. ``SIM_PRIOR`` names the multi-view SAR prior bundled with the
-package: ``SARZero123Pipeline.from_pretrained(SIM_PRIOR)`` (see ``sar_zero123/pretrained/README.md``).
+and the data/simulator layers stay cheap. ``SIM_PRIOR_ROTATED`` names the multi-view SAR prior bundled with
+the package: ``SARZero123Pipeline.from_pretrained(SIM_PRIOR_ROTATED)`` (see
+``sar_zero123/pretrained/README.md``).
 """
 
 from __future__ import annotations
@@ -19,7 +20,6 @@ _LAZY = {
     "PoseProjection": "sar_zero123.model.conditioning",
     "embed_pose": "sar_zero123.model.conditioning",
     "SAREncoder": "sar_zero123.encoder",
-    "SIM_PRIOR": "sar_zero123.pretrained",
     "SIM_PRIOR_ROTATED": "sar_zero123.pretrained",
     "SIM_PRIOR_PROXY": "sar_zero123.pretrained",
     "resolve_pretrained": "sar_zero123.pretrained",

@@ -224,15 +224,15 @@ def test_nan_pipeline_writes_no_views_and_out_that_is_a_file_is_refused(chip_png
 
 @pytest.fixture(scope="module")
 def registry_dir(tmp_path_factory):
-    """A registry folder whose ``sim_prior`` is a tiny pipeline whose pose takes the input's depression, and
+    """A registry folder whose ``tiny`` is a tiny pipeline whose pose takes the input's depression, and
     whose ``sim_prior_rotated`` (the command's default) is a copy of it."""
     registry = tmp_path_factory.mktemp("registry")
     build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True).save_pretrained(
-        registry / "sim_prior"
+        registry / "tiny"
     )
     scaling = DecibelScaling(min_db=-60.0, max_db=6.0)  # not the unit default: shows which file is read
-    (registry / "sim_prior" / SCALING_FILE).write_text(json.dumps(scaling.to_dict()))
-    shutil.copytree(registry / "sim_prior", registry / pretrained.BUNDLED_PIPELINES[SIM_PRIOR_ROTATED])
+    (registry / "tiny" / SCALING_FILE).write_text(json.dumps(scaling.to_dict()))
+    shutil.copytree(registry / "tiny", registry / pretrained.BUNDLED_PIPELINES[SIM_PRIOR_ROTATED])
     return registry
 
 
@@ -266,7 +266,7 @@ def test_default_pipeline_is_the_bundled_prior_with_17_deg_and_a_note(registry_d
 
 
 def test_input_depression_reaches_the_pipeline(registry_dir, chip_png, tmp_path):
-    folder = registry_dir / "sim_prior"
+    folder = registry_dir / "tiny"
     argv = ["--pipeline", str(folder), "--image", str(chip_png), "--d-az", "30", "90", "--d-el", "0", "10"]
     out, at_17 = _run(tmp_path, "at_17", *argv, "--input-depression", "17")
     _, at_40 = _run(tmp_path, "at_40", *argv, "--input_depression", "40")
@@ -294,7 +294,7 @@ def test_depression_recorded_in_the_chip_file_is_used(registry_dir, tmp_path, ca
     assert resolve_input_depression(raw, None) == (30.0, "file")
     assert resolve_input_depression(raw, 20.0) == (20.0, "given")
     assert resolve_input_depression(tmp_path / "chip.npy", None) == (17.0, "default")
-    argv = ["--pipeline", str(registry_dir / "sim_prior"), "--image", str(raw), "--d-az", "30"]
+    argv = ["--pipeline", str(registry_dir / "tiny"), "--image", str(raw), "--d-az", "30"]
     _, from_file = _run(tmp_path, "from_file", *argv)
     assert f"note: input depression 30 deg, read from {str(raw)!r}" in capsys.readouterr().out
     _, given = _run(tmp_path, "given", *argv, "--input_depression", "30")

@@ -17,20 +17,20 @@ import sar_zero123.pretrained as pretrained
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.model.build import build_sar_zero123, load_sar_zero123
 from sar_zero123.model.pipeline import SARZero123Pipeline
-from sar_zero123.pretrained import SIM_PRIOR, SIM_PRIOR_ROTATED, is_bundled_name, resolve_pretrained
+from sar_zero123.pretrained import SIM_PRIOR_ROTATED, is_bundled_name, resolve_pretrained
 from sar_zero123.sim import make_target, render_chip
 
-PACKAGE_PRIOR = Path(pretrained.__file__).resolve().parent / "sim_prior"
+PACKAGE_PRIOR = Path(pretrained.__file__).resolve().parent / "sim_prior_rotated"
 
 
 @pytest.fixture(scope="module")
 def tiny_prior(tmp_path_factory):
-    """A tiny pipeline shaped like the bundled prior, saved as ``<registry dir>/sim_prior``."""
+    """A tiny pipeline shaped like the bundled prior, saved as ``<registry dir>/sim_prior_rotated``."""
     registry = tmp_path_factory.mktemp("registry")
     pipe = build_sar_zero123("tiny", input_depression=True, estimate_input_azimuth=True)
-    pipe.save_pretrained(registry / "sim_prior")
+    pipe.save_pretrained(registry / "sim_prior_rotated")
     scaling = DecibelScaling(min_db=-50.0, max_db=0.0)
-    (registry / "sim_prior" / SCALING_FILE).write_text(json.dumps(scaling.to_dict()))
+    (registry / "sim_prior_rotated" / SCALING_FILE).write_text(json.dumps(scaling.to_dict()))
     return registry, pipe
 
 
@@ -44,18 +44,18 @@ def _assert_same_weights(loaded: SARZero123Pipeline, saved: SARZero123Pipeline) 
 
 
 def test_registered_name_resolves_to_the_package_folder(tmp_path, monkeypatch):
-    assert sar_zero123.SIM_PRIOR == SIM_PRIOR == "sar-zero123/sim-prior"
-    assert pretrained.PRETRAINED_DIR / pretrained.BUNDLED_PIPELINES[SIM_PRIOR] == PACKAGE_PRIOR
+    assert sar_zero123.SIM_PRIOR_ROTATED == SIM_PRIOR_ROTATED == "sar-zero123/sim-prior-rotated"
+    assert pretrained.PRETRAINED_DIR / pretrained.BUNDLED_PIPELINES[SIM_PRIOR_ROTATED] == PACKAGE_PRIOR
     if (PACKAGE_PRIOR / "model_index.json").is_file():
-        assert resolve_pretrained(SIM_PRIOR) == PACKAGE_PRIOR
+        assert resolve_pretrained(SIM_PRIOR_ROTATED) == PACKAGE_PRIOR
     else:  # the weights are not copied in yet: the message names the package folder
         with pytest.raises(FileNotFoundError, match=re.escape(str(PACKAGE_PRIOR))):
-            resolve_pretrained(SIM_PRIOR)
-    (tmp_path / "sim_prior").mkdir()
-    (tmp_path / "sim_prior" / "model_index.json").write_text("{}")
+            resolve_pretrained(SIM_PRIOR_ROTATED)
+    (tmp_path / "sim_prior_rotated").mkdir()
+    (tmp_path / "sim_prior_rotated" / "model_index.json").write_text("{}")
     monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path)
-    assert resolve_pretrained(SIM_PRIOR) == tmp_path / "sim_prior"
-    assert is_bundled_name(SIM_PRIOR) and not is_bundled_name("sar-zero123/other")
+    assert resolve_pretrained(SIM_PRIOR_ROTATED) == tmp_path / "sim_prior_rotated"
+    assert is_bundled_name(SIM_PRIOR_ROTATED) and not is_bundled_name("sar-zero123/other")
 
 
 @pytest.mark.parametrize("path", ["runs/pfm/pipeline", "sim_prior", Path("a/b")])
@@ -66,8 +66,7 @@ def test_anything_else_is_returned_as_a_path_unchanged(path):
 def test_an_unknown_bundled_name_is_refused_listing_the_bundled_ones(tmp_path, monkeypatch):
     message = (
         r"'sar-zero123/nope': no bundled pipeline of that name; "
-        r"bundled: \['sar-zero123/sim-prior', 'sar-zero123/sim-prior-proxy', "
-        r"'sar-zero123/sim-prior-rotated'\]"
+        r"bundled: \['sar-zero123/sim-prior-proxy', 'sar-zero123/sim-prior-rotated'\]"
     )
     for load in (resolve_pretrained, SARZero123Pipeline.from_pretrained, load_sar_zero123):
         with pytest.raises(FileNotFoundError, match=message):  # never a model-hub lookup
@@ -79,45 +78,87 @@ def test_an_unknown_bundled_name_is_refused_listing_the_bundled_ones(tmp_path, m
     assert resolve_pretrained("./sar-zero123/nope") == Path("sar-zero123/nope")
 
 
+def test_a_retired_name_is_refused_in_one_line_naming_its_replacement(tiny_prior, tmp_path, monkeypatch):
+    """``sar-zero123/sim-prior`` is no longer bundled: every loader, a stage's config (a recipe's prior, a
+    ``--set``, a run folder's recorded config given as ``--config``) refuses it naming
+    ``sar-zero123/sim-prior-rotated``; a local folder of that name still loads as a path."""
+    from sar_zero123.augment_dataset import AugmentConfig
+    from sar_zero123.config import parse_config
+    from sar_zero123.stages import quickstart
+    from sar_zero123.stages.presets import SharedSettings
+
+    assert pretrained.RETIRED_PIPELINES == {"sar-zero123/sim-prior": SIM_PRIOR_ROTATED}
+    assert not is_bundled_name("sar-zero123/sim-prior") and "SIM_PRIOR" not in sar_zero123.__all__
+    message = (
+        r"^'sar-zero123/sim-prior': this bundled pipeline is retired; use 'sar-zero123/sim-prior-rotated' "
+        r"instead \(a local folder of that name: \./sar-zero123/sim-prior\)$"
+    )
+    for load in (resolve_pretrained, SARZero123Pipeline.from_pretrained, load_sar_zero123):
+        with pytest.raises(FileNotFoundError, match=message):
+            load("sar-zero123/sim-prior")
+    for name in ("sim-prior", "SAR-ZERO123/sim-prior"):  # without its namespace, in another case: the hint
+        with pytest.raises(FileNotFoundError, match=r"did you mean 'sar-zero123/sim-prior-rotated'\? "):
+            SARZero123Pipeline.from_pretrained(name)
+    with pytest.raises(FileNotFoundError, match=message):
+        SharedSettings(prior="sar-zero123/sim-prior")
+    with pytest.raises(FileNotFoundError, match=message):
+        quickstart.QuickstartConfig(
+            output_dir=str(tmp_path / "run"), set=["shared.prior=sar-zero123/sim-prior"]
+        )
+    recorded = tmp_path / "config.json"  # an augment run's recorded options, reused as its --config
+    options = {"data": str(tmp_path), "pipeline": "sar-zero123/sim-prior", "d_az": [30.0]}
+    recorded.write_text(json.dumps(options))
+    with pytest.raises(FileNotFoundError, match=message):
+        parse_config(AugmentConfig, ["--config", str(recorded), "--out", str(tmp_path / "views")])
+    registry, saved = tiny_prior
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "sar-zero123").mkdir()
+    (tmp_path / "sar-zero123" / "sim-prior").symlink_to(registry / "sim_prior_rotated",
+                                                        target_is_directory=True)  # fmt: skip
+    assert resolve_pretrained("./sar-zero123/sim-prior") == Path("sar-zero123/sim-prior")
+    _assert_same_weights(SARZero123Pipeline.from_pretrained("./sar-zero123/sim-prior"), saved)
+
+
 def test_missing_weights_raise_naming_the_name(tmp_path, monkeypatch):
     monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path)
-    (tmp_path / "sim_prior").mkdir()  # a folder without model_index.json
+    (tmp_path / "sim_prior_rotated").mkdir()  # a folder without model_index.json
     message = (
-        r"bundled pipeline 'sar-zero123/sim-prior': its weights are missing from this install "
-        rf"\(no model_index.json in '{re.escape(str(tmp_path / 'sim_prior'))}'\)"
+        r"bundled pipeline 'sar-zero123/sim-prior-rotated': its weights are missing from this install "
+        rf"\(no model_index.json in '{re.escape(str(tmp_path / 'sim_prior_rotated'))}'\)"
     )
     with pytest.raises(FileNotFoundError, match=message):
-        resolve_pretrained(SIM_PRIOR)
+        resolve_pretrained(SIM_PRIOR_ROTATED)
     with pytest.raises(FileNotFoundError, match=message):
-        SARZero123Pipeline.from_pretrained(SIM_PRIOR)
+        SARZero123Pipeline.from_pretrained(SIM_PRIOR_ROTATED)
     with pytest.raises(FileNotFoundError, match=message):
-        load_sar_zero123(SIM_PRIOR)
+        load_sar_zero123(SIM_PRIOR_ROTATED)
 
 
 def test_name_loads_the_registered_pipeline(tiny_prior, monkeypatch):
     registry, saved = tiny_prior
     monkeypatch.setattr(pretrained, "PRETRAINED_DIR", registry)
-    pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR)
+    pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR_ROTATED)
     assert isinstance(pipe, SARZero123Pipeline)
     assert pipe.pose_projection.config.input_depression and pipe.azimuth_estimator is not None
     _assert_same_weights(pipe, saved)
-    _assert_same_weights(load_sar_zero123(pretrained=SIM_PRIOR), saved)
+    _assert_same_weights(load_sar_zero123(pretrained=SIM_PRIOR_ROTATED), saved)
 
 
 def test_a_bundled_name_always_means_the_bundled_weights(tiny_prior, tmp_path, monkeypatch):
-    """A folder ./sar-zero123/sim-prior in the working directory never replaces the bundled pipeline; it is
-    used only when given as a path."""
+    """A folder ./sar-zero123/sim-prior-rotated in the working directory never replaces the bundled pipeline;
+    it is used only when given as a path."""
     registry, saved = tiny_prior
     monkeypatch.setattr(pretrained, "PRETRAINED_DIR", tmp_path / "empty_registry")  # no bundled weights
     monkeypatch.chdir(tmp_path)
     (tmp_path / "sar-zero123").mkdir()
-    (tmp_path / "sar-zero123" / "sim-prior").symlink_to(registry / "sim_prior", target_is_directory=True)
-    assert is_bundled_name(SIM_PRIOR) and not is_bundled_name("./sar-zero123/sim-prior")
+    (tmp_path / "sar-zero123" / "sim-prior-rotated").symlink_to(registry / "sim_prior_rotated",
+                                                                target_is_directory=True)  # fmt: skip
+    assert is_bundled_name(SIM_PRIOR_ROTATED) and not is_bundled_name("./sar-zero123/sim-prior-rotated")
     with pytest.raises(FileNotFoundError, match="its weights are missing from this install"):
-        resolve_pretrained(SIM_PRIOR)
+        resolve_pretrained(SIM_PRIOR_ROTATED)
     with pytest.raises(FileNotFoundError, match=r"no bundled pipeline of that name.*\(a local folder: \./"):
         resolve_pretrained("sar-zero123/sim-prio")
-    assert resolve_pretrained("./sar-zero123/sim-prior") == Path("sar-zero123/sim-prior")
+    assert resolve_pretrained("./sar-zero123/sim-prior-rotated") == Path("sar-zero123/sim-prior-rotated")
     from sar_zero123.pretrained import PROXY_RETRIEVAL, resolve_retrieval
 
     (tmp_path / "sar-zero123" / "proxy-retrieval").mkdir()  # a local shortlist never replaces the bundled one
@@ -125,7 +166,7 @@ def test_a_bundled_name_always_means_the_bundled_weights(tiny_prior, tmp_path, m
     with pytest.raises(FileNotFoundError, match="empty_registry/proxy_retrieval"):  # the bundled one, absent
         resolve_retrieval(PROXY_RETRIEVAL)
     assert resolve_retrieval("./sar-zero123/proxy-retrieval") == Path("sar-zero123/proxy-retrieval")
-    _assert_same_weights(SARZero123Pipeline.from_pretrained("./sar-zero123/sim-prior"), saved)
+    _assert_same_weights(SARZero123Pipeline.from_pretrained("./sar-zero123/sim-prior-rotated"), saved)
 
 
 def _pearson(a: np.ndarray, b: np.ndarray) -> float:
@@ -135,13 +176,9 @@ def _pearson(a: np.ndarray, b: np.ndarray) -> float:
 def test_bundled_prior_follows_depression():
     """Views of the bundled prior asked for a depression change look more like the simulator's view at the
     requested depression than at the input's, for named vehicles it never saw (it trained on procedural
-    vehicles only). Azimuth requests on unseen vehicles are not followed (docs/results/history/prior.md): not
-    tested."""
-    if not (PACKAGE_PRIOR / "model_index.json").is_file():
-        pytest.skip(f"bundled prior weights not installed (no model_index.json in {PACKAGE_PRIOR})")
-    pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR)
-    pipe.set_progress_bar_config(disable=True)
-    scaling = DecibelScaling.from_dict(json.loads((PACKAGE_PRIOR / SCALING_FILE).read_text()))
+    vehicles only). Its azimuth requests are the next tests'."""
+    pipe, folder = _bundled("sim_prior_rotated", SIM_PRIOR_ROTATED, "rotated prior")
+    scaling = DecibelScaling.from_file(folder / SCALING_FILE)
     targets = [make_target(name) for name in ("TANK", "TRUCK", "DOZER", "SPG")]
     azimuths_deg, depression_deg = (30.0, 120.0, 210.0, 300.0), 17.0
 
@@ -195,7 +232,8 @@ def _bundled(folder_name: str, name: str, what: str) -> tuple[SARZero123Pipeline
 def test_bundled_rotated_prior_turns_unseen_vehicles() -> None:
     """The spatial-pose prior's views of named vehicles it never saw, asked for a 90 deg turn, look more like
     the simulator's view at the requested azimuth than at the input's (docs/results/history/prior.md,
-    section 6): 4 of 4 chips; `sim-prior` wins 2 of the same 4, so the test tells the two apart."""
+    section 6): 4 of 4 chips; the same recipe without the spatial input won 2 of the same 4, so the test
+    tells the two apart."""
     pipe, folder = _bundled("sim_prior_rotated", SIM_PRIOR_ROTATED, "rotated prior")
     assert pipe.pose_projection.config.spatial_pose == "rotated_input" and pipe.unet.config.in_channels == 12
     assert pipe.pose_projection.config.trained_depression_deg == [10.0, 60.0]
@@ -260,17 +298,18 @@ def test_bundling_stores_float16_weights_that_load_as_float32_with_the_sampler_r
     from sar_zero123.pretrained.bundle import bundle_pipeline
 
     registry, pipe = tiny_prior
-    out = bundle_pipeline(registry / "sim_prior", tmp_path / "bundled", {"heading_guidance_scale": 3.0})
+    sampler = {"heading_guidance_scale": 3.0}
+    out = bundle_pipeline(registry / "sim_prior_rotated", tmp_path / "bundled", sampler)
     stored = load_file(out / "unet" / "diffusion_pytorch_model.safetensors")
     assert {v.dtype for v in stored.values()} == {torch.float16}
-    assert (out / SCALING_FILE).read_text() == (registry / "sim_prior" / SCALING_FILE).read_text()
+    assert (out / SCALING_FILE).read_text() == (registry / "sim_prior_rotated" / SCALING_FILE).read_text()
     assert not [c for c in out.rglob("config.json") if "_name_or_path" in json.loads(c.read_text())]
     loaded = SARZero123Pipeline.from_pretrained(out)
     assert loaded.unet.dtype == torch.float32 and loaded.config.sampler == {"heading_guidance_scale": 3.0}
     for key, value in loaded.unet.state_dict().items():  # the float32 weights rounded to float16
         torch.testing.assert_close(value, pipe.unet.state_dict()[key].half().float(), rtol=0, atol=0)
     with pytest.raises(ValueError, match="exists"):
-        bundle_pipeline(registry / "sim_prior", out)
+        bundle_pipeline(registry / "sim_prior_rotated", out)
     with pytest.raises(FileNotFoundError, match="model_index.json"):
         bundle_pipeline(tmp_path, tmp_path / "other")
     assert not list(tmp_path.glob(".*.tmp"))

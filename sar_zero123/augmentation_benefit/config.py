@@ -61,7 +61,7 @@ class AugmentationBenefitConfig:
     unseen_k: int = 12  # K of the unseen-class variant
     views_per_chip: int = 3  # generated views per kept chip, evenly between it and its neighbours
     # pretrained pipeline each generator is fine-tuned from: the prior that also sees the input turned by
-    # d_az, whose views help by their pose where sim-prior's do not (docs/results/README.md)
+    # d_az, whose views help by their pose where the retired sim-prior's did not (docs/results/README.md)
     pipeline: str = SIM_PRIOR_ROTATED
     finetune_steps: int = 3000  # fine-tune steps per generator (400 and 1,000 keep too little identity)
     finetune_batch_size: int = 16  # pairs per fine-tune step

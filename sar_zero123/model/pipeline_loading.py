@@ -20,7 +20,13 @@ from sar_zero123.model.loading import check_pipeline_folder, find_failing_compon
 from sar_zero123.model.proxy import check_proxy_settings
 from sar_zero123.model.sampler import SAMPLER_DEFAULTS, START_FROM, SamplerSettings, _check_strength
 from sar_zero123.model.zero123_checkpoints import load_zero123_components
-from sar_zero123.pretrained import BUNDLED_NAMESPACE, BUNDLED_PIPELINES, is_bundled_name, resolve_pretrained
+from sar_zero123.pretrained import (
+    BUNDLED_NAMESPACE,
+    BUNDLED_PIPELINES,
+    RETIRED_PIPELINES,
+    is_bundled_name,
+    resolve_pretrained,
+)
 from sar_zero123.runs.manifest import MANIFEST_FILE, manifest_problem, unlisted_files, write_manifest
 
 __all__ = ["PipelineLoadingMixin", "anchored_proxy", "check_recorded_settings"]
@@ -45,16 +51,16 @@ class PipelineLoadingMixin:
         """diffusers' ``from_pretrained``, after resolving the name of a pipeline bundled with the package.
 
         Args:
-            pretrained_model_name_or_path: A bundled name such as ``"sar-zero123/sim-prior"``, a
+            pretrained_model_name_or_path: A bundled name such as ``"sar-zero123/sim-prior-rotated"``, a
                 ``save_pretrained`` folder, or anything else diffusers loads (an existing path wins).
             **kwargs: diffusers' loading options, and ``verify_manifest`` (default True): a local folder's
                 files must match its ``manifest.json``; ``False`` loads a changed folder with a warning. A
                 folder without a manifest loads with a warning.
 
         Raises:
-            FileNotFoundError: For a bundled name whose weights are missing, an unknown ``"sar-zero123/"``
-                name (listing the bundled ones), or a missing ``model_index.json`` or component folder,
-                config or weights, naming them.
+            FileNotFoundError: For a bundled name whose weights are missing, a retired one (naming its
+                replacement), an unknown ``"sar-zero123/"`` name (listing the bundled ones), or a missing
+                ``model_index.json`` or component folder, config or weights, naming them.
             ValueError: For invalid JSON, a component that does not load, or (unless
                 ``verify_manifest=False``) a file that differs from the manifest, naming it.
         """
@@ -192,14 +198,17 @@ def _refuse_a_missing_local_name(text: str) -> None:
     neither (a hub lookup would answer with a network error).
 
     Raises:
-        FileNotFoundError: For a path-like name (``./x``, ``../x``, ``/x``, ``~/x``), a bundled name in
-            another case or without its namespace.
+        FileNotFoundError: For a path-like name (``./x``, ``../x``, ``/x``, ``~/x``), a bundled or retired
+            name in another case or without its namespace (a retired one's hint is its replacement).
     """
     bundled = sorted(BUNDLED_PIPELINES)
     listing = f"the bundled pipelines are {bundled}"
-    short_names = {name.split("/")[-1] for name in bundled}
+    known = [*bundled, *RETIRED_PIPELINES]
+    short_names = {name.split("/")[-1] for name in known}
     if text.lower().startswith(BUNDLED_NAMESPACE.lower()) or text in short_names:
-        matches = [name for name in bundled if name.lower() == text.lower() or name.endswith("/" + text)]
+        matches = [name for name in known if name.lower() == text.lower() or name.endswith("/" + text)]
+        # a retired name's match is its replacement
+        matches = [RETIRED_PIPELINES.get(name, name) for name in matches]
         hint = f"did you mean {matches[0]!r}? " if matches else ""
         raise FileNotFoundError(f"{text!r} is neither a pipeline folder nor a bundled name: {hint}{listing}")
     if text.startswith(("./", "../", "/", "~", ".\\")) or text in (".", ".."):

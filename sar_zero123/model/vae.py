@@ -50,7 +50,7 @@ def new_sar_vae(
 
 def load_pretrained_vae(name_or_path: str) -> AutoencoderKL:
     """The ``AutoencoderKL`` of an AutoencoderKL folder, of a pipeline folder (its ``vae/``) or of a bundled
-    pipeline name (``sar-zero123/sim-prior``).
+    pipeline name (``sar-zero123/sim-prior-rotated``).
 
     Raises:
         FileNotFoundError: If the folder or its files are missing, naming what was expected.

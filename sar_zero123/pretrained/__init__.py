@@ -2,12 +2,13 @@
 
 Example::
 
-    from sar_zero123 import SIM_PRIOR, SARZero123Pipeline
+    from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline
 
-    pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR)  # "sar-zero123/sim-prior"
+    pipe = SARZero123Pipeline.from_pretrained(SIM_PRIOR_ROTATED)  # "sar-zero123/sim-prior-rotated"
 
 A registered name resolves to a ``save_pretrained`` folder next to this file, shipped as package data;
-``README.md`` here lists them, each with its model card.
+``README.md`` here lists them, each with its model card. A retired name (:data:`RETIRED_PIPELINES`) is
+refused, naming the bundled pipeline that replaces it.
 """
 
 from __future__ import annotations
@@ -19,7 +20,7 @@ __all__ = [
     "BUNDLED_NAMESPACE",
     "BUNDLED_PIPELINES",
     "PRETRAINED_DIR",
-    "SIM_PRIOR",
+    "RETIRED_PIPELINES",
     "SIM_PRIOR_PROXY",
     "SIM_PRIOR_ROTATED",
     "PROXY_RETRIEVAL",
@@ -28,10 +29,9 @@ __all__ = [
     "resolve_retrieval",
 ]
 
-#: The multi-view SAR prior trained on procedural simulated vehicles only (model card: ``sim_prior.md``).
-SIM_PRIOR = "sar-zero123/sim-prior"
-#: The same recipe with the spatial pose input (``spatial_pose="rotated_input"``): turns unseen vehicles'
-#: footprints (model card: ``sim_prior_rotated.md``).
+#: The multi-view SAR prior trained on procedural simulated vehicles only, with the spatial pose input
+#: (``spatial_pose="rotated_input"``): turns unseen vehicles' footprints (model card:
+#: ``sim_prior_rotated.md``).
 SIM_PRIOR_ROTATED = "sar-zero123/sim-prior-rotated"
 #: ``sim-prior-rotated`` taught to read a simulator proxy fitted to its input (``spatial_pose="proxy"``):
 #: needs the input's absolute azimuth (model card: ``sim_prior_proxy.md``).
@@ -46,17 +46,18 @@ BUNDLED_RETRIEVAL: dict[str, str] = {PROXY_RETRIEVAL: "proxy_retrieval"}
 BUNDLED_NAMESPACE = "sar-zero123/"
 #: Registered name -> folder under :data:`PRETRAINED_DIR`.
 BUNDLED_PIPELINES: dict[str, str] = {
-    SIM_PRIOR: "sim_prior",
     SIM_PRIOR_ROTATED: "sim_prior_rotated",
     SIM_PRIOR_PROXY: "sim_prior_proxy",
 }
+#: A name no longer bundled -> the bundled name that replaces it (its weights remain in the git history).
+RETIRED_PIPELINES: dict[str, str] = {"sar-zero123/sim-prior": SIM_PRIOR_ROTATED}
 #: Where the bundled folders live (this package's own folder).
 PRETRAINED_DIR = Path(__file__).resolve().parent
 
 
 def is_bundled_name(name_or_path: str | os.PathLike) -> bool:
     """Whether ``name_or_path`` is a registered name, which always means the bundled weights (a local folder
-    spelled the same loads only as a path, ``./sar-zero123/sim-prior``)."""
+    spelled the same loads only as a path, ``./sar-zero123/sim-prior-rotated``)."""
     text = os.fspath(name_or_path)
     return text in BUNDLED_PIPELINES
 
@@ -65,10 +66,16 @@ def resolve_pretrained(name_or_path: str | os.PathLike) -> Path:
     """The bundled folder a registered name stands for; any other argument as a ``Path``, unchanged.
 
     Raises:
-        FileNotFoundError: For a registered name whose folder has no ``model_index.json``, or an unregistered
-            name under :data:`BUNDLED_NAMESPACE` that is no existing path (listing the bundled names).
+        FileNotFoundError: For a registered name whose folder has no ``model_index.json``, a retired name
+            (naming its replacement), or an unregistered name under :data:`BUNDLED_NAMESPACE` (listing the
+            bundled names).
     """
     text = os.fspath(name_or_path)
+    if text in RETIRED_PIPELINES:
+        raise FileNotFoundError(
+            f"{text!r}: this bundled pipeline is retired; use {RETIRED_PIPELINES[text]!r} instead (a local "
+            f"folder of that name: ./{text})"
+        )
     if text.startswith(BUNDLED_NAMESPACE) and text not in BUNDLED_PIPELINES:
         bundled = sorted(BUNDLED_PIPELINES)
         raise FileNotFoundError(

@@ -115,7 +115,7 @@ class TrainVAEConfig:
     report_to: str | None = "tensorboard"  # accelerate tracker; None disables logging
     seed: int = 0  # seed of initialisation, data order and posterior samples
     # start from this VAE (an AutoencoderKL folder, a pipeline folder or a bundled pipeline name such as
-    # sar-zero123/sim-prior) instead of a new one; its architecture is used (block_out_channels,
+    # sar-zero123/sim-prior-rotated) instead of a new one; its architecture is used (block_out_channels,
     # layers_per_block, latent_channels and norm_num_groups unused; metrics.json records the model's)
     pretrained: str | None = None
     # False: train the decoder alone. The encoder, hence the latents, and the latent scaling factor are kept,

@@ -244,8 +244,8 @@ def test_resume_config_takes_a_bundled_folder_from_another_install(tmp_path: Pat
     path = save_checkpoint(accelerator, tmp_path, 1, config=_Config())
     check_resume_config(path, _Config("/work/checkout/sar_zero123/pretrained/sim_prior_proxy"))
     with pytest.raises(ValueError, match=r"pretrained: checkpoint 'sar_zero123/pretrained/sim_prior_proxy', "
-                       r"this run 'sar_zero123/pretrained/sim_prior'"):
-        check_resume_config(path, _Config("/work/checkout/sar_zero123/pretrained/sim_prior"))
+                       r"this run 'sar_zero123/pretrained/sim_prior_rotated'"):
+        check_resume_config(path, _Config("/work/checkout/sar_zero123/pretrained/sim_prior_rotated"))
     with pytest.raises(ValueError, match=r"this run '/home/me/sim_prior_proxy'"):
         check_resume_config(path, _Config("/home/me/sim_prior_proxy"))  # a folder of the user's own
 

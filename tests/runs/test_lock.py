@@ -80,7 +80,7 @@ def test_augment_dataset_refuses_a_second_writer(tmp_path, holder):
 
     data = simulate_dataset(tmp_path / "data", classes=("TANK",), instances=1, azimuth_step_deg=180,
                             depressions_deg=(17.0,), size=32)  # fmt: skip
-    config = AugmentConfig(data=str(data), pipeline="sar-zero123/sim-prior", out=str(tmp_path / "run"),
-                           d_az=[10.0], num_inference_steps=1)  # fmt: skip
+    config = AugmentConfig(data=str(data), pipeline="sar-zero123/sim-prior-rotated",
+                           out=str(tmp_path / "run"), d_az=[10.0], num_inference_steps=1)  # fmt: skip
     with pytest.raises(ValueError, match=rf"^out: '.*run' is being written by process {holder.pid}"):
         augment_dataset(config)

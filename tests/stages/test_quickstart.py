@@ -83,13 +83,13 @@ def test_a_prior_with_a_decoder_fine_tune_plans_the_decoder_before_the_fine_tune
     """shared.decoder_fine_tune adds the "vae decoder" stage (the prior's decoder alone, the SimCLR encoder's
     feature loss); every fine-tune decodes with it, and evaluate.speckle_looks reaches the evaluation."""
     out = tmp_path / "run"
-    override = ["shared.prior=sar-zero123/sim-prior", "shared.decoder_fine_tune=true",
+    override = ["shared.prior=sar-zero123/sim-prior-rotated", "shared.decoder_fine_tune=true",
                 "vae_decoder.max_train_steps=3", "vae_decoder.feature_loss_weight=0.5",
                 "evaluate.speckle_looks=1", "shared.image_size=64"]  # fmt: skip
     between, by_name = _planned(out, override)
     assert between == ["vae decoder", "finetune lambda=0", "finetune lambda=4"]
     decoder = by_name["vae decoder"]
-    assert decoder.pretrained == "sar-zero123/sim-prior" and decoder.train_encoder is False
+    assert decoder.pretrained == "sar-zero123/sim-prior-rotated" and decoder.train_encoder is False
     assert decoder.feature_loss_weight == 0.5 and decoder.feature_encoder == str(out / "simclr" / "encoder")
     assert decoder.max_train_steps == 3
     assert by_name["finetune lambda=4"].vae == str(out / "vae_decoder" / "vae")
@@ -123,7 +123,7 @@ def test_rehearsal_vehicles_plan_a_corpus_stage_that_every_fine_tune_rehearses(t
     """shared.rehearsal (with a prior) renders a corpus before the fine-tunes, each of which mixes its
     whole training split into finetune.rehearsal_fraction of every batch; the corpus stage runs resumably."""
     out = tmp_path / "run"
-    prior = ["shared.prior=sar-zero123/sim-prior", "shared.image_size=64", "shared.rehearsal=true"]
+    prior = ["shared.prior=sar-zero123/sim-prior-rotated", "shared.image_size=64", "shared.rehearsal=true"]
     override = [*prior, "corpus.num_vehicles=3", "finetune.rehearsal_fraction=0.5"]
     between, by_name = _planned(out, override)
     assert between == ["rehearsal corpus", "finetune lambda=0", "finetune lambda=4"]
