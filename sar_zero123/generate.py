@@ -131,9 +131,9 @@ class GenerateConfig(SamplerSettings):
             )
         if not all(np.isfinite(self.d_az)) or not all(np.isfinite(self.d_el)):
             raise ValueError(f"d_az/d_el must be finite, got {self.d_az} and {self.d_el}")
-        if any(abs(v) > MAX_ABS_D_EL_DEG for v in self.d_el):
+        if any(abs(v) >= MAX_ABS_D_EL_DEG for v in self.d_el):
             raise ValueError(
-                f"d_el must lie in [-{MAX_ABS_D_EL_DEG:g}, {MAX_ABS_D_EL_DEG:g}] degrees (a difference of "
+                f"d_el must lie in (-{MAX_ABS_D_EL_DEG:g}, {MAX_ABS_D_EL_DEG:g}) degrees (a difference of "
                 f"two depression angles), got {self.d_el}"
             )
         if len(self.d_el) not in (1, len(self.d_az)):

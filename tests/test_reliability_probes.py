@@ -347,7 +347,9 @@ PROBES: list[tuple[str, str, Argv, int, str]] = [
     ("generate d_el 1e999", "generate", lambda i: _generate(i, "p81", "--d_el", "1e999"), 2,
      r"argument --d_el/--d-el: invalid finite_float value: '1e999'"),
     ("generate d_el 91", "generate", lambda i: _generate(i, "p82", "--d_el", "91"), 2,
-     r"error: d_el must lie in \[-90, 90\] degrees \(a difference of two depression angles\), got \[91.0\]"),
+     r"error: d_el must lie in \(-90, 90\) degrees \(a difference of two depression angles\), got \[91.0\]"),
+    ("generate d_el 90, no input depression", "generate", lambda i: _generate(i, "p82b", "--d_el", "90"), 2,
+     r"error: d_el must lie in \(-90, 90\) degrees \(a difference of two depression angles\), got \[90.0\]"),
     ("generate three d_el for one d_az", "generate",
      lambda i: _generate(i, "p83", "--d_el", "0", "0", "0"), 2,
      r"error: d_el: give 1 value or one per d_az \(1\), got 3"),
@@ -567,8 +569,8 @@ LATENT = (1, 4, 16, 16)  # one sample of the 32 px dummy pipeline
 #: (id, call arguments, a regex the one-line ValueError matches): SARZero123Pipeline.__call__ refuses each
 #: before any UNet call, naming the argument and what it expected, as diffusers' check_inputs does.
 CALL_PROBES: list[tuple[str, dict, str]] = [
-    ("d_el 90 from a 17 deg input (target 107)", {"d_el": 90.0, "input_depression_deg": 17.0},
-     r"^`d_el` 90 from an input depression of 17 deg asks for a target depression of 107 deg; "
+    ("d_el 80 from a 17 deg input (target 97)", {"d_el": 80.0, "input_depression_deg": 17.0},
+     r"^`d_el` 80 from an input depression of 17 deg asks for a target depression of 97 deg; "
      r"input_depression_deg \+ d_el must lie in \(0, 90\) degrees$"),
     ("d_el -20 from a 17 deg input (target -3)", {"d_el": -20.0, "input_depression_deg": 17.0},
      r"^`d_el` -20 from an input depression of 17 deg asks for a target depression of -3 deg"),

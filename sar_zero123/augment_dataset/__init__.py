@@ -169,10 +169,11 @@ class AugmentConfig(SamplerSettings):
                 raise ValueError(f"{name} must be finite, got {getattr(self, name)}")
         if not all(0.0 <= a < 360.0 for a in self.target_azimuths_deg):
             raise ValueError(f"target_azimuths_deg must lie in [0, 360), got {self.target_azimuths_deg}")
-        for name, limit in (("d_az", MAX_ABS_D_AZ_DEG), ("d_el", MAX_ABS_D_EL_DEG)):
-            values = getattr(self, name)
-            if any(abs(v) > limit for v in values):
-                raise ValueError(f"{name} must lie in [-{limit:g}, {limit:g}] degrees, got {values}")
+        az_limit, el_limit = f"{MAX_ABS_D_AZ_DEG:g}", f"{MAX_ABS_D_EL_DEG:g}"
+        if any(abs(v) > MAX_ABS_D_AZ_DEG for v in self.d_az):
+            raise ValueError(f"d_az must lie in [-{az_limit}, {az_limit}] degrees, got {self.d_az}")
+        if any(abs(v) >= MAX_ABS_D_EL_DEG for v in self.d_el):
+            raise ValueError(f"d_el must lie in (-{el_limit}, {el_limit}) degrees, got {self.d_el}")
         check_minimum(self, "batch_size", minimum=1)
         if self.batch_size > MAX_BATCH_SIZE:
             raise ValueError(f"batch_size must be <= {MAX_BATCH_SIZE} views per call, got {self.batch_size}")

@@ -23,7 +23,7 @@ __all__ = [
     "view_request",
 ]  # fmt: skip
 
-#: A depression delta is the difference of two depression angles in [0, 90] degrees.
+#: A depression delta is the difference of two depression angles in (0, 90) degrees: |d_el| < 90.
 MAX_ABS_D_EL_DEG = 90.0
 #: Azimuth deltas beyond this many degrees (~2,800 turns) are almost surely a unit error, and float64
 #: loses the angle's fraction of a degree long before 1e15.
@@ -73,10 +73,9 @@ def view_request(
     """A call's angles and proxy views checked against its checked ``images`` and the model's pose projection.
 
     Raises:
-        TypeError: Naming the argument, for angles that are not real numbers.
-        ValueError: Naming the argument, for angles out of range or of another count than 1 or the batch,
-            a depression outside the trained range or missing where the pose carries it, or proxy views of
-            another shape or domain (or given to a pipeline that takes none).
+        ValueError: Naming the argument, for angles that are not real numbers, out of range or of another
+            count than 1 or the batch, a depression outside the trained range or missing where the pose
+            carries it, or proxy views of another shape or domain (or given to a pipeline that takes none).
     """
     batch_size = images.shape[0]
     pose = broadcast_pose(d_az, d_el, batch_size)  # (B, 1, 4)
@@ -139,13 +138,18 @@ def broadcast_pose(d_az: Angles, d_el: Angles, batch_size: int) -> torch.Tensor:
         if count not in (1, batch_size):
             raise ValueError(f"`{name}` has {count} values; expected 1 or one per input image ({batch_size})")
     pose = embed_pose(d_az, d_el)  # (1 | B, 1, 4); cannot fail on angles that passed the checks above
-    for name, value, limit, why in (
-        ("d_el", d_el, MAX_ABS_D_EL_DEG, "a difference of two depression angles in [0, 90]"),
-        ("d_az", d_az, MAX_ABS_D_AZ_DEG, "larger values lose the angle's precision: a unit error?"),
-    ):
-        largest = float(torch.as_tensor(value, dtype=torch.float64).abs().max())
-        if largest > limit:
-            raise ValueError(f"`{name}` must lie in [-{limit:g}, {limit:g}] degrees ({why}), got {largest:g}")
+    largest = float(torch.as_tensor(d_el, dtype=torch.float64).abs().max())
+    if largest >= MAX_ABS_D_EL_DEG:  # no input depression in (0, 90) reaches a target in (0, 90) from here
+        raise ValueError(
+            f"`d_el` must lie in (-{MAX_ABS_D_EL_DEG:g}, {MAX_ABS_D_EL_DEG:g}) degrees (a difference of two "
+            f"depression angles in (0, 90)), got {largest:g}"
+        )
+    largest = float(torch.as_tensor(d_az, dtype=torch.float64).abs().max())
+    if largest > MAX_ABS_D_AZ_DEG:
+        raise ValueError(
+            f"`d_az` must lie in [-{MAX_ABS_D_AZ_DEG:g}, {MAX_ABS_D_AZ_DEG:g}] degrees (larger values lose "
+            f"the angle's precision: a unit error?), got {largest:g}"
+        )
     return pose.expand(batch_size, -1, -1) if pose.shape[0] == 1 else pose
 
 
@@ -252,20 +256,21 @@ def check_real_angles(value: Any, name: str) -> None:
     """Angles are real numbers (a scalar, a sequence of them, or a real tensor/array).
 
     Raises:
-        TypeError: naming the argument, for strings, ``None``, booleans, complex numbers and the like.
+        ValueError: naming the argument, for strings, ``None``, booleans, complex numbers and the like (as
+            diffusers' ``check_inputs`` refuses a wrong type).
     """
     if isinstance(value, torch.Tensor):
         if value.dtype == torch.bool or value.dtype.is_complex:
-            raise TypeError(f"`{name}` must hold real angles in degrees, got dtype {value.dtype}")
+            raise ValueError(f"`{name}` must hold real angles in degrees, got dtype {value.dtype}")
         return
     if isinstance(value, np.ndarray):
         if not (np.issubdtype(value.dtype, np.integer) or np.issubdtype(value.dtype, np.floating)):
-            raise TypeError(f"`{name}` must hold real angles in degrees, got dtype {value.dtype}")
+            raise ValueError(f"`{name}` must hold real angles in degrees, got dtype {value.dtype}")
         return
     items = list(value) if isinstance(value, list | tuple) else [value]
     for item in items:
         if isinstance(item, bool) or not isinstance(item, numbers.Real):
-            raise TypeError(
+            raise ValueError(
                 f"`{name}` must be a real number of degrees or a list of them, got {type(item).__name__} "
                 f"{item!r}"
             )

@@ -335,20 +335,22 @@ def test_invalid_inputs_raise_value_errors_naming_the_argument(pipe, kwargs, mat
 @pytest.mark.parametrize(
     ("kwargs", "error", "match"),
     [
-        ({"d_az": "30"}, TypeError, r"`d_az` must be a real number of degrees .*got str '30'"),
-        ({"d_az": None}, TypeError, r"`d_az` must be a real number of degrees .*got NoneType None"),
-        ({"d_az": 30 + 1j}, TypeError, r"`d_az` must be a real number of degrees .*got complex"),
-        ({"d_az": [10.0, "20"]}, TypeError, r"`d_az` must be a real number .*got str '20'"),
-        ({"d_el": True}, TypeError, r"`d_el` must be a real number .*got bool"),
-        ({"d_az": torch.tensor([1j, 2j])}, TypeError, r"`d_az` must hold real angles .*complex"),
+        ({"d_az": "30"}, ValueError, r"`d_az` must be a real number of degrees .*got str '30'"),
+        ({"d_az": None}, ValueError, r"`d_az` must be a real number of degrees .*got NoneType None"),
+        ({"d_az": 30 + 1j}, ValueError, r"`d_az` must be a real number of degrees .*got complex"),
+        ({"d_az": [10.0, "20"]}, ValueError, r"`d_az` must be a real number .*got str '20'"),
+        ({"d_el": True}, ValueError, r"`d_el` must be a real number .*got bool"),
+        ({"d_az": torch.tensor([1j, 2j])}, ValueError, r"`d_az` must hold real angles .*complex"),
         ({"guidance_scale": "3"}, ValueError, r"`guidance_scale` must be a real number, got str '3'"),
         ({"guidance_scale": 1e30}, ValueError, r"`guidance_scale` must be <= 100"),
-        ({"d_el": 400.0}, ValueError, r"`d_el` must lie in \[-90, 90\] degrees .*got 400"),
-        ({"d_el": [0.0, -91.0]}, ValueError, r"`d_el` must lie in \[-90, 90\] degrees .*got 91"),
+        ({"d_el": 400.0}, ValueError, r"`d_el` must lie in \(-90, 90\) degrees .*got 400"),
+        ({"d_el": [0.0, -91.0]}, ValueError, r"`d_el` must lie in \(-90, 90\) degrees .*got 91"),
+        ({"d_el": 90.0}, ValueError, r"`d_el` must lie in \(-90, 90\) degrees .*got 90$"),
+        ({"d_el": [0.0, -90.0]}, ValueError, r"`d_el` must lie in \(-90, 90\) degrees .*got 90$"),
         ({"d_az": 1e300}, ValueError, r"`d_az` must lie in \[-1e\+06, 1e\+06\] degrees .*got 1e\+300"),
     ],
     ids=["str", "None", "complex", "str-in-list", "bool", "complex-tensor", "guidance-str", "guidance-huge",
-         "d_el-400", "d_el-91", "d_az-1e300"],
+         "d_el-400", "d_el-91", "d_el-90", "d_el--90", "d_az-1e300"],
 )  # fmt: skip
 def test_wrong_types_and_impossible_poses_are_refused(pipe, kwargs, error, match):
     arguments = {"d_az": 30.0, "d_el": 0.0, "num_inference_steps": 1, **kwargs}
