@@ -140,19 +140,6 @@ class SAREncoder(nn.Module):
         hidden = self.resnet(unit_to_signed(x), return_dict=True).pooler_output  # (B, D, 1, 1)
         return hidden.flatten(1)  # (B, D)
 
-    def stage_features(self, x: torch.Tensor) -> list[torch.Tensor]:
-        """The feature maps at the end of each ResNet stage, before pooling (for LPIPS-style distances).
-
-        Shape:
-            x: (B, C, image_size, image_size); output ``i``: (B, hidden_sizes[i], H_i, W_i).
-
-        Raises:
-            ValueError: As :meth:`forward`.
-        """
-        x = self._checked_input(x)
-        output = self.resnet(unit_to_signed(x), output_hidden_states=True, return_dict=True)
-        return list(output.hidden_states[1:])  # hidden_states[0] is the stem's output
-
     def _checked_input(self, x: torch.Tensor) -> torch.Tensor:
         """``x`` validated and expanded to ``in_channels`` (see :meth:`forward`)."""
         if x.ndim != 4:

@@ -69,7 +69,7 @@ from sar_zero123.training.latent_cache import (
 )
 from sar_zero123.training.lora import LoraModules, check_lora_settings
 from sar_zero123.training.losses import TRAINED_PREDICTION_TYPES, LossSettings, check_prediction_type
-from sar_zero123.training.pfm import PfmFeatures, check_pfm_crop_size, check_pfm_features, load_pfm_encoder
+from sar_zero123.training.pfm import check_pfm_crop_size, load_pfm_encoder
 from sar_zero123.training.step import MAX_GRAD_NORM
 from sar_zero123.training.validation import VALIDATION_GUIDANCE_SCALE
 
@@ -137,7 +137,6 @@ class FinetuneConfig(LossSettings):
     # every cross-attention also attends to the input's latent, a token per place (added with zero gates)
     input_tokens: bool = False
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
-    pfm_features: PfmFeatures = "pooled"  # PFM's features: Eq. 20's pooled, unit length or all stages (LPIPS)
     # train only rank-r LoRA factors of the UNet, merged at export; None: every UNet weight trains
     lora_rank: int | None = None
     lora_alpha: float | None = None  # with lora_rank: the update's scale is lora_alpha / lora_rank; None: 1
@@ -192,13 +191,13 @@ class FinetuneConfig(LossSettings):
         "guidance_scale": RemovedField(3.0, "validation samples are guided at "
                                        f"{VALIDATION_GUIDANCE_SCALE} (the sampling commands set their own)"),
         "max_grad_norm": RemovedField(1.0, f"gradients are clipped to a norm of {MAX_GRAD_NORM}"),
+        "pfm_features": RemovedField("pooled", "unit-length and all-stage (LPIPS-style) features beat "
+                                     "neither Eq. 20's pooled feature nor lambda = 0 on seen accuracy"),
+        "pfm_snr_gamma": RemovedField(None, "PFM weighted by SNR gave no unseen gain over Eq. 21's equal "
+                                      "weight"),
     }  # fmt: skip
 
     EXPERIMENTAL_FIELDS = {
-        "pfm_features": "unit-length features gave the lowest seen axis error, all stages (LPIPS-style) the "
-                        "lowest unseen SFD, neither beat lambda = 0 on seen accuracy",
-        "pfm_snr_gamma": "PFM weighted by SNR on every sample keeps the seen azimuth at lambda = 4 near "
-                         "lambda = 0's, no unseen gain",
         "lora_rank": "a low rank keeps the prior's depression requests as a lower learning rate does, no "
                      "better, at more than a full step's cost",
         "lora_alpha": "with lora_rank only",
@@ -219,7 +218,6 @@ class FinetuneConfig(LossSettings):
                   "logging_steps", "num_validation_images", "validation_inference_steps")  # fmt: skip
         check_minimum(self, *counts, minimum=1)
         check_minimum(self, "pfm_projection_dim", "checkpoints_total_limit", minimum=1, optional=True)
-        check_pfm_features(self.pfm_features, self.pfm_projection_dim)
         check_minimum(self, "image_size", minimum=8, optional=True)
         if not 0 <= self.ema_decay < 1:
             raise ValueError(f"ema_decay must be in [0, 1), got {self.ema_decay}")
@@ -367,7 +365,6 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneIn
             image_size=image_size,
             projection_dim=config.pfm_projection_dim,
             seed=config.seed,
-            features=config.pfm_features,
         )
     train_dataset, validation_dataset, scaling = train_validation_pairs(
         config.data,

@@ -181,23 +181,6 @@ def pfm_timestep_mask(timesteps: torch.Tensor, scheduler,
     return signal_to_noise_ratio(scheduler, timesteps) >= min_snr
 
 
-def pfm_snr_weights(timesteps: torch.Tensor, scheduler, gamma: float) -> torch.Tensor:
-    """Per-sample PFM weights ``min(SNR(t), gamma) / gamma``: Min-SNR-gamma for a loss on x0, scaled to 1.
-
-    Not in the paper. x0_hat's error grows as ``1 / SNR(t)``, so unweighted the noisiest timesteps, where
-    x0_hat is a blur, dominate PFM's gradient; this is a smooth form of :func:`pfm_timestep_mask`.
-
-    Shape:
-        ``(B,) -> (B,)``, float32 in ``[0, 1]``.
-
-    Raises:
-        ValueError: If ``gamma`` is not positive and finite.
-    """
-    if not (gamma > 0 and math.isfinite(gamma)):
-        raise ValueError(f"pfm_snr_gamma must be a positive finite number, got {gamma}")
-    return signal_to_noise_ratio(scheduler, timesteps).clamp(max=gamma) / gamma
-
-
 @dataclass
 class LossSettings:
     """Everything that shapes the loss of a training step, declared once and passed whole to
@@ -221,7 +204,6 @@ class LossSettings:
     pfm_fraction: float = 1.0  # fraction in (0, 1] of the eligible samples on which PFM is computed
     pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
     pfm_balance: Literal["none", "adaptive"] = "none"  # "none": Eq. 21's fixed lambda; "adaptive": balanced
-    pfm_snr_gamma: float | None = None  # PFM per sample times min(SNR(t), gamma) / gamma; None: equal weight
     drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
     drop_both_prob: float = 0.05  # CFG dropout: projected token and condition latent (the sampling null)
     drop_latent_prob: float = 0.05  # CFG dropout: condition latent only
@@ -248,7 +230,6 @@ class LossSettings:
         check_minimum(self, "pfm_crop_size", minimum=1, optional=True)
         if self.pfm_balance not in PFM_BALANCES:
             raise ValueError(f"pfm_balance must be one of {PFM_BALANCES}, got {self.pfm_balance!r}")
-        check_minimum(self, "pfm_snr_gamma", minimum=0, strict=True, optional=True)  # finite, > 0, or None
         probs = (self.drop_image_prob, self.drop_both_prob, self.drop_latent_prob)
         if not (min(probs) >= 0 and sum(probs) <= 1):
             raise ValueError(
@@ -304,7 +285,6 @@ def total_loss(
     generator: torch.Generator | None = None,
     denoising_weights: torch.Tensor | None = None,
     pfm_balance: str = "none",
-    pfm_snr_gamma: float | None = None,
 ) -> LossOutput:
     """L = L_simple + lambda * L_PFM, Eq. (21), the only place it is assembled.
 
@@ -318,7 +298,6 @@ def total_loss(
             ``generator``.
         denoising_weights: Optional per-sample weights of L_simple (Min-SNR-gamma).
         pfm_balance: ``"none"`` (Eq. 21) or ``"adaptive"`` (:func:`balanced_pfm_weight`; not in the paper).
-        pfm_snr_gamma: Weights PFM by :func:`pfm_snr_weights` before the balance; None: Eq. 21's equal weight.
 
     Shape:
         ``model_output``, ``target``, ``x_t``: ``(B, C, h, w)``; ``timesteps``: ``(B,)``; outputs ``(B,)``.
@@ -348,15 +327,10 @@ def total_loss(
                 order = torch.randperm(eligible.numel(), generator=generator, device="cpu")
                 eligible = eligible[order[:keep].to(eligible.device)]
             mask[eligible] = True
-            snr_weights = None
-            if pfm_snr_gamma is not None:
-                snr_weights = pfm_snr_weights(timesteps[eligible], scheduler, pfm_snr_gamma)
 
             def pfm_of(output: torch.Tensor) -> torch.Tensor:
                 x0_hat = estimate_x0(x_t[eligible], output[eligible], timesteps[eligible], scheduler)
                 values = pfm_loss(x0_hat, target_images[eligible], vae, encoder, crop_size=crop_size)
-                if snr_weights is not None:
-                    values = values * snr_weights
                 return torch.zeros_like(denoising).index_put((eligible,), values * (num_eligible / keep))
 
             if pfm_balance == "none":

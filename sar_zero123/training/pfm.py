@@ -1,7 +1,6 @@
 """Projected Feature Matching, Eq. (20): the frozen SAR encoder ``f`` and ``||f(x0) - f(D(x0_hat))||^2``.
 
-``f`` is the pooled feature of Eq. (20), optionally followed by the authors' random projection, or, departing
-from the paper, that feature normalised or every stage's map. Eq. (21) is
+``f`` is the pooled feature of Eq. (20), optionally followed by the authors' random projection. Eq. (21) is
 :func:`~sar_zero123.training.losses.total_loss`.
 """
 
@@ -9,7 +8,6 @@ from __future__ import annotations
 
 import math
 from pathlib import Path
-from typing import Literal, get_args
 
 import torch
 import torch.nn.functional as F
@@ -75,78 +73,6 @@ class ProjectedFeatureEncoder(nn.Module):
                   str(Path(directory) / PFM_PROJECTION_FILE))
 
 
-#: What PFM's encoder returns (``FinetuneConfig.pfm_features``): "pooled", Eq. (20)'s pooled feature;
-#: "normalized", that feature on the unit sphere; "stages", every stage's map, LPIPS-style.
-PfmFeatures = Literal["pooled", "normalized", "stages"]
-PFM_FEATURES: tuple[str, ...] = get_args(PfmFeatures)
-
-#: Added under the square root of :class:`StageFeatureEncoder`'s channel norms: finite where a map is zero.
-_NORM_EPS = 1.0e-10
-
-
-def check_pfm_features(features: str, projection_dim: int | None = None) -> None:
-    """Refuse an unknown ``pfm_features`` name, or the random projection of other than pooled features."""
-    if features not in PFM_FEATURES:
-        raise ValueError(f"pfm_features must be one of {PFM_FEATURES}, got {features!r}")
-    if projection_dim is not None and features != "pooled":
-        raise ValueError(f"pfm_projection_dim: the random projection applies to pooled features only, "
-                         f"got pfm_features={features!r}; set pfm_projection_dim to null")
-
-
-def _unit_along_channels(features: torch.Tensor) -> torch.Tensor:
-    """``features`` (float32) divided by their L2 norm along dim 1, finite where that norm is 0."""
-    features = features.float()
-    return features / torch.sqrt(features.pow(2).sum(dim=1, keepdim=True) + _NORM_EPS)
-
-
-class NormalizedFeatureEncoder(nn.Module):
-    """A frozen SAR encoder whose pooled feature is divided by its L2 norm (a departure from Eq. 20).
-
-    SimCLR trains only the features' direction (NT-Xent compares cosines); with unit features
-    ``||u - v||^2 = 2 - 2 cos(u, v)``.
-    """
-
-    def __init__(self, encoder: nn.Module) -> None:
-        super().__init__()
-        self.encoder = encoder
-        self.config = encoder.config
-
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        return _unit_along_channels(self.encoder(images))
-
-
-class StageFeatureEncoder(nn.Module):
-    """Every stage's feature map, LPIPS-style (Zhang et al., 2018, Eq. 1 with unit weights): a departure
-    from Eq. 20, which matches only the last stage, pooled.
-
-    Each map is unit-normalised along channels and divided by ``sqrt(H_i W_i)``, so the squared distance is
-    ``sum_i mean_(h, w) ||u_i - v_i||^2``. The maps keep where features are, so a turned footprint shows.
-    """
-
-    def __init__(self, encoder: nn.Module) -> None:
-        super().__init__()
-        if not hasattr(encoder, "stage_features"):
-            raise ValueError("pfm_features='stages' needs a SAREncoder (it reads stage_features)")
-        self.encoder = encoder
-        self.config = encoder.config
-
-    def forward(self, images: torch.Tensor) -> torch.Tensor:
-        parts = []
-        for hidden in self.encoder.stage_features(images):
-            unit = _unit_along_channels(hidden)
-            parts.append(unit.flatten(1) / math.sqrt(hidden.shape[-2] * hidden.shape[-1]))
-        return torch.cat(parts, dim=1)
-
-
-def pfm_feature_encoder(encoder: nn.Module, features: str) -> nn.Module:
-    """``encoder`` returning the features named by ``features`` (one of :data:`PFM_FEATURES`), frozen."""
-    check_pfm_features(features)
-    if features == "pooled":
-        return encoder
-    wrapper = NormalizedFeatureEncoder if features == "normalized" else StageFeatureEncoder
-    return wrapper(encoder).eval().requires_grad_(False)
-
-
 def project_encoder_features(encoder: nn.Module, projection_dim: int | None, *, seed: int = 0) -> nn.Module:
     """``encoder``, wrapped in a seeded ProjectedFeatureEncoder unless ``projection_dim`` is None."""
     if projection_dim is None:
@@ -156,20 +82,15 @@ def project_encoder_features(encoder: nn.Module, projection_dim: int | None, *, 
 
 
 def load_pfm_encoder(
-    path: str | Path, *, image_size: int, projection_dim: int | None = None, seed: int = 0,
-    features: str = "pooled",
+    path: str | Path, *, image_size: int, projection_dim: int | None = None, seed: int = 0
 ) -> nn.Module:
-    """The frozen SAR encoder ``f`` of Eq. (20) from a ``SAREncoder.save_pretrained`` folder.
-
-    ``projection_dim`` adds the seeded random projection; ``features`` other than ``"pooled"`` selects
-    those features (they take no projection).
+    """The frozen SAR encoder ``f`` of Eq. (20) from a ``SAREncoder.save_pretrained`` folder;
+    ``projection_dim`` adds the seeded random projection.
 
     Raises:
         FileNotFoundError: If the folder or its files are missing.
-        ValueError: If the encoder was trained at another resolution than ``image_size``, or a projection is
-            asked of other than pooled features.
+        ValueError: If the encoder was trained at another resolution than ``image_size``.
     """
-    check_pfm_features(features, projection_dim)
     encoder = SAREncoder.from_pretrained(path)
     if encoder.config.image_size != image_size:
         raise ValueError(
@@ -177,8 +98,7 @@ def load_pfm_encoder(
             f"runs at image_size={image_size}; train the encoder at {image_size} px or set --image_size "
             f"{encoder.config.image_size}"
         )
-    encoder = encoder.eval().requires_grad_(False)
-    return pfm_feature_encoder(project_encoder_features(encoder, projection_dim, seed=seed), features)
+    return project_encoder_features(encoder.eval().requires_grad_(False), projection_dim, seed=seed)
 
 
 def _require_frozen(module: nn.Module, name: str) -> None:

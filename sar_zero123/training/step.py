@@ -398,7 +398,6 @@ def compute_losses(
         pfm_min_snr=settings.pfm_min_snr, pfm_fraction=settings.pfm_fraction,
         crop_size=settings.pfm_crop_size, generator=generator, denoising_weights=weights,
         pfm_balance=settings.pfm_balance,
-        pfm_snr_gamma=settings.pfm_snr_gamma,
     )  # fmt: skip
     if azimuth_loss is not None:
         losses = dataclasses.replace(

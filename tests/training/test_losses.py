@@ -13,7 +13,6 @@ from torch import nn
 
 from sar_zero123.training.losses import (
     DEFAULT_PFM_MIN_SNR,
-    MAX_PFM_BALANCE,
     MIN_ALPHA_CUMPROD,
     LossSettings,
     append_dims,
@@ -21,20 +20,15 @@ from sar_zero123.training.losses import (
     denoising_loss,
     denoising_target,
     estimate_x0,
-    pfm_snr_weights,
     pfm_timestep_mask,
     signal_to_noise_ratio,
     total_loss,
 )
 from sar_zero123.training.pfm import (
-    PFM_FEATURES,
     PFM_PROJECTION_FILE,
-    NormalizedFeatureEncoder,
     ProjectedFeatureEncoder,
-    StageFeatureEncoder,
     check_pfm_crop_size,
     load_pfm_encoder,
-    pfm_feature_encoder,
     pfm_loss,
     project_encoder_features,
     random_feature_projection,
@@ -306,8 +300,6 @@ def test_total_loss_weights_l_simple_before_adding_lambda_pfm(vae, encoder) -> N
         ({"pfm_fraction": 0.0}, r"pfm_fraction must be in \(0, 1\], got 0.0"),
         ({"pfm_crop_size": 0}, r"pfm_crop_size must be >= 1 or None, got 0"),
         ({"pfm_balance": "vqgan"}, r"pfm_balance must be one of \('none', 'adaptive'\), got 'vqgan'"),
-        ({"pfm_snr_gamma": 0.0}, r"pfm_snr_gamma must be > 0 or None, got 0.0"),
-        ({"pfm_snr_gamma": float("inf")}, r"pfm_snr_gamma must be a finite number > 0 or None, got inf"),
         ({"drop_image_prob": 0.6, "drop_both_prob": 0.6}, r"drop_image_prob, .* got \(0.6, 0.6, 0.05\)"),
         ({"timestep_sampling": "cosine"}, r"timestep_sampling must be 'uniform' or 'logit_normal'"),
         ({"timestep_sampling": "logit_normal", "timestep_logit_std": 0.0}, r"timestep_logit_std must be > 0"),
@@ -555,7 +547,7 @@ def test_the_finetune_config_inherits_every_loss_setting_once_and_passes_each_th
         LossSettings()
     )
     changed = {"pfm_weight": 0.5, "pfm_min_snr": 0.2, "pfm_fraction": 0.5, "pfm_crop_size": 16,
-               "pfm_balance": "adaptive", "pfm_snr_gamma": 5.0, "drop_image_prob": 0.1,
+               "pfm_balance": "adaptive", "drop_image_prob": 0.1,
                "drop_both_prob": 0.1,
                "drop_latent_prob": 0.1, "timestep_sampling": "logit_normal", "timestep_logit_mean": 0.3,
                "timestep_logit_std": 0.7, "snr_gamma": 2.0, "azimuth_loss_weight": 0.5,
@@ -572,127 +564,31 @@ def test_the_finetune_config_inherits_every_loss_setting_once_and_passes_each_th
     assert parsed.pfm_balance == "adaptive" and parsed.snr_gamma == 5.0
 
 
-# ------------------------------------------------------------------- PFM's timestep weights and features
+def test_finetune_config_refuses_the_removed_pfm_variants_by_name() -> None:
+    """``pfm_features`` and ``pfm_snr_gamma`` were removed: a record holding their defaults still reads, any
+    other value is refused naming the field and why it went."""
+    from sar_zero123.config import drop_removed_fields
+    from sar_zero123.stages.finetune import FinetuneConfig
+
+    old_record = {"pfm_features": "pooled", "pfm_snr_gamma": None, "seed": 1}
+    assert drop_removed_fields(FinetuneConfig, old_record, "run") == {"seed": 1}
+    with pytest.raises(ValueError, match=r"^run: pfm_features='stages', but pfm_features was removed: "):
+        drop_removed_fields(FinetuneConfig, {"pfm_features": "stages"}, "run")
+    with pytest.raises(ValueError, match=r"^run: pfm_snr_gamma=5.0, but pfm_snr_gamma was removed: "):
+        drop_removed_fields(FinetuneConfig, {"pfm_snr_gamma": 5.0}, "run")
 
 
-def test_pfm_snr_weights_are_min_snr_over_gamma() -> None:
-    scheduler = scheduler_for("scaled_linear")
-    timesteps = torch.tensor([0, 50, 200, 500, 999])
-    snr = scheduler.alphas_cumprod[timesteps] / (1 - scheduler.alphas_cumprod[timesteps])  # by hand
-    weights = pfm_snr_weights(timesteps, scheduler, 5.0)
-    torch.testing.assert_close(weights, torch.minimum(snr, torch.tensor(5.0)) / 5.0)
-    assert weights[0] == 1.0 and 0 < weights[-1] < 1e-3  # full weight at low noise, ~SNR/5 at high
-    assert (weights[:-1] >= weights[1:]).all()  # never grows with t
-    for gamma in (0.0, -1.0, float("inf"), float("nan")):
-        with pytest.raises(ValueError, match="pfm_snr_gamma must be a positive finite number"):
-            pfm_snr_weights(timesteps, scheduler, gamma)
-
-
-@pytest.mark.parametrize("balance", ["none", "adaptive"])
-def test_total_loss_weights_each_pfm_sample_by_its_snr_weight(vae, encoder, balance) -> None:
-    scheduler = scheduler_for("scaled_linear")
-    generator = torch.Generator().manual_seed(5)
-    x_t = torch.randn(3, 4, 16, 16, generator=generator)
-    output = torch.randn(3, 4, 16, 16, generator=generator)
-    target = output + 0.01 * torch.randn(3, 4, 16, 16, generator=generator)  # L_simple's pull below the cap
-    images = torch.rand(3, 1, 32, 32, generator=generator)
-    timesteps = torch.tensor([10, 300, 900])
-    kwargs = dict(pfm_weight=2.0, target_images=images, vae=vae, encoder=encoder, pfm_min_snr=0.0,
-                  pfm_balance=balance)
-    plain = total_loss(output, target, x_t, timesteps, scheduler, **kwargs)
-    weighted = total_loss(output, target, x_t, timesteps, scheduler, pfm_snr_gamma=5.0, **kwargs)
-    weights = pfm_snr_weights(timesteps, scheduler, 5.0)
-    torch.testing.assert_close(weighted.pfm, plain.pfm * weights)
-    torch.testing.assert_close(weighted.denoising, plain.denoising)
-    if balance == "none":
-        torch.testing.assert_close(weighted.loss, weighted.denoising + 2.0 * plain.pfm * weights)
-    else:  # the balance sees the weighted term: its scale is ||grad L_simple|| / ||grad of the weighted PFM||
-        leaf = output.clone().requires_grad_(True)
-        reference = total_loss(leaf, target, x_t, timesteps, scheduler, pfm_weight=1.0, target_images=images,
-                               vae=vae, encoder=encoder, pfm_min_snr=0.0, pfm_snr_gamma=5.0)  # fmt: skip
-        (grad_simple,) = torch.autograd.grad(reference.denoising.sum(), leaf, retain_graph=True)
-        (grad_pfm,) = torch.autograd.grad(reference.pfm.sum(), leaf)
-        expected = (grad_simple.norm() / grad_pfm.norm()).detach()
-        assert expected < MAX_PFM_BALANCE
-        torch.testing.assert_close(weighted.pfm_scale, expected)
-        torch.testing.assert_close(weighted.loss, weighted.denoising + 2.0 * expected * weighted.pfm)
-        assert not torch.allclose(weighted.pfm_scale, plain.pfm_scale)
-
-
-def _stage_encoder():
+def test_load_pfm_encoder_reads_a_frozen_encoder_at_its_size_and_adds_the_seeded_projection(tmp_path) -> None:
     from sar_zero123.encoder import SAREncoder, SAREncoderConfig
 
     torch.manual_seed(3)
     config = SAREncoderConfig(image_size=16, depths=(1, 1), hidden_sizes=(4, 8), embedding_size=4)
-    return frozen(SAREncoder(config))
-
-
-def test_stage_features_end_in_the_pooled_feature() -> None:
-    sar_encoder = _stage_encoder()
-    images = torch.rand(2, 1, 16, 16, generator=torch.Generator().manual_seed(0))
-    maps = sar_encoder.stage_features(images)
-    assert [tuple(m.shape[:2]) for m in maps] == [(2, 4), (2, 8)]
-    torch.testing.assert_close(maps[-1].mean(dim=(2, 3)), sar_encoder(images))
-    with pytest.raises(ValueError, match="x must be 16x16"):
-        sar_encoder.stage_features(torch.rand(1, 1, 8, 8))
-
-
-def test_stage_pfm_features_give_the_lpips_distance_with_unit_weights() -> None:
-    sar_encoder = _stage_encoder()
-    generator = torch.Generator().manual_seed(1)
-    a, b = torch.rand(2, 1, 16, 16, generator=generator), torch.rand(2, 1, 16, 16, generator=generator)
-    stages = pfm_feature_encoder(sar_encoder, "stages")
-    assert isinstance(stages, StageFeatureEncoder) and not stages.training
-    distance = (stages(a) - stages(b)).pow(2).sum(dim=1)
-    expected = torch.zeros(2)
-    for map_a, map_b in zip(sar_encoder.stage_features(a), sar_encoder.stage_features(b), strict=True):
-        unit_a = map_a / map_a.norm(dim=1, keepdim=True).clamp_min(1e-12)  # LPIPS's normalize_tensor
-        unit_b = map_b / map_b.norm(dim=1, keepdim=True).clamp_min(1e-12)
-        expected += (unit_a - unit_b).pow(2).sum(dim=1).mean(dim=(1, 2))
-    torch.testing.assert_close(distance, expected, rtol=1e-4, atol=1e-6)
-    assert (distance <= 2.0 * len(sar_encoder.config.hidden_sizes) + 1e-5).all()  # <= 2 per stage
-
-
-def test_normalized_pfm_features_are_unit_and_scale_free() -> None:
-    sar_encoder = _stage_encoder()
-    images = torch.rand(3, 1, 16, 16, generator=torch.Generator().manual_seed(2))
-    normalized = pfm_feature_encoder(sar_encoder, "normalized")
-    assert isinstance(normalized, NormalizedFeatureEncoder)
-    torch.testing.assert_close(normalized(images).norm(dim=1), torch.ones(3))
-    features = sar_encoder(images)
-    torch.testing.assert_close(normalized(images), features / features.norm(dim=1, keepdim=True))
-    assert pfm_feature_encoder(sar_encoder, "pooled") is sar_encoder  # Eq. 20 as written
-    assert PFM_FEATURES[0] == "pooled"
-
-
-def test_stage_pfm_is_finite_with_gradients_at_dead_relu_positions(vae) -> None:
-    sar_encoder = _stage_encoder()
-    stages = pfm_feature_encoder(sar_encoder, "stages")
-    x0_hat = torch.zeros(2, 4, 16, 16, requires_grad=True)  # decodes to a flat image: many zero maps
-    loss = pfm_loss(x0_hat, torch.zeros(2, 1, 32, 32), vae, stages)
-    loss.sum().backward()
-    assert torch.isfinite(loss).all() and torch.isfinite(x0_hat.grad).all()
-
-
-def test_load_pfm_encoder_features_and_refusals(tmp_path) -> None:
-    _stage_encoder().save_pretrained(tmp_path / "encoder")
-    assert isinstance(load_pfm_encoder(tmp_path / "encoder", image_size=16, features="stages"),
-                      StageFeatureEncoder)  # fmt: skip
-    with pytest.raises(ValueError, match="pfm_features must be one of"):
-        load_pfm_encoder(tmp_path / "encoder", image_size=16, features="layer3")
-    with pytest.raises(ValueError, match="pfm_projection_dim: the random projection applies to pooled"):
-        load_pfm_encoder(tmp_path / "encoder", image_size=16, projection_dim=10, features="normalized")
-
-
-def test_finetune_config_parses_pfm_features_and_refuses_a_projection_of_other_features() -> None:
-    from sar_zero123.config import parse_config
-    from sar_zero123.stages.finetune import FinetuneConfig
-
-    flags = ["--encoder", "e", "--pfm_features", "stages", "--pfm_snr_gamma", "5"]
-    parsed = parse_config(FinetuneConfig, flags)
-    assert parsed.pfm_features == "stages" and parsed.loss_settings().pfm_snr_gamma == 5.0
-    assert FinetuneConfig(encoder="e").pfm_features == "pooled"  # Eq. 20 by default
-    with pytest.raises(ValueError, match="pfm_features must be one of"):
-        FinetuneConfig(encoder="e", pfm_features="layer3")
-    with pytest.raises(ValueError, match="pfm_projection_dim: the random projection applies to pooled"):
-        FinetuneConfig(encoder="e", pfm_features="stages", pfm_projection_dim=10)
+    SAREncoder(config).save_pretrained(tmp_path / "encoder")
+    plain = load_pfm_encoder(tmp_path / "encoder", image_size=16)
+    assert isinstance(plain, SAREncoder) and not plain.training
+    assert not any(p.requires_grad for p in plain.parameters())
+    projected = load_pfm_encoder(tmp_path / "encoder", image_size=16, projection_dim=10, seed=2)
+    assert isinstance(projected, ProjectedFeatureEncoder) and projected.weight.shape == (10, 8)
+    torch.testing.assert_close(projected.weight, random_feature_projection(8, 10, seed=2))
+    with pytest.raises(ValueError, match=r"was trained on 16 px chips but training runs at image_size=32"):
+        load_pfm_encoder(tmp_path / "encoder", image_size=32)
