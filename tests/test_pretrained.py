@@ -66,7 +66,7 @@ def test_anything_else_is_returned_as_a_path_unchanged(path):
 def test_an_unknown_bundled_name_is_refused_listing_the_bundled_ones(tmp_path, monkeypatch):
     message = (
         r"'sar-zero123/nope': no bundled pipeline of that name; "
-        r"bundled: \['sar-zero123/sim-prior-proxy', 'sar-zero123/sim-prior-rotated'\]"
+        r"bundled: \['sar-zero123/sim-prior-identity', 'sar-zero123/sim-prior-rotated'\]"
     )
     for load in (resolve_pretrained, SARZero123Pipeline.from_pretrained, load_sar_zero123):
         with pytest.raises(FileNotFoundError, match=message):  # never a model-hub lookup
@@ -87,7 +87,8 @@ def test_a_retired_name_is_refused_in_one_line_naming_its_replacement(tiny_prior
     from sar_zero123.stages import quickstart
     from sar_zero123.stages.presets import SharedSettings
 
-    assert pretrained.RETIRED_PIPELINES == {"sar-zero123/sim-prior": SIM_PRIOR_ROTATED}
+    assert pretrained.RETIRED_PIPELINES == {"sar-zero123/sim-prior": SIM_PRIOR_ROTATED,
+                                            "sar-zero123/sim-prior-proxy": pretrained.SIM_PRIOR_IDENTITY}
     assert not is_bundled_name("sar-zero123/sim-prior") and "SIM_PRIOR" not in sar_zero123.__all__
     message = (
         r"^'sar-zero123/sim-prior': this bundled pipeline is retired; use 'sar-zero123/sim-prior-rotated' "
@@ -321,9 +322,9 @@ def test_bundled_proxy_prior_takes_its_proxy_and_gets_front_and_back_right() -> 
     each view's template-matched azimuth lies within 90 deg of the request for at least 3 of 4; without the
     azimuth it refuses, naming what to pass."""
     from sar_zero123.evaluation.template import read_templates
-    from sar_zero123.pretrained import SIM_PRIOR_PROXY
+    from sar_zero123.pretrained import SIM_PRIOR_IDENTITY
 
-    pipe, folder = _bundled("sim_prior_proxy", SIM_PRIOR_PROXY, "proxy prior")
+    pipe, folder = _bundled("sim_prior_identity", SIM_PRIOR_IDENTITY, "identity prior")
     assert pipe.pose_projection.config.spatial_pose == "proxy" and pipe.unet.config.in_channels == 20
     assert pipe.config.proxy["num_vehicles"] == 1000 and pipe.unet.dtype == torch.float32
     scaling = DecibelScaling.from_file(folder / SCALING_FILE)
@@ -353,7 +354,7 @@ def test_bundled_proxy_retrieval_ranks_the_default_bank_and_the_bundled_pipeline
 
     folder = resolve_retrieval(PROXY_RETRIEVAL)
     assert folder == PACKAGE_PRIOR.parent / "proxy_retrieval" and (folder / "manifest.json").is_file()
-    for name in ("sim_prior_proxy", "sim_prior_rotated"):
+    for name in ("sim_prior_identity", "sim_prior_rotated"):
         proxy = json.loads((PACKAGE_PRIOR.parent / name / "model_index.json").read_text())["proxy"]
         assert (proxy["shortlist"], proxy["retrieval"]) == (64, PROXY_RETRIEVAL)
     fields = ("num_vehicles", "first_seed", "blur_sigma_px", "render_seed")
