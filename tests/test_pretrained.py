@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -311,6 +312,18 @@ def test_bundling_stores_float16_weights_that_load_as_float32_with_the_sampler_r
         torch.testing.assert_close(value, pipe.unet.state_dict()[key].half().float(), rtol=0, atol=0)
     with pytest.raises(ValueError, match="exists"):
         bundle_pipeline(registry / "sim_prior_rotated", out)
+    # a fine-tune's lineage names its start, never by this machine's path (a retired folder by its name)
+    source = tmp_path / "tuned"
+    shutil.copytree(registry / "sim_prior_rotated", source)
+    index = json.loads((source / "model_index.json").read_text())
+    for start, named in [("/home/me/sar_zero123/pretrained/sim_prior_proxy", "sar-zero123/sim-prior-proxy"),
+                         ("/home/me/runs/warm/base/pipeline", "pipeline"),
+                         ("sar-zero123/sim-prior-rotated", "sar-zero123/sim-prior-rotated")]:  # fmt: skip
+        index["lineage"] = {"start": start, "start_weights": "ab" * 32}
+        (source / "model_index.json").write_text(json.dumps(index))
+        bundled = bundle_pipeline(source, tmp_path / f"lineage_{len(named)}")
+        lineage = json.loads((bundled / "model_index.json").read_text())["lineage"]
+        assert lineage == {"start": named, "start_weights": "ab" * 32}
     with pytest.raises(FileNotFoundError, match="model_index.json"):
         bundle_pipeline(tmp_path, tmp_path / "other")
     assert not list(tmp_path.glob(".*.tmp"))
