@@ -292,6 +292,7 @@ def test_bundled_rotated_prior_records_its_sampler_and_with_the_azimuth_gets_fro
     requested = [(a + d_az) % 360.0 for a in azimuths_deg]
     readings = read_templates(views, turntables, grid, list(range(4)), requested)
     assert readings.front_back_right.sum() >= 3, readings.azimuth_error_deg
+    assert readings.identity_kept.sum() >= 2, readings.identity_kept  # of 4 candidates (chance: 1)
 
 
 def test_bundling_stores_float16_weights_that_load_as_float32_with_the_sampler_recorded(tiny_prior, tmp_path):
@@ -329,16 +330,19 @@ def test_bundling_stores_float16_weights_that_load_as_float32_with_the_sampler_r
     assert not list(tmp_path.glob(".*.tmp"))
 
 
-def test_bundled_proxy_prior_takes_its_proxy_and_gets_front_and_back_right() -> None:
-    """The proxy-conditioned prior's plain call (the input's azimuth given; it fits and renders the proxy
-    itself, docs/results/proxy.md, section 5): on four named vehicles it never saw, asked for 150 deg turns,
-    each view's template-matched azimuth lies within 90 deg of the request for at least 3 of 4; without the
-    azimuth it refuses, naming what to pass."""
+def test_bundled_identity_prior_takes_its_proxy_and_gets_front_and_back_right() -> None:
+    """The identity prior's plain call (the input's azimuth given; it fits and renders the proxy itself and
+    reads the input as tokens, docs/results/identity.md, section 6): on four named vehicles it never saw,
+    asked for 150 deg turns, each view's template-matched azimuth lies within 90 deg of the request for at
+    least 3 of 4 and the best-matching of the four turntables is the input's own for at least 2 (measured: 2,
+    all four within 10 deg); without the azimuth it refuses, naming what to pass."""
     from sar_zero123.evaluation.template import read_templates
+    from sar_zero123.model.input_tokens import uses_input_tokens
     from sar_zero123.pretrained import SIM_PRIOR_IDENTITY
 
     pipe, folder = _bundled("sim_prior_identity", SIM_PRIOR_IDENTITY, "identity prior")
     assert pipe.pose_projection.config.spatial_pose == "proxy" and pipe.unet.config.in_channels == 20
+    assert uses_input_tokens(pipe.pose_projection)
     assert pipe.config.proxy["num_vehicles"] == 1000 and pipe.unet.dtype == torch.float32
     scaling = DecibelScaling.from_file(folder / SCALING_FILE)
     names, azimuths_deg, d_az = ("TANK", "TRUCK", "DOZER", "SPG"), (30.0, 120.0, 210.0, 300.0), 150.0
