@@ -26,7 +26,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from _common import script_parser
 
-from sar_zero123 import SIM_PRIOR_PROXY, SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained  # noqa: E402
+from sar_zero123 import SIM_PRIOR_IDENTITY, SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretrained  # noqa: E402
 from sar_zero123.config.json_io import write_json_atomic  # noqa: E402
 from sar_zero123.data import SCALING_FILE, DecibelScaling  # noqa: E402
 from sar_zero123.model import proxy as proxy_module  # noqa: E402
@@ -160,7 +160,7 @@ def main(argv: list[str] | None = None) -> dict:
     rows = [
         split(SIM_PRIOR_ROTATED, args.batch, args.repeats, with_azimuth=False),
         split(SIM_PRIOR_ROTATED, args.batch, args.repeats, with_azimuth=True),
-        split(SIM_PRIOR_PROXY, args.batch, args.repeats, with_azimuth=True),
+        split(SIM_PRIOR_IDENTITY, args.batch, args.repeats, with_azimuth=True),
     ]
     result = {"device": f"CPU, {torch.get_num_threads()} torch threads, torch {torch.__version__}",
               "rows": rows}

@@ -23,7 +23,7 @@ import numpy as np
 import torch
 from _common import script_parser
 
-from sar_zero123 import SIM_PRIOR_PROXY, resolve_pretrained
+from sar_zero123 import SIM_PRIOR_IDENTITY, resolve_pretrained
 from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling, load_magnitude
 from sar_zero123.model.proxy import fit_scores
@@ -45,7 +45,7 @@ def main(argv: list[str] | None = None) -> dict:
     parser.add_argument("--n", type=int, default=128, help="chips (each gives a vehicle and a clutter crop)")
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
-    folder = resolve_pretrained(SIM_PRIOR_PROXY)
+    folder = resolve_pretrained(SIM_PRIOR_IDENTITY)
     proxy = json.loads((folder / "model_index.json").read_text())["proxy"]
     scaling = DecibelScaling.from_file(folder / SCALING_FILE)
     with open(args.mstar / "index.csv", newline="") as handle:

@@ -2,7 +2,7 @@
 
     python benchmarks/proxy_mstar_depression.py --mstar ../shared/data/mstar \
         --eoc1 ../shared/data/mstar_eoc1 --out proxy_mstar_depression.json \
-        [--proxy_pipeline sar-zero123/sim-prior-proxy]
+        [--proxy_pipeline sar-zero123/sim-prior-identity]
 
 For the serials of EOC-1's test set (2S1, BRDM2, T72, ZSU234: their 30 deg chips in ``--eoc1``), each pair's
 input is a 17 deg chip of ``--mstar`` (a 64 px centre crop at the native 0.2 m spacing), the request is

@@ -21,7 +21,7 @@ _LAZY = {
     "embed_pose": "sar_zero123.model.conditioning",
     "SAREncoder": "sar_zero123.encoder",
     "SIM_PRIOR_ROTATED": "sar_zero123.pretrained",
-    "SIM_PRIOR_PROXY": "sar_zero123.pretrained",
+    "SIM_PRIOR_IDENTITY": "sar_zero123.pretrained",
     "resolve_pretrained": "sar_zero123.pretrained",
 }
 

@@ -47,7 +47,7 @@ from sar_zero123.domain import MAX_IMAGE_SIZE, naming_write_errors
 from sar_zero123.model.pipeline import MAX_ABS_D_EL_DEG, SARZero123Pipeline
 from sar_zero123.model.sampler import SamplerSettings
 from sar_zero123.model.view_request import check_target_depression
-from sar_zero123.pretrained import SIM_PRIOR_PROXY, SIM_PRIOR_ROTATED, resolve_pretrained
+from sar_zero123.pretrained import SIM_PRIOR_IDENTITY, SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import RunFolder, StageTimer, data_identity, finish_run
 from sar_zero123.runs.launch import check_device
@@ -96,7 +96,7 @@ class GenerateConfig(SamplerSettings):
     )  # fmt: skip
 
     # SARZero123Pipeline.save_pretrained folder, or a bundled one's name; None: the best measured for this
-    # chip, sim-prior-proxy when its azimuth is known (--input_azimuth, a raw MSTAR header), else
+    # chip, sim-prior-identity when its azimuth is known (--input_azimuth, a raw MSTAR header), else
     # sim-prior-rotated (docs/results/proxy.md)
     pipeline: str | None = None
     image: str = ""  # input chip (PNG/JPEG/TIFF, .npy, .mat or raw MSTAR file)
@@ -119,7 +119,7 @@ class GenerateConfig(SamplerSettings):
             raise ValueError("image: an input chip file is required")
         if self.pipeline is None:  # resolved here, so that the run's record names the pipeline it used
             known = self.input_azimuth is not None or chip_azimuth_deg(self.image) is not None
-            self.pipeline = SIM_PRIOR_PROXY if known else SIM_PRIOR_ROTATED
+            self.pipeline = SIM_PRIOR_IDENTITY if known else SIM_PRIOR_ROTATED
         if not self.pipeline:
             raise ValueError("pipeline: a pipeline folder is required")
         if not self.d_az:

@@ -247,7 +247,7 @@ def test_default_pipeline_is_the_bundled_prior_with_17_deg_and_a_note(registry_d
                                                                       monkeypatch, capsys):
     assert GenerateConfig(image="chip.png").pipeline == SIM_PRIOR_ROTATED
     # with the chip's azimuth known, the prior conditioned on a simulator proxy fitted to it
-    assert GenerateConfig(image="chip.png", input_azimuth=30.0).pipeline == pretrained.SIM_PRIOR_PROXY
+    assert GenerateConfig(image="chip.png", input_azimuth=30.0).pipeline == pretrained.SIM_PRIOR_IDENTITY
     assert GenerateConfig(image="chip.png", input_azimuth=30.0, pipeline="p").pipeline == "p"
     monkeypatch.setattr(pretrained, "PRETRAINED_DIR", registry_dir)
     _, default = _run(tmp_path, "default", "--image", str(chip_png), "--d-az", "30", "--d-el", "10")

@@ -5,6 +5,7 @@ from __future__ import annotations
 import functools
 import json
 import re
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -66,7 +67,7 @@ def test_anything_else_is_returned_as_a_path_unchanged(path):
 def test_an_unknown_bundled_name_is_refused_listing_the_bundled_ones(tmp_path, monkeypatch):
     message = (
         r"'sar-zero123/nope': no bundled pipeline of that name; "
-        r"bundled: \['sar-zero123/sim-prior-proxy', 'sar-zero123/sim-prior-rotated'\]"
+        r"bundled: \['sar-zero123/sim-prior-identity', 'sar-zero123/sim-prior-rotated'\]"
     )
     for load in (resolve_pretrained, SARZero123Pipeline.from_pretrained, load_sar_zero123):
         with pytest.raises(FileNotFoundError, match=message):  # never a model-hub lookup
@@ -87,7 +88,8 @@ def test_a_retired_name_is_refused_in_one_line_naming_its_replacement(tiny_prior
     from sar_zero123.stages import quickstart
     from sar_zero123.stages.presets import SharedSettings
 
-    assert pretrained.RETIRED_PIPELINES == {"sar-zero123/sim-prior": SIM_PRIOR_ROTATED}
+    assert pretrained.RETIRED_PIPELINES == {"sar-zero123/sim-prior": SIM_PRIOR_ROTATED,
+                                            "sar-zero123/sim-prior-proxy": pretrained.SIM_PRIOR_IDENTITY}
     assert not is_bundled_name("sar-zero123/sim-prior") and "SIM_PRIOR" not in sar_zero123.__all__
     message = (
         r"^'sar-zero123/sim-prior': this bundled pipeline is retired; use 'sar-zero123/sim-prior-rotated' "
@@ -290,6 +292,7 @@ def test_bundled_rotated_prior_records_its_sampler_and_with_the_azimuth_gets_fro
     requested = [(a + d_az) % 360.0 for a in azimuths_deg]
     readings = read_templates(views, turntables, grid, list(range(4)), requested)
     assert readings.front_back_right.sum() >= 3, readings.azimuth_error_deg
+    assert readings.identity_kept.sum() >= 2, readings.identity_kept  # of 4 candidates (chance: 1)
 
 
 def test_bundling_stores_float16_weights_that_load_as_float32_with_the_sampler_recorded(tiny_prior, tmp_path):
@@ -310,21 +313,36 @@ def test_bundling_stores_float16_weights_that_load_as_float32_with_the_sampler_r
         torch.testing.assert_close(value, pipe.unet.state_dict()[key].half().float(), rtol=0, atol=0)
     with pytest.raises(ValueError, match="exists"):
         bundle_pipeline(registry / "sim_prior_rotated", out)
+    # a fine-tune's lineage names its start, never by this machine's path (a retired folder by its name)
+    source = tmp_path / "tuned"
+    shutil.copytree(registry / "sim_prior_rotated", source)
+    index = json.loads((source / "model_index.json").read_text())
+    for start, named in [("/home/me/sar_zero123/pretrained/sim_prior_proxy", "sar-zero123/sim-prior-proxy"),
+                         ("/home/me/runs/warm/base/pipeline", "pipeline"),
+                         ("sar-zero123/sim-prior-rotated", "sar-zero123/sim-prior-rotated")]:  # fmt: skip
+        index["lineage"] = {"start": start, "start_weights": "ab" * 32}
+        (source / "model_index.json").write_text(json.dumps(index))
+        bundled = bundle_pipeline(source, tmp_path / f"lineage_{len(named)}")
+        lineage = json.loads((bundled / "model_index.json").read_text())["lineage"]
+        assert lineage == {"start": named, "start_weights": "ab" * 32}
     with pytest.raises(FileNotFoundError, match="model_index.json"):
         bundle_pipeline(tmp_path, tmp_path / "other")
     assert not list(tmp_path.glob(".*.tmp"))
 
 
-def test_bundled_proxy_prior_takes_its_proxy_and_gets_front_and_back_right() -> None:
-    """The proxy-conditioned prior's plain call (the input's azimuth given; it fits and renders the proxy
-    itself, docs/results/proxy.md, section 5): on four named vehicles it never saw, asked for 150 deg turns,
-    each view's template-matched azimuth lies within 90 deg of the request for at least 3 of 4; without the
-    azimuth it refuses, naming what to pass."""
+def test_bundled_identity_prior_takes_its_proxy_and_gets_front_and_back_right() -> None:
+    """The identity prior's plain call (the input's azimuth given; it fits and renders the proxy itself and
+    reads the input as tokens, docs/results/identity.md, section 6): on four named vehicles it never saw,
+    asked for 150 deg turns, each view's template-matched azimuth lies within 90 deg of the request for at
+    least 3 of 4 and the best-matching of the four turntables is the input's own for at least 2 (measured: 2,
+    all four within 10 deg); without the azimuth it refuses, naming what to pass."""
     from sar_zero123.evaluation.template import read_templates
-    from sar_zero123.pretrained import SIM_PRIOR_PROXY
+    from sar_zero123.model.input_tokens import uses_input_tokens
+    from sar_zero123.pretrained import SIM_PRIOR_IDENTITY
 
-    pipe, folder = _bundled("sim_prior_proxy", SIM_PRIOR_PROXY, "proxy prior")
+    pipe, folder = _bundled("sim_prior_identity", SIM_PRIOR_IDENTITY, "identity prior")
     assert pipe.pose_projection.config.spatial_pose == "proxy" and pipe.unet.config.in_channels == 20
+    assert uses_input_tokens(pipe.pose_projection)
     assert pipe.config.proxy["num_vehicles"] == 1000 and pipe.unet.dtype == torch.float32
     scaling = DecibelScaling.from_file(folder / SCALING_FILE)
     names, azimuths_deg, d_az = ("TANK", "TRUCK", "DOZER", "SPG"), (30.0, 120.0, 210.0, 300.0), 150.0
@@ -353,7 +371,7 @@ def test_bundled_proxy_retrieval_ranks_the_default_bank_and_the_bundled_pipeline
 
     folder = resolve_retrieval(PROXY_RETRIEVAL)
     assert folder == PACKAGE_PRIOR.parent / "proxy_retrieval" and (folder / "manifest.json").is_file()
-    for name in ("sim_prior_proxy", "sim_prior_rotated"):
+    for name in ("sim_prior_identity", "sim_prior_rotated"):
         proxy = json.loads((PACKAGE_PRIOR.parent / name / "model_index.json").read_text())["proxy"]
         assert (proxy["shortlist"], proxy["retrieval"]) == (64, PROXY_RETRIEVAL)
     fields = ("num_vehicles", "first_seed", "blur_sigma_px", "render_seed")

@@ -21,9 +21,9 @@ def test_the_python_example_runs_and_gives_a_view_in_the_normalised_db_domain():
     assert 0.0 <= view.min() and view.max() <= 1.0
     assert namespace["scaling"].denormalize(view).shape == (64, 64, 1)
     # seeded: the same view on every run of this torch build (a slice across the vehicle, and the mean)
-    expected = [0.3383, 0.3152, 0.3234, 0.3200, 0.2984, 0.2869, 0.2774, 0.2704]
+    expected = [0.2906, 0.2821, 0.3055, 0.3131, 0.3037, 0.2984, 0.2787, 0.2592]
     np.testing.assert_allclose(view[30, 28:36, 0], expected, atol=2e-3)
-    assert float(view.mean()) == pytest.approx(0.4015, abs=1e-3)
+    assert float(view.mean()) == pytest.approx(0.4037, abs=1e-3)
 
 
 def test_every_command_in_the_readme_bash_blocks_exists():

@@ -21,7 +21,7 @@ __all__ = [
     "BUNDLED_PIPELINES",
     "PRETRAINED_DIR",
     "RETIRED_PIPELINES",
-    "SIM_PRIOR_PROXY",
+    "SIM_PRIOR_IDENTITY",
     "SIM_PRIOR_ROTATED",
     "PROXY_RETRIEVAL",
     "is_bundled_name",
@@ -33,9 +33,11 @@ __all__ = [
 #: (``spatial_pose="rotated_input"``): turns unseen vehicles' footprints (model card:
 #: ``sim_prior_rotated.md``).
 SIM_PRIOR_ROTATED = "sar-zero123/sim-prior-rotated"
-#: ``sim-prior-rotated`` taught to read a simulator proxy fitted to its input (``spatial_pose="proxy"``):
-#: needs the input's absolute azimuth (model card: ``sim_prior_proxy.md``).
-SIM_PRIOR_PROXY = "sar-zero123/sim-prior-proxy"
+#: ``sim-prior-rotated`` taught to read a simulator proxy fitted to its input (``spatial_pose="proxy"``), with
+#: the input's own latent as cross-attention tokens and pairs whose proxy is the vehicle itself, so that a
+#: turned vehicle keeps more of its own identity: needs the input's absolute azimuth (model card:
+#: ``sim_prior_identity.md``).
+SIM_PRIOR_IDENTITY = "sar-zero123/sim-prior-identity"
 #: The learned shortlist of the default proxy bank (:class:`~sar_zero123.model.retrieval.ProxyRetrievalNet`;
 #: model card: ``proxy_retrieval.md``): a proxy fit in 64 renders instead of 1,000.
 PROXY_RETRIEVAL = "sar-zero123/proxy-retrieval"
@@ -47,10 +49,13 @@ BUNDLED_NAMESPACE = "sar-zero123/"
 #: Registered name -> folder under :data:`PRETRAINED_DIR`.
 BUNDLED_PIPELINES: dict[str, str] = {
     SIM_PRIOR_ROTATED: "sim_prior_rotated",
-    SIM_PRIOR_PROXY: "sim_prior_proxy",
+    SIM_PRIOR_IDENTITY: "sim_prior_identity",
 }
 #: A name no longer bundled -> the bundled name that replaces it (its weights remain in the git history).
-RETIRED_PIPELINES: dict[str, str] = {"sar-zero123/sim-prior": SIM_PRIOR_ROTATED}
+RETIRED_PIPELINES: dict[str, str] = {
+    "sar-zero123/sim-prior": SIM_PRIOR_ROTATED,
+    "sar-zero123/sim-prior-proxy": SIM_PRIOR_IDENTITY,
+}
 #: Where the bundled folders live (this package's own folder).
 PRETRAINED_DIR = Path(__file__).resolve().parent
 

@@ -4,8 +4,9 @@
 
 copies ``PIPELINE`` to ``sar_zero123/pretrained/NAME`` with floating ``*.safetensors`` tensors cast to
 float16 (a pipeline loads them as float32, so measure the bundled folder, not the run's), no
-``_name_or_path`` in any ``config.json``, and ``model_index.json``'s ``sampler`` merged with the given
-fields. It is written beside its final name and renamed into place; an existing ``NAME`` is refused.
+``_name_or_path`` in any ``config.json``, a lineage's start named rather than given by its path, and
+``model_index.json``'s ``sampler`` merged with the given fields. It is written beside its final name and
+renamed into place; an existing ``NAME`` is refused.
 Registering the name and its model card are left to the developer.
 """
 
@@ -21,6 +22,7 @@ from typing import Any
 
 from safetensors.torch import load_file, save_file
 
+from sar_zero123.pretrained import BUNDLED_PIPELINES, RETIRED_PIPELINES
 from sar_zero123.runs.manifest import write_manifest
 
 __all__ = ["bundle_pipeline"]
@@ -58,6 +60,8 @@ def bundle_pipeline(
                 config_path.write_text(json.dumps(config, indent=2, sort_keys=True) + "\n")
         index_path = scratch / "model_index.json"
         index = json.loads(index_path.read_text())
+        if isinstance(index.get("lineage"), dict):  # the start by name, not by this machine's path
+            index["lineage"]["start"] = _start_name(index["lineage"].get("start"))
         if sampler is not None:
             index["sampler"] = {**(index.get("sampler") or {}), **sampler}
         index_path.write_text(json.dumps(index, indent=2, sort_keys=True) + "\n")
@@ -67,6 +71,17 @@ def bundle_pipeline(
         shutil.rmtree(scratch, ignore_errors=True)
         raise
     return target
+
+
+def _start_name(start: Any) -> Any:
+    """A lineage's start as a bundled (or retired) name where it is one's folder, else its folder's name
+    where it is an absolute path; anything else as it is."""
+    if not isinstance(start, str) or not Path(start).is_absolute():
+        return start
+    folder = Path(start).name
+    known = (*BUNDLED_PIPELINES, *RETIRED_PIPELINES)
+    names = {name.split("/", 1)[1].replace("-", "_"): name for name in known}
+    return names.get(folder, folder)
 
 
 def main(argv: Sequence[str] | None = None) -> Path:

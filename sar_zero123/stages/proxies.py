@@ -2,7 +2,7 @@
 (:func:`~sar_zero123.data.corpus_proxies.write_corpus_proxies`) under the run-folder rule.
 
 A pipeline whose UNet takes the simulator proxy (``spatial_pose="proxy"``, the bundled
-``sar-zero123/sim-prior-proxy``) fine-tunes on pairs that carry each chip's proxies at both poses. The
+``sar-zero123/sim-prior-identity``) fine-tunes on pairs that carry each chip's proxies at both poses. The
 quickstart runs this stage when its preset's prior takes the proxy: the bank is fitted to one view of each
 vehicle (its first chip in ``index.csv``; a vehicle is a class and serial), and the best bank vehicles are
 rendered at every chip's pose. The data folder is only read; the proxies land in this stage's own folder.

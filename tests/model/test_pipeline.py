@@ -744,7 +744,7 @@ def test_one_chip_asked_for_several_views_is_fitted_once(monkeypatch):
 @pytest.mark.parametrize(
     ("name", "match"),
     [("sim-prior-rotated", r"did you mean 'sar-zero123/sim-prior-rotated'\?"),
-     ("SAR-ZERO123/sim-prior-proxy", r"did you mean 'sar-zero123/sim-prior-proxy'\?"),
+     ("SAR-ZERO123/sim-prior-identity", r"did you mean 'sar-zero123/sim-prior-identity'\?"),
      ("./nope", r"'./nope': no such pipeline folder"), ("/no/such/folder", r"no such pipeline folder")],
 )  # fmt: skip
 def test_a_missing_local_name_lists_the_bundled_pipelines_instead_of_a_hub_error(name, match):

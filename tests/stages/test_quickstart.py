@@ -169,7 +169,7 @@ def test_a_proxy_prior_plans_a_proxies_stage_that_every_fine_tune_conditions_on(
     before the fine-tunes, each of which reads its proxies; the evaluations start where their sampler says.
     The stage writes the proxies into its own folder and a second run finds them finished."""
     out = tmp_path / "run"
-    override = ["shared.prior=sar-zero123/sim-prior-proxy", "shared.image_size=64",
+    override = ["shared.prior=sar-zero123/sim-prior-identity", "shared.image_size=64",
                 "evaluate.sampler.start_from='proxy'"]
     between, by_name = _planned(out, override)
     assert between == ["proxies", "finetune lambda=0", "finetune lambda=4"]

@@ -56,7 +56,7 @@ def test_bundled_recipes_load_extend_a_parent_and_set_only_what_differs() -> Non
             for field, value in flat.items():
                 current = parent.value(section, field)
                 assert (list(current) if isinstance(current, tuple) else current) != value, (name, field)
-    assert RECIPES["proxy"].shared.prior == "sar-zero123/sim-prior-proxy"
+    assert RECIPES["proxy"].shared.prior == "sar-zero123/sim-prior-identity"
     assert RECIPES["proxy"].value("evaluate", "sampler.start_from") == "proxy"
     assert RECIPES["default"].value("evaluate", "sampler.heading_guidance_scale") == 1.5
     # two levels of extends: mstar-prior's VAE widths are mstar's, its prior the default's
