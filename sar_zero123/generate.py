@@ -44,9 +44,9 @@ from sar_zero123.data import (
 from sar_zero123.data.mstar_raw import is_mstar_raw
 from sar_zero123.data.splits import TRAIN_DEPRESSION_DEG
 from sar_zero123.domain import MAX_IMAGE_SIZE, naming_write_errors
-from sar_zero123.model.pipeline import MAX_ABS_D_EL_DEG, SARZero123Pipeline
+from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.sampler import SamplerSettings
-from sar_zero123.model.view_request import check_target_depression
+from sar_zero123.model.view_request import check_delta_bounds, check_target_depression
 from sar_zero123.pretrained import SIM_PRIOR_IDENTITY, SIM_PRIOR_ROTATED, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import RunFolder, StageTimer, data_identity, finish_run
@@ -97,7 +97,7 @@ class GenerateConfig(SamplerSettings):
 
     # SARZero123Pipeline.save_pretrained folder, or a bundled one's name; None: the best measured for this
     # chip, sim-prior-identity when its azimuth is known (--input_azimuth, a raw MSTAR header), else
-    # sim-prior-rotated (docs/results/proxy.md)
+    # sim-prior-rotated (docs/results/identity.md)
     pipeline: str | None = None
     image: str = ""  # input chip (PNG/JPEG/TIFF, .npy, .mat or raw MSTAR file)
     d_az: list[float] = field(default_factory=lambda: [30.0, 60.0, 90.0])  # azimuth deltas in degrees
@@ -131,11 +131,7 @@ class GenerateConfig(SamplerSettings):
             )
         if not all(np.isfinite(self.d_az)) or not all(np.isfinite(self.d_el)):
             raise ValueError(f"d_az/d_el must be finite, got {self.d_az} and {self.d_el}")
-        if any(abs(v) >= MAX_ABS_D_EL_DEG for v in self.d_el):
-            raise ValueError(
-                f"d_el must lie in (-{MAX_ABS_D_EL_DEG:g}, {MAX_ABS_D_EL_DEG:g}) degrees (a difference of "
-                f"two depression angles), got {self.d_el}"
-            )
+        check_delta_bounds(self.d_az, self.d_el)
         if len(self.d_el) not in (1, len(self.d_az)):
             raise ValueError(f"d_el: give 1 value or one per d_az ({len(self.d_az)}), got {len(self.d_el)}")
         if self.input_azimuth is not None and not np.isfinite(self.input_azimuth):

@@ -347,9 +347,11 @@ PROBES: list[tuple[str, str, Argv, int, str]] = [
     ("generate d_el 1e999", "generate", lambda i: _generate(i, "p81", "--d_el", "1e999"), 2,
      r"argument --d_el/--d-el: invalid finite_float value: '1e999'"),
     ("generate d_el 91", "generate", lambda i: _generate(i, "p82", "--d_el", "91"), 2,
-     r"error: d_el must lie in \(-90, 90\) degrees \(a difference of two depression angles\), got \[91.0\]"),
+     r"error: `d_el` must lie in \(-90, 90\) degrees \(a difference of two depression angles in \(0, 90\)\), "
+     r"got 91 "),
     ("generate d_el 90, no input depression", "generate", lambda i: _generate(i, "p82b", "--d_el", "90"), 2,
-     r"error: d_el must lie in \(-90, 90\) degrees \(a difference of two depression angles\), got \[90.0\]"),
+     r"error: `d_el` must lie in \(-90, 90\) degrees \(a difference of two depression angles in \(0, 90\)\), "
+     r"got 90 "),
     ("generate three d_el for one d_az", "generate",
      lambda i: _generate(i, "p83", "--d_el", "0", "0", "0"), 2,
      r"error: d_el: give 1 value or one per d_az \(1\), got 3"),

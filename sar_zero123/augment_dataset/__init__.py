@@ -58,13 +58,10 @@ from sar_zero123.config.json_io import config_to_dict, read_json, write_json_ato
 from sar_zero123.data import ChipRecord, DecibelScaling, load_index, load_magnitude
 from sar_zero123.domain import INDEX_COLUMNS, naming_write_errors
 from sar_zero123.generate import GenerateConfig, _resolve_scaling, load_input_chip
-from sar_zero123.model.pipeline import (
-    MAX_ABS_D_AZ_DEG,
-    MAX_ABS_D_EL_DEG,
-    SARZero123Pipeline,
-)
+from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.proxy import DATASET_SHORTLIST, fit_scores, with_shortlist
 from sar_zero123.model.sampler import SamplerSettings, scheduler_name
+from sar_zero123.model.view_request import check_delta_bounds
 from sar_zero123.pretrained import SIM_PRIOR_ROTATED, is_bundled_name, resolve_pretrained
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.folder import (
@@ -169,11 +166,7 @@ class AugmentConfig(SamplerSettings):
                 raise ValueError(f"{name} must be finite, got {getattr(self, name)}")
         if not all(0.0 <= a < 360.0 for a in self.target_azimuths_deg):
             raise ValueError(f"target_azimuths_deg must lie in [0, 360), got {self.target_azimuths_deg}")
-        az_limit, el_limit = f"{MAX_ABS_D_AZ_DEG:g}", f"{MAX_ABS_D_EL_DEG:g}"
-        if any(abs(v) > MAX_ABS_D_AZ_DEG for v in self.d_az):
-            raise ValueError(f"d_az must lie in [-{az_limit}, {az_limit}] degrees, got {self.d_az}")
-        if any(abs(v) >= MAX_ABS_D_EL_DEG for v in self.d_el):
-            raise ValueError(f"d_el must lie in (-{el_limit}, {el_limit}) degrees, got {self.d_el}")
+        check_delta_bounds(self.d_az, self.d_el)
         check_minimum(self, "batch_size", minimum=1)
         if self.batch_size > MAX_BATCH_SIZE:
             raise ValueError(f"batch_size must be <= {MAX_BATCH_SIZE} views per call, got {self.batch_size}")

@@ -19,8 +19,8 @@ from sar_zero123.model.spatial_pose import takes_proxy
 
 __all__ = [
     "MAX_ABS_D_AZ_DEG", "MAX_ABS_D_EL_DEG", "Angles", "ViewRequest", "broadcast_pose", "check_proxy_views",
-    "check_real_angles", "check_target_depression", "per_input_angles", "pose_with_depression",
-    "view_request",
+    "check_delta_bounds", "check_real_angles", "check_target_depression", "per_input_angles",
+    "pose_with_depression", "view_request",
 ]  # fmt: skip
 
 #: A depression delta is the difference of two depression angles in (0, 90) degrees: |d_el| < 90.
@@ -138,19 +138,31 @@ def broadcast_pose(d_az: Angles, d_el: Angles, batch_size: int) -> torch.Tensor:
         if count not in (1, batch_size):
             raise ValueError(f"`{name}` has {count} values; expected 1 or one per input image ({batch_size})")
     pose = embed_pose(d_az, d_el)  # (1 | B, 1, 4); cannot fail on angles that passed the checks above
-    largest = float(torch.as_tensor(d_el, dtype=torch.float64).abs().max())
-    if largest >= MAX_ABS_D_EL_DEG:  # no input depression in (0, 90) reaches a target in (0, 90) from here
-        raise ValueError(
-            f"`d_el` must lie in (-{MAX_ABS_D_EL_DEG:g}, {MAX_ABS_D_EL_DEG:g}) degrees (a difference of two "
-            f"depression angles in (0, 90)), got {largest:g}"
-        )
-    largest = float(torch.as_tensor(d_az, dtype=torch.float64).abs().max())
-    if largest > MAX_ABS_D_AZ_DEG:
-        raise ValueError(
-            f"`d_az` must lie in [-{MAX_ABS_D_AZ_DEG:g}, {MAX_ABS_D_AZ_DEG:g}] degrees (larger values lose "
-            f"the angle's precision: a unit error?), got {largest:g}"
-        )
+    check_delta_bounds(d_az, d_el)
     return pose.expand(batch_size, -1, -1) if pose.shape[0] == 1 else pose
+
+
+def check_delta_bounds(d_az: Angles, d_el: Angles) -> None:
+    """``|d_el| < 90`` (no input depression in (0, 90) reaches a target in (0, 90) from further) and
+    ``|d_az| <=`` :data:`MAX_ABS_D_AZ_DEG`: the one bound of the call, ``generate`` and ``augment`` (which
+    check it before loading a pipeline). Empty angles pass.
+
+    Raises:
+        ValueError: Naming the angle, its bound and the largest magnitude given.
+    """
+    for name, value in (("d_el", d_el), ("d_az", d_az)):
+        magnitudes = torch.as_tensor(value, dtype=torch.float64).abs()
+        largest = float(magnitudes.max()) if magnitudes.numel() else 0.0
+        if name == "d_el" and largest >= MAX_ABS_D_EL_DEG:
+            raise ValueError(
+                f"`d_el` must lie in (-{MAX_ABS_D_EL_DEG:g}, {MAX_ABS_D_EL_DEG:g}) degrees (a difference of "
+                f"two depression angles in (0, 90)), got {largest:g}"
+            )
+        if name == "d_az" and largest > MAX_ABS_D_AZ_DEG:
+            raise ValueError(
+                f"`d_az` must lie in [-{MAX_ABS_D_AZ_DEG:g}, {MAX_ABS_D_AZ_DEG:g}] degrees (larger values "
+                f"lose the angle's precision: a unit error?), got {largest:g}"
+            )
 
 
 def pose_with_depression(

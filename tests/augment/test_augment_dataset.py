@@ -396,6 +396,10 @@ def test_config_refuses_bad_values(data_dir, pipeline_dir):
         AugmentConfig(**base, d_az=[30.0], batch_size=0)
     with pytest.raises(FileNotFoundError, match="^data: "):
         AugmentConfig(**{**base, "data": str(data_dir / "missing")}, d_az=[30.0])
+    with pytest.raises(ValueError, match=r"^`d_el` must lie in \(-90, 90\) degrees .*got 90$"):
+        AugmentConfig(**base, d_az=[30.0], d_el=[0.0, -90.0])  # no depression in (0, 90) reaches a target
+    with pytest.raises(ValueError, match=r"^`d_az` must lie in \[-1e\+06, 1e\+06\] degrees .*got 2e\+06$"):
+        AugmentConfig(**base, d_az=[2e6])
 
 
 def test_depression_guidance_reaches_each_view_and_is_recorded(data_dir, tmp_path):
