@@ -23,6 +23,7 @@ __all__ = [
     "CLIP_IMAGE_MEAN",
     "CLIP_IMAGE_STD",
     "POSE_DIM",
+    "PROXY_FORMS",
     "PoseProjection",
     "SPATIAL_POSE_MODES",
     "VAE_SIGNATURE_FIELDS",
@@ -43,6 +44,9 @@ CLIP_IMAGE_MEAN = (0.48145466, 0.4578275, 0.40821073)
 CLIP_IMAGE_STD = (0.26862954, 0.26130258, 0.27577711)
 #: What the UNet sees of the input besides its latent (``spatial_pose.unet_condition_latents``).
 SPATIAL_POSE_MODES = (None, "rotated_input", "proxy")
+#: How a ``"proxy"`` model reads its proxy (``spatial_pose.proxy_condition_views``): the simulator render
+#: itself, or its geometry alone (shadow, ground and lit masks; no simulator intensities).
+PROXY_FORMS = ("render", "geometry")
 #: Image-plane turn per degree of azimuth in the built-in simulator's convention (and the prior's).
 SIMULATOR_ROTATION_SIGN = -1
 
@@ -186,10 +190,11 @@ class PoseProjection(ModelMixin, ConfigMixin):
         input_token_layers: ``n > 0``: each of ``n`` cross-attentions also attends to the input tokens
             (:mod:`~sar_zero123.model.input_tokens`), gated by ``token_gates``.
         input_token_channels: The latent channels the token projection takes.
+        proxy_form: One of :data:`PROXY_FORMS`: what a ``"proxy"`` model encodes of each proxy view.
 
     Raises:
         ValueError: If ``in_features <= 4``, ``out_features < 1``, a range is not ``[min, max]``,
-            ``spatial_pose`` is unknown or ``rotation_sign`` not +-1.
+            ``spatial_pose`` or ``proxy_form`` is unknown or ``rotation_sign`` not +-1.
     """
 
     @register_to_config
@@ -207,8 +212,11 @@ class PoseProjection(ModelMixin, ConfigMixin):
         reference_layers: int = 0,
         input_token_layers: int = 0,
         input_token_channels: int = 0,
+        proxy_form: str = "render",
     ) -> None:
         super().__init__()
+        if proxy_form not in PROXY_FORMS:
+            raise ValueError(f"`proxy_form` must be one of {PROXY_FORMS}, got {proxy_form!r}")
         for name, value in (
             ("input_token_layers", input_token_layers),
             ("input_token_channels", input_token_channels),

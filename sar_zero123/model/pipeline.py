@@ -53,7 +53,7 @@ from sar_zero123.model.sampler import (
     check_sampler_start,
     resolve_sampler,
 )
-from sar_zero123.model.spatial_pose import rotate_condition_latents, takes_proxy
+from sar_zero123.model.spatial_pose import proxy_form, rotate_condition_latents, takes_proxy
 from sar_zero123.model.view_request import (
     MAX_ABS_D_AZ_DEG,
     MAX_ABS_D_EL_DEG,
@@ -250,7 +250,8 @@ class SARZero123Pipeline(PipelineLoadingMixin, DiffusionPipeline):
         proxy_pairs = None
         if takes_proxy(self.pose_projection):  # the proxy pair of each branch's request
             kinds = [kind for kind, _, _ in contrasts]
-            proxy_pairs = proxy_latents(self.vae, request, kinds, self._proxy(), device).to(dtype)
+            form = proxy_form(self.pose_projection)
+            proxy_pairs = proxy_latents(self.vae, request, kinds, self._proxy(), device, form).to(dtype)
         return guided_condition(
             encoder, pose, contrasts, input_latents, sampler["guidance_scale"], proxy_pairs,
             self.vae.config.scaling_factor,

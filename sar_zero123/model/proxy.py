@@ -19,7 +19,7 @@ import torch
 from sar_zero123.data import DecibelScaling
 from sar_zero123.data.scaling import ZERO_MAGNITUDE_DB
 from sar_zero123.model.conditioning import as_angle_tensor, encode_condition_latents
-from sar_zero123.model.spatial_pose import proxy_pair_latents
+from sar_zero123.model.spatial_pose import proxy_condition_views, proxy_pair_latents
 from sar_zero123.model.view_request import Angles, ViewRequest, per_input_angles
 from sar_zero123.sim.proxy import MAX_RENDERED_BANK, PROXY_FIRST_SEED, ProxyBank
 
@@ -330,20 +330,22 @@ def proxy_latents(
     contrast_kinds: Sequence[str],
     proxy: Mapping[str, Any] | None,
     device: torch.device,
+    form: str = "render",
 ) -> torch.Tensor:
     """The proxy pair (at the input's pose, at the branch's request) of the request and of each
     contrast branch (``"heading"``: ``d_az + 180``; ``"depression"``: ``d_el = 0``), one fit per input;
-    given ``request.proxy_views``, every branch takes them.
+    given ``request.proxy_views``, every branch takes them. Each view is encoded in the model's ``form``
+    (:func:`~sar_zero123.model.spatial_pose.proxy_condition_views`).
 
     Returns:
         ``(1 + len(contrast_kinds), B, 2C, h, w)``, unscaled latents.
     """
     if request.proxy_views is not None:
         views = request.proxy_views.to(device=device, dtype=torch.float32)
-        pair = proxy_pair_latents(vae, views[:, :1], views[:, 1:2])
+        pair = proxy_pair_latents(vae, views[:, :1], views[:, 1:2], form)
         flipped = pair
         if views.shape[1] == 3:  # the proxy at the flipped heading, for the heading contrast
-            flipped = proxy_pair_latents(vae, views[:, :1], views[:, 2:3])
+            flipped = proxy_pair_latents(vae, views[:, :1], views[:, 2:3], form)
         return torch.stack([pair] + [flipped if kind == "heading" else pair for kind in contrast_kinds])
     batch_size = request.batch_size
     d_az_values = as_angle_tensor(request.d_az, "d_az").expand(batch_size)
@@ -367,6 +369,6 @@ def proxy_latents(
         request.images.repeat_interleave(count, dim=0), d_az_all, d_el_all, input_azimuth_deg,
         input_depression_deg, proxy, "spatial_pose='proxy'",
     )  # fmt: skip
-    latents = encode_condition_latents(vae, drafts.to(device))
+    latents = encode_condition_latents(vae, proxy_condition_views(drafts.to(device), form))
     latents = latents.reshape(batch_size, count, *latents.shape[1:])
     return torch.stack([torch.cat([latents[:, 0], latents[:, r]], dim=1) for r in range(1, count)])

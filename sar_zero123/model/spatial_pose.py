@@ -7,15 +7,28 @@ and the requested pose. Training and sampling build the UNet's input with :func:
 
 from __future__ import annotations
 
+import numpy as np
 import torch
 import torch.nn.functional as F
+from scipy.ndimage import gaussian_filter
 
-from sar_zero123.model.conditioning import POSE_DIM, SPATIAL_POSE_MODES, encode_condition_latents
+from sar_zero123.model.conditioning import (
+    POSE_DIM,
+    PROXY_FORMS,
+    SPATIAL_POSE_MODES,
+    encode_condition_latents,
+)
 
 __all__ = [
     "check_turn_inputs",
     "condition_channels",
+    "GEOMETRY_BLUR_PX",
+    "GEOMETRY_THRESHOLD",
+    "proxy_condition_views",
+    "proxy_form",
+    "proxy_geometry",
     "proxy_pair_latents",
+    "use_proxy_geometry",
     "rotate_condition_latents",
     "takes_proxy",
     "unet_condition_latents",
@@ -38,6 +51,73 @@ def takes_proxy(pose_projection: torch.nn.Module) -> bool:
     """Whether the model's UNet takes the simulator proxy pair (``spatial_pose == "proxy"``)."""
     config = getattr(pose_projection, "module", pose_projection).config
     return getattr(config, "spatial_pose", None) == "proxy"
+
+
+#: Gaussian blur (pixels) a proxy view takes before its masks are drawn: the bank's fit blur, which
+#: averages the speckle of one render away.
+GEOMETRY_BLUR_PX = 1.5
+#: A blurred pixel is lit (shadow) where it lies this many robust standard deviations (1.4826 x the median
+#: absolute deviation) above (below) the view's median, the ground clutter's level.
+GEOMETRY_THRESHOLD = 2.0
+#: The spread below which a view is flat (all ground): a constant view has no geometry.
+_MIN_SPREAD = 1e-6
+
+
+def proxy_geometry(views: torch.Tensor) -> torch.Tensor:
+    """A proxy view's geometry without its intensities: shadow 0, ground 0.5, lit 1.
+
+    Each view (normalised dB, any affine map of decibels) is blurred by :data:`GEOMETRY_BLUR_PX` (scipy's
+    ``gaussian_filter``, reflected border); pixels more than :data:`GEOMETRY_THRESHOLD` robust standard
+    deviations from its median are lit or shadow, the rest ground. Where the proxy vehicle is wrong in its
+    scatterers but right in its footprint and shadow, only what is right reaches the UNet, and the input
+    must supply the intensities (a real chip's, not the simulator's).
+
+    Shape:
+        ``(B, 1 | 3, H, W) -> (B, 1, H, W)``, float32 on the views' device.
+
+    Raises:
+        ValueError: If ``views`` is not 4-D or not finite.
+    """
+    if views.ndim != 4 or not torch.isfinite(views).all():
+        raise ValueError(f"proxy views: expected finite (B, 1 | 3, H, W), got shape {tuple(views.shape)}")
+    gray = views.detach().float().mean(dim=1).cpu().numpy()  # (B, H, W)
+    blurred = gaussian_filter(gray, sigma=(0.0, GEOMETRY_BLUR_PX, GEOMETRY_BLUR_PX), mode="reflect")
+    median = np.median(blurred, axis=(1, 2), keepdims=True)
+    spread = 1.4826 * np.median(np.abs(blurred - median), axis=(1, 2), keepdims=True)
+    bound = GEOMETRY_THRESHOLD * np.maximum(spread, _MIN_SPREAD)
+    masks = np.full_like(blurred, 0.5)
+    masks[blurred > median + bound] = 1.0
+    masks[blurred < median - bound] = 0.0
+    return torch.from_numpy(masks[:, None].astype(np.float32)).to(views.device)
+
+
+def proxy_form(pose_projection: torch.nn.Module) -> str:
+    """What a (possibly DDP-wrapped) proxy model reads of its proxy: one of :data:`PROXY_FORMS`."""
+    config = getattr(pose_projection, "module", pose_projection).config
+    return getattr(config, "proxy_form", "render")
+
+
+def proxy_condition_views(views: torch.Tensor, form: str) -> torch.Tensor:
+    """Proxy views as a model of ``form`` encodes them: the render itself, or :func:`proxy_geometry`.
+
+    Raises:
+        ValueError: If ``form`` is not one of :data:`PROXY_FORMS`.
+    """
+    if form not in PROXY_FORMS:
+        raise ValueError(f"`proxy_form` must be one of {PROXY_FORMS}, got {form!r}")
+    return views if form == "render" else proxy_geometry(views)
+
+
+def use_proxy_geometry(pose_projection: torch.nn.Module) -> None:
+    """Make a proxy model read its proxies as geometry (:func:`proxy_geometry`) from now on; its weights
+    are kept, so a fine-tune adapts them.
+
+    Raises:
+        ValueError: If the model does not take a proxy.
+    """
+    if not takes_proxy(pose_projection):
+        raise ValueError("proxy_geometry: only a spatial_pose='proxy' model reads a proxy")
+    pose_projection.register_to_config(proxy_form="geometry")
 
 
 def check_turn_inputs(latents: torch.Tensor, pose: torch.Tensor, rotation_sign: int) -> None:
@@ -118,14 +198,18 @@ def unet_condition_latents(
     return torch.cat([condition_latents, turned, proxy_latents.to(condition_latents.dtype)], dim=1)
 
 
-def proxy_pair_latents(vae: torch.nn.Module, at_input: torch.Tensor, at_target: torch.Tensor) -> torch.Tensor:
-    """The unscaled VAE posterior modes of the proxy at the input's and at the requested pose, stacked.
+def proxy_pair_latents(
+    vae: torch.nn.Module, at_input: torch.Tensor, at_target: torch.Tensor, form: str = "render"
+) -> torch.Tensor:
+    """The unscaled VAE posterior modes of the proxy at the input's and at the requested pose, stacked,
+    each view in the model's ``form`` (:func:`proxy_condition_views`).
 
     Shape:
         ``(B, 1 | 3, H, W)`` twice -> ``(B, 2C, h, w)``.
     """
     return torch.cat(
-        [encode_condition_latents(vae, at_input), encode_condition_latents(vae, at_target)], dim=1
+        [encode_condition_latents(vae, proxy_condition_views(view, form)) for view in (at_input, at_target)],
+        dim=1,
     )
 
 

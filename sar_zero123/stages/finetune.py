@@ -34,7 +34,13 @@ from sar_zero123.model.build import load_sar_zero123, record_trained_pose_ranges
 from sar_zero123.model.conditioning import SPATIAL_POSE_MODES, vae_signature
 from sar_zero123.model.input_tokens import enable_input_tokens, uses_input_tokens
 from sar_zero123.model.reference_attention import enable_reference_attention, uses_reference
-from sar_zero123.model.spatial_pose import takes_proxy, widen_for_proxy
+from sar_zero123.model.spatial_pose import (
+    proxy_condition_views,
+    proxy_form,
+    takes_proxy,
+    use_proxy_geometry,
+    widen_for_proxy,
+)
 from sar_zero123.pretrained import resolve_pretrained
 from sar_zero123.runs.checkpoints import (
     RESUME_MAY_DIFFER,
@@ -136,6 +142,8 @@ class FinetuneConfig(LossSettings):
     reference_attention: bool = False
     # every cross-attention also attends to the input's latent, a token per place (added with zero gates)
     input_tokens: bool = False
+    # a proxy model reads each proxy as its shadow, ground and lit masks, not the simulator's intensities
+    proxy_geometry: bool = False
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
     # train only rank-r LoRA factors of the UNet, merged at export; None: every UNet weight trains
     lora_rank: int | None = None
@@ -357,6 +365,8 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneIn
         enable_reference_attention(pipe.unet, pipe.pose_projection)  # a warm start: every gate zero
     if config.input_tokens and not uses_input_tokens(pipe.pose_projection):
         enable_input_tokens(pipe.unet, pipe.pose_projection, pipe.vae.config.latent_channels)
+    if config.proxy_geometry and proxy_form(pipe.pose_projection) != "geometry":
+        use_proxy_geometry(pipe.pose_projection)  # the proxy's masks replace its render from now on
     image_size = training_image_size(pipe, config.image_size)
     encoder = None
     if config.pfm_weight > 0:
@@ -453,6 +463,10 @@ def _prepare_training(
             if has_oracle and config.proxy_oracle_prob == 0:  # the fitted candidates only
                 magnitudes = magnitudes[:, :-1]
             proxies = train_dataset.scaling.normalize(magnitudes).float()
+            if proxy_form(pipe.pose_projection) == "geometry":  # each candidate as the model reads it
+                size = proxies.shape[-2:]
+                geometry = proxy_condition_views(proxies.reshape(-1, 1, *size), "geometry")
+                proxies = geometry.reshape(*proxies.shape)
         cache = ChipLatentCache.encode(
             load_chip_images(train_dataset), vae, frozen_tower, proxy_images=proxies
         ).to(cache_device)

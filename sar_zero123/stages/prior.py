@@ -95,6 +95,7 @@ class PriorConfig:
     proxy_oracle_prob: float = 0.0  # "proxy": share of pairs given the vehicle itself as proxy (LossSettings)
     reference_attention: bool = False  # the UNet's self-attentions also attend to the input's own features
     input_tokens: bool = False  # the UNet's cross-attentions also attend to the input's latent, by place
+    proxy_geometry: bool = False  # "proxy": the UNet reads each proxy as shadow, ground and lit masks
     vae: str | None = None  # an AutoencoderKL folder to use (e.g. the bundled prior's vae/); None trains one
     init: str | None = None  # a prior (name or folder) to continue with its own VAE (warm start)
     vae_widths: list[int] = field(default_factory=lambda: [16, 32, 64])  # VAE block widths (16x16 latents)
@@ -280,6 +281,7 @@ def prior_base_config(config: PriorConfig, vae: Path, corpus: Path | None = None
         proxy_oracle_prob=config.proxy_oracle_prob,
         reference_attention=config.reference_attention,
         input_tokens=config.input_tokens,
+        proxy_geometry=config.proxy_geometry,
         same_depression=False,
         snr_gamma=config.snr_gamma,
         pfm_weight=0.0,

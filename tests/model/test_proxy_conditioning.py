@@ -318,3 +318,32 @@ def test_a_chip_no_vehicle_fits_is_refused_below_the_floor() -> None:
     for bad in (1.5, float("nan"), True, "0.3"):
         with pytest.raises(ValueError, match=r"proxy.min_fit_score: expected a correlation in \[-1, 1\]"):
             draft_target_views(chip, *pose, *request, {**proxy, "min_fit_score": bad})
+
+
+def test_a_geometry_fine_tune_caches_the_proxies_masks_and_exports_its_form(
+    corpus: Path, tmp_path: Path, monkeypatch
+) -> None:
+    from sar_zero123.model.spatial_pose import proxy_form
+    from sar_zero123.stages.finetune import FinetuneConfig, run_finetune
+    from sar_zero123.training.latent_cache import ChipLatentCache
+
+    seen = []
+    original = ChipLatentCache.encode.__func__
+
+    def spy(cls, images, vae, *args, proxy_images=None, **kwargs):
+        seen.append(proxy_images)
+        return original(cls, images, vae, *args, proxy_images=proxy_images, **kwargs)
+
+    monkeypatch.setattr(ChipLatentCache, "encode", classmethod(spy))
+    start = build_sar_zero123("tiny", seed=0, spatial_pose="rotated_input")
+    start.save_pretrained(tmp_path / "start")
+    config = FinetuneConfig(
+        output_dir=str(tmp_path / "run"), pretrained=str(tmp_path / "start"), spatial_pose="proxy",
+        proxy_geometry=True, data=str(corpus), protocol="ood-PROCVAL", pfm_weight=0.0, train_batch_size=2,
+        max_train_steps=1, validation_steps=0, checkpointing_steps=1, num_validation_images=2, use_ema=False,
+        report_to="none", same_depression=False,
+    )  # fmt: skip
+    run_finetune(config)
+    assert set(torch.unique(seen[0]).tolist()) <= {0.0, 0.5, 1.0}  # every candidate as its masks
+    pipe = SARZero123Pipeline.from_pretrained(tmp_path / "run" / "pipeline")
+    assert proxy_form(pipe.pose_projection) == "geometry"
