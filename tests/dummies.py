@@ -73,3 +73,18 @@ def read_the_pose(pose_projection: PoseProjection, seed: int = 2) -> PoseProject
     with torch.no_grad():
         pose_projection.projection.weight[:, -POSE_DIM:].normal_(generator=generator)
     return pose_projection
+
+
+def proxy_pipeline(proxy: dict):
+    """A tiny ``spatial_pose="proxy"`` pipeline whose proxy pair moves the output, with ``proxy`` settings."""
+    import torch
+
+    from sar_zero123.model.build import build_sar_zero123
+    from sar_zero123.model.pipeline import SARZero123Pipeline
+    from sar_zero123.model.spatial_pose import widen_for_proxy
+
+    pipe = build_sar_zero123("tiny", seed=0, spatial_pose="rotated_input")
+    widen_for_proxy(pipe.unet, pipe.pose_projection)
+    with torch.no_grad():
+        pipe.unet.conv_in.weight[:, 12:].normal_(0.0, 0.05, generator=torch.Generator().manual_seed(1))
+    return SARZero123Pipeline(**pipe.components, proxy=proxy)

@@ -9,6 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import torch
+from dummies import proxy_pipeline
 
 from sar_zero123.data import load_index
 from sar_zero123.data.corpus_proxies import (
@@ -167,11 +168,7 @@ def test_a_training_step_takes_the_best_proxy_or_a_runner_up_at_its_rate() -> No
 
 
 def _proxy_pipeline() -> SARZero123Pipeline:
-    pipe = build_sar_zero123("tiny", seed=0, spatial_pose="rotated_input")
-    widen_for_proxy(pipe.unet, pipe.pose_projection)
-    with torch.no_grad():  # the proxy pair now moves the output
-        pipe.unet.conv_in.weight[:, 12:].normal_(0.0, 0.05, generator=torch.Generator().manual_seed(1))
-    return SARZero123Pipeline(**pipe.components, proxy=PROXY)
+    return proxy_pipeline(PROXY)
 
 
 def test_a_proxy_pipeline_fits_its_proxy_and_needs_the_input_pose(tmp_path: Path, monkeypatch) -> None:

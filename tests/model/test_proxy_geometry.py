@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 import torch
+from dummies import proxy_pipeline
 
 from sar_zero123.data import DecibelScaling
 from sar_zero123.domain import to_decibels
@@ -17,7 +18,6 @@ from sar_zero123.model.spatial_pose import (
     proxy_form,
     proxy_geometry,
     use_proxy_geometry,
-    widen_for_proxy,
 )
 from sar_zero123.sim.proxy import ProxyBank
 
@@ -75,11 +75,7 @@ def test_forms_are_checked_by_name_and_old_models_read_the_render() -> None:
 
 
 def _proxy_pipeline() -> SARZero123Pipeline:
-    pipe = build_sar_zero123("tiny", seed=0, spatial_pose="rotated_input")
-    widen_for_proxy(pipe.unet, pipe.pose_projection)
-    with torch.no_grad():  # the proxy pair now moves the output
-        pipe.unet.conv_in.weight[:, 12:].normal_(0.0, 0.05, generator=torch.Generator().manual_seed(1))
-    return SARZero123Pipeline(**pipe.components, proxy=PROXY)
+    return proxy_pipeline(PROXY)
 
 
 def test_a_geometry_model_reads_the_masks_of_the_views_it_is_given_or_fits(tmp_path) -> None:
