@@ -237,6 +237,11 @@ class FinetuneConfig(LossSettings):
             raise ValueError(f"rehearsal_max_chips must be None or >= 2, got {self.rehearsal_max_chips}")
         if self.spatial_pose not in SPATIAL_POSE_MODES:
             raise ValueError(f"spatial_pose must be one of {SPATIAL_POSE_MODES}, got {self.spatial_pose!r}")
+        if self.proxy_geometry and self.pretrained is None and self.spatial_pose != "proxy":
+            raise ValueError(
+                "proxy_geometry: only a spatial_pose='proxy' model reads a proxy; got a model built with "
+                f"spatial_pose={self.spatial_pose!r}"
+            )
         if self.spatial_pose not in (None, "proxy") and self.pretrained is not None:
             raise ValueError(
                 "spatial_pose: only for a model built from scratch (--size), or 'proxy' (a 'rotated_input' "
@@ -463,10 +468,8 @@ def _prepare_training(
             if has_oracle and config.proxy_oracle_prob == 0:  # the fitted candidates only
                 magnitudes = magnitudes[:, :-1]
             proxies = train_dataset.scaling.normalize(magnitudes).float()
-            if proxy_form(pipe.pose_projection) == "geometry":  # each candidate as the model reads it
-                size = proxies.shape[-2:]
-                geometry = proxy_condition_views(proxies.reshape(-1, 1, *size), "geometry")
-                proxies = geometry.reshape(*proxies.shape)
+            flat = proxies.reshape(-1, 1, *proxies.shape[-2:])  # each candidate as the model reads it
+            proxies = proxy_condition_views(flat, proxy_form(pipe.pose_projection)).reshape(proxies.shape)
         cache = ChipLatentCache.encode(
             load_chip_images(train_dataset), vae, frozen_tower, proxy_images=proxies
         ).to(cache_device)

@@ -141,6 +141,11 @@ class PriorConfig:
                 f"model_size must be one of {sorted(SAR_ZERO123_SIZES)}, got {self.model_size!r}"
             )
         LossSettings(proxy_oracle_prob=self.proxy_oracle_prob)
+        if self.proxy_geometry and self.init is None and self.spatial_pose != "proxy":
+            raise ValueError(
+                "proxy_geometry: only a spatial_pose='proxy' prior reads a proxy (--spatial_pose proxy), got "
+                f"spatial_pose={self.spatial_pose!r}"
+            )
         if self.init is not None:
             defaults = {item.name: item.default for item in dataclasses.fields(PriorConfig)}
             kept = ("model_size", "prediction_type", "input_depression")  # image_size sizes the corpus

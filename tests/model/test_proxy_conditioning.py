@@ -344,3 +344,9 @@ def test_a_geometry_fine_tune_caches_the_proxies_masks_and_exports_its_form(
     assert set(torch.unique(seen[0]).tolist()) <= {0.0, 0.5, 1.0}  # every candidate as its masks
     pipe = SARZero123Pipeline.from_pretrained(tmp_path / "run" / "pipeline")
     assert proxy_form(pipe.pose_projection) == "geometry"
+    with pytest.raises(ValueError, match="proxy_geometry: only a spatial_pose='proxy' model"):
+        FinetuneConfig(proxy_geometry=True, pfm_weight=0.0, spatial_pose="rotated_input")
+    from sar_zero123.stages.prior import PriorConfig
+
+    with pytest.raises(ValueError, match="proxy_geometry: only a spatial_pose='proxy' prior"):
+        PriorConfig(proxy_geometry=True)
