@@ -1,7 +1,7 @@
 """Is the VAE the bottleneck? Class and pose kept through each VAE's round trip, with and without speckle.
 
-    python benchmarks/vae_round_trip.py --vae sar-zero123/sim-prior-rotated RUN/vae_decoder/vae \\
-        --names prior "decoder fine-tuned" --evaluators RUN/evaluators --data DATA --protocol ood-T72 \\
+    python benchmarks/vae_round_trip.py --vae sar-zero123/sim-prior-rotated sar-zero123/sim-prior-proxy \\
+        --names rotated proxy --evaluators RUN/evaluators --data DATA --protocol ood-T72 \\
         --n 800 --speckle_looks 1 --out vae_round_trip.json
 
 Scores the target views of the evaluate stage's pairs (the same pairs for the same ``--n``, ``--seed`` and

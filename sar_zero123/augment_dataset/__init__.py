@@ -44,8 +44,6 @@ from typing import Any
 import numpy as np
 import torch
 
-from sar_zero123.augment import rayleigh_speckle
-from sar_zero123.augment.codomain import readd_speckle
 from sar_zero123.augment_dataset.plan import (
     ViewRequest,
     check_trained_ranges,
@@ -53,7 +51,7 @@ from sar_zero123.augment_dataset.plan import (
     select_records,
     view_generator,
 )
-from sar_zero123.config import check_minimum, check_output_dir, parse_config
+from sar_zero123.config import RemovedField, check_minimum, check_output_dir, parse_config
 from sar_zero123.config.json_io import config_to_dict, read_json, write_json_atomic
 from sar_zero123.data import ChipRecord, DecibelScaling, load_index, load_magnitude
 from sar_zero123.domain import INDEX_COLUMNS, naming_write_errors
@@ -108,6 +106,7 @@ MAX_BATCH_SIZE = 256
 MAX_REQUESTS_PER_CHIP = 4096
 #: Most views one augmentation writes (about 64 GiB of 128 px float32 chips).
 MAX_AUGMENT_VIEWS = 1_000_000
+_SPECKLE = "speckle re-added to the generated views made a classifier trained on them less accurate"
 
 
 @dataclass
@@ -122,8 +121,13 @@ class AugmentConfig(SamplerSettings):
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "batch_size", "speckle_sigma", "speckle_looks", "scaling_file", "device", "include_real",
+        "batch_size", "scaling_file", "device", "include_real",
     )  # fmt: skip
+    REMOVED_FIELDS = {
+        "speckle": RemovedField(False, _SPECKLE),
+        "speckle_sigma": RemovedField(10.0, _SPECKLE),
+        "speckle_looks": RemovedField(None, _SPECKLE),
+    }
 
     data: str = ""  # dataset folder: index.csv, or a tree of original MSTAR files
     pipeline: str = SIM_PRIOR_ROTATED  # SARZero123Pipeline.save_pretrained folder, or a bundled one's name
@@ -137,9 +141,6 @@ class AugmentConfig(SamplerSettings):
     include_real: bool = False  # also list the selected real chips (generated 0, absolute paths)
     batch_size: int = 8  # views per pipeline call (a view changes with it by float rounding only)
     seed: int = 0  # view (row, request) is sampled with view_generator(seed, row, request)
-    speckle: bool = False  # re-add Rayleigh speckle (Eq. 17-18) to the generated magnitudes
-    speckle_sigma: float = 10.0  # Rayleigh sigma of the speckle (with --speckle)
-    speckle_looks: int | None = None  # re-add L-look log speckle (readd_speckle) in dB, instead of --speckle
     scaling_file: str | None = None  # DecibelScaling JSON (default: <pipeline>/decibel_scaling.json or unit)
     device: str = "cpu"  # torch device
     resume: bool = True  # continue an out folder holding this augmentation (the default); --no-resume refuses
@@ -178,13 +179,6 @@ class AugmentConfig(SamplerSettings):
             )
         check_minimum(self, "max_chips_per_class", minimum=1, optional=True)
         check_minimum(self, "seed", minimum=0)
-        check_minimum(self, "speckle_sigma", minimum=0.0, strict=True)
-        check_minimum(self, "speckle_looks", minimum=1, optional=True)
-        if self.speckle and self.speckle_looks is not None:
-            raise ValueError(
-                f"speckle/speckle_looks: choose one speckle model, got speckle=True and "
-                f"speckle_looks={self.speckle_looks}"
-            )
         if not Path(self.data).is_dir():
             raise FileNotFoundError(f"data: dataset folder not found: {self.data!r}")
         if not resolve_pretrained(self.pipeline).is_dir():
@@ -244,6 +238,7 @@ def _check_out_folder(out: Path, options: dict[str, Any]) -> bool:
 
     return check_options_folder(
         out, options, record=AUGMENT_FILE, what="augmentation", defaults=field_defaults(AugmentConfig),
+        removed_from=AugmentConfig,
         identity_field=PIPELINE_DIGEST, identity_message=other_weights,
     )  # fmt: skip
 
@@ -385,7 +380,6 @@ def augment_dataset(config: AugmentConfig) -> Path:
     pending = [batch for batch in batches if not all((out / view.path).is_file() for view in batch)]
     for folder in sorted({(out / view.path).parent for batch in pending for view in batch}):
         folder.mkdir(parents=True, exist_ok=True)
-    speckle_sigma = config.speckle_sigma if config.speckle else None
     with progress_bar(total=sum(len(batch) for batch in pending), desc="augmenting", unit="view") as progress:
         for batch in pending:
             chips = np.stack([prepared_chip(view.record.path) for view in batch])  # (B, S, S)
@@ -393,14 +387,7 @@ def augment_dataset(config: AugmentConfig) -> Path:
             for view, image in zip(batch, images):
                 if (out / view.path).is_file():  # written before a kill, from this same batch
                     continue
-                speckle = view_generator(config.seed, view.row_index, view.request_index, stream=1)
-                magnitude = _view_magnitude(
-                    image,
-                    scaling,
-                    speckle_sigma=speckle_sigma,
-                    speckle_looks=config.speckle_looks,
-                    generator=speckle,
-                )
+                magnitude = _view_magnitude(image, scaling)
                 buffer = io.BytesIO()
                 np.save(buffer, magnitude)
                 _write_atomic(out / view.path, buffer.getvalue())
@@ -474,28 +461,10 @@ def _generate(
     ).images[..., 0]
 
 
-def _view_magnitude(
-    image: np.ndarray,
-    scaling: DecibelScaling,
-    *,
-    speckle_sigma: float | None = None,
-    speckle_looks: int | None = None,
-    generator: torch.Generator | None = None,
-) -> np.ndarray:
-    """A generated view (normalised dB) as the float32 magnitude written to disk; with ``speckle_sigma``,
-    Rayleigh speckle (Eq. 17-18, :func:`~sar_zero123.augment.rayleigh_speckle`) is re-added to its
-    magnitude; with ``speckle_looks``, L-look log speckle with its dB mean removed
-    (:func:`~sar_zero123.augment.codomain.readd_speckle`) is added to it in normalised dB first."""
-    if speckle_looks is not None:
-        view = torch.from_numpy(np.ascontiguousarray(image, dtype=np.float32))[None, None]  # (1, 1, S, S)
-        image = readd_speckle(view.clamp(0.0, 1.0), scaling.max_db - scaling.min_db, speckle_looks, generator)
-        image = image[0, 0].numpy()
+def _view_magnitude(image: np.ndarray, scaling: DecibelScaling) -> np.ndarray:
+    """A generated view (normalised dB) as the float32 magnitude written to disk."""
     peak = float(scaling.denormalize(np.float64(1.0)))  # the largest magnitude the scaling represents
-    magnitude = np.clip(scaling.denormalize(image.astype(np.float64)), 0.0, peak)
-    if speckle_sigma is not None:
-        unit = torch.from_numpy(magnitude / peak)[None, None]  # (1, 1, S, S) in [0, 1]
-        magnitude = rayleigh_speckle(unit, speckle_sigma, generator=generator)[0, 0].numpy() * peak
-    return magnitude.astype(np.float32)
+    return np.clip(scaling.denormalize(image.astype(np.float64)), 0.0, peak).astype(np.float32)
 
 
 def _index_rows(

@@ -186,18 +186,17 @@ def check_trained_ranges(
             )
 
 
-def view_generator(seed: int, row_index: int, request_index: int, stream: int = 0) -> torch.Generator:
+def view_generator(seed: int, row_index: int, request_index: int) -> torch.Generator:
     """CPU generator of one view; a pure function of its arguments, whatever else the batch holds.
 
     Args:
         seed: The run's seed.
         row_index: The source chip's position in the source index.
         request_index: The request's position in the chip's requests.
-        stream: 0 for the pipeline's noise, 1 for the speckle.
 
     Returns:
         A seeded ``torch.Generator``.
     """
-    key = [seed, row_index, request_index, stream]
+    key = [seed, row_index, request_index, 0]  # the trailing 0: the noise stream, as views were always drawn
     state = np.random.SeedSequence(key).generate_state(2, dtype=np.uint32)
     return torch.Generator().manual_seed(int(state[0]) << 32 | int(state[1]))

@@ -17,14 +17,13 @@ of it are what a user gets for a new vehicle. For each generated arm, ``view_qua
 views: the ceiling classifier's accuracy on the generated views against their source's class, on the VAE
 round trip of real 15 deg chips (the generator's decoder bound) and on the same real chips.
 
-Variant arms, from the same fine-tuned generator per K: ``--speckle_looks L`` adds
-``generated_k{K}_speckle{L}`` (the views with L-look speckle re-added, ``augment_dataset --speckle_looks``),
-``--heading_guidance H`` adds ``generated_k{K}_heading{H}`` (the plain views sampled with heading guidance
-``H``, ``SARZero123Pipeline``'s pull away from the request turned by 180 deg); ``--strength S`` adds
-``generated_k{K}_strength{S}`` (the views started from the kept chip's own latent,
-SDEdit); ``--same_azimuth_control`` adds the controls ``generated_k{K}_d_az0`` (and
-``..._strength{S}_d_az0``): the same views made at the chip's own azimuth, what the requested pose
-adds. Every plain generated arm (per K, the sector's, the unseen class's) gets the selected variants.
+Variant arms, from the same fine-tuned generator per K: ``--heading_guidance H`` adds
+``generated_k{K}_heading{H}`` (the plain views sampled with heading guidance ``H``, ``SARZero123Pipeline``'s
+pull away from the request turned by 180 deg); ``--strength S`` adds ``generated_k{K}_strength{S}`` (the
+views started from the kept chip's own latent, SDEdit); ``--same_azimuth_control`` adds the controls
+``generated_k{K}_d_az0`` (and ``..._strength{S}_d_az0``): the same views made at the chip's own azimuth,
+what the requested pose adds. Every plain generated arm (per K, the sector's, the unseen class's) gets the
+selected variants.
 
 ``--eoc1_data`` adds the depression transfer of MSTAR's EOC-1 (:class:`DepressionTransfer`): train on the
 17 deg chips of the objects whose chips that folder holds (2S1 b01, BRDM2 E-71, T72 A64, ZSU234 d08 in

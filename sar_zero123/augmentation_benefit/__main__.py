@@ -40,8 +40,6 @@ def main(argv: Sequence[str] | None = None) -> dict[str, Any]:
             parser.add_argument(flag, nargs="*", type=int, **words)
         elif name in ("rehearsal_data", "eoc1_data", "unseen_class"):
             parser.add_argument(flag, type=lambda s: None if s.lower() == "none" else s, **words)
-        elif name == "speckle_looks":
-            parser.add_argument(flag, type=lambda s: None if s.lower() == "none" else int(s), **words)
         elif name in ("strength", "heading_guidance", "depression_guidance"):
             parser.add_argument(flag, type=lambda s: None if s.lower() == "none" else float(s), **words)
         else:

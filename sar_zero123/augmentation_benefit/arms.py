@@ -148,10 +148,9 @@ class AugmentationBenefit:
 
     def generated_arm(
         self, kept: Sequence[ChipRecord], d_az: list[float], generator_dir: Path, description: str,
-        generator_records: Sequence[ChipRecord] | None = None, speckle_looks: int | None = None,
-        strength: float = 1.0, d_el: float = 0.0, heading_guidance: float = 0.0,
-        view_filter: str | None = None, filter_classifier: Path | None = None, views_tag: str = "",
-        depression_guidance: float = 0.0,
+        generator_records: Sequence[ChipRecord] | None = None, strength: float = 1.0, d_el: float = 0.0,
+        heading_guidance: float = 0.0, view_filter: str | None = None, filter_classifier: Path | None = None,
+        views_tag: str = "", depression_guidance: float = 0.0,
     ) -> Any:  # fmt: skip
         def build(arm_dir: Path) -> dict[str, Any]:
             trained_on = kept if generator_records is None else generator_records
@@ -161,7 +160,6 @@ class AugmentationBenefit:
                 kept,
                 generator_dir,
                 d_az,
-                speckle_looks,
                 strength,
                 d_el,
                 heading_guidance,
@@ -269,15 +267,12 @@ class AugmentationBenefit:
     ) -> list[dict[str, Any]]:  # fmt: skip
         """The selected variants of the plain arm `name`: the same generator's views made otherwise.
 
-        ``speckle_looks`` re-adds speckle, ``strength`` starts each view from its kept chip's noised latent,
+        ``strength`` starts each view from its kept chip's noised latent,
         ``same_azimuth_control`` makes the plain views and the strength views again at ``d_az = 0`` (what the
         requested pose adds), ``heading_guidance`` samples the plain views with that heading guidance.
         """
         config = self.config
         variants: list[tuple[dict[str, Any], bool, str]] = []
-        if config.speckle_looks is not None:
-            variants.append(({"speckle_looks": config.speckle_looks}, False,
-                             f"{config.speckle_looks}-look speckle re-added"))  # fmt: skip
         if config.same_azimuth_control:
             variants.append(({}, True, "at the chip's own azimuth"))
         if config.strength is not None:

@@ -33,7 +33,7 @@ RESULT_FILE = "result.json"
 
 #: Fields that only add or drop arms: a resumed benchmark may change them; any other change is refused.
 ARM_SELECTION_FIELDS = (
-    "data", "out", "ks", "sectors", "unseen_class", "unseen_k", "speckle_looks", "strength",
+    "data", "out", "ks", "sectors", "unseen_class", "unseen_k", "strength",
     "same_azimuth_control", "eoc1_data", "eoc1_ks", "eoc1_all", "eoc1_views_per_chip", "heading_guidance",
     "view_filters", "validation_chips_per_class", "depression_guidance",
 )  # fmt: skip
@@ -75,7 +75,6 @@ class AugmentationBenefitConfig:
     classifier_weight_decay: float = 5e-4  # AdamW weight decay
     max_shift_px: int = 4  # training augmentation: random shifts up to this many pixels
     quality_chips_per_class: int = 50  # 15 deg chips per class for the VAE round-trip bound
-    speckle_looks: int | None = None  # also arms whose views get L-look speckle re-added (None: no such arms)
     strength: float | None = None  # also arms whose views start from the kept chip's noised latent (SDEdit)
     same_azimuth_control: bool = False  # also the plain (and strength) views at d_az = 0: what the pose adds
     heading_guidance: float | None = None  # also arms of the plain views at this heading guidance; None: no
@@ -112,8 +111,6 @@ class AugmentationBenefitConfig:
         for name in ("finetune_steps", "classifier_steps", "classifier_batch_size", "num_inference_steps"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
-        if self.speckle_looks is not None and self.speckle_looks < 1:
-            raise ValueError(f"speckle_looks must be None or >= 1, got {self.speckle_looks}")
         if self.strength is not None and not 0.0 < self.strength < 1.0:
             raise ValueError(f"strength must be None or in (0, 1), got {self.strength}")
         for name in ("heading_guidance", "depression_guidance"):

@@ -90,7 +90,6 @@ def build_generator(
     sources: Sequence[ChipRecord],
     folder: Path,
     d_az: list[float],
-    speckle_looks: int | None = None,
     strength: float = 1.0,
     d_el: float = 0.0,
     heading_guidance: float = 0.0,
@@ -98,8 +97,8 @@ def build_generator(
     depression_guidance: float = 0.0,
 ) -> tuple[Path, dict[str, Any]]:
     """Fine-tunes the pipeline on `trained_on`, then generates `d_az` views (at depression change `d_el`)
-    of each of `sources`; both resumable. With `speckle_looks` or `strength` < 1, the views (in their own
-    folder, from the same fine-tune) get L-look speckle re-added or start from the source's noised latent
+    of each of `sources`; both resumable. With `strength` < 1, the views (in their own folder, from the
+    same fine-tune) start from the source's noised latent
     (``AugmentConfig``). `views_tag` (e.g. ``"_views3"``) names views whose `d_az` list differs from the
     folder's usual one, so that two lists never share a views folder.
 
@@ -120,7 +119,7 @@ def build_generator(
             rehearsal_fraction=config.rehearsal_fraction,
         ))  # fmt: skip
         write_json_atomic(times, timing_file)
-    suffix = variant_suffix(speckle_looks, strength, same_azimuth=all(d == 0.0 for d in d_az), d_el=d_el,
+    suffix = variant_suffix(strength, same_azimuth=all(d == 0.0 for d in d_az), d_el=d_el,
                             heading_guidance=heading_guidance,
                             depression_guidance=depression_guidance) + views_tag  # fmt: skip
     views, key = folder / f"views{suffix}", f"generate{suffix}"
@@ -128,8 +127,7 @@ def build_generator(
         _, times[key] = timed(augment_dataset, AugmentConfig(
             data=str(source_data), pipeline=str(folder / "finetune" / "pipeline"), out=str(views), d_az=d_az,
             d_el=[d_el], depressions_deg=[TRAIN_DEPRESSION_DEG], batch_size=16, seed=0,
-            speckle_looks=speckle_looks, **asdict(generator_sampler(config, strength, heading_guidance,
-                                                                    depression_guidance)),
+            **asdict(generator_sampler(config, strength, heading_guidance, depression_guidance)),
         ))  # fmt: skip
         times[key]["views"] = len(load_index(views))
         write_json_atomic(times, timing_file)
@@ -137,7 +135,6 @@ def build_generator(
 
 
 def variant_suffix(
-    speckle_looks: int | None = None,
     strength: float = 1.0,
     same_azimuth: bool = False,
     d_el: float = 0.0,
@@ -146,11 +143,10 @@ def variant_suffix(
     filter_classifier: Path | None = None,
     depression_guidance: float = 0.0,
 ) -> str:
-    """``_speckle<L>``, ``_strength<S>``, ``_heading<H>``, ``_depression<G>``, ``_d_az0``, ``_d_el<D>`` and
+    """``_strength<S>``, ``_heading<H>``, ``_depression<G>``, ``_d_az0``, ``_d_el<D>`` and
     ``_<filter>`` for views generated or kept other than plainly (``""``)."""
     return (
         ("" if view_filter is None else f"_{view_filter}")
-        + ("" if speckle_looks is None else f"_speckle{speckle_looks}")
         + ("" if strength == 1.0 else f"_strength{strength:g}")
         + ("" if heading_guidance == 0.0 else f"_heading{heading_guidance:g}")
         + ("" if depression_guidance == 0.0 else f"_depression{depression_guidance:g}")

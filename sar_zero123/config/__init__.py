@@ -8,7 +8,7 @@ flag's help text. The dataclass's ``__post_init__`` does the validation, so a ba
 ``ValueError`` naming the field before any work starts.
 
 A command's flags are the settings a user of it chooses; the rest (architecture sizes, optimiser and loss
-details, logging, workers, research options: a class's ``ADVANCED_FIELDS`` and ``EXPERIMENTAL_FIELDS``)
+details, logging, workers, research options: a class's ``ADVANCED_FIELDS``)
 are set with ``--set FIELD=VALUE`` (any field, repeatable) or a ``--config`` file, in the spirit of
 nanoGPT's configurator, and are listed with their defaults at the end of ``--help``. Their older spelling
 ``--field VALUE`` still parses (unlisted), so that recorded commands run as they did.
@@ -299,15 +299,12 @@ def drop_removed_fields(config: Any, values: Mapping[str, Any], where: str) -> d
     return {name: value for name, value in values.items() if name not in removed}
 
 
-def advanced_fields(cls: Any) -> dict[str, str]:
-    """A config class's settings that are not flags, each with what ``--help`` adds to its comment: its
-    ``ADVANCED_FIELDS`` and those of the classes it inherits fields from (``""``), and its
-    ``EXPERIMENTAL_FIELDS`` (the measurement)."""
-    names: dict[str, str] = {}
-    for klass in reversed(getattr(cls, "__mro__", type(cls).__mro__)):
-        names.update(dict.fromkeys(klass.__dict__.get("ADVANCED_FIELDS", ()), ""))
-    experimental: Mapping[str, str] = getattr(cls, "EXPERIMENTAL_FIELDS", {})
-    names.update({name: f"experimental; measured: {text}" for name, text in experimental.items()})
+def advanced_fields(cls: Any) -> set[str]:
+    """A config class's settings that are not flags: its ``ADVANCED_FIELDS`` and those of the classes it
+    inherits fields from."""
+    names: set[str] = set()
+    for klass in getattr(cls, "__mro__", type(cls).__mro__):
+        names.update(klass.__dict__.get("ADVANCED_FIELDS", ()))
     return names
 
 
@@ -362,7 +359,7 @@ def _set_values(pairs: Sequence[str], cls: type, hints: Mapping[str, Any], names
 
 
 def _advanced_epilog(
-    fields: Sequence[dataclasses.Field], advanced: Mapping[str, str], comments: Mapping[str, str]
+    fields: Sequence[dataclasses.Field], advanced: set[str], comments: Mapping[str, str]
 ) -> str:
     """The end of ``--help``: each setting that is not a flag, its default and its comment."""
     import textwrap
@@ -372,7 +369,7 @@ def _advanced_epilog(
         if field.name not in advanced:
             continue
         default = field.default if field.default is not dataclasses.MISSING else field.default_factory()  # type: ignore[misc]
-        text = "; ".join(part for part in (comments.get(field.name, ""), advanced[field.name]) if part)
+        text = comments.get(field.name, "")
         lines += textwrap.wrap(f"{field.name} (default: {default!r}): {text}", width=100,
                                initial_indent="  ", subsequent_indent="      ")  # fmt: skip
     return "\n".join(lines)
@@ -414,8 +411,8 @@ def parse_config(
     own = cls.__dict__.get("__annotations__", {})
     fields = sorted((f for f in dataclasses.fields(cls) if f.init), key=lambda f: f.name not in own)
     names = {field.name for field in fields}
-    # settings that are not flags: --set FIELD=VALUE or --config (ADVANCED_FIELDS, EXPERIMENTAL_FIELDS)
-    advanced = {name: text for name, text in advanced_fields(cls).items() if name in names}
+    # settings that are not flags: --set FIELD=VALUE or --config (ADVANCED_FIELDS)
+    advanced = advanced_fields(cls) & names
     takes_set = "set" not in names  # the quickstart's own --set names a stage too
     parser = argparse.ArgumentParser(
         prog=prog, description=summary[0] if summary else None,

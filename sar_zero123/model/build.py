@@ -31,7 +31,6 @@ from sar_zero123.pretrained import resolve_pretrained
 __all__ = [
     "SAR_ZERO123_SIZES",
     "build_sar_zero123",
-    "check_same_latents",
     "check_vae_fits",
     "load_sar_zero123",
     "record_trained_pose_ranges",
@@ -367,19 +366,13 @@ def check_vae_fits(vae: AutoencoderKL, pipe: SARZero123Pipeline, name: str = "va
     check_vae_image_size(vae, pipe.unet, name=name)
 
 
-def replace_vae(
-    pipe: SARZero123Pipeline, path: str | os.PathLike, *, same_latents: bool = False
-) -> SARZero123Pipeline:
+def replace_vae(pipe: SARZero123Pipeline, path: str | os.PathLike) -> SARZero123Pipeline:
     """``pipe`` with the ``AutoencoderKL`` saved in ``path`` as its VAE.
-
-    With ``same_latents`` the new VAE must encode exactly as the old one (a decoder fine-tuned alone), so a
-    trained UNet keeps its latents and only the decoding changes.
 
     Raises:
         FileNotFoundError: If ``path`` holds no ``AutoencoderKL`` ``config.json`` (the message points a run
             folder to its ``vae`` subfolder) or no weights.
-        ValueError: If the weights do not load, the VAE does not fit, or, with ``same_latents``, it
-            encodes differently.
+        ValueError: If the weights do not load or the VAE does not fit.
     """
     path = Path(path)
     config_file = path / "config.json"
@@ -397,34 +390,9 @@ def replace_vae(
         )
     vae = load_component(AutoencoderKL, path, "vae")
     check_vae_fits(vae, pipe, name=f"vae: {str(path)!r}")
-    if same_latents:
-        check_same_latents(vae, pipe.vae, name=f"vae: {str(path)!r}")
     # `pipe.components`, not `from_pipe`: that casts every module to one dtype (float32 by default)
     recorded = {name: getattr(pipe.config, name, None) for name in PIPELINE_SETTINGS}
     return SARZero123Pipeline(**{**pipe.components, "vae": vae.eval()}, **recorded)
-
-
-def check_same_latents(vae: AutoencoderKL, reference: AutoencoderKL, name: str = "vae") -> None:
-    """Refuse a VAE that does not encode as ``reference``: other encoder weights or latent scaling factor.
-
-    Raises:
-        ValueError: Naming what differs and how to obtain a VAE that encodes the same.
-    """
-    encoders = {part: (getattr(vae, part), getattr(reference, part)) for part in ("encoder", "quant_conv")}
-    differing = [
-        part for part, (a, b) in encoders.items()
-        if (a is None) != (b is None) or (a is not None and not same_weights(a, b))
-    ]  # fmt: skip
-    if not math.isclose(vae.config.scaling_factor, reference.config.scaling_factor, rel_tol=1e-6):
-        differing.append(
-            f"scaling_factor ({vae.config.scaling_factor:.6g}, not {reference.config.scaling_factor:.6g})"
-        )
-    if differing:
-        raise ValueError(
-            f"{name} encodes differently from the pipeline's VAE ({', '.join(differing)} differ), so the "
-            "UNet would sample latents it was never trained on; give a VAE whose decoder alone was "
-            "fine-tuned from the pipeline's (train/train_vae.py --pretrained PIPELINE --no-train_encoder)"
-        )
 
 
 def same_weights(a: torch.nn.Module, b: torch.nn.Module) -> bool:

@@ -371,12 +371,15 @@ def check_options_folder(
     identity_field: str | None = None,
     identity_message: Callable[[Any, Any], str] | None = None,
     flag_hint: str = "out",
+    removed_from: Any = None,
 ) -> bool:
     """Whether ``out`` holds this run already, for a folder whose record is the options file ``record``
     (``augment.json``) rather than ``run.json``; any other non-empty folder is refused.
 
     Args:
         defaults: Field defaults, for a record that predates an option.
+        removed_from: The config class whose removed fields (``REMOVED_FIELDS``) the record may hold: at
+            their old default they read as absent, another value is refused.
         identity_field: An option identifying an input's content, compared first (a record without it
             matches); ``identity_message(recorded, current)`` words its refusal.
 
@@ -393,6 +396,7 @@ def check_options_folder(
     recorded = read_json(out / record, what=f"the options the {what} was made with")
     if not isinstance(recorded, dict):
         raise ValueError(f"{out / record}: expected a JSON object of the {what}'s options")
+    recorded = drop_removed_fields(removed_from, recorded, f"{flag_hint}: {str(out)!r}")
     recorded = {**{name: defaults[name] for name in options if name in defaults}, **recorded}
     if identity_field is not None:
         if identity_field not in recorded:

@@ -11,14 +11,12 @@ from __future__ import annotations
 
 import json
 import logging
-import math
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
 import torch
 
-from sar_zero123.augment import readd_speckle
 from sar_zero123.config import RemovedField, check_minimum
 from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.domain import MAX_IMAGE_SIZE
@@ -39,7 +37,7 @@ from sar_zero123.evaluation.protocol import (
     score,
     vae_round_trip,
 )
-from sar_zero123.evaluation.scoring import PAPER_SCORING_SIZE, blur_views
+from sar_zero123.evaluation.scoring import PAPER_SCORING_SIZE
 from sar_zero123.evaluation.speed import speed_error_rows, write_speed_error
 from sar_zero123.evaluation.tables import (
     plot_lambda_sweep,
@@ -47,7 +45,6 @@ from sar_zero123.evaluation.tables import (
     table3_markdown,
     table4_markdown,
 )
-from sar_zero123.model.build import replace_vae
 from sar_zero123.model.pipeline import SARZero123Pipeline
 from sar_zero123.model.sampler import MAX_INFERENCE_STEPS, SamplerSettings, check_sampler_start
 from sar_zero123.pretrained import resolve_pretrained
@@ -80,8 +77,6 @@ MAX_EVALUATION_PAIRS = 100_000
 MAX_SWEEP_STEP_COUNTS = 16  # each a full generation per pipeline and scheduler
 MAX_FIGURE_PAIRS = 32  # per group in views.png
 MAX_EVAL_BATCH_SIZE = 1_024
-#: Blurred-target reference rows at most, and their largest blur (pixels).
-MAX_BLURRED_TARGETS, MAX_BLUR_SIGMA_PX = 8, 64.0
 #: Settings that never change what the folder holds.
 EVALUATE_MAY_DIFFER = ("resume", "restart", "device", "output_dir")
 
@@ -96,7 +91,7 @@ class EvaluateConfig(SamplerSettings):
 
     ADVANCED_FIELDS = (
         "same_depression", "input_depression_deg", "outside_trained_range",
-        "vae", "speckle_looks", "blurred_target_sigmas_px", "speed_n", "image_size",
+        "speed_n", "image_size",
         "crop_size", "eval_batch_size", "num_figure_pairs", "device",
     )  # fmt: skip
     REMOVED_FIELDS = {
@@ -106,6 +101,11 @@ class EvaluateConfig(SamplerSettings):
         "max_d_az_deg": RemovedField(None, "every pair of views of one object is scored, any |d_az|"),
         "paper_scoring_size": RemovedField(256, f"the paper-comparable metrics resize to the authors' "
                                            f"{PAPER_SCORING_SIZE} px before their crop"),
+        "vae": RemovedField(None, "a VAE replacing the pipelines' served the decoder fine-tune, which "
+                            "measured no gain; each pipeline decodes with its own VAE"),
+        "speckle_looks": RemovedField(None, "rows of views with speckle re-added were a diagnostic that "
+                                      "moved accuracy little"),
+        "blurred_target_sigmas_px": RemovedField([], "rows of blurred real targets were a diagnostic"),
     }  # fmt: skip
 
     pipeline: list[str] = field(default_factory=list)  # SARZero123Pipeline folders (repeat the flag)
@@ -120,12 +120,6 @@ class EvaluateConfig(SamplerSettings):
     # evaluate requests outside a pipeline's trained d_el / depression range (listed in table3.json)
     outside_trained_range: bool = False
     n: int = 1000  # generated samples in total (split evenly between seen and unseen; at most 100,000)
-    # an AutoencoderKL folder decoding for every pipeline instead of its own VAE (it must encode as theirs)
-    vae: str | None = None
-    # also score every view with speckle of this many looks re-added, as rows "<row> + speckle"; None: not
-    speckle_looks: int | None = None
-    # also score the real targets blurred by a Gaussian of each of these sigmas (pixels), as reference rows
-    blurred_target_sigmas_px: list[float] = field(default_factory=list)
     steps: list[int] = field(default_factory=list)  # speed/error sweep: step counts (e.g. 10 20 50)
     schedulers: list[str] = field(default_factory=list)  # speed/error sweep: ddim, dpmsolver++, euler, unipc
     speed_n: int | None = None  # samples per speed/error point, from the seen pairs (None: all of them)
@@ -150,18 +144,6 @@ class EvaluateConfig(SamplerSettings):
         self._check_depressions()
         if self.resume and self.restart:
             raise ValueError("resume and restart: choose one (continue this run, or move it aside)")
-        looks = self.speckle_looks
-        if looks is not None and (isinstance(looks, bool) or not isinstance(looks, int) or looks < 1):
-            raise ValueError(f"speckle_looks must be an integer >= 1 or None, got {looks!r}")
-        sigmas = self.blurred_target_sigmas_px
-        if len(sigmas) > MAX_BLURRED_TARGETS or len(set(sigmas)) != len(sigmas):
-            raise ValueError(
-                f"blurred_target_sigmas_px: at most {MAX_BLURRED_TARGETS} distinct values, got {sigmas}"
-            )
-        if any(isinstance(s, bool) or not (math.isfinite(s) and 0 < s <= MAX_BLUR_SIGMA_PX) for s in sigmas):
-            raise ValueError(f"blurred_target_sigmas_px must lie in (0, {MAX_BLUR_SIGMA_PX:g}], got {sigmas}")
-        if self.vae is not None and not Path(self.vae).is_dir():
-            raise FileNotFoundError(f"vae: expected an AutoencoderKL folder, got {self.vae}")
 
     def _check_pipelines(self) -> None:
         if not self.pipeline:
@@ -307,8 +289,6 @@ def run_evaluate(config: EvaluateConfig) -> Path:
             for i, path in enumerate(config.pipeline)
         ],
     }
-    if config.vae is not None:
-        inputs["vae"] = model_identity(config.vae, "vae")
     folder = open_stage_folder(
         config.output_dir, "evaluate", config, data=inputs, resume=config.resume, restart=config.restart,
         may_differ=EVALUATE_MAY_DIFFER, resume_hint="--resume",
@@ -368,8 +348,6 @@ def _load_pipelines(
     for name, path in zip(config.names, config.pipeline):
         check_pipeline_scaling(resolve_pretrained(path), evaluators)
         pipe = SARZero123Pipeline.from_pretrained(path)
-        if config.vae is not None:
-            pipe = replace_vae(pipe, config.vae, same_latents=True)
         pipe = pipe.to(device)
         pipe.set_progress_bar_config(disable=True)
         config.apply_scheduler(pipe)
@@ -409,11 +387,6 @@ def _score_references(
         INPUT_COPY: {group: score(p.inputs, p, evaluators, **scoring) for group, p in pair_sets.items()},
         REAL_TARGET: {group: score(p.targets, p, evaluators, **scoring) for group, p in pair_sets.items()},
     }
-    for sigma in config.blurred_target_sigmas_px:
-        results[blurred_target_row(sigma)] = {
-            group: score(blurred(pairs.targets, sigma), pairs, evaluators, **scoring)
-            for group, pairs in pair_sets.items()
-        }
     first_vae = next(iter(pipes.values())).vae
     for index, (name, pipe) in enumerate(pipes.items()):
         if index > 0 and same_weights(pipe.vae, first_vae):
@@ -423,40 +396,8 @@ def _score_references(
         for group, pairs in pair_sets.items():
             views = vae_round_trip(pipe, pairs.targets, config.eval_batch_size, device)
             results[row][group] = score(views, pairs, evaluators, **scoring)
-            _score_speckled(config, results, row, group, views, pairs, evaluators, device)
         logger.info("%s: %s", row, json.dumps(results[row]))
     return results
-
-
-def blurred_target_row(sigma_px: float) -> str:
-    """The row of the real targets blurred by ``sigma_px`` (``EvaluateConfig.blurred_target_sigmas_px``)."""
-    return f"real target blurred {sigma_px:g} px"
-
-
-def blurred(images: torch.Tensor, sigma_px: float) -> torch.Tensor:
-    """Views ``(N, 1, H, W)`` in [0, 1] blurred by :func:`~sar_zero123.evaluation.scoring.blur_views`."""
-    array = blur_views(images.double().cpu().numpy(), sigma_px)
-    return torch.from_numpy(array).to(images.dtype).clamp(0.0, 1.0)
-
-
-def _score_speckled(
-    config: EvaluateConfig,
-    results: dict[str, dict[str, dict[str, float]]],
-    row: str,
-    group: str,
-    views: torch.Tensor,
-    pairs: PairSet,
-    evaluators: Evaluators,
-    device: torch.device,
-) -> None:
-    """With ``speckle_looks``, the row ``"<row> + speckle"``; every row draws the same speckle (one seed)."""
-    if config.speckle_looks is None:
-        return
-    scaling = evaluators.classifier.scaling
-    generator = torch.Generator().manual_seed(config.seed)
-    speckled = readd_speckle(views.cpu(), scaling.max_db - scaling.min_db, config.speckle_looks, generator)
-    scores = score(speckled, pairs, evaluators, **_scoring(config, device))
-    results.setdefault(f"{row} + speckle", {})[group] = scores
 
 
 def _score_pipelines(
@@ -480,7 +421,6 @@ def _score_pipelines(
             scores = score(images, pairs, evaluators, **_scoring(config, device))
             results[name][group] = {**scores, "seconds": seconds}
             logger.info("%s %s: %s", name, group, json.dumps(results[name][group]))
-            _score_speckled(config, results, name, group, images, pairs, evaluators, device)
     return generated
 
 

@@ -73,9 +73,8 @@ from sar_zero123.training.latent_cache import (
     collate_pairs,
     load_chip_images,
 )
-from sar_zero123.training.lora import LoraModules, check_lora_settings
 from sar_zero123.training.losses import TRAINED_PREDICTION_TYPES, LossSettings, check_prediction_type
-from sar_zero123.training.pfm import check_pfm_crop_size, load_pfm_encoder
+from sar_zero123.training.pfm import load_pfm_encoder
 from sar_zero123.training.step import MAX_GRAD_NORM
 from sar_zero123.training.validation import VALIDATION_GUIDANCE_SCALE
 
@@ -145,11 +144,7 @@ class FinetuneConfig(LossSettings):
     # a proxy model reads each proxy as its shadow, ground and lit masks, not the simulator's intensities
     proxy_geometry: bool = False
     pfm_projection_dim: int | None = None  # paper-comparable PFM: frozen random 512->k projection (paper: 10)
-    # train only rank-r LoRA factors of the UNet, merged at export; None: every UNet weight trains
-    lora_rank: int | None = None
-    lora_alpha: float | None = None  # with lora_rank: the update's scale is lora_alpha / lora_rank; None: 1
-    lora_modules: LoraModules = "all"  # with lora_rank: "all" Linear and Conv2d layers, or "attention" only
-    learning_rate: float = 1e-4  # AdamW learning rate of the UNet (of its LoRA factors with lora_rank)
+    learning_rate: float = 1e-4  # AdamW learning rate of the UNet
     pose_lr_multiplier: float = 10.0  # pose projection learning rate = this x learning_rate
     lr_scheduler: str = "constant"  # diffusers scheduler name (constant, constant_with_warmup, cosine, ...)
     lr_warmup_steps: int = 0  # warm-up optimisation steps
@@ -203,13 +198,19 @@ class FinetuneConfig(LossSettings):
                                      "neither Eq. 20's pooled feature nor lambda = 0 on seen accuracy"),
         "pfm_snr_gamma": RemovedField(None, "PFM weighted by SNR gave no unseen gain over Eq. 21's equal "
                                       "weight"),
-    }  # fmt: skip
-
-    EXPERIMENTAL_FIELDS = {
-        "lora_rank": "a low rank keeps the prior's depression requests as a lower learning rate does, no "
-                     "better, at more than a full step's cost",
-        "lora_alpha": "with lora_rank only",
-        "lora_modules": "with lora_rank only",
+        "lora_rank": RemovedField(None, "a low-rank update kept the prior no better than a lower "
+                                  "learning_rate does, at more cost; every UNet weight trains"),
+        "lora_alpha": RemovedField(None, "LoRA's scale; LoRA was removed with lora_rank"),
+        "lora_modules": RemovedField("all", "LoRA's layer set; LoRA was removed with lora_rank"),
+        "pfm_balance": RemovedField("none", "rescaling PFM to L_simple's gradient cost nothing and gained "
+                                    "nothing; PFM is weighted by Eq. 21's fixed lambda (pfm_weight)"),
+        "timestep_sampling": RemovedField("uniform", "logit-normal timesteps did not make the model follow "
+                                          "the pose more; t is drawn uniformly, as in the paper"),
+        "timestep_logit_mean": RemovedField(0.0, "with timestep_sampling only; t is drawn uniformly"),
+        "timestep_logit_std": RemovedField(1.0, "with timestep_sampling only; t is drawn uniformly"),
+        "pfm_crop_size": RemovedField(None, "PFM on a centre crop's latent window gave gradients unlike the "
+                                      "full image's (the VAE's attention sees only the window); PFM decodes "
+                                      "the whole latent"),
     }  # fmt: skip
 
     def __post_init__(self) -> None:
@@ -232,7 +233,6 @@ class FinetuneConfig(LossSettings):
         check_minimum(self, "max_train_minutes", minimum=0, strict=True, optional=True)
         if not 0.0 <= self.rehearsal_fraction < 1.0:
             raise ValueError(f"rehearsal_fraction must lie in [0, 1), got {self.rehearsal_fraction}")
-        check_lora_settings(self.lora_rank, self.lora_alpha, self.lora_modules)
         if self.rehearsal_max_chips is not None and self.rehearsal_max_chips < 2:
             raise ValueError(f"rehearsal_max_chips must be None or >= 2, got {self.rehearsal_max_chips}")
         if self.spatial_pose not in SPATIAL_POSE_MODES:
@@ -411,9 +411,6 @@ def _load_inputs(config: FinetuneConfig, accelerator: Accelerator) -> FinetuneIn
         regressor = load_evaluators(config.evaluators).regressor
     check_global_batch(len(train_dataset), config.train_batch_size, accelerator.num_processes, what="pairs",
                        gradient_accumulation_steps=config.gradient_accumulation_steps)  # fmt: skip
-    if config.pfm_crop_size is not None:
-        check_pfm_crop_size(config.pfm_crop_size, image_size=image_size,
-                            vae_scale_factor=pipe.vae_scale_factor, name="pfm_crop_size")  # fmt: skip
     if accelerator.is_main_process:
         save_config(config, output_dir)
         if encoder is not None and config.pfm_projection_dim is not None:
@@ -436,9 +433,6 @@ def _prepare_training(
         weight_dtype=weight_dtype,
         train_image_encoder=config.train_image_encoder,
         gradient_checkpointing=config.gradient_checkpointing,
-        lora_rank=config.lora_rank,
-        lora_alpha=config.lora_alpha,
-        lora_modules=config.lora_modules,
     )
     trained_tower = image_embedder if config.train_image_encoder else None
     encoder = inputs.encoder

@@ -31,7 +31,8 @@ from sar_zero123.stages.vae import TrainVAEConfig
 from sar_zero123.yaml_data import read_yaml
 
 __all__ = [
-    "DEFAULT_RECIPE", "RECIPES", "RECIPE_DIR", "RECIPE_SECTIONS", "REMOVED_RECIPE_FIELDS", "QuickstartConfig",
+    "DEFAULT_RECIPE", "RECIPES", "RECIPE_DIR", "RECIPE_SECTIONS", "REMOVED_RECIPE_FIELDS",
+    "REMOVED_RECIPE_SECTIONS", "QuickstartConfig",
     "Recipe", "SharedSettings", "apply_overrides", "load_recipe", "recipe_names",
 ]  # fmt: skip
 
@@ -54,10 +55,14 @@ class SharedSettings:
     checkpointing_steps: int = 1000
     # target depressions of a second Table III from simulated 17 deg inputs; () skips it
     depression_targets_deg: tuple[float, ...] = (10.0, 30.0, 45.0)
-    # with a prior: fine-tune its VAE's decoder (the vae_decoder section) first; the fine-tunes decode with it
-    decoder_fine_tune: bool = False
     # with a prior: a procedural corpus (the corpus section) makes finetune.rehearsal_fraction of each batch
     rehearsal: bool = False
+
+    REMOVED_FIELDS = {
+        "decoder_fine_tune": RemovedField(False, "fine-tuning the prior's VAE decoder on the chips (the "
+                                          "vae_decoder section) measured no gain in accuracy; the fine-tunes "
+                                          "decode with the prior's VAE"),
+    }  # fmt: skip
 
     def __post_init__(self) -> None:
         if isinstance(self.image_size, bool) or self.image_size < 16:
@@ -68,9 +73,8 @@ class SharedSettings:
             raise ValueError(
                 f"shared.depression_targets_deg must lie in (0, 90), got {self.depression_targets_deg}"
             )
-        for name in ("decoder_fine_tune", "rehearsal"):
-            if getattr(self, name) and self.prior is None:
-                raise ValueError(f"shared.{name}: needs a prior (shared.prior) to fine-tune from")
+        if self.rehearsal and self.prior is None:
+            raise ValueError("shared.rehearsal: needs a prior (shared.prior) to fine-tune from")
         if self.prior is not None:
             folder = resolve_pretrained(self.prior)  # an unknown bundled name is refused there
             if not (folder / "model_index.json").is_file():
@@ -85,13 +89,15 @@ RECIPE_SECTIONS: dict[str, type] = {
     "simulate": SimulateConfig,
     "simclr": PretrainSimCLRConfig,
     "vae": TrainVAEConfig,
-    "vae_decoder": TrainVAEConfig,
     "corpus": CorpusConfig,
     "finetune": FinetuneConfig,
     "base": FinetuneConfig,
     "evaluators": TrainEvaluatorsConfig,
     "evaluate": EvaluateConfig,
 }
+#: Removed recipe sections, each with the removed ``shared`` switch it ran behind: where the switch holds
+#: its old default the section never ran, so a recipe or a run's record that has it reads as before.
+REMOVED_RECIPE_SECTIONS: dict[str, str] = {"vae_decoder": "decoder_fine_tune"}
 #: A sampling stage's sampler fields, named ``SECTION.sampler.FIELD`` (a nested section).
 SAMPLER_SECTION = "sampler"
 _SAMPLER_FIELDS = tuple(item.name for item in dataclasses.fields(SamplerSettings))
@@ -105,9 +111,8 @@ REMOVED_RECIPE_FIELDS: dict[str, str] = {
     "simclr_steps": "simclr.max_train_steps", "simclr_batch_size": "simclr.global_batch_size",
     "vae_widths": "vae.block_out_channels", "vae_norm_groups": "vae.norm_num_groups",
     "vae_steps": "vae.max_train_steps",
-    "vae_batch_size": "vae.train_batch_size and vae_decoder.train_batch_size",
-    "vae_decoder_steps": "vae_decoder.max_train_steps, with shared.decoder_fine_tune=true",
-    "vae_feature_loss_weight": "vae_decoder.feature_loss_weight", "prior": "shared.prior",
+    "vae_batch_size": "vae.train_batch_size", "vae_decoder_steps": "shared.decoder_fine_tune",
+    "vae_feature_loss_weight": "shared.decoder_fine_tune", "prior": "shared.prior",
     "model_size": "base.size", "estimate_input_azimuth": "base.estimate_input_azimuth",
     "base_steps": "base.max_train_steps", "prediction_type": "base.prediction_type",
     "snr_gamma": "finetune.snr_gamma", "timestep_sampling": "finetune.timestep_sampling",
@@ -250,6 +255,8 @@ def _recipe_values(recipe: str, seen: tuple[str, ...] = ()) -> dict[str, dict[st
         raise ValueError(f"recipe {recipe!r}: extends must name a bundled recipe ({names}), got {parent!r}")
     values: dict[str, dict[str, Any]] = {}
     for section, mapping in data.items():
+        if section in REMOVED_RECIPE_SECTIONS:  # it ran only behind its switch, refused in shared if set
+            continue
         if section not in RECIPE_SECTIONS:
             names = mapping if isinstance(mapping, dict) else {}
             removed = [message for name in names if (message := removed_recipe_field(f"{section}.{name}"))]
@@ -360,6 +367,10 @@ def apply_overrides(recipe: Recipe, overrides: Sequence[str]) -> Recipe:
     for item in overrides:
         key, separator, text = item.partition("=")
         section, dot, name = key.strip().partition(".")
+        if section in REMOVED_RECIPE_SECTIONS:
+            switch = REMOVED_RECIPE_SECTIONS[section]
+            reason = SharedSettings.REMOVED_FIELDS[switch].reason
+            raise ValueError(f"set: {section} was removed with shared.{switch}: {reason} (in {item!r})")
         if not separator or not dot or section not in RECIPE_SECTIONS:
             removed = removed_recipe_field(key.strip())
             if removed is not None:
@@ -453,10 +464,23 @@ def _check_simulated_validation_split(azimuth_step_deg: float, seed: int) -> Non
         )
 
 
-def refuse_old_record(record: Mapping[str, Any] | None, where: str) -> None:
-    """Refuse a quickstart run folder whose record holds the removed ``preset.*`` fields, naming the first."""
-    old = sorted(key for key in (record or {}).get("config", {}) if key.startswith("preset."))
+def refuse_old_record(record: Mapping[str, Any] | None, where: str) -> list[str]:
+    """Refuse a quickstart run folder whose record holds the removed ``preset.*`` fields, or a removed recipe
+    field at another value than its old default, naming the first; returns the record's keys of removed
+    fields and sections (``recipe.SECTION.FIELD``), which this run no longer records.
+    """
+    config = (record or {}).get("config", {})
+    old = sorted(key for key in config if key.startswith("preset."))
     if old:
         message = removed_recipe_field(old[0]) or f"{old[0]} was removed"
         raise ValueError(f"{where}: a run of the old recipe fields ({message}); --restart moves it aside")
-
+    gone = []
+    for key, value in config.items():
+        head, _, rest = key.partition(".")
+        section, _, name = rest.partition(".")
+        if head == "recipe" and section in REMOVED_RECIPE_SECTIONS:  # checked by its switch, in shared
+            gone.append(key)
+        elif head == "recipe" and name in removed_fields(RECIPE_SECTIONS.get(section)):
+            drop_removed_fields(RECIPE_SECTIONS[section], {name: value}, f"{where}: recipe.{section}")
+            gone.append(key)
+    return gone

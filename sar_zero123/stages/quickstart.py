@@ -137,14 +137,6 @@ def _training_stages(config: QuickstartConfig, recipe: Recipe, out: Path) -> lis
             layers_per_block=shape["layers_per_block"], latent_channels=shape["latent_channels"],
         ), run_vae))  # fmt: skip
 
-    if shared.decoder_fine_tune:  # the prior's decoder adapted to these chips
-        vae_dir = out / "vae_decoder" / "vae"
-        weighted = recipe.value("vae_decoder", "feature_loss_weight")
-        plans.append(StagePlan("vae decoder", _build(
-            "vae decoder", "vae_decoder", recipe, **common, output_dir=str(out / "vae_decoder"),
-            pretrained=shared.prior, feature_encoder=str(simclr_dir / "encoder") if weighted else None,
-        ), run_vae))  # fmt: skip
-
     proxies_dir = out / "proxies"
     if _takes_proxy(shared.prior):  # each training chip's simulator proxies, the fine-tunes' condition
         plans.append(StagePlan("proxies", ProxiesConfig(
@@ -163,7 +155,7 @@ def _training_stages(config: QuickstartConfig, recipe: Recipe, out: Path) -> lis
                                     "encoder": str(simclr_dir / "encoder")}  # fmt: skip
         if shared.rehearsal:  # (a prior's fine-tunes) the whole rendered corpus, no subsample
             plumbing.update(rehearsal_data=str(rehearsal_dir / CORPUS_FOLDER), rehearsal_max_chips=None)
-        if shared.prior is None or shared.decoder_fine_tune:
+        if shared.prior is None:
             plumbing["vae"] = str(vae_dir)
         if _takes_proxy(shared.prior):
             plumbing["proxies"] = str(proxies_dir / PROXIES_FOLDER)
@@ -284,14 +276,14 @@ def run_quickstart(config: QuickstartConfig) -> Path:
     recipe = config.resolved_recipe()
     plans = plan_stages(config)  # every stage's config checked before any work
     out = Path(config.output_dir)
-    refuse_old_record(read_run_record(out) if out.is_dir() else None, f"output_dir: {str(out)!r}")
+    gone = refuse_old_record(read_run_record(out) if out.is_dir() else None, f"output_dir: {str(out)!r}")
     # the recipe's values one by one, so that a refusal names the field that differs
     record = {**config_to_dict(config), **{f"recipe.{k}": v for k, v in recipe.flat().items()}}
     folder = open_stage_folder(
         out, "quickstart", record, data=None if config.data is None else config.data, resume=config.resume,
         # the recipe's name and the --set items may differ: the recipe.* values they give are compared
         restart=config.restart, may_differ=("output_dir", "resume", "restart", "recipe", "set",
-                                            *QuickstartConfig.REMOVED_FIELDS),
+                                            *QuickstartConfig.REMOVED_FIELDS, *gone),
         may_extend=("lambdas",), resume_hint="--resume",
     )  # fmt: skip
     report = out / "report.md"

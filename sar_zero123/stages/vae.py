@@ -23,7 +23,7 @@ from diffusers import AutoencoderKL
 from torch.utils.data import DataLoader
 
 from sar_zero123.config import RemovedField, check_minimum
-from sar_zero123.config.json_io import read_json, save_config, write_json_atomic
+from sar_zero123.config.json_io import save_config, write_json_atomic
 from sar_zero123.data import (
     SCALING_FILE,
     ChipDataset,
@@ -32,11 +32,9 @@ from sar_zero123.data import (
     prepare_splits,
 )
 from sar_zero123.domain import MAX_IMAGE_SIZE
-from sar_zero123.encoder import SAREncoder, resolve_encoder_dir
 from sar_zero123.evaluation.reconstruction import evaluate_reconstruction
 from sar_zero123.model.conditioning import downsampling_factor
-from sar_zero123.model.vae import latent_scaling_factor, load_pretrained_vae, new_sar_vae, reconstruct
-from sar_zero123.pretrained import resolve_pretrained
+from sar_zero123.model.vae import latent_scaling_factor, new_sar_vae, reconstruct
 from sar_zero123.runs.checkpoints import (
     RESUME_MAY_DIFFER,
     check_finite_state,
@@ -51,18 +49,16 @@ from sar_zero123.runs.folder import StageTimer, data_identity, finish_run
 from sar_zero123.runs.launch import check_global_batch, start_run, tracker_hparams
 from sar_zero123.runs.stage import open_stage_folder, withdrawn_if_setup_fails
 from sar_zero123.training.step import MAX_GRAD_NORM
-from sar_zero123.training.vae import FeatureLoss, VAEObjective, train_vae_steps
+from sar_zero123.training.vae import VAEObjective, train_vae_steps
 
 logger = logging.getLogger(__name__)
 
 __all__ = [
-    "FeatureLoss",
     "TrainVAEConfig",
     "VAEObjective",
     "build_vae",
     "evaluate_reconstruction",
     "latent_scaling_factor",
-    "load_pretrained_vae",
     "reconstruct",
     "run_vae",
 ]
@@ -71,6 +67,10 @@ __all__ = [
 KL_WEIGHT = 1e-6
 #: Training batches the latent scaling factor is estimated on.
 SCALING_BATCHES = 8
+_DECODER_FINE_TUNE = (
+    "fine-tuning a pretrained VAE (a prior's decoder alone) measured no gain in accuracy; the stage trains a "
+    "new VAE, and a prior's fine-tunes decode with the prior's own"
+)
 
 
 @dataclass
@@ -82,7 +82,6 @@ class TrainVAEConfig:
         "block_out_channels", "layers_per_block", "latent_channels", "norm_num_groups",
         "mixed_precision", "checkpointing_steps", "checkpoints_total_limit", "num_eval_images", "report_to",
         "resume_from_checkpoint",
-        "train_encoder", "feature_loss_weight", "feature_encoder",
     )  # fmt: skip
     #: Settings removed as constants (no recipe, page or measured run set another value): a config or run
     #: folder holding the old default reads as before; another value is refused with the reason.
@@ -92,6 +91,12 @@ class TrainVAEConfig:
         "max_grad_norm": RemovedField(1.0, f"gradients are clipped to a norm of {MAX_GRAD_NORM}"),
         "num_scaling_batches": RemovedField(8, f"the latent scaling factor is estimated on {SCALING_BATCHES} "
                                             "training batches"),
+        "pretrained": RemovedField(None, _DECODER_FINE_TUNE),
+        "train_encoder": RemovedField(True, _DECODER_FINE_TUNE),
+        "feature_loss_weight": RemovedField(0.0, "the SAR feature loss served the decoder fine-tune, which "
+                                            "measured no gain; the loss is L1 pixels plus KL"),
+        "feature_encoder": RemovedField(None, "the SAR feature loss it fed served the decoder fine-tune, "
+                                        "which measured no gain"),
     }  # fmt: skip
 
     output_dir: str = "runs/vae"  # run folder: checkpoints, logs, metrics.json, vae/
@@ -114,18 +119,6 @@ class TrainVAEConfig:
     num_eval_images: int = 256  # test chips scored for PSNR/SSIM (fewer if the split is smaller)
     report_to: str | None = "tensorboard"  # accelerate tracker; None disables logging
     seed: int = 0  # seed of initialisation, data order and posterior samples
-    # start from this VAE (an AutoencoderKL folder, a pipeline folder or a bundled pipeline name such as
-    # sar-zero123/sim-prior-rotated) instead of a new one; its architecture is used (block_out_channels,
-    # layers_per_block, latent_channels and norm_num_groups unused; metrics.json records the model's)
-    pretrained: str | None = None
-    # False: train the decoder alone. The encoder, hence the latents, and the latent scaling factor are kept,
-    # so a UNet trained on the pretrained VAE's latents still works with the result (how a prior's VAE is
-    # adapted to new chips); needs pretrained
-    train_encoder: bool = True
-    # weight of the feature loss: squared distance between the L2-normalised pooled features of the frozen
-    # SAR encoder (feature_encoder) of the reconstruction and of the chip, a perceptual loss for SAR; 0: none
-    feature_loss_weight: float = 0.0
-    feature_encoder: str | None = None  # SAREncoder folder (train/pretrain_simclr.py's encoder/)
 
     def __post_init__(self) -> None:
         self.block_out_channels = tuple(int(c) for c in self.block_out_channels)
@@ -160,24 +153,11 @@ class TrainVAEConfig:
         check_minimum(self, "checkpoints_total_limit", minimum=1, optional=True)
         if self.restart and self.resume_from_checkpoint is not None:
             raise ValueError("restart: starts over; it cannot be combined with resume_from_checkpoint")
-        if not self.train_encoder and self.pretrained is None:
-            raise ValueError("train_encoder: False trains the decoder of a pretrained VAE; give pretrained")
-        check_minimum(self, "feature_loss_weight", minimum=0)
-        if self.feature_loss_weight > 0 and self.feature_encoder is None:
-            raise ValueError("feature_encoder: a SAREncoder folder is required when feature_loss_weight > 0")
 
 
 def build_vae(config: TrainVAEConfig) -> AutoencoderKL:
     """A randomly initialised 1-channel ``AutoencoderKL`` of the configured size
-    (:func:`~sar_zero123.model.vae.new_sar_vae`), or with ``pretrained`` that VAE
-    (:func:`~sar_zero123.model.vae.load_pretrained_vae`), its encoder frozen unless ``train_encoder``."""
-    if config.pretrained is not None:
-        vae = load_pretrained_vae(config.pretrained)
-        if not config.train_encoder:
-            for part in (vae.encoder, vae.quant_conv):
-                if part is not None:
-                    part.requires_grad_(False)
-        return vae
+    (:func:`~sar_zero123.model.vae.new_sar_vae`)."""
     return new_sar_vae(
         image_size=config.image_size, block_out_channels=config.block_out_channels,
         layers_per_block=config.layers_per_block, latent_channels=config.latent_channels,
@@ -217,12 +197,8 @@ def run_vae(config: TrainVAEConfig) -> Path:
     # 2. data, model, optimiser, checked before any step
     with withdrawn_if_setup_fails(folder):
         scaling, train_dataset, test_dataset = _load_chips(config, accelerator)
-        objective = VAEObjective(
-            build_vae(config).train(), KL_WEIGHT, "l1",
-            _feature_loss(config), config.feature_loss_weight,
-        )  # fmt: skip
-        trained = [p for p in objective.parameters() if p.requires_grad]
-        optimizer = torch.optim.AdamW(trained, lr=config.learning_rate)
+        objective = VAEObjective(build_vae(config).train(), KL_WEIGHT, "l1")
+        optimizer = torch.optim.AdamW(objective.parameters(), lr=config.learning_rate)
         train_loader = DataLoader(
             train_dataset, batch_size=config.train_batch_size, shuffle=True, drop_last=True
         )
@@ -243,36 +219,6 @@ def run_vae(config: TrainVAEConfig) -> Path:
     return output_dir
 
 
-def _feature_loss(config: TrainVAEConfig) -> FeatureLoss | None:
-    """The frozen SAR encoder's feature loss, checked against the chip size; None without a weight."""
-    if config.feature_loss_weight == 0:
-        return None
-    encoder = SAREncoder.from_pretrained(resolve_encoder_dir(config.feature_encoder, field="feature_encoder"))
-    if encoder.config.image_size != config.image_size:
-        raise ValueError(
-            f"feature_encoder: {config.feature_encoder!r} takes {encoder.config.image_size} px chips but the "
-            f"VAE trains on image_size={config.image_size}"
-        )
-    return FeatureLoss(encoder)
-
-
-def _check_pretrained_scaling(config: TrainVAEConfig, scaling: DecibelScaling) -> None:
-    """A pretrained VAE (or pipeline) that records its decibel scaling must have the data's."""
-    if config.pretrained is None:
-        return
-    folder = resolve_pretrained(config.pretrained)
-    for candidate in (folder / SCALING_FILE, folder / "vae" / SCALING_FILE):
-        if candidate.is_file():
-            expected = DecibelScaling.from_dict(read_json(candidate))
-            if not expected.isclose(scaling):
-                raise ValueError(
-                    f"pretrained: {config.pretrained!r} was trained on decibel scaling {expected.to_dict()} "
-                    f"but scaling={config.scaling!r} gives {scaling.to_dict()} on this data; choose the "
-                    "--scaling it was trained with"
-                )
-            return
-
-
 def _load_chips(
     config: TrainVAEConfig, accelerator: Accelerator
 ) -> tuple[DecibelScaling, ChipDataset, ChipDataset]:
@@ -281,7 +227,6 @@ def _load_chips(
     output_dir = Path(config.output_dir)
     splits = prepare_splits(config.data, config.protocol, output_dir / "data", seed=config.seed)
     scaling = DecibelScaling.from_choice(config.scaling, splits["train"])
-    _check_pretrained_scaling(config, scaling)
     train_dataset = ChipDataset(splits["train"], size=config.image_size, scaling=scaling)
     test_dataset = ChipDataset(splits.get("test") or splits["train"], size=config.image_size, scaling=scaling)
     check_global_batch(len(train_dataset), config.train_batch_size, accelerator.num_processes, what="chips")
@@ -301,9 +246,7 @@ def _export(
 ) -> None:
     """The latent scaling factor, test-split PSNR/SSIM and the saved model; on the main process."""
     output_dir = Path(config.output_dir)
-    if config.train_encoder:  # a frozen encoder keeps its latents, hence their scaling factor
-        scaling_factor = latent_scaling_factor(model, train_loader, SCALING_BATCHES)
-        model.register_to_config(scaling_factor=scaling_factor)
+    model.register_to_config(scaling_factor=latent_scaling_factor(model, train_loader, SCALING_BATCHES))
     metrics = evaluate_reconstruction(model, test_dataset, config.num_eval_images, config.train_batch_size)
     architecture = {key: model.config[key] for key in (
         "block_out_channels", "layers_per_block", "latent_channels", "norm_num_groups")}  # fmt: skip

@@ -37,7 +37,6 @@ from sar_zero123.runs.checkpoints import (
 )
 from sar_zero123.runs.launch import all_out_of_time
 from sar_zero123.runs.manifest import write_manifest
-from sar_zero123.training.lora import LoraModules, add_lora, merged_unet
 from sar_zero123.training.losses import LossOutput
 from sar_zero123.training.step import (
     MAX_GRAD_NORM,
@@ -88,9 +87,6 @@ def finetuning_modules(
     weight_dtype: torch.dtype,
     train_image_encoder: bool = False,
     gradient_checkpointing: bool = False,
-    lora_rank: int | None = None,
-    lora_alpha: float | None = None,
-    lora_modules: LoraModules = "all",
 ) -> tuple[AutoencoderKL, ImageEmbedder, UNet2DConditionModel, PoseProjection]:
     """``pipe``'s modules set up for fine-tuning (in place): frozen ones cast, trained ones in float32.
 
@@ -99,9 +95,6 @@ def finetuning_modules(
 
     Args:
         weight_dtype: dtype of the frozen modules (:func:`mixed_precision_dtype`).
-        lora_rank: Train only LoRA factors of this rank in the UNet (``training.lora.add_lora``); ``None``:
-            every UNet weight trains. The pose projection trains whole.
-        lora_alpha: The LoRA scale numerator (``None``: ``lora_rank``).
 
     Returns:
         ``(vae, image_embedder, unet, pose_projection)``, ``pipe``'s own modules: the VAE frozen on
@@ -118,8 +111,6 @@ def finetuning_modules(
         )
     unet, pose_projection = pipe.unet.train(), pipe.pose_projection.train()
     unet.requires_grad_(True)
-    if lora_rank is not None:
-        add_lora(unet, rank=lora_rank, alpha=lora_alpha, modules=lora_modules)
     pose_projection.requires_grad_(True)
     if pipe.azimuth_estimator is not None:  # trained like the pose projection (sar_zero123.model.orientation)
         pipe.azimuth_estimator.train().requires_grad_(True)
@@ -190,8 +181,7 @@ def step_logs(
     """The scalars of one optimisation step, means over every process's samples (call it on all).
 
     Returns:
-        ``train/loss``, ``train/loss_simple``, ``train/loss_pfm``, ``lr``, ``train/loss_simple_<quarter>``
-        and, with an adaptive PFM balance, ``train/pfm_scale``.
+        ``train/loss``, ``train/loss_simple``, ``train/loss_pfm``, ``lr`` and ``train/loss_simple_<quarter>``.
     """
     denoising = accelerator.gather(losses.denoising.detach())
     logs = {
@@ -200,8 +190,6 @@ def step_logs(
         "train/loss_pfm": accelerator.gather(losses.pfm.detach()).mean().item(),
         "lr": learning_rate,
     }
-    if losses.pfm_scale is not None:  # the same on every process only by chance: their mean
-        logs["train/pfm_scale"] = accelerator.gather(losses.pfm_scale.detach().reshape(1)).mean().item()
     if losses.azimuth is not None:
         logs["train/loss_azimuth"] = accelerator.gather(losses.azimuth.detach()).mean().item()
     buckets = timestep_bucket_losses(denoising, accelerator.gather(losses.timesteps), num_train_timesteps)
@@ -219,7 +207,7 @@ def export_finetuned(
     """``save_pretrained`` of the fine-tuned pipeline (float32) plus the ``DecibelScaling`` it expects.
 
     The EMA weights of ``ema_pairs`` are copied into ``pipe``'s modules first and the sampler becomes a
-    ``DDIMScheduler``; LoRA factors are merged, so the folder loads without ``peft``. ``lineage`` (what the
+    ``DDIMScheduler``. ``lineage`` (what the
     run started from) goes into ``model_index.json``. Call it on the main process after the last step;
     returns ``directory``.
 
@@ -241,8 +229,8 @@ def export_finetuned(
     pipe.pose_projection.register_to_config(trained_estimator=None)
     sampler = {**EXPORTED_SAMPLER, **((getattr(pipe.config, "sampler", None) or {}) if proxy_model else {})}
     export = SARZero123Pipeline(
-        **{**pipe.components, "scheduler": DDIMScheduler.from_config(pipe.scheduler.config),
-           "unet": merged_unet(pipe.unet)}, sampler=sampler, proxy=proxy, lineage=lineage,
+        **{**pipe.components, "scheduler": DDIMScheduler.from_config(pipe.scheduler.config)},
+        sampler=sampler, proxy=proxy, lineage=lineage,
     )  # fmt: skip
     for module in (export.unet, export.image_encoder, export.pose_projection, export.azimuth_estimator):
         if module is not None:

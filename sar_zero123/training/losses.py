@@ -12,7 +12,6 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Literal
 
 import torch
 import torch.nn.functional as F
@@ -159,13 +158,6 @@ def denoising_loss(model_output: torch.Tensor, target: torch.Tensor) -> torch.Te
     return F.mse_loss(model_output.float(), target.float(), reduction="none").flatten(1).mean(dim=1)
 
 
-#: How lambda of Eq. (21) scales PFM: the paper's fixed weight, or :func:`balanced_pfm_weight`.
-PFM_BALANCES = ("none", "adaptive")
-
-#: Upper bound of the adaptive rescaling (VQGAN bounds its adaptive weight the same way).
-MAX_PFM_BALANCE = 1.0e4
-
-
 def pfm_timestep_mask(timesteps: torch.Tensor, scheduler,
                       min_snr: float = DEFAULT_PFM_MIN_SNR) -> torch.Tensor:
     """Samples whose timestep is informative enough for PFM: ``SNR(t) >= min_snr`` (0 keeps every one).
@@ -194,22 +186,16 @@ class LossSettings:
 
     #: Settings without a flag (``--set FIELD=VALUE`` or ``--config``; ``--help`` lists them at its end).
     ADVANCED_FIELDS = (
-        "pfm_min_snr", "pfm_fraction", "pfm_crop_size", "pfm_balance", "drop_image_prob", "drop_both_prob",
-        "drop_latent_prob", "timestep_sampling", "timestep_logit_mean", "timestep_logit_std", "snr_gamma",
+        "pfm_min_snr", "pfm_fraction", "drop_image_prob", "drop_both_prob", "drop_latent_prob", "snr_gamma",
         "azimuth_loss_weight", "proxy_runner_up_prob", "proxy_oracle_prob",
     )  # fmt: skip
 
     pfm_weight: float = 4.0  # lambda of Eq. (21) (paper: 4); 0 = plain zero-1-to-3 fine-tuning (no PFM)
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR  # PFM only where SNR(t) >= this (0 = every timestep)
     pfm_fraction: float = 1.0  # fraction in (0, 1] of the eligible samples on which PFM is computed
-    pfm_crop_size: int | None = None  # centre crop in pixels for PFM (decodes only that latent window)
-    pfm_balance: Literal["none", "adaptive"] = "none"  # "none": Eq. 21's fixed lambda; "adaptive": balanced
     drop_image_prob: float = 0.05  # CFG dropout: image embedding only (pose kept)
     drop_both_prob: float = 0.05  # CFG dropout: projected token and condition latent (the sampling null)
     drop_latent_prob: float = 0.05  # CFG dropout: condition latent only
-    timestep_sampling: Literal["uniform", "logit_normal"] = "uniform"  # training t density (uniform: paper)
-    timestep_logit_mean: float = 0.0  # logit_normal: mean of logit(t / T); > 0 favours high noise
-    timestep_logit_std: float = 1.0  # logit_normal: standard deviation of logit(t / T)
     snr_gamma: float | None = None  # Min-SNR-gamma weighting of L_simple (e.g. 5); None: the paper's L_simple
     azimuth_loss_weight: float = 1.0  # weight of an azimuth estimator's loss on the input's known azimuth
     # a spatial_pose="proxy" model: share of the pairs given a runner-up proxy instead of the best fit
@@ -227,20 +213,11 @@ class LossSettings:
             )
         if not 0 < self.pfm_fraction <= 1:
             raise ValueError(f"pfm_fraction must be in (0, 1], got {self.pfm_fraction}")
-        check_minimum(self, "pfm_crop_size", minimum=1, optional=True)
-        if self.pfm_balance not in PFM_BALANCES:
-            raise ValueError(f"pfm_balance must be one of {PFM_BALANCES}, got {self.pfm_balance!r}")
         probs = (self.drop_image_prob, self.drop_both_prob, self.drop_latent_prob)
         if not (min(probs) >= 0 and sum(probs) <= 1):
             raise ValueError(
                 f"drop_image_prob, drop_both_prob, drop_latent_prob must be >= 0 with sum <= 1, got {probs}"
             )
-        if self.timestep_sampling not in ("uniform", "logit_normal"):
-            raise ValueError(
-                f"timestep_sampling must be 'uniform' or 'logit_normal', got {self.timestep_sampling!r}"
-            )
-        if self.timestep_sampling == "logit_normal":
-            check_minimum(self, "timestep_logit_std", minimum=0, strict=True)
         check_minimum(self, "snr_gamma", minimum=0, strict=True, optional=True)
 
 
@@ -256,7 +233,6 @@ class LossOutput:
         pfm_mask: Where PFM was computed.
         timesteps: The sampled timesteps, when the caller records them.
         azimuth: The input-azimuth estimation loss of a model with an azimuth estimator.
-        pfm_scale: With ``pfm_balance="adaptive"``, the step's :func:`balanced_pfm_weight` (0-d).
     """
 
     loss: torch.Tensor
@@ -265,7 +241,6 @@ class LossOutput:
     pfm_mask: torch.Tensor
     timesteps: torch.Tensor | None = None
     azimuth: torch.Tensor | None = None
-    pfm_scale: torch.Tensor | None = None
 
 
 def total_loss(
@@ -281,10 +256,8 @@ def total_loss(
     encoder: nn.Module | None = None,
     pfm_min_snr: float = DEFAULT_PFM_MIN_SNR,
     pfm_fraction: float = 1.0,
-    crop_size: int | None = None,
     generator: torch.Generator | None = None,
     denoising_weights: torch.Tensor | None = None,
-    pfm_balance: str = "none",
 ) -> LossOutput:
     """L = L_simple + lambda * L_PFM, Eq. (21), the only place it is assembled.
 
@@ -297,16 +270,13 @@ def total_loss(
         pfm_fraction: Fraction in (0, 1] of the eligible samples given PFM (at least one), drawn with
             ``generator``.
         denoising_weights: Optional per-sample weights of L_simple (Min-SNR-gamma).
-        pfm_balance: ``"none"`` (Eq. 21) or ``"adaptive"`` (:func:`balanced_pfm_weight`; not in the paper).
 
     Shape:
         ``model_output``, ``target``, ``x_t``: ``(B, C, h, w)``; ``timesteps``: ``(B,)``; outputs ``(B,)``.
 
     Raises:
-        ValueError: On a bad ``pfm_weight``, ``pfm_fraction`` or ``pfm_balance``, or missing PFM inputs.
+        ValueError: On a bad ``pfm_weight`` or ``pfm_fraction``, or missing PFM inputs.
     """
-    if pfm_balance not in PFM_BALANCES:
-        raise ValueError(f"pfm_balance must be one of {PFM_BALANCES}, got {pfm_balance!r}")
     if not pfm_weight >= 0:
         raise ValueError(f"pfm_weight must be >= 0, got {pfm_weight}")
     if not 0 < pfm_fraction <= 1:
@@ -327,67 +297,7 @@ def total_loss(
                 order = torch.randperm(eligible.numel(), generator=generator, device="cpu")
                 eligible = eligible[order[:keep].to(eligible.device)]
             mask[eligible] = True
-
-            def pfm_of(output: torch.Tensor) -> torch.Tensor:
-                x0_hat = estimate_x0(x_t[eligible], output[eligible], timesteps[eligible], scheduler)
-                values = pfm_loss(x0_hat, target_images[eligible], vae, encoder, crop_size=crop_size)
-                return torch.zeros_like(denoising).index_put((eligible,), values * (num_eligible / keep))
-
-            if pfm_balance == "none":
-                pfm = pfm_of(model_output)
-            else:
-                pfm, scale = _balanced_pfm(model_output, target, denoising_weights, pfm_of)
-                loss = denoising + pfm_weight * scale * pfm
-                return LossOutput(loss=loss, denoising=denoising, pfm=pfm, pfm_mask=mask, pfm_scale=scale)
+            x0_hat = estimate_x0(x_t[eligible], model_output[eligible], timesteps[eligible], scheduler)
+            values = pfm_loss(x0_hat, target_images[eligible], vae, encoder)
+            pfm = pfm.index_put((eligible,), values * (num_eligible / keep))
     return LossOutput(loss=denoising + pfm_weight * pfm, denoising=denoising, pfm=pfm, pfm_mask=mask)
-
-
-def balanced_pfm_weight(
-    grad_simple: torch.Tensor, grad_pfm: torch.Tensor, *, max_weight: float = MAX_PFM_BALANCE
-) -> torch.Tensor:
-    """The adaptive PFM scale ``||grad L_simple|| / ||grad PFM||``, both taken at the network output.
-
-    Not in the paper: with a fixed lambda, PFM's pull depends on the encoder's feature scale and the
-    timestep; with this scale ``lambda * scale * PFM`` pulls exactly lambda times as hard as L_simple, as
-    VQGAN's adaptive weight (Esser et al., 2021, Eq. 7). Taken at the output, not a layer's weights, so one
-    backward pass serves both the norm and the update.
-
-    Returns:
-        A detached float32 0-d tensor in ``[0, max_weight]``; 0 where PFM has no gradient.
-
-    Raises:
-        ValueError: If the shapes differ or ``max_weight`` is not positive.
-    """
-    if grad_simple.shape != grad_pfm.shape:
-        raise ValueError(
-            f"grad_simple {tuple(grad_simple.shape)} and grad_pfm {tuple(grad_pfm.shape)} differ in shape"
-        )
-    if not max_weight > 0:
-        raise ValueError(f"max_weight must be > 0, got {max_weight}")
-    simple = torch.linalg.vector_norm(grad_simple.detach().float())
-    pfm = torch.linalg.vector_norm(grad_pfm.detach().float())
-    if not pfm > 0:
-        return torch.zeros((), device=grad_pfm.device)
-    return (simple / pfm).clamp(max=max_weight)
-
-
-def _balanced_pfm(model_output, target, denoising_weights, pfm_of) -> tuple[torch.Tensor, torch.Tensor]:
-    """PFM per sample with its gradient attached to ``model_output``, and :func:`balanced_pfm_weight`.
-
-    Computed once on a detached copy (so it works under ``torch.no_grad``); the gradient reaches the
-    network through a surrogate whose value is PFM and whose gradient is PFM's.
-    """
-    with torch.enable_grad():
-        leaf = model_output.detach().requires_grad_(True)
-        pfm = pfm_of(leaf)
-        (grad_pfm,) = torch.autograd.grad(pfm.sum(), leaf)  # per sample: row b is d pfm_b / d output_b
-        simple = denoising_loss(leaf, target)
-        if denoising_weights is not None:
-            simple = simple * denoising_weights
-        (grad_simple,) = torch.autograd.grad(simple.sum(), leaf)
-    scale = balanced_pfm_weight(grad_simple, grad_pfm)
-    pfm = pfm.detach()
-    if model_output.requires_grad:
-        moved = model_output - model_output.detach()  # zero, with the graph of model_output
-        pfm = pfm + (moved * grad_pfm.to(model_output.dtype)).flatten(1).sum(1)
-    return pfm, scale

@@ -14,7 +14,7 @@ import torch.nn.functional as F
 from safetensors.torch import save_file
 from torch import nn
 
-from sar_zero123.domain import center_crop, signed_to_unit, unit_to_signed
+from sar_zero123.domain import signed_to_unit, unit_to_signed
 from sar_zero123.encoder import SAREncoder
 from sar_zero123.model.conditioning import downsampling_factor
 
@@ -121,32 +121,16 @@ def _to_encoder_input(images: torch.Tensor, size: int) -> torch.Tensor:
 
 
 @torch.no_grad()
-def encode_target_features(target_images: torch.Tensor, encoder: nn.Module, *,
-                           crop_size: int | None = None) -> torch.Tensor:
+def encode_target_features(target_images: torch.Tensor, encoder: nn.Module) -> torch.Tensor:
     """Frozen-encoder features h = f(x0) of the real target views (no gradient).
 
     Shape:
         ``(B, 1, H, W)`` normalised dB in [0, 1] -> ``(B, D)`` float32.
     """
-    images = center_crop(target_images, crop_size) if crop_size is not None else target_images
-    images = unit_to_signed(images)  # to the VAE's [-1, 1] so both branches share one mapping
+    images = unit_to_signed(target_images)  # to the VAE's [-1, 1] so both branches share one mapping
     encoder_dtype = next(encoder.parameters()).dtype
     inputs = _to_encoder_input(images, encoder.config.image_size)
     return encoder(inputs.to(encoder_dtype)).float()
-
-
-def check_pfm_crop_size(
-    crop_size: int, *, image_size: int, vae_scale_factor: int, name: str = "crop_size"
-) -> None:
-    """Refuse a PFM centre crop whose latent window is not centred on whole latent pixels.
-
-    Raises:
-        ValueError: Unless ``0 < crop_size <= image_size`` and ``image_size - crop_size`` is a multiple of
-            ``2 * vae_scale_factor``.
-    """
-    if crop_size <= 0 or crop_size > image_size or (image_size - crop_size) % (2 * vae_scale_factor):
-        raise ValueError(f"{name} must be in (0, {image_size}] with (image_size - {name}) a multiple of "
-                         f"{2 * vae_scale_factor} so the latent window is centred, got {crop_size}")
 
 
 def pfm_loss(
@@ -155,16 +139,13 @@ def pfm_loss(
     vae,
     encoder: nn.Module,
     *,
-    crop_size: int | None = None,
     target_features: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Projected Feature Matching, Eq. (20): ``||f(x0) - f(D(x0_hat))||^2`` per sample.
 
     ``x0_hat`` is unscaled and decoded by the frozen VAE; the decode ([-1, 1]) is averaged to one channel,
-    mapped to normalised dB and resized to the encoder's input. With ``crop_size`` only the latent window
-    of the centre crop is decoded (cheaper by ``(image_size / crop_size)**2``); that is not the centre of
-    the full decode, since the VAE's mid-block attention sees only the window. Gradients reach
-    ``x0_hat_latents`` only.
+    mapped to normalised dB and resized to the encoder's input. The whole latent is decoded. Gradients
+    reach ``x0_hat_latents`` only.
 
     Args:
         x0_hat_latents: Scaled x0 estimate (:func:`~sar_zero123.training.losses.estimate_x0`).
@@ -178,7 +159,7 @@ def pfm_loss(
         ``H = h * factor``; returns ``(B,)`` float32.
 
     Raises:
-        ValueError: On frozen-module violations, mismatched batch or sizes, or a bad ``crop_size``.
+        ValueError: On frozen-module violations, mismatched batch or sizes.
     """
     # 1. check inputs
     _require_frozen(vae, "vae")
@@ -191,16 +172,12 @@ def pfm_loss(
     if x0_hat_latents.shape[-1] * factor != image_size:
         raise ValueError(f"target_images side {image_size} != latent side {x0_hat_latents.shape[-1]} x "
                          f"VAE factor {factor}")
-    latents = x0_hat_latents
-    if crop_size is not None:
-        check_pfm_crop_size(crop_size, image_size=image_size, vae_scale_factor=factor)
-        latents = center_crop(latents, crop_size // factor)
     # 2. features of the real target (no gradient)
     if target_features is None:
-        target_features = encode_target_features(target_images, encoder, crop_size=crop_size)
+        target_features = encode_target_features(target_images, encoder)
     # 3. decode the estimate and encode it; gradients flow to x0_hat_latents
     vae_dtype = next(vae.parameters()).dtype
-    decoded = vae.decode(latents.to(vae_dtype) / vae.config.scaling_factor).sample  # (B, C, crop, crop)
+    decoded = vae.decode(x0_hat_latents.to(vae_dtype) / vae.config.scaling_factor).sample  # (B, C, H, W)
     encoder_dtype = next(encoder.parameters()).dtype
     inputs = _to_encoder_input(decoded, encoder.config.image_size)
     features = encoder(inputs.to(encoder_dtype)).float()

@@ -15,7 +15,7 @@ from collections.abc import Sequence
 import numpy as np
 import torch
 from diffusers import AutoencoderKL, DDPMScheduler
-from diffusers.training_utils import compute_density_for_timestep_sampling, compute_snr
+from diffusers.training_utils import compute_snr
 from transformers import CLIPVisionModelWithProjection
 
 from sar_zero123.model.conditioning import embed_pose, encode_image_embeddings, pose_class_labels, vae_input
@@ -48,7 +48,6 @@ __all__ = [
     "encode_batch",
     "micro_batch_generator",
     "min_snr_weights",
-    "sample_timesteps",
     "timestep_bucket_losses",
 ]
 
@@ -365,10 +364,9 @@ def compute_losses(
     # 3. forward diffusion and prediction
     noise = torch.randn(latents.shape, generator=generator).to(latents.device)
     # drawn even when replaced, so that the generator's later draws do not depend on it
-    sampled = sample_timesteps(
-        latents.shape[0], noise_scheduler.config.num_train_timesteps, sampling=settings.timestep_sampling,
-        logit_mean=settings.timestep_logit_mean, logit_std=settings.timestep_logit_std, generator=generator,
-    )  # fmt: skip
+    sampled = torch.randint(  # uniform, as DDPM's L_simple
+        0, noise_scheduler.config.num_train_timesteps, (latents.shape[0],), generator=generator
+    )
     if timesteps is None:
         timesteps = sampled
     elif timesteps.shape != sampled.shape or timesteps.is_floating_point() or timesteps.is_complex():
@@ -395,9 +393,8 @@ def compute_losses(
         model_output, denoising_target(latents, noise, timesteps, noise_scheduler), x_t, timesteps,
         noise_scheduler, pfm_weight=settings.pfm_weight,
         target_images=batch["target"].to(device=latents.device, dtype=vae.dtype), vae=vae, encoder=encoder,
-        pfm_min_snr=settings.pfm_min_snr, pfm_fraction=settings.pfm_fraction,
-        crop_size=settings.pfm_crop_size, generator=generator, denoising_weights=weights,
-        pfm_balance=settings.pfm_balance,
+        pfm_min_snr=settings.pfm_min_snr, pfm_fraction=settings.pfm_fraction, generator=generator,
+        denoising_weights=weights,
     )  # fmt: skip
     if azimuth_loss is not None:
         losses = dataclasses.replace(
@@ -431,38 +428,6 @@ def min_snr_weights(noise_scheduler: DDPMScheduler, timesteps: torch.Tensor, gam
     if prediction_type == "epsilon":
         return capped / snr
     return capped / (snr + 1)  # v_prediction
-
-
-def sample_timesteps(
-    batch_size: int,
-    num_train_timesteps: int,
-    *,
-    sampling: str = "uniform",
-    logit_mean: float = 0.0,
-    logit_std: float = 1.0,
-    generator: torch.Generator | None = None,
-) -> torch.Tensor:
-    """Training timesteps: uniform (DDPM's L_simple), or logit-normal (diffusers' SD3 density).
-
-    ``"logit_normal"`` takes ``t = floor(u T)`` with ``u = sigmoid(N(logit_mean, logit_std))``;
-    ``logit_mean > 0`` spends more of the batch at high noise, where the pose of the target is decided.
-
-    Raises:
-        ValueError: For an unknown ``sampling`` or ``logit_std <= 0``.
-
-    Shape:
-        ``(batch_size,)`` int64 in ``[0, num_train_timesteps)``, on the CPU.
-    """
-    if sampling == "uniform":
-        return torch.randint(0, num_train_timesteps, (batch_size,), generator=generator)
-    if sampling != "logit_normal":
-        raise ValueError(f"timestep_sampling must be 'uniform' or 'logit_normal', got {sampling!r}")
-    if not logit_std > 0:
-        raise ValueError(f"timestep_logit_std must be > 0, got {logit_std}")
-    u = compute_density_for_timestep_sampling(
-        "logit_normal", batch_size, logit_mean=logit_mean, logit_std=logit_std, generator=generator
-    )
-    return (u * num_train_timesteps).long().clamp(0, num_train_timesteps - 1)
 
 
 def timestep_bucket_losses(

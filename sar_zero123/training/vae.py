@@ -1,4 +1,4 @@
-"""The VAE's training objective (reconstruction + KL, plus an optional SAR feature loss) and its loop."""
+"""The VAE's training objective (reconstruction + KL) and its loop."""
 
 from __future__ import annotations
 
@@ -11,37 +11,12 @@ from accelerate import Accelerator
 from diffusers import AutoencoderKL
 from torch.utils.data import DataLoader
 
-from sar_zero123.domain import signed_to_unit, unit_to_signed
-from sar_zero123.encoder import SAREncoder
+from sar_zero123.domain import unit_to_signed
 from sar_zero123.progress import progress_bar
 from sar_zero123.runs.checkpoints import check_finite_step, resumable_batches, save_checkpoint
 from sar_zero123.training.step import MAX_GRAD_NORM, micro_batch_generator
 
-__all__ = ["FeatureLoss", "VAEObjective", "train_vae_steps"]
-
-
-class FeatureLoss(torch.nn.Module):
-    """Squared distance of L2-normalised pooled features of a frozen SAR encoder, per sample: a perceptual
-    loss for SAR chips, as LPIPS compares frozen VGG features for RGB images.
-    """
-
-    def __init__(self, encoder: SAREncoder) -> None:
-        super().__init__()
-        self.encoder = encoder.eval().requires_grad_(False)
-
-    def train(self, mode: bool = True) -> FeatureLoss:
-        super().train(mode)
-        self.encoder.eval()  # frozen BatchNorm statistics, whatever mode the objective is in
-        return self
-
-    def forward(self, reconstruction: torch.Tensor, images: torch.Tensor) -> torch.Tensor:
-        """Per-sample loss in [0, 2] of ``reconstruction`` against ``images`` (normalised dB).
-        Shape: ``(B, 1, S, S), (B, 1, S, S) -> (B,)``.
-        """
-        with torch.no_grad():
-            target = F.normalize(self.encoder(images).float(), dim=1)
-        features = F.normalize(self.encoder(reconstruction).float(), dim=1)
-        return (features - target).pow(2).sum(dim=1) / 2.0
+__all__ = ["VAEObjective", "train_vae_steps"]
 
 
 class VAEObjective(torch.nn.Module):
@@ -52,20 +27,11 @@ class VAEObjective(torch.nn.Module):
         reconstruction_loss: ``"l1"`` or ``"l2"`` on the [-1, 1] images.
     """
 
-    def __init__(
-        self,
-        vae: AutoencoderKL,
-        kl_weight: float,
-        reconstruction_loss: str,
-        feature_loss: FeatureLoss | None = None,
-        feature_loss_weight: float = 0.0,
-    ) -> None:
+    def __init__(self, vae: AutoencoderKL, kl_weight: float, reconstruction_loss: str) -> None:
         super().__init__()
         self.vae = vae
         self.kl_weight = kl_weight
         self.loss_fn = F.l1_loss if reconstruction_loss == "l1" else F.mse_loss
-        self.feature_loss = feature_loss
-        self.feature_loss_weight = feature_loss_weight
 
     def forward(
         self, images: torch.Tensor, generator: torch.Generator | None = None
@@ -80,9 +46,6 @@ class VAEObjective(torch.nn.Module):
         recon = self.vae.decode(posterior.sample(generator=generator)).sample
         reconstruction = self.loss_fn(recon.float(), pixels.float(), reduction="none").flatten(1).mean(dim=1)
         total = reconstruction + self.kl_weight * posterior.kl().float()
-        if self.feature_loss is not None and self.feature_loss_weight > 0:
-            decoded = signed_to_unit(recon.float())  # unclamped: the gradient reaches saturated pixels
-            total = total + self.feature_loss_weight * self.feature_loss(decoded, images.float())
         return total, reconstruction
 
 

@@ -12,7 +12,6 @@ import pytest
 import torch
 from dummies import read_the_pose
 
-from sar_zero123.augment.codomain import readd_speckle
 from sar_zero123.augment_dataset import (
     AUGMENT_FILE,
     PIPELINE_DIGEST,
@@ -146,15 +145,21 @@ def test_resume_generates_only_what_is_missing(augmented, data_dir, pipeline_dir
     assert (out / deleted).read_bytes() == (augmented / deleted).read_bytes()
     assert (out / "index.csv").read_bytes() == (augmented / "index.csv").read_bytes()
     assert not list(out.rglob(".*.tmp"))
-    # a folder written before strength, speckle_looks and depression guidance resumes with their defaults
+    # a folder written before strength and depression guidance resumes with their defaults, and one holding
+    # the retired speckle options at their old defaults as before
     options = json.loads((out / AUGMENT_FILE).read_text())
-    added = ("strength", "speckle_looks", "depression_guidance_scale")
-    (out / AUGMENT_FILE).write_text(json.dumps({k: v for k, v in options.items() if k not in added}))
+    added = ("strength", "depression_guidance_scale")
+    retired = {"speckle": False, "speckle_sigma": 10.0, "speckle_looks": None}
+    old = {**{k: v for k, v in options.items() if k not in added}, **retired}
+    (out / AUGMENT_FILE).write_text(json.dumps(old))
     (out / "index.csv").unlink()
     main(run_args(data_dir, pipeline_dir, out, "--batch_size", "3"))
     assert (out / "index.csv").read_bytes() == (augmented / "index.csv").read_bytes()
     with pytest.raises(ValueError, match=r"other options \(strength: None there, 0.5 now\)"):
         main(run_args(data_dir, pipeline_dir, out, "--batch_size", "3", "--strength", "0.5"))
+    (out / AUGMENT_FILE).write_text(json.dumps({**old, "speckle_looks": 1}))  # speckled views: refused
+    with pytest.raises(ValueError, match=r"speckle_looks=1, but speckle_looks was removed: "):
+        main(run_args(data_dir, pipeline_dir, out, "--batch_size", "3"))
 
 
 def test_strength_starts_from_the_chip_and_is_recorded(augmented, data_dir, pipeline_dir, tmp_path):
@@ -333,41 +338,6 @@ def test_refuses_chips_smaller_than_the_pipeline_or_off_its_scaling(pipeline_dir
     scaling.write_text(json.dumps(DecibelScaling(min_db=-10.0, max_db=0.0).to_dict()))
     with pytest.raises(ValueError, match=r"^data: chip .* outside the scaling's dB range"):
         main(run_args(chips, pipeline_dir, tmp_path / "b", "--scaling_file", str(scaling)))
-
-
-def test_speckle_changes_the_views(augmented, data_dir, pipeline_dir, tmp_path):
-    selection = ["--classes", "APC", "--max_chips_per_class", "1"]
-    out = main(run_args(data_dir, pipeline_dir, tmp_path / "out", *selection, "--speckle"))
-    paths = view_files(out)
-    assert len(paths) == 2
-    for path in paths:
-        speckled, clean = np.load(out / path), np.load(augmented / path)
-        assert speckled.dtype == np.float32 and speckled.min() >= 0.0
-        assert speckled.max() == pytest.approx(1.0, abs=1e-6)  # per-view min-max back to [0, 1]
-        assert np.abs(speckled - clean).mean() > 0.01
-    assert json.loads((out / AUGMENT_FILE).read_text())["speckle"] is True
-
-
-def test_speckle_looks_adds_log_speckle_to_the_views(augmented, data_dir, pipeline_dir, tmp_path):
-    # reference: readd_speckle on the clean view in normalised dB, with the view's own speckle stream
-    selection = ["--classes", "APC", "--max_chips_per_class", "1"]
-    out = main(run_args(data_dir, pipeline_dir, tmp_path / "out", *selection, "--speckle_looks", "1"))
-    scaling = DecibelScaling.for_unit_magnitude()
-    paths = view_files(out)
-    assert len(paths) == 2
-    for path in paths:
-        row, request = (int(part[1:]) for part in path.stem.split("_")[-2:])
-        clean = torch.from_numpy(scaling.normalize(np.load(augmented / path).astype(np.float64)))[None, None]
-        expected = readd_speckle(clean.float(), scaling.max_db - scaling.min_db, 1,
-                                 view_generator(0, row, request, stream=1))[0, 0].numpy()
-        speckled = scaling.normalize(np.load(out / path).astype(np.float64))
-        np.testing.assert_allclose(speckled, expected, atol=2e-3)
-        assert np.abs(speckled - clean[0, 0].numpy()).mean() > 0.01
-    assert json.loads((out / AUGMENT_FILE).read_text())["speckle_looks"] == 1
-    with pytest.raises(ValueError, match=r"^speckle/speckle_looks: choose one"):
-        main(run_args(data_dir, pipeline_dir, tmp_path / "both", "--speckle", "--speckle_looks", "1"))
-    with pytest.raises(ValueError, match=r"speckle_looks"):
-        main(run_args(data_dir, pipeline_dir, tmp_path / "zero", "--speckle_looks", "0"))
 
 
 def test_plan_and_selection_by_hand():

@@ -50,8 +50,6 @@ def test_config_refuses_bad_fields():
         AugmentationBenefitConfig(ks=[1])
     with pytest.raises(ValueError, match="views_per_chip"):
         AugmentationBenefitConfig(views_per_chip=0)
-    with pytest.raises(ValueError, match="speckle_looks"):
-        AugmentationBenefitConfig(speckle_looks=0)
     with pytest.raises(ValueError, match="strength"):
         AugmentationBenefitConfig(strength=1.0)
     with pytest.raises(ValueError, match="eoc1_ks must hold values >= 2"):
@@ -106,27 +104,20 @@ def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
     # more K is a resume; other classifier settings are another benchmark
     with pytest.raises(ValueError, match="classifier_steps: 3 -> 4"):
         main([*args, "--classifier_steps", "4"])
-    # speckle re-adding is one more arm: the same fine-tune, its own views, speckled
+    # starting the views from the kept chips (SDEdit) is more arms: the same fine-tune, its own views,
+    # recorded in the views' options
     finetuned = tmp_path / "out" / "generator_k4" / "finetune" / "pipeline"
     stamp = max(p.stat().st_mtime_ns for p in finetuned.rglob("*"))
-    speckled = {arm["arm"]: arm for arm in main([*args, "--speckle_looks", "1"])["arms"]}
-    assert list(speckled)[:4] == ["all_chips", "real_k4", "generated_k4", "generated_k4_speckle1"]
-    assert speckled["generated_k4_speckle1"]["n_generated"] == 8
-    assert set(speckled["generated_k4_speckle1"]["generator_times"]) == {"finetune", "generate_speckle1"}
-    assert max(p.stat().st_mtime_ns for p in finetuned.rglob("*")) == stamp
-    quality = speckled["generated_k4_speckle1"]["view_quality"]["normalised_db_mean_std"]["generated"]
-    assert quality != arms["generated_k4"]["view_quality"]["normalised_db_mean_std"]["generated"]
-    # so is starting the views from the kept chips (SDEdit): recorded in the views' options
-    started = {arm["arm"]: arm for arm in main([*args, "--strength", "0.5", "--speckle_looks", "1",
-                                                "--same_azimuth_control"])["arms"]}  # fmt: skip
-    assert list(started)[2:7] == ["generated_k4", "generated_k4_speckle1", "generated_k4_d_az0",
-                                  "generated_k4_strength0.5", "generated_k4_strength0.5_d_az0"]  # fmt: skip
+    started = main([*args, "--strength", "0.5", "--same_azimuth_control"])
+    started = {arm["arm"]: arm for arm in started["arms"]}
+    assert list(started)[2:6] == ["generated_k4", "generated_k4_d_az0", "generated_k4_strength0.5",
+                                  "generated_k4_strength0.5_d_az0"]  # fmt: skip
     # the control: the same start, at the kept chip's own azimuth
     assert started["generated_k4_strength0.5_d_az0"]["d_az_deg"] == [0.0]
     assert started["generated_k4_unseen_TANK_strength0.5"]["n_generated"] == 8
     # every plain arm gets the same variants: the missing sector's and the unseen class's too
     for plain in ("generated_sector", "generated_k4_unseen_TANK"):
-        for suffix in ("_speckle1", "_d_az0", "_strength0.5", "_strength0.5_d_az0"):
+        for suffix in ("_d_az0", "_strength0.5", "_strength0.5_d_az0"):
             assert started[plain + suffix]["generator"] == started[plain]["generator"]
     assert started["generated_sector_strength0.5_d_az0"]["d_az_deg"] == [0.0]
     assert started["generated_k4_d_az0"]["d_az_deg"] == [0.0]
@@ -154,7 +145,7 @@ def test_main_runs_every_arm_and_skips_finished_ones(tmp_path):
     assert {row.split(",")[-5] for row in control.read_text().splitlines()[1:]} == {"0.0"}
     views = tmp_path / "out" / "generator_k4" / "views_strength0.5"
     options = json.loads((views / "augment.json").read_text())
-    assert options["strength"] == 0.5 and options["speckle_looks"] is None
+    assert options["strength"] == 0.5 and "speckle_looks" not in options
     assert max(p.stat().st_mtime_ns for p in finetuned.rglob("*")) == stamp
 
 

@@ -523,67 +523,19 @@ def test_evaluate_whose_setup_fails_leaves_no_record(tmp_path: Path) -> None:
     assert read_run_record(out)["finished"] and json.loads((out / "table3.json").read_text())["results"]
 
 
-def test_evaluate_scores_speckled_rows_and_decodes_with_a_same_latent_vae(tmp_path: Path) -> None:
-    """--speckle_looks adds '<row> + speckle' for the VAE round trip and every pipeline (scored on the same
-    views, speckle re-added); --vae decodes with a VAE that encodes as the pipeline's, and refuses one that
-    does not."""
-    data = write_chip_folder(tmp_path / "data", azimuths_deg=tuple(range(0, 360, 60)), size=32)
-    _evaluators(tmp_path / "evaluators")
-    pipe = SARZero123Pipeline(**get_dummy_components())
-    pipe.save_pretrained(tmp_path / "pipe")
-    decoder = type(pipe.vae).from_config(pipe.vae.config)
-    decoder.load_state_dict(pipe.vae.state_dict())
-    with torch.no_grad():
-        decoder.decoder.conv_out.bias.add_(0.5)  # another decoder, the same encoder
-    decoder.save_pretrained(tmp_path / "decoder")
-    base = [
-        "--pipeline", str(tmp_path / "pipe"), "--evaluators", str(tmp_path / "evaluators"),
-        "--data", str(data), "--protocol", "ood-B", "--n", "4", "--num-inference-steps", "1",
-        "--crop_size", "32", "--eval_batch_size", "2", "--num_figure_pairs", "0", "--device", "cpu",
-    ]  # fmt: skip
-    with pytest.warns(UserWarning, match="rank-deficient"):
-        evaluate.main([*base, "--speckle_looks", "1", "--blurred_target_sigmas_px", "1.5",
-                       "--output_dir", str(tmp_path / "speckled")])  # fmt: skip
-    table3 = json.loads((tmp_path / "speckled" / "table3.json").read_text())["results"]
-    # the blurred targets: a reference row below the real target, scored as a model is (its gap closed too)
-    blurred_row = table3[stage.blurred_target_row(1.5)]["seen"]
-    assert blurred_row["ms_ssim"] < table3[REAL_TARGET]["seen"]["ms_ssim"]
-    assert "azimuth_gap_closed" in blurred_row
-    speckled_rows = {f"{VAE_ROUND_TRIP} + speckle", "pipe + speckle"}
-    assert (
-        speckled_rows <= set(table3)
-        and "azimuth_gap_closed" not in table3[f"{VAE_ROUND_TRIP} + speckle"]["seen"]
-    )
-    assert "azimuth_gap_closed" in table3["pipe + speckle"]["seen"]
-    assert table3["pipe + speckle"]["seen"]["ms_ssim"] != table3["pipe"]["seen"]["ms_ssim"]
-    with pytest.warns(UserWarning, match="rank-deficient"):
-        evaluate.main([*base, "--vae", str(tmp_path / "decoder"), "--output_dir", str(tmp_path / "decoded")])
-    decoded = json.loads((tmp_path / "decoded" / "table3.json").read_text())["results"]
-    assert decoded[VAE_ROUND_TRIP]["seen"]["ms_ssim"] != table3[VAE_ROUND_TRIP]["seen"]["ms_ssim"]
-    assert read_run_record(tmp_path / "decoded")["data"]["vae"]["path"] == str(
-        (tmp_path / "decoder").resolve()
-    )
-    other = type(pipe.vae).from_config(pipe.vae.config)  # a new encoder: other latents
-    other.save_pretrained(tmp_path / "other")
-    with pytest.raises(ValueError, match="encodes differently from the pipeline's VAE"):
-        evaluate.main([*base, "--vae", str(tmp_path / "other"), "--output_dir", str(tmp_path / "refused")])
-    assert not (tmp_path / "refused" / "run.json").exists()
-    with pytest.raises(ValueError, match="speckle_looks must be an integer >= 1"):
-        EvaluateConfig(pipeline=["p"], speckle_looks=0)
+def test_the_retired_evaluation_rows_and_vae_are_refused_by_name(tmp_path: Path) -> None:
+    """speckle_looks, blurred_target_sigmas_px and vae were retired: a config file at their old defaults
+    reads as before; another value is refused, naming the field."""
+    from sar_zero123.config import parse_config
 
-
-def test_blurred_targets_are_gaussian_filtered_in_the_image_plane_and_bounded() -> None:
-    from scipy.ndimage import gaussian_filter
-
-    images = torch.rand(3, 1, 12, 12, generator=torch.Generator().manual_seed(0))
-    expected = gaussian_filter(images.double().numpy(), sigma=(0, 0, 2.0, 2.0))
-    torch.testing.assert_close(stage.blurred(images, 2.0), torch.from_numpy(expected).float())
-    constant = torch.full((1, 1, 8, 8), 0.25)
-    torch.testing.assert_close(stage.blurred(constant, 3.0), constant)  # a flat view stays flat
-    assert stage.blurred_target_row(1.5) == "real target blurred 1.5 px"
-    for sigmas, match in (([0.0], r"must lie in \(0, 64\]"), ([1.0, 1.0], "at most 8 distinct values")):
-        with pytest.raises(ValueError, match=match):
-            EvaluateConfig(pipeline=["p"], blurred_target_sigmas_px=sigmas)
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"pipeline": ["p"], "speckle_looks": None, "blurred_target_sigmas_px": [],
+                               "vae": None}))  # fmt: skip
+    assert parse_config(EvaluateConfig, ["--config", str(old)]) == EvaluateConfig(pipeline=["p"])
+    for name, value in (("speckle_looks", 1), ("blurred_target_sigmas_px", [1.5]), ("vae", "decoder")):
+        old.write_text(json.dumps({"pipeline": ["p"], name: value}))
+        with pytest.raises(ValueError, match=rf"{name}=.*, but {name} was removed: "):
+            parse_config(EvaluateConfig, ["--config", str(old)])
 
 
 def test_evaluate_takes_a_bundled_pipeline_by_its_name(tmp_path: Path) -> None:

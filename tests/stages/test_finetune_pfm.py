@@ -122,8 +122,6 @@ def test_smoke_two_steps_writes_checkpoint_grid_and_pipeline(script, assets, tmp
             "2",
             "--validation_inference_steps",
             "2",
-            "--pfm_crop_size",
-            "16",
             "--pfm_projection_dim",
             "10",
         )
@@ -133,7 +131,7 @@ def test_smoke_two_steps_writes_checkpoint_grid_and_pipeline(script, assets, tmp
     grid = np.asarray(PIL.Image.open(out / "validation" / "step-000002.png"))
     assert grid.shape == (2 * 32, 3 * 32)  # rows of input | generated | target
     saved = json.loads((out / "config.json").read_text())
-    assert saved["pfm_weight"] == 4.0 and saved["pfm_crop_size"] == 16
+    assert saved["pfm_weight"] == 4.0 and "pfm_crop_size" not in saved
     assert json.loads((out / "pipeline" / "decibel_scaling.json").read_text())["min_db"] == -60.0
     pipe = SARZero123Pipeline.from_pretrained(out / "pipeline")
     # the exported pipeline records the measured step count: its plain call samples 20 steps, not 50
@@ -719,8 +717,33 @@ def test_options_measured_to_do_nothing_are_refused_by_name_and_old_records_stil
     record_path.write_text(json.dumps(record))
     with pytest.raises(ValueError, match="pfm_monotonic_q=512, but pfm_monotonic_q was removed"):
         open_run_folder(config.output_dir, "finetune", config, data={}, resume=True)
-    with pytest.raises(ValueError, match="pfm_balance"):
-        FinetuneConfig(output_dir=str(tmp_path / "run"), size="tiny", encoder=encoder, pfm_balance="auto")
+
+
+def test_the_retired_lora_balance_timestep_and_crop_settings_are_refused_by_name(tmp_path) -> None:
+    """LoRA, the adaptive PFM balance, logit-normal timesteps and the PFM crop were removed: a flag, --set or
+    a config file naming one is refused with the field and why it went; their old defaults still read."""
+    from sar_zero123.config import drop_removed_fields, parse_config
+    from sar_zero123.stages.finetune import FinetuneConfig
+
+    encoder = str(tmp_path / "encoder")
+    for flag, value in (("lora_rank", "4"), ("lora_alpha", "8"), ("lora_modules", "attention"),
+                        ("pfm_balance", "adaptive"), ("timestep_sampling", "logit_normal"),
+                        ("timestep_logit_mean", "1.0"), ("timestep_logit_std", "0.5"),
+                        ("pfm_crop_size", "16")):  # fmt: skip
+        with pytest.raises(ValueError, match=rf"^--{flag} was removed: "):
+            parse_config(FinetuneConfig, [f"--{flag}", value, "--encoder", encoder])
+    with pytest.raises(ValueError, match=r"^--set lora_rank: lora_rank was removed: a low-rank update"):
+        parse_config(FinetuneConfig, ["--set", "lora_rank=4", "--encoder", encoder])
+    old = {"lora_rank": None, "lora_alpha": None, "lora_modules": "all", "pfm_balance": "none",
+           "timestep_sampling": "uniform", "timestep_logit_mean": 0.0, "timestep_logit_std": 1.0,
+           "pfm_crop_size": None, "seed": 1}  # fmt: skip
+    assert drop_removed_fields(FinetuneConfig, old, "run") == {"seed": 1}
+    with pytest.raises(ValueError, match=r"^run: lora_rank=4, but lora_rank was removed: "):
+        drop_removed_fields(FinetuneConfig, {**old, "lora_rank": 4}, "run")
+    file = tmp_path / "old.json"
+    file.write_text(json.dumps({"encoder": encoder, "timestep_sampling": "logit_normal"}))
+    with pytest.raises(ValueError, match="sampling='logit_normal', but timestep_sampling was removed: "):
+        parse_config(FinetuneConfig, ["--config", str(file)])
 
 
 def test_the_exported_pipeline_records_the_vae_it_was_trained_with(finished_run) -> None:
@@ -731,46 +754,6 @@ def test_the_exported_pipeline_records_the_vae_it_was_trained_with(finished_run)
     assert pose["trained_vae"] == vae_signature(vae)
     assert set(pose["trained_vae"]) == {"sample_size", "block_out_channels", "latent_channels",
                                         "scaling_factor"}  # fmt: skip
-
-
-def test_a_lora_fine_tune_exports_a_plain_unet_whose_change_is_low_rank(script, assets, tmp_path) -> None:
-    args = ("--max_train_steps", "2", "--checkpointing_steps", "1", "--validation_steps", "0", "--no-use_ema",
-            "--pfm_weight", "0", "--learning_rate", "1e-2", "--lora_rank", "2",
-            "--lora_modules", "attention")  # fmt: skip
-    run = script.main(tiny_args(assets, tmp_path / "lora", *args))
-    assert json.loads((run / "config.json").read_text())["lora_rank"] == 2
-    assert any("lora_A" in key for key in load_file(run / "checkpoint-2" / "model.safetensors"))
-    exported = SARZero123Pipeline.from_pretrained(run / "pipeline").unet.state_dict()
-    initial = build_sar_zero123("tiny", image_size=32, seed=3).unet.state_dict()
-    assert exported.keys() == initial.keys()  # a plain UNet: no factor, no base_layer key
-    changed = [key for key in initial if not torch.equal(initial[key], exported[key])]
-    projections = ("to_q.weight", "to_k.weight", "to_v.weight", "to_out.0.weight")
-    assert changed and all(key.endswith(projections) for key in changed)  # only the attention projections
-    for key in changed:  # rank 2 up to float32 rounding of W + B A (a few ulps of W, on any CPU's kernels)
-        singular = torch.linalg.svdvals((exported[key] - initial[key]).double())
-        rounding = 8 * torch.finfo(torch.float32).eps * initial[key].abs().max().item()
-        assert (singular[2:] <= rounding).all() and singular[0] > 10 * rounding
-    # two steps straight equal one step, then a resume to two (the factors are in the checkpoint)
-    AcceleratorState._reset_state(True)
-    GradientState._reset_state()
-    split = tmp_path / "split"
-    script.main(tiny_args(assets, split, "--max_train_steps", "1", *args[2:]))
-    AcceleratorState._reset_state(True)
-    GradientState._reset_state()
-    script.main(tiny_args(assets, split, *args, "--resume_from_checkpoint", "latest"))
-    resumed = SARZero123Pipeline.from_pretrained(split / "pipeline").unet.state_dict()
-    assert all(torch.equal(exported[key], resumed[key]) for key in exported)
-
-
-def test_lora_settings_are_checked_at_the_boundary() -> None:
-    from sar_zero123.stages.finetune import FinetuneConfig
-
-    with pytest.raises(ValueError, match="lora_rank must be >= 1 or None, got 0"):
-        FinetuneConfig(pfm_weight=0.0, lora_rank=0)
-    with pytest.raises(ValueError, match="lora_alpha must be > 0 or None, got -1"):
-        FinetuneConfig(pfm_weight=0.0, lora_rank=4, lora_alpha=-1)
-    with pytest.raises(ValueError, match="lora_modules must be one of .*got 'mlp'"):
-        FinetuneConfig(pfm_weight=0.0, lora_rank=4, lora_modules="mlp")
 
 
 def test_export_records_the_lineage_and_drops_a_killed_exports_half_written_file(tmp_path) -> None:

@@ -36,12 +36,10 @@ def test_every_stage_config_is_built_before_any_work(tmp_path: Path) -> None:
     assert by_name["finetune lambda=4"].pretrained == str(out / "base" / "pipeline")
     assert by_name["evaluate"].pipeline_names == ["lambda=0", "lambda=4"]
     paper = by_name["finetune lambda=4"]
-    assert (paper.pfm_balance, paper.pfm_min_snr) == ("none", 0.004)
-    balanced = quickstart.plan_stages(quickstart.QuickstartConfig(
-        output_dir=str(out), recipe="smoke",
-        set=["finetune.pfm_balance=adaptive", "finetune.pfm_min_snr=2.0"]))
-    tuned = {plan.name: plan.config for plan in balanced}["finetune lambda=4"]
-    assert (tuned.pfm_balance, tuned.pfm_min_snr) == ("adaptive", 2.0)
+    assert paper.pfm_min_snr == 0.004
+    snr = quickstart.plan_stages(quickstart.QuickstartConfig(
+        output_dir=str(out), recipe="smoke", set=["finetune.pfm_min_snr=2.0"]))
+    assert {plan.name: plan.config for plan in snr}["finetune lambda=4"].pfm_min_snr == 2.0
     for stage in ("evaluate", "evaluate depressions"):  # the recipe's sampler, in both evaluations
         assert (by_name[stage].heading_guidance_scale, by_name[stage].strength) == (1.5, 0.5)
     guided = quickstart.plan_stages(quickstart.QuickstartConfig(
@@ -79,43 +77,39 @@ def _planned(out: Path, override: list[str]) -> tuple[list[str], dict]:
     return names[names.index("simclr") + 1 : names.index("evaluators")], {p.name: p.config for p in plans}
 
 
-def test_a_prior_with_a_decoder_fine_tune_plans_the_decoder_before_the_fine_tunes(tmp_path: Path) -> None:
-    """shared.decoder_fine_tune adds the "vae decoder" stage (the prior's decoder alone, the SimCLR encoder's
-    feature loss); every fine-tune decodes with it, and evaluate.speckle_looks reaches the evaluation."""
-    out = tmp_path / "run"
-    override = ["shared.prior=sar-zero123/sim-prior-rotated", "shared.decoder_fine_tune=true",
-                "vae_decoder.max_train_steps=3", "vae_decoder.feature_loss_weight=0.5",
-                "evaluate.speckle_looks=1", "shared.image_size=64"]  # fmt: skip
-    between, by_name = _planned(out, override)
-    assert between == ["vae decoder", "finetune lambda=0", "finetune lambda=4"]
-    decoder = by_name["vae decoder"]
-    assert decoder.pretrained == "sar-zero123/sim-prior-rotated" and decoder.train_encoder is False
-    assert decoder.feature_loss_weight == 0.5 and decoder.feature_encoder == str(out / "simclr" / "encoder")
-    assert decoder.max_train_steps == 3
-    assert by_name["finetune lambda=4"].vae == str(out / "vae_decoder" / "vae")
-    assert by_name["evaluate"].speckle_looks == 1
-    with pytest.raises(ValueError, match="shared.decoder_fine_tune: needs a prior"):
-        quickstart.QuickstartConfig(
-            output_dir=str(out), recipe="smoke", set=["shared.decoder_fine_tune=true"]
-        )
-    with pytest.raises(ValueError, match="speckle_looks must be an integer >= 1"):
-        quickstart.plan_stages(
-            quickstart.QuickstartConfig(output_dir=str(out), recipe="smoke", set=["evaluate.speckle_looks=0"])
-        )
-    assert not out.exists()
+def test_the_retired_decoder_fine_tune_and_evaluation_rows_are_refused_by_name(tmp_path: Path) -> None:
+    """shared.decoder_fine_tune (with its vae_decoder section) and evaluate's speckle rows were retired: --set
+    refuses each in one line naming it; a recipe or a run's record holding them at their old defaults reads
+    as before, and one that set the switch is refused."""
+    from sar_zero123.stages.presets import load_recipe, refuse_old_record
+
+    for item, words in [
+        ("shared.decoder_fine_tune=true", r"shared.decoder_fine_tune was removed: fine-tuning the prior"),
+        ("vae_decoder.max_train_steps=3", r"^set: vae_decoder was removed with shared.decoder_fine_tune: "),
+        ("evaluate.speckle_looks=1", r"evaluate.speckle_looks was removed: rows of views with speckle"),
+        ("evaluate.vae=/x", r"evaluate.vae was removed: "),
+    ]:
+        with pytest.raises(ValueError, match=words):
+            quickstart.apply_overrides(quickstart.RECIPES["default"], [item])
+    old = tmp_path / "old.yaml"
+    old.write_text("extends: default\nvae_decoder:\n  train_encoder: false\n")
+    assert load_recipe(str(old)).sections == quickstart.RECIPES["default"].sections
+    old.write_text("extends: default\nshared:\n  decoder_fine_tune: true\n")
+    with pytest.raises(ValueError, match=r"decoder_fine_tune=True, but decoder_fine_tune was removed: "):
+        load_recipe(str(old))
+    record = {"config": {"recipe.shared.decoder_fine_tune": False, "recipe.vae_decoder.train_encoder": False,
+                         "recipe.shared.rehearsal": False}}  # fmt: skip
+    assert sorted(refuse_old_record(record, "out")) == [
+        "recipe.shared.decoder_fine_tune", "recipe.vae_decoder.train_encoder"
+    ]  # fmt: skip
+    with pytest.raises(ValueError, match=r"^out: recipe.shared: decoder_fine_tune=True, but decoder_"):
+        refuse_old_record({"config": {"recipe.shared.decoder_fine_tune": True}}, "out")
 
 
-def test_finetune_lora_rank_reaches_every_fine_tune_and_is_checked(tmp_path: Path) -> None:
+def test_the_removed_finetune_lora_rank_is_refused_by_name(tmp_path: Path) -> None:
     out = tmp_path / "run"
-    for override, rank in (([], None), (["finetune.lora_rank=8"], 8), (["finetune.lora_rank=None"], None)):
-        plans = quickstart.plan_stages(
-            quickstart.QuickstartConfig(output_dir=str(out), recipe="default", set=override)
-        )
-        ranks = {plan.name: plan.config.lora_rank for plan in plans if plan.name.startswith("finetune")}
-        assert ranks == {"finetune lambda=0": rank, "finetune lambda=4": rank}
-    for item in ("finetune.lora_rank=0", "finetune.lora_rank=True"):
-        with pytest.raises(ValueError, match="lora_rank( must be >= 1 or None|=True: not a value)"):
-            quickstart.plan_stages(quickstart.QuickstartConfig(output_dir=str(out), set=[item]))
+    with pytest.raises(ValueError, match="finetune.lora_rank was removed: a low-rank update"):
+        quickstart.plan_stages(quickstart.QuickstartConfig(output_dir=str(out), set=["finetune.lora_rank=8"]))
     assert not out.exists()
 
 
@@ -255,7 +249,7 @@ def test_quickstart_smoke_runs_every_stage(tmp_path: Path) -> None:
         assert (settings["lr_scheduler"], settings["lr_warmup_steps"]) == ("cosine", 1)
         assert (settings["use_ema"], settings["ema_decay"]) == (True, 0.9)
         assert settings["train_image_encoder"]
-        assert (settings["snr_gamma"], settings["timestep_sampling"]) == (5.0, "logit_normal")
+        assert settings["snr_gamma"] == 5.0
         # the prediction type is the base model's; the fine-tunes inherit it from its scheduler
         assert settings["prediction_type"] == ("v_prediction" if stage == "base" else None)
         scheduler = json.loads((out / stage / "pipeline" / "scheduler" / "scheduler_config.json").read_text())
@@ -365,8 +359,8 @@ def test_set_items_replace_recipe_fields_with_typed_values() -> None:
         ("vae.base_steps=3000", "vae.base_steps was removed: it is now base.max_train_steps"),
         ("shared.mixed_precision=fp8", "not a value of shared.mixed_precision"),
         ("base.prediction_type=sample", "not a value of base.prediction_type"),
-        ("finetune.timestep_sampling=beta", "not a value of finetune.timestep_sampling"),
-        ("finetune.pfm_balance=auto", "not a value of finetune.pfm_balance"),
+        ("finetune.timestep_sampling=beta", "finetune.timestep_sampling was removed: logit-normal"),
+        ("finetune.pfm_balance=auto", "finetune.pfm_balance was removed: rescaling PFM"),
     ]:
         with pytest.raises(ValueError, match=message):
             quickstart.apply_overrides(default, [item])

@@ -179,63 +179,17 @@ def test_reusing_a_finished_run_is_refused_and_more_steps_continue_it(script, ch
     assert json.loads((out / "metrics.json").read_text())["steps"] == 2
 
 
-def test_decoder_fine_tune_keeps_the_encoder_latents_and_scaling_factor(script, chips, tmp_path) -> None:
-    """--pretrained with --no-train_encoder: only the decoder moves, so a UNet trained on the pretrained
-    latents keeps them (check_same_latents passes); the feature loss through a frozen SAR encoder is used."""
-    from sar_zero123.encoder import SAREncoder, SAREncoderConfig
-    from sar_zero123.model.build import check_same_latents
-
-    data = ["--data", str(chips)]
-    base = script.main([*data, "--output_dir", str(tmp_path / "base"), "--max_train_steps", "2",
-                        "--checkpointing_steps", "2", *TINY])  # fmt: skip
-    encoder_dir = SAREncoder(
-        SAREncoderConfig(image_size=32, depths=(1,), hidden_sizes=(8,), embedding_size=8)
-    ).save_pretrained(tmp_path / "encoder")
-    out = script.main([
-        "--data", str(chips), "--output_dir", str(tmp_path / "decoder"), "--max_train_steps", "2",
-        "--checkpointing_steps", "2", *TINY, "--block_out_channels", "16", "16", "16",  # unused: pretrained's
-        "--pretrained", str(base / "vae"), "--no-train_encoder", "--feature_loss_weight", "1.0",
-        "--feature_encoder", str(encoder_dir), "--learning_rate", "1e-3",
-    ])  # fmt: skip
-    before = AutoencoderKL.from_pretrained(base / "vae")
-    after = AutoencoderKL.from_pretrained(out / "vae")
-    check_same_latents(after, before)  # encoder, quant_conv and scaling factor unchanged
-    moved = [
-        k for k, v in after.decoder.state_dict().items() if not torch.equal(v, before.decoder.state_dict()[k])
-    ]
-    assert moved, "the decoder did not train"
-    metrics = json.loads((out / "metrics.json").read_text())
-    assert metrics["architecture"]["block_out_channels"] == [8, 8]
-    assert metrics["scaling_factor"] == pytest.approx(before.config.scaling_factor)
-    # a VAE trained on other decibel bounds is refused before any step, naming both scalings
-    with pytest.raises(ValueError, match=r"was trained on decibel scaling .* but scaling='fit' gives"):
-        script.main([*data, "--output_dir", str(tmp_path / "fit"), "--max_train_steps", "1", *TINY,
-                     "--pretrained", str(base / "vae"), "--scaling", "fit"])  # fmt: skip
-    assert not (tmp_path / "fit" / "vae").exists()
-    # a VAE trained with its encoder is refused where the latents must stay the same
-    retrained = script.main([*data, "--output_dir", str(tmp_path / "both"), "--max_train_steps", "1",
-                             "--checkpointing_steps", "1", *TINY, "--pretrained", str(base / "vae"),
-                             "--learning_rate", "1e-3"])  # fmt: skip
-    with pytest.raises(ValueError, match="encodes differently from the pipeline's VAE"):
-        check_same_latents(AutoencoderKL.from_pretrained(retrained / "vae"), before)
-
-
-def test_feature_loss_is_zero_for_equal_images_and_bounded() -> None:
-    from sar_zero123.encoder import SAREncoder, SAREncoderConfig
-    from sar_zero123.training.vae import FeatureLoss
-
-    torch.manual_seed(0)
-    loss = FeatureLoss(SAREncoder(SAREncoderConfig(image_size=16, depths=(1,), hidden_sizes=(8,),
-                                                          embedding_size=8)))  # fmt: skip
-    images = torch.rand(3, 1, 16, 16)
-    torch.testing.assert_close(loss(images, images), torch.zeros(3))
-    other = loss(torch.rand(3, 1, 16, 16), images)
-    assert other.shape == (3,) and bool((other >= 0).all() and (other <= 2).all())
-    assert not any(p.requires_grad for p in loss.parameters())
-
-
-def test_decoder_only_and_feature_loss_need_their_inputs(script) -> None:
-    with pytest.raises(ValueError, match="train_encoder: False trains the decoder of a pretrained VAE"):
-        script.TrainVAEConfig(train_encoder=False)
-    with pytest.raises(ValueError, match="feature_encoder: a SAREncoder folder is required"):
-        script.TrainVAEConfig(feature_loss_weight=0.5)
+def test_the_retired_decoder_fine_tune_reads_at_its_defaults_and_refuses_another_value(script, tmp_path):
+    """pretrained, train_encoder and the feature loss were retired: a record at their old defaults loads."""
+    old = tmp_path / "old.json"
+    old.write_text(json.dumps({"pretrained": None, "train_encoder": True, "feature_loss_weight": 0.0,
+                               "feature_encoder": None}))  # fmt: skip
+    assert parse_config(script.TrainVAEConfig, ["--config", str(old)]) == script.TrainVAEConfig()
+    for values, name in [
+        ({"train_encoder": False}, "train_encoder"),
+        ({"feature_loss_weight": 1.0}, "feature_loss_weight"),
+        ({"pretrained": "sar-zero123/sim-prior-rotated"}, "pretrained"),
+    ]:
+        old.write_text(json.dumps(values))
+        with pytest.raises(ValueError, match=rf"{name}=.*, but {name} was removed: "):
+            parse_config(script.TrainVAEConfig, ["--config", str(old)])

@@ -1,4 +1,4 @@
-"""Tests of sar_zero123.training.losses: Eq. (19)-(21), numerical safety, crop and batch-fraction options."""
+"""Tests of sar_zero123.training.losses: Eq. (19)-(21), numerical safety and the batch-fraction option."""
 
 from __future__ import annotations
 
@@ -16,7 +16,6 @@ from sar_zero123.training.losses import (
     MIN_ALPHA_CUMPROD,
     LossSettings,
     append_dims,
-    balanced_pfm_weight,
     denoising_loss,
     denoising_target,
     estimate_x0,
@@ -27,7 +26,6 @@ from sar_zero123.training.losses import (
 from sar_zero123.training.pfm import (
     PFM_PROJECTION_FILE,
     ProjectedFeatureEncoder,
-    check_pfm_crop_size,
     load_pfm_encoder,
     pfm_loss,
     project_encoder_features,
@@ -201,34 +199,6 @@ def test_pfm_loss_zero_for_identical_images(vae, encoder) -> None:
     torch.testing.assert_close(pfm_loss(latents, target, vae, encoder), torch.zeros(2), atol=1e-10, rtol=0)
 
 
-def test_pfm_loss_crop_decodes_latent_window(vae, encoder) -> None:
-    generator = torch.Generator().manual_seed(1)
-    target = torch.rand(2, 1, 32, 32, generator=generator)
-    latents = torch.randn(2, 4, 16, 16, generator=generator)
-    seen = []
-    handle = encoder.register_forward_pre_hook(lambda module, args: seen.append(tuple(args[0].shape)))
-    try:
-        loss = pfm_loss(latents, target, vae, encoder, crop_size=16)
-    finally:
-        handle.remove()
-    assert seen == [(2, 1, 16, 16), (2, 1, 16, 16)]  # 16 px centre at the encoder's input size
-    window = latents[..., 4:12, 4:12]
-    decoded = vae.decode(window / vae.config.scaling_factor).sample
-    a, b = (decoded + 1) / 2, target[..., 8:24, 8:24]
-    torch.testing.assert_close(loss, ((encoder(a) - encoder(b)) ** 2).sum(1), atol=1e-6, rtol=1e-5)
-    with pytest.raises(ValueError, match="crop_size"):
-        pfm_loss(latents, target, vae, encoder, crop_size=14)
-
-
-@pytest.mark.parametrize("crop_size", [0, 36, 30, 14])
-def test_check_pfm_crop_size_wants_a_centred_whole_latent_window(crop_size) -> None:
-    check_pfm_crop_size(16, image_size=32, vae_scale_factor=2)  # (32 - 16) / 2 = 8 px = 4 latents per side
-    check_pfm_crop_size(32, image_size=32, vae_scale_factor=2)
-    message = rf"pfm_crop_size must be in \(0, 32\] .* multiple of 4 .* got {crop_size}$"
-    with pytest.raises(ValueError, match=message):
-        check_pfm_crop_size(crop_size, image_size=32, vae_scale_factor=2, name="pfm_crop_size")
-
-
 def test_pfm_loss_rejects_trainable_modules_and_bad_shapes(vae, encoder) -> None:
     latents, target = torch.randn(1, 4, 16, 16), torch.rand(1, 1, 32, 32)
     trainable = TinyEncoder(16).eval()
@@ -298,11 +268,7 @@ def test_total_loss_weights_l_simple_before_adding_lambda_pfm(vae, encoder) -> N
         ({"pfm_weight": -1.0}, r"pfm_weight must be >= 0, got -1.0"),
         ({"pfm_weight": float("nan")}, r"pfm_weight must be >= 0, got nan"),
         ({"pfm_fraction": 0.0}, r"pfm_fraction must be in \(0, 1\], got 0.0"),
-        ({"pfm_crop_size": 0}, r"pfm_crop_size must be >= 1 or None, got 0"),
-        ({"pfm_balance": "vqgan"}, r"pfm_balance must be one of \('none', 'adaptive'\), got 'vqgan'"),
         ({"drop_image_prob": 0.6, "drop_both_prob": 0.6}, r"drop_image_prob, .* got \(0.6, 0.6, 0.05\)"),
-        ({"timestep_sampling": "cosine"}, r"timestep_sampling must be 'uniform' or 'logit_normal'"),
-        ({"timestep_sampling": "logit_normal", "timestep_logit_std": 0.0}, r"timestep_logit_std must be > 0"),
         ({"snr_gamma": 0.0}, r"snr_gamma must be > 0 or None, got 0.0"),
         ({"azimuth_loss_weight": -0.5}, r"azimuth_loss_weight must be >= 0, got -0.5"),
     ],
@@ -316,7 +282,6 @@ def test_loss_settings_default_to_the_papers_loss() -> None:
     settings = LossSettings()
     assert settings.pfm_weight == 4.0 and settings.snr_gamma is None  # Eq. 21 with the paper's lambda
     assert settings.pfm_min_snr == DEFAULT_PFM_MIN_SNR
-    assert LossSettings(timestep_logit_std=0.0).timestep_logit_std == 0.0  # only read by logit_normal
 
 
 class TinyDenoiser(nn.Module):
@@ -383,11 +348,10 @@ def test_pfm_loss_with_sar_encoder(vae) -> None:
                                                      embedding_size=8)))
     x0_hat = torch.randn(2, 4, 16, 16, requires_grad=True)
     target = torch.rand(2, 1, 32, 32)
-    loss = pfm_loss(x0_hat, target, vae, sar_encoder, crop_size=16)
+    loss = pfm_loss(x0_hat, target, vae, sar_encoder)
     assert loss.shape == (2,) and (loss > 0).all()
     loss.sum().backward()
     assert torch.isfinite(x0_hat.grad).all()
-    assert x0_hat.grad[..., :4, :].abs().sum() == 0  # rows outside the decoded window
 
 
 # ------------------------------------------------------------------- paper-comparable PFM projection
@@ -443,69 +407,6 @@ def test_projection_shrinks_pfm_by_three_times_feature_dim_on_average() -> None:
     assert torch.stack(ratios).mean().item() == pytest.approx(1 / (3 * 64), rel=0.05)
 
 
-def test_balanced_pfm_weight_is_the_ratio_of_gradient_norms() -> None:
-    grad_simple = torch.full((2, 4, 2, 2), 0.5)  # norm 0.5 * sqrt(32)
-    grad_pfm = torch.zeros(2, 4, 2, 2)
-    grad_pfm[0, 0, 0, 0] = 4.0  # norm 4
-    expected = torch.tensor(0.5 * math.sqrt(32) / 4)
-    torch.testing.assert_close(balanced_pfm_weight(grad_simple, grad_pfm), expected)
-    assert balanced_pfm_weight(grad_simple, torch.zeros_like(grad_pfm)).item() == 0.0  # no PFM sample
-    assert balanced_pfm_weight(grad_simple, grad_pfm * 1e-9, max_weight=10.0).item() == 10.0
-    with pytest.raises(ValueError, match="differ"):
-        balanced_pfm_weight(grad_simple, grad_pfm[:1])
-    with pytest.raises(ValueError, match="max_weight"):
-        balanced_pfm_weight(grad_simple, grad_pfm, max_weight=0.0)
-
-
-def _adaptive_case(vae):
-    generator = torch.Generator().manual_seed(5)
-    x_t = torch.randn(3, 4, 16, 16, generator=generator)
-    output = torch.randn(3, 4, 16, 16, generator=generator)
-    target = torch.randn(3, 4, 16, 16, generator=generator)
-    images = torch.rand(3, 1, 32, 32, generator=generator)
-    return x_t, output, target, images
-
-
-def test_adaptive_balance_gives_pfm_lambda_times_the_pull_of_l_simple(vae, encoder) -> None:
-    scheduler = scheduler_for("scaled_linear", "v_prediction")
-    x_t, output, target, images = _adaptive_case(vae)
-    timesteps, weights = torch.tensor([10, 400, 950]), torch.tensor([0.5, 1.0, 0.1])
-    kwargs = dict(target_images=images, vae=vae, encoder=encoder, pfm_min_snr=0.0, denoising_weights=weights)
-    # reference: the two terms' gradients at the output from Eq. (21) as written
-    leaf = output.clone().requires_grad_(True)
-    plain = total_loss(leaf, target, x_t, timesteps, scheduler, pfm_weight=1.0, **kwargs)
-    (grad_simple,) = torch.autograd.grad(plain.denoising.mean(), leaf, retain_graph=True)
-    (grad_pfm,) = torch.autograd.grad(plain.pfm.mean(), leaf)
-    scale = grad_simple.norm() / grad_pfm.norm()
-    leaf = output.clone().requires_grad_(True)
-    out = total_loss(leaf, target, x_t, timesteps, scheduler, pfm_weight=2.0, pfm_balance="adaptive",
-                     **kwargs)  # fmt: skip
-    torch.testing.assert_close(out.pfm_scale, scale.detach())
-    torch.testing.assert_close(out.pfm, plain.pfm.detach())  # same values as Eq. (20)
-    torch.testing.assert_close(out.loss, plain.denoising.detach() + 2.0 * scale * plain.pfm.detach())
-    (grad,) = torch.autograd.grad(out.loss.mean(), leaf)
-    torch.testing.assert_close(grad, grad_simple + 2.0 * scale * grad_pfm)
-    torch.testing.assert_close((2.0 * scale * grad_pfm).norm(), 2.0 * grad_simple.norm())  # lambda x the pull
-
-
-def test_adaptive_balance_without_gradients_and_without_eligible_samples(vae, encoder) -> None:
-    scheduler = scheduler_for("scaled_linear")
-    x_t, output, target, images = _adaptive_case(vae)
-    kwargs = dict(pfm_weight=1.0, target_images=images, vae=vae, encoder=encoder, pfm_balance="adaptive")
-    timesteps = torch.tensor([10, 400, 950])
-    with_grad = total_loss(output.clone().requires_grad_(True), target, x_t, timesteps, scheduler, **kwargs)
-    with torch.no_grad():  # validation: same values, nothing attached
-        without = total_loss(output, target, x_t, timesteps, scheduler, **kwargs)
-    torch.testing.assert_close(without.loss, with_grad.loss.detach())
-    assert not without.loss.requires_grad
-    # no sample eligible: L_simple alone, no scale
-    none = total_loss(output, target, x_t, timesteps, scheduler, pfm_min_snr=1e6, **kwargs)
-    torch.testing.assert_close(none.loss, denoising_loss(output, target))
-    assert none.pfm_scale is None and not none.pfm_mask.any()
-    with pytest.raises(ValueError, match="pfm_balance"):
-        total_loss(output, target, x_t, timesteps, scheduler, **{**kwargs, "pfm_balance": "fixed"})
-
-
 @pytest.mark.parametrize("prediction_type", ["epsilon", "v_prediction"])
 def test_pfm_of_a_perfect_prediction_is_the_vae_round_trip_distance(vae, encoder, prediction_type) -> None:
     """Eq. (19)-(20): predicting the true noise (or v) gives x0_hat = x0, so PFM is exactly the feature
@@ -546,11 +447,8 @@ def test_the_finetune_config_inherits_every_loss_setting_once_and_passes_each_th
     assert {name: getattr(FinetuneConfig(encoder="e"), name) for name in names} == dataclasses.asdict(
         LossSettings()
     )
-    changed = {"pfm_weight": 0.5, "pfm_min_snr": 0.2, "pfm_fraction": 0.5, "pfm_crop_size": 16,
-               "pfm_balance": "adaptive", "drop_image_prob": 0.1,
-               "drop_both_prob": 0.1,
-               "drop_latent_prob": 0.1, "timestep_sampling": "logit_normal", "timestep_logit_mean": 0.3,
-               "timestep_logit_std": 0.7, "snr_gamma": 2.0, "azimuth_loss_weight": 0.5,
+    changed = {"pfm_weight": 0.5, "pfm_min_snr": 0.2, "pfm_fraction": 0.5, "drop_image_prob": 0.1,
+               "drop_both_prob": 0.1, "drop_latent_prob": 0.1, "snr_gamma": 2.0, "azimuth_loss_weight": 0.5,
                "proxy_runner_up_prob": 0.5, "proxy_oracle_prob": 0.25}  # fmt: skip
     assert set(changed) == set(names)
     config = FinetuneConfig(encoder="enc", **changed)
@@ -560,8 +458,8 @@ def test_the_finetune_config_inherits_every_loss_setting_once_and_passes_each_th
     assert config.pfm_weight == 0.5
     with pytest.raises(ValueError, match="pfm_fraction must be in"):  # validated where declared
         FinetuneConfig(encoder="enc", pfm_fraction=0.0)
-    parsed = parse_config(FinetuneConfig, ["--encoder", "e", "--pfm_balance", "adaptive", "--snr_gamma", "5"])
-    assert parsed.pfm_balance == "adaptive" and parsed.snr_gamma == 5.0
+    parsed = parse_config(FinetuneConfig, ["--encoder", "e", "--pfm_fraction", "0.5", "--snr_gamma", "5"])
+    assert parsed.pfm_fraction == 0.5 and parsed.snr_gamma == 5.0
 
 
 def test_finetune_config_refuses_the_removed_pfm_variants_by_name() -> None:

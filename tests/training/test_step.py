@@ -213,23 +213,6 @@ def test_pose_in_time_embedding_is_the_only_pose_path_when_the_token_ignores_the
     assert difference > 1e-4 if pose_in_time_embedding else difference == 0.0
 
 
-def test_sample_timesteps_uniform_is_randint_and_logit_normal_shifts_to_high_noise() -> None:
-    from sar_zero123.training.step import sample_timesteps
-
-    uniform = sample_timesteps(64, 1000, generator=torch.Generator().manual_seed(0))
-    assert torch.equal(uniform, torch.randint(0, 1000, (64,), generator=torch.Generator().manual_seed(0)))
-    high = sample_timesteps(
-        20_000, 1000, sampling="logit_normal", logit_mean=1.0, generator=torch.Generator().manual_seed(0)
-    )
-    assert high.min() >= 0 and high.max() <= 999
-    # median of sigmoid(N(1, 1)) is sigmoid(1) = 0.731
-    assert high.float().median().item() == pytest.approx(731, abs=10)
-    with pytest.raises(ValueError, match="timestep_sampling must be"):
-        sample_timesteps(2, 1000, sampling="cosine")
-    with pytest.raises(ValueError, match="timestep_logit_std"):
-        sample_timesteps(2, 1000, sampling="logit_normal", logit_std=0.0)
-
-
 def test_min_snr_weights_closed_form() -> None:
     from sar_zero123.training.step import min_snr_weights
 
