@@ -67,8 +67,8 @@ class PriorConfig:
     """Corpus, VAE and UNet of the multi-view prior (defaults: the bundled prior's recipe)."""
 
     ADVANCED_FIELDS = (
-        "num_validation_vehicles", "corpus_workers", "proxy_oracle_prob", "vae_widths",
-        "vae_steps", "vae_batch_size", "lr_scheduler", "lr_warmup_steps", "input_depression",
+        "num_validation_vehicles", "corpus_workers", "proxy_oracle_prob", "proxy_runner_up_prob",
+        "vae_widths", "vae_steps", "vae_batch_size", "lr_scheduler", "lr_warmup_steps", "input_depression",
         "prediction_type", "snr_gamma", "checkpointing_steps", "mixed_precision",
     )  # fmt: skip
     REMOVED_FIELDS = {
@@ -93,6 +93,7 @@ class PriorConfig:
     # the UNet also takes the input latent turned by d_az ("rotated_input"), or also the proxies ("proxy")
     spatial_pose: str | None = None
     proxy_oracle_prob: float = 0.0  # "proxy": share of pairs given the vehicle itself as proxy (LossSettings)
+    proxy_runner_up_prob: float = 0.25  # "proxy": share of pairs given the second-best fit as proxy
     reference_attention: bool = False  # the UNet's self-attentions also attend to the input's own features
     input_tokens: bool = False  # the UNet's cross-attentions also attend to the input's latent, by place
     proxy_geometry: bool = False  # "proxy": the UNet reads each proxy as shadow, ground and lit masks
@@ -140,7 +141,7 @@ class PriorConfig:
             raise ValueError(
                 f"model_size must be one of {sorted(SAR_ZERO123_SIZES)}, got {self.model_size!r}"
             )
-        LossSettings(proxy_oracle_prob=self.proxy_oracle_prob)
+        LossSettings(proxy_oracle_prob=self.proxy_oracle_prob, proxy_runner_up_prob=self.proxy_runner_up_prob)
         if self.proxy_geometry and self.init is None and self.spatial_pose != "proxy":
             raise ValueError(
                 "proxy_geometry: only a spatial_pose='proxy' prior reads a proxy (--spatial_pose proxy), got "
@@ -284,6 +285,7 @@ def prior_base_config(config: PriorConfig, vae: Path, corpus: Path | None = None
         **pose,
         proxies=None if corpus is None else _proxies_or_none(config, corpus),
         proxy_oracle_prob=config.proxy_oracle_prob,
+        proxy_runner_up_prob=config.proxy_runner_up_prob,
         reference_attention=config.reference_attention,
         input_tokens=config.input_tokens,
         proxy_geometry=config.proxy_geometry,

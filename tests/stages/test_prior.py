@@ -19,7 +19,7 @@ from sar_zero123.model.conditioning import embed_pose
 from sar_zero123.sim import TARGET_CLASSES, render_chip
 from sar_zero123.sim.corpus import VALIDATION_CLASS, corpus_views, write_prior_corpus
 from sar_zero123.sim.procedural import PROCEDURAL_CLASS, make_procedural_target, procedural_parts
-from sar_zero123.stages.prior import PriorConfig
+from sar_zero123.stages.prior import PriorConfig, prior_base_config
 
 
 # ---------------------------------------------------------------------------- procedural vehicles
@@ -355,3 +355,15 @@ def test_a_batch_the_corpus_pairs_cannot_fill_is_refused_before_the_vae_keeping_
     assert sorted(p.name for p in out.iterdir()) == ["config.json", "corpus", "run.json"]  # no VAE stage
     pairs = check_corpus_pairs(dataclasses.replace(config, train_batch_size=4), out / "corpus")
     assert 4 <= pairs < 16
+
+
+def test_the_proxy_shares_reach_the_unet_stage_and_a_bad_sum_is_refused_at_the_prior(tmp_path: Path):
+    config = PriorConfig(output_dir=str(tmp_path / "prior"), spatial_pose="proxy", proxy_oracle_prob=0.25,
+                         proxy_runner_up_prob=0.0)  # fmt: skip
+    base = prior_base_config(config, vae=tmp_path / "vae")
+    assert (base.proxy_oracle_prob, base.proxy_runner_up_prob) == (0.25, 0.0)
+    assert PriorConfig(output_dir=str(tmp_path / "p2")).proxy_runner_up_prob == 0.25  # the bundled priors'
+    message = r"proxy_runner_up_prob, proxy_oracle_prob must be >= 0 with sum <= 1"
+    with pytest.raises(ValueError, match=message):
+        PriorConfig(output_dir=str(tmp_path / "prior"), proxy_oracle_prob=0.5, proxy_runner_up_prob=0.75)
+    assert not (tmp_path / "prior").exists()
