@@ -18,8 +18,10 @@ same views its plain call fits and renders itself. Rows, on the same pairs:
 
 Writes JSON (per row: template azimuth error and its standard error, gap closed, front/back right,
 identity kept, seconds; the best proxy-prior row's paired error differences from the baseline and from the
-proxy alone) and prints a table. ``--consensus``, ``--refine``, ``--retrieval``, ``--compare`` and
-``--steps`` each run only their own rows (their ``--help``); ``--fits`` keeps the fits for a re-run.
+proxy alone; with ``--compare``, each row's identity where the fitted proxy keeps the vehicle and where it
+does not, :func:`~sar_zero123.evaluation.template.identity_by_proxy`) and prints a table. ``--consensus``,
+``--refine``, ``--retrieval``, ``--compare`` and ``--steps`` each run only their own rows (their
+``--help``); ``--fits`` keeps the fits for a re-run.
 """
 
 from __future__ import annotations
@@ -40,7 +42,7 @@ from sar_zero123 import SIM_PRIOR_ROTATED, SARZero123Pipeline, resolve_pretraine
 from sar_zero123.config.json_io import write_json_atomic
 from sar_zero123.data import SCALING_FILE, DecibelScaling
 from sar_zero123.domain import to_decibels
-from sar_zero123.evaluation.template import summarise_readings, turned_and_kept
+from sar_zero123.evaluation.template import identity_by_proxy, summarise_readings, turned_and_kept
 from sar_zero123.model.pipeline import SAMPLER_DEFAULTS
 from sar_zero123.model.proxy import PROXY_FIELDS, check_proxy_settings, draft_target_views, proxy_bank
 from sar_zero123.sim import render_chip
@@ -295,13 +297,15 @@ def run(
                 se = float(diff.std(ddof=1) / np.sqrt(len(diff)))
                 shares[f"{first} - {second}: {share}"] = {"mean": float(diff.mean()), "se": se}
                 print(f"paired: {first} - {second}: {share} {diff.mean():+.1%} ± {se:.1%}")
+        by_proxy = {name: identity_by_proxy(r.identity_kept, readings[alone_row].identity_kept)
+                    for name, r in readings.items()}  # fmt: skip
         views = {name: {"azimuth_error_deg": np.round(r.azimuth_error_deg, 2).tolist(),
                         "identity_kept": r.identity_kept.astype(int).tolist()}
                  for name, r in readings.items()}  # fmt: skip
         return {"benchmark": "proxy_prior_views (identity)", "pipelines": [str(pipeline), *compare],
                 "pairs_per_class": pairs_per_class, "seed": seed, "proxy": proxy,
                 "paired_azimuth_error_differences": comparisons, "paired_share_differences": shares,
-                "rows": rows, "per_view": views,
+                "rows": rows, "identity_by_proxy": by_proxy, "per_view": views,
                 "device": cpu_device()}  # fmt: skip
     if retrieval is not None:  # the exhaustive fit against the learned shortlist of each size
         name, sizes = retrieval[0], [int(k) for k in retrieval[1]]

@@ -27,6 +27,7 @@ __all__ = [
     "TURNED_WITHIN_DEG",
     "TemplateReadings",
     "gap_closed",
+    "identity_by_proxy",
     "read_chip_templates",
     "read_templates",
     "summarise_readings",
@@ -197,6 +198,27 @@ def turned_and_kept(
     if error.shape != kept.shape:
         raise ValueError(f"kept: expected one value per view {error.shape}, got {kept.shape}")
     return kept & (error <= within_deg)
+
+
+def identity_by_proxy(kept: np.ndarray, proxy_kept: np.ndarray) -> dict[str, float]:
+    """A row's identity kept, split by whether the proxy it was given keeps the vehicle itself.
+
+    ``kept`` is the row's per-view identity, ``proxy_kept`` the proxy alone's on the same pairs. Where the
+    proxy is right a view may copy it; where it is wrong only what the view carries of the input keeps the
+    vehicle.
+    The row's share is ``p * right + (1 - p) * wrong``, with ``p`` the proxy's own share.
+
+    Returns:
+        ``proxy_right_share``, ``kept_proxy_right`` and ``kept_proxy_wrong`` (each ``nan`` on an empty group),
+        with the standard errors ``kept_proxy_right_se`` and ``kept_proxy_wrong_se``.
+    """
+    kept, proxy_kept = np.asarray(kept, dtype=bool), np.asarray(proxy_kept, dtype=bool)
+    if kept.ndim != 1 or kept.shape != proxy_kept.shape:
+        raise ValueError(f"proxy_kept: expected one value per view {kept.shape}, got {proxy_kept.shape}")
+    summary = {"proxy_right_share": float(proxy_kept.mean()) if len(kept) else float("nan")}
+    for name, group in (("kept_proxy_right", kept[proxy_kept]), ("kept_proxy_wrong", kept[~proxy_kept])):
+        summary[name], summary[f"{name}_se"] = _mean_se(group) if len(group) else (float("nan"), float("nan"))
+    return summary
 
 
 def summarise_readings(

@@ -9,6 +9,7 @@ from scipy.ndimage import gaussian_filter
 from sar_zero123.evaluation.template import (
     TURNED_WITHIN_DEG,
     gap_closed,
+    identity_by_proxy,
     read_templates,
     summarise_readings,
     turned_and_kept,
@@ -146,3 +147,18 @@ def test_the_evaluation_reads_each_pair_against_its_vehicles_other_chips_at_the_
     floor = read_chip_templates(views, chips[:, 0].numpy(), azimuths.numpy(), candidates.numpy(),
                                 [records[t].azimuth_deg for _, t in pairs.pairs])  # fmt: skip
     np.testing.assert_allclose(floor.matched_azimuth_deg, [records[s].azimuth_deg for s, _ in pairs.pairs])
+
+
+def test_identity_by_proxy_splits_a_row_by_its_proxy_and_recombines_to_the_row():
+    kept = np.array([1, 1, 1, 0, 1, 0, 0, 0, 1, 0], dtype=bool)
+    proxy = np.array([1, 1, 1, 1, 0, 0, 0, 0, 0, 0], dtype=bool)
+    split = identity_by_proxy(kept, proxy)
+    assert split["proxy_right_share"] == 0.4
+    assert split["kept_proxy_right"] == 0.75 and split["kept_proxy_wrong"] == pytest.approx(2 / 6)
+    assert split["kept_proxy_right_se"] == pytest.approx(np.std([1, 1, 1, 0], ddof=1) / 2)
+    p = split["proxy_right_share"]
+    assert p * split["kept_proxy_right"] + (1 - p) * split["kept_proxy_wrong"] == pytest.approx(kept.mean())
+    every = identity_by_proxy(kept, np.ones(10, dtype=bool))
+    assert np.isnan(every["kept_proxy_wrong"]) and every["kept_proxy_right"] == kept.mean()
+    with pytest.raises(ValueError, match=r"proxy_kept: expected one value per view \(10,\), got \(9,\)"):
+        identity_by_proxy(kept, proxy[:9])
