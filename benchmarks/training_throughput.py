@@ -5,7 +5,8 @@
 For the bundled prior's UNet (``sar-zero123/sim-prior-rotated``, the quickstart's model), at each batch size:
 the FLOPs of one training step per sample (``torch.utils.flop_counter.FlopCounterMode``); steps/s and
 samples/s of a step (forward, MSE, backward, AdamW) in float32, channels-last, bf16 autocast and
-``torch.compile``, timed in alternating rounds so that a busier machine moment hits them alike; the
+``torch.compile``, each also with the fine-tunes' fused AdamW (``fused AdamW``, ``fused AdamW +
+torch.compile``), timed in alternating rounds so that a busier machine moment hits them alike; the
 achieved FLOP rate as a fraction of this device's best ``torch.mm`` rate (at the model's matrix sizes and
 at 2048^2); and the ten most expensive operators of a float32 step (``torch.profiler``). The data are
 random latents of the model's shape: a step's cost does not depend on the values, and a fine-tune caches
@@ -96,9 +97,11 @@ def time_variants(pipeline: str, batch: int, variants: list[str], rounds: int, s
         unet = SARZero123Pipeline.from_pretrained(pipeline).unet.train()
         if variant == "channels-last":
             unet = unet.to(memory_format=torch.channels_last)
-        optimizer = torch.optim.AdamW(unet.parameters(), lr=1e-5)
+        # "fused AdamW": the fine-tunes' optimizer (sar_zero123.training.finetuning), one kernel per update
+        fused = variant.startswith("fused AdamW")
+        optimizer = torch.optim.AdamW(unet.parameters(), lr=1e-5, fused=fused)
         step = _step_function(unet, optimizer, variant)
-        if variant == "torch.compile":
+        if variant.endswith("torch.compile"):
             step = torch.compile(step)
         sample, timesteps, hidden, labels = _inputs(unet, batch)
         if variant == "channels-last":
