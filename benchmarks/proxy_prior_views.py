@@ -285,6 +285,8 @@ def run(
             add(plain, *sample(model, fitted, fitted[:, 1], own_strength, own_heading))
             add(f"{name}, fitted proxy, from noise", *sample(model, fitted, None, 1.0, own_heading))
             add(perfect, *sample(model, oracle, None, 1.0, own_heading))
+            add(f"{name}, perfect proxy, its plain call",
+                *sample(model, oracle, oracle[:, 1], own_strength, own_heading))
             if number:
                 pairs_of_rows += [(plain, f"{pipeline}, its plain call (fitted proxy)"),
                                   (perfect, f"{pipeline}, perfect proxy, from noise")]  # fmt: skip
@@ -460,8 +462,8 @@ def main(argv: Sequence[str] | None = None) -> dict:
                         "name or folder) of each size, and the recorded sampler from the exhaustive fit and "
                         "from the first size")
     parser.add_argument("--compare", nargs="+", default=[],
-                        help="only each pipeline's plain call (fitted proxy), the fitted and the perfect "
-                        "proxy from noise, the first --pipeline, then these, paired with it")  # fmt: skip
+                        help="only each pipeline's plain call with the fitted and the perfect proxy, both "
+                        "also from noise: the first --pipeline, then these, paired with it")  # fmt: skip
     parser.add_argument("--out", default="proxy_prior_views.json", help="output JSON")
     args = parser.parse_args(argv)
     if args.consensus is not None and not (args.consensus[0] >= 1 and args.consensus[1] > 0):
