@@ -205,8 +205,7 @@ def identity_by_proxy(kept: np.ndarray, proxy_kept: np.ndarray) -> dict[str, flo
 
     ``kept`` is the row's per-view identity, ``proxy_kept`` the proxy alone's on the same pairs. Where the
     proxy is right a view may copy it; where it is wrong only what the view carries of the input keeps the
-    vehicle.
-    The row's share is ``p * right + (1 - p) * wrong``, with ``p`` the proxy's own share.
+    vehicle. The row's share is ``p * right + (1 - p) * wrong``, with ``p`` the proxy's own share.
 
     Returns:
         ``proxy_right_share``, ``kept_proxy_right`` and ``kept_proxy_wrong`` (each ``nan`` on an empty group),

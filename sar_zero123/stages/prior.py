@@ -92,8 +92,8 @@ class PriorConfig:
     model_size: str = "micro"  # build_sar_zero123 size of the UNet
     # the UNet also takes the input latent turned by d_az ("rotated_input"), or also the proxies ("proxy")
     spatial_pose: str | None = None
-    proxy_oracle_prob: float = 0.0  # "proxy": share of pairs given the vehicle itself as proxy (LossSettings)
-    proxy_runner_up_prob: float = 0.25  # "proxy": share of pairs given the second-best fit as proxy
+    proxy_oracle_prob: float = LossSettings.proxy_oracle_prob  # "proxy": pairs given the vehicle itself
+    proxy_runner_up_prob: float = LossSettings.proxy_runner_up_prob  # "proxy": pairs given the runner-up fit
     reference_attention: bool = False  # the UNet's self-attentions also attend to the input's own features
     input_tokens: bool = False  # the UNet's cross-attentions also attend to the input's latent, by place
     proxy_geometry: bool = False  # "proxy": the UNet reads each proxy as shadow, ground and lit masks
